@@ -1,0 +1,47 @@
+#!/usr/bin/env bash
+# Sets up everything the project needs on a fresh Debian 12 machine with Python 3.11:
+# Debian packages, a virtualenv with pinned requirements, and the crowdview build.
+# Idempotent: each step is skipped when its inputs have not changed.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+stamp_dir="$root/.setup"
+mkdir -p "$stamp_dir"
+
+say() { printf '[setup] %s\n' "$*" >&2; }
+
+# 1. Debian packages: only those missing are installed.
+mapfile -t wanted < <(grep -v '^\s*#' scripts/apt-packages.txt | grep -v '^\s*$')
+missing=()
+for pkg in "${wanted[@]}"; do
+  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+done
+if [ "${#missing[@]}" -gt 0 ]; then
+  say "installing Debian packages: ${missing[*]}"
+  sudo_cmd=""
+  [ "$(id -u)" -ne 0 ] && sudo_cmd="sudo"
+  $sudo_cmd apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+# 2. Python virtualenv with pinned requirements (two steps: see services/requirements.txt).
+py="${PYTHON:-python3.11}"
+command -v "$py" >/dev/null || py=python3
+req_hash=$(cat services/requirements-pyrender.txt services/requirements.txt services/requirements-test.txt services/pyproject.toml | sha256sum | cut -c1-16)
+if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp_dir/venv" 2>/dev/null)" != "$req_hash" ]; then
+  say "creating virtualenv .venv"
+  "$py" -m venv .venv
+  .venv/bin/pip install -q --upgrade pip
+  .venv/bin/pip install -q -r services/requirements-pyrender.txt
+  .venv/bin/pip install -q -r services/requirements.txt -r services/requirements-test.txt
+  .venv/bin/pip install -q --no-deps -e services
+  echo "$req_hash" > "$stamp_dir/venv"
+fi
+
+# 3. crowdview (C++17) build; cmake itself decides what is out of date.
+if [ -f runtime/CMakeLists.txt ]; then
+  say "building crowdview"
+  cmake -S runtime -B build/runtime -G Ninja -DCMAKE_BUILD_TYPE=Release >/dev/null
+  cmake --build build/runtime -j "$(nproc)" >/dev/null
+fi
+say "ready"

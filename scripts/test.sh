@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Sets everything up (scripts/setup.sh), then runs every test: Python (pytest) and C++ (ctest).
+# Starts a private redis-server on loopback for the integration tests and stops it afterwards.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+bash scripts/setup.sh
+
+export PYOPENGL_PLATFORM="${PYOPENGL_PLATFORM:-osmesa}"
+mkdir -p out/test
+redis_dir="$(mktemp -d)"
+redis_port="${CROWDBAKE_TEST_REDIS_PORT:-6391}"
+redis-server --port "$redis_port" --bind 127.0.0.1 --save "" --appendonly no --dir "$redis_dir" \
+  --daemonize yes --pidfile "$redis_dir/redis.pid" --logfile "$redis_dir/redis.log"
+cleanup() { [ -f "$redis_dir/redis.pid" ] && kill "$(cat "$redis_dir/redis.pid")" 2>/dev/null; rm -rf "$redis_dir"; }
+trap cleanup EXIT
+export CROWDBAKE_TEST_REDIS_URL="redis://127.0.0.1:${redis_port}/0"
+
+status=0
+echo "== Python tests (pytest) =="
+.venv/bin/python -m pytest services/tests tests -q -p no:cacheprovider --junitxml=out/test/pytest.xml "$@" || status=$?
+echo "== C++ tests (ctest) =="
+ctest --test-dir build/runtime --output-on-failure || status=$?
+exit "$status"

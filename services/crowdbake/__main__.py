@@ -1,0 +1,5 @@
+import sys
+
+from crowdbake.cli import main
+
+sys.exit(main())

@@ -1,0 +1,235 @@
+"""Binary files of a bundle (shared_formats/SPEC.md): CBPC pose caches and CBTX texture arrays.
+
+Both start with the common header (magic, version, header_size, file_size). Decoders check
+the header in the order the spec gives, so every strict prefix of a valid file is reported
+as `truncated`, and never allocate more than the bytes they were handed.
+"""
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+from crowdbake.formats.errors import FormatError
+
+POSE_CACHE_MAGIC = b"CBPC"
+TEXTURE_MAGIC = b"CBTX"
+POSE_CACHE_VERSION = 1
+TEXTURE_VERSION = 1
+
+_COMMON = struct.Struct("<4sIII")  # magic, version, header_size, file_size
+_POSE_FIELDS = struct.Struct("<IIIIf3f3fI")  # vertex_count, index_count, frame_count, flags, fps, bmin, bmax, reserved
+_TEXTURE_FIELDS = struct.Struct("<IIII")  # width, height, layer_count, pixel_format
+POSE_CACHE_HEADER_SIZE = _COMMON.size + _POSE_FIELDS.size
+TEXTURE_HEADER_SIZE = _COMMON.size + _TEXTURE_FIELDS.size
+assert POSE_CACHE_HEADER_SIZE == 64 and TEXTURE_HEADER_SIZE == 32
+
+# Normals are stored as float32 but computed from float32 positions; the spec allows 1e-3.
+NORMAL_LENGTH_TOLERANCE = 1e-3
+# Bounds are float32 too; a position may sit this far (metres) outside them from rounding.
+BOUNDS_TOLERANCE = 1e-4
+
+PIXEL_FORMATS = {1: "rgba8", 2: "rgba16", 3: "bc1", 4: "bc2"}
+PIXEL_FORMAT_CODES = {name: code for code, name in PIXEL_FORMATS.items()}
+
+
+def layer_size(pixel_format: str, width: int, height: int) -> int:
+    """Bytes of one layer of `width` × `height` texels in `pixel_format`."""
+    if pixel_format == "rgba8":
+        return 4 * width * height
+    if pixel_format == "rgba16":
+        return 8 * width * height
+    if pixel_format in ("bc1", "bc2"):
+        if width % 4 or height % 4:
+            raise ValueError(f"{pixel_format} needs sizes that are multiples of 4, got {width}x{height}")
+        return (8 if pixel_format == "bc1" else 16) * (width // 4) * (height // 4)
+    raise ValueError(f"unknown pixel format {pixel_format!r}")
+
+
+def _check_common(data: bytes, magic: bytes, supported_version: int, header_size: int, where: str) -> None:
+    if len(data) < _COMMON.size:
+        raise FormatError("truncated", f"{len(data)} bytes is shorter than the 16-byte common header", where)
+    got_magic, version, declared_header, file_size = _COMMON.unpack_from(data)
+    if got_magic != magic:
+        raise FormatError("bad_magic", f"magic is {got_magic!r}, expected {magic!r}", where)
+    if version > supported_version or version == 0:
+        raise FormatError("unsupported_version", f"version {version}, this reader supports {supported_version}", where)
+    if declared_header != header_size:
+        raise FormatError("invalid_header", f"header_size is {declared_header}, expected {header_size}", where)
+    if len(data) < file_size:
+        raise FormatError("truncated", f"{len(data)} bytes, header says {file_size}", where)
+    if len(data) > file_size:
+        raise FormatError("size_mismatch", f"{len(data)} bytes, header says {file_size}", where)
+    if file_size < header_size:
+        raise FormatError("invalid_header", f"file_size {file_size} is smaller than the header", where)
+
+
+@dataclass(frozen=True)
+class PoseCache:
+    """One mesh part at one LOD over every frame of the cycle.
+
+    indices: (T, 3) uint32; uvs: (V, 2) float32; positions, normals: (F, V, 3) float32, metres.
+    """
+
+    indices: np.ndarray
+    uvs: np.ndarray
+    positions: np.ndarray
+    normals: np.ndarray
+    frames_per_second: float
+
+    @property
+    def vertex_count(self) -> int:
+        return int(self.uvs.shape[0])
+
+    @property
+    def frame_count(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def triangle_count(self) -> int:
+        return int(self.indices.shape[0])
+
+
+def encode_pose_cache(
+    indices: np.ndarray, uvs: np.ndarray, positions: np.ndarray, normals: np.ndarray, frames_per_second: float
+) -> bytes:
+    """Serialise a pose cache. indices (T, 3) or (3T,) int; uvs (V, 2); positions, normals (F, V, 3)."""
+    indices = np.ascontiguousarray(indices, dtype="<u4").reshape(-1)
+    uvs = np.ascontiguousarray(uvs, dtype="<f4")
+    positions = np.ascontiguousarray(positions, dtype="<f4")
+    normals = np.ascontiguousarray(normals, dtype="<f4")
+    if positions.ndim != 3 or positions.shape[2] != 3 or normals.shape != positions.shape:
+        raise ValueError(f"positions and normals must be (F, V, 3) alike, got {positions.shape} and {normals.shape}")
+    frame_count, vertex_count, _ = positions.shape
+    if uvs.shape != (vertex_count, 2):
+        raise ValueError(f"uvs must be ({vertex_count}, 2), got {uvs.shape}")
+    if indices.size == 0 or indices.size % 3 or frame_count == 0 or vertex_count == 0:
+        raise ValueError("a pose cache needs at least one triangle, one vertex and one frame")
+    if int(indices.max()) >= vertex_count:
+        raise ValueError(f"index {int(indices.max())} out of range for {vertex_count} vertices")
+    for name, array in (("uvs", uvs), ("positions", positions), ("normals", normals)):
+        if not np.isfinite(array).all():
+            raise ValueError(f"{name} contain NaN or infinity")
+    if not frames_per_second > 0:
+        raise ValueError("frames_per_second must be positive")
+    flat = positions.reshape(-1, 3)
+    file_size = POSE_CACHE_HEADER_SIZE + 4 * indices.size + 8 * vertex_count + 24 * vertex_count * frame_count
+    header = _COMMON.pack(POSE_CACHE_MAGIC, POSE_CACHE_VERSION, POSE_CACHE_HEADER_SIZE, file_size) + _POSE_FIELDS.pack(
+        vertex_count, indices.size, frame_count, 0, float(frames_per_second), *flat.min(axis=0), *flat.max(axis=0), 0
+    )
+    return b"".join([header, indices.tobytes(), uvs.tobytes(), positions.tobytes(), normals.tobytes()])
+
+
+def decode_pose_cache(data: bytes, where: str = "pose cache") -> PoseCache:
+    """Parse and validate a CBPC file; raises FormatError with the spec's error code."""
+    _check_common(data, POSE_CACHE_MAGIC, POSE_CACHE_VERSION, POSE_CACHE_HEADER_SIZE, where)
+    fields = _POSE_FIELDS.unpack_from(data, _COMMON.size)
+    vertex_count, index_count, frame_count, flags, fps = fields[:5]
+    bounds_min, bounds_max = np.array(fields[5:8]), np.array(fields[8:11])
+    if vertex_count == 0 or frame_count == 0 or index_count == 0 or index_count % 3:
+        raise FormatError(
+            "invalid_header",
+            f"vertex_count {vertex_count}, index_count {index_count}, frame_count {frame_count}: "
+            "all must be positive and index_count a multiple of 3",
+            where,
+        )
+    if flags != 0 or fields[11] != 0:
+        raise FormatError("invalid_header", "flags and reserved must be 0 in version 1", where)
+    if not (np.isfinite(fps) and fps > 0):
+        raise FormatError("invalid_header", f"frames_per_second {fps} must be positive", where)
+    expected = POSE_CACHE_HEADER_SIZE + 4 * index_count + 8 * vertex_count + 24 * vertex_count * frame_count
+    if expected != len(data):
+        raise FormatError("size_mismatch", f"counts imply {expected} bytes, file has {len(data)}", where)
+
+    offset = POSE_CACHE_HEADER_SIZE
+    indices = np.frombuffer(data, "<u4", index_count, offset).reshape(-1, 3)
+    offset += 4 * index_count
+    uvs = np.frombuffer(data, "<f4", 2 * vertex_count, offset).reshape(vertex_count, 2)
+    offset += 8 * vertex_count
+    positions = np.frombuffer(data, "<f4", 3 * vertex_count * frame_count, offset).reshape(frame_count, vertex_count, 3)
+    offset += 12 * vertex_count * frame_count
+    normals = np.frombuffer(data, "<f4", 3 * vertex_count * frame_count, offset).reshape(frame_count, vertex_count, 3)
+
+    if int(indices.max()) >= vertex_count:
+        raise FormatError("invalid_data", f"index {int(indices.max())} >= vertex_count {vertex_count}", where)
+    for name, array in (("uvs", uvs), ("positions", positions), ("normals", normals), ("bounds", fields[5:11])):
+        if not np.isfinite(array).all():
+            raise FormatError("invalid_data", f"{name} contain NaN or infinity", where)
+    lengths = np.linalg.norm(normals, axis=-1)
+    if np.abs(lengths - 1.0).max() > NORMAL_LENGTH_TOLERANCE:
+        raise FormatError("invalid_data", "normals are not unit length", where)
+    flat = positions.reshape(-1, 3)
+    if (flat.min(axis=0) < bounds_min - BOUNDS_TOLERANCE).any() or (flat.max(axis=0) > bounds_max + BOUNDS_TOLERANCE).any():
+        raise FormatError("invalid_data", "positions lie outside the header's bounds", where)
+    return PoseCache(indices, uvs, positions, normals, float(fps))
+
+
+@dataclass(frozen=True)
+class TextureArray:
+    """Equally sized layers; `layers[k]` is the raw bytes of layer k (texels or BC blocks)."""
+
+    width: int
+    height: int
+    pixel_format: str
+    layers: tuple[bytes, ...]
+
+    def texels(self, layer: int) -> np.ndarray:
+        """Layer as (H, W, 4) uint8 (rgba8) or uint16 (rgba16); block formats need a decoder."""
+        if self.pixel_format == "rgba8":
+            return np.frombuffer(self.layers[layer], np.uint8).reshape(self.height, self.width, 4)
+        if self.pixel_format == "rgba16":
+            return np.frombuffer(self.layers[layer], "<u2").reshape(self.height, self.width, 4)
+        raise ValueError(f"{self.pixel_format} layers are blocks; decode them with crowdbake.bake.compression")
+
+
+def encode_texture_array(width: int, height: int, pixel_format: str, layers: list[bytes] | np.ndarray) -> bytes:
+    """Serialise a CBTX file. `layers`: raw bytes per layer, or an (L, H, W, 4) uint8/uint16 array."""
+    if isinstance(layers, np.ndarray):
+        dtype = {"rgba8": np.uint8, "rgba16": np.dtype("<u2")}.get(pixel_format)
+        if dtype is None or layers.shape[1:] != (height, width, 4):
+            raise ValueError(f"an array of layers must be (L, {height}, {width}, 4) for rgba8/rgba16, got {layers.shape}")
+        layers = [np.ascontiguousarray(layer, dtype=dtype).tobytes() for layer in layers]
+    size = layer_size(pixel_format, width, height)
+    if not layers or any(len(layer) != size for layer in layers):
+        raise ValueError(f"each of the {len(layers)} layers must be {size} bytes")
+    file_size = TEXTURE_HEADER_SIZE + size * len(layers)
+    header = _COMMON.pack(TEXTURE_MAGIC, TEXTURE_VERSION, TEXTURE_HEADER_SIZE, file_size) + _TEXTURE_FIELDS.pack(
+        width, height, len(layers), PIXEL_FORMAT_CODES[pixel_format]
+    )
+    return header + b"".join(layers)
+
+
+def decode_texture_array(data: bytes, where: str = "texture") -> TextureArray:
+    """Parse and validate a CBTX file; raises FormatError with the spec's error code."""
+    _check_common(data, TEXTURE_MAGIC, TEXTURE_VERSION, TEXTURE_HEADER_SIZE, where)
+    width, height, layer_count, format_code = _TEXTURE_FIELDS.unpack_from(data, _COMMON.size)
+    pixel_format = PIXEL_FORMATS.get(format_code)
+    if pixel_format is None:
+        raise FormatError("invalid_header", f"unknown pixel_format {format_code}", where)
+    if width == 0 or height == 0 or layer_count == 0:
+        raise FormatError("invalid_header", f"width {width}, height {height}, layer_count {layer_count} must be positive", where)
+    try:
+        size = layer_size(pixel_format, width, height)
+    except ValueError as error:
+        raise FormatError("invalid_header", str(error), where) from None
+    expected = TEXTURE_HEADER_SIZE + size * layer_count
+    if expected != len(data):
+        raise FormatError("size_mismatch", f"sizes imply {expected} bytes, file has {len(data)}", where)
+    layers = tuple(
+        bytes(data[TEXTURE_HEADER_SIZE + k * size : TEXTURE_HEADER_SIZE + (k + 1) * size]) for k in range(layer_count)
+    )
+    return TextureArray(width, height, pixel_format, layers)
+
+
+def region_codes(alpha: np.ndarray) -> np.ndarray:
+    """Colour-region codes from alpha values (any shape, uint8): r = round(alpha / 17), see SPEC.md."""
+    return np.rint(np.asarray(alpha, dtype=np.float32) / 17.0).astype(np.uint8)
+
+
+def region_alpha(codes: np.ndarray) -> np.ndarray:
+    """Alpha values for region codes 0..15: 17·r survives DXT3's 4-bit alpha exactly."""
+    codes = np.asarray(codes)
+    if codes.size and (codes.min() < 0 or codes.max() > 15):
+        raise ValueError("region codes must lie in 0..15")
+    return (codes.astype(np.uint8) * 17).astype(np.uint8)

@@ -1,0 +1,126 @@
+"""The Python reader against shared_formats/vectors/v1, which the C++ tests read too."""
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crowdbake.formats.binary import (
+    decode_pose_cache,
+    decode_texture_array,
+    encode_pose_cache,
+    region_alpha,
+    region_codes,
+)
+from crowdbake.formats.bundle import BundleFile, build_manifest, check_path, verify_bundle, write_bundle
+from crowdbake.formats.errors import FormatError
+
+from conftest import REPO_ROOT, VECTORS
+
+V1 = VECTORS / "v1"
+GOOD = V1 / "good" / "bundle"
+BAD_CASES = sorted(p.name for p in (V1 / "bad").iterdir())
+
+
+def test_good_vector_decodes_to_the_expected_values():
+    expected = json.loads((V1 / "good" / "expected.json").read_text())
+    bundle = verify_bundle(GOOD)
+    assert bundle.manifest["name"] == expected["name"]
+    assert set(bundle.pose_caches) == set(expected["pose_caches"])
+    for path, want in expected["pose_caches"].items():
+        cache = bundle.pose_caches[path]
+        assert (cache.vertex_count, cache.triangle_count, cache.frame_count) == (
+            want["vertex_count"], want["triangle_count"], want["frame_count"])
+        np.testing.assert_array_equal(cache.indices.reshape(-1), want["indices"])
+        np.testing.assert_array_equal(cache.positions.reshape(-1), np.float32(want["positions"]))
+        np.testing.assert_array_equal(cache.normals.reshape(-1), np.float32(want["normals"]))
+        np.testing.assert_array_equal(cache.uvs.reshape(-1), np.float32(want["uvs"]))
+    for path, want in expected["textures"].items():
+        texture = bundle.textures[path]
+        assert (texture.width, texture.height, texture.pixel_format, len(texture.layers)) == (
+            want["width"], want["height"], want["pixel_format"], want["layer_count"])
+        assert texture.layers[0][:8].hex() == want["first_bytes_hex"]
+
+
+@pytest.mark.parametrize("case", BAD_CASES)
+def test_bad_vector_is_refused_with_its_code_and_file(case):
+    expect = json.loads((V1 / "bad" / case / "expect.json").read_text())
+    with pytest.raises(FormatError) as raised:
+        verify_bundle(V1 / "bad" / case / "bundle")
+    assert (raised.value.code, raised.value.file) == (expect["error"], expect["file"])
+
+
+@pytest.mark.parametrize("path", sorted(p.relative_to(GOOD).as_posix() for p in GOOD.rglob("*.cb*")))
+def test_every_strict_prefix_of_a_binary_is_truncated(path):
+    """meshoptimizer-style: no prefix of a valid file may parse or crash."""
+    data = (GOOD / path).read_bytes()
+    decode = decode_pose_cache if path.endswith(".cbpc") else decode_texture_array
+    decode(data, path)
+    for length in range(len(data)):
+        with pytest.raises(FormatError) as raised:
+            decode(data[:length], path)
+        assert raised.value.code == "truncated", (length, raised.value)
+
+
+def test_writer_still_produces_the_committed_vectors(tmp_path):
+    """Old vectors are never edited, so the writer must keep producing their exact bytes."""
+    spec = importlib.util.spec_from_file_location("gen", REPO_ROOT / "shared_formats" / "generate_vectors_v1.py")
+    generator = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(generator)
+    generator.generate(tmp_path / "v1")
+    for committed in sorted(V1.rglob("*")):
+        if committed.is_file():
+            assert (tmp_path / "v1" / committed.relative_to(V1)).read_bytes() == committed.read_bytes(), committed
+
+
+@pytest.mark.parametrize("path", ["../x", "/abs", "a/../b", "a//b", "a\\b", "./a", "manifest.json", "", "x" * 201, "a b"])
+def test_unsafe_paths_are_refused(path):
+    with pytest.raises(FormatError) as raised:
+        check_path(path)
+    assert raised.value.code == "unsafe_path"
+
+
+def test_region_codes_survive_dxt3_alpha_quantisation():
+    codes = np.arange(16)
+    alpha = region_alpha(codes)
+    four_bit = (alpha >> 4) * 17  # what a DXT3 decoder returns for explicit 4-bit alpha
+    np.testing.assert_array_equal(region_codes(four_bit), codes)
+
+
+def test_write_bundle_refuses_to_overwrite_and_leaves_no_staging(tmp_path):
+    files = [BundleFile("cycle/cycle.json", b"{}", "cycle")]
+    manifest = {"files": [f.entry() for f in files]}
+    write_bundle(tmp_path / "b", manifest, files)
+    with pytest.raises(FileExistsError):
+        write_bundle(tmp_path / "b", manifest, files)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b"]
+
+
+def test_write_bundle_failure_leaves_nothing(tmp_path):
+    files = [BundleFile("a.json", b"{}", "cycle")]
+    manifest = {"files": [BundleFile("a.json", b"other", "cycle").entry()]}
+    with pytest.raises(ValueError):
+        write_bundle(tmp_path / "b", manifest, files)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_encoder_rejects_nan_and_bad_indices():
+    indices = np.array([[0, 1, 2]])
+    uvs = np.zeros((3, 2))
+    positions = np.zeros((1, 3, 3))
+    normals = np.tile([0.0, 0.0, 1.0], (1, 3, 1))
+    with pytest.raises(ValueError, match="out of range"):
+        encode_pose_cache(np.array([[0, 1, 3]]), uvs, positions, normals, 24)
+    positions[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        encode_pose_cache(indices, uvs, positions, normals, 24)
+
+
+def test_build_manifest_refuses_duplicate_and_unsafe_paths():
+    with pytest.raises(ValueError):
+        build_manifest("n", "1", {}, [BundleFile("a.json", b"", "cycle"), BundleFile("a.json", b"", "cycle")])
+    with pytest.raises(FormatError):
+        build_manifest("n", "1", {}, [BundleFile("../a.json", b"", "cycle")])
