@@ -1,0 +1,81 @@
+"""The FastAPI application: `create_app(settings)` builds it (uvicorn: --factory crowdbake.api.app:create_app).
+
+Building the app prepares its state once: folders, the database (migrated to the newest schema), the
+bootstrap key if one is configured, the blob store and the Celery app used to enqueue stages.
+The OpenAPI document is at /openapi.json, interactive docs at /docs.
+"""
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI
+from pydantic import ValidationError
+
+from crowdbake import __version__
+from crowdbake.api import problems
+from crowdbake.api.deps import AppServices
+from crowdbake.api.problems import PROBLEM_TYPES, Problem, problem_type_uri
+from crowdbake.api.routes import assets, bakes, bundles, health
+from crowdbake.jobs.celery_app import make_celery
+from crowdbake.settings import Settings, get_settings
+from crowdbake.storage.blobs import make_blob_store
+from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
+from crowdbake.storage.keys import ensure_bootstrap_key
+
+logger = logging.getLogger(__name__)
+
+DESCRIPTION = """Bakes clothed characters into crowd bundles (Dobbyn et al. 2006: cyclical cloth, poses with two
+LODs, UV-mapped impostors) and serves the published bundles.
+
+Upload assets, start a bake, follow it, then fetch `/v1/bundles/{name}/{version}/manifest.json` and its files.
+Authenticate with `Authorization: Bearer <key>` (or `X-API-Key`); keys carry the scopes upload, bake, publish, read.
+Errors are RFC 9457 problem documents (`application/problem+json`)."""
+
+
+def build_services(settings: Settings) -> AppServices:
+    """Folders, migrated database, bootstrap key, blob store and Celery app for `settings`."""
+    settings.ensure_dirs()
+    engine = make_engine(settings.database_url)
+    if settings.migrate_on_start:
+        migrate(engine)
+    sessions = make_sessionmaker(engine)
+    if settings.bootstrap_key is not None:
+        with session_scope(sessions) as session:
+            ensure_bootstrap_key(session, settings.bootstrap_key.get_secret_value())
+    return AppServices(settings=settings, sessions=sessions, blobs=make_blob_store(settings.blob_dir), celery=make_celery(settings))
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    if settings is None:
+        try:
+            settings = get_settings()
+        except ValidationError as error:
+            # A default or missing secret, a malformed number: say which, and do not start.
+            reasons = "; ".join(f"{'.'.join(map(str, item['loc'])) or 'settings'}: {item['msg']}" for item in error.errors())
+            raise SystemExit(f"crowdbake: refusing to start: {reasons}") from None
+    app = FastAPI(
+        title="crowdbake",
+        version=__version__,
+        description=DESCRIPTION,
+        openapi_tags=[
+            {"name": "assets", "description": "Upload characters, cloth caches and textures (validated, deduplicated by sha256)."},
+            {"name": "bakes", "description": "Bake jobs: state and progress per stage, errors, log, cancel, retry."},
+            {"name": "bundles", "description": "Published bundles: manifests and files with strong ETags and Range support."},
+            {"name": "health", "description": "Liveness and readiness."},
+        ],
+    )
+    app.state.services = build_services(settings)
+    problems.install(app)
+    for module in (assets, bakes, bundles, health):
+        app.include_router(module.router)
+
+    @app.get("/problems/{slug}", tags=["health"], summary="What a problem type means")
+    def describe_problem(slug: str) -> dict:
+        if slug not in PROBLEM_TYPES:
+            raise Problem("not-found", f"no problem type {slug!r}")
+        status, title, description = PROBLEM_TYPES[slug]
+        return {"type": problem_type_uri(slug), "title": title, "status": status, "description": description}
+
+    logger.info("crowdbake API ready: database %s, blobs %s, bundles %s, broker %s",
+                settings.database_url, settings.blob_dir, settings.bundles_dir, settings.broker_url)
+    return app

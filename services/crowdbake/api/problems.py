@@ -1,0 +1,117 @@
+"""RFC 9457 problem details: every error the API returns is `application/problem+json`.
+
+A problem has `type` (a URI naming the kind of problem; `/problems/<slug>` here, and the API serves
+a description at that address), `title` (the same for every occurrence of the type), `status`,
+`detail` (this occurrence), `instance` (the request path), and, for validation problems, `errors`: one
+entry per problem with the `field` concerned, the `file` (or archive entry) and `where` in it.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from crowdbake.validation import FieldError, UploadRejected
+
+logger = logging.getLogger(__name__)
+
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+
+# slug -> (status, title, when it happens). docs/service.md lists the same table.
+PROBLEM_TYPES: dict[str, tuple[int, str, str]] = {
+    "malformed-request": (400, "Malformed request", "The request could not be read: bad multipart, a missing or unexpected form field."),
+    "unauthorized": (401, "Missing or invalid API key", "Send a key as `Authorization: Bearer <key>` or `X-API-Key: <key>`."),
+    "forbidden": (403, "The API key lacks a scope", "The key is valid but has none of the scopes the operation needs."),
+    "not-found": (404, "Not found", "No such resource, or it is not visible to this key."),
+    "method-not-allowed": (405, "Method not allowed", "The resource does not support this method."),
+    "conflict": (409, "Conflict", "The request contradicts the resource's state (e.g. a published version with other bytes)."),
+    "invalid-state": (409, "Not possible in the bake's state", "E.g. cancelling a finished bake, retrying one that succeeded."),
+    "payload-too-large": (413, "Request body too large", "The body exceeds CROWDBAKE_MAX_UPLOAD_BYTES; refused before it is read."),
+    "unsupported-format": (415, "Unsupported file format", "The field does not take this kind of file."),
+    "range-not-satisfiable": (416, "Range not satisfiable", "The requested byte range lies outside the file."),
+    "invalid-file": (422, "Invalid file", "A file breaks its format or cannot be baked (truncated, NaN, counts disagree, too few frames)."),
+    "format-mismatch": (422, "File content does not match its name", "The name promises one format and the bytes are another."),
+    "unsafe-archive": (422, "Unsafe archive", "A zip entry escapes its folder, or the archive expands too far (zip bomb)."),
+    "validation-error": (422, "Invalid request parameters", "A JSON body, path or query parameter breaks its schema."),
+    "internal-error": (500, "Internal server error", "An unexpected error; the server log has the details."),
+    "not-ready": (503, "Service not ready", "A dependency (database, blob store, broker) is not usable."),
+}
+_STATUS_SLUGS = {400: "malformed-request", 401: "unauthorized", 403: "forbidden", 404: "not-found", 405: "method-not-allowed", 409: "conflict", 413: "payload-too-large", 415: "unsupported-format", 416: "range-not-satisfiable", 422: "validation-error", 503: "not-ready"}
+
+
+def problem_type_uri(slug: str) -> str:
+    return f"/problems/{slug}"
+
+
+class Problem(Exception):
+    """Raise from a route or dependency to answer with a problem document."""
+
+    def __init__(self, slug: str, detail: str, errors: list[dict[str, Any]] | None = None,
+                 status: int | None = None, headers: dict[str, str] | None = None, title: str | None = None):
+        if slug not in PROBLEM_TYPES:
+            raise ValueError(f"unknown problem type {slug!r}")
+        super().__init__(detail)
+        self.slug = slug
+        self.status = status or PROBLEM_TYPES[slug][0]
+        self.title = title or PROBLEM_TYPES[slug][1]
+        self.detail = detail
+        self.errors = errors
+        self.headers = headers or {}
+
+
+def problem_response(request: Request | None, problem: Problem) -> JSONResponse:
+    body: dict[str, Any] = {
+        "type": problem_type_uri(problem.slug),
+        "title": problem.title,
+        "status": problem.status,
+        "detail": problem.detail,
+        "instance": request.url.path if request is not None else None,
+    }
+    if problem.errors is not None:
+        body["errors"] = problem.errors
+    return JSONResponse(body, status_code=problem.status, media_type=PROBLEM_MEDIA_TYPE, headers=problem.headers)
+
+
+def from_upload_rejected(rejected: UploadRejected) -> Problem:
+    return Problem(rejected.kind, rejected.detail, [error.to_dict() for error in rejected.errors])
+
+
+def _field_name(location: tuple[Any, ...]) -> str:
+    parts = [str(part) for part in location if part not in ("body",)]
+    return ".".join(parts) or "body"
+
+
+def install(app: FastAPI) -> None:
+    """Answer every error, including FastAPI's own validation and routing errors, as a problem."""
+
+    @app.exception_handler(Problem)
+    async def _problem(request: Request, problem: Problem) -> JSONResponse:
+        return problem_response(request, problem)
+
+    @app.exception_handler(UploadRejected)
+    async def _rejected(request: Request, rejected: UploadRejected) -> JSONResponse:
+        return problem_response(request, from_upload_rejected(rejected))
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, error: RequestValidationError) -> JSONResponse:
+        errors = [
+            FieldError(_field_name(tuple(item.get("loc", ()))), item.get("msg", "invalid"), where=item.get("loc", ("body",))[0]).to_dict()
+            for item in error.errors()
+        ]
+        count = len(errors)
+        return problem_response(request, Problem("validation-error", f"{count} parameter{'s' if count != 1 else ''} failed validation", errors))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, error: StarletteHTTPException) -> JSONResponse:
+        slug = _STATUS_SLUGS.get(error.status_code, "malformed-request" if error.status_code < 500 else "internal-error")
+        detail = error.detail if isinstance(error.detail, str) else PROBLEM_TYPES[slug][2]
+        return problem_response(request, Problem(slug, detail, status=error.status_code, headers=dict(error.headers or {})))
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, error: Exception) -> JSONResponse:
+        logger.exception("unhandled error on %s %s", request.method, request.url.path, exc_info=error)
+        return problem_response(request, Problem("internal-error", "an unexpected error occurred; it has been logged"))

@@ -1,0 +1,203 @@
+"""Assets: upload a character, a cloth cache or a texture; read their records.
+
+An upload is streamed to a staging file while it is hashed, validated (crowdbake.validation), and only
+then committed to the blob store and recorded. The same content uploaded again returns the existing
+asset (200 instead of 201). A rejected upload leaves neither blobs nor rows behind.
+"""
+from __future__ import annotations
+
+import hashlib
+from typing import Any, Literal
+
+from fastapi import APIRouter, Query, Request, Response
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
+from starlette.concurrency import run_in_threadpool
+
+from crowdbake.api.deps import AssetReadKey, ServicesDep, SessionDep, UploadKey
+from crowdbake.api.problems import Problem
+from crowdbake.api.schemas import AssetPublic, AssetsPublic, problem_responses
+from crowdbake.api.uploads import MultipartUpload, UploadedFile, read_multipart
+from crowdbake.jobs.records import new_id
+from crowdbake.storage.blobs import BlobStore, IncomingBlob
+from crowdbake.storage.models import Asset
+from crowdbake.validation import (
+    ZipLimits,
+    check_character,
+    check_cloth,
+    check_texture,
+    convert_obj_sequence,
+)
+
+router = APIRouter(prefix="/v1/assets", tags=["assets"])
+
+MEDIA_TYPES = {
+    "glb": "model/gltf-binary",
+    "gltf": "model/gltf+json",
+    "pc2": "application/x-pc2",
+    "obj": "model/obj",
+    "png": "image/png",
+}
+UPLOAD_RESPONSES = problem_responses(400, 413, 415)
+
+
+def _multipart_body(properties: dict[str, dict[str, Any]], required: list[str]) -> dict[str, Any]:
+    """The OpenAPI description of a multipart body (the route reads the stream itself)."""
+    return {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
+        "type": "object", "properties": properties, "required": required}}}}}
+
+
+_FILE = {"type": "string", "format": "binary"}
+
+
+def _require_file(upload: MultipartUpload, field: str) -> UploadedFile:
+    if field not in upload.files:
+        raise Problem("malformed-request", f"the multipart body needs a file in the field {field!r}", [{"field": field, "message": "missing"}])
+    return upload.files[field]
+
+
+def _stored(blob: IncomingBlob, filename: str, media_type: str) -> dict[str, Any]:
+    return {"sha256": blob.sha256, "size": blob.size, "filename": filename, "media_type": media_type}
+
+
+def _store_asset(
+    session, blobs: BlobStore, response: Response, kind: str, staged: dict[str, tuple[IncomingBlob, str, str]],
+    info: dict[str, Any], created_by: str | None,
+) -> Asset:
+    """Commit the staged blobs and record the asset, or return the existing asset with this content."""
+    files = {role: _stored(blob, filename, media_type) for role, (blob, filename, media_type) in staged.items()}
+    if set(files) == {"file"}:
+        digest = files["file"]["sha256"]
+    else:
+        digest = hashlib.sha256("\n".join(f"{role}:{files[role]['sha256']}" for role in sorted(files)).encode()).hexdigest()
+    existing = session.scalars(select(Asset).where(Asset.kind == kind, Asset.digest == digest)).first()
+    if existing is None:
+        for blob, _, _ in staged.values():
+            blobs.commit(blob)
+        primary = files.get("file") or files["cache"]
+        asset = Asset(
+            id=new_id("as"), kind=kind, digest=digest, filename=primary["filename"],
+            size=sum(entry["size"] for entry in files.values()), files=files, info=info, created_by=created_by,
+        )
+        session.add(asset)
+        try:
+            session.commit()
+            response.status_code = 201
+            response.headers["Location"] = f"/v1/assets/{asset.id}"
+            return asset
+        except IntegrityError:  # the same content arrived concurrently; theirs was recorded first
+            session.rollback()
+            existing = session.scalars(select(Asset).where(Asset.kind == kind, Asset.digest == digest)).one()
+    for blob, _, _ in staged.values():
+        blob.discard()
+    response.status_code = 200
+    response.headers["Location"] = f"/v1/assets/{existing.id}"
+    return existing
+
+
+@router.post(
+    "/characters", response_model=AssetPublic, status_code=201, responses=UPLOAD_RESPONSES,
+    summary="Upload a character (.glb, or a self-contained .gltf)",
+    openapi_extra=_multipart_body({"file": _FILE}, ["file"]),
+)
+async def upload_character(request: Request, response: Response, key: UploadKey, services: ServicesDep, session: SessionDep) -> Asset:
+    upload = await read_multipart(request, services.blobs, services.settings.max_upload_bytes, {"file"})
+    try:
+        uploaded = _require_file(upload, "file")
+        info = await run_in_threadpool(check_character, uploaded.blob.path, uploaded.filename, "file")
+        media_type = MEDIA_TYPES[info["format"]]
+        return _store_asset(session, services.blobs, response, "character", {"file": (uploaded.blob, uploaded.filename, media_type)}, info, key.key_id)
+    finally:
+        upload.discard()
+
+
+def _cycle_frames(upload: MultipartUpload) -> int | None:
+    text = upload.fields.get("cycle_frames")
+    if text is None or text.strip() == "":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 2:
+        raise Problem("validation-error", "cycle_frames must be an integer >= 2", [{"field": "cycle_frames", "message": f"{text!r} is not an integer >= 2"}])
+    return value
+
+
+@router.post(
+    "/cloth", response_model=AssetPublic, status_code=201, responses=UPLOAD_RESPONSES,
+    summary="Upload a cloth cache: a PC2 with its OBJ rest mesh, or a zip of OBJ frames (one topology)",
+    openapi_extra=_multipart_body(
+        {"cache": _FILE, "mesh": _FILE, "sequence": _FILE,
+         "cycle_frames": {"type": "integer", "minimum": 2, "description": "Frames per walk cycle, to check there are two cycles."}},
+        [],
+    ),
+)
+async def upload_cloth(request: Request, response: Response, key: UploadKey, services: ServicesDep, session: SessionDep) -> Asset:
+    settings = services.settings
+    upload = await read_multipart(request, services.blobs, settings.max_upload_bytes, {"cache", "mesh", "sequence"}, {"cycle_frames"})
+    converted: list[IncomingBlob] = []
+    try:
+        cycle_frames = _cycle_frames(upload)
+        has_pair = "cache" in upload.files or "mesh" in upload.files
+        if has_pair == ("sequence" in upload.files):
+            raise Problem(
+                "malformed-request", "send either 'cache' (.pc2) with 'mesh' (.obj), or 'sequence' (.zip of OBJ frames)",
+                [{"field": name, "message": "missing" if name not in upload.files else "unexpected with the other form"} for name in ("cache", "mesh", "sequence")],
+            )
+        if has_pair:
+            cache, mesh = _require_file(upload, "cache"), _require_file(upload, "mesh")
+            info = await run_in_threadpool(check_cloth, cache.blob.path, cache.filename, mesh.blob.path, mesh.filename, cycle_frames)
+            staged = {"cache": (cache.blob, cache.filename, MEDIA_TYPES["pc2"]), "mesh": (mesh.blob, mesh.filename, MEDIA_TYPES["obj"])}
+        else:
+            sequence = upload.files["sequence"]
+            cache_blob, mesh_blob = services.blobs.incoming(), services.blobs.incoming()
+            converted += [cache_blob, mesh_blob]
+            limits = ZipLimits(settings.max_zip_entries, settings.max_zip_uncompressed_bytes, settings.max_zip_ratio)
+            info = await run_in_threadpool(convert_obj_sequence, sequence.blob.path, sequence.filename, limits, cache_blob, mesh_blob, cycle_frames)
+            cache_blob.close()
+            mesh_blob.close()
+            stem = sequence.filename.rsplit(".", 1)[0] or "cloth"
+            staged = {"cache": (cache_blob, f"{stem}.pc2", MEDIA_TYPES["pc2"]), "mesh": (mesh_blob, f"{stem}.obj", MEDIA_TYPES["obj"])}
+            info["source"] = {"filename": sequence.filename, "sha256": sequence.blob.sha256, "size": sequence.blob.size}
+        return _store_asset(session, services.blobs, response, "cloth", staged, info, key.key_id)
+    finally:
+        upload.discard()
+        for blob in converted:
+            blob.discard()
+
+
+@router.post(
+    "/textures", response_model=AssetPublic, status_code=201, responses=UPLOAD_RESPONSES,
+    summary="Upload a texture (PNG): a diffuse variation or the outfit colour map",
+    openapi_extra=_multipart_body({"file": _FILE}, ["file"]),
+)
+async def upload_texture(request: Request, response: Response, key: UploadKey, services: ServicesDep, session: SessionDep) -> Asset:
+    upload = await read_multipart(request, services.blobs, services.settings.max_upload_bytes, {"file"})
+    try:
+        uploaded = _require_file(upload, "file")
+        info = await run_in_threadpool(check_texture, uploaded.blob.path, uploaded.filename, services.settings.max_texture_pixels, "file")
+        return _store_asset(session, services.blobs, response, "texture", {"file": (uploaded.blob, uploaded.filename, MEDIA_TYPES["png"])}, info, key.key_id)
+    finally:
+        upload.discard()
+
+
+@router.get("", response_model=AssetsPublic, responses=problem_responses())
+def list_assets(
+    key: AssetReadKey, session: SessionDep,
+    kind: Literal["character", "cloth", "texture"] | None = None,
+    limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0),
+) -> AssetsPublic:
+    query = select(Asset).order_by(Asset.created_at.desc(), Asset.id)
+    if kind:
+        query = query.where(Asset.kind == kind)
+    assets = session.scalars(query.offset(offset).limit(limit)).all()
+    return AssetsPublic(data=[AssetPublic.model_validate(asset) for asset in assets], count=len(assets))
+
+
+@router.get("/{asset_id}", response_model=AssetPublic, responses=problem_responses(404))
+def get_asset(asset_id: str, key: AssetReadKey, session: SessionDep) -> Asset:
+    asset = session.get(Asset, asset_id)
+    if asset is None:
+        raise Problem("not-found", f"no asset {asset_id!r}")
+    return asset

@@ -1,0 +1,215 @@
+"""Bakes: start one (202 + Location), follow it (state, progress per stage, error, log), cancel it,
+retry it, publish it later.
+
+Submitting the same inputs, parameters, name and version again returns the existing bake (200) unless
+it failed or was cancelled: the input key (crowdbake.jobs.records.input_key) makes resubmission
+idempotent, and the work folder it names makes a rerun fast.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Any, Literal
+
+from fastapi import APIRouter, Query, Response
+from fastapi.responses import PlainTextResponse
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from crowdbake import pipeline
+from crowdbake.api.deps import BakeKey, PublishKey, ServicesDep, SessionDep
+from crowdbake.api.problems import Problem
+from crowdbake.api.schemas import BakeCreate, BakePublic, BakesPublic, LogLine, StagePublic, problem_responses
+from crowdbake.jobs import records
+from crowdbake.jobs.celery_app import send_stage
+from crowdbake.storage.bundles import find_bundle
+from crowdbake.storage.models import Asset, Bake
+from crowdbake.validation import min_cloth_frames
+
+logger = logging.getLogger(__name__)
+router = APIRouter(prefix="/v1/bakes", tags=["bakes"])
+
+LOG_LINES_IN_BAKE = 50
+
+
+def bake_public(session: Session, bake: Bake, log_lines: int = LOG_LINES_IN_BAKE) -> BakePublic:
+    bundle_url = None
+    if bake.publish and bake.stages and bake.stages[-1].state == "succeeded":
+        bundle_url = f"/v1/bundles/{bake.name}/{bake.version}/manifest.json"
+    return BakePublic(
+        id=bake.id, state=bake.state, name=bake.name, version=bake.version, params=bake.params, inputs=bake.inputs,
+        input_key=bake.input_key, publish=bake.publish, public=bake.public, attempt=bake.attempt,
+        progress=records.overall_progress(bake),
+        stages=[StagePublic(
+            stage=row.stage, state=row.state, done=row.done, total=row.total, retries=row.retries, seconds=row.seconds,
+            started_at=records.to_utc(row.started_at), finished_at=records.to_utc(row.finished_at),
+        ) for row in bake.stages],
+        error=bake.error,
+        log=[LogLine(at=records.to_utc(line.at), level=line.level, stage=line.stage, message=line.message)
+             for line in (records.log_lines(session, bake.id, log_lines) if log_lines else [])],
+        bundle_url=bundle_url,
+        created_at=records.to_utc(bake.created_at), updated_at=records.to_utc(bake.updated_at),
+        started_at=records.to_utc(bake.started_at), finished_at=records.to_utc(bake.finished_at),
+    )
+
+
+def _get_bake(session: Session, bake_id: str) -> Bake:
+    bake = session.get(Bake, bake_id)
+    if bake is None:
+        raise Problem("not-found", f"no bake {bake_id!r}")
+    return bake
+
+
+def _asset(session: Session, asset_id: str, kind: str, field: str, errors: list[dict[str, Any]]) -> Asset | None:
+    asset = session.get(Asset, asset_id)
+    if asset is None or asset.kind != kind:
+        errors.append({"field": field, "message": f"no {kind} asset {asset_id!r}"})
+        return None
+    return asset
+
+
+def _check_params_with_pipeline(params: dict[str, Any]) -> None:
+    """The pipeline's own BakeParams checks too (its limits are the ones that count)."""
+    try:
+        pipeline.BakeParams.from_dict(params)
+    except (ValueError, TypeError) as error:
+        field = f"params.{error.field}" if getattr(error, "field", None) else "params"
+        raise Problem("validation-error", f"the parameters are not accepted: {error}", [{"field": field, "message": str(error)}]) from None
+
+
+def _cycle_frames(character: Asset, cloth: Asset, cycle_frames: int | None) -> int:
+    """The walk cycle's length in cache frames, as the pipeline's validate stage will take it: the
+    parameter, else the character's animation at the cache's rate (pipeline.BASE_FPS / sample_rate)."""
+    if cycle_frames is not None:
+        return cycle_frames
+    seconds = float(character.info.get("animation_seconds") or 0.0)
+    if seconds <= 0:
+        raise Problem("validation-error", "the character has no animation to take the cycle length from",
+                      [{"field": "params.cycle_frames", "message": "give cycle_frames, or upload a character with a walk animation"}])
+    fps = pipeline.BASE_FPS / float(cloth.info.get("sample_rate") or 1.0)
+    return max(int(round(seconds * fps)), 2)
+
+
+def _enqueue(services, session: Session, bake: Bake, stage: str) -> None:
+    try:
+        send_stage(services.celery, services.settings, stage, bake.id, bake.attempt)
+    except Exception as error:  # the broker is down: nothing will run this bake
+        logger.exception("could not enqueue %s for bake %s", stage, bake.id)
+        records.fail_bake(session, bake, stage, {"type": "not-ready", "title": "the job queue is unreachable", "detail": f"{type(error).__name__}: {error}"})
+        session.commit()
+        raise Problem("not-ready", "the job queue is unreachable; the bake was recorded as failed and can be retried") from None
+
+
+@router.post("", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409, 503), summary="Start a bake")
+def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: ServicesDep, session: SessionDep) -> BakePublic:
+    if (body.publish or body.public) and "publish" not in key.scopes:
+        raise Problem("forbidden", "publishing a bundle (publish or public true) needs the publish scope")
+    errors: list[dict[str, Any]] = []
+    character = _asset(session, body.character, "character", "character", errors)
+    cloth = _asset(session, body.cloth, "cloth", "cloth", errors)
+    textures = {name: _asset(session, asset_id, "texture", f"textures.{name}", errors) for name, asset_id in sorted(body.textures.items())}
+    if errors:
+        raise Problem("validation-error", "the bake names assets that do not exist", errors)
+    params = body.params.model_dump()
+    _check_params_with_pipeline(params)
+    cycle_frames = _cycle_frames(character, cloth, body.params.cycle_frames)
+    needed = min_cloth_frames(cycle_frames)
+    if cloth.info.get("frame_count", 0) < needed:
+        raise Problem("invalid-file", "too few frames for two cycles",
+                      [{"field": "cloth", "message": f"too few frames for two cycles of {cycle_frames}: the cache has {cloth.info.get('frame_count')}, two cycles need {needed}"}])
+
+    digests = {
+        "character": character.digest,
+        "cloth": {role: entry["sha256"] for role, entry in cloth.files.items()},
+        "textures": {name: texture.digest for name, texture in textures.items()},
+    }
+    key_digest = records.input_key(digests, body.name, body.version, params)
+    existing = records.reusable_bake(session, key_digest)
+    if existing is not None:
+        response.status_code = 200
+        response.headers["Location"] = f"/v1/bakes/{existing.id}"
+        return bake_public(session, existing)
+    published = find_bundle(session, body.name, body.version)
+    if published is not None:
+        raise Problem("conflict", f"{body.name}/{body.version} is already published from other inputs; bundles never change, choose a new version")
+    competing = session.scalars(
+        select(Bake).where(Bake.name == body.name, Bake.version == body.version, Bake.state.in_(("queued", "running")), Bake.publish.is_(True))
+    ).first()
+    if competing is not None and body.publish:
+        raise Problem("conflict", f"bake {competing.id} is already baking {body.name}/{body.version} from other inputs")
+
+    bake = records.create_bake(
+        session, name=body.name, version=body.version, params=params,
+        inputs={"character": character.id, "cloth": cloth.id, "textures": {name: texture.id for name, texture in textures.items()}},
+        key=key_digest, publish=body.publish, public=body.public, created_by=key.key_id,
+    )
+    session.commit()
+    _enqueue(services, session, bake, "validate")
+    response.headers["Location"] = f"/v1/bakes/{bake.id}"
+    return bake_public(session, bake)
+
+
+@router.get("", response_model=BakesPublic, responses=problem_responses())
+def list_bakes(
+    key: BakeKey, session: SessionDep,
+    state: Literal["queued", "running", "succeeded", "failed", "cancelled"] | None = None, name: str | None = None,
+    limit: int = Query(50, ge=1, le=500), offset: int = Query(0, ge=0),
+) -> BakesPublic:
+    query = select(Bake).order_by(Bake.created_at.desc(), Bake.id)
+    if state:
+        query = query.where(Bake.state == state)
+    if name:
+        query = query.where(Bake.name == name)
+    bakes = session.scalars(query.offset(offset).limit(limit)).all()
+    return BakesPublic(data=[bake_public(session, bake, log_lines=0) for bake in bakes], count=len(bakes))
+
+
+@router.get("/{bake_id}", response_model=BakePublic, responses=problem_responses(404))
+def get_bake(bake_id: str, key: BakeKey, session: SessionDep) -> BakePublic:
+    return bake_public(session, _get_bake(session, bake_id))
+
+
+@router.get("/{bake_id}/log", response_class=PlainTextResponse, responses=problem_responses(404), summary="The bake's whole log as text")
+def get_bake_log(bake_id: str, key: BakeKey, session: SessionDep) -> str:
+    bake = _get_bake(session, bake_id)
+    return "".join(
+        f"{records.to_utc(line.at).strftime('%Y-%m-%dT%H:%M:%S.%fZ')} {line.level:<7} {line.stage or '-':<9} {line.message}\n"
+        for line in records.log_lines(session, bake.id)
+    )
+
+
+@router.post("/{bake_id}/cancel", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409))
+def cancel_bake(bake_id: str, key: BakeKey, session: SessionDep) -> BakePublic:
+    bake = _get_bake(session, bake_id)
+    if records.is_final(bake):
+        raise Problem("invalid-state", f"bake {bake_id} already {bake.state}")
+    records.cancel_bake(session, bake)
+    session.commit()
+    return bake_public(session, bake)
+
+
+@router.post("/{bake_id}/retry", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409, 503))
+def retry_bake(bake_id: str, key: BakeKey, services: ServicesDep, session: SessionDep) -> BakePublic:
+    bake = _get_bake(session, bake_id)
+    if bake.state not in ("failed", "cancelled"):
+        raise Problem("invalid-state", f"only failed or cancelled bakes can be retried; bake {bake_id} is {bake.state}")
+    records.reset_for_retry(session, bake)
+    session.commit()
+    _enqueue(services, session, bake, "validate")
+    return bake_public(session, bake)
+
+
+@router.post("/{bake_id}/publish", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409, 503),
+             summary="Publish a bake that was run with publish=false")
+def publish_bake(bake_id: str, key: PublishKey, services: ServicesDep, session: SessionDep) -> BakePublic:
+    bake = _get_bake(session, bake_id)
+    stages = {row.stage: row for row in bake.stages}
+    if bake.state != "succeeded" or stages["pack"].state != "succeeded":
+        raise Problem("invalid-state", f"bake {bake_id} is {bake.state}; only a finished bake can be published")
+    if stages["publish"].state == "succeeded":
+        raise Problem("invalid-state", f"bake {bake_id} is already published")
+    bake.publish, bake.state, bake.finished_at = True, "running", None
+    stages["publish"].state = "pending"
+    records.append_log(session, bake.id, "INFO", "publish", "publish requested")
+    session.commit()
+    _enqueue(services, session, bake, "publish")
+    return bake_public(session, bake)

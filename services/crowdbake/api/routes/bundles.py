@@ -1,0 +1,187 @@
+"""Bundles: names, versions, manifests and files, as the C++ runtime fetches them.
+
+    GET /v1/bundles/{name}/{version}/manifest.json
+    GET /v1/bundles/{name}/{version}/files/{path}
+
+`version` may be `latest`, the most recently published version. A published version never changes, so
+its responses carry a strong ETag (the sha256 the manifest lists; for the manifest, its own sha256) and
+`Cache-Control: immutable`; `latest` responses must be revalidated (`no-cache`) and name the concrete
+version in Content-Location. Range requests (RFC 9110) are answered with 206, and If-None-Match with
+304. A bundle is readable with a key that has the read scope, or by anyone once marked public.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import APIRouter, Path as PathParam, Request
+from fastapi.responses import FileResponse, Response
+from sqlalchemy import select
+from starlette.responses import MalformedRangeHeader, RangeNotSatisfiable
+
+from crowdbake.api.deps import PrincipalDep, PublishKey, ServicesDep, SessionDep, Principal
+from crowdbake.api.problems import Problem
+from crowdbake.api.schemas import (
+    NAME_PATTERN,
+    BundleNamesPublic,
+    BundlePublic,
+    BundleUpdate,
+    BundleVersionsPublic,
+    problem_responses,
+)
+from crowdbake.formats.bundle import check_path
+from crowdbake.formats.errors import FormatError
+from crowdbake.jobs.records import to_utc
+from crowdbake.storage.bundles import LATEST, PublishedManifest, bundle_dir, find_bundle, read_manifest
+from crowdbake.storage.models import Bundle
+
+router = APIRouter(prefix="/v1/bundles", tags=["bundles"])
+
+IMMUTABLE_SECONDS = 31_536_000  # one year, the longest max-age caches honour (RFC 9111 practice)
+VERSION_OR_LATEST = r"^([0-9A-Za-z][0-9A-Za-z.+_-]{0,63})$"
+NameParam = Annotated[str, PathParam(pattern=NAME_PATTERN)]
+VersionParam = Annotated[str, PathParam(pattern=VERSION_OR_LATEST, description="A version, or `latest`.")]
+FILE_RESPONSES = problem_responses(404, 416)
+
+
+def _visible(principal: Principal, bundle: Bundle) -> bool:
+    return bundle.public or principal.has_any("read")
+
+
+def _bundle_or_problem(session, principal: Principal, name: str, version: str) -> Bundle:
+    """The bundle, if it exists and the caller may read it (anonymous callers of a private bundle get
+    401 so they know a key would help; keys without the read scope get 404, revealing nothing)."""
+    bundle = find_bundle(session, name, version)
+    if version == LATEST and bundle is not None and not _visible(principal, bundle):
+        # 'latest' for an anonymous caller is the newest *public* version, if there is one.
+        bundle = session.scalars(
+            select(Bundle).where(Bundle.name == name, Bundle.public.is_(True)).order_by(Bundle.published_at.desc(), Bundle.id.desc())
+        ).first() or bundle
+    if bundle is None:
+        raise Problem("not-found", f"no bundle {name}/{version}")
+    if not _visible(principal, bundle):
+        if principal.key_id is None:
+            raise Problem("unauthorized", f"{name}/{version} is not public; send a key with the read scope", headers={"WWW-Authenticate": "Bearer"})
+        raise Problem("not-found", f"no bundle {name}/{version}")
+    return bundle
+
+
+def _public(bundle: Bundle) -> BundlePublic:
+    return BundlePublic(
+        name=bundle.name, version=bundle.version, manifest_sha256=bundle.manifest_sha256, size=bundle.size,
+        file_count=bundle.file_count, public=bundle.public, bake_id=bundle.bake_id,
+        published_at=to_utc(bundle.published_at), manifest_url=f"/v1/bundles/{bundle.name}/{bundle.version}/manifest.json",
+    )
+
+
+def _etag_matches(header: str, etag: str) -> bool:
+    candidates = [item.strip() for item in header.split(",")]
+    return "*" in candidates or any(item.removeprefix("W/").strip('"') == etag for item in candidates)
+
+
+def _serve_file(request: Request, path: Path, sha256: str, media_type: str, bundle: Bundle, requested_version: str) -> Response:
+    """A file of a published bundle with ETag, cache headers, conditional and range handling."""
+    headers = {"ETag": f'"{sha256}"', "X-Content-SHA256": sha256}
+    if requested_version == LATEST:
+        headers["Cache-Control"] = "no-cache"
+        prefix = f"/v1/bundles/{bundle.name}/{LATEST}/"
+        headers["Content-Location"] = f"/v1/bundles/{bundle.name}/{bundle.version}/" + request.url.path.split(prefix, 1)[-1]
+    else:
+        visibility = "public" if bundle.public else "private"
+        headers["Cache-Control"] = f"{visibility}, max-age={IMMUTABLE_SECONDS}, immutable"
+    if_none_match = request.headers.get("if-none-match")
+    if if_none_match and _etag_matches(if_none_match, sha256):
+        return Response(status_code=304, headers=headers)
+    try:
+        stat_result = os.stat(path)
+    except FileNotFoundError:
+        raise Problem("internal-error", "a published file is missing from the bundle store", status=500) from None
+    range_header = request.headers.get("range")
+    if_range = request.headers.get("if-range")
+    if range_header and (if_range is None or if_range.strip() == headers["ETag"]):
+        try:
+            FileResponse._parse_range_header(range_header, stat_result.st_size)
+        except MalformedRangeHeader:
+            # RFC 9110 §14.2: a server may ignore a Range header it cannot parse and send the whole file.
+            request.scope["headers"] = [(k, v) for k, v in request.scope["headers"] if k != b"range"]
+        except RangeNotSatisfiable:
+            raise Problem(
+                "range-not-satisfiable", f"the file has {stat_result.st_size} bytes",
+                headers={"Content-Range": f"bytes */{stat_result.st_size}", **headers},
+            ) from None
+    return FileResponse(path, media_type=media_type, headers=headers, stat_result=stat_result)
+
+
+@router.get("", response_model=BundleNamesPublic, responses=problem_responses())
+def list_bundle_names(principal: PrincipalDep, session: SessionDep) -> BundleNamesPublic:
+    query = select(Bundle.name).distinct().order_by(Bundle.name)
+    if not principal.has_any("read"):
+        query = query.where(Bundle.public.is_(True))
+    return BundleNamesPublic(names=list(session.scalars(query).all()))
+
+
+@router.get("/{name}", response_model=BundleVersionsPublic, responses=problem_responses(404))
+def list_versions(name: NameParam, principal: PrincipalDep, session: SessionDep) -> BundleVersionsPublic:
+    query = select(Bundle).where(Bundle.name == name).order_by(Bundle.published_at.desc(), Bundle.id.desc())
+    if not principal.has_any("read"):
+        query = query.where(Bundle.public.is_(True))
+    bundles = session.scalars(query).all()
+    if not bundles:
+        if principal.key_id is None and find_bundle(session, name, LATEST) is not None:
+            raise Problem("unauthorized", f"bundle {name} is not public; send a key with the read scope", headers={"WWW-Authenticate": "Bearer"})
+        raise Problem("not-found", f"no bundle named {name!r}")
+    return BundleVersionsPublic(name=name, latest=bundles[0].version, versions=[_public(bundle) for bundle in bundles])
+
+
+@router.get("/{name}/{version}", response_model=BundlePublic, responses=problem_responses(404))
+def get_bundle(name: NameParam, version: VersionParam, principal: PrincipalDep, session: SessionDep) -> BundlePublic:
+    return _public(_bundle_or_problem(session, principal, name, version))
+
+
+@router.patch("/{name}/{version}", response_model=BundlePublic, responses=problem_responses(404), summary="Make a bundle public or private")
+def update_bundle(name: NameParam, version: VersionParam, body: BundleUpdate, key: PublishKey, session: SessionDep) -> BundlePublic:
+    if version == LATEST:
+        raise Problem("validation-error", "name a concrete version, not 'latest'", [{"field": "version", "message": "alias not allowed here"}])
+    bundle = find_bundle(session, name, version)
+    if bundle is None:
+        raise Problem("not-found", f"no bundle {name}/{version}")
+    bundle.public = body.public
+    session.commit()
+    return _public(bundle)
+
+
+def _manifest(services, bundle: Bundle) -> PublishedManifest:
+    try:
+        published = read_manifest(services.settings.bundles_dir, bundle.name, bundle.version)
+    except FileNotFoundError:
+        raise Problem("internal-error", "the published bundle is missing from the bundle store", status=500) from None
+    return published
+
+
+@router.get("/{name}/{version}/manifest.json", responses=FILE_RESPONSES, response_class=FileResponse, summary="The bundle's manifest.json")
+@router.head("/{name}/{version}/manifest.json", include_in_schema=False)
+def get_manifest(name: NameParam, version: VersionParam, request: Request, principal: PrincipalDep, services: ServicesDep, session: SessionDep) -> Response:
+    bundle = _bundle_or_problem(session, principal, name, version)
+    published = _manifest(services, bundle)
+    path = bundle_dir(services.settings.bundles_dir, bundle.name, bundle.version) / "manifest.json"
+    return _serve_file(request, path, published.sha256, "application/json", bundle, version)
+
+
+@router.get("/{name}/{version}/files/{path:path}", responses=FILE_RESPONSES, response_class=FileResponse, summary="One file of the bundle, by its manifest path")
+@router.head("/{name}/{version}/files/{path:path}", include_in_schema=False)
+def get_file(name: NameParam, version: VersionParam, path: str, request: Request, principal: PrincipalDep, services: ServicesDep, session: SessionDep) -> Response:
+    bundle = _bundle_or_problem(session, principal, name, version)
+    try:
+        check_path(path)
+    except FormatError:
+        raise Problem("not-found", f"{path!r} is not a bundle path") from None
+    published = _manifest(services, bundle)
+    entry = published.files.get(path)
+    if entry is None:
+        raise Problem("not-found", f"{name}/{bundle.version} has no file {path!r}")
+    folder = bundle_dir(services.settings.bundles_dir, bundle.name, bundle.version)
+    file_path = folder / path
+    if not file_path.resolve().is_relative_to(folder.resolve()):  # the path rule already forbids this
+        raise Problem("not-found", f"{path!r} is not a bundle path")
+    return _serve_file(request, file_path, entry["sha256"], entry["media_type"], bundle, version)

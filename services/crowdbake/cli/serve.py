@@ -1,0 +1,106 @@
+"""`crowdbake serve`: the API and its bake workers on one machine, for local use and demos."""
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import subprocess
+import sys
+
+from crowdbake.cli.common import CommandError
+
+logger = logging.getLogger(__name__)
+
+DESCRIPTION = """\
+Starts the crowdbake API (uvicorn) and N Celery bake workers as subprocesses, all reading the same
+settings. Without --broker (or CROWDBAKE_BROKER_URL) the job queue is Celery's filesystem transport
+under the data folder, so nothing else needs to run; give --broker redis://... to share a Redis.
+The database is migrated at start. Create a key first: crowdbake keys create --data DIR --scopes ..."""
+
+# Seconds a worker gets to finish its current task on shutdown before it is killed.
+WORKER_STOP_TIMEOUT_S = 20
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("serve", help="run the API and bake workers locally", description=DESCRIPTION,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    parser.add_argument("--workers", type=int, default=2, metavar="N", help="concurrent bake tasks (default 2; 0 = API only)")
+    parser.add_argument("--data", metavar="DIR", help="data folder (default CROWDBAKE_DATA_DIR or ./crowdbake-data)")
+    parser.add_argument("--broker", metavar="URL", help="Celery broker URL (default CROWDBAKE_BROKER_URL or the filesystem broker)")
+    parser.add_argument("--database", metavar="URL", help="database URL (default CROWDBAKE_DATABASE_URL or SQLite in the data folder)")
+    parser.set_defaults(func=run)
+
+
+def _worker_command(settings, workers: int) -> list[str]:
+    return [
+        sys.executable, "-m", "celery", "-A", "crowdbake.jobs.celery_app", "worker",
+        "--loglevel", "INFO", "--pool", "prefork", "--concurrency", str(workers),
+        "--queues", settings.queue, "--hostname", f"crowdbake-{os.getpid()}@%h", "--without-gossip", "--without-mingle",
+    ]
+
+
+def start_worker(settings, workers: int, env: dict[str, str] | None = None) -> subprocess.Popen:
+    """A Celery worker subprocess with `workers` prefork children, using this process's settings."""
+    return subprocess.Popen(_worker_command(settings, workers), env=env or os.environ.copy())
+
+
+def stop_worker(process: subprocess.Popen) -> None:
+    """Warm shutdown (finish the current task), then kill after WORKER_STOP_TIMEOUT_S."""
+    if process.poll() is not None:
+        return
+    process.send_signal(signal.SIGTERM)
+    try:
+        process.wait(timeout=WORKER_STOP_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+def _exit_on_signal(signum, _frame) -> None:
+    raise SystemExit(128 + signum)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
+    from crowdbake.settings import Settings, get_settings
+
+    if args.workers < 0:
+        raise CommandError("--workers must be >= 0")
+    # The workers read their settings from the environment: put every override there.
+    for option, variable in ((args.data, "CROWDBAKE_DATA_DIR"), (args.broker, "CROWDBAKE_BROKER_URL"), (args.database, "CROWDBAKE_DATABASE_URL")):
+        if option:
+            os.environ[variable] = str(option)
+    get_settings.cache_clear()
+    try:
+        settings = Settings()
+    except ValidationError as error:
+        raise CommandError(f"refusing to start: {error.errors()[0]['msg']}") from None
+    os.environ["CROWDBAKE_DATA_DIR"] = str(settings.data_dir)
+
+    import uvicorn
+    from sqlalchemy import func, select
+
+    from crowdbake.api.app import create_app
+    from crowdbake.storage.models import ApiKey
+
+    app = create_app(settings)
+    with app.state.services.sessions() as session:
+        if not session.scalar(select(func.count()).select_from(ApiKey).where(ApiKey.revoked_at.is_(None))):
+            print(f"crowdbake serve: no API keys yet; create one with: crowdbake keys create --data {settings.data_dir} --scopes upload,bake,publish,read",
+                  file=sys.stderr)
+    # uvicorn handles SIGTERM itself and, once shut down, raises it again with the handler that was there
+    # before it started: make that handler an exception, so the `finally` below stops the workers.
+    signal.signal(signal.SIGTERM, _exit_on_signal)
+    worker = start_worker(settings, args.workers) if args.workers else None
+    print(f"crowdbake serve: API on http://{args.host}:{args.port} (docs at /docs), {args.workers} worker(s), "
+          f"data {settings.data_dir}, broker {settings.broker_url}", file=sys.stderr)
+    try:
+        uvicorn.run(app, host=args.host, port=args.port, log_level="info")
+    finally:
+        if worker is not None:
+            stop_worker(worker)
+    return 0

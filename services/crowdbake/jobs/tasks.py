@@ -1,0 +1,406 @@
+"""The bake's Celery tasks: one thin task per stage of crowdbake.pipeline.
+
+Each task takes the bake's id and attempt (and, for an impostor task, its part id), loads what it needs
+from the database, calls the pipeline's stage function on the bake's work folder, records the outcome,
+and enqueues what comes next:
+
+    validate -> cycle -> poses -> impostor_views x N (in parallel) -> pack -> publish
+
+(The impostor tasks are derived from the poses stage's output, pipeline.impostor_tasks, so they follow
+it rather than run beside it.)
+
+The work folder is named by the bake's input key (hash of inputs, parameters and code version), and the
+stage functions are idempotent, so a redelivered or retried task finds its outputs and returns at once.
+The fan-in before pack is a barrier in the database (crowdbake.jobs.records.complete_part/claim_fan_in).
+
+Errors: the pipeline's InputError and VersionConflict, and any other error that a rerun cannot fix,
+fail the bake with a one-line reason; transient errors (a locked database, a full disk) are retried
+with exponential backoff up to `task_max_retries`. Cancellation is cooperative: the bake's state in the
+database is checked before each stage and at every progress report.
+"""
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import os
+import random
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from celery import group
+from kombu.exceptions import OperationalError as KombuOperationalError
+from sqlalchemy.exc import OperationalError
+from sqlalchemy.orm import Session, sessionmaker
+
+from crowdbake.jobs import records
+from crowdbake.jobs.celery_app import TASK_NAMES, app
+from crowdbake.settings import Settings, get_settings
+from crowdbake.storage.blobs import BlobStore, make_blob_store
+from crowdbake.storage.bundles import BundleConflict, register_bundle
+from crowdbake.storage.db import make_engine, make_sessionmaker, session_scope
+from crowdbake.storage.models import Asset, Bake, BakePart
+
+logger = logging.getLogger(__name__)
+
+# OS errors a later attempt can get past; others (a missing file, a permission) would fail again.
+TRANSIENT_ERRNOS = frozenset({errno.ENOSPC, errno.EIO, errno.EAGAIN, errno.EBUSY, errno.ETIMEDOUT, errno.EMFILE, errno.ENFILE, errno.EINTR})
+# Lines of a stage's own log kept in the bake's log (a chatty stage must not fill the database).
+MAX_CAPTURED_LINES = 200
+
+TASK_OPTIONS = dict(bind=True, acks_late=True, reject_on_worker_lost=True, ignore_result=True)
+
+
+class BakeStopped(Exception):
+    """The bake was cancelled, failed elsewhere, or a newer attempt replaced this one."""
+
+
+@dataclass
+class WorkerServices:
+    settings: Settings
+    sessions: sessionmaker[Session]
+    blobs: BlobStore
+
+
+_services: WorkerServices | None = None
+_services_pid: int | None = None
+
+
+def services() -> WorkerServices:
+    """This process's database sessions and blob store, created after the prefork fork (engines and
+    their connections must not be shared between processes)."""
+    global _services, _services_pid
+    if _services is None or _services_pid != os.getpid():
+        settings = get_settings()
+        _services = WorkerServices(settings, make_sessionmaker(make_engine(settings.database_url)), make_blob_store(settings.blob_dir))
+        _services_pid = os.getpid()
+    return _services
+
+
+def work_dir(settings: Settings, input_key: str) -> Path:
+    return settings.work_dir / input_key
+
+
+def _pipeline():
+    from crowdbake import pipeline
+
+    return pipeline
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, Path):
+        return {"path": str(value)}
+    return json.loads(json.dumps(value, default=str)) if value is not None else None
+
+
+# ------------------------------------------------------------------------------------ stage runner
+
+
+class _LogCapture(logging.Handler):
+    """Collects the crowdbake loggers' records while a stage runs, for the bake's log."""
+
+    def __init__(self):
+        super().__init__(logging.INFO)
+        self.lines: list[tuple[str, str]] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if len(self.lines) < MAX_CAPTURED_LINES and not record.name.startswith("crowdbake.jobs"):
+            self.lines.append((record.levelname, f"{record.name}: {record.getMessage()}"))
+
+
+@dataclass
+class StageContext:
+    """What a stage body gets: the bake, its work folder and a progress callback."""
+
+    services: WorkerServices
+    bake_id: str
+    attempt: int
+    stage: str
+    work: Path
+    _last_report: float = 0.0
+
+    def session(self):
+        return session_scope(self.services.sessions)
+
+    def check_live(self, session: Session) -> Bake:
+        bake = session.get(Bake, self.bake_id)
+        if bake is None or bake.attempt != self.attempt or records.is_final(bake):
+            raise BakeStopped(f"bake {self.bake_id} attempt {self.attempt} is no longer running")
+        return bake
+
+    def progress(self, _stage: str, done: int, total: int) -> None:
+        """The pipeline's progress callback: records done/total (at most every progress_interval
+        seconds, and always at the end) and stops the stage if the bake was cancelled."""
+        now = time.monotonic()
+        if done < total and now - self._last_report < self.services.settings.progress_interval:
+            return
+        self._last_report = now
+        with self.session() as session:
+            self.check_live(session)
+            records.set_progress(session, self.bake_id, self.stage, done, total)
+
+
+def _is_transient(error: BaseException) -> bool:
+    if isinstance(error, (OperationalError, KombuOperationalError)):  # database busy, broker unreachable
+        return True
+    return isinstance(error, OSError) and error.errno in TRANSIENT_ERRNOS
+
+
+def describe_error(error: BaseException, stage: str) -> dict[str, Any]:
+    """A bake's error record: a problem type, a title, a one-line detail and the input field if known."""
+    pipeline = None
+    try:
+        pipeline = _pipeline()
+    except ImportError:
+        pass
+    detail = " ".join(str(error).split()) or type(error).__name__
+    if pipeline is not None and isinstance(error, getattr(pipeline, "InputError", ())):
+        record = {"type": "invalid-input", "title": "the inputs cannot be baked", "detail": detail}
+        field = getattr(error, "field", None)
+        if field:
+            record["field"] = str(field)
+        return record
+    if isinstance(error, BundleConflict) or (pipeline is not None and isinstance(error, getattr(pipeline, "VersionConflict", ()))):
+        return {"type": "version-conflict", "title": "this version is already published with other bytes", "detail": detail}
+    return {"type": "stage-failed", "title": f"the {stage} stage failed", "detail": f"{type(error).__name__}: {detail}"}
+
+
+def run_stage(task, bake_id: str, attempt: int, stage: str, body: Callable[[StageContext], Any],
+              after: Callable[[StageContext, Any, float], None], log_start: bool = True) -> None:
+    """Run `body` as stage `stage` of the bake, then `after(ctx, result, seconds)`, recording state,
+    timings, captured log lines and errors; retries transient errors with backoff."""
+    svc = services()
+    with session_scope(svc.sessions) as session:
+        bake = session.get(Bake, bake_id)
+        if bake is None:
+            logger.warning("bake %s does not exist; dropping its %s task", bake_id, stage)
+            return
+        if bake.attempt != attempt or records.is_final(bake):
+            logger.info("bake %s attempt %s is %s; dropping its %s task", bake_id, attempt, bake.state, stage)
+            return
+        records.mark_running(session, bake, stage)
+        if log_start:
+            records.append_log(session, bake_id, "INFO", stage, f"{stage} started (attempt {attempt}, delivery {task.request.retries + 1})")
+        key = bake.input_key
+    ctx = StageContext(svc, bake_id, attempt, stage, work_dir(svc.settings, key))
+    ctx.work.mkdir(parents=True, exist_ok=True)
+
+    capture = _LogCapture()
+    package_logger = logging.getLogger("crowdbake")
+    previous_level = package_logger.level
+    package_logger.addHandler(capture)
+    if package_logger.getEffectiveLevel() > logging.INFO:
+        package_logger.setLevel(logging.INFO)
+    start = time.perf_counter()
+    error: BaseException | None = None
+    try:
+        try:
+            result = body(ctx)
+        finally:
+            package_logger.removeHandler(capture)
+            package_logger.setLevel(previous_level)
+            seconds = time.perf_counter() - start
+            if capture.lines:
+                with session_scope(svc.sessions) as session:
+                    for level, message in capture.lines:
+                        records.append_log(session, bake_id, level, stage, message)
+        # Recording the outcome and enqueueing the next stage fail like the stage itself: a retry
+        # reruns the (idempotent, by then cached) stage and tries again.
+        after(ctx, result, seconds)
+    except BakeStopped as stopped:
+        logger.info("%s", stopped)
+        return
+    except Exception as caught:  # every failure is recorded; nothing escapes unrecorded
+        error = caught
+    if error is None:
+        return
+
+    retries = task.request.retries
+    if _is_transient(error) and retries < svc.settings.task_max_retries:
+        countdown = min(svc.settings.task_retry_backoff_max, 2.0**retries) * (0.5 + random.random())
+        with session_scope(svc.sessions) as session:
+            row = records.stage_row(session, bake_id, stage)
+            row.state, row.retries = "retrying", row.retries + 1
+            records.append_log(session, bake_id, "WARNING", stage, f"transient error, retry {retries + 1} in {countdown:.1f} s: {type(error).__name__}: {error}")
+        raise task.retry(exc=error, countdown=countdown, max_retries=svc.settings.task_max_retries)
+    logger.error("bake %s: %s failed", bake_id, stage, exc_info=error)
+    with session_scope(svc.sessions) as session:
+        bake = session.get(Bake, bake_id)
+        if bake is not None and bake.attempt == attempt and not records.is_final(bake):
+            records.fail_bake(session, bake, stage, describe_error(error, stage))
+
+
+def _finish(ctx: StageContext, session: Session, result: Any, seconds: float) -> Bake:
+    bake = ctx.check_live(session)
+    records.finish_stage(session, ctx.bake_id, ctx.stage, seconds, _jsonable(result))
+    records.append_log(session, ctx.bake_id, "INFO", ctx.stage, f"{ctx.stage} finished in {seconds:.2f} s")
+    return bake
+
+
+def _send(stage: str, bake_id: str, attempt: int, *extra: Any) -> None:
+    app.send_task(TASK_NAMES[stage], args=[bake_id, attempt, *extra], queue=services().settings.queue)
+
+
+# ------------------------------------------------------------------------------------------ stages
+
+
+def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
+    """Link the bake's input blobs into work/sources and build the pipeline's BakeInputs.
+
+    Not work/inputs: stage_validate copies its inputs there and clears that folder first. The links
+    share the blobs' modification times (the upload's), which the pipeline takes the manifest's
+    `created` from, so every attempt of a bake produces the same bytes."""
+    pipeline = _pipeline()
+    blobs = ctx.services.blobs
+    inputs_dir = ctx.work / "sources"
+    if inputs_dir.exists():
+        shutil.rmtree(inputs_dir)
+    character = session.get(Asset, bake.inputs["character"])
+    cloth = session.get(Asset, bake.inputs["cloth"])
+    if character is None or cloth is None:
+        raise pipeline.InputError("an input asset no longer exists", "character" if character is None else "cloth")
+    character_path = blobs.materialize(character.files["file"]["sha256"], inputs_dir / f"character.{character.info.get('format', 'glb')}")
+    cloth_path = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / "cloth.pc2")
+    mesh_path = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "cloth.obj")
+    textures_dir = None
+    if bake.inputs.get("textures"):
+        textures_dir = inputs_dir / "textures"
+        for name, asset_id in sorted(bake.inputs["textures"].items()):
+            texture = session.get(Asset, asset_id)
+            if texture is None:
+                raise pipeline.InputError(f"texture {name} no longer exists", f"textures.{name}")
+            blobs.materialize(texture.files["file"]["sha256"], textures_dir / name)
+    return pipeline.BakeInputs(
+        character=character_path, cloth=cloth_path, cloth_mesh=mesh_path, textures=textures_dir, cycle=None,
+        name=bake.name, version=bake.version, params=pipeline.BakeParams.from_dict(bake.params),
+    )
+
+
+@app.task(name=TASK_NAMES["validate"], **TASK_OPTIONS)
+def validate(self, bake_id: str, attempt: int) -> None:
+    def body(ctx: StageContext):
+        with ctx.session() as session:
+            bake = ctx.check_live(session)
+            inputs = _materialize_inputs(ctx, bake, session)
+        return _pipeline().stage_validate(inputs, ctx.work)
+
+    def after(ctx: StageContext, result, seconds: float) -> None:
+        with ctx.session() as session:
+            _finish(ctx, session, result, seconds)
+        _send("cycle", ctx.bake_id, ctx.attempt)
+
+    run_stage(self, bake_id, attempt, "validate", body, after)
+
+
+@app.task(name=TASK_NAMES["cycle"], **TASK_OPTIONS)
+def cycle(self, bake_id: str, attempt: int) -> None:
+    def body(ctx: StageContext):
+        return _pipeline().stage_cycle(ctx.work, progress=ctx.progress)
+
+    def after(ctx: StageContext, result, seconds: float) -> None:
+        with ctx.session() as session:
+            _finish(ctx, session, result, seconds)
+        _send("poses", ctx.bake_id, ctx.attempt)
+
+    run_stage(self, bake_id, attempt, "cycle", body, after)
+
+
+def _maybe_enqueue_pack(ctx: StageContext, parts_left: int) -> None:
+    """The last part to finish enqueues pack. The claim commits only once the message is sent, so a
+    failed send leaves the barrier open for the retry instead of losing the pack stage."""
+    if parts_left:
+        return
+    with ctx.session() as session:
+        ctx.check_live(session)
+        if records.claim_fan_in(session, ctx.bake_id, ctx.attempt):
+            _send("pack", ctx.bake_id, ctx.attempt)
+
+
+@app.task(name=TASK_NAMES["poses"], **TASK_OPTIONS)
+def poses(self, bake_id: str, attempt: int) -> None:
+    def body(ctx: StageContext):
+        pipeline = _pipeline()
+        result = pipeline.stage_poses(ctx.work, progress=ctx.progress)
+        return result, pipeline.impostor_tasks(ctx.work)
+
+    def after(ctx: StageContext, outcome, seconds: float) -> None:
+        result, impostor_specs = outcome
+        with ctx.session() as session:
+            _finish(ctx, session, result, seconds)
+            part_ids = records.record_fan_out(session, ctx.bake_id, impostor_specs)
+            records.append_log(session, ctx.bake_id, "INFO", "impostors", f"fanning out {len(part_ids)} impostor-view tasks")
+        if not part_ids:
+            _maybe_enqueue_pack(ctx, 0)
+            return
+        queue = services().settings.queue
+        group(
+            app.signature(TASK_NAMES["impostor_views"], args=[ctx.bake_id, ctx.attempt, part_id], queue=queue, immutable=True)
+            for part_id in part_ids
+        ).apply_async()
+
+    run_stage(self, bake_id, attempt, "poses", body, after)
+
+
+@app.task(name=TASK_NAMES["impostor_views"], **TASK_OPTIONS)
+def impostor_views(self, bake_id: str, attempt: int, part_id: str) -> None:
+    def body(ctx: StageContext):
+        with ctx.session() as session:
+            part = session.get(BakePart, (bake_id, part_id))
+            if part is None:
+                raise BakeStopped(f"bake {bake_id} has no part {part_id} (superseded)")
+            spec = dict(part.spec)
+        return _pipeline().stage_impostor_views(ctx.work, spec)
+
+    def after(ctx: StageContext, result, seconds: float) -> None:
+        with ctx.session() as session:
+            parts_left = records.complete_part(session, ctx.bake_id, part_id)
+            ctx.check_live(session)
+            row = records.stage_row(session, ctx.bake_id, "impostors")
+            row.seconds = round((row.seconds or 0.0) + seconds, 3)  # summed render seconds over parts
+            if records.impostor_parts_left(session, ctx.bake_id) == 0:
+                row.state, row.finished_at = "succeeded", records.utcnow()
+                row.done = row.total
+                records.append_log(session, ctx.bake_id, "INFO", "impostors", f"all {row.total} impostor-view tasks finished ({row.seconds:.2f} s of rendering)")
+        _maybe_enqueue_pack(ctx, parts_left)
+
+    run_stage(self, bake_id, attempt, "impostors", body, after, log_start=False)
+
+
+@app.task(name=TASK_NAMES["pack"], **TASK_OPTIONS)
+def pack(self, bake_id: str, attempt: int) -> None:
+    def body(ctx: StageContext):
+        return _pipeline().stage_pack(ctx.work, progress=ctx.progress)
+
+    def after(ctx: StageContext, result, seconds: float) -> None:
+        with ctx.session() as session:
+            bake = _finish(ctx, session, result, seconds)
+            publish_next = bake.publish
+            if not publish_next:
+                row = records.stage_row(session, ctx.bake_id, "publish")
+                row.state = "skipped"
+                records.succeed_bake(session, bake)
+        if publish_next:
+            _send("publish", ctx.bake_id, ctx.attempt)
+
+    run_stage(self, bake_id, attempt, "pack", body, after)
+
+
+@app.task(name=TASK_NAMES["publish"], **TASK_OPTIONS)
+def publish(self, bake_id: str, attempt: int) -> None:
+    def body(ctx: StageContext):
+        settings = ctx.services.settings
+        path = _pipeline().stage_publish(ctx.work, settings.bundles_dir)
+        with ctx.session() as session:
+            bake = ctx.check_live(session)
+            register_bundle(session, settings.bundles_dir, bake.name, bake.version, bake.public, bake.id)
+        return path
+
+    def after(ctx: StageContext, result, seconds: float) -> None:
+        with ctx.session() as session:
+            bake = _finish(ctx, session, result, seconds)
+            records.succeed_bake(session, bake)
+
+    run_stage(self, bake_id, attempt, "publish", body, after)

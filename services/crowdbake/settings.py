@@ -1,0 +1,92 @@
+"""The service's settings: one class, read once from CROWDBAKE_* environment variables.
+
+Every path defaults to a folder under `data_dir`, so `CROWDBAKE_DATA_DIR=/srv/crowdbake` is the only
+setting a single machine needs. The API, the workers and the CLI all build their state from the same
+class, so a worker started with the API's environment sees the API's database, blobs and broker.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+MiB = 1 << 20
+
+# Secrets people paste from examples; a server started with one of these is a server anyone can use.
+KNOWN_DEFAULT_SECRETS = frozenset({"changethis", "changeme", "secret", "password", "admin", "crowdbake", "test", "default"})
+# A bootstrap key is compared against stored sha256 digests; below this many characters it is guessable.
+MIN_SECRET_LENGTH = 32
+
+
+class Settings(BaseSettings):
+    """Configuration of the crowdbake service (see docs/service.md for the table)."""
+
+    model_config = SettingsConfigDict(env_prefix="CROWDBAKE_", extra="ignore", validate_default=True)
+
+    data_dir: Path = Field(Path("crowdbake-data"), description="Root folder for the defaults below.")
+    database_url: str | None = Field(None, description="SQLAlchemy URL; default a SQLite file in data_dir.")
+    blob_dir: Path | None = Field(None, description="Content-addressed blob store; default data_dir/blobs.")
+    bundles_dir: Path | None = Field(None, description="Published bundles; default data_dir/bundles.")
+    work_dir: Path | None = Field(None, description="Per-bake work folders keyed by input hash; default data_dir/work.")
+    broker_url: str = Field("filesystem://", description="Celery broker: redis://... in production.")
+    broker_dir: Path | None = Field(None, description="Folder of the filesystem broker; default data_dir/broker.")
+    queue: str = Field("crowdbake", description="Celery queue the bake tasks go to.")
+
+    max_upload_bytes: int = Field(512 * MiB, gt=0, description="Largest request body accepted (413 above).")
+    max_zip_entries: int = Field(10_000, gt=0, description="Most entries in an uploaded OBJ-sequence zip.")
+    max_zip_uncompressed_bytes: int = Field(4096 * MiB, gt=0, description="Most bytes a zip may expand to.")
+    max_zip_ratio: float = Field(200.0, gt=1, description="Largest uncompressed/compressed ratio of one entry.")
+    max_texture_pixels: int = Field(8192 * 8192, gt=0, description="Largest PNG (width x height) accepted.")
+
+    bootstrap_key: SecretStr | None = Field(
+        None, description="If set, an API key with every scope that exists from start-up (>= 32 characters)."
+    )
+    task_max_retries: int = Field(3, ge=0, description="Retries of a stage after a transient error.")
+    task_retry_backoff_max: float = Field(60.0, gt=0, description="Longest wait between retries (seconds).")
+    progress_interval: float = Field(0.5, ge=0, description="Least seconds between two progress writes of a stage.")
+    migrate_on_start: bool = Field(True, description="Run the database migrations when the API starts.")
+
+    @field_validator("bootstrap_key")
+    @classmethod
+    def _refuse_weak_secret(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is None:
+            return None
+        secret = value.get_secret_value()
+        if secret.strip().lower() in KNOWN_DEFAULT_SECRETS or len(secret) < MIN_SECRET_LENGTH:
+            raise ValueError(
+                f"CROWDBAKE_BOOTSTRAP_KEY is a default or has fewer than {MIN_SECRET_LENGTH} characters; "
+                "generate one with `python -c 'import secrets; print(secrets.token_urlsafe(32))'`"
+            )
+        return value
+
+    @model_validator(mode="after")
+    def _fill_defaults(self) -> "Settings":
+        data = self.data_dir.expanduser().resolve()
+        self.data_dir = data
+        self.blob_dir = (self.blob_dir or data / "blobs").expanduser().resolve()
+        self.bundles_dir = (self.bundles_dir or data / "bundles").expanduser().resolve()
+        self.work_dir = (self.work_dir or data / "work").expanduser().resolve()
+        self.broker_dir = (self.broker_dir or data / "broker").expanduser().resolve()
+        if not self.database_url:
+            self.database_url = f"sqlite:///{data / 'crowdbake.sqlite3'}"
+        return self
+
+    @property
+    def uses_filesystem_broker(self) -> bool:
+        return self.broker_url.startswith("filesystem:")
+
+    def ensure_dirs(self) -> None:
+        """Create the folders this configuration writes to."""
+        for folder in (self.data_dir, self.blob_dir, self.bundles_dir, self.work_dir):
+            folder.mkdir(parents=True, exist_ok=True)
+        if self.uses_filesystem_broker:
+            (self.broker_dir / "queue").mkdir(parents=True, exist_ok=True)
+            (self.broker_dir / "processed").mkdir(parents=True, exist_ok=True)
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The process's settings, read from the environment once."""
+    return Settings()

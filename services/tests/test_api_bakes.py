@@ -1,0 +1,177 @@
+"""Bakes through the real app with the real filesystem broker (no worker here: the enqueued message
+is read back from the broker's folder): 202 + Location, parameters validated and recorded,
+idempotent resubmission, cancel, retry, scopes."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from service_fixtures import make_api, obj_bytes, pc2_bytes, png_bytes, tiny_character_glb, tiny_cloth
+
+PROBLEM = "application/problem+json"
+
+
+@pytest.fixture
+def api(tmp_path):
+    return make_api(tmp_path)
+
+
+@pytest.fixture
+def assets(api, tmp_path):
+    points, faces = tiny_cloth(frames=12)
+    upload = api.auth("upload")
+    character = api.client.post("/v1/assets/characters", files={"file": ("walker.glb", tiny_character_glb())}, headers=upload).json()
+    cloth = api.client.post("/v1/assets/cloth", files={"cache": ("c.pc2", pc2_bytes(points)), "mesh": ("c.obj", obj_bytes(points[0], faces, tmp_path))}, headers=upload).json()
+    texture = api.client.post("/v1/assets/textures", files={"file": ("d.png", png_bytes())}, headers=upload).json()
+    return {"character": character["id"], "cloth": cloth["id"], "texture": texture["id"]}
+
+
+def bake_body(assets, **changes):
+    body = {"name": "walker", "version": "1.0.0", "character": assets["character"], "cloth": assets["cloth"],
+            "textures": {"diffuse_0.png": assets["texture"]}, "params": {"impostor_frames": 2, "azimuths": 4, "tile_size": 32}}
+    body.update(changes)
+    return body
+
+
+def queued_messages(api) -> list[dict]:
+    """The task messages waiting in the filesystem broker's folder: (task name, args)."""
+    messages = []
+    for path in sorted((Path(api.settings.broker_dir) / "queue").glob("*.msg")):
+        envelope = json.loads(path.read_bytes())
+        messages.append({"task": envelope["headers"]["task"], "args": envelope["headers"]["argsrepr"]})
+    return messages
+
+
+def test_create_returns_202_with_location_and_enqueues_validate(api, assets):
+    response = api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci"))
+    assert response.status_code == 202, response.text
+    bake = response.json()
+    assert response.headers["location"] == f"/v1/bakes/{bake['id']}"
+    assert bake["state"] == "queued" and bake["attempt"] == 0 and bake["progress"] == 0.0
+    assert [stage["stage"] for stage in bake["stages"]] == ["validate", "cycle", "poses", "impostors", "pack", "publish"]
+    assert all(stage["state"] == "pending" for stage in bake["stages"])
+    # Parameters are validated, completed with defaults and recorded with the job.
+    assert bake["params"]["tile_size"] == 32 and bake["params"]["close"] == "hermite" and bake["params"]["elevations_deg"] == [0.0, 20.0, 40.0]
+    assert bake["inputs"]["textures"] == {"diffuse_0.png": assets["texture"]}
+    assert queued_messages(api) == [{"task": "crowdbake.stage.validate", "args": repr([bake["id"], 0])}]
+    followed = api.client.get(response.headers["location"], headers=api.auth("bake")).json()
+    assert followed["id"] == bake["id"] and "queued" in followed["log"][0]["message"]
+
+
+def test_resubmission_is_idempotent(api, assets):
+    first = api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci"))
+    again = api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci"))
+    assert again.status_code == 200 and again.json()["id"] == first.json()["id"]
+    assert again.headers["location"] == first.headers["location"]
+    assert len(queued_messages(api)) == 1  # nothing enqueued twice
+    other = api.client.post("/v1/bakes", json=bake_body(assets, version="1.0.1"), headers=api.auth("ci"))
+    assert other.status_code == 202 and other.json()["id"] != first.json()["id"]
+    assert other.json()["input_key"] != first.json()["input_key"]
+
+
+def test_same_version_from_other_inputs_conflicts_while_baking(api, assets):
+    assert api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci")).status_code == 202
+    response = api.client.post("/v1/bakes", json=bake_body(assets, params={"tile_size": 64}), headers=api.auth("ci"))
+    assert response.status_code == 409 and response.headers["content-type"] == PROBLEM
+
+
+@pytest.mark.parametrize("params,field", [
+    ({"tile_size": 30}, "params.tile_size"),
+    ({"impostor_frames": 0}, "params.impostor_frames"),
+    ({"close": "cubic"}, "params.close"),
+    ({"elevations_deg": [0, 95]}, "params.elevations_deg"),
+    ({"lod_ratio": 0.5, "lod_triangles": 100}, "params"),
+    ({"unknown_knob": 1}, "params.unknown_knob"),
+])
+def test_invalid_parameters_are_problems_naming_the_field(api, assets, params, field):
+    response = api.client.post("/v1/bakes", json=bake_body(assets, params=params), headers=api.auth("ci"))
+    assert response.status_code == 422 and response.headers["content-type"] == PROBLEM
+    body = response.json()
+    assert body["type"] == "/problems/validation-error"
+    assert any(error["field"] == field for error in body["errors"]), body["errors"]
+    assert queued_messages(api) == []
+
+
+def test_unknown_assets_and_reserved_version(api, assets):
+    response = api.client.post("/v1/bakes", json=bake_body(assets, character="as_nope", cloth=assets["character"]), headers=api.auth("ci"))
+    assert response.status_code == 422
+    assert {error["field"] for error in response.json()["errors"]} == {"character", "cloth"}
+    response = api.client.post("/v1/bakes", json=bake_body(assets, version="latest"), headers=api.auth("ci"))
+    assert response.status_code == 422 and response.json()["errors"][0]["field"] == "version"
+    response = api.client.post("/v1/bakes", json=bake_body(assets, textures={"albedo.png": assets["texture"]}), headers=api.auth("ci"))
+    assert response.status_code == 422 and response.json()["errors"][0]["field"] == "textures"
+
+
+def test_too_few_frames_for_the_requested_cycle(api, assets):
+    response = api.client.post("/v1/bakes", json=bake_body(assets, params={"cycle_frames": 7}), headers=api.auth("ci"))
+    assert response.status_code == 422 and response.json()["type"] == "/problems/invalid-file"
+    assert "too few frames for two cycles" in response.json()["errors"][0]["message"]
+
+
+def test_cycle_length_comes_from_the_animation_or_the_parameters(api, assets):
+    still = api.client.post("/v1/assets/characters", files={"file": ("still.glb", tiny_character_glb(animated=False))}, headers=api.auth("upload")).json()
+    response = api.client.post("/v1/bakes", json=bake_body(assets, character=still["id"]), headers=api.auth("ci"))
+    assert response.status_code == 422 and response.json()["errors"][0]["field"] == "params.cycle_frames"
+    response = api.client.post("/v1/bakes", json=bake_body(assets, character=still["id"], params={"cycle_frames": 6}), headers=api.auth("ci"))
+    assert response.status_code == 202, response.text
+
+
+def test_scopes(api, assets):
+    assert api.client.post("/v1/bakes", json=bake_body(assets)).status_code == 401
+    assert api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("upload")).status_code == 403
+    # baking without publishing needs only the bake scope; publishing needs the publish scope too
+    assert api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("bake")).status_code == 403
+    response = api.client.post("/v1/bakes", json=bake_body(assets, publish=False), headers=api.auth("bake"))
+    assert response.status_code == 202
+    assert api.client.get(f"/v1/bakes/{response.json()['id']}", headers=api.auth("read")).status_code == 403
+
+
+def test_cancel_then_retry(api, assets):
+    bake = api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci")).json()
+    assert api.client.post(f"/v1/bakes/{bake['id']}/retry", headers=api.auth("bake")).status_code == 409  # still queued
+    cancelled = api.client.post(f"/v1/bakes/{bake['id']}/cancel", headers=api.auth("bake"))
+    assert cancelled.status_code == 202 and cancelled.json()["state"] == "cancelled"
+    assert {stage["state"] for stage in cancelled.json()["stages"]} == {"cancelled"}
+    again = api.client.post(f"/v1/bakes/{bake['id']}/cancel", headers=api.auth("bake"))
+    assert again.status_code == 409 and again.json()["type"] == "/problems/invalid-state"
+    # A cancelled bake is not reused by a resubmission: a new bake starts.
+    fresh = api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci"))
+    assert fresh.status_code == 202 and fresh.json()["id"] != bake["id"]
+    retried = api.client.post(f"/v1/bakes/{bake['id']}/retry", headers=api.auth("bake"))
+    assert retried.status_code == 202
+    assert retried.json()["attempt"] == 1 and retried.json()["state"] == "queued"
+    assert queued_messages(api)[-1]["args"] == repr([bake["id"], 1])
+    log = api.client.get(f"/v1/bakes/{bake['id']}/log", headers=api.auth("bake"))
+    assert log.headers["content-type"].startswith("text/plain")
+    assert [line.split()[-1] for line in log.text.splitlines()][-2:] == ["cancelled", "1"]
+
+
+def test_listing_and_not_found(api, assets):
+    created = api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci")).json()
+    listing = api.client.get("/v1/bakes?state=queued", headers=api.auth("bake")).json()
+    assert [bake["id"] for bake in listing["data"]] == [created["id"]]
+    assert api.client.get("/v1/bakes?state=failed", headers=api.auth("bake")).json()["count"] == 0
+    missing = api.client.get("/v1/bakes/bk_nope", headers=api.auth("bake"))
+    assert missing.status_code == 404 and missing.headers["content-type"] == PROBLEM
+
+
+def test_worker_errors_are_classified():
+    """Bad input and version conflicts fail a bake at once; a busy database or a full disk is retried."""
+    import errno
+
+    from sqlalchemy.exc import OperationalError
+
+    from crowdbake import pipeline
+    from crowdbake.jobs.tasks import _is_transient, describe_error
+
+    bad = describe_error(pipeline.InputError("lod_triangles 9 is not below 4", "lod_triangles"), "validate")
+    assert bad == {"type": "invalid-input", "title": "the inputs cannot be baked", "detail": "lod_triangles 9 is not below 4", "field": "lod_triangles"}
+    assert describe_error(pipeline.VersionConflict("walker/1.0.0 differs"), "publish")["type"] == "version-conflict"
+    crash = describe_error(ZeroDivisionError("division by zero"), "pack")
+    assert crash["type"] == "stage-failed" and crash["detail"] == "ZeroDivisionError: division by zero"
+    assert _is_transient(OSError(errno.ENOSPC, "No space left on device"))
+    assert _is_transient(OperationalError("UPDATE", {}, Exception("database is locked")))
+    assert not _is_transient(FileNotFoundError(errno.ENOENT, "gone"))
+    assert not _is_transient(pipeline.InputError("bad", "cloth"))

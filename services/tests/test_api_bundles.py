@@ -1,0 +1,101 @@
+"""Bundle serving through the real app, on the good bundle vector: the URL layout the C++ runtime
+relies on, strong ETags that are the sha256, Range and conditional requests, immutable caching, the
+`latest` alias, and who may read what."""
+from __future__ import annotations
+
+import hashlib
+import json
+
+import pytest
+
+from service_fixtures import GOOD_BUNDLE, make_api, publish_vector_bundle
+
+MANIFEST = json.loads((GOOD_BUNDLE / "manifest.json").read_bytes())
+ENTRY = max(MANIFEST["files"], key=lambda entry: entry["size"])  # the largest file, for ranges
+
+
+@pytest.fixture
+def api(tmp_path):
+    api = make_api(tmp_path)
+    api.name, api.version = publish_vector_bundle(api, public=False)
+    api.base = f"/v1/bundles/{api.name}/{api.version}"
+    return api
+
+
+def test_manifest_and_every_file_match_their_sha256(api):
+    manifest = api.client.get(f"{api.base}/manifest.json", headers=api.auth("read"))
+    assert manifest.status_code == 200 and manifest.headers["content-type"].startswith("application/json")
+    assert manifest.headers["etag"] == f'"{hashlib.sha256(manifest.content).hexdigest()}"'
+    assert manifest.headers["cache-control"] == "private, max-age=31536000, immutable"
+    for entry in manifest.json()["files"]:
+        response = api.client.get(f"{api.base}/files/{entry['path']}", headers=api.auth("read"))
+        assert response.status_code == 200
+        assert hashlib.sha256(response.content).hexdigest() == entry["sha256"]
+        assert response.headers["etag"] == f'"{entry["sha256"]}"'
+        assert response.headers["content-type"].startswith(entry["media_type"])
+        assert response.headers["accept-ranges"] == "bytes"
+
+
+def test_range_requests(api):
+    url, data = f"{api.base}/files/{ENTRY['path']}", (GOOD_BUNDLE / ENTRY["path"]).read_bytes()
+    partial = api.client.get(url, headers={**api.auth("read"), "Range": "bytes=16-47"})
+    assert partial.status_code == 206 and partial.content == data[16:48]
+    assert partial.headers["content-range"] == f"bytes 16-47/{len(data)}"
+    suffix = api.client.get(url, headers={**api.auth("read"), "Range": "bytes=-10"})
+    assert suffix.status_code == 206 and suffix.content == data[-10:]
+    unsatisfiable = api.client.get(url, headers={**api.auth("read"), "Range": f"bytes={len(data) + 5}-"})
+    assert unsatisfiable.status_code == 416 and unsatisfiable.headers["content-type"] == "application/problem+json"
+    assert unsatisfiable.headers["content-range"] == f"bytes */{len(data)}"
+    # If-Range with a stale ETag: the whole file, not a piece of a different version
+    stale = api.client.get(url, headers={**api.auth("read"), "Range": "bytes=0-3", "If-Range": '"' + "0" * 64 + '"'})
+    assert stale.status_code == 200 and stale.content == data
+    fresh = api.client.get(url, headers={**api.auth("read"), "Range": "bytes=0-3", "If-Range": f'"{ENTRY["sha256"]}"'})
+    assert fresh.status_code == 206 and fresh.content == data[:4]
+    garbled = api.client.get(url, headers={**api.auth("read"), "Range": "lines=1-2"})
+    assert garbled.status_code == 200 and garbled.content == data  # an unparseable Range is ignored
+
+
+def test_conditional_and_head(api):
+    url = f"{api.base}/files/{ENTRY['path']}"
+    etag = f'"{ENTRY["sha256"]}"'
+    not_modified = api.client.get(url, headers={**api.auth("read"), "If-None-Match": f'"abc", {etag}'})
+    assert not_modified.status_code == 304 and not_modified.content == b"" and not_modified.headers["etag"] == etag
+    head = api.client.head(url, headers=api.auth("read"))
+    assert head.status_code == 200 and head.content == b"" and int(head.headers["content-length"]) == ENTRY["size"]
+
+
+def test_latest_alias_revalidates_and_names_the_version(api):
+    publish_vector_bundle(api, api.name, "2.0.0", public=False)
+    response = api.client.get(f"/v1/bundles/{api.name}/latest/files/{ENTRY['path']}", headers=api.auth("read"))
+    assert response.status_code == 200 and response.headers["cache-control"] == "no-cache"
+    assert response.headers["content-location"] == f"/v1/bundles/{api.name}/2.0.0/files/{ENTRY['path']}"
+    info = api.client.get(f"/v1/bundles/{api.name}/latest", headers=api.auth("read")).json()
+    assert info["version"] == "2.0.0"
+    versions = api.client.get(f"/v1/bundles/{api.name}", headers=api.auth("read")).json()
+    assert versions["latest"] == "2.0.0" and [v["version"] for v in versions["versions"]] == ["2.0.0", api.version]
+
+
+def test_private_bundles_need_the_read_scope_and_public_ones_do_not(api):
+    url = f"{api.base}/manifest.json"
+    assert api.client.get(url).status_code == 401
+    assert api.client.get(url, headers=api.auth("upload")).status_code == 404  # no read scope: nothing revealed
+    assert api.client.get("/v1/bundles").json()["names"] == []
+    assert api.client.get("/v1/bundles", headers=api.auth("read")).json()["names"] == [api.name]
+    assert api.client.patch(api.base, json={"public": True}, headers=api.auth("read")).status_code == 403
+    made_public = api.client.patch(api.base, json={"public": True}, headers=api.auth("publish"))
+    assert made_public.status_code == 200 and made_public.json()["public"] is True
+    anonymous = api.client.get(url)
+    assert anonymous.status_code == 200 and anonymous.headers["cache-control"] == "public, max-age=31536000, immutable"
+    assert api.client.get("/v1/bundles").json()["names"] == [api.name]
+
+
+# Dot segments are percent-encoded: an HTTP client would otherwise resolve them before sending.
+@pytest.mark.parametrize("path", ["missing.bin", "manifest.json", "%2e%2e/manifest.json", "poses/%2e%2e/%2e%2e/%2e%2e/1.0.0/manifest.json", "%2fetc%2fpasswd"])
+def test_only_listed_files_are_served(api, path):
+    response = api.client.get(f"{api.base}/files/{path}", headers=api.auth("read"))
+    assert response.status_code == 404 and response.headers["content-type"] == "application/problem+json"
+
+
+def test_unknown_bundles_are_problems(api):
+    assert api.client.get("/v1/bundles/nobody/1.0.0/manifest.json", headers=api.auth("read")).status_code == 404
+    assert api.client.get("/v1/bundles/Bad Name/1.0.0/manifest.json", headers=api.auth("read")).status_code == 422
