@@ -1,0 +1,210 @@
+"""Impostor fidelity: the impostor as a runtime would draw it against the mesh, at 1:1 pixel-to-texel.
+
+The paper switches from mesh to impostor where one impostor texel covers one screen pixel, where impostors
+are perceptually equivalent to the mesh (Dobbyn et al. 2006, section 6, after Hamill et al. 2005). At
+that distance an orthographic view of the mesh at the tile's resolution *is* the screen image, so:
+
+- the **mesh reference** is the mesh shaded per sample at `supersample`² samples per pixel (exact
+  visibility, interpolated normals, the diffuse texture sampled at the interpolated UV) and box-filtered
+  down to the tile: an anti-aliased rendering of the mesh;
+- the **impostor image** is what the runtime reconstructs from the baked, compressed maps: the UV map's
+  texture coordinates look up the same diffuse texture (paper section 5), the region code in its alpha
+  picks the outfit colour, and the decoded normal map lights it.
+
+Both use one light model, Lambert with an ambient term, one directional light fixed to the camera (above,
+to the left, in front) so that every view is lit from the front, and no gamma. SSIM and PSNR compare them
+per view over the character's bounding box; `nearest view` comparisons put the mesh at an angle between
+two baked views and the impostor at the nearest baked view: the error of switching tiles, not blending.
+Pure numpy (plus scikit-image's metrics).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from crowdbake.bake import impostor_maps
+from crowdbake.bake.impostor_maps import Coverage, OrthoView
+
+AMBIENT = 0.3
+DIFFUSE = 0.7
+# Light direction in the camera's frame: towards the camera, up, and to the left (right, up, back weights).
+LIGHT_IN_CAMERA = np.array([-0.4, 0.6, 0.7])
+# Pixels added around the union of both images' coverage before measuring, so that the silhouette's
+# outside is part of the comparison but an empty frame does not inflate SSIM.
+MEASURE_MARGIN_PX = 4
+# skimage's SSIM needs a window of 7 pixels; smaller boxes are grown to this.
+MIN_MEASURE_SIZE = 7
+# Samples per pixel side for the mesh reference (4 = 16 samples, the anti-aliasing of a good runtime).
+DEFAULT_SUPERSAMPLE = 4
+
+
+def camera_light(view: OrthoView) -> np.ndarray:
+    """(3,) unit model-space direction towards the light for `view` (fixed to the camera)."""
+    direction = LIGHT_IN_CAMERA[0] * view.right + LIGHT_IN_CAMERA[1] * view.up + LIGHT_IN_CAMERA[2] * view.back
+    return direction / np.linalg.norm(direction)
+
+
+def apply_outfit(texels: np.ndarray, outfit_row: np.ndarray) -> np.ndarray:
+    """Outfit colours (SPEC.md): (N, 4) texels 0..255 (alpha = 17·region) -> (N, 3) RGB 0..1.
+
+    Region 0 keeps the texture's colour; region r multiplies it by the outfit map's texel r.
+    outfit_row: (16, 4) uint8, one row of the outfit map.
+    """
+    texels = np.asarray(texels, dtype=np.float64)
+    regions = np.clip(np.rint(texels[:, 3] / 17.0).astype(np.int64), 0, 15)
+    tint = np.asarray(outfit_row, dtype=np.float64)[regions, :3] / 255.0
+    tint[regions == 0] = 1.0
+    return texels[:, :3] / 255.0 * tint
+
+
+def lambert(albedo: np.ndarray, normals: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """(N, 3) albedo 0..1 lit by a directional light: albedo · (AMBIENT + DIFFUSE · max(0, n·l))."""
+    intensity = AMBIENT + DIFFUSE * np.clip(np.asarray(normals) @ np.asarray(light), 0.0, None)
+    return np.clip(albedo * intensity[:, None], 0.0, 1.0)
+
+
+def _texels(uv: np.ndarray, material: np.ndarray, diffuse: list[np.ndarray]) -> np.ndarray:
+    texels = np.zeros((len(uv), 4), dtype=np.float64)
+    for index, texture in enumerate(diffuse):
+        selected = material == index
+        if selected.any():
+            texels[selected] = impostor_maps.sample_texture(texture, uv[selected])
+    return texels
+
+
+def mesh_reference(
+    view: OrthoView,
+    coverage: Coverage,
+    supersample: int,
+    positions: np.ndarray,
+    normals: np.ndarray,
+    uvs: np.ndarray,
+    faces: np.ndarray,
+    triangle_material: np.ndarray,
+    diffuse: list[np.ndarray],
+    outfit_row: np.ndarray,
+    light: np.ndarray,
+) -> np.ndarray:
+    """The mesh, shaded and anti-aliased: (S, S, 3) float64 0..1, black background.
+
+    view, coverage: at S·supersample texels (view.size = S · supersample); the other arrays as in
+    impostor_maps.view_maps; diffuse: per material, the texture to use (h, w, 4) uint8.
+    """
+    if view.size % supersample:
+        raise ValueError(f"mesh_reference: view size {view.size} is not a multiple of {supersample}")
+    faces = np.asarray(faces, dtype=np.int64)
+    mask = coverage.mask
+    image = np.zeros((view.size, view.size, 3), dtype=np.float64)
+    if mask.any():
+        uv = impostor_maps.wrap_uv(impostor_maps.interpolate(uvs, faces, coverage)[mask])
+        material = np.asarray(triangle_material, dtype=np.int64)[coverage.triangle[mask]]
+        shading = impostor_maps.shading_normals(view, normals, positions, faces, coverage)[mask]
+        image[mask] = lambert(apply_outfit(_texels(uv, material, diffuse), outfit_row), shading, light)
+    size = view.size // supersample
+    return image.reshape(size, supersample, size, supersample, 3).mean(axis=(1, 3))
+
+
+def impostor_image(
+    uv_map: np.ndarray, normal_map: np.ndarray, diffuse: list[np.ndarray], outfit_row: np.ndarray, light: np.ndarray
+) -> np.ndarray:
+    """What the runtime draws from one tile: (S, S, 3) float64 0..1, black where the UV map has no coverage.
+
+    uv_map: (S, S, 4) uint16; normal_map: (S, S, 4) uint8 as decoded from its (compressed) layer.
+    """
+    uv, material, covered = impostor_maps.decode_uv_map(uv_map)
+    normals = impostor_maps.decode_normal_map(normal_map)
+    image = np.zeros(uv.shape[:2] + (3,), dtype=np.float64)
+    if covered.any():
+        material = np.clip(material[covered], 0, len(diffuse) - 1)
+        texels = _texels(uv[covered], material, diffuse)
+        image[covered] = lambert(apply_outfit(texels, outfit_row), normals[covered], light)
+    return image
+
+
+def measure_box(*images: np.ndarray) -> tuple[slice, slice]:
+    """(rows, columns) slices of the pixels any image lights, grown by MEASURE_MARGIN_PX (whole image if none)."""
+    lit = np.zeros(images[0].shape[:2], dtype=bool)
+    for image in images:
+        lit |= np.asarray(image).max(axis=-1) > 0
+    height, width = lit.shape
+    if not lit.any():
+        return slice(0, height), slice(0, width)
+    rows, columns = np.nonzero(lit)
+
+    def span(low: int, high: int, limit: int) -> slice:
+        low, high = max(low - MEASURE_MARGIN_PX, 0), min(high + 1 + MEASURE_MARGIN_PX, limit)
+        while high - low < MIN_MEASURE_SIZE and (low > 0 or high < limit):
+            low, high = max(low - 1, 0), min(high + 1, limit)
+        return slice(low, high)
+
+    return span(int(rows.min()), int(rows.max()), height), span(int(columns.min()), int(columns.max()), width)
+
+
+def compare(reference: np.ndarray, candidate: np.ndarray) -> dict[str, float]:
+    """SSIM and PSNR (dB) of two (S, S, 3) images in 0..1 over measure_box; PSNR is inf for equal images."""
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    reference = np.asarray(reference, dtype=np.float64)
+    candidate = np.asarray(candidate, dtype=np.float64)
+    if reference.shape != candidate.shape or reference.ndim != 3:
+        raise ValueError(f"compare: images must be equal (H, W, 3), got {reference.shape} and {candidate.shape}")
+    rows, columns = measure_box(reference, candidate)
+    a, b = reference[rows, columns], candidate[rows, columns]
+    window = min(7, *a.shape[:2])
+    window -= 1 - window % 2  # odd
+    ssim = float(structural_similarity(a, b, channel_axis=2, data_range=1.0, win_size=window))
+    if np.array_equal(a, b):
+        psnr = float("inf")
+    else:
+        psnr = float(peak_signal_noise_ratio(a, b, data_range=1.0))
+    return {"ssim": ssim, "psnr_db": psnr}
+
+
+def summarize(values: list[dict[str, float]]) -> dict[str, float]:
+    """Mean and worst SSIM and PSNR over views (worst = lowest)."""
+    if not values:
+        raise ValueError("summarize: no measurements")
+    ssim = np.array([v["ssim"] for v in values])
+    psnr = np.array([v["psnr_db"] for v in values])
+    finite = psnr[np.isfinite(psnr)]
+    return {
+        "views": len(values),
+        "ssim_mean": float(ssim.mean()),
+        "ssim_worst": float(ssim.min()),
+        "psnr_db_mean": float(finite.mean()) if finite.size else float("inf"),
+        "psnr_db_worst": float(psnr.min()),
+    }
+
+
+def uv_precision(uv_map: np.ndarray, texture_size: int) -> dict[str, dict[str, float]]:
+    """Texel error of storing a UV map's coordinates at lower precision, for a texture_size² texture.
+
+    uv_map: (S, S, 4) uint16 (the baked, 16-bit map). Compares the 16-bit map with the same coordinates
+    rounded to 8 bits (rgba8) and with those 8-bit coordinates block-compressed as BC1 (DXT1). Returns,
+    per variant, the max and mean error in texels over covered texels (for rgba16 the rounding bound,
+    `bound` True): why the bundle keeps rgba16.
+    """
+    from crowdbake.bake import compression
+
+    uv, _, covered = impostor_maps.decode_uv_map(uv_map)
+    result: dict[str, dict[str, float]] = {}
+    if not covered.any():
+        return result
+    exact = uv[covered]
+    eight = np.zeros(uv_map.shape[:2] + (4,), dtype=np.uint8)
+    eight[..., :2] = np.rint(uv * 255.0)
+    eight[..., 3] = 255
+    height, width = uv_map.shape[:2]
+    padded_height, padded_width = height + (-height) % 4, width + (-width) % 4
+    eight = np.pad(eight, ((0, padded_height - height), (0, padded_width - width), (0, 0)))
+    bc1 = compression.decode_bc1(compression.encode_bc1(eight), padded_width, padded_height)[:height, :width]
+    # The 16-bit map is the reference: its own rounding is at most half a step.
+    half_step = 0.5 / 65535.0 * texture_size
+    result["rgba16"] = {"max_texels": half_step, "mean_texels": half_step / 2.0, "bound": True}
+    variants = {
+        "rgba8": eight[:height, :width, :2][covered].astype(np.float64) / 255.0,
+        "bc1": bc1[..., :2][covered].astype(np.float64) / 255.0,
+    }
+    for name, stored in variants.items():
+        error = np.abs(stored - exact).max(axis=1) * texture_size
+        result[name] = {"max_texels": float(error.max()), "mean_texels": float(error.mean()), "bound": False}
+    return result

@@ -1,0 +1,451 @@
+"""Impostor maps from a visibility buffer: normal, UV and detail maps, computed exactly per texel.
+
+Dobbyn et al. 2006, sections 4 and 5: per viewpoint, a normal map (normals as RGB), a detail map (diffuse
+RGBA with the colour regions in alpha) and the paper's UV map (texture coordinates as colour). The GL side
+(crowdbake.render.impostor) renders only *which triangle* covers each texel centre: every triangle drawn in
+one flat colour, its index + 1 in 24 bits, with no lighting, blending, or filtering. Everything else happens
+here in float64, so nothing passes through 8-bit colour:
+
+- The views are orthographic, so a triangle's projection is an affine map and the barycentric coordinates
+  of a texel centre are exact 2D arithmetic (no perspective correction).
+- Texture coordinates are interpolated with those barycentrics and stored in 16 bits; normals are
+  interpolated and normalised; the detail map samples the diffuse texture at the interpolated UV.
+- The silhouette: a texel belongs to a triangle only if its centre lies inside it (GL's rasterisation rule).
+  Texels whose id fails that test (a multisampled resolve mixing two ids, say) are rasterised here
+  instead: the nearest triangle that contains the centre, or none (the texel is left empty). Barycentrics are
+  clamped into the triangle, so no texel carries a texture coordinate from outside its triangle: the
+  filtering artefact the paper describes in section 5 cannot arise.
+
+Conventions (SPEC.md): the camera for azimuth θ and elevation φ sits in direction
+(sin θ cos φ, sin φ, cos θ cos φ) from the bounds' centre, looks at it with +Y up, and sees a square of
+2·radius metres. Texel (row, column) has its centre at (column + 0.5, row + 0.5) in pixel units, rows top
+first. Pure numpy/scipy; no GL.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+# The camera sits this many radii from the centre: the sphere of the bounds then lies at depths 2r .. 4r,
+# well inside the clip range used by the renderer (1.5r .. 4.5r). Same as crowdbake.render.offscreen.
+CAMERA_DISTANCE_RADII = 3.0
+# A texel centre counts as inside a triangle up to this distance (pixels) outside an edge. GL rasterisers
+# snap vertices to a sub-pixel grid (8 bits under llvmpipe: errors up to ~0.002 px were measured; 4 bits
+# on some GPUs: 1/16 px), so the triangle GL filled can differ from the exact one by that much. Accepting
+# such a texel costs nothing: its barycentrics are clamped onto the triangle's edge.
+INSIDE_TOLERANCE_PX = 1.0 / 16.0
+# When the renderer's depth is available, a triangle is accepted for a texel only if its interpolated
+# depth agrees with the depth buffer within this fraction of the bounding radius (24-bit depth over a range
+# of 3 radii resolves ~2e-7 r; the margin covers float32 transforms).
+DEPTH_TOLERANCE_RADII = 1e-3
+# Below this length an up vector is parallel to the viewing direction (looking straight down or up).
+_PARALLEL = 1e-9
+# 24 bits of triangle id: RGB8, id + 1 so that 0 is the background.
+MAX_TRIANGLES = (1 << 24) - 1
+
+
+@dataclass(frozen=True)
+class OrthoView:
+    """An orthographic impostor view. Basis vectors are unit (3,) float64 in model space.
+
+    right, up: the image's +x (columns) and +y (upwards; rows grow downwards); back: from the centre
+    towards the camera. eye = centre + CAMERA_DISTANCE_RADII · radius · back.
+    """
+
+    center: np.ndarray
+    radius: float
+    azimuth_deg: float
+    elevation_deg: float
+    size: int
+    right: np.ndarray
+    up: np.ndarray
+    back: np.ndarray
+
+    @property
+    def eye(self) -> np.ndarray:
+        return self.center + CAMERA_DISTANCE_RADII * self.radius * self.back
+
+    def camera_pose(self) -> np.ndarray:
+        """(4, 4) float64 camera-to-world matrix (camera looks down its -Z), as pyrender wants it."""
+        pose = np.eye(4)
+        pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = self.right, self.up, self.back, self.eye
+        return pose
+
+    @property
+    def clip_range(self) -> tuple[float, float]:
+        """(znear, zfar) in metres from the eye that hold the whole bounding sphere with margin."""
+        return (CAMERA_DISTANCE_RADII - 1.5) * self.radius, (CAMERA_DISTANCE_RADII + 1.5) * self.radius
+
+
+def view_direction(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """Unit (3,) vector from the centre towards the camera (SPEC.md)."""
+    azimuth, elevation = np.radians(azimuth_deg), np.radians(elevation_deg)
+    return np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation), np.cos(azimuth) * np.cos(elevation)])
+
+
+def ortho_view(center, radius: float, azimuth_deg: float, elevation_deg: float, size: int) -> OrthoView:
+    """The SPEC.md camera for (azimuth, elevation) framing the sphere (center, radius) in size² texels.
+
+    At ±90° elevation +Y is parallel to the view, and world +Z serves as up instead (as
+    crowdbake.render.offscreen.look_at does).
+    """
+    center = np.asarray(center, dtype=np.float64).reshape(3)
+    if not radius > 0 or size < 1:
+        raise ValueError(f"ortho_view: radius must be positive and size at least 1, got {radius}, {size}")
+    back = view_direction(azimuth_deg, elevation_deg)
+    right = np.cross([0.0, 1.0, 0.0], back)
+    if np.linalg.norm(right) < _PARALLEL:
+        right = np.cross([0.0, 0.0, 1.0], back)
+    right /= np.linalg.norm(right)
+    up = np.cross(back, right)
+    return OrthoView(center, float(radius), float(azimuth_deg), float(elevation_deg), int(size), right, up, back)
+
+
+def project(view: OrthoView, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Texel-space xy (..., 2) and depth (...) of (..., 3) model-space points, float64.
+
+    x grows to the right, y downwards, both in texels (the image spans 0 .. size); depth is the distance
+    from the eye along the view axis in metres (smaller is nearer).
+    """
+    offset = np.asarray(points, dtype=np.float64) - view.center
+    scale = view.size / (2.0 * view.radius)
+    x = (offset @ view.right + view.radius) * scale
+    y = (view.radius - offset @ view.up) * scale
+    depth = CAMERA_DISTANCE_RADII * view.radius - offset @ view.back
+    return np.stack([x, y], axis=-1), depth
+
+
+def triangle_id_colours(triangle_count: int) -> np.ndarray:
+    """(T, 3) uint8 colours encoding triangle index + 1 in 24 bits, little end in red."""
+    if not 0 < triangle_count <= MAX_TRIANGLES:
+        raise ValueError(f"triangle_id_colours: 1 .. {MAX_TRIANGLES} triangles, got {triangle_count}")
+    code = np.arange(1, triangle_count + 1, dtype=np.uint32)
+    return np.stack([code & 255, (code >> 8) & 255, (code >> 16) & 255], axis=-1).astype(np.uint8)
+
+
+def decode_triangle_ids(rgb: np.ndarray) -> np.ndarray:
+    """(H, W, 3+) uint8 id image -> (H, W) int64 triangle index, -1 for the background."""
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] < 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"decode_triangle_ids: expected (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    code = rgb[..., 0].astype(np.int64) | (rgb[..., 1].astype(np.int64) << 8) | (rgb[..., 2].astype(np.int64) << 16)
+    return code - 1
+
+
+def _edge_distances(corners: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distances (N, 3) of points (N, 2) to the edges of triangles (N, 3, 2), positive inside,
+    and barycentrics (N, 3). Degenerate triangles get -inf distances (never inside)."""
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+
+    def cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+
+    area = cross(b - a, c - a)  # twice the signed area; its sign is the winding on screen
+    weights = np.stack([cross(c - b, points - b), cross(a - c, points - c), cross(b - a, points - a)], axis=-1)
+    valid = np.abs(area) > 1e-12
+    sign = np.where(area < 0, -1.0, 1.0)[:, None]
+    lengths = np.stack(
+        [np.linalg.norm(c - b, axis=-1), np.linalg.norm(a - c, axis=-1), np.linalg.norm(b - a, axis=-1)], axis=-1
+    )
+    distances = np.where(valid[:, None], sign * weights / np.maximum(lengths, 1e-300), -np.inf)
+    barycentric = np.where(valid[:, None], weights / np.where(valid, area, 1.0)[:, None], 0.0)
+    return distances, barycentric
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """Which triangle covers each texel centre, and where in it.
+
+    triangle: (H, W) int64, -1 where nothing covers the centre; barycentric: (H, W, 3) float64, clamped to
+    the triangle (non-negative, summing to 1), zero where empty; repaired: texels whose rendered id was
+    replaced or dropped by the inside test.
+    """
+
+    triangle: np.ndarray
+    barycentric: np.ndarray
+    repaired: int
+
+    @property
+    def mask(self) -> np.ndarray:
+        return self.triangle >= 0
+
+
+def resolve_coverage(
+    view: OrthoView,
+    ids: np.ndarray,
+    positions: np.ndarray,
+    faces: np.ndarray,
+    depth: np.ndarray | None = None,
+) -> Coverage:
+    """Exact per-texel coverage from a rendered id image.
+
+    ids: (H, W) int64 from decode_triangle_ids (H = W = view.size); positions: (V, 3) model space;
+    faces: (T, 3) int; depth: optional (H, W) float eye-space depth in metres (0 = nothing drawn) to reject
+    an id whose triangle lies elsewhere along the ray.
+    """
+    ids = np.asarray(ids, dtype=np.int64)
+    faces = np.asarray(faces, dtype=np.int64)
+    height, width = ids.shape
+    if (height, width) != (view.size, view.size):
+        raise ValueError(f"resolve_coverage: id image is {ids.shape}, the view is {view.size}²")
+    screen, vertex_depth = project(view, positions)
+    corners = screen[faces]  # (T, 3, 2)
+    corner_depth = vertex_depth[faces]  # (T, 3)
+    triangle_count = len(faces)
+
+    rows, columns = np.nonzero(ids >= 0)
+    centres = np.stack([columns + 0.5, rows + 0.5], axis=-1).astype(np.float64)
+    candidate = ids[rows, columns]
+    in_range = candidate < triangle_count
+    safe = np.where(in_range, candidate, 0)
+    distances, barycentric = _edge_distances(corners[safe], centres)
+    accepted = in_range & (distances.min(axis=1) >= -INSIDE_TOLERANCE_PX)
+    if depth is not None:
+        interpolated = (barycentric * corner_depth[safe]).sum(axis=1)
+        accepted &= np.abs(interpolated - depth[rows, columns]) <= DEPTH_TOLERANCE_RADII * view.radius
+
+    triangle = np.full((height, width), -1, dtype=np.int64)
+    bary = np.zeros((height, width, 3), dtype=np.float64)
+    triangle[rows[accepted], columns[accepted]] = candidate[accepted]
+    bary[rows[accepted], columns[accepted]] = barycentric[accepted]
+
+    repaired = int((~accepted).sum())
+    if repaired:
+        _repair(triangle, bary, rows[~accepted], columns[~accepted], corners, corner_depth)
+    np.clip(bary, 0.0, None, out=bary)
+    total = bary.sum(axis=-1, keepdims=True)
+    np.divide(bary, total, out=bary, where=total > 0)
+    return Coverage(triangle, bary, repaired)
+
+
+def _repair(
+    triangle: np.ndarray,
+    bary: np.ndarray,
+    rows: np.ndarray,
+    columns: np.ndarray,
+    corners: np.ndarray,
+    corner_depth: np.ndarray,
+) -> None:
+    """Rasterise the failed texels in numpy: of every triangle whose box holds the texel centre, keep the
+    nearest that really holds it (GL's depth test); if none does, the texel stays empty.
+
+    Only the few texels whose rendered id failed get here, so testing them against every triangle's box
+    is cheap, and unlike a search among the neighbours' ids it also finds slivers no other texel shows.
+    """
+    low = corners.min(axis=1) - INSIDE_TOLERANCE_PX  # (T, 2)
+    high = corners.max(axis=1) + INSIDE_TOLERANCE_PX
+    for row, column in zip(rows.tolist(), columns.tolist()):
+        x, y = column + 0.5, row + 0.5
+        options = np.flatnonzero((low[:, 0] <= x) & (x <= high[:, 0]) & (low[:, 1] <= y) & (y <= high[:, 1]))
+        if options.size == 0:
+            continue
+        centre = np.tile([[x, y]], (len(options), 1))
+        distances, barycentric = _edge_distances(corners[options], centre)
+        margin = distances.min(axis=1)
+        # Triangles that hold the centre exactly come first; the tolerance band only when none does
+        # (otherwise a nearer triangle a hair away could win over the one GL would have drawn).
+        inside = margin >= 0.0
+        if not inside.any():
+            inside = margin >= -INSIDE_TOLERANCE_PX
+        if not inside.any():
+            continue
+        depth = (barycentric * corner_depth[options]).sum(axis=1)
+        best = np.flatnonzero(inside)[np.argmin(depth[inside])]
+        triangle[row, column] = options[best]
+        bary[row, column] = barycentric[best]
+
+
+def interpolate(values: np.ndarray, faces: np.ndarray, coverage: Coverage) -> np.ndarray:
+    """Per-vertex values (V, C) interpolated at every covered texel: (H, W, C) float64, zero elsewhere."""
+    values = np.asarray(values, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    out = np.zeros(coverage.triangle.shape + (values.shape[1],), dtype=np.float64)
+    mask = coverage.mask
+    corners = values[faces[coverage.triangle[mask]]]  # (N, 3, C)
+    out[mask] = np.einsum("nk,nkc->nc", coverage.barycentric[mask], corners)
+    return out
+
+
+def wrap_uv(uv: np.ndarray) -> np.ndarray:
+    """Texture coordinates into [0, 1] under glTF's default REPEAT wrap (values inside are kept, 1 stays 1)."""
+    uv = np.asarray(uv, dtype=np.float64)
+    outside = (uv < 0.0) | (uv > 1.0)
+    return np.where(outside, uv - np.floor(uv), uv)
+
+
+def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Sample an (h, w, 4) uint8 texture at (N, 2) glTF uv (REPEAT): (N, 4) float64 in 0..255.
+
+    RGB is bilinear between texel centres; alpha is the nearest texel's, because alpha holds region codes
+    (SPEC.md), which are labels: a blend of codes 3 and 5 is not code 4.
+    """
+    texture = np.asarray(texture)
+    height, width = texture.shape[:2]
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    x = uv[:, 0] * width - 0.5
+    y = uv[:, 1] * height - 0.5
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    x0 = x0.astype(np.int64)
+    y0 = y0.astype(np.int64)
+    x1, y1 = (x0 + 1) % width, (y0 + 1) % height
+    x0, y0 = x0 % width, y0 % height
+    rgb = texture[..., :3]
+
+    def texel(rows: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        return rgb[rows, columns].astype(np.float64)  # gather first: converting the whole texture costs more
+
+    colour = (
+        texel(y0, x0) * (1 - fx) * (1 - fy) + texel(y0, x1) * fx * (1 - fy) + texel(y1, x0) * (1 - fx) * fy + texel(y1, x1) * fx * fy
+    )
+    nearest_x = np.floor(uv[:, 0] * width).astype(np.int64) % width
+    nearest_y = np.floor(uv[:, 1] * height).astype(np.int64) % height
+    alpha = texture[nearest_y, nearest_x, 3].astype(np.float64)
+    return np.concatenate([colour, alpha[:, None]], axis=1)
+
+
+def shading_normals(view: OrthoView, normals: np.ndarray, positions: np.ndarray, faces: np.ndarray, coverage: Coverage) -> np.ndarray:
+    """Unit model-space normals at covered texels, (H, W, 3) float64 (zero elsewhere).
+
+    Interpolated vertex normals, normalised. Where the camera sees a triangle's back (the inside of a skirt,
+    drawn double-sided), the normal is flipped to face the camera, as double-sided shading does.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    interpolated = interpolate(normals, faces, coverage)
+    mask = coverage.mask
+    positions = np.asarray(positions, dtype=np.float64)
+    hit = faces[coverage.triangle[mask]]
+    a = positions[hit[:, 0]]
+    face_normal = np.cross(positions[hit[:, 1]] - a, positions[hit[:, 2]] - a)
+    facing_away = face_normal @ view.back < 0
+    chosen = interpolated[mask]
+    chosen[facing_away] *= -1.0
+    length = np.linalg.norm(chosen, axis=1, keepdims=True)
+    # A zero interpolated normal (opposite vertex normals) falls back to the face normal.
+    fallback = face_normal * np.where(facing_away, -1.0, 1.0)[:, None]
+    chosen = np.where(length > 1e-12, chosen, fallback)
+    chosen /= np.maximum(np.linalg.norm(chosen, axis=1, keepdims=True), 1e-300)
+    out = np.zeros_like(interpolated)
+    out[mask] = chosen
+    return out
+
+
+def nearest_inside(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(rows, columns) (H, W) of the nearest texel inside `mask` for every texel; None if mask is empty or full."""
+    if not mask.any() or mask.all():
+        return None
+    _, (rows, columns) = ndimage.distance_transform_edt(~mask, return_indices=True)
+    return rows, columns
+
+
+def flatten_empty_blocks(image: np.ndarray, mask: np.ndarray, block: int = 4) -> np.ndarray:
+    """Copy of (H, W, C) `image` whose block x block tiles holding no texel of `mask` are one flat colour
+    (their top-left texel's). A flat block compresses exactly and needs no encoder effort; only blocks on
+    the silhouette need the dilated values. Sizes that are not multiples of `block` are left unchanged."""
+    height, width = mask.shape
+    out = image.copy()
+    if height % block or width % block:
+        return out
+    rows, columns = height // block, width // block
+    empty = ~mask.reshape(rows, block, columns, block).any(axis=(1, 3))
+    tiles = out.reshape(rows, block, columns, block, -1)
+    corner = tiles[:, :1, :, :1]  # (rows, 1, columns, 1, C)
+    tiles[:] = np.where(empty[:, None, :, None, None], corner, tiles)
+    return out
+
+
+def dilate_into_background(image: np.ndarray, mask: np.ndarray, nearest: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Copy of (H, W, C) `image` whose texels outside `mask` take the value of the nearest texel inside.
+
+    Block compression fits each 4x4 block's endpoints to all 16 texels; filling the background with the
+    silhouette's own values keeps it from spending precision on texels nobody sees. Unchanged if mask is
+    empty. nearest: nearest_inside(mask), when the caller already has it.
+    """
+    if nearest is None:
+        nearest = nearest_inside(mask)
+    if nearest is None:
+        return image.copy()
+    return image[nearest[0], nearest[1]]
+
+
+@dataclass(frozen=True)
+class ViewMaps:
+    """The three maps of one view (size² texels each), SPEC.md's encodings.
+
+    normal: (S, S, 4) uint8, RGB = (n + 1) / 2, A = 255 inside, background filled from the silhouette;
+    uv: (S, S, 4) uint16, R = u · 65535, G = v · 65535, B = material index, A = 65535 inside, 0 outside;
+    detail: (S, S, 4) uint8, RGB = diffuse variation 0, A = region code · 17 inside, 0 outside.
+    """
+
+    normal: np.ndarray
+    uv: np.ndarray
+    detail: np.ndarray
+    coverage: Coverage
+
+
+def view_maps(
+    view: OrthoView,
+    coverage: Coverage,
+    positions: np.ndarray,
+    normals: np.ndarray,
+    uvs: np.ndarray,
+    faces: np.ndarray,
+    triangle_material: np.ndarray,
+    diffuse: list[np.ndarray],
+) -> ViewMaps:
+    """Normal, UV and detail maps of one view.
+
+    positions, normals: (V, 3); uvs: (V, 2) glTF convention; faces: (T, 3); triangle_material: (T,) int
+    material index of each triangle; diffuse: per material, its variation-0 texture (h, w, 4) uint8.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    triangle_material = np.asarray(triangle_material, dtype=np.int64)
+    if triangle_material.shape != (len(faces),):
+        raise ValueError(f"view_maps: triangle_material must be ({len(faces)},), got {triangle_material.shape}")
+    if triangle_material.size and (triangle_material.min() < 0 or triangle_material.max() >= len(diffuse)):
+        raise ValueError(f"view_maps: a material index is outside 0 .. {len(diffuse) - 1}")
+    size = view.size
+    mask = coverage.mask
+    material = np.where(mask, triangle_material[np.maximum(coverage.triangle, 0)], 0)
+
+    nearest = nearest_inside(mask)
+    normal = shading_normals(view, normals, positions, faces, coverage)
+    normal_rgb = np.clip(np.rint((normal + 1.0) * 0.5 * 255.0), 0, 255)
+    normal_rgb = flatten_empty_blocks(dilate_into_background(normal_rgb, mask, nearest), mask)
+    normal_map = np.zeros((size, size, 4), dtype=np.uint8)
+    normal_map[..., :3] = normal_rgb
+    normal_map[..., 3] = np.where(mask, 255, 0)
+
+    uv = wrap_uv(interpolate(uvs, faces, coverage))
+    uv_map = np.zeros((size, size, 4), dtype=np.uint16)
+    uv_map[..., :2] = np.where(mask[..., None], np.clip(np.rint(uv * 65535.0), 0, 65535), 0)
+    uv_map[..., 2] = np.where(mask, material, 0)
+    uv_map[..., 3] = np.where(mask, 65535, 0)
+
+    detail = np.zeros((size, size, 4), dtype=np.float64)
+    for index, texture in enumerate(diffuse):
+        selected = mask & (material == index)
+        if selected.any():
+            detail[selected] = sample_texture(texture, uv[selected])
+    detail_rgb = flatten_empty_blocks(dilate_into_background(np.clip(np.rint(detail[..., :3]), 0, 255), mask, nearest), mask)
+    detail_map = np.zeros((size, size, 4), dtype=np.uint8)
+    detail_map[..., :3] = detail_rgb
+    detail_map[..., 3] = np.where(mask, detail[..., 3], 0)
+    return ViewMaps(normal_map, uv_map, detail_map, coverage)
+
+
+def decode_uv_map(uv_map: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(S, S, 4) uint16 UV map -> uv (S, S, 2) float64, material (S, S) int64, coverage (S, S) bool."""
+    uv_map = np.asarray(uv_map)
+    if uv_map.ndim != 3 or uv_map.shape[2] != 4:
+        raise ValueError(f"decode_uv_map: expected (H, W, 4), got {uv_map.shape}")
+    return uv_map[..., :2].astype(np.float64) / 65535.0, uv_map[..., 2].astype(np.int64), uv_map[..., 3] >= 32768
+
+
+def decode_normal_map(normal_map: np.ndarray) -> np.ndarray:
+    """(S, S, 4) uint8 normal map -> (S, S, 3) float64 unit normals ((rgb / 255) · 2 - 1, renormalised)."""
+    n = np.asarray(normal_map)[..., :3].astype(np.float64) / 255.0 * 2.0 - 1.0
+    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 1e-12)

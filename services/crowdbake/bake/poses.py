@@ -1,0 +1,149 @@
+"""Poses (paper section 4): the skinned body and the simulated cloth stored per frame of the cycle.
+
+"Once the character's meshes are pre-simulated, they are then exported and stored in separate keyframed
+meshes or 'poses'" (Dobbyn et al. 2006, section 4): nothing is skinned or simulated at run time. This module
+holds the pure parts of that bake: which source times a cycle covers, cloth frames on split (seam) vertices,
+normals that agree across UV seams, the low LOD carried over every frame, the impostors' frames and their
+common framing. The skinning itself is crowdbake.bake.skinning; the I/O is crowdbake.pipeline.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+
+from crowdbake.bake.lod import Simplified
+
+# A vertex that belongs to no (non-degenerate) triangle has no normal of its own; the pose cache needs a
+# unit vector anyway (SPEC.md), so it gets +Y. It is never drawn, so the choice cannot show.
+FALLBACK_NORMAL = np.array([0.0, 1.0, 0.0])
+
+
+@dataclass(frozen=True)
+class PartPoses:
+    """One mesh part at one LOD over the cycle: what a CBPC file holds.
+
+    faces: (T, 3) uint32, counter-clockwise; uvs: (V, 2) float32 (glTF convention, v down);
+    positions, normals: (F, V, 3) float32, metres and unit vectors.
+    """
+
+    faces: np.ndarray
+    uvs: np.ndarray
+    positions: np.ndarray
+    normals: np.ndarray
+
+    def __post_init__(self) -> None:
+        frames, vertices, _ = self.positions.shape
+        if self.normals.shape != self.positions.shape or self.uvs.shape != (vertices, 2):
+            raise ValueError(
+                f"PartPoses: positions {self.positions.shape}, normals {self.normals.shape}, uvs {self.uvs.shape} disagree"
+            )
+
+    @property
+    def frame_count(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def vertex_count(self) -> int:
+        return int(self.positions.shape[1])
+
+    @property
+    def triangle_count(self) -> int:
+        return int(self.faces.shape[0])
+
+
+def vertex_normals(positions: np.ndarray, faces: np.ndarray, weld: np.ndarray | None = None) -> np.ndarray:
+    """Area-weighted unit vertex normals, (F, V, 3) float32, of (F, V, 3) positions and (T, 3) faces.
+
+    weld: (V,) int, the vertex each vertex is welded to (e.g. an OBJ's source_index): welded vertices share
+    one normal, so a UV seam does not show as a lighting crease. Vertices of no triangle get FALLBACK_NORMAL.
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    if positions.ndim != 3 or positions.shape[2] != 3:
+        raise ValueError(f"vertex_normals: expected (F, V, 3) positions, got {positions.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or (faces.size and faces.max() >= positions.shape[1]):
+        raise ValueError(f"vertex_normals: expected (T, 3) faces indexing {positions.shape[1]} vertices")
+    vertex_count = positions.shape[1]
+    weld = np.arange(vertex_count) if weld is None else np.asarray(weld, dtype=np.int64)
+    if weld.shape != (vertex_count,) or weld.min() < 0:
+        raise ValueError(f"vertex_normals: weld must be ({vertex_count},) non-negative indices")
+    welded_faces = weld[faces]
+    slots = int(weld.max()) + 1
+    a = positions[:, faces[:, 0]]
+    face_normals = np.cross(positions[:, faces[:, 1]] - a, positions[:, faces[:, 2]] - a)  # length 2·area
+    # Vertex-by-face incidence: one sparse product sums every frame's face normals onto the welded vertices.
+    incidence = sparse.csr_matrix(
+        (np.ones(welded_faces.size), (welded_faces.reshape(-1), np.repeat(np.arange(len(faces)), 3))),
+        shape=(slots, len(faces)),
+    )
+    frames = positions.shape[0]
+    summed = (incidence @ face_normals.transpose(1, 0, 2).reshape(len(faces), frames * 3))
+    summed = summed.reshape(slots, frames, 3).transpose(1, 0, 2)
+    normals = summed[:, weld]
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    normals = np.where(length > 0, normals / np.where(length > 0, length, 1.0), FALLBACK_NORMAL)
+    return normals.astype(np.float32)
+
+
+def cloth_on_vertices(points: np.ndarray, source_index: np.ndarray) -> np.ndarray:
+    """A point cache (F, P, 3) in OBJ position order onto the mesh's (seam-split) vertices: (F, V, 3) float32."""
+    points = np.asarray(points, dtype=np.float32)
+    source_index = np.asarray(source_index, dtype=np.int64)
+    if points.ndim != 3 or points.shape[2] != 3:
+        raise ValueError(f"cloth_on_vertices: expected (F, P, 3) points, got {points.shape}")
+    if source_index.size and (source_index.min() < 0 or source_index.max() >= points.shape[1]):
+        raise ValueError(
+            f"cloth_on_vertices: the mesh refers to position {int(source_index.max())}, the cache has {points.shape[1]}"
+        )
+    return points[:, source_index]
+
+
+def low_lod(high: PartPoses, simplified: Simplified) -> PartPoses:
+    """The low LOD of a part: the simplified triangles over the kept vertices, every frame carried over."""
+    kept = simplified.kept
+    return PartPoses(
+        faces=np.ascontiguousarray(simplified.faces, dtype=np.uint32),
+        uvs=np.ascontiguousarray(high.uvs[kept]),
+        positions=np.ascontiguousarray(high.positions[:, kept]),
+        normals=np.ascontiguousarray(high.normals[:, kept]),
+    )
+
+
+def impostor_frame_indices(cycle_frames: int, count: int) -> list[int]:
+    """`count` cycle frames spread evenly over the cycle, ascending, starting at 0 (all of them if fewer).
+
+    The paper bakes 10 frames of the walk (section 6); frame k is round(k · l / count).
+    """
+    if cycle_frames < 1 or count < 1:
+        raise ValueError(f"impostor_frame_indices: need positive counts, got {cycle_frames} frames, {count} samples")
+    if count >= cycle_frames:
+        return list(range(cycle_frames))
+    return sorted({int(np.floor(k * cycle_frames / count + 0.5)) % cycle_frames for k in range(count)})
+
+
+def common_bounds(*positions: np.ndarray) -> tuple[np.ndarray, float]:
+    """Centre (3,) float64 and radius of the sphere framing every given (F, V, 3) array in every frame.
+
+    The centre is the middle of the axis-aligned box over all frames and parts, the radius half its
+    diagonal: one framing for every frame, so impostors do not swim (SPEC.md, "Impostor maps").
+    """
+    if not positions:
+        raise ValueError("common_bounds: no positions")
+    low = np.min([np.asarray(p, dtype=np.float64).reshape(-1, 3).min(axis=0) for p in positions], axis=0)
+    high = np.max([np.asarray(p, dtype=np.float64).reshape(-1, 3).max(axis=0) for p in positions], axis=0)
+    if not (np.isfinite(low).all() and np.isfinite(high).all()):
+        raise ValueError("common_bounds: positions contain NaN or infinity")
+    centre = 0.5 * (low + high)
+    radius = 0.5 * float(np.linalg.norm(high - low))
+    if radius <= 0:
+        raise ValueError("common_bounds: every position is the same point")
+    return centre, radius
+
+
+def cycle_start_time(start_frame: int, frames_per_second: float) -> float:
+    """Seconds into the body's animation of cycle frame 0: cloth sample k is at time k / fps."""
+    if frames_per_second <= 0:
+        raise ValueError(f"frames_per_second must be positive, got {frames_per_second}")
+    return float(start_frame) / float(frames_per_second)

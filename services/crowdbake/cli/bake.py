@@ -1,0 +1,262 @@
+"""`crowdbake bake`: a clothed character in, a verified crowd bundle out (paper sections 3 to 6)."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from contextlib import ExitStack
+from pathlib import Path
+
+from crowdbake.cli.common import CommandError, progress
+
+DESCRIPTION = """\
+Bake a skinned character (glTF) and its simulated garment (PC2 cache + OBJ rest mesh) into a bundle:
+the cloth cycle (searched, or given with --cycle), poses of the body and the garment for every cycle frame
+at two LODs (meshoptimizer), UV-mapped impostors (normal, UV and detail maps for --frames frames x
+--azimuths x elevations views, rendered with pyrender under OSMesa, or EGL with PYOPENGL_PLATFORM=egl),
+DXT1/DXT3 block compression, the impostor's fidelity against the mesh and the texture memory of figure 4.
+
+Writes OUT/NAME/VERSION (shared_formats bundle v1), verifies it, and prints sizes, timings and fidelity.
+A published NAME/VERSION never changes: baking it again with other results is an error."""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "bake",
+        help="bake a clothed character into a verified bundle (poses, LODs, UV-mapped impostors)",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("character", metavar="CHAR.glb", help="the skinned, animated character (glTF 2.0, .glb or .gltf)")
+    parser.add_argument("--cloth", required=True, metavar="CLOTH.pc2", help="the garment's simulated cache (PC2), many walk cycles")
+    parser.add_argument("--cloth-mesh", required=True, metavar="CLOTH.obj", help="the garment's rest mesh (OBJ, PC2 point order)")
+    parser.add_argument("--cycle", metavar="cycle.json", help="use this cycle (from `crowdbake cycle`) instead of searching")
+    parser.add_argument("--textures", metavar="DIR", help="diffuse_*.png variations and outfits.png (default: the glTF texture)")
+    parser.add_argument("--name", required=True, help="bundle name ([a-z0-9][a-z0-9._-]*)")
+    parser.add_argument("--version", required=True, dest="bundle_version", metavar="VER", help="bundle version")
+    parser.add_argument("--out", required=True, metavar="DIR", help="bundles folder: the bundle goes to DIR/NAME/VER")
+    parser.add_argument("--frames", type=int, default=10, help="cycle frames baked into impostors (default 10, as in the paper)")
+    parser.add_argument("--azimuths", type=int, default=16, help="impostor views per ring (default 16)")
+    parser.add_argument("--elevations", default="0,20,40", metavar="DEG,...", help="one ring per elevation (default 0,20,40)")
+    parser.add_argument("--tile", type=int, default=128, metavar="PX", help="texels per impostor view side, multiple of 4 (default 128)")
+    lod = parser.add_mutually_exclusive_group()
+    lod.add_argument("--lod-triangles", type=int, metavar="N", help="low LOD triangles for the whole character")
+    lod.add_argument("--lod-ratio", type=float, metavar="R", help="low LOD as a fraction of the high one (default 1899/13056)")
+    parser.add_argument("--cycle-frames", type=int, metavar="L", help="walk cycle length in frames (default: the animation's)")
+    parser.add_argument("--close", choices=["none", "linear", "hermite"], default="hermite", help="cycle seam closing (default hermite)")
+    parser.add_argument("--candidates", type=int, default=5, metavar="K", help="cycle candidates kept by pass 1 (default 5)")
+    parser.add_argument("--cycle-views", type=int, default=5, metavar="N", help="views of the pass-2 edge metric (default 5)")
+    parser.add_argument("--no-compress", action="store_true", help="store maps and textures as rgba8 instead of DXT1/DXT3")
+    parser.add_argument("--created", metavar="TIME", help="manifest time, RFC 3339 UTC (default: SOURCE_DATE_EPOCH or the inputs' time)")
+    parser.add_argument("--work", metavar="DIR", help="keep the work folder here (a rerun resumes finished stages)")
+    parser.add_argument("--figure4", metavar="PLOT.png", help="also plot figure 4 (texture memory) here, with its JSON beside it")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON instead of text")
+    parser.set_defaults(func=run)
+
+
+def _elevations(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise CommandError(f"--elevations must be numbers separated by commas, got {text!r}") from None
+    if not values:
+        raise CommandError("--elevations needs at least one value")
+    return values
+
+
+class _Bars:
+    """One progress bar per stage: (stage, done, total) callbacks from the pipeline drive them."""
+
+    def __init__(self, stack: ExitStack):
+        self._stack = stack
+        self._stage: str | None = None
+        self._bar = None
+        self._inner: ExitStack | None = None
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        if stage != self._stage or self._bar is None or self._bar.total != total:
+            self.close()
+            self._inner = ExitStack()
+            self._bar = self._inner.enter_context(progress(max(total, 1), stage))
+            self._stage = stage
+        self._bar.n = min(done, self._bar.total)
+        self._bar.refresh()
+
+    def close(self) -> None:
+        if self._inner is not None:
+            self._inner.close()
+        self._inner = self._bar = None
+
+
+def _mib(size: float) -> str:
+    return f"{size / (1024 * 1024):.2f} MiB"
+
+
+def format_summary(summary) -> str:
+    """The text printed after a bake: sizes, timings, LODs, fidelity, compression, figure 4."""
+    lines = [f"bundle {summary.name}/{summary.version} -> {summary.bundle} ({_mib(summary.total_bytes)}, verified)"]
+    cycle = summary.cycle
+    lines.append(
+        f"cycle    frames [{cycle['start_frame']}, {cycle['end_frame']}) = {cycle['cycle_frames']} at {cycle['fps']:g} fps, "
+        f"closing {cycle['closing']}, seam position/velocity jump {_ratio(cycle['position_jump_ratio'])} / {_ratio(cycle['velocity_jump_ratio'])}"
+    )
+    lines.append("timings  " + ", ".join(f"{stage} {seconds:.2f} s" for stage, seconds in summary.timings_s.items()))
+    impostor = summary.impostor
+    if impostor.get("views"):
+        render = impostor["render_seconds"]
+        lines.append(
+            f"impostor {impostor['views']} views in {impostor['tasks']} tasks: render {render:.2f} s "
+            f"({impostor['views'] / render if render > 0 else float('inf'):.0f} views/s), maps {impostor['maps_seconds']:.2f} s, "
+            f"fidelity references {impostor['reference_seconds']:.2f} s"
+        )
+    for mesh in summary.meshes:
+        extra = ""
+        if mesh["lod"] == 1:
+            extra = f" (target {mesh['target_triangles']}, error {mesh['relative_error']:.4f} of extent{', border locked' if mesh['locked_border'] else ''})"
+        lines.append(f"mesh     {mesh['part']} lod {mesh['lod']}: {mesh['vertex_count']} vertices, {mesh['triangle_count']} triangles{extra}")
+    fidelity = summary.fidelity
+    for key, label in (("impostor", "impostor vs mesh"), ("impostor_uncompressed_normals", "  (normals uncompressed)"), ("nearest_view", "between views")):
+        if key in fidelity:
+            f = fidelity[key]
+            lines.append(
+                f"fidelity {label}: SSIM mean {f['ssim_mean']:.3f} worst {f['ssim_worst']:.3f}, "
+                f"PSNR mean {f['psnr_db_mean']:.1f} dB worst {f['psnr_db_worst']:.1f} dB over {f['views']} views"
+            )
+    precision = fidelity.get("uv_precision", {})
+    if "rgba8" in precision:
+        lines.append(
+            f"uv map   max texel error at {precision['texture_size']}²: rgba16 {precision['rgba16']['max_texels']:.4f}, "
+            f"rgba8 {precision['rgba8']['max_texels']:.2f}, bc1 {precision['bc1']['max_texels']:.1f}"
+        )
+    for name, errors in summary.compression.items():
+        lines.append(
+            f"compress {name} ({errors['pixel_format']}): RGB mean |error| {errors['rgb_mean_abs']:.2f}, "
+            f"worst PSNR {errors['rgb_psnr_db_worst']:.1f} dB, alpha max error {errors['alpha_max']:.0f}"
+        )
+    memory = summary.texture_memory
+    lines.append(
+        f"figure 4 paper model: 1 variation {memory['paper_mib']['1']:.0f} MiB both; 8 variations detail-mapped "
+        f"{memory['paper_mib']['detail_8']:.0f} MiB vs UV-mapped {memory['paper_mib']['uv_8']:.0f} MiB; "
+        f"this bundle breaks even at {memory['bundle_break_even_variations']:.1f} variations"
+    )
+    for path, size in sorted(summary.files.items()):
+        lines.append(f"file     {path}: {size:,} bytes")
+    return "\n".join(lines)
+
+
+def _ratio(value) -> str:
+    return "n/a" if value is None else f"{value:.3g}"
+
+
+def write_figure4(report: dict, png_path: Path) -> None:
+    """Plot figure 4 (texture memory against texture variations) from a texture_memory.json document."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
+    for axis, (key, title) in zip(axes, (("paper", "paper's assumptions (1024², 10 frames, DXT)"), ("bundle", "this bundle's bytes"))):
+        series = report[key]
+        axis.plot(series["variations"], series["detail_mapped_mib"], "o-", label="detail-mapped impostor")
+        axis.plot(series["variations"], series["uv_mapped_mib"], "s-", label="UV-mapped impostor")
+        axis.set_xlabel("texture variations")
+        axis.set_ylabel("texture memory (MiB)")
+        axis.set_title(title)
+        axis.grid(True, alpha=0.3)
+        axis.legend()
+    figure.suptitle("Texture memory for one clothed character (Dobbyn et al. 2006, figure 4)")
+    png_path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(png_path, dpi=120)
+    plt.close(figure)
+
+
+def run(args: argparse.Namespace) -> int:
+    from crowdbake.formats.bundle import verify_bundle
+    from crowdbake.formats.errors import FormatError
+    from crowdbake.pipeline import BakeInputs, BakeParams, InputError, VersionConflict, run_bake
+
+    try:
+        params = BakeParams(
+            cycle_frames=args.cycle_frames,
+            close=args.close,
+            candidates=args.candidates,
+            cycle_views=args.cycle_views,
+            impostor_frames=args.frames,
+            azimuths=args.azimuths,
+            elevations_deg=_elevations(args.elevations),
+            tile_size=args.tile,
+            lod_ratio=args.lod_ratio,
+            lod_triangles=args.lod_triangles,
+            compress=not args.no_compress,
+        )
+        params.validate()
+    except InputError as error:
+        raise CommandError(_option_message(error)) from None
+    inputs = BakeInputs(
+        character=Path(args.character),
+        cloth=Path(args.cloth),
+        cloth_mesh=Path(args.cloth_mesh),
+        textures=Path(args.textures) if args.textures else None,
+        cycle=Path(args.cycle) if args.cycle else None,
+        name=args.name,
+        version=args.bundle_version,
+        params=params,
+        created=args.created,
+    )
+    with ExitStack() as stack:
+        bars = _Bars(stack)
+        stack.callback(bars.close)
+        try:
+            summary = run_bake(inputs, Path(args.out), Path(args.work) if args.work else None, progress=bars)
+        except InputError as error:
+            raise CommandError(_option_message(error)) from None
+        except VersionConflict as error:
+            raise CommandError(str(error), exit_code=3) from None
+    try:
+        verify_bundle(summary.bundle)
+    except FormatError as error:
+        raise CommandError(f"the written bundle does not verify: {error}", exit_code=1) from None
+
+    if args.figure4:
+        plot = Path(args.figure4)
+        report = json.loads((summary.bundle / "texture_memory.json").read_text())
+        write_figure4(report, plot)
+        plot.with_suffix(".json").write_text(json.dumps(report, indent=2) + "\n")
+    if args.json:
+        json.dump(summary.to_dict(), sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print(format_summary(summary))
+        if args.figure4:
+            print(f"figure 4 plot: {args.figure4}")
+    return 0
+
+
+_OPTIONS = {
+    "impostor_frames": "--frames",
+    "azimuths": "--azimuths",
+    "elevations_deg": "--elevations",
+    "tile_size": "--tile",
+    "lod_triangles": "--lod-triangles",
+    "lod_ratio": "--lod-ratio",
+    "cycle_frames": "--cycle-frames",
+    "cycle_views": "--cycle-views",
+    "cloth": "--cloth",
+    "cloth_mesh": "--cloth-mesh",
+    "character": "CHAR.glb",
+    "textures": "--textures",
+    "cycle": "--cycle",
+    "name": "--name",
+    "version": "--version",
+    "created": "--created",
+}
+
+
+def _option_message(error) -> str:
+    """An InputError as a one-liner naming the command-line option at fault."""
+    option = _OPTIONS.get(error.field or "", error.field)
+    message = error.message
+    if error.field and message.startswith(f"{error.field}: "):
+        message = message[len(error.field) + 2 :]
+    return f"{option}: {message}" if option else message

@@ -1,0 +1,157 @@
+"""Visibility buffers for the impostor bake, rendered with pyrender (OSMesa by default, EGL selectable).
+
+The GL part of the impostor bake is deliberately small: draw every triangle in one flat colour that
+encodes its index + 1 in 24 bits (unwelded vertices, so no colour is interpolated between triangles),
+unlit (RenderFlags.FLAT), opaque, double-sided, through the orthographic camera of crowdbake.bake.
+impostor_maps.OrthoView, and read back the colour and depth. crowdbake.bake.impostor_maps turns that into
+exact normal, UV and detail maps in float64, because pyrender reads back 8-bit colour only.
+
+Under OSMesa pyrender draws straight into the context's buffer (no multisampling). Under EGL it draws
+into a 4x multisampled framebuffer and resolves it, which can mix two ids on a silhouette; the inside and
+depth tests of resolve_coverage catch those texels and repair them from their neighbours.
+"""
+from __future__ import annotations
+
+import atexit
+import logging
+import os
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from crowdbake.render import offscreen  # noqa: F401  (chooses the GL platform before pyrender loads)
+from crowdbake.bake import impostor_maps
+from crowdbake.bake.impostor_maps import Coverage, OrthoView
+
+import pyrender  # noqa: E402  (after the platform choice)
+
+logger = logging.getLogger(__name__)
+
+
+def _id_mesh(positions: np.ndarray, faces: np.ndarray) -> pyrender.Mesh:
+    """A pyrender mesh whose triangle k is drawn in the flat colour of id k + 1 (unwelded vertices)."""
+    faces = np.asarray(faces, dtype=np.int64)
+    corners = np.ascontiguousarray(np.asarray(positions, dtype=np.float32)[faces].reshape(-1, 3))
+    colours = np.ones((len(corners), 4), dtype=np.float32)
+    # k / 255 is written back to an 8-bit buffer as exactly k (the GL conversion rounds to nearest).
+    colours[:, :3] = np.repeat(impostor_maps.triangle_id_colours(len(faces)), 3, axis=0) / np.float32(255.0)
+    material = pyrender.MetallicRoughnessMaterial(
+        # Floats, not ints: pyrender reads an integer list as 0..255 and would make the mesh transparent.
+        baseColorFactor=[1.0, 1.0, 1.0, 1.0],
+        metallicFactor=0.0,
+        roughnessFactor=1.0,
+        doubleSided=True,  # garments are open: their inside shows from above and below
+    )
+    primitive = pyrender.Primitive(positions=corners, color_0=colours, mode=pyrender.constants.GLTF.TRIANGLES, material=material)
+    return pyrender.Mesh(primitives=[primitive])
+
+
+def eye_depth(pyrender_depth: np.ndarray, znear: float, zfar: float) -> np.ndarray:
+    """Eye-space depth (metres along the view axis) from pyrender's depth image of an orthographic camera.
+
+    pyrender linearises depth with the perspective formula 2nf / (f + n - z (f - n)) whatever the camera;
+    undo it to get NDC z back, then apply the orthographic mapping n + (z + 1) / 2 · (f - n). 0 stays 0.
+    """
+    depth = np.asarray(pyrender_depth, dtype=np.float64)
+    drawn = depth > 0
+    ndc = np.zeros_like(depth)
+    ndc[drawn] = (zfar + znear - 2.0 * znear * zfar / depth[drawn]) / (zfar - znear)
+    return np.where(drawn, znear + (ndc + 1.0) * 0.5 * (zfar - znear), 0.0)
+
+
+@dataclass(frozen=True)
+class VisibilityImage:
+    """One rendered view: triangle ids (H, W) int64 (-1 = background) and eye depth (H, W) float64."""
+
+    ids: np.ndarray
+    depth: np.ndarray
+
+
+class VisibilityRenderer:
+    """Renders triangle-id images of square size² views; one GL context, reused for many views and meshes.
+
+        with VisibilityRenderer(128) as renderer:
+            renderer.set_mesh(positions, faces)
+            image = renderer.render(view)
+    """
+
+    def __init__(self, size: int):
+        if size < 1:
+            raise ValueError(f"VisibilityRenderer: size must be positive, got {size}")
+        self.size = int(size)
+        self._renderer: pyrender.OffscreenRenderer | None = None
+        self._scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 0.0], ambient_light=[0.0, 0.0, 0.0])
+        self._mesh_node: pyrender.Node | None = None
+        self._camera_node: pyrender.Node | None = None
+        self._triangle_count = 0
+
+    def __enter__(self) -> "VisibilityRenderer":
+        self._renderer = pyrender.OffscreenRenderer(self.size, self.size)
+        logger.debug("visibility renderer %d² on %s", self.size, os.environ.get("PYOPENGL_PLATFORM"))
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.delete()
+            self._renderer = None
+
+    def set_mesh(self, positions: np.ndarray, faces: np.ndarray) -> None:
+        """Replace the mesh: positions (V, 3) model space, faces (T, 3) int (all parts concatenated)."""
+        if self._mesh_node is not None:
+            self._scene.remove_node(self._mesh_node)
+        self._mesh_node = self._scene.add(_id_mesh(positions, faces))
+        self._triangle_count = len(faces)
+
+    def render(self, view: OrthoView) -> VisibilityImage:
+        """The id and depth images of `view` (its size must be this renderer's)."""
+        if self._renderer is None:
+            raise RuntimeError("VisibilityRenderer.render called outside its `with` block")
+        if self._mesh_node is None:
+            raise RuntimeError("VisibilityRenderer.render called before set_mesh")
+        if view.size != self.size:
+            raise ValueError(f"VisibilityRenderer: view is {view.size}², renderer {self.size}²")
+        znear, zfar = view.clip_range
+        camera = pyrender.OrthographicCamera(xmag=view.radius, ymag=view.radius, znear=znear, zfar=zfar)
+        if self._camera_node is not None:
+            self._scene.remove_node(self._camera_node)
+        self._camera_node = self._scene.add(camera, pose=view.camera_pose())
+        colour, depth = self._renderer.render(self._scene, flags=pyrender.RenderFlags.FLAT)
+        return VisibilityImage(impostor_maps.decode_triangle_ids(colour), eye_depth(depth, znear, zfar))
+
+    def coverage(self, view: OrthoView, positions: np.ndarray, faces: np.ndarray) -> Coverage:
+        """Render `view` of the current mesh (which must be positions/faces) and resolve exact coverage."""
+        image = self.render(view)
+        return impostor_maps.resolve_coverage(view, image.ids, positions, faces, image.depth)
+
+
+_SHARED: dict[tuple[int, int], VisibilityRenderer] = {}
+
+
+def shared_renderer(size: int) -> VisibilityRenderer:
+    """An open VisibilityRenderer of `size`² kept for the life of this process (and thread).
+
+    Creating a GL context, compiling pyrender's shaders and tearing it all down again (pyrender runs the
+    garbage collector on delete) costs about a quarter of a second under OSMesa: more than rendering a
+    whole ring of views. Impostor tasks running one after another in a worker reuse one context instead.
+    Closed at exit.
+    """
+    key = (threading.get_ident(), int(size))
+    renderer = _SHARED.get(key)
+    if renderer is None:
+        renderer = VisibilityRenderer(size).__enter__()
+        _SHARED[key] = renderer
+    return renderer
+
+
+@atexit.register
+def _close_shared() -> None:
+    while _SHARED:
+        _, renderer = _SHARED.popitem()
+        try:
+            renderer.close()
+        except Exception:  # noqa: BLE001 - the GL library may already be gone at interpreter exit
+            logger.debug("closing a shared renderer at exit failed", exc_info=True)

@@ -1,0 +1,139 @@
+"""Impostor fidelity (crowdbake.bake.fidelity): the impostor a runtime reconstructs from the baked maps
+must reproduce the mesh rendered at 1:1 texel-to-pixel."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crowdbake.bake import compression, fidelity
+from crowdbake.bake import impostor_maps as maps
+from crowdbake.formats.binary import region_alpha
+
+pytest.importorskip("pyrender")
+from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
+
+# Thresholds for a textured sphere at 64² (measured: SSIM 0.979 / PSNR 33.5 dB with exact normals,
+# 0.973 / 33.2 dB with the normal map through DXT1); the silhouette's anti-aliasing is most of what remains.
+SSIM_EXACT = 0.95
+PSNR_EXACT_DB = 30.0
+SSIM_DXT1 = 0.93
+SIZE = 64
+
+
+def uv_sphere(rings: int = 24, segments: int = 48, radius: float = 0.5):
+    """positions, normals, uvs, faces of a capless sphere with a duplicated-vertex UV seam."""
+    latitude = np.linspace(0.08 * np.pi, 0.92 * np.pi, rings)
+    longitude = np.linspace(0.0, 2.0 * np.pi, segments + 1)
+    lat, lon = np.meshgrid(latitude, longitude, indexing="ij")
+    normals = np.stack([np.sin(lat) * np.sin(lon), np.cos(lat), np.sin(lat) * np.cos(lon)], axis=-1).reshape(-1, 3)
+    uvs = np.stack([lon / (2 * np.pi), (lat - latitude[0]) / (latitude[-1] - latitude[0])], axis=-1).reshape(-1, 2)
+    index = np.arange(rings * (segments + 1)).reshape(rings, segments + 1)
+    a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
+    faces = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
+    return normals * radius, normals, uvs, faces
+
+
+def patterned_texture(size: int = 128) -> np.ndarray:
+    """Stripes and regions: detail the impostor must carry through its UV map."""
+    v, u = (np.mgrid[0:size, 0:size] + 0.5) / size
+    texture = np.zeros((size, size, 4), dtype=np.uint8)
+    texture[..., 0] = np.rint(140 + 90 * np.sin(12 * np.pi * u))
+    texture[..., 1] = np.rint(120 + 100 * (np.floor(8 * v) % 2))
+    texture[..., 2] = np.rint(100 + 60 * np.cos(2 * np.pi * u))
+    texture[..., 3] = region_alpha(np.where(v > 0.6, 3, 0))
+    return texture
+
+
+OUTFIT = np.full((16, 4), 255, dtype=np.uint8)
+OUTFIT[3] = (60, 200, 90, 255)
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    positions, normals, uvs, faces = uv_sphere()
+    return positions, normals, uvs, faces, np.zeros(len(faces), int), [patterned_texture()]
+
+
+def bake_view(scene, azimuth: float, elevation: float):
+    positions, normals, uvs, faces, material, diffuse = scene
+    view = maps.ortho_view((0, 0, 0), 0.6, azimuth, elevation, SIZE)
+    with VisibilityRenderer(SIZE) as renderer:
+        renderer.set_mesh(positions, faces)
+        coverage = renderer.coverage(view, positions, faces)
+    return maps.view_maps(view, coverage, positions, normals, uvs, faces, material, diffuse)
+
+
+def reference(scene, azimuth: float, elevation: float, supersample: int = fidelity.DEFAULT_SUPERSAMPLE):
+    positions, normals, uvs, faces, material, diffuse = scene
+    view = maps.ortho_view((0, 0, 0), 0.6, azimuth, elevation, SIZE * supersample)
+    with VisibilityRenderer(view.size) as renderer:
+        renderer.set_mesh(positions, faces)
+        coverage = renderer.coverage(view, positions, faces)
+    light = fidelity.camera_light(view)
+    return fidelity.mesh_reference(view, coverage, supersample, positions, normals, uvs, faces, material, diffuse, OUTFIT, light), light
+
+
+def test_impostor_reproduces_the_mesh_render(sphere):
+    baked = bake_view(sphere, 40.0, 15.0)
+    mesh, light = reference(sphere, 40.0, 15.0)
+    exact = fidelity.impostor_image(baked.uv, baked.normal, sphere[5], OUTFIT, light)
+    score = fidelity.compare(mesh, exact)
+    assert score["ssim"] >= SSIM_EXACT and score["psnr_db"] >= PSNR_EXACT_DB
+    decoded = compression.decode_bc1(compression.encode_bc1(baked.normal), SIZE, SIZE)
+    compressed = fidelity.compare(mesh, fidelity.impostor_image(baked.uv, decoded, sphere[5], OUTFIT, light))
+    assert compressed["ssim"] >= SSIM_DXT1
+    assert compressed["ssim"] <= score["ssim"] + 1e-9  # compression cannot make it more faithful
+
+
+def test_a_wrong_impostor_is_caught(sphere):
+    """The metric must notice a broken UV map (v flipped) and a view from the wrong angle."""
+    baked = bake_view(sphere, 40.0, 15.0)
+    mesh, light = reference(sphere, 40.0, 15.0)
+    good = fidelity.compare(mesh, fidelity.impostor_image(baked.uv, baked.normal, sphere[5], OUTFIT, light))
+    flipped = baked.uv.copy()
+    covered = flipped[..., 3] > 0
+    flipped[..., 1][covered] = 65535 - flipped[..., 1][covered]
+    broken = fidelity.compare(mesh, fidelity.impostor_image(flipped, baked.normal, sphere[5], OUTFIT, light))
+    assert broken["ssim"] < good["ssim"] - 0.1
+    # The nearest-view error: the mesh 11.25° away from the baked view (half a 16-view step).
+    between, light_between = reference(sphere, 51.25, 15.0)
+    shifted = fidelity.compare(between, fidelity.impostor_image(baked.uv, baked.normal, sphere[5], OUTFIT, light_between))
+    assert shifted["ssim"] < good["ssim"]
+
+
+def test_compare_and_summary():
+    image = np.zeros((16, 16, 3))
+    image[4:12, 4:12] = 0.5
+    same = fidelity.compare(image, image)
+    assert same["ssim"] == pytest.approx(1.0) and same["psnr_db"] == float("inf")
+    other = image.copy()
+    other[6:8, 6:8] = 1.0
+    worse = fidelity.compare(image, other)
+    assert worse["ssim"] < 1.0 and np.isfinite(worse["psnr_db"])
+    summary = fidelity.summarize([same, worse])
+    assert summary["ssim_worst"] == worse["ssim"] and summary["psnr_db_mean"] == worse["psnr_db"]
+    # The box: lit pixels plus the margin, not the empty frame.
+    rows, columns = fidelity.measure_box(image)
+    assert (rows.start, rows.stop) == (4 - fidelity.MEASURE_MARGIN_PX, 12 + fidelity.MEASURE_MARGIN_PX)
+
+
+def test_outfit_colours_follow_the_region_codes():
+    texels = np.array([[200, 100, 50, 0], [200, 100, 50, 51], [255, 255, 255, 17 * 15]], dtype=np.float64)
+    outfit = np.zeros((16, 4), dtype=np.uint8)
+    outfit[3] = (255, 0, 128, 255)
+    outfit[15] = (10, 20, 30, 255)
+    rgb = fidelity.apply_outfit(texels, outfit)
+    np.testing.assert_allclose(rgb[0], [200 / 255, 100 / 255, 50 / 255])  # region 0 keeps its colour
+    np.testing.assert_allclose(rgb[1], [200 / 255, 0, 50 / 255 * 128 / 255])
+    np.testing.assert_allclose(rgb[2], [10 / 255, 20 / 255, 30 / 255])
+    lit = fidelity.lambert(np.ones((2, 3)), np.array([[0, 0, 1.0], [0, 0, -1.0]]), np.array([0, 0, 1.0]))
+    np.testing.assert_allclose(lit[:, 0], [fidelity.AMBIENT + fidelity.DIFFUSE, fidelity.AMBIENT])
+
+
+def test_uv_precision_shows_why_the_uv_map_is_16_bit(sphere):
+    baked = bake_view(sphere, 0.0, 0.0)
+    precision = fidelity.uv_precision(baked.uv, 1024)
+    assert precision["rgba16"]["max_texels"] < 0.01
+    # 8 bits per coordinate: half a step of 1/255 is two texels of a 1024² texture.
+    assert 1.0 < precision["rgba8"]["max_texels"] <= 0.5 / 255 * 1024 + 1e-6
+    assert precision["bc1"]["max_texels"] >= precision["rgba8"]["max_texels"]

@@ -1,0 +1,206 @@
+"""Impostor maps: pyrender's visibility buffer (crowdbake.render.impostor) and the exact per-texel maps
+computed from it (crowdbake.bake.impostor_maps)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crowdbake.bake import impostor_maps as maps
+from crowdbake.formats.binary import region_alpha
+
+pyrender = pytest.importorskip("pyrender")
+from crowdbake.render import offscreen  # noqa: E402
+from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
+
+# Detail map against pyrender's own textured rendering of the same mesh (GL's bilinear filter and
+# rasterisation against ours): measured 0.99; below 0.95 something is flipped or misaligned.
+PYRENDER_DETAIL_SSIM = 0.95
+# 16-bit UV: one step is 1/65535; rounding costs at most half of it (plus float noise).
+UV_STEP = 1.0 / 65535.0
+
+
+def uv_sphere(rings: int = 24, segments: int = 48, radius: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """positions (V, 3), normals (V, 3), uvs (V, 2), faces (T, 3): a sphere without its polar caps, with a
+    UV seam of duplicated vertices at u = 0 / 1 (as an OBJ with seams is split on import)."""
+    latitude = np.linspace(0.08 * np.pi, 0.92 * np.pi, rings)
+    longitude = np.linspace(0.0, 2.0 * np.pi, segments + 1)
+    lat, lon = np.meshgrid(latitude, longitude, indexing="ij")
+    normals = np.stack([np.sin(lat) * np.sin(lon), np.cos(lat), np.sin(lat) * np.cos(lon)], axis=-1).reshape(-1, 3)
+    uvs = np.stack([lon / (2 * np.pi), (lat - latitude[0]) / (latitude[-1] - latitude[0])], axis=-1).reshape(-1, 2)
+    index = np.arange(rings * (segments + 1)).reshape(rings, segments + 1)
+    a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
+    faces = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
+    return normals * radius, normals, uvs, faces
+
+
+def sphere_texture(size: int = 64) -> np.ndarray:
+    """(size, size, 4) uint8: smooth colours, periodic in u so the seam is invisible; regions in alpha."""
+    v, u = (np.mgrid[0:size, 0:size] + 0.5) / size
+    texture = np.zeros((size, size, 4), dtype=np.uint8)
+    texture[..., 0] = np.rint(128 + 100 * np.sin(2 * np.pi * u))
+    texture[..., 1] = np.rint(128 + 100 * np.cos(np.pi * v))
+    texture[..., 2] = np.rint(128 + 80 * np.cos(2 * np.pi * u))
+    texture[..., 3] = region_alpha((np.floor(u * 4).astype(int) + 4 * (v > 0.5)) % 16)
+    return texture
+
+
+def render_maps(positions, normals, uvs, faces, texture, azimuth, elevation, size=64, center=(0.0, 0.0, 0.0), radius=1.0):
+    view = maps.ortho_view(center, radius, azimuth, elevation, size)
+    with VisibilityRenderer(size) as renderer:
+        renderer.set_mesh(positions, faces)
+        coverage = renderer.coverage(view, positions, faces)
+    return view, maps.view_maps(view, coverage, positions, normals, uvs, faces, np.zeros(len(faces), int), [texture])
+
+
+def test_camera_is_the_spec_camera_and_matches_offscreen():
+    for azimuth, elevation in ((0, 0), (90, 0), (200, 35), (30, -60), (0, 90)):
+        view = maps.ortho_view((0.1, 0.9, -0.2), 0.8, azimuth, elevation, 32)
+        np.testing.assert_allclose(view.camera_pose(), offscreen.view_pose((0.1, 0.9, -0.2), 0.8, azimuth, elevation), atol=1e-12)
+    front = maps.ortho_view((0, 0, 0), 1.0, 0.0, 0.0, 64)
+    # From the front (+Z) the character's left (+X) is on the image's right, its head (+Y) at the top.
+    xy, depth = maps.project(front, np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 0]]))
+    np.testing.assert_allclose(xy, [[64, 32], [32, 0], [32, 32]])
+    assert depth[2] == pytest.approx(maps.CAMERA_DISTANCE_RADII)
+    side = maps.ortho_view((0, 0, 0), 1.0, 90.0, 0.0, 64)
+    np.testing.assert_allclose(side.back, [1, 0, 0], atol=1e-12)  # azimuth 90: the camera on +X
+
+
+def test_triangle_ids_round_trip():
+    colours = maps.triangle_id_colours(70_000)
+    image = colours.reshape(1, -1, 3)
+    np.testing.assert_array_equal(maps.decode_triangle_ids(image)[0], np.arange(70_000))
+    assert maps.decode_triangle_ids(np.zeros((1, 1, 3), np.uint8))[0, 0] == -1
+
+
+def test_uv_map_decodes_to_the_texel_on_a_facing_quad():
+    """A quad facing the camera with UVs linear in position: every covered texel's decoded UV is the exact
+    UV at its centre to within one 16-bit step, coverage is exactly the texels whose centres it holds, and
+    depth comes back as the orthographic eye distance."""
+    positions = np.array([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]])
+    # glTF: v grows downwards. A quarter-texel offset (of a 1024² texture) keeps the texel centres of the
+    # image off the texture's texel boundaries, so "the same texel" is well defined.
+    offset = 0.25 / 1024
+    uvs = np.array([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]]) * (1 - 2 * offset) + offset
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    normals = np.tile([0.0, 0.0, 1.0], (4, 1))
+    texture = sphere_texture(1024)
+    view = maps.ortho_view((0, 0, 0), 1.0, 0.0, 0.0, 64)
+    with VisibilityRenderer(64) as renderer:
+        renderer.set_mesh(positions, faces)
+        image = renderer.render(view)
+        coverage = maps.resolve_coverage(view, image.ids, positions, faces, image.depth)
+    result = maps.view_maps(view, coverage, positions, normals, uvs, faces, np.zeros(2, int), [texture])
+    uv, material, covered = maps.decode_uv_map(result.uv)
+    expected = np.zeros((64, 64), bool)
+    expected[16:48, 16:48] = True  # the quad spans [-0.5, 0.5] of [-1, 1]: texels 16..47
+    np.testing.assert_array_equal(covered, expected)
+    assert coverage.repaired == 0
+    centres = (np.arange(64) + 0.5) / 64.0 * 2.0 - 1.0  # texel centre positions in metres
+    exact_u = np.broadcast_to((centres[None, :] + 0.5) * (1 - 2 * offset) + offset, (64, 64))
+    exact_v = np.broadcast_to((0.5 - (-centres[:, None])) * (1 - 2 * offset) + offset, (64, 64))
+    assert np.abs(uv[..., 0] - exact_u)[expected].max() <= UV_STEP
+    assert np.abs(uv[..., 1] - exact_v)[expected].max() <= UV_STEP
+    # To the texel of a 1024² texture: the stored coordinates address the same texel as the exact ones.
+    np.testing.assert_array_equal(np.floor(uv[expected] * 1024), np.floor(np.stack([exact_u, exact_v], -1)[expected] * 1024))
+    assert (material == 0).all() and (result.uv[~expected] == 0).all()
+    np.testing.assert_allclose(image.depth[expected], maps.CAMERA_DISTANCE_RADII, atol=1e-4)
+    assert (image.depth[~expected] == 0).all()
+    np.testing.assert_array_equal(result.normal[expected][:, :3], np.tile([128, 128, 255], (expected.sum(), 1)))
+
+
+def test_detail_map_matches_pyrenders_textured_render():
+    from skimage.metrics import structural_similarity
+
+    positions, normals, uvs, faces = uv_sphere()
+    texture = sphere_texture()
+    view, result = render_maps(positions, normals, uvs, faces, texture, 30.0, 20.0, size=96)
+    material = pyrender.MetallicRoughnessMaterial(
+        baseColorFactor=[1.0, 1.0, 1.0, 1.0], baseColorTexture=pyrender.Texture(source=texture[..., :3].copy(), source_channels="RGB"), doubleSided=True
+    )
+    # pyrender flips a texture on upload (it expects trimesh's OBJ-style v-up coordinates): give it 1 - v.
+    obj_uvs = np.stack([uvs[:, 0], 1.0 - uvs[:, 1]], axis=-1).astype(np.float32)
+    primitive = pyrender.Primitive(
+        positions=positions.astype(np.float32), texcoord_0=obj_uvs, indices=faces.astype(np.uint32), material=material, mode=4
+    )
+    scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 0.0], ambient_light=[0.0, 0.0, 0.0])
+    scene.add(pyrender.Mesh([primitive]))
+    near, far = view.clip_range
+    scene.add(pyrender.OrthographicCamera(xmag=1.0, ymag=1.0, znear=near, zfar=far), pose=view.camera_pose())
+    renderer = pyrender.OffscreenRenderer(96, 96)
+    try:
+        colour, _ = renderer.render(scene, flags=pyrender.RenderFlags.FLAT)
+    finally:
+        renderer.delete()
+    covered = result.coverage.mask
+    drawn = colour.max(axis=-1) > 0
+    assert (covered != drawn).sum() <= 0.01 * covered.sum(), "both rasterise the same silhouette"
+    ours = np.where(covered[..., None], result.detail[..., :3], 0)
+    score = structural_similarity(ours, colour, channel_axis=2, data_range=255)
+    assert score >= PYRENDER_DETAIL_SSIM
+
+
+def test_silhouette_texels_carry_their_own_triangles_coordinates():
+    """The paper's filtering artefact (section 5): a silhouette texel blended with the background gets a
+    texture coordinate from nowhere. Here every covered texel's UV lies inside its triangle's UV range,
+    the background is all zero, and the region codes in the detail map are whole codes."""
+    positions, normals, uvs, faces = uv_sphere()
+    view, result = render_maps(positions, normals, uvs, faces, sphere_texture(), 75.0, 10.0)
+    uv, _, covered = maps.decode_uv_map(result.uv)
+    triangles = result.coverage.triangle[covered]
+    corner_uvs = uvs[faces[triangles]]
+    low, high = corner_uvs.min(axis=1) - UV_STEP, corner_uvs.max(axis=1) + UV_STEP
+    assert ((uv[covered] >= low) & (uv[covered] <= high)).all()
+    assert (result.uv[~covered] == 0).all() and (result.detail[~covered][:, 3] == 0).all()
+    assert (result.detail[covered][:, 3] % 17 == 0).all()
+    edge = covered & ~np.pad(covered, 1)[2:, 1:-1] | covered & ~np.pad(covered, 1)[:-2, 1:-1]
+    assert edge.sum() > 20  # the test did look at silhouette texels
+
+
+def test_multisample_blends_on_the_silhouette_are_repaired():
+    """Under EGL pyrender resolves a 4x multisampled buffer, which can average two ids into a third.
+    Corrupting the silhouette's ids that way must leave the same coverage after the repair."""
+    positions, normals, uvs, faces = uv_sphere()
+    view = maps.ortho_view((0, 0, 0), 1.0, 10.0, 5.0, 64)
+    with VisibilityRenderer(64) as renderer:
+        renderer.set_mesh(positions, faces)
+        image = renderer.render(view)
+    clean = maps.resolve_coverage(view, image.ids, positions, faces, image.depth)
+    inside = image.ids >= 0
+    border = inside & ~(np.roll(inside, 1, 0) & np.roll(inside, -1, 0) & np.roll(inside, 1, 1) & np.roll(inside, -1, 1))
+    blended = image.ids.copy()
+    blended[border] = (image.ids[border] + 1) // 2 + 7  # an averaged colour decodes to an unrelated id
+    repaired = maps.resolve_coverage(view, blended, positions, faces, image.depth)
+    assert repaired.repaired >= border.sum() * 0.9
+    np.testing.assert_array_equal(repaired.mask, clean.mask)
+    # Where a centre sits on an edge either triangle is right; the surface point must be the same.
+    texel_metres = 2.0 * view.radius / view.size
+    moved = np.linalg.norm(maps.interpolate(positions, faces, repaired) - maps.interpolate(positions, faces, clean), axis=-1)
+    assert moved.max() <= 0.1 * texel_metres
+
+
+def test_inside_of_an_open_shape_is_lit_from_the_camera_side():
+    positions, normals, uvs, faces = uv_sphere()
+    open_top = faces[positions[faces].mean(axis=1)[:, 1] < 0.3]  # cut the cap off: the inside shows from above
+    view, result = render_maps(positions, normals, uvs, open_top, sphere_texture(), 0.0, 70.0)
+    decoded = maps.decode_normal_map(result.normal)[result.coverage.mask]
+    inside = (result.coverage.triangle[result.coverage.mask] >= 0)
+    assert inside.all()
+    # Normals point towards the camera side even where the camera sees the back of a triangle.
+    assert (decoded @ view.back > -0.05).all()
+
+
+def test_texture_sampling_conventions():
+    texture = np.zeros((2, 2, 4), dtype=np.uint8)
+    texture[0, 0] = (255, 0, 0, 17)
+    texture[0, 1] = (0, 255, 0, 34)
+    texture[1, 0] = (0, 0, 255, 51)
+    texture[1, 1] = (255, 255, 255, 68)
+    # glTF (0, 0) is the top-left texel's corner; texel centres sit at (0.25, 0.25) etc. for 2x2.
+    samples = maps.sample_texture(texture, np.array([[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.5, 0.5], [1.25, 0.25]]))
+    np.testing.assert_allclose(samples[0], [255, 0, 0, 17])
+    np.testing.assert_allclose(samples[1], [0, 255, 0, 34])
+    np.testing.assert_allclose(samples[2], [0, 0, 255, 51])
+    np.testing.assert_allclose(samples[3, :3], [127.5, 127.5, 127.5])  # bilinear RGB
+    assert samples[3, 3] in (17, 34, 51, 68)  # nearest alpha: a region code, never a blend
+    np.testing.assert_allclose(samples[4], samples[0])  # REPEAT
+    np.testing.assert_allclose(maps.wrap_uv(np.array([1.0, -0.25, 1.5])), [1.0, 0.75, 0.5])

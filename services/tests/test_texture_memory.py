@@ -1,0 +1,45 @@
+"""Figure 4 (crowdbake.bake.texture_memory): the paper's section-6 arithmetic, and the same sums over a
+bundle's real layer sizes."""
+from __future__ import annotations
+
+import pytest
+
+from crowdbake.bake import texture_memory
+from crowdbake.bake.texture_memory import MIB, MapBytes
+
+
+def test_paper_assumptions_give_the_papers_map_sizes():
+    paper = texture_memory.paper_map_bytes()
+    # 10 frames of 1024² RGB normal maps at DXT1's 6:1: 10 * 3 MiB / 6.
+    assert paper.normal == 5 * MIB
+    # 10 frames of 1024² RGBA detail or UV maps at DXT3's 4:1: 10 * 4 MiB / 4.
+    assert paper.detail == paper.uv == 10 * MIB
+    # One 1024² RGBA diffuse texture per variation, DXT3.
+    assert paper.diffuse_per_variation == 1 * MIB
+
+
+def test_figure4_series():
+    series = texture_memory.series(texture_memory.paper_map_bytes(), 8)
+    assert series["variations"] == list(range(1, 9))
+    # detail-mapped(n) = 5 + 11 n, UV-mapped(n) = 15 + n (MiB): equal at one variation.
+    assert series["detail_mapped_mib"] == [5 + 11 * n for n in range(1, 9)]
+    assert series["uv_mapped_mib"] == [15 + n for n in range(1, 9)]
+    assert series["detail_mapped_mib"][0] == series["uv_mapped_mib"][0] == 16
+    assert series["detail_mapped_mib"][-1] == 93 and series["uv_mapped_mib"][-1] == 23
+    assert texture_memory.break_even_variations(texture_memory.paper_map_bytes()) == 1.0
+
+
+def test_bundle_bytes_with_16_bit_uv_maps_break_even_later():
+    # A bundle like the default bake: 2048x384 atlases, 10 layers; BC1 normal, BC2 detail, rgba16 UV.
+    texels = 2048 * 384 * 10
+    bundle = MapBytes(normal=texels / 2, uv=texels * 8, detail=texels * 1, diffuse_per_variation=1024 * 1024)
+    assert texture_memory.break_even_variations(bundle) == 8.0
+    assert bundle.uv_mapped(9) < bundle.detail_mapped(9) and bundle.uv_mapped(7) > bundle.detail_mapped(7)
+    report = texture_memory.texture_memory_report(bundle, 10, 8)
+    assert report["bundle"]["variations_in_bundle"] == 8 and len(report["bundle"]["uv_mapped_mib"]) == 10
+    assert report["paper"]["detail_mapped_mib"][7] == 93
+
+
+def test_series_needs_a_variation():
+    with pytest.raises(ValueError):
+        texture_memory.series(texture_memory.paper_map_bytes(), 0)
