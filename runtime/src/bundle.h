@@ -1,0 +1,193 @@
+// Bundle reader: shared_formats/SPEC.md (format version 1), without any GL.
+//
+// Every function returns a Status; none throws or aborts on bad input. A failing Status
+// carries one of the spec's error codes, the bundle path of the file concerned, and a
+// message that starts with the function that found the problem, e.g.
+//   "parse_pose_cache: poses/body_lod0.cbpc: truncated: 300 bytes, header says 312".
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+namespace crowdview {
+
+// SPEC.md "Error codes", plus fetch_failed for transport errors the spec cannot know about
+// (connection refused, HTTP 500); a fetch never reports those as a bundle fault.
+enum class ErrorCode {
+    ok = 0,
+    manifest_invalid,
+    unsupported_format_version,
+    unsafe_path,
+    missing_file,
+    size_mismatch,
+    sha256_mismatch,
+    truncated,
+    bad_magic,
+    unsupported_version,
+    invalid_header,
+    invalid_data,
+    fetch_failed,
+};
+
+// The spec's spelling of `code` ("size_mismatch"); "ok" for ErrorCode::ok.
+const char* error_code_name(ErrorCode code);
+
+struct Status {
+    ErrorCode code = ErrorCode::ok;
+    std::string file;     // bundle path the error concerns ("manifest.json" for the manifest)
+    std::string message;  // "<function>: <file>: <code>: <detail>"
+
+    bool ok() const { return code == ErrorCode::ok; }
+    explicit operator bool() const { return ok(); }
+};
+
+// Builds a failing Status; `function` leads the message.
+Status make_error(ErrorCode code, const char* function, const std::string& file, const std::string& detail);
+
+// ---------------------------------------------------------------------------------------
+// Binary files
+
+enum class PixelFormat : uint32_t { rgba8 = 1, rgba16 = 2, bc1 = 3, bc2 = 4 };
+const char* pixel_format_name(PixelFormat format);
+
+constexpr uint32_t kPoseCacheHeaderSize = 64;
+constexpr uint32_t kTextureHeaderSize = 32;
+// SPEC.md: normals are unit length within 1e-3 and bounds enclose positions within 1e-4 m,
+// allowances for float32 rounding in the bake.
+constexpr float kNormalLengthTolerance = 1e-3f;
+constexpr float kBoundsTolerance = 1e-4f;
+
+// One mesh part at one LOD over every frame of the cycle (CBPC).
+struct PoseCache {
+    uint32_t vertex_count = 0;
+    uint32_t index_count = 0;
+    uint32_t frame_count = 0;
+    float frames_per_second = 0;
+    float bounds_min[3] = {0, 0, 0};
+    float bounds_max[3] = {0, 0, 0};
+    std::vector<uint32_t> indices;  // index_count, counter-clockwise triangles
+    std::vector<float> uvs;         // vertex_count * 2
+    std::vector<float> positions;   // frame_count * vertex_count * 3, frame-major, metres
+    std::vector<float> normals;     // same layout as positions, unit length
+};
+
+// A stack of equally sized layers (CBTX); `data` holds layer 0, layer 1, ... as stored.
+struct TextureArray {
+    uint32_t width = 0;
+    uint32_t height = 0;
+    uint32_t layer_count = 0;
+    PixelFormat format = PixelFormat::rgba8;
+    std::vector<uint8_t> data;
+
+    size_t layer_size() const;
+    const uint8_t* layer(uint32_t k) const { return data.data() + k * layer_size(); }
+};
+
+// Bytes of one width x height layer in `format`; 0 for an unknown format or a BC size that
+// is not a multiple of 4.
+size_t texture_layer_size(PixelFormat format, uint32_t width, uint32_t height);
+
+// Parse a CBPC file of `size` bytes. `file` names it in errors. Checks run in the spec's
+// order, so every strict prefix of a valid file is `truncated`. `out` is written only on success.
+Status parse_pose_cache(const uint8_t* data, size_t size, const std::string& file, PoseCache* out);
+// Same for a CBTX file.
+Status parse_texture_array(const uint8_t* data, size_t size, const std::string& file, TextureArray* out);
+
+// Decode one layer of a BC1 or BC2 texture into RGBA8 (width * height * 4 bytes, rows top
+// first); rgba8 is copied and rgba16 keeps the high byte. The CPU fallback for GL drivers
+// without S3TC, and how tests look at block-compressed texels.
+std::vector<uint8_t> decode_layer_rgba8(const TextureArray& texture, uint32_t layer);
+
+// Region code of an alpha value: r = round(alpha / 17) (SPEC.md "Colour regions").
+inline uint32_t region_code(uint8_t alpha) { return (alpha * 2u + 17u) / 34u; }
+
+// ---------------------------------------------------------------------------------------
+// Manifest
+
+struct FileEntry {
+    std::string path, sha256, media_type, role;
+    uint64_t size = 0;
+};
+
+struct MaterialInfo {
+    std::string name, diffuse;
+    uint32_t variations = 0;
+};
+
+struct MeshInfo {
+    std::string part, kind, file;
+    uint32_t lod = 0, material = 0, vertex_count = 0, triangle_count = 0;
+};
+
+struct CycleInfo {
+    uint32_t source_start_frame = 0, source_end_frame = 0, frames = 0;
+    std::string closing;
+    double position_jump_ratio = 0, velocity_jump_ratio = 0;
+};
+
+struct ImpostorInfo {
+    uint32_t tile_size = 0;
+    std::vector<float> azimuths_deg, elevations_deg;
+    std::vector<uint32_t> frame_indices;
+    float center[3] = {0, 0, 0};
+    float radius = 0;
+    std::string normal_map, uv_map, detail_map;
+};
+
+struct Manifest {
+    uint32_t format_version = 0;
+    std::string name, version, created, producer;
+    double frames_per_second = 0;
+    CycleInfo cycle;
+    std::vector<MaterialInfo> materials;
+    std::string outfits_file;
+    uint32_t outfit_count = 0;
+    std::vector<MeshInfo> meshes;
+    ImpostorInfo impostor;
+    std::vector<FileEntry> files;
+};
+
+constexpr uint32_t kFormatVersion = 1;
+
+// Parse manifest.json's text and check it against manifest.schema.json (the checks are
+// written out here; there is no schema engine). Returns manifest_invalid or
+// unsupported_format_version. File paths are checked later, by load_bundle.
+Status parse_manifest(const std::string& text, Manifest* out);
+
+// The spec's path rule: relative, '/'-separated, [A-Za-z0-9._-] components, no '.' or '..'
+// component, at most 200 characters, not "manifest.json".
+bool is_safe_path(const std::string& path);
+
+// ---------------------------------------------------------------------------------------
+// Whole bundles
+
+struct Bundle {
+    Manifest manifest;
+    std::vector<PoseCache> meshes;        // parallel to manifest.meshes
+    std::vector<TextureArray> diffuse;    // parallel to manifest.materials
+    TextureArray outfits;
+    TextureArray impostor_normal, impostor_uv, impostor_detail;
+};
+
+// Supplies the bytes of one listed file whose path already passed is_safe_path. Return
+// missing_file when it is absent; the size and sha256 are checked by the caller.
+using FileSource = std::function<Status(const FileEntry& entry, std::vector<uint8_t>* bytes)>;
+
+// SHA-256 of `size` bytes as 64 lowercase hex digits (OpenSSL EVP).
+std::string sha256_hex(const uint8_t* data, size_t size);
+
+// Verify and decode a bundle as SPEC.md's "Verifying a bundle" says: the manifest, then each
+// file entry in order (path rule, presence, size, sha256), then every binary file, then the
+// cross-checks. Stops at the first problem. `out` is written only on success.
+Status load_bundle(const std::string& manifest_text, const FileSource& source, Bundle* out);
+
+// load_bundle over a folder holding manifest.json and the files it lists.
+Status load_bundle_dir(const std::string& dir, Bundle* out);
+
+// Reads a whole file; false when it cannot be opened or read.
+bool read_file_bytes(const std::string& path, std::vector<uint8_t>* bytes);
+
+}  // namespace crowdview

@@ -1,0 +1,33 @@
+// crowdview limits and shared layout, read by C++ (renderer.cpp) and by every shader
+// (the shader loader pastes this file in place of `#include "../config.h"`).
+// Only #define lines and comments: the file must parse as both C++ and GLSL.
+#ifndef CROWDVIEW_CONFIG_H
+#define CROWDVIEW_CONFIG_H
+
+// Diffuse texture arrays a UV impostor can address: GLSL 3.30 only indexes sampler arrays
+// with constants, so the impostor shader unrolls one branch per material.
+#define CV_MAX_MATERIALS 4
+
+// Colour regions: alpha = 17 * r, r in 0..15 (shared_formats/SPEC.md, "Colour regions").
+#define CV_REGION_COUNT 16
+#define CV_REGION_SCALE 17.0
+
+// Vertex attribute locations. Per-vertex: the static UV of a pose cache (positions and
+// normals come from a buffer texture indexed by gl_VertexID). Per-instance: struct Instance.
+#define CV_ATTR_UV 0
+#define CV_ATTR_INSTANCE_POSE 1   // vec4: position.xyz (metres), heading (radians about +Y)
+#define CV_ATTR_INSTANCE_IDS 2    // uvec4: frame or impostor layer, variation, outfit, impostor tile
+
+// Texture units. Mesh draws use POSES, OUTFITS and DIFFUSE0; impostor draws all but POSES.
+#define CV_UNIT_POSES 0           // samplerBuffer: per frame per vertex, two RGBA32F texels (position, normal)
+#define CV_UNIT_OUTFITS 1         // outfit colour map, 16 x outfit_count
+#define CV_UNIT_IMPOSTOR_NORMAL 2
+#define CV_UNIT_IMPOSTOR_UV 3
+#define CV_UNIT_IMPOSTOR_DETAIL 4
+#define CV_UNIT_DIFFUSE0 5        // CV_MAX_MATERIALS consecutive units: units 5..8, under GL 3.3's 16
+
+// Ambient term of the Lambert lighting shared by mesh and impostor shaders, so a mesh and
+// its impostor are lit alike at the LOD switch.
+#define CV_AMBIENT 0.35
+
+#endif

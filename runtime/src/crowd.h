@@ -1,0 +1,185 @@
+// The crowd and its per-frame decisions, without GL: where each character stands, which
+// frame it shows, which LOD it gets (the 1:1 pixel-to-texel rule with hysteresis), which
+// impostor view faces the camera, and whether it is in the frustum at all.
+//
+// Conventions (shared_formats/SPEC.md): right-handed, +Y up, metres; a character at heading 0
+// faces +Z, and heading h turns it by h radians about +Y, so it faces (sin h, 0, cos h).
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+namespace crowdview {
+
+// ---------------------------------------------------------------------------------------
+// Per-instance data as the shaders read it (CV_ATTR_INSTANCE_POSE, CV_ATTR_INSTANCE_IDS in
+// config.h). Mirrored in the vertex shaders on purpose: keep the asserts below in step.
+struct Instance {
+    float position[3];   // metres, the character's feet
+    float heading;       // radians about +Y
+    uint32_t frame;      // meshes: cycle frame; impostors: atlas layer
+    uint32_t variation;  // diffuse layer before the per-material modulo
+    uint32_t outfit;     // row of the outfit map
+    uint32_t tile;       // impostors: azimuth + elevation * azimuth_count; meshes: unused
+};
+static_assert(sizeof(Instance) == 32, "Instance is two vec4-sized attributes in the shaders");
+static_assert(offsetof(Instance, heading) == 12 && offsetof(Instance, frame) == 16, "shader attribute offsets");
+
+// ---------------------------------------------------------------------------------------
+// Deterministic random numbers (splitmix64): the same seed gives the same crowd on every
+// platform, which std::uniform_*_distribution does not promise.
+struct Rng {
+    uint64_t state;
+    explicit Rng(uint64_t seed) : state(seed) {}
+    uint64_t next();
+    float uniform(float lo, float hi);          // [lo, hi)
+    uint32_t below(uint32_t n);                 // [0, n), n > 0
+};
+
+enum class Layout { on_the_spot, paths };
+
+struct CrowdDesc {
+    uint32_t count = 100;
+    uint64_t seed = 1;
+    Layout layout = Layout::on_the_spot;
+    float spacing = 0;     // metres between grid neighbours; 0 means 1.6 (shoulder room for a walk)
+    float walk_speed = 0;  // metres per second along paths; 0 means 1.3 (a relaxed human walk)
+};
+
+struct Character {
+    glm::vec3 start;       // feet at time 0
+    float heading;         // radians
+    float phase_s;         // offset into the animation cycle, seconds
+    uint32_t variation;    // in [0, variation_count)
+    uint32_t outfit;       // in [0, outfit_count)
+};
+
+struct Crowd {
+    std::vector<Character> characters;
+    Layout layout = Layout::on_the_spot;
+    float half_extent = 0;  // characters stay inside [-half_extent, half_extent]^2 on the XZ plane
+    float walk_speed = 0;
+};
+
+// N characters on a jittered square grid centred on the origin, each with its own heading,
+// phase, diffuse variation and outfit; identical for identical arguments.
+Crowd make_crowd(const CrowdDesc& desc, uint32_t variation_count, uint32_t outfit_count, float cycle_seconds);
+
+// Where a character's feet are at time t: its start on the spot, or walked along its heading
+// and wrapped around the crowd's square (a torus, so density stays even).
+glm::vec3 character_position(const Crowd& crowd, const Character& character, float time_s);
+
+// The cycle frame shown at time t (nearest earlier keyframe; frame_count wraps to 0).
+uint32_t cycle_frame(float time_s, float phase_s, float frames_per_second, uint32_t frame_count);
+
+// The impostor atlas layer for a cycle frame: the baked frame (frame_indices, ascending)
+// nearest to it around the cycle. frame_indices must not be empty.
+uint32_t impostor_layer(uint32_t frame, const std::vector<uint32_t>& frame_indices, uint32_t frame_count);
+
+// ---------------------------------------------------------------------------------------
+// LOD: high mesh, low mesh, impostor
+
+enum class Lod : uint8_t { high = 0, low = 1, impostor = 2 };
+
+// Distance (metres, along the view axis) at which one impostor texel covers one pixel.
+// A tile spans 2*radius metres with tile_size texels; a perspective pixel at distance d
+// spans 2*d*tan(fov_y/2)/viewport_height metres. Equal at d = radius*H / (tile*tan(fov/2)).
+float impostor_switch_distance(float fov_y_rad, float viewport_height_px, float radius_m, uint32_t tile_size);
+
+struct LodRule {
+    float impostor_distance = 0;  // impostor_switch_distance(...)
+    // The low mesh takes over at this fraction of the impostor distance: from there on a
+    // character is under 2*tile_size pixels tall, where a high mesh's extra triangles fall
+    // below a pixel each (1 disables the low mesh).
+    float low_fraction = 0.5f;
+    bool has_low = true;
+    // Switch to a coarser level only beyond boundary*(1+h), back to a finer one below the
+    // boundary itself: a character hovering at a boundary keeps its level, and an impostor is
+    // never shown closer than the 1:1 distance.
+    float hysteresis = 0.05f;
+};
+
+// The level for `distance` given the level shown last frame (pass `lod_without_history` for
+// a character seen for the first time).
+Lod select_lod(float distance, Lod previous, const LodRule& rule);
+Lod lod_without_history(float distance, const LodRule& rule);
+
+// ---------------------------------------------------------------------------------------
+// Impostor view selection
+
+struct ImpostorView {
+    uint32_t azimuth;    // column of the atlas
+    uint32_t elevation;  // row of the atlas
+};
+
+// The atlas tile whose bake camera is nearest the real camera direction, seen in the
+// character's own frame. `to_camera` points from the character's bounds centre to the camera
+// (world space, any length > 0). Azimuths wrap at 360 degrees; elevations do not.
+ImpostorView select_view(const glm::vec3& to_camera, float heading, const std::vector<float>& azimuths_deg,
+                         const std::vector<float>& elevations_deg);
+
+// ---------------------------------------------------------------------------------------
+// Camera and culling
+
+struct Camera {
+    glm::vec3 position{0, 1.7f, 10};
+    float yaw = 0;       // radians; 0 looks along -Z
+    float pitch = 0;     // radians; positive looks up
+    float fov_y = glm::radians(45.0f);
+    float near_m = 0.1f, far_m = 2000.0f;
+
+    glm::vec3 forward() const;
+    glm::mat4 view() const;
+    glm::mat4 projection(float aspect) const;
+};
+
+struct Frustum {
+    glm::vec4 planes[6];  // inward normals: dot(plane.xyz, p) + plane.w >= 0 inside
+};
+Frustum frustum_from(const glm::mat4& view_projection);
+bool sphere_in_frustum(const Frustum& frustum, const glm::vec3& center, float radius);
+
+// The benchmark's crowd (the paper's figure 3 test: everyone on screen, walking on the spot):
+// staggered rows `spacing` apart on the ground in front of `camera`, from `near_m` (metres
+// along the ground) outwards, nearest first, each kept only when a sphere of `radius` around
+// its centre (`center_height` above the feet) lies wholly inside the view. More characters
+// reach further away, as in a real crowd, so near ones are meshes and far ones impostors
+// under LodMode::automatic.
+Crowd make_crowd_in_view(const CrowdDesc& desc, const Camera& camera, float aspect, float center_height, float radius,
+                         float near_m, uint32_t variation_count, uint32_t outfit_count, float cycle_seconds);
+
+// A camera that sees the whole crowd: looking down at `pitch` onto its centre, backed off
+// until the crowd's bounding sphere fits the vertical and horizontal field of view.
+Camera camera_for_crowd(const Crowd& crowd, float character_height, float aspect, float pitch_rad);
+
+// ---------------------------------------------------------------------------------------
+// One frame's instances
+
+enum class LodMode { automatic, high, low, impostor };
+
+// What the crowd needs from the bundle, copied out so this file needs no bundle types.
+struct CharacterModel {
+    glm::vec3 center{0, 1, 0};  // impostor bounds centre, in the character's frame
+    float radius = 1;
+    float frames_per_second = 24;
+    uint32_t frame_count = 1;
+    uint32_t tile_size = 64;
+    std::vector<float> azimuths_deg, elevations_deg;
+    std::vector<uint32_t> frame_indices;
+    bool has_low = false;
+};
+
+struct FrameInstances {
+    std::vector<Instance> by_lod[3];  // indexed by Lod
+    uint32_t culled = 0;
+};
+
+// Cull, pick a LOD (with hysteresis through `lod_state`, one entry per character, resized as
+// needed) and fill the instance lists for one frame.
+void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,
+                 const LodRule& rule, float time_s, std::vector<Lod>* lod_state,
+                 FrameInstances* out);
+
+}  // namespace crowdview

@@ -1,0 +1,552 @@
+// OpenGL 3.3 core renderer: uploads once, then instanced draws per LOD (see renderer.h).
+#include "renderer.h"
+
+#include <epoxy/gl.h>
+
+#include <algorithm>
+#include <cstdio>
+#include <cstring>
+#include <fstream>
+#include <sstream>
+
+#include <glm/gtc/type_ptr.hpp>
+
+#define STB_IMAGE_IMPLEMENTATION
+#define STBI_ONLY_PNG
+#include <stb/stb_image.h>
+#define STB_IMAGE_WRITE_IMPLEMENTATION
+#include <stb/stb_image_write.h>
+
+#include "config.h"
+
+namespace crowdview {
+
+static_assert(CV_MAX_MATERIALS == 4 && CV_UNIT_DIFFUSE0 + CV_MAX_MATERIALS <= 16,
+              "impostor_uv.frag.glsl unrolls four materials; GL 3.3 promises 16 texture units");
+
+namespace {
+
+// ---------------------------------------------------------------------------------------
+// Labels and shaders
+
+bool g_has_labels = false;
+
+// Names a GL object for debuggers (apitrace, RenderDoc); a no-op without KHR_debug.
+void label(GLenum identifier, GLuint name, const std::string& text) {
+    if (g_has_labels) glObjectLabel(identifier, name, GLsizei(text.size()), text.c_str());
+}
+
+bool read_text(const std::string& path, std::string* text) {
+    std::ifstream in(path, std::ios::binary);
+    if (!in) return false;
+    std::stringstream ss;
+    ss << in.rdbuf();
+    *text = ss.str();
+    return true;
+}
+
+// `<dir>/<file>` with each `#include "x"` line replaced by `<dir>/x` (one level: config.h).
+bool load_shader_source(const std::string& dir, const std::string& file, std::string* source, std::string* error) {
+    std::string text;
+    if (!read_text(dir + "/" + file, &text)) {
+        *error = "cannot read " + dir + "/" + file;
+        return false;
+    }
+    std::istringstream lines(text);
+    std::string line;
+    source->clear();
+    while (std::getline(lines, line)) {
+        const size_t open = line.find("#include \"");
+        if (open != std::string::npos && line.find_first_not_of(" \t") == open) {
+            const size_t close = line.find('"', open + 10);
+            std::string included;
+            if (close == std::string::npos || !read_text(dir + "/" + line.substr(open + 10, close - open - 10), &included)) {
+                *error = file + ": cannot resolve " + line;
+                return false;
+            }
+            *source += included + "\n";
+        } else {
+            *source += line + "\n";
+        }
+    }
+    return true;
+}
+
+GLuint compile_shader(GLenum stage, const std::string& dir, const std::string& file, std::string* error) {
+    std::string source;
+    if (!load_shader_source(dir, file, &source, error)) return 0;
+    GLuint shader = glCreateShader(stage);
+    const char* text = source.c_str();
+    glShaderSource(shader, 1, &text, nullptr);
+    glCompileShader(shader);
+    GLint ok = 0;
+    glGetShaderiv(shader, GL_COMPILE_STATUS, &ok);
+    if (!ok) {
+        char log[2048] = "";
+        glGetShaderInfoLog(shader, sizeof log, nullptr, log);
+        *error = file + ": " + log;
+        glDeleteShader(shader);
+        return 0;
+    }
+    label(GL_SHADER, shader, file);
+    return shader;
+}
+
+// Program `name` from <name>.vert.glsl (or `vertex_name`) and <name>.frag.glsl.
+GLuint build_program(const std::string& dir, const std::string& vertex_name, const std::string& fragment_name,
+                     std::string* error) {
+    GLuint vs = compile_shader(GL_VERTEX_SHADER, dir, vertex_name + ".vert.glsl", error);
+    if (!vs) return 0;
+    GLuint fs = compile_shader(GL_FRAGMENT_SHADER, dir, fragment_name + ".frag.glsl", error);
+    if (!fs) {
+        glDeleteShader(vs);
+        return 0;
+    }
+    GLuint program = glCreateProgram();
+    glAttachShader(program, vs);
+    glAttachShader(program, fs);
+    glLinkProgram(program);
+    glDeleteShader(vs);
+    glDeleteShader(fs);
+    GLint ok = 0;
+    glGetProgramiv(program, GL_LINK_STATUS, &ok);
+    if (!ok) {
+        char log[2048] = "";
+        glGetProgramInfoLog(program, sizeof log, nullptr, log);
+        *error = fragment_name + " program: " + log;
+        glDeleteProgram(program);
+        return 0;
+    }
+    label(GL_PROGRAM, program, fragment_name);
+    return program;
+}
+
+GLint uniform(GLuint program, const char* name) { return glGetUniformLocation(program, name); }
+
+// ---------------------------------------------------------------------------------------
+// Textures
+
+struct Upload {
+    bool s3tc = false;           // driver takes S3TC blocks as they are
+    bool cpu_decode_used = false;
+};
+
+// A CBTX as a GL_TEXTURE_2D_ARRAY. BC blocks go up untouched where S3TC is available and
+// are decoded to RGBA8 otherwise; rgba16 stays 16-bit (UV maps need it, SPEC.md).
+// `filtered`: trilinear with mipmaps (diffuse maps); otherwise nearest, base level only.
+GLuint upload_texture_array(const TextureArray& t, bool filtered, const std::string& name, Upload* upload) {
+    GLuint texture = 0;
+    glGenTextures(1, &texture);
+    glBindTexture(GL_TEXTURE_2D_ARRAY, texture);
+    glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
+    const GLsizei w = GLsizei(t.width), h = GLsizei(t.height), layers = GLsizei(t.layer_count);
+    const bool bc = t.format == PixelFormat::bc1 || t.format == PixelFormat::bc2;
+    if (bc && upload->s3tc) {
+        // bc1 is RGB in the spec (normal maps): the RGB flavour keeps alpha at 1.
+        const GLenum format = t.format == PixelFormat::bc1 ? GL_COMPRESSED_RGB_S3TC_DXT1_EXT : GL_COMPRESSED_RGBA_S3TC_DXT3_EXT;
+        glCompressedTexImage3D(GL_TEXTURE_2D_ARRAY, 0, format, w, h, layers, 0, GLsizei(t.data.size()), t.data.data());
+    } else if (bc) {
+        std::vector<uint8_t> rgba;
+        rgba.reserve(size_t(w) * h * 4 * layers);
+        for (uint32_t k = 0; k < t.layer_count; ++k) {
+            const std::vector<uint8_t> layer = decode_layer_rgba8(t, k);
+            rgba.insert(rgba.end(), layer.begin(), layer.end());
+        }
+        glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA8, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_BYTE, rgba.data());
+        upload->cpu_decode_used = true;
+    } else if (t.format == PixelFormat::rgba16) {
+        glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA16, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_SHORT, t.data.data());
+    } else {
+        glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA8, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_BYTE, t.data.data());
+    }
+    glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_MAG_FILTER, filtered ? GL_LINEAR : GL_NEAREST);
+    glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_WRAP_S, filtered ? GL_REPEAT : GL_CLAMP_TO_EDGE);
+    glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_WRAP_T, filtered ? GL_REPEAT : GL_CLAMP_TO_EDGE);
+    glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+    glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_MAX_LEVEL, 0);
+    if (filtered) {
+        while (glGetError() != GL_NO_ERROR) {
+        }
+        glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_MAX_LEVEL, 1000);  // the levels glGenerateMipmap fills
+        glGenerateMipmap(GL_TEXTURE_2D_ARRAY);
+        if (glGetError() == GL_NO_ERROR) {
+            glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_MIN_FILTER, GL_LINEAR_MIPMAP_LINEAR);
+        } else {  // some drivers cannot mipmap compressed arrays: stay on level 0
+            glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_MAX_LEVEL, 0);
+            glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_MIN_FILTER, GL_LINEAR);
+        }
+    }
+    label(GL_TEXTURE, texture, name);
+    return texture;
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------
+
+struct Renderer::Part {
+    GLuint vao = 0, uv_buffer = 0, index_buffer = 0, pose_buffer = 0, pose_texture = 0;
+    uint32_t index_count = 0, vertex_count = 0, material = 0;
+    Lod lod = Lod::high;
+    bool garment = false;
+};
+
+struct Renderer::Impl {
+    GLuint framebuffer = 0, color = 0, depth = 0;
+    GLuint mesh_program = 0, impostor_uv_program = 0, impostor_detail_program = 0;
+    std::vector<Part> parts;
+    GLuint impostor_vao = 0;
+    GLuint instance_buffers[3] = {0, 0, 0};  // by Lod
+    std::vector<GLuint> diffuse;
+    std::vector<int> variations;
+    std::vector<bool> has_regions;
+    GLuint empty_array = 0;  // bound to unused material units so every sampler is complete
+    GLuint outfits = 0, normal_map = 0, uv_map = 0, detail_map = 0;
+    uint32_t tile_size = 0, azimuth_count = 0;
+
+    ~Impl() {
+        for (Part& p : parts) {
+            glDeleteVertexArrays(1, &p.vao);
+            GLuint buffers[] = {p.uv_buffer, p.index_buffer, p.pose_buffer};
+            glDeleteBuffers(3, buffers);
+            glDeleteTextures(1, &p.pose_texture);
+        }
+        glDeleteVertexArrays(1, &impostor_vao);
+        glDeleteBuffers(3, instance_buffers);
+        glDeleteTextures(GLsizei(diffuse.size()), diffuse.data());
+        GLuint textures[] = {empty_array, outfits, normal_map, uv_map, detail_map};
+        glDeleteTextures(5, textures);
+        glDeleteProgram(mesh_program);
+        glDeleteProgram(impostor_uv_program);
+        glDeleteProgram(impostor_detail_program);
+        glDeleteFramebuffers(1, &framebuffer);
+        GLuint renderbuffers[] = {color, depth};
+        glDeleteRenderbuffers(2, renderbuffers);
+    }
+};
+
+CharacterModel character_model(const Bundle& bundle) {
+    const Manifest& m = bundle.manifest;
+    CharacterModel model;
+    model.center = glm::vec3(m.impostor.center[0], m.impostor.center[1], m.impostor.center[2]);
+    model.radius = m.impostor.radius;
+    model.frames_per_second = float(m.frames_per_second);
+    model.frame_count = m.cycle.frames;
+    model.tile_size = m.impostor.tile_size;
+    model.azimuths_deg = m.impostor.azimuths_deg;
+    model.elevations_deg = m.impostor.elevations_deg;
+    model.frame_indices = m.impostor.frame_indices;
+    model.has_low = std::any_of(m.meshes.begin(), m.meshes.end(), [](const MeshInfo& mesh) { return mesh.lod == 1; });
+    return model;
+}
+
+// Binds the per-instance attributes (struct Instance) of `buffer` to the bound VAO.
+static void bind_instance_attributes(GLuint buffer) {
+    glBindBuffer(GL_ARRAY_BUFFER, buffer);
+    glEnableVertexAttribArray(CV_ATTR_INSTANCE_POSE);
+    glVertexAttribPointer(CV_ATTR_INSTANCE_POSE, 4, GL_FLOAT, GL_FALSE, sizeof(Instance), (void*)offsetof(Instance, position));
+    glVertexAttribDivisor(CV_ATTR_INSTANCE_POSE, 1);
+    glEnableVertexAttribArray(CV_ATTR_INSTANCE_IDS);
+    glVertexAttribIPointer(CV_ATTR_INSTANCE_IDS, 4, GL_UNSIGNED_INT, sizeof(Instance), (void*)offsetof(Instance, frame));
+    glVertexAttribDivisor(CV_ATTR_INSTANCE_IDS, 1);
+}
+
+std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererDesc& desc, std::string* error) {
+    const std::string fn = "Renderer::create: ";
+    const Manifest& m = bundle.manifest;
+    if (m.materials.size() > CV_MAX_MATERIALS) {
+        *error = fn + "the bundle has " + std::to_string(m.materials.size()) + " materials, this build draws at most " +
+                 std::to_string(CV_MAX_MATERIALS) + " (CV_MAX_MATERIALS)";
+        return nullptr;
+    }
+    if (std::none_of(m.meshes.begin(), m.meshes.end(), [](const MeshInfo& mesh) { return mesh.lod == 0; })) {
+        *error = fn + "the bundle has no lod 0 mesh";
+        return nullptr;
+    }
+    if (epoxy_gl_version() < 33) {
+        *error = fn + "OpenGL 3.3 is needed, the context offers " + std::to_string(epoxy_gl_version());
+        return nullptr;
+    }
+    g_has_labels = epoxy_gl_version() >= 43 || epoxy_has_gl_extension("GL_KHR_debug");
+
+    std::unique_ptr<Renderer> r(new Renderer());
+    r->impl_ = std::make_unique<Impl>();
+    Impl& g = *r->impl_;
+    r->width_ = desc.width;
+    r->height_ = desc.height;
+    r->model_ = character_model(bundle);
+
+    // Programs: shader files by name (niagara style), config.h pasted in.
+    std::string shader_error;
+    g.mesh_program = build_program(desc.shader_dir, "mesh", "mesh", &shader_error);
+    if (g.mesh_program) g.impostor_uv_program = build_program(desc.shader_dir, "impostor", "impostor_uv", &shader_error);
+    if (g.impostor_uv_program)
+        g.impostor_detail_program = build_program(desc.shader_dir, "impostor", "impostor_detail", &shader_error);
+    if (!g.impostor_detail_program) {
+        *error = fn + shader_error;
+        return nullptr;
+    }
+    // Sampler units are fixed (config.h), so they are set once.
+    glUseProgram(g.mesh_program);
+    glUniform1i(uniform(g.mesh_program, "u_poses"), CV_UNIT_POSES);
+    glUniform1i(uniform(g.mesh_program, "u_outfits"), CV_UNIT_OUTFITS);
+    glUniform1i(uniform(g.mesh_program, "u_diffuse"), CV_UNIT_DIFFUSE0);
+    for (GLuint program : {g.impostor_uv_program, g.impostor_detail_program}) {
+        glUseProgram(program);
+        glUniform1i(uniform(program, "u_outfits"), CV_UNIT_OUTFITS);
+        glUniform1i(uniform(program, "u_normal_map"), CV_UNIT_IMPOSTOR_NORMAL);
+        glUniform1i(uniform(program, "u_uv_map"), CV_UNIT_IMPOSTOR_UV);
+        glUniform1i(uniform(program, "u_detail_map"), CV_UNIT_IMPOSTOR_DETAIL);
+        for (int k = 0; k < CV_MAX_MATERIALS; ++k)
+            glUniform1i(uniform(program, ("u_diffuse[" + std::to_string(k) + "]").c_str()), CV_UNIT_DIFFUSE0 + k);
+    }
+
+    // Instance buffers, one per LOD, refilled every frame.
+    glGenBuffers(3, g.instance_buffers);
+    const char* lod_names[] = {"instances:high", "instances:low", "instances:impostor"};
+    for (int i = 0; i < 3; ++i) {
+        glBindBuffer(GL_ARRAY_BUFFER, g.instance_buffers[i]);
+        label(GL_BUFFER, g.instance_buffers[i], lod_names[i]);
+    }
+
+    // Mesh parts: static UVs and indices, every frame's positions and normals in a buffer texture.
+    GLint max_texels = 0;
+    glGetIntegerv(GL_MAX_TEXTURE_BUFFER_SIZE, &max_texels);
+    for (size_t i = 0; i < m.meshes.size(); ++i) {
+        const MeshInfo& info = m.meshes[i];
+        if (info.lod > 1) continue;  // the runtime draws two mesh levels, as the paper's figure 3
+        const PoseCache& pose = bundle.meshes[i];
+        const uint64_t texels = uint64_t(pose.frame_count) * pose.vertex_count * 2;
+        if (texels > uint64_t(max_texels)) {
+            *error = fn + info.file + " needs " + std::to_string(texels) + " buffer texels, the driver allows " +
+                     std::to_string(max_texels);
+            return nullptr;
+        }
+        Part p;
+        p.index_count = pose.index_count;
+        p.vertex_count = pose.vertex_count;
+        p.material = info.material;
+        p.lod = info.lod == 0 ? Lod::high : Lod::low;
+        p.garment = info.kind == "garment";
+        const std::string name = info.part + ":lod" + std::to_string(info.lod);
+        std::vector<float> interleaved(texels * 4);
+        for (uint64_t v = 0; v < uint64_t(pose.frame_count) * pose.vertex_count; ++v) {
+            std::memcpy(&interleaved[v * 8], &pose.positions[v * 3], 12);
+            interleaved[v * 8 + 3] = 1.0f;
+            std::memcpy(&interleaved[v * 8 + 4], &pose.normals[v * 3], 12);
+            interleaved[v * 8 + 7] = 0.0f;
+        }
+        glGenVertexArrays(1, &p.vao);
+        glBindVertexArray(p.vao);
+        label(GL_VERTEX_ARRAY, p.vao, name);
+        glGenBuffers(1, &p.uv_buffer);
+        glBindBuffer(GL_ARRAY_BUFFER, p.uv_buffer);
+        glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(pose.uvs.size() * 4), pose.uvs.data(), GL_STATIC_DRAW);
+        label(GL_BUFFER, p.uv_buffer, name + ":uvs");
+        glEnableVertexAttribArray(CV_ATTR_UV);
+        glVertexAttribPointer(CV_ATTR_UV, 2, GL_FLOAT, GL_FALSE, 8, nullptr);
+        glGenBuffers(1, &p.index_buffer);
+        glBindBuffer(GL_ELEMENT_ARRAY_BUFFER, p.index_buffer);
+        glBufferData(GL_ELEMENT_ARRAY_BUFFER, GLsizeiptr(pose.indices.size() * 4), pose.indices.data(), GL_STATIC_DRAW);
+        label(GL_BUFFER, p.index_buffer, name + ":indices");
+        bind_instance_attributes(g.instance_buffers[int(p.lod)]);
+        glBindVertexArray(0);
+        glGenBuffers(1, &p.pose_buffer);
+        glBindBuffer(GL_TEXTURE_BUFFER, p.pose_buffer);
+        glBufferData(GL_TEXTURE_BUFFER, GLsizeiptr(interleaved.size() * 4), interleaved.data(), GL_STATIC_DRAW);
+        label(GL_BUFFER, p.pose_buffer, name + ":poses");
+        glGenTextures(1, &p.pose_texture);
+        glBindTexture(GL_TEXTURE_BUFFER, p.pose_texture);
+        glTexBuffer(GL_TEXTURE_BUFFER, GL_RGBA32F, p.pose_buffer);
+        label(GL_TEXTURE, p.pose_texture, name + ":poses");
+        g.parts.push_back(p);
+    }
+    glGenVertexArrays(1, &g.impostor_vao);
+    glBindVertexArray(g.impostor_vao);
+    label(GL_VERTEX_ARRAY, g.impostor_vao, "impostors");
+    bind_instance_attributes(g.instance_buffers[int(Lod::impostor)]);
+    glBindVertexArray(0);
+
+    // Textures.
+    Upload upload;
+    upload.s3tc = !desc.force_cpu_texture_decode && epoxy_has_gl_extension("GL_EXT_texture_compression_s3tc");
+    for (size_t k = 0; k < m.materials.size(); ++k) {
+        g.diffuse.push_back(upload_texture_array(bundle.diffuse[k], true, "diffuse:" + m.materials[k].name, &upload));
+        g.variations.push_back(int(bundle.diffuse[k].layer_count));
+        g.has_regions.push_back(bundle.diffuse[k].format != PixelFormat::bc1);
+    }
+    g.normal_map = upload_texture_array(bundle.impostor_normal, false, "impostor:normal", &upload);
+    g.uv_map = upload_texture_array(bundle.impostor_uv, false, "impostor:uv", &upload);
+    g.detail_map = upload_texture_array(bundle.impostor_detail, false, "impostor:detail", &upload);
+    TextureArray empty;
+    empty.width = empty.height = empty.layer_count = 1;
+    empty.data.assign(4, 255);
+    g.empty_array = upload_texture_array(empty, false, "unused-material", &upload);
+    glGenTextures(1, &g.outfits);
+    glBindTexture(GL_TEXTURE_2D, g.outfits);
+    glTexImage2D(GL_TEXTURE_2D, 0, GL_RGBA8, GLsizei(bundle.outfits.width), GLsizei(bundle.outfits.height), 0, GL_RGBA,
+                 GL_UNSIGNED_BYTE, bundle.outfits.data.data());
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAX_LEVEL, 0);
+    label(GL_TEXTURE, g.outfits, "outfits");
+    r->compressed_ = upload.s3tc;
+    g.tile_size = m.impostor.tile_size;
+    g.azimuth_count = uint32_t(m.impostor.azimuths_deg.size());
+
+    // The framebuffer every frame is drawn into.
+    glGenFramebuffers(1, &g.framebuffer);
+    glBindFramebuffer(GL_FRAMEBUFFER, g.framebuffer);
+    label(GL_FRAMEBUFFER, g.framebuffer, "frame");
+    glGenRenderbuffers(1, &g.color);
+    glBindRenderbuffer(GL_RENDERBUFFER, g.color);
+    glRenderbufferStorage(GL_RENDERBUFFER, GL_RGBA8, desc.width, desc.height);
+    label(GL_RENDERBUFFER, g.color, "frame:color");
+    glGenRenderbuffers(1, &g.depth);
+    glBindRenderbuffer(GL_RENDERBUFFER, g.depth);
+    glRenderbufferStorage(GL_RENDERBUFFER, GL_DEPTH_COMPONENT24, desc.width, desc.height);
+    label(GL_RENDERBUFFER, g.depth, "frame:depth");
+    glFramebufferRenderbuffer(GL_FRAMEBUFFER, GL_COLOR_ATTACHMENT0, GL_RENDERBUFFER, g.color);
+    glFramebufferRenderbuffer(GL_FRAMEBUFFER, GL_DEPTH_ATTACHMENT, GL_RENDERBUFFER, g.depth);
+    if (glCheckFramebufferStatus(GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE) {
+        *error = fn + "the " + std::to_string(desc.width) + "x" + std::to_string(desc.height) + " framebuffer is incomplete";
+        return nullptr;
+    }
+    if (GLenum e = glGetError(); e != GL_NO_ERROR) {
+        *error = fn + "OpenGL error 0x" + [](GLenum v) {
+            char buf[16];
+            std::snprintf(buf, sizeof buf, "%04x", v);
+            return std::string(buf);
+        }(e) + " while uploading the bundle";
+        return nullptr;
+    }
+    return r;
+}
+
+Renderer::~Renderer() = default;
+
+uint32_t Renderer::triangles_per_character(Lod lod) const {
+    if (lod == Lod::impostor) return 2;
+    uint32_t triangles = 0;
+    for (const Part& p : impl_->parts)
+        if (p.lod == lod) triangles += p.index_count / 3;
+    return triangles;
+}
+
+DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, ImpostorKind impostors,
+                         const glm::vec3& light_dir) {
+    Impl& g = *impl_;
+    DrawStats stats;
+    glBindFramebuffer(GL_FRAMEBUFFER, g.framebuffer);
+    glViewport(0, 0, width_, height_);
+    glClearColor(0.62f, 0.70f, 0.78f, 1.0f);  // overcast sky
+    glClear(GL_COLOR_BUFFER_BIT | GL_DEPTH_BUFFER_BIT);
+    glEnable(GL_DEPTH_TEST);
+    glDisable(GL_BLEND);
+
+    // 1. This frame's instances, one buffer per LOD (orphaned so the driver need not wait).
+    for (int lod = 0; lod < 3; ++lod) {
+        const std::vector<Instance>& list = frame.by_lod[lod];
+        glBindBuffer(GL_ARRAY_BUFFER, g.instance_buffers[lod]);
+        glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(list.size() * sizeof(Instance)), list.empty() ? nullptr : list.data(),
+                     GL_STREAM_DRAW);
+    }
+    const glm::mat4 view_projection = camera.projection(aspect()) * camera.view();
+    const glm::vec3 light = glm::normalize(light_dir);
+    glActiveTexture(GL_TEXTURE0 + CV_UNIT_OUTFITS);
+    glBindTexture(GL_TEXTURE_2D, g.outfits);
+
+    // 2. Meshes: one instanced draw per part per mesh LOD.
+    glUseProgram(g.mesh_program);
+    glUniformMatrix4fv(uniform(g.mesh_program, "u_view_projection"), 1, GL_FALSE, glm::value_ptr(view_projection));
+    glUniform3fv(uniform(g.mesh_program, "u_light_dir"), 1, glm::value_ptr(light));
+    for (const Part& p : g.parts) {
+        const GLsizei count = GLsizei(frame.by_lod[int(p.lod)].size());
+        if (count == 0) continue;
+        // Bodies are closed: skip their back faces. Garments are open cloth, seen from inside too.
+        if (p.garment) glDisable(GL_CULL_FACE);
+        else glEnable(GL_CULL_FACE);
+        glActiveTexture(GL_TEXTURE0 + CV_UNIT_POSES);
+        glBindTexture(GL_TEXTURE_BUFFER, p.pose_texture);
+        glActiveTexture(GL_TEXTURE0 + CV_UNIT_DIFFUSE0);
+        glBindTexture(GL_TEXTURE_2D_ARRAY, g.diffuse[p.material]);
+        glUniform1i(uniform(g.mesh_program, "u_vertex_count"), GLint(p.vertex_count));
+        glUniform1i(uniform(g.mesh_program, "u_variations"), g.variations[p.material]);
+        glUniform1i(uniform(g.mesh_program, "u_has_regions"), g.has_regions[p.material] ? 1 : 0);
+        glBindVertexArray(p.vao);
+        glDrawElementsInstanced(GL_TRIANGLES, GLsizei(p.index_count), GL_UNSIGNED_INT, nullptr, count);
+        ++stats.draw_calls;
+        stats.triangles += uint64_t(p.index_count / 3) * uint64_t(count);
+    }
+    glDisable(GL_CULL_FACE);
+
+    // 3. Impostors: one instanced draw of camera-facing quads.
+    const std::vector<Instance>& quads = frame.by_lod[int(Lod::impostor)];
+    if (!quads.empty()) {
+        const GLuint program = impostors == ImpostorKind::uv ? g.impostor_uv_program : g.impostor_detail_program;
+        glUseProgram(program);
+        glUniformMatrix4fv(uniform(program, "u_view_projection"), 1, GL_FALSE, glm::value_ptr(view_projection));
+        glUniform3fv(uniform(program, "u_light_dir"), 1, glm::value_ptr(light));
+        glUniform3fv(uniform(program, "u_camera_position"), 1, glm::value_ptr(camera.position));
+        glUniform3fv(uniform(program, "u_center"), 1, glm::value_ptr(model_.center));
+        glUniform1f(uniform(program, "u_radius"), model_.radius);
+        glUniform1i(uniform(program, "u_tile_size"), GLint(g.tile_size));
+        glUniform1i(uniform(program, "u_azimuth_count"), GLint(g.azimuth_count));
+        glUniform1i(uniform(program, "u_material_count"), GLint(g.diffuse.size()));
+        glActiveTexture(GL_TEXTURE0 + CV_UNIT_IMPOSTOR_NORMAL);
+        glBindTexture(GL_TEXTURE_2D_ARRAY, g.normal_map);
+        glActiveTexture(GL_TEXTURE0 + CV_UNIT_IMPOSTOR_UV);
+        glBindTexture(GL_TEXTURE_2D_ARRAY, g.uv_map);
+        glActiveTexture(GL_TEXTURE0 + CV_UNIT_IMPOSTOR_DETAIL);
+        glBindTexture(GL_TEXTURE_2D_ARRAY, g.detail_map);
+        for (int k = 0; k < CV_MAX_MATERIALS; ++k) {
+            const bool used = size_t(k) < g.diffuse.size();
+            glActiveTexture(GL_TEXTURE0 + CV_UNIT_DIFFUSE0 + k);
+            glBindTexture(GL_TEXTURE_2D_ARRAY, used ? g.diffuse[k] : g.empty_array);
+            const std::string index = "[" + std::to_string(k) + "]";
+            glUniform1i(uniform(program, ("u_variations" + index).c_str()), used ? g.variations[k] : 1);
+            glUniform1i(uniform(program, ("u_has_regions" + index).c_str()), used && g.has_regions[k] ? 1 : 0);
+        }
+        glBindVertexArray(g.impostor_vao);
+        glDrawArraysInstanced(GL_TRIANGLE_STRIP, 0, 4, GLsizei(quads.size()));
+        ++stats.draw_calls;
+        stats.triangles += 2 * uint64_t(quads.size());
+    }
+    glBindVertexArray(0);
+    return stats;
+}
+
+void Renderer::present(int window_width, int window_height) const {
+    glBindFramebuffer(GL_READ_FRAMEBUFFER, impl_->framebuffer);
+    glBindFramebuffer(GL_DRAW_FRAMEBUFFER, 0);
+    glBlitFramebuffer(0, 0, width_, height_, 0, 0, window_width, window_height, GL_COLOR_BUFFER_BIT, GL_LINEAR);
+    glBindFramebuffer(GL_FRAMEBUFFER, impl_->framebuffer);
+}
+
+std::vector<uint8_t> Renderer::read_rgba() const {
+    std::vector<uint8_t> bottom_up(size_t(width_) * height_ * 4), rgba(bottom_up.size());
+    glBindFramebuffer(GL_READ_FRAMEBUFFER, impl_->framebuffer);
+    glPixelStorei(GL_PACK_ALIGNMENT, 1);
+    glReadPixels(0, 0, width_, height_, GL_RGBA, GL_UNSIGNED_BYTE, bottom_up.data());
+    const size_t row = size_t(width_) * 4;
+    for (int y = 0; y < height_; ++y) std::memcpy(&rgba[y * row], &bottom_up[(height_ - 1 - y) * row], row);
+    return rgba;
+}
+
+void Renderer::finish() const { glFinish(); }
+
+bool write_png(const std::string& path, int width, int height, const std::vector<uint8_t>& rgba) {
+    if (rgba.size() != size_t(width) * height * 4) return false;
+    return stbi_write_png(path.c_str(), width, height, 4, rgba.data(), width * 4) != 0;
+}
+
+bool read_png(const std::string& path, int* width, int* height, std::vector<uint8_t>* rgba) {
+    int channels = 0;
+    unsigned char* pixels = stbi_load(path.c_str(), width, height, &channels, 4);
+    if (!pixels) return false;
+    rgba->assign(pixels, pixels + size_t(*width) * *height * 4);
+    stbi_image_free(pixels);
+    return true;
+}
+
+}  // namespace crowdview

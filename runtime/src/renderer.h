@@ -1,0 +1,74 @@
+// The crowd renderer (OpenGL 3.3 core): a bundle's pose caches and textures uploaded once,
+// then per frame a few instanced draws: one per mesh part per mesh LOD, one for impostors.
+// Needs a current context (gl_context.h). Draws into its own framebuffer, so headless and
+// windowed runs render the same pixels.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "bundle.h"
+#include "crowd.h"
+
+namespace crowdview {
+
+enum class ImpostorKind { uv, detail };
+
+struct RendererDesc {
+    int width = 1280, height = 720;
+    std::string shader_dir;  // holds <name>.<stage>.glsl; "#include" resolves from here
+    bool force_cpu_texture_decode = false;  // upload BC textures as decoded RGBA8 even with S3TC
+};
+
+struct DrawStats {
+    uint32_t draw_calls = 0;
+    uint64_t triangles = 0;
+};
+
+// What the crowd code needs from a bundle (centre, radius, frames, the impostor layout).
+CharacterModel character_model(const Bundle& bundle);
+
+class Renderer {
+public:
+    ~Renderer();
+    Renderer(const Renderer&) = delete;
+    Renderer& operator=(const Renderer&) = delete;
+
+    // Uploads everything; nullptr and a one-line `error` (starting "Renderer::create:") when
+    // a shader does not build or the bundle needs more than this renderer supports.
+    static std::unique_ptr<Renderer> create(const Bundle& bundle, const RendererDesc& desc, std::string* error);
+
+    // One frame into the offscreen framebuffer. `light_dir` points towards the light.
+    DrawStats draw(const FrameInstances& frame, const Camera& camera, ImpostorKind impostors, const glm::vec3& light_dir);
+
+    // Copies the frame to the default framebuffer of a window of this size.
+    void present(int window_width, int window_height) const;
+    // The frame as RGBA8, top row first (width * height * 4 bytes).
+    std::vector<uint8_t> read_rgba() const;
+    // Waits until the GPU (or llvmpipe) has finished every command: frame timing.
+    void finish() const;
+
+    int width() const { return width_; }
+    int height() const { return height_; }
+    float aspect() const { return float(width_) / float(height_); }
+    const CharacterModel& model() const { return model_; }
+    bool compressed_textures() const { return compressed_; }  // S3TC used, not the CPU decode
+    uint32_t triangles_per_character(Lod lod) const;
+
+private:
+    Renderer() = default;
+    struct Part;
+    struct Impl;
+    std::unique_ptr<Impl> impl_;
+    CharacterModel model_;
+    int width_ = 0, height_ = 0;
+    bool compressed_ = false;
+};
+
+// PNG files (stb_image_write / stb_image). rgba: width * height * 4 bytes, top row first.
+bool write_png(const std::string& path, int width, int height, const std::vector<uint8_t>& rgba);
+bool read_png(const std::string& path, int* width, int* height, std::vector<uint8_t>* rgba);
+
+}  // namespace crowdview

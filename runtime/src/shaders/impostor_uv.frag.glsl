@@ -1,0 +1,72 @@
+#version 330 core
+#include "../config.h"
+#if CV_MAX_MATERIALS != 4
+#error main samples materials 0 to 3, keep it in step with CV_MAX_MATERIALS
+#endif
+// The paper's UV-mapped impostor (section 5): the UV map's texture coordinates look up the
+// same diffuse arrays as the mesh, so one impostor shows every texture variation; region
+// codes in the diffuse alpha pick the outfit colour; the normal map lights it dynamically.
+// Impostor maps are read with texelFetch: filtering would blend texture coordinates with
+// the background at the silhouette, the artefact the paper describes.
+
+in vec2 v_tile_uv;
+flat in ivec3 v_tile;
+flat in float v_heading;
+flat in uint v_variation;
+flat in uint v_outfit;
+
+uniform sampler2DArray u_normal_map;
+uniform sampler2DArray u_uv_map;
+uniform sampler2DArray u_diffuse[CV_MAX_MATERIALS];
+uniform int u_variations[CV_MAX_MATERIALS];
+uniform bool u_has_regions[CV_MAX_MATERIALS];
+uniform int u_material_count;
+uniform sampler2D u_outfits;
+uniform int u_tile_size;
+uniform vec3 u_light_dir;
+
+out vec4 o_color;
+
+// Colour (filtered, with explicit gradients: the gradients are taken before the discard) and
+// the unfiltered region alpha of material m. GLSL 3.30 indexes sampler arrays only with
+// constants, so each material is its own block. Every material the bundle has is sampled
+// (a uniform branch) and the texel's own kept, so no lookup sits in a per-fragment branch.
+#define CV_SAMPLE_MATERIAL(m)                                                                 \
+    if (u_material_count > m) {                                                               \
+        float layer = float(v_variation % uint(u_variations[m]));                            \
+        vec3 colour = textureGrad(u_diffuse[m], vec3(uv, layer), dx, dy).rgb;                \
+        ivec2 size = textureSize(u_diffuse[m], 0).xy;                                         \
+        ivec2 texel = clamp(ivec2(uv * vec2(size)), ivec2(0), size - 1);                      \
+        float a = u_has_regions[m] ? texelFetch(u_diffuse[m], ivec3(texel, int(layer)), 0).a : 0.0; \
+        albedo = material == m ? colour : albedo;                                             \
+        alpha = material == m ? a : alpha;                                                    \
+    }
+
+void main() {
+    ivec2 texel = v_tile.xy + clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1));
+    vec4 uv_texel = texelFetch(u_uv_map, ivec3(texel, v_tile.z), 0);
+    vec2 uv = uv_texel.rg;
+    // Gradients before any discard. Neighbours across the silhouette or a UV seam would ask
+    // for a far too coarse mip level; clamp to a few tile texels' worth of footprint.
+    vec2 dx = dFdx(uv), dy = dFdy(uv);
+    float limit = 4.0 * max(length(dFdx(v_tile_uv)), length(dFdy(v_tile_uv))) + 1e-6;
+    dx *= min(1.0, limit / max(length(dx), 1e-9));
+    dy *= min(1.0, limit / max(length(dy), 1e-9));
+    if (uv_texel.a < 0.5) discard;  // coverage: outside the character
+    int material = int(uv_texel.b * 65535.0 + 0.5);
+
+    vec3 albedo = vec3(1.0, 0.0, 1.0);  // magenta: a material index this build cannot address
+    float alpha = 0.0;                  // region code * 17 / 255; 0 where a material has no regions
+    CV_SAMPLE_MATERIAL(0)
+    CV_SAMPLE_MATERIAL(1)
+    CV_SAMPLE_MATERIAL(2)
+    CV_SAMPLE_MATERIAL(3)
+    int region = int(alpha * 255.0 / CV_REGION_SCALE + 0.5);
+    if (region != 0) albedo *= texelFetch(u_outfits, ivec2(region, int(v_outfit)), 0).rgb;
+
+    vec3 model_normal = texelFetch(u_normal_map, ivec3(texel, v_tile.z), 0).rgb * 2.0 - 1.0;
+    float c = cos(v_heading), s = sin(v_heading);
+    vec3 normal = normalize(mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c) * model_normal);
+    float light = CV_AMBIENT + (1.0 - CV_AMBIENT) * max(dot(normal, u_light_dir), 0.0);
+    o_color = vec4(albedo * light, 1.0);
+}

@@ -1,0 +1,140 @@
+// The crowdview command line: one-line errors and exit codes for bad arguments and bad
+// bundles, --verify, a headless screenshot and a (tiny) benchmark report.
+//   test_cli CROWDVIEW VECTORS_DIR
+// Runs that need OpenGL are skipped when crowdview exits 3 (no context); if any were skipped
+// and nothing failed, the test exits 77.
+#include <sys/wait.h>
+
+#include <cstdio>
+#include <filesystem>
+
+#include <nlohmann/json.hpp>
+
+#include "check.h"
+#include "renderer.h"
+#include "synthetic_bundle.h"
+
+namespace fs = std::filesystem;
+
+namespace {
+
+std::string g_crowdview;
+int g_skipped = 0;
+
+struct Run {
+    int status = -1;
+    std::string out, err;
+};
+
+// Runs crowdview with `args` (already shell-quoted where needed).
+Run crowdview(const std::string& args) {
+    const std::string err_file = fs::temp_directory_path().string() + "/crowdview-cli-stderr.txt";
+    const std::string command = "'" + g_crowdview + "' " + args + " 2>'" + err_file + "'";
+    Run run;
+    FILE* pipe = popen(command.c_str(), "r");
+    if (!pipe) return run;
+    char buffer[4096];
+    size_t n;
+    while ((n = fread(buffer, 1, sizeof buffer, pipe)) > 0) run.out.append(buffer, n);
+    const int raw = pclose(pipe);
+    run.status = WIFEXITED(raw) ? WEXITSTATUS(raw) : -1;
+    run.err = synthetic::read_text(err_file);
+    fs::remove(err_file);
+    return run;
+}
+
+bool one_line(const std::string& s) {
+    return !s.empty() && s.find('\n') == s.size() - 1;
+}
+
+std::string describe(const Run& r) { return "exit " + std::to_string(r.status) + ", stdout: " + r.out + ", stderr: " + r.err; }
+
+void test_arguments() {
+    const std::vector<std::string> bad = {"", "--count", "--count abc", "--count 0", "--width 10", "--lod hires --bundle x",
+                                          "--bundle a --url b", "--frobnicate", "--layout zigzag --bundle x",
+                                          "--report r.json --bundle x"};
+    for (const std::string& args : bad) {
+        const Run r = crowdview(args);
+        CHECK_MSG(r.status == 2 && one_line(r.err) && r.err.rfind("crowdview: ", 0) == 0, "'" + args + "': " + describe(r));
+    }
+    const Run help = crowdview("--help");
+    CHECK(help.status == 0 && help.out.find("--benchmark") != std::string::npos);
+    const Run missing = crowdview("--bundle /nonexistent/bundle --headless");
+    CHECK_MSG(missing.status == 1 && one_line(missing.err) && missing.err.find("manifest_invalid") != std::string::npos,
+              describe(missing));
+}
+
+void test_verify(const std::string& bundle, const std::string& vectors, const std::string& work) {
+    Run r = crowdview("--verify '" + bundle + "'");
+    CHECK_MSG(r.status == 0 && r.out == "OK synthetic-walker 1.0.0 (11 files)\n", describe(r));
+    if (fs::exists(vectors + "/v1/good")) {
+        r = crowdview("--verify '" + vectors + "/v1/good/bundle'");
+        CHECK_MSG(r.status == 0 && r.out.rfind("OK vector-good", 0) == 0, describe(r));
+        r = crowdview("--verify '" + vectors + "/v1/bad/truncated_pose_cache/bundle'");
+        CHECK_MSG(r.status == 1 && r.out == "truncated poses/body_lod0.cbpc\n", describe(r));
+    }
+
+    // A tampered copy: one flipped bit in a texture is refused, naming the file.
+    const std::string tampered = work + "/tampered";
+    CHECK(synthetic::copy_tree(bundle, tampered));
+    std::vector<uint8_t> bytes;
+    CHECK(crowdview::read_file_bytes(tampered + "/textures/skirt.cbtx", &bytes));
+    bytes[100] ^= 1;
+    synthetic::write_bytes(tampered + "/textures/skirt.cbtx", bytes);
+    r = crowdview("--verify '" + tampered + "'");
+    CHECK_MSG(r.status == 1 && r.out == "sha256_mismatch textures/skirt.cbtx\n" && one_line(r.err), describe(r));
+    r = crowdview("--bundle '" + tampered + "' --headless");
+    CHECK_MSG(r.status == 1 && one_line(r.err) && r.err.find("textures/skirt.cbtx") != std::string::npos, describe(r));
+}
+
+void test_headless(const std::string& bundle, const std::string& work) {
+    const std::string png = work + "/shot.png";
+    Run r = crowdview("--bundle '" + bundle + "' --headless --frames 3 --count 12 --width 160 --height 120 --screenshot '" + png + "'");
+    if (r.status == 3) {
+        ++g_skipped;
+        std::fprintf(stderr, "SKIP headless: %s", r.err.c_str());
+        return;
+    }
+    CHECK_MSG(r.status == 0, describe(r));
+    int w = 0, h = 0;
+    std::vector<uint8_t> rgba;
+    CHECK(crowdview::read_png(png, &w, &h, &rgba) && w == 160 && h == 120);
+    bool varied = false;
+    for (size_t i = 4; i < rgba.size(); i += 4) varied |= rgba[i] != rgba[0];
+    CHECK_MSG(varied, "the screenshot shows more than the sky");
+
+    const std::string report = work + "/report.json";
+    r = crowdview("--bundle '" + bundle + "' --benchmark --max-seconds 2 --width 160 --height 120 --report '" + report + "'");
+    CHECK_MSG(r.status == 0, describe(r));
+    CHECK(r.err.find("benchmark: hybrid") != std::string::npos);  // progress lines
+    const nlohmann::json j = nlohmann::json::parse(synthetic::read_text(report), nullptr, false);
+    CHECK(!j.is_discarded());
+    if (j.is_discarded()) return;
+    for (const char* mode : {"high_mesh", "low_mesh", "uv_impostor", "detail_impostor", "hybrid"}) {
+        CHECK_MSG(j["results"].contains(mode) && j["results"][mode].contains("n_at_30fps"), mode);
+        CHECK_MSG(!j["results"][mode]["samples"].empty(), mode);
+    }
+    CHECK(j["triangles_per_character"]["high"].get<int>() > j["triangles_per_character"]["low"].get<int>());
+    CHECK(j["seconds"].get<double>() < 30);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+    if (argc != 3) {
+        std::fprintf(stderr, "usage: test_cli CROWDVIEW VECTORS_DIR\n");
+        return 2;
+    }
+    g_crowdview = argv[1];
+    const std::string work = synthetic::temp_dir("cli");
+    synthetic::Options options;
+    options.tile_size = 32;
+    const std::string error = synthetic::write_bundle(work + "/bundle", options);
+    CHECK_MSG(error.empty(), error);
+    test_arguments();
+    test_verify(work + "/bundle", argv[2], work);
+    test_headless(work + "/bundle", work);
+    fs::remove_all(work);
+    const int code = check::exit_code();
+    return code == 0 && g_skipped ? 77 : code;
+}

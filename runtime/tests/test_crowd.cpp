@@ -1,0 +1,253 @@
+// The crowd without GL: the 1:1 pixel-to-texel LOD rule and its hysteresis, impostor view
+// selection in the character's frame, culling, determinism and frame selection.
+#include <cmath>
+
+#include <glm/gtc/matrix_transform.hpp>
+
+#include "check.h"
+#include "crowd.h"
+
+using namespace crowdview;
+
+namespace {
+
+const std::vector<float> kAzimuths = {0, 30, 60, 90, 120, 150, 180, 210, 240, 270, 300, 330};
+const std::vector<float> kElevations = {0, 30};
+
+glm::vec3 direction(float azimuth_deg, float elevation_deg) {
+    const float a = glm::radians(azimuth_deg), e = glm::radians(elevation_deg);
+    return glm::vec3(std::sin(a) * std::cos(e), std::sin(e), std::cos(a) * std::cos(e));
+}
+
+void test_switch_distance() {
+    // At the switch distance one pixel spans exactly one impostor texel.
+    for (float fov_deg : {30.0f, 45.0f, 60.0f, 90.0f})
+        for (float height : {240.0f, 720.0f, 2160.0f})
+            for (uint32_t tile : {32u, 64u, 256u}) {
+                const float fov = glm::radians(fov_deg), radius = 0.9f;
+                const float d = impostor_switch_distance(fov, height, radius, tile);
+                const float pixel = 2.0f * d * std::tan(0.5f * fov) / height;
+                const float texel = 2.0f * radius / float(tile);
+                CHECK_NEAR(pixel / texel, 1.0, 1e-5);
+            }
+    // A worked example: fov 60, 1000 px, radius 1 m, 128 texels: 1000 / (128 tan 30) = 13.5316 m.
+    CHECK_NEAR(impostor_switch_distance(glm::radians(60.0f), 1000, 1, 128), 13.5316, 1e-3);
+    // Twice the tile resolution halves the distance; twice the viewport doubles it.
+    const float base = impostor_switch_distance(0.8f, 720, 1, 64);
+    CHECK_NEAR(impostor_switch_distance(0.8f, 720, 1, 128), base / 2, 1e-4);
+    CHECK_NEAR(impostor_switch_distance(0.8f, 1440, 1, 64), base * 2, 1e-4);
+    CHECK(impostor_switch_distance(0.8f, 720, 1, 0) == 0);
+}
+
+void test_lod_levels() {
+    LodRule rule;
+    rule.impostor_distance = 20;
+    CHECK(lod_without_history(5, rule) == Lod::high);
+    CHECK(lod_without_history(9.99f, rule) == Lod::high);
+    CHECK(lod_without_history(10, rule) == Lod::low);
+    CHECK(lod_without_history(19.99f, rule) == Lod::low);
+    CHECK(lod_without_history(20, rule) == Lod::impostor);
+    CHECK(lod_without_history(500, rule) == Lod::impostor);
+    rule.has_low = false;
+    CHECK(lod_without_history(15, rule) == Lod::high);
+    CHECK(lod_without_history(25, rule) == Lod::impostor);
+    CHECK(select_lod(15, Lod::low, rule) == Lod::high);  // no low mesh: history of one is ignored
+
+    // Hysteresis: hovering around a boundary keeps the level; no flicker.
+    rule.has_low = true;
+    rule.hysteresis = 0.05f;
+    Lod lod = Lod::low;
+    int switches = 0;
+    for (int i = 0; i < 200; ++i) {
+        const float d = 20.0f * (1.0f + 0.04f * std::sin(0.7f * i));  // within +-4 % of the switch
+        const Lod next = select_lod(d, lod, rule);
+        switches += next != lod;
+        lod = next;
+    }
+    CHECK_MSG(switches <= 1, std::to_string(switches) + " switches while hovering");
+    // Walking away switches at boundary * (1 + h); walking back at the boundary itself.
+    lod = Lod::high;
+    float out_at = 0, back_at = 0;
+    for (float d = 1; d < 40; d += 0.01f) {
+        const Lod next = select_lod(d, lod, rule);
+        if (lod == Lod::low && next == Lod::impostor) out_at = d;
+        lod = next;
+    }
+    for (float d = 40; d > 1; d -= 0.01f) {
+        const Lod next = select_lod(d, lod, rule);
+        if (lod == Lod::impostor && next == Lod::low) back_at = d;
+        lod = next;
+    }
+    CHECK_NEAR(out_at, 21.0, 0.02);
+    CHECK_NEAR(back_at, 20.0, 0.02);
+    CHECK(select_lod(3, Lod::impostor, rule) == Lod::high);   // a jump skips levels
+    CHECK(select_lod(80, Lod::high, rule) == Lod::impostor);
+
+    // The paper's rule holds at every step: an impostor is never drawn nearer than 1:1.
+    Rng rng(7);
+    lod = Lod::high;
+    float d = 15;
+    bool magnified = false;
+    for (int i = 0; i < 5000; ++i) {
+        d = glm::clamp(d + rng.uniform(-1.5f, 1.5f), 1.0f, 40.0f);
+        lod = select_lod(d, lod, rule);
+        magnified |= lod == Lod::impostor && d < rule.impostor_distance;
+    }
+    CHECK(!magnified);
+}
+
+void test_view_selection() {
+    auto view = [](glm::vec3 to_camera, float heading_deg) {
+        return select_view(to_camera, glm::radians(heading_deg), kAzimuths, kElevations);
+    };
+    // Heading 0: the character faces +Z; a camera on +Z sees its front (azimuth 0), on +X its left (90).
+    CHECK(view(direction(0, 0), 0).azimuth == 0);
+    CHECK(view(direction(90, 0), 0).azimuth == 3);
+    CHECK(view(direction(180, 0), 0).azimuth == 6);
+    CHECK(view(direction(270, 0), 0).azimuth == 9);
+    // Turned to face +X, the camera on +X sees the front; one on -Z sees its left side.
+    CHECK(view(direction(90, 0), 90).azimuth == 0);
+    CHECK(view(glm::vec3(0, 0, -1), 90).azimuth == 3);
+    // Every azimuth and heading: the chosen view is the baked one nearest the relative angle.
+    for (float heading = 0; heading < 360; heading += 17)
+        for (float az = 0; az < 360; az += 7) {
+            const ImpostorView v = view(direction(az + heading, 10) * 5.0f, heading);
+            const float d = std::fmod(std::fabs(az - kAzimuths[v.azimuth]) + 360.0f, 360.0f);
+            CHECK_MSG(std::min(d, 360.0f - d) <= 15.0f + 1e-3f, "az " + std::to_string(az) + " heading " + std::to_string(heading));
+        }
+    // Wrap-around: 350 degrees is nearer 0 than 330.
+    CHECK(view(direction(350, 0), 0).azimuth == 0);
+    CHECK(view(direction(344, 0), 0).azimuth == 11);
+    // Elevation: nearest row, clamped to the rows there are.
+    CHECK(view(direction(0, 10), 0).elevation == 0);
+    CHECK(view(direction(0, 20), 0).elevation == 1);
+    CHECK(view(direction(0, 85), 0).elevation == 1);
+    CHECK(view(direction(0, -40), 0).elevation == 0);
+}
+
+void test_culling() {
+    Camera camera;
+    camera.position = glm::vec3(0, 2, 0);
+    camera.yaw = 0;  // looking along -Z
+    camera.near_m = 0.1f, camera.far_m = 100;
+    const Frustum f = frustum_from(camera.projection(16.0f / 9.0f) * camera.view());
+    CHECK(sphere_in_frustum(f, glm::vec3(0, 2, -10), 1));
+    CHECK(!sphere_in_frustum(f, glm::vec3(0, 2, 10), 1));     // behind
+    CHECK(!sphere_in_frustum(f, glm::vec3(0, 2, -150), 1));   // beyond the far plane
+    CHECK(!sphere_in_frustum(f, glm::vec3(40, 2, -10), 1));   // far to the right
+    // A sphere straddling the left edge still counts: its centre is outside, its radius reaches in.
+    const float edge_x = -10.0f * std::tan(0.5f * camera.fov_y) * 16.0f / 9.0f;
+    CHECK(sphere_in_frustum(f, glm::vec3(edge_x - 0.5f, 2, -10), 1));
+    CHECK(!sphere_in_frustum(f, glm::vec3(edge_x - 2.0f, 2, -10), 1));
+    // camera_for_crowd frames every character.
+    CrowdDesc desc;
+    desc.count = 400;
+    const Crowd crowd = make_crowd(desc, 2, 4, 1);
+    const Camera overview = camera_for_crowd(crowd, 1.8f, 16.0f / 9.0f, 0.5f);
+    const Frustum fo = frustum_from(overview.projection(16.0f / 9.0f) * overview.view());
+    for (const Character& c : crowd.characters) CHECK(sphere_in_frustum(fo, c.start + glm::vec3(0, 0.9f, 0), 0.0f));
+}
+
+void test_crowd_and_frames() {
+    CrowdDesc desc;
+    desc.count = 100;
+    desc.seed = 42;
+    const Crowd a = make_crowd(desc, 3, 4, 1.0f), b = make_crowd(desc, 3, 4, 1.0f);
+    CHECK(a.characters.size() == 100);
+    bool same = true, variations[3] = {}, outfits[4] = {};
+    for (size_t i = 0; i < 100; ++i) {
+        same &= a.characters[i].start == b.characters[i].start && a.characters[i].heading == b.characters[i].heading &&
+                a.characters[i].variation == b.characters[i].variation && a.characters[i].outfit == b.characters[i].outfit;
+        CHECK(a.characters[i].variation < 3 && a.characters[i].outfit < 4);
+        CHECK(a.characters[i].phase_s >= 0 && a.characters[i].phase_s < 1.0f);
+        CHECK(std::fabs(a.characters[i].start.x) <= a.half_extent && std::fabs(a.characters[i].start.z) <= a.half_extent);
+        variations[a.characters[i].variation] = outfits[a.characters[i].outfit] = true;
+    }
+    CHECK(same);
+    CHECK(variations[0] && variations[1] && variations[2] && outfits[0] && outfits[3]);
+    desc.seed = 43;
+    CHECK(make_crowd(desc, 3, 4, 1.0f).characters[0].start != a.characters[0].start);
+    // Neighbours keep apart: the jitter is a quarter spacing at most.
+    float nearest = INFINITY;
+    for (size_t i = 0; i < 100; ++i)
+        for (size_t j = i + 1; j < 100; ++j) nearest = std::min(nearest, glm::distance(a.characters[i].start, a.characters[j].start));
+    CHECK(nearest >= 0.5f * 1.6f - 1e-4f);
+
+    // Paths: walk along the heading, wrapped into the square.
+    desc.layout = Layout::paths;
+    const Crowd walkers = make_crowd(desc, 1, 1, 1.0f);
+    const Character& w = walkers.characters[5];
+    const glm::vec3 p0 = character_position(walkers, w, 0), p1 = character_position(walkers, w, 0.5f);
+    CHECK(glm::distance(p0, w.start) < 1e-5f);
+    CHECK_NEAR(glm::dot(p1 - p0, glm::vec3(std::sin(w.heading), 0, std::cos(w.heading))), 0.65, 1e-3);
+    for (float t = 0; t < 200; t += 3.7f) {
+        const glm::vec3 p = character_position(walkers, w, t);
+        CHECK(std::fabs(p.x) <= walkers.half_extent + 1e-3f && std::fabs(p.z) <= walkers.half_extent + 1e-3f);
+    }
+    CHECK(character_position(a, a.characters[5], 10) == a.characters[5].start);  // on the spot
+
+    // Frames: 8 fps, 8 frames; frame 8 wraps to 0.
+    CHECK(cycle_frame(0, 0, 8, 8) == 0);
+    CHECK(cycle_frame(0.99f, 0, 8, 8) == 7);
+    CHECK(cycle_frame(1.0f, 0, 8, 8) == 0);
+    CHECK(cycle_frame(0.5f, 0.25f, 8, 8) == 6);
+    CHECK(cycle_frame(1000.3f, 0, 8, 8) == 2);
+    const std::vector<uint32_t> baked = {0, 2, 4, 6};
+    CHECK(impostor_layer(0, baked, 8) == 0);
+    CHECK(impostor_layer(3, baked, 8) == 1);  // 2 and 4 tie: the first wins
+    CHECK(impostor_layer(6, baked, 8) == 3);
+    CHECK(impostor_layer(7, baked, 8) == 0);  // 6 and 0 (= 8) tie around the cycle
+    CHECK(impostor_layer(7, {0, 3}, 8) == 0); // 0 is one frame away around the cycle, 3 is four
+}
+
+void test_build_frame() {
+    // A line of characters walking away from the camera along -Z.
+    Crowd crowd;
+    for (int i = 0; i < 60; ++i) crowd.characters.push_back({glm::vec3(0, 0, -1.0f - float(i)), 0.0f, 0.0f, 0, 0});
+    crowd.characters.push_back({glm::vec3(0, 0, 30), 0.0f, 0.0f, 0, 0});  // behind the camera
+    CharacterModel model;
+    model.center = glm::vec3(0, 0.9f, 0);
+    model.radius = 1;
+    model.frame_count = 8;
+    model.frames_per_second = 8;
+    model.azimuths_deg = kAzimuths;
+    model.elevations_deg = kElevations;
+    model.frame_indices = {0, 2, 4, 6};
+    model.has_low = true;
+    Camera camera;
+    camera.position = glm::vec3(0, 0.9f, 0);
+    camera.far_m = 500;
+    LodRule rule;
+    rule.impostor_distance = 20;
+    std::vector<Lod> state;
+    FrameInstances frame;
+    build_frame(crowd, model, camera, 1.5f, LodMode::automatic, rule, 0.3f, &state, &frame);
+    CHECK(frame.culled == 1);
+    CHECK(frame.by_lod[0].size() == 9);   // depth 1..9 m < 10 m
+    CHECK(frame.by_lod[1].size() == 10);  // 10..19 m
+    CHECK(frame.by_lod[2].size() == 41);  // 20..60 m
+    for (const Instance& inst : frame.by_lod[2]) {
+        CHECK(inst.tile == 0);   // seen from the front: azimuth 0, elevation 0
+        CHECK(inst.frame == 1);  // cycle frame 2 at 0.3 s, baked as layer 1
+    }
+    CHECK(frame.by_lod[0][0].frame == 2);
+    build_frame(crowd, model, camera, 1.5f, LodMode::impostor, rule, 0, &state, &frame);
+    CHECK(frame.by_lod[2].size() == 60 && frame.by_lod[0].empty());
+    build_frame(crowd, model, camera, 1.5f, LodMode::low, rule, 0, &state, &frame);
+    CHECK(frame.by_lod[1].size() == 60);
+    model.has_low = false;
+    build_frame(crowd, model, camera, 1.5f, LodMode::low, rule, 0, &state, &frame);
+    CHECK(frame.by_lod[0].size() == 60);  // no low mesh in the bundle: the high one stands in
+}
+
+}  // namespace
+
+int main() {
+    test_switch_distance();
+    test_lod_levels();
+    test_view_selection();
+    test_culling();
+    test_crowd_and_frames();
+    test_build_frame();
+    return check::exit_code();
+}

@@ -1,0 +1,138 @@
+// The shared vectors (shared_formats/vectors/v1), which the Python tests read too: the good
+// bundle decodes to expected.json's values, every bad bundle fails with its expect.json code
+// and file, and every strict prefix of every binary file of the good bundle is `truncated`.
+#include <algorithm>
+#include <filesystem>
+
+#include <nlohmann/json.hpp>
+
+#include "bundle.h"
+#include "check.h"
+#include "synthetic_bundle.h"
+
+#ifndef CROWDVIEW_VECTORS_DIR
+#error "CMake sets CROWDVIEW_VECTORS_DIR to shared_formats/vectors"
+#endif
+
+using namespace crowdview;
+using nlohmann::json;
+namespace fs = std::filesystem;
+
+namespace {
+
+std::string hex(const uint8_t* data, size_t n) {
+    static const char* digits = "0123456789abcdef";
+    std::string out;
+    for (size_t i = 0; i < n; ++i) out += digits[data[i] >> 4], out += digits[data[i] & 15];
+    return out;
+}
+
+template <typename T>
+void check_array(const json& expected, const std::vector<T>& actual, const std::string& what) {
+    CHECK_MSG(expected.size() == actual.size(), what + ": length");
+    if (expected.size() != actual.size()) return;
+    for (size_t i = 0; i < actual.size(); ++i)
+        // Values are float32 written as JSON numbers: the nearest float is exact.
+        if (T(expected[i].get<double>()) != actual[i]) {
+            CHECK_MSG(false, what + "[" + std::to_string(i) + "]");
+            return;
+        }
+}
+
+void test_good(const fs::path& good) {
+    Bundle bundle;
+    const Status s = load_bundle_dir((good / "bundle").string(), &bundle);
+    CHECK_MSG(s.ok(), s.message);
+    const json expected = json::parse(synthetic::read_text((good / "expected.json").string()));
+    CHECK(bundle.manifest.name == expected["name"]);
+    CHECK(bundle.manifest.version == expected["version"]);
+    CHECK(bundle.manifest.format_version == expected["format_version"].get<uint32_t>());
+
+    for (const auto& [path, values] : expected["pose_caches"].items()) {
+        std::vector<uint8_t> bytes;
+        CHECK_MSG(read_file_bytes((good / "bundle" / path).string(), &bytes), path);
+        PoseCache cache;
+        const Status p = parse_pose_cache(bytes.data(), bytes.size(), path, &cache);
+        CHECK_MSG(p.ok(), p.message);
+        CHECK_MSG(cache.vertex_count == values["vertex_count"].get<uint32_t>(), path);
+        CHECK_MSG(cache.index_count / 3 == values["triangle_count"].get<uint32_t>(), path);
+        CHECK_MSG(cache.frame_count == values["frame_count"].get<uint32_t>(), path);
+        CHECK_MSG(cache.frames_per_second == values["frames_per_second"].get<float>(), path);
+        check_array(values["indices"], cache.indices, path + " indices");
+        check_array(values["uvs"], cache.uvs, path + " uvs");
+        check_array(values["positions"], cache.positions, path + " positions");
+        check_array(values["normals"], cache.normals, path + " normals");
+        // The bundle's decoded mesh is this same file.
+        for (size_t i = 0; i < bundle.manifest.meshes.size(); ++i)
+            if (bundle.manifest.meshes[i].file == path) CHECK_MSG(bundle.meshes[i].positions == cache.positions, path);
+    }
+    for (const auto& [path, values] : expected["textures"].items()) {
+        std::vector<uint8_t> bytes;
+        CHECK_MSG(read_file_bytes((good / "bundle" / path).string(), &bytes), path);
+        TextureArray t;
+        const Status p = parse_texture_array(bytes.data(), bytes.size(), path, &t);
+        CHECK_MSG(p.ok(), p.message);
+        CHECK_MSG(t.width == values["width"].get<uint32_t>() && t.height == values["height"].get<uint32_t>(), path);
+        CHECK_MSG(pixel_format_name(t.format) == values["pixel_format"].get<std::string>(), path);
+        CHECK_MSG(t.layer_count == values["layer_count"].get<uint32_t>(), path);
+        for (uint32_t k = 0; k < t.layer_count && k < values["layers_sha256"].size(); ++k)
+            CHECK_MSG(sha256_hex(t.layer(k), t.layer_size()) == values["layers_sha256"][k].get<std::string>(),
+                      path + " layer " + std::to_string(k));
+        CHECK_MSG(hex(t.layer(0), std::min<size_t>(8, t.layer_size())) == values["first_bytes_hex"].get<std::string>(), path);
+    }
+}
+
+void test_bad(const fs::path& bad_root) {
+    int cases = 0;
+    for (const auto& entry : fs::directory_iterator(bad_root)) {
+        if (!entry.is_directory()) continue;
+        const json expect = json::parse(synthetic::read_text((entry.path() / "expect.json").string()));
+        Bundle bundle;
+        const Status s = load_bundle_dir((entry.path() / "bundle").string(), &bundle);
+        const std::string name = entry.path().filename().string();
+        CHECK_MSG(error_code_name(s.code) == expect["error"].get<std::string>() && s.file == expect["file"].get<std::string>(),
+                  name + ": expected " + expect.dump() + ", got " + error_code_name(s.code) + " " + s.file + " (" + s.message + ")");
+        ++cases;
+    }
+    CHECK_MSG(cases >= 10, "found " + std::to_string(cases) + " bad cases");
+}
+
+void test_prefixes(const fs::path& bundle_dir) {
+    int files = 0;
+    for (const auto& entry : fs::recursive_directory_iterator(bundle_dir)) {
+        const std::string ext = entry.path().extension().string();
+        if (ext != ".cbpc" && ext != ".cbtx") continue;
+        std::vector<uint8_t> bytes;
+        CHECK(read_file_bytes(entry.path().string(), &bytes));
+        ++files;
+        for (size_t n = 0; n < bytes.size(); ++n) {
+            Status s;
+            if (ext == ".cbpc") {
+                PoseCache cache;
+                s = parse_pose_cache(bytes.data(), n, entry.path().filename().string(), &cache);
+            } else {
+                TextureArray texture;
+                s = parse_texture_array(bytes.data(), n, entry.path().filename().string(), &texture);
+            }
+            if (s.code != ErrorCode::truncated) {
+                CHECK_MSG(false, entry.path().string() + ": prefix of " + std::to_string(n) + " bytes gave " + error_code_name(s.code));
+                break;
+            }
+        }
+    }
+    CHECK_MSG(files >= 2, "binary files in the good bundle");
+}
+
+}  // namespace
+
+int main() {
+    const fs::path v1 = fs::path(CROWDVIEW_VECTORS_DIR) / "v1";
+    if (!fs::is_directory(v1 / "good")) {
+        std::fprintf(stderr, "SKIP: no shared vectors at %s\n", v1.string().c_str());
+        return 77;
+    }
+    test_good(v1 / "good");
+    test_bad(v1 / "bad");
+    test_prefixes(v1 / "good" / "bundle");
+    return check::exit_code();
+}
