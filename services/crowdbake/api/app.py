@@ -15,8 +15,9 @@ from crowdbake import __version__
 from crowdbake.api import problems
 from crowdbake.api.deps import AppServices
 from crowdbake.api.problems import PROBLEM_TYPES, Problem, problem_type_uri
-from crowdbake.api.routes import assets, bakes, bundles, health
+from crowdbake.api.routes import assets, bakes, bundles, health, metrics, web
 from crowdbake.jobs.celery_app import make_celery
+from crowdbake.metrics import HttpMetrics, MetricsMiddleware
 from crowdbake.settings import Settings, get_settings
 from crowdbake.storage.blobs import make_blob_store
 from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
@@ -61,13 +62,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             {"name": "assets", "description": "Upload characters, cloth caches and textures (validated, deduplicated by sha256)."},
             {"name": "bakes", "description": "Bake jobs: state and progress per stage, errors, log, cancel, retry."},
             {"name": "bundles", "description": "Published bundles: manifests and files with strong ETags and Range support."},
-            {"name": "health", "description": "Liveness and readiness."},
+            {"name": "health", "description": "Liveness, readiness and Prometheus metrics."},
         ],
     )
     app.state.services = build_services(settings)
     problems.install(app)
-    for module in (assets, bakes, bundles, health):
+    for module in (assets, bakes, bundles, health, metrics):
         app.include_router(module.router)
+    for router in web.routers:  # the web page, the cycle report and atlas previews it shows
+        app.include_router(router)
+    app.state.metrics = HttpMetrics(app.state.services.sessions)
+    app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
 
     @app.get("/problems/{slug}", tags=["health"], summary="What a problem type means")
     def describe_problem(slug: str) -> dict:
