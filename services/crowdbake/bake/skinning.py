@@ -1,0 +1,200 @@
+"""Keyframe sampling and linear blend skinning, as glTF 2.0 defines them. Pure numpy, no I/O.
+
+A character here is anything shaped like crowdbake.formats.gltf.Character (duck-typed so this
+module does not depend on a file format): joint_parents, joint_parent_transforms,
+inverse_bind_matrices, rest TRS, channels, and the bind-pose mesh arrays.
+
+Conventions: matrices act on column vectors (p' = M @ p); quaternions are (x, y, z, w); times in
+seconds. Times outside an animation's keyframes clamp to the first or last key (glTF's rule), so a
+looping animation's time must be wrapped by the caller (``t % duration``).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:  # only for annotations: bake/ stays independent of file formats
+    from crowdbake.formats.gltf import AnimationChannel, Character
+
+# Below this angle between keys (radians), slerp's sin(theta) in the denominator loses precision
+# and normalised lerp is indistinguishable from it.
+SLERP_LINEAR_THRESHOLD = 1e-4
+# Work on at most this many (frame, vertex) pairs at once: bounds the (F, V, 4, 3, 4) gather.
+SKIN_CHUNK_ELEMENTS = 1 << 19
+
+
+def quaternion_matrices(q: np.ndarray) -> np.ndarray:
+    """(..., 4) quaternions (x, y, z, w), normalised here -> (..., 3, 3) rotation matrices (float64)."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Shortest-arc spherical interpolation. q0, q1 (N, 4) unit quaternions, alpha (N,) in [0, 1] -> (N, 4)."""
+    q0 = np.asarray(q0, dtype=np.float64)
+    q1 = np.asarray(q1, dtype=np.float64)
+    alpha = np.asarray(alpha, dtype=np.float64)[:, None]
+    dot = np.sum(q0 * q1, axis=1, keepdims=True)
+    q1 = np.where(dot < 0, -q1, q1)  # q and -q are the same rotation; take the short way round
+    dot = np.abs(dot).clip(max=1.0)
+    theta = np.arccos(dot)
+    sin_theta = np.sin(theta)
+    near = theta < SLERP_LINEAR_THRESHOLD
+    safe = np.where(near, 1.0, sin_theta)
+    w0 = np.where(near, 1.0 - alpha, np.sin((1.0 - alpha) * theta) / safe)
+    w1 = np.where(near, alpha, np.sin(alpha * theta) / safe)
+    out = w0 * q0 + w1 * q1
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def sample_channel(channel: "AnimationChannel", times: np.ndarray) -> np.ndarray:
+    """Evaluate one keyframed channel at times (F,) seconds -> (F, C) float64 (C = 3, or 4 for rotations).
+
+    LINEAR rotations use slerp; CUBICSPLINE uses glTF's Hermite form; times clamp to the key range.
+    """
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    key_times = np.asarray(channel.times, dtype=np.float64)
+    values = np.asarray(channel.values, dtype=np.float64)
+    is_rotation = channel.path == "rotation"
+    if channel.interpolation == "CUBICSPLINE":
+        in_tangents, key_values, out_tangents = values[:, 0], values[:, 1], values[:, 2]
+    else:
+        key_values = values
+    if len(key_times) == 1:
+        result = np.repeat(key_values[:1], len(times), axis=0)
+        return result / np.linalg.norm(result, axis=1, keepdims=True) if is_rotation else result
+    clamped = np.clip(times, key_times[0], key_times[-1])
+    if channel.interpolation == "STEP":
+        index = np.clip(np.searchsorted(key_times, clamped, side="right") - 1, 0, len(key_times) - 1)
+        result = key_values[index]
+        return result / np.linalg.norm(result, axis=1, keepdims=True) if is_rotation else result
+    index = np.clip(np.searchsorted(key_times, clamped, side="right") - 1, 0, len(key_times) - 2)
+    span = key_times[index + 1] - key_times[index]
+    alpha = np.clip((clamped - key_times[index]) / span, 0.0, 1.0)
+    if channel.interpolation == "CUBICSPLINE":
+        s = alpha[:, None]
+        s2, s3 = s * s, s * s * s
+        result = (
+            (2 * s3 - 3 * s2 + 1) * key_values[index]
+            + (s3 - 2 * s2 + s) * span[:, None] * out_tangents[index]
+            + (-2 * s3 + 3 * s2) * key_values[index + 1]
+            + (s3 - s2) * span[:, None] * in_tangents[index + 1]
+        )
+        return result / np.linalg.norm(result, axis=1, keepdims=True) if is_rotation else result
+    if is_rotation:
+        return slerp(key_values[index], key_values[index + 1], alpha)
+    return key_values[index] + alpha[:, None] * (key_values[index + 1] - key_values[index])
+
+
+def local_transforms(character: "Character", times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each joint's local TRS at times (F,) -> translations (F, J, 3), rotations (F, J, 4), scales (F, J, 3)."""
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    frames = len(times)
+    translations = np.repeat(np.asarray(character.rest_translations, np.float64)[None], frames, axis=0)
+    rotations = np.repeat(np.asarray(character.rest_rotations, np.float64)[None], frames, axis=0)
+    scales = np.repeat(np.asarray(character.rest_scales, np.float64)[None], frames, axis=0)
+    targets = {"translation": translations, "rotation": rotations, "scale": scales}
+    for channel in character.channels:
+        targets[channel.path][:, channel.joint] = sample_channel(channel, times)
+    return translations, rotations, scales
+
+
+def joint_order(joint_parents: np.ndarray) -> np.ndarray:
+    """Joint indices sorted so every parent comes before its children. joint_parents (J,) int, -1 = root."""
+    parents = np.asarray(joint_parents, dtype=np.int64)
+    depth = np.zeros(len(parents), dtype=np.int64)
+    for joint in range(len(parents)):
+        node, steps = parents[joint], 0
+        while node >= 0:
+            node, steps = parents[node], steps + 1
+            if steps > len(parents):
+                raise ValueError(f"joint_parents has a cycle through joint {joint}")
+        depth[joint] = steps
+    return np.argsort(depth, kind="stable")
+
+
+def joint_world_matrices(character: "Character", times: np.ndarray) -> np.ndarray:
+    """World transforms of every joint at times (F,) -> (F, J, 4, 4) float64."""
+    translations, rotations, scales = local_transforms(character, times)
+    local = np.zeros(translations.shape[:2] + (4, 4))
+    local[..., :3, :3] = quaternion_matrices(rotations) * scales[..., None, :]
+    local[..., :3, 3] = translations
+    local[..., 3, 3] = 1.0
+    above = np.asarray(character.joint_parent_transforms, dtype=np.float64)
+    parents = np.asarray(character.joint_parents, dtype=np.int64)
+    world = np.empty_like(local)
+    for joint in joint_order(parents):
+        base = above[joint] @ local[:, joint]
+        world[:, joint] = base if parents[joint] < 0 else world[:, parents[joint]] @ base
+    return world
+
+
+def joint_matrices(character: "Character", times: np.ndarray) -> np.ndarray:
+    """Skinning matrices world(j) @ inverseBind(j) at times (F,) seconds -> (F, J, 4, 4) float32."""
+    world = joint_world_matrices(character, times)
+    return (world @ np.asarray(character.inverse_bind_matrices, dtype=np.float64)).astype(np.float32)
+
+
+def skin(
+    positions: np.ndarray, normals: np.ndarray, joints: np.ndarray, weights: np.ndarray, matrices: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Linear blend skinning.
+
+    positions, normals (V, 3); joints (V, 4) int; weights (V, 4) summing to 1; matrices (F, J, 4, 4)
+    skinning matrices (see joint_matrices) -> positions (F, V, 3), unit normals (F, V, 3), float32.
+    Normals blend the joints' inverse-transpose 3x3 blocks so non-uniform scale keeps them perpendicular.
+    """
+    positions = np.asarray(positions, dtype=np.float32)
+    normals = np.asarray(normals, dtype=np.float32)
+    joints = np.asarray(joints, dtype=np.int64)
+    weights = np.asarray(weights, dtype=np.float32)
+    matrices = np.asarray(matrices, dtype=np.float32)
+    vertex_count = len(positions)
+    if positions.shape != (vertex_count, 3) or normals.shape != (vertex_count, 3):
+        raise ValueError(f"positions and normals must be (V, 3), got {positions.shape} and {normals.shape}")
+    if joints.shape != (vertex_count, 4) or weights.shape != (vertex_count, 4):
+        raise ValueError(f"joints and weights must be ({vertex_count}, 4), got {joints.shape} and {weights.shape}")
+    if matrices.ndim != 4 or matrices.shape[2:] != (4, 4):
+        raise ValueError(f"matrices must be (F, J, 4, 4), got {matrices.shape}")
+    if joints.size and (joints.min() < 0 or joints.max() >= matrices.shape[1]):
+        raise ValueError(f"joint indices must lie in 0..{matrices.shape[1] - 1}")
+    frame_count = matrices.shape[0]
+    linear = matrices[:, :, :3, :3]
+    normal_matrices = np.linalg.inv(linear.astype(np.float64)).transpose(0, 1, 3, 2).astype(np.float32)
+    out_positions = np.empty((frame_count, vertex_count, 3), dtype=np.float32)
+    out_normals = np.empty((frame_count, vertex_count, 3), dtype=np.float32)
+    chunk = max(1, SKIN_CHUNK_ELEMENTS // max(vertex_count, 1))
+    for start in range(0, frame_count, chunk):
+        stop = min(frame_count, start + chunk)
+        # (f, V, 4, 3, 4): the four influencing joints' top rows, blended by weight.
+        blended = np.einsum("vk,fvkij->fvij", weights, matrices[start:stop][:, joints, :3, :])
+        out_positions[start:stop] = np.einsum("fvij,vj->fvi", blended[..., :3], positions) + blended[..., 3]
+        blended_normal = np.einsum("vk,fvkij->fvij", weights, normal_matrices[start:stop][:, joints])
+        skinned = np.einsum("fvij,vj->fvi", blended_normal, normals)
+        length = np.linalg.norm(skinned, axis=-1, keepdims=True)
+        out_normals[start:stop] = np.divide(skinned, length, out=np.zeros_like(skinned), where=length > 0)
+    return out_positions, out_normals
+
+
+def pose_character(
+    character: "Character", fps: float, frame_count: int, start_time: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Skinned mesh at times start_time + k / fps, k = 0..frame_count-1 -> positions, normals (F, V, 3) float32.
+
+    Times past the animation's last key clamp to it; wrap them yourself for a looping walk.
+    """
+    if fps <= 0 or frame_count < 1:
+        raise ValueError(f"fps {fps} must be positive and frame_count {frame_count} at least 1")
+    times = start_time + np.arange(frame_count, dtype=np.float64) / fps
+    matrices = joint_matrices(character, times)
+    return skin(character.positions, character.normals, character.joints, character.weights, matrices)
