@@ -26,5 +26,5 @@ echo "== 3/4 bake =="
   --name sample-walker --version 1.0.0 --out "$out/bundles"
 echo "== 4/4 crowd render =="
 build/runtime/crowdview --bundle "$out/bundles/sample-walker/1.0.0" --count 200 --seed 1 \
-  --headless --frames 30 --screenshot "$out/crowd.png"
+  --camera street --headless --frames 30 --screenshot "$out/crowd.png"
 echo "done: cycle report $out/cycle/report.html, bundle $out/bundles/sample-walker/1.0.0, crowd picture $out/crowd.png"

@@ -241,6 +241,17 @@ Camera camera_for_crowd(const Crowd& crowd, float character_height, float aspect
     return camera;
 }
 
+Camera street_camera(const Crowd& crowd, float character_height) {
+    Camera camera;
+    camera.pitch = -0.25f;  // about 14 degrees down: the crowd fills the frame, little empty sky
+    camera.yaw = 0;
+    const glm::vec3 eye_target(0, 0.8f * character_height, 0);
+    camera.position = eye_target - camera.forward() * (crowd.half_extent + 2.0f * character_height);
+    camera.near_m = 0.1f;
+    camera.far_m = 2.0f * (crowd.half_extent + 2.0f * character_height) + 10.0f;
+    return camera;
+}
+
 // ---------------------------------------------------------------------------------------
 
 void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,

@@ -153,6 +153,9 @@ Crowd make_crowd_in_view(const CrowdDesc& desc, const Camera& camera, float aspe
 // A camera that sees the whole crowd: looking down at `pitch` onto its centre, backed off
 // until the crowd's bounding sphere fits the vertical and horizontal field of view.
 Camera camera_for_crowd(const Crowd& crowd, float character_height, float aspect, float pitch_rad);
+// A viewer standing just outside the crowd's front edge, a little above eye level and
+// looking across it, so the nearest characters are meshes and the far ones impostors.
+Camera street_camera(const Crowd& crowd, float character_height);
 
 // ---------------------------------------------------------------------------------------
 // One frame's instances

@@ -53,6 +53,7 @@ struct Options {
     std::string screenshot, report;
     int width = 1280, height = 720;
     std::string lod = "auto";
+    std::string camera = "overview";
     std::string impostors = "uv";
     double max_seconds = 300;
     std::string modes = "high_mesh,low_mesh,uv_impostor,detail_impostor,hybrid";
@@ -70,6 +71,7 @@ const char* kUsage =
     "  --seed S              crowd seed (default 1)\n"
     "  --layout spot|paths   walk on the spot (default, the paper's test) or along paths\n"
     "  --lod MODE            auto (default) | high | low | impostor | detail\n"
+    "  --camera VIEW         overview (default: the whole crowd) | street (eye level at the crowd's edge)\n"
     "  --impostors uv|detail impostor maps used by --lod auto (default uv)\n"
     "  --width W --height H  framebuffer size (default 1280x720)\n"
     "  --headless            no window: EGL surfaceless, else a hidden GLFW window\n"
@@ -132,6 +134,10 @@ Options parse_args(int argc, char** argv) {
             if (v == "spot") o.layout = Layout::on_the_spot;
             else if (v == "paths") o.layout = Layout::paths;
             else usage_error("--layout is spot or paths, got '" + v + "'");
+        } else if (a == "--camera") {
+            o.camera = value(i);
+            if (o.camera != "overview" && o.camera != "street")
+                usage_error("--camera is overview or street, got '" + o.camera + "'");
         } else if (a == "--lod") {
             o.lod = value(i);
             if (o.lod != "auto" && o.lod != "high" && o.lod != "low" && o.lod != "impostor" && o.lod != "detail")
@@ -465,7 +471,8 @@ int run_view(GlContext& context, Renderer& renderer, const Bundle& bundle, const
     uint32_t variations = 1;
     for (const MaterialInfo& m : bundle.manifest.materials) variations = std::max(variations, m.variations);
     const Crowd crowd = make_crowd(desc, variations, bundle.manifest.outfit_count, float(model.frame_count) / model.frames_per_second);
-    Camera camera = camera_for_crowd(crowd, character_height(model), renderer.aspect(), 0.35f);
+    Camera camera = o.camera == "street" ? street_camera(crowd, character_height(model))
+                                         : camera_for_crowd(crowd, character_height(model), renderer.aspect(), 0.35f);
     camera.near_m = 0.1f;
     camera.far_m = std::max(camera.far_m * 4.0f, 200.0f);
     LodMode mode = lod_mode(o.lod);

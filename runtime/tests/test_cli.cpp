@@ -51,7 +51,7 @@ std::string describe(const Run& r) { return "exit " + std::to_string(r.status) +
 
 void test_arguments() {
     const std::vector<std::string> bad = {"", "--count", "--count abc", "--count 0", "--width 10", "--lod hires --bundle x",
-                                          "--bundle a --url b", "--frobnicate", "--layout zigzag --bundle x",
+                                          "--bundle a --url b", "--frobnicate", "--layout zigzag --bundle x", "--camera drone --bundle x",
                                           "--report r.json --bundle x"};
     for (const std::string& args : bad) {
         const Run r = crowdview(args);
