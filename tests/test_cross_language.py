@@ -1,0 +1,92 @@
+"""The two sides of the bundle format agree: crowdview (C++) reads what crowdbake (Python) bakes,
+crowdbake verifies what crowdview's test writer makes, and both name the same error for every
+broken vector."""
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from crowdbake import pipeline
+from crowdbake.formats.bundle import verify_bundle
+from crowdbake.formats.errors import FormatError
+
+ROOT = Path(__file__).resolve().parents[1]
+CROWDVIEW = ROOT / "build" / "runtime" / "crowdview"
+SYNTHETIC_WRITER = ROOT / "build" / "runtime" / "tests" / "make_synthetic_bundle"
+VECTORS = ROOT / "shared_formats" / "vectors" / "v1"
+
+pytestmark = pytest.mark.skipif(
+    not CROWDVIEW.exists(), reason="build/runtime/crowdview is not built (scripts/setup.sh builds it)"
+)
+
+
+def crowdview(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([str(CROWDVIEW), *args], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def python_bundle(tmp_path_factory) -> Path:
+    """A small bundle baked by crowdbake from the procedural sample."""
+    from crowdbake.sample.generate import generate_sample
+
+    root = tmp_path_factory.mktemp("cross")
+    generate_sample(root / "sample", garment="tight", cycles=3, seed=3, cycle_frames=24, texture_size=64)
+    params = pipeline.BakeParams(impostor_frames=2, azimuths=4, elevations_deg=(0.0, 30.0), tile_size=32,
+                                 lod_triangles=1200, cycle_views=3, candidates=3)
+    inputs = pipeline.BakeInputs(character=root / "sample" / "character.glb", cloth=root / "sample" / "cloth.pc2",
+                                 cloth_mesh=root / "sample" / "cloth.obj", textures=root / "sample" / "textures",
+                                 cycle=None, name="cross", version="1", params=params)
+    pipeline.run_bake(inputs, root / "bundles", work=root / "work")
+    return root / "bundles" / "cross" / "1"
+
+
+@pytest.mark.parametrize("case", sorted(p.name for p in (VECTORS / "bad").iterdir()))
+def test_both_readers_name_the_same_error_for_each_broken_vector(case):
+    expect = json.loads((VECTORS / "bad" / case / "expect.json").read_text())
+    with pytest.raises(FormatError) as raised:
+        verify_bundle(VECTORS / "bad" / case / "bundle")
+    result = crowdview("--verify", str(VECTORS / "bad" / case / "bundle"))
+    assert result.returncode != 0
+    assert raised.value.code == expect["error"]
+    assert expect["error"] in result.stdout + result.stderr, result.stdout + result.stderr
+
+
+def test_crowdview_verifies_and_renders_a_python_baked_bundle(python_bundle, tmp_path):
+    verify_bundle(python_bundle)
+    assert crowdview("--verify", str(python_bundle)).returncode == 0
+    shot = tmp_path / "crowd.png"
+    result = crowdview("--bundle", str(python_bundle), "--count", "24", "--headless", "--frames", "3",
+                       "--camera", "street", "--width", "320", "--height", "180", "--screenshot", str(shot))
+    assert result.returncode == 0, result.stderr
+    pixels = np.asarray(Image.open(shot).convert("RGB"), dtype=np.int16)
+    background = pixels[0, 0]
+    covered = np.abs(pixels - background).sum(axis=-1) > 30
+    # Two dozen characters at eye level cover a visible share of the frame, not a stray pixel or all of it.
+    assert 0.02 < covered.mean() < 0.9, covered.mean()
+
+
+def test_crowdview_refuses_a_tampered_python_bundle(python_bundle, tmp_path):
+    import shutil
+
+    tampered = tmp_path / "tampered"
+    shutil.copytree(python_bundle, tampered)
+    target = next(p for p in sorted(tampered.rglob("*.cbpc")))
+    data = bytearray(target.read_bytes())
+    data[-1] ^= 0x55
+    target.write_bytes(bytes(data))
+    result = crowdview("--verify", str(tampered))
+    assert result.returncode != 0
+    assert "sha256_mismatch" in result.stdout + result.stderr
+    assert target.name in result.stdout + result.stderr
+
+
+@pytest.mark.skipif(not SYNTHETIC_WRITER.exists(), reason="the runtime's test bundle writer is not built")
+def test_python_verifies_the_runtime_test_writers_bundle(tmp_path):
+    subprocess.run([str(SYNTHETIC_WRITER), str(tmp_path / "synthetic")], check=True, capture_output=True, timeout=120)
+    bundle = verify_bundle(tmp_path / "synthetic")
+    assert bundle.pose_caches and bundle.textures
