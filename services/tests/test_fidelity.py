@@ -11,6 +11,7 @@ from crowdbake.formats.binary import region_alpha
 
 pytest.importorskip("pyrender")
 from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
+from shapes import uv_sphere  # noqa: E402
 
 # Thresholds for a textured sphere at 64² (measured: SSIM 0.979 / PSNR 33.5 dB with exact normals,
 # 0.973 / 33.2 dB with the normal map through DXT1); the silhouette's anti-aliasing is most of what remains.
@@ -18,19 +19,6 @@ SSIM_EXACT = 0.95
 PSNR_EXACT_DB = 30.0
 SSIM_DXT1 = 0.93
 SIZE = 64
-
-
-def uv_sphere(rings: int = 24, segments: int = 48, radius: float = 0.5):
-    """positions, normals, uvs, faces of a capless sphere with a duplicated-vertex UV seam."""
-    latitude = np.linspace(0.08 * np.pi, 0.92 * np.pi, rings)
-    longitude = np.linspace(0.0, 2.0 * np.pi, segments + 1)
-    lat, lon = np.meshgrid(latitude, longitude, indexing="ij")
-    normals = np.stack([np.sin(lat) * np.sin(lon), np.cos(lat), np.sin(lat) * np.cos(lon)], axis=-1).reshape(-1, 3)
-    uvs = np.stack([lon / (2 * np.pi), (lat - latitude[0]) / (latitude[-1] - latitude[0])], axis=-1).reshape(-1, 2)
-    index = np.arange(rings * (segments + 1)).reshape(rings, segments + 1)
-    a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
-    faces = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
-    return normals * radius, normals, uvs, faces
 
 
 def patterned_texture(size: int = 128) -> np.ndarray:
