@@ -1,0 +1,242 @@
+"""The web page of the service, and the two things it shows that the JSON API does not have:
+
+    GET /ui                                           the page (static HTML + vanilla JS from api/static/)
+    GET /v1/bakes/{id}/cycle/{path}                   the cycle search's report.html, plots and cycle.json
+    GET /v1/bundles/{name}/{version}/preview/{map}    an impostor atlas layer as PNG (normal, uv, detail)
+
+The page needs no build step and loads nothing from elsewhere: it polls /v1/bakes and /v1/bundles with
+the key the user typed (kept in the browser's localStorage) and fetches the report and the previews with
+the same key. The page itself is public; everything it shows is behind the usual scopes (bake for
+jobs and their reports, read for private bundles).
+
+The report is the file the cycle stage wrote into the bake's work folder (pipeline.py: work/cycle/).
+Previews decode one layer of a published bundle's CBTX atlas: the UV map's 16-bit u and v become red
+and green, the normal map's RGB is (n + 1) / 2 as stored, the detail map is the diffuse variation 0
+as baked; BC1/BC2 layers are decoded with crowdbake.bake.compression. Texels the character does not
+cover (UV alpha 0) are transparent in all three.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import re
+import struct
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import FileResponse, RedirectResponse, Response
+
+from crowdbake.api.deps import BakeKey, PrincipalDep, ServicesDep, SessionDep
+from crowdbake.api.problems import Problem
+from crowdbake.api.routes.bundles import IMMUTABLE_SECONDS, NameParam, VersionParam, _bundle_or_problem
+from crowdbake.api.schemas import problem_responses
+from crowdbake.formats.binary import PIXEL_FORMATS, TEXTURE_HEADER_SIZE, TEXTURE_MAGIC, TEXTURE_VERSION, layer_size
+from crowdbake.storage.bundles import LATEST, bundle_dir, read_manifest
+from crowdbake.storage.models import Bake
+
+STATIC_DIR = Path(__file__).resolve().parent.parent / "static"
+# Files of the page: plain names only, so a request can never leave the static folder.
+STATIC_NAME = re.compile(r"^[a-z0-9][a-z0-9_-]*\.(js|css|svg|png|ico)$")
+STATIC_TYPES = {".js": "text/javascript", ".css": "text/css", ".svg": "image/svg+xml", ".png": "image/png", ".ico": "image/x-icon"}
+# The page runs only its own script, talks only to this server, and shows images it fetched as blobs
+# or data URLs; the cycle report in its frame brings an inline <style>.
+PAGE_CSP = ("default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' blob: data:; "
+            "connect-src 'self'; frame-src 'self' blob: data:; object-src 'none'; base-uri 'none'; frame-ancestors 'none'")
+# A report opened on its own runs nothing and loads only its plots.
+REPORT_CSP = "default-src 'none'; img-src 'self'; style-src 'unsafe-inline'; sandbox"
+
+# What the cycle stage writes (crowdbake.cycle_report.write_cycle_outputs): report.html, cycle.json,
+# PNG plots, and the edge images under edges/. Anything else in the work folder stays private.
+CYCLE_FILE = re.compile(r"^(report\.html|cycle\.json|(edges/)?[A-Za-z0-9][A-Za-z0-9_-]*\.png)$")
+CYCLE_TYPES = {".html": "text/html; charset=utf-8", ".png": "image/png", ".json": "application/json"}
+
+# CBTX header: magic, version, header_size, file_size, width, height, layer_count, pixel_format (SPEC.md).
+_CBTX_HEADER = struct.Struct("<4sIIIIIII")
+assert _CBTX_HEADER.size == TEXTURE_HEADER_SIZE
+# Material index m of the UV map's blue channel is shown as blue 64·m (clipped), so materials differ.
+MATERIAL_BLUE_STEP = 64
+
+page_router = APIRouter(include_in_schema=False)
+bake_files_router = APIRouter(prefix="/v1/bakes", tags=["bakes"])
+previews_router = APIRouter(prefix="/v1/bundles", tags=["bundles"])
+routers = (page_router, bake_files_router, previews_router)
+
+
+# ------------------------------------------------------------------------------------------ page
+
+
+@page_router.get("/")
+def root() -> RedirectResponse:
+    return RedirectResponse("/ui", status_code=307)
+
+
+@page_router.get("/ui")
+@page_router.get("/ui/")
+def page() -> FileResponse:
+    return FileResponse(STATIC_DIR / "index.html", media_type="text/html; charset=utf-8",
+                        headers={"Content-Security-Policy": PAGE_CSP, "Cache-Control": "no-cache", "X-Content-Type-Options": "nosniff"})
+
+
+@page_router.get("/ui/static/{name}")
+def static_file(name: str) -> FileResponse:
+    if not STATIC_NAME.match(name) or not (STATIC_DIR / name).is_file():
+        raise Problem("not-found", f"no page file {name!r}")
+    return FileResponse(STATIC_DIR / name, media_type=STATIC_TYPES[Path(name).suffix],
+                        headers={"Cache-Control": "no-cache", "X-Content-Type-Options": "nosniff"})
+
+
+# ---------------------------------------------------------------------------------- cycle report
+
+
+@bake_files_router.get(
+    "/{bake_id}/cycle/{path:path}", response_class=FileResponse, responses=problem_responses(404),
+    summary="The cycle search's report of a bake (report.html, its PNG plots, cycle.json)",
+)
+def get_cycle_file(bake_id: str, path: str, key: BakeKey, services: ServicesDep, session: SessionDep) -> Response:
+    bake = session.get(Bake, bake_id)
+    if bake is None:
+        raise Problem("not-found", f"no bake {bake_id!r}")
+    if not CYCLE_FILE.match(path):
+        raise Problem("not-found", f"{path!r} is not a file of the cycle report")
+    # The work folder is named by the input key (crowdbake.jobs.tasks.work_dir); the cycle stage writes cycle/.
+    folder = (Path(services.settings.work_dir) / bake.input_key / "cycle").resolve()
+    file_path = (folder / path).resolve()
+    if not file_path.is_relative_to(folder) or not file_path.is_file():
+        cycle = next((row for row in bake.stages if row.stage == "cycle"), None)
+        why = "the cycle stage has not finished" if cycle is None or cycle.state != "succeeded" else "no such file in the cycle report"
+        raise Problem("not-found", f"bake {bake_id}: {why} ({path})")
+    headers = {"Cache-Control": "private, no-cache", "X-Content-Type-Options": "nosniff"}
+    if file_path.suffix == ".html":
+        headers["Content-Security-Policy"] = REPORT_CSP
+    return FileResponse(file_path, media_type=CYCLE_TYPES[file_path.suffix], headers=headers)
+
+
+# --------------------------------------------------------------------------------- atlas preview
+
+
+def read_texture_layer(path: Path, layer: int) -> tuple[str, int, int, int, bytes]:
+    """(pixel_format, width, height, layer_count, bytes of `layer`) of a CBTX file, reading one layer only.
+
+    The file was verified when it was published (verify_bundle); this checks only what it relies on.
+    Raises IndexError for a layer outside the file, ValueError for a header it cannot read.
+    """
+    with open(path, "rb") as handle:
+        header = handle.read(TEXTURE_HEADER_SIZE)
+        if len(header) != TEXTURE_HEADER_SIZE:
+            raise ValueError(f"{path.name}: truncated header")
+        magic, version, header_size, file_size, width, height, layer_count, code = _CBTX_HEADER.unpack(header)
+        if magic != TEXTURE_MAGIC or version != TEXTURE_VERSION or header_size != TEXTURE_HEADER_SIZE or code not in PIXEL_FORMATS:
+            raise ValueError(f"{path.name}: not a CBTX v{TEXTURE_VERSION} file")
+        if not 0 <= layer < layer_count:
+            raise IndexError(f"layer {layer} is outside 0..{layer_count - 1}")
+        pixel_format = PIXEL_FORMATS[code]
+        size = layer_size(pixel_format, width, height)
+        handle.seek(TEXTURE_HEADER_SIZE + layer * size)
+        data = handle.read(size)
+        if len(data) != size:
+            raise ValueError(f"{path.name}: layer {layer} is truncated")
+    return pixel_format, width, height, layer_count, data
+
+
+def decode_layer(data: bytes, pixel_format: str, width: int, height: int) -> np.ndarray:
+    """One CBTX layer as (height, width, 4) texels: uint8 for rgba8/bc1/bc2, uint16 for rgba16."""
+    from crowdbake.bake.compression import decode
+
+    return np.asarray(decode(data, pixel_format, width, height))
+
+
+def uv_preview(uv: np.ndarray) -> np.ndarray:
+    """(H, W, 4) uint16 UV map (SPEC.md: R = u·65535, G = v·65535, B = material, A = coverage) ->
+    (H, W, 4) uint8 picture: red u, green v, blue 64·material, opaque where covered, transparent elsewhere."""
+    uv = np.asarray(uv)
+    if uv.ndim != 3 or uv.shape[2] != 4 or uv.dtype != np.uint16:
+        raise ValueError(f"uv_preview: expected (H, W, 4) uint16, got {uv.shape} {uv.dtype}")
+    picture = np.zeros(uv.shape, dtype=np.uint8)
+    picture[..., 0] = uv[..., 0] >> 8
+    picture[..., 1] = uv[..., 1] >> 8
+    picture[..., 2] = np.minimum(uv[..., 2].astype(np.uint32) * MATERIAL_BLUE_STEP, 255).astype(np.uint8)
+    picture[..., 3] = np.where(uv[..., 3] > 0, 255, 0).astype(np.uint8)
+    return picture
+
+
+def colour_preview(texels: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """(H, W, 4) uint8 normal or detail texels -> the same RGB, opaque where `covered` (H, W) bool.
+
+    The detail map's alpha is a region code, not coverage (SPEC.md), so coverage comes from the UV map."""
+    texels = np.asarray(texels)
+    if texels.ndim != 3 or texels.shape[2] != 4 or texels.dtype != np.uint8 or covered.shape != texels.shape[:2]:
+        raise ValueError(f"colour_preview: expected (H, W, 4) uint8 and (H, W) coverage, got {texels.shape} {texels.dtype}, {covered.shape}")
+    picture = texels.copy()
+    picture[..., 3] = np.where(covered, 255, 0).astype(np.uint8)
+    return picture
+
+
+def select_tiles(atlas: np.ndarray, tile_size: int, azimuth: int | None, elevation: int | None) -> np.ndarray:
+    """The part of an atlas (rows = elevations, columns = azimuths, SPEC.md) to show: one tile, one
+    elevation row, one azimuth column, or all of it when both are None."""
+    rows = slice(None) if elevation is None else slice(elevation * tile_size, (elevation + 1) * tile_size)
+    columns = slice(None) if azimuth is None else slice(azimuth * tile_size, (azimuth + 1) * tile_size)
+    return atlas[rows, columns]
+
+
+def png_bytes(picture: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(picture), "RGBA").save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def render_preview(folder: Path, maps: dict[str, str], kind: str, layer: int, tile_size: int, azimuth: int | None, elevation: int | None) -> bytes:
+    """PNG of layer `layer` of the bundle's `kind` map, cut to the selected tiles."""
+    _, width, height, _, uv_data = read_texture_layer(folder / maps["uv"], layer)
+    uv = decode_layer(uv_data, "rgba16", width, height)
+    if kind == "uv":
+        picture = uv_preview(uv)
+    else:
+        pixel_format, map_width, map_height, _, data = read_texture_layer(folder / maps[kind], layer)
+        if (map_width, map_height) != (width, height):
+            raise ValueError(f"the {kind} map is {map_width}x{map_height}, the uv map {width}x{height}")
+        picture = colour_preview(decode_layer(data, pixel_format, width, height), uv[..., 3] > 0)
+    return png_bytes(select_tiles(picture, tile_size, azimuth, elevation))
+
+
+@previews_router.get(
+    "/{name}/{version}/preview/{kind}", response_class=Response, responses={**problem_responses(404), 200: {"content": {"image/png": {}}}},
+    summary="One impostor atlas layer as PNG (uv: u red, v green; normal; detail), all views or one",
+)
+def get_atlas_preview(
+    name: NameParam, version: VersionParam, kind: Literal["normal", "uv", "detail"], request: Request,
+    principal: PrincipalDep, services: ServicesDep, session: SessionDep,
+    frame: Annotated[int, Query(ge=0, description="Layer k of the atlas: cycle frame impostor.frame_indices[k].")] = 0,
+    azimuth: Annotated[int | None, Query(ge=0, description="Only this azimuth's column (index into impostor.azimuths_deg).")] = None,
+    elevation: Annotated[int | None, Query(ge=0, description="Only this elevation's row (index into impostor.elevations_deg).")] = None,
+) -> Response:
+    bundle = _bundle_or_problem(session, principal, name, version)
+    try:
+        published = read_manifest(services.settings.bundles_dir, bundle.name, bundle.version)
+    except FileNotFoundError:
+        raise Problem("internal-error", "the published bundle is missing from the bundle store", status=500) from None
+    impostor = published.manifest["impostor"]
+    errors = []
+    for field, value, count in (("frame", frame, len(impostor["frame_indices"])), ("azimuth", azimuth, len(impostor["azimuths_deg"])),
+                                ("elevation", elevation, len(impostor["elevations_deg"]))):
+        if value is not None and value >= count:
+            errors.append({"field": field, "message": f"{field} {value} is outside 0..{count - 1}"})
+    if errors:
+        raise Problem("validation-error", "the bundle has no such view", errors)
+    maps = impostor["maps"]
+    sha256 = published.files[maps[kind]]["sha256"]
+    etag = hashlib.sha256(f"{sha256}/{published.files[maps['uv']]['sha256']}/{frame}/{azimuth}/{elevation}".encode()).hexdigest()
+    headers = {"ETag": f'"{etag}"', "X-Content-Type-Options": "nosniff"}
+    if version == LATEST:
+        headers["Cache-Control"] = "no-cache"
+    else:
+        headers["Cache-Control"] = f"{'public' if bundle.public else 'private'}, max-age={IMMUTABLE_SECONDS}, immutable"
+    if request.headers.get("if-none-match", "").strip() == headers["ETag"]:
+        return Response(status_code=304, headers=headers)
+    folder = bundle_dir(services.settings.bundles_dir, bundle.name, bundle.version)
+    png = render_preview(folder, maps, kind, frame, int(impostor["tile_size"]), azimuth, elevation)
+    return Response(png, media_type="image/png", headers=headers)
