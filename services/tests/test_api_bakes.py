@@ -175,3 +175,11 @@ def test_worker_errors_are_classified():
     assert _is_transient(OperationalError("UPDATE", {}, Exception("database is locked")))
     assert not _is_transient(FileNotFoundError(errno.ENOENT, "gone"))
     assert not _is_transient(pipeline.InputError("bad", "cloth"))
+
+
+@pytest.mark.parametrize("route, scope", [("/v1/bakes", "bake"), ("/v1/assets", "upload")])
+def test_huge_list_offset_is_a_problem_not_a_server_error(api, route, scope):
+    """Regression: an offset beyond SQLite's 64-bit integers raised OverflowError, a 500."""
+    response = api.client.get(f"{route}?offset=99999999999999999999", headers=api.auth(scope))
+    assert response.status_code == 422
+    assert response.headers["content-type"].startswith("application/problem+json")

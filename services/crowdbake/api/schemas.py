@@ -9,6 +9,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from crowdbake.pipeline import MAX_AZIMUTHS, MAX_ELEVATIONS, MAX_IMPOSTOR_FRAMES, MAX_TILE_SIZE
 
+# List offsets go to SQL as 64-bit integers; a larger one used to raise OverflowError (a 500).
+MAX_LIST_OFFSET = 2**62
+
 # The bundle spec's name and version rules (shared_formats/SPEC.md, "manifest.json").
 NAME_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
 VERSION_PATTERN = r"^[0-9A-Za-z][0-9A-Za-z.+_-]{0,63}$"

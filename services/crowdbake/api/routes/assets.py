@@ -16,7 +16,7 @@ from starlette.concurrency import run_in_threadpool
 
 from crowdbake.api.deps import AssetReadKey, ServicesDep, SessionDep, UploadKey
 from crowdbake.api.problems import Problem
-from crowdbake.api.schemas import AssetPublic, AssetsPublic, problem_responses
+from crowdbake.api.schemas import MAX_LIST_OFFSET, AssetPublic, AssetsPublic, problem_responses
 from crowdbake.api.uploads import MultipartUpload, UploadedFile, read_multipart
 from crowdbake.jobs.records import new_id
 from crowdbake.storage.blobs import BlobStore, IncomingBlob
@@ -186,7 +186,7 @@ async def upload_texture(request: Request, response: Response, key: UploadKey, s
 def list_assets(
     key: AssetReadKey, session: SessionDep,
     kind: Literal["character", "cloth", "texture"] | None = None,
-    limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0),
+    limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET),
 ) -> AssetsPublic:
     query = select(Asset).order_by(Asset.created_at.desc(), Asset.id)
     if kind:

@@ -18,7 +18,7 @@ from sqlalchemy.orm import Session
 from crowdbake import pipeline
 from crowdbake.api.deps import BakeKey, PublishKey, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
-from crowdbake.api.schemas import BakeCreate, BakePublic, BakesPublic, LogLine, StagePublic, problem_responses
+from crowdbake.api.schemas import MAX_LIST_OFFSET, BakeCreate, BakePublic, BakesPublic, LogLine, StagePublic, problem_responses
 from crowdbake.jobs import records
 from crowdbake.jobs.celery_app import send_stage
 from crowdbake.storage.bundles import find_bundle
@@ -152,7 +152,7 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: Se
 def list_bakes(
     key: BakeKey, session: SessionDep,
     state: Literal["queued", "running", "succeeded", "failed", "cancelled"] | None = None, name: str | None = None,
-    limit: int = Query(50, ge=1, le=500), offset: int = Query(0, ge=0),
+    limit: int = Query(50, ge=1, le=500), offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET),
 ) -> BakesPublic:
     query = select(Bake).order_by(Bake.created_at.desc(), Bake.id)
     if state:
