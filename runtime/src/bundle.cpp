@@ -53,6 +53,7 @@ const char* pixel_format_name(PixelFormat format) {
     case PixelFormat::rgba16: return "rgba16";
     case PixelFormat::bc1: return "bc1";
     case PixelFormat::bc2: return "bc2";
+    case PixelFormat::uv32: return "uv32";
     }
     return "unknown";
 }
@@ -83,6 +84,7 @@ unsigned __int128 layer_bytes_wide(uint32_t format, uint32_t width, uint32_t hei
     case 2: return 8 * w * h;
     case 3: return (width % 4 || height % 4) ? 0 : 8 * (w / 4) * (h / 4);
     case 4: return (width % 4 || height % 4) ? 0 : 16 * (w / 4) * (h / 4);
+    case 5: return 4 * w * h;
     default: return 0;
     }
 }
@@ -126,6 +128,12 @@ size_t texture_layer_size(PixelFormat format, uint32_t width, uint32_t height) {
 }
 
 size_t TextureArray::layer_size() const { return texture_layer_size(format, width, height); }
+
+uint32_t pack_uv32(float u, float v, uint32_t material, bool covered) {
+    if (!covered) return 0;
+    auto quantise = [](float x) { return uint32_t(std::lround(std::clamp(x, 0.0f, 1.0f) * float(kUv32CoordMax))); };
+    return quantise(u) | quantise(v) << 14 | (material & 7u) << 28 | 1u << 31;
+}
 
 Status parse_pose_cache(const uint8_t* data, size_t size, const std::string& file, PoseCache* out) {
     static const char* fn = "parse_pose_cache";
@@ -209,7 +217,7 @@ Status parse_texture_array(const uint8_t* data, size_t size, const std::string& 
 
     const uint32_t width = read_u32(data + 16), height = read_u32(data + 20);
     const uint32_t layer_count = read_u32(data + 24), format = read_u32(data + 28);
-    if (format < 1 || format > 4)
+    if (format < 1 || format > 5)
         return make_error(ErrorCode::invalid_header, fn, file, "unknown pixel_format " + std::to_string(format));
     if (width == 0 || height == 0 || layer_count == 0)
         return make_error(ErrorCode::invalid_header, fn, file,
@@ -283,6 +291,17 @@ std::vector<uint8_t> decode_layer_rgba8(const TextureArray& texture, uint32_t la
         break;
     case PixelFormat::rgba16:
         for (size_t i = 0; i < rgba.size(); ++i) rgba[i] = src[2 * i + 1];
+        break;
+    case PixelFormat::uv32:
+        for (size_t i = 0; i < size_t(w) * h; ++i) {
+            uint32_t word;
+            std::memcpy(&word, src + 4 * i, 4);  // little-endian host, as everywhere here
+            const Uv32Texel t = unpack_uv32(word);
+            rgba[4 * i + 0] = uint8_t((word & kUv32CoordMax) >> 6);  // the top 8 of 14 bits
+            rgba[4 * i + 1] = uint8_t(((word >> 14) & kUv32CoordMax) >> 6);
+            rgba[4 * i + 2] = uint8_t(t.material);
+            rgba[4 * i + 3] = t.covered ? 255 : 0;
+        }
         break;
     case PixelFormat::bc1:
     case PixelFormat::bc2: {
@@ -682,8 +701,8 @@ Status cross_check(const Manifest& m, const std::map<std::string, PoseCache>& po
                                           std::to_string(imp.frame_indices.size()));
         *target.second = *atlas;
     }
-    if (bundle->impostor_uv.format != PixelFormat::rgba16)
-        return bad(imp.uv_map, "the UV map must be rgba16 (8 bits cannot address a 1024-texel texture)");
+    if (bundle->impostor_uv.format != PixelFormat::rgba16 && bundle->impostor_uv.format != PixelFormat::uv32)
+        return bad(imp.uv_map, "the UV map must be rgba16 or uv32 (8 bits cannot address a 1024-texel texture)");
     return {};
 }
 

@@ -50,8 +50,23 @@ Status make_error(ErrorCode code, const char* function, const std::string& file,
 // ---------------------------------------------------------------------------------------
 // Binary files
 
-enum class PixelFormat : uint32_t { rgba8 = 1, rgba16 = 2, bc1 = 3, bc2 = 4 };
+enum class PixelFormat : uint32_t { rgba8 = 1, rgba16 = 2, bc1 = 3, bc2 = 4, uv32 = 5 };
 const char* pixel_format_name(PixelFormat format);
+
+// uv32 (SPEC.md pixel format 5): one little-endian u32 a UV-map texel, u in bits 0..13,
+// v in 14..27 (value / 16383), material in 28..30, coverage in bit 31.
+struct Uv32Texel {
+    float u = 0, v = 0;
+    uint32_t material = 0;
+    bool covered = false;
+};
+constexpr uint32_t kUv32CoordMax = (1u << 14) - 1;
+inline Uv32Texel unpack_uv32(uint32_t word) {
+    return {float(word & kUv32CoordMax) / float(kUv32CoordMax), float((word >> 14) & kUv32CoordMax) / float(kUv32CoordMax),
+            (word >> 28) & 7u, (word >> 31) != 0};
+}
+// u, v in [0, 1] (clamped); material 0..7 (masked); uncovered texels are 0.
+uint32_t pack_uv32(float u, float v, uint32_t material, bool covered);
 
 constexpr uint32_t kPoseCacheHeaderSize = 64;
 constexpr uint32_t kTextureHeaderSize = 32;
@@ -97,7 +112,8 @@ Status parse_pose_cache(const uint8_t* data, size_t size, const std::string& fil
 Status parse_texture_array(const uint8_t* data, size_t size, const std::string& file, TextureArray* out);
 
 // Decode one layer of a BC1 or BC2 texture into RGBA8 (width * height * 4 bytes, rows top
-// first); rgba8 is copied and rgba16 keeps the high byte. The CPU fallback for GL drivers
+// first); rgba8 is copied, rgba16 keeps the high byte and uv32 gives (u, v) to 8 bits, the
+// material index and coverage 255/0, as rgba16 would. The CPU fallback for GL drivers
 // without S3TC, and how tests look at block-compressed texels.
 std::vector<uint8_t> decode_layer_rgba8(const TextureArray& texture, uint32_t layer);
 

@@ -72,9 +72,15 @@ bool load_shader_source(const std::string& dir, const std::string& file, std::st
     return true;
 }
 
-GLuint compile_shader(GLenum stage, const std::string& dir, const std::string& file, std::string* error) {
+// `defines` ("#define X 1\n" lines) go right after the #version line, which must come first.
+GLuint compile_shader(GLenum stage, const std::string& dir, const std::string& file, const std::string& defines,
+                      std::string* error) {
     std::string source;
     if (!load_shader_source(dir, file, &source, error)) return 0;
+    if (!defines.empty()) {
+        const size_t end_of_version = source.find('\n');
+        source.insert(end_of_version == std::string::npos ? source.size() : end_of_version + 1, defines);
+    }
     GLuint shader = glCreateShader(stage);
     const char* text = source.c_str();
     glShaderSource(shader, 1, &text, nullptr);
@@ -92,12 +98,12 @@ GLuint compile_shader(GLenum stage, const std::string& dir, const std::string& f
     return shader;
 }
 
-// Program `name` from <name>.vert.glsl (or `vertex_name`) and <name>.frag.glsl.
+// Program `name` from <name>.vert.glsl (or `vertex_name`) and <name>.frag.glsl, with `defines`.
 GLuint build_program(const std::string& dir, const std::string& vertex_name, const std::string& fragment_name,
-                     std::string* error) {
-    GLuint vs = compile_shader(GL_VERTEX_SHADER, dir, vertex_name + ".vert.glsl", error);
+                     std::string* error, const std::string& defines = "") {
+    GLuint vs = compile_shader(GL_VERTEX_SHADER, dir, vertex_name + ".vert.glsl", defines, error);
     if (!vs) return 0;
-    GLuint fs = compile_shader(GL_FRAGMENT_SHADER, dir, fragment_name + ".frag.glsl", error);
+    GLuint fs = compile_shader(GL_FRAGMENT_SHADER, dir, fragment_name + ".frag.glsl", defines, error);
     if (!fs) {
         glDeleteShader(vs);
         return 0;
@@ -132,7 +138,8 @@ struct Upload {
 };
 
 // A CBTX as a GL_TEXTURE_2D_ARRAY. BC blocks go up untouched where S3TC is available and
-// are decoded to RGBA8 otherwise; rgba16 stays 16-bit (UV maps need it, SPEC.md).
+// are decoded to RGBA8 otherwise; rgba16 stays 16-bit and uv32 goes up as one unsigned
+// integer a texel (R32UI) for the shader to unpack (UV maps need the bits, SPEC.md).
 // `filtered`: trilinear with mipmaps (diffuse maps); otherwise nearest, base level only.
 GLuint upload_texture_array(const TextureArray& t, bool filtered, const std::string& name, Upload* upload) {
     GLuint texture = 0;
@@ -156,6 +163,8 @@ GLuint upload_texture_array(const TextureArray& t, bool filtered, const std::str
         upload->cpu_decode_used = true;
     } else if (t.format == PixelFormat::rgba16) {
         glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA16, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_SHORT, t.data.data());
+    } else if (t.format == PixelFormat::uv32) {  // integer texture: nearest filtering only (set below)
+        glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_R32UI, w, h, layers, 0, GL_RED_INTEGER, GL_UNSIGNED_INT, t.data.data());
     } else {
         glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA8, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_BYTE, t.data.data());
     }
@@ -277,11 +286,15 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
     r->model_ = character_model(bundle);
 
     // Programs: shader files by name (niagara style), config.h pasted in.
+    // The impostor programs read the UV map in the bundle's format (impostor_uv_map.glsl).
     std::string shader_error;
+    const std::string uv_defines =
+        std::string("#define CV_UV_MAP_UV32 ") + (bundle.impostor_uv.format == PixelFormat::uv32 ? "1" : "0") + "\n";
     g.mesh_program = build_program(desc.shader_dir, "mesh", "mesh", &shader_error);
-    if (g.mesh_program) g.impostor_uv_program = build_program(desc.shader_dir, "impostor", "impostor_uv", &shader_error);
+    if (g.mesh_program)
+        g.impostor_uv_program = build_program(desc.shader_dir, "impostor", "impostor_uv", &shader_error, uv_defines);
     if (g.impostor_uv_program)
-        g.impostor_detail_program = build_program(desc.shader_dir, "impostor", "impostor_detail", &shader_error);
+        g.impostor_detail_program = build_program(desc.shader_dir, "impostor", "impostor_detail", &shader_error, uv_defines);
     if (!g.impostor_detail_program) {
         *error = fn + shader_error;
         return nullptr;

@@ -2,11 +2,13 @@
 //   1. a small crowd showing all three LODs against a committed reference image;
 //   2. a mesh and its UV impostor at the 1:1 switch distance agree (SSIM);
 //   3. the UV impostor follows texture variations that a detail-mapped impostor cannot;
-//   4. the CPU block decoder renders what the S3TC upload renders.
+//   4. the CPU block decoder renders what the S3TC upload renders;
+//   5. the same bundle with its rgba16 UV map packed as uv32 renders the same impostors.
 // CROWDVIEW_UPDATE_REFERENCES=1 rewrites tests/data/crowd_reference.png (then inspect it).
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 
 #include "check.h"
@@ -28,6 +30,10 @@ constexpr int kReferenceOutlierLevel = 48;
 // A mesh and its UV impostor at the switch distance, from a baked view and a baked frame:
 // the same pixels up to the bake's resampling and BC1/BC2 compression (SSIM 1 = identical).
 constexpr double kSwitchSsim = 0.80;
+// uv32 against rgba16: the same coverage and materials, coordinates 14- rather than 16-bit
+// (within 1/32 texel of a 1024² texture), so only the filtered diffuse lookups may move a little.
+constexpr double kUv32MeanAbsDiff = 0.05;  // 0..255 per channel, averaged over the image (llvmpipe: 0.0000)
+constexpr int kUv32MaxDiff = 4;            // any channel of any pixel (llvmpipe: 1)
 
 struct Image {
     int width = 0, height = 0;
@@ -248,6 +254,52 @@ void test_cpu_decode(const Scene& scene) {
     }
 }
 
+// The synthetic bundle's rgba16 UV map as uv32 (SPEC.md pixel format 5), texel by texel.
+TextureArray uv_map_as_uv32(const TextureArray& rgba16) {
+    TextureArray out = rgba16;
+    out.format = PixelFormat::uv32;
+    const size_t texels = size_t(rgba16.width) * rgba16.height * rgba16.layer_count;
+    out.data.assign(texels * 4, 0);
+    for (size_t i = 0; i < texels; ++i) {
+        uint16_t c[4];
+        std::memcpy(c, rgba16.data.data() + 8 * i, 8);  // little-endian host
+        const uint32_t word = pack_uv32(c[0] / 65535.0f, c[1] / 65535.0f, c[2], c[3] >= 32768);
+        std::memcpy(out.data.data() + 4 * i, &word, 4);
+    }
+    return out;
+}
+
+void test_uv32_renders_like_rgba16(const Scene& scene) {
+    CHECK(scene.bundle->impostor_uv.format == PixelFormat::rgba16);
+    Bundle packed = *scene.bundle;
+    packed.impostor_uv = uv_map_as_uv32(scene.bundle->impostor_uv);
+    CHECK(packed.impostor_uv.data.size() * 2 == scene.bundle->impostor_uv.data.size());
+    const Scene packed_scene{&packed, scene.shaders};
+    std::unique_ptr<Renderer> wide = make_renderer(scene, 200, 150);
+    std::unique_ptr<Renderer> narrow = make_renderer(packed_scene, 200, 150);
+    if (!wide || !narrow) return;
+    for (float azimuth : {60.0f, 200.0f}) {
+        const SwitchView a = render_at_switch(*wide, 30, azimuth, 0, 1, 2, 0.25f);
+        const SwitchView b = render_at_switch(*narrow, 30, azimuth, 0, 1, 2, 0.25f);
+        for (auto pair : {std::make_pair(&a.uv_impostor, &b.uv_impostor), std::make_pair(&a.detail_impostor, &b.detail_impostor)}) {
+            double sum = 0;
+            int worst = 0;
+            size_t lit = 0;
+            for (size_t i = 0; i < pair.first->rgba.size(); ++i) {
+                const int d = std::abs(int(pair.first->rgba[i]) - int(pair.second->rgba[i]));
+                sum += d, worst = std::max(worst, d);
+            }
+            for (size_t i = 0; i < pair.first->rgba.size(); i += 4)  // not the sky: the impostor drew here
+                lit += std::abs(pair.first->rgba[i] - 158) > 2 || std::abs(pair.first->rgba[i + 2] - 199) > 2;
+            const double mean = sum / pair.first->rgba.size();
+            std::fprintf(stderr, "uv32 vs rgba16 at azimuth %.0f: mean |diff| %.4f, max %d, %zu impostor pixels\n", azimuth, mean, worst, lit);
+            CHECK_MSG(lit > 100, "the impostor is on screen");
+            CHECK_MSG(mean < kUv32MeanAbsDiff && worst <= kUv32MaxDiff,
+                      "uv32 and rgba16 differ by " + std::to_string(mean) + " on average, " + std::to_string(worst) + " at most");
+        }
+    }
+}
+
 }  // namespace
 
 int main() {
@@ -271,6 +323,7 @@ int main() {
         test_reference_crowd(scene, CROWDVIEW_TEST_DATA_DIR);
         test_switch_distance_fidelity(scene);
         test_cpu_decode(scene);
+        test_uv32_renders_like_rgba16(scene);
     }
     fs::remove_all(work);
     return check::exit_code();

@@ -1,7 +1,10 @@
-// The shared vectors (shared_formats/vectors/v1), which the Python tests read too: the good
-// bundle decodes to expected.json's values, every bad bundle fails with its expect.json code
-// and file, and every strict prefix of every binary file of the good bundle is `truncated`.
+// The shared vectors (shared_formats/vectors/v1 and v1-uv32), which the Python tests read too:
+// the good bundle decodes to expected.json's values (v1-uv32: its UV map's texels too), every
+// bad bundle fails with its expect.json code and file, and every strict prefix of every binary
+// file of the good bundle is `truncated`.
 #include <algorithm>
+#include <cmath>
+#include <cstring>
 #include <filesystem>
 
 #include <nlohmann/json.hpp>
@@ -82,7 +85,33 @@ void test_good(const fs::path& good) {
     }
 }
 
-void test_bad(const fs::path& bad_root) {
+// v1-uv32: the UV map's words and their decoded fields at the texels expected.json lists.
+void test_uv32_texels(const fs::path& good) {
+    Bundle bundle;
+    const Status s = load_bundle_dir((good / "bundle").string(), &bundle);
+    CHECK_MSG(s.ok(), s.message);
+    if (!s.ok()) return;
+    const json expected = json::parse(synthetic::read_text((good / "expected.json").string()));
+    const TextureArray& t = bundle.impostor_uv;
+    CHECK(t.format == PixelFormat::uv32 && t.layer_size() == size_t(4) * t.width * t.height);
+    int checked = 0;
+    for (const json& want : expected["uv32_texels"]["texels"]) {
+        const uint32_t layer = want["layer"], row = want["row"], column = want["column"];
+        uint32_t word = 0;
+        std::memcpy(&word, t.layer(layer) + 4 * (size_t(row) * t.width + column), 4);
+        const std::string where = "uv32 texel " + want.dump();
+        CHECK_MSG(word == want["word"].get<uint32_t>(), where);
+        const Uv32Texel texel = unpack_uv32(word);
+        // The shader divides in float too: exact for the 14-bit integers, to float rounding after.
+        CHECK_MSG(std::abs(texel.u - want["u"].get<double>()) < 1e-6 && std::abs(texel.v - want["v"].get<double>()) < 1e-6, where);
+        CHECK_MSG(texel.material == want["material"].get<uint32_t>() && texel.covered == want["coverage"].get<bool>(), where);
+        CHECK_MSG(pack_uv32(texel.u, texel.v, texel.material, texel.covered) == word, where + " re-packs");
+        ++checked;
+    }
+    CHECK(checked >= 4);
+}
+
+void test_bad(const fs::path& bad_root, int min_cases) {
     int cases = 0;
     for (const auto& entry : fs::directory_iterator(bad_root)) {
         if (!entry.is_directory()) continue;
@@ -94,7 +123,7 @@ void test_bad(const fs::path& bad_root) {
                   name + ": expected " + expect.dump() + ", got " + error_code_name(s.code) + " " + s.file + " (" + s.message + ")");
         ++cases;
     }
-    CHECK_MSG(cases >= 10, "found " + std::to_string(cases) + " bad cases");
+    CHECK_MSG(cases >= min_cases, "found " + std::to_string(cases) + " bad cases");
 }
 
 void test_prefixes(const fs::path& bundle_dir) {
@@ -132,7 +161,15 @@ int main() {
         return 77;
     }
     test_good(v1 / "good");
-    test_bad(v1 / "bad");
+    test_bad(v1 / "bad", 10);
     test_prefixes(v1 / "good" / "bundle");
+    const fs::path uv32 = fs::path(CROWDVIEW_VECTORS_DIR) / "v1-uv32";
+    CHECK_MSG(fs::is_directory(uv32 / "good"), "no uv32 vectors at " + uv32.string());
+    if (fs::is_directory(uv32 / "good")) {
+        test_good(uv32 / "good");
+        test_uv32_texels(uv32 / "good");
+        test_bad(uv32 / "bad", 3);
+        test_prefixes(uv32 / "good" / "bundle");
+    }
     return check::exit_code();
 }

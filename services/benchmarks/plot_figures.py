@@ -115,7 +115,8 @@ def plot_figure4(bundle_report: dict | None, bundle_label: str, out: Path) -> di
         ax.plot(bundle["variations"], bundle["detail_mapped_mib"], "s--", color="tab:red", alpha=0.6, ms=4,
                 label=f"detail-mapped, {bundle_label}")
         ax.plot(bundle["variations"], bundle["uv_mapped_mib"], "s--", color="tab:blue", alpha=0.6, ms=4,
-                label=f"UV-mapped (16-bit UV map), {bundle_label}")
+                label=f"UV-mapped ({bundle['map_bytes']['uv'] / 2**20:.0f} MiB of UV maps, break-even "
+                      f"{bundle['break_even_variations']:g}), {bundle_label}")
         if held:
             ax.axvline(held, color="0.5", lw=0.8, ls=":")
             ax.annotate(f" {held} variations in the bundle", (held, ax.get_ylim()[0]), fontsize=8, ha="right", va="bottom", rotation=90)

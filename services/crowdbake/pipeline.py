@@ -48,6 +48,7 @@ STAGES = ("validate", "cycle", "poses", "impostors", "pack", "publish")
 Progress = Callable[[str, int, int], None]
 
 CLOSE_METHODS = ("none", "linear", "hermite")
+UV_FORMATS = ("uv32", "rgba16")  # impostor UV map pixel formats a bake can write (SPEC.md); the first is the default
 NAME_RULE = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")
 VERSION_RULE = re.compile(r"^[0-9A-Za-z][0-9A-Za-z.+_-]{0,63}$")
 CREATED_RULE = re.compile(r"^\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}Z$")
@@ -103,6 +104,8 @@ class BakeParams:
     lod_ratio / lod_triangles: the low LOD as a fraction of the high one, or a triangle count for the
     whole character (at most one; neither = the paper's 1,899 / 13,056).
     compress: BC1 normal maps, BC2 detail maps and diffuse textures (else rgba8).
+    uv_format: the impostor UV map's pixel format: "uv32" (4 bytes a texel, 14-bit coordinates) or
+    "rgba16" (8 bytes a texel, 16-bit coordinates); SPEC.md.
     """
 
     cycle_frames: int | None = None
@@ -116,6 +119,7 @@ class BakeParams:
     lod_ratio: float | None = None
     lod_triangles: int | None = None
     compress: bool = True
+    uv_format: str = "uv32"
 
     def validate(self) -> None:
         """Raise InputError(message, field) for the first parameter out of range."""
@@ -142,6 +146,7 @@ class BakeParams:
         need(self.lod_ratio is None or (isinstance(self.lod_ratio, (int, float)) and 0.0 < self.lod_ratio <= 1.0), "lod_ratio", "must lie in (0, 1]")
         need(self.lod_triangles is None or (integer(self.lod_triangles) and self.lod_triangles >= 2), "lod_triangles", "must be at least 2")
         need(isinstance(self.compress, bool), "compress", "must be true or false")
+        need(self.uv_format in UV_FORMATS, "uv_format", f"must be one of {', '.join(UV_FORMATS)}")
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
@@ -1205,7 +1210,7 @@ def _load_parts(work: Path, tasks: list[dict]) -> dict[str, Any]:
 
 def stage_pack(work: Path, progress: Progress | None = None) -> dict:
     """Atlases, block compression, fidelity, figure-4 memory and the manifest → work/bundle/ (verified)."""
-    from crowdbake.bake import compression, texture_memory
+    from crowdbake.bake import compression, impostor_maps, texture_memory
     from crowdbake.bake.atlas import AtlasLayout, assemble
     from crowdbake.formats.binary import encode_texture_array, layer_size
     from crowdbake.formats.bundle import BundleFile, build_manifest, verify_bundle, write_bundle
@@ -1263,7 +1268,7 @@ def stage_pack(work: Path, progress: Progress | None = None) -> dict:
     files.append(BundleFile("textures/outfits.cbtx", encode_texture_array(16, len(outfits), "rgba8", outfits[None]), "outfit-colours"))
 
     # Impostor atlases: layer k = frame_indices[k]; tiles from the tasks.
-    formats = {"normal": "bc1" if params.compress else "rgba8", "uv": "rgba16", "detail": "bc2" if params.compress else "rgba8"}
+    formats = {"normal": "bc1" if params.compress else "rgba8", "uv": params.uv_format, "detail": "bc2" if params.compress else "rgba8"}
     layers: dict[str, list[bytes]] = {kind: [] for kind in formats}
     normal_errors, detail_errors = [], []
     fidelity_atlases: dict[str, np.ndarray] = {}
@@ -1280,8 +1285,17 @@ def stage_pack(work: Path, progress: Progress | None = None) -> dict:
                     tiles[(a, e)] = tile
             atlases[kind] = assemble(layout, tiles)
         covered = atlases["uv"][..., 3] > 0
+        # The tiles carry 16-bit UV maps; what the bundle stores (and fidelity measures) is `stored`.
+        stored = dict(atlases, uv16=atlases["uv"])
+        if formats["uv"] == "uv32":
+            stored["uv"] = impostor_maps.uv_map_to_uv32(atlases["uv"])
         for kind, pixel_format in formats.items():
-            encoded = atlases[kind].astype("<u2").tobytes() if pixel_format == "rgba16" else compression.encode(atlases[kind], pixel_format)
+            if pixel_format == "rgba16":
+                encoded = atlases[kind].astype("<u2").tobytes()
+            elif pixel_format == "uv32":
+                encoded = stored[kind].astype("<u4").tobytes()
+            else:
+                encoded = compression.encode(atlases[kind], pixel_format)
             layers[kind].append(encoded)
             if pixel_format in ("bc1", "bc2"):
                 decoded = compression.decode(encoded, pixel_format, layout.width, layout.height)
@@ -1289,7 +1303,7 @@ def stage_pack(work: Path, progress: Progress | None = None) -> dict:
                 if frame == summary["fidelity_frame"] and kind == "normal":
                     fidelity_atlases["normal_decoded"] = decoded
         if frame == summary["fidelity_frame"]:
-            fidelity_atlases.update(atlases)
+            fidelity_atlases.update(stored)
         _report(progress, "pack", step, steps)
     maps = {}
     for kind, role in (("normal", "impostor-normal"), ("uv", "impostor-uv"), ("detail", "impostor-detail")):
@@ -1446,12 +1460,13 @@ def _fidelity(summary, layout, tasks, parts, atlases, texture_arrays, formats) -
         "supersample": FIDELITY_SUPERSAMPLE,
         "light": {"ambient": fidelity.AMBIENT, "diffuse": fidelity.DIFFUSE, "direction_in_camera": fidelity.LIGHT_IN_CAMERA.tolist()},
         "normal_map_format": formats["normal"],
+        "uv_map_format": formats["uv"],
         "impostor": fidelity.summarize(per_view),
         "impostor_uncompressed_normals": fidelity.summarize(uncompressed),
         "nearest_view": fidelity.summarize(between),
         "per_view": per_view,
         "between_views": between,
-        "uv_precision": {"texture_size": texture_size, **fidelity.uv_precision(atlases["uv"], texture_size)},
+        "uv_precision": {"texture_size": texture_size, **fidelity.uv_precision(atlases["uv16"], texture_size)},
     }
 
 

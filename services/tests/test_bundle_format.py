@@ -1,4 +1,4 @@
-"""The Python reader against shared_formats/vectors/v1, which the C++ tests read too."""
+"""The Python reader against shared_formats/vectors/v1 and v1-uv32, which the C++ tests read too."""
 from __future__ import annotations
 
 import importlib.util
@@ -12,17 +12,25 @@ from crowdbake.formats.binary import (
     decode_pose_cache,
     decode_texture_array,
     encode_pose_cache,
+    encode_texture_array,
+    layer_size,
+    pack_uv32,
     region_alpha,
     region_codes,
+    unpack_uv32,
 )
 from crowdbake.formats.bundle import BundleFile, build_manifest, check_path, verify_bundle, write_bundle
 from crowdbake.formats.errors import FormatError
 
-from conftest import REPO_ROOT, VECTORS
+REPO_ROOT = Path(__file__).resolve().parents[2]
+VECTORS = REPO_ROOT / "shared_formats" / "vectors"
 
 V1 = VECTORS / "v1"
 GOOD = V1 / "good" / "bundle"
 BAD_CASES = sorted(p.name for p in (V1 / "bad").iterdir())
+V1_UV32 = VECTORS / "v1-uv32"
+GOOD_UV32 = V1_UV32 / "good" / "bundle"
+BAD_CASES_UV32 = sorted(p.name for p in (V1_UV32 / "bad").iterdir())
 
 
 def test_good_vector_decodes_to_the_expected_values():
@@ -124,3 +132,83 @@ def test_build_manifest_refuses_duplicate_and_unsafe_paths():
         build_manifest("n", "1", {}, [BundleFile("a.json", b"", "cycle"), BundleFile("a.json", b"", "cycle")])
     with pytest.raises(FormatError):
         build_manifest("n", "1", {}, [BundleFile("../a.json", b"", "cycle")])
+
+
+# --- pixel format 5, uv32 (vectors/v1-uv32) ---------------------------------------------------------
+
+
+def test_uv32_good_vector_decodes_to_the_expected_values():
+    expected = json.loads((V1_UV32 / "good" / "expected.json").read_text())
+    bundle = verify_bundle(GOOD_UV32)
+    assert bundle.manifest["name"] == expected["name"] == "vector-good-uv32"
+    for path, want in expected["textures"].items():
+        texture = bundle.textures[path]
+        assert (texture.width, texture.height, texture.pixel_format, len(texture.layers)) == (
+            want["width"], want["height"], want["pixel_format"], want["layer_count"])
+        assert texture.layers[0][:8].hex() == want["first_bytes_hex"]
+    uv_map = bundle.textures[expected["uv32_texels"]["file"]]
+    assert uv_map.pixel_format == "uv32" and len(uv_map.layers[0]) == 4 * uv_map.width * uv_map.height
+    texels = expected["uv32_texels"]["texels"]
+    assert any(not t["coverage"] for t in texels) and len({t["material"] for t in texels}) >= 4
+    for want in texels:
+        words = uv_map.texels(want["layer"])
+        assert words.shape == (uv_map.height, uv_map.width) and words.dtype == np.uint32
+        word = words[want["row"], want["column"]]
+        assert int(word) == want["word"]
+        u, v, material, coverage = unpack_uv32(word)
+        assert (float(u), float(v), int(material), bool(coverage)) == (want["u"], want["v"], want["material"], want["coverage"])
+        assert (float(u), float(v)) == (want["u14"] / 16383, want["v14"] / 16383)
+
+
+@pytest.mark.parametrize("case", BAD_CASES_UV32)
+def test_uv32_bad_vector_is_refused_with_its_code_and_file(case):
+    expect = json.loads((V1_UV32 / "bad" / case / "expect.json").read_text())
+    with pytest.raises(FormatError) as raised:
+        verify_bundle(V1_UV32 / "bad" / case / "bundle")
+    assert (raised.value.code, raised.value.file) == (expect["error"], expect["file"])
+
+
+def test_every_strict_prefix_of_a_uv32_texture_is_truncated():
+    data = (GOOD_UV32 / "impostor" / "uv.cbtx").read_bytes()
+    assert decode_texture_array(data).pixel_format == "uv32"
+    for length in range(len(data)):
+        with pytest.raises(FormatError) as raised:
+            decode_texture_array(data[:length])
+        assert raised.value.code == "truncated", (length, raised.value)
+
+
+def test_writer_still_produces_the_committed_uv32_vectors(tmp_path):
+    spec = importlib.util.spec_from_file_location("gen_uv32", REPO_ROOT / "shared_formats" / "generate_vectors_v1_uv32.py")
+    generator = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(generator)
+    generator.generate(tmp_path / "v1-uv32")
+    committed_files = [p for p in sorted(V1_UV32.rglob("*")) if p.is_file()]
+    assert committed_files
+    for committed in committed_files:
+        assert (tmp_path / "v1-uv32" / committed.relative_to(V1_UV32)).read_bytes() == committed.read_bytes(), committed
+
+
+def test_uv32_bit_layout_and_round_trip():
+    # u in bits 0..13, v in 14..27, material in 28..30, coverage in bit 31 (SPEC.md).
+    assert int(pack_uv32(1.0, 0.0, 0, True)) == 0x3FFF | 1 << 31
+    assert int(pack_uv32(0.0, 1.0, 0, True)) == 0x3FFF << 14 | 1 << 31
+    assert int(pack_uv32(0.0, 0.0, 7, True)) == 7 << 28 | 1 << 31
+    assert int(pack_uv32(0.7, 0.2, 5, False)) == 0  # uncovered texels have one encoding
+    rng = np.random.default_rng(4)
+    u, v = rng.random((2, 16, 8))
+    material = rng.integers(0, 8, (16, 8))
+    covered = rng.random((16, 8)) < 0.8
+    words = pack_uv32(u, v, material, covered)
+    assert words.shape == (16, 8) and words.dtype == np.uint32
+    du, dv, dm, dc = unpack_uv32(words)
+    np.testing.assert_array_equal(dc, covered)
+    np.testing.assert_array_equal(dm[covered], material[covered])
+    # Half a 14-bit step: 1/32 texel of a 1024² texture.
+    assert np.abs(du - u)[covered].max() <= 0.5 / 16383 + 1e-12 and np.abs(dv - v)[covered].max() <= 0.5 / 16383 + 1e-12
+    data = encode_texture_array(8, 16, "uv32", words[None])
+    assert len(data) == 32 + layer_size("uv32", 8, 16) == 32 + 4 * 8 * 16
+    np.testing.assert_array_equal(decode_texture_array(data).texels(0), words)
+    with pytest.raises(ValueError):
+        pack_uv32(0.5, 0.5, 8, True)
+    with pytest.raises(ValueError):
+        pack_uv32(np.nan, 0.5, 0, True)

@@ -118,10 +118,13 @@ def test_outfit_colours_follow_the_region_codes():
     np.testing.assert_allclose(lit[:, 0], [fidelity.AMBIENT + fidelity.DIFFUSE, fidelity.AMBIENT])
 
 
-def test_uv_precision_shows_why_the_uv_map_is_16_bit(sphere):
+def test_uv_precision_shows_why_the_uv_map_keeps_14_bits(sphere):
     baked = bake_view(sphere, 0.0, 0.0)
     precision = fidelity.uv_precision(baked.uv, 1024)
     assert precision["rgba16"]["max_texels"] < 0.01
+    # uv32: 14 bits a coordinate re-rounded from 16, within 1/16 texel of a 1024² texture.
+    assert precision["rgba16"]["max_texels"] < precision["uv32"]["max_texels"] <= 1024 * (0.5 / 16383 + 0.5 / 65535) + 1e-9
+    assert precision["uv32"]["max_texels"] < 1.0 / 16
     # 8 bits per coordinate: half a step of 1/255 is two texels of a 1024² texture.
     assert 1.0 < precision["rgba8"]["max_texels"] <= 0.5 / 255 * 1024 + 1e-6
     assert precision["bc1"]["max_texels"] >= precision["rgba8"]["max_texels"]

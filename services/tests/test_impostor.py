@@ -18,6 +18,7 @@ from shapes import uv_sphere  # noqa: E402
 PYRENDER_DETAIL_SSIM = 0.95
 # 16-bit UV: one step is 1/65535; rounding costs at most half of it (plus float noise).
 UV_STEP = 1.0 / 65535.0
+UV32_STEP = 1.0 / 16383.0  # uv32 stores 14 bits a coordinate
 
 
 def sphere_texture(size: int = 64) -> np.ndarray:
@@ -93,6 +94,15 @@ def test_uv_map_decodes_to_the_texel_on_a_facing_quad():
     np.testing.assert_allclose(image.depth[expected], maps.CAMERA_DISTANCE_RADII, atol=1e-4)
     assert (image.depth[~expected] == 0).all()
     np.testing.assert_array_equal(result.normal[expected][:, :3], np.tile([128, 128, 255], (expected.sum(), 1)))
+    # Packed as uv32 (what a default bundle stores): the same coverage and material, and coordinates
+    # within half a 14-bit step of the exact ones, 1/32 texel of a 1024² texture.
+    words = maps.uv_map_to_uv32(result.uv)
+    assert words.shape == (64, 64) and words.dtype == np.uint32 and (words[~expected] == 0).all()
+    uv32, material32, covered32 = maps.decode_uv_map(words)
+    np.testing.assert_array_equal(covered32, expected)
+    assert (material32 == 0).all()
+    assert np.abs(uv32[..., 0] - exact_u)[expected].max() <= UV32_STEP / 2 + UV_STEP
+    assert np.abs(uv32[..., 1] - exact_v)[expected].max() <= UV32_STEP / 2 + UV_STEP
 
 
 def test_detail_map_matches_pyrenders_textured_render():

@@ -11,6 +11,7 @@ import pytest
 
 from crowdbake import pipeline
 from crowdbake.formats.bundle import verify_bundle
+from crowdbake.formats.binary import unpack_uv32
 from crowdbake.pipeline import BakeInputs, BakeParams, InputError, VersionConflict
 
 pytest.importorskip("pyrender")
@@ -69,7 +70,7 @@ def test_bake_writes_a_bundle_that_verifies(sample, baked):
     low = sum(m["triangle_count"] for m in manifest["meshes"] if m["lod"] == 1)
     assert abs(low - SMALL.lod_triangles) <= 0.05 * SMALL.lod_triangles
     formats = {path: bundle.textures[path].pixel_format for path in manifest["impostor"]["maps"].values()}
-    assert formats == {"impostor/normal.cbtx": "bc1", "impostor/uv.cbtx": "rgba16", "impostor/detail.cbtx": "bc2"}
+    assert formats == {"impostor/normal.cbtx": "bc1", "impostor/uv.cbtx": "uv32", "impostor/detail.cbtx": "bc2"}
     assert manifest["materials"] == [{"name": "character", "diffuse": "textures/character_diffuse.cbtx", "variations": 8}]
     # Every frame of the low LOD is the high LOD's vertices (a subset carried over).
     for part in ("body", "cloth"):
@@ -92,7 +93,8 @@ def test_bake_writes_a_bundle_that_verifies(sample, baked):
     uv = bundle.textures["impostor/uv.cbtx"]
     for layer in range(2):
         alpha = compression.decode(detail.layers[layer], "bc2", detail.width, detail.height)[..., 3]
-        covered = uv.texels(layer)[..., 3] == 65535
+        u, v, material, covered = unpack_uv32(uv.texels(layer))
+        assert (material[covered] == 0).all() and (u[~covered] == 0).all() and (v[~covered] == 0).all()
         assert (alpha % 17 == 0).all() and (alpha[~covered] == 0).all() and covered.any()
     fidelity = json.loads((summary.bundle / "fidelity.json").read_text())
     assert fidelity["impostor"]["views"] == 8 and 0.3 < fidelity["impostor"]["ssim_mean"] <= 1.0
@@ -160,6 +162,7 @@ def test_bad_inputs_name_their_field(sample, tmp_path):
         (inputs_for(sample, params=BakeParams(tile_size=30)), "tile_size"),
         (inputs_for(sample, params=BakeParams(lod_ratio=0.2, lod_triangles=100)), "lod_ratio"),
         (inputs_for(sample, params=BakeParams(elevations_deg=(0.0, 0.0))), "elevations_deg"),
+        (inputs_for(sample, params=BakeParams(uv_format="rgba8")), "uv_format"),
     ]
     for inputs, field in cases:
         with pytest.raises(InputError) as caught:
@@ -181,13 +184,18 @@ def test_command_line_bake_with_a_given_cycle(sample, baked, tmp_path, capsys):
         "bake", str(sample / "character.glb"), "--cloth", str(sample / "cloth.pc2"), "--cloth-mesh", str(sample / "cloth.obj"),
         "--textures", str(sample / "textures"), "--cycle", str(cycle), "--name", "sample", "--version", "2",
         "--out", str(tmp_path / "bundles"), "--frames", "1", "--azimuths", "2", "--elevations", "0", "--tile", "16",
-        "--lod-triangles", "900", "--created", "2006-09-04T12:00:00Z", "--figure4", str(tmp_path / "figure4.png"),
+        "--lod-triangles", "900", "--created", "2006-09-04T12:00:00Z", "--uv-format", "rgba16",
+        "--figure4", str(tmp_path / "figure4.png"),
     ]
     assert main(arguments) == 0
     out = capsys.readouterr().out
     assert "verified" in out and "fidelity impostor vs mesh" in out and "figure 4" in out
     bundle = verify_bundle(tmp_path / "bundles" / "sample" / "2")
     assert bundle.manifest["created"] == "2006-09-04T12:00:00Z"
+    # --uv-format rgba16: the older, twice as large UV map is still written on request.
+    uv_map = bundle.textures["impostor/uv.cbtx"]
+    assert uv_map.pixel_format == "rgba16" and len(uv_map.layers[0]) == 8 * uv_map.width * uv_map.height
+    assert json.loads((tmp_path / "bundles" / "sample" / "2" / "fidelity.json").read_text())["uv_map_format"] == "rgba16"
     assert bundle.manifest["cycle"]["source_start_frame"] == json.loads(cycle.read_text())["start_frame"]
     assert (tmp_path / "figure4.png").stat().st_size > 0 and (tmp_path / "figure4.json").is_file()
 

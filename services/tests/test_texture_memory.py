@@ -40,6 +40,16 @@ def test_bundle_bytes_with_16_bit_uv_maps_break_even_later():
     assert report["paper"]["detail_mapped_mib"][7] == 93
 
 
+def test_bundle_bytes_with_uv32_maps_break_even_at_half_the_variations():
+    # The default bake's layout with the default uv32 UV map: 4 bytes a texel against BC2's 1.
+    texels = 2048 * 384 * 10
+    rgba16 = MapBytes(normal=texels / 2, uv=texels * 8, detail=texels * 1, diffuse_per_variation=1024 * 1024)
+    uv32 = MapBytes(normal=texels / 2, uv=texels * 4, detail=texels * 1, diffuse_per_variation=1024 * 1024)
+    assert texture_memory.break_even_variations(uv32) == 4.0
+    assert texture_memory.break_even_variations(uv32) * 2 == texture_memory.break_even_variations(rgba16)
+    assert uv32.uv_mapped(5) < uv32.detail_mapped(5) and uv32.uv_mapped(3) > uv32.detail_mapped(3)
+
+
 def test_series_needs_a_variation():
     with pytest.raises(ValueError):
         texture_memory.series(texture_memory.paper_map_bytes(), 0)

@@ -1,8 +1,9 @@
 #version 330 core
 #include "../config.h"
+#include "impostor_uv_map.glsl"
 // The detail-mapped impostor the paper compares against (Geopostors): the diffuse colour of
 // variation 0 is baked into the detail map, alpha carries the region code. Coverage comes
-// from the UV map's A channel, since region 0 inside the character also has alpha 0.
+// from the UV map (impostor_uv_map.glsl), since region 0 inside the character also has alpha 0.
 
 in vec2 v_tile_uv;
 flat in ivec3 v_tile;
@@ -11,7 +12,6 @@ flat in uint v_variation;
 flat in uint v_outfit;
 
 uniform sampler2DArray u_normal_map;
-uniform sampler2DArray u_uv_map;
 uniform sampler2DArray u_detail_map;
 uniform sampler2D u_outfits;
 uniform int u_tile_size;
@@ -21,7 +21,7 @@ out vec4 o_color;
 
 void main() {
     ivec3 texel = ivec3(v_tile.xy + clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1)), v_tile.z);
-    if (texelFetch(u_uv_map, texel, 0).a < 0.5) discard;
+    if (!fetch_uv_map(texel).covered) discard;
     vec4 detail = texelFetch(u_detail_map, texel, 0);
     vec3 albedo = detail.rgb;
     int region = int(detail.a * 255.0 / CV_REGION_SCALE + 0.5);

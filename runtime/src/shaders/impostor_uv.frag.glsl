@@ -1,5 +1,6 @@
 #version 330 core
 #include "../config.h"
+#include "impostor_uv_map.glsl"
 #if CV_MAX_MATERIALS != 4
 #error main samples materials 0 to 3, keep it in step with CV_MAX_MATERIALS
 #endif
@@ -16,7 +17,6 @@ flat in uint v_variation;
 flat in uint v_outfit;
 
 uniform sampler2DArray u_normal_map;
-uniform sampler2DArray u_uv_map;
 uniform sampler2DArray u_diffuse[CV_MAX_MATERIALS];
 uniform int u_variations[CV_MAX_MATERIALS];
 uniform bool u_has_regions[CV_MAX_MATERIALS];
@@ -44,16 +44,16 @@ out vec4 o_color;
 
 void main() {
     ivec2 texel = v_tile.xy + clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1));
-    vec4 uv_texel = texelFetch(u_uv_map, ivec3(texel, v_tile.z), 0);
-    vec2 uv = uv_texel.rg;
+    UvTexel uv_texel = fetch_uv_map(ivec3(texel, v_tile.z));
+    vec2 uv = uv_texel.uv;
     // Gradients before any discard. Neighbours across the silhouette or a UV seam would ask
     // for a far too coarse mip level; clamp to a few tile texels' worth of footprint.
     vec2 dx = dFdx(uv), dy = dFdy(uv);
     float limit = 4.0 * max(length(dFdx(v_tile_uv)), length(dFdy(v_tile_uv))) + 1e-6;
     dx *= min(1.0, limit / max(length(dx), 1e-9));
     dy *= min(1.0, limit / max(length(dy), 1e-9));
-    if (uv_texel.a < 0.5) discard;  // coverage: outside the character
-    int material = int(uv_texel.b * 65535.0 + 0.5);
+    if (!uv_texel.covered) discard;  // coverage: outside the character
+    int material = uv_texel.material;
 
     vec3 albedo = vec3(1.0, 0.0, 1.0);  // magenta: a material index this build cannot address
     float alpha = 0.0;                  // region code * 17 / 255; 0 where a material has no regions

@@ -108,7 +108,8 @@ def impostor_image(
 ) -> np.ndarray:
     """What the runtime draws from one tile: (S, S, 3) float64 0..1, black where the UV map has no coverage.
 
-    uv_map: (S, S, 4) uint16; normal_map: (S, S, 4) uint8 as decoded from its (compressed) layer.
+    uv_map: (S, S, 4) uint16 (rgba16) or (S, S) uint32 (uv32), as stored; normal_map: (S, S, 4) uint8
+    as decoded from its (compressed) layer.
     """
     uv, material, covered = impostor_maps.decode_uv_map(uv_map)
     normals = impostor_maps.decode_normal_map(normal_map)
@@ -179,16 +180,38 @@ def uv_precision(uv_map: np.ndarray, texture_size: int) -> dict[str, dict[str, f
     """Texel error of storing a UV map's coordinates at lower precision, for a texture_size² texture.
 
     uv_map: (S, S, 4) uint16 (the baked, 16-bit map). Compares the 16-bit map with the same coordinates
-    rounded to 8 bits (rgba8) and with those 8-bit coordinates block-compressed as BC1 (DXT1). Returns,
-    per variant, the max and mean error in texels over covered texels (for rgba16 the rounding bound,
-    `bound` True): why the bundle keeps rgba16.
+    packed as uv32 (14 bits each), rounded to 8 bits (rgba8) and those 8-bit coordinates block-compressed
+    as BC1 (DXT1). Returns, per variant, the max and mean error in texels over covered texels (for rgba16
+    the rounding bound, `bound` True): why the bundle stores uv32 (well under a texel) and not 8 bits.
     """
     from crowdbake.bake import compression
+    from crowdbake.formats.binary import unpack_uv32
 
     uv, _, covered = impostor_maps.decode_uv_map(uv_map)
     result: dict[str, dict[str, float]] = {}
     if not covered.any():
         return result
+    exact = uv[covered]
+    eight = np.zeros(uv_map.shape[:2] + (4,), dtype=np.uint8)
+    eight[..., :2] = np.rint(uv * 255.0)
+    eight[..., 3] = 255
+    height, width = uv_map.shape[:2]
+    padded_height, padded_width = height + (-height) % 4, width + (-width) % 4
+    eight = np.pad(eight, ((0, padded_height - height), (0, padded_width - width), (0, 0)))
+    bc1 = compression.decode_bc1(compression.encode_bc1(eight), padded_width, padded_height)[:height, :width]
+    # The 16-bit map is the reference: its own rounding is at most half a step.
+    half_step = 0.5 / 65535.0 * texture_size
+    result["rgba16"] = {"max_texels": half_step, "mean_texels": half_step / 2.0, "bound": True}
+    u32, v32, _, _ = unpack_uv32(impostor_maps.uv_map_to_uv32(uv_map))
+    variants = {
+        "uv32": np.stack([u32, v32], axis=-1)[covered],
+        "rgba8": eight[:height, :width, :2][covered].astype(np.float64) / 255.0,
+        "bc1": bc1[..., :2][covered].astype(np.float64) / 255.0,
+    }
+    for name, stored in variants.items():
+        error = np.abs(stored - exact).max(axis=1) * texture_size
+        result[name] = {"max_texels": float(error.max()), "mean_texels": float(error.mean()), "bound": False}
+    return result
     exact = uv[covered]
     eight = np.zeros(uv_map.shape[:2] + (4,), dtype=np.uint8)
     eight[..., :2] = np.rint(uv * 255.0)

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from crowdbake.formats.binary import pack_uv32, unpack_uv32
+
 # The camera sits this many radii from the centre: the sphere of the bounds then lies at depths 2r .. 4r,
 # well inside the clip range used by the renderer (1.5r .. 4.5r). Same as crowdbake.render.offscreen.
 CAMERA_DISTANCE_RADII = 3.0
@@ -437,11 +439,27 @@ def view_maps(
 
 
 def decode_uv_map(uv_map: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(S, S, 4) uint16 UV map -> uv (S, S, 2) float64, material (S, S) int64, coverage (S, S) bool."""
+    """A UV map as stored -> uv (S, S, 2) float64, material (S, S) int64, coverage (S, S) bool.
+
+    uv_map: (S, S, 4) uint16 (rgba16, and the bake's own 16-bit maps) or (S, S) uint32 words (uv32).
+    """
     uv_map = np.asarray(uv_map)
+    if uv_map.ndim == 2 and uv_map.dtype == np.uint32:
+        u, v, material, covered = unpack_uv32(uv_map)
+        return np.stack([u, v], axis=-1), material, covered
     if uv_map.ndim != 3 or uv_map.shape[2] != 4:
-        raise ValueError(f"decode_uv_map: expected (H, W, 4), got {uv_map.shape}")
+        raise ValueError(f"decode_uv_map: expected (H, W, 4) uint16 or (H, W) uint32, got {uv_map.shape} {uv_map.dtype}")
     return uv_map[..., :2].astype(np.float64) / 65535.0, uv_map[..., 2].astype(np.int64), uv_map[..., 3] >= 32768
+
+
+def uv_map_to_uv32(uv_map: np.ndarray) -> np.ndarray:
+    """The bake's (H, W, 4) uint16 UV map as (H, W) uint32 uv32 words (SPEC.md pixel format 5).
+
+    Coordinates are re-rounded from 16 to 14 bits (at most 0.5/16383 + 0.5/65535 off the exact
+    value); material indices above 7 cannot be stored and raise ValueError.
+    """
+    uv, material, covered = decode_uv_map(uv_map)
+    return pack_uv32(uv[..., 0], uv[..., 1], np.where(covered, material, 0), covered)
 
 
 def decode_normal_map(normal_map: np.ndarray) -> np.ndarray:

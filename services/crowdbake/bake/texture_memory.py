@@ -19,7 +19,8 @@ so detail-mapped(n) = 5 + 11 n and UV-mapped(n) = 15 + n: equal at one variation
 variation costs 11 MiB against 1 MiB.
 
 `bundle_series` applies the same sums to the byte sizes of a real bundle's layers, where the UV map is
-rgba16 (8 bytes a texel, not DXT3's 1: 16-bit coordinates address a 1024² texture to the texel, SPEC.md).
+uv32 by default (4 bytes a texel, not DXT3's 1: 14-bit coordinates address a 1024² texture to 1/16 texel,
+which block compression cannot keep) or rgba16 (8 bytes a texel), SPEC.md.
 Pure arithmetic; no I/O.
 """
 from __future__ import annotations

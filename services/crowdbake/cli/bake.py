@@ -47,6 +47,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--candidates", type=int, default=5, metavar="K", help="cycle candidates kept by pass 1 (default 5)")
     parser.add_argument("--cycle-views", type=int, default=5, metavar="N", help="views of the pass-2 edge metric (default 5)")
     parser.add_argument("--no-compress", action="store_true", help="store maps and textures as rgba8 instead of DXT1/DXT3")
+    parser.add_argument("--uv-format", choices=["uv32", "rgba16"], default="uv32",
+                        help="impostor UV map format: uv32 (4 bytes a texel, 14-bit coordinates) or rgba16 (8 bytes) (default uv32)")
     parser.add_argument("--created", metavar="TIME", help="manifest time, RFC 3339 UTC (default: SOURCE_DATE_EPOCH or the inputs' time)")
     parser.add_argument("--work", metavar="DIR", help="keep the work folder here (a rerun resumes finished stages)")
     parser.add_argument("--figure4", metavar="PLOT.png", help="also plot figure 4 (texture memory) here, with its JSON beside it")
@@ -126,6 +128,7 @@ def format_summary(summary) -> str:
     if "rgba8" in precision:
         lines.append(
             f"uv map   max texel error at {precision['texture_size']}²: rgba16 {precision['rgba16']['max_texels']:.4f}, "
+            f"uv32 {precision['uv32']['max_texels']:.4f}, "
             f"rgba8 {precision['rgba8']['max_texels']:.2f}, bc1 {precision['bc1']['max_texels']:.1f}"
         )
     for name, errors in summary.compression.items():
@@ -189,6 +192,7 @@ def run(args: argparse.Namespace) -> int:
             lod_ratio=args.lod_ratio,
             lod_triangles=args.lod_triangles,
             compress=not args.no_compress,
+            uv_format=args.uv_format,
         )
         params.validate()
     except InputError as error:

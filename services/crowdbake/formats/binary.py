@@ -30,8 +30,16 @@ NORMAL_LENGTH_TOLERANCE = 1e-3
 # Bounds are float32 too; a position may sit this far (metres) outside them from rounding.
 BOUNDS_TOLERANCE = 1e-4
 
-PIXEL_FORMATS = {1: "rgba8", 2: "rgba16", 3: "bc1", 4: "bc2"}
+PIXEL_FORMATS = {1: "rgba8", 2: "rgba16", 3: "bc1", 4: "bc2", 5: "uv32"}
 PIXEL_FORMAT_CODES = {name: code for code, name in PIXEL_FORMATS.items()}
+
+# uv32 (SPEC.md): one u32 a texel, u in bits 0..13, v in 14..27, material in 28..30, coverage in 31.
+# 14 bits address a 1024-texel texture to 1/16 texel, half the bytes of rgba16.
+UV32_COORD_BITS = 14
+UV32_COORD_MAX = (1 << UV32_COORD_BITS) - 1  # 16383
+UV32_MATERIAL_SHIFT = 28
+UV32_MAX_MATERIAL = 7
+UV32_COVERAGE_SHIFT = 31
 
 
 def layer_size(pixel_format: str, width: int, height: int) -> int:
@@ -40,6 +48,8 @@ def layer_size(pixel_format: str, width: int, height: int) -> int:
         return 4 * width * height
     if pixel_format == "rgba16":
         return 8 * width * height
+    if pixel_format == "uv32":
+        return 4 * width * height
     if pixel_format in ("bc1", "bc2"):
         if width % 4 or height % 4:
             raise ValueError(f"{pixel_format} needs sizes that are multiples of 4, got {width}x{height}")
@@ -175,7 +185,10 @@ class TextureArray:
     layers: tuple[bytes, ...]
 
     def texels(self, layer: int) -> np.ndarray:
-        """Layer as (H, W, 4) uint8 (rgba8) or uint16 (rgba16); block formats need a decoder."""
+        """Layer as (H, W, 4) uint8 (rgba8) or uint16 (rgba16), or (H, W) uint32 words (uv32, see
+        unpack_uv32); block formats need a decoder."""
+        if self.pixel_format == "uv32":
+            return np.frombuffer(self.layers[layer], "<u4").reshape(self.height, self.width)
         if self.pixel_format == "rgba8":
             return np.frombuffer(self.layers[layer], np.uint8).reshape(self.height, self.width, 4)
         if self.pixel_format == "rgba16":
@@ -184,7 +197,12 @@ class TextureArray:
 
 
 def encode_texture_array(width: int, height: int, pixel_format: str, layers: list[bytes] | np.ndarray) -> bytes:
-    """Serialise a CBTX file. `layers`: raw bytes per layer, or an (L, H, W, 4) uint8/uint16 array."""
+    """Serialise a CBTX file. `layers`: raw bytes per layer, an (L, H, W, 4) uint8/uint16 array
+    (rgba8/rgba16) or an (L, H, W) uint32 array (uv32)."""
+    if isinstance(layers, np.ndarray) and pixel_format == "uv32":
+        if layers.shape[1:] != (height, width):
+            raise ValueError(f"an array of uv32 layers must be (L, {height}, {width}), got {layers.shape}")
+        layers = [np.ascontiguousarray(layer, dtype="<u4").tobytes() for layer in layers]
     if isinstance(layers, np.ndarray):
         dtype = {"rgba8": np.uint8, "rgba16": np.dtype("<u2")}.get(pixel_format)
         if dtype is None or layers.shape[1:] != (height, width, 4):
@@ -233,3 +251,33 @@ def region_alpha(codes: np.ndarray) -> np.ndarray:
     if codes.size and (codes.min() < 0 or codes.max() > 15):
         raise ValueError("region codes must lie in 0..15")
     return (codes.astype(np.uint8) * 17).astype(np.uint8)
+
+
+def pack_uv32(u: np.ndarray, v: np.ndarray, material: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    """UV-map texels as uv32 words (SPEC.md pixel format 5).
+
+    u, v: (...) float in [0, 1] (clipped), texture coordinates; material: (...) int in 0..7;
+    coverage: (...) bool, True inside the character. All broadcast to one shape S.
+    Returns (S) uint32: round(u·16383) | round(v·16383) << 14 | material << 28 | coverage << 31.
+    Uncovered texels are stored as 0 whatever their other fields, so a map has one encoding.
+    """
+    u, v, material, coverage = np.broadcast_arrays(np.asarray(u, np.float64), np.asarray(v, np.float64), np.asarray(material), np.asarray(coverage, bool))
+    if material.size and (material.min() < 0 or material.max() > UV32_MAX_MATERIAL):
+        raise ValueError(f"uv32 material indices must lie in 0..{UV32_MAX_MATERIAL}, got {material.min()}..{material.max()}")
+    if not (np.isfinite(u).all() and np.isfinite(v).all()):
+        raise ValueError("uv32 coordinates contain NaN or infinity")
+    qu = np.rint(np.clip(u, 0.0, 1.0) * UV32_COORD_MAX).astype(np.uint32)
+    qv = np.rint(np.clip(v, 0.0, 1.0) * UV32_COORD_MAX).astype(np.uint32)
+    words = qu | (qv << UV32_COORD_BITS) | (material.astype(np.uint32) << UV32_MATERIAL_SHIFT) | (np.uint32(1) << UV32_COVERAGE_SHIFT)
+    return np.where(coverage, words, np.uint32(0)).astype(np.uint32)
+
+
+def unpack_uv32(words: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """uv32 words (...) uint32 -> (u, v, material, coverage): u, v (...) float64 in [0, 1],
+    material (...) int64 in 0..7, coverage (...) bool."""
+    words = np.asarray(words, dtype=np.uint32)
+    u = (words & UV32_COORD_MAX).astype(np.float64) / UV32_COORD_MAX
+    v = ((words >> UV32_COORD_BITS) & UV32_COORD_MAX).astype(np.float64) / UV32_COORD_MAX
+    material = ((words >> UV32_MATERIAL_SHIFT) & UV32_MAX_MATERIAL).astype(np.int64)
+    coverage = (words >> UV32_COVERAGE_SHIFT).astype(bool)
+    return u, v, material, coverage

@@ -147,6 +147,24 @@ def decode_layer(data: bytes, pixel_format: str, width: int, height: int) -> np.
     return np.asarray(decode(data, pixel_format, width, height))
 
 
+def decode_uv_layer(data: bytes, pixel_format: str, width: int, height: int) -> np.ndarray:
+    """One UV-map layer (rgba16 or uv32, SPEC.md) as (height, width, 4) uint16 in rgba16's layout
+    (u·65535, v·65535, material, coverage 65535/0), so one preview serves both formats."""
+    if pixel_format == "rgba16":
+        return decode_layer(data, pixel_format, width, height)
+    if pixel_format != "uv32":
+        raise ValueError(f"a UV map must be rgba16 or uv32, not {pixel_format}")
+    from crowdbake.formats.binary import unpack_uv32
+
+    u, v, material, covered = unpack_uv32(np.frombuffer(data, "<u4").reshape(height, width))
+    uv = np.zeros((height, width, 4), dtype=np.uint16)
+    uv[..., 0] = np.where(covered, np.rint(u * 65535.0), 0)
+    uv[..., 1] = np.where(covered, np.rint(v * 65535.0), 0)
+    uv[..., 2] = np.where(covered, material, 0)
+    uv[..., 3] = np.where(covered, 65535, 0)
+    return uv
+
+
 def uv_preview(uv: np.ndarray) -> np.ndarray:
     """(H, W, 4) uint16 UV map (SPEC.md: R = u·65535, G = v·65535, B = material, A = coverage) ->
     (H, W, 4) uint8 picture: red u, green v, blue 64·material, opaque where covered, transparent elsewhere."""
@@ -191,8 +209,8 @@ def png_bytes(picture: np.ndarray) -> bytes:
 
 def render_preview(folder: Path, maps: dict[str, str], kind: str, layer: int, tile_size: int, azimuth: int | None, elevation: int | None) -> bytes:
     """PNG of layer `layer` of the bundle's `kind` map, cut to the selected tiles."""
-    _, width, height, _, uv_data = read_texture_layer(folder / maps["uv"], layer)
-    uv = decode_layer(uv_data, "rgba16", width, height)
+    uv_format, width, height, _, uv_data = read_texture_layer(folder / maps["uv"], layer)
+    uv = decode_uv_layer(uv_data, uv_format, width, height)
     if kind == "uv":
         picture = uv_preview(uv)
     else:
