@@ -39,6 +39,8 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 GLB_MAGIC = b"glTF"
 PC2_MAGIC = b"POINTCACHE2\0"
 ZIP_MAGICS = (b"PK\x03\x04", b"PK\x05\x06")
+# Compression methods Python's zipfile reads (store, deflate, bzip2, lzma); others raise NotImplementedError.
+READABLE_ZIP_METHODS = frozenset({zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED, zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA})
 
 # Extension -> the content format it promises.
 CHARACTER_EXTENSIONS = {".glb": "glb", ".gltf": "gltf"}
@@ -176,12 +178,16 @@ def _where_from_message(message: str, path: Path) -> str | None:
 
 
 def _external_uris(path: Path) -> list[str]:
-    """Buffer and image URIs of a .gltf that are not embedded data URIs ([] if the JSON does not parse)."""
+    """Buffer and image URIs of a .gltf or a .glb that are not embedded data URIs ([] if the JSON does
+    not parse: the reader then says why)."""
     import json
 
+    from crowdbake.formats.gltf import parse_glb
+
     try:
-        document = json.loads(path.read_bytes())
-    except (ValueError, UnicodeDecodeError):
+        data = path.read_bytes()
+        document = parse_glb(data, path.name)[0] if data.startswith(GLB_MAGIC) else json.loads(data)
+    except (ValueError, UnicodeDecodeError, RecursionError):  # RecursionError: "[[[[..." nested too deep
         return []
     if not isinstance(document, dict):
         return []
@@ -221,14 +227,16 @@ def check_character(path: Path, filename: str, field: str = "file") -> dict[str,
     from crowdbake.formats.gltf import load_character
 
     file_format = expect_format(path, filename, field, CHARACTER_EXTENSIONS)
-    if file_format == "gltf":
-        external = _external_uris(path)
-        if external:
-            raise UploadRejected(
-                INVALID_FILE,
-                "an uploaded .gltf must embed its buffers and images",
-                [FieldError(field, f"refers to the external file {uri!r}; upload a .glb or embed it as a data URI", filename) for uri in external],
-            )
+    # A GLB may name external files too (its JSON chunk can give any buffer or image a uri). The reader
+    # would resolve them next to the staging file, so "../../etc/passwd" would read a server file into
+    # the character: refuse every uri that is not a data URI, whatever the container.
+    external = _external_uris(path)
+    if external:
+        raise UploadRejected(
+            INVALID_FILE,
+            f"an uploaded .{file_format} must embed its buffers and images",
+            [FieldError(field, f"refers to the external file {uri!r}; embed it (a .glb's BIN chunk or a data URI)", filename) for uri in external],
+        )
     try:
         character = load_character(path)
     except ValueError as error:
@@ -366,6 +374,8 @@ def _natural_key(name: str) -> list:
 
 def _unsafe_entry_reason(info: zipfile.ZipInfo) -> str | None:
     name = info.filename
+    if not name:  # (zipfile's own ZipInfo.is_dir() fails with IndexError on one)
+        return "has an empty name"
     if "\\" in name:
         return "uses a backslash (a Windows path that could escape the folder)"
     if name.startswith("/") or re.match(r"^[A-Za-z]:", name):
@@ -378,13 +388,31 @@ def _unsafe_entry_reason(info: zipfile.ZipInfo) -> str | None:
     return None
 
 
+# What reading a damaged or unusual entry raises: a bad CRC or header (BadZipFile), a broken deflate
+# stream (zlib.error), data cut short (EOFError), zip features zipfile lacks (NotImplementedError:
+# patched data, strong encryption) and offsets outside the file (OSError EINVAL from seek). Only the
+# reads are guarded: an OSError writing the extracted frame is the server's disk, not the upload.
+_ENTRY_READ_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, OSError)
+
+
+def _corrupt_entry(info: zipfile.ZipInfo, error: BaseException, zip_name: str, field: str) -> UploadRejected:
+    return UploadRejected(INVALID_FILE, "an archive entry is corrupt", [FieldError(field, f"cannot be decompressed: {error}", zip_name, f"entry {info.filename}")])
+
+
 def _extract_bounded(archive: zipfile.ZipFile, info: zipfile.ZipInfo, destination: Path, budget: int, zip_name: str, field: str) -> int:
     """Copy one entry to `destination`, refusing to write more than its declared size or `budget`."""
     written = 0
     limit = min(info.file_size, budget)
-    with archive.open(info) as source, open(destination, "wb") as target:
+    try:
+        source = archive.open(info)
+    except _ENTRY_READ_ERRORS as error:
+        raise _corrupt_entry(info, error, zip_name, field) from None
+    with source, open(destination, "wb") as target:
         while True:
-            chunk = source.read(_COPY_CHUNK)
+            try:
+                chunk = source.read(_COPY_CHUNK)
+            except _ENTRY_READ_ERRORS as error:
+                raise _corrupt_entry(info, error, zip_name, field) from None
             if not chunk:
                 break
             written += len(chunk)
@@ -414,7 +442,7 @@ def convert_obj_sequence(
     expect_format(zip_path, zip_name, field, SEQUENCE_EXTENSIONS)
     try:
         archive = zipfile.ZipFile(zip_path)
-    except (zipfile.BadZipFile, OSError) as error:
+    except (zipfile.BadZipFile, OSError, NotImplementedError) as error:  # NotImplementedError: a zip version zipfile cannot read
         raise UploadRejected(INVALID_FILE, "the archive is not a readable zip", [FieldError(field, f"not a readable zip: {error}", zip_name)]) from None
     with archive:
         infos = archive.infolist()
@@ -434,6 +462,10 @@ def convert_obj_sequence(
                 )
             if info.flag_bits & 0x1:
                 raise UploadRejected(INVALID_FILE, "encrypted archive entries cannot be read", [FieldError(field, "entry is encrypted", zip_name, f"entry {info.filename}")])
+            if info.compress_type not in READABLE_ZIP_METHODS:
+                # zipfile raises NotImplementedError for these when the entry is opened (a 500 before).
+                raise UploadRejected(INVALID_FILE, "an archive entry uses a compression method that cannot be read",
+                                     [FieldError(field, f"entry uses compression method {info.compress_type}; use deflate or store", zip_name, f"entry {info.filename}")])
         frames = sorted(
             (info for info in infos if not info.is_dir() and info.filename.lower().endswith(".obj")
              and not info.filename.startswith("__MACOSX/") and not PurePosixPath(info.filename).name.startswith("._")),
@@ -452,10 +484,7 @@ def convert_obj_sequence(
         try:
             for index, info in enumerate(frames):
                 frame_path = scratch / f"frame{index}.obj"
-                try:
-                    budget -= _extract_bounded(archive, info, frame_path, budget, zip_name, field)
-                except (zipfile.BadZipFile, zlib.error, EOFError) as error:
-                    raise UploadRejected(INVALID_FILE, "an archive entry is corrupt", [FieldError(field, f"cannot be decompressed: {error}", zip_name, f"entry {info.filename}")]) from None
+                budget -= _extract_bounded(archive, info, frame_path, budget, zip_name, field)
                 try:
                     mesh = read_obj(frame_path)
                 except ValueError as error:
@@ -514,7 +543,8 @@ def check_texture(path: Path, filename: str, max_pixels: int, field: str = "file
             image.load()
             mode = image.mode
     except Exception as error:  # Pillow raises OSError, SyntaxError, ValueError... for broken PNGs
-        message = str(error) or type(error).__name__
+        # Pillow names the file it opened: the staging path, which is the server's business.
+        message = _clean(str(error), path, filename) or type(error).__name__
         where = f"byte {size}" if "truncated" in message.lower() else None
         raise UploadRejected(INVALID_FILE, f"the PNG does not decode: {message}", [FieldError(field, message, filename, where)]) from None
     return {"width": int(width), "height": int(height), "mode": mode}

@@ -15,6 +15,7 @@ from crowdbake import __version__
 from crowdbake.api import problems
 from crowdbake.api.deps import AppServices
 from crowdbake.api.problems import PROBLEM_TYPES, Problem, problem_type_uri
+from crowdbake.api.schemas import Problem as ProblemDocument
 from crowdbake.api.routes import assets, bakes, bundles, health, metrics, web
 from crowdbake.jobs.celery_app import make_celery
 from crowdbake.metrics import HttpMetrics, MetricsMiddleware
@@ -74,7 +75,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics = HttpMetrics(app.state.services.sessions)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
 
-    @app.get("/problems/{slug}", tags=["health"], summary="What a problem type means")
+    @app.get("/problems/{slug}", tags=["health"], summary="What a problem type means",
+             responses={404: {"model": ProblemDocument, "content": {"application/problem+json": {}}, "description": "No such problem type"}})
     def describe_problem(slug: str) -> dict:
         if slug not in PROBLEM_TYPES:
             raise Problem("not-found", f"no problem type {slug!r}")

@@ -7,7 +7,9 @@ entry per problem with the `field` concerned, the `file` (or archive entry) and 
 """
 from __future__ import annotations
 
+import errno
 import logging
+import os
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -20,6 +22,8 @@ from crowdbake.validation import FieldError, UploadRejected
 logger = logging.getLogger(__name__)
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
+# OS errors that mean "the disk (or the quota) is full".
+STORAGE_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
 
 # slug -> (status, title, when it happens). docs/service.md lists the same table.
 PROBLEM_TYPES: dict[str, tuple[int, str, str]] = {
@@ -110,6 +114,15 @@ def install(app: FastAPI) -> None:
         slug = _STATUS_SLUGS.get(error.status_code, "malformed-request" if error.status_code < 500 else "internal-error")
         detail = error.detail if isinstance(error.detail, str) else PROBLEM_TYPES[slug][2]
         return problem_response(request, Problem(slug, detail, status=error.status_code, headers=dict(error.headers or {})))
+
+    @app.exception_handler(OSError)
+    async def _storage(request: Request, error: OSError) -> JSONResponse:
+        # A full disk (or quota) under the blob store is the server's condition, not a bug, and it
+        # passes: say so with 503 instead of a 500. The upload's staging files are already discarded.
+        if error.errno in STORAGE_FULL_ERRNOS:
+            logger.error("storage full on %s %s: %s", request.method, request.url.path, error)
+            return problem_response(request, Problem("not-ready", f"the server has no room to store this: {os.strerror(error.errno)}; try again later"))
+        return await _unexpected(request, error)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, error: Exception) -> JSONResponse:

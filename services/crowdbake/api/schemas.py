@@ -73,6 +73,12 @@ class AssetPublic(BaseModel):
     info: dict[str, Any]
     created_at: dt.datetime
 
+    @field_validator("created_at")
+    @classmethod
+    def _in_utc(cls, value: dt.datetime) -> dt.datetime:
+        # SQLite hands back naive datetimes; without an offset the value is not an RFC 3339 date-time.
+        return value.replace(tzinfo=dt.timezone.utc) if value.tzinfo is None else value
+
 
 class AssetsPublic(BaseModel):
     data: list[AssetPublic]

@@ -595,9 +595,23 @@ def _mesh_name(doc: _Document, skin_index: int) -> str:
     return ""
 
 
+# What a glTF whose JSON has the wrong shape (null where an object belongs, a list as an index, nesting
+# deep enough to exhaust the parser's recursion) raises while it is walked. The reader's contract is
+# ValueError for every bad file, so these are turned into one at this boundary.
+_MALFORMED_STRUCTURE = (TypeError, AttributeError, KeyError, IndexError, OverflowError, RecursionError, ZeroDivisionError, struct.error)
+
+
 def load_character(path: str | os.PathLike, skin: int = 0, animation: int = 0) -> Character:
-    """Load skin `skin` of a .glb/.gltf (its meshes merged) and animation `animation` into a Character."""
-    path = Path(path)
+    """Load skin `skin` of a .glb/.gltf (its meshes merged) and animation `animation` into a Character.
+
+    Raises ValueError naming the file for anything the file gets wrong, its JSON's shape included."""
+    try:
+        return _load_character(Path(path), skin, animation)
+    except _MALFORMED_STRUCTURE as error:
+        raise ValueError(f"{path}: the glTF JSON does not have the structure glTF 2.0 requires ({type(error).__name__}: {error})") from None
+
+
+def _load_character(path: Path, skin: int, animation: int) -> Character:
     doc = _open_document(path)
     gltf, where = doc.gltf, doc.where
     skin_info = doc.item("skins", skin) if gltf.get("skins") else None

@@ -83,6 +83,23 @@ def log_lines(session: Session, bake_id: str, limit: int | None = None) -> list[
     return list(reversed(session.scalars(query).all()))
 
 
+def record_redelivery(session: Session, bake_id: str, attempt: int, stage: str, label: str) -> int:
+    """Log that a stage task (label: the stage, or a fan-out part's id) arrived again in this attempt,
+    which happens when the worker running it was lost (killed, out of memory, crashed) and the broker
+    handed the message back. Returns how many times that has happened (this time included).
+
+    The log is the count: no schema change, and the user sees every redelivery in the bake's log.
+    """
+    marker = f"{label}: delivered again in attempt {attempt}"
+    earlier = session.scalar(
+        select(func.count()).select_from(BakeLog)
+        .where(BakeLog.bake_id == bake_id, BakeLog.message.startswith(marker + ",", autoescape=True))
+    )
+    count = int(earlier) + 1
+    append_log(session, bake_id, "WARNING", stage, f"{marker}, redelivery {count}: the worker running it was lost (killed, out of memory or crashed)")
+    return count
+
+
 def stage_row(session: Session, bake_id: str, stage: str) -> BakeStage:
     row = session.get(BakeStage, (bake_id, stage))
     if row is None:

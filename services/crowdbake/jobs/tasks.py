@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from celery import group
+from celery.exceptions import Reject
 from kombu.exceptions import OperationalError as KombuOperationalError
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
@@ -52,6 +53,10 @@ TRANSIENT_ERRNOS = frozenset({errno.ENOSPC, errno.EIO, errno.EAGAIN, errno.EBUSY
 MAX_CAPTURED_LINES = 200
 
 TASK_OPTIONS = dict(bind=True, acks_late=True, reject_on_worker_lost=True, ignore_result=True)
+# How long a worker keeps trying to hand a finished stage to the next one while the broker is away
+# (a Redis restart or failover): about two minutes (0.5 + 1.5 + ... + 5 s, 30 tries). Kombu's default
+# gives up after about one second, which dropped the bake's next stage on any broker restart.
+BROKER_PUBLISH_RETRY = {"max_retries": 30, "interval_start": 0.5, "interval_step": 1.0, "interval_max": 5.0}
 
 
 class BakeStopped(Exception):
@@ -157,21 +162,35 @@ def describe_error(error: BaseException, stage: str) -> dict[str, Any]:
     except ImportError:
         pass
     detail = " ".join(str(error).split()) or type(error).__name__
+    if isinstance(error, OSError) and error.errno is not None and error.filename is not None:
+        # The file name is a path in the server's work folder: the log has it, the API user gets the reason.
+        detail = f"[Errno {error.errno}] {error.strerror}"
     if pipeline is not None and isinstance(error, getattr(pipeline, "InputError", ())):
         record = {"type": "invalid-input", "title": "the inputs cannot be baked", "detail": detail}
         field = getattr(error, "field", None)
         if field:
             record["field"] = str(field)
         return record
+    if isinstance(error, KombuOperationalError):
+        return {"type": "not-ready", "title": "the job queue is unreachable",
+                "detail": f"the {stage} stage could not queue what comes next: {detail}; retry the bake once the broker is back"}
     if isinstance(error, BundleConflict) or (pipeline is not None and isinstance(error, getattr(pipeline, "VersionConflict", ()))):
         return {"type": "version-conflict", "title": "this version is already published with other bytes", "detail": detail}
     return {"type": "stage-failed", "title": f"the {stage} stage failed", "detail": f"{type(error).__name__}: {detail}"}
 
 
+def _redelivered(task) -> bool:
+    """True when the broker hands this message out again (Redis sets the flag when it restores an
+    unacknowledged message: the worker running it was lost, or it was restored at a reconnection)."""
+    return bool((task.request.delivery_info or {}).get("redelivered"))
+
+
 def run_stage(task, bake_id: str, attempt: int, stage: str, body: Callable[[StageContext], Any],
-              after: Callable[[StageContext, Any, float], None], log_start: bool = True) -> None:
-    """Run `body` as stage `stage` of the bake, then `after(ctx, result, seconds)`, recording state,
-    timings, captured log lines and errors; retries transient errors with backoff."""
+              after: Callable[[StageContext, Any, float], None], log_start: bool = True, part: str | None = None) -> None:
+    """Run `body` as stage `stage` of the bake (or its fan-out part `part`), then `after(ctx, result,
+    seconds)`, recording state, timings, captured log lines and errors; retries transient errors with
+    backoff, and gives up on a task whose worker keeps dying (a poison job: acks_late with
+    reject_on_worker_lost would otherwise hand it out forever)."""
     svc = services()
     with session_scope(svc.sessions) as session:
         bake = session.get(Bake, bake_id)
@@ -181,6 +200,19 @@ def run_stage(task, bake_id: str, attempt: int, stage: str, body: Callable[[Stag
         if bake.attempt != attempt or records.is_final(bake):
             logger.info("bake %s attempt %s is %s; dropping its %s task", bake_id, attempt, bake.state, stage)
             return
+        if _redelivered(task):
+            label = part or stage
+            redeliveries = records.record_redelivery(session, bake_id, attempt, stage, label)
+            records.stage_row(session, bake_id, stage).retries += 1
+            if redeliveries > svc.settings.task_max_retries:
+                logger.error("bake %s: %s lost its worker %d times; giving up", bake_id, label, redeliveries)
+                records.fail_bake(session, bake, stage, {
+                    "type": "worker-lost", "title": f"the {stage} stage keeps losing its worker",
+                    "detail": f"{label} was handed out again {redeliveries} times, more than {svc.settings.task_max_retries} "
+                              "(CROWDBAKE_TASK_MAX_RETRIES), because the worker running it was lost each time "
+                              "(killed, out of memory or crashed); retry the bake, with fewer or smaller views if memory is the cause",
+                })
+                return
         records.mark_running(session, bake, stage)
         if log_start:
             records.append_log(session, bake_id, "INFO", stage, f"{stage} started (attempt {attempt}, delivery {task.request.retries + 1})")
@@ -219,13 +251,18 @@ def run_stage(task, bake_id: str, attempt: int, stage: str, body: Callable[[Stag
         return
 
     retries = task.request.retries
-    if _is_transient(error) and retries < svc.settings.task_max_retries:
+    # A broker error here means BROKER_PUBLISH_RETRY already waited for it in vain; a retry would need
+    # that same broker, so the bake fails with the reason instead (and can be retried from the API).
+    if _is_transient(error) and not isinstance(error, KombuOperationalError) and retries < svc.settings.task_max_retries:
         countdown = min(svc.settings.task_retry_backoff_max, 2.0**retries) * (0.5 + random.random())
         with session_scope(svc.sessions) as session:
             row = records.stage_row(session, bake_id, stage)
             row.state, row.retries = "retrying", row.retries + 1
             records.append_log(session, bake_id, "WARNING", stage, f"transient error, retry {retries + 1} in {countdown:.1f} s: {type(error).__name__}: {error}")
-        raise task.retry(exc=error, countdown=countdown, max_retries=svc.settings.task_max_retries)
+        try:
+            raise task.retry(exc=error, countdown=countdown, max_retries=svc.settings.task_max_retries, retry=True, retry_policy=BROKER_PUBLISH_RETRY)
+        except Reject as rejected:  # Celery could not queue the retry (the broker is unreachable)
+            error = rejected.reason if isinstance(rejected.reason, BaseException) else error
     logger.error("bake %s: %s failed", bake_id, stage, exc_info=error)
     with session_scope(svc.sessions) as session:
         bake = session.get(Bake, bake_id)
@@ -241,7 +278,8 @@ def _finish(ctx: StageContext, session: Session, result: Any, seconds: float) ->
 
 
 def _send(stage: str, bake_id: str, attempt: int, *extra: Any) -> None:
-    app.send_task(TASK_NAMES[stage], args=[bake_id, attempt, *extra], queue=services().settings.queue)
+    app.send_task(TASK_NAMES[stage], args=[bake_id, attempt, *extra], queue=services().settings.queue,
+                  retry=True, retry_policy=BROKER_PUBLISH_RETRY)
 
 
 # ------------------------------------------------------------------------------------------ stages
@@ -339,7 +377,7 @@ def poses(self, bake_id: str, attempt: int) -> None:
         group(
             app.signature(TASK_NAMES["impostor_views"], args=[ctx.bake_id, ctx.attempt, part_id], queue=queue, immutable=True)
             for part_id in part_ids
-        ).apply_async()
+        ).apply_async(retry=True, retry_policy=BROKER_PUBLISH_RETRY)
 
     run_stage(self, bake_id, attempt, "poses", body, after)
 
@@ -366,7 +404,7 @@ def impostor_views(self, bake_id: str, attempt: int, part_id: str) -> None:
                 records.append_log(session, ctx.bake_id, "INFO", "impostors", f"all {row.total} impostor-view tasks finished ({row.seconds:.2f} s of rendering)")
         _maybe_enqueue_pack(ctx, parts_left)
 
-    run_stage(self, bake_id, attempt, "impostors", body, after, log_start=False)
+    run_stage(self, bake_id, attempt, "impostors", body, after, log_start=False, part=part_id)
 
 
 @app.task(name=TASK_NAMES["pack"], **TASK_OPTIONS)

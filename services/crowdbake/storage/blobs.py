@@ -13,16 +13,24 @@ the only client library would be a new dependency; `make_blob_store` is where it
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import re
 import shutil
 import tempfile
+import time
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import BinaryIO, Iterator
 
 _DIGEST = re.compile(r"^[0-9a-f]{64}$")
 STAGING_DIRNAME = ".incoming"
+STAGING_PREFIX = "upload-"
+# An upload in flight writes its staging file continuously; one untouched for a day was left by a
+# process that died mid-upload (SIGKILL, power loss) and will never be committed or discarded.
+STALE_STAGING_S = 24 * 3600
+
+logger = logging.getLogger(__name__)
 
 
 def check_digest(digest: str) -> str:
@@ -45,7 +53,7 @@ class IncomingBlob:
 
     def __init__(self, staging_dir: Path):
         staging_dir.mkdir(parents=True, exist_ok=True)
-        fd, name = tempfile.mkstemp(prefix="upload-", dir=staging_dir)
+        fd, name = tempfile.mkstemp(prefix=STAGING_PREFIX, dir=staging_dir)
         self.path = Path(name)
         self._handle = os.fdopen(fd, "wb")
         self._hash = hashlib.sha256()
@@ -106,6 +114,20 @@ class BlobStore(ABC):
     def incoming(self) -> IncomingBlob:
         """A new staging file to stream an upload into."""
         return IncomingBlob(self.staging_dir)
+
+    def sweep_staging(self, older_than_s: float = STALE_STAGING_S) -> int:
+        """Delete staging files not written for `older_than_s` seconds (left by a process killed in the
+        middle of an upload); returns how many. Younger ones may belong to a live upload and stay."""
+        cutoff = time.time() - older_than_s
+        swept = 0
+        for path in self.staging_dir.glob(f"{STAGING_PREFIX}*"):
+            try:
+                if path.stat().st_mtime < cutoff:
+                    path.unlink()
+                    swept += 1
+            except FileNotFoundError:  # committed or discarded meanwhile
+                pass
+        return swept
 
     @abstractmethod
     def commit(self, blob: IncomingBlob) -> bool:
@@ -195,5 +217,10 @@ class LocalBlobStore(BlobStore):
 
 
 def make_blob_store(blob_dir: Path) -> BlobStore:
-    """The configured blob store (local folder; an object-store backend would be chosen here)."""
-    return LocalBlobStore(blob_dir)
+    """The configured blob store (local folder; an object-store backend would be chosen here), with
+    staging files that dead processes left behind swept away (BlobStore.sweep_staging)."""
+    store = LocalBlobStore(blob_dir)
+    swept = store.sweep_staging()
+    if swept:
+        logger.warning("removed %d staging files older than %d s left by interrupted uploads in %s", swept, STALE_STAGING_S, store.staging_dir)
+    return store

@@ -99,7 +99,7 @@ def _enqueue(services, session: Session, bake: Bake, stage: str) -> None:
         raise Problem("not-ready", "the job queue is unreachable; the bake was recorded as failed and can be retried") from None
 
 
-@router.post("", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409, 503), summary="Start a bake")
+@router.post("", response_model=BakePublic, status_code=202, responses=problem_responses(400, 404, 409, 503), summary="Start a bake")
 def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: ServicesDep, session: SessionDep) -> BakePublic:
     if (body.publish or body.public) and "publish" not in key.scopes:
         raise Problem("forbidden", "publishing a bundle (publish or public true) needs the publish scope")

@@ -139,7 +139,7 @@ def get_bundle(name: NameParam, version: VersionParam, principal: PrincipalDep, 
     return _public(_bundle_or_problem(session, principal, name, version))
 
 
-@router.patch("/{name}/{version}", response_model=BundlePublic, responses=problem_responses(404), summary="Make a bundle public or private")
+@router.patch("/{name}/{version}", response_model=BundlePublic, responses=problem_responses(400, 404), summary="Make a bundle public or private")
 def update_bundle(name: NameParam, version: VersionParam, body: BundleUpdate, key: PublishKey, session: SessionDep) -> BundlePublic:
     if version == LATEST:
         raise Problem("validation-error", "name a concrete version, not 'latest'", [{"field": "version", "message": "alias not allowed here"}])

@@ -1,0 +1,31 @@
+"""Fixtures of the cross-cutting tests in tests/: the service test helpers (services/tests) on the
+import path, the markers, and the procedural sample shared by the fault and load tests."""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+for folder in (REPO / "services", REPO / "services" / "tests"):
+    if str(folder) not in sys.path:
+        sys.path.insert(0, str(folder))
+
+# Offscreen GL in every process these tests start (OSMesa unless the caller chose EGL).
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+
+def pytest_configure(config) -> None:
+    # The same markers as services/pyproject.toml, for runs whose rootdir does not read that file.
+    config.addinivalue_line("markers", "slow: long-running tests (still run by .ci/run)")
+    config.addinivalue_line("markers", "integration: needs Redis and real worker processes (started by the tests themselves)")
+
+
+@pytest.fixture(scope="session")
+def sample(tmp_path_factory) -> Path:
+    """The procedural sample character (crowdbake sample: 3 walk cycles, 64² textures)."""
+    from reliability_fixtures import run_sample_command
+
+    return run_sample_command(tmp_path_factory.mktemp("sample"))
