@@ -212,22 +212,3 @@ def uv_precision(uv_map: np.ndarray, texture_size: int) -> dict[str, dict[str, f
         error = np.abs(stored - exact).max(axis=1) * texture_size
         result[name] = {"max_texels": float(error.max()), "mean_texels": float(error.mean()), "bound": False}
     return result
-    exact = uv[covered]
-    eight = np.zeros(uv_map.shape[:2] + (4,), dtype=np.uint8)
-    eight[..., :2] = np.rint(uv * 255.0)
-    eight[..., 3] = 255
-    height, width = uv_map.shape[:2]
-    padded_height, padded_width = height + (-height) % 4, width + (-width) % 4
-    eight = np.pad(eight, ((0, padded_height - height), (0, padded_width - width), (0, 0)))
-    bc1 = compression.decode_bc1(compression.encode_bc1(eight), padded_width, padded_height)[:height, :width]
-    # The 16-bit map is the reference: its own rounding is at most half a step.
-    half_step = 0.5 / 65535.0 * texture_size
-    result["rgba16"] = {"max_texels": half_step, "mean_texels": half_step / 2.0, "bound": True}
-    variants = {
-        "rgba8": eight[:height, :width, :2][covered].astype(np.float64) / 255.0,
-        "bc1": bc1[..., :2][covered].astype(np.float64) / 255.0,
-    }
-    for name, stored in variants.items():
-        error = np.abs(stored - exact).max(axis=1) * texture_size
-        result[name] = {"max_texels": float(error.max()), "mean_texels": float(error.mean()), "bound": False}
-    return result
