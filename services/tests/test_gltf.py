@@ -4,6 +4,7 @@ from __future__ import annotations
 import base64
 import json
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -32,7 +33,7 @@ def _glb(document: dict, binary: bytes | None) -> bytes:
     return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
 
 
-def _edited(path, tmp_path, edit) -> "Path":  # noqa: F821
+def _edited(path, tmp_path, edit) -> Path:
     document, binary = parse_glb(path.read_bytes(), str(path))
     edit(document)
     out = tmp_path / "edited.glb"
