@@ -31,19 +31,13 @@ from pathlib import Path
 
 import httpx
 
+from service_bench import FINAL_STATES, SMALL_BAKE_PARAMS, free_port
+
 SERVICES_DIR = Path(__file__).resolve().parents[1]
 SAMPLE = dict(garment="loose", cycles=3, seed=1, cycle_frames=24, texture_size=64)
-PARAMS = {"impostor_frames": 2, "azimuths": 4, "elevations_deg": [0, 30], "tile_size": 32, "candidates": 2, "cycle_views": 2}
-FINAL = ("succeeded", "failed", "cancelled")
 POLL_S = 0.25
 START_TIMEOUT_S = 120
 BAKE_TIMEOUT_S = 1800
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def wait_until(check, timeout: float, what: str) -> None:
@@ -107,7 +101,7 @@ def bake_all(client: httpx.Client, assets: dict, versions: list[str]) -> tuple[f
     started = time.perf_counter()
     ids = []
     for version in versions:
-        response = client.post("/v1/bakes", json={"name": "throughput", "version": version, **assets, "params": PARAMS})
+        response = client.post("/v1/bakes", json={"name": "throughput", "version": version, **assets, "params": SMALL_BAKE_PARAMS})
         if response.status_code != 202:
             raise RuntimeError(f"bake {version} was not started: {response.status_code} {response.text}")
         ids.append(response.json()["id"])
@@ -117,7 +111,7 @@ def bake_all(client: httpx.Client, assets: dict, versions: list[str]) -> tuple[f
         if time.monotonic() > deadline:
             raise RuntimeError(f"bakes still running after {BAKE_TIMEOUT_S} s: {sorted(pending)}")
         for bake_id in list(pending):
-            if client.get(f"/v1/bakes/{bake_id}").json()["state"] in FINAL:
+            if client.get(f"/v1/bakes/{bake_id}").json()["state"] in FINAL_STATES:
                 pending.discard(bake_id)
         if pending:
             time.sleep(POLL_S)
@@ -225,7 +219,7 @@ def main() -> int:
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "gl_platform": os.environ.get("PYOPENGL_PLATFORM")},
         "broker": broker,
         "sample": SAMPLE,
-        "params": PARAMS,
+        "params": SMALL_BAKE_PARAMS,
         "command": " ".join([Path(sys.argv[0]).as_posix(), *sys.argv[1:]]),
         "runs": runs,
     }

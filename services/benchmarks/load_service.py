@@ -30,7 +30,6 @@ import platform
 import random
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -43,23 +42,17 @@ from pathlib import Path
 
 import httpx
 
+from service_bench import FINAL_STATES, SMALL_BAKE_PARAMS, free_port
+
 SERVICES_DIR = Path(__file__).resolve().parents[1]
 REPO = SERVICES_DIR.parent
 # Small bakes (3-cycle sample, 64² textures; 2 impostor frames x 4 azimuths x 2 rings of 32²): the
 # figure is about the service and its queue, not the renderer.
-BAKE_PARAMS = {"impostor_frames": 2, "azimuths": 4, "elevations_deg": [0, 30], "tile_size": 32, "candidates": 2, "cycle_views": 2}
-FINAL = ("succeeded", "failed", "cancelled")
 START_TIMEOUT_S = 120
 POLL_S = 0.5
 # Pause between two reads of one latency client: a busy dashboard, not a denial of service.
 CLIENT_PAUSE_S = 0.02
 TEXTURE_SIZE = 64
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def percentile(values: list[float], q: float) -> float | None:
@@ -228,7 +221,7 @@ def queued_bakes(stack: Stack, sample: Path, bakes: int, clients: int, timeout: 
     with httpx.Client(base_url=stack.url, headers=headers, timeout=60) as client:
         ids = upload_sample(client, sample)
         run = uuid.uuid4().hex[:6]
-        bodies = [{"name": "load-walker", "version": f"{run}.{index}", **ids, "params": BAKE_PARAMS} for index in range(bakes)]
+        bodies = [{"name": "load-walker", "version": f"{run}.{index}", **ids, "params": SMALL_BAKE_PARAMS} for index in range(bakes)]
         started = time.perf_counter()
         with ThreadPoolExecutor(max_workers=min(bakes, 16)) as pool:
             created = list(pool.map(lambda body: client.post("/v1/bakes", json=body), bodies))
@@ -267,7 +260,7 @@ def queued_bakes(stack: Stack, sample: Path, bakes: int, clients: int, timeout: 
             while time.monotonic() < deadline:
                 listing = client.get("/v1/bakes", params={"name": "load-walker", "limit": 500}).json()["data"]
                 states = {bake["id"]: bake["state"] for bake in listing if bake["id"] in set(bake_ids)}
-                if len(states) == len(bake_ids) and all(state in FINAL for state in states.values()):
+                if len(states) == len(bake_ids) and all(state in FINAL_STATES for state in states.values()):
                     break
                 time.sleep(POLL_S)
         finally:
@@ -275,7 +268,7 @@ def queued_bakes(stack: Stack, sample: Path, bakes: int, clients: int, timeout: 
             done.set()
             for thread in readers:
                 thread.join(timeout=60)
-        unfinished = [bake_id for bake_id in bake_ids if states.get(bake_id) not in FINAL]
+        unfinished = [bake_id for bake_id in bake_ids if states.get(bake_id) not in FINAL_STATES]
         if unfinished:
             problems.append(f"{len(unfinished)} bakes not finished within {timeout} s")
         failed = {bake_id: state for bake_id, state in states.items() if state != "succeeded"}
@@ -286,7 +279,7 @@ def queued_bakes(stack: Stack, sample: Path, bakes: int, clients: int, timeout: 
         problems += exactly_once(stack, bake_ids, [body["version"] for body in bodies])
 
     figures = {"bakes": bakes, "workers": stack.workers, "wall_s": round(wall, 2), "bakes_per_minute": round(60.0 * bakes / wall, 2),
-               "api_latency_during_bakes": latency_summary(latencies), "api_read_errors": len(errors), "params": BAKE_PARAMS}
+               "api_latency_during_bakes": latency_summary(latencies), "api_read_errors": len(errors), "params": SMALL_BAKE_PARAMS}
     return figures, problems
 
 

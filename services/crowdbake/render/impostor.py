@@ -14,13 +14,12 @@ from __future__ import annotations
 
 import atexit
 import logging
-import os
 import threading
 from dataclasses import dataclass
 
 import numpy as np
 
-from crowdbake.render import offscreen  # noqa: F401  (chooses the GL platform before pyrender loads)
+from crowdbake.render import offscreen  # (also chooses the GL platform before pyrender loads)
 from crowdbake.bake import impostor_maps
 from crowdbake.bake.impostor_maps import Coverage, OrthoView
 
@@ -80,24 +79,25 @@ class VisibilityRenderer:
         if size < 1:
             raise ValueError(f"VisibilityRenderer: size must be positive, got {size}")
         self.size = int(size)
-        self._renderer: pyrender.OffscreenRenderer | None = None
+        # The GL context is offscreen.Offscreen's: one place creates and deletes pyrender contexts.
+        self._offscreen = offscreen.Offscreen(self.size, self.size)
+        self._open = False
         self._scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 0.0], ambient_light=[0.0, 0.0, 0.0])
         self._mesh_node: pyrender.Node | None = None
         self._camera_node: pyrender.Node | None = None
         self._triangle_count = 0
 
     def __enter__(self) -> "VisibilityRenderer":
-        self._renderer = pyrender.OffscreenRenderer(self.size, self.size)
-        logger.debug("visibility renderer %d² on %s", self.size, os.environ.get("PYOPENGL_PLATFORM"))
+        self._offscreen.__enter__()
+        self._open = True
         return self
 
     def __exit__(self, *exc_info) -> None:
         self.close()
 
     def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.delete()
-            self._renderer = None
+        self._offscreen.close()
+        self._open = False
 
     def set_mesh(self, positions: np.ndarray, faces: np.ndarray) -> None:
         """Replace the mesh: positions (V, 3) model space, faces (T, 3) int (all parts concatenated)."""
@@ -108,7 +108,7 @@ class VisibilityRenderer:
 
     def render(self, view: OrthoView) -> VisibilityImage:
         """The id and depth images of `view` (its size must be this renderer's)."""
-        if self._renderer is None:
+        if not self._open:
             raise RuntimeError("VisibilityRenderer.render called outside its `with` block")
         if self._mesh_node is None:
             raise RuntimeError("VisibilityRenderer.render called before set_mesh")
@@ -119,7 +119,7 @@ class VisibilityRenderer:
         if self._camera_node is not None:
             self._scene.remove_node(self._camera_node)
         self._camera_node = self._scene.add(camera, pose=view.camera_pose())
-        colour, depth = self._renderer.render(self._scene, flags=pyrender.RenderFlags.FLAT)
+        colour, depth = self._offscreen.render(self._scene, flags=pyrender.RenderFlags.FLAT)
         return VisibilityImage(impostor_maps.decode_triangle_ids(colour), eye_depth(depth, znear, zfar))
 
     def coverage(self, view: OrthoView, positions: np.ndarray, faces: np.ndarray) -> Coverage:
