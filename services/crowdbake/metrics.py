@@ -256,6 +256,15 @@ class HttpMetrics:
         return generate_latest(registry)
 
 
+# HTTP methods recorded by name; any other (clients may send made-up ones) is counted as "OTHER", so the
+# label set, and /metrics with it, stays bounded whatever arrives.
+KNOWN_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+
+
+def method_label(method: str) -> str:
+    return method if method in KNOWN_METHODS else "OTHER"
+
+
 def route_template(scope: dict) -> str:
     """The matched route's path template (/v1/bakes/{bake_id}), never the raw path (unbounded labels)."""
     route = scope.get("route")
@@ -304,7 +313,7 @@ class MetricsMiddleware:
             await self.app(scope, counting_receive if kind else receive, recording_send)
         finally:
             route = route_template(scope)
-            self.metrics.request_seconds.labels(scope["method"], route, str(status["code"])).observe(time.perf_counter() - started)
+            self.metrics.request_seconds.labels(method_label(scope["method"]), route, str(status["code"])).observe(time.perf_counter() - started)
             if kind:
                 outcome = "stored" if status["code"] < 300 else "refused"
                 self.metrics.upload_bytes.labels(kind, outcome).inc(received["bytes"])

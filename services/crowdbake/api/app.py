@@ -19,7 +19,7 @@ from crowdbake.api.schemas import Problem as ProblemDocument
 from crowdbake.api.routes import assets, bakes, bundles, health, metrics, web
 from crowdbake.jobs.celery_app import make_celery
 from crowdbake.metrics import HttpMetrics, MetricsMiddleware
-from crowdbake.settings import Settings, get_settings
+from crowdbake.settings import Settings, get_settings, redact_url
 from crowdbake.storage.blobs import make_blob_store
 from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
 from crowdbake.storage.keys import ensure_bootstrap_key
@@ -67,6 +67,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         ],
     )
     app.state.services = build_services(settings)
+    app.state.readiness = health.readiness_probe(app.state.services)
     problems.install(app)
     for module in (assets, bakes, bundles, health, metrics):
         app.include_router(module.router)
@@ -84,5 +85,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return {"type": problem_type_uri(slug), "title": title, "status": status, "description": description}
 
     logger.info("crowdbake API ready: database %s, blobs %s, bundles %s, broker %s",
-                settings.database_url, settings.blob_dir, settings.bundles_dir, settings.broker_url)
+                redact_url(settings.database_url), settings.blob_dir, settings.bundles_dir, redact_url(settings.broker_url))
     return app

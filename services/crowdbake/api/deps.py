@@ -27,7 +27,9 @@ class AppServices:
     celery: Celery
 
 
-def get_services(request: Request) -> AppServices:
+async def get_services(request: Request) -> AppServices:
+    # async: resolved on the event loop, so routes that need nothing else (health, readiness) never wait
+    # for a thread of the request pool.
     return request.app.state.services
 
 

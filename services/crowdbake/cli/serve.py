@@ -42,9 +42,23 @@ def _worker_command(settings, workers: int) -> list[str]:
     ]
 
 
+# prctl(2) option: the signal a child receives when its parent dies.
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """Runs in the worker child before exec: ask the kernel for SIGTERM when `serve` dies, however it dies
+    (SIGKILL included), so a killed `serve` never leaves a worker taking jobs on its own."""
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+
+
 def start_worker(settings, workers: int, env: dict[str, str] | None = None) -> subprocess.Popen:
-    """A Celery worker subprocess with `workers` prefork children, using this process's settings."""
-    return subprocess.Popen(_worker_command(settings, workers), env=env or os.environ.copy())
+    """A Celery worker subprocess with `workers` prefork children, using this process's settings; it stops
+    (warm shutdown) when this process dies."""
+    return subprocess.Popen(_worker_command(settings, workers), env=env or os.environ.copy(), preexec_fn=_die_with_parent)
 
 
 def stop_worker(process: subprocess.Popen) -> None:
@@ -66,7 +80,7 @@ def _exit_on_signal(signum, _frame) -> None:
 def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
-    from crowdbake.settings import Settings, get_settings
+    from crowdbake.settings import Settings, get_settings, redact_url
 
     if args.workers < 0:
         raise CommandError("--workers must be >= 0")
@@ -97,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, _exit_on_signal)
     worker = start_worker(settings, args.workers) if args.workers else None
     print(f"crowdbake serve: API on http://{args.host}:{args.port} (docs at /docs), {args.workers} worker(s), "
-          f"data {settings.data_dir}, broker {settings.broker_url}", file=sys.stderr)
+          f"data {settings.data_dir}, broker {redact_url(settings.broker_url)}", file=sys.stderr)
     try:
         uvicorn.run(app, host=args.host, port=args.port, log_level="info")
     finally:

@@ -44,6 +44,12 @@ REDIS_VISIBILITY_TIMEOUT_S = 6 * 3600
 FILESYSTEM_POLL_S = 0.1
 # Processed filesystem-broker messages older than this are deleted when a worker starts.
 PROCESSED_MESSAGE_TTL_S = 3600
+# Seconds any one Redis socket operation may block. Without it a broker that accepts connections but
+# never answers (a stopped process, a stalled fsync, a partition) blocks the caller forever: an API
+# thread enqueueing a bake, or a readiness probe.
+REDIS_SOCKET_TIMEOUT_S = 5.0
+# Enqueueing retries this often before it gives up and the bake is left for the dispatcher to send.
+PUBLISH_RETRY_POLICY = {"max_retries": 2, "interval_start": 0.2, "interval_step": 0.5, "interval_max": 1.0}
 
 
 def broker_transport_options(settings: Settings) -> dict[str, Any]:
@@ -60,7 +66,11 @@ def broker_transport_options(settings: Settings) -> dict[str, Any]:
             "polling_interval": FILESYSTEM_POLL_S,
         }
     if settings.broker_url.startswith(("redis://", "rediss://")):
-        return {"visibility_timeout": REDIS_VISIBILITY_TIMEOUT_S}
+        return {
+            "visibility_timeout": REDIS_VISIBILITY_TIMEOUT_S,
+            "socket_timeout": REDIS_SOCKET_TIMEOUT_S,
+            "socket_connect_timeout": REDIS_SOCKET_TIMEOUT_S,
+        }
     return {}
 
 
@@ -84,6 +94,8 @@ def make_celery(settings: Settings) -> Celery:
         task_store_errors_even_if_ignored=False,
         # Transient failures (a locked SQLite file, a full disk) are retried by the tasks themselves.
         task_publish_retry=True,
+        task_publish_retry_policy=PUBLISH_RETRY_POLICY,
+        broker_connection_timeout=REDIS_SOCKET_TIMEOUT_S,
     )
     return app
 
@@ -94,12 +106,18 @@ def send_stage(celery: Celery, settings: Settings, stage: str, bake_id: str, att
 
 
 def broker_reachable(celery: Celery, timeout: float = 2.0) -> str | None:
-    """None when the broker answers, else why not (for /ready)."""
+    """None when the broker answers a round trip, else why not (for /ready).
+
+    A TCP connect alone proves nothing (a stopped Redis still accepts connections), so this asks the
+    transport for a queue declaration, which needs an answer. Callers bound the wall time themselves
+    (crowdbake.api.readiness): the socket timeouts above are the second line of defence."""
     try:
         with celery.connection_for_write() as connection:
             connection.ensure_connection(max_retries=1, timeout=timeout)
+            channel = connection.default_channel
+            channel.queue_declare(queue=celery.conf.task_default_queue, passive=False, durable=True, auto_delete=False)
     except Exception as error:  # any transport error means "not ready"
-        return f"{type(error).__name__}: {error}"
+        return type(error).__name__
     return None
 
 
