@@ -19,6 +19,7 @@ uses) as an independent check.
 """
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 
@@ -132,9 +133,9 @@ def encode_ktx2(vk_format: int, layers: np.ndarray, array: bool = True, writer: 
     kvd = _key_values(writer or f"crowdbake {__version__}")
     dfd_offset = HEADER_BYTES + _LEVEL.size
     kvd_offset = dfd_offset + len(dfd)
-    # Level data starts on a multiple of lcm(texel size, 4): 4, 8 or 16 here, so 16 always works.
+    # Level data starts on a multiple of lcm(texel block size, 4) (the spec's mip level alignment).
     level_offset = kvd_offset + len(kvd)
-    level_offset += -level_offset % 16
+    level_offset += -level_offset % math.lcm(layout.texel_bytes, 4)
     header = _HEADER.pack(
         IDENTIFIER, vk_format, layout.bits // 8, width, height, 0, layer_count if array else 0, 1, 1, 0
     ) + _INDEX.pack(dfd_offset, len(dfd), kvd_offset, len(kvd), 0, 0)
