@@ -155,7 +155,7 @@ def _export_impostor(bundle: Bundle, out: _Out) -> dict[str, Any]:
     }
 
 
-def _export_lods(bundle: Bundle, out: _Out, materials: list[dict], diffuse_arrays: list[np.ndarray]) -> list[dict]:
+def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray]) -> list[dict]:
     manifest = bundle.manifest
     fps = manifest["frames_per_second"]
     glb_materials = [GlbMaterial(m["name"], png_rgb(layers[0])) for m, layers in zip(manifest["materials"], diffuse_arrays)]
@@ -224,7 +224,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path) -> ExportSummary:
         manifest = bundle.manifest
         materials, outfits, diffuse_arrays = _export_textures(bundle, out)
         impostor = _export_impostor(bundle, out)
-        lods = _export_lods(bundle, out, materials, diffuse_arrays)
+        lods = _export_lods(bundle, out, diffuse_arrays)
         shaders = _copy_shaders(out)
         sidecar = {
             "format": EXPORT_FORMAT,
