@@ -38,7 +38,23 @@ if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp_dir/venv" 2>/dev/null)" != "$re
   echo "$req_hash" > "$stamp_dir/venv"
 fi
 
-# 3. crowdview (C++17) build; cmake itself decides what is out of date.
+# 3. npm packages of the export's crowd preview (three.js) and its checks (glTF-Validator, ktx-parse),
+# pinned by package-lock.json; reinstalled only when the lock file changes.
+preview="services/crowdbake/api/static/preview"
+npm_hash=$(sha256sum "$preview/package-lock.json" | cut -c1-16)
+if ! command -v npm >/dev/null; then
+  say "installing Debian's npm"
+  sudo_cmd=""
+  [ "$(id -u)" -ne 0 ] && sudo_cmd="sudo"
+  DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends npm >/dev/null
+fi
+if [ ! -d "$preview/node_modules" ] || [ "$(cat "$stamp_dir/npm" 2>/dev/null)" != "$npm_hash" ]; then
+  say "installing npm packages for $preview"
+  (cd "$preview" && npm ci --no-audit --no-fund --loglevel=error >/dev/null)
+  echo "$npm_hash" > "$stamp_dir/npm"
+fi
+
+# 4. crowdview (C++17) build; cmake itself decides what is out of date.
 if [ -f runtime/CMakeLists.txt ]; then
   say "building crowdview"
   cmake -S runtime -B build/runtime -G Ninja -DCMAKE_BUILD_TYPE=Release >/dev/null

@@ -1,0 +1,287 @@
+// Reference three.js materials for a crowdbake export (docs/export.md):
+//   loadKtx2Texture(url)         a KTX2 file of the export as a three.js data texture
+//   createVatMaterial(opts)      plays the cloth cycle from vertex-animation textures, per instance
+//   createImpostorMaterial(opts) the UV-mapped impostor (Dobbyn et al. 2006, section 5), per instance
+// Both materials draw InstancedBufferGeometry with two per-instance attributes:
+//   iPose vec4: feet position (metres) and heading (radians about +Y; +Z turns to (sin h, 0, cos h))
+//   iIds  vec4: mesh: (frame, variation, outfit, -); impostor: (atlas layer, variation, outfit, tile)
+// Shading follows crowdview: unlit diffuse times outfit colour by region, Lambert with ambient 0.35,
+// no colour-space conversion (set renderer.outputColorSpace = LinearSRGBColorSpace to match it).
+import * as THREE from 'three';
+import { read } from 'ktx-parse';
+
+// Vulkan format numbers the export writes (crowdbake/export/ktx2.py).
+const VK_R8G8B8A8_UNORM = 37;
+const VK_R8G8B8A8_SRGB = 43;
+const VK_R16G16B16A16_UNORM = 91;
+const VK_R32_UINT = 98;
+
+export const AMBIENT = 0.35;  // runtime/src/config.h CV_AMBIENT
+export const MAX_MATERIALS = 4;  // GLSL ES 3.00 indexes sampler arrays only with constants
+
+// A KTX2 file -> DataTexture (layerCount 0) or DataArrayTexture. Integer data (the UV map's uv32 words,
+// the 16-bit VATs) is uploaded as unsigned-integer textures and read with texelFetch: WebGL2 has no
+// 16-bit normalised textures without an extension, and words must not be filtered.
+export async function loadKtx2Texture(url, { filter = THREE.NearestFilter } = {}) {
+  const response = await fetch(url);
+  if (!response.ok) throw new Error(`${url}: HTTP ${response.status}`);
+  const container = read(new Uint8Array(await response.arrayBuffer()));
+  if (container.supercompressionScheme !== 0 || container.levels.length !== 1) {
+    throw new Error(`${url}: expected one uncompressed level`);
+  }
+  const level = container.levels[0].levelData;
+  const { pixelWidth: width, pixelHeight: height } = container;
+  const layers = Math.max(container.layerCount, 1);
+  let data, format, type, internalFormat = null;
+  switch (container.vkFormat) {
+    case VK_R8G8B8A8_UNORM:
+    case VK_R8G8B8A8_SRGB:
+      data = new Uint8Array(level.buffer, level.byteOffset, level.byteLength);
+      format = THREE.RGBAFormat;
+      type = THREE.UnsignedByteType;
+      break;
+    case VK_R16G16B16A16_UNORM:
+      data = new Uint16Array(level.buffer, level.byteOffset, level.byteLength / 2);
+      format = THREE.RGBAIntegerFormat;
+      type = THREE.UnsignedShortType;
+      internalFormat = 'RGBA16UI';
+      filter = THREE.NearestFilter;
+      break;
+    case VK_R32_UINT:
+      data = new Uint32Array(level.buffer, level.byteOffset, level.byteLength / 4);
+      format = THREE.RedIntegerFormat;
+      type = THREE.UnsignedIntType;
+      internalFormat = 'R32UI';
+      filter = THREE.NearestFilter;
+      break;
+    default:
+      throw new Error(`${url}: vkFormat ${container.vkFormat} is not one crowdbake exports`);
+  }
+  const texture = container.layerCount > 0
+    ? new THREE.DataArrayTexture(data, width, height, layers)
+    : new THREE.DataTexture(data, width, height, format, type);
+  texture.format = format;
+  texture.type = type;
+  texture.internalFormat = internalFormat;
+  texture.magFilter = filter;
+  texture.minFilter = filter;
+  texture.generateMipmaps = false;
+  texture.wrapS = texture.wrapT = filter === THREE.NearestFilter ? THREE.ClampToEdgeWrapping : THREE.RepeatWrapping;
+  texture.flipY = false;  // rows are stored top first and glTF's v grows downwards: no flip
+  texture.unpackAlignment = 1;
+  texture.needsUpdate = true;
+  texture.userData.vkFormat = container.vkFormat;
+  return texture;
+}
+
+const SHADING = /* glsl */ `
+uniform highp sampler2D uOutfits;
+uniform vec3 uLightDir;
+const float AMBIENT = ${AMBIENT.toFixed(3)};
+vec3 shade(vec3 albedo, float alpha, float outfit, vec3 normal) {
+  int region = int(alpha * 255.0 / 17.0 + 0.5);  // SPEC.md: alpha = 17 * region code
+  if (region != 0) albedo *= texelFetch(uOutfits, ivec2(region, int(outfit)), 0).rgb;
+  return albedo * (AMBIENT + (1.0 - AMBIENT) * max(dot(normal, uLightDir), 0.0));
+}
+mat3 headingMatrix(float h) {
+  float c = cos(h), s = sin(h);
+  return mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c);
+}
+`;
+
+const VAT_VERTEX = /* glsl */ `
+precision highp float;
+precision highp int;
+precision highp usampler2D;
+uniform mat4 projectionMatrix;
+uniform mat4 viewMatrix;
+uniform highp usampler2D uVatPosition;
+uniform highp usampler2D uVatNormal;
+uniform vec3 uBoundsMin;
+uniform vec3 uBoundsMax;
+uniform int uRowsPerFrame;
+uniform int uFrameCount;
+in vec2 uv;
+in vec2 vatUv;  // glTF TEXCOORD_1: the vertex's VAT texel at frame 0
+in vec4 iPose;
+in vec4 iIds;
+out vec2 vUv;
+out vec3 vNormal;
+flat out vec2 vVariationOutfit;
+mat3 headingMatrix(float h) {
+  float c = cos(h), s = sin(h);
+  return mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c);
+}
+vec4 vat(usampler2D map, ivec2 texel) { return vec4(texelFetch(map, texel, 0)) / 65535.0; }
+void main() {
+  ivec2 texel = ivec2(vatUv * vec2(textureSize(uVatPosition, 0)));
+  float frame = mod(iIds.x, float(uFrameCount));
+  int f0 = int(floor(frame));
+  int f1 = (f0 + 1) % uFrameCount;
+  float t = frame - float(f0);
+  ivec2 c0 = texel + ivec2(0, f0 * uRowsPerFrame), c1 = texel + ivec2(0, f1 * uRowsPerFrame);
+  vec3 q = mix(vat(uVatPosition, c0).rgb, vat(uVatPosition, c1).rgb, t);
+  vec3 position = uBoundsMin + q * (uBoundsMax - uBoundsMin);
+  vec3 normal = normalize(mix(vat(uVatNormal, c0).rgb, vat(uVatNormal, c1).rgb, t) * 2.0 - 1.0);
+  mat3 heading = headingMatrix(iPose.w);
+  gl_Position = projectionMatrix * viewMatrix * vec4(heading * position + iPose.xyz, 1.0);
+  vUv = uv;
+  vNormal = heading * normal;
+  vVariationOutfit = iIds.yz;
+}
+`;
+
+const VAT_FRAGMENT = /* glsl */ `
+precision highp float;
+precision highp int;
+precision highp sampler2DArray;
+uniform sampler2DArray uDiffuse;
+uniform int uVariations;
+${SHADING}
+in vec2 vUv;
+in vec3 vNormal;
+flat in vec2 vVariationOutfit;
+out vec4 fragColor;
+void main() {
+  float layer = mod(vVariationOutfit.x, float(uVariations));
+  vec3 albedo = texture(uDiffuse, vec3(vUv, layer)).rgb;
+  // Region codes are read unfiltered: blending two codes names a third, unrelated region.
+  ivec2 size = textureSize(uDiffuse, 0).xy;
+  ivec2 texel = clamp(ivec2(fract(vUv) * vec2(size)), ivec2(0), size - 1);
+  float alpha = texelFetch(uDiffuse, ivec3(texel, int(layer)), 0).a;
+  vec3 normal = normalize(gl_FrontFacing ? vNormal : -vNormal);  // garments show their inside
+  fragColor = vec4(shade(albedo, alpha, vVariationOutfit.y, normal), 1.0);
+}
+`;
+
+// vat: one part's export.json `vat` block; textures: {position, normal, diffuse, outfits} (loadKtx2Texture).
+export function createVatMaterial({ vat, textures, variations, lightDir, doubleSided }) {
+  return new THREE.RawShaderMaterial({
+    glslVersion: THREE.GLSL3,
+    vertexShader: VAT_VERTEX,
+    fragmentShader: VAT_FRAGMENT,
+    side: doubleSided ? THREE.DoubleSide : THREE.FrontSide,
+    uniforms: {
+      uVatPosition: { value: textures.position },
+      uVatNormal: { value: textures.normal },
+      uBoundsMin: { value: new THREE.Vector3(...vat.bounds_min) },
+      uBoundsMax: { value: new THREE.Vector3(...vat.bounds_max) },
+      uRowsPerFrame: { value: vat.rows_per_frame },
+      uFrameCount: { value: vat.frame_count },
+      uDiffuse: { value: textures.diffuse },
+      uVariations: { value: variations },
+      uOutfits: { value: textures.outfits },
+      uLightDir: { value: lightDir.clone().normalize() },
+    },
+  });
+}
+
+const IMPOSTOR_VERTEX = /* glsl */ `
+precision highp float;
+precision highp int;
+uniform mat4 projectionMatrix;
+uniform mat4 viewMatrix;
+uniform vec3 cameraPosition;
+uniform vec3 uCenter;   // bounds centre in the character's frame
+uniform float uRadius;
+uniform int uTileSize;
+uniform int uAzimuthCount;
+in vec3 position;       // quad corner, x and y in {-1, 1}
+in vec4 iPose;
+in vec4 iIds;
+out vec2 vTileUv;
+flat out ivec3 vTile;
+flat out float vHeading;
+flat out vec2 vVariationOutfit;
+mat3 headingMatrix(float h) {
+  float c = cos(h), s = sin(h);
+  return mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c);
+}
+void main() {
+  // A camera-facing quad of 2 * radius metres around the bounds centre, framed like the bake's
+  // orthographic views (SPEC.md "Impostor maps"): right = up x to_camera, +Y up.
+  mat3 heading = headingMatrix(iPose.w);
+  vec3 center = iPose.xyz + heading * uCenter;
+  vec3 toCamera = normalize(cameraPosition - center);
+  vec3 side = cross(vec3(0.0, 1.0, 0.0), toCamera);
+  vec3 right = length(side) > 1e-4 ? normalize(side) : heading * vec3(1.0, 0.0, 0.0);
+  vec3 up = cross(toCamera, right);
+  gl_Position = projectionMatrix * viewMatrix * vec4(center + (position.x * right + position.y * up) * uRadius, 1.0);
+  vTileUv = vec2(0.5 + 0.5 * position.x, 0.5 - 0.5 * position.y);
+  int tile = int(iIds.w + 0.5);
+  vTile = ivec3((tile % uAzimuthCount) * uTileSize, (tile / uAzimuthCount) * uTileSize, int(iIds.x + 0.5));
+  vHeading = iPose.w;
+  vVariationOutfit = iIds.yz;
+}
+`;
+
+const IMPOSTOR_FRAGMENT = /* glsl */ `
+precision highp float;
+precision highp int;
+precision highp usampler2DArray;
+precision highp sampler2DArray;
+uniform usampler2DArray uUvMap;     // uv32 words (R32UI)
+uniform sampler2DArray uNormalMap;
+uniform sampler2DArray uDiffuse0, uDiffuse1, uDiffuse2, uDiffuse3;
+uniform int uVariations[${MAX_MATERIALS}];
+uniform int uMaterialCount;
+uniform int uTileSize;
+${SHADING}
+in vec2 vTileUv;
+flat in ivec3 vTile;
+flat in float vHeading;
+flat in vec2 vVariationOutfit;
+out vec4 fragColor;
+#define SAMPLE_MATERIAL(m, sampler)                                                   \\
+  if (uMaterialCount > m && material == m) {                                          \\
+    float layer = mod(vVariationOutfit.x, float(uVariations[m]));                     \\
+    albedo = textureLod(sampler, vec3(uv, layer), 0.0).rgb;                           \\
+    ivec2 size = textureSize(sampler, 0).xy;                                          \\
+    ivec2 t = clamp(ivec2(uv * vec2(size)), ivec2(0), size - 1);                      \\
+    alpha = texelFetch(sampler, ivec3(t, int(layer)), 0).a;                           \\
+  }
+void main() {
+  ivec2 texel = vTile.xy + clamp(ivec2(vTileUv * float(uTileSize)), ivec2(0), ivec2(uTileSize - 1));
+  uint word = texelFetch(uUvMap, ivec3(texel, vTile.z), 0).r;
+  if ((word >> 31u) == 0u) discard;  // coverage: outside the character
+  vec2 uv = vec2(float(word & 0x3FFFu), float((word >> 14u) & 0x3FFFu)) / 16383.0;
+  int material = int((word >> 28u) & 7u);
+  vec3 albedo = vec3(1.0, 0.0, 1.0);  // magenta: a material this page cannot address
+  float alpha = 0.0;
+  SAMPLE_MATERIAL(0, uDiffuse0)
+  SAMPLE_MATERIAL(1, uDiffuse1)
+  SAMPLE_MATERIAL(2, uDiffuse2)
+  SAMPLE_MATERIAL(3, uDiffuse3)
+  vec3 modelNormal = texelFetch(uNormalMap, ivec3(texel, vTile.z), 0).rgb * 2.0 - 1.0;
+  vec3 normal = normalize(headingMatrix(vHeading) * modelNormal);
+  fragColor = vec4(shade(albedo, alpha, vVariationOutfit.y, normal), 1.0);
+}
+`;
+
+// impostor: export.json `impostor`; textures: {uv, normal, outfits, diffuse: [per material]}.
+export function createImpostorMaterial({ impostor, textures, variations, lightDir }) {
+  if (textures.uv.userData.vkFormat !== VK_R32_UINT) throw new Error('this material reads uv32 UV maps (R32_UINT)');
+  if (textures.diffuse.length > MAX_MATERIALS) throw new Error(`at most ${MAX_MATERIALS} materials`);
+  const diffuse = [0, 1, 2, 3].map((m) => textures.diffuse[Math.min(m, textures.diffuse.length - 1)]);
+  return new THREE.RawShaderMaterial({
+    glslVersion: THREE.GLSL3,
+    vertexShader: IMPOSTOR_VERTEX,
+    fragmentShader: IMPOSTOR_FRAGMENT,
+    uniforms: {
+      uCenter: { value: new THREE.Vector3(...impostor.bounds.center) },
+      uRadius: { value: impostor.bounds.radius },
+      uTileSize: { value: impostor.tile_size },
+      uAzimuthCount: { value: impostor.azimuths_deg.length },
+      uUvMap: { value: textures.uv },
+      uNormalMap: { value: textures.normal },
+      uDiffuse0: { value: diffuse[0] },
+      uDiffuse1: { value: diffuse[1] },
+      uDiffuse2: { value: diffuse[2] },
+      uDiffuse3: { value: diffuse[3] },
+      uVariations: { value: [0, 1, 2, 3].map((m) => variations[Math.min(m, variations.length - 1)]) },
+      uMaterialCount: { value: textures.diffuse.length },
+      uOutfits: { value: textures.outfits },
+      uLightDir: { value: lightDir.clone().normalize() },
+    },
+  });
+}

@@ -1,0 +1,50 @@
+"""`crowdbake export BUNDLE_DIR --out DIR`: a bundle as glTF 2.0 + KTX2 + vertex-animation textures.
+
+See docs/export.md for the files and how engines and three.js use them.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from crowdbake.cli.common import CommandError
+from crowdbake.formats.errors import FormatError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "export",
+        help="export a bundle for engines and the web: glTF 2.0 (.glb), KTX2 textures, vertex-animation textures, shaders",
+        description=(
+            "Verify a bundle and write engine-ready files: one glTF 2.0 binary per LOD (body and garments with "
+            "their UVs and materials, the cloth cycle as morph targets and an animation, and as vertex-animation "
+            "textures named in the mesh extras), the impostor atlases and diffuse variations as KTX2, a JSON "
+            "sidecar (export.json) with the view layout, frames, switch distance and region codes, and reference "
+            "GLSL/HLSL shaders. OUT must be new or empty."
+        ),
+    )
+    parser.add_argument("bundle_dir", metavar="BUNDLE_DIR", type=Path, help="a bundle folder (manifest.json and its files)")
+    parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="folder to write (new or empty)")
+    parser.add_argument("--json", action="store_true", help="print the written files and sizes as JSON")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from crowdbake.export import export_bundle
+
+    if not args.bundle_dir.is_dir():
+        raise CommandError(f"{args.bundle_dir} is not a folder")
+    try:
+        summary = export_bundle(args.bundle_dir, args.out)
+    except FormatError as error:
+        raise CommandError(f"the bundle does not verify: {error}") from None
+    except FileExistsError as error:
+        raise CommandError(str(error)) from None
+    if args.json:
+        print(json.dumps({"out": str(summary.out_dir), "files": summary.files}, indent=2))
+    else:
+        for path, size in summary.files.items():
+            print(f"file     {path}: {size:,} bytes")
+        print(f"exported {len(summary.files)} files to {summary.out_dir}")
+    return 0

@@ -1,0 +1,39 @@
+// crowdbake export: play a vertex-animation texture (VAT) in a vertex shader. GLSL 3.30 / ES 3.00.
+// Include in a vertex shader; docs/export.md shows a whole program. Values come from export.json
+// (lods[].parts[].vat) or the glTF mesh's extras.crowdbake.vat.
+//
+// The VAT is 16-bit unsigned normalised RGBA. Bind it as a normalised texture (RGBA16, sampled with
+// texelFetch as floats 0..1) or, where 16-bit normalised textures are missing (WebGL2 without
+// EXT_texture_norm16), as RGBA16UI and define CB_VAT_INTEGER so the values are divided here.
+
+#ifdef CB_VAT_INTEGER
+#define CB_VAT_SAMPLER highp usampler2D
+#define CB_VAT_READ(t, c) (vec4(texelFetch(t, c, 0)) / 65535.0)
+#else
+#define CB_VAT_SAMPLER highp sampler2D
+#define CB_VAT_READ(t, c) texelFetch(t, c, 0)
+#endif
+
+uniform CB_VAT_SAMPLER cb_vat_position;
+uniform CB_VAT_SAMPLER cb_vat_normal;
+uniform vec3 cb_vat_bounds_min;     // vat.bounds_min
+uniform vec3 cb_vat_bounds_max;     // vat.bounds_max
+uniform int cb_vat_rows_per_frame;  // vat.rows_per_frame
+uniform int cb_vat_frame_count;     // vat.frame_count
+
+// Position and normal of the vertex whose TEXCOORD_1 is `vat_uv`, at `frame` (any real number:
+// the cycle wraps, and the two nearest frames are blended linearly).
+void cb_vat_sample(vec2 vat_uv, float frame, out vec3 position, out vec3 normal) {
+    ivec2 size = textureSize(cb_vat_position, 0);
+    ivec2 texel = ivec2(vat_uv * vec2(size));  // frame 0's texel (TEXCOORD_1 is its centre)
+    float wrapped = mod(frame, float(cb_vat_frame_count));
+    int f0 = int(floor(wrapped));
+    int f1 = (f0 + 1) % cb_vat_frame_count;
+    float t = wrapped - float(f0);
+    ivec2 c0 = texel + ivec2(0, f0 * cb_vat_rows_per_frame);
+    ivec2 c1 = texel + ivec2(0, f1 * cb_vat_rows_per_frame);
+    vec3 q = mix(CB_VAT_READ(cb_vat_position, c0).rgb, CB_VAT_READ(cb_vat_position, c1).rgb, t);
+    position = cb_vat_bounds_min + q * (cb_vat_bounds_max - cb_vat_bounds_min);
+    vec3 n = mix(CB_VAT_READ(cb_vat_normal, c0).rgb, CB_VAT_READ(cb_vat_normal, c1).rgb, t);
+    normal = normalize(n * 2.0 - 1.0);
+}

@@ -1,0 +1,253 @@
+"""`export_bundle`: a verified bundle folder -> engine-ready files (layout in docs/export.md).
+
+    OUT/export.json                     the sidecar: every file below and how to read it
+    OUT/character_lod<k>.glb            glTF 2.0 per LOD: parts, materials, morph-target cycle, VAT extras
+    OUT/vat/<part>_lod<k>.<position|normal>.<png|ktx2>   vertex-animation textures (16-bit)
+    OUT/textures/<material>_diffuse.ktx2, outfits.ktx2   diffuse variations (array), outfit colours
+    OUT/impostor/<normal|uv|detail>.ktx2                 impostor atlases, one layer per baked frame
+    OUT/shaders/*.glsl, *.hlsl                           reference shaders for engines
+
+The heavy lifting is in pure modules (vat, glb, ktx2, textures); this one reads the bundle, calls them
+and writes the files.
+"""
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import shutil
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from PIL import Image
+
+from crowdbake import __version__
+from crowdbake.export import ktx2
+from crowdbake.export.glb import GlbMaterial, GlbPart, build_glb
+from crowdbake.export.textures import region_codes_used, rgba8_layers, uv_map_layers
+from crowdbake.export.vat import encode_vat, vat_texcoords
+from crowdbake.formats.bundle import Bundle, verify_bundle
+
+logger = logging.getLogger(__name__)
+
+EXPORT_FORMAT = "crowdbake-export"
+EXPORT_FORMAT_VERSION = 1
+# crowdview's defaults (runtime/src/main.cpp, crowd.h LodRule), so the sidecar's switch distance is
+# the one crowdview uses for a window of this height.
+REFERENCE_VIEWPORT_HEIGHT_PX = 720
+REFERENCE_FOV_Y_DEG = 45.0
+LOW_MESH_FRACTION = 0.5
+LOD_HYSTERESIS = 0.05
+
+
+@dataclass(frozen=True)
+class ExportSummary:
+    out_dir: Path
+    files: dict[str, int]  # relative path -> bytes
+    sidecar: dict[str, Any]
+
+
+def switch_distance(radius_m: float, tile_size: int, viewport_height_px: float, fov_y_deg: float) -> float:
+    """Metres at which one impostor texel covers one pixel (crowdview's impostor_switch_distance):
+    a tile spans 2·radius with tile_size texels; a pixel at depth d spans 2·d·tan(fov/2)/H."""
+    return radius_m * viewport_height_px / (tile_size * math.tan(math.radians(fov_y_deg) / 2))
+
+
+def png16(image: np.ndarray) -> bytes:
+    """(H, W, 4) uint16 RGBA -> 16-bit RGBA PNG bytes (OpenCV writes 16 bits; it wants BGRA)."""
+    ok, encoded = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA))
+    if not ok:
+        raise RuntimeError("OpenCV could not encode a 16-bit PNG")
+    return encoded.tobytes()
+
+
+def png_rgb(rgba: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(rgba[..., :3])).save(buffer, format="PNG", optimize=False)
+    return buffer.getvalue()
+
+
+class _Out:
+    """Writes files under the export folder and remembers their sizes."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self.files: dict[str, int] = {}
+
+    def write(self, path: str, data: bytes) -> str:
+        target = self.root / path
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(data)
+        self.files[path] = len(data)
+        return path
+
+
+def _stem(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "._-" else "_" for c in name)
+
+
+def _texture_entry(path: str, vk_format: int, layers: int, width: int, height: int, encoding: str) -> dict[str, Any]:
+    return {"ktx2": path, "vk_format": ktx2.LAYOUTS[vk_format].name, "width": width, "height": height, "layers": layers, "encoding": encoding}
+
+
+def _export_textures(bundle: Bundle, out: _Out) -> tuple[list[dict], dict, list[np.ndarray]]:
+    manifest = bundle.manifest
+    materials, diffuse_arrays = [], []
+    for material in manifest["materials"]:
+        layers = rgba8_layers(bundle.textures[material["diffuse"]])
+        diffuse_arrays.append(layers)
+        path = out.write(f"textures/{_stem(material['name'])}_diffuse.ktx2", ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_SRGB, layers))
+        entry = _texture_entry(path, ktx2.VK_FORMAT_R8G8B8A8_SRGB, layers.shape[0], layers.shape[2], layers.shape[1], "rgb colour, alpha = 17 * region code")
+        materials.append({"name": material["name"], "variations": material["variations"], "diffuse": entry})
+    outfit_map = rgba8_layers(bundle.textures[manifest["outfits"]["file"]])
+    path = out.write("textures/outfits.ktx2", ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_SRGB, outfit_map[:1], array=False))
+    outfits = {
+        **_texture_entry(path, ktx2.VK_FORMAT_R8G8B8A8_SRGB, 0, 16, manifest["outfits"]["count"], "texel (x = region, y = outfit): rgb multiplies the diffuse colour"),
+        "count": manifest["outfits"]["count"],
+        "colours": outfit_map[0, :, :, :3].tolist(),
+    }
+    return materials, outfits, diffuse_arrays
+
+
+def _export_impostor(bundle: Bundle, out: _Out) -> dict[str, Any]:
+    impostor = dict(bundle.manifest["impostor"])
+    maps = {}
+    normal = rgba8_layers(bundle.textures[impostor["maps"]["normal"]])
+    path = out.write("impostor/normal.ktx2", ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_UNORM, normal))
+    maps["normal"] = _texture_entry(path, ktx2.VK_FORMAT_R8G8B8A8_UNORM, normal.shape[0], normal.shape[2], normal.shape[1], "model-space unit normal n as rgb = (n + 1) / 2")
+    detail = rgba8_layers(bundle.textures[impostor["maps"]["detail"]])
+    path = out.write("impostor/detail.ktx2", ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_SRGB, detail))
+    maps["detail"] = _texture_entry(path, ktx2.VK_FORMAT_R8G8B8A8_SRGB, detail.shape[0], detail.shape[2], detail.shape[1], "diffuse variation 0 unlit, alpha = 17 * region code")
+    vk_format, uv = uv_map_layers(bundle.textures[impostor["maps"]["uv"]])
+    path = out.write("impostor/uv.ktx2", ktx2.encode_ktx2(vk_format, uv))
+    encoding = (
+        "uv32: u = (w & 0x3FFF) / 16383, v = ((w >> 14) & 0x3FFF) / 16383, material = (w >> 28) & 7, covered = w >> 31"
+        if vk_format == ktx2.VK_FORMAT_R32_UINT
+        else "rgba16: u = R, v = G, material = B * 65535, covered = A > 0.5"
+    )
+    maps["uv"] = _texture_entry(path, vk_format, uv.shape[0], uv.shape[2], uv.shape[1], encoding)
+    tile = impostor["tile_size"]
+    radius = impostor["bounds"]["radius"]
+    return {
+        "tile_size": tile,
+        "azimuths_deg": impostor["azimuths_deg"],
+        "elevations_deg": impostor["elevations_deg"],
+        "tile_of_view": "tile (a, e) covers texels [a*tile_size, (a+1)*tile_size) x [e*tile_size, (e+1)*tile_size); "
+        "camera for azimuth t, elevation p sits in direction (sin t cos p, sin p, cos t cos p) from bounds.center",
+        "frame_indices": impostor["frame_indices"],
+        "layer_of_frame": "layer k shows cycle frame frame_indices[k]; draw the nearest one around the cycle",
+        "bounds": impostor["bounds"],
+        "quad_size_m": 2 * radius,
+        "maps": maps,
+        "switch_distance": {
+            "formula": "radius_m * viewport_height_px / (tile_size * tan(fov_y / 2))",
+            "viewport_height_px": REFERENCE_VIEWPORT_HEIGHT_PX,
+            "fov_y_deg": REFERENCE_FOV_Y_DEG,
+            "distance_m": switch_distance(radius, tile, REFERENCE_VIEWPORT_HEIGHT_PX, REFERENCE_FOV_Y_DEG),
+            "low_mesh_fraction": LOW_MESH_FRACTION,
+            "hysteresis": LOD_HYSTERESIS,
+        },
+    }
+
+
+def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray]) -> list[dict]:
+    manifest = bundle.manifest
+    fps = manifest["frames_per_second"]
+    glb_materials = [GlbMaterial(m["name"], png_rgb(layers[0])) for m, layers in zip(manifest["materials"], diffuse_arrays)]
+    lods = []
+    for lod in sorted({mesh["lod"] for mesh in manifest["meshes"]}):
+        parts, part_entries = [], []
+        for mesh in (m for m in manifest["meshes"] if m["lod"] == lod):
+            cache = bundle.pose_caches[mesh["file"]]
+            animation = encode_vat(cache.positions, cache.normals)
+            stem = f"vat/{_stem(mesh['part'])}_lod{lod}"
+            files = {}
+            for kind, image in (("position", animation.positions), ("normal", animation.normals)):
+                files[kind] = {
+                    "png": out.write(f"{stem}.{kind}.png", png16(image)),
+                    "ktx2": out.write(f"{stem}.{kind}.ktx2", ktx2.encode_ktx2(ktx2.VK_FORMAT_R16G16B16A16_UNORM, image[None], array=False)),
+                }
+            layout = animation.layout
+            vat = {
+                **files,
+                "encoding": "unorm16: position = bounds_min + rgb * (bounds_max - bounds_min); normal = normalize(rgb * 2 - 1)",
+                "bounds_min": animation.bounds_min.tolist(),
+                "bounds_max": animation.bounds_max.tolist(),
+                "max_position_error_m": animation.max_position_error.tolist(),
+                "width": layout.width,
+                "height": layout.height,
+                "rows_per_frame": layout.rows_per_frame,
+                "frame_count": layout.frame_count,
+                "vertex_count": layout.vertex_count,
+                "frames_per_second": fps,
+                "texcoord": 1,
+                "texel_of_vertex": "(i % width, frame * rows_per_frame + i // width); TEXCOORD_1 is frame 0's texel centre",
+            }
+            extras = {"part": mesh["part"], "kind": mesh["kind"], "lod": lod, "material": mesh["material"], "vat": vat}
+            parts.append(
+                GlbPart(mesh["part"], mesh["kind"], mesh["material"], cache.positions, cache.normals, cache.uvs, vat_texcoords(layout), cache.indices, extras)
+            )
+            part_entries.append({k: extras[k] for k in ("part", "kind", "material")} | {"vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat})
+        root_extras = {"crowdbake": {"export": "export.json", "lod": lod, "frames_per_second": fps, "frame_count": manifest["cycle"]["frames"]}}
+        path = out.write(f"character_lod{lod}.glb", build_glb(parts, glb_materials, fps, root_extras))
+        lods.append({"lod": lod, "glb": path, "parts": part_entries})
+    return lods
+
+
+def _copy_shaders(out: _Out) -> list[str]:
+    written = []
+    for entry in sorted(resources.files("crowdbake.export").joinpath("shaders").iterdir(), key=lambda e: e.name):
+        if entry.name.endswith((".glsl", ".hlsl")):
+            written.append(out.write(f"shaders/{entry.name}", entry.read_bytes()))
+    return written
+
+
+def export_bundle(bundle_dir: Path, out_dir: Path) -> ExportSummary:
+    """Verify the bundle at `bundle_dir` and write its export into `out_dir` (new or empty).
+
+    Raises FormatError for a bundle that does not verify, FileExistsError for a non-empty `out_dir`.
+    """
+    bundle = verify_bundle(Path(bundle_dir))
+    out_dir = Path(out_dir)
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        raise FileExistsError(f"{out_dir} exists and is not an empty folder")
+    staging = out_dir.with_name(f".{out_dir.name}.partial")
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    try:
+        out = _Out(staging)
+        manifest = bundle.manifest
+        materials, outfits, diffuse_arrays = _export_textures(bundle, out)
+        impostor = _export_impostor(bundle, out)
+        lods = _export_lods(bundle, out, diffuse_arrays)
+        shaders = _copy_shaders(out)
+        sidecar = {
+            "format": EXPORT_FORMAT,
+            "format_version": EXPORT_FORMAT_VERSION,
+            "producer": f"crowdbake {__version__}",
+            "bundle": {"name": manifest["name"], "version": manifest["version"]},
+            "frames_per_second": manifest["frames_per_second"],
+            "frame_count": manifest["cycle"]["frames"],
+            "lods": lods,
+            "materials": materials,
+            "outfits": outfits,
+            "regions": {"count": manifest["outfits"]["regions"], "alpha_scale": 17, "decode": "r = round(alpha * 255 / 17); 0 keeps the texture colour",
+                        "used": region_codes_used(diffuse_arrays)},
+            "impostor": impostor,
+            "shaders": shaders,
+            "space": "right-handed, +Y up, metres; the character stands at the origin facing +Z",
+        }
+        out.write("export.json", (json.dumps(sidecar, indent=2) + "\n").encode())
+        if out_dir.exists():
+            out_dir.rmdir()
+        staging.rename(out_dir)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    logger.info("exported %s/%s: %d files", manifest["name"], manifest["version"], len(out.files))
+    return ExportSummary(out_dir, dict(sorted(out.files.items())), sidecar)

@@ -1,0 +1,267 @@
+"""`crowdbake export` (crowdbake.export): glTF 2.0 + KTX2 + vertex-animation textures from a bundle.
+
+The pure parts are checked on synthetic data whose answer is known; the export of a real small bake
+(the procedural sample) and of CesiumMan with its long skirt is then read back three ways: every .glb
+through the Khronos glTF-Validator (node), every KTX2 through ktx-parse (the parser three.js uses,
+node) and our own reader, and the glTF's morph targets and VATs against the bundle's pose caches.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pygltflib
+import pytest
+
+from conftest import REPO_ROOT, SHARED_ASSETS
+from crowdbake.cli import main as cli_main
+from crowdbake.export import ktx2
+from crowdbake.export.textures import rgba8_layers
+from crowdbake.export.vat import VertexAnimation, decode_vat, encode_vat, vat_layout, vat_texcoords
+from crowdbake.formats.bundle import verify_bundle
+
+PREVIEW_DIR = REPO_ROOT / "services" / "crowdbake" / "api" / "static" / "preview"
+NODE = shutil.which("node")
+NODE_TIMEOUT_S = 300
+# float32 morph deltas: base + delta differs from the frame's float32 position by rounding only.
+MORPH_TOLERANCE_M = 1e-6
+
+
+def node_tool(script: str, *files: Path) -> list[dict]:
+    """Run one of the preview's node tools (tools/*.mjs) on `files`; skips when node or its packages are missing."""
+    if NODE is None:
+        pytest.skip("node is not installed (scripts/apt-packages.txt lists nodejs)")
+    if not (PREVIEW_DIR / "node_modules" / "gltf-validator").is_dir():
+        pytest.skip(f"npm packages missing: run `npm ci` in {PREVIEW_DIR} (scripts/setup.sh does)")
+    result = subprocess.run([NODE, f"tools/{script}", *map(str, files)], cwd=PREVIEW_DIR, capture_output=True, text=True, timeout=NODE_TIMEOUT_S)
+    assert result.stdout, result.stderr[-2000:]
+    return json.loads(result.stdout)
+
+
+# ----------------------------------------------------------------------------- pure parts, synthetic
+
+
+def test_vat_layout_wraps_wide_meshes_into_rows_per_frame():
+    layout = vat_layout(vertex_count=5000, frame_count=3, max_width=2048)
+    assert (layout.width, layout.rows_per_frame, layout.height) == (2048, 3, 9)
+    coords = vat_texcoords(layout)
+    # Vertex 2048 starts the second row of frame 0; its texel centre is (0.5, 1.5) texels.
+    np.testing.assert_allclose(coords[2048] * [layout.width, layout.height], [0.5, 1.5])
+    with pytest.raises(ValueError):
+        vat_layout(0, 3)
+
+
+def test_vat_decodes_within_half_a_step_of_the_bounds():
+    rng = np.random.default_rng(7)
+    positions = rng.uniform([-0.4, 0.0, -0.3], [0.4, 1.8, 0.3], size=(5, 300, 3))
+    normals = rng.normal(size=(5, 300, 3))
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    animation = encode_vat(positions, normals, max_width=128)
+    assert animation.positions.shape == (5 * 3, 128, 4) and animation.positions.dtype == np.uint16
+    decoded_positions, decoded_normals = decode_vat(animation)
+    error = np.abs(decoded_positions - positions).max(axis=(0, 1))
+    assert (error <= animation.max_position_error + 1e-12).all()
+    assert error.max() > 0.25 * animation.max_position_error.max()  # quantisation really happened
+    # 16-bit components: the normal's direction is kept to a few 1e-5 radians.
+    assert np.degrees(np.arccos(np.clip((decoded_normals * normals).sum(-1), -1, 1))).max() < 0.01
+    # Unused texels at the end of each frame's last row stay 0.
+    assert (animation.positions[2, 300 - 256 :] == 0).all()
+
+
+def test_vat_flat_axis_decodes_exactly():
+    positions = np.zeros((2, 4, 3))
+    positions[1, :, 0] = 1.0  # y and z never move
+    normals = np.tile([0.0, 1.0, 0.0], (2, 4, 1))
+    decoded, _ = decode_vat(encode_vat(positions, normals))
+    np.testing.assert_array_equal(decoded, positions)
+
+
+@pytest.mark.parametrize(
+    "vk_format, dtype, channels",
+    [(ktx2.VK_FORMAT_R8G8B8A8_UNORM, np.uint8, 4), (ktx2.VK_FORMAT_R8G8B8A8_SRGB, np.uint8, 4), (ktx2.VK_FORMAT_R16G16B16A16_UNORM, np.uint16, 4), (ktx2.VK_FORMAT_R32_UINT, np.uint32, 1)],
+)
+def test_ktx2_round_trips_texels_bit_for_bit(vk_format, dtype, channels):
+    rng = np.random.default_rng(vk_format)
+    layers = rng.integers(0, np.iinfo(dtype).max, size=(3, 5, 7, channels), dtype=dtype, endpoint=True)
+    data = ktx2.encode_ktx2(vk_format, layers)
+    image = ktx2.decode_ktx2(data)
+    assert image.vk_format == vk_format and image.layer_count == 3
+    np.testing.assert_array_equal(image.texels, layers)
+    assert image.key_values == {"KTXorientation": "rd", "KTXwriter": "crowdbake 0.1.0"}
+    # Level data starts aligned to lcm(texel size, 4), as the KTX2 spec asks.
+    level_offset = int.from_bytes(data[80:88], "little")
+    assert level_offset % max(4, layers.dtype.itemsize * channels) == 0
+
+
+def test_ktx2_refuses_texels_that_do_not_fit_the_format():
+    with pytest.raises(ValueError, match="uint8"):
+        ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_UNORM, np.zeros((1, 4, 4, 4), np.uint16))
+    with pytest.raises(ValueError, match=r"\(L, H, W, 4\)"):
+        ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_UNORM, np.zeros((1, 4, 4, 3), np.uint8))
+    with pytest.raises(ValueError, match="vkFormat"):
+        ktx2.encode_ktx2(131, np.zeros((1, 4, 4, 4), np.uint8))
+
+
+# ----------------------------------------------------------------------------- a real small bake
+
+
+@pytest.fixture(scope="module")
+def sample_bundle(tmp_path_factory) -> Path:
+    pytest.importorskip("pyrender")
+    from crowdbake import pipeline
+    from crowdbake.pipeline import BakeInputs, BakeParams
+    from crowdbake.sample.generate import generate_sample
+
+    root = tmp_path_factory.mktemp("export_sample")
+    generate_sample(root / "sample", garment="loose", cycles=3, seed=1, cycle_frames=24, texture_size=64)
+    params = BakeParams(impostor_frames=2, azimuths=4, elevations_deg=(0.0, 30.0), tile_size=32, lod_triangles=1200, cycle_views=3, candidates=3)
+    inputs = BakeInputs(
+        character=root / "sample" / "character.glb", cloth=root / "sample" / "cloth.pc2", cloth_mesh=root / "sample" / "cloth.obj",
+        textures=root / "sample" / "textures", cycle=None, name="sample", version="1.0", params=params,
+    )
+    return pipeline.run_bake(inputs, root / "bundles", work=root / "work").bundle
+
+
+@pytest.fixture(scope="module")
+def sample_export(sample_bundle, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("export_out") / "sample"
+    assert cli_main(["export", str(sample_bundle), "--out", str(out)]) == 0
+    return out
+
+
+def check_export(bundle_dir: Path, out: Path) -> None:
+    """Everything this module promises about an export of `bundle_dir` at `out`."""
+    bundle = verify_bundle(bundle_dir)
+    sidecar = json.loads((out / "export.json").read_text())
+    manifest = bundle.manifest
+
+    # 1. Every .glb passes the Khronos glTF-Validator with no error (and no warning).
+    glbs = sorted(out.glob("*.glb"))
+    assert [lod["glb"] for lod in sidecar["lods"]] == [p.name for p in glbs] and glbs
+    for report in node_tool("validate-gltf.mjs", *glbs):
+        assert report["errors"] == 0 and report["warnings"] == 0, report["messages"][:5]
+
+    # 2. Morph targets and VATs reproduce the pose caches.
+    for lod in sidecar["lods"]:
+        gltf = pygltflib.GLTF2.load(out / lod["glb"])
+        blob = gltf.binary_blob()
+        meshes = {mesh.name: mesh for mesh in gltf.meshes}
+        assert len(gltf.animations) == 1 and gltf.animations[0].name == "cycle"
+        for part in lod["parts"]:
+            cache = bundle.pose_caches[next(m["file"] for m in manifest["meshes"] if m["lod"] == lod["lod"] and m["part"] == part["part"])]
+            primitive = meshes[part["part"]].primitives[0]
+            base = read_accessor(gltf, blob, primitive.attributes.POSITION)
+            frame = cache.frame_count // 2
+            delta = read_accessor(gltf, blob, primitive.targets[frame - 1]["POSITION"])  # pygltflib loads targets as dicts
+            assert np.abs(base + delta - cache.positions[frame]).max() < MORPH_TOLERANCE_M
+            np.testing.assert_array_equal(read_accessor(gltf, blob, primitive.attributes.TEXCOORD_0), cache.uvs)
+            vat = part["vat"]
+            assert meshes[part["part"]].extras["crowdbake"]["vat"] == vat
+            layout = vat_layout(vat["vertex_count"], vat["frame_count"], vat["width"])
+            np.testing.assert_array_equal(read_accessor(gltf, blob, primitive.attributes.TEXCOORD_1), vat_texcoords(layout))
+            from_png = [cv2.cvtColor(cv2.imread(str(out / vat[k]["png"]), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA) for k in ("position", "normal")]
+            from_ktx2 = [ktx2.decode_ktx2((out / vat[k]["ktx2"]).read_bytes()).texels[0] for k in ("position", "normal")]
+            for image_png, image_ktx2 in zip(from_png, from_ktx2):
+                assert image_png.dtype == np.uint16
+                np.testing.assert_array_equal(image_png, image_ktx2)
+            animation = VertexAnimation(layout, from_png[0], from_png[1], np.array(vat["bounds_min"]), np.array(vat["bounds_max"]))
+            positions, normals = decode_vat(animation)
+            error = np.abs(positions - cache.positions).max(axis=(0, 1))
+            assert (error <= np.array(vat["max_position_error_m"]) + 1e-7).all(), error
+            assert np.degrees(np.arccos(np.clip((normals * cache.normals).sum(-1), -1, 1))).max() < 0.1
+
+    # 3. KTX2: ktx-parse reads every file, its writer gives back the same bytes, and the texels are
+    # the bundle's (block formats decoded as a runtime decodes them): error 0.
+    expected = {}
+    for material in sidecar["materials"]:
+        source = next(m for m in manifest["materials"] if m["name"] == material["name"])
+        expected[material["diffuse"]["ktx2"]] = rgba8_layers(bundle.textures[source["diffuse"]])
+    expected[sidecar["outfits"]["ktx2"]] = rgba8_layers(bundle.textures[manifest["outfits"]["file"]])
+    for kind in ("normal", "detail"):
+        expected[sidecar["impostor"]["maps"][kind]["ktx2"]] = rgba8_layers(bundle.textures[manifest["impostor"]["maps"][kind]])
+    uv = bundle.textures[manifest["impostor"]["maps"]["uv"]]
+    expected[sidecar["impostor"]["maps"]["uv"]["ktx2"]] = np.stack([uv.texels(k) for k in range(len(uv.layers))])
+    ktx_files = sorted(out.rglob("*.ktx2"))
+    reports = {Path(r["path"]).relative_to(out).as_posix(): r for r in node_tool("read-ktx2.mjs", *ktx_files)}
+    assert len(reports) == len(ktx_files)
+    for path, report in reports.items():
+        assert report["reserialisedIdentical"] and report["levelCount"] == 1 and report["supercompressionScheme"] == 0, path
+        texels = ktx2.decode_ktx2((out / path).read_bytes()).texels
+        assert report["levels"][0]["sha256"] == hashlib.sha256(texels.tobytes()).hexdigest(), path
+        if path in expected:
+            np.testing.assert_array_equal(texels.reshape(expected[path].shape), expected[path], err_msg=path)
+    assert set(expected) <= set(reports)
+
+    # 4. The sidecar describes the impostor as the bundle does.
+    impostor = sidecar["impostor"]
+    for key in ("tile_size", "azimuths_deg", "elevations_deg", "frame_indices", "bounds"):
+        assert impostor[key] == manifest["impostor"][key]
+    switch = impostor["switch_distance"]
+    radius, tile = manifest["impostor"]["bounds"]["radius"], manifest["impostor"]["tile_size"]
+    assert switch["distance_m"] == pytest.approx(radius * 720 / (tile * np.tan(np.radians(22.5))))
+    assert set(sidecar["regions"]["used"]) <= set(range(16))
+
+
+def read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int) -> np.ndarray:
+    accessor = gltf.accessors[index]
+    view = gltf.bufferViews[accessor.bufferView]
+    dtype = {pygltflib.FLOAT: "<f4", pygltflib.UNSIGNED_SHORT: "<u2", pygltflib.UNSIGNED_INT: "<u4"}[accessor.componentType]
+    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}[accessor.type]
+    data = np.frombuffer(blob, dtype, accessor.count * width, view.byteOffset + (accessor.byteOffset or 0))
+    return data.reshape(accessor.count, width) if width > 1 else data
+
+
+def test_sample_export_validates_and_round_trips(sample_bundle, sample_export):
+    check_export(sample_bundle, sample_export)
+
+
+def test_morph_animation_keys_each_frame_once(sample_export):
+    gltf = pygltflib.GLTF2.load(sample_export / "character_lod0.glb")
+    blob = gltf.binary_blob()
+    sampler = gltf.animations[0].samplers[0]
+    times = read_accessor(gltf, blob, sampler.input)
+    weights = read_accessor(gltf, blob, sampler.output).reshape(len(times), -1)
+    frames = len(times) - 1
+    np.testing.assert_allclose(times, np.arange(frames + 1) / 24.0, rtol=1e-6)
+    # Frame 0 and the cycle's end are the base mesh; frame k weighs target k-1 alone.
+    assert not weights[0].any() and not weights[-1].any()
+    np.testing.assert_array_equal(weights[1:-1], np.eye(frames - 1, dtype=np.float32))
+
+
+def test_cli_refuses_a_non_empty_folder_and_a_broken_bundle(sample_bundle, sample_export, tmp_path, capsys):
+    assert cli_main(["export", str(sample_bundle), "--out", str(sample_export)]) == 2
+    assert "not an empty folder" in capsys.readouterr().err
+    broken = tmp_path / "broken"
+    shutil.copytree(sample_bundle, broken)
+    (broken / "impostor" / "uv.cbtx").write_bytes(b"CBTX")
+    assert cli_main(["export", str(broken), "--out", str(tmp_path / "out")]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.count("\n") == 0 and "does not verify" in error and "impostor/uv.cbtx" in error
+    assert not (tmp_path / "out").exists()
+
+
+# ----------------------------------------------------------------------------- CesiumMan and its skirt
+
+
+@pytest.mark.slow
+def test_cesiumman_export_validates_and_round_trips(tmp_path_factory):
+    character = SHARED_ASSETS / "CesiumMan.glb"
+    skirt = SHARED_ASSETS / "long_skirt"
+    if not (character.is_file() and (skirt / "long_skirt.pc2").is_file()):
+        pytest.skip(f"CesiumMan.glb and long_skirt/ not found under {SHARED_ASSETS} (set CROWDBAKE_SHARED_ASSETS)")
+    pytest.importorskip("pyrender")
+    root = tmp_path_factory.mktemp("cesiumman")
+    arguments = [
+        "bake", str(character), "--cloth", str(skirt / "long_skirt.pc2"), "--cloth-mesh", str(skirt / "long_skirt.obj"),
+        "--name", "cesiumman", "--version", "1.0", "--out", str(root / "bundles"),
+        "--frames", "2", "--azimuths", "4", "--elevations", "0", "--tile", "32", "--cycle-views", "3", "--candidates", "2", "--lod-ratio", "0.2",
+    ]
+    assert cli_main(arguments) == 0
+    bundle = root / "bundles" / "cesiumman" / "1.0"
+    assert cli_main(["export", str(bundle), "--out", str(root / "export")]) == 0
+    check_export(bundle, root / "export")
