@@ -125,6 +125,39 @@ def listed_files(folder: Path) -> dict[str, bytes]:
     return {entry["path"]: (folder / entry["path"]).read_bytes() for entry in manifest["files"]}
 
 
+def test_settings_choose_the_store(tmp_path):
+    from pydantic import ValidationError
+
+    from crowdbake.settings import Settings
+    from crowdbake.storage.store import open_store
+
+    local = open_store(Settings(data_dir=tmp_path / "d"))
+    assert isinstance(local.blobs, LocalBlobStore) and isinstance(local.bundles, LocalBundleStore)
+    with pytest.raises(ValidationError, match="S3_BUCKET"):
+        Settings(data_dir=tmp_path, store="s3")
+    with pytest.raises(ValidationError, match="SECRET_ACCESS_KEY"):
+        Settings(data_dir=tmp_path, store="s3", s3_bucket="b", s3_access_key_id="k")
+    with pytest.raises(ValidationError, match="s3_part_bytes"):
+        Settings(data_dir=tmp_path, store="s3", s3_bucket="b", s3_part_bytes=MiB)
+
+
+def test_open_store_on_s3(s3, s3_server, tmp_path):
+    from crowdbake.settings import Settings
+    from crowdbake.storage.s3 import S3BlobStore
+    from crowdbake.storage.s3_bundles import S3BundleStore
+    from crowdbake.storage.store import open_store
+
+    client, bucket, prefix = s3
+    endpoint, key_id, secret, _ = s3_server
+    settings = Settings(data_dir=tmp_path / "d", store="s3", s3_endpoint_url=endpoint, s3_bucket=bucket, s3_prefix=prefix.rstrip("/"),
+                        s3_access_key_id=key_id, s3_secret_access_key=secret)
+    stores = open_store(settings)
+    assert isinstance(stores.blobs, S3BlobStore) and isinstance(stores.bundles, S3BundleStore)
+    assert stores.blobs.cache is stores.bundles.cache and stores.blobs.prefix == prefix
+    digest = stored(stores.blobs, b"through the settings")
+    assert client.head_object(Bucket=bucket, Key=f"{prefix}blobs/sha256/{digest[:2]}/{digest[2:4]}/{digest}")["ContentLength"] == 20
+
+
 # ------------------------------------------------------------------------------------------ blobs
 
 
