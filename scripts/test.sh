@@ -1,6 +1,9 @@
 #!/usr/bin/env bash
 # Sets everything up (scripts/setup.sh), then runs every test: Python (pytest) and C++ (ctest).
-# Starts a private redis-server on loopback for the integration tests and stops it afterwards.
+# Starts private servers on loopback and stops them afterwards, also when a test or a start fails:
+# redis-server for the integration tests, and PostgreSQL and an S3 server (scripts/test-services.sh)
+# so the storage, record and API tests run on PostgreSQL and the store contracts on S3 as well.
+# CROWDBAKE_TEST_SERVICES=none skips the last two (=postgres or =s3 starts only that one).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -12,9 +15,18 @@ redis_dir="$(mktemp -d)"
 redis_port="${CROWDBAKE_TEST_REDIS_PORT:-6391}"
 redis-server --port "$redis_port" --bind 127.0.0.1 --save "" --appendonly no --dir "$redis_dir" \
   --daemonize yes --pidfile "$redis_dir/redis.pid" --logfile "$redis_dir/redis.log"
-cleanup() { [ -f "$redis_dir/redis.pid" ] && kill "$(cat "$redis_dir/redis.pid")" 2>/dev/null; rm -rf "$redis_dir"; }
+services_dir="$(mktemp -d)"
+cleanup() {
+  [ -f "$redis_dir/redis.pid" ] && kill "$(cat "$redis_dir/redis.pid")" 2>/dev/null || true
+  rm -rf "$redis_dir"
+  bash scripts/test-services.sh stop "$services_dir" || true
+}
 trap cleanup EXIT
 export CROWDBAKE_TEST_REDIS_URL="redis://127.0.0.1:${redis_port}/0"
+if [ "${CROWDBAKE_TEST_SERVICES:-postgres,s3}" != none ]; then
+  services_env="$(bash scripts/test-services.sh start "$services_dir")"
+  eval "$services_env"
+fi
 
 status=0
 echo "== Python tests (pytest) =="

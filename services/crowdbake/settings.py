@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -33,6 +34,23 @@ class Settings(BaseSettings):
     broker_url: str = Field("filesystem://", description="Celery broker: redis://... in production.")
     broker_dir: Path | None = Field(None, description="Folder of the filesystem broker; default data_dir/broker.")
     queue: str = Field("crowdbake", description="Celery queue the bake tasks go to.")
+
+    store: Literal["local", "s3"] = Field(
+        "local", description="Where blobs and bundles live: local folders (blob_dir, bundles_dir) or an S3-compatible bucket."
+    )
+    s3_endpoint_url: str | None = Field(None, description="S3 API endpoint (http://minio:9000); unset means AWS S3 itself.")
+    s3_bucket: str | None = Field(None, description="Bucket of the blobs and bundles (required when store is s3).")
+    s3_prefix: str = Field("", description="Key prefix inside the bucket, so several deployments can share one.")
+    s3_region: str = Field("us-east-1", description="Region the client signs requests for.")
+    s3_access_key_id: SecretStr | None = Field(None, description="Access key; unset means boto3's own credential chain.")
+    s3_secret_access_key: SecretStr | None = Field(None, description="Secret key paired with s3_access_key_id.")
+    s3_addressing_style: Literal["path", "virtual", "auto"] = Field(
+        "path", description="Bucket in the path (MinIO and most self-hosted stores) or in the host name."
+    )
+    s3_part_bytes: int = Field(16 * MiB, ge=5 * MiB, description="Multipart upload part size; also the most one upload holds in memory.")
+    s3_presign_seconds: int = Field(300, gt=0, le=7 * 24 * 3600, description="Lifetime of a presigned download URL.")
+    cache_dir: Path | None = Field(None, description="Local read-through cache of an object store's blobs and bundle files; default data_dir/cache.")
+    cache_max_bytes: int = Field(4096 * MiB, gt=0, description="Cache size above which the least recently used files are evicted.")
 
     max_upload_bytes: int = Field(512 * MiB, gt=0, description="Largest request body accepted (413 above).")
     max_zip_entries: int = Field(10_000, gt=0, description="Most entries in an uploaded OBJ-sequence zip.")
@@ -69,6 +87,12 @@ class Settings(BaseSettings):
         self.bundles_dir = (self.bundles_dir or data / "bundles").expanduser().resolve()
         self.work_dir = (self.work_dir or data / "work").expanduser().resolve()
         self.broker_dir = (self.broker_dir or data / "broker").expanduser().resolve()
+        self.cache_dir = (self.cache_dir or data / "cache").expanduser().resolve()
+        self.s3_prefix = self.s3_prefix.strip("/") + "/" if self.s3_prefix.strip("/") else ""
+        if self.store == "s3" and not self.s3_bucket:
+            raise ValueError("CROWDBAKE_STORE=s3 needs CROWDBAKE_S3_BUCKET")
+        if (self.s3_access_key_id is None) != (self.s3_secret_access_key is None):
+            raise ValueError("set both CROWDBAKE_S3_ACCESS_KEY_ID and CROWDBAKE_S3_SECRET_ACCESS_KEY, or neither")
         if not self.database_url:
             self.database_url = f"sqlite:///{data / 'crowdbake.sqlite3'}"
         return self
@@ -79,7 +103,7 @@ class Settings(BaseSettings):
 
     def ensure_dirs(self) -> None:
         """Create the folders this configuration writes to."""
-        for folder in (self.data_dir, self.blob_dir, self.bundles_dir, self.work_dir):
+        for folder in (self.data_dir, self.blob_dir, self.bundles_dir, self.work_dir) + ((self.cache_dir,) if self.store == "s3" else ()):
             folder.mkdir(parents=True, exist_ok=True)
         if self.uses_filesystem_broker:
             (self.broker_dir / "queue").mkdir(parents=True, exist_ok=True)

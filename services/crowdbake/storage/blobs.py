@@ -4,11 +4,11 @@ Uploads are streamed into a staging file while they are hashed (`BlobStore.incom
 there, and only then committed under their digest; a rejected upload is discarded and leaves nothing
 behind. Committing bytes that are already stored is a no-op (deduplication).
 
-`LocalBlobStore` keeps blobs in a folder (`<root>/sha256/ab/cd/abcd...`). Another backend (an
-S3-compatible object store, say) implements the same abstract methods: staging stays on local disk
-because validation reads files, `commit` uploads the staged file under its digest with a conditional
-put, `open` streams it back, and `materialize` downloads it for the workers. None ships here because
-the only client library would be a new dependency; `make_blob_store` is where it would be chosen.
+`LocalBlobStore` keeps blobs in a folder (`<root>/sha256/ab/cd/abcd...`). `crowdbake.storage.s3.S3BlobStore`
+implements the same abstract methods on an S3-compatible bucket: staging stays on local disk because
+validation reads files, `commit` uploads the staged file under its digest in parts with a conditional
+put, `open` streams it back, and `materialize` goes through a local read cache on the workers.
+`crowdbake.storage.store.open_store(settings)` picks one, with its bundle store.
 """
 from __future__ import annotations
 
@@ -154,6 +154,26 @@ class BlobStore(ABC):
     def digests(self) -> Iterator[str]:
         """Every stored digest."""
 
+    def presigned_url(self, digest: str, expires_s: int) -> str | None:
+        """A URL anyone holding it may GET the blob from for `expires_s` seconds, or None when the
+        store cannot make one (a local folder): then serve `open(digest)` instead."""
+        return None
+
+
+def link_read_only(source: Path, destination: Path) -> Path:
+    """Make `destination` a read-only file with `source`'s bytes: a hard link where the file system
+    allows (the source is read-only, so sharing the inode is safe), else a copy."""
+    destination = Path(destination)
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    if destination.exists():
+        destination.unlink()
+    try:
+        os.link(source, destination)
+    except OSError:
+        shutil.copy2(source, destination)  # keeps the modification time, as a link would
+        os.chmod(destination, 0o444)
+    return destination
+
 
 class LocalBlobStore(BlobStore):
     """Blobs in a local folder: <root>/sha256/<2 hex>/<2 hex>/<digest>, written once, read-only."""
@@ -193,16 +213,7 @@ class LocalBlobStore(BlobStore):
         source = self.path(digest)
         if not source.is_file():
             raise FileNotFoundError(f"blob {digest} is not in the store {self.root}")
-        destination = Path(destination)
-        destination.parent.mkdir(parents=True, exist_ok=True)
-        if destination.exists():
-            destination.unlink()
-        try:
-            os.link(source, destination)  # blobs are read-only, so sharing the inode is safe
-        except OSError:
-            shutil.copy2(source, destination)  # keeps the modification time, as a link would
-            os.chmod(destination, 0o444)
-        return destination
+        return link_read_only(source, destination)
 
     def delete(self, digest: str) -> None:
         self.path(digest).unlink(missing_ok=True)
@@ -217,9 +228,12 @@ class LocalBlobStore(BlobStore):
 
 
 def make_blob_store(blob_dir: Path) -> BlobStore:
-    """The configured blob store (local folder; an object-store backend would be chosen here), with
-    staging files that dead processes left behind swept away (BlobStore.sweep_staging)."""
-    store = LocalBlobStore(blob_dir)
+    """A local-folder blob store with staging files that dead processes left behind swept away."""
+    return with_staging_swept(LocalBlobStore(blob_dir))
+
+
+def with_staging_swept(store: BlobStore) -> BlobStore:
+    """`store`, after deleting the staging files that dead processes left behind (BlobStore.sweep_staging)."""
     swept = store.sweep_staging()
     if swept:
         logger.warning("removed %d staging files older than %d s left by interrupted uploads in %s", swept, STALE_STAGING_S, store.staging_dir)

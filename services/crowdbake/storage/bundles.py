@@ -1,8 +1,9 @@
 """Published bundles: where they live, their manifests, and their records.
 
 A bundle is published once, atomically, to `<bundles_dir>/<name>/<version>/` (by crowdbake.pipeline's
-publish stage, with crowdbake.formats.bundle.write_bundle) and then recorded here. Published folders
-never change, so a parsed manifest can be cached for the life of the process.
+publish stage, with crowdbake.formats.bundle.write_bundle, or by a crowdbake.storage.bundle_store.BundleStore,
+which may keep it in an object store) and then recorded here. Published folders never change, so a
+parsed manifest can be cached for the life of the process.
 """
 from __future__ import annotations
 
@@ -44,15 +45,19 @@ def bundle_dir(bundles_dir: Path, name: str, version: str) -> Path:
     return Path(bundles_dir) / name / version
 
 
-@lru_cache(maxsize=256)
-def _load_manifest(folder: str, _mtime_ns: int) -> PublishedManifest:
-    data = (Path(folder) / "manifest.json").read_bytes()
+def parse_manifest(data: bytes) -> PublishedManifest:
+    """A published manifest from its bytes (FormatError on a file path the bundle rules forbid)."""
     manifest = json.loads(data)
     files = {}
     for entry in manifest.get("files", []):
         check_path(entry["path"])
         files[entry["path"]] = entry
     return PublishedManifest(data, hashlib.sha256(data).hexdigest(), manifest, files)
+
+
+@lru_cache(maxsize=256)
+def _load_manifest(folder: str, _mtime_ns: int) -> PublishedManifest:
+    return parse_manifest((Path(folder) / "manifest.json").read_bytes())
 
 
 def read_manifest(bundles_dir: Path, name: str, version: str) -> PublishedManifest:
@@ -72,12 +77,16 @@ def find_bundle(session: Session, name: str, version: str) -> Bundle | None:
     return session.scalars(select(Bundle).where(Bundle.name == name, Bundle.version == version)).first()
 
 
-def register_bundle(session: Session, bundles_dir: Path, name: str, version: str, public: bool, bake_id: str | None) -> Bundle:
-    """Record the published folder name/version (idempotent: the same manifest again is a no-op).
+def register_bundle(session: Session, bundles_dir, name: str, version: str, public: bool, bake_id: str | None) -> Bundle:
+    """Record the published bundle name/version (idempotent: the same manifest again is a no-op).
 
+    bundles_dir: the bundles folder (Path), or a crowdbake.storage.bundle_store.BundleStore.
     Raises BundleConflict when a record of name/version names another manifest.
     """
-    published = read_manifest(bundles_dir, name, version)
+    if hasattr(bundles_dir, "manifest"):  # a BundleStore; checked by duck type to keep this module import-light
+        published = bundles_dir.manifest(name, version)
+    else:
+        published = read_manifest(bundles_dir, name, version)
     existing = find_bundle(session, name, version)
     if existing is not None:
         if existing.manifest_sha256 != published.sha256:
