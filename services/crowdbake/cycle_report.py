@@ -30,10 +30,10 @@ from typing import Callable
 import numpy as np
 
 from crowdbake.bake.cycle import CycleParams, CycleResult, find_cycle
+from crowdbake.params import BASE_FPS, min_cloth_frames
 
 logger = logging.getLogger(__name__)
 
-BASE_FPS = 24.0
 # The animation's duration times the frame rate must be this close to a whole number of frames for the
 # body to be tiled from one posed cycle; otherwise each frame is posed at its own wrapped time.
 _WHOLE_FRAME_TOLERANCE = 1e-3
@@ -83,9 +83,9 @@ def _pose_body(character, fps: float, frame_count: int) -> tuple[np.ndarray, np.
 def _check_two_cycles(frame_count: int, cycle_frames: int, path) -> None:
     if cycle_frames < 2:
         raise ValueError(f"the cycle length must be at least 2 frames, got {cycle_frames}")
-    if frame_count < 2 * cycle_frames:
+    if frame_count < min_cloth_frames(cycle_frames):
         raise ValueError(
-            f"too few frames for two cycles: {path} has {frame_count} frames, two cycles of {cycle_frames} need {2 * cycle_frames}"
+            f"too few frames for two cycles: {path} has {frame_count} frames, two cycles of {cycle_frames} need {min_cloth_frames(cycle_frames)}"
         )
 
 
@@ -97,8 +97,13 @@ def load_cycle_inputs(
     body_obj: str | os.PathLike | None = None,
     cycle_frames: int | None = None,
     fps: float | None = None,
+    *,
+    parsed: dict | None = None,
 ) -> CycleInputs:
-    """Read and cross-check the cycle search's input files. Raises ValueError with a one-line reason."""
+    """Read and cross-check the cycle search's input files. Raises ValueError with a one-line reason.
+
+    parsed: files the caller has already read, by role ("cloth": PointCache, "cloth_mesh": ObjMesh,
+    "character": Character); they are not read again."""
     from crowdbake.formats.obj import read_obj
     from crowdbake.formats.pc2 import read_pc2
 
@@ -106,8 +111,9 @@ def load_cycle_inputs(
         raise ValueError("give the body either as a character (.glb) or as a body cache and mesh, not both")
     if (body_pc2 is None) != (body_obj is None):
         raise ValueError("a body cache needs its mesh: give both --body and --body-mesh")
-    cache = read_pc2(cloth_pc2)
-    mesh = read_obj(cloth_obj)
+    parsed = parsed or {}
+    cache = parsed["cloth"] if "cloth" in parsed else read_pc2(cloth_pc2)
+    mesh = parsed["cloth_mesh"] if "cloth_mesh" in parsed else read_obj(cloth_obj)
     if mesh.position_count != cache.point_count:
         raise ValueError(
             f"vertex counts do not match: {cloth_obj} has {mesh.position_count} positions, {cloth_pc2} has {cache.point_count} points"
@@ -128,7 +134,7 @@ def load_cycle_inputs(
     if character is not None:
         from crowdbake.formats.gltf import load_character
 
-        loaded_character = load_character(character)
+        loaded_character = parsed["character"] if "character" in parsed else load_character(character)
         body, body_normals = _pose_body(loaded_character, frame_rate, frame_count)
         body_faces = np.asarray(loaded_character.faces, dtype=np.int64)
         sources["character"] = str(character)
@@ -181,15 +187,18 @@ def run_cycle_job(
     params: CycleParams = CycleParams(),
     progress: Progress | None = None,
     edge_pass: bool = True,
+    *,
+    parsed: dict | None = None,
 ) -> CycleResult:
     """The whole `crowdbake cycle` job: files in, cycle.json + looped.pc2 + report.html out.
 
     edge_pass: run pass 2 (rendering under OSMesa/EGL); False picks the best pass-1 candidate.
+    parsed: input files already read, by role (see load_cycle_inputs).
     Raises ValueError on bad input (with a one-line reason).
     """
     report = progress or (lambda stage, done, total: None)
     report("load", 0, 1)
-    inputs = load_cycle_inputs(cloth_pc2, cloth_obj, character, body_pc2, body_obj, cycle_frames, fps)
+    inputs = load_cycle_inputs(cloth_pc2, cloth_obj, character, body_pc2, body_obj, cycle_frames, fps, parsed=parsed)
     report("load", 1, 1)
     render_views = None
     if edge_pass:

@@ -21,7 +21,7 @@ from service_fixtures import Process, free_port, service_env, start_api, start_w
 # textures, 2 impostor frames x 4 azimuths x 2 elevations of 32² tiles, 2 cycle candidates from 2 views.
 SAMPLE = dict(garment="loose", cycles=3, seed=1, cycle_frames=24, texture_size=64)
 PARAMS = {"impostor_frames": 2, "azimuths": 4, "elevations_deg": [0, 30], "tile_size": 32, "candidates": 2, "cycle_views": 2}
-# A parameter the API accepts and the pipeline's validate stage refuses (more triangles than the mesh has).
+# A parameter the API accepts and the validate stage refuses (more triangles than the mesh has).
 FAILING_PARAMS = dict(PARAMS, lod_triangles=100_000_000)
 NAME = "sample-walker"
 BAKE_TIMEOUT_S = 240

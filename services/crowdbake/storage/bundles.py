@@ -1,6 +1,6 @@
 """Published bundles: where they live, their manifests, and their records.
 
-A bundle is published once, atomically, to `<bundles_dir>/<name>/<version>/` (by crowdbake.pipeline's
+A bundle is published once, atomically, to `<bundles_dir>/<name>/<version>/` (by crowdbake.stages.publish's
 publish stage, with crowdbake.formats.bundle.write_bundle) and then recorded here. Published folders
 never change, so a parsed manifest can be cached for the life of the process.
 """
