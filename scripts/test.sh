@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Sets everything up (scripts/setup.sh), then runs every test: Python (pytest) and C++ (ctest).
 # Starts a private redis-server on loopback for the integration tests and stops it afterwards.
+# Tests marked slow (the fault-injection, load and long end-to-end tests) run only with
+# CROWDBAKE_SLOW_TESTS=1, which .ci/run sets: CI runs every test, a local run stays short.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -18,7 +20,9 @@ export CROWDBAKE_TEST_REDIS_URL="redis://127.0.0.1:${redis_port}/0"
 
 status=0
 echo "== Python tests (pytest) =="
-.venv/bin/python -m pytest services/tests tests -q -p no:cacheprovider --junitxml=out/test/pytest.xml "$@" || status=$?
+markers=(-m "not slow")
+[ "${CROWDBAKE_SLOW_TESTS:-0}" = 1 ] && markers=()
+.venv/bin/python -m pytest services/tests tests -q -p no:cacheprovider --junitxml=out/test/pytest.xml "${markers[@]}" "$@" || status=$?
 echo "== C++ tests (ctest) =="
 ctest --test-dir build/runtime --output-on-failure || status=$?
 exit "$status"

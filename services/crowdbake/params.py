@@ -244,7 +244,7 @@ class BakeParams:
 
 def pydantic_fields() -> dict[str, tuple[Any, Any]]:
     """create_model field definitions, name -> (annotation, FieldInfo), one per PARAMS entry."""
-    from typing import Annotated, Literal, Optional
+    from typing import Literal, Optional
 
     from pydantic import Field
 
@@ -266,8 +266,8 @@ def pydantic_fields() -> dict[str, tuple[Any, Any]]:
         elif spec.kind == "bool":
             annotation = bool
         else:
-            item = Annotated[float, Field(ge=spec.minimum, le=spec.maximum, allow_inf_nan=False)]
-            annotation = list[item]  # type: ignore[valid-type]
+            # Item bounds and distinctness: ParamSpec.problem, in the model's validator (one error for the field).
+            annotation = list[float]
             bounds.update(min_length=spec.min_items, max_length=spec.max_items)
         if spec.optional:
             annotation = Optional[annotation]

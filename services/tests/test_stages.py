@@ -32,12 +32,9 @@ DIFFUSE_PSNR_DB = 30.0
 
 
 @pytest.fixture(scope="module")
-def sample(tmp_path_factory) -> Path:
-    from crowdbake.sample.generate import generate_sample
-
-    folder = tmp_path_factory.mktemp("sample")
-    generate_sample(folder, garment="loose", cycles=3, seed=1, cycle_frames=CYCLE_FRAMES, texture_size=64)
-    return folder
+def sample(small_sample) -> Path:
+    """The session's sample (sample_fixtures.SMALL_SAMPLE: 24-frame cycles)."""
+    return small_sample
 
 
 def inputs_for(sample: Path, params: BakeParams = SMALL, **changes) -> BakeInputs:

@@ -99,8 +99,8 @@ def test_preview_views_and_errors(api):
 
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory):
-    with baked_service(tmp_path_factory.mktemp("web")) as running:
+def service(tmp_path_factory, small_sample):
+    with baked_service(tmp_path_factory.mktemp("web"), small_sample) as running:
         yield running
 
 

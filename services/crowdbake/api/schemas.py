@@ -7,7 +7,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
-from crowdbake.params import NAME_PATTERN, PARAMS, VERSION_PATTERN, cross_field_problem, pydantic_fields
+from crowdbake.params import NAME_PATTERN, PARAMS, SPECS, VERSION_PATTERN, cross_field_problem, pydantic_fields
 
 # List offsets go to SQL as 64-bit integers; a larger one used to raise OverflowError (a 500).
 MAX_LIST_OFFSET = 2**62
@@ -90,11 +90,12 @@ class _BakeParamsChecks(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    @field_validator(*(spec.name for spec in PARAMS if spec.distinct), check_fields=False)
+    @field_validator(*(spec.name for spec in PARAMS if spec.kind == "floats"), check_fields=False)
     @classmethod
-    def _distinct(cls, values: list[float]) -> list[float]:
-        if len(set(values)) != len(values):
-            raise ValueError("values must be distinct")
+    def _list_values(cls, values: list[float], info) -> list[float]:
+        problem = SPECS[info.field_name].problem(values)
+        if problem is not None:
+            raise ValueError(problem)
         return values
 
     @model_validator(mode="after")
