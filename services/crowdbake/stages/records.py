@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, ClassVar
 
+from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.errors import StageOrderError
 from crowdbake.params import BakeParams
 
@@ -124,10 +125,8 @@ class PosesRecord(Record):
     fidelity_frame: int
     _nested: ClassVar[dict[str, type]] = {"parts": PosePart, "materials": MaterialInfo}
 
-    def atlas_layout(self):
+    def atlas_layout(self) -> AtlasLayout:
         """The impostor atlas layout (crowdbake.bake.atlas.AtlasLayout) these poses were framed for."""
-        from crowdbake.bake.atlas import AtlasLayout
-
         return AtlasLayout(int(self.layout["tile_size"]), tuple(self.layout["azimuths_deg"]), tuple(self.layout["elevations_deg"]))
 
     @property
