@@ -97,13 +97,8 @@ def load_cycle_inputs(
     body_obj: str | os.PathLike | None = None,
     cycle_frames: int | None = None,
     fps: float | None = None,
-    *,
-    parsed: dict | None = None,
 ) -> CycleInputs:
-    """Read and cross-check the cycle search's input files. Raises ValueError with a one-line reason.
-
-    parsed: files the caller has already read, by role ("cloth": PointCache, "cloth_mesh": ObjMesh,
-    "character": Character); they are not read again."""
+    """Read and cross-check the cycle search's input files. Raises ValueError with a one-line reason."""
     from crowdbake.formats.obj import read_obj
     from crowdbake.formats.pc2 import read_pc2
 
@@ -111,9 +106,8 @@ def load_cycle_inputs(
         raise ValueError("give the body either as a character (.glb) or as a body cache and mesh, not both")
     if (body_pc2 is None) != (body_obj is None):
         raise ValueError("a body cache needs its mesh: give both --body and --body-mesh")
-    parsed = parsed or {}
-    cache = parsed["cloth"] if "cloth" in parsed else read_pc2(cloth_pc2)
-    mesh = parsed["cloth_mesh"] if "cloth_mesh" in parsed else read_obj(cloth_obj)
+    cache = read_pc2(cloth_pc2)
+    mesh = read_obj(cloth_obj)
     if mesh.position_count != cache.point_count:
         raise ValueError(
             f"vertex counts do not match: {cloth_obj} has {mesh.position_count} positions, {cloth_pc2} has {cache.point_count} points"
@@ -134,7 +128,7 @@ def load_cycle_inputs(
     if character is not None:
         from crowdbake.formats.gltf import load_character
 
-        loaded_character = parsed["character"] if "character" in parsed else load_character(character)
+        loaded_character = load_character(character)
         body, body_normals = _pose_body(loaded_character, frame_rate, frame_count)
         body_faces = np.asarray(loaded_character.faces, dtype=np.int64)
         sources["character"] = str(character)
@@ -187,18 +181,15 @@ def run_cycle_job(
     params: CycleParams = CycleParams(),
     progress: Progress | None = None,
     edge_pass: bool = True,
-    *,
-    parsed: dict | None = None,
 ) -> CycleResult:
     """The whole `crowdbake cycle` job: files in, cycle.json + looped.pc2 + report.html out.
 
     edge_pass: run pass 2 (rendering under OSMesa/EGL); False picks the best pass-1 candidate.
-    parsed: input files already read, by role (see load_cycle_inputs).
     Raises ValueError on bad input (with a one-line reason).
     """
     report = progress or (lambda stage, done, total: None)
     report("load", 0, 1)
-    inputs = load_cycle_inputs(cloth_pc2, cloth_obj, character, body_pc2, body_obj, cycle_frames, fps, parsed=parsed)
+    inputs = load_cycle_inputs(cloth_pc2, cloth_obj, character, body_pc2, body_obj, cycle_frames, fps)
     report("load", 1, 1)
     render_views = None
     if edge_pass:
