@@ -4,6 +4,8 @@
 # redis-server for the integration tests, and PostgreSQL and an S3 server (scripts/test-services.sh)
 # so the storage, record and API tests run on PostgreSQL and the store contracts on S3 as well.
 # CROWDBAKE_TEST_SERVICES=none skips the last two (=postgres or =s3 starts only that one).
+# Tests marked slow (the fault-injection, load and long end-to-end tests) run only with
+# CROWDBAKE_SLOW_TESTS=1, which .ci/run sets: CI runs every test, a local run stays short.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -30,7 +32,9 @@ fi
 
 status=0
 echo "== Python tests (pytest) =="
-.venv/bin/python -m pytest services/tests tests -q -p no:cacheprovider --junitxml=out/test/pytest.xml "$@" || status=$?
+markers=(-m "not slow")
+[ "${CROWDBAKE_SLOW_TESTS:-0}" = 1 ] && markers=()
+.venv/bin/python -m pytest services/tests tests -q -p no:cacheprovider --junitxml=out/test/pytest.xml "${markers[@]}" "$@" || status=$?
 echo "== C++ tests (ctest) =="
 ctest --test-dir build/runtime --output-on-failure || status=$?
 exit "$status"

@@ -13,13 +13,15 @@ for folder in (REPO / "services", REPO / "services" / "tests"):
     if str(folder) not in sys.path:
         sys.path.insert(0, str(folder))
 
+from sample_fixtures import small_sample  # noqa: E402,F401  (generated once per session, shared with services/tests)
+
 # Offscreen GL in every process these tests start (OSMesa unless the caller chose EGL).
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 
 def pytest_configure(config) -> None:
     # The same markers as services/pyproject.toml, for runs whose rootdir does not read that file.
-    config.addinivalue_line("markers", "slow: long-running tests (still run by .ci/run)")
+    config.addinivalue_line("markers", "slow: long-running tests (run by .ci/run; scripts/test.sh runs them with CROWDBAKE_SLOW_TESTS=1)")
     config.addinivalue_line("markers", "integration: needs Redis and real worker processes (started by the tests themselves)")
 
 

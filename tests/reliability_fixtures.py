@@ -276,18 +276,20 @@ def run_sample_command(out: Path) -> Path:
 REFERENCE_BAKE = """
 import json, sys
 from pathlib import Path
-from crowdbake import pipeline
+from crowdbake.params import BakeParams
+from crowdbake.stages.runner import run_bake
+from crowdbake.stages.validate import BakeInputs
 sources, out, name, version, params = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], sys.argv[4], json.loads(sys.argv[5])
 textures = sources / "textures"
 character = next(sources.glob("character.*"))
-pipeline.run_bake(pipeline.BakeInputs(character=character, cloth=sources / "cloth.pc2", cloth_mesh=sources / "cloth.obj",
+run_bake(BakeInputs(character=character, cloth=sources / "cloth.pc2", cloth_mesh=sources / "cloth.obj",
                   textures=textures if textures.is_dir() else None, cycle=None, name=name, version=version,
-                  params=pipeline.BakeParams.from_dict(params)), out)
+                  params=BakeParams.from_dict(params)), out)
 """
 
 
 def reference_bake(service: Service, bake: dict[str, Any], out: Path) -> Path:
-    """The same bake run undisturbed in one process (crowdbake.pipeline.run_bake) from the very files the
+    """The same bake run undisturbed in one process (crowdbake.stages.runner.run_bake) from the very files the
     service baked (the work folder's links to the uploaded blobs, so `created` is the same too).
     Returns the bundle folder."""
     sources = service.settings.work_dir / bake["input_key"] / "sources"

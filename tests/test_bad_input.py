@@ -6,7 +6,7 @@ The app is the real one (TestClient over ASGI) on a temporary SQLite file and bl
 limits so that the corpus stays small: 1 MiB bodies, 40 zip entries, 8 MiB unzipped, 50:1 ratio,
 256² texture pixels.
 
-Regressions this corpus found (fixed in crowdbake.validation):
+Regressions this corpus found (fixed in crowdbake.ingest.uploads):
 * "glb with an external buffer uri": only .gltf uploads were checked for external URIs, so a .glb
   whose JSON chunk named "../../../etc/passwd" made the reader read that server file (and the error
   named the staging path). Every non-data URI is now refused, whatever the container.

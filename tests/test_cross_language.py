@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from crowdbake import pipeline
+from crowdbake.params import BakeParams
+from crowdbake.stages.runner import run_bake
+from crowdbake.stages.validate import BakeInputs
 from crowdbake.formats.bundle import verify_bundle
 from crowdbake.formats.errors import FormatError
 
@@ -30,18 +32,15 @@ def crowdview(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
 
 
 @pytest.fixture(scope="module")
-def python_bundle(tmp_path_factory) -> Path:
-    """A small bundle baked by crowdbake from the procedural sample."""
-    from crowdbake.sample.generate import generate_sample
-
+def python_bundle(tmp_path_factory, small_sample) -> Path:
+    """A small bundle baked by crowdbake from the procedural sample (the session's, generated once)."""
     root = tmp_path_factory.mktemp("cross")
-    generate_sample(root / "sample", garment="tight", cycles=3, seed=3, cycle_frames=24, texture_size=64)
-    params = pipeline.BakeParams(impostor_frames=2, azimuths=4, elevations_deg=(0.0, 30.0), tile_size=32,
+    params = BakeParams(impostor_frames=2, azimuths=4, elevations_deg=(0.0, 30.0), tile_size=32,
                                  lod_triangles=1200, cycle_views=3, candidates=3)
-    inputs = pipeline.BakeInputs(character=root / "sample" / "character.glb", cloth=root / "sample" / "cloth.pc2",
-                                 cloth_mesh=root / "sample" / "cloth.obj", textures=root / "sample" / "textures",
+    inputs = BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
+                                 cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures",
                                  cycle=None, name="cross", version="1", params=params)
-    pipeline.run_bake(inputs, root / "bundles", work=root / "work")
+    run_bake(inputs, root / "bundles", work=root / "work")
     return root / "bundles" / "cross" / "1"
 
 

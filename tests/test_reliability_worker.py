@@ -7,7 +7,7 @@ under way:
 * a pool process rendering impostor views is killed (what the kernel's OOM killer does): Celery's
   `acks_late` + `reject_on_worker_lost` put the message back, the idempotent stage reruns, the
   database barrier lets exactly one finishing task enqueue `pack`, and the bundle is byte-identical
-  to the same bake run undisturbed in one process (crowdbake.pipeline.run_bake);
+  to the same bake run undisturbed in one process (crowdbake.stages.runner.run_bake);
 * a poison job kills every pool process that runs it: it stops after its retry budget and says why.
   Regression (fixed in crowdbake.jobs.tasks.run_stage): `reject_on_worker_lost` handed such a message
   out forever; redeliveries are now counted per task (records.record_redelivery) and the bake fails

@@ -28,7 +28,13 @@ from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from crowdbake import pipeline  # noqa: E402
+from crowdbake.params import BakeParams  # noqa: E402
+from crowdbake.stages.cycle import stage_cycle  # noqa: E402
+from crowdbake.stages.impostors import impostor_statistics, impostor_tasks, stage_impostor_views  # noqa: E402
+from crowdbake.stages.pack import stage_pack  # noqa: E402
+from crowdbake.stages.poses import stage_poses  # noqa: E402
+from crowdbake.stages.publish import stage_publish  # noqa: E402
+from crowdbake.stages.validate import BakeInputs, stage_validate  # noqa: E402
 
 
 def gl_renderer() -> str:
@@ -66,13 +72,13 @@ def main() -> int:
     args = parser.parse_args()
 
     sample = ensure_sample(args.sample or args.out.parent / "sample")
-    params = pipeline.BakeParams(
+    params = BakeParams(
         impostor_frames=args.frames,
         azimuths=args.azimuths,
         elevations_deg=tuple(float(e) for e in args.elevations.split(",")),
         tile_size=args.tile,
     )
-    inputs = pipeline.BakeInputs(
+    inputs = BakeInputs(
         sample / "character.glb", sample / "cloth.pc2", sample / "cloth.obj", sample / "textures", None, "bench", "1", params,
         created="2006-09-04T12:00:00Z",
     )
@@ -81,28 +87,28 @@ def main() -> int:
     seconds: dict[str, float] = {}
     try:
         clock = time.perf_counter()
-        pipeline.stage_validate(inputs, work)
+        stage_validate(inputs, work)
         seconds["validate"] = time.perf_counter() - clock
         clock = time.perf_counter()
-        cycle = pipeline.stage_cycle(work)
+        cycle = stage_cycle(work).record
         seconds["cycle"] = time.perf_counter() - clock
         clock = time.perf_counter()
-        poses = pipeline.stage_poses(work)
+        poses = stage_poses(work).record
         seconds["poses"] = time.perf_counter() - clock
         clock = time.perf_counter()
-        tasks = pipeline.impostor_tasks(work)
+        tasks = impostor_tasks(work)
         task_seconds = []
         for task in tasks:
             started = time.perf_counter()
-            pipeline.stage_impostor_views(work, task)
+            stage_impostor_views(work, task)
             task_seconds.append(time.perf_counter() - started)
         seconds["impostors"] = time.perf_counter() - clock
-        impostor = pipeline.impostor_statistics(work)
+        impostor = impostor_statistics(work).to_json()
         clock = time.perf_counter()
-        pack = pipeline.stage_pack(work)
+        pack = stage_pack(work).record
         seconds["pack"] = time.perf_counter() - clock
         clock = time.perf_counter()
-        bundle = pipeline.stage_publish(work, bundles)
+        bundle = stage_publish(work, bundles)
         seconds["publish"] = time.perf_counter() - clock
         total_bytes = sum(p.stat().st_size for p in bundle.rglob("*") if p.is_file())
     finally:
@@ -135,10 +141,10 @@ def main() -> int:
             "maps_share_of_stage": impostor["maps_seconds"] / stage,
             "references_share_of_stage": impostor["reference_seconds"] / stage,
         },
-        "cycle": {k: cycle[k] for k in ("start_frame", "cycle_frames", "closing")},
-        "meshes": poses["meshes"],
-        "fidelity": pack["fidelity"],
-        "compression": pack["compression"],
+        "cycle": {k: getattr(cycle, k) for k in ("start_frame", "cycle_frames", "closing")},
+        "meshes": poses.summary()["meshes"],
+        "fidelity": pack.fidelity,
+        "compression": pack.compression,
         "bundle_bytes": total_bytes,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

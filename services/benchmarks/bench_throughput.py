@@ -6,7 +6,7 @@
 For each worker count N, starts a fresh local service with `crowdbake serve --workers N` (the API and
 one Celery worker with N prefork processes) on a private data folder, with a private `redis-server` on
 loopback as the broker when one is installed (else Celery's filesystem broker), uploads the small
-procedural sample once, bakes N warm-up bakes (untimed: each worker process imports the pipeline and
+procedural sample once, bakes N warm-up bakes (untimed: each worker process imports the stages and
 makes its GL context on its first task), then submits K bakes at once (distinct versions, so nothing
 is deduplicated) and times them from the first submission to the last one finishing.
 

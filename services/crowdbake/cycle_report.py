@@ -30,10 +30,10 @@ from typing import Callable
 import numpy as np
 
 from crowdbake.bake.cycle import CycleParams, CycleResult, find_cycle
+from crowdbake.params import BASE_FPS, min_cloth_frames
 
 logger = logging.getLogger(__name__)
 
-BASE_FPS = 24.0
 # The animation's duration times the frame rate must be this close to a whole number of frames for the
 # body to be tiled from one posed cycle; otherwise each frame is posed at its own wrapped time.
 _WHOLE_FRAME_TOLERANCE = 1e-3
@@ -83,9 +83,9 @@ def _pose_body(character, fps: float, frame_count: int) -> tuple[np.ndarray, np.
 def _check_two_cycles(frame_count: int, cycle_frames: int, path) -> None:
     if cycle_frames < 2:
         raise ValueError(f"the cycle length must be at least 2 frames, got {cycle_frames}")
-    if frame_count < 2 * cycle_frames:
+    if frame_count < min_cloth_frames(cycle_frames):
         raise ValueError(
-            f"too few frames for two cycles: {path} has {frame_count} frames, two cycles of {cycle_frames} need {2 * cycle_frames}"
+            f"too few frames for two cycles: {path} has {frame_count} frames, two cycles of {cycle_frames} need {min_cloth_frames(cycle_frames)}"
         )
 
 

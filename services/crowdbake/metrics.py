@@ -5,7 +5,7 @@ Two sources, because the work happens in other processes:
 - **Bake figures are read from the database at scrape time** (`DatabaseCollector`). Workers run in
   other processes, often on other machines, and the database is already the truth about every bake:
   each stage row records its state, its start and end times and the seconds its work took
-  (crowdbake.jobs.records). Reading them when Prometheus asks needs no shared metrics directory, no
+  (crowdbake.storage.records). Reading them when Prometheus asks needs no shared metrics directory, no
   push gateway and no hooks in the workers, and every API replica reports the same numbers.
 - **HTTP figures are counted in the API process** (`HttpMetrics`, an ASGI middleware): request
   latency by route template, and the bytes of upload bodies received.
@@ -36,13 +36,11 @@ from prometheus_client.registry import Collector
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
+from crowdbake.stages import STAGES
 from crowdbake.storage.models import BAKE_STATES, FINAL_BAKE_STATES, STAGE_STATES, Asset, Bake, BakePart, BakeStage
 
 logger = logging.getLogger(__name__)
 
-# The stages of a bake, in order (crowdbake.jobs.records.STAGES; repeated here so that importing the
-# metrics does not import the Celery tasks' module).
-STAGES = ("validate", "cycle", "poses", "impostors", "pack", "publish")
 # Bakes and stages last seconds (a small sample) to hours (a 1024² texture set with 64 azimuths):
 # bucket edges in seconds, roughly x2.5 apart.
 DURATION_BUCKETS_S = (1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0, 1800.0, 3600.0, 7200.0)

@@ -2,7 +2,7 @@
 the web page): uvicorn and a Celery worker as subprocesses on the filesystem broker (no Redis needed),
 the procedural sample baked with small parameters, and a second bake that fails in a worker.
 
-    with baked_service(tmp_path) as service:
+    with baked_service(tmp_path, small_sample) as service:
         service.url, service.key, service.bake, service.failed_bake
 """
 from __future__ import annotations
@@ -19,9 +19,8 @@ from service_fixtures import Process, free_port, service_env, start_api, start_w
 
 # Small enough to bake in seconds on 2 cores (as test_service_e2e): 3 walk cycles of 24 frames, 64²
 # textures, 2 impostor frames x 4 azimuths x 2 elevations of 32² tiles, 2 cycle candidates from 2 views.
-SAMPLE = dict(garment="loose", cycles=3, seed=1, cycle_frames=24, texture_size=64)
 PARAMS = {"impostor_frames": 2, "azimuths": 4, "elevations_deg": [0, 30], "tile_size": 32, "candidates": 2, "cycle_views": 2}
-# A parameter the API accepts and the pipeline's validate stage refuses (more triangles than the mesh has).
+# A parameter the API accepts and the validate stage refuses (more triangles than the mesh has).
 FAILING_PARAMS = dict(PARAMS, lod_triangles=100_000_000)
 NAME = "sample-walker"
 BAKE_TIMEOUT_S = 240
@@ -53,14 +52,12 @@ def _wait(client: httpx.Client, bake_id: str, worker: Process) -> dict:
 
 
 @contextlib.contextmanager
-def baked_service(root: Path, public: bool = False) -> Iterator[BakedService]:
-    from crowdbake.sample.generate import generate_sample
+def baked_service(root: Path, sample: Path, public: bool = False) -> Iterator[BakedService]:
+    """sample: the procedural sample's folder (the `small_sample` fixture), read only."""
     from crowdbake.settings import Settings
     from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
     from crowdbake.storage.keys import create_api_key
 
-    sample = root / "sample"
-    generate_sample(sample, **SAMPLE)
     data = root / "data"
     env = service_env(data, "filesystem://")
     settings = Settings(data_dir=data, broker_url="filesystem://")

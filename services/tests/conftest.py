@@ -6,9 +6,16 @@ from pathlib import Path
 
 import pytest
 
+from sample_fixtures import small_sample  # noqa: F401  (a session fixture shared with tests/)
+
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SHARED_ASSETS = Path(os.environ.get("CROWDBAKE_SHARED_ASSETS", REPO_ROOT.parent / "shared" / "assets"))
 VECTORS = REPO_ROOT / "shared_formats" / "vectors"
+
+def pytest_configure(config) -> None:
+    # scripts/test.sh leaves slow tests out unless CROWDBAKE_SLOW_TESTS=1 (which .ci/run sets).
+    config.addinivalue_line("markers", "slow: long-running tests (run by .ci/run; scripts/test.sh runs them with CROWDBAKE_SLOW_TESTS=1)")
+
 
 # Offscreen GL: OSMesa unless the caller chose another platform (EGL on a GPU machine).
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")

@@ -163,18 +163,18 @@ def test_worker_errors_are_classified():
 
     from sqlalchemy.exc import OperationalError
 
-    from crowdbake import pipeline
+    from crowdbake.errors import InputError, VersionConflict
     from crowdbake.jobs.tasks import _is_transient, describe_error
 
-    bad = describe_error(pipeline.InputError("lod_triangles 9 is not below 4", "lod_triangles"), "validate")
+    bad = describe_error(InputError("lod_triangles 9 is not below 4", "lod_triangles"), "validate")
     assert bad == {"type": "invalid-input", "title": "the inputs cannot be baked", "detail": "lod_triangles 9 is not below 4", "field": "lod_triangles"}
-    assert describe_error(pipeline.VersionConflict("walker/1.0.0 differs"), "publish")["type"] == "version-conflict"
+    assert describe_error(VersionConflict("walker/1.0.0 differs"), "publish")["type"] == "version-conflict"
     crash = describe_error(ZeroDivisionError("division by zero"), "pack")
     assert crash["type"] == "stage-failed" and crash["detail"] == "ZeroDivisionError: division by zero"
     assert _is_transient(OSError(errno.ENOSPC, "No space left on device"))
     assert _is_transient(OperationalError("UPDATE", {}, Exception("database is locked")))
     assert not _is_transient(FileNotFoundError(errno.ENOENT, "gone"))
-    assert not _is_transient(pipeline.InputError("bad", "cloth"))
+    assert not _is_transient(InputError("bad", "cloth"))
 
 
 @pytest.mark.parametrize("route, scope", [("/v1/bakes", "bake"), ("/v1/assets", "upload")])

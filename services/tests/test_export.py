@@ -113,8 +113,9 @@ def test_ktx2_refuses_texels_that_do_not_fit_the_format():
 @pytest.fixture(scope="module")
 def sample_bundle(tmp_path_factory) -> Path:
     pytest.importorskip("pyrender")
-    from crowdbake import pipeline
-    from crowdbake.pipeline import BakeInputs, BakeParams
+    from crowdbake.params import BakeParams
+    from crowdbake.stages.runner import run_bake
+    from crowdbake.stages.validate import BakeInputs
     from crowdbake.sample.generate import generate_sample
 
     root = tmp_path_factory.mktemp("export_sample")
@@ -124,7 +125,7 @@ def sample_bundle(tmp_path_factory) -> Path:
         character=root / "sample" / "character.glb", cloth=root / "sample" / "cloth.pc2", cloth_mesh=root / "sample" / "cloth.obj",
         textures=root / "sample" / "textures", cycle=None, name="sample", version="1.0", params=params,
     )
-    return pipeline.run_bake(inputs, root / "bundles", work=root / "work").bundle
+    return run_bake(inputs, root / "bundles", work=root / "work").bundle
 
 
 @pytest.fixture(scope="module")

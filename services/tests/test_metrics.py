@@ -144,8 +144,8 @@ print(client.get("/metrics").text)
 
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory):
-    with baked_service(tmp_path_factory.mktemp("metrics")) as running:
+def service(tmp_path_factory, small_sample):
+    with baked_service(tmp_path_factory.mktemp("metrics"), small_sample) as running:
         yield running
 
 

@@ -10,7 +10,7 @@ import pytest
 from pydantic import ValidationError
 from sqlalchemy import inspect
 
-from crowdbake.jobs import records
+from crowdbake.storage import records
 from crowdbake.settings import Settings
 from crowdbake.storage.blobs import LocalBlobStore, check_digest
 from crowdbake.storage.bundles import BundleConflict, find_bundle, register_bundle

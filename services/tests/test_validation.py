@@ -1,4 +1,4 @@
-"""Upload checks (crowdbake.validation): each bad input is refused with the field, the file and where
+"""Upload checks (crowdbake.ingest.uploads): each bad input is refused with the field, the file and where
 in it the problem is; good inputs come back with what was measured."""
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from crowdbake.formats.pc2 import read_pc2
-from crowdbake.validation import (
+from crowdbake.ingest.uploads import (
     FORMAT_MISMATCH,
     INVALID_FILE,
     UNSAFE_ARCHIVE,

@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from baked_service import NAME, SAMPLE, baked_service
+from baked_service import NAME, baked_service
+from sample_fixtures import SMALL_SAMPLE
 from crowdbake.formats.binary import decode_texture_array, unpack_uv32
 from service_fixtures import REPO_ROOT, make_api, publish_vector_bundle
 
@@ -99,8 +100,8 @@ def test_preview_views_and_errors(api):
 
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory):
-    with baked_service(tmp_path_factory.mktemp("web")) as running:
+def service(tmp_path_factory, small_sample):
+    with baked_service(tmp_path_factory.mktemp("web"), small_sample) as running:
         yield running
 
 
@@ -116,7 +117,7 @@ def test_cycle_report_of_a_bake_is_served_with_its_plots(service):
             picture = client.get(f"/v1/bakes/{bake_id}/cycle/{image}")
             assert picture.status_code == 200 and picture.content.startswith(b"\x89PNG"), image
         cycle = client.get(f"/v1/bakes/{bake_id}/cycle/cycle.json").json()
-        assert cycle["cycle_frames"] == SAMPLE["cycle_frames"] and cycle["files"]["report"] == "report.html"
+        assert cycle["cycle_frames"] == SMALL_SAMPLE["cycle_frames"] and cycle["files"]["report"] == "report.html"
         for bad in ("stage.json", "../job.json", "..%2Fjob.json", "edges/../looped.pc2", "looped.pc2"):
             response = client.get(f"/v1/bakes/{bake_id}/cycle/{bad}")
             assert response.status_code == 404, bad

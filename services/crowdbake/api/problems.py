@@ -17,7 +17,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from crowdbake.validation import FieldError, UploadRejected
+from crowdbake.ingest.uploads import FieldError, UploadRejected
 
 logger = logging.getLogger(__name__)
 

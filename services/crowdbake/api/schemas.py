@@ -5,17 +5,14 @@ import datetime as dt
 import re
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
-from crowdbake.pipeline import MAX_AZIMUTHS, MAX_ELEVATIONS, MAX_IMPOSTOR_FRAMES, MAX_TILE_SIZE
+from crowdbake.params import NAME_PATTERN, PARAMS, SPECS, VERSION_PATTERN, cross_field_problem, pydantic_fields
 
 # List offsets go to SQL as 64-bit integers; a larger one used to raise OverflowError (a 500).
 MAX_LIST_OFFSET = 2**62
 
-# The bundle spec's name and version rules (shared_formats/SPEC.md, "manifest.json").
-NAME_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
-VERSION_PATTERN = r"^[0-9A-Za-z][0-9A-Za-z.+_-]{0,63}$"
-# Texture files the pipeline reads from its textures folder.
+# Texture files the validate stage reads from its textures folder.
 TEXTURE_NAME_PATTERN = r"^(diffuse_[A-Za-z0-9_-]{1,40}|outfits)\.png$"
 
 
@@ -88,44 +85,31 @@ class AssetsPublic(BaseModel):
 # ------------------------------------------------------------------------------------------- bakes
 
 
-class BakeParamsIn(BaseModel):
-    """Bake parameters (crowdbake.pipeline.BakeParams, whose limits these are); unknown keys are refused."""
+class _BakeParamsChecks(BaseModel):
+    """The checks pydantic's field bounds cannot say, from the same table (crowdbake.params)."""
 
     model_config = ConfigDict(extra="forbid")
 
-    cycle_frames: int | None = Field(None, ge=2, le=100_000, description="Frames per walk cycle; default from the character's animation.")
-    close: Literal["none", "linear", "hermite"] = "hermite"
-    candidates: int = Field(5, ge=1, le=50, description="Cycle candidates kept by pass 1 (paper §3).")
-    cycle_views: int = Field(5, ge=1, le=32, description="Views of the pass-2 edge metric (paper: 5).")
-    impostor_frames: int = Field(10, ge=1, le=MAX_IMPOSTOR_FRAMES, description="Cycle frames baked into impostors (paper: 10).")
-    azimuths: int = Field(16, ge=1, le=MAX_AZIMUTHS)
-    elevations_deg: list[float] = Field(default_factory=lambda: [0.0, 20.0, 40.0], min_length=1, max_length=MAX_ELEVATIONS)
-    tile_size: int = Field(128, ge=4, le=MAX_TILE_SIZE, description="Impostor tile edge in texels (multiple of 4: BC blocks).")
-    lod_ratio: float | None = Field(None, gt=0, le=1)
-    lod_triangles: int | None = Field(None, ge=2)
-    compress: bool = True
-
-    @field_validator("tile_size")
+    @field_validator(*(spec.name for spec in PARAMS if spec.kind == "floats"), check_fields=False)
     @classmethod
-    def _multiple_of_four(cls, value: int) -> int:
-        if value % 4:
-            raise ValueError("must be a multiple of 4 (BC1/BC2 blocks are 4x4 texels)")
-        return value
-
-    @field_validator("elevations_deg")
-    @classmethod
-    def _elevations(cls, values: list[float]) -> list[float]:
-        if any(not -90.0 <= value <= 90.0 for value in values):
-            raise ValueError("elevations must lie in -90..90 degrees")
-        if len(set(values)) != len(values):
-            raise ValueError("elevations must differ")
+    def _list_values(cls, values: list[float], info) -> list[float]:
+        problem = SPECS[info.field_name].problem(values)
+        if problem is not None:
+            raise ValueError(problem)
         return values
 
     @model_validator(mode="after")
-    def _one_lod_target(self) -> "BakeParamsIn":
-        if self.lod_ratio is not None and self.lod_triangles is not None:
-            raise ValueError("give lod_ratio or lod_triangles, not both")
+    def _combination(self):
+        clash = cross_field_problem(self.__dict__)
+        if clash is not None:
+            raise ValueError(clash[1])
         return self
+
+
+# The request model is derived from crowdbake.params.PARAMS: the same names, defaults, bounds and
+# choices as `crowdbake bake` (services/tests/test_params.py checks they agree).
+BakeParamsIn = create_model("BakeParamsIn", __base__=_BakeParamsChecks, __module__=__name__, **pydantic_fields())
+BakeParamsIn.__doc__ = "Bake parameters (crowdbake.params.PARAMS: one table for REST and CLI); unknown keys are refused."
 
 
 class BakeCreate(BaseModel):

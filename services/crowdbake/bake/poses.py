@@ -4,7 +4,7 @@
 meshes or 'poses'" (Dobbyn et al. 2006, section 4): nothing is skinned or simulated at run time. This module
 holds the pure parts of that bake: which source times a cycle covers, cloth frames on split (seam) vertices,
 normals that agree across UV seams, the low LOD carried over every frame, the impostors' frames and their
-common framing. The skinning itself is crowdbake.bake.skinning; the I/O is crowdbake.pipeline.
+common framing. The skinning itself is crowdbake.bake.skinning; the I/O is crowdbake.stages.poses.
 """
 from __future__ import annotations
 
@@ -87,6 +87,15 @@ def vertex_normals(positions: np.ndarray, faces: np.ndarray, weld: np.ndarray | 
     return normals.astype(np.float32)
 
 
+def unit_normals(normals: np.ndarray) -> np.ndarray:
+    """(..., 3) float32 normals with near-zero ones (length <= 0.5) replaced by FALLBACK_NORMAL: a pose
+    cache needs unit vectors (SPEC.md)."""
+    normals = np.asarray(normals, dtype=np.float32)
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    fixed = np.where(length > 0.5, normals / np.where(length > 0, length, 1.0), FALLBACK_NORMAL)
+    return fixed.astype(np.float32)
+
+
 def cloth_on_vertices(points: np.ndarray, source_index: np.ndarray) -> np.ndarray:
     """A point cache (F, P, 3) in OBJ position order onto the mesh's (seam-split) vertices: (F, V, 3) float32."""
     points = np.asarray(points, dtype=np.float32)
@@ -140,10 +149,3 @@ def common_bounds(*positions: np.ndarray) -> tuple[np.ndarray, float]:
     if radius <= 0:
         raise ValueError("common_bounds: every position is the same point")
     return centre, radius
-
-
-def cycle_start_time(start_frame: int, frames_per_second: float) -> float:
-    """Seconds into the body's animation of cycle frame 0: cloth sample k is at time k / fps."""
-    if frames_per_second <= 0:
-        raise ValueError(f"frames_per_second must be positive, got {frames_per_second}")
-    return float(start_frame) / float(frames_per_second)

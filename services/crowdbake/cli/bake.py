@@ -8,6 +8,7 @@ from contextlib import ExitStack
 from pathlib import Path
 
 from crowdbake.cli.common import CommandError, progress
+from crowdbake.params import add_cli_options, option_for, params_from_args
 
 DESCRIPTION = """\
 Bake a skinned character (glTF) and its simulated garment (PC2 cache + OBJ rest mesh) into a bundle:
@@ -35,20 +36,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--name", required=True, help="bundle name ([a-z0-9][a-z0-9._-]*)")
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VER", help="bundle version")
     parser.add_argument("--out", required=True, metavar="DIR", help="bundles folder: the bundle goes to DIR/NAME/VER")
-    parser.add_argument("--frames", type=int, default=10, help="cycle frames baked into impostors (default 10, as in the paper)")
-    parser.add_argument("--azimuths", type=int, default=16, help="impostor views per ring (default 16)")
-    parser.add_argument("--elevations", default="0,20,40", metavar="DEG,...", help="one ring per elevation (default 0,20,40)")
-    parser.add_argument("--tile", type=int, default=128, metavar="PX", help="texels per impostor view side, multiple of 4 (default 128)")
-    lod = parser.add_mutually_exclusive_group()
-    lod.add_argument("--lod-triangles", type=int, metavar="N", help="low LOD triangles for the whole character")
-    lod.add_argument("--lod-ratio", type=float, metavar="R", help="low LOD as a fraction of the high one (default 1899/13056)")
-    parser.add_argument("--cycle-frames", type=int, metavar="L", help="walk cycle length in frames (default: the animation's)")
-    parser.add_argument("--close", choices=["none", "linear", "hermite"], default="hermite", help="cycle seam closing (default hermite)")
-    parser.add_argument("--candidates", type=int, default=5, metavar="K", help="cycle candidates kept by pass 1 (default 5)")
-    parser.add_argument("--cycle-views", type=int, default=5, metavar="N", help="views of the pass-2 edge metric (default 5)")
-    parser.add_argument("--no-compress", action="store_true", help="store maps and textures as rgba8 instead of DXT1/DXT3")
-    parser.add_argument("--uv-format", choices=["uv32", "rgba16"], default="uv32",
-                        help="impostor UV map format: uv32 (4 bytes a texel, 14-bit coordinates) or rgba16 (8 bytes) (default uv32)")
+    # Every parameter that shapes the bundle, from the one table (crowdbake.params.PARAMS).
+    add_cli_options(parser)
     parser.add_argument("--created", metavar="TIME", help="manifest time, RFC 3339 UTC (default: SOURCE_DATE_EPOCH or the inputs' time)")
     parser.add_argument("--work", metavar="DIR", help="keep the work folder here (a rerun resumes finished stages)")
     parser.add_argument("--figure4", metavar="PLOT.png", help="also plot figure 4 (texture memory) here, with its JSON beside it")
@@ -56,18 +45,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def _elevations(text: str) -> tuple[float, ...]:
-    try:
-        values = tuple(float(part) for part in text.split(",") if part.strip())
-    except ValueError:
-        raise CommandError(f"--elevations must be numbers separated by commas, got {text!r}") from None
-    if not values:
-        raise CommandError("--elevations needs at least one value")
-    return values
-
-
 class _Bars:
-    """One progress bar per stage: (stage, done, total) callbacks from the pipeline drive them."""
+    """One progress bar per stage: (stage, done, total) callbacks from the stages drive them."""
 
     def __init__(self, stack: ExitStack):
         self._stack = stack
@@ -177,24 +156,13 @@ def write_figure4(report: dict, png_path: Path) -> None:
 def run(args: argparse.Namespace) -> int:
     from crowdbake.formats.bundle import verify_bundle
     from crowdbake.formats.errors import FormatError
-    from crowdbake.pipeline import BakeInputs, BakeParams, InputError, VersionConflict, run_bake
+    from crowdbake.errors import InputError, VersionConflict
+    from crowdbake.params import BakeParams
+    from crowdbake.stages.runner import run_bake
+    from crowdbake.stages.validate import BakeInputs
 
     try:
-        params = BakeParams(
-            cycle_frames=args.cycle_frames,
-            close=args.close,
-            candidates=args.candidates,
-            cycle_views=args.cycle_views,
-            impostor_frames=args.frames,
-            azimuths=args.azimuths,
-            elevations_deg=_elevations(args.elevations),
-            tile_size=args.tile,
-            lod_ratio=args.lod_ratio,
-            lod_triangles=args.lod_triangles,
-            compress=not args.no_compress,
-            uv_format=args.uv_format,
-        )
-        params.validate()
+        params = BakeParams.from_dict(params_from_args(args))
     except InputError as error:
         raise CommandError(_option_message(error)) from None
     inputs = BakeInputs(
@@ -237,15 +205,8 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+# Inputs and identity (the parameters' flags come from crowdbake.params).
 _OPTIONS = {
-    "impostor_frames": "--frames",
-    "azimuths": "--azimuths",
-    "elevations_deg": "--elevations",
-    "tile_size": "--tile",
-    "lod_triangles": "--lod-triangles",
-    "lod_ratio": "--lod-ratio",
-    "cycle_frames": "--cycle-frames",
-    "cycle_views": "--cycle-views",
     "cloth": "--cloth",
     "cloth_mesh": "--cloth-mesh",
     "character": "CHAR.glb",
@@ -259,7 +220,7 @@ _OPTIONS = {
 
 def _option_message(error) -> str:
     """An InputError as a one-liner naming the command-line option at fault."""
-    option = _OPTIONS.get(error.field or "", error.field)
+    option = option_for(error.field) or _OPTIONS.get(error.field or "", error.field)
     message = error.message
     if error.field and message.startswith(f"{error.field}: "):
         message = message[len(error.field) + 2 :]

@@ -5,6 +5,7 @@ import argparse
 import sys
 
 from crowdbake.cli.common import CommandError, progress
+from crowdbake.params import CYCLE_SHARED, add_cli_options
 
 DESCRIPTION = """\
 Search a long cloth cache for its best cycle of the walk's length: pass 1 compares every frame with the frame
@@ -30,19 +31,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     body.add_argument("--character", metavar="CHAR.glb", help="the skinned character whose animation drove the cloth")
     body.add_argument("--body", metavar="BODY.pc2", help="the body as a cache over the same frames (needs --body-mesh)")
     parser.add_argument("--body-mesh", metavar="BODY.obj", help="the body cache's mesh (OBJ)")
-    parser.add_argument("--cycle-frames", type=int, metavar="L", help="walk cycle length in frames (default: the character's animation)")
+    # Shared with `crowdbake bake` (one default and bound: crowdbake.params.PARAMS).
+    add_cli_options(parser, CYCLE_SHARED, flags=CYCLE_SHARED)
     parser.add_argument("--fps", type=float, help="the cache's frame rate (default 24 / PC2 sample interval)")
-    parser.add_argument("--close", choices=["none", "linear", "hermite"], default="hermite", help="how to close the seam (default hermite)")
     parser.add_argument("--blend-frames", type=int, metavar="B", help="frames of the linear blend (default a quarter cycle)")
     parser.add_argument("--push-out", choices=["none", "new", "all"], default="new",
                         help="push cloth out of the body: vertices closing pushed in (new, default), all, or none")
-    parser.add_argument("--candidates", type=int, default=5, metavar="K", help="pass-1 candidates compared in pass 2 (default 5)")
     parser.add_argument("--threshold", type=float, help="keep pass-1 candidates under this vertex distance (cache units)")
     parser.add_argument("--settle-frames", type=int, help="ignore start frames before this (default one cycle)")
     parser.add_argument("--window", type=int, default=5, metavar="K", help="pass-1 window in frames, odd (default 5)")
     parser.add_argument("--velocity-weight", type=float, default=1.0, metavar="LAMBDA", help="pass-1 velocity weight in frames (default 1)")
     parser.add_argument("--max-cycles", type=int, default=1, metavar="N", help="also try loops of 2..N walk cycles (default 1)")
-    parser.add_argument("--views", type=int, default=5, help="pass-2 viewpoints around the garment (default 5)")
     parser.add_argument("--image-size", type=int, default=256, metavar="PX", help="pass-2 picture size (default 256)")
     parser.add_argument("--truncation", type=float, default=10.0, metavar="PX", help="edge distance cap in pixels (default 10)")
     parser.add_argument("--no-edge-pass", action="store_true", help="skip pass 2 (no rendering); the best pass-1 candidate wins")
@@ -66,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
             max_candidates=args.candidates,
             threshold=args.threshold,
             max_cycle_count=args.max_cycles,
-            views=args.views,
+            views=args.cycle_views,
             image_size=args.image_size,
             truncation_px=args.truncation,
             close=args.close,

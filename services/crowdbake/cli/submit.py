@@ -16,6 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from crowdbake.cli.common import CommandError, progress
+from crowdbake.errors import InputError
+from crowdbake.params import add_cli_options, option_for, params_from_args
 
 DESCRIPTION = """\
 Uploads CHAR.glb, the cloth (a PC2 cache with --cloth-mesh, or a zip of OBJ frames) and the textures
@@ -47,18 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--no-publish", action="store_true", help="bake without publishing (publish later with the API)")
     parser.add_argument("--public", action="store_true", help="make the bundle readable without a key")
     params = parser.add_argument_group("bake parameters (server defaults when omitted)")
-    params.add_argument("--cycle-frames", type=int, help="frames per walk cycle (default: the character's animation)")
-    params.add_argument("--close", choices=["none", "linear", "hermite"], help="how to close the cloth loop")
-    params.add_argument("--candidates", type=int, help="cycle candidates compared by the edge metric")
-    params.add_argument("--cycle-views", type=int, help="views of the edge metric")
-    params.add_argument("--impostor-frames", type=int, help="cycle frames baked into impostors (paper: 10)")
-    params.add_argument("--azimuths", type=int, help="impostor views around the character")
-    params.add_argument("--elevations", metavar="DEG,DEG", help="impostor view elevations in degrees, e.g. 0,20,40")
-    params.add_argument("--tile-size", type=int, help="impostor tile size in texels (multiple of 4)")
-    lod = params.add_mutually_exclusive_group()
-    lod.add_argument("--lod-ratio", type=float, help="low LOD triangle ratio (0..1]")
-    lod.add_argument("--lod-triangles", type=int, help="low LOD triangle count")
-    params.add_argument("--no-compress", action="store_true", help="keep impostor maps uncompressed (rgba8)")
+    add_cli_options(params, server_defaults=True)
     parser.add_argument("--poll", type=float, default=1.0, metavar="S", help="seconds between status checks (default 1)")
     parser.add_argument("--timeout", type=float, default=3600.0, metavar="S", help="give up waiting after S seconds (default 3600)")
     parser.set_defaults(func=run)
@@ -106,19 +97,11 @@ def _upload(client, endpoint: str, files: dict[str, Path], what: str, data: dict
 
 
 def _params(args: argparse.Namespace) -> dict[str, Any]:
-    params: dict[str, Any] = {}
-    for option in ("cycle_frames", "close", "candidates", "cycle_views", "impostor_frames", "azimuths", "tile_size", "lod_ratio", "lod_triangles"):
-        value = getattr(args, option)
-        if value is not None:
-            params[option] = value
-    if args.elevations:
-        try:
-            params["elevations_deg"] = [float(value) for value in args.elevations.split(",")]
-        except ValueError:
-            raise CommandError(f"--elevations takes comma-separated degrees, got {args.elevations!r}") from None
-    if args.no_compress:
-        params["compress"] = False
-    return params
+    """The bake parameters given on the command line (crowdbake.params); the server fills in the rest."""
+    try:
+        return params_from_args(args, given_only=True)
+    except InputError as error:
+        raise CommandError(f"{option_for(error.field)}: {error.message.split(': ', 1)[-1]}") from None
 
 
 def _texture_files(folder: str | None) -> dict[str, Path]:

@@ -6,8 +6,10 @@ as `truncated`, and never allocate more than the bytes they were handed.
 """
 from __future__ import annotations
 
+import os
 import struct
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -57,7 +59,10 @@ def layer_size(pixel_format: str, width: int, height: int) -> int:
     raise ValueError(f"unknown pixel format {pixel_format!r}")
 
 
-def _check_common(data: bytes, magic: bytes, supported_version: int, header_size: int, where: str) -> None:
+def _check_common(data: bytes, magic: bytes, supported_version: int, header_size: int, where: str, total_size: int | None = None) -> None:
+    """Check the common header at the start of `data`; total_size: the whole file's size when `data` is
+    only its header (a reader that maps one frame or one layer), else len(data)."""
+    size = len(data) if total_size is None else total_size
     if len(data) < _COMMON.size:
         raise FormatError("truncated", f"{len(data)} bytes is shorter than the 16-byte common header", where)
     got_magic, version, declared_header, file_size = _COMMON.unpack_from(data)
@@ -67,10 +72,10 @@ def _check_common(data: bytes, magic: bytes, supported_version: int, header_size
         raise FormatError("unsupported_version", f"version {version}, this reader supports {supported_version}", where)
     if declared_header != header_size:
         raise FormatError("invalid_header", f"header_size is {declared_header}, expected {header_size}", where)
-    if len(data) < file_size:
-        raise FormatError("truncated", f"{len(data)} bytes, header says {file_size}", where)
-    if len(data) > file_size:
-        raise FormatError("size_mismatch", f"{len(data)} bytes, header says {file_size}", where)
+    if size < file_size:
+        raise FormatError("truncated", f"{size} bytes, header says {file_size}", where)
+    if size > file_size:
+        raise FormatError("size_mismatch", f"{size} bytes, header says {file_size}", where)
     if file_size < header_size:
         raise FormatError("invalid_header", f"file_size {file_size} is smaller than the header", where)
 
@@ -173,6 +178,43 @@ def decode_pose_cache(data: bytes, where: str = "pose cache") -> PoseCache:
     if (flat.min(axis=0) < bounds_min - BOUNDS_TOLERANCE).any() or (flat.max(axis=0) > bounds_max + BOUNDS_TOLERANCE).any():
         raise FormatError("invalid_data", "positions lie outside the header's bounds", where)
     return PoseCache(indices, uvs, positions, normals, float(fps))
+
+
+def read_pose_frame(path: str | os.PathLike, frame: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One frame of a CBPC file: (indices (T, 3) uint32, uvs (V, 2), positions (V, 3), normals (V, 3) float32).
+
+    Checks the header (magic, version, sizes) like decode_pose_cache, then memory-maps only what the
+    frame needs, not the whole cycle. Raises FormatError on a bad header, IndexError for a frame outside.
+    """
+    path = Path(path)
+    where = path.name
+    total = path.stat().st_size
+    with open(path, "rb") as handle:
+        header = handle.read(POSE_CACHE_HEADER_SIZE)
+    _check_common(header, POSE_CACHE_MAGIC, POSE_CACHE_VERSION, POSE_CACHE_HEADER_SIZE, where, total_size=total)
+    if len(header) < POSE_CACHE_HEADER_SIZE:
+        raise FormatError("truncated", f"{len(header)} bytes is shorter than the pose cache header", where)
+    vertex_count, index_count, frame_count = _POSE_FIELDS.unpack_from(header, _COMMON.size)[:3]
+    expected = POSE_CACHE_HEADER_SIZE + 4 * index_count + 8 * vertex_count + 24 * vertex_count * frame_count
+    if expected != total or vertex_count == 0 or index_count == 0 or index_count % 3:
+        raise FormatError("size_mismatch", f"counts imply {expected} bytes, file has {total}", where)
+    if not 0 <= frame < frame_count:
+        raise IndexError(f"{where}: frame {frame} outside its {frame_count} frames")
+    data = np.memmap(path, dtype=np.uint8, mode="r")
+
+    def take(dtype: str, count: int, start: int) -> np.ndarray:
+        return np.frombuffer(data[start : start + 4 * count], dtype=dtype).copy()
+
+    offset = POSE_CACHE_HEADER_SIZE
+    indices = take("<u4", index_count, offset).reshape(-1, 3)
+    offset += 4 * index_count
+    uvs = take("<f4", 2 * vertex_count, offset).reshape(-1, 2)
+    offset += 8 * vertex_count
+    frame_floats = 3 * vertex_count
+    positions = take("<f4", frame_floats, offset + 4 * frame_floats * frame).reshape(-1, 3)
+    offset += 4 * frame_floats * frame_count
+    normals = take("<f4", frame_floats, offset + 4 * frame_floats * frame).reshape(-1, 3)
+    return indices, uvs, positions, normals
 
 
 @dataclass(frozen=True)
@@ -281,3 +323,31 @@ def unpack_uv32(words: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     material = ((words >> UV32_MATERIAL_SHIFT) & UV32_MAX_MATERIAL).astype(np.int64)
     coverage = (words >> UV32_COVERAGE_SHIFT).astype(bool)
     return u, v, material, coverage
+
+
+def read_texture_layer(path: str | os.PathLike, layer: int) -> tuple[str, int, int, int, bytes]:
+    """(pixel_format, width, height, layer_count, bytes of `layer`) of a CBTX file, reading one layer only.
+
+    Checks the header (magic, version, sizes, pixel format). Raises FormatError (a ValueError) for a
+    header it cannot read or a truncated layer, IndexError for a layer outside the file.
+    """
+    path = Path(path)
+    where = path.name
+    total = path.stat().st_size
+    with open(path, "rb") as handle:
+        header = handle.read(TEXTURE_HEADER_SIZE)
+        _check_common(header, TEXTURE_MAGIC, TEXTURE_VERSION, TEXTURE_HEADER_SIZE, where, total_size=total)
+        if len(header) != TEXTURE_HEADER_SIZE:
+            raise FormatError("truncated", f"{len(header)} bytes is shorter than the texture header", where)
+        width, height, layer_count, code = _TEXTURE_FIELDS.unpack_from(header, _COMMON.size)
+        if code not in PIXEL_FORMATS:
+            raise FormatError("invalid_header", f"pixel format code {code} is not one of {sorted(PIXEL_FORMATS)}", where)
+        if not 0 <= layer < layer_count:
+            raise IndexError(f"layer {layer} is outside 0..{layer_count - 1}")
+        pixel_format = PIXEL_FORMATS[code]
+        size = layer_size(pixel_format, width, height)
+        handle.seek(TEXTURE_HEADER_SIZE + layer * size)
+        data = handle.read(size)
+        if len(data) != size:
+            raise FormatError("truncated", f"layer {layer} is truncated", where)
+    return pixel_format, width, height, layer_count, data

@@ -11,7 +11,7 @@ Choices, and why:
   * `worker_prefetch_multiplier = 1`: stages run for seconds to minutes; a worker holding several
     queued messages would starve its idle neighbours.
   * No result backend: the database records every stage's state and progress, and the fan-in of the
-    impostor tasks is a barrier in the database (crowdbake.jobs.records), not a Celery chord.
+    impostor tasks is a barrier in the database (crowdbake.storage.records), not a Celery chord.
   * Redis in production (`visibility_timeout` above the longest stage, so unacknowledged long stages
     are not redelivered while they still run). The filesystem transport for the one-command demo needs
     no server; it hands each message to one worker by renaming a file (it cannot redeliver after a

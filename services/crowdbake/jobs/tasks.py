@@ -1,19 +1,19 @@
-"""The bake's Celery tasks: one thin task per stage of crowdbake.pipeline.
+"""The bake's Celery tasks: one thin task per stage of crowdbake.stages.
 
 Each task takes the bake's id and attempt (and, for an impostor task, its part id), loads what it needs
-from the database, calls the pipeline's stage function on the bake's work folder, records the outcome,
+from the database, calls the stage function (crowdbake.stages.<stage>) on the bake's work folder, records the outcome,
 and enqueues what comes next:
 
     validate -> cycle -> poses -> impostor_views x N (in parallel) -> pack -> publish
 
-(The impostor tasks are derived from the poses stage's output, pipeline.impostor_tasks, so they follow
+(The impostor tasks are derived from the poses stage's output, crowdbake.stages.impostors.impostor_tasks, so they follow
 it rather than run beside it.)
 
 The work folder is named by the bake's input key (hash of inputs, parameters and code version), and the
 stage functions are idempotent, so a redelivered or retried task finds its outputs and returns at once.
-The fan-in before pack is a barrier in the database (crowdbake.jobs.records.complete_part/claim_fan_in).
+The fan-in before pack is a barrier in the database (crowdbake.storage.records.complete_part/claim_fan_in).
 
-Errors: the pipeline's InputError and VersionConflict, and any other error that a rerun cannot fix,
+Errors: the stages' InputError and VersionConflict, and any other error that a rerun cannot fix,
 fail the bake with a one-line reason; transient errors (a locked database, a full disk) are retried
 with exponential backoff up to `task_max_retries`. Cancellation is cooperative: the bake's state in the
 database is checked before each stage and at every progress report.
@@ -21,6 +21,7 @@ database is checked before each stage and at every progress report.
 from __future__ import annotations
 
 import errno
+import importlib
 import json
 import logging
 import os
@@ -37,9 +38,11 @@ from kombu.exceptions import OperationalError as KombuOperationalError
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
-from crowdbake.jobs import records
+from crowdbake.errors import InputError, VersionConflict
 from crowdbake.jobs.celery_app import TASK_NAMES, app
+from crowdbake.params import BakeParams
 from crowdbake.settings import Settings, get_settings
+from crowdbake.storage import records
 from crowdbake.storage.blobs import BlobStore, make_blob_store
 from crowdbake.storage.bundles import BundleConflict, register_bundle
 from crowdbake.storage.db import make_engine, make_sessionmaker, session_scope
@@ -89,10 +92,10 @@ def work_dir(settings: Settings, input_key: str) -> Path:
     return settings.work_dir / input_key
 
 
-def _pipeline():
-    from crowdbake import pipeline
-
-    return pipeline
+def _stage(name: str):
+    """A stage module (crowdbake.stages.<name>), imported when a task first runs it: the renderer and the
+    numeric stack load in the worker's pool processes, not in every process that imports this module."""
+    return importlib.import_module(f"crowdbake.stages.{name}")
 
 
 def _jsonable(value: Any) -> Any:
@@ -137,7 +140,7 @@ class StageContext:
         return bake
 
     def progress(self, _stage: str, done: int, total: int) -> None:
-        """The pipeline's progress callback: records done/total (at most every progress_interval
+        """The stages' progress callback: records done/total (at most every progress_interval
         seconds, and always at the end) and stops the stage if the bake was cancelled."""
         now = time.monotonic()
         if done < total and now - self._last_report < self.services.settings.progress_interval:
@@ -156,16 +159,11 @@ def _is_transient(error: BaseException) -> bool:
 
 def describe_error(error: BaseException, stage: str) -> dict[str, Any]:
     """A bake's error record: a problem type, a title, a one-line detail and the input field if known."""
-    pipeline = None
-    try:
-        pipeline = _pipeline()
-    except ImportError:
-        pass
     detail = " ".join(str(error).split()) or type(error).__name__
     if isinstance(error, OSError) and error.errno is not None and error.filename is not None:
         # The file name is a path in the server's work folder: the log has it, the API user gets the reason.
         detail = f"[Errno {error.errno}] {error.strerror}"
-    if pipeline is not None and isinstance(error, getattr(pipeline, "InputError", ())):
+    if isinstance(error, InputError):
         record = {"type": "invalid-input", "title": "the inputs cannot be baked", "detail": detail}
         field = getattr(error, "field", None)
         if field:
@@ -174,7 +172,7 @@ def describe_error(error: BaseException, stage: str) -> dict[str, Any]:
     if isinstance(error, KombuOperationalError):
         return {"type": "not-ready", "title": "the job queue is unreachable",
                 "detail": f"the {stage} stage could not queue what comes next: {detail}; retry the bake once the broker is back"}
-    if isinstance(error, BundleConflict) or (pipeline is not None and isinstance(error, getattr(pipeline, "VersionConflict", ()))):
+    if isinstance(error, (BundleConflict, VersionConflict)):
         return {"type": "version-conflict", "title": "this version is already published with other bytes", "detail": detail}
     return {"type": "stage-failed", "title": f"the {stage} stage failed", "detail": f"{type(error).__name__}: {detail}"}
 
@@ -286,12 +284,11 @@ def _send(stage: str, bake_id: str, attempt: int, *extra: Any) -> None:
 
 
 def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
-    """Link the bake's input blobs into work/sources and build the pipeline's BakeInputs.
+    """Link the bake's input blobs into work/sources and build the stages' BakeInputs.
 
     Not work/inputs: stage_validate copies its inputs there and clears that folder first. The links
-    share the blobs' modification times (the upload's), which the pipeline takes the manifest's
+    share the blobs' modification times (the upload's), which the validate stage takes the manifest's
     `created` from, so every attempt of a bake produces the same bytes."""
-    pipeline = _pipeline()
     blobs = ctx.services.blobs
     inputs_dir = ctx.work / "sources"
     if inputs_dir.exists():
@@ -299,7 +296,7 @@ def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
     character = session.get(Asset, bake.inputs["character"])
     cloth = session.get(Asset, bake.inputs["cloth"])
     if character is None or cloth is None:
-        raise pipeline.InputError("an input asset no longer exists", "character" if character is None else "cloth")
+        raise InputError("an input asset no longer exists", "character" if character is None else "cloth")
     character_path = blobs.materialize(character.files["file"]["sha256"], inputs_dir / f"character.{character.info.get('format', 'glb')}")
     cloth_path = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / "cloth.pc2")
     mesh_path = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "cloth.obj")
@@ -309,11 +306,11 @@ def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
         for name, asset_id in sorted(bake.inputs["textures"].items()):
             texture = session.get(Asset, asset_id)
             if texture is None:
-                raise pipeline.InputError(f"texture {name} no longer exists", f"textures.{name}")
+                raise InputError(f"texture {name} no longer exists", f"textures.{name}")
             blobs.materialize(texture.files["file"]["sha256"], textures_dir / name)
-    return pipeline.BakeInputs(
+    return _stage("validate").BakeInputs(
         character=character_path, cloth=cloth_path, cloth_mesh=mesh_path, textures=textures_dir, cycle=None,
-        name=bake.name, version=bake.version, params=pipeline.BakeParams.from_dict(bake.params),
+        name=bake.name, version=bake.version, params=BakeParams.from_dict(bake.params),
     )
 
 
@@ -323,7 +320,7 @@ def validate(self, bake_id: str, attempt: int) -> None:
         with ctx.session() as session:
             bake = ctx.check_live(session)
             inputs = _materialize_inputs(ctx, bake, session)
-        return _pipeline().stage_validate(inputs, ctx.work)
+        return _stage("validate").stage_validate(inputs, ctx.work).to_json()
 
     def after(ctx: StageContext, result, seconds: float) -> None:
         with ctx.session() as session:
@@ -336,7 +333,7 @@ def validate(self, bake_id: str, attempt: int) -> None:
 @app.task(name=TASK_NAMES["cycle"], **TASK_OPTIONS)
 def cycle(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
-        return _pipeline().stage_cycle(ctx.work, progress=ctx.progress)
+        return _stage("cycle").stage_cycle(ctx.work, progress=ctx.progress).to_json()
 
     def after(ctx: StageContext, result, seconds: float) -> None:
         with ctx.session() as session:
@@ -360,9 +357,8 @@ def _maybe_enqueue_pack(ctx: StageContext, parts_left: int) -> None:
 @app.task(name=TASK_NAMES["poses"], **TASK_OPTIONS)
 def poses(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
-        pipeline = _pipeline()
-        result = pipeline.stage_poses(ctx.work, progress=ctx.progress)
-        return result, pipeline.impostor_tasks(ctx.work)
+        result = _stage("poses").stage_poses(ctx.work, progress=ctx.progress)
+        return result.to_json(), [task.to_json() for task in _stage("impostors").impostor_tasks(ctx.work)]
 
     def after(ctx: StageContext, outcome, seconds: float) -> None:
         result, impostor_specs = outcome
@@ -390,7 +386,7 @@ def impostor_views(self, bake_id: str, attempt: int, part_id: str) -> None:
             if part is None:
                 raise BakeStopped(f"bake {bake_id} has no part {part_id} (superseded)")
             spec = dict(part.spec)
-        return _pipeline().stage_impostor_views(ctx.work, spec)
+        return _stage("impostors").stage_impostor_views(ctx.work, spec)
 
     def after(ctx: StageContext, result, seconds: float) -> None:
         with ctx.session() as session:
@@ -410,7 +406,7 @@ def impostor_views(self, bake_id: str, attempt: int, part_id: str) -> None:
 @app.task(name=TASK_NAMES["pack"], **TASK_OPTIONS)
 def pack(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
-        return _pipeline().stage_pack(ctx.work, progress=ctx.progress)
+        return _stage("pack").stage_pack(ctx.work, progress=ctx.progress).to_json()
 
     def after(ctx: StageContext, result, seconds: float) -> None:
         with ctx.session() as session:
@@ -430,7 +426,7 @@ def pack(self, bake_id: str, attempt: int) -> None:
 def publish(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
         settings = ctx.services.settings
-        path = _pipeline().stage_publish(ctx.work, settings.bundles_dir)
+        path = _stage("publish").stage_publish(ctx.work, settings.bundles_dir)
         with ctx.session() as session:
             bake = ctx.check_live(session)
             register_bundle(session, settings.bundles_dir, bake.name, bake.version, bake.public, bake.id)

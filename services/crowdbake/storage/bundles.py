@@ -1,9 +1,9 @@
 """Published bundles: where they live, their manifests, and their records.
 
-A bundle is published once, atomically, to `<bundles_dir>/<name>/<version>/` (by crowdbake.pipeline's
-publish stage, with crowdbake.formats.bundle.write_bundle, or by a crowdbake.storage.bundle_store.BundleStore,
-which may keep it in an object store) and then recorded here. Published folders never change, so a
-parsed manifest can be cached for the life of the process.
+A bundle is published once, atomically, to `<bundles_dir>/<name>/<version>/` (by crowdbake.stages.publish,
+with crowdbake.formats.bundle.write_bundle, or by a crowdbake.storage.bundle_store.BundleStore, which may
+keep it in an object store) and then recorded here. Published folders never change, so a parsed manifest
+can be cached for the life of the process.
 """
 from __future__ import annotations
 

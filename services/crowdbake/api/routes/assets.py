@@ -1,33 +1,25 @@
 """Assets: upload a character, a cloth cache or a texture; read their records.
 
-An upload is streamed to a staging file while it is hashed, validated (crowdbake.validation), and only
+An upload is streamed to a staging file while it is hashed, validated (crowdbake.ingest.uploads), and only
 then committed to the blob store and recorded. The same content uploaded again returns the existing
 asset (200 instead of 201). A rejected upload leaves neither blobs nor rows behind.
 """
 from __future__ import annotations
 
-import hashlib
 from typing import Any, Literal
 
 from fastapi import APIRouter, Query, Request, Response
 from sqlalchemy import select
-from sqlalchemy.exc import IntegrityError
 from starlette.concurrency import run_in_threadpool
 
 from crowdbake.api.deps import AssetReadKey, ServicesDep, SessionDep, UploadKey
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import MAX_LIST_OFFSET, AssetPublic, AssetsPublic, problem_responses
 from crowdbake.api.uploads import MultipartUpload, UploadedFile, read_multipart
-from crowdbake.jobs.records import new_id
+from crowdbake.ingest.uploads import ZipLimits, check_character, check_cloth, check_texture, convert_obj_sequence
+from crowdbake.storage.assets import store_asset
 from crowdbake.storage.blobs import BlobStore, IncomingBlob
 from crowdbake.storage.models import Asset
-from crowdbake.validation import (
-    ZipLimits,
-    check_character,
-    check_cloth,
-    check_texture,
-    convert_obj_sequence,
-)
 
 router = APIRouter(prefix="/v1/assets", tags=["assets"])
 
@@ -56,43 +48,15 @@ def _require_file(upload: MultipartUpload, field: str) -> UploadedFile:
     return upload.files[field]
 
 
-def _stored(blob: IncomingBlob, filename: str, media_type: str) -> dict[str, Any]:
-    return {"sha256": blob.sha256, "size": blob.size, "filename": filename, "media_type": media_type}
-
-
 def _store_asset(
     session, blobs: BlobStore, response: Response, kind: str, staged: dict[str, tuple[IncomingBlob, str, str]],
     info: dict[str, Any], created_by: str | None,
 ) -> Asset:
-    """Commit the staged blobs and record the asset, or return the existing asset with this content."""
-    files = {role: _stored(blob, filename, media_type) for role, (blob, filename, media_type) in staged.items()}
-    if set(files) == {"file"}:
-        digest = files["file"]["sha256"]
-    else:
-        digest = hashlib.sha256("\n".join(f"{role}:{files[role]['sha256']}" for role in sorted(files)).encode()).hexdigest()
-    existing = session.scalars(select(Asset).where(Asset.kind == kind, Asset.digest == digest)).first()
-    if existing is None:
-        for blob, _, _ in staged.values():
-            blobs.commit(blob)
-        primary = files.get("file") or files["cache"]
-        asset = Asset(
-            id=new_id("as"), kind=kind, digest=digest, filename=primary["filename"],
-            size=sum(entry["size"] for entry in files.values()), files=files, info=info, created_by=created_by,
-        )
-        session.add(asset)
-        try:
-            session.commit()
-            response.status_code = 201
-            response.headers["Location"] = f"/v1/assets/{asset.id}"
-            return asset
-        except IntegrityError:  # the same content arrived concurrently; theirs was recorded first
-            session.rollback()
-            existing = session.scalars(select(Asset).where(Asset.kind == kind, Asset.digest == digest)).one()
-    for blob, _, _ in staged.values():
-        blob.discard()
-    response.status_code = 200
-    response.headers["Location"] = f"/v1/assets/{existing.id}"
-    return existing
+    """Store the asset (crowdbake.storage.assets): 201 when new, 200 with the existing one's Location."""
+    asset, created = store_asset(session, blobs, kind, staged, info, created_by)
+    response.status_code = 201 if created else 200
+    response.headers["Location"] = f"/v1/assets/{asset.id}"
+    return asset
 
 
 @router.post(

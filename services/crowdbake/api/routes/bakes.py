@@ -2,7 +2,7 @@
 retry it, publish it later.
 
 Submitting the same inputs, parameters, name and version again returns the existing bake (200) unless
-it failed or was cancelled: the input key (crowdbake.jobs.records.input_key) makes resubmission
+it failed or was cancelled: the input key (crowdbake.storage.records.input_key) makes resubmission
 idempotent, and the work folder it names makes a rerun fast.
 """
 from __future__ import annotations
@@ -15,15 +15,16 @@ from fastapi.responses import PlainTextResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from crowdbake import pipeline
 from crowdbake.api.deps import BakeKey, PublishKey, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import MAX_LIST_OFFSET, BakeCreate, BakePublic, BakesPublic, LogLine, StagePublic, problem_responses
-from crowdbake.jobs import records
+from crowdbake.errors import InputError
+from crowdbake.ingest.bake_request import check_two_cycles
 from crowdbake.jobs.celery_app import send_stage
+from crowdbake.params import BakeParams
+from crowdbake.storage import records
 from crowdbake.storage.bundles import find_bundle
 from crowdbake.storage.models import Asset, Bake
-from crowdbake.validation import min_cloth_frames
 
 logger = logging.getLogger(__name__)
 router = APIRouter(prefix="/v1/bakes", tags=["bakes"])
@@ -67,26 +68,24 @@ def _asset(session: Session, asset_id: str, kind: str, field: str, errors: list[
     return asset
 
 
-def _check_params_with_pipeline(params: dict[str, Any]) -> None:
-    """The pipeline's own BakeParams checks too (its limits are the ones that count)."""
+def _check_params(params: dict[str, Any]) -> None:
+    """The stages' own BakeParams checks too (crowdbake.params: the same table as the request model)."""
     try:
-        pipeline.BakeParams.from_dict(params)
+        BakeParams.from_dict(params)
     except (ValueError, TypeError) as error:
         field = f"params.{error.field}" if getattr(error, "field", None) else "params"
         raise Problem("validation-error", f"the parameters are not accepted: {error}", [{"field": field, "message": str(error)}]) from None
 
 
-def _cycle_frames(character: Asset, cloth: Asset, cycle_frames: int | None) -> int:
-    """The walk cycle's length in cache frames, as the pipeline's validate stage will take it: the
-    parameter, else the character's animation at the cache's rate (pipeline.BASE_FPS / sample_rate)."""
-    if cycle_frames is not None:
-        return cycle_frames
-    seconds = float(character.info.get("animation_seconds") or 0.0)
-    if seconds <= 0:
+def _check_cycle(character: Asset, cloth: Asset, cycle_frames: int | None) -> None:
+    """The cloth must hold two cycles (crowdbake.ingest.bake_request), as a problem naming the field."""
+    try:
+        check_two_cycles(character.info, cloth.info, cycle_frames)
+    except InputError as error:
+        if error.field == "cloth":
+            raise Problem("invalid-file", "too few frames for two cycles", [{"field": "cloth", "message": error.message}]) from None
         raise Problem("validation-error", "the character has no animation to take the cycle length from",
-                      [{"field": "params.cycle_frames", "message": "give cycle_frames, or upload a character with a walk animation"}])
-    fps = pipeline.BASE_FPS / float(cloth.info.get("sample_rate") or 1.0)
-    return max(int(round(seconds * fps)), 2)
+                      [{"field": error.field, "message": error.message}]) from None
 
 
 def _enqueue(services, session: Session, bake: Bake, stage: str) -> None:
@@ -110,12 +109,8 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: Se
     if errors:
         raise Problem("validation-error", "the bake names assets that do not exist", errors)
     params = body.params.model_dump()
-    _check_params_with_pipeline(params)
-    cycle_frames = _cycle_frames(character, cloth, body.params.cycle_frames)
-    needed = min_cloth_frames(cycle_frames)
-    if cloth.info.get("frame_count", 0) < needed:
-        raise Problem("invalid-file", "too few frames for two cycles",
-                      [{"field": "cloth", "message": f"too few frames for two cycles of {cycle_frames}: the cache has {cloth.info.get('frame_count')}, two cycles need {needed}"}])
+    _check_params(params)
+    _check_cycle(character, cloth, body.params.cycle_frames)
 
     digests = {
         "character": character.digest,

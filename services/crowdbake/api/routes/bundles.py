@@ -32,7 +32,7 @@ from crowdbake.api.schemas import (
 )
 from crowdbake.formats.bundle import check_path
 from crowdbake.formats.errors import FormatError
-from crowdbake.jobs.records import to_utc
+from crowdbake.storage.records import to_utc
 from crowdbake.storage.bundles import LATEST, PublishedManifest, bundle_dir, find_bundle, read_manifest
 from crowdbake.storage.models import Bundle
 

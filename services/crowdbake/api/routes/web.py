@@ -9,7 +9,7 @@ the key the user typed (kept in the browser's localStorage) and fetches the repo
 the same key. The page itself is public; everything it shows is behind the usual scopes (bake for
 jobs and their reports, read for private bundles).
 
-The report is the file the cycle stage wrote into the bake's work folder (pipeline.py: work/cycle/).
+The report is the file the cycle stage wrote into the bake's work folder (crowdbake.stages.cycle: work/cycle/).
 Previews decode one layer of a published bundle's CBTX atlas: the UV map's 16-bit u and v become red
 and green, the normal map's RGB is (n + 1) / 2 as stored, the detail map is the diffuse variation 0
 as baked; BC1/BC2 layers are decoded with crowdbake.bake.compression. Texels the character does not
@@ -20,7 +20,6 @@ from __future__ import annotations
 import hashlib
 import io
 import re
-import struct
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -32,7 +31,7 @@ from crowdbake.api.deps import BakeKey, PrincipalDep, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
 from crowdbake.api.routes.bundles import IMMUTABLE_SECONDS, NameParam, VersionParam, _bundle_or_problem
 from crowdbake.api.schemas import problem_responses
-from crowdbake.formats.binary import PIXEL_FORMATS, TEXTURE_HEADER_SIZE, TEXTURE_MAGIC, TEXTURE_VERSION, layer_size
+from crowdbake.formats.binary import read_texture_layer
 from crowdbake.storage.bundles import LATEST, bundle_dir, read_manifest
 from crowdbake.storage.models import Bake
 
@@ -52,9 +51,6 @@ REPORT_CSP = "default-src 'none'; img-src 'self'; style-src 'unsafe-inline'; san
 CYCLE_FILE = re.compile(r"^(report\.html|cycle\.json|(edges/)?[A-Za-z0-9][A-Za-z0-9_-]*\.png)$")
 CYCLE_TYPES = {".html": "text/html; charset=utf-8", ".png": "image/png", ".json": "application/json"}
 
-# CBTX header: magic, version, header_size, file_size, width, height, layer_count, pixel_format (SPEC.md).
-_CBTX_HEADER = struct.Struct("<4sIIIIIII")
-assert _CBTX_HEADER.size == TEXTURE_HEADER_SIZE
 # Material index m of the UV map's blue channel is shown as blue 64·m (clipped), so materials differ.
 MATERIAL_BLUE_STEP = 64
 
@@ -114,30 +110,6 @@ def get_cycle_file(bake_id: str, path: str, key: BakeKey, services: ServicesDep,
 
 
 # --------------------------------------------------------------------------------- atlas preview
-
-
-def read_texture_layer(path: Path, layer: int) -> tuple[str, int, int, int, bytes]:
-    """(pixel_format, width, height, layer_count, bytes of `layer`) of a CBTX file, reading one layer only.
-
-    The file was verified when it was published (verify_bundle); this checks only what it relies on.
-    Raises IndexError for a layer outside the file, ValueError for a header it cannot read.
-    """
-    with open(path, "rb") as handle:
-        header = handle.read(TEXTURE_HEADER_SIZE)
-        if len(header) != TEXTURE_HEADER_SIZE:
-            raise ValueError(f"{path.name}: truncated header")
-        magic, version, header_size, file_size, width, height, layer_count, code = _CBTX_HEADER.unpack(header)
-        if magic != TEXTURE_MAGIC or version != TEXTURE_VERSION or header_size != TEXTURE_HEADER_SIZE or code not in PIXEL_FORMATS:
-            raise ValueError(f"{path.name}: not a CBTX v{TEXTURE_VERSION} file")
-        if not 0 <= layer < layer_count:
-            raise IndexError(f"layer {layer} is outside 0..{layer_count - 1}")
-        pixel_format = PIXEL_FORMATS[code]
-        size = layer_size(pixel_format, width, height)
-        handle.seek(TEXTURE_HEADER_SIZE + layer * size)
-        data = handle.read(size)
-        if len(data) != size:
-            raise ValueError(f"{path.name}: layer {layer} is truncated")
-    return pixel_format, width, height, layer_count, data
 
 
 def decode_layer(data: bytes, pixel_format: str, width: int, height: int) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The bake pipeline end to end (crowdbake.pipeline, `crowdbake bake`) on a small procedural sample:
+"""The bake's stages end to end (crowdbake.stages, `crowdbake bake`) on a small procedural sample:
 a bundle that verify_bundle accepts, byte-identical rebakes, idempotent stages, clear input errors."""
 from __future__ import annotations
 
@@ -9,10 +9,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crowdbake import pipeline
-from crowdbake.formats.bundle import verify_bundle
+from crowdbake.errors import InputError, StageOrderError, VersionConflict
 from crowdbake.formats.binary import unpack_uv32
-from crowdbake.pipeline import BakeInputs, BakeParams, InputError, VersionConflict
+from crowdbake.formats.bundle import verify_bundle
+from crowdbake.params import BakeParams
+from crowdbake.stages import STAGES
+from crowdbake.stages.cycle import stage_cycle
+from crowdbake.stages.impostors import impostor_tasks, part_path, stage_impostor_views
+from crowdbake.stages.pack import stage_pack
+from crowdbake.stages.poses import stage_poses
+from crowdbake.stages.publish import stage_publish
+from crowdbake.stages.runner import run_bake
+from crowdbake.stages.validate import BakeInputs, gltf_dependencies, load_job, stage_validate
 
 pytest.importorskip("pyrender")
 
@@ -24,12 +32,9 @@ DIFFUSE_PSNR_DB = 30.0
 
 
 @pytest.fixture(scope="module")
-def sample(tmp_path_factory) -> Path:
-    from crowdbake.sample.generate import generate_sample
-
-    folder = tmp_path_factory.mktemp("sample")
-    generate_sample(folder, garment="loose", cycles=3, seed=1, cycle_frames=CYCLE_FRAMES, texture_size=64)
-    return folder
+def sample(small_sample) -> Path:
+    """The session's sample (sample_fixtures.SMALL_SAMPLE: 24-frame cycles)."""
+    return small_sample
 
 
 def inputs_for(sample: Path, params: BakeParams = SMALL, **changes) -> BakeInputs:
@@ -54,7 +59,7 @@ def tree(root: Path) -> dict[str, bytes]:
 @pytest.fixture(scope="module")
 def baked(sample, tmp_path_factory):
     root = tmp_path_factory.mktemp("baked")
-    summary = pipeline.run_bake(inputs_for(sample), root / "bundles", work=root / "work")
+    summary = run_bake(inputs_for(sample), root / "bundles", work=root / "work")
     return root, summary
 
 
@@ -101,7 +106,7 @@ def test_bake_writes_a_bundle_that_verifies(sample, baked):
     assert fidelity["nearest_view"]["ssim_mean"] < fidelity["impostor"]["ssim_mean"]
     memory = json.loads((summary.bundle / "texture_memory.json").read_text())
     assert memory["paper"]["detail_mapped_mib"][0] == memory["paper"]["uv_mapped_mib"][0] == 16
-    assert set(summary.timings_s) == set(pipeline.STAGES)
+    assert set(summary.timings_s) == set(STAGES)
     assert summary.impostor["views"] == 16 and summary.impostor["tasks"] == 4
 
 
@@ -110,33 +115,33 @@ def test_baking_twice_gives_identical_bytes(sample, baked, tmp_path):
     manifest included, is the same (created comes from the inputs' modification time)."""
     root, summary = baked
     work = tmp_path / "work"
-    pipeline.stage_validate(inputs_for(sample), work)
-    pipeline.stage_cycle(work)
-    pipeline.stage_poses(work)
-    for task in reversed(pipeline.impostor_tasks(work)):
-        pipeline.stage_impostor_views(work, task)
-    pipeline.stage_pack(work)
+    stage_validate(inputs_for(sample), work)
+    stage_cycle(work)
+    stage_poses(work)
+    for task in reversed(impostor_tasks(work)):
+        stage_impostor_views(work, task)
+    stage_pack(work)
     first = tree(summary.bundle)
     assert tree(work / "bundle") == first
     manifest = json.loads(first["manifest.json"])
-    job = json.loads((work / "job.json").read_text())
-    assert manifest["created"] == job["created"] and job["created_from"] == "input modification time"
+    job = load_job(work)
+    assert manifest["created"] == job.created and job.created_from == "input modification time"
     # Publishing the same bytes again is a no-op.
-    assert pipeline.stage_publish(work, root / "bundles") == summary.bundle
+    assert stage_publish(work, root / "bundles") == summary.bundle
     assert tree(summary.bundle) == first
 
 
 def test_stages_are_idempotent_and_ordered(baked, tmp_path):
     root, _ = baked
     work = root / "work"
-    assert pipeline.stage_poses(work)["cached"] is True
-    assert pipeline.stage_pack(work)["cached"] is True
-    task = pipeline.impostor_tasks(work)[0]
-    part = pipeline._part_path(work, task)
+    assert stage_poses(work).cached is True
+    assert stage_pack(work).cached is True
+    task = impostor_tasks(work)[0]
+    part = part_path(work, task)
     stamp = part.stat().st_mtime_ns
-    assert pipeline.stage_impostor_views(work, task) == part and part.stat().st_mtime_ns == stamp
-    with pytest.raises(pipeline.StageOrderError):
-        pipeline.stage_poses(tmp_path / "empty")
+    assert stage_impostor_views(work, task) == part and part.stat().st_mtime_ns == stamp
+    with pytest.raises(StageOrderError):
+        stage_poses(tmp_path / "empty")
 
 
 def test_publishing_other_bytes_under_a_published_version_is_refused(baked, tmp_path):
@@ -148,7 +153,7 @@ def test_publishing_other_bytes_under_a_published_version_is_refused(baked, tmp_
     manifest["created"] = "2001-01-01T00:00:00Z"
     manifest_path.write_text(json.dumps(manifest))
     with pytest.raises(VersionConflict):
-        pipeline.stage_publish(root / "work", other_root)
+        stage_publish(root / "work", other_root)
 
 
 def test_bad_inputs_name_their_field(sample, tmp_path):
@@ -166,7 +171,7 @@ def test_bad_inputs_name_their_field(sample, tmp_path):
     ]
     for inputs, field in cases:
         with pytest.raises(InputError) as caught:
-            pipeline.stage_validate(inputs, tmp_path / "work")
+            stage_validate(inputs, tmp_path / "work")
         assert caught.value.field == field, caught.value.message
     with pytest.raises(InputError, match="unknown parameter"):
         BakeParams.from_dict({"tiles": 4})
@@ -210,8 +215,8 @@ def test_gltf_files_must_stay_beside_the_gltf(tmp_path):
     (tmp_path / "skin.png").write_bytes(b"png")
     gltf = tmp_path / "character.gltf"
     gltf.write_text(json.dumps({"buffers": [{"uri": "buffers/body.bin"}, {"uri": "data:application/octet-stream;base64,AA=="}], "images": [{"uri": "skin.png"}]}))
-    assert pipeline._gltf_dependencies(gltf) == ["buffers/body.bin", "skin.png"]
+    assert gltf_dependencies(gltf) == ["buffers/body.bin", "skin.png"]
     gltf.write_text(json.dumps({"buffers": [{"uri": "../outside.bin"}]}))
     with pytest.raises(InputError) as caught:
-        pipeline._gltf_dependencies(gltf)
+        gltf_dependencies(gltf)
     assert caught.value.field == "character"

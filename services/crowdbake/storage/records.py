@@ -16,10 +16,9 @@ from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
 from crowdbake import __version__
+from crowdbake.stages import STAGES
 from crowdbake.storage.models import FINAL_BAKE_STATES, Bake, BakeLog, BakePart, BakeStage, utcnow
 
-# The pipeline's stages (crowdbake.pipeline.STAGES), in order.
-STAGES = ("validate", "cycle", "poses", "impostors", "pack", "publish")
 # Share of a bake's time each stage takes, for one overall progress figure (measured on the sample
 # character: the cycle search and the impostor renders dominate).
 STAGE_WEIGHTS = {"validate": 0.02, "cycle": 0.28, "poses": 0.12, "impostors": 0.43, "pack": 0.12, "publish": 0.03}
@@ -31,14 +30,8 @@ def new_id(prefix: str) -> str:
 
 
 def code_version() -> str:
-    """What, besides inputs and parameters, decides a bake's bytes: the package version and, when the
-    pipeline declares one, its own code version."""
-    try:
-        from crowdbake import pipeline
-
-        return f"{__version__}/{getattr(pipeline, 'CODE_VERSION', __version__)}"
-    except ImportError:
-        return __version__
+    """What, besides inputs and parameters, decides a bake's bytes: the package version."""
+    return __version__
 
 
 def input_key(digests: dict[str, Any], name: str, version: str, params: dict[str, Any]) -> str:
@@ -202,7 +195,7 @@ def is_final(bake: Bake) -> bool:
 
 
 def record_fan_out(session: Session, bake_id: str, impostor_tasks: list[dict[str, Any]]) -> list[str]:
-    """Register the parts the pack stage waits for: one per impostor-views task (pipeline.impostor_tasks,
+    """Register the parts the pack stage waits for: one per impostor-views task (crowdbake.stages.impostors.impostor_tasks,
     which needs the poses stage's output). Returns the part ids in task order."""
     session.execute(delete(BakePart).where(BakePart.bake_id == bake_id))
     part_ids = []

@@ -24,11 +24,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from crowdbake.params import min_cloth_frames
+
 logger = logging.getLogger(__name__)
 
-# Each cycle needs at least two frames (crowdbake.bake.cycle), and the search needs two cycles (paper §3).
-MIN_CYCLE_FRAMES = 2
-CYCLES_NEEDED = 2
 # Entries smaller than this may compress extremely well for innocent reasons (a run of zeros); the
 # ratio check of the zip-bomb guard applies above it.
 ZIP_RATIO_MIN_BYTES = 1 << 20
@@ -299,11 +298,6 @@ def _pc2_where(path: Path) -> str | None:
             if bad.size:
                 return f"byte {offset + 4 * int(bad[0])}"
             offset += len(chunk)
-
-
-def min_cloth_frames(cycle_frames: int | None) -> int:
-    """Frames a cloth cache needs for the cycle search: two cycles (of at least MIN_CYCLE_FRAMES)."""
-    return CYCLES_NEEDED * max(int(cycle_frames or MIN_CYCLE_FRAMES), MIN_CYCLE_FRAMES)
 
 
 def check_cloth(

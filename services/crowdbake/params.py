@@ -1,0 +1,364 @@
+"""Bake parameters and limits, declared once.
+
+PARAMS is a table of field specs (name, type, default, bounds, choices, help, CLI flag). From it come
+
+- BakeParams, the frozen dataclass the stages read (its validate() walks the table);
+- the REST request model (crowdbake.api.schemas.BakeParamsIn, built by `pydantic_fields`);
+- the command-line options of `crowdbake bake`, `crowdbake submit` and the shared ones of
+  `crowdbake cycle` (`add_cli_options`, `params_from_args`),
+
+so every parameter that shapes a bundle has one default and one bound everywhere.
+services/tests/test_params.py walks the table and checks the CLI parser and the pydantic model agree.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import numbers
+import re
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Iterable
+
+from crowdbake.errors import InputError
+
+CLOSE_METHODS = ("none", "linear", "hermite")
+UV_FORMATS = ("uv32", "rgba16")  # impostor UV map pixel formats a bake can write (SPEC.md); the first is the default
+
+# The bundle spec's name and version rules (shared_formats/SPEC.md, "manifest.json").
+NAME_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
+VERSION_PATTERN = r"^[0-9A-Za-z][0-9A-Za-z.+_-]{0,63}$"
+NAME_RULE = re.compile(NAME_PATTERN)
+VERSION_RULE = re.compile(VERSION_PATTERN)
+CREATED_RULE = re.compile(r"^\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}Z$")
+PART_RULE = re.compile(r"^[a-z0-9_-]{1,32}$")
+
+# PC2 stores the interval between samples in frames, not a rate: the cache's rate is this over
+# sample_rate unless the cycle search recorded one (the film rate).
+BASE_FPS = 24.0
+# Upper limits that keep one bake within a worker's memory: 64 azimuths x 9 elevations x 1024² tiles is
+# already a 64k-wide atlas; the runtime's texture limits are lower still.
+MAX_TILE_SIZE = 1024
+MAX_AZIMUTHS = 64
+MAX_ELEVATIONS = 9
+MAX_IMPOSTOR_FRAMES = 256
+# The cycle search's cost grows with candidates x views renders; these bound one request's work.
+MAX_CANDIDATES = 50
+MAX_CYCLE_VIEWS = 32
+# About 70 minutes of walk at 24 fps: far beyond any walk cycle, small enough for 64-bit arithmetic.
+MAX_CYCLE_FRAMES = 100_000
+
+
+# Each cycle needs at least two frames (crowdbake.bake.cycle), and the search needs two cycles (paper
+# section 3 compares frames one cycle apart).
+MIN_CYCLE_FRAMES = 2
+CYCLES_NEEDED = 2
+
+
+def min_cloth_frames(cycle_frames: int | None) -> int:
+    """Frames a cloth cache needs for the cycle search: two cycles of `cycle_frames` (None: of the
+    shortest cycle, MIN_CYCLE_FRAMES)."""
+    return CYCLES_NEEDED * max(int(cycle_frames or MIN_CYCLE_FRAMES), MIN_CYCLE_FRAMES)
+
+
+def cycle_frames_from_animation(animation_seconds: float, sample_rate: float) -> int:
+    """The walk cycle's length in cache frames: the animation's duration at the cache's rate
+    (BASE_FPS / PC2 sample interval). 0 when there is no animation."""
+    if not animation_seconds or animation_seconds <= 0:
+        return 0
+    return int(round(float(animation_seconds) * BASE_FPS / float(sample_rate or 1.0)))
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One bake parameter: its type, default, bounds, help and command-line flag.
+
+    kind: "int", "float", "str", "bool" or "floats" (a list of floats); optional: None is allowed and means
+    "derived" (see help). minimum/maximum: inclusive bounds (of each item for "floats"); above_zero: the
+    value must be > 0 instead of >= minimum. flags: the `crowdbake bake` flag first, aliases after.
+    """
+
+    name: str
+    kind: str
+    default: Any
+    help: str
+    flags: tuple[str, ...]
+    metavar: str | None = None
+    optional: bool = False
+    minimum: float | None = None
+    maximum: float | None = None
+    above_zero: bool = False
+    multiple_of: int | None = None
+    choices: tuple[str, ...] | None = None
+    min_items: int | None = None
+    max_items: int | None = None
+    distinct: bool = False
+    exclusive_group: str | None = None
+
+    @property
+    def flag(self) -> str:
+        return self.flags[0]
+
+    def problem(self, value: Any) -> str | None:
+        """Why `value` is not acceptable for this parameter, or None when it is."""
+        if value is None:
+            return None if self.optional else "must be given"
+        if self.kind == "bool":
+            return None if isinstance(value, bool) else "must be true or false"
+        if self.kind == "str":
+            return None if value in (self.choices or ()) else f"must be one of {', '.join(self.choices or ())}"
+        if self.kind == "floats":
+            if not isinstance(value, (tuple, list)) or not self.min_items <= len(value) <= self.max_items:
+                return f"needs {self.min_items}..{self.max_items} values"
+            if not all(_is_number(v) and self.minimum <= v <= self.maximum for v in value):
+                return f"values must lie in {self.minimum:g}..{self.maximum:g} degrees"
+            if self.distinct and len(set(value)) != len(value):
+                return "values must be distinct"
+            return None
+        number_ok = _is_integer(value) if self.kind == "int" else _is_number(value)
+        if not number_ok or not self._in_range(value):
+            return self.range_text()
+        if self.multiple_of and value % self.multiple_of:
+            return self.range_text()
+        return None
+
+    def _in_range(self, value: float) -> bool:
+        if self.above_zero and not value > 0:
+            return False
+        if self.minimum is not None and value < self.minimum:
+            return False
+        return self.maximum is None or value <= self.maximum
+
+    def range_text(self) -> str:
+        what = "an integer" if self.kind == "int" else "a number"
+        if self.multiple_of:
+            return f"must be a multiple of {self.multiple_of} in {self.minimum:g}..{self.maximum:g}"
+        if self.above_zero:
+            return f"must lie in (0, {self.maximum:g}]"
+        if self.maximum is None:
+            return f"must be {what} of at least {self.minimum:g}"
+        return f"must be {what} in {self.minimum:g}..{self.maximum:g}"
+
+
+def _is_integer(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(float(value))
+
+
+PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec("cycle_frames", "int", None, "walk cycle length in frames (default: the character's animation)",
+              ("--cycle-frames",), "L", optional=True, minimum=2, maximum=MAX_CYCLE_FRAMES),
+    ParamSpec("close", "str", "hermite", "how the cycle's seam is closed (paper section 3: linear blend; hermite also matches velocity)",
+              ("--close",), choices=CLOSE_METHODS),
+    ParamSpec("candidates", "int", 5, "cycle candidates kept by pass 1 and compared by the pass-2 edge metric (paper section 3)",
+              ("--candidates",), "K", minimum=1, maximum=MAX_CANDIDATES),
+    ParamSpec("cycle_views", "int", 5, "views of the pass-2 edge metric (paper: 5)",
+              ("--cycle-views",), "N", minimum=1, maximum=MAX_CYCLE_VIEWS),
+    ParamSpec("impostor_frames", "int", 10, "cycle frames baked into impostors (paper: 10)",
+              ("--frames", "--impostor-frames"), "N", minimum=1, maximum=MAX_IMPOSTOR_FRAMES),
+    ParamSpec("azimuths", "int", 16, "impostor views per elevation ring",
+              ("--azimuths",), "N", minimum=1, maximum=MAX_AZIMUTHS),
+    ParamSpec("elevations_deg", "floats", (0.0, 20.0, 40.0), "impostor view elevations in degrees, one ring each",
+              ("--elevations",), "DEG,...", minimum=-90.0, maximum=90.0, min_items=1, max_items=MAX_ELEVATIONS, distinct=True),
+    ParamSpec("tile_size", "int", 128, "texels per impostor view side (a multiple of 4: BC1/BC2 blocks are 4x4 texels)",
+              ("--tile", "--tile-size"), "PX", minimum=4, maximum=MAX_TILE_SIZE, multiple_of=4),
+    ParamSpec("lod_ratio", "float", None, "low LOD as a fraction of the high one (default: the paper's 1899/13056)",
+              ("--lod-ratio",), "R", optional=True, maximum=1.0, above_zero=True, exclusive_group="lod"),
+    ParamSpec("lod_triangles", "int", None, "low LOD triangles for the whole character (instead of lod_ratio)",
+              ("--lod-triangles",), "N", optional=True, minimum=2, exclusive_group="lod"),
+    ParamSpec("compress", "bool", True, "block-compress normal maps (DXT1), detail maps and diffuse textures (DXT3); false: rgba8",
+              ("--no-compress",)),
+    ParamSpec("uv_format", "str", "uv32", "impostor UV map format: uv32 (4 bytes a texel, 14-bit coordinates) or rgba16 (8 bytes)",
+              ("--uv-format",), choices=UV_FORMATS),
+)
+SPECS = {spec.name: spec for spec in PARAMS}
+# Parameters of the cycle search that `crowdbake cycle` shares with `crowdbake bake` (its own flag names).
+CYCLE_SHARED = {"cycle_frames": "--cycle-frames", "close": "--close", "candidates": "--candidates", "cycle_views": "--views"}
+
+
+def cross_field_problem(values: dict[str, Any]) -> tuple[str, str] | None:
+    """(field, message) for a combination of parameters that cannot go together, else None."""
+    if values.get("lod_ratio") is not None and values.get("lod_triangles") is not None:
+        return "lod_ratio", "give lod_ratio or lod_triangles, not both"
+    return None
+
+
+@dataclass(frozen=True)
+class BakeParams:
+    """Everything that shapes a bake besides the input files (JSON-serialisable: to_dict/from_dict).
+
+    The meaning, default and bounds of each field are in PARAMS above; the defaults here are checked
+    against that table by services/tests/test_params.py.
+    """
+
+    cycle_frames: int | None = None
+    close: str = "hermite"
+    candidates: int = 5
+    cycle_views: int = 5
+    impostor_frames: int = 10
+    azimuths: int = 16
+    elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0)
+    tile_size: int = 128
+    lod_ratio: float | None = None
+    lod_triangles: int | None = None
+    compress: bool = True
+    uv_format: str = "uv32"
+
+    def validate(self) -> None:
+        """Raise InputError(message, field) for the first parameter out of range."""
+        values = asdict(self)
+        for spec in PARAMS:
+            problem = spec.problem(values[spec.name])
+            if problem is not None:
+                raise InputError(f"{spec.name}: {problem}", spec.name)
+        clash = cross_field_problem(values)
+        if clash is not None:
+            raise InputError(f"{clash[0]}: {clash[1]}", clash[0])
+
+    def to_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        data["elevations_deg"] = [float(e) for e in self.elevations_deg]
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "BakeParams":
+        """Parameters from JSON; unknown keys and bad values raise InputError."""
+        if not isinstance(data, dict):
+            raise InputError("parameters must be a JSON object", None)
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise InputError(f"unknown parameter {unknown[0]!r}", unknown[0])
+        values = dict(data)
+        if "elevations_deg" in values and isinstance(values["elevations_deg"], list):
+            values["elevations_deg"] = tuple(values["elevations_deg"])
+        params = cls(**values)
+        params.validate()
+        return params
+
+
+# ------------------------------------------------------------------------------------ REST (pydantic)
+
+
+def pydantic_fields() -> dict[str, tuple[Any, Any]]:
+    """create_model field definitions, name -> (annotation, FieldInfo), one per PARAMS entry."""
+    from typing import Literal, Optional
+
+    from pydantic import Field
+
+    definitions: dict[str, tuple[Any, Any]] = {}
+    for spec in PARAMS:
+        bounds: dict[str, Any] = {}
+        if spec.kind in ("int", "float"):
+            if spec.above_zero:
+                bounds["gt"] = 0
+            elif spec.minimum is not None:
+                bounds["ge"] = spec.minimum
+            if spec.maximum is not None:
+                bounds["le"] = spec.maximum
+            if spec.multiple_of:
+                bounds["multiple_of"] = spec.multiple_of
+            annotation: Any = int if spec.kind == "int" else float
+        elif spec.kind == "str":
+            annotation = Literal[spec.choices]  # type: ignore[valid-type]
+        elif spec.kind == "bool":
+            annotation = bool
+        else:
+            # Item bounds and distinctness: ParamSpec.problem, in the model's validator (one error for the field).
+            annotation = list[float]
+            bounds.update(min_length=spec.min_items, max_length=spec.max_items)
+        if spec.optional:
+            annotation = Optional[annotation]
+        default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
+        if isinstance(default, list):
+            info = Field(default_factory=lambda d=tuple(default): list(d), description=_sentence(spec.help), **bounds)
+        else:
+            info = Field(default, description=_sentence(spec.help), **bounds)
+        definitions[spec.name] = (annotation, info)
+    return definitions
+
+
+def _sentence(text: str) -> str:
+    return text[0].upper() + text[1:] + "."
+
+
+# --------------------------------------------------------------------------------------- command line
+
+
+def parse_floats(text: str, name: str) -> tuple[float, ...]:
+    """Comma-separated numbers of a list option; InputError(name) when they are not."""
+    try:
+        values = tuple(float(part) for part in str(text).split(",") if part.strip())
+    except ValueError:
+        raise InputError(f"{name}: must be numbers separated by commas, got {text!r}", name) from None
+    if not values:
+        raise InputError(f"{name}: needs at least one value", name)
+    return values
+
+
+def add_cli_options(parser, names: Iterable[str] | None = None, *, server_defaults: bool = False,
+                    flags: dict[str, str] | None = None) -> None:
+    """Add one argparse option per parameter (all of PARAMS, or `names`), dest = the parameter's name.
+
+    server_defaults: every option defaults to None ("leave it to the server"), for `crowdbake submit`.
+    flags: name -> flag to use instead of the table's (the table's aliases are then not added).
+    """
+    wanted = [SPECS[name] for name in names] if names is not None else list(PARAMS)
+    groups: dict[str, Any] = {}
+    for spec in wanted:
+        target = parser
+        if spec.exclusive_group is not None:
+            if spec.exclusive_group not in groups:
+                groups[spec.exclusive_group] = parser.add_mutually_exclusive_group()
+            target = groups[spec.exclusive_group]
+        option_flags = (flags[spec.name],) if flags and spec.name in flags else spec.flags
+        default = None if server_defaults or spec.default is None else spec.default
+        shown = "the server's" if server_defaults else _default_text(spec)
+        help_text = f"{spec.help} (default {shown})" if shown else spec.help
+        if spec.kind == "bool":
+            # A flag that turns off a default-on parameter (--no-compress): stored as the parameter's value.
+            target.add_argument(*option_flags, dest=spec.name, action="store_const", const=not spec.default,
+                                default=None if server_defaults else spec.default, help=spec.help)
+            continue
+        kwargs: dict[str, Any] = {"dest": spec.name, "default": default, "help": help_text}
+        if spec.kind == "str":
+            kwargs["choices"] = list(spec.choices or ())
+        else:
+            kwargs["metavar"] = spec.metavar
+            # A list stays text here and is parsed by params_from_args, so a bad one is a one-line error.
+            kwargs["type"] = {"int": int, "float": float, "floats": str}[spec.kind]
+        target.add_argument(*option_flags, **kwargs)
+
+
+def _default_text(spec: ParamSpec) -> str:
+    if spec.default is None:
+        return ""
+    if spec.kind == "floats":
+        return ",".join(f"{v:g}" for v in spec.default)
+    if spec.kind == "bool":
+        return ""
+    return str(spec.default)
+
+
+def params_from_args(args: argparse.Namespace, names: Iterable[str] | None = None, *, given_only: bool = False) -> dict[str, Any]:
+    """The parameters set on the command line, name -> JSON value (lists for "floats").
+
+    given_only: leave out options that were not given (None), so the server applies its defaults.
+    Raises InputError(field) for a list option that is not comma-separated numbers."""
+    values: dict[str, Any] = {}
+    for spec in (SPECS[name] for name in names) if names is not None else PARAMS:
+        value = getattr(args, spec.name, None)
+        if value is None and given_only:
+            continue
+        if spec.kind == "floats" and isinstance(value, str):
+            value = parse_floats(value, spec.name)
+        values[spec.name] = list(value) if isinstance(value, tuple) else value
+    return values
+
+
+def option_for(field: str | None) -> str | None:
+    """The `crowdbake bake` flag of a parameter (for one-line CLI errors), or None."""
+    spec = SPECS.get(field or "")
+    return spec.flag if spec is not None else None

@@ -1,0 +1,120 @@
+"""Stage 2, cycle: find and close the cloth's walk cycle (paper section 3), or take the given cycle.json.
+
+Reads the JobRecord; writes work/cycle/cycle.json, work/cycle/looped.pc2 (exactly cycle_frames frames,
+frame 0 = Fs), report.html (crowdbake.cycle_report) and the CycleRecord. The cloth cache is read once.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+from crowdbake.bake.cycle import CycleParams
+from crowdbake.bake.loop_closing import close_cycle
+from crowdbake.cycle_report import run_cycle_job
+from crowdbake.errors import InputError
+from crowdbake.formats.pc2 import read_pc2, write_pc2
+from crowdbake.params import BASE_FPS
+from crowdbake.stages.records import CycleRecord, JobRecord
+from crowdbake.stages.validate import load_job
+from crowdbake.stages.workdir import Progress, StageOutcome, WorkDir, read_json, report, stage_key, write_json_atomic
+
+logger = logging.getLogger(__name__)
+
+
+def bundle_cycle_document(document: dict) -> dict:
+    """cycle.json as published: without timings and local paths, which differ between runs."""
+    cleaned = json.loads(json.dumps(document))
+    cleaned.pop("timings_s", None)
+    cleaned.pop("files", None)
+    if isinstance(cleaned.get("input"), dict):
+        cleaned["input"].pop("sources", None)
+    return cleaned
+
+
+def _given_cycle(job: JobRecord, inputs: Path, cycle_json: Path, looped: Path, progress: Progress | None) -> dict:
+    """A cycle chosen earlier: reuse its looped cache when it came along, else close it again."""
+    names = job.inputs
+    document = read_json(inputs / names["cycle"])
+    start, frames = int(document["start_frame"]), int(document["cycle_frames"])
+    method = (document.get("closing") or {}).get("method", "none")
+    cache = read_pc2(inputs / names["cloth"])
+    looped_points = None
+    if "cycle_looped" in names:
+        given = read_pc2(inputs / names["cycle_looped"])
+        if given.points.shape == (frames, cache.point_count, 3):
+            looped_points = given.points
+        else:
+            logger.warning("looped.pc2 beside cycle.json has shape %s, not (%d, %d, 3); closing again", given.points.shape, frames, cache.point_count)
+    if looped_points is None:
+        if start + frames + 1 > cache.sample_count and method != "none":
+            raise InputError(f"closing the cycle needs frame {start + frames}, the cache ends at {cache.sample_count - 1}", "cycle")
+        if method == "none":
+            looped_points = cache.points[start : start + frames]
+        else:
+            looped_points = close_cycle(cache.points, start, frames, method).looped
+    document.setdefault("end_frame", start + frames)
+    document.setdefault("input", {})
+    if "fps" not in document["input"]:
+        document["input"]["fps"] = BASE_FPS / cache.sample_rate
+    write_json_atomic(cycle_json, document)
+    write_pc2(looped, looped_points, start_frame=0.0, sample_rate=cache.sample_rate)
+    report(progress, "cycle", 1, 1)
+    return document
+
+
+def _searched_cycle(job: JobRecord, inputs: Path, out: Path, progress: Progress | None) -> dict:
+    params = job.bake_params
+    names = job.inputs
+    cycle_params = CycleParams(max_candidates=params.candidates, views=params.cycle_views, close=params.close)
+
+    def forward(stage: str, done: int, total: int) -> None:
+        report(progress, f"cycle:{stage}", done, total)
+
+    try:
+        run_cycle_job(
+            inputs / names["cloth"],
+            inputs / names["cloth_mesh"],
+            out,
+            character=inputs / names["character"],
+            cycle_frames=params.cycle_frames,
+            params=cycle_params,
+            progress=forward,
+        )
+    except ValueError as error:
+        raise InputError(f"cycle search: {error}", "cloth") from None
+    return read_json(out / "cycle.json")
+
+
+def stage_cycle(work: Path, progress: Progress | None = None) -> StageOutcome[CycleRecord]:
+    """Find and close the cloth cycle (crowdbake.cycle_report), or take the given cycle.json."""
+    started = time.perf_counter()
+    folder = WorkDir(work)
+    job = load_job(work)
+    key = stage_key("cycle", folder.key_of("validate"))
+    out = folder.root / "cycle"
+    cycle_json, looped = out / "cycle.json", out / "looped.pc2"
+    cached = folder.cached("cycle", key, CycleRecord, [cycle_json, looped])
+    if cached is not None:
+        return StageOutcome(cached, True, 0.0)
+    out.mkdir(parents=True, exist_ok=True)
+    if "cycle" in job.inputs:
+        document = _given_cycle(job, folder.inputs, cycle_json, looped, progress)
+    else:
+        document = _searched_cycle(job, folder.inputs, out, progress)
+
+    seam = document.get("seam") or {}
+    record = CycleRecord(
+        start_frame=int(document["start_frame"]),
+        end_frame=int(document.get("end_frame", document["start_frame"] + document["cycle_frames"])),
+        cycle_frames=int(document["cycle_frames"]),
+        closing=(document.get("closing") or {}).get("method", "none"),
+        position_jump_ratio=seam.get("position_jump_ratio"),
+        velocity_jump_ratio=seam.get("velocity_jump_ratio"),
+        fps=float((document.get("input") or {}).get("fps") or BASE_FPS),
+        root_motion_removed=bool((document.get("root_motion") or {}).get("removed", False)),
+    )
+    seconds = time.perf_counter() - started
+    folder.save("cycle", key, record, seconds)
+    return StageOutcome(record, False, seconds)

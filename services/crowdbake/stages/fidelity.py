@@ -1,0 +1,74 @@
+"""The pack stage's fidelity scoring: the impostor as the runtime draws it against the mesh references the
+impostor tasks rendered, at 1:1 texel-to-pixel, per view and between views (crowdbake.bake.fidelity).
+
+Pure over arrays: the atlases, the parts' references and the decoded textures come in, a JSON-able
+document (fidelity.json in the bundle) goes out.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from crowdbake.bake import fidelity, impostor_maps
+from crowdbake.bake.atlas import AtlasLayout, nearest_view, tile_of
+from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE
+from crowdbake.stages.records import ImpostorTask, PosesRecord
+
+
+def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
+                   atlases: dict[str, np.ndarray], texture_arrays: dict[str, np.ndarray], formats: dict[str, str]) -> dict[str, Any]:
+    """fidelity.json: SSIM and PSNR per view of the fidelity frame, with and without normal-map compression,
+    and the mesh halfway between two azimuths against the nearest baked view.
+
+    atlases: the fidelity frame's "uv" (as stored), "uv16", "normal" and, when compressed, "normal_decoded";
+    parts: task id -> the task's arrays ("views", "reference", "reference_between", "between_azimuths").
+    """
+    centre, radius = poses.center, poses.radius
+    count = len(poses.materials)
+    runtime_diffuse = [texture_arrays[f"material_{m}_decoded"][0] for m in range(count)]
+    outfit_row = texture_arrays["outfits"][0]
+    normals_drawn = atlases["normal_decoded"] if "normal_decoded" in atlases else atlases["normal"]
+    per_view, between, uncompressed = [], [], []
+    for task in tasks:
+        if not task.references:
+            continue
+        data = parts[task.id]
+        for index, (a, e) in enumerate(data["views"].tolist()):
+            view = impostor_maps.ortho_view(centre, radius, layout.azimuths_deg[a], layout.elevations_deg[e], layout.tile_size)
+            light = fidelity.camera_light(view)
+            uv_tile = tile_of(layout, atlases["uv"], a, e)
+            image = fidelity.impostor_image(uv_tile, tile_of(layout, normals_drawn, a, e), runtime_diffuse, outfit_row, light)
+            score = fidelity.compare(data["reference"][index], image)
+            per_view.append({"azimuth_deg": layout.azimuths_deg[a], "elevation_deg": layout.elevations_deg[e], **score})
+            exact = fidelity.impostor_image(uv_tile, tile_of(layout, atlases["normal"], a, e), runtime_diffuse, outfit_row, light)
+            uncompressed.append(fidelity.compare(data["reference"][index], exact))
+
+            azimuth = float(data["between_azimuths"][index])
+            mid_view = impostor_maps.ortho_view(centre, radius, azimuth, layout.elevations_deg[e], layout.tile_size)
+            na, ne = nearest_view(layout, azimuth, layout.elevations_deg[e])
+            near_image = fidelity.impostor_image(
+                tile_of(layout, atlases["uv"], na, ne), tile_of(layout, normals_drawn, na, ne),
+                runtime_diffuse, outfit_row, fidelity.camera_light(mid_view),
+            )
+            between.append(
+                {"azimuth_deg": azimuth, "elevation_deg": layout.elevations_deg[e], "nearest_azimuth_deg": layout.azimuths_deg[na],
+                 **fidelity.compare(data["reference_between"][index], near_image)}
+            )
+    texture_size = max(max(m.width, m.height) for m in poses.materials)
+    return {
+        "description": "Impostor vs mesh at 1:1 texel-to-pixel (crowdbake.bake.fidelity): SSIM and PSNR per view "
+        "of the fidelity frame; nearest_view: the mesh halfway between two azimuths against the nearest baked view",
+        "frame": poses.fidelity_frame,
+        "tile_size": layout.tile_size,
+        "supersample": FIDELITY_SUPERSAMPLE,
+        "light": {"ambient": fidelity.AMBIENT, "diffuse": fidelity.DIFFUSE, "direction_in_camera": fidelity.LIGHT_IN_CAMERA.tolist()},
+        "normal_map_format": formats["normal"],
+        "uv_map_format": formats["uv"],
+        "impostor": fidelity.summarize(per_view),
+        "impostor_uncompressed_normals": fidelity.summarize(uncompressed),
+        "nearest_view": fidelity.summarize(between),
+        "per_view": per_view,
+        "between_views": between,
+        "uv_precision": {"texture_size": texture_size, **fidelity.uv_precision(atlases["uv16"], texture_size)},
+    }

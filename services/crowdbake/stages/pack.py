@@ -1,0 +1,245 @@
+"""Stage 5, pack: atlases, block compression (paper section 5: DXT1 for RGB, DXT3 for RGBA), the
+impostor's fidelity, the texture memory of figure 4 and the manifest → work/bundle/ (verified).
+
+Reads the JobRecord, CycleRecord, PosesRecord and every impostor part; writes the bundle and the PackRecord.
+"""
+from __future__ import annotations
+
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from crowdbake.bake import compression, impostor_maps, texture_memory
+from crowdbake.bake.atlas import AtlasLayout, assemble
+from crowdbake.errors import StageOrderError
+from crowdbake.formats.binary import encode_texture_array, layer_size
+from crowdbake.formats.bundle import BundleFile, build_manifest, verify_bundle, write_bundle
+from crowdbake.stages.cycle import bundle_cycle_document
+from crowdbake.stages.fidelity import score_fidelity
+from crowdbake.stages.impostors import impostor_tasks, load_poses, part_path, part_record
+from crowdbake.stages.records import CycleRecord, ImpostorTask, MaterialInfo, PackRecord, PosesRecord
+from crowdbake.stages.validate import load_job
+from crowdbake.stages.workdir import Progress, StageOutcome, WorkDir, json_bytes, read_json, report, stage_key
+
+# Variations drawn in the figure-4 series at least: twice the paper's 8 diffuse textures (figure 2b), so the
+# crossover of a bundle with 16-bit UV maps (about 8) shows.
+FIGURE4_MIN_VARIATIONS = 16
+
+
+def _load_parts(work: Path, tasks: list[ImpostorTask]) -> dict[str, dict[str, np.ndarray]]:
+    missing = [task.id for task in tasks if not part_path(work, task).is_file()]
+    if missing:
+        raise StageOrderError(f"{len(missing)} impostor tasks have not run, first {missing[0]}")
+    parts = {}
+    for task in tasks:
+        with np.load(part_path(work, task)) as data:
+            parts[task.id] = {name: data[name] for name in data.files}
+    return parts
+
+
+def _split_layers(encoded: np.ndarray, material: MaterialInfo) -> list[bytes]:
+    size = layer_size(material.pixel_format, material.width, material.height)
+    data = encoded.tobytes()
+    return [data[k * size : (k + 1) * size] for k in range(material.variations)]
+
+
+def _worst_errors(errors: list[dict], pixel_format: str) -> dict:
+    return {
+        "pixel_format": pixel_format,
+        "layers": len(errors),
+        "rgb_max": max(e["rgb_max"] for e in errors),
+        "rgb_mean_abs": float(np.mean([e["rgb_mean_abs"] for e in errors])),
+        "rgb_rmse_worst": max(e["rgb_rmse"] for e in errors),
+        "rgb_psnr_db_worst": min(e["rgb_psnr_db"] for e in errors),
+        "alpha_max": max(e["alpha_max"] for e in errors),
+    }
+
+
+def _nonnegative(value: Any) -> float:
+    """Seam ratios for the manifest: a number >= 0 (an undefined ratio, for a still cloth, is 0)."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return 0.0
+    return number if np.isfinite(number) and number >= 0 else 0.0
+
+
+def _mesh_files(work: Path, poses: PosesRecord, files: list[BundleFile]) -> list[dict]:
+    """The pose caches, as baked, and their manifest entries."""
+    meshes = []
+    for part in poses.parts:
+        path = f"meshes/{part.file}"
+        files.append(BundleFile(path, (work / "poses" / part.file).read_bytes(), "pose-cache"))
+        meshes.append({"part": part.part, "kind": part.kind, "lod": part.lod, "material": part.material,
+                       "vertex_count": part.vertex_count, "triangle_count": part.triangle_count, "file": path})
+    return meshes
+
+
+def _texture_files(poses: PosesRecord, texture_arrays: dict[str, np.ndarray], files: list[BundleFile], compression_report: dict) -> list[dict]:
+    """Diffuse texture arrays and the outfit map; the diffuse compression errors go to compression_report."""
+    entries = []
+    for index, material in enumerate(poses.materials):
+        path = f"textures/{material.name}_diffuse.cbtx"
+        data = encode_texture_array(material.width, material.height, material.pixel_format,
+                                    _split_layers(texture_arrays[f"material_{index}_encoded"], material))
+        files.append(BundleFile(path, data, "diffuse"))
+        entries.append({"name": material.name, "diffuse": path, "variations": material.variations})
+        if material.pixel_format != "rgba8":
+            errors = [
+                compression.compression_error(original, decoded)
+                for original, decoded in zip(texture_arrays[f"material_{index}"], texture_arrays[f"material_{index}_decoded"])
+            ]
+            compression_report[f"diffuse_{material.name}"] = _worst_errors(errors, material.pixel_format)
+    outfits = texture_arrays["outfits"]
+    files.append(BundleFile("textures/outfits.cbtx", encode_texture_array(16, len(outfits), "rgba8", outfits[None]), "outfit-colours"))
+    return entries
+
+
+def _impostor_files(poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict, formats: dict[str, str],
+                    files: list[BundleFile], compression_report: dict, progress: Progress | None, steps: int) -> tuple[dict, dict]:
+    """Impostor atlases (layer k = frame_indices[k], tiles from the tasks), encoded; returns the manifest's
+    maps and the fidelity frame's atlases (as stored, plus uv16 and the decoded normal map)."""
+    layers: dict[str, list[bytes]] = {kind: [] for kind in formats}
+    normal_errors, detail_errors = [], []
+    fidelity_atlases: dict[str, np.ndarray] = {}
+    by_frame: dict[int, list[ImpostorTask]] = {}
+    for task in tasks:
+        by_frame.setdefault(task.frame, []).append(task)
+    for step, frame in enumerate(poses.frame_indices, start=1):
+        atlases = {}
+        for kind in formats:
+            tiles = {}
+            for task in by_frame[frame]:
+                data = parts[task.id]
+                for (a, e), tile in zip(data["views"].tolist(), data[kind]):
+                    tiles[(a, e)] = tile
+            atlases[kind] = assemble(layout, tiles)
+        covered = atlases["uv"][..., 3] > 0
+        # The tiles carry 16-bit UV maps; what the bundle stores (and fidelity measures) is `stored`.
+        stored = dict(atlases, uv16=atlases["uv"])
+        if formats["uv"] == "uv32":
+            stored["uv"] = impostor_maps.uv_map_to_uv32(atlases["uv"])
+        for kind, pixel_format in formats.items():
+            if pixel_format == "rgba16":
+                encoded = atlases[kind].astype("<u2").tobytes()
+            elif pixel_format == "uv32":
+                encoded = stored[kind].astype("<u4").tobytes()
+            else:
+                encoded = compression.encode(atlases[kind], pixel_format)
+            layers[kind].append(encoded)
+            if pixel_format in ("bc1", "bc2"):
+                decoded = compression.decode(encoded, pixel_format, layout.width, layout.height)
+                (normal_errors if kind == "normal" else detail_errors).append(compression.compression_error(atlases[kind], decoded, covered))
+                if frame == poses.fidelity_frame and kind == "normal":
+                    fidelity_atlases["normal_decoded"] = decoded
+        if frame == poses.fidelity_frame:
+            fidelity_atlases.update(stored)
+        report(progress, "pack", step, steps)
+    maps = {}
+    for kind, role in (("normal", "impostor-normal"), ("uv", "impostor-uv"), ("detail", "impostor-detail")):
+        path = f"impostor/{kind}.cbtx"
+        files.append(BundleFile(path, encode_texture_array(layout.width, layout.height, formats[kind], layers[kind]), role))
+        maps[kind] = path
+    if normal_errors:
+        compression_report["impostor_normal"] = _worst_errors(normal_errors, formats["normal"])
+    if detail_errors:
+        compression_report["impostor_detail"] = _worst_errors(detail_errors, formats["detail"])
+    return maps, fidelity_atlases
+
+
+def _texture_memory(poses: PosesRecord, layout: AtlasLayout, formats: dict[str, str]) -> dict:
+    """Figure 4 from this bundle's bytes (layer payloads: what a GPU holds)."""
+    frames = len(poses.frame_indices)
+    layer_bytes = {kind: layer_size(formats[kind], layout.width, layout.height) * frames for kind in formats}
+    diffuse_per_variation = sum(layer_size(m.pixel_format, m.width, m.height) for m in poses.materials)
+    bundle_bytes = texture_memory.MapBytes(layer_bytes["normal"], layer_bytes["uv"], layer_bytes["detail"], diffuse_per_variation)
+    variations = max(m.variations for m in poses.materials)
+    return texture_memory.texture_memory_report(bundle_bytes, max(FIGURE4_MIN_VARIATIONS, variations), variations)
+
+
+def _cycle_section(cycle: CycleRecord) -> dict:
+    return {
+        "source_start_frame": cycle.start_frame,
+        "source_end_frame": cycle.start_frame + cycle.cycle_frames,
+        "frames": cycle.cycle_frames,
+        "closing": cycle.closing,
+        "position_jump_ratio": _nonnegative(cycle.position_jump_ratio),
+        "velocity_jump_ratio": _nonnegative(cycle.velocity_jump_ratio),
+    }
+
+
+def map_formats(compress: bool, uv_format: str) -> dict[str, str]:
+    """Pixel formats of the impostor maps: DXT1 normals and DXT3 detail when compressing (paper section 5)."""
+    return {"normal": "bc1" if compress else "rgba8", "uv": uv_format, "detail": "bc2" if compress else "rgba8"}
+
+
+def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[PackRecord]:
+    """Atlases, block compression, fidelity, figure-4 memory and the manifest → work/bundle/ (verified)."""
+    started = time.perf_counter()
+    folder = WorkDir(work)
+    job = load_job(work)
+    tasks = impostor_tasks(work)
+    task_keys = [None if (stats := part_record(work, task)) is None else stats.key for task in tasks]
+    key = stage_key("pack", folder.key_of("poses"), task_keys)
+    bundle_dir = folder.bundle
+    cached = folder.cached("pack", key, PackRecord, [bundle_dir / "manifest.json"])
+    if cached is not None:
+        return StageOutcome(cached, True, 0.0)
+    params = job.bake_params
+    poses = load_poses(work)
+    cycle = folder.load("cycle", CycleRecord)
+    layout = poses.atlas_layout()
+    parts = _load_parts(work, tasks)
+    steps = len(poses.frame_indices) + 3
+    report(progress, "pack", 0, steps)
+
+    files: list[BundleFile] = []
+    meshes = _mesh_files(folder.root, poses, files)
+    with np.load(folder.root / "poses" / "textures.npz") as textures:
+        texture_arrays = {name: textures[name] for name in textures.files}
+    compression_report: dict[str, Any] = {}
+    material_entries = _texture_files(poses, texture_arrays, files, compression_report)
+    formats = map_formats(params.compress, params.uv_format)
+    maps, fidelity_atlases = _impostor_files(poses, layout, tasks, parts, formats, files, compression_report, progress, steps)
+
+    # Fidelity at 1:1 texel-to-pixel: per view, and at the angles between views with the nearest view.
+    fidelity_doc = score_fidelity(poses, layout, tasks, parts, fidelity_atlases, texture_arrays, formats)
+    fidelity_doc["compression"] = compression_report
+    files.append(BundleFile("fidelity.json", json_bytes(fidelity_doc), "fidelity"))
+    report(progress, "pack", len(poses.frame_indices) + 1, steps)
+    memory_doc = _texture_memory(poses, layout, formats)
+    files.append(BundleFile("texture_memory.json", json_bytes(memory_doc), "texture-memory"))
+    cycle_document = bundle_cycle_document(read_json(folder.root / "cycle" / "cycle.json"))
+    files.append(BundleFile("cycle.json", json_bytes(cycle_document), "cycle"))
+
+    sections = {
+        "frames_per_second": poses.frames_per_second,
+        "cycle": _cycle_section(cycle),
+        "materials": material_entries,
+        "outfits": {"file": "textures/outfits.cbtx", "count": int(len(texture_arrays["outfits"])), "regions": 16},
+        "meshes": meshes,
+        "impostor": {**layout.to_manifest(), "frame_indices": poses.frame_indices, "bounds": poses.bounds, "maps": maps},
+    }
+    manifest = build_manifest(job.name, job.version, sections, files, created=job.created)
+    if bundle_dir.exists():
+        shutil.rmtree(bundle_dir)
+    write_bundle(bundle_dir, manifest, files)
+    verify_bundle(bundle_dir)
+    report(progress, "pack", steps, steps)
+    record = PackRecord(
+        files={f.path: len(f.data) for f in sorted(files, key=lambda f: f.path)},
+        fidelity={k: fidelity_doc[k] for k in ("impostor", "nearest_view", "impostor_uncompressed_normals")},
+        uv_precision=fidelity_doc["uv_precision"],
+        compression=compression_report,
+        texture_memory={
+            "paper_mib": {"1": memory_doc["paper"]["uv_mapped_mib"][0], "detail_8": memory_doc["paper"]["detail_mapped_mib"][7],
+                          "uv_8": memory_doc["paper"]["uv_mapped_mib"][7]},
+            "bundle_break_even_variations": memory_doc["bundle"]["break_even_variations"],
+        },
+    )
+    seconds = time.perf_counter() - started
+    folder.save("pack", key, record, seconds)
+    return StageOutcome(record, False, seconds)

@@ -1,0 +1,234 @@
+"""Stage 3, poses (paper section 4): the body (linear blend skinning) and the cloth per cycle frame, at a
+high and a low LOD, plus the materials' textures and the impostors' framing.
+
+Reads the JobRecord and CycleRecord; writes work/poses/<part>_lod<k>.cbpc, textures.npz (materials,
+their encoded and decoded diffuse layers, the outfit map) and the PosesRecord.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from crowdbake.bake import compression, lod, poses
+from crowdbake.bake.atlas import AtlasLayout
+from crowdbake.bake.cycle import estimate_root_offsets
+from crowdbake.bake.skinning import pose_character
+from crowdbake.errors import StageOrderError
+from crowdbake.formats.binary import encode_pose_cache
+from crowdbake.formats.gltf import load_character
+from crowdbake.formats.obj import read_obj
+from crowdbake.formats.pc2 import read_pc2
+from crowdbake.stages.records import CycleRecord, JobRecord, MaterialInfo, PosePart, PosesRecord
+from crowdbake.stages.validate import load_job, texture_files
+from crowdbake.stages.workdir import Progress, StageOutcome, WorkDir, npz_bytes, report, stage_key, write_bytes_atomic
+
+logger = logging.getLogger(__name__)
+
+# Default outfits when the inputs bring no outfits.png: a fixed seed keeps the bake deterministic.
+DEFAULT_OUTFIT_COUNT = 8
+_DEFAULT_OUTFIT_SEED = 2006
+
+
+def pose_body_cycle(character, fps: float, start: int, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Body positions and normals (frames, V, 3) at cache frames start .. start+frames-1, animation looped.
+
+    Cloth sample k is at animation time (k / fps) modulo the animation's duration (the walk repeats while
+    the cloth is simulated).
+    """
+    duration = float(character.animation_duration)
+    if duration <= 0:
+        positions, normals = pose_character(character, fps, 1)
+        return np.repeat(positions, frames, axis=0), np.repeat(normals, frames, axis=0)
+    loop = duration * fps
+    whole = int(round(loop))
+    if whole >= 1 and abs(loop - whole) < 1e-3:
+        positions, normals = pose_character(character, fps, whole)
+        index = (start + np.arange(frames)) % whole
+        return positions[index], normals[index]
+    posed = [pose_character(character, fps, 1, start_time=((start + k) / fps) % duration) for k in range(frames)]
+    return np.concatenate([p for p, _ in posed]), np.concatenate([n for _, n in posed])
+
+
+def default_outfits(count: int = DEFAULT_OUTFIT_COUNT) -> np.ndarray:
+    """(count, 16, 4) uint8 outfit map when the inputs bring none: region 0 white, others fixed colours."""
+    rng = np.random.default_rng(_DEFAULT_OUTFIT_SEED)
+    outfits = np.empty((count, 16, 4), dtype=np.uint8)
+    outfits[..., :3] = rng.integers(64, 256, size=(count, 16, 3))
+    outfits[..., 3] = 255
+    outfits[:, 0, :3] = 255
+    return outfits
+
+
+def load_rgba_png(path: Path) -> np.ndarray:
+    """(H, W, 4) uint8 from a PNG; an image without alpha gets alpha 0 (region 0: keep its colours)."""
+    with Image.open(path) as image:
+        has_alpha = "A" in image.getbands() or image.mode == "P" and "transparency" in image.info
+        rgba = np.array(image.convert("RGBA"))
+    if not has_alpha:
+        rgba[..., 3] = 0
+    return rgba
+
+
+def _materials(job: JobRecord, inputs: Path, character) -> tuple[list[dict], np.ndarray]:
+    """Materials [{"name", "layers" (L, H, W, 4) uint8}] and the outfit map (O, 16, 4) uint8."""
+    names = job.inputs
+    if "textures" in names:
+        diffuse, outfits_path = texture_files(inputs / names["textures"])
+        layers = np.stack([load_rgba_png(path) for path in diffuse])
+        materials = [{"name": "character", "layers": layers}]
+        if outfits_path is not None:
+            outfits = load_rgba_png(outfits_path).reshape(-1, 16, 4)
+            outfits[..., 3] = 255
+        else:
+            outfits = default_outfits()
+        return materials, outfits
+    if character.texture is not None:
+        body = np.asarray(character.texture, dtype=np.uint8).copy()
+        # A glTF alpha is opacity, not a region code: region 0 keeps the texture's own colours.
+        body[..., 3] = 0
+    else:
+        body = np.full((4, 4, 4), 200, dtype=np.uint8)
+        body[..., 3] = 0
+    # The garment's UVs address no texture we were given: a plain white one in region 1 takes the outfit colour.
+    garment = np.full((4, 4, 4), 255, dtype=np.uint8)
+    garment[..., 3] = 17
+    return [{"name": "body", "layers": body[None]}, {"name": "garment", "layers": garment[None]}], default_outfits()
+
+
+def diffuse_format(layers: np.ndarray, compress: bool) -> str:
+    """bc2 when compressing and the texture is whole 4x4 blocks, else rgba8."""
+    height, width = layers.shape[1:3]
+    return "bc2" if compress and height % 4 == 0 and width % 4 == 0 else "rgba8"
+
+
+def _high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> tuple[dict, dict, dict]:
+    """The high LOD of the body and the garment over the cycle: (parts, kinds, materials per part)."""
+    inputs, names = work.inputs, job.inputs
+    fps, start, frames = cycle.fps, cycle.start_frame, cycle.cycle_frames
+    body_positions, body_normals = pose_body_cycle(character, fps, start, frames)
+    if cycle.root_motion_removed:
+        # The cycle search worked in the root's frame (the character travels): follow it for the body.
+        everything, _ = pose_body_cycle(character, fps, 0, job.cache_frames)
+        offsets = estimate_root_offsets(everything)[start : start + frames]
+        body_positions = (body_positions - offsets[:, None, :]).astype(np.float32)
+
+    mesh = read_obj(inputs / names["cloth_mesh"])
+    looped = read_pc2(work.root / "cycle" / "looped.pc2")
+    if looped.points.shape[0] != frames:
+        raise StageOrderError(f"looped.pc2 has {looped.points.shape[0]} frames, the cycle {frames}")
+    garment_positions = poses.cloth_on_vertices(looped.points, mesh.source_index)
+    garment_normals = poses.vertex_normals(garment_positions, mesh.faces, weld=mesh.source_index)
+    if mesh.uvs is None:
+        logger.warning("%s has no texture coordinates: the garment's UV map will read (0, 0)", names["cloth_mesh"])
+    garment_uvs = mesh.uvs if mesh.uvs is not None else np.zeros((mesh.vertex_count, 2), np.float32)
+    garment = job.garment_part
+    high = {
+        "body": poses.PartPoses(
+            faces=np.asarray(character.faces, dtype=np.uint32),
+            uvs=np.asarray(character.uvs, dtype=np.float32),
+            positions=np.asarray(body_positions, dtype=np.float32),
+            normals=poses.unit_normals(body_normals),
+        ),
+        garment: poses.PartPoses(
+            faces=np.asarray(mesh.faces, dtype=np.uint32),
+            uvs=np.asarray(garment_uvs, dtype=np.float32),
+            positions=garment_positions,
+            normals=poses.unit_normals(garment_normals),
+        ),
+    }
+    return high, {"body": "body", garment: "garment"}, {"body": 0, garment: 1}
+
+
+def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float, out: Path) -> list[PosePart]:
+    """The low LOD (the paper's ratio unless told otherwise; garments keep their borders) and both LODs'
+    pose caches."""
+    counts = [part.triangle_count for part in high.values()]
+    if params.lod_triangles is not None:
+        targets = lod.target_for_parts(counts, params.lod_triangles)
+    else:
+        ratio = params.lod_ratio if params.lod_ratio is not None else lod.PAPER_LOD_RATIO
+        targets = [max(1, int(round(count * ratio))) for count in counts]
+    parts: list[PosePart] = []
+    for (name, part), target in zip(high.items(), targets):
+        simplified = lod.simplify(part.positions[0], part.faces, target, uvs=part.uvs, lock_border=kinds[name] == "garment")
+        low = poses.low_lod(part, simplified)
+        for level, version in ((0, part), (1, low)):
+            path = out / f"{name}_lod{level}.cbpc"
+            write_bytes_atomic(path, encode_pose_cache(version.faces, version.uvs, version.positions, version.normals, fps))
+            parts.append(PosePart(part=name, kind=kinds[name], lod=level, file=path.name, material=part_material[name],
+                                  vertex_count=version.vertex_count, triangle_count=version.triangle_count))
+        parts[-1].target_triangles = int(target)
+        parts[-1].relative_error = float(simplified.relative_error)
+        parts[-1].locked_border = bool(simplified.locked_border)
+    return parts
+
+
+def _write_textures(materials: list[dict], outfits: np.ndarray, compress: bool, out: Path) -> list[MaterialInfo]:
+    """Encode the diffuse layers once; the impostor tasks and fidelity use what a runtime samples."""
+    arrays: dict[str, np.ndarray] = {"outfits": outfits}
+    infos = []
+    for index, material in enumerate(materials):
+        layers = material["layers"]
+        pixel_format = diffuse_format(layers, compress)
+        height, width = layers.shape[1:3]
+        encoded = [compression.encode(layer, pixel_format) for layer in layers]
+        decoded = np.stack([compression.decode(data, pixel_format, width, height) for data in encoded])
+        arrays[f"material_{index}"] = layers
+        arrays[f"material_{index}_encoded"] = np.frombuffer(b"".join(encoded), dtype=np.uint8)
+        arrays[f"material_{index}_decoded"] = decoded
+        # Variation 0 on its own: the impostor tasks need only it, and np.load reads whole arrays.
+        arrays[f"material_{index}_v0"] = layers[0]
+        arrays[f"material_{index}_decoded_v0"] = decoded[0]
+        infos.append(MaterialInfo(name=material["name"], variations=int(len(layers)), width=int(width), height=int(height), pixel_format=pixel_format))
+    write_bytes_atomic(out / "textures.npz", npz_bytes(arrays))
+    return infos
+
+
+def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[PosesRecord]:
+    """Bake the poses: body and cloth per cycle frame, high and low LOD; textures; impostor framing."""
+    started = time.perf_counter()
+    folder = WorkDir(work)
+    job = load_job(work)
+    key = stage_key("poses", folder.key_of("cycle"))
+    out = folder.root / "poses"
+    cached = folder.cached("poses", key, PosesRecord, [out / "textures.npz"])
+    if cached is not None:
+        return StageOutcome(cached, True, 0.0)
+    params = job.bake_params
+    cycle = folder.load("cycle", CycleRecord)
+    steps = 6
+    report(progress, "poses", 0, steps)
+
+    character = load_character(folder.inputs / job.inputs["character"])
+    materials, outfits = _materials(job, folder.inputs, character)
+    high, kinds, part_material = _high_parts(job, cycle, folder, character)
+    if len(materials) == 1:
+        part_material = dict.fromkeys(part_material, 0)
+    report(progress, "poses", 2, steps)
+    parts = _write_lods(high, kinds, part_material, params, cycle.fps, out)
+    report(progress, "poses", 4, steps)
+    material_infos = _write_textures(materials, outfits, params.compress, out)
+    report(progress, "poses", 5, steps)
+
+    centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
+    layout = AtlasLayout.rings(params.tile_size, params.azimuths, tuple(params.elevations_deg))
+    frame_indices = poses.impostor_frame_indices(cycle.cycle_frames, params.impostor_frames)
+    record = PosesRecord(
+        frames_per_second=cycle.fps,
+        cycle_frames=cycle.cycle_frames,
+        parts=parts,
+        materials=material_infos,
+        outfit_count=int(len(outfits)),
+        bounds={"center": [float(c) for c in centre], "radius": float(radius)},
+        layout=layout.to_manifest(),
+        frame_indices=frame_indices,
+        fidelity_frame=frame_indices[0],
+    )
+    report(progress, "poses", steps, steps)
+    seconds = time.perf_counter() - started
+    folder.save("poses", key, record, seconds)
+    return StageOutcome(record, False, seconds)

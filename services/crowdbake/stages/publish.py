@@ -1,0 +1,52 @@
+"""Stage 6, publish: work/bundle → bundles_root/<name>/<version>, atomically, once.
+
+The same bytes already published: nothing to do. Other bytes under that version: VersionConflict
+(a published bundle never changes).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from crowdbake.errors import StageOrderError, VersionConflict
+from crowdbake.formats.bundle import BundleFile, verify_bundle, write_bundle
+from crowdbake.stages.validate import load_job
+from crowdbake.stages.workdir import WorkDir
+
+
+def same_tree(a: Path, b: Path) -> bool:
+    """True when the two folders hold the same files with the same bytes."""
+
+    def listing(root: Path) -> dict[str, Path]:
+        return {p.relative_to(root).as_posix(): p for p in root.rglob("*") if p.is_file()}
+
+    left, right = listing(a), listing(b)
+    if set(left) != set(right):
+        return False
+    return all(left[name].stat().st_size == right[name].stat().st_size and left[name].read_bytes() == right[name].read_bytes() for name in left)
+
+
+def stage_publish(work: Path, bundles_root: Path) -> Path:
+    """Publish work/bundle atomically as bundles_root/<name>/<version> and return that path."""
+    job = load_job(work)
+    source = WorkDir(work).bundle
+    if not (source / "manifest.json").is_file():
+        raise StageOrderError(f"{work}: stage 'pack' has not run yet")
+    bundle = verify_bundle(source)
+    target = Path(bundles_root) / job.name / job.version
+    if target.exists():
+        if same_tree(source, target):
+            return target
+        raise VersionConflict(f"{job.name}/{job.version} is already published with other bytes")
+    files = [BundleFile(entry["path"], (source / entry["path"]).read_bytes(), entry["role"], entry["media_type"]) for entry in bundle.manifest["files"]]
+    try:
+        write_bundle(target, bundle.manifest, files)
+    except (FileExistsError, OSError):
+        # Another publisher got there first (the final rename found the folder): same bytes or a conflict.
+        if target.exists() and same_tree(source, target):
+            return target
+        if target.exists():
+            raise VersionConflict(f"{job.name}/{job.version} was published concurrently with other bytes") from None
+        raise
+    if not same_tree(source, target):
+        raise VersionConflict(f"{target} differs from the packed bundle after publishing")
+    return target

@@ -1,0 +1,198 @@
+"""The typed records the stages hand each other through the work folder.
+
+Each stage reads the record of the stage before it and writes its own (work/<stage>/record.json, see
+crowdbake.stages.workdir). A record is a dataclass with to_json/from_json; its JSON carries
+`record_version`, and reading a record of another version fails loudly (StageOrderError: rerun the
+stage) instead of being half understood. Progress is not part of any record: it goes to the callback.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, ClassVar
+
+from crowdbake.bake.atlas import AtlasLayout
+from crowdbake.errors import StageOrderError
+from crowdbake.params import BakeParams
+
+
+class Record:
+    """to_json/from_json for flat dataclasses; nested ones override `_nested`."""
+
+    RECORD_VERSION: ClassVar[int] = 1
+    _nested: ClassVar[dict[str, type]] = {}
+
+    def to_json(self) -> dict[str, Any]:
+        data = asdict(self)  # type: ignore[call-overload]
+        data["record_version"] = self.RECORD_VERSION
+        return data
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]):
+        if not isinstance(data, dict):
+            raise StageOrderError(f"{cls.__name__}: not a JSON object")
+        version = data.get("record_version", cls.RECORD_VERSION)
+        if version != cls.RECORD_VERSION:
+            raise StageOrderError(f"{cls.__name__} has record version {version}, this code reads {cls.RECORD_VERSION}: rerun the stage")
+        names = {f.name for f in fields(cls)}  # type: ignore[arg-type]
+        values = {k: v for k, v in data.items() if k in names}
+        for name, item_type in cls._nested.items():
+            if name in values:
+                values[name] = [item_type.from_json(item) for item in values[name]]
+        return cls(**values)
+
+
+@dataclass
+class JobRecord(Record):
+    """validate → every later stage: the checked job (the inputs as copied into work/inputs)."""
+
+    key: str
+    name: str
+    version: str
+    created: str
+    created_from: str
+    params: dict[str, Any]
+    inputs: dict[str, str]  # role -> path under work/inputs (character, cloth, cloth_mesh, cycle, cycle_looped, textures)
+    hashes: dict[str, str]
+    garment_part: str
+    textures: dict[str, Any] | None
+    producer: str
+    body_vertices: int
+    body_triangles: int
+    garment_vertices: int
+    garment_triangles: int
+    cache_frames: int
+    cycle_frames: int
+
+    @property
+    def bake_params(self) -> BakeParams:
+        return BakeParams.from_dict(self.params)
+
+
+@dataclass
+class CycleRecord(Record):
+    """cycle → poses, pack: the chosen cycle [start_frame, end_frame) of the source cache and its seam.
+    The looped cache (exactly cycle_frames frames, frame 0 = start_frame) is work/cycle/looped.pc2."""
+
+    start_frame: int
+    end_frame: int
+    cycle_frames: int
+    closing: str
+    position_jump_ratio: float | None
+    velocity_jump_ratio: float | None
+    fps: float
+    root_motion_removed: bool
+
+
+@dataclass
+class PosePart(Record):
+    """One pose cache the poses stage wrote (work/poses/<file>); low LODs carry the simplifier's figures."""
+
+    part: str
+    kind: str
+    lod: int
+    file: str
+    material: int
+    vertex_count: int
+    triangle_count: int
+    target_triangles: int | None = None
+    relative_error: float | None = None
+    locked_border: bool | None = None
+
+
+@dataclass
+class MaterialInfo(Record):
+    """A material's diffuse texture array as baked (the layers are in work/poses/textures.npz)."""
+
+    name: str
+    variations: int
+    width: int
+    height: int
+    pixel_format: str
+
+
+@dataclass
+class PosesRecord(Record):
+    """poses → impostors, pack: the parts, materials, the impostor framing (layout, bounds) and frames."""
+
+    frames_per_second: float
+    cycle_frames: int
+    parts: list[PosePart]
+    materials: list[MaterialInfo]
+    outfit_count: int
+    bounds: dict[str, Any]  # {"center": [x, y, z], "radius": r}
+    layout: dict[str, Any]  # AtlasLayout.to_manifest()
+    frame_indices: list[int]
+    fidelity_frame: int
+    _nested: ClassVar[dict[str, type]] = {"parts": PosePart, "materials": MaterialInfo}
+
+    def atlas_layout(self) -> AtlasLayout:
+        """The impostor atlas layout (crowdbake.bake.atlas.AtlasLayout) these poses were framed for."""
+        return AtlasLayout(int(self.layout["tile_size"]), tuple(self.layout["azimuths_deg"]), tuple(self.layout["elevations_deg"]))
+
+    @property
+    def center(self) -> list[float]:
+        return self.bounds["center"]
+
+    @property
+    def radius(self) -> float:
+        return self.bounds["radius"]
+
+    def summary(self) -> dict[str, Any]:
+        """Meshes and low-LOD figures, as run_bake reports them."""
+        return {
+            "meshes": [{"part": p.part, "lod": p.lod, "vertex_count": p.vertex_count, "triangle_count": p.triangle_count} for p in self.parts],
+            "lod": [
+                {"part": p.part, "triangle_count": p.triangle_count, "target_triangles": p.target_triangles,
+                 "relative_error": p.relative_error, "locked_border": p.locked_border}
+                for p in self.parts if p.lod == 1
+            ],
+        }
+
+
+@dataclass
+class ImpostorTask(Record):
+    """One unit of the impostor fan-out: the views of one elevation ring at one baked frame.
+    references: this is the fidelity frame, so the task also renders the mesh references."""
+
+    id: str
+    frame: int
+    elevation: int
+    views: list[list[int]]
+    references: bool
+
+    def to_json(self) -> dict[str, Any]:
+        # The spec a Celery part carries (crowdbake.storage.records.record_fan_out): no record_version.
+        return asdict(self)
+
+
+@dataclass
+class ImpostorPartRecord(Record):
+    """An impostor task's sidecar (work/impostor/parts/<id>.json): its key and statistics."""
+
+    key: str
+    views: int
+    repaired_texels: int
+    seconds: dict[str, float] = field(default_factory=dict)  # render, maps, references
+
+
+@dataclass
+class ImpostorStatistics(Record):
+    """Views, renders and seconds summed over the written impostor parts."""
+
+    tasks: int = 0
+    views: int = 0
+    repaired_texels: int = 0
+    render_seconds: float = 0.0
+    maps_seconds: float = 0.0
+    reference_seconds: float = 0.0
+
+
+@dataclass
+class PackRecord(Record):
+    """pack → publish, run_bake: the packed bundle's files and what was measured on it."""
+
+    files: dict[str, int]
+    fidelity: dict[str, Any]
+    uv_precision: dict[str, Any]
+    compression: dict[str, Any]
+    texture_memory: dict[str, Any]

@@ -1,0 +1,353 @@
+"""Stage 1, validate: check every input and parameter, copy the inputs into work/inputs, write the job.
+
+Each input file is parsed once here (the character, the cloth cache, its mesh); later stages read the
+copies. `created` in the manifest is the only clock-like value: BakeInputs.created when given, else the
+SOURCE_DATE_EPOCH environment variable (the reproducible-builds convention), else the newest
+modification time of the input files: a property of the inputs, so a rebake of unchanged files gives the
+same bytes.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import re
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+from urllib.parse import unquote
+
+from PIL import Image
+
+from crowdbake import __version__
+from crowdbake.errors import InputError
+from crowdbake.formats.errors import FormatError
+from crowdbake.formats.gltf import load_character
+from crowdbake.formats.obj import read_obj
+from crowdbake.formats.pc2 import read_pc2
+from crowdbake.params import BASE_FPS, CLOSE_METHODS, CREATED_RULE, NAME_RULE, PART_RULE, VERSION_RULE, BakeParams, min_cloth_frames
+from crowdbake.stages.records import JobRecord
+from crowdbake.stages.workdir import StageOutcome, WorkDir, read_json, sha256_file, stage_key
+
+
+@dataclass(frozen=True)
+class BakeInputs:
+    """The files and identity of one bake. textures: folder with diffuse_*.png and outfits.png (optional:
+    else the glTF's texture, one variation, default outfits); cycle: an existing cycle.json (skips the
+    search); created: the manifest's RFC 3339 UTC time (see the module docstring when None)."""
+
+    character: Path
+    cloth: Path
+    cloth_mesh: Path
+    textures: Path | None
+    cycle: Path | None
+    name: str
+    version: str
+    params: BakeParams = BakeParams()
+    created: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "character": str(self.character),
+            "cloth": str(self.cloth),
+            "cloth_mesh": str(self.cloth_mesh),
+            "textures": None if self.textures is None else str(self.textures),
+            "cycle": None if self.cycle is None else str(self.cycle),
+            "name": self.name,
+            "version": self.version,
+            "params": self.params.to_dict(),
+            "created": self.created,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "BakeInputs":
+        def optional_path(key: str) -> Path | None:
+            value = data.get(key)
+            return None if value is None else Path(value)
+
+        try:
+            return cls(
+                character=Path(data["character"]),
+                cloth=Path(data["cloth"]),
+                cloth_mesh=Path(data["cloth_mesh"]),
+                textures=optional_path("textures"),
+                cycle=optional_path("cycle"),
+                name=data["name"],
+                version=data["version"],
+                params=BakeParams.from_dict(data.get("params", {})),
+                created=data.get("created"),
+            )
+        except KeyError as missing:
+            raise InputError(f"missing input {missing.args[0]!r}", str(missing.args[0])) from None
+
+
+def rfc3339(seconds: float) -> str:
+    moment = _dt.datetime.fromtimestamp(int(seconds), tz=_dt.timezone.utc)
+    return moment.strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def texture_files(folder: Path) -> tuple[list[Path], Path | None]:
+    """(diffuse_*.png sorted, outfits.png or None) of a textures folder."""
+    diffuse = sorted(folder.glob("diffuse_*.png"))
+    outfits = folder / "outfits.png"
+    return diffuse, outfits if outfits.is_file() else None
+
+
+def _check_textures(folder: Path) -> dict[str, Any]:
+    if not folder.is_dir():
+        raise InputError(f"{folder} is not a folder", "textures")
+    diffuse, outfits = texture_files(folder)
+    if not diffuse:
+        raise InputError(f"{folder} holds no diffuse_*.png", "textures")
+    sizes = set()
+    for path in diffuse:
+        try:
+            with Image.open(path) as image:
+                sizes.add(image.size)
+        except OSError as error:
+            raise InputError(f"{path.name} is not a readable PNG: {error}", "textures") from None
+    if len(sizes) != 1:
+        raise InputError(f"diffuse textures differ in size: {sorted(sizes)}", "textures")
+    outfit_count = None
+    if outfits is not None:
+        try:
+            with Image.open(outfits) as image:
+                width, outfit_count = image.size
+        except OSError as error:
+            raise InputError(f"outfits.png is not a readable PNG: {error}", "textures") from None
+        if width != 16:
+            raise InputError(f"outfits.png must be 16 texels wide (one per region), got {width}", "textures")
+    (width, height), = sizes
+    return {"variations": len(diffuse), "size": [width, height], "outfits": outfit_count}
+
+
+def _check_cycle_document(path: Path, frame_count: int) -> dict[str, Any]:
+    try:
+        document = read_json(path)
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise InputError(f"{path.name} is not JSON: {error}", "cycle") from None
+    if not isinstance(document, dict):
+        raise InputError(f"{path.name} must hold a JSON object", "cycle")
+    for key in ("start_frame", "cycle_frames"):
+        value = document.get(key)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+            raise InputError(f"{path.name}: {key} must be a non-negative integer", "cycle")
+    if document["cycle_frames"] < 2:
+        raise InputError(f"{path.name}: cycle_frames must be at least 2", "cycle")
+    if document["start_frame"] + document["cycle_frames"] > frame_count:
+        raise InputError(
+            f"{path.name}: the cycle [{document['start_frame']}, {document['start_frame'] + document['cycle_frames']}) "
+            f"runs past the cache's {frame_count} frames",
+            "cycle",
+        )
+    method = (document.get("closing") or {}).get("method", "none")
+    if method not in CLOSE_METHODS:
+        raise InputError(f"{path.name}: closing.method must be one of {CLOSE_METHODS}", "cycle")
+    return document
+
+
+def gltf_dependencies(path: Path) -> list[str]:
+    """Relative paths of the files a .gltf refers to (buffers, images), checked to stay beside it."""
+    try:
+        document = read_json(path)
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise InputError(f"{path.name} is not glTF JSON: {error}", "character") from None
+    relatives = []
+    for entry in list(document.get("buffers", [])) + list(document.get("images", [])):
+        uri = entry.get("uri") if isinstance(entry, dict) else None
+        if not isinstance(uri, str) or uri.startswith("data:"):
+            continue
+        relative = unquote(uri)
+        resolved = (path.parent / relative).resolve()
+        if path.parent.resolve() not in resolved.parents or not resolved.is_file():
+            raise InputError(f"{path.name} refers to {uri!r}, which is not a file beside it", "character")
+        relatives.append(Path(relative).as_posix())
+    return sorted(set(relatives))
+
+
+def _check_identity(inputs: BakeInputs) -> BakeParams:
+    params = inputs.params
+    if not isinstance(params, BakeParams):
+        raise InputError("params must be BakeParams", "params")
+    params.validate()
+    if not isinstance(inputs.name, str) or not NAME_RULE.match(inputs.name):
+        raise InputError(f"name {inputs.name!r} must match {NAME_RULE.pattern}", "name")
+    if not isinstance(inputs.version, str) or not VERSION_RULE.match(inputs.version):
+        raise InputError(f"version {inputs.version!r} must match {VERSION_RULE.pattern}", "version")
+    if inputs.created is not None and not (isinstance(inputs.created, str) and CREATED_RULE.match(inputs.created)):
+        raise InputError(f"created {inputs.created!r} must be RFC 3339 UTC like 2006-09-04T12:00:00Z", "created")
+    return params
+
+
+def _source_files(inputs: BakeInputs) -> dict[str, Path]:
+    sources: dict[str, Path] = {}
+    for field_name, suffixes in (("character", (".glb", ".gltf")), ("cloth", (".pc2",)), ("cloth_mesh", (".obj",))):
+        path = Path(getattr(inputs, field_name))
+        if not path.is_file():
+            raise InputError(f"{path} does not exist or is not a file", field_name)
+        if path.suffix.lower() not in suffixes:
+            raise InputError(f"{path.name}: expected a {' or '.join(suffixes)} file", field_name)
+        sources[field_name] = path
+    if inputs.cycle is not None:
+        if not Path(inputs.cycle).is_file():
+            raise InputError(f"{inputs.cycle} does not exist or is not a file", "cycle")
+        sources["cycle"] = Path(inputs.cycle)
+    return sources
+
+
+def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeParams) -> dict[str, int]:
+    """Parse each input file once and cross-check them; the counts the job records."""
+    try:
+        character = load_character(sources["character"])
+    except (ValueError, FormatError, OSError, KeyError) as error:
+        raise InputError(f"{sources['character'].name}: {error}", "character") from None
+    try:
+        cache = read_pc2(sources["cloth"])
+    except (ValueError, OSError) as error:
+        raise InputError(str(error), "cloth") from None
+    try:
+        mesh = read_obj(sources["cloth_mesh"])
+    except (ValueError, OSError) as error:
+        raise InputError(str(error), "cloth_mesh") from None
+    if mesh.position_count != cache.point_count:
+        raise InputError(
+            f"{sources['cloth_mesh'].name} has {mesh.position_count} positions but {sources['cloth'].name} has "
+            f"{cache.point_count} points",
+            "cloth_mesh",
+        )
+    if len(mesh.faces) == 0:
+        raise InputError(f"{sources['cloth_mesh'].name} has no faces", "cloth_mesh")
+    if len(character.faces) == 0:
+        raise InputError(f"{sources['character'].name} has no triangles", "character")
+    fps = BASE_FPS / cache.sample_rate
+    if params.cycle_frames is not None:
+        cycle_frames = params.cycle_frames
+    elif character.animation_duration > 0:
+        cycle_frames = int(round(character.animation_duration * fps))
+    else:
+        raise InputError("the character has no animation: give cycle_frames", "cycle_frames")
+    if inputs.cycle is not None:
+        cycle_frames = _check_cycle_document(sources["cycle"], cache.sample_count)["cycle_frames"]
+    elif cache.sample_count < min_cloth_frames(cycle_frames):
+        raise InputError(
+            f"{sources['cloth'].name} has {cache.sample_count} frames; the cycle search needs two cycles of "
+            f"{cycle_frames}",
+            "cloth",
+        )
+    lod_parts = len(character.faces) + len(mesh.faces)
+    if params.lod_triangles is not None and params.lod_triangles >= lod_parts:
+        raise InputError(f"lod_triangles {params.lod_triangles} is not below the {lod_parts} triangles of the character", "lod_triangles")
+    return {
+        "body_vertices": int(len(character.positions)),
+        "body_triangles": int(len(character.faces)),
+        "garment_vertices": int(mesh.vertex_count),
+        "garment_triangles": int(len(mesh.faces)),
+        "cache_frames": int(cache.sample_count),
+        "cycle_frames": int(cycle_frames),
+    }
+
+
+def _copy_inputs(work: WorkDir, inputs: BakeInputs, sources: dict[str, Path], gltf_files: list[str],
+                 looped_beside_cycle: Path | None, textures: list[Path]) -> dict[str, str]:
+    """Copy the inputs into work/inputs (copy2 keeps modification times, which `created` may come from)."""
+    inputs_dir = work.inputs
+    if inputs_dir.exists():
+        shutil.rmtree(inputs_dir)
+    inputs_dir.mkdir(parents=True)
+    character = sources["character"]
+    names = {"character": "character" + character.suffix.lower(), "cloth": "cloth.pc2", "cloth_mesh": "cloth.obj"}
+    if character.suffix.lower() == ".gltf":
+        # A .gltf refers to its buffers and images by relative path: bring them along, keeping the paths.
+        (inputs_dir / "gltf").mkdir()
+        shutil.copy2(character, inputs_dir / "gltf" / character.name)
+        for relative in gltf_files:
+            target = inputs_dir / "gltf" / relative
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(character.parent / relative, target)
+        names["character"] = f"gltf/{character.name}"
+    else:
+        shutil.copy2(character, inputs_dir / names["character"])
+    shutil.copy2(sources["cloth"], inputs_dir / names["cloth"])
+    shutil.copy2(sources["cloth_mesh"], inputs_dir / names["cloth_mesh"])
+    if inputs.cycle is not None:
+        names["cycle"] = "cycle.json"
+        shutil.copy2(sources["cycle"], inputs_dir / "cycle.json")
+        if looped_beside_cycle is not None:
+            names["cycle_looped"] = "looped.pc2"
+            shutil.copy2(looped_beside_cycle, inputs_dir / "looped.pc2")
+    if textures:
+        (inputs_dir / "textures").mkdir()
+        for path in textures:
+            shutil.copy2(path, inputs_dir / "textures" / path.name)
+        names["textures"] = "textures"
+    return names
+
+
+def _created(given: str | None, files: list[Path]) -> tuple[str, str]:
+    """The manifest's time and where it came from (see the module docstring)."""
+    if given is not None:
+        return given, "given"
+    if os.environ.get("SOURCE_DATE_EPOCH", "").strip():
+        try:
+            return rfc3339(float(os.environ["SOURCE_DATE_EPOCH"])), "SOURCE_DATE_EPOCH"
+        except ValueError:
+            raise InputError("SOURCE_DATE_EPOCH must be a number of seconds", "created") from None
+    return rfc3339(max(path.stat().st_mtime for path in files)), "input modification time"
+
+
+def garment_part_name(cloth_mesh: Path) -> str:
+    """The garment's part name in the bundle: the OBJ's stem when it is a plain name, else "garment"."""
+    stem = re.sub(r"[^a-z0-9_-]", "", Path(cloth_mesh).stem.lower())[:32]
+    return stem if PART_RULE.match(stem or "-") and stem != "body" else "garment"
+
+
+def stage_validate(inputs: BakeInputs, work: Path) -> StageOutcome[JobRecord]:
+    """Check every input and parameter, copy the inputs into work/inputs, write the JobRecord.
+
+    Raises InputError(message, field) on bad input.
+    """
+    started = time.perf_counter()
+    folder = WorkDir(work)
+    params = _check_identity(inputs)
+    sources = _source_files(inputs)
+    texture_list: list[Path] = []
+    texture_info = None
+    if inputs.textures is not None:
+        texture_info = _check_textures(Path(inputs.textures))
+        diffuse, outfits = texture_files(Path(inputs.textures))
+        texture_list = diffuse + ([outfits] if outfits is not None else [])
+    gltf_files = gltf_dependencies(sources["character"]) if sources["character"].suffix.lower() == ".gltf" else []
+
+    # Hash everything first: the key decides whether this work folder already holds this job.
+    hashes = {name: sha256_file(path) for name, path in sources.items()}
+    hashes.update({f"gltf/{relative}": sha256_file(sources["character"].parent / relative) for relative in gltf_files})
+    hashes.update({f"textures/{path.name}": sha256_file(path) for path in texture_list})
+    looped_beside_cycle = None
+    if inputs.cycle is not None:
+        candidate = Path(inputs.cycle).with_name("looped.pc2")
+        if candidate.is_file():
+            looped_beside_cycle = candidate
+            hashes["cycle_looped"] = sha256_file(candidate)
+    key = stage_key("validate", hashes, params.to_dict(), inputs.name, inputs.version, inputs.created, __version__)
+    cached = folder.cached("validate", key, JobRecord, [folder.inputs])
+    if cached is not None:
+        return StageOutcome(cached, True, 0.0)
+
+    counts = _parse_and_check(inputs, sources, params)
+    names = _copy_inputs(folder, inputs, sources, gltf_files, looped_beside_cycle, texture_list)
+    created, created_from = _created(inputs.created, [*sources.values(), *texture_list])
+    record = JobRecord(
+        key=key, name=inputs.name, version=inputs.version, created=created, created_from=created_from,
+        params=params.to_dict(), inputs=names, hashes=hashes, garment_part=garment_part_name(sources["cloth_mesh"]),
+        textures=texture_info, producer=f"crowdbake {__version__}", **counts,
+    )
+    seconds = time.perf_counter() - started
+    folder.save("validate", key, record, seconds)
+    return StageOutcome(record, False, seconds)
+
+
+def load_job(work: Path) -> JobRecord:
+    """The job the validate stage wrote; StageOrderError when it has not run in this folder."""
+    return WorkDir(work).load("validate", JobRecord)

@@ -1,0 +1,25 @@
+"""The procedural sample, generated once per test session and shared by every module that bakes it.
+
+Simulating the sample's cloth takes most of a small bake's time; a module that needs a sample takes the
+`small_sample` fixture instead of generating its own. Tests must treat the folder as read-only (copy it
+to change it). services/tests/conftest.py and tests/conftest.py both import the fixture from here.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+# 3 walk cycles of 24 frames (two cycles for the search, one to settle), 64² textures: seconds to bake.
+SMALL_SAMPLE = dict(garment="loose", cycles=3, seed=1, cycle_frames=24, texture_size=64)
+
+
+@pytest.fixture(scope="session")
+def small_sample(tmp_path_factory) -> Path:
+    """A folder with the sample (crowdbake.sample.generate, SMALL_SAMPLE): character.glb, cloth.pc2,
+    cloth.obj, textures/ (8 diffuse variations and outfits.png)."""
+    from crowdbake.sample.generate import generate_sample
+
+    folder = tmp_path_factory.mktemp("small_sample")
+    generate_sample(folder, **SMALL_SAMPLE)
+    return folder
