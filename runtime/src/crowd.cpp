@@ -254,6 +254,13 @@ Camera street_camera(const Crowd& crowd, float character_height) {
 
 // ---------------------------------------------------------------------------------------
 
+LodRule lod_rule_for(const CharacterModel& model, const Camera& camera, float viewport_height_px) {
+    LodRule rule;
+    rule.impostor_distance = impostor_switch_distance(camera.fov_y, viewport_height_px, model.radius, model.tile_size);
+    rule.has_low = model.has_low;
+    return rule;
+}
+
 void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,
                  const LodRule& rule, float time_s, std::vector<Lod>* lod_state,
                  FrameInstances* out) {

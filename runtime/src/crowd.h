@@ -174,6 +174,13 @@ struct CharacterModel {
     bool has_low = false;
 };
 
+// The LOD rule for `model` seen through `camera` on a viewport `viewport_height_px` tall:
+// impostors from the 1:1 switch distance, a low mesh only where the bundle has one.
+LodRule lod_rule_for(const CharacterModel& model, const Camera& camera, float viewport_height_px);
+
+// Headless and benchmark runs step time by this much per frame, so output is reproducible.
+constexpr float kFixedTimeStep = 1.0f / 30.0f;
+
 struct FrameInstances {
     std::vector<Instance> by_lod[3];  // indexed by Lod
     uint32_t culled = 0;
