@@ -54,6 +54,9 @@ struct Options {
     bool source_is_url = false;  // holds "://": fetched through the cache
     bool verify_only = false;  // --verify
     std::string cache_dir, files_prefix = "files/", shader_dir;
+    std::string api_key;       // --key, else $CROWDVIEW_API_KEY; never printed
+    uint64_t cache_budget_mib = 4096;
+    double min_rate = 0, timeout_s = 0;  // 0: FetchOptions' defaults
     uint32_t count = 100;
     uint64_t seed = 1;
     Layout layout = Layout::on_the_spot;
@@ -76,6 +79,10 @@ const char* kUsage =
     "  --url URL             a published bundle: URL/manifest.json and URL/<files-prefix><path>\n"
     "  --cache DIR           content-addressed download cache (default ~/.cache/crowdview)\n"
     "  --files-prefix P      where files sit below the bundle URL (default files/)\n"
+    "  --key KEY             API key sent as a bearer token (default: $CROWDVIEW_API_KEY)\n"
+    "  --cache-budget-mib N  refuse bundles listing more than N MiB (default 4096)\n"
+    "  --min-rate B          each file must arrive at B bytes/s or faster (default 65536)\n"
+    "  --timeout S           give up a whole fetch after S seconds (default: 60 + size / min rate)\n"
     "  --count N             characters (default 100)\n"
     "  --seed S              crowd seed (default 1)\n"
     "  --layout spot|paths   walk on the spot (default, the paper's test) or along paths\n"
@@ -141,6 +148,10 @@ Options parse_args(int argc, char** argv) {
             o.verify_only = a == "--verify";
             ++sources;
         } else if (a == "--cache") o.cache_dir = value(i);
+        else if (a == "--key") o.api_key = value(i);
+        else if (a == "--cache-budget-mib") o.cache_budget_mib = parse_number<uint64_t>(a, value(i), 1, 1ull << 30);
+        else if (a == "--min-rate") o.min_rate = parse_number<double>(a, value(i), 1, 1e12);
+        else if (a == "--timeout") o.timeout_s = parse_number<double>(a, value(i), 0.1, 1e7);
         else if (a == "--files-prefix") o.files_prefix = value(i);
         else if (a == "--shaders") o.shader_dir = value(i);
         else if (a == "--count") o.count = parse_number<uint32_t>(a, value(i), 1, 10000000);
@@ -181,6 +192,10 @@ Options parse_args(int argc, char** argv) {
             start = end + 1;
         }
     }
+    if (o.api_key.empty()) {
+        const char* env = std::getenv("CROWDVIEW_API_KEY");
+        o.api_key = env ? env : "";
+    }
     if (o.shader_dir.empty()) {
         const char* env = std::getenv("CROWDVIEW_SHADERS");
         o.shader_dir = env && *env ? env : CROWDVIEW_SHADER_DIR;
@@ -193,6 +208,10 @@ Status load(const Options& o, Bundle* bundle) {
     FetchOptions fetch;
     fetch.cache_dir = o.cache_dir;
     fetch.files_prefix = o.files_prefix;
+    fetch.api_key = o.api_key;
+    fetch.cache_budget_bytes = o.cache_budget_mib << 20;
+    if (o.min_rate > 0) fetch.min_rate_bytes_per_s = o.min_rate;
+    fetch.total_timeout_s = o.timeout_s;
     fetch.log = [](const std::string& line) { std::fprintf(stderr, "%s\n", line.c_str()); };
     return fetch_bundle(o.source, fetch, bundle);
 }
