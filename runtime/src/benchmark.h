@@ -24,11 +24,16 @@ constexpr BenchmarkMode kAllBenchmarkModes[] = {BenchmarkMode::high_mesh, Benchm
 // "high_mesh", ...; and back (false for an unknown name).
 const char* benchmark_mode_name(BenchmarkMode mode);
 bool parse_benchmark_mode(const std::string& name, BenchmarkMode* mode);
+// "off", "views", "frames", "full".
+const char* impostor_blend_name(ImpostorBlend blend);
 
 struct BenchmarkDesc {
     uint64_t seed = 1;
     double max_seconds = 300;  // the whole run, split evenly between the modes
     std::vector<BenchmarkMode> modes{std::begin(kAllBenchmarkModes), std::end(kAllBenchmarkModes)};
+    // How impostors blend views and frames in uv_impostor, detail_impostor and hybrid. The
+    // report also times UV impostors with blending off and on at one crowd size.
+    ImpostorBlend blend = ImpostorBlend::full;
     std::string device;        // GlContext::describe(), for the report
     std::function<void(const std::string&)> log;  // one progress line per measurement; may be empty
 };

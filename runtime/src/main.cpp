@@ -67,6 +67,7 @@ struct Options {
     LodChoice lod = LodChoice::automatic;
     CameraView camera = CameraView::overview;
     ImpostorKind impostors = ImpostorKind::uv;  // what LodChoice::automatic draws far away
+    ImpostorBlend blend = ImpostorBlend::full;
     double max_seconds = 300;
     std::vector<BenchmarkMode> modes{std::begin(kAllBenchmarkModes), std::end(kAllBenchmarkModes)};
     bool cpu_decode = false;
@@ -89,6 +90,7 @@ const char* kUsage =
     "  --lod MODE            auto (default) | high | low | impostor | detail\n"
     "  --camera VIEW         overview (default: the whole crowd) | street (eye level at the crowd's edge)\n"
     "  --impostors uv|detail impostor maps used by --lod auto (default uv)\n"
+    "  --impostor-blend B    off (the paper: nearest view and frame) | views | frames | full (default)\n"
     "  --width W --height H  framebuffer size (default 1280x720)\n"
     "  --headless            no window: EGL surfaceless, else a hidden GLFW window\n"
     "  --frames N            frames to draw, then exit (headless default 1)\n"
@@ -172,6 +174,9 @@ Options parse_args(int argc, char** argv) {
         else if (a == "--lod")
             o.lod = parse_choice<LodChoice>(a, value(i), {{"auto", LodChoice::automatic}, {"high", LodChoice::high}, {"low", LodChoice::low},
                                                           {"impostor", LodChoice::impostor}, {"detail", LodChoice::detail}});
+        else if (a == "--impostor-blend")
+            o.blend = parse_choice<ImpostorBlend>(a, value(i), {{"off", ImpostorBlend::off}, {"views", ImpostorBlend::views},
+                                                                {"frames", ImpostorBlend::frames}, {"full", ImpostorBlend::full}});
         else if (a == "--impostors")
             o.impostors = parse_choice<ImpostorKind>(a, value(i), {{"uv", ImpostorKind::uv}, {"detail", ImpostorKind::detail}});
         else usage_error("unknown argument '" + a + "'");
@@ -240,6 +245,7 @@ int run_benchmark_mode(const GlContext& context, Renderer& renderer, const Bundl
     desc.seed = o.seed;
     desc.max_seconds = o.max_seconds;
     desc.modes = o.modes;
+    desc.blend = o.blend;
     desc.device = context.describe();
     desc.log = [](const std::string& line) { std::fprintf(stderr, "%s\n", line.c_str()); };
     const std::string text = run_benchmark(renderer, bundle, desc).dump(2) + "\n";
@@ -322,7 +328,7 @@ int run_view(GlContext& context, Renderer& renderer, const Bundle& bundle, const
             if (glfwGetKey(w, GLFW_KEY_ESCAPE) == GLFW_PRESS) break;
         }
         // The frame: cull and choose LODs on the CPU, then a few instanced draws.
-        build_frame(crowd, model, camera, renderer.aspect(), choice.lod, rule, time_s, &state, &frame);
+        build_frame(crowd, model, camera, renderer.aspect(), choice.lod, rule, time_s, &state, &frame, o.blend);
         stats = renderer.draw(frame, camera, choice.kind, light);
         if (windowed) {
             int w = 0, h = 0;

@@ -252,6 +252,8 @@ struct Renderer::Impl {
     std::vector<Part> parts;
     GLuint impostor_vao = 0;
     GLuint instance_buffers[3] = {0, 0, 0};  // by Lod
+    GLuint impostor_sample_buffer = 0;       // struct ImpostorSamples, one per impostor
+    std::vector<ImpostorSamples> nearest_samples;  // for frames built without samples
     std::vector<GLuint> diffuse;
     std::vector<int> variations;
     std::vector<bool> has_regions;
@@ -268,6 +270,7 @@ struct Renderer::Impl {
         }
         glDeleteVertexArrays(1, &impostor_vao);
         glDeleteBuffers(3, instance_buffers);
+        glDeleteBuffers(1, &impostor_sample_buffer);
         glDeleteTextures(GLsizei(diffuse.size()), diffuse.data());
         GLuint textures[] = {empty_array, outfits, normal_map, uv_map, detail_map};
         glDeleteTextures(5, textures);
@@ -427,6 +430,20 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
     glBindVertexArray(g.impostor_vao);
     label(GL_VERTEX_ARRAY, g.impostor_vao, "impostors");
     bind_instance_attributes(g.instance_buffers[int(Lod::impostor)]);
+    glGenBuffers(1, &g.impostor_sample_buffer);
+    glBindBuffer(GL_ARRAY_BUFFER, g.impostor_sample_buffer);
+    label(GL_BUFFER, g.impostor_sample_buffer, "instances:impostor-samples");
+    const GLsizei stride = sizeof(ImpostorSamples);
+    glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_TILES);
+    glVertexAttribIPointer(CV_ATTR_IMPOSTOR_TILES, 4, GL_UNSIGNED_INT, stride, (void*)offsetof(ImpostorSamples, tiles));
+    glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_VIEW_WEIGHTS);
+    glVertexAttribPointer(CV_ATTR_IMPOSTOR_VIEW_WEIGHTS, 4, GL_FLOAT, GL_FALSE, stride, (void*)offsetof(ImpostorSamples, view_weights));
+    glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_LAYERS);
+    glVertexAttribIPointer(CV_ATTR_IMPOSTOR_LAYERS, 2, GL_UNSIGNED_INT, stride, (void*)offsetof(ImpostorSamples, layers));
+    glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_FRAME_WEIGHT);
+    glVertexAttribPointer(CV_ATTR_IMPOSTOR_FRAME_WEIGHT, 1, GL_FLOAT, GL_FALSE, stride, (void*)offsetof(ImpostorSamples, frame_weight));
+    for (GLuint a : {CV_ATTR_IMPOSTOR_TILES, CV_ATTR_IMPOSTOR_VIEW_WEIGHTS, CV_ATTR_IMPOSTOR_LAYERS, CV_ATTR_IMPOSTOR_FRAME_WEIGHT})
+        glVertexAttribDivisor(a, 1);
     glBindVertexArray(0);
 
     // Textures.
@@ -513,6 +530,24 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
         glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(list.size() * sizeof(Instance)), list.empty() ? nullptr : list.data(),
                      GL_STREAM_DRAW);
     }
+    // The impostors' blend samples; a frame built without them shows each impostor's nearest
+    // view and frame (its Instance's tile and layer).
+    const std::vector<Instance>& impostor_list = frame.by_lod[int(Lod::impostor)];
+    const std::vector<ImpostorSamples>* samples = &frame.impostor_samples;
+    if (samples->size() != impostor_list.size()) {
+        g.nearest_samples.resize(impostor_list.size());
+        for (size_t i = 0; i < impostor_list.size(); ++i) {
+            ImpostorSamples& s = g.nearest_samples[i];
+            s = ImpostorSamples{};
+            for (uint32_t& t : s.tiles) t = impostor_list[i].tile;
+            s.view_weights[0] = 1;
+            s.layers[0] = s.layers[1] = impostor_list[i].frame;
+        }
+        samples = &g.nearest_samples;
+    }
+    glBindBuffer(GL_ARRAY_BUFFER, g.impostor_sample_buffer);
+    glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(samples->size() * sizeof(ImpostorSamples)), samples->empty() ? nullptr : samples->data(),
+                 GL_STREAM_DRAW);
     const glm::mat4 view_projection = camera.projection(aspect()) * camera.view();
     const glm::vec3 light = glm::normalize(light_dir);
     glActiveTexture(GL_TEXTURE0 + CV_UNIT_OUTFITS);
