@@ -35,6 +35,9 @@ const char* error_code_name(ErrorCode code) {
     case ErrorCode::invalid_header: return "invalid_header";
     case ErrorCode::invalid_data: return "invalid_data";
     case ErrorCode::fetch_failed: return "fetch_failed";
+    case ErrorCode::not_found: return "not_found";
+    case ErrorCode::unauthorized: return "unauthorized";
+    case ErrorCode::over_budget: return "over_budget";
     }
     return "unknown";
 }

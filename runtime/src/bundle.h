@@ -14,8 +14,12 @@
 
 namespace crowdview {
 
-// SPEC.md "Error codes", plus fetch_failed for transport errors the spec cannot know about
-// (connection refused, HTTP 500); a fetch never reports those as a bundle fault.
+// SPEC.md "Error codes", plus the fetch's own codes for what the spec cannot know about; a
+// fetch never reports those as a bundle fault:
+//   fetch_failed  transport errors (connection refused, HTTP 500, a download past its deadline)
+//   not_found     no bundle at the URL (HTTP 404 or 410 for the manifest, no such file://)
+//   unauthorized  the server wants a key, or refused the one sent (HTTP 401 or 403)
+//   over_budget   the manifest lists more bytes than the cache budget allows
 enum class ErrorCode {
     ok = 0,
     manifest_invalid,
@@ -30,6 +34,9 @@ enum class ErrorCode {
     invalid_header,
     invalid_data,
     fetch_failed,
+    not_found,
+    unauthorized,
+    over_budget,
 };
 
 // The spec's spelling of `code` ("size_mismatch"); "ok" for ErrorCode::ok.

@@ -115,34 +115,11 @@ Lod select_lod(float distance, Lod previous, const LodRule& rule) {
 
 // ---------------------------------------------------------------------------------------
 
-namespace {
-
-// Angle difference in degrees folded into [0, 180].
-float azimuth_gap(float a, float b) {
-    const float d = std::fmod(std::fabs(a - b), 360.0f);
-    return std::min(d, 360.0f - d);
-}
-
-}  // namespace
-
 ImpostorView select_view(const glm::vec3& to_camera, float heading, const std::vector<float>& azimuths_deg,
                          const std::vector<float>& elevations_deg) {
-    // Into the character's frame: undo its heading (a rotation about +Y).
-    const float c = std::cos(heading), s = std::sin(heading);
-    const glm::vec3 local(c * to_camera.x - s * to_camera.z, to_camera.y, s * to_camera.x + c * to_camera.z);
-    const float length = glm::length(local);
-    const glm::vec3 d = length > 0 ? local / length : glm::vec3(0, 0, 1);
-    // SPEC.md: the bake camera for (azimuth t, elevation p) sits at (sin t cos p, sin p, cos t cos p).
-    const float azimuth = glm::degrees(std::atan2(d.x, d.z));
-    const float elevation = glm::degrees(std::asin(glm::clamp(d.y, -1.0f, 1.0f)));
-    ImpostorView view{0, 0};
-    float best = INFINITY;
-    for (uint32_t a = 0; a < azimuths_deg.size(); ++a)
-        if (const float gap = azimuth_gap(azimuth, azimuths_deg[a]); gap < best) best = gap, view.azimuth = a;
-    best = INFINITY;
-    for (uint32_t e = 0; e < elevations_deg.size(); ++e)
-        if (const float gap = std::fabs(elevation - elevations_deg[e]); gap < best) best = gap, view.elevation = e;
-    return view;
+    const ViewWeights nearest = nearest_view_weights(view_angles_deg(to_camera, heading), azimuths_deg, elevations_deg);
+    const uint32_t columns = uint32_t(azimuths_deg.size());
+    return ImpostorView{nearest.tiles[0] % columns, nearest.tiles[0] / columns};
 }
 
 // ---------------------------------------------------------------------------------------
@@ -254,10 +231,20 @@ Camera street_camera(const Crowd& crowd, float character_height) {
 
 // ---------------------------------------------------------------------------------------
 
+LodRule lod_rule_for(const CharacterModel& model, const Camera& camera, float viewport_height_px) {
+    LodRule rule;
+    rule.impostor_distance = impostor_switch_distance(camera.fov_y, viewport_height_px, model.radius, model.tile_size);
+    rule.has_low = model.has_low;
+    return rule;
+}
+
 void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,
                  const LodRule& rule, float time_s, std::vector<Lod>* lod_state,
-                 FrameInstances* out) {
+                 FrameInstances* out, ImpostorBlend blend) {
     for (auto& list : out->by_lod) list.clear();
+    out->impostor_samples.clear();
+    const bool blend_views = blend == ImpostorBlend::views || blend == ImpostorBlend::full;
+    const bool blend_frames = blend == ImpostorBlend::frames || blend == ImpostorBlend::full;
     out->culled = 0;
     const size_t n = crowd.characters.size();
     if (lod_state->size() != n) lod_state->assign(n, Lod(255));  // 255: no history yet
@@ -294,9 +281,20 @@ void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& 
         inst.outfit = c.outfit;
         inst.tile = 0;
         if (lod == Lod::impostor) {
-            const ImpostorView v = select_view(camera.position - center, c.heading, model.azimuths_deg, model.elevations_deg);
-            inst.tile = v.azimuth + v.elevation * uint32_t(model.azimuths_deg.size());
-            inst.frame = impostor_layer(inst.frame, model.frame_indices, model.frame_count);
+            const glm::vec2 angles = view_angles_deg(camera.position - center, c.heading);
+            const ViewWeights nearest = nearest_view_weights(angles, model.azimuths_deg, model.elevations_deg);
+            const ViewWeights views = blend_views ? blend_view_weights(angles, model.azimuths_deg, model.elevations_deg) : nearest;
+            FrameWeights frames;
+            frames.layers[0] = frames.layers[1] = impostor_layer(inst.frame, model.frame_indices, model.frame_count);
+            if (blend_frames) frames = blend_frame_weights(inst.frame, model.frame_indices, model.frame_count);
+            inst.tile = nearest.tiles[0];
+            inst.frame = frames.layers[frames.weight > 0.5f ? 1 : 0];
+            ImpostorSamples samples;
+            for (int k = 0; k < 4; ++k) samples.tiles[k] = views.tiles[k], samples.view_weights[k] = views.weights[k];
+            samples.layers[0] = frames.layers[0], samples.layers[1] = frames.layers[1];
+            samples.frame_weight = frames.weight;
+            samples.unused = 0;
+            out->impostor_samples.push_back(samples);
         }
         out->by_lod[int(lod)].push_back(inst);
     }

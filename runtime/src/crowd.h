@@ -11,6 +11,8 @@
 
 #include <glm/glm.hpp>
 
+#include "view_blend.h"
+
 namespace crowdview {
 
 // ---------------------------------------------------------------------------------------
@@ -26,6 +28,20 @@ struct Instance {
 };
 static_assert(sizeof(Instance) == 32, "Instance is two vec4-sized attributes in the shaders");
 static_assert(offsetof(Instance, heading) == 12 && offsetof(Instance, frame) == 16, "shader attribute offsets");
+
+// Per impostor, beside its Instance: the (view, frame) samples it blends (view_blend.h), as
+// impostor.vert.glsl reads them (CV_ATTR_IMPOSTOR_* in config.h). Mirrored on purpose.
+struct ImpostorSamples {
+    uint32_t tiles[4];        // atlas tiles, azimuth + elevation * azimuth_count
+    float view_weights[4];    // summing to 1
+    uint32_t layers[2];       // atlas layers (baked frames)
+    float frame_weight;       // of layers[1]; layers[0] has 1 - frame_weight
+    float unused;
+};
+static_assert(sizeof(ImpostorSamples) == 48, "four attributes, 16-byte aligned");
+static_assert(offsetof(ImpostorSamples, view_weights) == 16 && offsetof(ImpostorSamples, layers) == 32 &&
+                  offsetof(ImpostorSamples, frame_weight) == 40,
+              "shader attribute offsets");
 
 // ---------------------------------------------------------------------------------------
 // Deterministic random numbers (splitmix64): the same seed gives the same crowd on every
@@ -174,15 +190,24 @@ struct CharacterModel {
     bool has_low = false;
 };
 
+// The LOD rule for `model` seen through `camera` on a viewport `viewport_height_px` tall:
+// impostors from the 1:1 switch distance, a low mesh only where the bundle has one.
+LodRule lod_rule_for(const CharacterModel& model, const Camera& camera, float viewport_height_px);
+
+// Headless and benchmark runs step time by this much per frame, so output is reproducible.
+constexpr float kFixedTimeStep = 1.0f / 30.0f;
+
 struct FrameInstances {
-    std::vector<Instance> by_lod[3];  // indexed by Lod
+    std::vector<Instance> by_lod[3];  // indexed by Lod; impostors carry their nearest view and frame
+    std::vector<ImpostorSamples> impostor_samples;  // one per by_lod[Lod::impostor] entry
     uint32_t culled = 0;
 };
 
 // Cull, pick a LOD (with hysteresis through `lod_state`, one entry per character, resized as
-// needed) and fill the instance lists for one frame.
+// needed) and fill the instance lists for one frame; impostors blend views and frames as
+// `blend` says (the cycle frame the mesh would show is the point between baked frames).
 void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,
                  const LodRule& rule, float time_s, std::vector<Lod>* lod_state,
-                 FrameInstances* out);
+                 FrameInstances* out, ImpostorBlend blend = ImpostorBlend::full);
 
 }  // namespace crowdview

@@ -4,7 +4,10 @@
 #include <curl/curl.h>
 #include <sys/stat.h>
 
+#include <algorithm>
 #include <cerrno>
+#include <chrono>
+#include <climits>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
@@ -74,30 +77,59 @@ size_t write_sink(char* data, size_t size, size_t count, void* user) {
     return n;
 }
 
-enum class Transfer { ok, not_found, range_refused, too_large, failed };
+enum class Transfer { ok, not_found, unauthorized, range_refused, too_large, deadline, failed };
 
-// One GET of `url` into `sink`, resuming at byte `resume_from`.
-Transfer http_get(const std::string& url, Sink* sink, uint64_t resume_from, long connect_timeout_s, std::string* error) {
+using Clock = std::chrono::steady_clock;
+
+Clock::time_point after_seconds(Clock::time_point start, double seconds) {
+    // Clamp: a huge deadline must not overflow the clock's integer ticks.
+    return start + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(std::min(seconds, 1e9)));
+}
+
+struct Request {
+    std::string url;
+    uint64_t resume_from = 0;
+    Clock::time_point deadline;  // the transfer is abandoned (Transfer::deadline) here
+    const FetchOptions* options = nullptr;
+};
+
+// One GET of `request.url` into `sink`.
+Transfer http_get(const Request& request, Sink* sink, std::string* error) {
     static std::once_flag init;
     std::call_once(init, [] { curl_global_init(CURL_GLOBAL_DEFAULT); });
+    const long long left_ms =
+        std::chrono::duration_cast<std::chrono::milliseconds>(request.deadline - Clock::now()).count();
+    if (left_ms <= 0) {
+        *error = "deadline passed";
+        return Transfer::deadline;
+    }
     CURL* curl = curl_easy_init();
     if (!curl) {
         *error = "curl_easy_init failed";
         return Transfer::failed;
     }
+    const FetchOptions& options = *request.options;
     char curl_error[CURL_ERROR_SIZE] = "";
-    curl_easy_setopt(curl, CURLOPT_URL, url.c_str());
+    curl_easy_setopt(curl, CURLOPT_URL, request.url.c_str());
     curl_easy_setopt(curl, CURLOPT_FOLLOWLOCATION, 1L);
     curl_easy_setopt(curl, CURLOPT_FAILONERROR, 1L);
-    curl_easy_setopt(curl, CURLOPT_CONNECTTIMEOUT, connect_timeout_s);
-    // A stalled server (under 1 byte/s for 30 s) counts as an interrupted transfer.
+    curl_easy_setopt(curl, CURLOPT_CONNECTTIMEOUT, options.connect_timeout_s);
+    // A stalled server (under 1 byte/s for 30 s) counts as an interrupted transfer, resumed;
+    // a slow one is bounded by the deadline, which is not.
     curl_easy_setopt(curl, CURLOPT_LOW_SPEED_LIMIT, 1L);
     curl_easy_setopt(curl, CURLOPT_LOW_SPEED_TIME, 30L);
+    curl_easy_setopt(curl, CURLOPT_TIMEOUT_MS, long(std::min<long long>(left_ms, LONG_MAX)));
+    if (!options.api_key.empty()) {
+        // libcurl's own bearer support, unlike a custom header, is not sent on to another host
+        // after a redirect.
+        curl_easy_setopt(curl, CURLOPT_HTTPAUTH, CURLAUTH_BEARER);
+        curl_easy_setopt(curl, CURLOPT_XOAUTH2_BEARER, options.api_key.c_str());
+    }
     curl_easy_setopt(curl, CURLOPT_WRITEFUNCTION, write_sink);
     curl_easy_setopt(curl, CURLOPT_WRITEDATA, sink);
     curl_easy_setopt(curl, CURLOPT_ERRORBUFFER, curl_error);
     curl_easy_setopt(curl, CURLOPT_NOSIGNAL, 1L);
-    if (resume_from > 0) curl_easy_setopt(curl, CURLOPT_RESUME_FROM_LARGE, curl_off_t(resume_from));
+    if (request.resume_from > 0) curl_easy_setopt(curl, CURLOPT_RESUME_FROM_LARGE, curl_off_t(request.resume_from));
     const CURLcode code = curl_easy_perform(curl);
     long http_status = 0;
     curl_easy_getinfo(curl, CURLINFO_RESPONSE_CODE, &http_status);
@@ -105,16 +137,33 @@ Transfer http_get(const std::string& url, Sink* sink, uint64_t resume_from, long
     if (code == CURLE_OK) return Transfer::ok;
     *error = curl_error[0] ? curl_error : curl_easy_strerror(code);
     if (sink->over_limit) return Transfer::too_large;
-    if (code == CURLE_FILE_COULDNT_READ_FILE || (code == CURLE_HTTP_RETURNED_ERROR && (http_status == 404 || http_status == 410)))
+    // CURLE_OPERATION_TIMEDOUT is also the stall rule; only the clock tells them apart.
+    if (code == CURLE_OPERATION_TIMEDOUT && Clock::now() + std::chrono::milliseconds(50) >= request.deadline)
+        return Transfer::deadline;
+    const bool http_error = code == CURLE_HTTP_RETURNED_ERROR;
+    if (code == CURLE_FILE_COULDNT_READ_FILE || (http_error && (http_status == 404 || http_status == 410)))
         return Transfer::not_found;
+    if (http_error && (http_status == 401 || http_status == 403)) {
+        *error = "HTTP " + std::to_string(http_status) +
+                 (options.api_key.empty() ? ": the server wants an API key (--key or CROWDVIEW_API_KEY)"
+                                          : ": the server refused the API key");
+        return Transfer::unauthorized;
+    }
     // 416: the server's file is no longer than our partial one; CURLE_RANGE_ERROR: no Range support.
-    if (code == CURLE_RANGE_ERROR || (code == CURLE_HTTP_RETURNED_ERROR && http_status == 416)) return Transfer::range_refused;
+    if (code == CURLE_RANGE_ERROR || (http_error && http_status == 416)) return Transfer::range_refused;
     return Transfer::failed;
 }
 
+std::string seconds_text(double s) {
+    char text[32];
+    std::snprintf(text, sizeof text, "%.0f", s);
+    return text;
+}
+
 // Brings one listed file into the cache (or finds it there) and returns its verified bytes.
+// Nothing is fetched after `total_deadline`.
 Status fetch_file(const BundleUrls& urls, const FileEntry& entry, const FetchOptions& options, const std::string& cache,
-                  std::vector<uint8_t>* bytes) {
+                  Clock::time_point total_deadline, std::vector<uint8_t>* bytes) {
     static const char* fn = "fetch_file";
     auto log = [&](const std::string& line) {
         if (options.log) options.log(line);
@@ -134,6 +183,8 @@ Status fetch_file(const BundleUrls& urls, const FileEntry& entry, const FetchOpt
 
     const std::string part = cache + "/partial/" + entry.sha256 + ".part";
     const std::string url = urls.file(entry.path);
+    const double file_seconds = file_deadline_seconds(entry.size, options);
+    const Clock::time_point deadline = std::min(after_seconds(Clock::now(), file_seconds), total_deadline);
     bool started_fresh = false;
     for (int attempt = 0; attempt < options.attempts + 1; ++attempt) {
         int64_t have = file_size_or_minus_one(part);
@@ -147,9 +198,14 @@ Status fetch_file(const BundleUrls& urls, const FileEntry& entry, const FetchOpt
         if (!file) return make_error(ErrorCode::fetch_failed, fn, entry.path, "cannot write " + part);
         Sink sink;
         sink.file = file;
-        sink.limit = entry.size - uint64_t(have);
+        sink.limit = entry.size - uint64_t(have);  // never more than the manifest declares
+        Request request;
+        request.url = url;
+        request.resume_from = uint64_t(have);
+        request.deadline = deadline;
+        request.options = &options;
         std::string error;
-        const Transfer result = http_get(url, &sink, uint64_t(have), options.connect_timeout_s, &error);
+        const Transfer result = http_get(request, &sink, &error);
         std::fclose(file);
         switch (result) {
         case Transfer::ok:
@@ -157,6 +213,9 @@ Status fetch_file(const BundleUrls& urls, const FileEntry& entry, const FetchOpt
         case Transfer::not_found:
             std::remove(part.c_str());
             return make_error(ErrorCode::missing_file, fn, entry.path, "not found at " + url);
+        case Transfer::unauthorized:
+            std::remove(part.c_str());
+            return make_error(ErrorCode::unauthorized, fn, entry.path, url + ": " + error);
         case Transfer::range_refused:  // redo from the start
             log("fetch: " + url + " cannot resume (" + error + "); downloading again");
             std::remove(part.c_str());
@@ -165,6 +224,14 @@ Status fetch_file(const BundleUrls& urls, const FileEntry& entry, const FetchOpt
             std::remove(part.c_str());
             return make_error(ErrorCode::size_mismatch, fn, entry.path,
                               "the server sent more than the manifest's " + std::to_string(entry.size) + " bytes");
+        case Transfer::deadline:  // a limit broken: nothing of it is kept for a later run
+            std::remove(part.c_str());
+            return make_error(ErrorCode::fetch_failed, fn, entry.path,
+                              deadline < total_deadline
+                                  ? "did not arrive within its deadline of " + seconds_text(file_seconds) + " s (" +
+                                        std::to_string(entry.size) + " bytes at no less than " +
+                                        seconds_text(options.min_rate_bytes_per_s) + " bytes/s)"
+                                  : "the fetch's total deadline passed");
         case Transfer::failed:  // keep the part: the next attempt (or run) resumes it
             log("fetch: " + entry.path + " interrupted (" + error + ")");
             if (attempt == options.attempts)
@@ -195,31 +262,86 @@ Status fetch_file(const BundleUrls& urls, const FileEntry& entry, const FetchOpt
 
 }  // namespace
 
+double file_deadline_seconds(uint64_t size, const FetchOptions& options) {
+    return options.file_grace_s + double(size) / std::max(options.min_rate_bytes_per_s, 1.0);
+}
+
+double total_deadline_seconds(uint64_t total_bytes, const FetchOptions& options) {
+    if (options.total_timeout_s > 0) return options.total_timeout_s;
+    return options.total_grace_s + double(total_bytes) / std::max(options.min_rate_bytes_per_s, 1.0);
+}
+
+bool resolve_latest(const BundleUrls& urls, const std::string& name, const std::string& version, BundleUrls* resolved) {
+    const std::string tail = "/" + name + "/latest/";
+    const std::string& base = urls.base;
+    if (name.empty() || version.empty() || base.size() < tail.size() ||
+        base.compare(base.size() - tail.size(), tail.size(), tail) != 0)
+        return false;
+    *resolved = urls;
+    resolved->base = base.substr(0, base.size() - tail.size()) + "/" + name + "/" + version + "/";
+    return true;
+}
+
 Status fetch_bundle(const std::string& url, const FetchOptions& options, Bundle* out) {
     static const char* fn = "fetch_bundle";
-    const BundleUrls urls = bundle_urls(url, options.files_prefix);
+    BundleUrls urls = bundle_urls(url, options.files_prefix);
     const std::string cache = options.cache_dir.empty() ? default_cache_dir() : options.cache_dir;
+    const Clock::time_point start = Clock::now();
 
-    // Manifests are small; 16 MiB bounds what a broken server can make us hold.
+    // Manifests are small; 16 MiB bounds what a broken server can make us hold, and its
+    // deadline is that of a 16 MiB file (or the total one, when set).
+    constexpr uint64_t kManifestLimit = 16u << 20;
     std::vector<uint8_t> manifest;
     Sink sink;
     sink.memory = &manifest;
-    sink.limit = 16u << 20;
+    sink.limit = kManifestLimit;
+    Request request;
+    request.url = urls.manifest();
+    request.options = &options;
+    request.deadline = after_seconds(start, options.total_timeout_s > 0 ? options.total_timeout_s
+                                                                         : file_deadline_seconds(kManifestLimit, options));
     std::string error;
-    switch (http_get(urls.manifest(), &sink, 0, options.connect_timeout_s, &error)) {
+    switch (http_get(request, &sink, &error)) {
     case Transfer::ok: break;
     case Transfer::not_found:
-        return make_error(ErrorCode::manifest_invalid, fn, "manifest.json", "not found at " + urls.manifest());
+        return make_error(ErrorCode::not_found, fn, "manifest.json", "no bundle at " + urls.manifest());
+    case Transfer::unauthorized:
+        return make_error(ErrorCode::unauthorized, fn, "manifest.json", urls.manifest() + ": " + error);
     case Transfer::too_large:
         return make_error(ErrorCode::manifest_invalid, fn, "manifest.json", "larger than 16 MiB at " + urls.manifest());
+    case Transfer::deadline:
+        return make_error(ErrorCode::fetch_failed, fn, "manifest.json", urls.manifest() + ": did not arrive in time");
     default:
         return make_error(ErrorCode::fetch_failed, fn, "manifest.json", urls.manifest() + ": " + error);
     }
     if (options.log) options.log("fetch: " + urls.manifest() + " (cache " + cache + ")");
+    const std::string text(manifest.begin(), manifest.end());
+
+    // Limits and the concrete version, from the manifest, before any file is fetched. A
+    // manifest that does not parse is left for load_bundle to name.
+    Manifest parsed;
+    Clock::time_point total_deadline = after_seconds(start, total_deadline_seconds(0, options));
+    if (parse_manifest(text, &parsed).ok()) {
+        uint64_t total = 0;
+        for (const FileEntry& f : parsed.files) total += std::min<uint64_t>(f.size, UINT64_MAX - total);
+        if (total > options.cache_budget_bytes)
+            return make_error(ErrorCode::over_budget, fn, "manifest.json",
+                              "the bundle lists " + std::to_string(total) + " bytes, the cache budget is " +
+                                  std::to_string(options.cache_budget_bytes));
+        total_deadline = after_seconds(start, total_deadline_seconds(total, options));
+        BundleUrls concrete;
+        if (resolve_latest(urls, parsed.name, parsed.version, &concrete)) {
+            if (options.log) options.log("fetch: latest is " + parsed.version + "; files from " + concrete.base);
+            urls = concrete;
+        } else if (urls.base.size() >= 8 && urls.base.compare(urls.base.size() - 8, 8, "/latest/") == 0) {
+            return make_error(ErrorCode::manifest_invalid, fn, "manifest.json",
+                              "the URL asks for the latest version of another bundle than '" + parsed.name + "'");
+        }
+    }
     const FileSource source = [&](const FileEntry& entry, std::vector<uint8_t>* bytes) {
-        return fetch_file(urls, entry, options, cache, bytes);
+        return fetch_file(urls, entry, options, cache, total_deadline, bytes);
     };
-    return load_bundle(std::string(manifest.begin(), manifest.end()), source, out);
+    return load_bundle(text, source, out);
 }
 
 }  // namespace crowdview

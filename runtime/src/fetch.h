@@ -5,8 +5,15 @@
 // cache by its sha256 only, so no path from a manifest ever becomes a path on disk:
 //   <cache>/blobs/<sha[0:2]>/<sha>     verified files, moved in by an atomic rename
 //   <cache>/partial/<sha>.part         a download in progress; resumed, or redone if bad
+//
+// A server cannot make a fetch hold without end or fill the disk: the manifest's sizes must
+// fit the cache budget before anything is downloaded, no file is written past its declared
+// size, each file must arrive within a deadline derived from its size and a minimum rate,
+// and the whole fetch within a total deadline. A partial file that failed verification or
+// broke a limit is deleted; only an interrupted one is kept, to be resumed.
 #pragma once
 
+#include <cstdint>
 #include <functional>
 #include <string>
 
@@ -25,13 +32,36 @@ struct BundleUrls {
 // http://, https:// and file:// URLs all work (libcurl).
 BundleUrls bundle_urls(const std::string& url, const std::string& files_prefix = "files/");
 
+// `url` with a last path segment "latest" (the service's alias for the newest version) and
+// `version` in its place: ".../bundles/walker/latest/" -> ".../bundles/walker/1.2.0/". False
+// (and `resolved` untouched) when the URL's bundle folder is not ".../<name>/latest".
+bool resolve_latest(const BundleUrls& urls, const std::string& name, const std::string& version, BundleUrls* resolved);
+
 struct FetchOptions {
     std::string cache_dir;               // "" means default_cache_dir()
     std::string files_prefix = "files/";
+    // Sent as "Authorization: Bearer <key>" (the service also takes X-API-Key); "" sends none.
+    // Never logged, never part of an error message.
+    std::string api_key;
     long connect_timeout_s = 15;
     int attempts = 3;                    // transport failures resumed this many times per file
+    // Refuse a manifest whose files add up to more than this, before downloading anything.
+    // 4 GiB: a crowd bundle of the paper's kind is tens of megabytes.
+    uint64_t cache_budget_bytes = uint64_t(4) << 30;
+    // Each file must arrive within file_grace_s + size / min_rate_bytes_per_s seconds, all its
+    // attempts together (64 KiB/s: a slow mobile link; the grace covers connection set-up).
+    double min_rate_bytes_per_s = 64 * 1024;
+    double file_grace_s = 10;
+    // The whole fetch, manifest included; 0 means total_grace_s + total bytes / min rate.
+    double total_timeout_s = 0;
+    double total_grace_s = 60;
     std::function<void(const std::string&)> log;  // progress lines; may be empty
 };
+
+// Seconds a file of `size` bytes may take, all attempts together (see FetchOptions).
+double file_deadline_seconds(uint64_t size, const FetchOptions& options);
+// Seconds the whole fetch may take for files adding up to `total_bytes`.
+double total_deadline_seconds(uint64_t total_bytes, const FetchOptions& options);
 
 // $XDG_CACHE_HOME/crowdview, else $HOME/.cache/crowdview, else ./.crowdview-cache.
 std::string default_cache_dir();
@@ -41,8 +71,11 @@ std::string cache_blob_path(const std::string& cache_dir, const std::string& sha
 
 // Fetch the manifest, then every listed file not already in the cache (verifying size and
 // sha256 before a file enters the cache), then verify and decode the bundle exactly as
-// load_bundle does. Errors name the bundle file; transport failures are fetch_failed, an
-// absent manifest manifest_invalid, an absent file missing_file.
+// load_bundle does. A URL ending in ".../<name>/latest" is resolved once: the manifest
+// fetched there names the version, and every file comes from ".../<name>/<version>/", so a
+// version published meanwhile cannot mix in. Errors name the bundle file; transport failures
+// and missed deadlines are fetch_failed, no manifest at the URL not_found, a refused key
+// unauthorized, a bundle bigger than the budget over_budget, an absent file missing_file.
 Status fetch_bundle(const std::string& url, const FetchOptions& options, Bundle* out);
 
 }  // namespace crowdview

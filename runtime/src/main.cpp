@@ -27,6 +27,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "benchmark.h"
 #include "bundle.h"
 #include "crowd.h"
 #include "fetch.h"
@@ -43,8 +44,19 @@ namespace {
 
 constexpr int kExitRefused = 1, kExitUsage = 2, kExitNoGl = 3;
 
+// --lod: a LOD rule for everyone, or one representation for everyone.
+enum class LodChoice { automatic, high, low, impostor, detail };
+enum class CameraView { overview, street };
+
+// The command line, parsed and checked once.
 struct Options {
-    std::string bundle_dir, url, cache_dir, files_prefix = "files/", verify, shader_dir;
+    std::string source;        // a bundle folder or URL (--bundle, --url or --verify)
+    bool source_is_url = false;  // holds "://": fetched through the cache
+    bool verify_only = false;  // --verify
+    std::string cache_dir, files_prefix = "files/", shader_dir;
+    std::string api_key;       // --key, else $CROWDVIEW_API_KEY; never printed
+    uint64_t cache_budget_mib = 4096;
+    double min_rate = 0, timeout_s = 0;  // 0: FetchOptions' defaults
     uint32_t count = 100;
     uint64_t seed = 1;
     Layout layout = Layout::on_the_spot;
@@ -52,11 +64,12 @@ struct Options {
     int frames = -1;  // -1: until the window closes (headless: 1)
     std::string screenshot, report;
     int width = 1280, height = 720;
-    std::string lod = "auto";
-    std::string camera = "overview";
-    std::string impostors = "uv";
+    LodChoice lod = LodChoice::automatic;
+    CameraView camera = CameraView::overview;
+    ImpostorKind impostors = ImpostorKind::uv;  // what LodChoice::automatic draws far away
+    ImpostorBlend blend = ImpostorBlend::full;
     double max_seconds = 300;
-    std::string modes = "high_mesh,low_mesh,uv_impostor,detail_impostor,hybrid";
+    std::vector<BenchmarkMode> modes{std::begin(kAllBenchmarkModes), std::end(kAllBenchmarkModes)};
     bool cpu_decode = false;
 };
 
@@ -67,12 +80,17 @@ const char* kUsage =
     "  --url URL             a published bundle: URL/manifest.json and URL/<files-prefix><path>\n"
     "  --cache DIR           content-addressed download cache (default ~/.cache/crowdview)\n"
     "  --files-prefix P      where files sit below the bundle URL (default files/)\n"
+    "  --key KEY             API key sent as a bearer token (default: $CROWDVIEW_API_KEY)\n"
+    "  --cache-budget-mib N  refuse bundles listing more than N MiB (default 4096)\n"
+    "  --min-rate B          each file must arrive at B bytes/s or faster (default 65536)\n"
+    "  --timeout S           give up a whole fetch after S seconds (default: 60 + size / min rate)\n"
     "  --count N             characters (default 100)\n"
     "  --seed S              crowd seed (default 1)\n"
     "  --layout spot|paths   walk on the spot (default, the paper's test) or along paths\n"
     "  --lod MODE            auto (default) | high | low | impostor | detail\n"
     "  --camera VIEW         overview (default: the whole crowd) | street (eye level at the crowd's edge)\n"
     "  --impostors uv|detail impostor maps used by --lod auto (default uv)\n"
+    "  --impostor-blend B    off (the paper: nearest view and frame) | views | frames | full (default)\n"
     "  --width W --height H  framebuffer size (default 1280x720)\n"
     "  --headless            no window: EGL surfaceless, else a hidden GLFW window\n"
     "  --frames N            frames to draw, then exit (headless default 1)\n"
@@ -100,22 +118,43 @@ T parse_number(const std::string& flag, const char* text, T lo, T hi) {
     return T(v);
 }
 
+// `text` as one of `choices` (name, value), or a usage error listing them.
+template <typename E>
+E parse_choice(const std::string& flag, const std::string& text, std::initializer_list<std::pair<const char*, E>> choices) {
+    std::string names;
+    for (const auto& [name, value] : choices) {
+        if (text == name) return value;
+        names += std::string(names.empty() ? "" : ", ") + name;
+    }
+    usage_error(flag + " is one of " + names + "; got '" + text + "'");
+}
+
+bool is_url(const std::string& s) { return s.find("://") != std::string::npos; }
+
 Options parse_args(int argc, char** argv) {
     Options o;
     auto value = [&](int& i) -> const char* {
         if (i + 1 >= argc) usage_error(std::string(argv[i]) + " needs a value");
         return argv[++i];
     };
+    int sources = 0;
+    std::string modes;
     for (int i = 1; i < argc; ++i) {
         const std::string a = argv[i];
         if (a == "--help" || a == "-h") {
             std::fputs(kUsage, stdout);
             std::exit(0);
-        } else if (a == "--bundle") o.bundle_dir = value(i);
-        else if (a == "--url") o.url = value(i);
-        else if (a == "--cache") o.cache_dir = value(i);
+        } else if (a == "--bundle" || a == "--url" || a == "--verify") {
+            o.source = value(i);
+            o.source_is_url = is_url(o.source);
+            o.verify_only = a == "--verify";
+            ++sources;
+        } else if (a == "--cache") o.cache_dir = value(i);
+        else if (a == "--key") o.api_key = value(i);
+        else if (a == "--cache-budget-mib") o.cache_budget_mib = parse_number<uint64_t>(a, value(i), 1, 1ull << 30);
+        else if (a == "--min-rate") o.min_rate = parse_number<double>(a, value(i), 1, 1e12);
+        else if (a == "--timeout") o.timeout_s = parse_number<double>(a, value(i), 0.1, 1e7);
         else if (a == "--files-prefix") o.files_prefix = value(i);
-        else if (a == "--verify") o.verify = value(i);
         else if (a == "--shaders") o.shader_dir = value(i);
         else if (a == "--count") o.count = parse_number<uint32_t>(a, value(i), 1, 10000000);
         else if (a == "--seed") o.seed = parse_number<uint64_t>(a, value(i), 0, 1ull << 53);
@@ -124,42 +163,43 @@ Options parse_args(int argc, char** argv) {
         else if (a == "--height") o.height = parse_number<int>(a, value(i), 16, 16384);
         else if (a == "--max-seconds") o.max_seconds = parse_number<double>(a, value(i), 1, 86400);
         else if (a == "--screenshot") o.screenshot = value(i);
-        else if (a == "--modes") o.modes = value(i);
+        else if (a == "--modes") modes = value(i);
         else if (a == "--report") o.report = value(i);
         else if (a == "--headless") o.headless = true;
         else if (a == "--benchmark") o.benchmark = true;
         else if (a == "--cpu-decode") o.cpu_decode = true;
-        else if (a == "--layout") {
-            const std::string v = value(i);
-            if (v == "spot") o.layout = Layout::on_the_spot;
-            else if (v == "paths") o.layout = Layout::paths;
-            else usage_error("--layout is spot or paths, got '" + v + "'");
-        } else if (a == "--camera") {
-            o.camera = value(i);
-            if (o.camera != "overview" && o.camera != "street")
-                usage_error("--camera is overview or street, got '" + o.camera + "'");
-        } else if (a == "--lod") {
-            o.lod = value(i);
-            if (o.lod != "auto" && o.lod != "high" && o.lod != "low" && o.lod != "impostor" && o.lod != "detail")
-                usage_error("--lod is auto, high, low, impostor or detail, got '" + o.lod + "'");
-        } else if (a == "--impostors") {
-            o.impostors = value(i);
-            if (o.impostors != "uv" && o.impostors != "detail") usage_error("--impostors is uv or detail, got '" + o.impostors + "'");
-        } else {
-            usage_error("unknown argument '" + a + "'");
-        }
+        else if (a == "--layout") o.layout = parse_choice<Layout>(a, value(i), {{"spot", Layout::on_the_spot}, {"paths", Layout::paths}});
+        else if (a == "--camera")
+            o.camera = parse_choice<CameraView>(a, value(i), {{"overview", CameraView::overview}, {"street", CameraView::street}});
+        else if (a == "--lod")
+            o.lod = parse_choice<LodChoice>(a, value(i), {{"auto", LodChoice::automatic}, {"high", LodChoice::high}, {"low", LodChoice::low},
+                                                          {"impostor", LodChoice::impostor}, {"detail", LodChoice::detail}});
+        else if (a == "--impostor-blend")
+            o.blend = parse_choice<ImpostorBlend>(a, value(i), {{"off", ImpostorBlend::off}, {"views", ImpostorBlend::views},
+                                                                {"frames", ImpostorBlend::frames}, {"full", ImpostorBlend::full}});
+        else if (a == "--impostors")
+            o.impostors = parse_choice<ImpostorKind>(a, value(i), {{"uv", ImpostorKind::uv}, {"detail", ImpostorKind::detail}});
+        else usage_error("unknown argument '" + a + "'");
     }
-    const int sources = !o.bundle_dir.empty() + !o.url.empty() + !o.verify.empty();
     if (sources == 0) usage_error("give --bundle DIR, --url URL or --verify DIR|URL");
     if (sources > 1) usage_error("give only one of --bundle, --url and --verify");
     if (o.benchmark && !o.screenshot.empty()) usage_error("--screenshot does not go with --benchmark");
     if (!o.report.empty() && !o.benchmark) usage_error("--report needs --benchmark");
-    for (size_t start = 0; start <= o.modes.size();) {
-        const size_t end = std::min(o.modes.find(',', start), o.modes.size());
-        const std::string mode = o.modes.substr(start, end - start);
-        if (std::string(",high_mesh,low_mesh,uv_impostor,detail_impostor,hybrid,").find("," + mode + ",") == std::string::npos)
-            usage_error("--modes takes high_mesh, low_mesh, uv_impostor, detail_impostor, hybrid; got '" + mode + "'");
-        start = end + 1;
+    if (!modes.empty()) {
+        o.modes.clear();
+        for (size_t start = 0; start <= modes.size();) {
+            const size_t end = std::min(modes.find(',', start), modes.size());
+            const std::string name = modes.substr(start, end - start);
+            BenchmarkMode mode;
+            if (!parse_benchmark_mode(name, &mode))
+                usage_error("--modes takes high_mesh, low_mesh, uv_impostor, detail_impostor, hybrid; got '" + name + "'");
+            if (std::find(o.modes.begin(), o.modes.end(), mode) == o.modes.end()) o.modes.push_back(mode);
+            start = end + 1;
+        }
+    }
+    if (o.api_key.empty()) {
+        const char* env = std::getenv("CROWDVIEW_API_KEY");
+        o.api_key = env ? env : "";
     }
     if (o.shader_dir.empty()) {
         const char* env = std::getenv("CROWDVIEW_SHADERS");
@@ -168,261 +208,47 @@ Options parse_args(int argc, char** argv) {
     return o;
 }
 
-bool is_url(const std::string& s) { return s.find("://") != std::string::npos; }
-
-Status load(const std::string& where, const Options& o, Bundle* bundle) {
-    if (!is_url(where)) return load_bundle_dir(where, bundle);
+Status load(const Options& o, Bundle* bundle) {
+    if (!o.source_is_url) return load_bundle_dir(o.source, bundle);
     FetchOptions fetch;
     fetch.cache_dir = o.cache_dir;
     fetch.files_prefix = o.files_prefix;
+    fetch.api_key = o.api_key;
+    fetch.cache_budget_bytes = o.cache_budget_mib << 20;
+    if (o.min_rate > 0) fetch.min_rate_bytes_per_s = o.min_rate;
+    fetch.total_timeout_s = o.timeout_s;
     fetch.log = [](const std::string& line) { std::fprintf(stderr, "%s\n", line.c_str()); };
-    return fetch_bundle(where, fetch, bundle);
+    return fetch_bundle(o.source, fetch, bundle);
 }
 
-LodMode lod_mode(const std::string& lod) {
-    if (lod == "high") return LodMode::high;
-    if (lod == "low") return LodMode::low;
-    if (lod == "impostor" || lod == "detail") return LodMode::impostor;
-    return LodMode::automatic;
-}
+// How build_frame chooses LODs and which impostor maps draw, for a --lod choice.
+struct DrawChoice {
+    LodMode lod;
+    ImpostorKind kind;
+};
 
-// Every character is lit dynamically, as in the paper's test: a sun up and to the side, so the
-// normal maps show.
-const glm::vec3 kLightDir = glm::normalize(glm::vec3(0.4f, 0.8f, 0.45f));
-// Headless and benchmark runs step time at a fixed 30 Hz, so output is reproducible.
-constexpr float kFixedStep = 1.0f / 30.0f;
-
-LodRule lod_rule_for(const Renderer& r, const Camera& camera) {
-    LodRule rule;
-    rule.impostor_distance = impostor_switch_distance(camera.fov_y, float(r.height()), r.model().radius, r.model().tile_size);
-    rule.has_low = r.model().has_low;
-    return rule;
+DrawChoice draw_choice(LodChoice lod, ImpostorKind automatic_impostors) {
+    switch (lod) {
+    case LodChoice::high: return {LodMode::high, ImpostorKind::uv};
+    case LodChoice::low: return {LodMode::low, ImpostorKind::uv};
+    case LodChoice::impostor: return {LodMode::impostor, ImpostorKind::uv};
+    case LodChoice::detail: return {LodMode::impostor, ImpostorKind::detail};
+    case LodChoice::automatic: break;
+    }
+    return {LodMode::automatic, automatic_impostors};
 }
 
 float character_height(const CharacterModel& m) { return m.center.y + m.radius; }
 
-// ---------------------------------------------------------------------------------------
-// Benchmark: the paper's figure 3 on this machine.
-
-struct Sample {
-    uint32_t n = 0;
-    double fps = 0;         // from the fastest timed frame: what the machine does undisturbed
-    double fps_median = 0;  // from the median frame: includes whatever else the machine ran
-    double cpu_ms = 0;      // median CPU time of this process per frame, all threads (llvmpipe
-                            // renders on the CPU): the cost, whatever else the machine ran
-    uint32_t by_lod[3] = {0, 0, 0};
-};
-
-class Benchmark {
-public:
-    Benchmark(Renderer& r, const Bundle& b, const Options& o) : renderer_(r), bundle_(b), options_(o) {}
-
-    // The benchmark's fixed camera: 6 m up, looking 17 degrees down over the crowd.
-    static Camera camera() {
-        Camera c;
-        c.position = glm::vec3(0, 6, 0);
-        c.pitch = -0.3f;
-        c.far_m = 5000;
-        return c;
-    }
-
-    // Frame rate of a crowd of n in view, drawn by `mode`, after a warm-up.
-    Sample measure(uint32_t n, LodMode mode, ImpostorKind kind) {
-        const CharacterModel& model = renderer_.model();
-        CrowdDesc desc;
-        desc.count = n;
-        desc.seed = options_.seed;
-        const Camera cam = camera();
-        const LodRule rule = lod_rule_for(renderer_, cam);
-        // From half the switch distance on: no character is over twice its 1:1 size on screen,
-        // so the impostor-only runs are not a test of magnified fill.
-        const float near_m = 0.5f * rule.impostor_distance;
-        const Crowd crowd =
-            make_crowd_in_view(desc, cam, renderer_.aspect(), model.center.y, model.radius, near_m, max_variations(),
-                               bundle_.manifest.outfit_count, float(model.frame_count) / model.frames_per_second);
-        std::vector<Lod> state;
-        FrameInstances frame;
-        std::vector<double> seconds, cpu_seconds;
-        auto cpu_now = [] {
-            timespec t;
-            clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &t);
-            return double(t.tv_sec) + 1e-9 * double(t.tv_nsec);
-        };
-        // Two warm-up frames (shader variants, buffer growth), then fifteen timed ones. The
-        // search uses the fastest: on a machine shared with other work the median measures
-        // the other work too (both are reported).
-        const auto first = std::chrono::steady_clock::now();
-        for (int i = 0; i < 17; ++i) {
-            const auto start = std::chrono::steady_clock::now();
-            const double cpu_start = cpu_now();
-            build_frame(crowd, model, cam, renderer_.aspect(), mode, rule, float(i) * kFixedStep, &state, &frame);
-            renderer_.draw(frame, cam, kind, kLightDir);
-            renderer_.finish();
-            const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-            if (i >= 2) seconds.push_back(s), cpu_seconds.push_back(cpu_now() - cpu_start);
-            // Slow crowds need fewer frames to show it: three timed frames after half a second
-            // of rendering bound each measurement.
-            if (seconds.size() >= 3 && std::chrono::steady_clock::now() - first > std::chrono::milliseconds(500)) break;
-        }
-        std::sort(seconds.begin(), seconds.end());
-        std::sort(cpu_seconds.begin(), cpu_seconds.end());
-        Sample sample;
-        sample.n = uint32_t(crowd.characters.size());
-        sample.fps = 1.0 / std::max(seconds.front(), 1e-6);
-        sample.fps_median = 1.0 / std::max(seconds[seconds.size() / 2], 1e-6);
-        sample.cpu_ms = 1000.0 * cpu_seconds[cpu_seconds.size() / 2];
-        for (int l = 0; l < 3; ++l) sample.by_lod[l] = uint32_t(frame.by_lod[l].size());
-        return sample;
-    }
-
-    uint32_t max_variations() const {
-        uint32_t v = 1;
-        for (const MaterialInfo& m : bundle_.manifest.materials) v = std::max(v, m.variations);
-        return v;
-    }
-
-private:
-    Renderer& renderer_;
-    const Bundle& bundle_;
-    const Options& options_;
-};
-
-// Largest n whose fps holds `target`, from the samples so far plus new ones: doubling, then
-// bisection to 5 %, inside the deadline. Returns the largest passing sample (0 if none).
-uint32_t search(const std::function<Sample(uint32_t)>& measure, std::map<uint32_t, Sample>* samples, double target,
-                const std::chrono::steady_clock::time_point& deadline, bool* converged) {
-    constexpr uint32_t kMaxCount = 1u << 20;  // a million characters bounds the doubling
-    auto fps = [&](uint32_t n) {
-        auto it = samples->find(n);
-        if (it == samples->end()) it = samples->emplace(n, measure(n)).first;
-        return it->second.fps;
-    };
-    auto in_time = [&] { return std::chrono::steady_clock::now() < deadline; };
-    uint32_t lo = 0, hi = 0;  // lo passes (0: nothing yet), hi fails (0: none found yet)
-    for (const auto& [n, s] : *samples) {
-        if (s.fps >= target) lo = std::max(lo, n);
-        else if (hi == 0 || n < hi) hi = n;
-    }
-    if (hi != 0 && lo > hi) lo = 0;  // noisy samples: trust the failing one
-    if (hi == 0) {
-        // The first size is measured even past the deadline, so every mode reports something.
-        for (uint32_t n = std::max(lo * 2, 8u); n <= kMaxCount && (n == std::max(lo * 2, 8u) || in_time()); n *= 2) {
-            if (fps(n) >= target) lo = n;
-            else {
-                hi = n;
-                break;
-            }
-        }
-    }
-    if (hi == 0) {
-        *converged = false;
-        return lo;
-    }
-    while (hi - lo > std::max(1u, lo / 20) && in_time()) {
-        const uint32_t mid = lo + (hi - lo) / 2;
-        if (fps(mid) >= target) lo = mid;
-        else hi = mid;
-    }
-    *converged = hi - lo <= std::max(1u, lo / 20);
-    return lo;
-}
-
-int run_benchmark(GlContext& context, Renderer& renderer, const Bundle& bundle, const Options& o) {
-    struct Mode {
-        const char* name;
-        LodMode lod;
-        ImpostorKind kind;
-    };
-    const Mode modes[] = {{"high_mesh", LodMode::high, ImpostorKind::uv},
-                          {"low_mesh", LodMode::low, ImpostorKind::uv},
-                          {"uv_impostor", LodMode::impostor, ImpostorKind::uv},
-                          {"detail_impostor", LodMode::impostor, ImpostorKind::detail},
-                          {"hybrid", LodMode::automatic, ImpostorKind::uv}};
-    Benchmark bench(renderer, bundle, o);
-    const auto start = std::chrono::steady_clock::now();
-    nlohmann::json report;
-    report["device"] = context.describe();
-    report["width"] = o.width;
-    report["height"] = o.height;
-    report["bundle"] = bundle.manifest.name + "/" + bundle.manifest.version;
-    report["seed"] = o.seed;
-    // Other work on the machine shows up in the timings; the load average says how much.
-    auto load_average = [] {
-        std::ifstream in("/proc/loadavg");
-        double one_minute = -1;
-        in >> one_minute;
-        return one_minute;
-    };
-    report["load_average_1min_start"] = load_average();
-    report["cpu_threads"] = std::thread::hardware_concurrency();
-    report["max_seconds"] = o.max_seconds;
-    report["compressed_textures"] = renderer.compressed_textures();
-    report["triangles_per_character"] = {{"high", renderer.triangles_per_character(Lod::high)},
-                                         {"low", renderer.triangles_per_character(Lod::low)},
-                                         {"impostor", 2}};
-    report["impostor_switch_distance_m"] = impostor_switch_distance(Camera().fov_y, float(o.height), renderer.model().radius,
-                                                                    renderer.model().tile_size);
-    report["method"] = "per N: characters walking on the spot in staggered rows 1.6 m apart filling the view "
-                       "nearest first from half the impostor switch distance (camera 6 m up, 17 degrees down, fov 45), "
-                       "all on screen; hybrid = --lod auto (high, low, UV impostor by distance); 2 warm-up frames, "
-                       "then 15 frames, each timed from build_frame (cull, LOD, views) to glFinish; fps from the "
-                       "fastest frame (fps_median from the median one); N doubles from 8, then bisects to 5 %";
-    nlohmann::json results = nlohmann::json::object();
-    std::vector<const Mode*> chosen;
-    for (const Mode& mode : modes)
-        if (("," + o.modes + ",").find(std::string(",") + mode.name + ",") != std::string::npos) chosen.push_back(&mode);
-    const double per_mode = o.max_seconds / double(chosen.size());
-    for (size_t m = 0; m < chosen.size(); ++m) {
-        const Mode& mode = *chosen[m];
-        if (mode.lod == LodMode::low && !renderer.model().has_low) {
-            std::fprintf(stderr, "benchmark: %s skipped: the bundle has no lod 1 mesh\n", mode.name);
-            results[mode.name] = {{"skipped", "no lod 1 mesh"}};
-            continue;
-        }
-        const auto deadline = start + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
-                                          std::chrono::duration<double>(per_mode * (m + 1)));
-        std::map<uint32_t, Sample> samples;
-        auto measure = [&](uint32_t n) {
-            Sample s = bench.measure(n, mode.lod, mode.kind);
-            std::fprintf(stderr,
-                         "benchmark: %-15s N=%-7u %7.1f fps (median frame %6.1f, CPU %7.1f ms)  high %u, low %u, impostor %u\n",
-                         mode.name, n, s.fps, s.fps_median, s.cpu_ms, s.by_lod[0], s.by_lod[1], s.by_lod[2]);
-            return s;
-        };
-        bool converged30 = false, converged60 = false;
-        const uint32_t n30 = search(measure, &samples, 30.0, deadline, &converged30);
-        const uint32_t n60 = search(measure, &samples, 60.0, deadline, &converged60);
-        nlohmann::json entry;
-        entry["n_at_30fps"] = n30;
-        entry["n_at_60fps"] = n60;
-        entry["converged_30"] = converged30;
-        entry["converged_60"] = converged60;
-        if (samples.count(n30)) {
-            const Sample& s = samples[n30];
-            entry["lod_split_at_30fps"] = {{"high", s.by_lod[0]}, {"low", s.by_lod[1]}, {"impostor", s.by_lod[2]}};
-        }
-        nlohmann::json list = nlohmann::json::array();
-        for (const auto& [n, s] : samples)
-            list.push_back({{"n", n},
-                            {"fps", std::round(s.fps * 10) / 10},
-                            {"fps_median", std::round(s.fps_median * 10) / 10},
-                            {"cpu_ms_per_frame", std::round(s.cpu_ms * 100) / 100}});
-        entry["samples"] = list;
-        results[mode.name] = entry;
-        std::fprintf(stderr, "benchmark: %-15s %u at 30 fps, %u at 60 fps%s\n", mode.name, n30, n60,
-                     converged30 && converged60 ? "" : " (time budget hit: lower bounds)");
-    }
-    report["results"] = results;
-    const double high = results.contains("high_mesh") ? results["high_mesh"].value("n_at_30fps", 0u) : 0.0;
-    if (high > 0) {
-        nlohmann::json ratios;
-        for (const auto& [name, entry] : results.items())
-            if (entry.contains("n_at_30fps")) ratios[name] = std::round(entry["n_at_30fps"].get<double>() / high * 100) / 100;
-        report["ratio_to_high_mesh_at_30fps"] = ratios;
-    }
-    report["load_average_1min_end"] = load_average();
-    report["seconds"] = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-    const std::string text = report.dump(2) + "\n";
+int run_benchmark_mode(const GlContext& context, Renderer& renderer, const Bundle& bundle, const Options& o) {
+    BenchmarkDesc desc;
+    desc.seed = o.seed;
+    desc.max_seconds = o.max_seconds;
+    desc.modes = o.modes;
+    desc.blend = o.blend;
+    desc.device = context.describe();
+    desc.log = [](const std::string& line) { std::fprintf(stderr, "%s\n", line.c_str()); };
+    const std::string text = run_benchmark(renderer, bundle, desc).dump(2) + "\n";
     std::fputs(text.c_str(), stdout);
     if (!o.report.empty()) {
         std::ofstream out(o.report);
@@ -471,13 +297,13 @@ int run_view(GlContext& context, Renderer& renderer, const Bundle& bundle, const
     uint32_t variations = 1;
     for (const MaterialInfo& m : bundle.manifest.materials) variations = std::max(variations, m.variations);
     const Crowd crowd = make_crowd(desc, variations, bundle.manifest.outfit_count, float(model.frame_count) / model.frames_per_second);
-    Camera camera = o.camera == "street" ? street_camera(crowd, character_height(model))
-                                         : camera_for_crowd(crowd, character_height(model), renderer.aspect(), 0.35f);
+    Camera camera = o.camera == CameraView::street ? street_camera(crowd, character_height(model))
+                                                   : camera_for_crowd(crowd, character_height(model), renderer.aspect(), 0.35f);
     camera.near_m = 0.1f;
     camera.far_m = std::max(camera.far_m * 4.0f, 200.0f);
-    LodMode mode = lod_mode(o.lod);
-    ImpostorKind kind = (o.lod == "detail" || o.impostors == "detail") ? ImpostorKind::detail : ImpostorKind::uv;
-    const LodRule rule = lod_rule_for(renderer, camera);
+    DrawChoice choice = draw_choice(o.lod, o.impostors);
+    const LodRule rule = lod_rule_for(model, camera, float(renderer.height()));
+    const glm::vec3 light = scene_light_dir();
     std::vector<Lod> state;
     FrameInstances frame;
     FlyControls controls;
@@ -490,23 +316,20 @@ int run_view(GlContext& context, Renderer& renderer, const Bundle& bundle, const
     for (int i = 0; frames < 0 || i < frames; ++i) {
         if (context.should_close()) break;
         const auto now = std::chrono::steady_clock::now();
-        const float dt = windowed ? std::chrono::duration<float>(now - last).count() : kFixedStep;
+        const float dt = windowed ? std::chrono::duration<float>(now - last).count() : kFixedTimeStep;
         last = now;
-        time_s = windowed ? time_s + dt : float(i) * kFixedStep;
+        time_s = windowed ? time_s + dt : float(i) * kFixedTimeStep;
         if (windowed) {
             GLFWwindow* w = context.window();
             controls.update(w, &camera, dt);
-            const char* names[] = {"auto", "high", "low", "impostor", "detail"};
+            const LodChoice keys[] = {LodChoice::automatic, LodChoice::high, LodChoice::low, LodChoice::impostor, LodChoice::detail};
             for (int k = 0; k < 5; ++k)
-                if (glfwGetKey(w, GLFW_KEY_1 + k) == GLFW_PRESS) {
-                    mode = lod_mode(names[k]);
-                    kind = k == 4 ? ImpostorKind::detail : ImpostorKind::uv;
-                }
+                if (glfwGetKey(w, GLFW_KEY_1 + k) == GLFW_PRESS) choice = draw_choice(keys[k], ImpostorKind::uv);
             if (glfwGetKey(w, GLFW_KEY_ESCAPE) == GLFW_PRESS) break;
         }
         // The frame: cull and choose LODs on the CPU, then a few instanced draws.
-        build_frame(crowd, model, camera, renderer.aspect(), mode, rule, time_s, &state, &frame);
-        stats = renderer.draw(frame, camera, kind, kLightDir);
+        build_frame(crowd, model, camera, renderer.aspect(), choice.lod, rule, time_s, &state, &frame, o.blend);
+        stats = renderer.draw(frame, camera, choice.kind, light);
         if (windowed) {
             int w = 0, h = 0;
             glfwGetFramebufferSize(context.window(), &w, &h);
@@ -539,9 +362,8 @@ int main(int argc, char** argv) {
 
     // 1. Bundle: from a folder, or fetched through the cache; verified either way.
     Bundle bundle;
-    const std::string source = !o.verify.empty() ? o.verify : !o.url.empty() ? o.url : o.bundle_dir;
-    const Status status = load(source, o, &bundle);
-    if (!o.verify.empty()) {
+    const Status status = load(o, &bundle);
+    if (o.verify_only) {
         if (status) std::printf("OK %s %s (%zu files)\n", bundle.manifest.name.c_str(), bundle.manifest.version.c_str(),
                                 bundle.manifest.files.size());
         else std::printf("%s %s\n", error_code_name(status.code), status.file.c_str());
@@ -576,5 +398,5 @@ int main(int argc, char** argv) {
     }
 
     // 3. Run.
-    return o.benchmark ? run_benchmark(*context, *renderer, bundle, o) : run_view(*context, *renderer, bundle, o);
+    return o.benchmark ? run_benchmark_mode(*context, *renderer, bundle, o) : run_view(*context, *renderer, bundle, o);
 }

@@ -200,12 +200,60 @@ struct Renderer::Part {
     bool garment = false;
 };
 
+namespace {
+
+// Uniform locations, looked up once when a program is linked (-1: the program has no such
+// uniform, which glUniform* ignores).
+struct MeshUniforms {
+    GLint view_projection = -1, light_dir = -1, vertex_count = -1, variations = -1, has_regions = -1;
+};
+
+struct ImpostorUniforms {
+    GLint view_projection = -1, light_dir = -1, camera_position = -1, center = -1, radius = -1, tile_size = -1,
+          azimuth_count = -1, material_count = -1;
+    GLint variations[CV_MAX_MATERIALS], has_regions[CV_MAX_MATERIALS];
+};
+
+MeshUniforms mesh_uniforms(GLuint program) {
+    MeshUniforms u;
+    u.view_projection = uniform(program, "u_view_projection");
+    u.light_dir = uniform(program, "u_light_dir");
+    u.vertex_count = uniform(program, "u_vertex_count");
+    u.variations = uniform(program, "u_variations");
+    u.has_regions = uniform(program, "u_has_regions");
+    return u;
+}
+
+ImpostorUniforms impostor_uniforms(GLuint program) {
+    ImpostorUniforms u;
+    u.view_projection = uniform(program, "u_view_projection");
+    u.light_dir = uniform(program, "u_light_dir");
+    u.camera_position = uniform(program, "u_camera_position");
+    u.center = uniform(program, "u_center");
+    u.radius = uniform(program, "u_radius");
+    u.tile_size = uniform(program, "u_tile_size");
+    u.azimuth_count = uniform(program, "u_azimuth_count");
+    u.material_count = uniform(program, "u_material_count");
+    for (int k = 0; k < CV_MAX_MATERIALS; ++k) {
+        const std::string index = "[" + std::to_string(k) + "]";
+        u.variations[k] = uniform(program, ("u_variations" + index).c_str());
+        u.has_regions[k] = uniform(program, ("u_has_regions" + index).c_str());
+    }
+    return u;
+}
+
+}  // namespace
+
 struct Renderer::Impl {
     GLuint framebuffer = 0, color = 0, depth = 0;
     GLuint mesh_program = 0, impostor_uv_program = 0, impostor_detail_program = 0;
+    MeshUniforms mesh_uniforms;
+    ImpostorUniforms impostor_uv_uniforms, impostor_detail_uniforms;
     std::vector<Part> parts;
     GLuint impostor_vao = 0;
     GLuint instance_buffers[3] = {0, 0, 0};  // by Lod
+    GLuint impostor_sample_buffer = 0;       // struct ImpostorSamples, one per impostor
+    std::vector<ImpostorSamples> nearest_samples;  // for frames built without samples
     std::vector<GLuint> diffuse;
     std::vector<int> variations;
     std::vector<bool> has_regions;
@@ -222,6 +270,7 @@ struct Renderer::Impl {
         }
         glDeleteVertexArrays(1, &impostor_vao);
         glDeleteBuffers(3, instance_buffers);
+        glDeleteBuffers(1, &impostor_sample_buffer);
         glDeleteTextures(GLsizei(diffuse.size()), diffuse.data());
         GLuint textures[] = {empty_array, outfits, normal_map, uv_map, detail_map};
         glDeleteTextures(5, textures);
@@ -299,6 +348,9 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
         *error = fn + shader_error;
         return nullptr;
     }
+    g.mesh_uniforms = mesh_uniforms(g.mesh_program);
+    g.impostor_uv_uniforms = impostor_uniforms(g.impostor_uv_program);
+    g.impostor_detail_uniforms = impostor_uniforms(g.impostor_detail_program);
     // Sampler units are fixed (config.h), so they are set once.
     glUseProgram(g.mesh_program);
     glUniform1i(uniform(g.mesh_program, "u_poses"), CV_UNIT_POSES);
@@ -378,6 +430,20 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
     glBindVertexArray(g.impostor_vao);
     label(GL_VERTEX_ARRAY, g.impostor_vao, "impostors");
     bind_instance_attributes(g.instance_buffers[int(Lod::impostor)]);
+    glGenBuffers(1, &g.impostor_sample_buffer);
+    glBindBuffer(GL_ARRAY_BUFFER, g.impostor_sample_buffer);
+    label(GL_BUFFER, g.impostor_sample_buffer, "instances:impostor-samples");
+    const GLsizei stride = sizeof(ImpostorSamples);
+    glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_TILES);
+    glVertexAttribIPointer(CV_ATTR_IMPOSTOR_TILES, 4, GL_UNSIGNED_INT, stride, (void*)offsetof(ImpostorSamples, tiles));
+    glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_VIEW_WEIGHTS);
+    glVertexAttribPointer(CV_ATTR_IMPOSTOR_VIEW_WEIGHTS, 4, GL_FLOAT, GL_FALSE, stride, (void*)offsetof(ImpostorSamples, view_weights));
+    glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_LAYERS);
+    glVertexAttribIPointer(CV_ATTR_IMPOSTOR_LAYERS, 2, GL_UNSIGNED_INT, stride, (void*)offsetof(ImpostorSamples, layers));
+    glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_FRAME_WEIGHT);
+    glVertexAttribPointer(CV_ATTR_IMPOSTOR_FRAME_WEIGHT, 1, GL_FLOAT, GL_FALSE, stride, (void*)offsetof(ImpostorSamples, frame_weight));
+    for (GLuint a : {CV_ATTR_IMPOSTOR_TILES, CV_ATTR_IMPOSTOR_VIEW_WEIGHTS, CV_ATTR_IMPOSTOR_LAYERS, CV_ATTR_IMPOSTOR_FRAME_WEIGHT})
+        glVertexAttribDivisor(a, 1);
     glBindVertexArray(0);
 
     // Textures.
@@ -464,15 +530,34 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
         glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(list.size() * sizeof(Instance)), list.empty() ? nullptr : list.data(),
                      GL_STREAM_DRAW);
     }
+    // The impostors' blend samples; a frame built without them shows each impostor's nearest
+    // view and frame (its Instance's tile and layer).
+    const std::vector<Instance>& impostor_list = frame.by_lod[int(Lod::impostor)];
+    const std::vector<ImpostorSamples>* samples = &frame.impostor_samples;
+    if (samples->size() != impostor_list.size()) {
+        g.nearest_samples.resize(impostor_list.size());
+        for (size_t i = 0; i < impostor_list.size(); ++i) {
+            ImpostorSamples& s = g.nearest_samples[i];
+            s = ImpostorSamples{};
+            for (uint32_t& t : s.tiles) t = impostor_list[i].tile;
+            s.view_weights[0] = 1;
+            s.layers[0] = s.layers[1] = impostor_list[i].frame;
+        }
+        samples = &g.nearest_samples;
+    }
+    glBindBuffer(GL_ARRAY_BUFFER, g.impostor_sample_buffer);
+    glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(samples->size() * sizeof(ImpostorSamples)), samples->empty() ? nullptr : samples->data(),
+                 GL_STREAM_DRAW);
     const glm::mat4 view_projection = camera.projection(aspect()) * camera.view();
     const glm::vec3 light = glm::normalize(light_dir);
     glActiveTexture(GL_TEXTURE0 + CV_UNIT_OUTFITS);
     glBindTexture(GL_TEXTURE_2D, g.outfits);
 
     // 2. Meshes: one instanced draw per part per mesh LOD.
+    const MeshUniforms& mu = g.mesh_uniforms;
     glUseProgram(g.mesh_program);
-    glUniformMatrix4fv(uniform(g.mesh_program, "u_view_projection"), 1, GL_FALSE, glm::value_ptr(view_projection));
-    glUniform3fv(uniform(g.mesh_program, "u_light_dir"), 1, glm::value_ptr(light));
+    glUniformMatrix4fv(mu.view_projection, 1, GL_FALSE, glm::value_ptr(view_projection));
+    glUniform3fv(mu.light_dir, 1, glm::value_ptr(light));
     for (const Part& p : g.parts) {
         const GLsizei count = GLsizei(frame.by_lod[int(p.lod)].size());
         if (count == 0) continue;
@@ -483,9 +568,9 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
         glBindTexture(GL_TEXTURE_BUFFER, p.pose_texture);
         glActiveTexture(GL_TEXTURE0 + CV_UNIT_DIFFUSE0);
         glBindTexture(GL_TEXTURE_2D_ARRAY, g.diffuse[p.material]);
-        glUniform1i(uniform(g.mesh_program, "u_vertex_count"), GLint(p.vertex_count));
-        glUniform1i(uniform(g.mesh_program, "u_variations"), g.variations[p.material]);
-        glUniform1i(uniform(g.mesh_program, "u_has_regions"), g.has_regions[p.material] ? 1 : 0);
+        glUniform1i(mu.vertex_count, GLint(p.vertex_count));
+        glUniform1i(mu.variations, g.variations[p.material]);
+        glUniform1i(mu.has_regions, g.has_regions[p.material] ? 1 : 0);
         glBindVertexArray(p.vao);
         glDrawElementsInstanced(GL_TRIANGLES, GLsizei(p.index_count), GL_UNSIGNED_INT, nullptr, count);
         ++stats.draw_calls;
@@ -496,16 +581,17 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
     // 3. Impostors: one instanced draw of camera-facing quads.
     const std::vector<Instance>& quads = frame.by_lod[int(Lod::impostor)];
     if (!quads.empty()) {
-        const GLuint program = impostors == ImpostorKind::uv ? g.impostor_uv_program : g.impostor_detail_program;
-        glUseProgram(program);
-        glUniformMatrix4fv(uniform(program, "u_view_projection"), 1, GL_FALSE, glm::value_ptr(view_projection));
-        glUniform3fv(uniform(program, "u_light_dir"), 1, glm::value_ptr(light));
-        glUniform3fv(uniform(program, "u_camera_position"), 1, glm::value_ptr(camera.position));
-        glUniform3fv(uniform(program, "u_center"), 1, glm::value_ptr(model_.center));
-        glUniform1f(uniform(program, "u_radius"), model_.radius);
-        glUniform1i(uniform(program, "u_tile_size"), GLint(g.tile_size));
-        glUniform1i(uniform(program, "u_azimuth_count"), GLint(g.azimuth_count));
-        glUniform1i(uniform(program, "u_material_count"), GLint(g.diffuse.size()));
+        const bool uv = impostors == ImpostorKind::uv;
+        const ImpostorUniforms& iu = uv ? g.impostor_uv_uniforms : g.impostor_detail_uniforms;
+        glUseProgram(uv ? g.impostor_uv_program : g.impostor_detail_program);
+        glUniformMatrix4fv(iu.view_projection, 1, GL_FALSE, glm::value_ptr(view_projection));
+        glUniform3fv(iu.light_dir, 1, glm::value_ptr(light));
+        glUniform3fv(iu.camera_position, 1, glm::value_ptr(camera.position));
+        glUniform3fv(iu.center, 1, glm::value_ptr(model_.center));
+        glUniform1f(iu.radius, model_.radius);
+        glUniform1i(iu.tile_size, GLint(g.tile_size));
+        glUniform1i(iu.azimuth_count, GLint(g.azimuth_count));
+        glUniform1i(iu.material_count, GLint(g.diffuse.size()));
         glActiveTexture(GL_TEXTURE0 + CV_UNIT_IMPOSTOR_NORMAL);
         glBindTexture(GL_TEXTURE_2D_ARRAY, g.normal_map);
         glActiveTexture(GL_TEXTURE0 + CV_UNIT_IMPOSTOR_UV);
@@ -516,9 +602,8 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
             const bool used = size_t(k) < g.diffuse.size();
             glActiveTexture(GL_TEXTURE0 + CV_UNIT_DIFFUSE0 + k);
             glBindTexture(GL_TEXTURE_2D_ARRAY, used ? g.diffuse[k] : g.empty_array);
-            const std::string index = "[" + std::to_string(k) + "]";
-            glUniform1i(uniform(program, ("u_variations" + index).c_str()), used ? g.variations[k] : 1);
-            glUniform1i(uniform(program, ("u_has_regions" + index).c_str()), used && g.has_regions[k] ? 1 : 0);
+            glUniform1i(iu.variations[k], used ? g.variations[k] : 1);
+            glUniform1i(iu.has_regions[k], used && g.has_regions[k] ? 1 : 0);
         }
         glBindVertexArray(g.impostor_vao);
         glDrawArraysInstanced(GL_TRIANGLE_STRIP, 0, 4, GLsizei(quads.size()));

@@ -27,6 +27,10 @@ struct DrawStats {
     uint64_t triangles = 0;
 };
 
+// Every scene is lit dynamically, as in the paper's test: a sun up and to the side, so the
+// normal maps show. Points towards the light.
+inline glm::vec3 scene_light_dir() { return glm::normalize(glm::vec3(0.4f, 0.8f, 0.45f)); }
+
 // What the crowd code needs from a bundle (centre, radius, frames, the impostor layout).
 CharacterModel character_model(const Bundle& bundle);
 

@@ -1,5 +1,7 @@
 """crowdview fetching a bundle over real HTTP: dropped connections resume with Range requests,
-servers without Range support are downloaded again, tampered and missing files are refused.
+servers without Range support are downloaded again, tampered and missing files are refused, a
+dripping server meets the deadline, a manifest claiming a huge file meets the cache budget, a
+private bundle needs the bearer key (never printed), and `latest` is resolved to one version.
 
     python3 http_fetch_test.py CROWDVIEW MAKE_SYNTHETIC_BUNDLE
 
@@ -9,14 +11,20 @@ bundles/{name}/{version}/manifest.json and bundles/{name}/{version}/files/{path}
 from __future__ import annotations
 
 import http.server
+import json
+import os
 import shutil
 import subprocess
 import sys
 import tempfile
 import threading
+import time
 from pathlib import Path
 
-BUNDLE = "bundles/synthetic-walker/1.0.0"
+BUNDLE_DIR = "bundles/synthetic-walker"
+BUNDLE = f"{BUNDLE_DIR}/1.0.0"
+KEY = "s3cret-test-key-4711"
+DRIP_BYTES_PER_S = 2
 
 
 class Handler(http.server.BaseHTTPRequestHandler):
@@ -24,10 +32,25 @@ class Handler(http.server.BaseHTTPRequestHandler):
     cut_once: set[str] = set()  # paths whose next response stops halfway and drops the connection
     ranges = True               # honour Range requests
     log: list[tuple[str, str | None]] = []
+    drip_prefix = "drip/"       # paths under it are sent at DRIP_BYTES_PER_S
+    private_prefix = "private/"  # paths under it need "Authorization: Bearer " + KEY
+    latest: str = "1.0.0"        # what bundles/<name>/latest/ means; see on_latest_manifest
+    on_latest_manifest = None    # called after a latest manifest is sent (a publish in between)
 
     def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
         path = self.path.lstrip("/")
         Handler.log.append((path, self.headers.get("Range")))
+        if path.startswith(self.private_prefix):
+            if self.headers.get("Authorization") != f"Bearer {KEY}":
+                self.send_error(401)
+                return
+            path = path[len(self.private_prefix):]
+        drip = path.startswith(self.drip_prefix)
+        if drip:
+            path = path[len(self.drip_prefix):]
+        latest_manifest = f"{BUNDLE_DIR}/latest/manifest.json"
+        is_latest_manifest = path == latest_manifest
+        path = path.replace(f"{BUNDLE_DIR}/latest/", f"{BUNDLE_DIR}/{Handler.latest}/")
         file = self.root / path
         if not file.is_file():
             self.send_error(404)
@@ -47,6 +70,17 @@ class Handler(http.server.BaseHTTPRequestHandler):
         body = data[start:]
         self.send_header("Content-Length", str(len(body)))
         self.end_headers()
+        if is_latest_manifest and Handler.on_latest_manifest:
+            Handler.on_latest_manifest()
+        if drip and not path.endswith("manifest.json"):
+            try:
+                for i in range(0, len(body), DRIP_BYTES_PER_S):
+                    self.wfile.write(body[i:i + DRIP_BYTES_PER_S])
+                    self.wfile.flush()
+                    time.sleep(1)
+            except OSError:  # the client gave up: what the test wants
+                pass
+            return
         if path in Handler.cut_once:
             Handler.cut_once.discard(path)
             self.wfile.write(body[: len(body) // 2])
@@ -62,6 +96,86 @@ class Handler(http.server.BaseHTTPRequestHandler):
 
 def run(crowdview: str, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run([crowdview, *args], capture_output=True, text=True, timeout=120)
+
+
+def check_limits(run, check, crowdview, served: Path, base: str, work: Path) -> None:
+    # 6. A server dripping 2 bytes/s: under the stall rule's 1 byte/s floor it would be waited
+    #    for for ever; the total deadline ends the fetch, and nothing partial is kept.
+    started = time.monotonic()
+    result = run(crowdview, "--verify", f"{base}/drip/{BUNDLE}", "--cache", str(work / "cache-drip"), "--timeout", "3")
+    elapsed = time.monotonic() - started
+    check(result.returncode == 1 and result.stdout.startswith("fetch_failed "), "drip: fetch_failed", result)
+    check("deadline" in result.stderr, "drip: the deadline is named", result)
+    check(elapsed < 15, f"drip: gave up after {elapsed:.1f} s")
+    check(not list((work / "cache-drip" / "partial").glob("*")), "drip: no partial file kept")
+
+    # 7. A manifest claiming a 10^12-byte file is refused before any file is requested, and
+    #    nothing is written; with a budget that admits it, no more than the real bytes are
+    #    written and the short file is deleted.
+    huge = served.parent / "9.9.9"
+    shutil.copytree(served, huge)
+    manifest = json.loads((huge / "manifest.json").read_text())
+    entry = next(f for f in manifest["files"] if f["path"] == "impostor/uv.cbtx")
+    entry["size"] = 10**12
+    manifest["version"] = "9.9.9"
+    (huge / "manifest.json").write_text(json.dumps(manifest))
+    Handler.log.clear()
+    result = run(crowdview, "--verify", f"{base}/{BUNDLE_DIR}/9.9.9", "--cache", str(work / "cache-huge"))
+    check(result.returncode == 1 and result.stdout.strip() == "over_budget manifest.json", "huge manifest: over_budget", result)
+    check([p for p, _ in Handler.log] == [f"{BUNDLE_DIR}/9.9.9/manifest.json"], f"huge manifest: nothing else requested: {Handler.log}")
+    check(not (work / "cache-huge").exists() or not any(p.is_file() for p in (work / "cache-huge").rglob("*")), "huge manifest: nothing written")
+    result = run(crowdview, "--verify", f"{base}/{BUNDLE_DIR}/9.9.9", "--cache", str(work / "cache-huge2"),
+                 "--cache-budget-mib", str(2 * 10**6))
+    check(result.returncode == 1 and result.stdout.strip() == "size_mismatch impostor/uv.cbtx", "huge file admitted: size_mismatch", result)
+    check(not list((work / "cache-huge2" / "partial").glob("*")), "huge file admitted: partial file deleted")
+    shutil.rmtree(huge)
+
+
+def check_key(run, check, crowdview, base: str, work: Path) -> None:
+    # 8. A private bundle: no key is unauthorized, a wrong key too, the right one (from the
+    #    environment or --key) fetches it. The key never appears in anything printed.
+    url = f"{base}/private/{BUNDLE}"
+    result = run(crowdview, "--verify", url, "--cache", str(work / "cache-key"))
+    check(result.returncode == 1 and result.stdout.strip() == "unauthorized manifest.json", "no key: unauthorized", result)
+    check("CROWDVIEW_API_KEY" in result.stderr, "no key: says how to give one", result)
+    result = run(crowdview, "--verify", url, "--cache", str(work / "cache-key"), "--key", "wrong-" + KEY)
+    check(result.returncode == 1 and result.stdout.strip() == "unauthorized manifest.json", "wrong key: unauthorized", result)
+    check(KEY not in result.stdout + result.stderr, "wrong key: not printed", result)
+    os.environ["CROWDVIEW_API_KEY"] = KEY
+    try:
+        result = run(crowdview, "--verify", url, "--cache", str(work / "cache-key"))
+    finally:
+        del os.environ["CROWDVIEW_API_KEY"]
+    check(result.returncode == 0 and result.stdout.startswith("OK synthetic-walker"), "key from the environment", result)
+    check(KEY not in result.stdout + result.stderr, "key not printed", result)
+    result = run(crowdview, "--verify", url, "--cache", str(work / "cache-key2"), "--key", KEY)
+    check(result.returncode == 0, "key from --key", result)
+    check(KEY not in result.stdout + result.stderr, "--key not printed", result)
+
+
+def check_latest(run, check, crowdview, served: Path, base: str, work: Path) -> None:
+    # 9. `latest` is resolved once: 2.0.0 (other bytes) is published right after the manifest
+    #    of 1.0.0 went out; every file still comes from 1.0.0.
+    newer = served.parent / "2.0.0"
+    shutil.copytree(served, newer)
+    manifest = json.loads((newer / "manifest.json").read_text())
+    manifest["version"] = "2.0.0"
+    (newer / "manifest.json").write_text(json.dumps(manifest))
+    victim = newer / "files" / "poses" / "body_lod0.cbpc"
+    data = bytearray(victim.read_bytes())
+    data[200] ^= 0xFF
+    victim.write_bytes(bytes(data))  # what a mixed fetch would get: bytes 1.0.0's manifest refuses
+    Handler.latest = "1.0.0"
+    Handler.on_latest_manifest = lambda: setattr(Handler, "latest", "2.0.0")
+    Handler.log.clear()
+    result = run(crowdview, "--verify", f"{base}/{BUNDLE_DIR}/latest", "--cache", str(work / "cache-latest"))
+    Handler.on_latest_manifest = None
+    check(result.returncode == 0 and result.stdout.startswith("OK synthetic-walker 1.0.0"), "latest: one version", result)
+    files = [p for p, _ in Handler.log if "/files/" in p]
+    check(files and all(p.startswith(f"{BUNDLE}/files/") for p in files), f"latest: files by the concrete version: {files[:3]}")
+    check("latest is 1.0.0" in result.stderr, "latest: the resolution is logged", result)
+    Handler.latest = "1.0.0"
+    shutil.rmtree(newer)
 
 
 def main() -> int:
@@ -128,7 +242,14 @@ def main() -> int:
         result = run(crowdview, "--verify", url, "--cache", str(work / "cache-missing"))
         check(result.returncode == 1 and result.stdout.strip() == "missing_file poses/body_lod0.cbpc", "missing file", result)
         result = run(crowdview, "--verify", url + "-nope", "--cache", str(work / "cache-missing"))
-        check(result.returncode == 1 and result.stdout.strip() == "manifest_invalid manifest.json", "missing bundle", result)
+        check(result.returncode == 1 and result.stdout.strip() == "not_found manifest.json", "missing bundle is not_found", result)
+        check("no bundle at" in result.stderr, "not found says so", result)
+        shutil.copy(work / "bundle" / "poses" / "body_lod0.cbpc", victim)  # whole again
+
+        base = f"http://127.0.0.1:{server.server_address[1]}"
+        check_limits(run, check, crowdview, served, base, work)
+        check_key(run, check, crowdview, base, work)
+        check_latest(run, check, crowdview, served, base, work)
         server.shutdown()
     finally:
         shutil.rmtree(work, ignore_errors=True)

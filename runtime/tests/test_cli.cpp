@@ -52,7 +52,8 @@ std::string describe(const Run& r) { return "exit " + std::to_string(r.status) +
 void test_arguments() {
     const std::vector<std::string> bad = {"", "--count", "--count abc", "--count 0", "--width 10", "--lod hires --bundle x",
                                           "--bundle a --url b", "--frobnicate", "--layout zigzag --bundle x", "--camera drone --bundle x",
-                                          "--report r.json --bundle x"};
+                                          "--report r.json --bundle x", "--impostor-blend smooth --bundle x",
+                                          "--timeout 0 --url http://h/x", "--cache-budget-mib -1 --url http://h/x"};
     for (const std::string& args : bad) {
         const Run r = crowdview(args);
         CHECK_MSG(r.status == 2 && one_line(r.err) && r.err.rfind("crowdview: ", 0) == 0, "'" + args + "': " + describe(r));
@@ -116,6 +117,12 @@ void test_headless(const std::string& bundle, const std::string& work) {
     }
     CHECK(j["triangles_per_character"]["high"].get<int>() > j["triangles_per_character"]["low"].get<int>());
     CHECK(j["seconds"].get<double>() < 30);
+    // The cost of blending: UV impostors timed with it off and on at one crowd size.
+    CHECK(j["impostor_blend"] == "full");
+    CHECK_MSG(j["impostor_blend_cost"]["fps_off"].get<double>() > 0 && j["impostor_blend_cost"]["fps_blended"].get<double>() > 0,
+              j["impostor_blend_cost"].dump());
+    r = crowdview("--bundle '" + bundle + "' --headless --frames 2 --count 12 --width 160 --height 120 --lod impostor --impostor-blend off");
+    CHECK_MSG(r.status == 0, describe(r));
 }
 
 }  // namespace

@@ -1,5 +1,6 @@
 // The crowd without GL: the 1:1 pixel-to-texel LOD rule and its hysteresis, impostor view
-// selection in the character's frame, culling, determinism and frame selection.
+// selection in the character's frame, view and frame blending weights, culling, determinism
+// and frame selection.
 #include <cmath>
 
 #include <glm/gtc/matrix_transform.hpp>
@@ -200,6 +201,92 @@ void test_crowd_and_frames() {
     CHECK(impostor_layer(7, {0, 3}, 8) == 0); // 0 is one frame away around the cycle, 3 is four
 }
 
+// Weight of `tile` in `w` (0 when absent; repeated tiles add up).
+float weight_of(const ViewWeights& w, uint32_t tile) {
+    float total = 0;
+    for (int k = 0; k < 4; ++k) total += w.tiles[k] == tile ? w.weights[k] : 0.0f;
+    return total;
+}
+
+void test_view_blending() {
+    const uint32_t columns = uint32_t(kAzimuths.size());
+    auto blend = [](float azimuth, float elevation) { return blend_view_weights({azimuth, elevation}, kAzimuths, kElevations); };
+    // On a baked view: that view alone.
+    CHECK_NEAR(weight_of(blend(60, 0), 2), 1.0f, 1e-6);
+    CHECK_NEAR(weight_of(blend(60, 30), 2 + columns), 1.0f, 1e-6);
+    // Half way in azimuth: the two neighbours, half each.
+    CHECK_NEAR(weight_of(blend(15, 0), 0), 0.5f, 1e-6);
+    CHECK_NEAR(weight_of(blend(15, 0), 1), 0.5f, 1e-6);
+    // A third of the way from 90 to 120: two thirds on 90.
+    CHECK_NEAR(weight_of(blend(100, 0), 3), 2.0f / 3.0f, 1e-5);
+    CHECK_NEAR(weight_of(blend(100, 0), 4), 1.0f / 3.0f, 1e-5);
+    // Around the wrap: 345 lies half way between 330 and 0; -15 is the same direction.
+    CHECK_NEAR(weight_of(blend(345, 0), 11), 0.5f, 1e-5);
+    CHECK_NEAR(weight_of(blend(345, 0), 0), 0.5f, 1e-5);
+    CHECK_NEAR(weight_of(blend(-15, 0), 11), 0.5f, 1e-5);
+    // Bilinear: half way in azimuth and elevation, a quarter on each of four tiles.
+    for (uint32_t tile : {0u, 1u, columns, columns + 1}) CHECK_NEAR(weight_of(blend(15, 15), tile), 0.25f, 1e-5);
+    // Elevation clamped to the baked rows: above the top row, the top row alone.
+    CHECK_NEAR(weight_of(blend(0, 70), columns), 1.0f, 1e-6);
+    CHECK_NEAR(weight_of(blend(0, -40), 0), 1.0f, 1e-6);
+    // Unsorted rows and columns, and a single azimuth.
+    const ViewWeights unsorted = blend_view_weights({45, 20}, {90, 0, 60, 30}, {40, 0});
+    // Tile = column + row * 4: azimuth 30 is column 3, 60 column 2; elevation 40 row 0, 0 row 1.
+    for (uint32_t tile : {3u, 2u, 3u + 4u, 2u + 4u}) CHECK_NEAR(weight_of(unsorted, tile), 0.25f, 1e-5);
+    CHECK_NEAR(weight_of(unsorted, 0u + 4u), 0.0f, 1e-6);
+    const ViewWeights single = blend_view_weights({123, 0}, {0}, {0});
+    CHECK_NEAR(weight_of(single, 0), 1.0f, 1e-6);
+    // Everywhere: weights in [0, 1] summing to 1, the heaviest tile is the nearest view (away
+    // from ties), and the weights follow the camera in the character's frame.
+    for (float heading = 0; heading < 360; heading += 41)
+        for (float az = 0; az < 360; az += 11)
+            for (float el = -20; el < 60; el += 13) {
+                const glm::vec2 angles = view_angles_deg(direction(az + heading, el) * 3.0f, glm::radians(heading));
+                const ViewWeights w = blend_view_weights(angles, kAzimuths, kElevations);
+                float sum = 0, heaviest = -1;
+                uint32_t heaviest_tile = 0;
+                for (int k = 0; k < 4; ++k) {
+                    CHECK(w.weights[k] >= 0.0f && w.weights[k] <= 1.0f);
+                    sum += w.weights[k];
+                }
+                for (int k = 0; k < 4; ++k)
+                    if (weight_of(w, w.tiles[k]) > heaviest) heaviest = weight_of(w, w.tiles[k]), heaviest_tile = w.tiles[k];
+                CHECK_NEAR(sum, 1.0f, 1e-5);
+                const ImpostorView nearest = select_view(direction(az + heading, el), glm::radians(heading), kAzimuths, kElevations);
+                const float az_off = std::fmod(az + 3600.0f, 30.0f), el_clamped = glm::clamp(el, 0.0f, 30.0f);
+                if (std::fabs(az_off - 15.0f) > 0.5f && std::fabs(el_clamped - 15.0f) > 0.5f)
+                    CHECK_MSG(heaviest_tile == nearest.azimuth + nearest.elevation * columns,
+                              "az " + std::to_string(az) + " el " + std::to_string(el) + " heading " + std::to_string(heading));
+            }
+    // Nearest, as ViewWeights: one tile with all the weight, the same as select_view.
+    const ViewWeights nearest = nearest_view_weights({100, 20}, kAzimuths, kElevations);
+    CHECK(nearest.tiles[0] == 3 + columns && nearest.weights[0] == 1.0f);
+}
+
+void test_frame_blending() {
+    const std::vector<uint32_t> baked = {0, 2, 4, 6};
+    FrameWeights f = blend_frame_weights(2, baked, 8);  // a baked frame: that layer alone
+    CHECK(f.layers[0] == 1 && f.weight == 0.0f);
+    f = blend_frame_weights(3, baked, 8);  // half way between baked frames 2 and 4
+    CHECK(f.layers[0] == 1 && f.layers[1] == 2);
+    CHECK_NEAR(f.weight, 0.5f, 1e-6);
+    f = blend_frame_weights(7, baked, 8);  // wraps from 6 through 8 to 0
+    CHECK(f.layers[0] == 3 && f.layers[1] == 0);
+    CHECK_NEAR(f.weight, 0.5f, 1e-6);
+    f = blend_frame_weights(1, {3, 6}, 9);  // before the first baked frame: from 6 round to 3
+    CHECK(f.layers[0] == 1 && f.layers[1] == 0);
+    CHECK_NEAR(f.weight, 4.0f / 6.0f, 1e-6);  // 6 -> 1 is 4 frames of the 6 from 6 to 3 (+9)
+    f = blend_frame_weights(5, {4}, 8);  // a single baked frame
+    CHECK(f.layers[0] == 0 && f.layers[1] == 0 && f.weight == 0.0f);
+    // The heavier layer is impostor_layer's nearest one (away from ties).
+    for (uint32_t frame = 0; frame < 24; ++frame) {
+        const std::vector<uint32_t> uneven = {1, 5, 6, 13, 20};
+        const FrameWeights w = blend_frame_weights(frame, uneven, 24);
+        CHECK(w.weight >= 0.0f && w.weight < 1.0f);
+        if (std::fabs(w.weight - 0.5f) > 1e-3f) CHECK(w.layers[w.weight > 0.5f ? 1 : 0] == impostor_layer(frame, uneven, 24));
+    }
+}
+
 void test_build_frame() {
     // A line of characters walking away from the camera along -Z.
     Crowd crowd;
@@ -231,6 +318,19 @@ void test_build_frame() {
         CHECK(inst.frame == 1);  // cycle frame 2 at 0.3 s, baked as layer 1
     }
     CHECK(frame.by_lod[0][0].frame == 2);
+    // Blend samples, one per impostor: the front view alone; cycle frame 2 is baked, so one
+    // layer; with blending off, the same.
+    CHECK(frame.impostor_samples.size() == frame.by_lod[2].size());
+    for (const ImpostorSamples& s : frame.impostor_samples) {
+        CHECK(s.tiles[0] == 0 && std::fabs(s.view_weights[0] - 1.0f) < 1e-5f);
+        CHECK(s.layers[0] == 1 && s.frame_weight == 0.0f);
+    }
+    // At 0.4 s (cycle frame 3, between baked 2 and 4): half each; blending off keeps the nearest.
+    build_frame(crowd, model, camera, 1.5f, LodMode::impostor, rule, 0.4f, &state, &frame, ImpostorBlend::full);
+    CHECK(frame.impostor_samples[0].layers[0] == 1 && frame.impostor_samples[0].layers[1] == 2);
+    CHECK(std::fabs(frame.impostor_samples[0].frame_weight - 0.5f) < 1e-6f);
+    build_frame(crowd, model, camera, 1.5f, LodMode::impostor, rule, 0.4f, &state, &frame, ImpostorBlend::views);
+    CHECK(frame.impostor_samples[0].frame_weight == 0.0f && frame.impostor_samples[0].layers[0] == frame.by_lod[2][0].frame);
     build_frame(crowd, model, camera, 1.5f, LodMode::impostor, rule, 0, &state, &frame);
     CHECK(frame.by_lod[2].size() == 60 && frame.by_lod[0].empty());
     build_frame(crowd, model, camera, 1.5f, LodMode::low, rule, 0, &state, &frame);
@@ -246,6 +346,8 @@ int main() {
     test_switch_distance();
     test_lod_levels();
     test_view_selection();
+    test_view_blending();
+    test_frame_blending();
     test_culling();
     test_crowd_and_frames();
     test_build_frame();

@@ -26,6 +26,28 @@ void test_urls() {
     CHECK(bundle_urls("file:///srv/b", "").file("x/y.cbtx") == "file:///srv/b/x/y.cbtx");
     CHECK(bundle_urls("file:///srv/b", "blobs").file("y") == "file:///srv/b/blobs/y");
     CHECK(cache_blob_path("/c", "ab12") == "/c/blobs/ab/ab12");
+
+    // `latest` is replaced by the manifest's version, only where the URL names that bundle.
+    BundleUrls resolved;
+    CHECK(resolve_latest(bundle_urls("http://h/v1/bundles/walker/latest"), "walker", "1.2.0+b", &resolved));
+    CHECK(resolved.manifest() == "http://h/v1/bundles/walker/1.2.0+b/manifest.json");
+    CHECK(resolved.file("a/b.cbtx") == "http://h/v1/bundles/walker/1.2.0+b/files/a/b.cbtx");
+    CHECK(!resolve_latest(bundle_urls("http://h/v1/bundles/walker/1.0.0"), "walker", "1.2.0", &resolved));
+    CHECK(!resolve_latest(bundle_urls("http://h/v1/bundles/runner/latest"), "walker", "1.2.0", &resolved));
+    CHECK(!resolve_latest(bundle_urls("http://h/v1/bundles/xwalker/latest"), "walker", "1.2.0", &resolved));
+}
+
+void test_deadlines() {
+    FetchOptions o;
+    o.min_rate_bytes_per_s = 1000, o.file_grace_s = 5, o.total_grace_s = 20;
+    CHECK_NEAR(file_deadline_seconds(0, o), 5.0, 1e-9);
+    CHECK_NEAR(file_deadline_seconds(10000, o), 15.0, 1e-9);  // grace + size / rate
+    CHECK_NEAR(total_deadline_seconds(50000, o), 70.0, 1e-9);
+    o.total_timeout_s = 3;  // an explicit total wins
+    CHECK_NEAR(total_deadline_seconds(50000, o), 3.0, 1e-9);
+    // The defaults: a 2 byte/s drip of a 100 kB file is given up long before it ends (14 h).
+    const FetchOptions d;
+    CHECK(file_deadline_seconds(100000, d) < 20.0);
 }
 
 // A served copy of `bundle`: manifest.json at the root, every file under files/.
@@ -148,7 +170,36 @@ void test_fetch(const std::string& bundle, const std::string& work) {
     s = fetch_bundle(tampered_url, fresh, &fetched);
     CHECK_MSG(s.code == ErrorCode::missing_file && s.file == victim, s.message);
     s = fetch_bundle("file://" + work + "/nowhere", fresh, &fetched);
-    CHECK_MSG(s.code == ErrorCode::manifest_invalid && s.file == "manifest.json", s.message);
+    CHECK_MSG(s.code == ErrorCode::not_found && s.file == "manifest.json", s.message);
+
+    // A manifest whose files exceed the cache budget is refused before anything is fetched;
+    // one claiming far more than the server has never leaves a partial file behind.
+    FetchOptions tight = fresh;
+    tight.cache_dir = work + "/cache-budget";
+    uint64_t total = 0;
+    for (const FileEntry& f : files) total += f.size;
+    tight.cache_budget_bytes = total - 1;
+    s = fetch_bundle(url2, tight, &fetched);
+    CHECK_MSG(s.code == ErrorCode::over_budget && s.file == "manifest.json", s.message);
+    CHECK(count_files(tight.cache_dir) == 0);
+    tight.cache_budget_bytes = total;
+    s = fetch_bundle(url2, tight, &fetched);
+    CHECK_MSG(s.ok(), s.message);
+    nlohmann::json claims = nlohmann::json::parse(synthetic::read_text(root + "/manifest.json"));
+    claims["files"][0]["size"] = uint64_t(1000000000000);
+    const std::string huge_root = work + "/huge";
+    serve(bundle, huge_root);
+    const std::string huge_text = claims.dump();
+    synthetic::write_bytes(huge_root + "/manifest.json", std::vector<uint8_t>(huge_text.begin(), huge_text.end()));
+    FetchOptions roomy = fresh;
+    roomy.cache_dir = work + "/cache-huge";
+    s = fetch_bundle("file://" + huge_root, roomy, &fetched);
+    CHECK_MSG(s.code == ErrorCode::over_budget, s.message);
+    CHECK(count_files(roomy.cache_dir) == 0);
+    roomy.cache_budget_bytes = uint64_t(1) << 41;
+    s = fetch_bundle("file://" + huge_root, roomy, &fetched);
+    CHECK_MSG(s.code == ErrorCode::size_mismatch && s.file == claims["files"][0]["path"].get<std::string>(), s.message);
+    CHECK(count_files(roomy.cache_dir + "/partial") == 0);
 
     // A manifest path that would leave the folder is refused before anything is fetched.
     nlohmann::json manifest = nlohmann::json::parse(synthetic::read_text(root + "/manifest.json"));
@@ -171,6 +222,7 @@ void test_fetch(const std::string& bundle, const std::string& work) {
 
 int main() {
     test_urls();
+    test_deadlines();
     const std::string work = synthetic::temp_dir("fetch");
     synthetic::Options small;
     small.tile_size = 16;  // the fetch path does not care about impostor resolution

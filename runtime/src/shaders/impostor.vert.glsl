@@ -2,9 +2,14 @@
 #include "../config.h"
 // A camera-facing quad of 2*radius metres around the character's bounds centre, framed like
 // the bake's orthographic views (SPEC.md "Impostor maps"): right = up x to_camera, +Y up.
+// The (view, frame) samples to blend come from the CPU (view_blend.h) and pass through flat.
 
 layout(location = CV_ATTR_INSTANCE_POSE) in vec4 i_pose;  // feet position, heading
-layout(location = CV_ATTR_INSTANCE_IDS) in uvec4 i_ids;   // atlas layer, variation, outfit, tile
+layout(location = CV_ATTR_INSTANCE_IDS) in uvec4 i_ids;   // nearest layer, variation, outfit, nearest tile
+layout(location = CV_ATTR_IMPOSTOR_TILES) in uvec4 i_tiles;
+layout(location = CV_ATTR_IMPOSTOR_VIEW_WEIGHTS) in vec4 i_view_weights;
+layout(location = CV_ATTR_IMPOSTOR_LAYERS) in uvec2 i_layers;
+layout(location = CV_ATTR_IMPOSTOR_FRAME_WEIGHT) in float i_frame_weight;
 
 uniform mat4 u_view_projection;
 uniform vec3 u_camera_position;
@@ -13,8 +18,12 @@ uniform float u_radius;
 uniform int u_tile_size;
 uniform int u_azimuth_count;
 
-out vec2 v_tile_uv;        // 0..1 across the tile, (0, 0) top-left like the atlas rows
-flat out ivec3 v_tile;     // tile origin texel (x, y) and atlas layer
+out vec2 v_tile_uv;          // 0..1 across the tile, (0, 0) top-left like the atlas rows
+flat out ivec4 v_tile_x;     // the four tiles' origin texels, x
+flat out ivec4 v_tile_y;     // and y
+flat out vec4 v_view_weights;
+flat out ivec2 v_layers;
+flat out float v_frame_weight;
 flat out float v_heading;
 flat out uint v_variation;
 flat out uint v_outfit;
@@ -32,8 +41,12 @@ void main() {
     vec3 up = cross(to_camera, right);
     gl_Position = u_view_projection * vec4(center + (corner.x * right + corner.y * up) * u_radius, 1.0);
     v_tile_uv = vec2(0.5 + 0.5 * corner.x, 0.5 - 0.5 * corner.y);
-    int tile = int(i_ids.w);
-    v_tile = ivec3((tile % u_azimuth_count) * u_tile_size, (tile / u_azimuth_count) * u_tile_size, int(i_ids.x));
+    ivec4 tiles = ivec4(i_tiles);
+    v_tile_x = (tiles % u_azimuth_count) * u_tile_size;
+    v_tile_y = (tiles / u_azimuth_count) * u_tile_size;
+    v_view_weights = i_view_weights;
+    v_layers = ivec2(i_layers);
+    v_frame_weight = i_frame_weight;
     v_heading = i_pose.w;
     v_variation = i_ids.y;
     v_outfit = i_ids.z;

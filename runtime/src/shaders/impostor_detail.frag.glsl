@@ -4,9 +4,14 @@
 // The detail-mapped impostor the paper compares against (Geopostors): the diffuse colour of
 // variation 0 is baked into the detail map, alpha carries the region code. Coverage comes
 // from the UV map (impostor_uv_map.glsl), since region 0 inside the character also has alpha 0.
+// Blended over views and frames like the UV impostor (impostor_uv.frag.glsl).
 
 in vec2 v_tile_uv;
-flat in ivec3 v_tile;
+flat in ivec4 v_tile_x;
+flat in ivec4 v_tile_y;
+flat in vec4 v_view_weights;
+flat in ivec2 v_layers;
+flat in float v_frame_weight;
 flat in float v_heading;
 flat in uint v_variation;
 flat in uint v_outfit;
@@ -20,14 +25,27 @@ uniform vec3 u_light_dir;
 out vec4 o_color;
 
 void main() {
-    ivec3 texel = ivec3(v_tile.xy + clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1)), v_tile.z);
-    if (!fetch_uv_map(texel).covered) discard;
-    vec4 detail = texelFetch(u_detail_map, texel, 0);
-    vec3 albedo = detail.rgb;
-    int region = int(detail.a * 255.0 / CV_REGION_SCALE + 0.5);
-    if (region != 0) albedo *= texelFetch(u_outfits, ivec2(region, int(v_outfit)), 0).rgb;
-
-    vec3 model_normal = texelFetch(u_normal_map, texel, 0).rgb * 2.0 - 1.0;
+    ivec2 local = clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1));
+    float coverage = 0.0;
+    vec3 albedo = vec3(0.0), model_normal = vec3(0.0);
+    for (int j = 0; j < 2; ++j) {
+        float frame_weight = j == 0 ? 1.0 - v_frame_weight : v_frame_weight;
+        for (int i = 0; i < 4; ++i) {
+            float w = v_view_weights[i] * frame_weight;
+            if (w <= 0.0) continue;
+            ivec3 texel = ivec3(ivec2(v_tile_x[i], v_tile_y[i]) + local, v_layers[j]);
+            if (!fetch_uv_map(texel).covered) continue;
+            vec4 detail = texelFetch(u_detail_map, texel, 0);
+            vec3 colour = detail.rgb;
+            int region = int(detail.a * 255.0 / CV_REGION_SCALE + 0.5);
+            if (region != 0) colour *= texelFetch(u_outfits, ivec2(region, int(v_outfit)), 0).rgb;
+            coverage += w;
+            albedo += w * colour;
+            model_normal += w * (texelFetch(u_normal_map, texel, 0).rgb * 2.0 - 1.0);
+        }
+    }
+    if (coverage <= 0.5) discard;  // see impostor_uv.frag.glsl
+    albedo /= coverage;
     float c = cos(v_heading), s = sin(v_heading);
     vec3 normal = normalize(mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c) * model_normal);
     float light = CV_AMBIENT + (1.0 - CV_AMBIENT) * max(dot(normal, u_light_dir), 0.0);

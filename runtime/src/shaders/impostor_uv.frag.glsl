@@ -2,16 +2,24 @@
 #include "../config.h"
 #include "impostor_uv_map.glsl"
 #if CV_MAX_MATERIALS != 4
-#error main samples materials 0 to 3, keep it in step with CV_MAX_MATERIALS
+#error albedo_at samples materials 0 to 3, keep it in step with CV_MAX_MATERIALS
 #endif
 // The paper's UV-mapped impostor (section 5): the UV map's texture coordinates look up the
 // same diffuse arrays as the mesh, so one impostor shows every texture variation; region
 // codes in the diffuse alpha pick the outfit colour; the normal map lights it dynamically.
 // Impostor maps are read with texelFetch: filtering would blend texture coordinates with
 // the background at the silhouette, the artefact the paper describes.
+//
+// Blending (view_blend.h, README "Impostor blending"): up to four views times two frames.
+// Each sample reads its own view's UV map texel and looks up the diffuse texture with that
+// exact coordinate; only the resulting colours, normals and coverage are blended.
 
 in vec2 v_tile_uv;
-flat in ivec3 v_tile;
+flat in ivec4 v_tile_x;
+flat in ivec4 v_tile_y;
+flat in vec4 v_view_weights;
+flat in ivec2 v_layers;
+flat in float v_frame_weight;
 flat in float v_heading;
 flat in uint v_variation;
 flat in uint v_outfit;
@@ -27,10 +35,10 @@ uniform vec3 u_light_dir;
 
 out vec4 o_color;
 
-// Colour (filtered, with explicit gradients: the gradients are taken before the discard) and
-// the unfiltered region alpha of material m. GLSL 3.30 indexes sampler arrays only with
+// Colour (filtered, with explicit gradients, so it may sit in a per-fragment branch) and the
+// unfiltered region alpha of material m. GLSL 3.30 indexes sampler arrays only with
 // constants, so each material is its own block. Every material the bundle has is sampled
-// (a uniform branch) and the texel's own kept, so no lookup sits in a per-fragment branch.
+// (a uniform branch) and the texel's own kept.
 #define CV_SAMPLE_MATERIAL(m)                                                                 \
     if (u_material_count > m) {                                                               \
         float layer = float(v_variation % uint(u_variations[m]));                            \
@@ -42,19 +50,10 @@ out vec4 o_color;
         alpha = material == m ? a : alpha;                                                    \
     }
 
-void main() {
-    ivec2 texel = v_tile.xy + clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1));
-    UvTexel uv_texel = fetch_uv_map(ivec3(texel, v_tile.z));
-    vec2 uv = uv_texel.uv;
-    // Gradients before any discard. Neighbours across the silhouette or a UV seam would ask
-    // for a far too coarse mip level; clamp to a few tile texels' worth of footprint.
-    vec2 dx = dFdx(uv), dy = dFdy(uv);
-    float limit = 4.0 * max(length(dFdx(v_tile_uv)), length(dFdy(v_tile_uv))) + 1e-6;
-    dx *= min(1.0, limit / max(length(dx), 1e-9));
-    dy *= min(1.0, limit / max(length(dy), 1e-9));
-    if (!uv_texel.covered) discard;  // coverage: outside the character
-    int material = uv_texel.material;
-
+// The outfit-coloured diffuse colour at UV map texel `t`.
+vec3 albedo_at(UvTexel t, vec2 dx, vec2 dy) {
+    vec2 uv = t.uv;
+    int material = t.material;
     vec3 albedo = vec3(1.0, 0.0, 1.0);  // magenta: a material index this build cannot address
     float alpha = 0.0;                  // region code * 17 / 255; 0 where a material has no regions
     CV_SAMPLE_MATERIAL(0)
@@ -63,8 +62,39 @@ void main() {
     CV_SAMPLE_MATERIAL(3)
     int region = int(alpha * 255.0 / CV_REGION_SCALE + 0.5);
     if (region != 0) albedo *= texelFetch(u_outfits, ivec2(region, int(v_outfit)), 0).rgb;
+    return albedo;
+}
 
-    vec3 model_normal = texelFetch(u_normal_map, ivec3(texel, v_tile.z), 0).rgb * 2.0 - 1.0;
+void main() {
+    ivec2 local = clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1));
+    // Neighbours across the silhouette or a UV seam would ask for a far too coarse mip level;
+    // clamp the gradients to a few tile texels' worth of footprint.
+    float limit = 4.0 * max(length(dFdx(v_tile_uv)), length(dFdy(v_tile_uv))) + 1e-6;
+    float coverage = 0.0;
+    vec3 albedo = vec3(0.0), model_normal = vec3(0.0);
+    for (int j = 0; j < 2; ++j) {
+        float frame_weight = j == 0 ? 1.0 - v_frame_weight : v_frame_weight;
+        for (int i = 0; i < 4; ++i) {
+            float w = v_view_weights[i] * frame_weight;
+            // Weights are flat per impostor: the whole quad takes this branch together, so the
+            // derivatives inside it are well defined.
+            if (w <= 0.0) continue;
+            ivec3 texel = ivec3(ivec2(v_tile_x[i], v_tile_y[i]) + local, v_layers[j]);
+            UvTexel t = fetch_uv_map(texel);
+            vec2 dx = dFdx(t.uv), dy = dFdy(t.uv);
+            dx *= min(1.0, limit / max(length(dx), 1e-9));
+            dy *= min(1.0, limit / max(length(dy), 1e-9));
+            if (t.covered) {
+                coverage += w;
+                albedo += w * albedo_at(t, dx, dy);
+                model_normal += w * (texelFetch(u_normal_map, texel, 0).rgb * 2.0 - 1.0);
+            }
+        }
+    }
+    // Coverage over one half: where one sample holds most of the weight, its own silhouette; at
+    // an exact tie, where both agree. (At a tie, the union would show both poses' limbs.)
+    if (coverage <= 0.5) discard;
+    albedo /= coverage;
     float c = cos(v_heading), s = sin(v_heading);
     vec3 normal = normalize(mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c) * model_normal);
     float light = CV_AMBIENT + (1.0 - CV_AMBIENT) * max(dot(normal, u_light_dir), 0.0);

@@ -1,0 +1,44 @@
+// The paper's figure 3 on this machine: for each representation, the largest crowd that
+// holds 30 fps and 60 fps (runtime/README.md, "Benchmark"). Needs a current context and an
+// uploaded bundle; writes a JSON report.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "bundle.h"
+#include "crowd.h"
+#include "renderer.h"
+
+namespace crowdview {
+
+// One representation under test: how build_frame chooses LODs and which impostor maps draw.
+enum class BenchmarkMode { high_mesh, low_mesh, uv_impostor, detail_impostor, hybrid };
+constexpr BenchmarkMode kAllBenchmarkModes[] = {BenchmarkMode::high_mesh, BenchmarkMode::low_mesh, BenchmarkMode::uv_impostor,
+                                                BenchmarkMode::detail_impostor, BenchmarkMode::hybrid};
+
+// "high_mesh", ...; and back (false for an unknown name).
+const char* benchmark_mode_name(BenchmarkMode mode);
+bool parse_benchmark_mode(const std::string& name, BenchmarkMode* mode);
+// "off", "views", "frames", "full".
+const char* impostor_blend_name(ImpostorBlend blend);
+
+struct BenchmarkDesc {
+    uint64_t seed = 1;
+    double max_seconds = 300;  // the whole run, split evenly between the modes
+    std::vector<BenchmarkMode> modes{std::begin(kAllBenchmarkModes), std::end(kAllBenchmarkModes)};
+    // How impostors blend views and frames in uv_impostor, detail_impostor and hybrid. The
+    // report also times UV impostors with blending off and on at one crowd size.
+    ImpostorBlend blend = ImpostorBlend::full;
+    std::string device;        // GlContext::describe(), for the report
+    std::function<void(const std::string&)> log;  // one progress line per measurement; may be empty
+};
+
+// Runs every mode of `desc` and returns the report (README.md lists its fields).
+nlohmann::json run_benchmark(Renderer& renderer, const Bundle& bundle, const BenchmarkDesc& desc);
+
+}  // namespace crowdview
