@@ -38,11 +38,14 @@ Penetration is measured against the body given as arrays: for each cloth vertex 
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
+
+logger = logging.getLogger(__name__)
 
 CLOSE_METHODS = ("none", "linear", "hermite", "crossfade")
 # The closing that keeps the loop nearest the simulation (see the module docstring and docs/cycle.md).
@@ -259,7 +262,14 @@ def _crossfade(
     """The "crossfade" closing of close_loop (see the module docstring): (l + 3, V, 3) float64."""
     frame_count = points.shape[0]
     end = start + cycle_frames
-    half = default_crossfade_frames(cycle_frames) if half_width is None else int(half_width)
+    if half_width is None:
+        # The default shrinks to what the cache holds either side of the cycle (a cycle found near the
+        # cache's end still closes); a half-width the caller chose is kept or refused.
+        half = min(default_crossfade_frames(cycle_frames), start, frame_count - 1 - end)
+        if half < default_crossfade_frames(cycle_frames):
+            logger.warning("crossfade shortened to %d frames either side of the seam: the cache ends there", half)
+    else:
+        half = int(half_width)
     if not 1 <= half <= cycle_frames // 2:
         raise ValueError(f"close_loop: the crossfade half-width must be in [1, {cycle_frames // 2}], got {half}")
     if start < half or end + half >= frame_count:
@@ -631,11 +641,13 @@ class ClosedLoop:
     quality: LoopQuality | None = None
 
 
-def _blend_frames_used(method: str, cycle_frames: int, blend_frames: int | None) -> int | None:
+def _blend_frames_used(method: str, cycle_frames: int, blend_frames: int | None, start: int, frame_count: int) -> int | None:
     if method == "linear":
         return default_blend_frames(cycle_frames) if blend_frames is None else int(blend_frames)
     if method == "crossfade":
-        return default_crossfade_frames(cycle_frames) if blend_frames is None else int(blend_frames)
+        if blend_frames is None:
+            return min(default_crossfade_frames(cycle_frames), start, frame_count - 1 - start - cycle_frames)
+        return int(blend_frames)
     return None
 
 
@@ -719,7 +731,7 @@ def close_cycle(
     return ClosedLoop(
         looped=looped.astype(np.float32),
         method=method,
-        blend_frames=_blend_frames_used(method, cycle_frames, blend_frames),
+        blend_frames=_blend_frames_used(method, cycle_frames, blend_frames, start, np.shape(cloth)[0]),
         push_out=push_out_mode,
         seam_before=seam_figures(raw),
         seam_after=seam_figures(final),
