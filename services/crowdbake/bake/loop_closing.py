@@ -74,6 +74,9 @@ EDGE_PROJECTION_RELAXATION = 1.5
 # A vertex whose two blended frames lie closer than this fraction of the seam's RMS gap is treated as
 # pinned by the edge restoration: a waistband that follows the body is the same in A and B.
 PINNED_GAP_FRACTION = 1e-3
+# The stretch ratio's denominator is at least this mean strain (0.1 %): a cloth solver never holds its
+# edges tighter than that, and a rigid synthetic cache (strain 0) would make any change read as infinite.
+MIN_REFERENCE_STRAIN = 1e-3
 # The smooth push-out spreads each push over this fraction of the cycle either side of the frame that
 # needs it (at least 2 frames): 1/12 of a 48-frame walk is 4 frames, long enough to keep a 10 mm push
 # below the cloth's own frame-to-frame acceleration, short enough to stay local.
@@ -362,7 +365,8 @@ class LoopQuality:
     """How far a closed loop strays from the simulation it came from; every ratio is 1 or less for a good closing.
 
     stretch_ratio: mean edge strain |L / L_rest - 1| over the loop's frames and edges, over that of the raw
-        frames Fs .. Fe-1 (L_rest: the rest lengths given, by default the cache's first frame). None without edges.
+        frames Fs .. Fe-1 (at least MIN_REFERENCE_STRAIN; L_rest: the rest lengths given, by default the
+        cache's first frame). None without edges.
     deviation_ratio: the largest per-frame RMS distance between a looped frame and the simulator's same frame,
         over the raw seam jump RMS |x(Fe) - x(Fs)|.
     seam_acceleration_ratio: RMS acceleration (second difference) at the two frames either side of the
@@ -430,7 +434,7 @@ def loop_quality(
     stretch = None
     if edges is not None and rest_lengths is not None and len(edges):
         raw_strain = mean_edge_strain(raw_loop, edges, rest_lengths)
-        stretch = _ratio(mean_edge_strain(looped, edges, rest_lengths), raw_strain)
+        stretch = _ratio(mean_edge_strain(looped, edges, rest_lengths), max(raw_strain, MIN_REFERENCE_STRAIN))
     ratios = {
         "stretch_ratio": stretch,
         "deviation_ratio": _ratio(deviation, seam_jump),
