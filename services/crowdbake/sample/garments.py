@@ -8,10 +8,9 @@ So the garment starts without penetrating the body in the frame-0 pose, and the 
 tight as the stride allows.
 
 The waistband rows are pinned and follow the body with the same skin weights as the torso at that
-height. They sit on the body itself (the torso's cross-section at that height plus WAISTBAND_CLEARANCE),
-not on the collision capsules, which are cut for the limbs' sweep and stand centimetres off the waist:
-a waistband floating there would show a gap all round the body. UVs unwrap the cylinder into GARMENT_UV_RECT of the shared texture: u around (starting at
-the back, like the body's tubes), v down from the waistband. The seam column has two UVs per
+height. The loose skirt's flare starts below the hips: above it the cut follows the body like the
+tight one (a flare carried up to the waistband left it 5 cm off the waist all round). UVs unwrap the
+cylinder into GARMENT_UV_RECT of the shared texture: u around (starting at the back, like the body's tubes), v down from the waistband. The seam column has two UVs per
 position, so the OBJ keeps one position per vertex (what the PC2 cache indexes) and a reader splits
 the seam.
 """
@@ -23,9 +22,6 @@ import numpy as np
 
 from crowdbake.sample.cloth_sim import ClothParams
 from crowdbake.sample.humanoid import GARMENT_UV_RECT, UV_INSET
-
-# A waistband sits on the skin: this much (metres) over the torso's surface, about a waistband's half thickness.
-WAISTBAND_CLEARANCE = 0.003
 
 # Both garments are the same cloth (ClothParams defaults); only cut and length differ. The paper
 # (section 3) found tight clothing settles into a cycle within a few walk cycles and loose skirts
@@ -118,30 +114,6 @@ def outer_radius(heights: np.ndarray, angles: np.ndarray, capsules: np.ndarray, 
     return np.maximum(far, 0.0).max(axis=(1, 2))
 
 
-def section_radius(vertices: np.ndarray, faces: np.ndarray, height: float, angles: np.ndarray) -> np.ndarray:
-    """Radius of a closed mesh's horizontal cross-section at `height`, seen from the axis x = z = 0.
-
-    vertices (V, 3), faces (T, 3), angles (A,) radians around y (0 towards -z, pi/2 towards +x, as
-    outer_radius) -> (A,) metres. The plane cuts the triangles that straddle it; the cut points, ordered by
-    angle, are interpolated around the circle (the section must be star-shaped about the axis, as a torso
-    is). Raises ValueError when the plane misses the mesh.
-    """
-    corners = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]  # (T, 3, 3)
-    points = []
-    for a, b in ((0, 1), (1, 2), (2, 0)):
-        ya, yb = corners[:, a, 1], corners[:, b, 1]
-        crosses = (ya - height) * (yb - height) < 0
-        t = (height - ya[crosses]) / (yb[crosses] - ya[crosses])
-        points.append(corners[crosses, a] + t[:, None] * (corners[crosses, b] - corners[crosses, a]))
-    cut = np.concatenate(points)
-    if len(cut) < 3:
-        raise ValueError(f"section_radius: the plane y = {height} does not cut the mesh")
-    angle = np.arctan2(cut[:, 0], -cut[:, 2])
-    radius = np.hypot(cut[:, 0], cut[:, 2])
-    order = np.argsort(angle)
-    return np.interp(np.asarray(angles, dtype=np.float64), angle[order], radius[order], period=2.0 * np.pi)
-
-
 def grid_faces(rows: int, columns: int) -> tuple[np.ndarray, np.ndarray]:
     """Triangles of a closed cylinder grid and their UV-grid counterparts (the seam column duplicated).
 
@@ -163,21 +135,12 @@ def grid_faces(rows: int, columns: int) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([first, second]).astype(np.int64), np.concatenate([first_uv, second_uv]).astype(np.int64)
 
 
-def build_garment(
-    spec: GarmentSpec,
-    capsules_local: np.ndarray,
-    radii: np.ndarray,
-    thickness: float,
-    waist_section: np.ndarray | None = None,
-) -> Garment:
+def build_garment(spec: GarmentSpec, capsules_local: np.ndarray, radii: np.ndarray, thickness: float) -> Garment:
     """The garment's rest mesh around the body.
 
     capsules_local (K, C, 2, 3): the body's capsules over the cycle, expressed in the hips' rest
     frame (so the pose of the pelvis does not count, only the limbs relative to it); radii (C,);
     thickness: the simulator's collision margin, added to the capsule radii.
-    waist_section: (columns,) radius of the body's own surface at the waistband's height for each
-    column (see section_radius); the pinned rows sit WAISTBAND_CLEARANCE over it. None: they sit on
-    the capsules like the other rows.
     """
     if spec.rows < 3 or spec.columns < 8 or spec.hem_y >= spec.waist_y:
         raise ValueError(f"garment {spec.name}: needs rows >= 3, columns >= 8 and hem below waist")
@@ -189,11 +152,6 @@ def build_garment(
         fraction = (spec.flare_top_y - heights) / (spec.flare_top_y - spec.hem_y)
         cone = np.where(fraction >= 0.0, spec.flare_top_radius + fraction * (spec.hem_radius - spec.flare_top_radius), 0.0)
         radius = np.maximum(radius, cone[:, None])
-    if waist_section is not None:
-        waist_section = np.asarray(waist_section, dtype=np.float64)
-        if waist_section.shape != (spec.columns,):
-            raise ValueError(f"garment {spec.name}: waist_section must be ({spec.columns},), got {waist_section.shape}")
-        radius[: spec.pinned_rows] = waist_section[None, :] + WAISTBAND_CLEARANCE
     # A ring must not be narrower than the one above it would allow the cloth to hang: keep rings
     # monotone below the widest point so the rest shape has no pleat folded inwards.
     widest = int(np.argmax(radius.mean(axis=1)))

@@ -40,7 +40,7 @@ from crowdbake.sample.cloth_sim import (
     settling_curve,
     simulate,
 )
-from crowdbake.sample.garments import GARMENT_SPECS, Garment, build_garment, section_radius
+from crowdbake.sample.garments import GARMENT_SPECS, Garment, build_garment
 from crowdbake.sample.humanoid import (
     JOINT_INDEX,
     JOINT_REST_POSITIONS,
@@ -178,11 +178,7 @@ def simulate_sample(
     local = np.einsum("kij,kcpj->kcpi", to_hips[:, :3, :3], frames) + to_hips[:, None, None, :3, 3]
     # Only the trunk and legs shape the cut: a skirt does not make room for swinging hands.
     shaping = np.array([name.startswith(("pelvis", "waist", "thigh", "shin")) for name in capsules.names])
-    # The waistband sits on the torso's own surface (in the rest pose, which is the hips' rest frame).
-    torso_first, torso_stop = body.part_faces["torso"]
-    columns = 2.0 * np.pi * np.arange(spec.columns) / spec.columns
-    waist = section_radius(body.positions, body.faces[torso_first:torso_stop], spec.waist_y, columns)
-    cut = build_garment(spec, local[:, shaping], capsules.radii[shaping], params.thickness, waist_section=waist)
+    cut = build_garment(spec, local[:, shaping], capsules.radii[shaping], params.thickness)
 
     # Waistband targets: skinned with the torso's weights at the waistband height.
     model = build_cloth_model(cut.rest_positions, cut.faces, cut.pinned)
