@@ -398,6 +398,34 @@ def _table(header: list[str], rows: list[list]) -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
+_QUALITY_ROWS = (
+    ("stretch_ratio", "stretch ratio", "mean edge strain of the loop ÷ that of the simulator's frames"),
+    ("deviation_ratio", "deviation ratio", "largest per-frame RMS distance from the simulator's frame ÷ the raw seam jump"),
+    ("seam_acceleration_ratio", "seam acceleration ratio",
+     "acceleration at the wrap ÷ the larger of the loop's median and the simulator's own there"),
+)
+
+
+def _quality_html(quality: dict | None, method: str) -> str:
+    """The loop-quality section: a table of the bounded ratios, and a loud banner when a bound is broken."""
+    if quality is None:
+        return ""
+    rows = [
+        [label, quality[name], quality["bounds"][name], "OVER" if name in quality["exceeded"] else "ok", meaning]
+        for name, label, meaning in _QUALITY_ROWS
+    ]
+    table = _table(["figure", "value", "bound", "", "what it measures"], rows)
+    if quality["exceeded"]:
+        broken = ", ".join(html.escape(name.replace("_", " ")) for name in quality["exceeded"])
+        banner = (
+            f'<p class="warning"><b>WARNING: the {html.escape(method)} closing breaks its quality bounds ({broken}).</b> '
+            "The loop strays from the simulation: look at it before shipping, or close it another way.</p>"
+        )
+    else:
+        banner = f'<p class="ok">The {html.escape(method)} closing keeps within every quality bound.</p>'
+    return f"<h2>Loop quality against the simulation</h2>{banner}{table}"
+
+
 def _report_html(result: CycleResult, document: dict) -> str:
     closing = result.closing
     candidates = _table(
@@ -416,6 +444,7 @@ def _report_html(result: CycleResult, document: dict) -> str:
              closing.seam_after.max_step_ratio, closing.seam_after.median_step, int(closing.penetrating_after.sum())],
         ],
     )
+    quality = _quality_html(document["closing"].get("quality"), closing.method)
     params = _table(["parameter", "value"], [[k, v] for k, v in document["parameters"].items()])
     files = document.get("files", {})
     figures = "".join(
@@ -437,6 +466,8 @@ def _report_html(result: CycleResult, document: dict) -> str:
 body {{ font-family: sans-serif; margin: 2em; max-width: 1100px; }}
 table {{ border-collapse: collapse; margin: 0.5em 0 1.5em; }}
 td, th {{ border: 1px solid #bbb; padding: 0.25em 0.6em; text-align: right; }}
+.warning {{ background: #fdd; border: 3px solid #c00; padding: 0.6em 1em; font-size: 1.2em; }}
+.ok {{ background: #dfd; border: 1px solid #393; padding: 0.4em 1em; }}
 figure {{ margin: 1em 0; }} img {{ max-width: 100%; border: 1px solid #ddd; }}
 </style></head><body>
 <h1>Cyclical cloth: frames {result.start_frame} to {result.end_frame}</h1>
@@ -447,6 +478,7 @@ It was chosen by {document['selected_by'].replace('_', ' ')} among {len(result.c
 The push-out moved {closing.pushed_vertices} vertex-frames.</p>
 {root}
 <h2>Candidates</h2>{candidates}
+{quality}
 <h2>Seam</h2>
 <p>Ratios are relative to the cycle's median frame-to-frame step: a position jump ratio of 1 means the seam jumps as far as a typical frame moves.</p>
 {seam}

@@ -272,3 +272,37 @@ class TestFindCycle:
         cloth = cache_with_seam_at(90)
         with pytest.raises(ValueError, match="body has 100 frames but the cloth has 200"):
             find_cycle(cloth, np.array([[0, 1, 2]]), np.zeros((100, 3, 3)), np.array([[0, 1, 2]]), 24)
+
+
+class TestClosingQualityReport:
+    """cycle.json and report.html carry the loop-quality ratios and say loudly when a closing breaks a bound."""
+
+    @staticmethod
+    def swinging_sheet():
+        # Rows of a sheet swing rigidly about its top row, the swing's centre creeping: every seam is open by
+        # about the same angle, and no edge of the simulation ever stretches.
+        rows, columns = 6, 7
+        r, c = np.meshgrid(np.arange(rows), np.arange(columns), indexing="ij")
+        a = (r[:-1, :-1] * columns + c[:-1, :-1]).ravel()
+        faces = np.concatenate([np.stack([a, a + columns, a + 1], 1), np.stack([a + 1, a + columns, a + columns + 1], 1)])
+        f = np.arange(120)[:, None]
+        angle = 0.6 * np.sin(2 * np.pi * f / 24) + 0.006 * f
+        depth = 0.1 * r.ravel()[None, :]
+        x = np.broadcast_to(0.1 * c.ravel(), (120, rows * columns))
+        return np.stack([x, -depth * np.cos(angle), depth * np.sin(angle)], -1).astype(np.float32), faces
+
+    @pytest.mark.parametrize("close, loud", [("hermite", True), ("crossfade", False)])
+    def test_quality_in_cycle_json_and_the_report(self, close, loud, tmp_path, caplog):
+        from crowdbake.cycle_report import write_cycle_outputs
+
+        cloth, faces = self.swinging_sheet()
+        with caplog.at_level("WARNING", logger="crowdbake.bake.cycle"):
+            result = find_cycle(cloth, faces, None, None, 24, CycleParams(close=close, settle_frames=24))
+        quality = result.to_dict()["closing"]["quality"]
+        assert set(quality["bounds"]) == {"stretch_ratio", "deviation_ratio", "seam_acceleration_ratio"}
+        assert quality["within_bounds"] is (not loud)
+        assert ("breaks its quality bounds" in caplog.text) is loud
+        paths = write_cycle_outputs(result, tmp_path)
+        page = paths["report"].read_text(encoding="utf-8")
+        assert ("WARNING: the hermite closing breaks its quality bounds" in page) is loud
+        assert "stretch ratio" in page

@@ -252,3 +252,138 @@ class TestCloseCycle:
         cloth, body, _ = twisting_skirt(100, 20)
         with pytest.raises(ValueError, match="body_normals or body_faces"):
             lc.close_cycle(cloth, 40, 20, "hermite", body=body)
+
+
+def grid_sheet(rows: int = 6, columns: int = 7, spacing: float = 0.1):
+    """A flat sheet in the x-y plane: (V, 3) points, (T, 3) triangles."""
+    r, c = np.meshgrid(np.arange(rows), np.arange(columns), indexing="ij")
+    points = np.stack([c * spacing, -r * spacing, 0.0 * r], -1).reshape(-1, 3).astype(np.float64)
+    a = (r[:-1, :-1] * columns + c[:-1, :-1]).ravel()
+    faces = np.concatenate([np.stack([a, a + columns, a + 1], 1), np.stack([a + 1, a + columns, a + columns + 1], 1)])
+    return points, faces
+
+
+def waving_sheet(frames: int, cycle: int, phase_drift: float = 0.0):
+    """A sheet whose rows swing about the top row, rigidly per row (so every edge keeps its length).
+
+    Row r turns about the x axis by angle(f) = 0.6 sin(2 pi f / cycle + phase_drift * f) at radius r * spacing:
+    a periodic swing whose phase creeps by `phase_drift` per frame, so frames one cycle apart differ.
+    """
+    points, faces = grid_sheet()
+    f = np.arange(frames)[:, None]
+    angle = 0.6 * np.sin(2 * np.pi * f / cycle + phase_drift * f)  # (F, 1)
+    depth = -points[None, :, 1]  # distance below the top row
+    cloth = np.stack(
+        [np.broadcast_to(points[:, 0], (frames, len(points))), -depth * np.cos(angle), depth * np.sin(angle)], -1
+    )
+    return cloth, faces
+
+
+class TestCrossfade:
+    def test_is_the_default_and_closes_the_seam_inside_its_window(self):
+        assert lc.DEFAULT_CLOSE_METHOD == "crossfade" and "crossfade" in lc.CLOSE_METHODS
+        cache = drifting_cache()
+        start, cycle, half = 30, 20, 4
+        trajectory = lc.close_loop(cache, start, cycle, "crossfade", half)
+        looped = lc.looped_frames(trajectory)
+        # Outside the 2h frames around the seam the loop is the simulator's, bit for bit.
+        np.testing.assert_array_equal(looped[half : cycle - half + 1], cache[start + half : start + cycle - half + 1])
+        # Mid-window the two sides weigh one half each: frame Fs is halfway between x(Fs) and x(Fe).
+        np.testing.assert_allclose(looped[0], 0.5 * (cache[start] + cache[start + cycle]), atol=1e-12)
+        # The trajectory is periodic, so the seam figures read a closed seam.
+        figures = lc.seam_figures(trajectory)
+        assert figures.position_jump_ratio < 1e-9 and figures.velocity_jump_ratio < 1e-9
+        assert lc.seam_figures(lc.close_loop(cache, start, cycle, "none")).position_jump_ratio > 1.0
+
+    def test_weights_are_smooth_and_symmetric(self):
+        offsets, weight = lc.crossfade_weights(5)
+        np.testing.assert_array_equal(offsets, np.arange(-5, 5))
+        assert weight[0] == 0.0 and weight[5] == 0.5
+        np.testing.assert_allclose(weight[1:] + weight[1:][::-1], 1.0, atol=1e-12)  # s(t) + s(-t) = 1
+        assert np.all(np.diff(weight) > 0)
+
+    def test_edge_restoration_gives_back_the_lengths_a_blend_shortens(self):
+        cloth, faces = waving_sheet(120, 24, phase_drift=0.05)
+        edges = lc.unique_edges(faces)
+        rest = lc.edge_lengths(cloth[0], edges)
+        start, cycle = 48, 24
+        plain = lc.looped_frames(lc.close_loop(cloth, start, cycle, "crossfade"))
+        restored = lc.looped_frames(lc.close_loop(cloth, start, cycle, "crossfade", edges=edges))
+        strain = lambda loop: lc.mean_edge_strain(loop, edges, rest)  # noqa: E731
+        # The sheet is rigid per row: the simulation has no strain at all, a plain blend does (it cuts
+        # the chord of every row's arc), and the restoration takes at least half of it away. (A swing
+        # this wide needs the whole sheet to move, the slowest case for Jacobi sweeps; folds of real
+        # cloth are local: see bench_closing.py.)
+        assert strain(cloth[start : start + cycle]) < 1e-12
+        assert strain(plain) > 1e-3
+        assert strain(restored) < 0.5 * strain(plain)
+        # The top row is pinned (A and B agree there): it does not move.
+        np.testing.assert_allclose(restored[:, :7], cloth[start : start + cycle, :7], atol=1e-12)
+
+    def test_restore_edge_lengths_keeps_fixed_vertices_and_reaches_the_target(self):
+        points = np.array([[[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]])
+        edges = np.array([[0, 1]])
+        moved = lc.restore_edge_lengths(points, edges, np.array([[1.0]]), np.array([[False, True]]), iterations=20, relaxation=1.0)
+        np.testing.assert_allclose(moved[0, 0], [0.0, 0.0, 0.0])
+        np.testing.assert_allclose(moved[0, 1], [1.0, 0.0, 0.0], atol=1e-9)
+
+    def test_default_window_shrinks_near_the_end_of_the_cache_and_a_chosen_one_is_refused(self):
+        cache = drifting_cache(frames=54)
+        trajectory = lc.close_loop(cache, 30, 20, "crossfade")  # Fe = 50: three frames left after Fe
+        assert lc.seam_figures(trajectory).position_jump_ratio < 1e-9
+        with pytest.raises(ValueError, match="crossfade of 5 frames"):
+            lc.close_loop(cache, 30, 20, "crossfade", 5)
+        with pytest.raises(ValueError, match="half-width must be in"):
+            lc.close_loop(drifting_cache(), 30, 20, "crossfade", 11)
+
+
+class TestLoopQuality:
+    def test_ratios_of_known_loops(self):
+        cloth, faces = waving_sheet(120, 24, phase_drift=0.05)
+        edges = lc.unique_edges(faces)
+        rest = lc.edge_lengths(cloth[0], edges)
+        start, cycle = 48, 24
+        raw = lc.close_loop(cloth, start, cycle, "none")
+        # The simulator's own frames: nothing stretched, nothing moved; only the seam kinks.
+        own = lc.loop_quality(raw, lc.looped_frames(raw), edges, rest)
+        assert own.deviation_ratio == 0.0
+        assert own.seam_acceleration_ratio > 1.5 and own.exceeded == ("seam_acceleration_ratio",)
+        # A loop moved everywhere by one seam jump: deviation ratio exactly 1.
+        shifted = lc.looped_frames(raw) + (raw[-2] - raw[1])[None]
+        assert lc.loop_quality(raw, shifted, edges, rest).deviation_ratio == pytest.approx(1.0)
+        # Without edges there is no stretch figure, and no bound is judged on it.
+        assert lc.loop_quality(raw, lc.looped_frames(raw)).stretch_ratio is None
+
+    def test_hermite_breaks_the_bounds_the_crossfade_keeps(self):
+        """Hermite spreads the seam's velocity mismatch over the whole cycle: on a swinging sheet whose
+        phase creeps, the correction bends the rows off their arcs (stretch) far from the seam."""
+        cloth, faces = waving_sheet(120, 24, phase_drift=0.02)
+        start, cycle = 48, 24
+        hermite = lc.close_cycle(cloth, start, cycle, "hermite", cloth_faces=faces)
+        crossfade = lc.close_cycle(cloth, start, cycle, "crossfade", cloth_faces=faces)
+        assert "stretch_ratio" in hermite.quality.exceeded
+        assert crossfade.quality.within_bounds, crossfade.quality
+        assert crossfade.quality.deviation_ratio < hermite.quality.deviation_ratio
+        assert crossfade.blend_frames == lc.default_crossfade_frames(cycle)
+
+
+class TestSmoothPushOut:
+    def test_every_penetrating_frame_gets_its_whole_push_and_its_neighbours_part_of_it(self):
+        points, faces = cylinder()
+        frames = 12
+        body = lc.BodyFrames(np.repeat(points[None], frames, 0), np.repeat(lc.vertex_normals(points, faces)[None], frames, 0))
+        settings = lc.PenetrationSettings(tolerance=1e-3, max_depth=0.3)
+        angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+        radius = np.full(frames, 0.12)
+        radius[6] = 0.09  # one frame dips 1 cm into the body
+        loop = np.stack([radius[:, None] * np.sin(angles), np.full((frames, 8), 0.5), radius[:, None] * np.cos(angles)], -1)
+        pushed, moved = lc.smooth_push_out(loop, body, settings, reach=2)
+        assert not lc.penetration_mask(pushed, body, settings).any()
+        ring_radius = np.hypot(pushed[..., 0], pushed[..., 2]).mean(axis=1)
+        # Frames next to the dip moved out too (an ease, not a one-frame jump); frames beyond the reach did not.
+        assert moved[5].all() and moved[7].all() and not moved[3].any() and not moved[9].any()
+        np.testing.assert_allclose(pushed[:4], loop[:4])
+        # The ease: the step into and out of the dip frame is smaller than the dip's own push.
+        push = np.linalg.norm(pushed - loop, axis=-1).mean(axis=1)
+        assert push[6] > 0.005 and np.abs(np.diff(push)).max() < push[6]
+        assert ring_radius[6] > 0.1

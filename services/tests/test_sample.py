@@ -114,6 +114,33 @@ def test_walk_loops_and_keeps_a_foot_on_the_ground(body):
         walk_channels(3)
 
 
+def test_walk_has_no_velocity_kinks(body):
+    """Regression: the hips' height was the max() of the two legs' heights and the knee a clipped cosine to
+    a fractional power, so the body's acceleration spiked to ~5x its median where the legs swap, twice a
+    cycle, and every cloth vertex felt it. Every gait curve is smooth now."""
+    from crowdbake.sample.humanoid import build_character
+
+    channels, duration = walk_channels(CYCLE)
+    positions, _ = pose_character(build_character(body, channels, duration, None), FPS, CYCLE)
+    positions = positions.astype(np.float64)
+    acceleration = np.sqrt(np.mean(np.sum((np.roll(positions, -1, 0) - 2 * positions + np.roll(positions, 1, 0)) ** 2, -1), -1))
+    assert acceleration.max() < 2.0 * np.median(acceleration), acceleration / np.median(acceleration)
+
+
+def test_loose_waistband_is_cut_like_the_tight_one():
+    """Regression: the loose skirt's flare cone also applied above its top, so the waistband stood at the
+    cone's top radius (17 cm) all round, 5 cm off the waist. Both skirts share one waistband now."""
+    from crowdbake.sample.garments import GARMENT_SPECS, build_garment
+
+    body_mesh = build_body()
+    capsules = fit_capsules(body_mesh)
+    rest_capsules = capsules.endpoints[None]
+    cuts = {name: build_garment(GARMENT_SPECS[name], rest_capsules, capsules.radii, 0.008) for name in ("loose", "tight")}
+    waistbands = {name: np.hypot(cut.rest_positions[cut.pinned, 0], cut.rest_positions[cut.pinned, 2]) for name, cut in cuts.items()}
+    np.testing.assert_allclose(waistbands["loose"], waistbands["tight"] + GARMENT_SPECS["loose"].ease - GARMENT_SPECS["tight"].ease)
+    assert waistbands["loose"].min() < GARMENT_SPECS["loose"].flare_top_radius - 0.02
+
+
 # ---------------------------------------------------------------------------------------------- files
 
 

@@ -7,8 +7,11 @@
 2. Pass 2 (crowdbake.bake.edge_metric): each candidate's Fs and Fe are pictured from several viewpoints by
    the `render_views` callable (crowdbake.render.cloth_views.ClothViewRenderer in production, so this
    module stays free of GL and files); the summed edge distance picks the winner.
-3. Closing (crowdbake.bake.loop_closing): none, the paper's linear blend, or a Hermite correction;
-   penetration into the body is measured before and after, and what closing pushed in is pushed back out.
+3. Closing (crowdbake.bake.loop_closing): none, the paper's linear blend, a Hermite correction, or (the
+   default) a crossfade confined to the seam that restores edge lengths; penetration into the body is
+   measured before and after, and what closing pushed in is pushed back out, smoothly in time. The loop's
+   quality against the simulation (stretch, deviation, seam acceleration ratios) is measured and a closing
+   that breaks loop_closing.QUALITY_BOUNDS is logged as a warning and flagged in cycle.json.
 
 The result serialises to the cycle.json dictionary with `CycleResult.to_dict()`.
 """
@@ -69,7 +72,7 @@ class CycleParams:
     canny_low: float = edge_metric.DEFAULT_CANNY_LOW
     canny_high: float = edge_metric.DEFAULT_CANNY_HIGH
     truncation_px: float = edge_metric.DEFAULT_TRUNCATION_PX
-    close: str = "hermite"
+    close: str = loop_closing.DEFAULT_CLOSE_METHOD
     blend_frames: int | None = None
     push_out: str = "new"
     root_motion: str = "auto"
@@ -185,6 +188,7 @@ class CycleResult:
                 "blend_frames": closing.blend_frames,
                 "push_out": closing.push_out,
                 "pushed_vertices": closing.pushed_vertices,
+                "quality": _quality_dict(closing.quality),
             },
             "seam": {
                 "before": _seam_dict(closing.seam_before),
@@ -221,6 +225,22 @@ def _float(value: float | None) -> float | None:
 
 def _floats(values) -> list[float | None]:
     return [_float(float(v)) for v in np.asarray(values, dtype=np.float64).ravel()]
+
+
+def _bounds_text(quality: loop_closing.LoopQuality) -> str:
+    """'stretch_ratio 9.41 > 1.1, ...' for the ratios a closing broke."""
+    return ", ".join(f"{name} {getattr(quality, name):.3g} > {loop_closing.QUALITY_BOUNDS[name]:g}" for name in quality.exceeded)
+
+
+def _quality_dict(quality: loop_closing.LoopQuality | None) -> dict | None:
+    """cycle.json's closing.quality: the three bounded ratios, their bounds, whether all hold, and the figures behind them."""
+    if quality is None:
+        return None
+    figures = {name: _float(value) if isinstance(value, float) else value for name, value in asdict(quality).items()}
+    figures["exceeded"] = list(quality.exceeded)
+    figures["within_bounds"] = quality.within_bounds
+    figures["bounds"] = dict(loop_closing.QUALITY_BOUNDS)
+    return figures
 
 
 def _seam_dict(seam: loop_closing.SeamFigures) -> dict:
@@ -394,7 +414,7 @@ def find_cycle(
     started = time.perf_counter()
     closing = loop_closing.close_cycle(
         cloth, winner.start_frame, gap, params.close, body=body, body_normals=body_normals, body_faces=body_faces,
-        blend_frames=params.blend_frames, push_out_mode=params.push_out,
+        blend_frames=params.blend_frames, push_out_mode=params.push_out, cloth_faces=cloth_faces,
     )
     timings["closing"] = time.perf_counter() - started
     report("closing", 1, 1)
@@ -402,6 +422,11 @@ def find_cycle(
         "cycle [%d, %d): seam position jump %.3f -> %.3f",
         winner.start_frame, winner.end_frame, closing.seam_before.position_jump_ratio, closing.seam_after.position_jump_ratio,
     )
+    if closing.quality is not None and closing.quality.exceeded:
+        logger.warning(
+            "the '%s' closing of [%d, %d) breaks its quality bounds: %s",
+            params.close, winner.start_frame, winner.end_frame, _bounds_text(closing.quality),
+        )
     return CycleResult(
         start_frame=winner.start_frame,
         end_frame=winner.end_frame,

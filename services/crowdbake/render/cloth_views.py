@@ -2,7 +2,10 @@
 
 Dobbyn et al. 2006, section 3: "we generated images of the cloth at Fs and Fe from 5 different viewpoints
 around the skirt". The cloth is drawn lit, with a light that travels with the camera, so its folds show as
-shading; the body is drawn in one flat colour: at Fs and Fe the body has the same pose, so its pixels and
+shading. Lighting is two-sided: in every view each vertex normal is turned to face the camera, so a mesh
+wound inwards (as simulator exports often are) shades exactly like one wound outwards, instead of flat
+grey where Canny would find silhouettes and no folds; the face winding cannot change the winner. The body
+is drawn in one flat colour: at Fs and Fe the body has the same pose, so its pixels and
 outline are the same in both pictures and cancel in the comparison, while it still hides the cloth behind it.
 
 All frames passed to one call share one framing (the bounding sphere of the cloth over those frames), so
@@ -25,6 +28,7 @@ from crowdbake.render.offscreen import (
     orthographic_camera,
     ring_of_views,
     triangle_mesh,
+    view_direction,
     view_pose,
 )
 
@@ -44,6 +48,17 @@ AMBIENT = 0.08  # a little ambient keeps cloth seen edge-on from merging with th
 # A render_views callable: cloth frames (N, V, 3) and body frames (N, Vb, 3) or None
 # -> (N, views, H, W) uint8 grey pictures, view j of every frame taken by the same camera.
 RenderViews = Callable[[np.ndarray, "np.ndarray | None"], np.ndarray]
+
+
+def facing_normals(normals: np.ndarray, towards_viewer: np.ndarray) -> np.ndarray:
+    """Unit normals (V, 3) flipped where they point away from the viewer: two-sided lighting for one view.
+
+    towards_viewer: (3,) direction from the scene to an orthographic camera. A normal and its opposite give
+    the same result, so reversing a mesh's winding (which negates its vertex normals) changes nothing.
+    """
+    normals = np.asarray(normals, dtype=np.float64)
+    facing = normals @ np.asarray(towards_viewer, dtype=np.float64) < 0.0
+    return np.where(facing[:, None], -normals, normals)
 
 
 class ClothViewRenderer:
@@ -98,13 +113,20 @@ class ClothViewRenderer:
             for i in range(count):
                 scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 1.0], ambient_light=[AMBIENT] * 3)
                 cloth = cloth_frames[i]
-                scene.add(triangle_mesh(cloth, self.cloth_faces, vertex_normals(cloth, self.cloth_faces), cloth_material))
+                normals = vertex_normals(cloth, self.cloth_faces)
+                cloth_node = None
                 if body_frames is not None:
                     # Flat colour: normals are not needed.
                     scene.add(triangle_mesh(body_frames[i], self.body_faces, None, body_material))
                 camera_node = scene.add(camera, pose=poses[0])
                 light_node = scene.add(pyrender.DirectionalLight(color=np.ones(3), intensity=LIGHT_INTENSITY), pose=poses[0])
                 for j, pose in enumerate(poses):
+                    if cloth_node is not None:
+                        scene.remove_node(cloth_node)
+                    towards_viewer = view_direction(*self.views[j])
+                    cloth_node = scene.add(
+                        triangle_mesh(cloth, self.cloth_faces, facing_normals(normals, towards_viewer), cloth_material)
+                    )
                     scene.set_pose(camera_node, pose)
                     scene.set_pose(light_node, pose)  # a headlight: the light shines along the view
                     colour, _ = offscreen.render(scene)

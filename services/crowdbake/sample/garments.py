@@ -8,8 +8,9 @@ So the garment starts without penetrating the body in the frame-0 pose, and the 
 tight as the stride allows.
 
 The waistband rows are pinned and follow the body with the same skin weights as the torso at that
-height. UVs unwrap the cylinder into GARMENT_UV_RECT of the shared texture: u around (starting at
-the back, like the body's tubes), v down from the waistband. The seam column has two UVs per
+height. The loose skirt's flare starts below the hips: above it the cut follows the body like the
+tight one (a flare carried up to the waistband left it 5 cm off the waist all round). UVs unwrap the
+cylinder into GARMENT_UV_RECT of the shared texture: u around (starting at the back, like the body's tubes), v down from the waistband. The seam column has two UVs per
 position, so the OBJ keeps one position per vertex (what the PC2 cache indexes) and a reader splits
 the seam.
 """
@@ -147,8 +148,9 @@ def build_garment(spec: GarmentSpec, capsules_local: np.ndarray, radii: np.ndarr
     angles = 2.0 * np.pi * np.arange(spec.columns) / spec.columns
     radius = outer_radius(heights, angles, capsules_local, np.asarray(radii) + thickness) + spec.ease
     if spec.hem_radius > 0:
-        fraction = np.clip((spec.flare_top_y - heights) / (spec.flare_top_y - spec.hem_y), 0.0, None)
-        cone = spec.flare_top_radius + fraction * (spec.hem_radius - spec.flare_top_radius)
+        # The cone flares below its top only: above it (the hips, the waistband) the cut follows the body.
+        fraction = (spec.flare_top_y - heights) / (spec.flare_top_y - spec.hem_y)
+        cone = np.where(fraction >= 0.0, spec.flare_top_radius + fraction * (spec.hem_radius - spec.flare_top_radius), 0.0)
         radius = np.maximum(radius, cone[:, None])
     # A ring must not be narrower than the one above it would allow the cloth to hang: keep rings
     # monotone below the widest point so the rest shape has no pleat folded inwards.

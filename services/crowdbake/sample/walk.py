@@ -3,7 +3,9 @@
 The gait is written as functions of the cycle phase phi in [0, 2 pi): hip flexion is a sine, the
 knee bends during swing, the ankle keeps the foot roughly level, the pelvis turns and sways, the
 spine counter-rotates and the arms swing against the legs. The hips' height is chosen each frame so
-that the lower foot touches the ground (which is what makes the body bob twice per cycle). Like
+that the lower foot touches the ground (which is what makes the body bob twice per cycle). Every curve
+is smooth in the phase (no max(), no fractional powers of a clipped cosine): a corner in a joint curve
+is a velocity kink, an acceleration spike every cloth vertex near it feels and a loop search sees. Like
 CesiumMan, the character walks in place: the stance foot slides back as on a treadmill.
 
 Phase 0 of the cycle is double support (both knees almost straight), so a garment starting from
@@ -33,6 +35,14 @@ PELVIS_ROLL = np.radians(2.5)
 SPINE_YAW = np.radians(3.5)
 PELVIS_SWAY = 0.015  # metres toward the stance leg
 PHASE_OFFSET = np.pi / 2  # frame 0 = double support, left leg forward
+# Knee flexion follows ((1 + cos)/2)^KNEE_SHARPNESS of the swing phase: a smooth bump that is 1 at mid-swing
+# and under 7 % of it anywhere in stance (a near-straight stance knee, as in a real walk).
+KNEE_SHARPNESS = 4.0
+# The hips ride on the longer leg: max(a, b) smoothed as (a + b)/2 + sqrt(((a - b)/2)^2 + w^2), so the
+# hips' height has no corner when the legs swap (a walk's double support). w in metres: larger is
+# smoother; the smoothed max lies between max(a, b) and max(a, b) + w, equal to the max once the legs
+# differ by a few w, so both feet lift at most w off the floor around the swap, and only then.
+HIP_HEIGHT_SMOOTHING = 0.01
 
 
 def axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
@@ -65,8 +75,8 @@ def gait_angles(phase: np.ndarray) -> dict[str, np.ndarray]:
     hip_l = HIP_FLEXION * np.sin(phase)
     hip_r = -hip_l
     # Swing is when the thigh moves forward (d hip / d phase > 0), peaking at mid-swing.
-    knee_l = KNEE_STANCE + KNEE_SWING * np.maximum(np.cos(phase), 0.0) ** 1.5
-    knee_r = KNEE_STANCE + KNEE_SWING * np.maximum(-np.cos(phase), 0.0) ** 1.5
+    knee_l = KNEE_STANCE + KNEE_SWING * ((1.0 + np.cos(phase)) / 2.0) ** KNEE_SHARPNESS
+    knee_r = KNEE_STANCE + KNEE_SWING * ((1.0 - np.cos(phase)) / 2.0) ** KNEE_SHARPNESS
     return {
         "hip_l": hip_l,
         "hip_r": hip_r,
@@ -74,14 +84,21 @@ def gait_angles(phase: np.ndarray) -> dict[str, np.ndarray]:
         "knee_r": knee_r,
         "arm_l": -ARM_SWING * np.sin(phase),  # against the same-side leg
         "arm_r": ARM_SWING * np.sin(phase),
-        "elbow_l": ELBOW_BEND * (1.0 + np.maximum(-np.sin(phase), 0.0)),
-        "elbow_r": ELBOW_BEND * (1.0 + np.maximum(np.sin(phase), 0.0)),
+        # Extra bend when the arm swings forward: a smooth bump, not max(-sin, 0) and its corners.
+        "elbow_l": ELBOW_BEND * (1.0 + ((1.0 - np.sin(phase)) / 2.0) ** 2),
+        "elbow_r": ELBOW_BEND * (1.0 + ((1.0 + np.sin(phase)) / 2.0) ** 2),
     }
 
 
 def leg_height(hip: np.ndarray, knee: np.ndarray) -> np.ndarray:
     """Vertical hip-to-ankle extent of a leg with thigh angle `hip` and knee bend `knee` (radians)."""
     return THIGH_LENGTH * np.cos(hip) + SHIN_LENGTH * np.cos(hip - knee)
+
+
+def smooth_max(a: np.ndarray, b: np.ndarray, width: float) -> np.ndarray:
+    """A max(a, b) without a corner: (a + b)/2 + sqrt(((a - b)/2)^2 + width^2), in [max, max + width]."""
+    half_difference = 0.5 * (np.asarray(a) - np.asarray(b))
+    return 0.5 * (np.asarray(a) + np.asarray(b)) + np.sqrt(half_difference**2 + width**2)
 
 
 def walk_channels(cycle_frames: int = DEFAULT_CYCLE_FRAMES, fps: float = FPS) -> tuple[list[AnimationChannel], float]:
@@ -94,7 +111,9 @@ def walk_channels(cycle_frames: int = DEFAULT_CYCLE_FRAMES, fps: float = FPS) ->
     angles = gait_angles(phase)
 
     # Hips: low enough that the longer (stance) leg's ankle sits at ANKLE_HEIGHT.
-    stance = np.maximum(leg_height(angles["hip_l"], angles["knee_l"]), leg_height(angles["hip_r"], angles["knee_r"]))
+    stance = smooth_max(
+        leg_height(angles["hip_l"], angles["knee_l"]), leg_height(angles["hip_r"], angles["knee_r"]), HIP_HEIGHT_SMOOTHING
+    )
     hips_rest = JOINT_REST_POSITIONS[JOINT_INDEX["hips"]]
     thigh_drop = hips_rest[1] - JOINT_REST_POSITIONS[JOINT_INDEX["thigh_l"]][1]
     hips_y = ANKLE_HEIGHT + stance + thigh_drop
