@@ -21,7 +21,11 @@ from typing import Any, Iterable
 
 from crowdbake.errors import InputError
 
-CLOSE_METHODS = ("none", "linear", "hermite")
+# Seam closings (crowdbake.bake.loop_closing.CLOSE_METHODS, kept equal by test_params): crossfade, the
+# default, blends only a window around the seam and restores edge lengths, so real simulator caches do not
+# tear; linear is the paper's blend; hermite also matches velocity but spreads the correction over the loop.
+CLOSE_METHODS = ("crossfade", "none", "linear", "hermite")
+DEFAULT_CLOSE = "crossfade"
 UV_FORMATS = ("uv32", "rgba16")  # impostor UV map pixel formats a bake can write (SPEC.md); the first is the default
 
 # The bundle spec's name and version rules (shared_formats/SPEC.md, "manifest.json").
@@ -150,7 +154,8 @@ def _is_number(value: Any) -> bool:
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("cycle_frames", "int", None, "walk cycle length in frames (default: the character's animation)",
               ("--cycle-frames",), "L", optional=True, minimum=2, maximum=MAX_CYCLE_FRAMES),
-    ParamSpec("close", "str", "hermite", "how the cycle's seam is closed (paper section 3: linear blend; hermite also matches velocity)",
+    ParamSpec("close", "str", DEFAULT_CLOSE, "how the cycle's seam is closed: crossfade (a window around the seam, edge lengths kept), "
+              "none, linear (the paper's blend) or hermite (also matches velocity, spreads the change over the loop)",
               ("--close",), choices=CLOSE_METHODS),
     ParamSpec("candidates", "int", 5, "cycle candidates kept by pass 1 and compared by the pass-2 edge metric (paper section 3)",
               ("--candidates",), "K", minimum=1, maximum=MAX_CANDIDATES),
@@ -194,7 +199,7 @@ class BakeParams:
     """
 
     cycle_frames: int | None = None
-    close: str = "hermite"
+    close: str = DEFAULT_CLOSE
     candidates: int = 5
     cycle_views: int = 5
     impostor_frames: int = 10

@@ -119,3 +119,13 @@ def test_lod_ratio_and_lod_triangles_exclude_each_other_everywhere():
         BakeParams(lod_ratio=0.5, lod_triangles=100).validate()
     with pytest.raises(SystemExit):
         bake_parser().parse_args([*REQUIRED, "--lod-ratio", "0.5", "--lod-triangles", "100"])
+
+
+def test_the_closing_choices_are_the_loop_closings_own():
+    """The parameter table names the closings without importing numpy; it must list exactly the ones
+    crowdbake.bake.loop_closing implements, with the same default."""
+    from crowdbake.bake import loop_closing
+    from crowdbake.params import CLOSE_METHODS, DEFAULT_CLOSE
+
+    assert set(CLOSE_METHODS) == set(loop_closing.CLOSE_METHODS)
+    assert DEFAULT_CLOSE == loop_closing.DEFAULT_CLOSE_METHOD == "crossfade"

@@ -14,6 +14,7 @@ from crowdbake.bake.cycle import CycleParams
 from crowdbake.bake.loop_closing import close_cycle
 from crowdbake.cycle_report import run_cycle_job
 from crowdbake.errors import InputError
+from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2, write_pc2
 from crowdbake.params import BASE_FPS
 from crowdbake.stages.records import CycleRecord, JobRecord
@@ -53,7 +54,8 @@ def _given_cycle(job: JobRecord, inputs: Path, cycle_json: Path, looped: Path, p
         if method == "none":
             looped_points = cache.points[start : start + frames]
         else:
-            looped_points = close_cycle(cache.points, start, frames, method).looped
+            faces = read_obj(inputs / names["cloth_mesh"]).faces if "cloth_mesh" in names else None
+            looped_points = close_cycle(cache.points, start, frames, method, cloth_faces=faces).looped
     document.setdefault("end_frame", start + frames)
     document.setdefault("input", {})
     if "fps" not in document["input"]:
