@@ -161,7 +161,7 @@ def test_page_in_headless_chromium_shows_the_bake_its_report_bundles_and_atlas(s
     if CHROMIUM is None:
         pytest.skip("chromium is not installed (scripts/apt-packages.txt lists it; apt-get install chromium)")
     bake = service.bake
-    # The key and the selection travel in the fragment: never sent to the server, moved to localStorage.
+    # The key and the selection travel in the fragment: never sent to the server, moved to sessionStorage.
     url = f"{service.url}/ui#key={service.key}&bake={bake['id']}&bundle={NAME}/1.0.0"
     result = run_chromium("--dump-dom", url, profile=tmp_path / "profile")
     assert result.returncode == 0, result.stderr[-2000:]

@@ -2,13 +2,20 @@
 
 Building the app prepares its state once: folders, the database (migrated to the newest schema), the
 bootstrap key if one is configured, the blob store and the Celery app used to enqueue stages.
-The OpenAPI document is at /openapi.json, interactive docs at /docs.
+The OpenAPI document is at /openapi.json, interactive docs at /docs and /redoc: Swagger UI and ReDoc
+served from the files the fastapi-offline package ships, so they work with no internet. Each operation's
+id is `<tag>-<function>` (`assets-upload_character`), the names generated clients give their methods.
 """
 from __future__ import annotations
 
 import logging
+from importlib.resources import files
 
 from fastapi import FastAPI
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from fastapi.responses import HTMLResponse
+from fastapi.routing import APIRoute
+from fastapi.staticfiles import StaticFiles
 from pydantic import ValidationError
 
 from crowdbake import __version__
@@ -47,6 +54,34 @@ def build_services(settings: Settings) -> AppServices:
     return AppServices(settings=settings, sessions=sessions, blobs=make_blob_store(settings.blob_dir), celery=make_celery(settings))
 
 
+# Swagger UI and ReDoc bundles as a pip package ships them (fastapi-offline, pinned in requirements.txt).
+DOCS_ASSETS_DIR = files("fastapi_offline") / "static"
+DOCS_ASSETS_URL = "/docs/assets"
+
+
+def operation_id(route: APIRoute) -> str:
+    """`<first tag>-<route function>`, e.g. `assets-upload_character`: short, stable, unique per route
+    (tests/test_api_docs.py checks), and what generated clients name their methods after."""
+    return f"{route.tags[0]}-{route.name}" if route.tags else route.name
+
+
+def add_docs_routes(app: FastAPI) -> None:
+    """/docs (Swagger UI) and /redoc (ReDoc) from packaged files: nothing is loaded from another host."""
+    app.mount(DOCS_ASSETS_URL, StaticFiles(directory=str(DOCS_ASSETS_DIR)), name="docs-assets")
+
+    @app.get("/docs", include_in_schema=False)
+    def swagger_ui() -> HTMLResponse:
+        # validatorUrl null: Swagger UI would otherwise send the document to an online validator.
+        return get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title} API", swagger_js_url=f"{DOCS_ASSETS_URL}/swagger-ui-bundle.js",
+                                   swagger_css_url=f"{DOCS_ASSETS_URL}/swagger-ui.css", swagger_favicon_url=f"{DOCS_ASSETS_URL}/favicon.png",
+                                   swagger_ui_parameters={"validatorUrl": None})
+
+    @app.get("/redoc", include_in_schema=False)
+    def redoc() -> HTMLResponse:
+        return get_redoc_html(openapi_url=app.openapi_url, title=f"{app.title} API", redoc_js_url=f"{DOCS_ASSETS_URL}/redoc.standalone.js",
+                              redoc_favicon_url=f"{DOCS_ASSETS_URL}/favicon.png", with_google_fonts=False)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     if settings is None:
         try:
@@ -59,6 +94,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title="crowdbake",
         version=__version__,
         description=DESCRIPTION,
+        docs_url=None,  # add_docs_routes serves them from packaged files instead of a CDN
+        redoc_url=None,
+        generate_unique_id_function=operation_id,
         openapi_tags=[
             {"name": "assets", "description": "Upload characters, cloth caches and textures (validated, deduplicated by sha256)."},
             {"name": "bakes", "description": "Bake jobs: state and progress per stage, errors, log, cancel, retry."},
@@ -69,6 +107,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.services = build_services(settings)
     app.state.readiness = health.readiness_probe(app.state.services)
     problems.install(app)
+    add_docs_routes(app)
     for module in (assets, bakes, bundles, health, metrics):
         app.include_router(module.router)
     for router in web.routers:  # the web page, the cycle report and atlas previews it shows

@@ -3,9 +3,10 @@
     GET /ui                                           the page (static HTML + vanilla JS from api/static/)
     GET /v1/bakes/{id}/cycle/{path}                   the cycle search's report.html, plots and cycle.json
     GET /v1/bundles/{name}/{version}/preview/{map}    an impostor atlas layer as PNG (normal, uv, detail)
+    GET /v1/bundles/{name}/{version}/archive.zip      the whole bundle as one zip, for the page's Download
 
 The page needs no build step and loads nothing from elsewhere: it polls /v1/bakes and /v1/bundles with
-the key the user typed (kept in the browser's localStorage) and fetches the report and the previews with
+the key the user typed (kept in the tab's sessionStorage) and fetches the report and the previews with
 the same key. The page itself is public; everything it shows is behind the usual scopes (bake for
 jobs and their reports, read for private bundles).
 
@@ -19,13 +20,18 @@ from __future__ import annotations
 
 import hashlib
 import io
+import os
 import re
+import struct
+import tempfile
+import zipfile
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import FileResponse, RedirectResponse, Response
+from starlette.background import BackgroundTask
 
 from crowdbake.api.deps import BakeKey, PrincipalDep, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
@@ -230,3 +236,48 @@ def get_atlas_preview(
     folder = bundle_dir(services.settings.bundles_dir, bundle.name, bundle.version)
     png = render_preview(folder, maps, kind, frame, int(impostor["tile_size"]), azimuth, elevation)
     return Response(png, media_type="image/png", headers=headers)
+
+
+# ------------------------------------------------------------------------------------ bundle archive
+
+# Every entry gets this date (zip's epoch), so a bundle's archive is the same bytes every time.
+ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+def write_bundle_zip(folder: Path, paths: list[str], target) -> None:
+    """manifest.json and the manifest's files (relative `paths`) of `folder` into the zip `target`
+    (a path or a binary file), under <name>/<version>/ as crowdview's cache lays bundles out.
+    Stored, not deflated: the atlases are block-compressed already, and the client can check each
+    file's sha256 as it is."""
+    prefix = f"{folder.parent.name}/{folder.name}"
+    with zipfile.ZipFile(target, "w", zipfile.ZIP_STORED) as archive:
+        for path in ["manifest.json", *paths]:
+            info = zipfile.ZipInfo(f"{prefix}/{path}", date_time=ZIP_DATE)
+            info.external_attr = 0o644 << 16
+            with open(folder / path, "rb") as source, archive.open(info, "w", force_zip64=True) as entry:
+                while chunk := source.read(1 << 20):
+                    entry.write(chunk)
+
+
+@previews_router.get(
+    "/{name}/{version}/archive.zip", response_class=FileResponse, responses={**problem_responses(404), 200: {"content": {"application/zip": {}}}},
+    summary="The whole bundle as one zip (<name>/<version>/manifest.json and its files)",
+)
+def get_bundle_archive(name: NameParam, version: VersionParam, principal: PrincipalDep, services: ServicesDep, session: SessionDep) -> Response:
+    bundle = _bundle_or_problem(session, principal, name, version)
+    try:
+        published = read_manifest(services.settings.bundles_dir, bundle.name, bundle.version)
+    except FileNotFoundError:
+        raise Problem("internal-error", "the published bundle is missing from the bundle store", status=500) from None
+    folder = bundle_dir(services.settings.bundles_dir, bundle.name, bundle.version)
+    handle = tempfile.NamedTemporaryFile(prefix="bundle-", suffix=".zip", delete=False)
+    try:
+        with handle:
+            write_bundle_zip(folder, [entry["path"] for entry in published.manifest["files"]], handle)
+    except BaseException:
+        os.unlink(handle.name)
+        raise
+    headers = {"Cache-Control": "no-cache" if version == LATEST else f"{'public' if bundle.public else 'private'}, max-age={IMMUTABLE_SECONDS}, immutable",
+               "X-Content-Type-Options": "nosniff"}
+    return FileResponse(handle.name, media_type="application/zip", filename=f"{bundle.name}-{bundle.version}.zip", headers=headers,
+                        background=BackgroundTask(os.unlink, handle.name))

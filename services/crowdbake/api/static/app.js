@@ -1,20 +1,28 @@
-// crowdbake's page: follows bakes, shows their cycle reports, lists bundles and previews impostor atlases.
-// Vanilla JS against the JSON API; nothing is built or fetched from elsewhere.
+// crowdbake's page: uploads a character, its cloth and textures and starts a bake; follows bakes (cancel,
+// retry, publish, download), shows their cycle reports, lists bundles and shows impostor atlases at full
+// size with a zoom. Vanilla JS against the JSON API; nothing is built or fetched from elsewhere.
 //
-// The key the user types is kept in localStorage and sent as a bearer token. A link may carry it and a
-// selection in its fragment (#key=cbk_...&bake=bk_...&bundle=name/version): the fragment never reaches
-// the server, and the key is moved into localStorage and removed from the address bar at once.
+// The key the user types is kept in sessionStorage (it lasts as long as the tab) and sent as a bearer
+// token. A link may carry it and a selection in its fragment (#key=cbk_...&bake=bk_...&bundle=name/version):
+// the fragment never reaches the server, and the key is moved into sessionStorage and removed from the
+// address bar at once.
 "use strict";
 
 const KEY_STORAGE = "crowdbake.key";
 const JOBS_POLL_MS = 2000;       // bake progress is written at most every 0.5 s; 2 s is plenty for eyes
 const BUNDLES_POLL_MS = 15000;   // bundles change only when a bake publishes
 const FINAL_STATES = new Set(["succeeded", "failed", "cancelled"]);
-const ATLAS_DISPLAY_WIDTH = 1024;  // px the atlas viewer magnifies small atlases up to
+const PREFLIGHT_ASSET = "preflight-no-such-asset";  // an asset id that never exists (see startBake)
+const ARCHIVE_URL_LIFETIME_MS = 60000;  // the downloaded zip's object URL is revoked after this
 const STAGE_SHORT = { validate: "val", cycle: "cyc", poses: "pos", impostors: "imp", pack: "pak", publish: "pub" };
 
+// Earlier versions of the page kept the key in localStorage, where it outlived the browser session.
+localStorage.removeItem(KEY_STORAGE);
+
 const state = {
-  key: localStorage.getItem(KEY_STORAGE) || "",
+  key: sessionStorage.getItem(KEY_STORAGE) || "",
+  files: { character: null, cloth: null, clothMesh: null, textures: new Map() },  // chosen for the next bake
+  detail: null,        // the bake record shown in detail
   bakeId: null,        // the bake shown in detail
   reportFor: null,     // the bake whose cycle report is loaded (or loading)
   bundle: null,        // {name, version} shown in the atlas viewer
@@ -40,16 +48,22 @@ function el(tag, props = {}, ...children) {
 // ------------------------------------------------------------------------------------------- API
 
 class ApiError extends Error {
-  constructor(status, detail) { super(detail); this.status = status; }
+  constructor(status, detail, problem = null) { super(detail); this.status = status; this.problem = problem; }
 }
 
-async function api(path, kind = "json") {
+// `init` may carry method and body (a FormData, or an object sent as JSON).
+async function api(path, kind = "json", init = {}) {
   const headers = state.key ? { Authorization: `Bearer ${state.key}` } : {};
-  const response = await fetch(path, { headers, cache: "no-cache" });
+  let body = init.body;
+  if (body && !(body instanceof FormData)) {
+    headers["Content-Type"] = "application/json";
+    body = JSON.stringify(body);
+  }
+  const response = await fetch(path, { method: init.method || "GET", headers, body, cache: "no-cache" });
   if (!response.ok) {
-    let detail = `${response.status} ${response.statusText}`;
-    try { detail = (await response.json()).detail || detail; } catch (_) { /* not a problem document */ }
-    throw new ApiError(response.status, detail);
+    let detail = `${response.status} ${response.statusText}`, problem = null;
+    try { problem = await response.json(); detail = problem.detail || detail; } catch (_) { /* not a problem document */ }
+    throw new ApiError(response.status, detail, problem);
   }
   if (kind === "json") return response.json();
   if (kind === "text") return response.text();
@@ -92,6 +106,170 @@ function explain(error, scope) {
   return `Could not load: ${error.message}`;
 }
 
+// One line from a problem document: its title, detail and the errors with the field they concern.
+function problemText(error) {
+  const problem = error.problem;
+  if (!problem) return error.message;
+  const errors = (problem.errors || []).map((item) => `${item.field || "?"}${item.where ? ` (${item.where})` : ""}: ${item.message}`);
+  return `${problem.title}: ${problem.detail}${errors.length ? ` [${errors.join("; ")}]` : ""}`;
+}
+
+// ------------------------------------------------------------------------------- upload and bake
+
+// Which input a dropped or chosen file is, by its name.
+function classify(file) {
+  const name = file.name.toLowerCase();
+  if (name.endsWith(".glb") || name.endsWith(".gltf")) return "character";
+  if (name.endsWith(".pc2") || name.endsWith(".zip")) return "cloth";
+  if (name.endsWith(".obj")) return "clothMesh";
+  if (name.endsWith(".png")) return "textures";
+  return null;
+}
+
+function chooseFiles(files) {
+  const ignored = [];
+  for (const file of files) {
+    const kind = classify(file);
+    if (kind === "textures") state.files.textures.set(file.name, file);
+    else if (kind) state.files[kind] = file;
+    else ignored.push(file.name);
+  }
+  renderChosen();
+  $("bake-form-status").textContent = ignored.length ? `Not an input of a bake (ignored): ${ignored.join(", ")}` : "";
+}
+
+function renderChosen() {
+  const { character, cloth, clothMesh, textures } = state.files;
+  const item = (label, file) => el("li", { dataset: { input: label } }, `${label}: `, file ? `${file.name} (${bytes(file.size)})` : el("span", { class: "muted" }, "none"));
+  const items = [item("character", character), item("cloth", cloth)];
+  if (!cloth || !cloth.name.toLowerCase().endsWith(".zip")) items.push(item("cloth mesh", clothMesh));
+  items.push(el("li", { dataset: { input: "textures" } }, `textures: `, textures.size ? [...textures.keys()].sort().join(", ") : el("span", { class: "muted" }, "none")));
+  $("chosen-files").replaceChildren(...items);
+}
+
+function bakeParams() {
+  const params = {};
+  for (const name of ["impostor_frames", "azimuths", "tile_size", "candidates", "cycle_views", "cycle_frames"]) {
+    const value = $(`param-${name}`).value.trim();
+    if (value) params[name] = Number(value);
+  }
+  const elevations = $("param-elevations_deg").value.trim();
+  if (elevations) params.elevations_deg = elevations.split(",").map((value) => Number(value.trim()));
+  if ($("param-close").value) params.close = $("param-close").value;
+  return params;
+}
+
+async function upload(endpoint, fields, what) {
+  const form = new FormData();
+  for (const [field, value] of Object.entries(fields)) form.append(field, value);
+  $("bake-form-status").textContent = `Uploading ${what}…`;
+  return api(endpoint, "json", { method: "POST", body: form });
+}
+
+async function startBake(event) {
+  event.preventDefault();
+  const { character, cloth, clothMesh, textures } = state.files;
+  const isSequence = cloth && cloth.name.toLowerCase().endsWith(".zip");
+  const missing = [!character && "a character (.glb)", !cloth && "a cloth cache (.pc2) or a zip of OBJ frames",
+                   cloth && !isSequence && !clothMesh && "the cloth's mesh (.obj)"].filter(Boolean);
+  if (missing.length) {
+    $("bake-form-status").textContent = `Choose ${missing.join(" and ")}.`;
+    return;
+  }
+  const button = $("start-bake");
+  button.disabled = true;
+  const params = bakeParams();
+  const bakeBody = (character, cloth, textureIds) => ({
+    name: $("bake-name").value.trim(), version: $("bake-version").value.trim(), character, cloth, textures: textureIds, params,
+    publish: $("bake-publish").checked, public: $("bake-public").checked });
+  try {
+    // Before uploading, the server checks the key, the name, version and parameters: a bake request
+    // naming assets that do not exist starts nothing and is refused only for them (as crowdbake submit does).
+    $("bake-form-status").textContent = "Checking the bake request…";
+    const placeholders = Object.fromEntries([...textures.keys()].map((name) => [name, PREFLIGHT_ASSET]));
+    try {
+      await api("/v1/bakes", "json", { method: "POST", body: bakeBody(PREFLIGHT_ASSET, PREFLIGHT_ASSET, placeholders) });
+    } catch (error) {
+      const onlyAssets = error.status === 422 && error.problem && (error.problem.errors || []).length > 0 && error.problem.errors.every(
+        (item) => (["character", "cloth"].includes(item.field) || String(item.field).startsWith("textures.")) && String(item.message).startsWith("no "));
+      if (!onlyAssets) throw error;
+    }
+    const characterAsset = await upload("/v1/assets/characters", { file: character }, character.name);
+    const clothFields = isSequence ? { sequence: cloth } : { cache: cloth, mesh: clothMesh };
+    if (params.cycle_frames) clothFields.cycle_frames = String(params.cycle_frames);
+    const clothAsset = await upload("/v1/assets/cloth", clothFields, cloth.name);
+    const textureIds = {};
+    for (const [name, file] of [...textures.entries()].sort()) textureIds[name] = (await upload("/v1/assets/textures", { file }, name)).id;
+    $("bake-form-status").textContent = "Starting the bake…";
+    const bake = await api("/v1/bakes", "json", { method: "POST", body: bakeBody(characterAsset.id, clothAsset.id, textureIds) });
+    $("bake-form-status").textContent = `Bake ${bake.id} ${bake.state}.`;
+    $("bake-form-status").dataset.bake = bake.id;
+    selectBake(bake.id);
+    await refreshJobs();
+  } catch (error) {
+    $("bake-form-status").textContent = error.status === 401 || error.status === 403 ? explain(error, "upload and bake") : problemText(error);
+  } finally {
+    button.disabled = false;
+  }
+}
+
+function setUpDropZone() {
+  const zone = $("drop-zone");
+  for (const name of ["dragenter", "dragover"]) {
+    zone.addEventListener(name, (event) => { event.preventDefault(); zone.classList.add("dragging"); });
+  }
+  zone.addEventListener("dragleave", () => zone.classList.remove("dragging"));
+  zone.addEventListener("drop", (event) => {
+    event.preventDefault();
+    zone.classList.remove("dragging");
+    chooseFiles(event.dataTransfer.files);
+  });
+  for (const id of ["file-character", "file-cloth", "file-cloth-mesh", "file-textures"]) {
+    $(id).addEventListener("change", (event) => chooseFiles(event.target.files));
+  }
+  renderChosen();
+}
+
+// ---------------------------------------------------------------------------------- bake actions
+
+async function bakeAction(action) {
+  const id = state.bakeId;
+  $("action-status").textContent = `${action}…`;
+  try {
+    const bake = await api(`/v1/bakes/${encodeURIComponent(id)}/${action}`, "json", { method: "POST" });
+    $("action-status").textContent = `${action}: bake is ${bake.state}`;
+  } catch (error) {
+    $("action-status").textContent = error.status === 401 || error.status === 403 ? explain(error, action === "publish" ? "publish" : "bake") : problemText(error);
+  }
+  await refreshJobs();
+}
+
+async function downloadBundle() {
+  const [, , , name, version] = state.detail.bundle_url.split("/");
+  $("action-status").textContent = `Downloading ${name}/${version}…`;
+  try {
+    const blob = await api(`/v1/bundles/${encodeURIComponent(name)}/${encodeURIComponent(version)}/archive.zip`, "blob");
+    const url = URL.createObjectURL(blob);
+    const link = el("a", { href: url, download: `${name}-${version}.zip` });
+    document.body.append(link);
+    link.click();
+    link.remove();
+    setTimeout(() => URL.revokeObjectURL(url), ARCHIVE_URL_LIFETIME_MS);
+    $("action-status").textContent = `Downloaded ${name}-${version}.zip (${bytes(blob.size)})`;
+    $("action-status").dataset.downloaded = `${name}/${version}`;
+  } catch (error) {
+    $("action-status").textContent = explain(error, "read");
+  }
+}
+
+function showActions(bake) {
+  const active = bake.state === "queued" || bake.state === "running";
+  $("action-cancel").hidden = !active;
+  $("action-retry").hidden = !(bake.state === "failed" || bake.state === "cancelled");
+  $("action-publish").hidden = !(bake.state === "succeeded" && !bake.bundle_url);
+  $("action-download").hidden = !bake.bundle_url;
+}
+
 // ------------------------------------------------------------------------------------------ bakes
 
 async function refreshJobs() {
@@ -126,6 +304,7 @@ function renderJobs(bakes) {
 }
 
 function selectBake(id) {
+  if (id !== state.bakeId) $("action-status").textContent = "";
   state.bakeId = id;
   for (const row of $("jobs-table").tBodies[0].rows) row.classList.toggle("selected", row.dataset.bake === id);
   setFragment();
@@ -144,6 +323,8 @@ async function refreshDetail() {
     return;
   }
   if (id !== state.bakeId) return;  // another bake was chosen meanwhile
+  state.detail = bake;
+  showActions(bake);
   $("bake-detail").hidden = false;
   $("bake-detail").dataset.bake = bake.id;
   $("bake-detail").dataset.state = bake.state;
@@ -288,15 +469,24 @@ async function loadAtlas() {
     image.dataset.kind = kind;
     image.dataset.width = String(image.naturalWidth);
     image.dataset.height = String(image.naturalHeight);
-    // Small atlases are magnified by a whole factor (nearest texel, see style.css), large ones shown as they are.
-    const zoom = Math.max(1, Math.floor(ATLAS_DISPLAY_WIDTH / image.naturalWidth));
-    image.style.width = `${zoom * image.naturalWidth}px`;
+    applyZoom();
     const impostor = state.manifest.impostor;
     $("atlas-status").textContent = `${kind} map, layer ${query.get("frame")} of ${impostor.frame_indices.length}: `
       + `${image.naturalWidth}×${image.naturalHeight} texels (tiles of ${impostor.tile_size}², `
       + `${impostor.azimuths_deg.length} azimuths × ${impostor.elevations_deg.length} elevations), ${bytes(blob.size)} PNG`;
   };
   image.src = state.atlasUrl;
+}
+
+// The atlas at full size (1×: one texel per pixel, scrolled in its viewport) or magnified by a whole
+// factor (nearest texel, see style.css); "fit" scales it to the page's width.
+function applyZoom() {
+  const image = $("atlas-image");
+  if (!image.naturalWidth) return;
+  const zoom = $("atlas-zoom").value;
+  const width = zoom === "fit" ? Math.min(image.naturalWidth, $("atlas-viewport").clientWidth - 2) : Number(zoom) * image.naturalWidth;
+  image.style.width = `${width}px`;
+  image.dataset.zoom = zoom;
 }
 
 // ------------------------------------------------------------------------------- key and fragment
@@ -316,7 +506,7 @@ function readFragment() {
   const parts = new URLSearchParams(location.hash.slice(1));
   if (parts.get("key")) {
     state.key = parts.get("key");
-    localStorage.setItem(KEY_STORAGE, state.key);
+    sessionStorage.setItem(KEY_STORAGE, state.key);
   }
   state.bakeId = parts.get("bake") || state.bakeId;
   const bundle = parts.get("bundle");
@@ -326,7 +516,7 @@ function readFragment() {
 
 function useKey(key) {
   state.key = key;
-  if (key) localStorage.setItem(KEY_STORAGE, key); else localStorage.removeItem(KEY_STORAGE);
+  if (key) sessionStorage.setItem(KEY_STORAGE, key); else sessionStorage.removeItem(KEY_STORAGE);
   $("key").value = "";
   showKeyState();
   state.reportFor = null;
@@ -345,6 +535,13 @@ function start() {
   $("key-form").addEventListener("submit", (event) => { event.preventDefault(); useKey($("key").value.trim()); });
   $("forget-key").addEventListener("click", () => useKey(""));
   for (const id of ["atlas-map", "atlas-frame", "atlas-azimuth", "atlas-elevation"]) $(id).addEventListener("change", loadAtlas);
+  $("atlas-zoom").addEventListener("change", applyZoom);
+  setUpDropZone();
+  $("bake-form").addEventListener("submit", startBake);
+  $("action-cancel").addEventListener("click", () => bakeAction("cancel"));
+  $("action-retry").addEventListener("click", () => bakeAction("retry"));
+  $("action-publish").addEventListener("click", () => bakeAction("publish"));
+  $("action-download").addEventListener("click", downloadBundle);
   poll(refreshJobs, JOBS_POLL_MS);
   poll(refreshBundles, BUNDLES_POLL_MS);
   if (bundle && bundle.length === 2) selectBundle(bundle[0], bundle[1]);
