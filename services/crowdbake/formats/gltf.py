@@ -291,41 +291,63 @@ def _parse_json(text: bytes, where: str) -> dict:
 
 
 # pygltflib's own from_dict (dataclasses_json) costs about 0.35 ms per object: 16,000 nodes would take
-# six seconds. The same dataclasses are built here directly from their type hints, in microseconds.
-_HINTS: dict[type, dict[str, typing.Any]] = {}
+# six seconds. The same dataclasses are built here directly, from a per-class plan of their type hints.
+_PLANS: dict[type, dict[str, tuple[str, typing.Any]]] = {}
+_FLAT_CLASSES: set[type] = set()
+
+
+def _plan(cls: type) -> dict[str, tuple[str, typing.Any]]:
+    """{field: (kind, dataclass)} with kind "plain", "object", "objects" (a list of them) or "dict"."""
+    plan = _PLANS.get(cls)
+    if plan is None:
+        plan = {}
+        hints = typing.get_type_hints(cls)
+        for item in dataclasses.fields(cls):
+            hint = hints[item.name]
+            if typing.get_origin(hint) is typing.Union:
+                hint = next(arg for arg in typing.get_args(hint) if arg is not type(None))
+            many = typing.get_origin(hint) is list
+            inner = typing.get_args(hint)[0] if many else hint
+            if inner is pygltflib.Attributes:  # kept as a plain {name: accessor} dict: JOINTS_1, _CUSTOM...
+                plan[item.name] = ("dicts" if many else "dict", None)
+            elif dataclasses.is_dataclass(inner):
+                plan[item.name] = ("objects" if many else "object", inner)
+            else:
+                plan[item.name] = ("plain", None)
+        _PLANS[cls] = plan
+        if all(kind == "plain" for kind, _ in plan.values()):
+            _FLAT_CLASSES.add(cls)
+    return plan
 
 
 def _typed(cls: type, value, where: str):
     """A pygltflib dataclass `cls` from its JSON object; unknown members are dropped."""
     if not isinstance(value, dict):
         raise ValueError(f"{where} must be a JSON object, got {type(value).__name__}")
-    hints = _HINTS.get(cls)
-    if hints is None:
-        hints = _HINTS[cls] = {f.name: typing.get_type_hints(cls)[f.name] for f in dataclasses.fields(cls)}
-    return cls(**{key: _convert(hints[key], item, f"{where}.{key}") for key, item in value.items() if key in hints})
-
-
-def _convert(hint, value, where: str):
-    if value is None:
-        return None
-    origin = typing.get_origin(hint)
-    if origin is typing.Union:
-        hint = next(arg for arg in typing.get_args(hint) if arg is not type(None))
-        origin = typing.get_origin(hint)
-    if origin is list:
-        (item_hint,) = typing.get_args(hint)
-        if not isinstance(value, list):
-            raise ValueError(f"{where} must be a JSON array")
-        if dataclasses.is_dataclass(item_hint) or item_hint is pygltflib.Attributes:
-            return [_convert(item_hint, item, f"{where}[{index}]") for index, item in enumerate(value)]
-        return value
-    if hint is pygltflib.Attributes:  # kept as a plain {name: accessor} dict: JOINTS_1, _CUSTOM...
-        if not isinstance(value, dict):
-            raise ValueError(f"{where} must be a JSON object")
-        return value
-    if dataclasses.is_dataclass(hint):
-        return _typed(hint, value, where)
-    return value
+    plan = _plan(cls)
+    if cls in _FLAT_CLASSES:  # nodes, buffer views...: nothing nested, the fast path for big files
+        return cls(**{key: item for key, item in value.items() if key in plan})
+    kwargs = {}
+    for key, item in value.items():
+        kind, inner = plan.get(key, (None, None))
+        if kind is None:
+            continue
+        if item is None or kind == "plain":
+            kwargs[key] = item
+        elif kind == "object":
+            kwargs[key] = _typed(inner, item, f"{where}.{key}")
+        elif kind == "dict":
+            if not isinstance(item, dict):
+                raise ValueError(f"{where}.{key} must be a JSON object")
+            kwargs[key] = item
+        else:
+            if not isinstance(item, list):
+                raise ValueError(f"{where}.{key} must be a JSON array")
+            if kind == "objects":
+                kwargs[key] = [_typed(inner, element, f"{where}.{key}[{index}]") for index, element in enumerate(item)]
+            else:
+                kwargs[key] = item
+    return cls(**kwargs)
 
 
 def _decode_uri(uri: str, base: Path, where: str) -> bytes:
@@ -552,30 +574,34 @@ def _local_matrices(doc: _Document) -> np.ndarray:
     """Every node's local transform -> (N, 4, 4) float64, TRS nodes converted in one vectorised call."""
     nodes = doc.gltf.nodes
     count = len(nodes)
-    translations, scales = np.zeros((count, 3)), np.ones((count, 3))
-    rotations = np.tile([0.0, 0.0, 0.0, 1.0], (count, 1))
-    matrices: dict[int, np.ndarray] = {}
+    columns = {"translation": [[0.0] * 3] * count, "rotation": [[0.0, 0.0, 0.0, 1.0]] * count, "scale": [[1.0] * 3] * count}
+    matrices: dict[int, list] = {}
     for index, node in enumerate(nodes):
-        where = f"{doc.where}: nodes[{index}]"
         if node.matrix is not None:
-            values = np.asarray(node.matrix, dtype=np.float64)
-            if values.shape != (16,) or not np.isfinite(values).all():
-                raise ValueError(f"{where}: matrix must be 16 finite numbers")
-            matrices[index] = values.reshape(4, 4).T  # glTF stores column-major
+            matrices[index] = node.matrix
             continue
-        for name, target, width in (("translation", translations, 3), ("rotation", rotations, 4), ("scale", scales, 3)):
+        for name, column in columns.items():
             value = getattr(node, name)
             if value is not None:
-                value = np.asarray(value, dtype=np.float64)
-                if value.shape != (width,) or not np.isfinite(value).all():
-                    raise ValueError(f"{where}: {name} must be {width} finite numbers")
-                target[index] = value
-    length = np.linalg.norm(rotations, axis=1)
+                column[index] = value  # type: ignore[index]
+    arrays = {}
+    for name, width in (("translation", 3), ("rotation", 4), ("scale", 3)):
+        try:
+            arrays[name] = np.array(columns[name], dtype=np.float64)
+        except (ValueError, TypeError):
+            arrays[name] = np.zeros(0)
+        if arrays[name].shape != (count, width) or not np.isfinite(arrays[name]).all():
+            bad = next(k for k, v in enumerate(columns[name]) if not (isinstance(v, list) and len(v) == width and np.isfinite(np.asarray(v, dtype=float)).all()))
+            raise ValueError(f"{doc.where}: nodes[{bad}].{name} must be {width} finite numbers")
+    length = np.linalg.norm(arrays["rotation"], axis=1)
     if (length < 1e-6).any():
         raise ValueError(f"{doc.where}: nodes[{int(np.argmax(length < 1e-6))}] has the zero quaternion as rotation")
-    local = trs_matrix(translations, rotations, scales)
+    local = trs_matrix(arrays["translation"], arrays["rotation"], arrays["scale"])
     for index, matrix in matrices.items():
-        local[index] = matrix
+        values = np.asarray(matrix, dtype=np.float64)
+        if values.shape != (16,) or not np.isfinite(values).all():
+            raise ValueError(f"{doc.where}: nodes[{index}].matrix must be 16 finite numbers")
+        local[index] = values.reshape(4, 4).T  # glTF stores column-major
     return local
 
 
