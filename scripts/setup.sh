@@ -27,13 +27,15 @@ fi
 # 2. Python virtualenv with pinned requirements (two steps: see services/requirements.txt).
 py="${PYTHON:-python3.11}"
 command -v "$py" >/dev/null || py=python3
-req_hash=$(cat services/requirements-pyrender.txt services/requirements.txt services/requirements-test.txt services/pyproject.toml | sha256sum | cut -c1-16)
+req_hash=$(cat services/requirements-pyrender.txt services/requirements.txt services/requirements-test.txt services/requirements-alembic.txt services/pyproject.toml | sha256sum | cut -c1-16)
 if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp_dir/venv" 2>/dev/null)" != "$req_hash" ]; then
   say "creating virtualenv .venv"
   "$py" -m venv .venv
   .venv/bin/pip install -q --upgrade pip
   .venv/bin/pip install -q -r services/requirements-pyrender.txt
   .venv/bin/pip install -q -r services/requirements.txt -r services/requirements-test.txt
+  # The Alembic extra (bpy) without its numpy<2 pin: see services/requirements-alembic.txt.
+  .venv/bin/pip install -q --no-deps -r services/requirements-alembic.txt
   .venv/bin/pip install -q --no-deps -e services
   echo "$req_hash" > "$stamp_dir/venv"
 fi

@@ -68,8 +68,11 @@ def test_rigged_figure_loads(shared_asset):
     assert character.vertex_count == 370 and character.faces.shape == (256, 3)
     assert character.joint_count == 19
     assert character.animation_duration == pytest.approx(1.25)
-    assert character.texture is None
-    assert not character.uvs.any()  # the file has no TEXCOORD_0
+    # Untextured, baseColorFactor 0.8 grey (linear): honoured as a flat sRGB tile, not dropped.
+    assert len(character.materials) == 1 and character.materials[0].texture is None
+    assert character.texture is not None and character.texture.shape[:2] == (8, 8)
+    expected = round((1.055 * 0.8 ** (1 / 2.4) - 0.055) * 255)
+    np.testing.assert_array_equal(character.texture[0, 0], [expected, expected, expected, 255])
 
 
 def test_writer_round_trips_cesium_man(shared_asset, tmp_path):

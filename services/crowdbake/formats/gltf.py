@@ -1,12 +1,29 @@
-"""Skinned, animated glTF 2.0 characters: read (.glb, .gltf) and write (.glb), with json + numpy only.
+"""Skinned, animated glTF 2.0 characters: read (.glb, .gltf) and write (.glb).
+
+The document model is pygltflib's (typed dataclasses for nodes, accessors, materials...); compressed
+geometry is decoded by DracoPy (KHR_draco_mesh_compression) and meshoptimizer
+(EXT_meshopt_compression, its vertex, index and filter decoders); images by Pillow. This module does
+the parts no library does: checked accessor reads into numpy, the skin and its hierarchy, the
+animation, and merging materials into what the bake consumes.
 
 What is read (`load_character`):
-  * every triangle primitive of every mesh node that uses the chosen skin, merged into one mesh;
+  * every triangle primitive of every mesh node that uses the chosen skin, merged into one mesh (a mesh
+    used by several nodes with that skin is read once: for a skinned mesh the node transform does not
+    apply, so the copies would coincide); a mesh node *without* a skin that hangs under a joint (a hat
+    under the head) is attached rigidly to that joint; other meshes are left out with a warning;
   * the skin's joints in `skin.joints` order (so JOINTS_0 indices are joint indices), their parents,
     rest TRS and inverse bind matrices;
-  * one animation's channels that target joints (translation / rotation / scale, LINEAR, STEP or
-    CUBICSPLINE samplers);
-  * the base colour texture of the first textured primitive, decoded to RGBA8 with Pillow.
+  * one animation, chosen by index or name (`animation=`), its channels that target joints
+    (translation / rotation / scale, LINEAR, STEP or CUBICSPLINE samplers);
+  * every material the merged mesh uses: `Character.materials` (name, baseColorFactor, base colour
+    texture) and `Character.vertex_materials` (index per vertex). `Character.texture` is what the bake
+    samples: the one base colour texture times its factor when one material (or one texture and factor)
+    covers the mesh, else an atlas of every material (texture times factor, or a flat tile of the
+    factor's colour) with the UVs moved into each material's tile. None when nothing is textured and
+    every factor is white (the bake's default colour then).
+
+A required extension this reader cannot honour is refused by name (KHR_texture_basisu: KTX2 images
+need libktx, see crowdbake.formats.images). Extensions that are only *used* are ignored.
 
 Transforms, as the glTF spec defines skinning: a skinned vertex is
 ``sum_k w_k * world(joint_k) @ inverseBind(joint_k) @ p``; the transform of the node that holds the
@@ -18,24 +35,30 @@ are not followed (a warning says so).
 
 Texture coordinates are kept in glTF's convention: (0, 0) is the top-left of the image, v grows down.
 
-Every offset and length in the file is checked before it is used, so truncated or garbled files
-raise ValueError naming the file and the problem instead of reading past a buffer.
+Every offset and length in the file is checked before it is used (accessor extents against their
+bufferView before anything is allocated, decompressed sizes against MAX_DECODED_VIEW_BYTES), so
+truncated or garbled files raise ValueError naming the file and the problem. The node hierarchy is
+walked once (linear in the node count: a 16,000-node chain loads in milliseconds).
 """
 from __future__ import annotations
 
 import base64
+import dataclasses
 import io
 import json
 import logging
 import os
 import struct
+import typing
 import urllib.parse
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pygltflib
 
 from crowdbake.bake.skinning import quaternion_matrices
+from crowdbake.formats.images import KTX2_REFUSAL, decode_rgba
 
 logger = logging.getLogger(__name__)
 
@@ -45,18 +68,25 @@ CHUNK_JSON = 0x4E4F534A
 CHUNK_BIN = 0x004E4942
 
 _COMPONENT_TYPES = {
-    5120: np.dtype("i1"),
-    5121: np.dtype("u1"),
-    5122: np.dtype("<i2"),
-    5123: np.dtype("<u2"),
-    5125: np.dtype("<u4"),
-    5126: np.dtype("<f4"),
+    pygltflib.BYTE: np.dtype("i1"),
+    pygltflib.UNSIGNED_BYTE: np.dtype("u1"),
+    pygltflib.SHORT: np.dtype("<i2"),
+    pygltflib.UNSIGNED_SHORT: np.dtype("<u2"),
+    pygltflib.UNSIGNED_INT: np.dtype("<u4"),
+    pygltflib.FLOAT: np.dtype("<f4"),
 }
 _TYPE_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
-MODE_TRIANGLES, MODE_TRIANGLE_STRIP, MODE_TRIANGLE_FAN = 4, 5, 6
+MODE_TRIANGLES, MODE_TRIANGLE_STRIP, MODE_TRIANGLE_FAN = pygltflib.TRIANGLES, pygltflib.TRIANGLE_STRIP, pygltflib.TRIANGLE_FAN
 
 INTERPOLATIONS = ("LINEAR", "STEP", "CUBICSPLINE")
 PATH_WIDTHS = {"translation": 3, "rotation": 4, "scale": 3}
+
+DRACO = "KHR_draco_mesh_compression"
+MESHOPT = "EXT_meshopt_compression"
+BASISU = "KHR_texture_basisu"
+# Required extensions this reader honours. KHR_mesh_quantization only widens the accessor types
+# allowed for positions, normals and UVs, which the accessor reader handles anyway.
+READABLE_REQUIRED_EXTENSIONS = frozenset({DRACO, MESHOPT, "KHR_mesh_quantization"})
 
 # Skin weights are normalised on load; a vertex whose weights sum below this is unskinned (a file error).
 MIN_WEIGHT_SUM = 1e-6
@@ -64,6 +94,14 @@ MIN_WEIGHT_SUM = 1e-6
 WEIGHT_SUM_TOLERANCE = 1e-5
 # Normals further than this from unit length (e.g. quantised to bytes) are renormalised on load.
 NORMAL_LENGTH_TOLERANCE = 1e-4
+# A compressed bufferView may claim any decoded size; a character's biggest view (positions of a
+# million vertices) is 12 MB, so 256 MiB refuses a lying count before it becomes an allocation.
+MAX_DECODED_VIEW_BYTES = 1 << 28
+# Pixels of empty border around each material's tile in a merged texture: bilinear and mipmapped
+# sampling near a tile's edge then reads that tile's own (edge-replicated) colour.
+ATLAS_GUTTER = 4
+# Side of the flat tile that stands for an untextured material in a merged texture.
+FLAT_TILE = 8
 
 
 @dataclass
@@ -84,17 +122,29 @@ class AnimationChannel:
 
 
 @dataclass
+class Material:
+    """One glTF material as the bake sees it: base_color_factor (4,) float32 linear RGBA; texture
+    (H, W, 4) uint8 sRGB base colour image (not yet multiplied by the factor) or None."""
+
+    name: str
+    base_color_factor: np.ndarray
+    texture: np.ndarray | None = None
+
+
+@dataclass
 class Character:
     """A skinned character in its bind pose plus one animation (see the module docstring for transforms).
 
     positions (V, 3) float32 metres, normals (V, 3) float32 unit, uvs (V, 2) float32 (glTF convention;
-    zeros when the file has none), faces (T, 3) uint32, joints (V, 4) uint16 joint indices,
-    weights (V, 4) float32 summing to 1 per vertex.
+    zeros when the file has none; into `texture`, an atlas when several materials were merged),
+    faces (T, 3) uint32, joints (V, 4) uint16 joint indices, weights (V, 4) float32 summing to 1 per vertex.
     joint_names: J names; joint_parents (J,) int64, -1 for a root; joint_parent_transforms (J, 4, 4)
     float64; inverse_bind_matrices (J, 4, 4) float32; rest_translations (J, 3), rest_rotations (J, 4)
     (x, y, z, w), rest_scales (J, 3) float64: each joint's local TRS when no channel animates it.
-    channels: the animation; animation_duration: seconds (0 without animation).
-    texture: (H, W, 4) uint8 base colour or None.
+    channels: the animation; animation_duration: seconds (0 without animation); animation_name: its
+    name; animation_names: every animation in the file, in order.
+    texture: (H, W, 4) uint8 base colour or None. materials: the materials used, vertex_materials (V,)
+    uint16 index into them (None for a character built in code).
     """
 
     positions: np.ndarray
@@ -114,6 +164,10 @@ class Character:
     animation_duration: float = 0.0
     texture: np.ndarray | None = None
     name: str = ""
+    materials: list[Material] = field(default_factory=list)
+    vertex_materials: np.ndarray | None = None
+    animation_name: str = ""
+    animation_names: list[str] = field(default_factory=list)
 
     @property
     def vertex_count(self) -> int:
@@ -236,6 +290,66 @@ def _parse_json(text: bytes, where: str) -> dict:
     return document
 
 
+# pygltflib's own from_dict (dataclasses_json) costs about 0.35 ms per object: 16,000 nodes would take
+# six seconds. The same dataclasses are built here directly, from a per-class plan of their type hints.
+_PLANS: dict[type, dict[str, tuple[str, typing.Any]]] = {}
+_FLAT_CLASSES: set[type] = set()
+
+
+def _plan(cls: type) -> dict[str, tuple[str, typing.Any]]:
+    """{field: (kind, dataclass)} with kind "plain", "object", "objects" (a list of them) or "dict"."""
+    plan = _PLANS.get(cls)
+    if plan is None:
+        plan = {}
+        hints = typing.get_type_hints(cls)
+        for item in dataclasses.fields(cls):
+            hint = hints[item.name]
+            if typing.get_origin(hint) is typing.Union:
+                hint = next(arg for arg in typing.get_args(hint) if arg is not type(None))
+            many = typing.get_origin(hint) is list
+            inner = typing.get_args(hint)[0] if many else hint
+            if inner is pygltflib.Attributes:  # kept as a plain {name: accessor} dict: JOINTS_1, _CUSTOM...
+                plan[item.name] = ("dicts" if many else "dict", None)
+            elif dataclasses.is_dataclass(inner):
+                plan[item.name] = ("objects" if many else "object", inner)
+            else:
+                plan[item.name] = ("plain", None)
+        _PLANS[cls] = plan
+        if all(kind == "plain" for kind, _ in plan.values()):
+            _FLAT_CLASSES.add(cls)
+    return plan
+
+
+def _typed(cls: type, value, where: str):
+    """A pygltflib dataclass `cls` from its JSON object; unknown members are dropped."""
+    if not isinstance(value, dict):
+        raise ValueError(f"{where} must be a JSON object, got {type(value).__name__}")
+    plan = _plan(cls)
+    if cls in _FLAT_CLASSES:  # nodes, buffer views...: nothing nested, the fast path for big files
+        return cls(**{key: item for key, item in value.items() if key in plan})
+    kwargs = {}
+    for key, item in value.items():
+        kind, inner = plan.get(key, (None, None))
+        if kind is None:
+            continue
+        if item is None or kind == "plain":
+            kwargs[key] = item
+        elif kind == "object":
+            kwargs[key] = _typed(inner, item, f"{where}.{key}")
+        elif kind == "dict":
+            if not isinstance(item, dict):
+                raise ValueError(f"{where}.{key} must be a JSON object")
+            kwargs[key] = item
+        else:
+            if not isinstance(item, list):
+                raise ValueError(f"{where}.{key} must be a JSON array")
+            if kind == "objects":
+                kwargs[key] = [_typed(inner, element, f"{where}.{key}[{index}]") for index, element in enumerate(item)]
+            else:
+                kwargs[key] = item
+    return cls(**kwargs)
+
+
 def _decode_uri(uri: str, base: Path, where: str) -> bytes:
     """Bytes behind a buffer/image URI: a base64 data URI or a file relative to the glTF."""
     if uri.startswith("data:"):
@@ -255,87 +369,139 @@ def _decode_uri(uri: str, base: Path, where: str) -> bytes:
     return path.read_bytes()
 
 
-class _Document:
-    """The parsed JSON plus its buffers, with checked accessor reads."""
+def _extension(item, name: str):
+    extensions = getattr(item, "extensions", None)
+    return extensions.get(name) if isinstance(extensions, dict) else None
 
-    def __init__(self, gltf: dict, buffers: list[bytes], where: str, base: Path):
-        self.gltf = gltf
+
+class _Document:
+    """The typed glTF (pygltflib) plus its buffers, with checked accessor reads.
+
+    gltf: a pygltflib.GLTF2 or its JSON dict; buffers: bytes per glTF buffer (None for a meshopt
+    fallback buffer that has no data); base: the folder external URIs are relative to.
+    """
+
+    def __init__(self, gltf, buffers: list[bytes | None], where: str, base: Path | None):
+        self.gltf = gltf if isinstance(gltf, pygltflib.GLTF2) else _typed(pygltflib.GLTF2, gltf, where)
         self.buffers = buffers
         self.where = where
         self.base = base
+        self._decoded_views: dict[int, bytes] = {}
 
-    def item(self, kind: str, index) -> dict:
-        items = self.gltf.get(kind, [])
-        if not isinstance(index, int) or not 0 <= index < len(items):
+    def item(self, kind: str, index):
+        items = getattr(self.gltf, kind) or []
+        if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(items):
             raise ValueError(f"{self.where}: {kind}[{index}] does not exist ({len(items)} defined)")
         return items[index]
 
-    def view_bytes(self, view_index: int) -> tuple[memoryview, int | None]:
-        view = self.item("bufferViews", view_index)
-        buffer_index = view.get("buffer")
+    def _buffer_slice(self, buffer_index, offset, length, what: str) -> memoryview:
         if not isinstance(buffer_index, int) or not 0 <= buffer_index < len(self.buffers):
-            raise ValueError(f"{self.where}: bufferViews[{view_index}] names buffer {buffer_index}, which does not exist")
+            raise ValueError(f"{self.where}: {what} names buffer {buffer_index}, which does not exist")
         buffer = self.buffers[buffer_index]
-        offset, length = int(view.get("byteOffset", 0)), int(view.get("byteLength", -1))
+        if buffer is None:
+            raise ValueError(f"{self.where}: {what} reads buffers[{buffer_index}], a {MESHOPT} fallback that holds no data")
+        offset, length = int(offset or 0), int(length if length is not None else -1)
         if offset < 0 or length < 0 or offset + length > len(buffer):
             raise ValueError(
-                f"{self.where}: bufferViews[{view_index}] (bytes {offset}..{offset + length}) lies outside "
-                f"buffer {buffer_index} ({len(buffer)} bytes)"
+                f"{self.where}: {what} (bytes {offset}..{offset + length}) lies outside buffer {buffer_index} ({len(buffer)} bytes)"
             )
-        return memoryview(buffer)[offset : offset + length], view.get("byteStride")
+        return memoryview(buffer)[offset : offset + length]
+
+    def view_bytes(self, view_index: int) -> tuple[memoryview, int | None]:
+        """The bytes of bufferViews[view_index] (decompressed for EXT_meshopt_compression) and its stride."""
+        view = self.item("bufferViews", view_index)
+        compressed = _extension(view, MESHOPT)
+        if compressed is not None:
+            return memoryview(self._meshopt_view(view_index, compressed)), compressed.get("byteStride")
+        data = self._buffer_slice(view.buffer, view.byteOffset, view.byteLength, f"bufferViews[{view_index}]")
+        return data, view.byteStride
+
+    def _meshopt_view(self, view_index: int, ext: dict) -> bytes:
+        """Decode an EXT_meshopt_compression bufferView (its ATTRIBUTES, TRIANGLES or INDICES mode and
+        its NONE, OCTAHEDRAL, QUATERNION or EXPONENTIAL filter) with meshoptimizer's decoders."""
+        if view_index in self._decoded_views:
+            return self._decoded_views[view_index]
+        import meshoptimizer
+
+        what = f"bufferViews[{view_index}] ({MESHOPT})"
+        source = bytes(self._buffer_slice(ext.get("buffer"), ext.get("byteOffset", 0), ext.get("byteLength"), what))
+        count, stride = ext.get("count"), ext.get("byteStride")
+        mode, filter_name = ext.get("mode"), ext.get("filter", "NONE")
+        if not isinstance(count, int) or not isinstance(stride, int) or count < 1 or stride < 1:
+            raise ValueError(f"{self.where}: {what}: count {count!r} and byteStride {stride!r} must be positive integers")
+        if count * stride > MAX_DECODED_VIEW_BYTES:
+            raise ValueError(f"{self.where}: {what} decodes to {count * stride} bytes, more than {MAX_DECODED_VIEW_BYTES}")
+        try:
+            if mode == "ATTRIBUTES":
+                if stride % 4 or stride > 256:
+                    raise ValueError(f"byteStride {stride} must be a multiple of 4 up to 256")
+                # The float32 view the decoder returns is only a container: its bytes are the vertices.
+                decoded = np.ascontiguousarray(meshoptimizer.decode_vertex_buffer(count, stride, source)).view(np.uint8)
+                filters = {"OCTAHEDRAL": meshoptimizer.decode_filter_oct, "QUATERNION": meshoptimizer.decode_filter_quat,
+                           "EXPONENTIAL": meshoptimizer.decode_filter_exp}
+                if filter_name in filters:
+                    decoded = filters[filter_name](decoded, count, stride)
+                elif filter_name != "NONE":
+                    raise ValueError(f"unknown filter {filter_name!r}")
+                result = decoded.tobytes()
+            elif mode in ("TRIANGLES", "INDICES"):
+                if stride not in (2, 4) or (mode == "TRIANGLES" and count % 3):
+                    raise ValueError(f"index byteStride {stride} must be 2 or 4 (and count a multiple of 3 for TRIANGLES)")
+                decode = meshoptimizer.decode_index_buffer if mode == "TRIANGLES" else meshoptimizer.decode_index_sequence
+                # The decoder writes count * stride bytes at the start of its uint32 array.
+                result = decode(count, stride, source).tobytes()[: count * stride]
+            else:
+                raise ValueError(f"unknown mode {mode!r}")
+        except (ValueError, RuntimeError) as error:
+            raise ValueError(f"{self.where}: {what} does not decode: {error}") from None
+        self._decoded_views[view_index] = result
+        return result
 
     def accessor(self, index: int) -> np.ndarray:
         """Accessor `index` as (count, width) array: float32 for floats and normalised ints, else int64."""
         accessor = self.item("accessors", index)
         where = f"{self.where}: accessors[{index}]"
-        dtype = _COMPONENT_TYPES.get(accessor.get("componentType"))
-        width = _TYPE_WIDTHS.get(accessor.get("type"))
-        count = accessor.get("count")
+        dtype = _COMPONENT_TYPES.get(accessor.componentType)
+        width = _TYPE_WIDTHS.get(accessor.type)
+        count = accessor.count
         if dtype is None or width is None:
-            raise ValueError(f"{where}: unknown componentType {accessor.get('componentType')} or type {accessor.get('type')}")
+            raise ValueError(f"{where}: unknown componentType {accessor.componentType} or type {accessor.type}")
         if not isinstance(count, int) or count < 1:
             raise ValueError(f"{where}: count {count!r} must be a positive integer")
-        if accessor.get("type") in ("MAT2", "MAT3") and dtype.itemsize < 4:
-            raise ValueError(f"{where}: padded {accessor['type']} of {dtype} components is not supported")
+        if accessor.type in ("MAT2", "MAT3") and dtype.itemsize < 4:
+            raise ValueError(f"{where}: padded {accessor.type} of {dtype} components is not supported")
         element_size = dtype.itemsize * width
-        if "bufferView" in accessor:
-            data, stride = self.view_bytes(accessor["bufferView"])
+        if accessor.bufferView is not None:
+            data, stride = self.view_bytes(accessor.bufferView)
             stride = int(stride or element_size)
-            offset = int(accessor.get("byteOffset", 0))
+            offset = int(accessor.byteOffset or 0)
             if stride < element_size or offset < 0:
                 raise ValueError(f"{where}: byteStride {stride} is smaller than an element ({element_size} bytes)")
             end = offset + stride * (count - 1) + element_size
-            if end > len(data):
+            if end > len(data):  # checked before numpy is asked for anything
                 raise ValueError(
                     f"{where}: {count} elements of {element_size} bytes (stride {stride}) from byte {offset} need "
                     f"{end} bytes, its bufferView has {len(data)}"
                 )
             values = np.ndarray((count, width), dtype=dtype, buffer=data, offset=offset, strides=(stride, dtype.itemsize)).copy()
         else:
+            if count * element_size > MAX_DECODED_VIEW_BYTES:
+                raise ValueError(f"{where}: {count} zero-filled elements exceed {MAX_DECODED_VIEW_BYTES} bytes")
             values = np.zeros((count, width), dtype=dtype)
-        if "sparse" in accessor:
-            values = self._apply_sparse(accessor["sparse"], values, dtype, width, where)
-        if dtype.kind == "f":
-            result = values.astype(np.float32)
-        elif accessor.get("normalized"):
-            # glTF 2.0 section 3.11: signed values map with max(c / (2^(n-1) - 1), -1), unsigned with c / (2^n - 1).
-            info = np.iinfo(dtype)
-            result = np.maximum(values.astype(np.float64) / info.max, -1.0).astype(np.float32)
-        else:
-            result = values.astype(np.int64)
-        if result.dtype.kind == "f" and not np.isfinite(result).all():
-            raise ValueError(f"{where}: contains NaN or infinity")
-        return result
+        if accessor.sparse is not None:
+            values = self._apply_sparse(accessor.sparse, values, dtype, width, where)
+        return _accessor_values(values, bool(accessor.normalized), where)
 
-    def _apply_sparse(self, sparse: dict, values: np.ndarray, dtype, width: int, where: str) -> np.ndarray:
-        count = sparse.get("count", 0)
-        indices_info, values_info = sparse.get("indices", {}), sparse.get("values", {})
-        index_dtype = _COMPONENT_TYPES.get(indices_info.get("componentType"))
-        if not isinstance(count, int) or count < 1 or index_dtype is None or index_dtype.kind != "u":
+    def _apply_sparse(self, sparse, values: np.ndarray, dtype, width: int, where: str) -> np.ndarray:
+        count = sparse.count
+        indices_info, values_info = sparse.indices, sparse.values
+        index_dtype = _COMPONENT_TYPES.get(getattr(indices_info, "componentType", None))
+        if not isinstance(count, int) or count < 1 or index_dtype is None or index_dtype.kind != "u" or values_info is None:
             raise ValueError(f"{where}: malformed sparse block")
+        sparse_indices = None
         for info, item_dtype, item_width, label in ((indices_info, index_dtype, 1, "indices"), (values_info, dtype, width, "values")):
-            data, _ = self.view_bytes(info.get("bufferView"))
-            offset = int(info.get("byteOffset", 0))
+            data, _ = self.view_bytes(info.bufferView)
+            offset = int(info.byteOffset or 0)
             if offset < 0 or offset + count * item_dtype.itemsize * item_width > len(data):
                 raise ValueError(f"{where}: sparse {label} lie outside their bufferView")
             array = np.frombuffer(data, dtype=item_dtype, count=count * item_width, offset=offset).reshape(count, item_width)
@@ -349,6 +515,21 @@ class _Document:
         return values
 
 
+def _accessor_values(values: np.ndarray, normalized: bool, where: str) -> np.ndarray:
+    """Raw accessor components -> float32 (floats; normalised integers) or int64 (other integers)."""
+    if values.dtype.kind == "f":
+        result = values.astype(np.float32)
+    elif normalized:
+        # glTF 2.0 section 3.11: signed values map with max(c / (2^(n-1) - 1), -1), unsigned with c / (2^n - 1).
+        info = np.iinfo(values.dtype)
+        result = np.maximum(values.astype(np.float64) / info.max, -1.0).astype(np.float32)
+    else:
+        result = values.astype(np.int64)
+    if result.dtype.kind == "f" and not np.isfinite(result).all():
+        raise ValueError(f"{where}: contains NaN or infinity")
+    return result
+
+
 def _open_document(path: Path) -> _Document:
     where = str(path)
     data = path.read_bytes()
@@ -356,84 +537,237 @@ def _open_document(path: Path) -> _Document:
         gltf, binary = parse_glb(data, where)
     else:
         gltf, binary = _parse_json(data, where), None
-    buffers: list[bytes] = []
-    for index, buffer in enumerate(gltf.get("buffers", [])):
-        declared = buffer.get("byteLength")
-        if "uri" in buffer:
-            payload = _decode_uri(buffer["uri"], path.parent, f"{where}: buffers[{index}]")
+    document = _typed(pygltflib.GLTF2, gltf, where)
+    _refuse_unreadable_extensions(document, where)
+    buffers: list[bytes | None] = []
+    for index, buffer in enumerate(document.buffers):
+        declared = buffer.byteLength
+        if buffer.uri is not None:
+            payload = _decode_uri(buffer.uri, path.parent, f"{where}: buffers[{index}]")
         elif index == 0 and binary is not None:
             payload = binary
+        elif (_extension(buffer, MESHOPT) or {}).get("fallback"):
+            buffers.append(None)  # only compressed views point here; they decode from another buffer
+            continue
         else:
             raise ValueError(f"{where}: buffers[{index}] has no uri and there is no GLB BIN chunk for it")
         if not isinstance(declared, int) or declared < 0 or declared > len(payload):
             raise ValueError(f"{where}: buffers[{index}] declares {declared} bytes but only {len(payload)} are present")
         buffers.append(bytes(payload[:declared]))
-    return _Document(gltf, buffers, where, path.parent)
+    return _Document(document, buffers, where, path.parent)
+
+
+def _refuse_unreadable_extensions(document: pygltflib.GLTF2, where: str) -> None:
+    required = document.extensionsRequired or []
+    if BASISU in required:
+        raise ValueError(f"{where}: requires {BASISU}: every texture {KTX2_REFUSAL}")
+    unreadable = sorted(set(required) - READABLE_REQUIRED_EXTENSIONS)
+    if unreadable:
+        raise ValueError(f"{where}: requires the glTF extension(s) {', '.join(unreadable)}, which crowdbake cannot read")
 
 
 # ----------------------------------------------------------------------------------------------
 # Scene graph
 
 
-def _local_matrix(node: dict) -> np.ndarray:
-    if "matrix" in node:
-        values = np.asarray(node["matrix"], dtype=np.float64)
+def _local_matrices(doc: _Document) -> np.ndarray:
+    """Every node's local transform -> (N, 4, 4) float64, TRS nodes converted in one vectorised call."""
+    nodes = doc.gltf.nodes
+    count = len(nodes)
+    columns = {"translation": [[0.0] * 3] * count, "rotation": [[0.0, 0.0, 0.0, 1.0]] * count, "scale": [[1.0] * 3] * count}
+    matrices: dict[int, list] = {}
+    for index, node in enumerate(nodes):
+        if node.matrix is not None:
+            matrices[index] = node.matrix
+            continue
+        for name, column in columns.items():
+            value = getattr(node, name)
+            if value is not None:
+                column[index] = value  # type: ignore[index]
+    arrays = {}
+    for name, width in (("translation", 3), ("rotation", 4), ("scale", 3)):
+        try:
+            arrays[name] = np.array(columns[name], dtype=np.float64)
+        except (ValueError, TypeError):
+            arrays[name] = np.zeros(0)
+        if arrays[name].shape != (count, width) or not np.isfinite(arrays[name]).all():
+            bad = next(k for k, v in enumerate(columns[name]) if not (isinstance(v, list) and len(v) == width and np.isfinite(np.asarray(v, dtype=float)).all()))
+            raise ValueError(f"{doc.where}: nodes[{bad}].{name} must be {width} finite numbers")
+    length = np.linalg.norm(arrays["rotation"], axis=1)
+    if (length < 1e-6).any():
+        raise ValueError(f"{doc.where}: nodes[{int(np.argmax(length < 1e-6))}] has the zero quaternion as rotation")
+    local = trs_matrix(arrays["translation"], arrays["rotation"], arrays["scale"])
+    for index, matrix in matrices.items():
+        values = np.asarray(matrix, dtype=np.float64)
         if values.shape != (16,) or not np.isfinite(values).all():
-            raise ValueError(f"node matrix must be 16 finite numbers, got {node['matrix']!r}")
-        return values.reshape(4, 4).T  # glTF stores column-major
-    return trs_matrix(node.get("translation", [0, 0, 0]), node.get("rotation", [0, 0, 0, 1]), node.get("scale", [1, 1, 1]))
+            raise ValueError(f"{doc.where}: nodes[{index}].matrix must be 16 finite numbers")
+        local[index] = values.reshape(4, 4).T  # glTF stores column-major
+    return local
 
 
-def _node_parents(doc: _Document) -> np.ndarray:
-    nodes = doc.gltf.get("nodes", [])
+def _node_parents(doc: _Document) -> tuple[np.ndarray, list[int]]:
+    """Each node's parent (-1 for roots) and the nodes in parent-before-child order.
+
+    Linear in the node count. Raises ValueError for a missing child, a node with two parents, or a cycle
+    (with one parent per node, a node no root reaches lies on or below a cycle)."""
+    nodes = doc.gltf.nodes
     parents = np.full(len(nodes), -1, dtype=np.int64)
     for index, node in enumerate(nodes):
-        for child in node.get("children", []):
+        for child in node.children or []:
             if not isinstance(child, int) or not 0 <= child < len(nodes):
                 raise ValueError(f"{doc.where}: nodes[{index}] has child {child}, which does not exist")
-            if parents[child] != -1:
+            if parents[child] != -1 or child == index:
                 raise ValueError(f"{doc.where}: nodes[{child}] has two parents ({parents[child]} and {index})")
             parents[child] = index
-    for start in range(len(nodes)):  # a cycle would loop forever when walking up
-        seen, node = 0, start
-        while node != -1:
-            node, seen = parents[node], seen + 1
-            if seen > len(nodes):
-                raise ValueError(f"{doc.where}: the node hierarchy has a cycle through nodes[{start}]")
-    return parents
+    order = [int(n) for n in np.flatnonzero(parents == -1)]
+    cursor = 0
+    while cursor < len(order):
+        order.extend(nodes[order[cursor]].children or [])
+        cursor += 1
+    if len(order) != len(nodes):
+        stranded = sorted(set(range(len(nodes))) - set(order))[0]
+        raise ValueError(f"{doc.where}: the node hierarchy has a cycle through nodes[{stranded}]")
+    return parents, order
 
 
-def _load_texture(doc: _Document, primitives: list[dict]) -> np.ndarray | None:
-    texture_indices = []
-    for primitive in primitives:
-        if "material" in primitive:
-            material = doc.item("materials", primitive["material"])
-            info = material.get("pbrMetallicRoughness", {}).get("baseColorTexture")
-            if info is not None:
-                texture_indices.append(info.get("index"))
-    if not texture_indices:
-        return None
-    if len(set(texture_indices)) > 1:
-        logger.warning("%s: primitives use %d base colour textures; keeping the first", doc.where, len(set(texture_indices)))
-    texture = doc.item("textures", texture_indices[0])
-    if "source" not in texture:
-        logger.warning("%s: texture %d has no source image (extension-only textures are not read)", doc.where, texture_indices[0])
-        return None
-    image = doc.item("images", texture["source"])
-    if "bufferView" in image:
-        data, _ = doc.view_bytes(image["bufferView"])
-        data = bytes(data)
-    elif "uri" in image:
-        data = _decode_uri(image["uri"], doc.base, f"{doc.where}: images[{texture['source']}]")
-    else:
-        raise ValueError(f"{doc.where}: images[{texture['source']}] has neither bufferView nor uri")
-    from PIL import Image, UnidentifiedImageError
+def _joint_anchors(parents: np.ndarray, order: list[int], local: np.ndarray, node_to_joint: dict[int, int]):
+    """For every node: its nearest joint ancestor (-1 if none) and the product of the non-joint nodes'
+    local transforms strictly between that ancestor and the node (N, 4, 4). One pass, parents first."""
+    anchor = np.full(len(parents), -1, dtype=np.int64)
+    between = np.empty((len(parents), 4, 4))
+    identity = np.eye(4)
+    for node in order:
+        parent = parents[node]
+        if parent < 0:
+            between[node] = identity
+        elif parent in node_to_joint:
+            anchor[node], between[node] = node_to_joint[parent], identity
+        else:
+            anchor[node], between[node] = anchor[parent], between[parent] @ local[parent]
+    return anchor, between
 
-    try:
-        with Image.open(io.BytesIO(data)) as picture:
-            return np.asarray(picture.convert("RGBA"), dtype=np.uint8).copy()
-    except (UnidentifiedImageError, OSError) as error:
-        raise ValueError(f"{doc.where}: images[{texture['source']}] does not decode: {error}") from None
+
+# ----------------------------------------------------------------------------------------------
+# Materials and textures
+
+
+def _image_bytes(doc: _Document, image_index: int) -> bytes:
+    image = doc.item("images", image_index)
+    where = f"{doc.where}: images[{image_index}]"
+    if image.mimeType == "image/ktx2":
+        raise ValueError(f"{where} {KTX2_REFUSAL}")
+    if image.bufferView is not None:
+        data, _ = doc.view_bytes(image.bufferView)
+        return bytes(data)
+    if image.uri is not None:
+        return _decode_uri(image.uri, doc.base, where)
+    raise ValueError(f"{where} has neither bufferView nor uri")
+
+
+def _texture_image(doc: _Document, texture_index: int, cache: dict[int, np.ndarray]) -> np.ndarray:
+    texture = doc.item("textures", texture_index)
+    source = texture.source
+    if source is None:
+        for name in ("EXT_texture_webp", "MSFT_texture_dds"):
+            source = (_extension(texture, name) or {}).get("source", source)
+        if source is None and _extension(texture, BASISU) is not None:
+            raise ValueError(f"{doc.where}: textures[{texture_index}] {KTX2_REFUSAL}")
+        if source is None:
+            raise ValueError(f"{doc.where}: textures[{texture_index}] has no source image crowdbake can read")
+    if source not in cache:
+        cache[source] = decode_rgba(_image_bytes(doc, source), f"{doc.where}: images[{source}]")
+    return cache[source]
+
+
+def _read_material(doc: _Document, index: int | None, images: dict[int, np.ndarray]) -> tuple[Material, int]:
+    """Material `index` (None: glTF's default material) -> (Material, TEXCOORD set of its base colour)."""
+    if index is None:
+        return Material("default", np.ones(4, np.float32)), 0
+    material = doc.item("materials", index)
+    pbr = material.pbrMetallicRoughness
+    factor = np.asarray(pbr.baseColorFactor if pbr is not None and pbr.baseColorFactor else [1, 1, 1, 1], dtype=np.float64)
+    if factor.shape != (4,) or not np.isfinite(factor).all():
+        raise ValueError(f"{doc.where}: materials[{index}].baseColorFactor must be 4 finite numbers")
+    info = pbr.baseColorTexture if pbr is not None else None
+    texture = _texture_image(doc, info.index, images) if info is not None else None
+    name = material.name or f"material{index}"
+    return Material(name, np.clip(factor, 0.0, 1.0).astype(np.float32), texture), int(getattr(info, "texCoord", 0) or 0)
+
+
+def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def _linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    return np.where(c <= 0.0031308, c * 12.92, 1.055 * np.power(np.clip(c, 0.0031308, None), 1 / 2.4) - 0.055)
+
+
+def tinted_texture(material: Material) -> np.ndarray | None:
+    """The material's base colour as the bake samples it: texture (sRGB) times baseColorFactor (linear,
+    glTF 2.0 section 3.9.2), as (H, W, 4) uint8; a flat FLAT_TILE square for an untextured one.
+    A white factor returns the texture itself, bit for bit; None for an untextured white material."""
+    factor = np.asarray(material.base_color_factor, dtype=np.float64)
+    if material.texture is None:
+        if np.all(factor == 1.0):
+            return None
+        colour = np.concatenate([_linear_to_srgb(factor[:3]), factor[3:]])
+        return np.broadcast_to(np.round(colour * 255).astype(np.uint8), (FLAT_TILE, FLAT_TILE, 4)).copy()
+    if np.all(factor == 1.0):
+        return material.texture
+    texels = material.texture.astype(np.float64) / 255.0
+    rgb = _linear_to_srgb(_srgb_to_linear(texels[..., :3]) * factor[:3])
+    out = np.concatenate([rgb, texels[..., 3:] * factor[3]], axis=-1)
+    return np.round(np.clip(out, 0, 1) * 255).astype(np.uint8)
+
+
+def merge_material_textures(materials: list[Material], vertex_materials: np.ndarray, uvs: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """One texture for a mesh of several materials, and its UVs moved into it.
+
+    materials: M materials; vertex_materials (V,) int index into them; uvs (V, 2) float (glTF convention)
+    -> (texture (H, W, 4) uint8 or None, uvs (V, 2) float32). One material (or one texture and factor
+    shared by all): its tinted texture and the UVs unchanged. Several: the tinted textures side by side
+    in one row, each with an ATLAS_GUTTER border of its own edge texels, UVs scaled into their tile
+    (UVs outside 0..1 are wrapped first: a repeating texture cannot repeat inside an atlas).
+    """
+    uvs = np.asarray(uvs, dtype=np.float32)
+    used = sorted(set(np.unique(vertex_materials).tolist())) if len(vertex_materials) else []
+    tiles = {index: tinted_texture(materials[index]) for index in used}
+    if all(tile is None for tile in tiles.values()):
+        return None, uvs
+    distinct = {(id(materials[i].texture), materials[i].base_color_factor.tobytes()) for i in used}
+    if len(distinct) == 1:
+        tile = tiles[used[0]]
+        if materials[used[0]].texture is None:  # one flat colour: every UV may point anywhere in it
+            return tile, np.full_like(uvs, 0.5)
+        return tile, uvs
+    for index in used:
+        if tiles[index] is None:  # a white untextured material next to textured ones: a white tile
+            tiles[index] = np.full((FLAT_TILE, FLAT_TILE, 4), 255, np.uint8)
+    padded = {i: np.pad(t, ((ATLAS_GUTTER, ATLAS_GUTTER), (ATLAS_GUTTER, ATLAS_GUTTER), (0, 0)), mode="edge") for i, t in tiles.items()}
+    height = max(tile.shape[0] for tile in padded.values())
+    width = sum(tile.shape[1] for tile in padded.values())
+    atlas = np.zeros((height, width, 4), np.uint8)
+    out = uvs.copy()
+    x = 0
+    for index in used:
+        tile = padded[index]
+        atlas[: tile.shape[0], x : x + tile.shape[1]] = tile
+        inner_h, inner_w = tiles[index].shape[:2]
+        rows = vertex_materials == index
+        local = out[rows]
+        if materials[index].texture is None:
+            local = np.full_like(local, 0.5)
+        elif (local < 0).any() or (local > 1).any():
+            logger.warning("material %r has UVs outside 0..1; wrapped into its atlas tile", materials[index].name)
+            local = local - np.floor(local)
+        out[rows, 0] = (x + ATLAS_GUTTER + local[:, 0] * inner_w) / width
+        out[rows, 1] = (ATLAS_GUTTER + local[:, 1] * inner_h) / height
+        x += tile.shape[1]
+    return atlas, out.astype(np.float32)
+
+
+# ----------------------------------------------------------------------------------------------
+# Meshes
 
 
 def _triangles(mode: int, indices: np.ndarray) -> np.ndarray:
@@ -448,57 +782,76 @@ def _triangles(mode: int, indices: np.ndarray) -> np.ndarray:
     return np.stack([np.full_like(k, indices[0]), indices[k], indices[k + 1]], axis=1)
 
 
-def _skinned_primitives(doc: _Document, skin_index: int) -> list[dict]:
-    primitives = []
-    for node in doc.gltf.get("nodes", []):
-        if node.get("skin") == skin_index and "mesh" in node:
-            for primitive in doc.item("meshes", node["mesh"]).get("primitives", []):
-                mode = primitive.get("mode", MODE_TRIANGLES)
-                if mode not in (MODE_TRIANGLES, MODE_TRIANGLE_STRIP, MODE_TRIANGLE_FAN):
-                    logger.warning("%s: skipping a primitive of mode %s (not triangles)", doc.where, mode)
-                    continue
-                if primitive.get("targets"):
-                    logger.warning("%s: morph targets are ignored", doc.where)
-                primitives.append(primitive)
-    return primitives
+def _draco_attributes(doc: _Document, primitive, where: str) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Decode a KHR_draco_mesh_compression primitive with DracoPy -> ({attribute: values}, indices)."""
+    import DracoPy
+
+    ext = _extension(primitive, DRACO)
+    data, _ = doc.view_bytes(ext.get("bufferView"))
+    try:
+        mesh = DracoPy.decode(bytes(data))
+    except Exception as error:  # DracoPy raises its own exception types for a bad stream
+        raise ValueError(f"{where}: the {DRACO} data does not decode: {error}") from None
+    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1)
+    decoded: dict[str, np.ndarray] = {}
+    for name, unique_id in (ext.get("attributes") or {}).items():
+        attribute = mesh.get_attribute_by_unique_id(unique_id)
+        if attribute is None:
+            raise ValueError(f"{where}: {DRACO} names attribute {name} id {unique_id}, which the stream lacks")
+        values = np.asarray(attribute["data"])
+        accessor = doc.item("accessors", primitive.attributes[name])
+        if values.shape[0] != accessor.count:
+            raise ValueError(f"{where}: {DRACO} {name} has {values.shape[0]} values, its accessor says {accessor.count}")
+        # Draco keeps integers as stored; a normalised accessor maps them to 0..1 as glTF does.
+        dtype = _COMPONENT_TYPES.get(accessor.componentType)
+        if dtype is not None and dtype.kind != "f" and values.dtype.kind != "f":
+            values = values.astype(dtype)
+        decoded[name] = _accessor_values(values.reshape(len(values), -1), bool(accessor.normalized), f"{where}: {name}")
+    return decoded, faces
 
 
-def _read_mesh(doc: _Document, primitives: list[dict], joint_count: int) -> dict[str, np.ndarray]:
-    parts: dict[str, list[np.ndarray]] = {key: [] for key in ("positions", "normals", "uvs", "faces", "joints", "weights")}
-    base = 0
-    for number, primitive in enumerate(primitives):
-        where = f"{doc.where}: skinned primitive {number}"
-        attributes = primitive.get("attributes", {})
-        for required in ("POSITION", "JOINTS_0", "WEIGHTS_0"):
-            if required not in attributes:
-                raise ValueError(f"{where} has no {required}")
-        positions = doc.accessor(attributes["POSITION"])
-        count = len(positions)
-        if positions.shape[1] != 3:
-            raise ValueError(f"{where}: POSITION must be VEC3")
+def _read_primitive(doc: _Document, primitive, where: str, joint_count: int, uv_set: int, rigid_joint: int | None) -> dict[str, np.ndarray]:
+    """One triangle primitive -> positions, normals, uvs, faces (local), joints, weights."""
+    attributes = primitive.attributes or {}
+    decoded, draco_indices = _draco_attributes(doc, primitive, where) if _extension(primitive, DRACO) is not None else ({}, None)
 
-        def attribute(name: str, width: int) -> np.ndarray | None:
-            if name not in attributes:
-                return None
-            values = doc.accessor(attributes[name])
-            if values.shape != (count, width):
-                raise ValueError(f"{where}: {name} is {values.shape}, expected ({count}, {width})")
-            return values
+    def attribute(name: str) -> np.ndarray | None:
+        if name in decoded:
+            return decoded[name]
+        return doc.accessor(attributes[name]) if name in attributes else None
 
-        if "indices" in primitive:
-            indices = doc.accessor(primitive["indices"])
-            if indices.shape[1] != 1 or indices.dtype.kind != "i":
-                raise ValueError(f"{where}: indices must be unsigned integer scalars")
-            indices = indices[:, 0]
-        else:
-            indices = np.arange(count, dtype=np.int64)
-        if indices.size and (indices.min() < 0 or indices.max() >= count):
-            raise ValueError(f"{where}: index {indices.max()} is out of range for {count} vertices")
-        faces = _triangles(primitive.get("mode", MODE_TRIANGLES), indices)
+    required = ("POSITION",) if rigid_joint is not None else ("POSITION", "JOINTS_0", "WEIGHTS_0")
+    for name in required:
+        if name not in attributes:
+            raise ValueError(f"{where} has no {name}")
+    positions = attribute("POSITION").astype(np.float32)
+    count = len(positions)
+    if positions.shape[1] != 3:
+        raise ValueError(f"{where}: POSITION must be VEC3")
 
+    def sized(name: str, width: int) -> np.ndarray | None:
+        values = attribute(name)
+        if values is not None and values.shape != (count, width):
+            raise ValueError(f"{where}: {name} is {values.shape}, expected ({count}, {width})")
+        return values
+
+    if draco_indices is not None:
+        indices = draco_indices
+    elif primitive.indices is not None:
+        indices = doc.accessor(primitive.indices)
+        if indices.shape[1] != 1 or indices.dtype.kind != "i":
+            raise ValueError(f"{where}: indices must be unsigned integer scalars")
+        indices = indices[:, 0]
+    else:
+        indices = np.arange(count, dtype=np.int64)
+    if indices.size and (indices.min() < 0 or indices.max() >= count):
+        raise ValueError(f"{where}: index {indices.max()} is out of range for {count} vertices")
+    faces = _triangles(primitive.mode if primitive.mode is not None else MODE_TRIANGLES, indices)
+
+    if rigid_joint is None:
         # Up to two sets of 4 influences; keep the 4 strongest and renormalise.
-        joint_sets = [attribute(f"JOINTS_{k}", 4) for k in range(2)]
-        weight_sets = [attribute(f"WEIGHTS_{k}", 4) for k in range(2)]
+        joint_sets = [sized(f"JOINTS_{k}", 4) for k in range(2)]
+        weight_sets = [sized(f"WEIGHTS_{k}", 4) for k in range(2)]
         joints = np.concatenate([j for j in joint_sets if j is not None], axis=1)
         weights = np.concatenate([w for w in weight_sets if w is not None], axis=1).astype(np.float64)
         if joints.shape != weights.shape:
@@ -518,44 +871,140 @@ def _read_mesh(doc: _Document, primitives: list[dict], joint_count: int) -> dict
         total = weights.sum(axis=1, keepdims=True)
         if (total < MIN_WEIGHT_SUM).any():
             raise ValueError(f"{where}: {int((total < MIN_WEIGHT_SUM).sum())} vertices have no skin weight")
-        normals = attribute("NORMAL", 3)
-        uvs = attribute("TEXCOORD_0", 2)
-        parts["positions"].append(positions)
-        parts["normals"].append(normals if normals is not None else vertex_normals(positions, faces))
-        parts["uvs"].append(uvs if uvs is not None else np.zeros((count, 2), np.float32))
-        parts["faces"].append(faces + base)
-        parts["joints"].append(joints)
         # Renormalise only rows that need it, so valid files round-trip bit for bit.
-        parts["weights"].append(np.where(np.abs(total - 1.0) > WEIGHT_SUM_TOLERANCE, weights / total, weights))
-        base += count
+        weights = np.where(np.abs(total - 1.0) > WEIGHT_SUM_TOLERANCE, weights / total, weights)
+    else:
+        joints = np.zeros((count, 4), np.int64)
+        joints[:, 0] = rigid_joint
+        weights = np.zeros((count, 4))
+        weights[:, 0] = 1.0
+    normals = sized("NORMAL", 3)
+    uvs = sized(f"TEXCOORD_{uv_set}", 2)
+    return {
+        "positions": positions,
+        "normals": normals.astype(np.float32) if normals is not None else vertex_normals(positions, faces),
+        "uvs": uvs.astype(np.float32) if uvs is not None else np.zeros((count, 2), np.float32),
+        "faces": faces,
+        "joints": joints,
+        "weights": weights,
+    }
+
+
+def _mesh_primitives(doc: _Document, mesh_index: int, rigid_joint: int | None):
+    """(primitive, where, rigid joint) for each triangle primitive of meshes[mesh_index]."""
+    out = []
+    for number, primitive in enumerate(doc.item("meshes", mesh_index).primitives or []):
+        where = f"{doc.where}: meshes[{mesh_index}].primitives[{number}]"
+        mode = primitive.mode if primitive.mode is not None else MODE_TRIANGLES
+        if mode not in (MODE_TRIANGLES, MODE_TRIANGLE_STRIP, MODE_TRIANGLE_FAN):
+            logger.warning("%s: skipping a primitive of mode %s (not triangles)", where, mode)
+            continue
+        if primitive.targets:
+            logger.warning("%s: morph targets are ignored", where)
+        out.append((primitive, where, rigid_joint))
+    return out
+
+
+def _read_meshes(doc: _Document, skin_index: int, joint_count: int, anchor: np.ndarray, between: np.ndarray,
+                 local: np.ndarray, inverse_bind: np.ndarray) -> tuple[dict[str, np.ndarray], list[Material]]:
+    """Merge every primitive of the skinned meshes (and of rigid meshes under a joint) into one mesh."""
+    nodes = doc.gltf.nodes
+    wanted: list[tuple[int, int | None, np.ndarray | None]] = []  # (mesh, rigid joint, bind matrix)
+    seen_skinned: set[int] = set()
+    for index, node in enumerate(nodes):
+        if node.mesh is None:
+            continue
+        if node.skin == skin_index:
+            if node.mesh not in seen_skinned:
+                seen_skinned.add(node.mesh)
+                wanted.append((node.mesh, None, None))
+        elif node.skin is not None:
+            logger.warning("%s: nodes[%d] uses skins[%d], not the chosen skin %d; left out", doc.where, index, node.skin, skin_index)
+        elif anchor[index] >= 0:
+            joint = int(anchor[index])
+            # A rigid mesh under joint j sits at world(j) @ between @ local(node) @ p; in bind space that is
+            # inverse(inverseBind(j)) @ between @ local(node) @ p, which skinning by j alone maps back.
+            bind = np.linalg.inv(inverse_bind[joint].astype(np.float64)) @ between[index] @ local[index]
+            wanted.append((node.mesh, joint, bind))
+        else:
+            logger.warning("%s: nodes[%d] holds a mesh with no skin and no joint above it; left out", doc.where, index)
+    parts: dict[str, list[np.ndarray]] = {key: [] for key in ("positions", "normals", "uvs", "faces", "joints", "weights", "materials")}
+    materials: list[Material] = []
+    uv_sets: list[int] = []  # the TEXCOORD_n set each material's base colour texture reads
+    material_slots: dict[int | None, int] = {}
+    images: dict[int, np.ndarray] = {}
+    base = 0
+    for mesh_index, rigid_joint, bind in wanted:
+        for primitive, where, joint in _mesh_primitives(doc, mesh_index, rigid_joint):
+            if primitive.material not in material_slots:
+                material, uv_set = _read_material(doc, primitive.material, images)
+                material_slots[primitive.material] = len(materials)
+                materials.append(material)
+                uv_sets.append(uv_set)
+            slot = material_slots[primitive.material]
+            part = _read_primitive(doc, primitive, where, joint_count, uv_sets[slot], joint)
+            if bind is not None:
+                part["positions"] = (part["positions"].astype(np.float64) @ bind[:3, :3].T + bind[:3, 3]).astype(np.float32)
+                normal_matrix = np.linalg.inv(bind[:3, :3]).T
+                part["normals"] = (part["normals"].astype(np.float64) @ normal_matrix.T).astype(np.float32)
+            for key in ("positions", "normals", "uvs", "joints", "weights"):
+                parts[key].append(part[key])
+            parts["faces"].append(part["faces"] + base)
+            parts["materials"].append(np.full(len(part["positions"]), slot, np.uint16))
+            base += len(part["positions"])
+    if not parts["positions"]:
+        raise ValueError(f"{doc.where}: no triangle mesh uses skins[{skin_index}]")
     merged = {key: np.concatenate(values) for key, values in parts.items()}
     # Renormalise only normals that are off (quantised files), so valid files round-trip bit for bit.
     lengths = np.linalg.norm(merged["normals"].astype(np.float64), axis=1, keepdims=True)
     off = (np.abs(lengths - 1.0) > NORMAL_LENGTH_TOLERANCE) & (lengths > 0)
     merged["normals"] = np.where(off, merged["normals"] / np.where(lengths > 0, lengths, 1.0), merged["normals"])
-    return merged
+    return merged, materials
 
 
-def _read_animation(doc: _Document, animation_index: int, node_to_joint: dict[int, int], joint_ancestors: set[int]):
-    animations = doc.gltf.get("animations", [])
+# ----------------------------------------------------------------------------------------------
+# Animation
+
+
+def _animation_index(doc: _Document, animation: int | str) -> int | None:
+    """The index of the chosen animation (by index or name); None when the file has none."""
+    animations = doc.gltf.animations or []
+    names = [a.name or f"animation{k}" for k, a in enumerate(animations)]
     if not animations:
+        if isinstance(animation, str) or animation != 0:
+            raise ValueError(f"{doc.where}: animation {animation!r} was asked for but the file has no animation")
+        return None
+    if isinstance(animation, str):
+        if animation not in names:
+            raise ValueError(f"{doc.where}: no animation named {animation!r}; the file has {', '.join(repr(n) for n in names)}")
+        return names.index(animation)
+    if not isinstance(animation, int) or not 0 <= animation < len(animations):
+        raise ValueError(f"{doc.where}: animation {animation} does not exist; the file has {len(animations)}: {', '.join(repr(n) for n in names)}")
+    if len(animations) > 1:
+        logger.info("%s: %d animations (%s); using %r (choose another by name or index)", doc.where, len(animations),
+                    ", ".join(repr(n) for n in names), names[animation])
+    return animation
+
+
+def _read_animation(doc: _Document, animation_index: int | None, node_to_joint: dict[int, int], joint_ancestors: set[int]):
+    if animation_index is None:
         return [], 0.0
     animation = doc.item("animations", animation_index)
-    samplers = animation.get("samplers", [])
+    samplers = animation.samplers or []
     channels: list[AnimationChannel] = []
     duration = 0.0
-    for number, channel in enumerate(animation.get("channels", [])):
+    for number, channel in enumerate(animation.channels or []):
         where = f"{doc.where}: animations[{animation_index}].channels[{number}]"
-        target = channel.get("target", {})
-        path, node = target.get("path"), target.get("node")
-        sampler_index = channel.get("sampler")
+        target = channel.target
+        path, node = (target.path, target.node) if target is not None else (None, None)
+        sampler_index = channel.sampler
         if not isinstance(sampler_index, int) or not 0 <= sampler_index < len(samplers):
             raise ValueError(f"{where}: sampler {sampler_index} does not exist")
         sampler = samplers[sampler_index]
-        interpolation = sampler.get("interpolation", "LINEAR")
+        interpolation = sampler.interpolation or "LINEAR"
         if interpolation not in INTERPOLATIONS:
             raise ValueError(f"{where}: unknown interpolation {interpolation!r}")
-        times = doc.accessor(sampler.get("input"))
+        times = doc.accessor(sampler.input)
         if times.shape[1] != 1 or times.dtype.kind != "f":
             raise ValueError(f"{where}: sampler input must be float scalars")
         times = times[:, 0]
@@ -569,7 +1018,7 @@ def _read_animation(doc: _Document, animation_index: int, node_to_joint: dict[in
         if path not in PATH_WIDTHS:
             logger.debug("%s: ignoring %r channel", where, path)
             continue
-        values = doc.accessor(sampler.get("output")).astype(np.float32)
+        values = doc.accessor(sampler.output).astype(np.float32)
         width = PATH_WIDTHS[path]
         keys = 3 * len(times) if interpolation == "CUBICSPLINE" else len(times)
         if values.shape != (keys, width):
@@ -589,9 +1038,9 @@ def _unit_quaternions(q: np.ndarray, where: str) -> np.ndarray:
 
 
 def _mesh_name(doc: _Document, skin_index: int) -> str:
-    for node in doc.gltf.get("nodes", []):
-        if node.get("skin") == skin_index and "mesh" in node:
-            return str(doc.item("meshes", node["mesh"]).get("name", ""))
+    for node in doc.gltf.nodes:
+        if node.skin == skin_index and node.mesh is not None:
+            return str(doc.item("meshes", node.mesh).name or "")
     return ""
 
 
@@ -601,24 +1050,26 @@ def _mesh_name(doc: _Document, skin_index: int) -> str:
 _MALFORMED_STRUCTURE = (TypeError, AttributeError, KeyError, IndexError, OverflowError, RecursionError, ZeroDivisionError, struct.error)
 
 
-def load_character(path: str | os.PathLike, skin: int = 0, animation: int = 0) -> Character:
-    """Load skin `skin` of a .glb/.gltf (its meshes merged) and animation `animation` into a Character.
+def load_character(path: str | os.PathLike, skin: int = 0, animation: int | str = 0) -> Character:
+    """Load skin `skin` of a .glb/.gltf (its meshes merged) and one animation (an index, or a name)
+    into a Character.
 
-    Raises ValueError naming the file for anything the file gets wrong, its JSON's shape included."""
+    Raises ValueError naming the file for anything the file gets wrong, its JSON's shape included, and
+    for a required extension it cannot read (named)."""
     try:
         return _load_character(Path(path), skin, animation)
     except _MALFORMED_STRUCTURE as error:
         raise ValueError(f"{path}: the glTF JSON does not have the structure glTF 2.0 requires ({type(error).__name__}: {error})") from None
 
 
-def _load_character(path: Path, skin: int, animation: int) -> Character:
+def _load_character(path: Path, skin: int, animation: int | str) -> Character:
     doc = _open_document(path)
-    gltf, where = doc.gltf, doc.where
-    skin_info = doc.item("skins", skin) if gltf.get("skins") else None
-    if skin_info is None:
+    where = doc.where
+    if not doc.gltf.skins:
         raise ValueError(f"{where}: the file has no skin; a character needs a skinned mesh")
-    joint_nodes = skin_info.get("joints", [])
-    nodes = gltf.get("nodes", [])
+    skin_info = doc.item("skins", skin)
+    joint_nodes = skin_info.joints or []
+    nodes = doc.gltf.nodes
     if not joint_nodes or not all(isinstance(n, int) and 0 <= n < len(nodes) for n in joint_nodes):
         raise ValueError(f"{where}: skins[{skin}].joints must list existing nodes")
     if len(set(joint_nodes)) != len(joint_nodes):
@@ -626,51 +1077,51 @@ def _load_character(path: Path, skin: int, animation: int) -> Character:
     node_to_joint = {node: index for index, node in enumerate(joint_nodes)}
     joint_count = len(joint_nodes)
 
-    parents = _node_parents(doc)
-    joint_parents = np.full(joint_count, -1, dtype=np.int64)
-    joint_parent_transforms = np.tile(np.eye(4), (joint_count, 1, 1))
+    parents, order = _node_parents(doc)
+    local = _local_matrices(doc)
+    anchor, between = _joint_anchors(parents, order, local, node_to_joint)
+    joint_parents = anchor[joint_nodes].astype(np.int64)
+    joint_parent_transforms = between[joint_nodes].copy()
+    # Non-joint nodes above a joint: their animation is not followed (warned about when read).
     joint_ancestors: set[int] = set()
+    for node_index in joint_nodes:
+        ancestor = parents[node_index]
+        while ancestor != -1 and ancestor not in node_to_joint and ancestor not in joint_ancestors:
+            joint_ancestors.add(int(ancestor))
+            ancestor = parents[ancestor]
     rest = np.zeros((joint_count, 10))
     for joint, node_index in enumerate(joint_nodes):
         node = nodes[node_index]
-        if "matrix" in node:
-            translation, rotation, scale = decompose_matrix(_local_matrix(node))
+        if node.matrix is not None:
+            translation, rotation, scale = decompose_matrix(local[node_index])
         else:
-            translation = node.get("translation", [0, 0, 0])
-            rotation = node.get("rotation", [0, 0, 0, 1])
-            scale = node.get("scale", [1, 1, 1])
+            translation = node.translation if node.translation is not None else [0, 0, 0]
+            rotation = node.rotation if node.rotation is not None else [0, 0, 0, 1]
+            scale = node.scale if node.scale is not None else [1, 1, 1]
         rest[joint] = np.concatenate([translation, rotation, scale])
-        above = np.eye(4)
-        ancestor = parents[node_index]
-        while ancestor != -1 and ancestor not in node_to_joint:
-            above = _local_matrix(nodes[ancestor]) @ above
-            joint_ancestors.add(int(ancestor))
-            ancestor = parents[ancestor]
-        joint_parents[joint] = node_to_joint.get(int(ancestor), -1)
-        joint_parent_transforms[joint] = above
     if not np.isfinite(rest).all():
         raise ValueError(f"{where}: a joint has a non-finite rest transform")
 
-    if "inverseBindMatrices" in skin_info:
-        ibm = doc.accessor(skin_info["inverseBindMatrices"])
+    if skin_info.inverseBindMatrices is not None:
+        ibm = doc.accessor(skin_info.inverseBindMatrices)
         if ibm.shape != (joint_count, 16):
             raise ValueError(f"{where}: inverseBindMatrices is {ibm.shape}, expected ({joint_count}, 16) MAT4")
         inverse_bind = ibm.reshape(joint_count, 4, 4).transpose(0, 2, 1).astype(np.float32)
     else:
         inverse_bind = np.tile(np.eye(4, dtype=np.float32), (joint_count, 1, 1))
 
-    primitives = _skinned_primitives(doc, skin)
-    if not primitives:
-        raise ValueError(f"{where}: no triangle mesh uses skins[{skin}]")
-    mesh = _read_mesh(doc, primitives, joint_count)
-    channels, duration = _read_animation(doc, animation, node_to_joint, joint_ancestors)
-    names = [str(nodes[n].get("name", f"joint{k}")) for k, n in enumerate(joint_nodes)]
-    logger.debug("%s: %d vertices, %d triangles, %d joints, %d channels, %.3f s", where,
-                 len(mesh["positions"]), len(mesh["faces"]), joint_count, len(channels), duration)
+    mesh, materials = _read_meshes(doc, skin, joint_count, anchor, between, local, inverse_bind)
+    animation_index = _animation_index(doc, animation)
+    channels, duration = _read_animation(doc, animation_index, node_to_joint, joint_ancestors)
+    animation_names = [a.name or f"animation{k}" for k, a in enumerate(doc.gltf.animations or [])]
+    texture, uvs = merge_material_textures(materials, mesh["materials"], mesh["uvs"])
+    names = [str(nodes[n].name or f"joint{k}") for k, n in enumerate(joint_nodes)]
+    logger.debug("%s: %d vertices, %d triangles, %d joints, %d materials, %d channels, %.3f s", where,
+                 len(mesh["positions"]), len(mesh["faces"]), joint_count, len(materials), len(channels), duration)
     return Character(
         positions=mesh["positions"].astype(np.float32),
         normals=mesh["normals"].astype(np.float32),
-        uvs=mesh["uvs"].astype(np.float32),
+        uvs=uvs.astype(np.float32),
         faces=mesh["faces"].astype(np.uint32),
         joints=mesh["joints"].astype(np.uint16),
         weights=mesh["weights"].astype(np.float32),
@@ -683,8 +1134,12 @@ def _load_character(path: Path, skin: int, animation: int) -> Character:
         rest_scales=rest[:, 7:10].copy(),
         channels=channels,
         animation_duration=duration,
-        texture=_load_texture(doc, primitives),
+        texture=texture,
         name=_mesh_name(doc, skin) or path.stem,
+        materials=materials,
+        vertex_materials=mesh["materials"],
+        animation_name=animation_names[animation_index] if animation_index is not None else "",
+        animation_names=animation_names,
     )
 
 

@@ -1,0 +1,94 @@
+"""Texture images in: PNG and JPEG to RGBA8, KTX2 refused by name.
+
+`decode_rgba` serves the glTF reader (embedded or external images); `read_texture_variation` serves
+the texture-variation folder of a bake (diffuse_*.png or diffuse_*.jpg).
+
+Alpha: crowdbake's diffuse textures carry colour-region codes in alpha (the paper's section 5). Only a
+PNG can carry them; a JPEG has no alpha channel, so its texels are all region 0 ("keep the texture's
+own colour"). `read_texture_variation` returns alpha 0 for a JPEG for that reason, and says so in
+its result.
+
+KTX2 (glTF's KHR_texture_basisu) needs libktx to transcode; no Python binding of it installs from the
+package index on this platform (pyktx is a source package that needs a libktx build), so a KTX2 image
+is refused with a message that names it, never baked untextured.
+"""
+from __future__ import annotations
+
+import io
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+KTX2_MAGIC = b"\xabKTX 20\xbb\r\n\x1a\n"
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+JPEG_MAGIC = b"\xff\xd8\xff"
+# Variation textures are sampled by the runtime's GPU; a side past this is no texture a crowd needs.
+MAX_TEXTURE_SIDE = 16384
+
+KTX2_REFUSAL = (
+    "is a KTX2 (KHR_texture_basisu) image, which crowdbake cannot decode (no libktx binding installs here); "
+    "export the textures as PNG (or JPEG) instead"
+)
+
+
+def image_kind(data: bytes) -> str:
+    """'png', 'jpeg', 'ktx2' or 'other', from the first bytes."""
+    if data.startswith(PNG_MAGIC):
+        return "png"
+    if data.startswith(JPEG_MAGIC):
+        return "jpeg"
+    if data.startswith(KTX2_MAGIC):
+        return "ktx2"
+    return "other"
+
+
+def decode_rgba(data: bytes, where: str) -> np.ndarray:
+    """Image bytes (PNG, JPEG, or anything Pillow reads) -> (H, W, 4) uint8 RGBA.
+
+    A JPEG (no alpha) gets alpha 255, as an opaque picture. Raises ValueError naming `where` for KTX2,
+    an image that does not decode, or one with a side over MAX_TEXTURE_SIDE.
+    """
+    if image_kind(data) == "ktx2":
+        raise ValueError(f"{where} {KTX2_REFUSAL}")
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(data)) as picture:
+            if max(picture.size) > MAX_TEXTURE_SIDE:
+                raise ValueError(f"{where}: image is {picture.size[0]}x{picture.size[1]}, more than {MAX_TEXTURE_SIDE} on a side")
+            return np.asarray(picture.convert("RGBA"), dtype=np.uint8).copy()
+    except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as error:
+        raise ValueError(f"{where}: image does not decode: {error}") from None
+
+
+@dataclass(frozen=True)
+class TextureVariation:
+    """rgba (H, W, 4) uint8; has_region_codes: False for a JPEG (alpha set to 0: region 0 everywhere)."""
+
+    rgba: np.ndarray
+    kind: str
+    has_region_codes: bool
+
+
+def read_texture_variation(path: str | os.PathLike) -> TextureVariation:
+    """One diffuse texture variation from a .png or .jpg/.jpeg file.
+
+    PNG: RGBA as stored (alpha = colour-region codes; an RGB PNG gets alpha 0). JPEG: RGB, alpha 0,
+    since JPEG cannot store region codes. Raises ValueError naming the file otherwise.
+    """
+    path = Path(path)
+    data = path.read_bytes()
+    kind = image_kind(data)
+    if kind not in ("png", "jpeg"):
+        what = "a KTX2 image" if kind == "ktx2" else "neither PNG nor JPEG"
+        raise ValueError(f"{path}: a texture variation must be a PNG or a JPEG; this is {what}")
+    from PIL import Image
+
+    with Image.open(io.BytesIO(data)) as picture:
+        has_alpha = kind == "png" and ("A" in picture.getbands() or "transparency" in picture.info)
+    rgba = decode_rgba(data, str(path))
+    if not has_alpha:
+        rgba[..., 3] = 0  # region 0: the texel keeps its own colour
+    return TextureVariation(rgba=rgba, kind=kind, has_region_codes=has_alpha)
