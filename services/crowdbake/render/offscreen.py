@@ -14,7 +14,11 @@ from __future__ import annotations
 
 import logging
 import os
-from typing import Sequence
+import threading
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -31,6 +35,58 @@ CAMERA_DISTANCE_RADII = 3.0
 FRAME_MARGIN = 0.05
 # Below this length an up vector is treated as parallel to the viewing direction.
 _PARALLEL_TOLERANCE = 1e-9
+
+
+@dataclass
+class RenderTimings:
+    """Seconds spent inside the GL renderer: `seconds` in render calls (draw and read-back) over `renders`
+    calls, `setup_seconds` creating and deleting contexts (shader compilation included)."""
+
+    seconds: float = 0.0
+    renders: int = 0
+    setup_seconds: float = 0.0
+
+    def minus(self, earlier: "RenderTimings") -> "RenderTimings":
+        return RenderTimings(self.seconds - earlier.seconds, self.renders - earlier.renders, self.setup_seconds - earlier.setup_seconds)
+
+
+# Every GL call of the bake goes through Offscreen (cycle views, impostor views, fidelity references), which
+# adds its seconds here: a process-wide total a runner reads before and after a stage (render_timings, or
+# the timed_renders context manager). A lock, because a worker may render from several threads.
+_TOTALS = RenderTimings()
+_TOTALS_LOCK = threading.Lock()
+
+
+def _add_time(seconds: float = 0.0, renders: int = 0, setup_seconds: float = 0.0) -> None:
+    with _TOTALS_LOCK:
+        _TOTALS.seconds += seconds
+        _TOTALS.renders += renders
+        _TOTALS.setup_seconds += setup_seconds
+
+
+def render_timings() -> RenderTimings:
+    """A copy of this process's running totals of time inside the renderer."""
+    with _TOTALS_LOCK:
+        return RenderTimings(_TOTALS.seconds, _TOTALS.renders, _TOTALS.setup_seconds)
+
+
+@contextmanager
+def timed_renders() -> Iterator[RenderTimings]:
+    """Measure the renderer's time inside a `with` block (this process, every thread):
+
+        with timed_renders() as gl:
+            stage_impostors(work)
+        timings["render_s"] = gl.seconds
+
+    The yielded RenderTimings is filled in when the block ends.
+    """
+    before = render_timings()
+    result = RenderTimings()
+    try:
+        yield result
+    finally:
+        delta = render_timings().minus(before)
+        result.seconds, result.renders, result.setup_seconds = delta.seconds, delta.renders, delta.setup_seconds
 
 
 def look_at(eye: Sequence[float], target: Sequence[float], up: Sequence[float] = (0.0, 1.0, 0.0)) -> np.ndarray:
@@ -186,7 +242,9 @@ class Offscreen:
         self._renderer: pyrender.OffscreenRenderer | None = None
 
     def __enter__(self) -> "Offscreen":
+        started = time.perf_counter()
         self._renderer = pyrender.OffscreenRenderer(self.width, self.height)
+        _add_time(setup_seconds=time.perf_counter() - started)
         logger.debug("offscreen renderer %dx%d on %s", self.width, self.height, os.environ["PYOPENGL_PLATFORM"])
         return self
 
@@ -195,8 +253,10 @@ class Offscreen:
 
     def close(self) -> None:
         if self._renderer is not None:
+            started = time.perf_counter()
             self._renderer.delete()
             self._renderer = None
+            _add_time(setup_seconds=time.perf_counter() - started)
 
     def render(self, scene: pyrender.Scene, flags: int = pyrender.RenderFlags.NONE) -> tuple[np.ndarray, np.ndarray]:
         """Render `scene` through its main camera: colour (H, W, 3 or 4) uint8 and depth (H, W) float32.
@@ -205,5 +265,7 @@ class Offscreen:
         """
         if self._renderer is None:
             raise RuntimeError("Offscreen.render called outside its `with` block")
+        started = time.perf_counter()
         colour, depth = self._renderer.render(scene, flags=flags)
+        _add_time(seconds=time.perf_counter() - started, renders=1)
         return colour, depth
