@@ -1,19 +1,29 @@
-"""Speed of the bake: seconds per stage and impostor renders per second for the sample character.
+"""Where a bake's time goes, stage by stage: wall, CPU, seconds inside the renderer, peak memory.
 
-    PYTHONPATH=services python services/benchmarks/bench_bake.py [--sample DIR] [--out out/bench/bake.json]
+    PYTHONPATH=services python services/benchmarks/bench_bake.py [--cases sample cesium]
+        [--sample DIR] [--out out/bench/bake.json]
 
-Bakes the procedural sample (`crowdbake sample`: a walking character in a loose skirt, 8 diffuse
-variations of 1024², generated into out/bench/sample unless --sample names one) with the bake's defaults
-(10 frames x 16 azimuths x 3 elevations of 128² texels) stage by stage in one process, as `crowdbake bake`
-does, and reports:
+Bakes, each case in a fresh process (so that imports and peak memory are its own), with the bake's
+defaults (10 frames x 16 azimuths x 3 elevations of 128² texels):
 
-- seconds per stage (validate, cycle, poses, impostors, pack, publish);
-- impostor views per second: GL only (pyrender visibility buffer) and end to end (GL + exact maps);
-- the renderer's share of the impostor stage, and what the rest went to (maps, fidelity references);
-- the machine: CPU count, GL platform and renderer.
+- sample: the procedural sample (`crowdbake sample`: a walking character in a loose skirt, 8 diffuse
+  variations of 1024²), generated into out/bench/sample unless --sample names one;
+- cesium: CesiumMan with the shared long skirt (../shared/assets, skipped when absent).
 
-Prints the figures and writes them as JSON. The figures are for this machine's cores (the project's
-reference machine has 2) under OSMesa (llvmpipe) unless PYOPENGL_PLATFORM=egl.
+The bake runs through crowdbake.stages.runner.run_bake, as `crowdbake bake` does. A stage's figures cover the
+time from its first progress report to the next stage's (validate: from the start), so a stage's set-up
+before its first report counts towards the stage before; run_bake's own wall seconds per stage are
+printed beside them as a check (publish reports only when it is done, so its seconds fall in pack's).
+Per stage:
+
+- wall and CPU seconds (CPU of every thread of the process: more than wall means threads ran in parallel);
+- render: seconds inside pyrender/OpenGL (draw and read-back), summed by crowdbake.render.offscreen over
+  every render of the bake (cycle views, impostor views, fidelity references), context set-up apart;
+- wall / render: 1.0 would be a bake bound by its renderer;
+- peak RSS while the stage ran (sampled every 10 ms from /proc/self/statm) and the process's high-water mark.
+
+Prints a table per case and writes everything as JSON. The figures are for this machine's cores under
+OSMesa (llvmpipe) unless PYOPENGL_PLATFORM=egl.
 """
 from __future__ import annotations
 
@@ -21,34 +31,90 @@ import argparse
 import json
 import os
 import platform
-import shutil
+import resource
+import subprocess
+import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from crowdbake.params import BakeParams  # noqa: E402
-from crowdbake.stages.cycle import stage_cycle  # noqa: E402
-from crowdbake.stages.impostors import impostor_statistics, impostor_tasks, stage_impostor_views  # noqa: E402
-from crowdbake.stages.pack import stage_pack  # noqa: E402
-from crowdbake.stages.poses import stage_poses  # noqa: E402
-from crowdbake.stages.publish import stage_publish  # noqa: E402
-from crowdbake.stages.validate import BakeInputs, stage_validate  # noqa: E402
+# The shared third-party assets sit beside the repository (../shared/assets); --assets names another place.
+ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
+PAGE_BYTES = os.sysconf("SC_PAGE_SIZE")
+SAMPLE_EVERY_S = 0.01
 
 
-def gl_renderer() -> str:
-    """The GL renderer string of an offscreen context (llvmpipe under OSMesa, the GPU under EGL)."""
-    import pyrender
-    from OpenGL.GL import GL_RENDERER, glGetString
+def current_rss() -> int:
+    """Resident bytes of this process now."""
+    with open("/proc/self/statm") as handle:
+        return int(handle.read().split()[1]) * PAGE_BYTES
 
-    renderer = pyrender.OffscreenRenderer(8, 8)
-    try:
-        renderer._platform.make_current()
-        name = glGetString(GL_RENDERER)
-        return name.decode() if isinstance(name, bytes) else str(name)
-    finally:
-        renderer.delete()
+
+def render_totals() -> dict[str, float]:
+    """The renderer's running totals (crowdbake.render.offscreen), zero before anything rendered.
+
+    Read without importing the module, so that measuring never moves pyrender's import cost."""
+    module = sys.modules.get("crowdbake.render.offscreen")
+    if module is None or not hasattr(module, "render_timings"):
+        return {"seconds": 0.0, "renders": 0, "setup_seconds": 0.0}
+    totals = module.render_timings()
+    return {"seconds": totals.seconds, "renders": totals.renders, "setup_seconds": totals.setup_seconds}
+
+
+class StageMeter:
+    """A run_bake progress callback that cuts the bake into stages and measures each one."""
+
+    def __init__(self) -> None:
+        self.stages: dict[str, dict] = {}
+        self._lock = threading.Lock()
+        self._current = "validate"
+        self._start = self._snapshot()
+        self._peak = current_rss()
+        self._stop = threading.Event()
+        self._sampler = threading.Thread(target=self._sample, daemon=True)
+        self._sampler.start()
+
+    @staticmethod
+    def _snapshot() -> dict:
+        return {"wall": time.perf_counter(), "cpu": time.process_time(), "render": render_totals()}
+
+    def _sample(self) -> None:
+        while not self._stop.wait(SAMPLE_EVERY_S):
+            rss = current_rss()
+            with self._lock:
+                self._peak = max(self._peak, rss)
+
+    def _close(self) -> None:
+        now = self._snapshot()
+        with self._lock:
+            peak, self._peak = max(self._peak, current_rss()), current_rss()
+        render = {key: now["render"][key] - self._start["render"][key] for key in now["render"]}
+        wall = now["wall"] - self._start["wall"]
+        figures = self.stages.setdefault(self._current, {"wall_s": 0.0, "cpu_s": 0.0, "render_s": 0.0, "renders": 0, "render_setup_s": 0.0, "peak_rss_mib": 0.0})
+        figures["wall_s"] += wall
+        figures["cpu_s"] += now["cpu"] - self._start["cpu"]
+        figures["render_s"] += render["seconds"]
+        figures["renders"] += render["renders"]
+        figures["render_setup_s"] += render["setup_seconds"]
+        figures["peak_rss_mib"] = max(figures["peak_rss_mib"], peak / 2**20)
+        self._start = now
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        name = stage.split(":")[0]
+        if name != self._current:
+            self._close()
+            self._current = name
+
+    def finish(self) -> dict[str, dict]:
+        self._close()
+        self._stop.set()
+        self._sampler.join()
+        for figures in self.stages.values():
+            figures["wall_over_render"] = figures["wall_s"] / figures["render_s"] if figures["render_s"] > 0 else None
+        return self.stages
 
 
 def ensure_sample(folder: Path) -> Path:
@@ -61,113 +127,105 @@ def ensure_sample(folder: Path) -> Path:
     return folder
 
 
+def case_inputs(case: str, sample: Path, assets: Path):
+    """BakeInputs of a case, or None when its assets are missing."""
+    from crowdbake.params import BakeParams
+    from crowdbake.stages.validate import BakeInputs
+
+    params = BakeParams()
+    if case == "sample":
+        folder = ensure_sample(sample)
+        files = (folder / "character.glb", folder / "cloth.pc2", folder / "cloth.obj", folder / "textures")
+    elif case == "cesium":
+        skirt = assets / "long_skirt"
+        if not (assets / "CesiumMan.glb").is_file() or not (skirt / "long_skirt.pc2").is_file():
+            return None
+        files = (assets / "CesiumMan.glb", skirt / "long_skirt.pc2", skirt / "long_skirt.obj", None)
+    else:
+        raise ValueError(f"unknown case {case!r}")
+    return BakeInputs(*files, None, "bench", "1", params, created="2006-09-04T12:00:00Z")
+
+
+def run_case(case: str, sample: Path, assets: Path) -> dict | None:
+    """Bake one case in this process and measure it (call in a fresh process)."""
+    started = time.perf_counter()
+    from crowdbake.stages import runner
+
+    import_s = time.perf_counter() - started
+    inputs = case_inputs(case, sample, assets)
+    if inputs is None:
+        return None
+    with tempfile.TemporaryDirectory(prefix="crowdbake-bench-") as scratch:
+        meter = StageMeter()
+        wall, cpu = time.perf_counter(), time.process_time()
+        summary = runner.run_bake(inputs, Path(scratch) / "bundles", Path(scratch) / "work", progress=meter)
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        stages = meter.finish()
+        bundle_bytes = sum(p.stat().st_size for p in summary.bundle.rglob("*") if p.is_file())
+    render = render_totals()
+    return {
+        "case": case,
+        "params": inputs.params.to_dict(),
+        "import_pipeline_s": import_s,
+        "stages": stages,
+        "run_bake_stage_wall_s": summary.timings_s,
+        "timings": {"wall_s": wall, "cpu_s": cpu, "render_s": render["seconds"], "renders": render["renders"], "render_setup_s": render["setup_seconds"]},
+        "wall_over_render": wall / render["seconds"] if render["seconds"] > 0 else None,
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "impostor": summary.impostor,
+        "compression": summary.compression,
+        "fidelity": {k: summary.fidelity[k] for k in ("impostor", "nearest_view") if k in summary.fidelity},
+        "bundle_bytes": bundle_bytes,
+    }
+
+
+def print_case(report: dict) -> None:
+    timings = report["timings"]
+    print(f"\n{report['case']}: wall {timings['wall_s']:.2f} s, CPU {timings['cpu_s']:.2f} s, render {timings['render_s']:.2f} s "
+          f"({timings['renders']} renders), wall/render {report['wall_over_render'] or float('nan'):.1f}, peak RSS {report['peak_rss_mib']:.0f} MiB")
+    print(f"  {'stage':10s} {'wall s':>8s} {'CPU s':>8s} {'render s':>9s} {'wall/render':>11s} {'peak MiB':>9s} {'run_bake s':>10s}")
+    for name, figures in report["stages"].items():
+        ratio = figures["wall_over_render"]
+        print(
+            f"  {name:10s} {figures['wall_s']:8.2f} {figures['cpu_s']:8.2f} {figures['render_s']:9.2f} "
+            f"{'-' if ratio is None else f'{ratio:.1f}':>11s} {figures['peak_rss_mib']:9.0f} {report['run_bake_stage_wall_s'].get(name, float('nan')):10.2f}"
+        )
+    for kind, figures in report["compression"].items():
+        print(f"  compression {kind}: {figures['pixel_format']} mean |error| {figures['rgb_mean_abs']:.3f}, worst PSNR {figures['rgb_psnr_db_worst']:.2f} dB")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cases", nargs="+", default=["sample", "cesium"], choices=["sample", "cesium"])
     parser.add_argument("--sample", type=Path, help="a `crowdbake sample` folder (default: generate out/bench/sample)")
     parser.add_argument("--out", type=Path, default=Path("out/bench/bake.json"), help="JSON report (default out/bench/bake.json)")
-    parser.add_argument("--frames", type=int, default=10)
-    parser.add_argument("--azimuths", type=int, default=16)
-    parser.add_argument("--elevations", default="0,20,40")
-    parser.add_argument("--tile", type=int, default=128)
+    parser.add_argument("--assets", type=Path, default=ASSETS, help=f"the shared assets folder (default {ASSETS})")
+    parser.add_argument("--one-case", help=argparse.SUPPRESS)  # internal: bake this case here, print its JSON
     args = parser.parse_args()
+    sample = args.sample or args.out.parent / "sample"
 
-    sample = ensure_sample(args.sample or args.out.parent / "sample")
-    params = BakeParams(
-        impostor_frames=args.frames,
-        azimuths=args.azimuths,
-        elevations_deg=tuple(float(e) for e in args.elevations.split(",")),
-        tile_size=args.tile,
-    )
-    inputs = BakeInputs(
-        sample / "character.glb", sample / "cloth.pc2", sample / "cloth.obj", sample / "textures", None, "bench", "1", params,
-        created="2006-09-04T12:00:00Z",
-    )
-    scratch = Path(tempfile.mkdtemp(prefix="crowdbake-bench-"))
-    work, bundles = scratch / "work", scratch / "bundles"
-    seconds: dict[str, float] = {}
-    try:
-        clock = time.perf_counter()
-        stage_validate(inputs, work)
-        seconds["validate"] = time.perf_counter() - clock
-        clock = time.perf_counter()
-        cycle = stage_cycle(work).record
-        seconds["cycle"] = time.perf_counter() - clock
-        clock = time.perf_counter()
-        poses = stage_poses(work).record
-        seconds["poses"] = time.perf_counter() - clock
-        clock = time.perf_counter()
-        tasks = impostor_tasks(work)
-        task_seconds = []
-        for task in tasks:
-            started = time.perf_counter()
-            stage_impostor_views(work, task)
-            task_seconds.append(time.perf_counter() - started)
-        seconds["impostors"] = time.perf_counter() - clock
-        impostor = impostor_statistics(work).to_json()
-        clock = time.perf_counter()
-        pack = stage_pack(work).record
-        seconds["pack"] = time.perf_counter() - clock
-        clock = time.perf_counter()
-        bundle = stage_publish(work, bundles)
-        seconds["publish"] = time.perf_counter() - clock
-        total_bytes = sum(p.stat().st_size for p in bundle.rglob("*") if p.is_file())
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
-
-    views = impostor["views"]
-    stage = seconds["impostors"]
-    report = {
-        "machine": {
-            "cpus": os.cpu_count(),
-            "python": platform.python_version(),
-            "gl_platform": os.environ.get("PYOPENGL_PLATFORM"),
-            "gl_renderer": gl_renderer(),
-        },
-        "sample": str(sample),
-        "params": params.to_dict(),
-        "stage_seconds": seconds,
-        "total_seconds": sum(seconds.values()),
-        "impostor": {
-            "tasks": len(tasks),
-            "views": views,
-            "task_seconds_mean": sum(task_seconds) / len(task_seconds),
-            "task_seconds_max": max(task_seconds),
-            "render_seconds": impostor["render_seconds"],
-            "maps_seconds": impostor["maps_seconds"],
-            "fidelity_reference_seconds": impostor["reference_seconds"],
-            "renders_per_second_gl": views / impostor["render_seconds"],
-            "views_per_second_end_to_end": views / (impostor["render_seconds"] + impostor["maps_seconds"]),
-            "renderer_share_of_stage": impostor["render_seconds"] / stage,
-            "maps_share_of_stage": impostor["maps_seconds"] / stage,
-            "references_share_of_stage": impostor["reference_seconds"] / stage,
-        },
-        "cycle": {k: getattr(cycle, k) for k in ("start_frame", "cycle_frames", "closing")},
-        "meshes": poses.summary()["meshes"],
-        "fidelity": pack.fidelity,
-        "compression": pack.compression,
-        "bundle_bytes": total_bytes,
+    if args.one_case:
+        print(json.dumps(run_case(args.one_case, sample, args.assets)))
+        return 0
+    reports = []
+    for case in args.cases:
+        done = subprocess.run(
+            [sys.executable, __file__, "--one-case", case, "--sample", str(sample), "--assets", str(args.assets), "--out", str(args.out)],
+            stdout=subprocess.PIPE, text=True, check=True,
+        )
+        report = json.loads(done.stdout.strip().splitlines()[-1])
+        if report is None:
+            print(f"\n{case}: skipped (assets missing under {args.assets})")
+            continue
+        reports.append(report)
+        print_case(report)
+    document = {
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "gl_platform": os.environ.get("PYOPENGL_PLATFORM")},
+        "cases": reports,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
-
-    print(f"machine: {report['machine']['cpus']} CPUs, {report['machine']['gl_platform']} ({report['machine']['gl_renderer']})")
-    print(f"bake of {sample} with {params.impostor_frames} frames x {params.azimuths} x {len(params.elevations_deg)} views of {params.tile_size}²")
-    for name, value in seconds.items():
-        print(f"  {name:10s} {value:8.2f} s")
-    print(f"  {'total':10s} {report['total_seconds']:8.2f} s, bundle {total_bytes / 2**20:.1f} MiB")
-    i = report["impostor"]
-    print(
-        f"impostors: {views} views in {len(tasks)} tasks; GL {i['renders_per_second_gl']:.0f} renders/s, "
-        f"end to end {i['views_per_second_end_to_end']:.0f} views/s"
-    )
-    print(
-        f"  stage share: renderer {100 * i['renderer_share_of_stage']:.0f}%, maps {100 * i['maps_share_of_stage']:.0f}%, "
-        f"fidelity references {100 * i['references_share_of_stage']:.0f}%, other (loading, writing) "
-        f"{100 * (1 - i['renderer_share_of_stage'] - i['maps_share_of_stage'] - i['references_share_of_stage']):.0f}%"
-    )
-    f = report["fidelity"]["impostor"]
-    print(f"fidelity: SSIM mean {f['ssim_mean']:.3f} worst {f['ssim_worst']:.3f}, PSNR mean {f['psnr_db_mean']:.1f} dB")
-    print(f"wrote {args.out}")
+    args.out.write_text(json.dumps(document, indent=2) + "\n")
+    print(f"\nwrote {args.out}")
     return 0
 
 

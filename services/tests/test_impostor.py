@@ -201,3 +201,32 @@ def test_texture_sampling_conventions():
     assert samples[3, 3] in (17, 34, 51, 68)  # nearest alpha: a region code, never a blend
     np.testing.assert_allclose(samples[4], samples[0])  # REPEAT
     np.testing.assert_allclose(maps.wrap_uv(np.array([1.0, -0.25, 1.5])), [1.0, 0.75, 0.5])
+
+
+def test_all_views_at_once_equal_view_by_view():
+    """resolve_coverage_views / view_maps_views run one numpy pass over the texels of every view; each
+    view's maps must be exactly what the one-view functions give, whatever the other views hold: views
+    of different azimuths and elevations, one of them with corrupted (repaired) ids, one empty."""
+    positions, normals, uvs, faces = uv_sphere()
+    material = np.zeros(len(faces), int)
+    views = [maps.ortho_view((0, 0, 0), 1.0, azimuth, elevation, 32) for azimuth, elevation in ((0, 0), (70, 20), (200, -40))]
+    with VisibilityRenderer(32) as renderer, offscreen.timed_renders() as gl:
+        renderer.set_mesh(positions, faces)
+        images = [renderer.render(view) for view in views]
+    assert gl.renders == len(views) and gl.seconds > 0, "every render goes through the timing hook"
+    ids = np.stack([image.ids for image in images])
+    depth = np.stack([image.depth for image in images])
+    ids[1][ids[1] >= 0] += 5  # wrong ids in view 1: every covered texel there needs repairing
+    ids[2] = -1  # nothing drawn in view 2
+    depth[2] = 0.0
+    together = maps.resolve_coverage_views(views, ids, positions, faces, depth)
+    assert together[1].repaired > 0 and not together[2].mask.any()
+    together_maps = maps.view_maps_views(views, together, positions, normals, uvs, faces, material, [sphere_texture()])
+    for k, view in enumerate(views):
+        alone = maps.resolve_coverage(view, ids[k], positions, faces, depth[k])
+        np.testing.assert_array_equal(together[k].triangle, alone.triangle)
+        np.testing.assert_array_equal(together[k].barycentric, alone.barycentric)
+        assert together[k].repaired == alone.repaired
+        alone_maps = maps.view_maps(view, alone, positions, normals, uvs, faces, material, [sphere_texture()])
+        for kind in ("normal", "uv", "detail"):
+            np.testing.assert_array_equal(getattr(together_maps[k], kind), getattr(alone_maps, kind))

@@ -1,33 +1,38 @@
 """Block compression of textures: DXT1/BC1 for RGB, DXT3/BC2 for RGBA, as in the paper (section 6).
 
 Dobbyn et al. 2006 compress every RGBA image with DXT3 (4:1) and every RGB image with DXT1 (6:1 against
-24-bit RGB). The colour endpoints and indices come from etcpak (a fast, real BC1 encoder); this module adds
-what etcpak does not do:
+24-bit RGB). The colour blocks come from **quicktex**'s BC1 encoder (a C++ port of rgbcx, among the
+highest-quality BC1 encoders) in its **four-colour-only** mode:
 
-- BC2's explicit alpha: 4 bits per texel, `round(a * 15 / 255)`. A region code stored as `17 * r`
-  (SPEC.md) survives it exactly.
-- A colour block in **4-colour mode**. BC1 decodes a block whose endpoints satisfy color0 <= color1 in
-  3-colour mode (index 2 = midpoint, index 3 = transparent black), but BC2/BC3 decode every colour block in
-  4-colour mode. etcpak writes color0 < color1 for some blocks (flat ones, for instance), which a BC2
-  decoder would read wrongly. `force_four_colour` swaps such endpoints so color0 > color1 and re-picks every
-  index against the 4-colour palette from the source texels; a block with color0 == color1 has one colour
-  and gets all indices 0. A canonical block decodes to the same texels as BC1 and as BC2/BC3, so the
-  normal maps' BC1 blocks are fixed the same way (3-colour mode would turn index 3 into transparent black).
+- BC1 decodes a block whose endpoints satisfy color0 <= color1 in 3-colour mode (index 2 = midpoint,
+  index 3 = transparent black), but BC2/BC3 decode every colour block in 4-colour mode. In four-colour
+  mode the encoder writes color0 > color1 in every block (a flat block too: its endpoints then differ by
+  one step and all indices point at the exact colour), so a block decodes to the same texels as BC1 and as
+  the colour half of BC2, and a normal map never decodes as punch-through black.
+- quicktex's default interpolator is the exact 1/3, 2/3 blend of the expanded endpoints, the one the
+  decoders below (and texture2ddecoder) implement.
+- Nothing runs over the blocks afterwards in Python: the encoder writes the final bytes.
 
-etcpak picks endpoints quickly from each block's extent; `refine_colour_blocks` then refits them by least
-squares (keeping a block only where that lowers its error), which matters for normal maps whose blocks
-hold many directions.
+BC2's explicit alpha is 4 bits per texel, `round(a * 15 / 255)`, written here: a region code stored as
+`17 * r` (SPEC.md) survives it exactly.
 
 Decoders are plain numpy (the runtime's GPU does the real decoding); the tests check them against
 texture2ddecoder and Pillow's DDS reader. Everything here is pure: bytes and arrays in and out.
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 BLOCK = 4  # texels per block side
 BC1_BLOCK_BYTES = 8
 BC2_BLOCK_BYTES = 16
+# quicktex's preset level (0 fastest .. 18 slowest). On the sample bake's own layers (8 diffuse 1024²,
+# 10 normal and 10 detail atlases) level 5 encodes 10x faster than the previous etcpak + least-squares
+# path with lower error in every kind; level 12 lowers the mean error by another 0.03..0.14 levels for
+# 5x the time (services/benchmarks/bench_compression.py, figures in docs/bake.md).
+BC1_LEVEL = 5
 
 
 def _check_rgba(rgba: np.ndarray, name: str) -> np.ndarray:
@@ -98,134 +103,46 @@ def _join_colour_blocks(colour0: np.ndarray, colour1: np.ndarray, indices: np.nd
     return out
 
 
-def force_four_colour(colour_blocks: np.ndarray, texels: np.ndarray) -> np.ndarray:
-    """Rewrite BC1-style colour blocks so each decodes in 4-colour mode (see the module docstring).
+@lru_cache(maxsize=1)
+def _bc1_encoder():
+    """The shared quicktex BC1 encoder (four-colour mode, BC1_LEVEL); imported here so that decoding needs only numpy."""
+    from quicktex.s3tc.bc1 import BC1Encoder
 
-    colour_blocks: (N, 8) uint8 as an encoder wrote them; texels: (N, 16, 3 or 4) uint8, the source texels
-    of each block (RGB used). Returns new (N, 8) uint8 blocks with colour0 > colour1, or colour0 == colour1
-    and all indices 0. Blocks already in 4-colour mode are returned unchanged.
-    """
-    colour_blocks = np.ascontiguousarray(colour_blocks, dtype=np.uint8)
-    colour0, colour1, indices = _split_colour_blocks(colour_blocks)
-    out = colour_blocks.copy()
-    equal = colour0 == colour1
-    swap = colour0 < colour1
-    if equal.any():
-        out[equal] = _join_colour_blocks(colour0[equal], colour1[equal], np.zeros((int(equal.sum()), 16), np.uint8))
-    if swap.any():
-        new0, new1 = colour1[swap], colour0[swap]
-        palette = _palette(new0, new1, np.ones(len(new0), dtype=bool))[:, :, :3]  # (S, 4, 3)
-        source = texels[swap][:, :, :3].astype(np.int32)  # (S, 16, 3)
-        distance = ((source[:, :, None, :] - palette[:, None, :, :]) ** 2).sum(axis=-1)  # (S, 16, 4)
-        out[swap] = _join_colour_blocks(new0, new1, distance.argmin(axis=-1).astype(np.uint8))
-    return out
+    return BC1Encoder(BC1_LEVEL, BC1Encoder.ColorMode.FourColor)
 
 
-# Palette weights of (colour0, colour1) for indices 0..3 in 4-colour mode.
-_INDEX_WEIGHTS = np.array([[1.0, 0.0], [0.0, 1.0], [2.0 / 3.0, 1.0 / 3.0], [1.0 / 3.0, 2.0 / 3.0]])
-# Least-squares refinement rounds; each round keeps a block only if its error went down, and gains
-# shrink fast (3 rounds took the sample's normal maps from 19.3 to 23.8 dB; a 4th added < 0.1 dB).
-REFINE_ITERATIONS = 3
-
-
-def _to565(colours: np.ndarray) -> np.ndarray:
-    """(N, 3) float RGB 0..255 -> (N,) uint16 RGB565, rounded to nearest."""
-    colours = np.clip(colours, 0.0, 255.0)
-    red = np.rint(colours[:, 0] * 31.0 / 255.0).astype(np.uint16)
-    green = np.rint(colours[:, 1] * 63.0 / 255.0).astype(np.uint16)
-    blue = np.rint(colours[:, 2] * 31.0 / 255.0).astype(np.uint16)
-    return (red << 11) | (green << 5) | blue
-
-
-def _block_errors(colour_blocks: np.ndarray, texels: np.ndarray) -> np.ndarray:
-    """(N,) summed squared RGB error of 4-colour-mode blocks against their (N, 16, 3) float texels."""
-    colour0, colour1, indices = _split_colour_blocks(colour_blocks)
-    palette = _palette(colour0, colour1, np.ones(len(colour0), dtype=bool))[:, :, :3]
-    decoded = np.take_along_axis(palette, indices[:, :, None].astype(np.intp), axis=1).astype(np.float32)
-    return ((decoded - texels) ** 2).sum(axis=(1, 2))
-
-
-def refine_colour_blocks(colour_blocks: np.ndarray, texels: np.ndarray, iterations: int = REFINE_ITERATIONS) -> np.ndarray:
-    """Improve 4-colour-mode blocks by least squares, block by block, never making one worse.
-
-    etcpak is built for speed: its endpoints come from the block's bounding box. Given the indices, the
-    endpoints that minimise the squared error solve a 2x2 linear system per block (the refinement step of
-    the cluster-fit encoders, e.g. squish); the new endpoints are rounded to RGB565, the indices re-picked,
-    and the block replaced only if its error fell. colour_blocks: (N, 8) uint8 in 4-colour mode (as from
-    force_four_colour); texels: (N, 16, 3+) uint8. Returns (N, 8) uint8, still in 4-colour mode.
-    """
-    blocks = np.ascontiguousarray(colour_blocks, dtype=np.uint8).copy()
-    texels = np.asarray(texels)
-    # float32 is exact for 8-bit values and their squared differences summed over a block (< 2^24).
-    source = texels[:, :, :3].astype(np.float32)
-    error = _block_errors(blocks, source)
-    # A block whose indices did not change gets the same least-squares endpoints again: only blocks that
-    # improved in a round (and, in the first, every block with any error) are worth another.
-    active = np.flatnonzero(error > 0)
-    for _ in range(iterations):
-        if active.size == 0:
-            break
-        _, _, indices = _split_colour_blocks(blocks[active])
-        weights = _INDEX_WEIGHTS[indices]  # (A, 16, 2)
-        normal = np.einsum("nki,nkj->nij", weights, weights)
-        right = np.einsum("nki,nkc->nic", weights, source[active])
-        # All texels on one index leave the system singular: nothing to fit there.
-        determinant = normal[:, 0, 0] * normal[:, 1, 1] - normal[:, 0, 1] * normal[:, 1, 0]
-        solvable = np.abs(determinant) > 1e-9
-        active, normal, right, determinant = active[solvable], normal[solvable], right[solvable], determinant[solvable]
-        if active.size == 0:
-            break
-        # The 2x2 inverse in closed form, for every block at once.
-        inverse = np.stack([np.stack([normal[:, 1, 1], -normal[:, 0, 1]], -1), np.stack([-normal[:, 1, 0], normal[:, 0, 0]], -1)], 1)
-        endpoints = np.einsum("nij,njc->nic", inverse / determinant[:, None, None], right)  # (A, 2, 3)
-        colour0, colour1 = _to565(endpoints[:, 0]), _to565(endpoints[:, 1])
-        first, second = np.maximum(colour0, colour1), np.minimum(colour0, colour1)  # 4-colour mode order
-        palette = _palette(first, second, np.ones(len(first), dtype=bool))[:, :, :3].astype(np.float32)
-        distance = ((source[active][:, :, None, :] - palette[:, None, :, :]) ** 2).sum(axis=-1)
-        candidate = _join_colour_blocks(first, second, distance.argmin(axis=-1).astype(np.uint8))
-        candidate = force_four_colour(candidate, texels[active])
-        candidate_error = _block_errors(candidate, source[active])
-        better = candidate_error < error[active]
-        active = active[better]
-        blocks[active] = candidate[better]
-        error[active] = candidate_error[better]
-    return blocks
-
-
-def _etcpak_colour_blocks(rgba: np.ndarray) -> np.ndarray:
-    """etcpak's BC1 blocks of an (H, W, 4) uint8 RGBA image, as (N, 8) uint8 in row-major block order."""
-    import etcpak  # C++ extension; imported here so that decoding needs only numpy
+def _colour_blocks(rgba: np.ndarray) -> bytes:
+    """Four-colour-mode BC1 blocks of an (H, W, 4) uint8 RGBA image (alpha ignored), in row-major block order."""
+    from quicktex import RawTexture
 
     height, width = rgba.shape[:2]
-    opaque = rgba.copy()
-    # etcpak's BC1 looks only at RGB; alpha is set opaque so nothing can steer it towards punch-through.
-    opaque[..., 3] = 255
-    data = etcpak.compress_bc1(opaque.tobytes(), width, height)
-    return np.frombuffer(data, dtype=np.uint8).reshape(-1, BC1_BLOCK_BYTES)
+    return _bc1_encoder().encode(RawTexture.frombytes(rgba.tobytes(), width, height)).tobytes()
 
 
 def encode_bc1(rgba: np.ndarray) -> bytes:
     """DXT1/BC1 blocks of (H, W, 4) uint8 RGBA (alpha ignored, decodes opaque): 8 bytes per 4x4 block."""
-    rgba = _check_rgba(rgba, "encode_bc1")
-    texels = to_blocks(rgba)
-    blocks = refine_colour_blocks(force_four_colour(_etcpak_colour_blocks(rgba), texels), texels)
-    return blocks.tobytes()
+    return _colour_blocks(_check_rgba(rgba, "encode_bc1"))
 
 
-def encode_bc2_alpha(alpha_blocks: np.ndarray) -> np.ndarray:
-    """(N, 16) uint8 alpha -> (N, 8) uint8 explicit 4-bit alpha blocks (texel 0 in the low nibble)."""
-    nibbles = (alpha_blocks.astype(np.uint32) * 15 + 127) // 255  # round(a * 15 / 255)
-    pairs = nibbles[:, 0::2] | (nibbles[:, 1::2] << 4)
-    return pairs.astype(np.uint8)
+def encode_bc2_alpha(alpha: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 alpha -> (H/4 * W/4, 8) uint8 explicit 4-bit alpha blocks, row-major block order,
+    texel 0 of each block in the low nibble of its first byte."""
+    alpha = np.asarray(alpha)
+    height, width = alpha.shape
+    nibbles = (alpha.astype(np.uint16) * 15 + 127) // 255  # round(a * 15 / 255)
+    pairs = (nibbles[:, 0::2] | (nibbles[:, 1::2] << 4)).astype(np.uint8)  # (H, W/2): two texels a byte
+    # Byte k of a block holds texels 2k, 2k+1: row k // 2 of the block, columns 2 (k % 2) .. +1.
+    return pairs.reshape(height // BLOCK, BLOCK, width // BLOCK, 2).transpose(0, 2, 1, 3).reshape(-1, 8)
 
 
 def encode_bc2(rgba: np.ndarray) -> bytes:
     """DXT3/BC2 blocks of (H, W, 4) uint8 RGBA: 8 bytes explicit alpha + 8 bytes 4-colour RGB per block."""
     rgba = _check_rgba(rgba, "encode_bc2")
-    texels = to_blocks(rgba)
-    colour = refine_colour_blocks(force_four_colour(_etcpak_colour_blocks(rgba), texels), texels)
-    alpha = encode_bc2_alpha(texels[:, :, 3])
-    return np.concatenate([alpha, colour], axis=1).tobytes()
+    colour = np.frombuffer(_colour_blocks(rgba), dtype=np.uint8).reshape(-1, BC1_BLOCK_BYTES)
+    blocks = np.empty((len(colour), BC2_BLOCK_BYTES), dtype=np.uint8)
+    blocks[:, :8] = encode_bc2_alpha(rgba[..., 3])
+    blocks[:, 8:] = colour
+    return blocks.tobytes()
 
 
 def _block_count(data: bytes, width: int, height: int, block_bytes: int, name: str) -> int:

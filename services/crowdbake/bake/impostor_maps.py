@@ -26,7 +26,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from crowdbake.formats.binary import pack_uv32, unpack_uv32
 
@@ -119,6 +118,23 @@ def project(view: OrthoView, points: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return np.stack([x, y], axis=-1), depth
 
 
+def project_views(views: list[OrthoView], points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """project() for V views at once: texel-space xy (V, P, 2) and depth (V, P) of (P, 3) points, float64."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    centres = np.stack([view.center for view in views])  # (V, 3)
+    radii = np.array([view.radius for view in views])
+    scales = np.array([view.size / (2.0 * view.radius) for view in views])
+    offset = points[None, :, :] - centres[:, None, :]  # (V, P, 3)
+
+    def along(axis: str) -> np.ndarray:
+        return np.einsum("vpc,vc->vp", offset, np.stack([getattr(view, axis) for view in views]))
+
+    x = (along("right") + radii[:, None]) * scales[:, None]
+    y = (radii[:, None] - along("up")) * scales[:, None]
+    depth = CAMERA_DISTANCE_RADII * radii[:, None] - along("back")
+    return np.stack([x, y], axis=-1), depth
+
+
 def triangle_id_colours(triangle_count: int) -> np.ndarray:
     """(T, 3) uint8 colours encoding triangle index + 1 in 24 bits, little end in red."""
     if not 0 < triangle_count <= MAX_TRIANGLES:
@@ -185,41 +201,68 @@ def resolve_coverage(
 
     ids: (H, W) int64 from decode_triangle_ids (H = W = view.size); positions: (V, 3) model space;
     faces: (T, 3) int; depth: optional (H, W) float eye-space depth in metres (0 = nothing drawn) to reject
-    an id whose triangle lies elsewhere along the ray.
+    an id whose triangle lies elsewhere along the ray. One view of resolve_coverage_views.
     """
+    ids = np.asarray(ids)
+    if ids.shape != (view.size, view.size):
+        raise ValueError(f"resolve_coverage: id image is {ids.shape}, the view is {view.size}²")
+    return resolve_coverage_views([view], ids[None], positions, faces, None if depth is None else np.asarray(depth)[None])[0]
+
+
+def resolve_coverage_views(
+    views: list[OrthoView],
+    ids: np.ndarray,
+    positions: np.ndarray,
+    faces: np.ndarray,
+    depth: np.ndarray | None = None,
+) -> list[Coverage]:
+    """resolve_coverage for V views of one mesh at once: one pass of numpy over every covered texel of
+    every view, instead of a pass per view (at 128² a view holds a few thousand texels, too few for numpy
+    to amortise its per-call cost).
+
+    ids: (V, S, S) int64 from decode_triangle_ids, S = every view's size; depth: optional (V, S, S) eye
+    depth. Returns one Coverage per view, in order.
+    """
+    views = list(views)
     ids = np.asarray(ids, dtype=np.int64)
     faces = np.asarray(faces, dtype=np.int64)
-    height, width = ids.shape
-    if (height, width) != (view.size, view.size):
-        raise ValueError(f"resolve_coverage: id image is {ids.shape}, the view is {view.size}²")
-    screen, vertex_depth = project(view, positions)
-    corners = screen[faces]  # (T, 3, 2)
-    corner_depth = vertex_depth[faces]  # (T, 3)
+    if not views:
+        return []
+    size = views[0].size
+    if ids.shape != (len(views), size, size) or any(view.size != size for view in views):
+        raise ValueError(f"resolve_coverage_views: id images are {ids.shape}, the views {[view.size for view in views]}²")
+    if depth is not None and np.shape(depth) != ids.shape:
+        raise ValueError(f"resolve_coverage_views: depth is {np.shape(depth)}, the id images {ids.shape}")
+    screen, vertex_depth = project_views(views, positions)  # (V, P, 2), (V, P)
     triangle_count = len(faces)
 
-    rows, columns = np.nonzero(ids >= 0)
+    which, rows, columns = np.nonzero(ids >= 0)
     centres = np.stack([columns + 0.5, rows + 0.5], axis=-1).astype(np.float64)
-    candidate = ids[rows, columns]
+    candidate = ids[which, rows, columns]
     in_range = candidate < triangle_count
-    safe = np.where(in_range, candidate, 0)
-    distances, barycentric = _edge_distances(corners[safe], centres)
+    corner_index = faces[np.where(in_range, candidate, 0)]  # (N, 3)
+    distances, barycentric = _edge_distances(screen[which[:, None], corner_index], centres)
     accepted = in_range & (distances.min(axis=1) >= -INSIDE_TOLERANCE_PX)
     if depth is not None:
-        interpolated = (barycentric * corner_depth[safe]).sum(axis=1)
-        accepted &= np.abs(interpolated - depth[rows, columns]) <= DEPTH_TOLERANCE_RADII * view.radius
+        interpolated = (barycentric * vertex_depth[which[:, None], corner_index]).sum(axis=1)
+        radii = np.array([view.radius for view in views])
+        accepted &= np.abs(interpolated - np.asarray(depth)[which, rows, columns]) <= DEPTH_TOLERANCE_RADII * radii[which]
 
-    triangle = np.full((height, width), -1, dtype=np.int64)
-    bary = np.zeros((height, width, 3), dtype=np.float64)
-    triangle[rows[accepted], columns[accepted]] = candidate[accepted]
-    bary[rows[accepted], columns[accepted]] = barycentric[accepted]
+    triangle = np.full(ids.shape, -1, dtype=np.int64)
+    bary = np.zeros(ids.shape + (3,), dtype=np.float64)
+    triangle[which[accepted], rows[accepted], columns[accepted]] = candidate[accepted]
+    # Clamp into the triangle and renormalise, on the covered texels only.
+    clamped = np.clip(barycentric[accepted], 0.0, None)
+    total = clamped.sum(axis=1, keepdims=True)
+    np.divide(clamped, total, out=clamped, where=total > 0)
+    bary[which[accepted], rows[accepted], columns[accepted]] = clamped
 
-    repaired = int((~accepted).sum())
-    if repaired:
-        _repair(triangle, bary, rows[~accepted], columns[~accepted], corners, corner_depth)
-    np.clip(bary, 0.0, None, out=bary)
-    total = bary.sum(axis=-1, keepdims=True)
-    np.divide(bary, total, out=bary, where=total > 0)
-    return Coverage(triangle, bary, repaired)
+    failed = ~accepted
+    repaired = np.bincount(which[failed], minlength=len(views))
+    for index in np.flatnonzero(repaired):
+        mine = failed & (which == index)
+        _repair(triangle[index], bary[index], rows[mine], columns[mine], screen[index][faces], vertex_depth[index][faces])
+    return [Coverage(triangle[k], bary[k], int(repaired[k])) for k in range(len(views))]
 
 
 def _repair(
@@ -256,7 +299,8 @@ def _repair(
         depth = (barycentric * corner_depth[options]).sum(axis=1)
         best = np.flatnonzero(inside)[np.argmin(depth[inside])]
         triangle[row, column] = options[best]
-        bary[row, column] = barycentric[best]
+        clamped = np.clip(barycentric[best], 0.0, None)
+        bary[row, column] = clamped / clamped.sum() if clamped.sum() > 0 else clamped
 
 
 def interpolate(values: np.ndarray, faces: np.ndarray, coverage: Coverage) -> np.ndarray:
@@ -308,6 +352,27 @@ def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return np.concatenate([colour, alpha[:, None]], axis=1)
 
 
+def face_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(T, 3) float64 unnormalised face normals (p1 - p0) x (p2 - p0): winding order, area-weighted."""
+    positions = np.asarray(positions, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    a = positions[faces[:, 0]]
+    return np.cross(positions[faces[:, 1]] - a, positions[faces[:, 2]] - a)
+
+
+def _shading_normals_at(back: np.ndarray, interpolated: np.ndarray, face_normal: np.ndarray) -> np.ndarray:
+    """Unit shading normals (N, 3) from interpolated vertex normals (N, 3), the face normals of the
+    triangles hit (N, 3) and each texel's view direction back (N, 3) (see shading_normals)."""
+    facing_away = (face_normal * back).sum(axis=1) < 0
+    sign = np.where(facing_away, -1.0, 1.0)[:, None]
+    chosen = interpolated * sign
+    length = np.linalg.norm(chosen, axis=1, keepdims=True)
+    # A zero interpolated normal (opposite vertex normals) falls back to the face normal.
+    chosen = np.where(length > 1e-12, chosen, face_normal * sign)
+    chosen /= np.maximum(np.linalg.norm(chosen, axis=1, keepdims=True), 1e-300)
+    return chosen
+
+
 def shading_normals(view: OrthoView, normals: np.ndarray, positions: np.ndarray, faces: np.ndarray, coverage: Coverage) -> np.ndarray:
     """Unit model-space normals at covered texels, (H, W, 3) float64 (zero elsewhere).
 
@@ -315,27 +380,19 @@ def shading_normals(view: OrthoView, normals: np.ndarray, positions: np.ndarray,
     drawn double-sided), the normal is flipped to face the camera, as double-sided shading does.
     """
     faces = np.asarray(faces, dtype=np.int64)
-    interpolated = interpolate(normals, faces, coverage)
     mask = coverage.mask
-    positions = np.asarray(positions, dtype=np.float64)
-    hit = faces[coverage.triangle[mask]]
-    a = positions[hit[:, 0]]
-    face_normal = np.cross(positions[hit[:, 1]] - a, positions[hit[:, 2]] - a)
-    facing_away = face_normal @ view.back < 0
-    chosen = interpolated[mask]
-    chosen[facing_away] *= -1.0
-    length = np.linalg.norm(chosen, axis=1, keepdims=True)
-    # A zero interpolated normal (opposite vertex normals) falls back to the face normal.
-    fallback = face_normal * np.where(facing_away, -1.0, 1.0)[:, None]
-    chosen = np.where(length > 1e-12, chosen, fallback)
-    chosen /= np.maximum(np.linalg.norm(chosen, axis=1, keepdims=True), 1e-300)
-    out = np.zeros_like(interpolated)
-    out[mask] = chosen
+    hit = coverage.triangle[mask]
+    bary = coverage.barycentric[mask]
+    interpolated = np.einsum("nk,nkc->nc", bary, np.asarray(normals, dtype=np.float64)[faces[hit]])
+    out = np.zeros(coverage.triangle.shape + (3,), dtype=np.float64)
+    out[mask] = _shading_normals_at(np.broadcast_to(view.back, interpolated.shape), interpolated, face_normals(positions, faces[hit]))
     return out
 
 
 def nearest_inside(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """(rows, columns) (H, W) of the nearest texel inside `mask` for every texel; None if mask is empty or full."""
+    from scipy import ndimage  # a third of a second to import; only the background fill needs it
+
     if not mask.any() or mask.all():
         return None
     _, (rows, columns) = ndimage.distance_transform_edt(~mask, return_indices=True)
@@ -343,18 +400,20 @@ def nearest_inside(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def flatten_empty_blocks(image: np.ndarray, mask: np.ndarray, block: int = 4) -> np.ndarray:
-    """Copy of (H, W, C) `image` whose block x block tiles holding no texel of `mask` are one flat colour
-    (their top-left texel's). A flat block compresses exactly and needs no encoder effort; only blocks on
-    the silhouette need the dilated values. Sizes that are not multiples of `block` are left unchanged."""
-    height, width = mask.shape
+    """Copy of (..., H, W, C) `image` whose block x block tiles holding no texel of the (..., H, W) `mask`
+    are one flat colour (their top-left texel's). A flat block compresses exactly and needs no encoder
+    effort; only blocks on the silhouette need the dilated values. Leading axes are independent images
+    (views). Sizes that are not multiples of `block` are left unchanged."""
+    height, width = mask.shape[-2:]
     out = image.copy()
     if height % block or width % block:
         return out
+    lead = mask.shape[:-2]
     rows, columns = height // block, width // block
-    empty = ~mask.reshape(rows, block, columns, block).any(axis=(1, 3))
-    tiles = out.reshape(rows, block, columns, block, -1)
-    corner = tiles[:, :1, :, :1]  # (rows, 1, columns, 1, C)
-    tiles[:] = np.where(empty[:, None, :, None, None], corner, tiles)
+    empty = ~mask.reshape(lead + (rows, block, columns, block)).any(axis=(-3, -1))  # (..., rows, columns)
+    tiles = out.reshape(lead + (rows, block, columns, block, -1))
+    corner = tiles[..., :1, :, :1, :]  # (..., rows, 1, columns, 1, C)
+    tiles[:] = np.where(empty[..., :, None, :, None, None], corner, tiles)
     return out
 
 
@@ -370,6 +429,19 @@ def dilate_into_background(image: np.ndarray, mask: np.ndarray, nearest: tuple[n
     if nearest is None:
         return image.copy()
     return image[nearest[0], nearest[1]]
+
+
+def nearest_inside_views(masks: np.ndarray) -> np.ndarray:
+    """(V, H, W) int64 flat index into a (V * H * W) stack of the nearest texel inside each view's mask
+    (nearest_inside per view, whose distance transform stays 2D); a view whose mask is empty or full
+    points at itself."""
+    count, height, width = masks.shape
+    index = np.arange(count * height * width, dtype=np.int64).reshape(count, height, width)
+    for k in range(count):
+        nearest = nearest_inside(masks[k])
+        if nearest is not None:
+            index[k] = k * height * width + nearest[0] * width + nearest[1]
+    return index
 
 
 @dataclass(frozen=True)
@@ -401,6 +473,25 @@ def view_maps(
 
     positions, normals: (V, 3); uvs: (V, 2) glTF convention; faces: (T, 3); triangle_material: (T,) int
     material index of each triangle; diffuse: per material, its variation-0 texture (h, w, 4) uint8.
+    One view of view_maps_views.
+    """
+    return view_maps_views([view], [coverage], positions, normals, uvs, faces, triangle_material, diffuse)[0]
+
+
+def view_maps_views(
+    views: list[OrthoView],
+    coverages: list[Coverage],
+    positions: np.ndarray,
+    normals: np.ndarray,
+    uvs: np.ndarray,
+    faces: np.ndarray,
+    triangle_material: np.ndarray,
+    diffuse: list[np.ndarray],
+) -> list[ViewMaps]:
+    """view_maps for many views of one mesh: interpolation, shading normals and texture sampling run once
+    over the covered texels of every view; only the background fill (a distance transform) is per view.
+
+    Arguments as view_maps, with one Coverage per view (all of one size). Returns one ViewMaps per view.
     """
     faces = np.asarray(faces, dtype=np.int64)
     triangle_material = np.asarray(triangle_material, dtype=np.int64)
@@ -408,34 +499,53 @@ def view_maps(
         raise ValueError(f"view_maps: triangle_material must be ({len(faces)},), got {triangle_material.shape}")
     if triangle_material.size and (triangle_material.min() < 0 or triangle_material.max() >= len(diffuse)):
         raise ValueError(f"view_maps: a material index is outside 0 .. {len(diffuse) - 1}")
-    size = view.size
-    mask = coverage.mask
-    material = np.where(mask, triangle_material[np.maximum(coverage.triangle, 0)], 0)
+    views, coverages = list(views), list(coverages)
+    if len(views) != len(coverages):
+        raise ValueError(f"view_maps: {len(views)} views but {len(coverages)} coverages")
+    if not views:
+        return []
+    triangles = np.stack([coverage.triangle for coverage in coverages])  # (V, S, S)
+    if triangles.shape[1:] != (views[0].size, views[0].size):
+        raise ValueError(f"view_maps: coverage is {triangles.shape[1:]}, the view {views[0].size}²")
+    masks = triangles >= 0
+    which, rows, columns = np.nonzero(masks)
+    hit = triangles[which, rows, columns]  # (N,) the covered texels of every view, view by view
+    bary = np.stack([coverage.barycentric for coverage in coverages])[which, rows, columns]  # (N, 3)
+    corners = faces[hit]  # (N, 3)
 
-    nearest = nearest_inside(mask)
-    normal = shading_normals(view, normals, positions, faces, coverage)
-    normal_rgb = np.clip(np.rint((normal + 1.0) * 0.5 * 255.0), 0, 255)
-    normal_rgb = flatten_empty_blocks(dilate_into_background(normal_rgb, mask, nearest), mask)
-    normal_map = np.zeros((size, size, 4), dtype=np.uint8)
-    normal_map[..., :3] = normal_rgb
-    normal_map[..., 3] = np.where(mask, 255, 0)
+    def at_texels(values: np.ndarray) -> np.ndarray:
+        return np.einsum("nk,nkc->nc", bary, np.asarray(values, dtype=np.float64)[corners])
 
-    uv = wrap_uv(interpolate(uvs, faces, coverage))
-    uv_map = np.zeros((size, size, 4), dtype=np.uint16)
-    uv_map[..., :2] = np.where(mask[..., None], np.clip(np.rint(uv * 65535.0), 0, 65535), 0)
-    uv_map[..., 2] = np.where(mask, material, 0)
-    uv_map[..., 3] = np.where(mask, 65535, 0)
-
-    detail = np.zeros((size, size, 4), dtype=np.float64)
+    backs = np.stack([view.back for view in views])[which]
+    normal = _shading_normals_at(backs, at_texels(normals), face_normals(positions, faces)[hit])
+    normal_rgb = np.clip(np.rint((normal + 1.0) * 0.5 * 255.0), 0, 255).astype(np.uint8)
+    uv = wrap_uv(at_texels(uvs))
+    material = triangle_material[hit]
+    detail = np.zeros((len(hit), 4), dtype=np.float64)
     for index, texture in enumerate(diffuse):
-        selected = mask & (material == index)
+        selected = material == index
         if selected.any():
             detail[selected] = sample_texture(texture, uv[selected])
-    detail_rgb = flatten_empty_blocks(dilate_into_background(np.clip(np.rint(detail[..., :3]), 0, 255), mask, nearest), mask)
-    detail_map = np.zeros((size, size, 4), dtype=np.uint8)
-    detail_map[..., :3] = detail_rgb
-    detail_map[..., 3] = np.where(mask, detail[..., 3], 0)
-    return ViewMaps(normal_map, uv_map, detail_map, coverage)
+    detail_rgba = np.clip(np.rint(detail), 0, 255).astype(np.uint8)
+
+    shape = triangles.shape
+    normal_map = np.zeros(shape + (4,), dtype=np.uint8)
+    normal_map[which, rows, columns, :3] = normal_rgb
+    normal_map[..., 3] = np.where(masks, 255, 0)
+    uv_map = np.zeros(shape + (4,), dtype=np.uint16)
+    uv_map[which, rows, columns, :2] = np.clip(np.rint(uv * 65535.0), 0, 65535)
+    uv_map[which, rows, columns, 2] = material
+    uv_map[which, rows, columns, 3] = 65535
+    detail_map = np.zeros(shape + (4,), dtype=np.uint8)
+    detail_map[which, rows, columns] = detail_rgba
+
+    # The background takes the silhouette's values (block compression then spends nothing on it): one
+    # gather over every view's texels from the per-view distance transforms, then the empty blocks flat.
+    nearest = nearest_inside_views(masks).reshape(-1)
+    for image in (normal_map, detail_map):
+        filled = image[..., :3].reshape(-1, 3)[nearest].reshape(shape + (3,))
+        image[..., :3] = flatten_empty_blocks(filled, masks)
+    return [ViewMaps(normal_map[k], uv_map[k], detail_map[k], coverage) for k, coverage in enumerate(coverages)]
 
 
 def decode_uv_map(uv_map: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

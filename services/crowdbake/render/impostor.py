@@ -16,6 +16,7 @@ import atexit
 import logging
 import threading
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,13 +24,16 @@ from crowdbake.render import offscreen  # (also chooses the GL platform before p
 from crowdbake.bake import impostor_maps
 from crowdbake.bake.impostor_maps import Coverage, OrthoView
 
-import pyrender  # noqa: E402  (after the platform choice)
+if TYPE_CHECKING:
+    import pyrender  # imported where drawn (see crowdbake.render.offscreen), after the platform choice
 
 logger = logging.getLogger(__name__)
 
 
 def _id_mesh(positions: np.ndarray, faces: np.ndarray) -> pyrender.Mesh:
     """A pyrender mesh whose triangle k is drawn in the flat colour of id k + 1 (unwelded vertices)."""
+    import pyrender
+
     faces = np.asarray(faces, dtype=np.int64)
     corners = np.ascontiguousarray(np.asarray(positions, dtype=np.float32)[faces].reshape(-1, 3))
     colours = np.ones((len(corners), 4), dtype=np.float32)
@@ -78,6 +82,8 @@ class VisibilityRenderer:
     def __init__(self, size: int):
         if size < 1:
             raise ValueError(f"VisibilityRenderer: size must be positive, got {size}")
+        import pyrender
+
         self.size = int(size)
         # The GL context is offscreen.Offscreen's: one place creates and deletes pyrender contexts.
         self._offscreen = offscreen.Offscreen(self.size, self.size)
@@ -114,6 +120,8 @@ class VisibilityRenderer:
             raise RuntimeError("VisibilityRenderer.render called before set_mesh")
         if view.size != self.size:
             raise ValueError(f"VisibilityRenderer: view is {view.size}², renderer {self.size}²")
+        import pyrender
+
         znear, zfar = view.clip_range
         camera = pyrender.OrthographicCamera(xmag=view.radius, ymag=view.radius, znear=znear, zfar=zfar)
         if self._camera_node is not None:

@@ -9,18 +9,26 @@ degrees is the +X side. Elevation is positive above the target.
 
 The GL platform is chosen by PYOPENGL_PLATFORM, read when OpenGL is first imported: we default it to
 "osmesa" (software, runs on any worker) and leave any value the caller set alone, so "egl" selects a GPU.
+pyrender (with trimesh and most of scipy behind it: seconds of start-up) is imported by the functions that
+draw, not by this module, so that processes that never render (the API, pack-only workers, `--help`)
+do not pay for it.
 """
 from __future__ import annotations
 
 import logging
 import os
-from typing import Sequence
+import threading
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Iterator, Sequence
 
 import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-import pyrender  # noqa: E402  (must follow the platform choice above)
+if TYPE_CHECKING:
+    import pyrender
 
 logger = logging.getLogger(__name__)
 
@@ -31,6 +39,58 @@ CAMERA_DISTANCE_RADII = 3.0
 FRAME_MARGIN = 0.05
 # Below this length an up vector is treated as parallel to the viewing direction.
 _PARALLEL_TOLERANCE = 1e-9
+
+
+@dataclass
+class RenderTimings:
+    """Seconds spent inside the GL renderer: `seconds` in render calls (draw and read-back) over `renders`
+    calls, `setup_seconds` creating and deleting contexts (shader compilation included)."""
+
+    seconds: float = 0.0
+    renders: int = 0
+    setup_seconds: float = 0.0
+
+    def minus(self, earlier: "RenderTimings") -> "RenderTimings":
+        return RenderTimings(self.seconds - earlier.seconds, self.renders - earlier.renders, self.setup_seconds - earlier.setup_seconds)
+
+
+# Every GL call of the bake goes through Offscreen (cycle views, impostor views, fidelity references), which
+# adds its seconds here: a process-wide total a runner reads before and after a stage (render_timings, or
+# the timed_renders context manager). A lock, because a worker may render from several threads.
+_TOTALS = RenderTimings()
+_TOTALS_LOCK = threading.Lock()
+
+
+def _add_time(seconds: float = 0.0, renders: int = 0, setup_seconds: float = 0.0) -> None:
+    with _TOTALS_LOCK:
+        _TOTALS.seconds += seconds
+        _TOTALS.renders += renders
+        _TOTALS.setup_seconds += setup_seconds
+
+
+def render_timings() -> RenderTimings:
+    """A copy of this process's running totals of time inside the renderer."""
+    with _TOTALS_LOCK:
+        return RenderTimings(_TOTALS.seconds, _TOTALS.renders, _TOTALS.setup_seconds)
+
+
+@contextmanager
+def timed_renders() -> Iterator[RenderTimings]:
+    """Measure the renderer's time inside a `with` block (this process, every thread):
+
+        with timed_renders() as gl:
+            stage_impostors(work)
+        timings["render_s"] = gl.seconds
+
+    The yielded RenderTimings is filled in when the block ends.
+    """
+    before = render_timings()
+    result = RenderTimings()
+    try:
+        yield result
+    finally:
+        delta = render_timings().minus(before)
+        result.seconds, result.renders, result.setup_seconds = delta.seconds, delta.renders, delta.setup_seconds
 
 
 def look_at(eye: Sequence[float], target: Sequence[float], up: Sequence[float] = (0.0, 1.0, 0.0)) -> np.ndarray:
@@ -110,6 +170,8 @@ def orthographic_camera(radius: float, aspect: float = 1.0) -> pyrender.Orthogra
     aspect: width / height of the image. Orthographic, so a pixel is the same world size everywhere in the
     view, which makes edge distances in pixels comparable across the image and between frames.
     """
+    import pyrender
+
     half_height = radius * (1.0 + FRAME_MARGIN)
     half_width = half_height * aspect
     if aspect < 1.0:  # keep the whole sphere inside the narrower dimension
@@ -128,6 +190,8 @@ def flat_material(rgb: Sequence[float], double_sided: bool = True) -> pyrender.M
     A black metal has neither a diffuse term nor a specular one (F0 is the base colour), so the shaded
     colour is exactly the emissive `rgb` (each in [0, 1]).
     """
+    import pyrender
+
     return pyrender.MetallicRoughnessMaterial(
         baseColorFactor=[0.0, 0.0, 0.0, 1.0],
         metallicFactor=1.0,
@@ -139,6 +203,8 @@ def flat_material(rgb: Sequence[float], double_sided: bool = True) -> pyrender.M
 
 def lit_material(rgb: Sequence[float], double_sided: bool = True) -> pyrender.MetallicRoughnessMaterial:
     """A matte (rough dielectric) material whose shading shows the surface's shape: folds, creases."""
+    import pyrender
+
     return pyrender.MetallicRoughnessMaterial(
         baseColorFactor=[*list(rgb)[:3], 1.0],
         metallicFactor=0.0,
@@ -154,6 +220,8 @@ def triangle_mesh(
     material: pyrender.Material,
 ) -> pyrender.Mesh:
     """A pyrender mesh from (V, 3) positions, (T, 3) integer faces and optional (V, 3) vertex normals."""
+    import pyrender
+
     positions = np.ascontiguousarray(positions, dtype=np.float32)
     faces = np.ascontiguousarray(faces, dtype=np.uint32)
     primitive = pyrender.Primitive(
@@ -186,7 +254,11 @@ class Offscreen:
         self._renderer: pyrender.OffscreenRenderer | None = None
 
     def __enter__(self) -> "Offscreen":
+        import pyrender
+
+        started = time.perf_counter()
         self._renderer = pyrender.OffscreenRenderer(self.width, self.height)
+        _add_time(setup_seconds=time.perf_counter() - started)
         logger.debug("offscreen renderer %dx%d on %s", self.width, self.height, os.environ["PYOPENGL_PLATFORM"])
         return self
 
@@ -195,15 +267,20 @@ class Offscreen:
 
     def close(self) -> None:
         if self._renderer is not None:
+            started = time.perf_counter()
             self._renderer.delete()
             self._renderer = None
+            _add_time(setup_seconds=time.perf_counter() - started)
 
-    def render(self, scene: pyrender.Scene, flags: int = pyrender.RenderFlags.NONE) -> tuple[np.ndarray, np.ndarray]:
+    def render(self, scene: "pyrender.Scene", flags: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Render `scene` through its main camera: colour (H, W, 3 or 4) uint8 and depth (H, W) float32.
 
-        Depth is in world units along the view axis, 0 where nothing was drawn.
+        flags: pyrender.RenderFlags (0 = NONE). Depth is in world units along the view axis, 0 where
+        nothing was drawn.
         """
         if self._renderer is None:
             raise RuntimeError("Offscreen.render called outside its `with` block")
+        started = time.perf_counter()
         colour, depth = self._renderer.render(scene, flags=flags)
+        _add_time(seconds=time.perf_counter() - started, renders=1)
         return colour, depth

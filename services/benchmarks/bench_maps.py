@@ -1,0 +1,103 @@
+"""Seconds to turn rendered visibility buffers into impostor maps: view by view, and all views at once.
+
+    PYTHONPATH=services python services/benchmarks/bench_maps.py --work WORK [--frame 0] [--repeat 3]
+        [--out out/bench/maps.json] [--save maps.npz]
+
+WORK is a bake's work folder (`crowdbake bake ... --work WORK`). One frame's scene is loaded and every
+view of the layout (default 16 x 3 of 128²) rendered once; then the map resolution is timed apart from
+the renderer: resolve_coverage + view_maps called per view (what the impostor stage does), and
+resolve_coverage_views + view_maps_views over each elevation ring at once, where this checkout has them.
+CPU seconds, best of --repeat. --save writes the per-view maps, so that two checkouts' outputs can be
+compared texel for texel (PYTHONPATH pointing at the other one).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+from crowdbake.stages.impostors import load_poses, load_scene  # noqa: E402
+from crowdbake.bake import impostor_maps  # noqa: E402
+from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
+
+
+def best_cpu(function, repeat: int) -> float:
+    best = float("inf")
+    for _ in range(repeat):
+        started = time.process_time()
+        function()
+        best = min(best, time.process_time() - started)
+    return best
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--frame", type=int, help="baked frame (default: the first)")
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--out", type=Path, default=Path("out/bench/maps.json"))
+    parser.add_argument("--save", type=Path, help="write the per-view maps here (.npz)")
+    args = parser.parse_args()
+
+    poses = load_poses(args.work)
+    frame = poses.frame_indices[0] if args.frame is None else args.frame
+    scene = load_scene(args.work, poses, frame)
+    layout = poses.layout
+    tile = int(layout["tile_size"])
+    centre, radius = poses.bounds["center"], poses.bounds["radius"]
+    rings = []
+    with VisibilityRenderer(tile) as renderer:
+        renderer.set_mesh(scene.positions, scene.faces)
+        for elevation in layout["elevations_deg"]:
+            views = [impostor_maps.ortho_view(centre, radius, azimuth, elevation, tile) for azimuth in layout["azimuths_deg"]]
+            rings.append((views, [renderer.render(view) for view in views]))
+    view_count = sum(len(views) for views, _ in rings)
+    arguments = (scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material, scene.diffuse)
+
+    def per_view() -> list:
+        out = []
+        for views, images in rings:
+            for view, image in zip(views, images):
+                coverage = impostor_maps.resolve_coverage(view, image.ids, scene.positions, scene.faces, image.depth)
+                out.append(impostor_maps.view_maps(view, coverage, *arguments))
+        return out
+
+    def batched() -> list:
+        out = []
+        for views, images in rings:
+            ids = np.stack([image.ids for image in images])
+            depth = np.stack([image.depth for image in images])
+            coverages = impostor_maps.resolve_coverage_views(views, ids, scene.positions, scene.faces, depth)
+            out.extend(impostor_maps.view_maps_views(views, coverages, *arguments))
+        return out
+
+    report = {"work": str(args.work), "frame": frame, "views": view_count, "tile": tile, "cpu_seconds": {}}
+    report["cpu_seconds"]["per_view"] = best_cpu(per_view, args.repeat)
+    if hasattr(impostor_maps, "view_maps_views"):
+        report["cpu_seconds"]["batched"] = best_cpu(batched, args.repeat)
+        same = all(
+            np.array_equal(a.normal, b.normal) and np.array_equal(a.uv, b.uv) and np.array_equal(a.detail, b.detail)
+            for a, b in zip(per_view(), batched())
+        )
+        report["batched_equals_per_view"] = same
+    if args.save:
+        maps = per_view()
+        np.savez_compressed(args.save, **{kind: np.stack([getattr(m, kind) for m in maps]) for kind in ("normal", "uv", "detail")})
+    for name, seconds in report["cpu_seconds"].items():
+        print(f"{name:9s} {seconds:7.3f} s CPU for {view_count} views of {tile}²: {1000 * seconds / view_count:6.2f} ms a view")
+    if "batched_equals_per_view" in report:
+        print(f"batched maps equal the per-view maps: {report['batched_equals_per_view']}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
