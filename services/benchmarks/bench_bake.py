@@ -166,7 +166,7 @@ def run_case(case: str, sample: Path, assets: Path) -> dict | None:
     return {
         "case": case,
         "params": inputs.params.to_dict(),
-        "import_pipeline_s": import_s,
+        "import_runner_s": import_s,
         "stages": stages,
         "run_bake_stage_wall_s": summary.timings_s,
         "timings": {"wall_s": wall, "cpu_s": cpu, "render_s": render["seconds"], "renders": render["renders"], "render_setup_s": render["setup_seconds"]},
