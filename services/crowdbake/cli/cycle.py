@@ -33,7 +33,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--body-mesh", metavar="BODY.obj", help="the body cache's mesh (OBJ)")
     # Shared with `crowdbake bake` (one default and bound: crowdbake.params.PARAMS).
     add_cli_options(parser, CYCLE_SHARED, flags=CYCLE_SHARED)
-    parser.add_argument("--fps", type=float, help="the cache's frame rate (default 24 / PC2 sample interval)")
     parser.add_argument("--blend-frames", type=int, metavar="B", help="frames of the linear blend (default a quarter cycle)")
     parser.add_argument("--push-out", choices=["none", "new", "all"], default="new",
                         help="push cloth out of the body: vertices closing pushed in (new, default), all, or none")
