@@ -50,7 +50,8 @@ def read_cloth(cache: str | os.PathLike, mesh: str | os.PathLike | None = None, 
         result = read_cloth_cache(cache, mesh)
     except (ValueError, OSError) as error:
         text = str(error).splitlines()[0] if str(error) else type(error).__name__
-        field = mesh_field if mesh is not None and str(mesh) in text and str(cache) not in text else cache_field
+        # A message naming the mesh (its parse error, or a point count that does not match it) is the mesh's.
+        field = mesh_field if mesh is not None and Path(mesh).name in text.replace(str(cache), "") else cache_field
         raise InputError(text, field) from None
     if len(result.faces) == 0:
         raise InputError(f"{cache.name}: the garment's mesh has no faces", mesh_field if mesh is not None else cache_field)
