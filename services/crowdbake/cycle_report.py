@@ -119,7 +119,7 @@ def load_cycle_inputs(
     (crowdbake.ingest.garment.place_cloth) and converted to Y-up metres when up/units say so."""
     from crowdbake.formats.obj import read_obj
     from crowdbake.formats.pc2 import read_pc2
-    from crowdbake.ingest.garment import check_cloth_placement, place_cloth, read_cloth
+    from crowdbake.ingest.garment import place_cloth, read_cloth
     from crowdbake.params import cache_fps
 
     if character is not None and (body_pc2 is not None or body_obj is not None):
@@ -163,13 +163,8 @@ def load_cycle_inputs(
         if len(body_mesh.faces) == 0:
             raise ValueError(f"{body_obj} has no faces")
         body = body_cache.points
-        if up is not None or units is not None:
-            # A body cache comes from the same scene as the cloth: the same frame converts both.
-            placement = check_cloth_placement(cache.frames[0], body[0], up, units)
-            body = placement.apply(body)
-            cache = cache.with_frames(placement.apply(cache.frames), placement.apply(cache.mesh.positions))
-        else:
-            check_cloth_placement(cache.frames[0], body[0], None, None)
+        # The body cache is taken as Y-up metres, like a character; up/units convert the cloth only.
+        cache = place_cloth(cache, body[0], up, units)
         body_faces = body_mesh.source_index[body_mesh.faces.astype(np.int64)]
         sources.update(body_cache=str(body_pc2), body_mesh=str(body_obj))
 

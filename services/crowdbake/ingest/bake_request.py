@@ -27,6 +27,8 @@ def chosen_animation(character_info: dict[str, Any], animation: int | str = 0) -
             listed = ", ".join(repr(name) for name in names) or "none"
             raise InputError(f"the character has no animation named {animation!r} (it has {listed})", "params.animation")
         return None
+    if animation == 0 and not summaries:  # the default on a character without animation: nothing to pick
+        return None
     if animation < len(summaries):
         return summaries[animation]
     if len(summaries) < MAX_ANIMATION_SUMMARIES:
