@@ -36,7 +36,7 @@ CYCLE = 40
 # joints bend, the mesh can bulge a little past the capsules the cloth collides with).
 PENETRATING_FRACTION = 0.005
 # Edge extension (percent) over all frames after the first cycle: 99th percentile and maximum
-# (measured: about 2.6 / 8 % for the tight skirt and 4.5 / 17 % for the loose one, whose hem the feet kick).
+# (measured: about 2.6 / 8 % for the tight skirt and 4 / 13 % for the loose one, whose hem the feet kick).
 STRETCH_P99_PERCENT = 5.0
 STRETCH_MAX_PERCENT = 20.0
 # Largest distance (metres) from the pinned waistband to the torso's surface: the band sits on the skin.
