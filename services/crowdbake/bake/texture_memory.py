@@ -92,6 +92,15 @@ def break_even_variations(map_bytes: MapBytes) -> float:
     return map_bytes.uv / map_bytes.detail
 
 
+def break_even_count(map_bytes: MapBytes, limit: int = 1 << 16) -> int | None:
+    """The smallest variation count n >= 1 at which UV-mapped costs no more than detail-mapped (figure 4's
+    crossing, as a count), or None when none up to `limit` does."""
+    for n in range(1, limit + 1):
+        if map_bytes.uv_mapped(n) <= map_bytes.detail_mapped(n):
+            return n
+    return None
+
+
 def texture_memory_report(bundle: MapBytes, max_variations: int, bundle_variations: int) -> dict:
     """The figure-4 JSON: the paper's model and the bundle's bytes, side by side.
 
@@ -108,6 +117,7 @@ def texture_memory_report(bundle: MapBytes, max_variations: int, bundle_variatio
             "break_even_variations": break_even_variations(paper),
             **series(paper, max_variations),
         },
+        "break_even_variations": break_even_count(bundle),
         "bundle": {
             "map_bytes": asdict(bundle),
             "variations_in_bundle": bundle_variations,
