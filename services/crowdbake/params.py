@@ -26,7 +26,7 @@ from crowdbake.errors import InputError
 # tear; linear is the paper's blend; hermite also matches velocity but spreads the correction over the loop.
 CLOSE_METHODS = ("crossfade", "none", "linear", "hermite")
 DEFAULT_CLOSE = "crossfade"
-UV_FORMATS = ("uv32", "rgba16", "uvblock")  # impostor UV map pixel formats a bake can write (SPEC.md); the first is the default
+UV_FORMATS = ("uvblock", "uv32", "rgba16")  # impostor UV map pixel formats a bake can write (SPEC.md); the first is the default
 
 # The bundle spec's name and version rules (shared_formats/SPEC.md, "manifest.json").
 NAME_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
@@ -175,7 +175,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--lod-triangles",), "N", optional=True, minimum=2, exclusive_group="lod"),
     ParamSpec("compress", "bool", True, "block-compress normal maps (DXT1), detail maps and diffuse textures (DXT3); false: rgba8",
               ("--no-compress",)),
-    ParamSpec("uv_format", "str", "uv32", "impostor UV map format: uv32 (4 bytes a texel, 14-bit coordinates), rgba16 (8 bytes) or uvblock (1.5 bytes, block-coded)",
+    ParamSpec("uv_format", "str", "uvblock", "impostor UV map format: uvblock (1.5 bytes a texel, block-coded 12-bit coordinates), "
+              "uv32 (4 bytes, 14-bit coordinates) or rgba16 (8 bytes)",
               ("--uv-format",), choices=UV_FORMATS),
 )
 SPECS = {spec.name: spec for spec in PARAMS}
@@ -209,7 +210,7 @@ class BakeParams:
     lod_ratio: float | None = None
     lod_triangles: int | None = None
     compress: bool = True
-    uv_format: str = "uv32"
+    uv_format: str = "uvblock"
 
     def validate(self) -> None:
         """Raise InputError(message, field) for the first parameter out of range."""
