@@ -163,7 +163,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--cycle-views",), "N", minimum=1, maximum=MAX_CYCLE_VIEWS),
     ParamSpec("impostor_frames", "int", 10, "cycle frames baked into impostors (paper: 10)",
               ("--frames", "--impostor-frames"), "N", minimum=1, maximum=MAX_IMPOSTOR_FRAMES),
-    ParamSpec("azimuths", "int", 16, "impostor views per elevation ring",
+    ParamSpec("azimuths", "int", 32, "impostor views per elevation ring (32: docs/figures.md, impostor views against memory)",
               ("--azimuths",), "N", minimum=1, maximum=MAX_AZIMUTHS),
     ParamSpec("elevations_deg", "floats", (0.0, 20.0, 40.0), "impostor view elevations in degrees, one ring each",
               ("--elevations",), "DEG,...", minimum=-90.0, maximum=90.0, min_items=1, max_items=MAX_ELEVATIONS, distinct=True),
@@ -204,7 +204,7 @@ class BakeParams:
     candidates: int = 5
     cycle_views: int = 5
     impostor_frames: int = 10
-    azimuths: int = 16
+    azimuths: int = 32
     elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0)
     tile_size: int = 128
     lod_ratio: float | None = None

@@ -8,7 +8,7 @@ normal map after block compression, the diffuse texture as decoded. Two sets of 
   (the runtime draws one sample of weight 1 there);
 - `between_views`: halfway between baked azimuths, halfway between baked elevations and halfway between the
   fidelity frame and the next baked frame (four views times two frames blended), one camera per azimuth
-  gap and elevation gap (all of them: len(azimuths) · max(1, len(elevations) - 1) renders of the mesh);
+  gap (at most BETWEEN_AZIMUTHS of them, spread evenly) and elevation gap;
 - `between_azimuths`: the impostor tasks' references halfway between azimuths at a baked elevation and
   frame (two views blended), the cameras of fidelity.json's `nearest_view`.
 """
@@ -24,6 +24,10 @@ from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.bake.impostor_blend import DecodedTile
 from crowdbake.formats.binary import decode_texture_array, unpack_uv32, unpack_uvblock
 from crowdbake.stages.records import ImpostorTask, PosesRecord
+
+# Azimuth gaps scored between views (each at every elevation gap): each needs a render of the mesh at
+# 4x4 samples a texel, so a 32-azimuth bake scores every other gap, 16 x 2 cameras with 3 rings.
+BETWEEN_AZIMUTHS = 16
 
 
 def decode_atlas_layer(uv_file: bytes, normal_file: bytes, layer: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -74,13 +78,16 @@ def halfway_frame(poses: PosesRecord) -> tuple[int, impostor_blend.FrameWeights]
     return frame, impostor_blend.blend_frame_weights(frame, indices, poses.cycle_frames)
 
 
-def between_cameras(layout: AtlasLayout) -> list[tuple[float, float]]:
-    """(azimuth, elevation) halfway between neighbouring baked azimuths and elevations (one ring: its elevation)."""
+def between_cameras(layout: AtlasLayout, max_azimuths: int = BETWEEN_AZIMUTHS) -> list[tuple[float, float]]:
+    """(azimuth, elevation) halfway between neighbouring baked azimuths and elevations (one ring: its elevation),
+    for at most `max_azimuths` azimuth gaps spread evenly round the ring, each at every elevation gap."""
     azimuths = sorted(layout.azimuths_deg)
     elevations = sorted(layout.elevations_deg)
     mid_azimuths = [((a + b) / 2.0) % 360.0 for a, b in zip(azimuths, azimuths[1:] + [azimuths[0] + 360.0])]
     if len(azimuths) == 1:
         mid_azimuths = [(azimuths[0] + 180.0) % 360.0]
+    if len(mid_azimuths) > max_azimuths:
+        mid_azimuths = [mid_azimuths[i] for i in np.linspace(0, len(mid_azimuths), max_azimuths, endpoint=False).astype(int)]
     mid_elevations = [(a + b) / 2.0 for a, b in zip(elevations, elevations[1:])] or elevations
     return [(a, e) for e in mid_elevations for a in mid_azimuths]
 
