@@ -58,6 +58,10 @@ class Settings(BaseSettings):
     max_zip_ratio: float = Field(200.0, gt=1, description="Largest uncompressed/compressed ratio of one entry.")
     max_texture_pixels: int = Field(8192 * 8192, gt=0, description="Largest PNG (width x height) accepted.")
 
+    shared_workspace: bool = Field(
+        False, description="Every key sees and changes every key's assets, bakes and bundles (one team, one workspace); "
+        "off: a key sees only what it created, plus public bundles, unless it has the admin scope.",
+    )
     bootstrap_key: SecretStr | None = Field(
         None, description="If set, an API key with every scope that exists from start-up (>= 32 characters)."
     )

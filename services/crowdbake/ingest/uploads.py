@@ -448,15 +448,6 @@ def convert_obj_sequence(
         declared = sum(info.file_size for info in infos)
         if declared > limits.max_uncompressed_bytes:
             raise UploadRejected(UNSAFE_ARCHIVE, "the archive expands too far (zip bomb guard)", [FieldError(field, f"entries expand to {declared} bytes, at most {limits.max_uncompressed_bytes} are accepted", zip_name)])
-        # The whole archive's ratio, from the central directory before anything inflates: many entries
-        # just under ZIP_RATIO_MIN_BYTES each (200 x 1 MiB of "v 0 0 0" in 324 KB) pass every per-entry
-        # check, yet together expand 600:1 into hundreds of MB of frames.
-        archive_bytes = max(zip_path.stat().st_size, 1)
-        if declared > ZIP_RATIO_MIN_BYTES and declared > limits.max_ratio * archive_bytes:
-            raise UploadRejected(
-                UNSAFE_ARCHIVE, "the archive expands too far (zip bomb guard)",
-                [FieldError(field, f"the archive expands {declared / archive_bytes:.0f}:1 ({declared} bytes from {archive_bytes}), at most {limits.max_ratio:.0f}:1 is accepted", zip_name)],
-            )
         for info in infos:
             if info.file_size > ZIP_RATIO_MIN_BYTES and info.file_size > limits.max_ratio * max(info.compress_size, 1):
                 raise UploadRejected(
@@ -469,6 +460,15 @@ def convert_obj_sequence(
                 # zipfile raises NotImplementedError for these when the entry is opened (a 500 before).
                 raise UploadRejected(INVALID_FILE, "an archive entry uses a compression method that cannot be read",
                                      [FieldError(field, f"entry uses compression method {info.compress_type}; use deflate or store", zip_name, f"entry {info.filename}")])
+        # After the per-entry checks (they name the entry): the whole archive's ratio, from the central
+        # directory before anything inflates. Many entries just under ZIP_RATIO_MIN_BYTES each (200 x 1 MiB
+        # of "v 0 0 0" in 324 KB) pass every per-entry check, yet together expand 600:1.
+        archive_bytes = max(zip_path.stat().st_size, 1)
+        if declared > ZIP_RATIO_MIN_BYTES and declared > limits.max_ratio * archive_bytes:
+            raise UploadRejected(
+                UNSAFE_ARCHIVE, "the archive expands too far (zip bomb guard)",
+                [FieldError(field, f"the archive expands {declared / archive_bytes:.0f}:1 ({declared} bytes from {archive_bytes}), at most {limits.max_ratio:.0f}:1 is accepted", zip_name)],
+            )
         frames = sorted(
             (info for info in infos if not info.is_dir() and info.filename.lower().endswith(".obj")
              and not info.filename.startswith("__MACOSX/") and not PurePosixPath(info.filename).name.startswith("._")),
