@@ -42,6 +42,7 @@ def get_settings_dep(services: ServicesDep) -> Settings:
 
 def get_session(services: ServicesDep) -> Iterator[Session]:
     session = services.sessions()
+    session.info["settings"] = services.settings  # for helpers that only get the session (path redaction)
     try:
         yield session
     finally:

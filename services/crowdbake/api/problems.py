@@ -17,6 +17,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from crowdbake.redact import path_replacements, redact_text, redact_value
 from crowdbake.ingest.uploads import FieldError, UploadRejected
 
 logger = logging.getLogger(__name__)
@@ -68,15 +69,19 @@ class Problem(Exception):
 
 
 def problem_response(request: Request | None, problem: Problem) -> JSONResponse:
+    # Whatever a reader or a stage put in the message, the client never sees a server path.
+    services = getattr(getattr(request, "app", None), "state", None)
+    settings = getattr(getattr(services, "services", None), "settings", None)
+    replacements = path_replacements(settings) if settings is not None else []
     body: dict[str, Any] = {
         "type": problem_type_uri(problem.slug),
         "title": problem.title,
         "status": problem.status,
-        "detail": problem.detail,
+        "detail": redact_text(problem.detail, replacements),
         "instance": request.url.path if request is not None else None,
     }
     if problem.errors is not None:
-        body["errors"] = problem.errors
+        body["errors"] = redact_value(problem.errors, replacements)
     return JSONResponse(body, status_code=problem.status, media_type=PROBLEM_MEDIA_TYPE, headers=problem.headers)
 
 

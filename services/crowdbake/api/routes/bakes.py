@@ -22,6 +22,7 @@ from crowdbake.errors import InputError
 from crowdbake.ingest.bake_request import check_two_cycles
 from crowdbake.jobs.celery_app import send_stage
 from crowdbake.params import BakeParams
+from crowdbake.redact import path_replacements, redact_text, redact_value
 from crowdbake.storage import records
 from crowdbake.storage.bundles import find_bundle
 from crowdbake.storage.models import Asset, Bake
@@ -33,6 +34,9 @@ LOG_LINES_IN_BAKE = 50
 
 
 def bake_public(session: Session, bake: Bake, log_lines: int = LOG_LINES_IN_BAKE) -> BakePublic:
+    """The bake as clients see it; log lines and the error never show server paths (crowdbake.redact)."""
+    settings = session.info.get("settings")  # set by crowdbake.api.deps.get_session
+    replacements = path_replacements(settings) if settings is not None else []
     bundle_url = None
     if bake.publish and bake.stages and bake.stages[-1].state == "succeeded":
         bundle_url = f"/v1/bundles/{bake.name}/{bake.version}/manifest.json"
@@ -44,8 +48,8 @@ def bake_public(session: Session, bake: Bake, log_lines: int = LOG_LINES_IN_BAKE
             stage=row.stage, state=row.state, done=row.done, total=row.total, retries=row.retries, seconds=row.seconds,
             started_at=records.to_utc(row.started_at), finished_at=records.to_utc(row.finished_at),
         ) for row in bake.stages],
-        error=bake.error,
-        log=[LogLine(at=records.to_utc(line.at), level=line.level, stage=line.stage, message=line.message)
+        error=redact_value(bake.error, replacements),
+        log=[LogLine(at=records.to_utc(line.at), level=line.level, stage=line.stage, message=redact_text(line.message, replacements))
              for line in (records.log_lines(session, bake.id, log_lines) if log_lines else [])],
         bundle_url=bundle_url,
         created_at=records.to_utc(bake.created_at), updated_at=records.to_utc(bake.updated_at),
@@ -165,10 +169,11 @@ def get_bake(bake_id: str, key: BakeKey, session: SessionDep) -> BakePublic:
 
 
 @router.get("/{bake_id}/log", response_class=PlainTextResponse, responses=problem_responses(404), summary="The bake's whole log as text")
-def get_bake_log(bake_id: str, key: BakeKey, session: SessionDep) -> str:
+def get_bake_log(bake_id: str, key: BakeKey, services: ServicesDep, session: SessionDep) -> str:
     bake = _get_bake(session, bake_id, key)
+    replacements = path_replacements(services.settings)
     return "".join(
-        f"{records.to_utc(line.at).strftime('%Y-%m-%dT%H:%M:%S.%fZ')} {line.level:<7} {line.stage or '-':<9} {line.message}\n"
+        f"{records.to_utc(line.at).strftime('%Y-%m-%dT%H:%M:%S.%fZ')} {line.level:<7} {line.stage or '-':<9} {redact_text(line.message, replacements)}\n"
         for line in records.log_lines(session, bake.id)
     )
 
