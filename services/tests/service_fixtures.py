@@ -249,7 +249,8 @@ def start_api(env: dict[str, str], port: int, log: Path, timeout: float = 60) ->
     import httpx
 
     process = start_process(
-        [sys.executable, "-m", "uvicorn", "--factory", "crowdbake.api.app:create_app", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
+        [sys.executable, "-m", "uvicorn", "--factory", "crowdbake.api.app:create_app", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning",
+         "--http", "crowdbake.api.slow_clients:HeaderTimeoutProtocol", "--timeout-keep-alive", "5"],
         env, log,
     )
     deadline = time.monotonic() + timeout

@@ -33,6 +33,8 @@ PROBLEM_TYPES: dict[str, tuple[int, str, str]] = {
     "forbidden": (403, "The API key lacks a scope", "The key is valid but has none of the scopes the operation needs."),
     "not-found": (404, "Not found", "No such resource, or it is not visible to this key."),
     "method-not-allowed": (405, "Method not allowed", "The resource does not support this method."),
+    "request-timeout": (408, "Request body too slow", "The body arrived slower than CROWDBAKE_BODY_MIN_BYTES_PER_S after a grace period, "
+                        "or took longer than CROWDBAKE_BODY_MAX_SECONDS; nothing of it was kept."),
     "conflict": (409, "Conflict", "The request contradicts the resource's state (e.g. a published version with other bytes)."),
     "invalid-state": (409, "Not possible in the bake's state", "E.g. cancelling a finished bake, retrying one that succeeded."),
     "payload-too-large": (413, "Request body too large", "The body exceeds CROWDBAKE_MAX_UPLOAD_BYTES; refused before it is read."),
@@ -45,7 +47,7 @@ PROBLEM_TYPES: dict[str, tuple[int, str, str]] = {
     "internal-error": (500, "Internal server error", "An unexpected error; the server log has the details."),
     "not-ready": (503, "Service not ready", "A dependency (database, blob store, broker) is not usable."),
 }
-_STATUS_SLUGS = {400: "malformed-request", 401: "unauthorized", 403: "forbidden", 404: "not-found", 405: "method-not-allowed", 409: "conflict", 413: "payload-too-large", 415: "unsupported-format", 416: "range-not-satisfiable", 422: "validation-error", 503: "not-ready"}
+_STATUS_SLUGS = {400: "malformed-request", 401: "unauthorized", 403: "forbidden", 404: "not-found", 405: "method-not-allowed", 408: "request-timeout", 409: "conflict", 413: "payload-too-large", 415: "unsupported-format", 416: "range-not-satisfiable", 422: "validation-error", 503: "not-ready"}
 
 
 def problem_type_uri(slug: str) -> str:
