@@ -130,7 +130,7 @@ def test_a_chain_of_16000_nodes_loads_in_linear_time(tmp_path):
     path.write_bytes(glb_node_chain(16_000))
     started = time.perf_counter()
     character = load_character(path)
-    assert time.perf_counter() - started < 2.0
+    assert time.perf_counter() - started < 5.0  # 0.1 s on an idle core; margin for a loaded machine
     assert character.joint_count == 1
 
 
