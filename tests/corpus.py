@@ -181,7 +181,8 @@ def cloth_cases(tmp: Path) -> list[tuple[str, dict[str, tuple], str]]:
     files.append(("a PNG named .pc2", {"cache": ("cloth.pc2", png_bytes()), "mesh": ("cloth.obj", mesh)}, "format-mismatch"))
     files.append(("a PC2 named .obj", {"cache": ("cloth.pc2", cache), "mesh": ("cloth.obj", cache)}, "format-mismatch"))
     files.append(("an empty OBJ", {"cache": ("cloth.pc2", cache), "mesh": ("cloth.obj", b"")}, "invalid-file"))
-    files.append(("a .abc cache", {"cache": ("cloth.abc", cache), "mesh": ("cloth.obj", mesh)}, "unsupported-format"))
+    # Alembic is a cloth format now: a PC2 named .abc is caught by its content.
+    files.append(("a PC2 named .abc", {"cache": ("cloth.abc", cache), "mesh": ("cloth.obj", mesh)}, "format-mismatch"))
     return files
 
 
@@ -279,7 +280,8 @@ def texture_cases() -> list[tuple[str, tuple, str]]:
         ("png with a bad CRC", ("diffuse_0.png", bytes(bad_crc)), "invalid-file"),
         ("png without IHDR", ("diffuse_0.png", good[:8] + b"\0" * 40), "invalid-file"),
         ("a GLB named .png", ("diffuse_0.png", tiny_character_glb()), "format-mismatch"),
-        ("a .jpg", ("diffuse_0.jpg", b"\xff\xd8\xff\xe0" + b"\0" * 64), "unsupported-format"),
+        # JPEG variations are accepted; one whose data does not decode is not.
+        ("a .jpg that does not decode", ("diffuse_0.jpg", b"\xff\xd8\xff\xe0" + b"\0" * 64), "invalid-file"),
         ("an .svg", ("diffuse_0.svg", b"<svg xmlns='http://www.w3.org/2000/svg'/>"), "unsupported-format"),
     ]
 
