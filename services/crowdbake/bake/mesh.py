@@ -1,7 +1,7 @@
-"""Triangle-mesh helpers every stage shares: vertex normals, edges and their lengths.
+"""Triangle-mesh helpers every stage shares: vertex normals, edges and their lengths, point-cache checks.
 
 Pure numpy/scipy, no I/O. Triangles are counter-clockwise seen from outside (glTF/OBJ convention);
-faces are (T, 3) integer indices into the vertices.
+faces are (T, 3) integer indices into the vertices; a point cache is (frames, vertices, 3).
 """
 from __future__ import annotations
 
@@ -58,3 +58,11 @@ def edge_lengths(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Lengths of (E, 2) edges in (..., V, 3) points: (..., E) float64."""
     points = np.asarray(points, dtype=np.float64)
     return np.linalg.norm(points[..., edges[:, 1], :] - points[..., edges[:, 0], :], axis=-1)
+
+
+def as_point_frames(points: np.ndarray, name: str, dtype=np.float64) -> np.ndarray:
+    """Check a (frames, vertices, 3) array; convert to `dtype` (None: keep it, so slicing a big cache copies nothing)."""
+    points = np.asarray(points, dtype=dtype)
+    if points.ndim != 3 or points.shape[2] != 3:
+        raise ValueError(f"{name}: expected a (frames, vertices, 3) array, got shape {points.shape}")
+    return points
