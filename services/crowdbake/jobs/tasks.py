@@ -288,7 +288,7 @@ def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
 
     Not work/inputs: stage_validate copies its inputs there and clears that folder first. The links
     share the blobs' modification times (the upload's), which the validate stage takes the manifest's
-    `created` from, so every attempt of a bake produces the same bytes."""
+    `created` from when the request gave none, so every attempt of a bake produces the same bytes."""
     blobs = ctx.services.blobs
     inputs_dir = ctx.work / "sources"
     if inputs_dir.exists():
@@ -312,7 +312,7 @@ def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
             blobs.materialize(texture.files["file"]["sha256"], textures_dir / name)
     return _stage("validate").BakeInputs(
         character=character_path, cloth=cloth_path, cloth_mesh=mesh_path, textures=textures_dir, cycle=None,
-        name=bake.name, version=bake.version, params=BakeParams.from_dict(bake.params),
+        name=bake.name, version=bake.version, params=BakeParams.from_dict(bake.params), created=bake.inputs.get("created"),
     )
 
 

@@ -143,7 +143,7 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: Se
         "cloth": {role: entry["sha256"] for role, entry in cloth.files.items()},
         "textures": {name: texture.digest for name, texture in textures.items()},
     }
-    key_digest = records.input_key(digests, body.name, body.version, params)
+    key_digest = records.input_key(digests, body.name, body.version, params, created=body.created)
     existing = records.reusable_bake(session, key_digest)
     if existing is not None and key.owns(existing.created_by):
         response.status_code = 200
@@ -160,7 +160,8 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: Se
 
     bake = records.create_bake(
         session, name=body.name, version=body.version, params=params,
-        inputs={"character": character.id, "cloth": cloth.id, "textures": {name: texture.id for name, texture in textures.items()}},
+        inputs={"character": character.id, "cloth": cloth.id, "textures": {name: texture.id for name, texture in textures.items()},
+                **({"created": body.created} if body.created is not None else {})},
         key=key_digest, publish=body.publish, public=body.public, created_by=key.key_id,
     )
     session.commit()
