@@ -323,6 +323,18 @@ def test_rgba8_export_decodes_the_blocks_and_is_larger(sample_bundle, sample_exp
         assert level_rgba8 == ratio * level_bc, path
 
 
+def test_bake_publishes_the_export_beside_the_bundle(sample_bundle, sample_export):
+    """`run_bake` (the CLI's bake) with the default export=true writes <out>/../exports/<name>/<version>/,
+    the same export `crowdbake export` writes: the same files, byte for byte."""
+    from crowdbake.storage.exports import export_home
+
+    home = export_home(sample_bundle.parent.parent, "sample", "1.0")
+    index = json.loads((home / "index.json").read_text())
+    assert sorted(index["files"]) == sorted(p.relative_to(sample_export).as_posix() for p in sample_export.rglob("*") if p.is_file())
+    for path, entry in index["files"].items():
+        assert hashlib.sha256((sample_export / path).read_bytes()).hexdigest() == entry["sha256"], path
+
+
 def test_morph_animation_keys_each_frame_once(sample_export):
     gltf = pygltflib.GLTF2.load(sample_export / "character_lod0.glb")
     blob = gltf.binary_blob()

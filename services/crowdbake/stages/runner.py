@@ -16,7 +16,7 @@ from crowdbake.stages.cycle import stage_cycle
 from crowdbake.stages.impostors import impostor_statistics, stage_impostors
 from crowdbake.stages.pack import stage_pack
 from crowdbake.stages.poses import stage_poses
-from crowdbake.stages.publish import stage_publish
+from crowdbake.stages.publish import stage_export, stage_publish
 from crowdbake.stages.records import PosesRecord
 from crowdbake.stages.validate import BakeInputs, stage_validate
 from crowdbake.stages.workdir import Progress, read_json, report
@@ -86,6 +86,8 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         impostor = impostor_statistics(work)
         pack = timed("pack", lambda: stage_pack(work, progress)).record
         bundle = timed("publish", lambda: stage_publish(work, Path(out_root)))
+        if inputs.params.export:
+            timed("export", lambda: stage_export(work, Path(out_root)))
         report(progress, "publish", 1, 1)
     finally:
         if temporary:
