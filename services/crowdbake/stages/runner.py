@@ -85,9 +85,14 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         timed("impostors", lambda: stage_impostors(work, progress))
         impostor = impostor_statistics(work)
         pack = timed("pack", lambda: stage_pack(work, progress)).record
-        bundle = timed("publish", lambda: stage_publish(work, Path(out_root)))
-        if inputs.params.export:
-            timed("export", lambda: stage_export(work, Path(out_root)))
+
+        def publish() -> Path:
+            # The engine export is part of publishing, as in the worker's publish task (None: export=false).
+            published = stage_publish(work, Path(out_root))
+            stage_export(work, Path(out_root))
+            return published
+
+        bundle = timed("publish", publish)
         report(progress, "publish", 1, 1)
     finally:
         if temporary:
