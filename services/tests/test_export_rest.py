@@ -212,8 +212,9 @@ def test_jobs_page_links_the_preview_and_the_preview_draws_the_crowd(api, tmp_pa
             link = page.wait_for(f"document.querySelector('tr[data-bundle=\"{name}/{version}\"] a.preview-link')?.getAttribute('href')")
             assert link == f"/ui/preview/index.html?export={'%2F'.join(['', 'v1', 'bundles', name, version, 'export', ''])}"
             page.evaluate("document.querySelector('a.preview-link').click()")
-            state = page.wait_for("location.pathname === '/ui/preview/index.html' && document.getElementById('status')?.dataset.ready !== 'false' "
-                                  "&& document.getElementById('status').textContent", timeout=120)
+            # The status element may not be parsed yet right after the navigation: wait for it and its result.
+            state = page.wait_for("location.pathname === '/ui/preview/index.html' && "
+                                  "((s) => s && s.dataset.ready !== 'false' ? s.textContent : null)(document.getElementById('status'))", timeout=120)
             status = json.loads(state)
             assert status.get("ready") is True, status
             assert sum(status["lod"].values()) == status["characters"] > 0
