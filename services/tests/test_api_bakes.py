@@ -53,7 +53,7 @@ def test_create_returns_202_with_location_and_enqueues_validate(api, assets):
     assert [stage["stage"] for stage in bake["stages"]] == ["validate", "cycle", "poses", "impostors", "pack", "publish"]
     assert all(stage["state"] == "pending" for stage in bake["stages"])
     # Parameters are validated, completed with defaults and recorded with the job.
-    assert bake["params"]["tile_size"] == 32 and bake["params"]["close"] == "hermite" and bake["params"]["elevations_deg"] == [0.0, 20.0, 40.0]
+    assert bake["params"]["tile_size"] == 32 and bake["params"]["close"] == "crossfade" and bake["params"]["elevations_deg"] == [0.0, 20.0, 40.0]
     assert bake["inputs"]["textures"] == {"diffuse_0.png": assets["texture"]}
     assert queued_messages(api) == [{"task": "crowdbake.stage.validate", "args": repr([bake["id"], 0])}]
     followed = api.client.get(response.headers["location"], headers=api.auth("bake")).json()

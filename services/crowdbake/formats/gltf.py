@@ -97,6 +97,12 @@ NORMAL_LENGTH_TOLERANCE = 1e-4
 # A compressed bufferView may claim any decoded size; a character's biggest view (positions of a
 # million vertices) is 12 MB, so 256 MiB refuses a lying count before it becomes an allocation.
 MAX_DECODED_VIEW_BYTES = 1 << 28
+# Components (count x width) of one accessor. Checked before anything is allocated, because a
+# zero-filled accessor (no bufferView) costs the file nothing: "count 10^7 of MAT4" in 200 bytes of JSON
+# would otherwise become 640 MB of zeros and twice that once converted. 2^24 components hold 4 million
+# triangles' indices or 5.5 million positions, beyond any character a crowd needs, and cost at most
+# 128 MiB as int64.
+MAX_ACCESSOR_COMPONENTS = 1 << 24
 # Pixels of empty border around each material's tile in a merged texture: bilinear and mipmapped
 # sampling near a tile's edge then reads that tile's own (edge-replicated) colour.
 ATLAS_GUTTER = 4
@@ -468,6 +474,8 @@ class _Document:
             raise ValueError(f"{where}: unknown componentType {accessor.componentType} or type {accessor.type}")
         if not isinstance(count, int) or count < 1:
             raise ValueError(f"{where}: count {count!r} must be a positive integer")
+        if count * width > MAX_ACCESSOR_COMPONENTS:
+            raise ValueError(f"{where}: {count} elements of {accessor.type} are {count * width} components, more than {MAX_ACCESSOR_COMPONENTS}")
         if accessor.type in ("MAT2", "MAT3") and dtype.itemsize < 4:
             raise ValueError(f"{where}: padded {accessor.type} of {dtype} components is not supported")
         element_size = dtype.itemsize * width
@@ -485,8 +493,6 @@ class _Document:
                 )
             values = np.ndarray((count, width), dtype=dtype, buffer=data, offset=offset, strides=(stride, dtype.itemsize)).copy()
         else:
-            if count * element_size > MAX_DECODED_VIEW_BYTES:
-                raise ValueError(f"{where}: {count} zero-filled elements exceed {MAX_DECODED_VIEW_BYTES} bytes")
             values = np.zeros((count, width), dtype=dtype)
         if accessor.sparse is not None:
             values = self._apply_sparse(accessor.sparse, values, dtype, width, where)

@@ -7,8 +7,7 @@
 
 Export files follow the bundle's rules: readable with a key that has the read scope or by anyone once
 the bundle is public, a strong ETag (the file's sha256 from the export's index.json), `immutable`
-caching for a concrete version and `no-cache` with Content-Location for `latest`, Range and
-If-None-Match. A bundle baked with `export: false` has no export: 404 saying so.
+caching, Range and If-None-Match; `latest` answers 307 to the concrete version, as for bundle files. A bundle baked with `export: false` has no export: 404 saying so.
 """
 from __future__ import annotations
 
@@ -22,7 +21,8 @@ from fastapi.responses import FileResponse, Response
 
 from crowdbake.api.deps import PrincipalDep, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
-from crowdbake.api.routes.bundles import FILE_RESPONSES, NameParam, VersionParam, _bundle_or_problem, _serve_file
+from crowdbake.api.routes.bundles import FILE_RESPONSES, NameParam, VersionParam, _bundle_or_problem, _latest_redirect, _serve_file
+from crowdbake.storage.bundles import LATEST
 from crowdbake.storage.exports import FILES_FOLDER, ZIP_NAME, export_home, read_export_index
 from crowdbake.storage.models import Bundle
 
@@ -74,11 +74,13 @@ def get_export_file(name: NameParam, version: VersionParam, path: str, request: 
                     services: ServicesDep, session: SessionDep) -> Response:
     bundle = _bundle_or_problem(session, principal, name, version)
     index = _export_index(services, bundle)
+    if version == LATEST:
+        return _latest_redirect(request, bundle)
     entry = index["files"].get(path)  # only the listed paths: nothing else under the folder is reachable
     if entry is None:
         raise Problem("not-found", f"the export of {bundle.name}/{bundle.version} has no file {path!r} (export.json lists them)")
     file_path = export_home(services.settings.bundles_dir, bundle.name, bundle.version) / FILES_FOLDER / path
-    return _serve_file(request, file_path, entry["sha256"], entry["media_type"], bundle, version)
+    return _serve_file(request, file_path, entry["sha256"], entry["media_type"], bundle)
 
 
 @router.get("/{name}/{version}/export.zip", responses=FILE_RESPONSES, response_class=FileResponse,
@@ -88,8 +90,10 @@ def get_export_zip(name: NameParam, version: VersionParam, request: Request, pri
                    services: ServicesDep, session: SessionDep) -> Response:
     bundle = _bundle_or_problem(session, principal, name, version)
     entry = _export_index(services, bundle)["zip"]
+    if version == LATEST:
+        return _latest_redirect(request, bundle)
     file_path = export_home(services.settings.bundles_dir, bundle.name, bundle.version) / ZIP_NAME
-    response = _serve_file(request, file_path, entry["sha256"], entry["media_type"], bundle, version)
+    response = _serve_file(request, file_path, entry["sha256"], entry["media_type"], bundle)
     response.headers["Content-Disposition"] = f'attachment; filename="{bundle.name}-{bundle.version}-export.zip"'
     return response
 
