@@ -211,6 +211,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--no-compress",)),
     ParamSpec("uv_format", "str", "uv32", "impostor UV map format: uv32 (4 bytes a texel, 14-bit coordinates) or rgba16 (8 bytes)",
               ("--uv-format",), choices=UV_FORMATS),
+    ParamSpec("export", "bool", True, "publish an engine export beside the bundle (glTF, KTX2, VATs: docs/export.md); false: the bundle only",
+              ("--no-export",)),
 )
 SPECS = {spec.name: spec for spec in PARAMS}
 # Parameters of the cycle search that `crowdbake cycle` shares with `crowdbake bake` (its own flag names).
@@ -249,6 +251,7 @@ class BakeParams:
     lod_triangles: int | None = None
     compress: bool = True
     uv_format: str = "uv32"
+    export: bool = True
 
     def validate(self) -> None:
         """Raise InputError(message, field) for the first parameter out of range."""

@@ -24,7 +24,7 @@ from crowdbake.api.deps import AppServices
 from crowdbake.api.problems import PROBLEM_TYPES, Problem, problem_type_uri
 from crowdbake.api.slow_clients import MinimumBodyRate
 from crowdbake.api.schemas import Problem as ProblemDocument
-from crowdbake.api.routes import assets, bakes, bundles, health, metrics, web
+from crowdbake.api.routes import assets, bakes, bundles, exports, health, metrics, web
 from crowdbake.jobs.celery_app import make_celery
 from crowdbake.metrics import HttpMetrics, MetricsMiddleware
 from crowdbake.settings import Settings, get_settings, redact_url
@@ -109,10 +109,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.readiness = health.readiness_probe(app.state.services)
     problems.install(app)
     add_docs_routes(app)
-    for module in (assets, bakes, bundles, health, metrics):
+    for module in (assets, bakes, bundles, exports, health, metrics):
         app.include_router(module.router)
     for router in web.routers:  # the web page, the cycle report and atlas previews it shows
         app.include_router(router)
+    app.include_router(exports.preview_router)  # the three.js crowd preview the page links to
     app.state.metrics = HttpMetrics(app.state.services.sessions)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     # Outermost: every read of a request body has a deadline (crowdbake.api.slow_clients).

@@ -231,6 +231,7 @@ class BundlePublic(BaseModel):
     bake_id: str | None
     published_at: dt.datetime
     manifest_url: str
+    export_url: str | None = Field(None, description="The engine export's folder (export.json and its files, docs/export.md); null: published without one.")
 
 
 class BundleVersionsPublic(BaseModel):

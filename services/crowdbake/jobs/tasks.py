@@ -429,6 +429,7 @@ def publish(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
         settings = ctx.services.settings
         path = _stage("publish").stage_publish(ctx.work, settings.bundles_dir)
+        _stage("publish").stage_export(ctx.work, settings.bundles_dir)  # the engine export beside it, unless export=false
         with ctx.session() as session:
             bake = ctx.check_live(session)
             register_bundle(session, settings.bundles_dir, bake.name, bake.version, bake.public, bake.id)

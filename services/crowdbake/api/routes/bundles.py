@@ -36,6 +36,7 @@ from crowdbake.formats.bundle import check_path
 from crowdbake.formats.errors import FormatError
 from crowdbake.storage.records import to_utc
 from crowdbake.storage.bundles import LATEST, PublishedManifest, bundle_dir, find_bundle, read_manifest
+from crowdbake.storage.exports import INDEX_NAME, export_home
 from crowdbake.storage.models import Bake, Bundle
 
 router = APIRouter(prefix="/v1/bundles", tags=["bundles"])
@@ -104,11 +105,13 @@ def _latest_redirect(request: Request, bundle: Bundle) -> Response:
     return Response(status_code=307, headers={"Location": location, "Content-Location": location, "Cache-Control": "no-cache"})
 
 
-def _public(bundle: Bundle) -> BundlePublic:
+def _public(bundle: Bundle, bundles_dir: Path) -> BundlePublic:
+    has_export = (export_home(bundles_dir, bundle.name, bundle.version) / INDEX_NAME).is_file()
     return BundlePublic(
         name=bundle.name, version=bundle.version, manifest_sha256=bundle.manifest_sha256, size=bundle.size,
         file_count=bundle.file_count, public=bundle.public, bake_id=bundle.bake_id,
         published_at=to_utc(bundle.published_at), manifest_url=f"/v1/bundles/{bundle.name}/{bundle.version}/manifest.json",
+        export_url=f"/v1/bundles/{bundle.name}/{bundle.version}/export/" if has_export else None,
     )
 
 
@@ -152,23 +155,23 @@ def list_bundle_names(principal: PrincipalDep, session: SessionDep) -> BundleNam
 
 
 @router.get("/{name}", response_model=BundleVersionsPublic, responses=problem_responses(404))
-def list_versions(name: NameParam, principal: PrincipalDep, session: SessionDep) -> BundleVersionsPublic:
+def list_versions(name: NameParam, principal: PrincipalDep, services: ServicesDep, session: SessionDep) -> BundleVersionsPublic:
     query = _readable_bundles(principal).where(Bundle.name == name).order_by(Bundle.published_at.desc(), Bundle.id.desc())
     bundles = session.scalars(query).all()
     if not bundles:
         if principal.key_id is None and find_bundle(session, name, LATEST) is not None:
             raise Problem("unauthorized", f"bundle {name} is not public; send a key with the read scope", headers={"WWW-Authenticate": "Bearer"})
         raise Problem("not-found", f"no bundle named {name!r}")
-    return BundleVersionsPublic(name=name, latest=bundles[0].version, versions=[_public(bundle) for bundle in bundles])
+    return BundleVersionsPublic(name=name, latest=bundles[0].version, versions=[_public(bundle, services.settings.bundles_dir) for bundle in bundles])
 
 
 @router.get("/{name}/{version}", response_model=BundlePublic, responses=problem_responses(404))
-def get_bundle(name: NameParam, version: VersionParam, principal: PrincipalDep, session: SessionDep) -> BundlePublic:
-    return _public(_bundle_or_problem(session, principal, name, version))
+def get_bundle(name: NameParam, version: VersionParam, principal: PrincipalDep, services: ServicesDep, session: SessionDep) -> BundlePublic:
+    return _public(_bundle_or_problem(session, principal, name, version), services.settings.bundles_dir)
 
 
 @router.patch("/{name}/{version}", response_model=BundlePublic, responses=problem_responses(400, 404), summary="Make a bundle public or private")
-def update_bundle(name: NameParam, version: VersionParam, body: BundleUpdate, key: PublishKey, session: SessionDep) -> BundlePublic:
+def update_bundle(name: NameParam, version: VersionParam, body: BundleUpdate, key: PublishKey, services: ServicesDep, session: SessionDep) -> BundlePublic:
     if version == LATEST:
         raise Problem("validation-error", "name a concrete version, not 'latest'", [{"field": "version", "message": "alias not allowed here"}])
     bundle = find_bundle(session, name, version)
@@ -176,7 +179,7 @@ def update_bundle(name: NameParam, version: VersionParam, body: BundleUpdate, ke
         raise Problem("not-found", f"no bundle {name}/{version}")
     bundle.public = body.public
     session.commit()
-    return _public(bundle)
+    return _public(bundle, services.settings.bundles_dir)
 
 
 def _manifest(services, bundle: Bundle) -> PublishedManifest:
