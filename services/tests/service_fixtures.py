@@ -179,7 +179,7 @@ def make_api(tmp_path: Path, **overrides) -> Api:
 
 
 def publish_vector_bundle(api: Api, name: str | None = None, version: str | None = None, public: bool = False) -> tuple[str, str]:
-    """Copy the good bundle vector into the bundles folder (as name/version) and record it."""
+    """Publish the good bundle vector through the app's bundle store (as name/version) and record it."""
     import json
 
     from crowdbake.storage.bundles import register_bundle
@@ -187,9 +187,10 @@ def publish_vector_bundle(api: Api, name: str | None = None, version: str | None
 
     manifest = json.loads((GOOD_BUNDLE / "manifest.json").read_bytes())
     name, version = name or manifest["name"], version or manifest["version"]
-    shutil.copytree(GOOD_BUNDLE, Path(api.settings.bundles_dir) / name / version)
+    store = api.client.app.state.services.bundles
+    store.publish(GOOD_BUNDLE, name, version)
     with session_scope(api.sessions) as session:
-        register_bundle(session, api.settings.bundles_dir, name, version, public, None)
+        register_bundle(session, store, name, version, public, None)
     return name, version
 
 
