@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import io
 import os
-import shutil
 import socket
 import subprocess
 import sys
@@ -124,10 +123,10 @@ class Api:
         return self.client.app.state.services.sessions
 
     def snapshot(self) -> tuple[list[str], dict[str, int]]:
-        """Every file under the blob folder and the row count of every table except api_keys."""
+        """Every blob and staging file of the store and the row count of every table except api_keys."""
         from crowdbake.storage.models import Base
 
-        files = sorted(str(path.relative_to(self.settings.blob_dir)) for path in Path(self.settings.blob_dir).rglob("*") if path.is_file())
+        files = stored_blobs(self.settings)
         with self.sessions() as session:
             counts = {table.name: session.scalar(select(func.count()).select_from(table)) for table in Base.metadata.sorted_tables}
         return files, counts
@@ -159,7 +158,70 @@ def fresh_test_database(server_url: str) -> str:
     return make_url(server_url).set(database=name).render_as_string(hide_password=False)
 
 
-def make_api(tmp_path: Path, **overrides) -> Api:
+# The stores the service tests run on: local folders always, an S3 server when scripts/test.sh started
+# one (CROWDBAKE_TEST_S3_URL); `pytest.mark.parametrize("store", STORES)` or a fixture's params.
+STORES = ("local", pytest.param("s3", marks=pytest.mark.skipif(not os.environ.get("CROWDBAKE_TEST_S3_URL"),
+                                                               reason="CROWDBAKE_TEST_S3_URL is not set (scripts/test.sh starts an S3 server)")))
+
+
+def store_env(store: str) -> dict[str, str]:
+    """CROWDBAKE_* variables of `store` for a test: none for local folders; for "s3" the test server's
+    bucket (created if missing) under a fresh key prefix, so tests never see each other's objects."""
+    if store == "local":
+        return {}
+    import uuid
+
+    from crowdbake.storage.s3 import ensure_bucket, make_client
+
+    url = os.environ.get("CROWDBAKE_TEST_S3_URL")
+    if not url:
+        pytest.skip("CROWDBAKE_TEST_S3_URL is not set (scripts/test.sh starts an S3 server)")
+    env = {
+        "CROWDBAKE_STORE": "s3", "CROWDBAKE_S3_ENDPOINT_URL": url,
+        "CROWDBAKE_S3_BUCKET": os.environ.get("CROWDBAKE_TEST_S3_BUCKET", "crowdbake-test"),
+        "CROWDBAKE_S3_PREFIX": f"test-{uuid.uuid4().hex[:12]}",
+        "CROWDBAKE_S3_ACCESS_KEY_ID": os.environ.get("CROWDBAKE_TEST_S3_ACCESS_KEY_ID", "crowdbake-test"),
+        "CROWDBAKE_S3_SECRET_ACCESS_KEY": os.environ.get("CROWDBAKE_TEST_S3_SECRET_ACCESS_KEY", "crowdbake-test-secret"),
+    }
+    ensure_bucket(make_client(url, "us-east-1", env["CROWDBAKE_S3_ACCESS_KEY_ID"], env["CROWDBAKE_S3_SECRET_ACCESS_KEY"]), env["CROWDBAKE_S3_BUCKET"])
+    return env
+
+
+def database_env() -> dict[str, str]:
+    """CROWDBAKE_DATABASE_URL of a fresh PostgreSQL database when CROWDBAKE_TEST_DATABASE_URL is set, else none
+    (a SQLite file in the data folder)."""
+    server = os.environ.get("CROWDBAKE_TEST_DATABASE_URL")
+    return {"CROWDBAKE_DATABASE_URL": fresh_test_database(server)} if server else {}
+
+
+def settings_overrides(env: dict[str, str]) -> dict[str, str]:
+    """Settings keyword arguments of CROWDBAKE_* variables."""
+    return {key.removeprefix("CROWDBAKE_").lower(): value for key, value in env.items() if key.startswith("CROWDBAKE_")}
+
+
+def stored_blobs(settings) -> list[str]:
+    """Every digest in the blob store of `settings` and every staging file left beside it."""
+    from crowdbake.storage.store import open_store
+
+    blobs = open_store(settings).blobs
+    staging = sorted(f".incoming/{path.name}" for path in Path(blobs.staging_dir).glob("*"))
+    return sorted(blobs.digests()) + staging
+
+
+def published_files(settings, name: str, version: str) -> dict[str, bytes]:
+    """manifest.json and every listed file of a published bundle, read from the store of `settings`."""
+    from crowdbake.storage.store import open_store
+
+    store = open_store(settings).bundles
+    published = store.manifest(name, version)
+    files = {"manifest.json": published.data}
+    for path in published.files:
+        with store.open_file(name, version, path) as handle:
+            files[path] = handle.read()
+    return files
+
+
+def make_api(tmp_path: Path, store: str = "local", **overrides) -> Api:
     from fastapi.testclient import TestClient
 
     from crowdbake.api.app import create_app
@@ -169,6 +231,7 @@ def make_api(tmp_path: Path, **overrides) -> Api:
 
     if "database_url" not in overrides and os.environ.get("CROWDBAKE_TEST_DATABASE_URL"):
         overrides["database_url"] = fresh_test_database(os.environ["CROWDBAKE_TEST_DATABASE_URL"])
+    overrides = {**settings_overrides(store_env(store)), **overrides}
     settings = Settings(data_dir=tmp_path / "data", **overrides)
     app = create_app(settings)
     keys = {}
