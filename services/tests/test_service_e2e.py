@@ -11,10 +11,12 @@ on the object store (uploads, stage outputs and bundles in the bucket, private w
 from __future__ import annotations
 
 import hashlib
+import io
 import subprocess
 import sys
 import time
 import uuid
+import zipfile
 from pathlib import Path
 
 import httpx
@@ -131,6 +133,18 @@ def test_upload_bake_publish_download_verify(service, sample, tmp_path):
         assert piece.headers["etag"] == f'"{entry["sha256"]}"' and "immutable" in piece.headers["cache-control"]
         latest = client.get("/v1/bundles/sample-walker/latest/manifest.json")
         assert latest.content == manifest_bytes and latest.headers["content-location"].endswith("/1.0.0/manifest.json")
+        # What the page shows comes from the store too: the cycle report the cycle stage wrote (as blobs
+        # when work folders are private), an atlas preview and the whole bundle as one zip.
+        report = client.get(f"/v1/bakes/{bake_id}/cycle/report.html")
+        assert report.status_code == 200 and "<html" in report.text.lower(), report.text[:300]
+        cycle_json = client.get(f"/v1/bakes/{bake_id}/cycle/cycle.json")
+        assert cycle_json.status_code == 200 and isinstance(cycle_json.json(), dict)
+        preview = client.get("/v1/bundles/sample-walker/1.0.0/preview/uv")
+        assert preview.status_code == 200 and preview.content.startswith(b"\x89PNG")
+        archive = client.get("/v1/bundles/sample-walker/1.0.0/archive.zip")
+        with zipfile.ZipFile(io.BytesIO(archive.content)) as bundle_zip:
+            assert bundle_zip.read("sample-walker/1.0.0/manifest.json") == manifest_bytes
+            assert len(bundle_zip.namelist()) == len(manifest["files"]) + 1
 
     # Idempotent resubmission: the same inputs and parameters give back the same bake, already done.
     again = submit(service, sample, "1.0.0", download=tmp_path / "again")
