@@ -18,7 +18,7 @@ import numpy as np
 import pygltflib
 import pytest
 
-from conftest import REPO_ROOT, SHARED_ASSETS
+from repo_paths import REPO_ROOT, SHARED_ASSETS
 from crowdbake.cli import main as cli_main
 from crowdbake.export import ktx2
 from crowdbake.export.textures import rgba8_layers

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import REPO_ROOT
+from repo_paths import REPO_ROOT
 from test_export import PREVIEW_DIR, sample_bundle, sample_export  # noqa: F401 (module fixtures)
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

@@ -13,7 +13,8 @@ from crowdbake.params import NAME_PATTERN, PARAMS, SPECS, VERSION_PATTERN, cross
 MAX_LIST_OFFSET = 2**62
 
 # Texture files the validate stage reads from its textures folder.
-TEXTURE_NAME_PATTERN = r"^(diffuse_[A-Za-z0-9_-]{1,40}|outfits)\.png$"
+# A diffuse variation may be a JPEG (no alpha: no colour-region codes); the outfit map is a PNG.
+TEXTURE_NAME_PATTERN = r"^(diffuse_[A-Za-z0-9_-]{1,40}\.(png|jpg|jpeg)|outfits\.png)$"
 
 
 class Problem(BaseModel):
@@ -121,7 +122,7 @@ class BakeCreate(BaseModel):
     version: str = Field(pattern=VERSION_PATTERN, examples=["1.0.0"])
     character: str = Field(description="Id of a character asset.")
     cloth: str = Field(description="Id of a cloth asset.")
-    textures: dict[str, str] = Field(default_factory=dict, description="File name (diffuse_*.png, outfits.png) -> texture asset id.")
+    textures: dict[str, str] = Field(default_factory=dict, description="File name (diffuse_*.png or diffuse_*.jpg, outfits.png) -> texture asset id.")
     params: BakeParamsIn = Field(default_factory=BakeParamsIn)
     publish: bool = Field(True, description="Publish the bundle when the bake succeeds (needs the publish scope).")
     public: bool = Field(False, description="Readable without a key once published (needs the publish scope).")
@@ -138,7 +139,7 @@ class BakeCreate(BaseModel):
     def _texture_names(cls, value: dict[str, str]) -> dict[str, str]:
         bad = [name for name in value if not re.match(TEXTURE_NAME_PATTERN, name)]
         if bad:
-            raise ValueError(f"texture names must be diffuse_<variation>.png or outfits.png, got {', '.join(sorted(bad))}")
+            raise ValueError(f"texture names must be diffuse_<variation>.png (or .jpg) or outfits.png, got {', '.join(sorted(bad))}")
         if value and not any(name.startswith("diffuse_") for name in value):
             raise ValueError("textures need at least one diffuse_<variation>.png")
         return value

@@ -253,7 +253,14 @@ def check_character(path: Path, filename: str, field: str = "file") -> dict[str,
         "joint_count": int(len(character.joint_names)),
         "animation_seconds": float(character.animation_duration),
         "has_texture": character.texture is not None,
+        "animations": _animation_summaries(path, character),
     }
+
+
+def _animation_summaries(path: Path, character) -> list[dict[str, Any]]:
+    from crowdbake.ingest.studio_inputs import animation_summaries
+
+    return animation_summaries(path, character)
 
 
 # ------------------------------------------------------------------------------------------- cloth

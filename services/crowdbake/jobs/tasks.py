@@ -34,7 +34,7 @@ import random
 import shutil
 import time
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, Callable
 
 from celery import group
@@ -358,8 +358,10 @@ def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
     if character is None or cloth is None:
         raise InputError("an input asset no longer exists", "character" if character is None else "cloth")
     character_path = blobs.materialize(character.files["file"]["sha256"], inputs_dir / f"character.{character.info.get('format', 'glb')}")
-    cloth_path = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / "cloth.pc2")
-    mesh_path = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "cloth.obj")
+    # The cache keeps its format's extension (.pc2, .mdd, .abc): the validate stage reads it by extension.
+    cache_suffix = PurePosixPath(cloth.files["cache"].get("filename") or "cloth.pc2").suffix.lower() or ".pc2"
+    cloth_path = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / f"cloth{cache_suffix}")
+    mesh_path = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "cloth.obj") if "mesh" in cloth.files else None
     textures_dir = None
     assets = [character, cloth]
     if bake.inputs.get("textures"):

@@ -37,6 +37,8 @@ class BakeSummary:
     fidelity: dict[str, Any]
     compression: dict[str, Any]
     texture_memory: dict[str, Any]
+    # Set when a texture variation is a JPEG (no alpha, so no colour-region codes): what that means.
+    texture_note: str | None = None
 
     @property
     def total_bytes(self) -> int:
@@ -79,7 +81,7 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         return result
 
     try:
-        timed("validate", lambda: stage_validate(inputs, work))
+        job = timed("validate", lambda: stage_validate(inputs, work)).record
         cycle = timed("cycle", lambda: stage_cycle(work, progress)).record
         poses = timed("poses", lambda: stage_poses(work, progress)).record
         timed("impostors", lambda: stage_impostors(work, progress))
@@ -103,4 +105,5 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         fidelity=dict(pack.fidelity, uv_precision=pack.uv_precision),
         compression=pack.compression,
         texture_memory=pack.texture_memory,
+        texture_note=(job.textures or {}).get("note"),
     )

@@ -19,7 +19,7 @@ from crowdbake.api.deps import BakeKey, PublishKey, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import MAX_LIST_OFFSET, BakeCreate, BakePublic, BakesPublic, LogLine, StagePublic, problem_responses
 from crowdbake.errors import InputError
-from crowdbake.ingest.bake_request import check_two_cycles
+from crowdbake.ingest.bake_request import check_request_placement, check_two_cycles
 from crowdbake.jobs.celery_app import send_stage
 from crowdbake.params import BakeParams
 from crowdbake.storage import records
@@ -77,15 +77,35 @@ def _check_params(params: dict[str, Any]) -> None:
         raise Problem("validation-error", f"the parameters are not accepted: {error}", [{"field": field, "message": str(error)}]) from None
 
 
-def _check_cycle(character: Asset, cloth: Asset, cycle_frames: int | None) -> None:
-    """The cloth must hold two cycles (crowdbake.ingest.bake_request), as a problem naming the field."""
+def _check_cycle(character: Asset, cloth: Asset, params: dict[str, Any]) -> None:
+    """The animation must exist, the cloth must hold two cycles of it and sit on the character
+    (crowdbake.ingest.bake_request), as problems naming the field."""
     try:
-        check_two_cycles(character.info, cloth.info, cycle_frames)
+        check_two_cycles(character.info, cloth.info, params.get("cycle_frames"), params.get("fps"), params.get("animation", 0))
+        check_request_placement(character.info, cloth.info, params.get("animation", 0), params.get("up"), params.get("units"))
     except InputError as error:
+        if error.field in ("params.animation", "params.up", "params.units"):
+            title = {"params.animation": "the character has no such animation",
+                     "params.up": "the cloth cache is not Y-up", "params.units": "the cloth cache is not in metres"}[error.field]
+            raise Problem("validation-error", title, [{"field": error.field, "message": error.message}]) from None
+        if error.field == "cloth" and "two cycles" not in error.message:
+            raise Problem("invalid-file", "the garment does not sit on the character", [{"field": "cloth", "message": error.message}]) from None
         if error.field == "cloth":
             raise Problem("invalid-file", "too few frames for two cycles", [{"field": "cloth", "message": error.message}]) from None
         raise Problem("validation-error", "the character has no animation to take the cycle length from",
                       [{"field": error.field, "message": error.message}]) from None
+
+
+def _check_texture_formats(textures: dict[str, Asset | None]) -> None:
+    """A texture's name must say its format (the validate stage reads diffuse_*.jpg as JPEG)."""
+    errors = []
+    for name, texture in textures.items():
+        stored = (texture.info or {}).get("format", "png") if texture is not None else None
+        named = "jpeg" if name.lower().endswith((".jpg", ".jpeg")) else "png"
+        if stored is not None and stored != named:
+            errors.append({"field": f"textures.{name}", "message": f"the asset is a {stored.upper()} image; name it with its extension"})
+    if errors:
+        raise Problem("validation-error", "a texture's name does not match its format", errors)
 
 
 def _enqueue(services, session: Session, bake: Bake, stage: str) -> None:
@@ -110,7 +130,8 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: Se
         raise Problem("validation-error", "the bake names assets that do not exist", errors)
     params = body.params.model_dump()
     _check_params(params)
-    _check_cycle(character, cloth, body.params.cycle_frames)
+    _check_cycle(character, cloth, params)
+    _check_texture_formats(textures)
 
     digests = {
         "character": character.digest,
