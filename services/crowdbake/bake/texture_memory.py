@@ -19,8 +19,9 @@ so detail-mapped(n) = 5 + 11 n and UV-mapped(n) = 15 + n: equal at one variation
 variation costs 11 MiB against 1 MiB.
 
 `bundle_series` applies the same sums to the byte sizes of a real bundle's layers, where the UV map is
-uv32 by default (4 bytes a texel, not DXT3's 1: 14-bit coordinates address a 1024² texture to 1/16 texel,
-which block compression cannot keep) or rgba16 (8 bytes a texel), SPEC.md.
+uvblock by default (1.5 bytes a texel, not DXT3's 1: block-coded 12-bit coordinates with coverage and
+material exact, SPEC.md pixel format 6), uv32 (4 bytes) or rgba16 (8 bytes). `break_even_count` is the
+smallest variation count at which the UV-mapped impostor costs no more than the detail-mapped one.
 Pure arithmetic; no I/O.
 """
 from __future__ import annotations
