@@ -137,15 +137,18 @@ def decode_layer(data: bytes, pixel_format: str, width: int, height: int) -> np.
 
 
 def decode_uv_layer(data: bytes, pixel_format: str, width: int, height: int) -> np.ndarray:
-    """One UV-map layer (rgba16 or uv32, SPEC.md) as (height, width, 4) uint16 in rgba16's layout
+    """One UV-map layer (rgba16, uv32 or uvblock, SPEC.md) as (height, width, 4) uint16 in rgba16's layout
     (u·65535, v·65535, material, coverage 65535/0), so one preview serves both formats."""
     if pixel_format == "rgba16":
         return decode_layer(data, pixel_format, width, height)
-    if pixel_format != "uv32":
-        raise ValueError(f"a UV map must be rgba16 or uv32, not {pixel_format}")
-    from crowdbake.formats.binary import unpack_uv32
+    from crowdbake.formats.binary import unpack_uv32, unpack_uvblock
 
-    u, v, material, covered = unpack_uv32(np.frombuffer(data, "<u4").reshape(height, width))
+    if pixel_format == "uvblock":
+        u, v, material, covered = unpack_uvblock(data, width, height)
+    elif pixel_format == "uv32":
+        u, v, material, covered = unpack_uv32(np.frombuffer(data, "<u4").reshape(height, width))
+    else:
+        raise ValueError(f"a UV map must be rgba16, uv32 or uvblock, not {pixel_format}")
     uv = np.zeros((height, width, 4), dtype=np.uint16)
     uv[..., 0] = np.where(covered, np.rint(u * 65535.0), 0)
     uv[..., 1] = np.where(covered, np.rint(v * 65535.0), 0)
