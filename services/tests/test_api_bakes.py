@@ -71,6 +71,24 @@ def test_resubmission_is_idempotent(api, assets):
     assert other.json()["input_key"] != first.json()["input_key"]
 
 
+@pytest.mark.parametrize("created", ["2006-09-04 12:00:00", "2006-13-04T12:00:00Z", "yesterday"])
+def test_created_must_be_a_real_utc_time(api, assets, created):
+    response = api.client.post("/v1/bakes", json=bake_body(assets, created=created), headers=api.auth("ci"))
+    assert response.status_code == 422 and response.headers["content-type"] == PROBLEM
+    assert [error["field"] for error in response.json()["errors"]] == ["created"]
+    assert queued_messages(api) == []
+
+
+def test_created_is_kept_with_the_inputs_and_is_part_of_the_key(api, assets):
+    """The manifest time shapes the bundle's bytes, so the same inputs with another time are another bake."""
+    plain = api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci")).json()
+    dated = api.client.post("/v1/bakes", json=bake_body(assets, version="1.0.1", created="2006-09-04T12:00:00Z"), headers=api.auth("ci"))
+    later = api.client.post("/v1/bakes", json=bake_body(assets, version="1.0.1", created="2006-09-05T12:00:00Z"), headers=api.auth("ci"))
+    assert dated.status_code == 202 and dated.json()["inputs"]["created"] == "2006-09-04T12:00:00Z"
+    assert "created" not in plain["inputs"]
+    assert later.status_code == 409  # same name/version, other inputs: a different bake, already baking
+
+
 def test_same_version_from_other_inputs_conflicts_while_baking(api, assets):
     assert api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci")).status_code == 202
     response = api.client.post("/v1/bakes", json=bake_body(assets, params={"tile_size": 64}), headers=api.auth("ci"))

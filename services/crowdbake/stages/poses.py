@@ -123,7 +123,7 @@ def _high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) ->
     if looped.points.shape[0] != frames:
         raise StageOrderError(f"looped.pc2 has {looped.points.shape[0]} frames, the cycle {frames}")
     garment_positions = poses.cloth_on_vertices(looped.points, mesh.source_index)
-    garment_normals = poses.vertex_normals(garment_positions, mesh.faces, weld=mesh.source_index)
+    garment_normals = poses.pose_normals(garment_positions, mesh.faces, weld=mesh.source_index)
     if mesh.uvs is None:
         logger.warning("%s has no texture coordinates: the garment's UV map will read (0, 0)", names["cloth_mesh"])
     garment_uvs = mesh.uvs if mesh.uvs is not None else np.zeros((mesh.vertex_count, 2), np.float32)

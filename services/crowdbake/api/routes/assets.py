@@ -169,7 +169,7 @@ def list_assets(
     kind: Literal["character", "cloth", "texture"] | None = None,
     limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET),
 ) -> AssetsPublic:
-    query = select(Asset).order_by(Asset.created_at.desc(), Asset.id)
+    query = key.only_own(select(Asset).order_by(Asset.created_at.desc(), Asset.id), Asset.created_by)
     if kind:
         query = query.where(Asset.kind == kind)
     assets = session.scalars(query.offset(offset).limit(limit)).all()
@@ -179,6 +179,6 @@ def list_assets(
 @router.get("/{asset_id}", response_model=AssetPublic, responses=problem_responses(404))
 def get_asset(asset_id: str, key: AssetReadKey, session: SessionDep) -> Asset:
     asset = session.get(Asset, asset_id)
-    if asset is None:
+    if asset is None or not key.owns(asset.created_by):  # another key's asset is not there for this one
         raise Problem("not-found", f"no asset {asset_id!r}")
     return asset
