@@ -5,7 +5,6 @@ The uploads go through the client's own functions (check_locally, upload, bake_b
 (FastAPI's TestClient is an httpx client), so the field names are checked against the server's route."""
 from __future__ import annotations
 
-import io
 from pathlib import Path
 
 import pytest
