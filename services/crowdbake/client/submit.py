@@ -23,8 +23,8 @@ from crowdbake.errors import InputError
 from crowdbake.params import add_cli_options, option_for, params_from_args
 
 DESCRIPTION = """\
-Uploads CHAR.glb, the cloth (a PC2 cache with --cloth-mesh, or a zip of OBJ frames) and the textures
-(--textures DIR: diffuse_*.png and outfits.png), starts a bake of NAME/VERSION and prints its id.
+Uploads CHAR.glb, the cloth (a .pc2 or .mdd cache with --cloth-mesh, or an Alembic .abc or a .zip of
+OBJ frames alone) and the textures (--textures DIR: diffuse_*.png or diffuse_*.jpg, and outfits.png), starts a bake of NAME/VERSION and prints its id.
 With --wait, follows it until it ends; with --download DIR, also fetches the published bundle to
 DIR/NAME/VERSION and checks every file's size and sha256 (and, with the full crowdbake package,
 the bundle's formats).
@@ -49,15 +49,22 @@ exit codes:
 # everything else and then refuses the request for want of assets, creating nothing.
 PREFLIGHT_ASSET = "preflight-no-such-asset"
 ASSET_FIELDS = ("character", "cloth")
+# The cloth forms POST /v1/assets/cloth takes (crowdbake.api.routes.assets): cache suffix -> whether it
+# needs its OBJ rest mesh beside it, and the multipart field the file goes in.
+CLOTH_FORMS = {".pc2": (True, "cache"), ".mdd": (True, "cache"), ".abc": (False, "cache"), ".zip": (False, "sequence")}
+# Texture names the bake request takes (crowdbake.api.schemas.TEXTURE_NAME_PATTERN): the outfit map is
+# a PNG only, since its 16 exact colours a row would not survive JPEG.
+DIFFUSE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("character", metavar="CHAR.glb", help="the skinned, animated character (.glb or .gltf)")
     parser.add_argument("--server", required=True, metavar="URL", help="the crowdbake server, e.g. http://127.0.0.1:8000")
     parser.add_argument("--key", metavar="KEY", default=os.environ.get("CROWDBAKE_API_KEY"), help="API key (default CROWDBAKE_API_KEY)")
-    parser.add_argument("--cloth", required=True, metavar="CLOTH.pc2", help="the cloth cache (.pc2 with --cloth-mesh, or a .zip of OBJ frames)")
-    parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the cloth's rest mesh (OBJ, PC2 point order); only with a .pc2 cache")
-    parser.add_argument("--textures", metavar="DIR", help="folder with diffuse_*.png and outfits.png")
+    parser.add_argument("--cloth", required=True, metavar="CLOTH.pc2",
+                        help="the cloth cache: .pc2 or .mdd with --cloth-mesh, or an Alembic .abc or a .zip of OBJ frames alone")
+    parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the cloth's rest mesh (OBJ, in the cache's point order); only with a .pc2 or .mdd cache")
+    parser.add_argument("--textures", metavar="DIR", help="folder with diffuse_*.png (or diffuse_*.jpg: no colour-region codes) and outfits.png")
     parser.add_argument("--name", required=True, help="bundle name ([a-z0-9._-], checked by the server before uploading)")
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VERSION", help="bundle version; a published version never changes")
     parser.add_argument("--wait", action="store_true", help="follow the bake until it ends")
@@ -127,7 +134,7 @@ def local_problem(message: str, title: str = "Usage error") -> dict[str, Any]:
 @dataclass
 class Inputs:
     character: Path
-    cloth_files: dict[str, Path]   # multipart field -> file: sequence, or cache + mesh
+    cloth_files: dict[str, Path]   # multipart field -> file: cache + mesh, cache alone (.abc), or sequence (.zip)
     cloth_data: dict[str, str]
     textures: dict[str, Path]      # texture name -> file
     params: dict[str, Any]
@@ -146,15 +153,34 @@ def bake_params(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def texture_files(folder: str | None) -> dict[str, Path]:
+    """Texture name -> file: diffuse_*.png / .jpg / .jpeg and outfits.png of `folder` (none without one)."""
     if not folder:
         return {}
     root = Path(folder)
     if not root.is_dir():
         raise usage(f"--textures {folder}: not a folder")
-    files = {path.name: path for path in sorted(root.glob("*.png")) if path.name.startswith("diffuse_") or path.name == "outfits.png"}
+    for name in ("outfits.jpg", "outfits.jpeg"):
+        if (root / name).is_file():
+            raise usage(f"--textures {folder}: {name}: the outfit map must be a PNG (16 exact colours a row; JPEG blurs them)")
+    files = {path.name: path for path in sorted(root.iterdir())
+             if path.is_file() and ((path.name.startswith("diffuse_") and path.suffix in DIFFUSE_SUFFIXES) or path.name == "outfits.png")}
     if not any(name.startswith("diffuse_") for name in files):
-        raise usage(f"--textures {folder}: no diffuse_*.png in the folder")
+        raise usage(f"--textures {folder}: no diffuse_*.png or diffuse_*.jpg in the folder")
     return files
+
+
+def cloth_form(cloth: Path, mesh: Path | None) -> dict[str, Path]:
+    """Multipart field -> file for POST /v1/assets/cloth, from the cache's suffix (CLOTH_FORMS)."""
+    form = CLOTH_FORMS.get(cloth.suffix.lower())
+    if form is None:
+        raise usage(f"--cloth {cloth}: a cloth cache is .pc2 or .mdd (with --cloth-mesh), or .abc or .zip (alone)")
+    needs_mesh, field = form
+    if needs_mesh and mesh is None:
+        raise usage(f"--cloth {cloth} needs --cloth-mesh CLOTH.obj (its rest mesh, in the cache's point order)")
+    if not needs_mesh and mesh is not None:
+        carries = "an Alembic .abc carries its own mesh" if field == "cache" else "a .zip of OBJ frames carries its own mesh"
+        raise usage(f"--cloth-mesh goes with a .pc2 or .mdd cache; {carries}: drop --cloth-mesh")
+    return {field: cloth, **({"mesh": mesh} if needs_mesh else {})}
 
 
 def check_locally(args: argparse.Namespace) -> Inputs:
@@ -164,20 +190,15 @@ def check_locally(args: argparse.Namespace) -> Inputs:
     for option in ("poll", "timeout", "retry_for"):
         if getattr(args, option) <= 0:
             raise usage(f"--{option.replace('_', '-')} must be positive, got {getattr(args, option)}")
-    character, cloth = Path(args.character), Path(args.cloth)
-    is_sequence = cloth.suffix.lower() == ".zip"
-    if is_sequence and args.cloth_mesh:
-        raise usage("--cloth-mesh goes with a .pc2 cache; a .zip of OBJ frames carries its own mesh")
-    if not is_sequence and not args.cloth_mesh:
-        raise usage("--cloth CLOTH.pc2 needs --cloth-mesh CLOTH.obj (or give a .zip of OBJ frames)")
-    for path in (character, cloth, *([Path(args.cloth_mesh)] if args.cloth_mesh else [])):
+    character = Path(args.character)
+    cloth = cloth_form(Path(args.cloth), Path(args.cloth_mesh) if args.cloth_mesh else None)
+    for path in (character, *cloth.values()):
         if not path.is_file():
             raise usage(f"{path}: no such file")
     if args.download and Path(args.download).exists() and not Path(args.download).is_dir():
         raise usage(f"--download {args.download}: not a folder")
-    cloth_files = {"sequence": cloth} if is_sequence else {"cache": cloth, "mesh": Path(args.cloth_mesh)}
     cloth_data = {"cycle_frames": str(args.cycle_frames)} if args.cycle_frames else {}
-    return Inputs(character, cloth_files, cloth_data, texture_files(args.textures), bake_params(args))
+    return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args))
 
 
 # --------------------------------------------------------------------------------- the server's part
