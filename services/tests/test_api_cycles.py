@@ -187,3 +187,25 @@ def test_the_worker_hands_the_cycle_to_the_stages_as_the_cli_does(api, assets, t
         inputs = _materialize_inputs(context, session.get(Bake, bake["id"]), session)
     assert inputs.cycle is not None and inputs.cycle.read_bytes() == document
     assert inputs.cycle.with_name("looped.pc2").read_bytes() == looped
+
+
+# -------------------------------------------------------------------------------------- the client
+
+
+def test_submit_sends_the_cycle_with_the_loop_beside_it(tmp_path):
+    from crowdbake.client.http import ClientError
+    from crowdbake.client.submit import build_parser, check_locally
+
+    for name in ("walker.glb", "cloth.pc2", "cloth.obj", "cycle.json"):
+        (tmp_path / name).write_bytes(b"x")
+    common = [str(tmp_path / "walker.glb"), "--server", "http://127.0.0.1:9", "--cloth", str(tmp_path / "cloth.pc2"),
+              "--cloth-mesh", str(tmp_path / "cloth.obj"), "--name", "walker", "--version", "1"]
+    parse = build_parser().parse_args
+    assert check_locally(parse(common)).cycle_files == {}
+    assert check_locally(parse(common + ["--cycle", str(tmp_path / "cycle.json")])).cycle_files == {"cycle": tmp_path / "cycle.json"}
+    (tmp_path / "looped.pc2").write_bytes(b"x")
+    assert check_locally(parse(common + ["--cycle", str(tmp_path / "cycle.json")])).cycle_files == {
+        "cycle": tmp_path / "cycle.json", "looped": tmp_path / "looped.pc2"}
+    with pytest.raises(ClientError, match="--cycle .*no such file") as refused:
+        check_locally(parse(common + ["--cycle", str(tmp_path / "elsewhere.json")]))
+    assert int(refused.value.exit_code) == 2
