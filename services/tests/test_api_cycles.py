@@ -89,6 +89,22 @@ def test_a_bad_cycle_document_is_refused_and_nothing_is_kept(api, document, word
     assert api.snapshot() == before
 
 
+def test_the_validate_stage_applies_the_same_checks(tmp_path):
+    """`crowdbake bake --cycle` reads cycle.json through the same function, then the cache's frame count."""
+    from crowdbake.errors import InputError
+    from crowdbake.ingest.cycle_document import check_cycle_document
+
+    path = tmp_path / "cycle.json"
+    path.write_bytes(cycle_json(method="cubic"))
+    with pytest.raises(InputError, match="closing.method must be one of") as refused:
+        check_cycle_document(path, CLOTH_FRAMES)
+    assert refused.value.field == "cycle"
+    path.write_bytes(cycle_json(start=8, frames=6))
+    with pytest.raises(InputError, match=r"the cycle \[8, 14\) runs past the cache's 12 frames"):
+        check_cycle_document(path, CLOTH_FRAMES)
+    assert check_cycle_document(path, 14)["start_frame"] == 8
+
+
 def test_a_bad_looped_cache_or_form_is_refused(api, assets):
     before = api.snapshot()
     short = upload_cycle(api, cycle_json(frames=6), pc2_bytes(assets["points"][:5]))
