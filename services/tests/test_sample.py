@@ -16,14 +16,12 @@ from crowdbake.formats.pc2 import read_pc2
 from crowdbake.sample import regions
 from crowdbake.sample.cloth_sim import capsule_penetration, edge_strain, inside_closed_parts, surface_distance
 from crowdbake.sample.generate import PENETRATION_TOLERANCE, SETTLED_RMS, generate_sample, settled_cycle, simulate_sample
+from crowdbake.sample.colliders import WAIST_HEIGHT, fit_capsules, segment_distance
 from crowdbake.sample.humanoid import (
     BODY_UV_RECTS,
     GARMENT_UV_RECT,
     JOINT_NAMES,
-    WAIST_HEIGHT,
     build_body,
-    fit_capsules,
-    segment_distance,
     signed_volume,
 )
 from crowdbake.sample.textures import region_layout

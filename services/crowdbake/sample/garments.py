@@ -22,7 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from crowdbake.sample.cloth_sim import ClothParams
-from crowdbake.sample.humanoid import GARMENT_UV_RECT, UV_INSET, WAIST_HEIGHT, torso_radius
+from crowdbake.sample.colliders import WAIST_HEIGHT, torso_radius
+from crowdbake.sample.humanoid import GARMENT_UV_RECT, UV_INSET
 
 # Metres between the torso's surface and the pinned waistband: the band's own thickness on the skin.
 WAISTBAND_GAP = 0.002

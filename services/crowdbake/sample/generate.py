@@ -42,15 +42,13 @@ from crowdbake.sample.cloth_sim import (
     surface_distance,
 )
 from crowdbake.sample.garments import GARMENT_SPECS, Garment, build_garment
+from crowdbake.sample.colliders import Capsules, capsule_track, fit_capsules
 from crowdbake.sample.humanoid import (
     JOINT_INDEX,
     JOINT_REST_POSITIONS,
     BodyMesh,
-    Capsules,
     build_body,
     build_character,
-    capsule_track,
-    fit_capsules,
     torso_skin_weights,
 )
 from crowdbake.sample.textures import OUTFIT_COUNT, VARIATION_COUNT, diffuse_textures, outfit_map
