@@ -24,7 +24,9 @@ from crowdbake.params import add_cli_options, option_for, params_from_args
 
 DESCRIPTION = """\
 Uploads CHAR.glb, the cloth (a .pc2 or .mdd cache with --cloth-mesh, or an Alembic .abc or a .zip of
-OBJ frames alone) and the textures (--textures DIR: diffuse_*.png or diffuse_*.jpg, and outfits.png), starts a bake of NAME/VERSION and prints its id.
+OBJ frames alone), the textures (--textures DIR: diffuse_*.png or diffuse_*.jpg, and outfits.png) and a
+chosen cycle (--cycle cycle.json from `crowdbake cycle`, with looped.pc2 when it lies beside it), starts a
+bake of NAME/VERSION and prints its id.
 With --wait, follows it until it ends; with --download DIR, also fetches the published bundle to
 DIR/NAME/VERSION and checks every file's size and sha256 (and, with the full crowdbake package,
 the bundle's formats).
@@ -48,7 +50,7 @@ exit codes:
 # An asset id that never exists: the preflight bake request names it so that the server validates
 # everything else and then refuses the request for want of assets, creating nothing.
 PREFLIGHT_ASSET = "preflight-no-such-asset"
-ASSET_FIELDS = ("character", "cloth")
+ASSET_FIELDS = ("character", "cloth", "cycle")
 # The cloth forms POST /v1/assets/cloth takes (crowdbake.api.routes.assets): cache suffix -> whether it
 # needs its OBJ rest mesh beside it, and the multipart field the file goes in.
 CLOTH_FORMS = {".pc2": (True, "cache"), ".mdd": (True, "cache"), ".abc": (False, "cache"), ".zip": (False, "sequence")}
@@ -65,6 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the cloth cache: .pc2 or .mdd with --cloth-mesh, or an Alembic .abc or a .zip of OBJ frames alone")
     parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the cloth's rest mesh (OBJ, in the cache's point order); only with a .pc2 or .mdd cache")
     parser.add_argument("--textures", metavar="DIR", help="folder with diffuse_*.png (or diffuse_*.jpg: no colour-region codes) and outfits.png")
+    parser.add_argument("--cycle", metavar="cycle.json", help="bake this cycle (from `crowdbake cycle`; looped.pc2 beside it goes too) instead of searching")
     parser.add_argument("--name", required=True, help="bundle name ([a-z0-9._-], checked by the server before uploading)")
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VERSION", help="bundle version; a published version never changes")
     parser.add_argument("--wait", action="store_true", help="follow the bake until it ends")
@@ -138,6 +141,7 @@ class Inputs:
     cloth_data: dict[str, str]
     textures: dict[str, Path]      # texture name -> file
     params: dict[str, Any]
+    cycle_files: dict[str, Path]   # multipart field -> file: cycle (and looped), or none
 
 
 def usage(message: str) -> ClientError:
@@ -183,6 +187,17 @@ def cloth_form(cloth: Path, mesh: Path | None) -> dict[str, Path]:
     return {field: cloth, **({"mesh": mesh} if needs_mesh else {})}
 
 
+def cycle_files(path: str | None) -> dict[str, Path]:
+    """cycle.json and, as `crowdbake bake --cycle` takes it, the looped.pc2 beside it."""
+    if not path:
+        return {}
+    document = Path(path)
+    if not document.is_file():
+        raise usage(f"--cycle {path}: no such file")
+    looped = document.with_name("looped.pc2")
+    return {"cycle": document, **({"looped": looped} if looped.is_file() else {})}
+
+
 def check_locally(args: argparse.Namespace) -> Inputs:
     """Everything about the command line that needs no server: files, flag combinations, numbers."""
     if args.download and args.no_publish:
@@ -198,14 +213,15 @@ def check_locally(args: argparse.Namespace) -> Inputs:
     if args.download and Path(args.download).exists() and not Path(args.download).is_dir():
         raise usage(f"--download {args.download}: not a folder")
     cloth_data = {"cycle_frames": str(args.cycle_frames)} if args.cycle_frames else {}
-    return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args))
+    return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args), cycle_files(args.cycle))
 
 
 # --------------------------------------------------------------------------------- the server's part
 
 
-def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str, textures: dict[str, str]) -> dict[str, Any]:
+def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str, textures: dict[str, str], cycle: str | None = None) -> dict[str, Any]:
     return {"name": args.name, "version": args.bundle_version, "character": character, "cloth": cloth, "textures": textures,
+            **({"cycle": cycle} if cycle is not None else {}),
             "params": inputs.params, "publish": not args.no_publish, "public": args.public,
             **({"created": args.created} if args.created else {})}
 
@@ -222,7 +238,7 @@ def preflight(server: Server, args: argparse.Namespace, inputs: Inputs) -> None:
     else first and then refuses it for want of the assets, starting nothing. Any other refusal is the
     one the real request would get after the uploads."""
     placeholders = {name: PREFLIGHT_ASSET for name in inputs.textures}
-    body = bake_body(args, inputs, PREFLIGHT_ASSET, PREFLIGHT_ASSET, placeholders)
+    body = bake_body(args, inputs, PREFLIGHT_ASSET, PREFLIGHT_ASSET, placeholders, PREFLIGHT_ASSET if inputs.cycle_files else None)
     response = server.request("POST", "/v1/bakes", "checking the bake request", json=body, accept=frozenset({422}))
     if response.status_code == 422:
         problem = response.json()
@@ -295,8 +311,10 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
             cloth_name = next(iter(inputs.cloth_files.values())).name
             cloth = upload(server, "/v1/assets/cloth", inputs.cloth_files, f"cloth {cloth_name}", say, inputs.cloth_data)
             textures = {name: upload(server, "/v1/assets/textures", {"file": path}, f"texture {name}", say)["id"] for name, path in inputs.textures.items()}
+            cycle = upload(server, "/v1/assets/cycles", inputs.cycle_files, f"cycle {inputs.cycle_files['cycle'].name}", say)["id"] if inputs.cycle_files else None
 
-            response = server.request("POST", "/v1/bakes", "starting the bake", json=bake_body(args, inputs, character["id"], cloth["id"], textures))
+            body = bake_body(args, inputs, character["id"], cloth["id"], textures, cycle)
+            response = server.request("POST", "/v1/bakes", "starting the bake", json=body)
             bake = response.json()
             outcome.bake_id, outcome.state, outcome.progress = bake["id"], bake["state"], bake["progress"]
             reused = " (same inputs as an earlier bake: reusing it)" if response.status_code == 200 else ""

@@ -373,8 +373,18 @@ def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
                 raise InputError(f"texture {name} no longer exists", f"textures.{name}")
             blobs.materialize(texture.files["file"]["sha256"], textures_dir / name)
             assets.append(texture)
+    cycle_path = None
+    if bake.inputs.get("cycle"):
+        cycle = session.get(Asset, bake.inputs["cycle"])
+        if cycle is None:
+            raise InputError("the cycle asset no longer exists", "cycle")
+        # looped.pc2 beside cycle.json: the validate stage takes it from there, as for `crowdbake bake --cycle`.
+        cycle_path = blobs.materialize(cycle.files["file"]["sha256"], inputs_dir / "cycle" / "cycle.json")
+        if "looped" in cycle.files:
+            blobs.materialize(cycle.files["looped"]["sha256"], inputs_dir / "cycle" / "looped.pc2")
+        assets.append(cycle)
     return _stage("validate").BakeInputs(
-        character=character_path, cloth=cloth_path, cloth_mesh=mesh_path, textures=textures_dir, cycle=None,
+        character=character_path, cloth=cloth_path, cloth_mesh=mesh_path, textures=textures_dir, cycle=cycle_path,
         name=bake.name, version=bake.version, params=BakeParams.from_dict(bake.params),
         created=bake.inputs.get("created") or inputs_created(assets),
     )

@@ -19,7 +19,8 @@ from crowdbake.api.deps import BakeKey, Principal, PublishKey, ServicesDep, Sess
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import MAX_LIST_OFFSET, BakeCreate, BakePublic, BakesPublic, LogLine, StagePublic, problem_responses
 from crowdbake.errors import InputError
-from crowdbake.ingest.bake_request import check_request_placement, check_two_cycles
+from crowdbake.ingest.bake_request import check_request_placement, check_two_cycles, cycle_frames_for
+from crowdbake.ingest.cycle_document import check_cycle_fits_cloth
 from crowdbake.jobs.celery_app import send_stage
 from crowdbake.params import BakeParams
 from crowdbake.redact import path_replacements, redact_text, redact_value
@@ -82,17 +83,24 @@ def _check_params(params: dict[str, Any]) -> None:
         raise Problem("validation-error", f"the parameters are not accepted: {error}", [{"field": field, "message": str(error)}]) from None
 
 
-def _check_cycle(character: Asset, cloth: Asset, params: dict[str, Any]) -> None:
-    """The animation must exist, the cloth must hold two cycles of it and sit on the character
+def _check_cycle(character: Asset, cloth: Asset, cycle: Asset | None, params: dict[str, Any]) -> None:
+    """The animation must exist, the cloth must hold two cycles of it (or the given cycle, whose frames
+    must lie within it: crowdbake.ingest.cycle_document) and sit on the character
     (crowdbake.ingest.bake_request), as problems naming the field."""
     try:
-        check_two_cycles(character.info, cloth.info, params.get("cycle_frames"), params.get("fps"), params.get("animation", 0))
+        if cycle is None:
+            check_two_cycles(character.info, cloth.info, params.get("cycle_frames"), params.get("fps"), params.get("animation", 0))
+        else:  # as the validate stage: the cycle length must still be known, the given cycle then sets it
+            cycle_frames_for(character.info, cloth.info, params.get("cycle_frames"), params.get("fps"), params.get("animation", 0))
+            check_cycle_fits_cloth(cycle.info, cloth.info)
         check_request_placement(character.info, cloth.info, params.get("animation", 0), params.get("up"), params.get("units"))
     except InputError as error:
         if error.field in ("params.animation", "params.up", "params.units"):
             title = {"params.animation": "the character has no such animation",
                      "params.up": "the cloth cache is not Y-up", "params.units": "the cloth cache is not in metres"}[error.field]
             raise Problem("validation-error", title, [{"field": error.field, "message": error.message}]) from None
+        if error.field == "cycle":
+            raise Problem("invalid-file", "the cycle does not fit the cloth", [{"field": "cycle", "message": error.message}]) from None
         if error.field == "cloth" and "two cycles" not in error.message:
             raise Problem("invalid-file", "the garment does not sit on the character", [{"field": "cloth", "message": error.message}]) from None
         if error.field == "cloth":
@@ -131,17 +139,20 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: Se
     character = _asset(session, body.character, "character", "character", errors, key)
     cloth = _asset(session, body.cloth, "cloth", "cloth", errors, key)
     textures = {name: _asset(session, asset_id, "texture", f"textures.{name}", errors, key) for name, asset_id in sorted(body.textures.items())}
+    cycle = _asset(session, body.cycle, "cycle", "cycle", errors, key) if body.cycle is not None else None
     if errors:
         raise Problem("validation-error", "the bake names assets that do not exist", errors)
     params = body.params.model_dump()
     _check_params(params)
-    _check_cycle(character, cloth, params)
+    _check_cycle(character, cloth, cycle, params)
     _check_texture_formats(textures)
 
     digests = {
         "character": character.digest,
         "cloth": {role: entry["sha256"] for role, entry in cloth.files.items()},
         "textures": {name: texture.digest for name, texture in textures.items()},
+        # Only when given, so the keys of bakes that search their cycle are what they were.
+        **({"cycle": {role: entry["sha256"] for role, entry in cycle.files.items()}} if cycle is not None else {}),
     }
     key_digest = records.input_key(digests, body.name, body.version, params, created=body.created)
     existing = records.reusable_bake(session, key_digest)
@@ -161,7 +172,7 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: Se
     bake = records.create_bake(
         session, name=body.name, version=body.version, params=params,
         inputs={"character": character.id, "cloth": cloth.id, "textures": {name: texture.id for name, texture in textures.items()},
-                **({"created": body.created} if body.created is not None else {})},
+                **({"cycle": cycle.id} if cycle is not None else {}), **({"created": body.created} if body.created is not None else {})},
         key=key_digest, publish=body.publish, public=body.public, created_by=key.key_id,
     )
     session.commit()
