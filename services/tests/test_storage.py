@@ -94,7 +94,7 @@ def test_migrations_match_the_models(tmp_path):
     assert not is_migrated(engine)
     migrate(engine)
     migrate(engine)  # idempotent
-    assert is_migrated(engine) and head_revision() == "0001"
+    assert is_migrated(engine) and head_revision() == "0002"
     with engine.connect() as connection:
         differences = compare_metadata(MigrationContext.configure(connection), Base.metadata)
     assert differences == [], "the models changed without a migration"

@@ -9,6 +9,7 @@ id is `<tag>-<function>` (`assets-upload_character`), the names generated client
 from __future__ import annotations
 
 import logging
+from contextlib import asynccontextmanager
 from importlib.resources import files
 
 from fastapi import FastAPI
@@ -25,6 +26,7 @@ from crowdbake.api.problems import PROBLEM_TYPES, Problem, problem_type_uri
 from crowdbake.api.schemas import Problem as ProblemDocument
 from crowdbake.api.routes import assets, bakes, bundles, health, metrics, web
 from crowdbake.jobs.celery_app import make_celery
+from crowdbake.jobs.sweeper import Dispatcher, Sweeper
 from crowdbake.metrics import HttpMetrics, MetricsMiddleware
 from crowdbake.settings import Settings, get_settings, redact_url
 from crowdbake.storage.blobs import make_blob_store
@@ -82,6 +84,17 @@ def add_docs_routes(app: FastAPI) -> None:
                               redoc_favicon_url=f"{DOCS_ASSETS_URL}/favicon.png", with_google_fonts=False)
 
 
+@asynccontextmanager
+async def lifespan(app: FastAPI):
+    """The sweeper (crowdbake.jobs.sweeper) runs while the server serves."""
+    services = app.state.services
+    sweeper = Sweeper(services.sessions, services.celery, services.settings).start()
+    try:
+        yield
+    finally:
+        sweeper.stop()
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     if settings is None:
         try:
@@ -97,6 +110,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         docs_url=None,  # add_docs_routes serves them from packaged files instead of a CDN
         redoc_url=None,
         generate_unique_id_function=operation_id,
+        lifespan=lifespan,
         openapi_tags=[
             {"name": "assets", "description": "Upload characters, cloth caches and textures (validated, deduplicated by sha256)."},
             {"name": "bakes", "description": "Bake jobs: state and progress per stage, errors, log, cancel, retry."},
@@ -106,6 +120,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.services = build_services(settings)
     app.state.readiness = health.readiness_probe(app.state.services)
+    app.state.dispatcher = Dispatcher(app.state.services.sessions, app.state.services.celery, settings)
     problems.install(app)
     add_docs_routes(app)
     for module in (assets, bakes, bundles, health, metrics):
