@@ -44,6 +44,9 @@ from service_fixtures import free_port
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
+QUICK_PARAMS = dict(FAST_PARAMS, close="hermite")
+SLOW_PARAMS = dict(SLOW_IMPOSTOR_PARAMS, close="hermite")
+
 BAKE_TIMEOUT_S = 240
 # A sweeper that acts within seconds (the defaults: heartbeats every 10 s, lost after 60 s, a pass
 # every 15 s, unsent messages sent after 5 s).
@@ -71,13 +74,13 @@ def test_a_bake_submitted_to_a_frozen_broker_is_accepted_at_once_and_sent_after_
         ids = upload_sample(client, sample)
         os.kill(redis.popen.pid, signal.SIGSTOP)
         started = time.monotonic()
-        created = client.post("/v1/bakes", json=bake_body(ids, "frozen-walker", "1.0.0", FAST_PARAMS))
+        created = client.post("/v1/bakes", json=bake_body(ids, "frozen-walker", "1.0.0", QUICK_PARAMS))
         submit_s = time.monotonic() - started
         assert created.status_code == 202 and created.json()["state"] == "queued", created.text
         assert submit_s < ENQUEUE_WAIT_S + 1.0, f"POST /v1/bakes took {submit_s:.1f} s with the broker frozen"
         bake_id = created.json()["id"]
         started = time.monotonic()
-        again = client.post("/v1/bakes", json=bake_body(ids, "frozen-walker", "1.0.0", FAST_PARAMS))
+        again = client.post("/v1/bakes", json=bake_body(ids, "frozen-walker", "1.0.0", QUICK_PARAMS))
         resubmit_s = time.monotonic() - started
         assert again.status_code == 200 and again.json()["id"] == bake_id and resubmit_s < ENQUEUE_WAIT_S + 1.0
 
@@ -159,7 +162,7 @@ def test_serve_counts_pool_kills_restarts_a_dead_worker_and_the_sweeper_finishes
     process, url, data, key, log = serve
     with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {key}"}, timeout=30) as client:
         ids = upload_sample(client, sample)
-        bake_id = client.post("/v1/bakes", json=bake_body(ids, "served-walker", "1.0.0", SLOW_IMPOSTOR_PARAMS)).json()["id"]
+        bake_id = client.post("/v1/bakes", json=bake_body(ids, "served-walker", "1.0.0", SLOW_PARAMS)).json()["id"]
 
         def impostors_busy() -> int | None:
             deadline = time.monotonic() + BAKE_TIMEOUT_S
@@ -199,7 +202,7 @@ def test_serve_counts_pool_kills_restarts_a_dead_worker_and_the_sweeper_finishes
         assert process_state(worker) is None, "the dead worker was left a zombie"
         assert httpx.get(f"{url}/ready", timeout=10).status_code == 200
         # A bake submitted now is not stuck behind the dead worker.
-        second = client.post("/v1/bakes", json=bake_body(ids, "served-walker", "2.0.0", FAST_PARAMS)).json()["id"]
+        second = client.post("/v1/bakes", json=bake_body(ids, "served-walker", "2.0.0", QUICK_PARAMS)).json()["id"]
         first = wait_for_bake(client, bake_id, BAKE_TIMEOUT_S, explain=lambda: log.read_text()[-4000:])
         recovered_s = time.monotonic() - killed_at
         other = wait_for_bake(client, second, BAKE_TIMEOUT_S, explain=lambda: log.read_text()[-4000:])
