@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from celery import group
+from celery import group, signals
 from celery.exceptions import Reject
 from kombu.exceptions import OperationalError as KombuOperationalError
 from sqlalchemy.exc import OperationalError
@@ -385,6 +385,50 @@ def _send_queued(stage: str, bake_id: str, attempt: int, *parts: str) -> None:
 
 def _queue_next(session: Session, ctx: StageContext, stage: str) -> None:
     records.queue_stage(session, ctx.bake_id, stage)
+
+
+# ------------------------------------------------------------------- messages held by a worker
+
+
+# Which unit a task message is for: (stage, part) from the task name and its args.
+_STAGE_OF_TASK = {name: ("impostors" if stage == "impostor_views" else stage) for stage, name in TASK_NAMES.items()}
+_received_beat: threading.Thread | None = None
+
+
+@signals.task_received.connect
+def _mark_received(sender=None, request=None, **_kwargs) -> None:
+    """In the worker's main process, as a message arrives (records.mark_received): a worker lost while
+    it holds messages no pool process has started yet leaves marks that stop beating."""
+    stage = _STAGE_OF_TASK.get(getattr(request, "task_name", None))
+    args = list(getattr(request, "args", None) or [])
+    if stage is None or len(args) < 2:
+        return
+    part = args[2] if stage == "impostors" and len(args) > 2 else None
+    try:
+        with session_scope(services().sessions) as session:
+            records.mark_received(session, args[0], int(args[1]), stage, part, records.delivery_owner(request.id))
+    except Exception as error:  # a busy database: the task's own claim still works without the mark
+        logger.warning("could not mark %s of bake %s as received: %s", part or stage, args[0], error)
+    _start_received_beat()
+
+
+def _start_received_beat() -> None:
+    global _received_beat
+    if _received_beat is not None and _received_beat.is_alive():
+        return
+    prefix = f"{records.this_host()}:{os.getpid()}:"
+
+    def beat() -> None:
+        while True:
+            time.sleep(services().settings.heartbeat_interval)
+            try:
+                with session_scope(services().sessions) as session:
+                    records.beat_received(session, prefix)
+            except Exception as error:
+                logger.warning("heartbeat of received messages failed: %s", error)
+
+    _received_beat = threading.Thread(target=beat, name="received-heartbeat", daemon=True)
+    _received_beat.start()
 
 
 # ------------------------------------------------------------------------------------------ stages

@@ -325,6 +325,41 @@ def owner_is_dead(owner: str) -> bool:
         return False
 
 
+def _host_pid(owner: str) -> tuple[str, int | None]:
+    host, _, rest = owner.partition(":")
+    pid_text = rest.partition(":")[0]
+    return host, int(pid_text) if pid_text.isdigit() else None
+
+
+def _marked_by_my_worker(owner: str) -> bool:
+    """True when `owner` is the receipt mark of this pool process's own worker (see `mark_received`)."""
+    host, pid = _host_pid(owner)
+    return host == this_host() and pid == os.getppid()
+
+
+def mark_received(session: Session, bake_id: str, attempt: int, stage: str, part: str | None, owner: str) -> bool:
+    """A worker's main process took this unit's message from the broker (before a pool process runs
+    it): the unit is marked as that worker's, and the worker's heartbeat (`beat_received`) keeps the
+    mark fresh. If the worker dies holding the message (a lost machine; the filesystem broker loses
+    such a message, Redis keeps it for its visibility timeout), the mark goes stale and the sweeper
+    re-queues the unit. Only an unowned, unfinished unit of a live attempt is marked."""
+    table = BakePart if part else BakeStage
+    key = (BakePart.part == part) if part else (BakeStage.stage == stage)
+    live = select(Bake.id).where(Bake.id == bake_id, Bake.attempt == attempt, Bake.state.in_(LIVE_BAKE_STATES)).scalar_subquery()
+    query = update(table).where(table.bake_id == live, key, table.owner.is_(None))
+    query = query.where(BakePart.done.is_(False)) if part else query.where(BakeStage.state.in_(("pending", "queued", "retrying")))
+    return session.execute(query.values(owner=owner, heartbeat_at=utcnow())).rowcount == 1
+
+
+def beat_received(session: Session, owner_prefix: str) -> int:
+    """Refresh the marks of every unit a worker's main process received and no pool process has
+    claimed yet (their owner starts with "host:pid:"). Returns how many."""
+    now, count = utcnow(), 0
+    for table in (BakeStage, BakePart):
+        count += session.execute(update(table).where(table.owner.startswith(owner_prefix, autoescape=True)).values(heartbeat_at=now)).rowcount
+    return count
+
+
 @dataclass(frozen=True)
 class Claim:
     """The outcome of a delivery's claim: `won` (run it), with `retries` taken so far and `lost_owner`
@@ -358,7 +393,7 @@ def claim_delivery(session: Session, bake_id: str, attempt: int, stage: str, par
     if finished:
         return Claim(False, f"{part or stage} of bake {bake_id} is already {('done' if part else unit.state)}")
     lost_owner = None
-    if unit.owner is not None and unit.owner != owner:
+    if unit.owner is not None and unit.owner != owner and not _marked_by_my_worker(unit.owner):
         beat = to_utc(unit.heartbeat_at)
         if not owner_is_dead(unit.owner) and beat is not None and beat >= stale_before:
             return Claim(False, f"{part or stage} of bake {bake_id} is running elsewhere ({unit.owner})")

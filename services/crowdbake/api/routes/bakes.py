@@ -152,8 +152,10 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
             if published is not None:
                 raise Problem("conflict", f"{body.name}/{body.version} is already published from other inputs; bundles never change, choose a new version")
             holder = records.slot_holder(session, body.name, body.version)
-            if holder is not None:
+            if holder is not None and holder.live_key != key_digest:
                 raise _reserved_conflict(session, body.name, body.version, key_digest)
+            existing = holder  # an identical submit committed since the lookup above
+    if existing is None:
         bake = records.create_bake(
             session, name=body.name, version=body.version, params=params,
             inputs={"character": character.id, "cloth": cloth.id, "textures": {name: texture.id for name, texture in textures.items()}},
