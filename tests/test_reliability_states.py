@@ -208,7 +208,9 @@ def test_serve_counts_pool_kills_restarts_a_dead_worker_and_the_sweeper_finishes
         other = wait_for_bake(client, second, BAKE_TIMEOUT_S, explain=lambda: log.read_text()[-4000:])
     assert first["state"] == "succeeded" and other["state"] == "succeeded", (first["error"], other["error"])
     full_log = httpx.get(f"{url}/v1/bakes/{bake_id}/log", headers={"Authorization": f"Bearer {key}"}, timeout=10).text
-    assert "delivered again" in full_log and "lost its worker" in full_log, full_log[-3000:]
+    # Each loss is in the log: a takeover from the dead pool process ("delivered again") or, when the
+    # sweeper saw the stale heartbeat first, a re-queue ("lost its worker").
+    assert full_log.count("lost its worker") + full_log.count("delivered again") >= 2, full_log[-3000:]
     assert full_log.count("bake succeeded") == 1 and full_log.count("publish finished") == 1
     print(f"\nserve: a pool kill counted {retries} retry; the whole worker killed: restarted in {restarted_s:.1f} s, "
           f"its bake succeeded {recovered_s:.1f} s after the kill (heartbeat timeout {QUICK_SWEEP['CROWDBAKE_HEARTBEAT_TIMEOUT']} s)")
