@@ -341,7 +341,7 @@ def test_too_many_impostor_texels_is_a_422_naming_the_parameters(api, assets):
     # The same rule where the CLI and the workers read parameters.
     with pytest.raises(ValueError, match="tile_size"):
         BakeParams.from_dict(huge)
-    # Just under the cap is accepted (2 x 64 x 2 x 724² < 2^27 with a multiple of 4).
+    # Exactly the cap is accepted (1 x 64 x 2 x 1024² = 2^27).
     BakeParams.from_dict({"impostor_frames": 1, "azimuths": 64, "elevations_deg": [0, 30], "tile_size": 1024})
 
 
