@@ -155,7 +155,12 @@ class Service:
 
 
 def make_service(root: Path, broker_url: str, **settings_env: str) -> Service:
-    """A migrated database with keys, and the environment of its API and workers (nothing started)."""
+    """A migrated database with keys, and the environment of its API and workers (nothing started).
+
+    The keys are one team's roles handing each other assets and bundles, so the service runs as a
+    shared workspace unless CROWDBAKE_SHARED_WORKSPACE is given (services/tests/test_ownership.py
+    checks the default, where a key sees only what it created)."""
+    settings_env.setdefault("CROWDBAKE_SHARED_WORKSPACE", "true")
     from crowdbake.settings import Settings
     from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
     from crowdbake.storage.keys import create_api_key

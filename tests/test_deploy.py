@@ -403,6 +403,12 @@ def test_commands_name_real_entry_points(compose, monkeypatch, tmp_path):
     module_name, _, attribute = api[2].partition(":")
     factory = getattr(importlib.import_module(module_name), attribute)
     assert callable(factory)
+    # Slow clients: the header deadline's protocol class exists and keep-alive is short.
+    protocol_module, _, protocol = api[api.index("--http") + 1].partition(":")
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    assert issubclass(getattr(importlib.import_module(protocol_module), protocol), H11Protocol)
+    assert 0 < int(api[api.index("--timeout-keep-alive") + 1]) <= 10
     worker = compose["services"]["worker"]["command"]
     assert worker[:4] == ["celery", "-A", "crowdbake.jobs.celery_app", "worker"]
     from celery import Celery

@@ -493,7 +493,7 @@ Status parse_manifest(const std::string& text, Manifest* out) {
         m.cycle.source_start_frame = check.integer(*cycle, "cycle", "source_start_frame", 0);
         m.cycle.source_end_frame = check.integer(*cycle, "cycle", "source_end_frame", 1);
         m.cycle.frames = check.integer(*cycle, "cycle", "frames", 1);
-        m.cycle.closing = check.enumerated(*cycle, "cycle", "closing", {"none", "linear", "hermite"});
+        m.cycle.closing = check.enumerated(*cycle, "cycle", "closing", {"none", "linear", "hermite", "crossfade"});
         m.cycle.position_jump_ratio = check.number(*cycle, "cycle", "position_jump_ratio", 0);
         m.cycle.velocity_jump_ratio = check.number(*cycle, "cycle", "velocity_jump_ratio", 0);
     }

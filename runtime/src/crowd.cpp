@@ -243,6 +243,7 @@ void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& 
                  FrameInstances* out, ImpostorBlend blend) {
     for (auto& list : out->by_lod) list.clear();
     out->impostor_samples.clear();
+    out->blend = blend;
     const bool blend_views = blend == ImpostorBlend::views || blend == ImpostorBlend::full;
     const bool blend_frames = blend == ImpostorBlend::frames || blend == ImpostorBlend::full;
     out->culled = 0;
@@ -289,8 +290,15 @@ void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& 
             if (blend_frames) frames = blend_frame_weights(inst.frame, model.frame_indices, model.frame_count);
             inst.tile = nearest.tiles[0];
             inst.frame = frames.layers[frames.weight > 0.5f ? 1 : 0];
+            // Heaviest first, weight-0 entries last (repeating the heaviest tile).
+            int order[4] = {0, 1, 2, 3};
+            std::stable_sort(order, order + 4, [&](int a, int b) { return views.weights[a] > views.weights[b]; });
             ImpostorSamples samples;
-            for (int k = 0; k < 4; ++k) samples.tiles[k] = views.tiles[k], samples.view_weights[k] = views.weights[k];
+            for (int k = 0; k < 4; ++k) {
+                const bool used = views.weights[order[k]] > 0;
+                samples.tiles[k] = used ? views.tiles[order[k]] : views.tiles[order[0]];
+                samples.view_weights[k] = used ? views.weights[order[k]] : 0.0f;
+            }
             samples.layers[0] = frames.layers[0], samples.layers[1] = frames.layers[1];
             samples.frame_weight = frames.weight;
             samples.unused = 0;

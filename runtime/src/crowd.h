@@ -33,7 +33,7 @@ static_assert(offsetof(Instance, heading) == 12 && offsetof(Instance, frame) == 
 // impostor.vert.glsl reads them (CV_ATTR_IMPOSTOR_* in config.h). Mirrored on purpose.
 struct ImpostorSamples {
     uint32_t tiles[4];        // atlas tiles, azimuth + elevation * azimuth_count
-    float view_weights[4];    // summing to 1
+    float view_weights[4];    // summing to 1, heaviest first; weight-0 entries last
     uint32_t layers[2];       // atlas layers (baked frames)
     float frame_weight;       // of layers[1]; layers[0] has 1 - frame_weight
     float unused;
@@ -200,6 +200,7 @@ constexpr float kFixedTimeStep = 1.0f / 30.0f;
 struct FrameInstances {
     std::vector<Instance> by_lod[3];  // indexed by Lod; impostors carry their nearest view and frame
     std::vector<ImpostorSamples> impostor_samples;  // one per by_lod[Lod::impostor] entry
+    ImpostorBlend blend = ImpostorBlend::full;      // how they were chosen: the shader variant to draw them
     uint32_t culled = 0;
 };
 

@@ -2,7 +2,8 @@
 //
 //   crowdview (--bundle DIR | --url URL) [--cache DIR] [--count N] [--seed S] [--layout spot|paths]
 //             [--headless --frames N --screenshot out.png] [--benchmark --report out.json]
-//             [--width W --height H] [--lod auto|high|low|impostor|detail]
+//             [--width W --height H] [--lod auto|high|low|impostor|detail] [--impostor-blend off|views|frames|full]
+//             [--key KEY] [--cache-budget-mib N] [--min-rate B] [--timeout S]
 //   crowdview --verify DIR|URL
 //
 // Exit status: 0 success, 1 a bundle or file was refused or a run failed, 2 bad arguments,
@@ -16,13 +17,8 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
-#include <cstring>
-#include <ctime>
 #include <fstream>
-#include <functional>
-#include <map>
 #include <string>
-#include <thread>
 #include <vector>
 
 #include <nlohmann/json.hpp>

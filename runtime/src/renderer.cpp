@@ -200,6 +200,8 @@ struct Renderer::Part {
     bool garment = false;
 };
 
+static_assert(int(ImpostorBlend::off) == 0 && int(ImpostorBlend::full) == 3, "impostor programs are indexed by ImpostorBlend");
+
 namespace {
 
 // Uniform locations, looked up once when a program is linked (-1: the program has no such
@@ -246,9 +248,12 @@ ImpostorUniforms impostor_uniforms(GLuint program) {
 
 struct Renderer::Impl {
     GLuint framebuffer = 0, color = 0, depth = 0;
-    GLuint mesh_program = 0, impostor_uv_program = 0, impostor_detail_program = 0;
+    GLuint mesh_program = 0;
+    // Impostor programs by ImpostorKind and ImpostorBlend: each blend mode is its own shader
+    // variant with constant sample counts, so blending off costs what the paper's lookup does.
+    GLuint impostor_programs[2][4] = {};
+    ImpostorUniforms impostor_uniforms[2][4];
     MeshUniforms mesh_uniforms;
-    ImpostorUniforms impostor_uv_uniforms, impostor_detail_uniforms;
     std::vector<Part> parts;
     GLuint impostor_vao = 0;
     GLuint instance_buffers[3] = {0, 0, 0};  // by Lod
@@ -275,8 +280,8 @@ struct Renderer::Impl {
         GLuint textures[] = {empty_array, outfits, normal_map, uv_map, detail_map};
         glDeleteTextures(5, textures);
         glDeleteProgram(mesh_program);
-        glDeleteProgram(impostor_uv_program);
-        glDeleteProgram(impostor_detail_program);
+        for (auto& by_blend : impostor_programs)
+            for (GLuint program : by_blend) glDeleteProgram(program);
         glDeleteFramebuffers(1, &framebuffer);
         GLuint renderbuffers[] = {color, depth};
         glDeleteRenderbuffers(2, renderbuffers);
@@ -340,31 +345,38 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
     const std::string uv_defines =
         std::string("#define CV_UV_MAP_UV32 ") + (bundle.impostor_uv.format == PixelFormat::uv32 ? "1" : "0") + "\n";
     g.mesh_program = build_program(desc.shader_dir, "mesh", "mesh", &shader_error);
-    if (g.mesh_program)
-        g.impostor_uv_program = build_program(desc.shader_dir, "impostor", "impostor_uv", &shader_error, uv_defines);
-    if (g.impostor_uv_program)
-        g.impostor_detail_program = build_program(desc.shader_dir, "impostor", "impostor_detail", &shader_error, uv_defines);
-    if (!g.impostor_detail_program) {
+    if (!g.mesh_program) {
         *error = fn + shader_error;
         return nullptr;
     }
     g.mesh_uniforms = mesh_uniforms(g.mesh_program);
-    g.impostor_uv_uniforms = impostor_uniforms(g.impostor_uv_program);
-    g.impostor_detail_uniforms = impostor_uniforms(g.impostor_detail_program);
     // Sampler units are fixed (config.h), so they are set once.
     glUseProgram(g.mesh_program);
     glUniform1i(uniform(g.mesh_program, "u_poses"), CV_UNIT_POSES);
     glUniform1i(uniform(g.mesh_program, "u_outfits"), CV_UNIT_OUTFITS);
     glUniform1i(uniform(g.mesh_program, "u_diffuse"), CV_UNIT_DIFFUSE0);
-    for (GLuint program : {g.impostor_uv_program, g.impostor_detail_program}) {
-        glUseProgram(program);
-        glUniform1i(uniform(program, "u_outfits"), CV_UNIT_OUTFITS);
-        glUniform1i(uniform(program, "u_normal_map"), CV_UNIT_IMPOSTOR_NORMAL);
-        glUniform1i(uniform(program, "u_uv_map"), CV_UNIT_IMPOSTOR_UV);
-        glUniform1i(uniform(program, "u_detail_map"), CV_UNIT_IMPOSTOR_DETAIL);
-        for (int k = 0; k < CV_MAX_MATERIALS; ++k)
-            glUniform1i(uniform(program, ("u_diffuse[" + std::to_string(k) + "]").c_str()), CV_UNIT_DIFFUSE0 + k);
-    }
+    for (int kind = 0; kind < 2; ++kind)
+        for (int blend = 0; blend < 4; ++blend) {
+            const bool views = ImpostorBlend(blend) == ImpostorBlend::views || ImpostorBlend(blend) == ImpostorBlend::full;
+            const bool frames = ImpostorBlend(blend) == ImpostorBlend::frames || ImpostorBlend(blend) == ImpostorBlend::full;
+            const std::string defines = uv_defines + "#define CV_VIEW_SAMPLES " + (views ? "4" : "1") + "\n#define CV_FRAME_SAMPLES " +
+                                        (frames ? "2" : "1") + "\n";
+            const GLuint program = build_program(desc.shader_dir, "impostor", kind == 0 ? "impostor_uv" : "impostor_detail",
+                                                 &shader_error, defines);
+            if (!program) {
+                *error = fn + shader_error;
+                return nullptr;
+            }
+            g.impostor_programs[kind][blend] = program;
+            g.impostor_uniforms[kind][blend] = impostor_uniforms(program);
+            glUseProgram(program);
+            glUniform1i(uniform(program, "u_outfits"), CV_UNIT_OUTFITS);
+            glUniform1i(uniform(program, "u_normal_map"), CV_UNIT_IMPOSTOR_NORMAL);
+            glUniform1i(uniform(program, "u_uv_map"), CV_UNIT_IMPOSTOR_UV);
+            glUniform1i(uniform(program, "u_detail_map"), CV_UNIT_IMPOSTOR_DETAIL);
+            for (int k = 0; k < CV_MAX_MATERIALS; ++k)
+                glUniform1i(uniform(program, ("u_diffuse[" + std::to_string(k) + "]").c_str()), CV_UNIT_DIFFUSE0 + k);
+        }
 
     // Instance buffers, one per LOD, refilled every frame.
     glGenBuffers(3, g.instance_buffers);
@@ -581,9 +593,9 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
     // 3. Impostors: one instanced draw of camera-facing quads.
     const std::vector<Instance>& quads = frame.by_lod[int(Lod::impostor)];
     if (!quads.empty()) {
-        const bool uv = impostors == ImpostorKind::uv;
-        const ImpostorUniforms& iu = uv ? g.impostor_uv_uniforms : g.impostor_detail_uniforms;
-        glUseProgram(uv ? g.impostor_uv_program : g.impostor_detail_program);
+        const int kind = impostors == ImpostorKind::uv ? 0 : 1, blend = int(frame.blend);
+        const ImpostorUniforms& iu = g.impostor_uniforms[kind][blend];
+        glUseProgram(g.impostor_programs[kind][blend]);
         glUniformMatrix4fv(iu.view_projection, 1, GL_FALSE, glm::value_ptr(view_projection));
         glUniform3fv(iu.light_dir, 1, glm::value_ptr(light));
         glUniform3fv(iu.camera_position, 1, glm::value_ptr(camera.position));

@@ -30,7 +30,8 @@ GOOD_BUNDLE = REPO_ROOT / "shared_formats" / "vectors" / "v1" / "good" / "bundle
 def tiny_character(animated: bool = True):
     """A skinned tetrahedron on one joint that bobs up and down in a quarter second (a valid character;
     6 frames per cycle at crowdbake.params.BASE_FPS (24 fps), so a 12-frame cloth cache holds two cycles)."""
-    from crowdbake.formats.gltf import AnimationChannel, Character, vertex_normals
+    from crowdbake.bake.mesh import vertex_normals
+    from crowdbake.formats.gltf import AnimationChannel, Character
 
     positions = np.array([[0, 0, 0], [0.5, 0, 0], [0, 1.7, 0], [0, 0, 0.5]], np.float32)
     faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint32)
@@ -160,6 +161,11 @@ def fresh_test_database(server_url: str) -> str:
 
 
 def make_api(tmp_path: Path, **overrides) -> Api:
+    """The real app on a temporary data folder, with one key per entry of KEY_SCOPES.
+
+    The keys are one team's roles (an upload key, a bake key, a read key...) that hand each other
+    assets and bundles, so the app runs as a shared workspace unless `shared_workspace=False` is given
+    (tests/test_ownership.py runs the default, where every key sees only what it created)."""
     from fastapi.testclient import TestClient
 
     from crowdbake.api.app import create_app
@@ -169,6 +175,7 @@ def make_api(tmp_path: Path, **overrides) -> Api:
 
     if "database_url" not in overrides and os.environ.get("CROWDBAKE_TEST_DATABASE_URL"):
         overrides["database_url"] = fresh_test_database(os.environ["CROWDBAKE_TEST_DATABASE_URL"])
+    overrides.setdefault("shared_workspace", True)
     settings = Settings(data_dir=tmp_path / "data", **overrides)
     app = create_app(settings)
     keys = {}
@@ -243,7 +250,8 @@ def start_api(env: dict[str, str], port: int, log: Path, timeout: float = 60) ->
     import httpx
 
     process = start_process(
-        [sys.executable, "-m", "uvicorn", "--factory", "crowdbake.api.app:create_app", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
+        [sys.executable, "-m", "uvicorn", "--factory", "crowdbake.api.app:create_app", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning",
+         "--http", "crowdbake.api.slow_clients:HeaderTimeoutProtocol", "--timeout-keep-alive", "5"],
         env, log,
     )
     deadline = time.monotonic() + timeout

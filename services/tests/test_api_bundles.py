@@ -66,9 +66,13 @@ def test_conditional_and_head(api):
 
 def test_latest_alias_revalidates_and_names_the_version(api):
     publish_vector_bundle(api, api.name, "2.0.0", public=False)
-    response = api.client.get(f"/v1/bundles/{api.name}/latest/files/{ENTRY['path']}", headers=api.auth("read"))
-    assert response.status_code == 200 and response.headers["cache-control"] == "no-cache"
-    assert response.headers["content-location"] == f"/v1/bundles/{api.name}/2.0.0/files/{ENTRY['path']}"
+    # latest is resolved once: a 307 to the concrete version, for the manifest and for files alike.
+    for tail in (f"files/{ENTRY['path']}", "manifest.json"):
+        response = api.client.get(f"/v1/bundles/{api.name}/latest/{tail}", headers=api.auth("read"), follow_redirects=False)
+        assert response.status_code == 307 and response.headers["cache-control"] == "no-cache"
+        assert response.headers["location"] == f"/v1/bundles/{api.name}/2.0.0/{tail}"
+        followed = api.client.get(response.headers["location"], headers=api.auth("read"))
+        assert followed.status_code == 200 and "immutable" in followed.headers["cache-control"]
     info = api.client.get(f"/v1/bundles/{api.name}/latest", headers=api.auth("read")).json()
     assert info["version"] == "2.0.0"
     versions = api.client.get(f"/v1/bundles/{api.name}", headers=api.auth("read")).json()

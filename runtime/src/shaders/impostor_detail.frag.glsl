@@ -1,6 +1,9 @@
 #version 330 core
 #include "../config.h"
 #include "impostor_uv_map.glsl"
+#if !defined(CV_VIEW_SAMPLES) || !defined(CV_FRAME_SAMPLES)
+#error "the renderer defines CV_VIEW_SAMPLES (1 or 4) and CV_FRAME_SAMPLES (1 or 2)"
+#endif
 // The detail-mapped impostor the paper compares against (Geopostors): the diffuse colour of
 // variation 0 is baked into the detail map, alpha carries the region code. Coverage comes
 // from the UV map (impostor_uv_map.glsl), since region 0 inside the character also has alpha 0.
@@ -24,15 +27,28 @@ uniform vec3 u_light_dir;
 
 out vec4 o_color;
 
+#if CV_VIEW_SAMPLES * CV_FRAME_SAMPLES == 1
+// Blending off: the paper's single lookup, leaving at once outside the silhouette (on a
+// software rasterizer the accumulating loop below costs half as much again).
+void main() {
+    ivec3 texel = ivec3(ivec2(v_tile_x[0], v_tile_y[0]) + clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1)), v_layers[0]);
+    if (!fetch_uv_map(texel).covered) discard;
+    vec4 detail = texelFetch(u_detail_map, texel, 0);
+    vec3 albedo = detail.rgb;
+    int region = int(detail.a * 255.0 / CV_REGION_SCALE + 0.5);
+    if (region != 0) albedo *= texelFetch(u_outfits, ivec2(region, int(v_outfit)), 0).rgb;
+    vec3 model_normal = texelFetch(u_normal_map, texel, 0).rgb * 2.0 - 1.0;
+#else
 void main() {
     ivec2 local = clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1));
     float coverage = 0.0;
     vec3 albedo = vec3(0.0), model_normal = vec3(0.0);
-    for (int j = 0; j < 2; ++j) {
+    // Constant bounds (the renderer's CV_VIEW_SAMPLES, CV_FRAME_SAMPLES: 1 or 4, 1 or 2), so
+    // the loops unroll.
+    for (int j = 0; j < CV_FRAME_SAMPLES; ++j) {
         float frame_weight = j == 0 ? 1.0 - v_frame_weight : v_frame_weight;
-        for (int i = 0; i < 4; ++i) {
+        for (int i = 0; i < CV_VIEW_SAMPLES; ++i) {
             float w = v_view_weights[i] * frame_weight;
-            if (w <= 0.0) continue;
             ivec3 texel = ivec3(ivec2(v_tile_x[i], v_tile_y[i]) + local, v_layers[j]);
             if (!fetch_uv_map(texel).covered) continue;
             vec4 detail = texelFetch(u_detail_map, texel, 0);
@@ -46,6 +62,7 @@ void main() {
     }
     if (coverage <= 0.5) discard;  // see impostor_uv.frag.glsl
     albedo /= coverage;
+#endif
     float c = cos(v_heading), s = sin(v_heading);
     vec3 normal = normalize(mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c) * model_normal);
     float light = CV_AMBIENT + (1.0 - CV_AMBIENT) * max(dot(normal, u_light_dir), 0.0);

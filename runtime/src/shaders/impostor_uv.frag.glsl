@@ -1,6 +1,9 @@
 #version 330 core
 #include "../config.h"
 #include "impostor_uv_map.glsl"
+#if !defined(CV_VIEW_SAMPLES) || !defined(CV_FRAME_SAMPLES)
+#error "the renderer defines CV_VIEW_SAMPLES (1 or 4) and CV_FRAME_SAMPLES (1 or 2)"
+#endif
 #if CV_MAX_MATERIALS != 4
 #error albedo_at samples materials 0 to 3, keep it in step with CV_MAX_MATERIALS
 #endif
@@ -72,13 +75,12 @@ void main() {
     float limit = 4.0 * max(length(dFdx(v_tile_uv)), length(dFdy(v_tile_uv))) + 1e-6;
     float coverage = 0.0;
     vec3 albedo = vec3(0.0), model_normal = vec3(0.0);
-    for (int j = 0; j < 2; ++j) {
+    // Constant bounds (the renderer's CV_VIEW_SAMPLES, CV_FRAME_SAMPLES: 1 or 4, 1 or 2), so
+    // the loops unroll; with blending off this is the paper's single lookup.
+    for (int j = 0; j < CV_FRAME_SAMPLES; ++j) {
         float frame_weight = j == 0 ? 1.0 - v_frame_weight : v_frame_weight;
-        for (int i = 0; i < 4; ++i) {
+        for (int i = 0; i < CV_VIEW_SAMPLES; ++i) {
             float w = v_view_weights[i] * frame_weight;
-            // Weights are flat per impostor: the whole quad takes this branch together, so the
-            // derivatives inside it are well defined.
-            if (w <= 0.0) continue;
             ivec3 texel = ivec3(ivec2(v_tile_x[i], v_tile_y[i]) + local, v_layers[j]);
             UvTexel t = fetch_uv_map(texel);
             vec2 dx = dFdx(t.uv), dy = dFdy(t.uv);

@@ -23,8 +23,9 @@ from crowdbake import __version__
 from crowdbake.api import problems
 from crowdbake.api.deps import AppServices
 from crowdbake.api.problems import PROBLEM_TYPES, Problem, problem_type_uri
+from crowdbake.api.slow_clients import MinimumBodyRate
 from crowdbake.api.schemas import Problem as ProblemDocument
-from crowdbake.api.routes import assets, bakes, bundles, health, metrics, web
+from crowdbake.api.routes import assets, bakes, bundles, exports, health, metrics, web
 from crowdbake.jobs.celery_app import make_celery
 from crowdbake.jobs.sweeper import Dispatcher, Sweeper
 from crowdbake.metrics import HttpMetrics, MetricsMiddleware
@@ -123,12 +124,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.dispatcher = Dispatcher(app.state.services.sessions, app.state.services.celery, settings)
     problems.install(app)
     add_docs_routes(app)
-    for module in (assets, bakes, bundles, health, metrics):
+    for module in (assets, bakes, bundles, exports, health, metrics):
         app.include_router(module.router)
     for router in web.routers:  # the web page, the cycle report and atlas previews it shows
         app.include_router(router)
+    app.include_router(exports.preview_router)  # the three.js crowd preview the page links to
     app.state.metrics = HttpMetrics(app.state.services.sessions)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    # Outermost: every read of a request body has a deadline (crowdbake.api.slow_clients).
+    app.add_middleware(MinimumBodyRate, min_bytes_per_s=settings.body_min_bytes_per_s, grace_s=settings.body_grace_s, max_s=settings.body_max_seconds)
 
     @app.get("/problems/{slug}", tags=["health"], summary="What a problem type means",
              responses={404: {"model": ProblemDocument, "content": {"application/problem+json": {}}, "description": "No such problem type"}})

@@ -23,6 +23,8 @@ The database is migrated at start. A worker that dies is restarted, and the stag
 re-queued by the API's sweeper once its heartbeat stops (CROWDBAKE_HEARTBEAT_TIMEOUT).
 Create a key first: crowdbake keys create --data DIR --scopes ..."""
 
+# Seconds an idle keep-alive connection stays open (uvicorn --timeout-keep-alive; the deploy manifests match).
+KEEP_ALIVE_S = 5
 # Seconds a worker gets to finish its current task on shutdown before it is killed.
 WORKER_STOP_TIMEOUT_S = 20
 # How often the supervisor looks whether the worker is still there, and the waits before restarting
@@ -154,6 +156,7 @@ def run(args: argparse.Namespace) -> int:
     from sqlalchemy import func, select
 
     from crowdbake.api.app import create_app
+    from crowdbake.api.slow_clients import HeaderTimeoutProtocol
     from crowdbake.storage.models import ApiKey
 
     app = create_app(settings)
@@ -168,7 +171,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"crowdbake serve: API on http://{args.host}:{args.port} (docs at /docs), {args.workers} worker(s), "
           f"data {settings.data_dir}, broker {redact_url(settings.broker_url)}", file=sys.stderr)
     try:
-        uvicorn.run(app, host=args.host, port=args.port, log_level="info")
+        # Slow clients: a deadline on request headers (the protocol) and a short keep-alive; the body's
+        # minimum rate is the app's own middleware (crowdbake.api.slow_clients).
+        uvicorn.run(app, host=args.host, port=args.port, log_level="info", http=HeaderTimeoutProtocol, timeout_keep_alive=KEEP_ALIVE_S)
     finally:
         if worker is not None:
             stop_worker(worker)

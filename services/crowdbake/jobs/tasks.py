@@ -41,7 +41,7 @@ import shutil
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, Callable
 
 from celery import group, signals
@@ -439,7 +439,7 @@ def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
 
     Not work/inputs: stage_validate copies its inputs there and clears that folder first. The links
     share the blobs' modification times (the upload's), which the validate stage takes the manifest's
-    `created` from, so every attempt of a bake produces the same bytes."""
+    `created` from when the request gave none, so every attempt of a bake produces the same bytes."""
     blobs = ctx.services.blobs
     inputs_dir = ctx.work / "sources"
     if inputs_dir.exists():
@@ -449,8 +449,10 @@ def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
     if character is None or cloth is None:
         raise InputError("an input asset no longer exists", "character" if character is None else "cloth")
     character_path = blobs.materialize(character.files["file"]["sha256"], inputs_dir / f"character.{character.info.get('format', 'glb')}")
-    cloth_path = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / "cloth.pc2")
-    mesh_path = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "cloth.obj")
+    # The cache keeps its format's extension (.pc2, .mdd, .abc): the validate stage reads it by extension.
+    cache_suffix = PurePosixPath(cloth.files["cache"].get("filename") or "cloth.pc2").suffix.lower() or ".pc2"
+    cloth_path = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / f"cloth{cache_suffix}")
+    mesh_path = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "cloth.obj") if "mesh" in cloth.files else None
     textures_dir = None
     if bake.inputs.get("textures"):
         textures_dir = inputs_dir / "textures"
@@ -461,7 +463,7 @@ def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
             blobs.materialize(texture.files["file"]["sha256"], textures_dir / name)
     return _stage("validate").BakeInputs(
         character=character_path, cloth=cloth_path, cloth_mesh=mesh_path, textures=textures_dir, cycle=None,
-        name=bake.name, version=bake.version, params=BakeParams.from_dict(bake.params),
+        name=bake.name, version=bake.version, params=BakeParams.from_dict(bake.params), created=bake.inputs.get("created"),
     )
 
 
@@ -578,7 +580,10 @@ def pack(self, bake_id: str, attempt: int) -> None:
 @app.task(name=TASK_NAMES["publish"], **TASK_OPTIONS)
 def publish(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
-        return _stage("publish").stage_publish(ctx.work, ctx.services.settings.bundles_dir)
+        settings = ctx.services.settings
+        path = _stage("publish").stage_publish(ctx.work, settings.bundles_dir)
+        _stage("publish").stage_export(ctx.work, settings.bundles_dir)  # the engine export beside it, unless export=false
+        return path
 
     def after(ctx: StageContext, result, seconds: float) -> None:
         # The record, the stage's success and the bake's in one transaction; a cancel cannot come

@@ -16,7 +16,7 @@ from crowdbake.stages.cycle import stage_cycle
 from crowdbake.stages.impostors import impostor_statistics, stage_impostors
 from crowdbake.stages.pack import stage_pack
 from crowdbake.stages.poses import stage_poses
-from crowdbake.stages.publish import stage_publish
+from crowdbake.stages.publish import stage_export, stage_publish
 from crowdbake.stages.records import PosesRecord
 from crowdbake.stages.validate import BakeInputs, stage_validate
 from crowdbake.stages.workdir import Progress, read_json, report
@@ -37,6 +37,8 @@ class BakeSummary:
     fidelity: dict[str, Any]
     compression: dict[str, Any]
     texture_memory: dict[str, Any]
+    # Set when a texture variation is a JPEG (no alpha, so no colour-region codes): what that means.
+    texture_note: str | None = None
 
     @property
     def total_bytes(self) -> int:
@@ -79,13 +81,20 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         return result
 
     try:
-        timed("validate", lambda: stage_validate(inputs, work))
+        job = timed("validate", lambda: stage_validate(inputs, work)).record
         cycle = timed("cycle", lambda: stage_cycle(work, progress)).record
         poses = timed("poses", lambda: stage_poses(work, progress)).record
         timed("impostors", lambda: stage_impostors(work, progress))
         impostor = impostor_statistics(work)
         pack = timed("pack", lambda: stage_pack(work, progress)).record
-        bundle = timed("publish", lambda: stage_publish(work, Path(out_root)))
+
+        def publish() -> Path:
+            # The engine export is part of publishing, as in the worker's publish task (None: export=false).
+            published = stage_publish(work, Path(out_root))
+            stage_export(work, Path(out_root))
+            return published
+
+        bundle = timed("publish", publish)
         report(progress, "publish", 1, 1)
     finally:
         if temporary:
@@ -103,4 +112,5 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         fidelity=dict(pack.fidelity, uv_precision=pack.uv_precision),
         compression=pack.compression,
         texture_memory=pack.texture_memory,
+        texture_note=(job.textures or {}).get("note"),
     )

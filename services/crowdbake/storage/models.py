@@ -58,7 +58,8 @@ class Asset(Base):
     """
 
     __tablename__ = "assets"
-    __table_args__ = (UniqueConstraint("kind", "digest", name="uq_assets_kind_digest"),)
+    # Unique per owner: two keys uploading the same bytes get an asset each (the blobs are shared).
+    __table_args__ = (UniqueConstraint("kind", "digest", "created_by", name="uq_assets_kind_digest_owner"),)
 
     id: Mapped[str] = mapped_column(String(40), primary_key=True)
     kind: Mapped[str] = mapped_column(String(20))
@@ -79,10 +80,11 @@ class Bake(Base):
     each retry; task messages of an older attempt are dropped. `fan_in_attempt` is the attempt whose
     pack stage has been enqueued (set once by whichever fan-out task finished last).
 
-    Two unique columns reserve what a bake must not share while it lives (both NULL once it failed or
-    was cancelled; NULLs never collide): `live_key`, its input key (identical submits get the same bake
-    and never share a work folder), and `publish_slot`, "<name>/<version>" of a bake that publishes (a
-    submit of the same version from other inputs is a conflict at once, not after a whole bake).
+    Two unique columns reserve what a bake must not share while it is queued or running (both NULL
+    once it ended; NULLs never collide): `live_key`, its input key (identical submits get the same bake
+    and two bakes never run in one work folder), and `publish_slot`, "<name>/<version>" of a bake that
+    publishes (a submit of the same version from other inputs is a conflict at once, not after a whole
+    bake; once published, the bundle's row holds the version).
     """
 
     __tablename__ = "bakes"

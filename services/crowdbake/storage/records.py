@@ -46,12 +46,13 @@ def code_version() -> str:
     return __version__
 
 
-def input_key(digests: dict[str, Any], name: str, version: str, params: dict[str, Any]) -> str:
-    """sha256 of everything that decides a bake's output; names the bake's work folder."""
-    canonical = json.dumps(
-        {"inputs": digests, "name": name, "version": version, "params": params, "code": code_version()},
-        sort_keys=True, separators=(",", ":"),
-    )
+def input_key(digests: dict[str, Any], name: str, version: str, params: dict[str, Any], created: str | None = None) -> str:
+    """sha256 of everything that decides a bake's output; names the bake's work folder. `created` (the
+    manifest time) counts only when given, so the keys of bakes without one are what they were."""
+    identity = {"inputs": digests, "name": name, "version": version, "params": params, "code": code_version()}
+    if created is not None:
+        identity["created"] = created
+    canonical = json.dumps(identity, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()
 
 
@@ -60,8 +61,8 @@ def create_bake(
     publish: bool, public: bool, created_by: str | None,
 ) -> Bake:
     """A new queued bake holding its reservations (`live_key`, and `publish_slot` when it publishes).
-    The caller's commit raises IntegrityError when a live bake holds either already (see
-    `reservation_holder`); its first stage is queued, its message not yet sent."""
+    The caller's commit raises IntegrityError when a live bake holds either already (`live_bake`,
+    `slot_holder`); its first stage is queued, its message not yet sent."""
     now = utcnow()
     bake = Bake(
         id=new_id("bk"), state="queued", name=name, version=version, params=params, inputs=inputs,
@@ -80,17 +81,26 @@ def publish_slot(name: str, version: str) -> str:
 
 
 def reusable_bake(session: Session, key: str) -> Bake | None:
-    """The bake holding this input key (queued, running or succeeded): idempotent resubmission."""
+    """The newest bake with this input key that did not fail or get cancelled (idempotent resubmission)."""
+    return session.scalars(
+        select(Bake).where(Bake.input_key == key, Bake.state.not_in(("failed", "cancelled"))).order_by(Bake.created_at.desc())
+    ).first()
+
+
+def live_bake(session: Session, key: str) -> Bake | None:
+    """The queued or running bake holding this input key, if any."""
     return session.scalars(select(Bake).where(Bake.live_key == key)).first()
 
 
 def slot_holder(session: Session, name: str, version: str) -> Bake | None:
-    """The live or succeeded bake that publishes (or published) name/version, if any."""
+    """The queued or running bake that will publish name/version, if any (once published, the bundle's
+    own row holds the version)."""
     return session.scalars(select(Bake).where(Bake.publish_slot == publish_slot(name, version))).first()
 
 
 def release_reservations(bake: Bake) -> None:
-    """A failed or cancelled bake lets go of its input key and version: a resubmit starts a new bake."""
+    """A bake that ended lets go of its input key and version: a failed or cancelled one can be
+    submitted again as a new bake, and a published version is held by its bundle row from then on."""
     bake.live_key = None
     bake.publish_slot = None
 
@@ -174,6 +184,7 @@ def fail_bake(session: Session, bake: Bake, stage: str, error: dict[str, Any]) -
 def succeed_bake(session: Session, bake: Bake) -> None:
     bake.state = "succeeded"
     bake.finished_at = utcnow()
+    release_reservations(bake)
     append_log(session, bake.id, "INFO", None, "bake succeeded")
 
 

@@ -3,9 +3,10 @@ retry it, publish it later.
 
 Submitting the same inputs, parameters, name and version again returns the existing bake (200) unless
 it failed or was cancelled: the input key (crowdbake.storage.records.input_key) makes resubmission
-idempotent, and the work folder it names makes a rerun fast. Both the input key and, for a bake that
-publishes, its name/version are reserved in the database when the bake is created (unique columns),
-so of two concurrent submits one creates the bake and the other gets it (same inputs) or a 409 at once.
+idempotent, and the work folder it names makes a rerun fast. While a bake is queued or running it
+holds its input key and, when it publishes, its name/version in unique columns, so of two concurrent
+submits one creates the bake and the other gets it (same inputs) or a 409 at once (other inputs),
+and no two bakes ever run in one work folder.
 
 Starting a bake never waits on the broker for more than ENQUEUE_WAIT_S: the bake is saved as queued,
 its first message sent by a thread of the dispatcher; a message that did not go out is sent by the
@@ -17,20 +18,20 @@ from __future__ import annotations
 import logging
 from typing import Annotated, Any, Literal
 
-
 from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import PlainTextResponse
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from crowdbake.api.deps import BakeKey, PublishKey, SessionDep
+from crowdbake.api.deps import BakeKey, Principal, PublishKey, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import MAX_LIST_OFFSET, BakeCreate, BakePublic, BakesPublic, LogLine, StagePublic, problem_responses
 from crowdbake.errors import InputError
-from crowdbake.ingest.bake_request import check_two_cycles
+from crowdbake.ingest.bake_request import check_request_placement, check_two_cycles
 from crowdbake.jobs.sweeper import ENQUEUE_WAIT_S, Dispatcher
 from crowdbake.params import BakeParams
+from crowdbake.redact import path_replacements, redact_text, redact_value
 from crowdbake.storage import records
 from crowdbake.storage.bundles import find_bundle
 from crowdbake.storage.models import Asset, Bake
@@ -49,6 +50,9 @@ DispatcherDep = Annotated[Dispatcher, Depends(get_dispatcher)]
 
 
 def bake_public(session: Session, bake: Bake, log_lines: int = LOG_LINES_IN_BAKE) -> BakePublic:
+    """The bake as clients see it; log lines and the error never show server paths (crowdbake.redact)."""
+    settings = session.info.get("settings")  # set by crowdbake.api.deps.get_session
+    replacements = path_replacements(settings) if settings is not None else []
     bundle_url = None
     if bake.publish and bake.stages and bake.stages[-1].state == "succeeded":
         bundle_url = f"/v1/bundles/{bake.name}/{bake.version}/manifest.json"
@@ -60,8 +64,8 @@ def bake_public(session: Session, bake: Bake, log_lines: int = LOG_LINES_IN_BAKE
             stage=row.stage, state=row.state, done=row.done, total=row.total, retries=row.retries, seconds=row.seconds,
             started_at=records.to_utc(row.started_at), finished_at=records.to_utc(row.finished_at),
         ) for row in bake.stages],
-        error=bake.error,
-        log=[LogLine(at=records.to_utc(line.at), level=line.level, stage=line.stage, message=line.message)
+        error=redact_value(bake.error, replacements),
+        log=[LogLine(at=records.to_utc(line.at), level=line.level, stage=line.stage, message=redact_text(line.message, replacements))
              for line in (records.log_lines(session, bake.id, log_lines) if log_lines else [])],
         bundle_url=bundle_url,
         created_at=records.to_utc(bake.created_at), updated_at=records.to_utc(bake.updated_at),
@@ -69,16 +73,17 @@ def bake_public(session: Session, bake: Bake, log_lines: int = LOG_LINES_IN_BAKE
     )
 
 
-def _get_bake(session: Session, bake_id: str) -> Bake:
+def _get_bake(session: Session, bake_id: str, key: Principal) -> Bake:
+    """The bake, if it exists and `key` owns it (another key's bake is a 404: its id reveals nothing)."""
     bake = session.get(Bake, bake_id)
-    if bake is None:
+    if bake is None or not key.owns(bake.created_by):
         raise Problem("not-found", f"no bake {bake_id!r}")
     return bake
 
 
-def _asset(session: Session, asset_id: str, kind: str, field: str, errors: list[dict[str, Any]]) -> Asset | None:
+def _asset(session: Session, asset_id: str, kind: str, field: str, errors: list[dict[str, Any]], key: Principal) -> Asset | None:
     asset = session.get(Asset, asset_id)
-    if asset is None or asset.kind != kind:
+    if asset is None or asset.kind != kind or not key.owns(asset.created_by):
         errors.append({"field": field, "message": f"no {kind} asset {asset_id!r}"})
         return None
     return asset
@@ -90,20 +95,38 @@ def _check_params(params: dict[str, Any]) -> None:
         BakeParams.from_dict(params)
     except (ValueError, TypeError) as error:
         field = f"params.{error.field}" if getattr(error, "field", None) else "params"
-        if isinstance(error, InputError) and error.field is None:
-            field = "params"
         raise Problem("validation-error", f"the parameters are not accepted: {error}", [{"field": field, "message": str(error)}]) from None
 
 
-def _check_cycle(character: Asset, cloth: Asset, cycle_frames: int | None) -> None:
-    """The cloth must hold two cycles (crowdbake.ingest.bake_request), as a problem naming the field."""
+def _check_cycle(character: Asset, cloth: Asset, params: dict[str, Any]) -> None:
+    """The animation must exist, the cloth must hold two cycles of it and sit on the character
+    (crowdbake.ingest.bake_request), as problems naming the field."""
     try:
-        check_two_cycles(character.info, cloth.info, cycle_frames)
+        check_two_cycles(character.info, cloth.info, params.get("cycle_frames"), params.get("fps"), params.get("animation", 0))
+        check_request_placement(character.info, cloth.info, params.get("animation", 0), params.get("up"), params.get("units"))
     except InputError as error:
+        if error.field in ("params.animation", "params.up", "params.units"):
+            title = {"params.animation": "the character has no such animation",
+                     "params.up": "the cloth cache is not Y-up", "params.units": "the cloth cache is not in metres"}[error.field]
+            raise Problem("validation-error", title, [{"field": error.field, "message": error.message}]) from None
+        if error.field == "cloth" and "two cycles" not in error.message:
+            raise Problem("invalid-file", "the garment does not sit on the character", [{"field": "cloth", "message": error.message}]) from None
         if error.field == "cloth":
             raise Problem("invalid-file", "too few frames for two cycles", [{"field": "cloth", "message": error.message}]) from None
         raise Problem("validation-error", "the character has no animation to take the cycle length from",
                       [{"field": error.field, "message": error.message}]) from None
+
+
+def _check_texture_formats(textures: dict[str, Asset | None]) -> None:
+    """A texture's name must say its format (the validate stage reads diffuse_*.jpg as JPEG)."""
+    errors = []
+    for name, texture in textures.items():
+        stored = (texture.info or {}).get("format", "png") if texture is not None else None
+        named = "jpeg" if name.lower().endswith((".jpg", ".jpeg")) else "png"
+        if stored is not None and stored != named:
+            errors.append({"field": f"textures.{name}", "message": f"the asset is a {stored.upper()} image; name it with its extension"})
+    if errors:
+        raise Problem("validation-error", "a texture's name does not match its format", errors)
 
 
 def _dispatch(dispatcher: Dispatcher, session: Session, bake: Bake) -> None:
@@ -117,12 +140,13 @@ def _dispatch(dispatcher: Dispatcher, session: Session, bake: Bake) -> None:
     session.commit()
 
 
-def _reserved_conflict(session: Session, name: str, version: str, key_digest: str) -> Problem:
+def _held_elsewhere(session: Session, name: str, version: str, key_digest: str) -> Problem:
+    """The 409 for a submit whose version (or identical inputs) another live bake holds."""
     holder = records.slot_holder(session, name, version)
     if holder is not None and holder.input_key != key_digest:
-        return Problem("conflict", f"bake {holder.id} already bakes or published {name}/{version} from other inputs; "
+        return Problem("conflict", f"bake {holder.id} is already baking {name}/{version} from other inputs; "
                        "bundles never change, choose a new version")
-    return Problem("conflict", f"{name}/{version} is reserved by another bake; try again")
+    return Problem("conflict", f"an identical bake of {name}/{version} is already queued or running; submit again once it has finished")
 
 
 @router.post("", response_model=BakePublic, status_code=202, responses=problem_responses(400, 404, 409, 503), summary="Start a bake")
@@ -130,52 +154,55 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
     if (body.publish or body.public) and "publish" not in key.scopes:
         raise Problem("forbidden", "publishing a bundle (publish or public true) needs the publish scope")
     errors: list[dict[str, Any]] = []
-    character = _asset(session, body.character, "character", "character", errors)
-    cloth = _asset(session, body.cloth, "cloth", "cloth", errors)
-    textures = {name: _asset(session, asset_id, "texture", f"textures.{name}", errors) for name, asset_id in sorted(body.textures.items())}
+    character = _asset(session, body.character, "character", "character", errors, key)
+    cloth = _asset(session, body.cloth, "cloth", "cloth", errors, key)
+    textures = {name: _asset(session, asset_id, "texture", f"textures.{name}", errors, key) for name, asset_id in sorted(body.textures.items())}
     if errors:
         raise Problem("validation-error", "the bake names assets that do not exist", errors)
     params = body.params.model_dump()
     _check_params(params)
-    _check_cycle(character, cloth, body.params.cycle_frames)
+    _check_cycle(character, cloth, params)
+    _check_texture_formats(textures)
 
     digests = {
         "character": character.digest,
         "cloth": {role: entry["sha256"] for role, entry in cloth.files.items()},
         "textures": {name: texture.digest for name, texture in textures.items()},
     }
-    key_digest = records.input_key(digests, body.name, body.version, params)
+    key_digest = records.input_key(digests, body.name, body.version, params, created=body.created)
     existing = records.reusable_bake(session, key_digest)
-    if existing is None:
-        if body.publish:
-            published = find_bundle(session, body.name, body.version)
-            if published is not None:
-                raise Problem("conflict", f"{body.name}/{body.version} is already published from other inputs; bundles never change, choose a new version")
-            holder = records.slot_holder(session, body.name, body.version)
-            if holder is not None and holder.live_key != key_digest:
-                raise _reserved_conflict(session, body.name, body.version, key_digest)
-            existing = holder  # an identical submit committed since the lookup above
-    if existing is None:
-        bake = records.create_bake(
-            session, name=body.name, version=body.version, params=params,
-            inputs={"character": character.id, "cloth": cloth.id, "textures": {name: texture.id for name, texture in textures.items()}},
-            key=key_digest, publish=body.publish, public=body.public, created_by=key.key_id,
-        )
-        try:
-            session.commit()
-        except IntegrityError:
-            # A concurrent submit reserved the input key or the version first.
-            session.rollback()
-            existing = records.reusable_bake(session, key_digest)
-            if existing is None:
-                raise _reserved_conflict(session, body.name, body.version, key_digest) from None
-    if existing is not None:
-        # The same bake again: 200, and its first message is sent now if it never was.
-        _dispatch(dispatcher, session, existing)
-        response.status_code = 200
-        response.headers["Location"] = f"/v1/bakes/{existing.id}"
-        return bake_public(session, existing)
+    if existing is not None and key.owns(existing.created_by):
+        return _existing(dispatcher, session, response, existing)
+    published = find_bundle(session, body.name, body.version)
+    if published is not None:
+        raise Problem("conflict", f"{body.name}/{body.version} is already published from other inputs; bundles never change, choose a new version")
+    if body.publish and records.slot_holder(session, body.name, body.version) is not None:
+        raise _held_elsewhere(session, body.name, body.version, key_digest)
+
+    bake = records.create_bake(
+        session, name=body.name, version=body.version, params=params,
+        inputs={"character": character.id, "cloth": cloth.id, "textures": {name: texture.id for name, texture in textures.items()},
+                **({"created": body.created} if body.created is not None else {})},
+        key=key_digest, publish=body.publish, public=body.public, created_by=key.key_id,
+    )
+    try:
+        session.commit()
+    except IntegrityError:
+        # A concurrent submit reserved the input key or the version first: the same bake, or a 409.
+        session.rollback()
+        existing = records.live_bake(session, key_digest)
+        if existing is not None and key.owns(existing.created_by):
+            return _existing(dispatcher, session, response, existing)
+        raise _held_elsewhere(session, body.name, body.version, key_digest) from None
     _dispatch(dispatcher, session, bake)
+    response.headers["Location"] = f"/v1/bakes/{bake.id}"
+    return bake_public(session, bake)
+
+
+def _existing(dispatcher: Dispatcher, session: Session, response: Response, bake: Bake) -> BakePublic:
+    """The same bake again: 200, and its first message is sent now if it never was."""
+    _dispatch(dispatcher, session, bake)
+    response.status_code = 200
     response.headers["Location"] = f"/v1/bakes/{bake.id}"
     return bake_public(session, bake)
 
@@ -186,7 +213,7 @@ def list_bakes(
     state: Literal["queued", "running", "succeeded", "failed", "cancelled"] | None = None, name: str | None = None,
     limit: int = Query(50, ge=1, le=500), offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET),
 ) -> BakesPublic:
-    query = select(Bake).order_by(Bake.created_at.desc(), Bake.id)
+    query = key.only_own(select(Bake).order_by(Bake.created_at.desc(), Bake.id), Bake.created_by)
     if state:
         query = query.where(Bake.state == state)
     if name:
@@ -197,21 +224,22 @@ def list_bakes(
 
 @router.get("/{bake_id}", response_model=BakePublic, responses=problem_responses(404))
 def get_bake(bake_id: str, key: BakeKey, session: SessionDep) -> BakePublic:
-    return bake_public(session, _get_bake(session, bake_id))
+    return bake_public(session, _get_bake(session, bake_id, key))
 
 
 @router.get("/{bake_id}/log", response_class=PlainTextResponse, responses=problem_responses(404), summary="The bake's whole log as text")
-def get_bake_log(bake_id: str, key: BakeKey, session: SessionDep) -> str:
-    bake = _get_bake(session, bake_id)
+def get_bake_log(bake_id: str, key: BakeKey, services: ServicesDep, session: SessionDep) -> str:
+    bake = _get_bake(session, bake_id, key)
+    replacements = path_replacements(services.settings)
     return "".join(
-        f"{records.to_utc(line.at).strftime('%Y-%m-%dT%H:%M:%S.%fZ')} {line.level:<7} {line.stage or '-':<9} {line.message}\n"
+        f"{records.to_utc(line.at).strftime('%Y-%m-%dT%H:%M:%S.%fZ')} {line.level:<7} {line.stage or '-':<9} {redact_text(line.message, replacements)}\n"
         for line in records.log_lines(session, bake.id)
     )
 
 
 @router.post("/{bake_id}/cancel", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409))
 def cancel_bake(bake_id: str, key: BakeKey, session: SessionDep) -> BakePublic:
-    _get_bake(session, bake_id)
+    _get_bake(session, bake_id, key)
     try:
         bake = records.cancel_bake(session, bake_id)
     except records.TransitionRefused as refused:
@@ -223,7 +251,7 @@ def cancel_bake(bake_id: str, key: BakeKey, session: SessionDep) -> BakePublic:
 
 @router.post("/{bake_id}/retry", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409, 503))
 def retry_bake(bake_id: str, key: BakeKey, dispatcher: DispatcherDep, session: SessionDep) -> BakePublic:
-    seen = _get_bake(session, bake_id)
+    seen = _get_bake(session, bake_id, key)
     if seen.state not in ("failed", "cancelled"):
         raise Problem("invalid-state", f"only failed or cancelled bakes can be retried; bake {bake_id} is {seen.state}")
     try:
@@ -234,8 +262,8 @@ def retry_bake(bake_id: str, key: BakeKey, dispatcher: DispatcherDep, session: S
         raise Problem("invalid-state", str(refused)) from None
     except IntegrityError:
         session.rollback()
-        raise Problem("conflict", f"another bake now holds the inputs or the version {seen.name}/{seen.version} of bake {bake_id}; "
-                      "it cannot be retried while that one lives") from None
+        raise Problem("conflict", f"another bake is now baking the inputs or the version {seen.name}/{seen.version} of bake {bake_id}; "
+                      "retry once it has finished") from None
     _dispatch(dispatcher, session, bake)
     return bake_public(session, bake)
 
@@ -243,7 +271,7 @@ def retry_bake(bake_id: str, key: BakeKey, dispatcher: DispatcherDep, session: S
 @router.post("/{bake_id}/publish", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409, 503),
              summary="Publish a bake that was run with publish=false")
 def publish_bake(bake_id: str, key: PublishKey, dispatcher: DispatcherDep, session: SessionDep) -> BakePublic:
-    seen = _get_bake(session, bake_id)
+    seen = _get_bake(session, bake_id, key)
     try:
         bake = records.request_publish(session, bake_id)
         session.commit()
@@ -252,6 +280,6 @@ def publish_bake(bake_id: str, key: PublishKey, dispatcher: DispatcherDep, sessi
         raise Problem("invalid-state", str(refused)) from None
     except IntegrityError:
         session.rollback()
-        raise Problem("conflict", f"another bake bakes or published {seen.name}/{seen.version}; bundles never change") from None
+        raise Problem("conflict", f"another bake is baking {seen.name}/{seen.version}; bundles never change") from None
     _dispatch(dispatcher, session, bake)
     return bake_public(session, bake)

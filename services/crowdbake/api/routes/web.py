@@ -98,7 +98,7 @@ def static_file(name: str) -> FileResponse:
 )
 def get_cycle_file(bake_id: str, path: str, key: BakeKey, services: ServicesDep, session: SessionDep) -> Response:
     bake = session.get(Bake, bake_id)
-    if bake is None:
+    if bake is None or not key.owns(bake.created_by):
         raise Problem("not-found", f"no bake {bake_id!r}")
     if not CYCLE_FILE.match(path):
         raise Problem("not-found", f"{path!r} is not a file of the cycle report")

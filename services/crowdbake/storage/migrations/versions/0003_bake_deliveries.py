@@ -1,7 +1,7 @@
 """Bake deliveries: reservations (live_key, publish_slot), stage and part heartbeats, sent marks.
 
-Revision ID: 0002
-Revises: 0001
+Revision ID: 0003
+Revises: 0002
 Create Date: 2026-11-23
 """
 from __future__ import annotations
@@ -10,8 +10,8 @@ from alembic import op
 import sqlalchemy as sa
 
 
-revision = '0002'
-down_revision = '0001'
+revision = '0003'
+down_revision = '0002'
 branch_labels = None
 depends_on = None
 
@@ -31,14 +31,14 @@ def upgrade() -> None:
     with op.batch_alter_table('bakes', schema=None) as batch_op:
         batch_op.add_column(sa.Column('live_key', sa.String(length=64), nullable=True))
         batch_op.add_column(sa.Column('publish_slot', sa.String(length=130), nullable=True))
-    # Reserve for the bakes that live already: the newest one per input key and per published version
+    # Reserve for the bakes queued or running already: the newest one per input key and per version
     # (older duplicates, which the unique columns now prevent, keep NULL).
     bakes = sa.table('bakes', sa.column('id'), sa.column('state'), sa.column('input_key'), sa.column('name'), sa.column('version'),
                      sa.column('publish'), sa.column('created_at'), sa.column('live_key'), sa.column('publish_slot'))
     connection = op.get_bind()
     keys, slots = set(), set()
     rows = connection.execute(sa.select(bakes.c.id, bakes.c.input_key, bakes.c.name, bakes.c.version, bakes.c.publish)
-                              .where(bakes.c.state.not_in(('failed', 'cancelled'))).order_by(bakes.c.created_at.desc())).all()
+                              .where(bakes.c.state.in_(('queued', 'running'))).order_by(bakes.c.created_at.desc())).all()
     for bake_id, input_key, name, version, publish in rows:
         values = {}
         if input_key not in keys:
