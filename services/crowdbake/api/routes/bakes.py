@@ -176,7 +176,10 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
     published = find_bundle(session, body.name, body.version)
     if published is not None:
         raise Problem("conflict", f"{body.name}/{body.version} is already published from other inputs; bundles never change, choose a new version")
-    if body.publish and records.slot_holder(session, body.name, body.version) is not None:
+    holder = records.slot_holder(session, body.name, body.version) if body.publish else None
+    if holder is not None:
+        if holder.input_key == key_digest and key.owns(holder.created_by):
+            return _existing(dispatcher, session, response, holder)  # committed since the lookup above
         raise _held_elsewhere(session, body.name, body.version, key_digest)
 
     bake = records.create_bake(
