@@ -103,6 +103,10 @@ def services() -> WorkerServices:
     their connections must not be shared between processes)."""
     global _services, _services_pid
     if _services is None or _services_pid != os.getpid():
+        if _services is not None:
+            # Inherited from the worker's main process across the fork (it marks received messages):
+            # drop its pooled connections without closing them, which would close the parent's too.
+            _services.sessions.kw["bind"].dispose(close=False)
         settings = get_settings()
         _services = WorkerServices(settings, make_sessionmaker(make_engine(settings.database_url)), make_blob_store(settings.blob_dir))
         _services_pid = os.getpid()
