@@ -26,7 +26,7 @@ from crowdbake.errors import InputError
 # tear; linear is the paper's blend; hermite also matches velocity but spreads the correction over the loop.
 CLOSE_METHODS = ("crossfade", "none", "linear", "hermite")
 DEFAULT_CLOSE = "crossfade"
-UV_FORMATS = ("uv32", "rgba16")  # impostor UV map pixel formats a bake can write (SPEC.md); the first is the default
+UV_FORMATS = ("uvblock", "uv32", "rgba16")  # impostor UV map pixel formats a bake can write (SPEC.md); the first is the default
 # The cloth cache's frame as exported (crowdbake.bake.placement.UP_AXES / UNITS, kept equal by test_params):
 # None leaves it to placement's detection, which refuses a cache that fits only another frame.
 UP_AXES = ("y", "z")
@@ -203,7 +203,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--cycle-views",), "N", minimum=1, maximum=MAX_CYCLE_VIEWS),
     ParamSpec("impostor_frames", "int", 10, "cycle frames baked into impostors (paper: 10)",
               ("--frames", "--impostor-frames"), "N", minimum=1, maximum=MAX_IMPOSTOR_FRAMES),
-    ParamSpec("azimuths", "int", 16, "impostor views per elevation ring",
+    ParamSpec("azimuths", "int", 32, "impostor views per elevation ring (32: docs/figures.md, impostor views against memory)",
               ("--azimuths",), "N", minimum=1, maximum=MAX_AZIMUTHS),
     ParamSpec("elevations_deg", "floats", (0.0, 20.0, 40.0), "impostor view elevations in degrees, one ring each",
               ("--elevations",), "DEG,...", minimum=-90.0, maximum=90.0, min_items=1, max_items=MAX_ELEVATIONS, distinct=True),
@@ -215,7 +215,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--lod-triangles",), "N", optional=True, minimum=2, exclusive_group="lod"),
     ParamSpec("compress", "bool", True, "block-compress normal maps (DXT1), detail maps and diffuse textures (DXT3); false: rgba8",
               ("--no-compress",)),
-    ParamSpec("uv_format", "str", "uv32", "impostor UV map format: uv32 (4 bytes a texel, 14-bit coordinates) or rgba16 (8 bytes)",
+    ParamSpec("uv_format", "str", "uvblock", "impostor UV map format: uvblock (1.5 bytes a texel, block-coded 12-bit coordinates), "
+              "uv32 (4 bytes, 14-bit coordinates) or rgba16 (8 bytes)",
               ("--uv-format",), choices=UV_FORMATS),
     ParamSpec("export", "bool", True, "publish an engine export beside the bundle (glTF, KTX2, VATs: docs/export.md); false: the bundle only",
               ("--no-export",)),
@@ -268,13 +269,13 @@ class BakeParams:
     candidates: int = 5
     cycle_views: int = 5
     impostor_frames: int = 10
-    azimuths: int = 16
+    azimuths: int = 32
     elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0)
     tile_size: int = 128
     lod_ratio: float | None = None
     lod_triangles: int | None = None
     compress: bool = True
-    uv_format: str = "uv32"
+    uv_format: str = "uvblock"
     export: bool = True
 
     def validate(self) -> None:

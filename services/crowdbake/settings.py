@@ -49,6 +49,9 @@ class Settings(BaseSettings):
     )
     s3_part_bytes: int = Field(16 * MiB, ge=5 * MiB, description="Multipart upload part size; also the most one upload holds in memory.")
     s3_presign_seconds: int = Field(300, gt=0, le=7 * 24 * 3600, description="Lifetime of a presigned download URL.")
+    s3_redirect_downloads: bool = Field(
+        False, description="Answer bundle file downloads with a 307 to a presigned URL (the object store sends the bytes) instead of streaming them."
+    )
     cache_dir: Path | None = Field(None, description="Local read-through cache of an object store's blobs and bundle files; default data_dir/cache.")
     cache_max_bytes: int = Field(4096 * MiB, gt=0, description="Cache size above which the least recently used files are evicted.")
 

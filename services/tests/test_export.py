@@ -256,7 +256,12 @@ def check_export(bundle_dir: Path, out: Path) -> None:
     for path, texture in sources.items():
         expected[path] = rgba8_layers(texture)
     uv = bundle.textures[manifest["impostor"]["maps"]["uv"]]
-    expected[sidecar["impostor"]["maps"]["uv"]["ktx2"]] = np.stack([uv.texels(k) for k in range(len(uv.layers))])
+    if uv.pixel_format == "uvblock":  # exported as the uv32 words of its decoded texels
+        from crowdbake.bake.impostor_maps import uvblock_to_uv32
+
+        expected[sidecar["impostor"]["maps"]["uv"]["ktx2"]] = np.stack([uvblock_to_uv32(layer, uv.width, uv.height) for layer in uv.layers])
+    else:
+        expected[sidecar["impostor"]["maps"]["uv"]["ktx2"]] = np.stack([uv.texels(k) for k in range(len(uv.layers))])
     ktx_files = sorted(out.rglob("*.ktx2"))
     reports = {Path(r["path"]).relative_to(out).as_posix(): r for r in node_tool("read-ktx2.mjs", *ktx_files)}
     assert len(reports) == len(ktx_files)

@@ -1,5 +1,5 @@
-"""Dependencies of the routes, as named Annotated types: settings, a database session, the blob store,
-the Celery app that enqueues stages, and the API key with the scopes an operation needs."""
+"""Dependencies of the routes, as named Annotated types: settings, a database session, the blob and
+bundle stores, the Celery app that enqueues stages, and the API key with the scopes an operation needs."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from crowdbake.api.problems import Problem
 from crowdbake.settings import Settings
 from crowdbake.storage.blobs import BlobStore
+from crowdbake.storage.bundle_store import BundleStore
 from crowdbake.storage.keys import verify_api_key
 from crowdbake.storage.models import ApiKey
 
@@ -24,6 +25,7 @@ class AppServices:
     settings: Settings
     sessions: sessionmaker[Session]
     blobs: BlobStore
+    bundles: BundleStore
     celery: Celery
 
 

@@ -106,6 +106,10 @@ def format_summary(summary) -> str:
                 f"fidelity {label}: SSIM mean {f['ssim_mean']:.3f} worst {f['ssim_worst']:.3f}, "
                 f"PSNR mean {f['psnr_db_mean']:.1f} dB worst {f['psnr_db_worst']:.1f} dB over {f['views']} views"
             )
+    for key, label in (("at_views", "at baked views"), ("between_views", "between views and frames")):
+        if key in fidelity.get("runtime", {}):
+            f = fidelity["runtime"][key]
+            lines.append(f"runtime  blended impostor {label}: SSIM mean {f['ssim_mean']:.3f} worst {f['ssim_worst']:.3f} over {f['views']} views")
     precision = fidelity.get("uv_precision", {})
     if "rgba8" in precision:
         lines.append(
@@ -123,6 +127,7 @@ def format_summary(summary) -> str:
         f"figure 4 paper model: 1 variation {memory['paper_mib']['1']:.0f} MiB both; 8 variations detail-mapped "
         f"{memory['paper_mib']['detail_8']:.0f} MiB vs UV-mapped {memory['paper_mib']['uv_8']:.0f} MiB; "
         f"this bundle breaks even at {memory['bundle_break_even_variations']:.1f} variations"
+        + (f" (UV-mapped is no larger from {memory['break_even_variations']})" if memory.get("break_even_variations") else "")
     )
     for path, size in sorted(summary.files.items()):
         lines.append(f"file     {path}: {size:,} bytes")

@@ -59,7 +59,13 @@ def rgba8_layers(texture: TextureArray) -> np.ndarray:
 
 def uv_map_layers(texture: TextureArray) -> tuple[int, np.ndarray]:
     """(vkFormat, texels) of an impostor UV map, bit for bit: uv32 words as R32_UINT (L, H, W),
-    rgba16 as R16G16B16A16_UNORM (L, H, W, 4)."""
+    rgba16 as R16G16B16A16_UNORM (L, H, W, 4); uvblock (a block code no engine samples) decoded into
+    uv32 words, which hold its 12-bit coordinates exactly enough (crowdbake.bake.impostor_maps.uvblock_to_uv32)."""
+    if texture.pixel_format == "uvblock":
+        from crowdbake.bake.impostor_maps import uvblock_to_uv32
+
+        words = [uvblock_to_uv32(layer, texture.width, texture.height) for layer in texture.layers]
+        return ktx2.VK_FORMAT_R32_UINT, np.stack(words).astype(np.uint32)
     if texture.pixel_format == "uv32":
         return ktx2.VK_FORMAT_R32_UINT, np.stack([texture.texels(k) for k in range(len(texture.layers))]).astype(np.uint32)
     if texture.pixel_format == "rgba16":

@@ -22,6 +22,7 @@ from fastapi.responses import FileResponse, Response
 from sqlalchemy import or_, select
 from starlette.responses import MalformedRangeHeader, RangeNotSatisfiable
 
+from crowdbake.api.bundle_files import bundle_file_redirect, bundle_file_response
 from crowdbake.api.deps import PrincipalDep, PublishKey, ServicesDep, SessionDep, Principal
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import (
@@ -35,7 +36,8 @@ from crowdbake.api.schemas import (
 from crowdbake.formats.bundle import check_path
 from crowdbake.formats.errors import FormatError
 from crowdbake.storage.records import to_utc
-from crowdbake.storage.bundles import LATEST, PublishedManifest, bundle_dir, find_bundle, read_manifest
+from crowdbake.storage.bundle_store import MANIFEST
+from crowdbake.storage.bundles import LATEST, PublishedManifest, find_bundle
 from crowdbake.storage.exports import INDEX_NAME, export_home
 from crowdbake.storage.models import Bake, Bundle
 
@@ -120,25 +122,46 @@ def _etag_matches(header: str, etag: str) -> bool:
     return "*" in candidates or any(item.removeprefix("W/").strip('"') == etag for item in candidates)
 
 
-def _serve_file(request: Request, path: Path, sha256: str, media_type: str, bundle: Bundle) -> Response:
-    """A file of a published bundle (a concrete version) with ETag, cache headers, conditional and range handling."""
-    headers = {"ETag": f'"{sha256}"', "X-Content-SHA256": sha256}
+def _file_headers(sha256: str, bundle: Bundle) -> dict[str, str]:
+    """ETag, digest and cache headers of a published file of a concrete version (`latest` redirects
+    before a file is served), the same from every store."""
     visibility = "public" if bundle.public else "private"
-    headers["Cache-Control"] = f"{visibility}, max-age={IMMUTABLE_SECONDS}, immutable"
+    return {"ETag": f'"{sha256}"', "X-Content-SHA256": sha256, "Cache-Control": f"{visibility}, max-age={IMMUTABLE_SECONDS}, immutable"}
+
+
+def _serve_file(request: Request, services, bundle: Bundle, path: str, sha256: str, size: int, media_type: str) -> Response:
+    """A file of a published bundle with ETag, cache headers, conditional and range handling: a 307 to
+    a presigned URL when the store makes them (an object store: it then sends the bytes), else the bytes."""
+    headers = _file_headers(sha256, bundle)
+    if_none_match = request.headers.get("if-none-match")
+    if if_none_match and _etag_matches(if_none_match, sha256):
+        return Response(status_code=304, headers=headers)
+    store = services.bundles
+    if services.settings.s3_redirect_downloads:
+        redirect = bundle_file_redirect(store, bundle.name, bundle.version, path, media_type, headers, services.settings.s3_presign_seconds)
+        if redirect is not None:
+            return redirect
+    return bundle_file_response(request, store, bundle.name, bundle.version, path, size, media_type, headers)
+
+
+def serve_local_file(request: Request, path: Path, sha256: str, media_type: str, bundle: Bundle) -> Response:
+    """A file kept in a local folder beside a published bundle (its engine export) with the same headers,
+    conditional and range handling as the bundle's own files."""
+    headers = _file_headers(sha256, bundle)
     if_none_match = request.headers.get("if-none-match")
     if if_none_match and _etag_matches(if_none_match, sha256):
         return Response(status_code=304, headers=headers)
     try:
         stat_result = os.stat(path)
     except FileNotFoundError:
-        raise Problem("internal-error", "a published file is missing from the bundle store", status=500) from None
+        raise Problem("internal-error", "a published file is missing", status=500) from None
     range_header = request.headers.get("range")
     if_range = request.headers.get("if-range")
     if range_header and (if_range is None or if_range.strip() == headers["ETag"]):
         try:
             FileResponse._parse_range_header(range_header, stat_result.st_size)
         except MalformedRangeHeader:
-            # RFC 9110 §14.2: a server may ignore a Range header it cannot parse and send the whole file.
+            # RFC 9110 section 14.2: a server may ignore a Range header it cannot parse and send the whole file.
             request.scope["headers"] = [(k, v) for k, v in request.scope["headers"] if k != b"range"]
         except RangeNotSatisfiable:
             raise Problem(
@@ -184,10 +207,9 @@ def update_bundle(name: NameParam, version: VersionParam, body: BundleUpdate, ke
 
 def _manifest(services, bundle: Bundle) -> PublishedManifest:
     try:
-        published = read_manifest(services.settings.bundles_dir, bundle.name, bundle.version)
+        return services.bundles.manifest(bundle.name, bundle.version)
     except FileNotFoundError:
         raise Problem("internal-error", "the published bundle is missing from the bundle store", status=500) from None
-    return published
 
 
 @router.get("/{name}/{version}/manifest.json", responses=FILE_RESPONSES, response_class=FileResponse, summary="The bundle's manifest.json")
@@ -197,8 +219,7 @@ def get_manifest(name: NameParam, version: VersionParam, request: Request, princ
     if version == LATEST:
         return _latest_redirect(request, bundle)
     published = _manifest(services, bundle)
-    path = bundle_dir(services.settings.bundles_dir, bundle.name, bundle.version) / "manifest.json"
-    return _serve_file(request, path, published.sha256, "application/json", bundle)
+    return _serve_file(request, services, bundle, MANIFEST, published.sha256, len(published.data), "application/json")
 
 
 @router.get("/{name}/{version}/files/{path:path}", responses=FILE_RESPONSES, response_class=FileResponse, summary="One file of the bundle, by its manifest path")
@@ -215,8 +236,4 @@ def get_file(name: NameParam, version: VersionParam, path: str, request: Request
     entry = published.files.get(path)
     if entry is None:
         raise Problem("not-found", f"{name}/{bundle.version} has no file {path!r}")
-    folder = bundle_dir(services.settings.bundles_dir, bundle.name, bundle.version)
-    file_path = folder / path
-    if not file_path.resolve().is_relative_to(folder.resolve()):  # the path rule already forbids this
-        raise Problem("not-found", f"{path!r} is not a bundle path")
-    return _serve_file(request, file_path, entry["sha256"], entry["media_type"], bundle)
+    return _serve_file(request, services, bundle, path, entry["sha256"], int(entry["size"]), entry["media_type"])

@@ -21,7 +21,7 @@ from fastapi.responses import FileResponse, Response
 
 from crowdbake.api.deps import PrincipalDep, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
-from crowdbake.api.routes.bundles import FILE_RESPONSES, NameParam, VersionParam, _bundle_or_problem, _latest_redirect, _serve_file
+from crowdbake.api.routes.bundles import FILE_RESPONSES, NameParam, VersionParam, _bundle_or_problem, _latest_redirect, serve_local_file
 from crowdbake.storage.bundles import LATEST
 from crowdbake.storage.exports import FILES_FOLDER, ZIP_NAME, export_home, read_export_index
 from crowdbake.storage.models import Bundle
@@ -80,7 +80,7 @@ def get_export_file(name: NameParam, version: VersionParam, path: str, request: 
     if entry is None:
         raise Problem("not-found", f"the export of {bundle.name}/{bundle.version} has no file {path!r} (export.json lists them)")
     file_path = export_home(services.settings.bundles_dir, bundle.name, bundle.version) / FILES_FOLDER / path
-    return _serve_file(request, file_path, entry["sha256"], entry["media_type"], bundle)
+    return serve_local_file(request, file_path, entry["sha256"], entry["media_type"], bundle)
 
 
 @router.get("/{name}/{version}/export.zip", responses=FILE_RESPONSES, response_class=FileResponse,
@@ -93,7 +93,7 @@ def get_export_zip(name: NameParam, version: VersionParam, request: Request, pri
     if version == LATEST:
         return _latest_redirect(request, bundle)
     file_path = export_home(services.settings.bundles_dir, bundle.name, bundle.version) / ZIP_NAME
-    response = _serve_file(request, file_path, entry["sha256"], entry["media_type"], bundle)
+    response = serve_local_file(request, file_path, entry["sha256"], entry["media_type"], bundle)
     response.headers["Content-Disposition"] = f'attachment; filename="{bundle.name}-{bundle.version}-export.zip"'
     return response
 
