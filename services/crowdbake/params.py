@@ -54,10 +54,9 @@ MAX_AZIMUTHS = 64
 MAX_ELEVATIONS = 9
 MAX_IMPOSTOR_FRAMES = 256
 # Texels of one impostor map set: impostor_frames x views (azimuths x elevation rings) x tile_size².
-# Each texel is written as a normal, a detail and a UV map (4 to 8 bytes each) and held while packing,
-# so 2^27 texels is about 1.5 GiB of maps: 17 times the default bake (10 x 48 x 128²), far above the
-# paper's (10 frames x 17 views x 128²), and the most a 4 GiB worker should be asked for. Each
-# parameter alone is within its bound; together they may not be.
+# Each texel is rendered as a normal, a detail and a UV map and held while packing (4 bytes each as
+# rgba8 before compression), so 2^27 texels is 1.5 GiB of maps: 8.5 times the default bake (10 frames x
+# 32 x 3 views x 128²), and the most a 4 GiB worker should be asked for. Each parameter alone is within its bound; together they may not be.
 MAX_IMPOSTOR_TEXELS = 1 << 27
 # The cycle search's cost grows with candidates x views renders; these bound one request's work.
 MAX_CANDIDATES = 50
