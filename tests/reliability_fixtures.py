@@ -298,10 +298,10 @@ run_bake(BakeInputs(character=character, cloth=sources / "cloth.pc2", cloth_mesh
 def materialize_sources(service: Service, bake: dict[str, Any], sources: Path) -> Path:
     """The bake's input files linked from the blob store as the worker links them (crowdbake.jobs.tasks.
     _materialize_inputs: the same names)."""
-    from crowdbake.storage.blobs import make_blob_store
     from crowdbake.storage.models import Asset
+    from crowdbake.storage.store import open_store
 
-    blobs = make_blob_store(service.settings.blob_dir)
+    blobs = open_store(service.settings).blobs  # the local folder or the bucket, as the service stores them
     with service.sessions()() as session:
         character = session.get(Asset, bake["inputs"]["character"])
         cloth = session.get(Asset, bake["inputs"]["cloth"])
