@@ -11,8 +11,10 @@ tube starting at its back (so seams face away from the viewer), v runs along the
 uses GARMENT_UV_RECT of the same texture.
 
 Skin weights blend at most two joints per vertex, piecewise linear along each tube's axis.
-Collision capsules are attached to joints and their radii are fitted to the rest-pose mesh, so the
-capsules enclose the body surface they stand in for (test_sample checks that).
+Collision capsules are attached to joints. Most have radii fitted to the rest-pose mesh so they
+enclose the body surface they stand in for; at the waist, where a skirt's waistband sits on the
+skin, a belt of capsules follows the torso's surface within a few millimetres instead (test_sample
+checks both).
 """
 from __future__ import annotations
 
@@ -421,7 +423,7 @@ def build_character(body: BodyMesh, channels: list, duration: float, texture: np
 
 
 # ----------------------------------------------------------------------------------------------
-# Collision capsules: (name, joint, part, rest endpoints, axis range of the part they cover)
+# Collision capsules
 
 
 @dataclass(frozen=True)
@@ -435,59 +437,138 @@ class Capsules:
     radii: np.ndarray
 
 
-def _capsule_specs() -> list[tuple[str, str, tuple[str, ...], np.ndarray, tuple[float, float]]]:
-    """(name, joint, body parts covered, rest endpoints (2, 3), y range of the covered vertices)."""
+# Where a skirt's waistband sits: between the hips (widest at y = 0.96) and the narrowest waist (1.10).
+WAIST_HEIGHT = 1.06
+# The waist belt: capsules tangent to the torso from inside, spanning the torso's control rings at 1.03
+# and 1.10 (its profile is linear between them, so a capsule tangent at both ends stays tangent in
+# between). 12 keep the scallops between neighbours to ~2 mm on the 0.30 x 0.21 m waist; the pad moves
+# them out by half that, so the belt stays within ~2 mm of the mesh at WAIST_HEIGHT, inside or out.
+_BELT_COUNT = 12
+_BELT_SPAN = (1.03, 1.10)
+_BELT_PAD = 0.001
+
+
+@dataclass(frozen=True)
+class _CapsuleSpec:
+    """One capsule: the joint it rides on, its rest endpoints (2, 3), and either a fixed radius or the body
+    parts and height range (y_low, y_high) of the vertices its fitted radius must enclose."""
+
+    name: str
+    joint: str
+    endpoints: np.ndarray
+    parts: tuple[str, ...] = ()
+    covers: tuple[float, float] = (0.0, 0.0)
+    radius: float | None = None
+
+
+def torso_section(height: float) -> tuple[float, float, float]:
+    """The torso's elliptical cross-section at a rest height (metres): (side radius, front radius, z of its centre)."""
+    spec = PART_SPECS[0]
+    heights = spec.controls[:, 1]  # the torso's axis rises monotonically, nearly straight up
+    return (float(np.interp(height, heights, spec.radii[:, 0])), float(np.interp(height, heights, spec.radii[:, 1])),
+            float(np.interp(height, heights, spec.controls[:, 2])))
+
+
+def torso_radius(height: float, angles: np.ndarray) -> np.ndarray:
+    """Distance from the vertical axis x = z = 0 to the torso's surface along horizontal rays at `height`.
+
+    angles (A,) radians around y, 0 pointing to -z (the back), pi/2 to +x (garments.outer_radius's
+    convention) -> (A,) metres, on the smooth ellipse the mesh's rings sample (the faceted mesh lies at
+    most ~1 mm inside it).
+    """
+    a, b, centre_z = torso_section(height)
+    dx, dz = np.sin(angles), -np.cos(angles)
+    # (t dx / a)^2 + ((t dz - centre_z) / b)^2 = 1, the far root.
+    qa = (dx / a) ** 2 + (dz / b) ** 2
+    qb = -2.0 * dz * centre_z / b**2
+    qc = (centre_z / b) ** 2 - 1.0
+    return (-qb + np.sqrt(qb * qb - 4.0 * qa * qc)) / (2.0 * qa)
+
+
+def _waist_belt() -> list[_CapsuleSpec]:
+    """Capsules inscribed in the torso at WAIST_HEIGHT, each tangent where it touches at every height of the span.
+
+    The largest circle inside an ellipse that touches it at a point is centred where the point's normal
+    meets the major axis (the ellipse's medial axis); its radius is kept, and at each end of the span the
+    capsule's end sits that radius inside the same (parametric) point of that height's section.
+    """
+    specs = []
+    a, b, _ = torso_section(WAIST_HEIGHT)
+    for k in range(_BELT_COUNT):
+        phi = 2.0 * np.pi * k / _BELT_COUNT  # parametric angle: x = a cos(phi), z = b sin(phi)
+        normal = np.array([np.cos(phi) / a, np.sin(phi) / b])
+        normal /= np.linalg.norm(normal)
+        # At the sides the normal runs along the major axis: the circle is the curvature circle there.
+        radius = b * np.sin(phi) / normal[1] if abs(normal[1]) > 1e-9 else b * b / a
+        ends = []
+        for height in _BELT_SPAN:
+            a_y, b_y, centre_z = torso_section(height)
+            normal_y = np.array([np.cos(phi) / a_y, np.sin(phi) / b_y])
+            normal_y /= np.linalg.norm(normal_y)
+            centre = np.array([a_y * np.cos(phi), b_y * np.sin(phi)]) - radius * normal_y
+            ends.append([centre[0], height, centre[1] + centre_z])
+        specs.append(_CapsuleSpec(f"waist_{k:02d}", "hips", np.array(ends), radius=float(radius) + _BELT_PAD))
+    return specs
+
+
+def _capsule_specs() -> list[_CapsuleSpec]:
+    """Every collision capsule of the body."""
     specs = []
     # Pairs of vertical capsules a distance 2d apart fit an elliptical cross-section (a, b) best when
-    # d = (a^2 - b^2) / (2 a): hips (0.175, 0.12) -> d = 0.046; waist (0.147, 0.104) -> d = 0.036.
+    # d = (a^2 - b^2) / (2 a): hips (0.175, 0.12) -> d = 0.046. They end low enough (their caps reach
+    # ~1.08) that at WAIST_HEIGHT they stay inside the belt.
     for side, sign in (("l", 1.0), ("r", -1.0)):
-        specs.append((f"pelvis_{side}", "hips", ("torso",), np.array([[0.046 * sign, 0.84, -0.008], [0.046 * sign, 1.0, -0.008]]), (0.76, 1.03)))
-    for side, sign in (("l", 1.0), ("r", -1.0)):
-        specs.append((f"waist_{side}", "hips", ("torso",), np.array([[0.036 * sign, 1.03, 0.0], [0.036 * sign, 1.14, 0.0]]), (1.03, 1.14)))
+        ends = np.array([[0.046 * sign, 0.84, -0.008], [0.046 * sign, 0.94, -0.008]])
+        specs.append(_CapsuleSpec(f"pelvis_{side}", "hips", ends, ("torso",), (0.76, 1.02)))
+    specs += _waist_belt()
     for side, sign in (("l", 1.0), ("r", -1.0)):
         x = 0.09 * sign
+        leg, foot = (f"leg_{side}",), (f"foot_{side}",)
         specs += [
-            (f"thigh_upper_{side}", f"thigh_{side}", (f"leg_{side}",), np.array([[x, 0.90, 0.0], [x, 0.72, 0.0]]), (0.70, 0.93)),
-            (f"thigh_lower_{side}", f"thigh_{side}", (f"leg_{side}",), np.array([[x, 0.72, 0.0], [x, 0.52, 0.0]]), (0.50, 0.74)),
-            (f"shin_upper_{side}", f"shin_{side}", (f"leg_{side}",), np.array([[x, 0.50, 0.0], [x, 0.30, 0.0]]), (0.28, 0.52)),
-            (f"shin_lower_{side}", f"shin_{side}", (f"leg_{side}",), np.array([[x, 0.30, 0.0], [x, 0.08, 0.0]]), (0.04, 0.32)),
-            (f"foot_{side}", f"foot_{side}", (f"foot_{side}",), np.array([[x, 0.045, -0.03], [x, 0.035, 0.13]]), (-1.0, 1.0)),
+            _CapsuleSpec(f"thigh_upper_{side}", f"thigh_{side}", np.array([[x, 0.90, 0.0], [x, 0.72, 0.0]]), leg, (0.70, 0.93)),
+            _CapsuleSpec(f"thigh_lower_{side}", f"thigh_{side}", np.array([[x, 0.72, 0.0], [x, 0.52, 0.0]]), leg, (0.50, 0.74)),
+            _CapsuleSpec(f"shin_upper_{side}", f"shin_{side}", np.array([[x, 0.50, 0.0], [x, 0.30, 0.0]]), leg, (0.28, 0.52)),
+            _CapsuleSpec(f"shin_lower_{side}", f"shin_{side}", np.array([[x, 0.30, 0.0], [x, 0.08, 0.0]]), leg, (0.04, 0.32)),
+            _CapsuleSpec(f"foot_{side}", f"foot_{side}", np.array([[x, 0.045, -0.03], [x, 0.035, 0.13]]), foot, (-1.0, 1.0)),
         ]
     for side in ("l", "r"):
         elbow = JOINT_REST_POSITIONS[JOINT_INDEX[f"forearm_{side}"]]
         wrist = JOINT_REST_POSITIONS[JOINT_INDEX[f"hand_{side}"]]
         direction = (wrist - elbow) / np.linalg.norm(wrist - elbow)
-        specs.append(
-            (f"forearm_{side}", f"forearm_{side}", (f"arm_{side}",), np.array([elbow, wrist + 0.11 * direction]), (0.0, elbow[1] + 0.01))
-        )
+        ends = np.array([elbow, wrist + 0.11 * direction])
+        specs.append(_CapsuleSpec(f"forearm_{side}", f"forearm_{side}", ends, (f"arm_{side}",), (0.0, elbow[1] + 0.01)))
     return specs
 
 
 def fit_capsules(body: BodyMesh) -> Capsules:
-    """Collision capsules whose radii enclose the covered rest-pose body vertices.
+    """Collision capsules: the waist belt's radii as designed, the others' enclosing the covered rest-pose vertices.
 
-    Joint-blended vertices are covered by both neighbouring capsules' ranges; a capsule's radius is
-    the largest distance from its segment to a vertex it covers (the vertex's nearest capsule among
+    Joint-blended vertices are covered by both neighbouring capsules' ranges; a fitted radius is the
+    largest distance from the capsule's segment to a vertex it covers (the vertex's nearest capsule among
     those covering the same part, so paired capsules like the two pelvis ones share the work).
     """
     specs = _capsule_specs()
     positions = body.positions.astype(np.float64)
     radii = np.zeros(len(specs))
-    for index, (name, _, parts, endpoints, (low, high)) in enumerate(specs):
+    for index, spec in enumerate(specs):
+        if spec.radius is not None:
+            radii[index] = spec.radius
+            continue
         selected = np.zeros(len(positions), dtype=bool)
-        for part in parts:
+        for part in spec.parts:
             first, stop = body.part_ranges[part]
             selected[first:stop] = True
+        low, high = spec.covers
         selected &= (positions[:, 1] >= low) & (positions[:, 1] <= high)
         # Among capsules covering the same parts and heights, a vertex belongs to its nearest one.
-        peers = [k for k, spec in enumerate(specs) if spec[2] == parts and spec[4] == (low, high)]
-        distances = np.stack([segment_distance(positions[selected], specs[k][3][0], specs[k][3][1]) for k in peers])
+        peers = [k for k, other in enumerate(specs) if other.radius is None and other.parts == spec.parts and other.covers == spec.covers]
+        distances = np.stack([segment_distance(positions[selected], *specs[k].endpoints) for k in peers])
         mine = distances.argmin(axis=0) == peers.index(index)
         radii[index] = float(distances[peers.index(index)][mine].max()) if mine.any() else 0.0
     return Capsules(
-        names=tuple(spec[0] for spec in specs),
-        joints=np.array([JOINT_INDEX[spec[1]] for spec in specs], dtype=np.int64),
-        endpoints=np.stack([spec[3] for spec in specs]),
+        names=tuple(spec.name for spec in specs),
+        joints=np.array([JOINT_INDEX[spec.joint] for spec in specs], dtype=np.int64),
+        endpoints=np.stack([spec.endpoints for spec in specs]),
         radii=radii,
     )
 
