@@ -51,7 +51,8 @@ def test_create_returns_202_with_location_and_enqueues_validate(api, assets):
     assert response.headers["location"] == f"/v1/bakes/{bake['id']}"
     assert bake["state"] == "queued" and bake["attempt"] == 0 and bake["progress"] == 0.0
     assert [stage["stage"] for stage in bake["stages"]] == ["validate", "cycle", "poses", "impostors", "pack", "publish"]
-    assert all(stage["state"] == "pending" for stage in bake["stages"])
+    # The first stage is due (its message sent), the others wait for it.
+    assert [stage["state"] for stage in bake["stages"]] == ["queued"] + ["pending"] * 5
     # Parameters are validated, completed with defaults and recorded with the job.
     assert bake["params"]["tile_size"] == 32 and bake["params"]["close"] == "crossfade" and bake["params"]["elevations_deg"] == [0.0, 20.0, 40.0]
     assert bake["inputs"]["textures"] == {"diffuse_0.png": assets["texture"]}
@@ -154,9 +155,13 @@ def test_cancel_then_retry(api, assets):
     assert {stage["state"] for stage in cancelled.json()["stages"]} == {"cancelled"}
     again = api.client.post(f"/v1/bakes/{bake['id']}/cancel", headers=api.auth("bake"))
     assert again.status_code == 409 and again.json()["type"] == "/problems/invalid-state"
-    # A cancelled bake is not reused by a resubmission: a new bake starts.
+    # A cancelled bake is not reused by a resubmission: a new bake starts...
     fresh = api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci"))
     assert fresh.status_code == 202 and fresh.json()["id"] != bake["id"]
+    # ...and holds the inputs and the version: the old one cannot run beside it in the same work folder.
+    blocked = api.client.post(f"/v1/bakes/{bake['id']}/retry", headers=api.auth("bake"))
+    assert blocked.status_code == 409 and blocked.json()["type"] == "/problems/conflict", blocked.text
+    assert api.client.post(f"/v1/bakes/{fresh.json()['id']}/cancel", headers=api.auth("bake")).status_code == 202
     retried = api.client.post(f"/v1/bakes/{bake['id']}/retry", headers=api.auth("bake"))
     assert retried.status_code == 202
     assert retried.json()["attempt"] == 1 and retried.json()["state"] == "queued"

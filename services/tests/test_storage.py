@@ -94,7 +94,7 @@ def test_migrations_match_the_models(tmp_path):
     assert not is_migrated(engine)
     migrate(engine)
     migrate(engine)  # idempotent
-    assert is_migrated(engine) and head_revision() == "0002"
+    assert is_migrated(engine) and head_revision() == "0003"
     with engine.connect() as connection:
         differences = compare_metadata(MigrationContext.configure(connection), Base.metadata)
     assert differences == [], "the models changed without a migration"
@@ -220,7 +220,8 @@ def test_fan_in_enqueues_pack_exactly_once_per_attempt(sessions):
     with session_scope(sessions) as session:
         bake = session.get(Bake, bake_id)
         records.fail_bake(session, bake, "pack", {"type": "stage-failed", "title": "t", "detail": "d"})
-        records.reset_for_retry(session, bake)
+    with session_scope(sessions) as session:
+        bake = records.retry_bake(session, bake_id, 0)
         assert bake.attempt == 1 and bake.state == "queued" and bake.error is None
     with session_scope(sessions) as session:
         assert records.claim_fan_in(session, bake_id, 1) is True  # the new attempt has its own barrier

@@ -12,10 +12,12 @@ Choices, and why:
     queued messages would starve its idle neighbours.
   * No result backend: the database records every stage's state and progress, and the fan-in of the
     impostor tasks is a barrier in the database (crowdbake.storage.records), not a Celery chord.
-  * Redis in production (`visibility_timeout` above the longest stage, so unacknowledged long stages
-    are not redelivered while they still run). The filesystem transport for the one-command demo needs
-    no server; it hands each message to one worker by renaming a file (it cannot redeliver after a
-    crash, so there `acks_late` protects nothing - run Redis where that matters).
+  * Redis in production (`visibility_timeout` above the longest stage: a long stage redelivered while
+    it runs would be dropped anyway, its unit being claimed by a live delivery, but need not be). The
+    filesystem transport for the one-command demo needs no server; it hands each message to one worker
+    by renaming a file, and puts back the message of a pool process that died. What a whole worker had
+    taken is lost with it on either broker until the visibility timeout: the heartbeats and the sweeper
+    (crowdbake.jobs.sweeper) re-queue those stages.
 """
 from __future__ import annotations
 
