@@ -236,3 +236,15 @@ def test_progress_weights_cover_every_stage(sessions):
         for row in bake.stages:
             row.state = "succeeded"
         assert records.overall_progress(bake) == pytest.approx(1.0)
+
+
+def test_stage_results_with_infinite_figures_are_stored_as_json():
+    """A pack result carries the PSNR of identical pictures, +inf; PostgreSQL's json type refused it
+    (DataError) and failed the bake. Non-finite figures are stored as null."""
+    from crowdbake.storage.records import json_safe
+
+    stored = json_safe({"psnr_db_worst": float("inf"), "ssim": [1.0, float("nan")], "nested": {"x": -float("inf"), "n": 3}})
+    assert stored == {"psnr_db_worst": None, "ssim": [1.0, None], "nested": {"x": None, "n": 3}}
+    import json
+
+    json.dumps(stored, allow_nan=False)

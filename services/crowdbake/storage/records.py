@@ -16,6 +16,7 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import json
+import math
 import os
 import socket
 import uuid
@@ -147,6 +148,18 @@ def mark_running(session: Session, bake: Bake, stage: str) -> BakeStage:
     return row
 
 
+def json_safe(value: Any) -> Any:
+    """`value` with every non-finite float (a PSNR of identical pictures is +inf) as None: JSON has no
+    Infinity or NaN, and PostgreSQL's json type refuses them where SQLite stored them."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    return value
+
+
 def finish_stage(session: Session, bake_id: str, stage: str, seconds: float, result: dict[str, Any] | None) -> None:
     row = stage_row(session, bake_id, stage)
     row.state = "succeeded"
@@ -157,7 +170,7 @@ def finish_stage(session: Session, bake_id: str, stage: str, seconds: float, res
         row.done = row.total = 1
     else:
         row.done = row.total
-    row.result = result
+    row.result = json_safe(result)
 
 
 def set_progress(session: Session, bake_id: str, stage: str, done: int, total: int) -> None:
