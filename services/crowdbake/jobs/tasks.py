@@ -260,10 +260,11 @@ class Heartbeat:
                 os._exit(1)
 
 
-def push_outputs(ctx: StageContext, roots: tuple[str, ...]) -> str | None:
+def push_outputs(ctx: StageContext, roots: tuple[str, ...], keep: bool = False) -> str | None:
     """Store what the stage wrote under `roots` of its work folder; the listing's digest, or None when
-    work does not travel between machines."""
-    if not ctx.services.exchanges_work:
+    work does not travel between machines and `keep` is false. `keep`: store it anyway, because the files
+    are read after the work folder is deleted (the cycle report the jobs page shows)."""
+    if not (ctx.services.exchanges_work or keep):
         return None
     return work_outputs.push(ctx.services.blobs, ctx.work, roots)
 
@@ -574,7 +575,7 @@ def cycle(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
         pull_inputs(ctx, "cycle")
         result = _stage("cycle").stage_cycle(ctx.work, progress=ctx.progress).to_json()
-        return dict(result, outputs=push_outputs(ctx, STAGE_OUTPUTS["cycle"]))
+        return dict(result, outputs=push_outputs(ctx, STAGE_OUTPUTS["cycle"], keep=True))
 
     def after(ctx: StageContext, result, seconds: float) -> None:
         with ctx.session() as session:

@@ -112,7 +112,8 @@ def get_cycle_file(bake_id: str, path: str, key: BakeKey, services: ServicesDep,
     why = "the cycle stage has not finished" if cycle is None or cycle.state != "succeeded" else "no such file in the cycle report"
     outputs = (cycle.result or {}).get("outputs") if cycle is not None else None
     if outputs:
-        # Work folders are private to each worker machine: the cycle stage stored its files as blobs.
+        # The cycle stage stores its files as blobs: work folders are private to each worker machine, and
+        # deleted once the bundle is published.
         entry = work_outputs.read_listing(services.blobs, outputs).get(f"cycle/{path}")
         if entry is None:
             raise Problem("not-found", f"bake {bake_id}: {why} ({path})")
