@@ -297,7 +297,7 @@ run_bake(BakeInputs(character=character, cloth=sources / "cloth.pc2", cloth_mesh
 
 def materialize_sources(service: Service, bake: dict[str, Any], sources: Path) -> Path:
     """The bake's input files linked from the blob store as the worker links them (crowdbake.jobs.tasks.
-    _materialize_inputs: the same names)."""
+    crowdbake.jobs.inputs.materialize_inputs: the same names)."""
     from crowdbake.storage.models import Asset
     from crowdbake.storage.store import open_store
 
@@ -315,8 +315,8 @@ def materialize_sources(service: Service, bake: dict[str, Any], sources: Path) -
 
 def inputs_created(sessions, bake: dict[str, Any]) -> str:
     """The `created` a service bake gives its manifest: when its newest input asset was uploaded
-    (crowdbake.jobs.tasks.inputs_created), read from the asset records."""
-    from crowdbake.jobs.tasks import inputs_created as created_of
+    (crowdbake.jobs.inputs.inputs_created), read from the asset records."""
+    from crowdbake.jobs.inputs import inputs_created as created_of
     from crowdbake.storage.models import Asset
 
     ids = [bake["inputs"]["character"], bake["inputs"]["cloth"], *(bake["inputs"].get("textures") or {}).values()]

@@ -187,7 +187,7 @@ def test_worker_errors_are_classified():
     from sqlalchemy.exc import OperationalError
 
     from crowdbake.errors import InputError, VersionConflict
-    from crowdbake.jobs.tasks import _is_transient, describe_error
+    from crowdbake.jobs.failures import describe_error, is_transient as _is_transient
 
     bad = describe_error(InputError("lod_triangles 9 is not below 4", "lod_triangles"), "validate")
     assert bad == {"type": "invalid-input", "title": "the inputs cannot be baked", "detail": "lod_triangles 9 is not below 4", "field": "lod_triangles"}

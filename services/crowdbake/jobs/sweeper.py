@@ -7,7 +7,7 @@ One pass (`sweep_once`) does three things, each safe to run in several processes
    host was partitioned away). It is re-queued with a new message, one retry counted against
    CROWDBAKE_TASK_MAX_RETRIES, and the bake's log says so; past the budget the bake fails with type
    `worker-lost`. The re-queue is a compare-and-set on the unit's owner and heartbeat
-   (records.requeue_lost), so of several sweepers exactly one re-queues it.
+   (sweeps.requeue_lost), so of several sweepers exactly one re-queues it.
 2. **Unsent messages.** A stage queued in the database whose message never reached the broker (the
    broker was down or frozen when the API or a worker tried) is sent once it has waited
    CROWDBAKE_DISPATCH_AFTER seconds. Sending twice is harmless: the second delivery finds the unit
@@ -38,7 +38,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from crowdbake.jobs.celery_app import send_stage
 from crowdbake.settings import Settings
-from crowdbake.storage import records
+from crowdbake.storage import records, sweeps
 from crowdbake.storage.db import session_scope
 from crowdbake.storage.models import Bake, utcnow
 
@@ -61,7 +61,7 @@ class SweepReport:
     removed_work: list[str] = field(default_factory=list)
 
 
-def send_delivery(celery: Celery, settings: Settings, delivery: records.Delivery) -> None:
+def send_delivery(celery: Celery, settings: Settings, delivery: sweeps.Delivery) -> None:
     """Send the message of a stage or of one impostor part."""
     if delivery.part:
         send_stage(celery, settings, "impostor_views", delivery.bake_id, delivery.attempt, delivery.part)
@@ -69,7 +69,7 @@ def send_delivery(celery: Celery, settings: Settings, delivery: records.Delivery
         send_stage(celery, settings, delivery.stage, delivery.bake_id, delivery.attempt)
 
 
-def send_and_mark(sessions: sessionmaker[Session], celery: Celery, settings: Settings, delivery: records.Delivery) -> None:
+def send_and_mark(sessions: sessionmaker[Session], celery: Celery, settings: Settings, delivery: sweeps.Delivery) -> None:
     """Send, then record the unit as sent (in that order: a crash in between sends it twice, which is
     harmless, never zero times)."""
     send_delivery(celery, settings, delivery)
@@ -77,14 +77,14 @@ def send_and_mark(sessions: sessionmaker[Session], celery: Celery, settings: Set
         records.mark_sent(session, delivery.bake_id, delivery.attempt, delivery.stage, [delivery.part] if delivery.part else ())
 
 
-def requeue_lost_workers(sessions: sessionmaker[Session], settings: Settings, now: dt.datetime, report: SweepReport) -> list[records.Delivery]:
+def requeue_lost_workers(sessions: sessionmaker[Session], settings: Settings, now: dt.datetime, report: SweepReport) -> list[sweeps.Delivery]:
     stale_before = now - dt.timedelta(seconds=settings.heartbeat_timeout)
     with session_scope(sessions) as session:
-        lost = records.lost_deliveries(session, stale_before)
+        lost = sweeps.lost_deliveries(session, stale_before)
     requeued = []
     for delivery in lost:
         with session_scope(sessions) as session:
-            outcome = records.requeue_lost(session, delivery, settings.task_max_retries)
+            outcome = sweeps.requeue_lost(session, delivery, settings.task_max_retries)
         if outcome == "requeued":
             logger.warning("bake %s: %s lost its worker %s; re-queued", delivery.bake_id, delivery.label, delivery.owner)
             report.requeued.append(f"{delivery.bake_id}:{delivery.label}")
@@ -96,11 +96,11 @@ def requeue_lost_workers(sessions: sessionmaker[Session], settings: Settings, no
 
 
 def dispatch_unsent(sessions: sessionmaker[Session], celery: Celery, settings: Settings, queued_before: dt.datetime,
-                    report: SweepReport, also: list[records.Delivery] = ()) -> None:
+                    report: SweepReport, also: list[sweeps.Delivery] = ()) -> None:
     """Send every unit queued before `queued_before` without a message (and `also`: units re-queued in
     this pass). Stops at the first failed send: the broker is away, and the next pass tries again."""
     with session_scope(sessions) as session:
-        unsent = records.unsent_deliveries(session, queued_before)
+        unsent = sweeps.unsent_deliveries(session, queued_before)
     seen = {(delivery.bake_id, delivery.stage, delivery.part) for delivery in unsent}
     unsent += [delivery for delivery in also if (delivery.bake_id, delivery.stage, delivery.part) not in seen]
     for delivery in unsent:
@@ -202,7 +202,7 @@ class Dispatcher:
         self.sessions, self.celery, self.settings = sessions, celery, settings
         self._pool = concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="crowdbake-send")
 
-    def send(self, delivery: records.Delivery, wait_s: float = ENQUEUE_WAIT_S) -> bool:
+    def send(self, delivery: sweeps.Delivery, wait_s: float = ENQUEUE_WAIT_S) -> bool:
         """True when the message was sent within `wait_s` seconds."""
         future = self._pool.submit(send_and_mark, self.sessions, self.celery, self.settings, delivery)
         try:
@@ -216,7 +216,7 @@ class Dispatcher:
             return False
 
 
-def _log_late_failure(delivery: records.Delivery) -> Callable[[concurrent.futures.Future], None]:
+def _log_late_failure(delivery: sweeps.Delivery) -> Callable[[concurrent.futures.Future], None]:
     def done(future: concurrent.futures.Future) -> None:
         if future.exception() is not None:
             logger.warning("could not send %s of bake %s: %s; the sweeper sends it", delivery.label, delivery.bake_id, future.exception())

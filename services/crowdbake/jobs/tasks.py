@@ -36,7 +36,6 @@ stage that does not report progress within CANCEL_GRACE_BEATS heartbeats has its
 from __future__ import annotations
 
 import datetime as dt
-import errno
 import importlib
 import json
 import logging
@@ -46,31 +45,29 @@ import shutil
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Any, Callable
 
 from celery import group, signals
 from celery.exceptions import Reject
 from kombu.exceptions import OperationalError as KombuOperationalError
-from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
-from crowdbake.errors import InputError, VersionConflict
 from crowdbake.jobs.celery_app import TASK_NAMES, app
-from crowdbake.params import BakeParams
+from crowdbake.jobs.exchange import STAGE_OUTPUTS, part_outputs, pull_inputs, push_outputs
+from crowdbake.jobs.failures import describe_error, is_transient
+from crowdbake.jobs.inputs import materialize_inputs
 from crowdbake.settings import Settings, get_settings
-from crowdbake.storage import records, work_outputs
+from crowdbake.storage import records
 from crowdbake.storage.blobs import BlobStore
 from crowdbake.storage.bundle_store import BundleStore
-from crowdbake.storage.bundles import BundleConflict, register_bundle
+from crowdbake.storage.bundles import register_bundle
 from crowdbake.storage.db import make_engine, make_sessionmaker, session_scope
-from crowdbake.storage.models import Asset, Bake, BakePart, BakeStage, utcnow
+from crowdbake.storage.models import Bake, BakePart, utcnow
 from crowdbake.storage.store import open_store
 
 logger = logging.getLogger(__name__)
 
-# OS errors a later attempt can get past; others (a missing file, a permission) would fail again.
-TRANSIENT_ERRNOS = frozenset({errno.ENOSPC, errno.EIO, errno.EAGAIN, errno.EBUSY, errno.ETIMEDOUT, errno.EMFILE, errno.ENFILE, errno.EINTR})
 # Lines of a stage's own log kept in the bake's log (a chatty stage must not fill the database).
 MAX_CAPTURED_LINES = 200
 
@@ -130,19 +127,6 @@ def services() -> WorkerServices:
 
 def work_dir(settings: Settings, input_key: str) -> Path:
     return settings.work_dir / input_key
-
-
-# What each stage writes in the work folder (crowdbake.stages.workdir), pushed to the blob store when
-# work travels between machines, and the earlier stages whose outputs it reads. An impostor task writes
-# impostor/parts/<id>.npz and .json (`_part_outputs`); pack reads every part.
-STAGE_OUTPUTS = {"validate": ("validate", "inputs"), "cycle": ("cycle",), "poses": ("poses",), "pack": ("pack", "bundle")}
-STAGE_READS = {"cycle": ("validate",), "poses": ("validate", "cycle"), "impostors": ("poses",),
-               "pack": ("validate", "cycle", "poses"), "publish": ("pack",)}
-
-
-def _part_outputs(part_id: str) -> tuple[str, ...]:
-    task_id = part_id.removeprefix(records.IMPOSTOR_PART_PREFIX)
-    return (f"impostor/parts/{task_id}.npz", f"impostor/parts/{task_id}.json")
 
 
 def _stage(name: str):
@@ -260,64 +244,6 @@ class Heartbeat:
                 os._exit(1)
 
 
-def push_outputs(ctx: StageContext, roots: tuple[str, ...], keep: bool = False) -> str | None:
-    """Store what the stage wrote under `roots` of its work folder; the listing's digest, or None when
-    work does not travel between machines and `keep` is false. `keep`: store it anyway, because the files
-    are read after the work folder is deleted (the cycle report the jobs page shows)."""
-    if not (ctx.services.exchanges_work or keep):
-        return None
-    return work_outputs.push(ctx.services.blobs, ctx.work, roots)
-
-
-def pull_inputs(ctx: StageContext, stage: str) -> None:
-    """Fetch into this machine's work folder what `stage` reads from the earlier stages (STAGE_READS),
-    and for pack every impostor part, from the listings their rows name."""
-    if not ctx.services.exchanges_work:
-        return
-    with ctx.session() as session:
-        ctx.check_live(session)
-        wanted = STAGE_READS.get(stage, ())
-        rows = session.query(BakeStage).filter(BakeStage.bake_id == ctx.bake_id, BakeStage.stage.in_(wanted)).all()
-        listings = {row.stage: (row.result or {}).get("outputs") for row in rows}
-        missing = [name for name in wanted if not listings.get(name)]
-        digests = [listings[name] for name in wanted]
-        if stage == "pack":
-            parts = session.query(BakePart).filter(BakePart.bake_id == ctx.bake_id, BakePart.stage == "impostors").all()
-            missing += [part.part for part in parts if not part.spec.get("outputs")]
-            digests += [part.spec["outputs"] for part in sorted(parts, key=lambda part: part.part) if part.spec.get("outputs")]
-        if missing:  # a stage only starts after the ones it reads have recorded their outputs
-            raise RuntimeError(f"the outputs of {', '.join(missing)} are not recorded, so {stage} cannot run on this machine")
-    fetched = sum(work_outputs.pull(ctx.services.blobs, ctx.work, digest) for digest in digests)
-    if fetched:
-        logger.info("bake %s: fetched %d files of earlier stages for %s", ctx.bake_id, fetched, stage)
-
-
-def _is_transient(error: BaseException) -> bool:
-    if isinstance(error, (OperationalError, KombuOperationalError)):  # database busy, broker unreachable
-        return True
-    return isinstance(error, OSError) and error.errno in TRANSIENT_ERRNOS
-
-
-def describe_error(error: BaseException, stage: str) -> dict[str, Any]:
-    """A bake's error record: a problem type, a title, a one-line detail and the input field if known."""
-    detail = " ".join(str(error).split()) or type(error).__name__
-    if isinstance(error, OSError) and error.errno is not None and error.filename is not None:
-        # The file name is a path in the server's work folder: the log has it, the API user gets the reason.
-        detail = f"[Errno {error.errno}] {error.strerror}"
-    if isinstance(error, InputError):
-        record = {"type": "invalid-input", "title": "the inputs cannot be baked", "detail": detail}
-        field = getattr(error, "field", None)
-        if field:
-            record["field"] = str(field)
-        return record
-    if isinstance(error, KombuOperationalError):
-        return {"type": "not-ready", "title": "the job queue is unreachable",
-                "detail": f"the {stage} stage could not queue what comes next: {detail}; retry the bake once the broker is back"}
-    if isinstance(error, (BundleConflict, VersionConflict)):
-        return {"type": "version-conflict", "title": "this version is already published with other bytes", "detail": detail}
-    return {"type": "stage-failed", "title": f"the {stage} stage failed", "detail": f"{type(error).__name__}: {detail}"}
-
-
 def run_stage(task, bake_id: str, attempt: int, stage: str, body: Callable[[StageContext], Any],
               after: Callable[[StageContext, Any, float], None], log_start: bool = True, part: str | None = None) -> None:
     """Run `body` as stage `stage` of the bake (or its fan-out part `part`), then `after(ctx, result,
@@ -395,7 +321,7 @@ def run_stage(task, bake_id: str, attempt: int, stage: str, body: Callable[[Stag
     retries = task.request.retries
     # A broker error here means BROKER_PUBLISH_RETRY already waited for it in vain; a retry would need
     # that same broker, so the bake fails with the reason instead (and can be retried from the API).
-    if _is_transient(error) and not isinstance(error, KombuOperationalError) and retries < svc.settings.task_max_retries:
+    if is_transient(error) and not isinstance(error, KombuOperationalError) and retries < svc.settings.task_max_retries:
         countdown = min(svc.settings.task_retry_backoff_max, 2.0**retries) * (0.5 + random.random())
         with session_scope(svc.sessions) as session:
             if records.still_owner(session, bake_id, attempt, stage, part, owner) is None:
@@ -499,57 +425,8 @@ def _start_received_beat() -> None:
 
 
 def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
-    """Link the bake's input blobs into work/sources and build the stages' BakeInputs.
-
-    Not work/inputs: stage_validate copies its inputs there and clears that folder first. The manifest's
-    `created` is the time the newest input was uploaded (`inputs_created`): a property of the inputs
-    that every machine reads alike from the database (a file's modification time would be the time a
-    machine downloaded it), so every attempt of a bake, wherever it runs, produces the same bytes. A `created` given with the
-    bake request (`bake.inputs["created"]`) wins over both."""
-    blobs = ctx.services.blobs
-    inputs_dir = ctx.work / "sources"
-    if inputs_dir.exists():
-        shutil.rmtree(inputs_dir)
-    character = session.get(Asset, bake.inputs["character"])
-    cloth = session.get(Asset, bake.inputs["cloth"])
-    if character is None or cloth is None:
-        raise InputError("an input asset no longer exists", "character" if character is None else "cloth")
-    character_path = blobs.materialize(character.files["file"]["sha256"], inputs_dir / f"character.{character.info.get('format', 'glb')}")
-    # The cache keeps its format's extension (.pc2, .mdd, .abc): the validate stage reads it by extension.
-    cache_suffix = PurePosixPath(cloth.files["cache"].get("filename") or "cloth.pc2").suffix.lower() or ".pc2"
-    cloth_path = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / f"cloth{cache_suffix}")
-    mesh_path = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "cloth.obj") if "mesh" in cloth.files else None
-    textures_dir = None
-    assets = [character, cloth]
-    if bake.inputs.get("textures"):
-        textures_dir = inputs_dir / "textures"
-        for name, asset_id in sorted(bake.inputs["textures"].items()):
-            texture = session.get(Asset, asset_id)
-            if texture is None:
-                raise InputError(f"texture {name} no longer exists", f"textures.{name}")
-            blobs.materialize(texture.files["file"]["sha256"], textures_dir / name)
-            assets.append(texture)
-    cycle_path = None
-    if bake.inputs.get("cycle"):
-        cycle = session.get(Asset, bake.inputs["cycle"])
-        if cycle is None:
-            raise InputError("the cycle asset no longer exists", "cycle")
-        # looped.pc2 beside cycle.json: the validate stage takes it from there, as for `crowdbake bake --cycle`.
-        cycle_path = blobs.materialize(cycle.files["file"]["sha256"], inputs_dir / "cycle" / "cycle.json")
-        if "looped" in cycle.files:
-            blobs.materialize(cycle.files["looped"]["sha256"], inputs_dir / "cycle" / "looped.pc2")
-        assets.append(cycle)
-    return _stage("validate").BakeInputs(
-        character=character_path, cloth=cloth_path, cloth_mesh=mesh_path, textures=textures_dir, cycle=cycle_path,
-        name=bake.name, version=bake.version, params=BakeParams.from_dict(bake.params),
-        created=bake.inputs.get("created") or inputs_created(assets),
-    )
-
-
-def inputs_created(assets: list[Asset]) -> str:
-    """RFC 3339 UTC time (whole seconds) the newest of `assets` was uploaded: the bundle's `created`."""
-    newest = max(records.to_utc(asset.created_at) for asset in assets)
-    return newest.strftime("%Y-%m-%dT%H:%M:%SZ")
+    """The bake's inputs in this stage's work folder (crowdbake.jobs.inputs)."""
+    return materialize_inputs(ctx.services.blobs, ctx.work, bake, session)
 
 
 @app.task(name=TASK_NAMES["validate"], **TASK_OPTIONS)
@@ -630,7 +507,7 @@ def impostor_views(self, bake_id: str, attempt: int, part_id: str) -> None:
             spec = {key: value for key, value in part.spec.items() if key != "outputs"}
         pull_inputs(ctx, "impostors")
         path = _stage("impostors").stage_impostor_views(ctx.work, spec)
-        return path, push_outputs(ctx, _part_outputs(part_id))
+        return path, push_outputs(ctx, part_outputs(part_id))
 
     def after(ctx: StageContext, outcome, seconds: float) -> None:
         _path, outputs = outcome

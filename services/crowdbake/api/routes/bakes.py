@@ -33,7 +33,7 @@ from crowdbake.ingest.cycle_document import check_cycle_fits_cloth
 from crowdbake.jobs.sweeper import ENQUEUE_WAIT_S, Dispatcher
 from crowdbake.params import BakeParams
 from crowdbake.redact import path_replacements, redact_text, redact_value
-from crowdbake.storage import records
+from crowdbake.storage import records, sweeps
 from crowdbake.storage.bundles import find_bundle
 from crowdbake.storage.models import Asset, Bake
 
@@ -140,7 +140,7 @@ def _check_texture_formats(textures: dict[str, Asset | None]) -> None:
 def _dispatch(dispatcher: Dispatcher, session: Session, bake: Bake) -> None:
     """Send the bake's queued, unsent stage, waiting ENQUEUE_WAIT_S at most. A broker that does not
     take it in time leaves the bake queued: the sweeper sends it later, and the bake's log says so."""
-    delivery = records.current_delivery(session, bake)
+    delivery = sweeps.current_delivery(session, bake)
     if delivery is None or dispatcher.send(delivery):
         return
     records.append_log(session, bake.id, "WARNING", delivery.stage, "the job queue did not take the bake within "
