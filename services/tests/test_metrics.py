@@ -149,6 +149,7 @@ def service(tmp_path_factory, small_sample):
         yield running
 
 
+@pytest.mark.slow  # tens of seconds; runs in CI (CROWDBAKE_SLOW_TESTS=1)
 def test_metrics_after_a_bake_show_counts_and_durations(service):
     bake, failed = service.bake, service.failed_bake
     with service.client() as client:

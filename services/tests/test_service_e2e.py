@@ -29,7 +29,8 @@ from service_fixtures import (
     store_env, stored_blobs,
 )
 
-pytestmark = pytest.mark.integration
+# slow: a real server and worker (or browser) for tens of seconds; scripts/test.sh runs it with CROWDBAKE_SLOW_TESTS=1, as CI does
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 # Small enough for a 2-core CI machine: the sample's 3 walk cycles, 2 impostor frames x 4 azimuths x
 # 2 elevations of 32-texel tiles, 2 cycle candidates compared from 2 views.

@@ -105,6 +105,7 @@ def service(tmp_path_factory, small_sample):
         yield running
 
 
+@pytest.mark.slow  # tens of seconds; runs in CI (CROWDBAKE_SLOW_TESTS=1)
 def test_cycle_report_of_a_bake_is_served_with_its_plots(service):
     bake_id = service.bake["id"]
     with service.client() as client:
