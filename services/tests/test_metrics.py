@@ -202,6 +202,7 @@ def test_metrics_after_a_bake_show_counts_and_durations(service):
     assert value(parsed, "crowdbake_database_up") == 1
 
 
+@pytest.mark.slow  # tens of seconds; runs in CI (CROWDBAKE_SLOW_TESTS=1)
 def test_metrics_need_no_key(service):
     import httpx
 
