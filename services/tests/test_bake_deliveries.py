@@ -29,7 +29,7 @@ from sqlalchemy import select
 from crowdbake.storage import records
 from crowdbake.storage.db import session_scope
 from crowdbake.storage.models import Bake, BakeLog, BakePart, BakeStage, utcnow
-from service_fixtures import make_api, obj_bytes, pc2_bytes, png_bytes, tiny_character_glb, tiny_cloth
+from service_fixtures import bake_body, make_api, upload_small_assets
 
 PROBLEM = "application/problem+json"
 CONCURRENT = 8
@@ -43,19 +43,7 @@ def api(tmp_path):
 
 @pytest.fixture
 def assets(api, tmp_path):
-    points, faces = tiny_cloth(frames=12)
-    upload = api.auth("upload")
-    character = api.client.post("/v1/assets/characters", files={"file": ("walker.glb", tiny_character_glb())}, headers=upload).json()
-    cloth = api.client.post("/v1/assets/cloth", files={"cache": ("c.pc2", pc2_bytes(points)), "mesh": ("c.obj", obj_bytes(points[0], faces, tmp_path))}, headers=upload).json()
-    texture = api.client.post("/v1/assets/textures", files={"file": ("d.png", png_bytes())}, headers=upload).json()
-    return {"character": character["id"], "cloth": cloth["id"], "texture": texture["id"]}
-
-
-def bake_body(assets, **changes):
-    body = {"name": "walker", "version": "1.0.0", "character": assets["character"], "cloth": assets["cloth"],
-            "textures": {"diffuse_0.png": assets["texture"]}, "params": {"impostor_frames": 2, "azimuths": 4, "tile_size": 32}}
-    body.update(changes)
-    return body
+    return upload_small_assets(api, tmp_path)
 
 
 def at_once(count: int, call):
