@@ -111,6 +111,23 @@ def test_unknown_assets_and_reserved_version(api, assets):
     assert response.status_code == 422 and response.json()["errors"][0]["field"] == "textures"
 
 
+def test_ids_with_nul_or_odd_characters_name_nothing(api, assets):
+    """A NUL in an id once reached PostgreSQL (which refuses text holding NUL) as a server error; such an
+    id is as unknown as any other, wherever it comes from."""
+    response = api.client.post("/v1/bakes", json=bake_body(assets, cloth="\u0000", textures={"diffuse_0.png": "as_\u0000x"}), headers=api.auth("ci"))
+    assert response.status_code == 422 and response.headers["content-type"] == PROBLEM
+    assert {error["field"] for error in response.json()["errors"]} == {"cloth", "textures.diffuse_0.png"}, response.json()
+    for path in ("/v1/bakes/%00", "/v1/assets/%00", "/v1/bakes/bk_%00/log", f"/v1/bakes/{'b' * 65}"):
+        missing = api.client.get(path, headers=api.auth("ci"))
+        assert missing.status_code == 404 and missing.headers["content-type"] == PROBLEM, (path, missing.text)
+    odd_name = api.client.get("/v1/bakes", params={"name": "walker\x00"}, headers=api.auth("bake"))
+    assert odd_name.status_code == 422 and odd_name.headers["content-type"] == PROBLEM
+    # An upload's file name is a label: control characters are dropped, the file is kept.
+    uploaded = api.client.post("/v1/assets/characters", files={"file": ("walk\x00er\x07.glb", tiny_character_glb())}, headers=api.auth("upload"))
+    assert uploaded.status_code in (200, 201), uploaded.text
+    assert uploaded.json()["filename"] == "walker.glb"
+
+
 def test_too_few_frames_for_the_requested_cycle(api, assets):
     response = api.client.post("/v1/bakes", json=bake_body(assets, params={"cycle_frames": 7}), headers=api.auth("ci"))
     assert response.status_code == 422 and response.json()["type"] == "/problems/invalid-file"

@@ -18,6 +18,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import socket
 import uuid
 from dataclasses import dataclass
@@ -40,6 +41,19 @@ IMPOSTOR_PART_PREFIX = "impostors/"
 
 def new_id(prefix: str) -> str:
     return f"{prefix}_{uuid.uuid4().hex[:20]}"
+
+
+# Ids that come from outside (paths, request bodies) are looked up only when they could be ids at all:
+# PostgreSQL refuses a text parameter holding NUL with an error, and no id is longer than this.
+_ID_SHAPE = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+
+
+def by_id(session: Session, model: type, ident: str):
+    """The `model` row whose primary key is the caller-given `ident`, or None, also when `ident` cannot
+    be an id (wrong characters or length): a malformed id names nothing, like an unknown one."""
+    if not isinstance(ident, str) or not _ID_SHAPE.fullmatch(ident):
+        return None
+    return session.get(model, ident)
 
 
 def code_version() -> str:

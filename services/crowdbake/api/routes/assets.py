@@ -20,6 +20,7 @@ from crowdbake.ingest.cycle_document import check_cycle_upload
 from crowdbake.ingest.studio_inputs import MEDIA_TYPES as STUDIO_MEDIA_TYPES
 from crowdbake.ingest.studio_inputs import check_jpeg_texture, check_point_cache, pc2_first_frame, placement_sample
 from crowdbake.ingest.uploads import ZipLimits, _extension, check_character, check_cloth, check_texture, convert_obj_sequence
+from crowdbake.storage import records
 from crowdbake.storage.assets import store_asset
 from crowdbake.storage.blobs import BlobStore, IncomingBlob
 from crowdbake.storage.models import Asset
@@ -198,7 +199,7 @@ def list_assets(
 
 @router.get("/{asset_id}", response_model=AssetPublic, responses=problem_responses(404))
 def get_asset(asset_id: str, key: AssetReadKey, session: SessionDep) -> Asset:
-    asset = session.get(Asset, asset_id)
+    asset = records.by_id(session, Asset, asset_id)
     if asset is None or not key.owns(asset.created_by):  # another key's asset is not there for this one
         raise Problem("not-found", f"no asset {asset_id!r}")
     return asset

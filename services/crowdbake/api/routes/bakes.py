@@ -31,7 +31,7 @@ from crowdbake.errors import InputError
 from crowdbake.ingest.bake_request import check_request_placement, check_two_cycles, cycle_frames_for
 from crowdbake.ingest.cycle_document import check_cycle_fits_cloth
 from crowdbake.jobs.sweeper import ENQUEUE_WAIT_S, Dispatcher
-from crowdbake.params import BakeParams
+from crowdbake.params import NAME_PATTERN, BakeParams
 from crowdbake.redact import path_replacements, redact_text, redact_value
 from crowdbake.storage import records, sweeps
 from crowdbake.storage.bundles import find_bundle
@@ -76,14 +76,14 @@ def bake_public(session: Session, bake: Bake, log_lines: int = LOG_LINES_IN_BAKE
 
 def _get_bake(session: Session, bake_id: str, key: Principal) -> Bake:
     """The bake, if it exists and `key` owns it (another key's bake is a 404: its id reveals nothing)."""
-    bake = session.get(Bake, bake_id)
+    bake = records.by_id(session, Bake, bake_id)
     if bake is None or not key.owns(bake.created_by):
         raise Problem("not-found", f"no bake {bake_id!r}")
     return bake
 
 
 def _asset(session: Session, asset_id: str, kind: str, field: str, errors: list[dict[str, Any]], key: Principal) -> Asset | None:
-    asset = session.get(Asset, asset_id)
+    asset = records.by_id(session, Asset, asset_id)
     if asset is None or asset.kind != kind or not key.owns(asset.created_by):
         errors.append({"field": field, "message": f"no {kind} asset {asset_id!r}"})
         return None
@@ -224,7 +224,8 @@ def _existing(dispatcher: Dispatcher, session: Session, response: Response, bake
 @router.get("", response_model=BakesPublic, responses=problem_responses())
 def list_bakes(
     key: BakeKey, session: SessionDep,
-    state: Literal["queued", "running", "succeeded", "failed", "cancelled"] | None = None, name: str | None = None,
+    state: Literal["queued", "running", "succeeded", "failed", "cancelled"] | None = None,
+    name: str | None = Query(None, pattern=NAME_PATTERN, description="Only bakes of this bundle name."),
     limit: int = Query(50, ge=1, le=500), offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET),
 ) -> BakesPublic:
     query = key.only_own(select(Bake).order_by(Bake.created_at.desc(), Bake.id), Bake.created_by)

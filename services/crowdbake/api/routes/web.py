@@ -38,7 +38,7 @@ from crowdbake.api.problems import Problem
 from crowdbake.api.routes.bundles import IMMUTABLE_SECONDS, NameParam, VersionParam, _bundle_or_problem, _manifest
 from crowdbake.api.schemas import problem_responses
 from crowdbake.formats.binary import read_texture_layer
-from crowdbake.storage import work_outputs
+from crowdbake.storage import records, work_outputs
 from crowdbake.storage.bundle_store import BundleStore
 from crowdbake.storage.bundles import LATEST
 from crowdbake.storage.models import Bake
@@ -99,7 +99,7 @@ def static_file(name: str) -> FileResponse:
     summary="The cycle search's report of a bake (report.html, its PNG plots, cycle.json)",
 )
 def get_cycle_file(bake_id: str, path: str, key: BakeKey, services: ServicesDep, session: SessionDep) -> Response:
-    bake = session.get(Bake, bake_id)
+    bake = records.by_id(session, Bake, bake_id)
     if bake is None or not key.owns(bake.created_by):
         raise Problem("not-found", f"no bake {bake_id!r}")
     if not CYCLE_FILE.match(path):
