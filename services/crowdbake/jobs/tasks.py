@@ -4,10 +4,10 @@ Each task takes the bake's id and attempt (and, for an impostor task, its part i
 from the database, calls the stage function (crowdbake.stages.<stage>) on the bake's work folder, records the outcome,
 and enqueues what comes next:
 
-    validate -> cycle -> poses -> impostor_views x N (in parallel) -> pack -> publish
+    validate -> cycle (+ impostor plan) -> poses | impostor_views x N (all in parallel) -> pack -> publish
 
-(The impostor tasks are derived from the poses stage's output, crowdbake.stages.impostors.impostor_tasks, so they follow
-it rather than run beside it.)
+(The impostor tasks need only the impostor plan, which the cycle task draws from the cycle's output,
+crowdbake.stages.impostors.stage_impostor_plan, so they run beside the poses stage; pack waits for both.)
 
 The work folder is named by the bake's input key (hash of inputs, parameters and code version), and the
 stage functions are idempotent, so a redelivered or retried task finds its outputs and returns at once.
@@ -60,6 +60,10 @@ TASK_OPTIONS = dict(bind=True, acks_late=True, reject_on_worker_lost=True, ignor
 # (a Redis restart or failover): about two minutes (0.5 + 1.5 + ... + 5 s, 30 tries). Kombu's default
 # gives up after about one second, which dropped the bake's next stage on any broker restart.
 BROKER_PUBLISH_RETRY = {"max_retries": 30, "interval_start": 0.5, "interval_step": 1.0, "interval_max": 5.0}
+
+
+# The poses stage runs beside the impostor tasks: pack waits for this part as for theirs.
+POSES_PART = "poses"
 
 
 class BakeStopped(Exception):
@@ -333,12 +337,24 @@ def validate(self, bake_id: str, attempt: int) -> None:
 @app.task(name=TASK_NAMES["cycle"], **TASK_OPTIONS)
 def cycle(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
-        return _stage("cycle").stage_cycle(ctx.work, progress=ctx.progress).to_json()
+        result = _stage("cycle").stage_cycle(ctx.work, progress=ctx.progress).to_json()
+        impostors = _stage("impostors")
+        impostors.stage_impostor_plan(ctx.work)
+        return result, [task.to_json() for task in impostors.impostor_tasks(ctx.work)]
 
-    def after(ctx: StageContext, result, seconds: float) -> None:
+    def after(ctx: StageContext, outcome, seconds: float) -> None:
+        result, impostor_specs = outcome
         with ctx.session() as session:
             _finish(ctx, session, result, seconds)
+            part_ids = records.record_fan_out(session, ctx.bake_id, impostor_specs, stages=(POSES_PART,))
+            records.append_log(session, ctx.bake_id, "INFO", "impostors", f"fanning out {len(part_ids)} impostor-view tasks beside the poses stage")
         _send("poses", ctx.bake_id, ctx.attempt)
+        if part_ids:
+            queue = services().settings.queue
+            group(
+                app.signature(TASK_NAMES["impostor_views"], args=[ctx.bake_id, ctx.attempt, part_id], queue=queue, immutable=True)
+                for part_id in part_ids
+            ).apply_async(retry=True, retry_policy=BROKER_PUBLISH_RETRY)
 
     run_stage(self, bake_id, attempt, "cycle", body, after)
 
@@ -357,23 +373,13 @@ def _maybe_enqueue_pack(ctx: StageContext, parts_left: int) -> None:
 @app.task(name=TASK_NAMES["poses"], **TASK_OPTIONS)
 def poses(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
-        result = _stage("poses").stage_poses(ctx.work, progress=ctx.progress)
-        return result.to_json(), [task.to_json() for task in _stage("impostors").impostor_tasks(ctx.work)]
+        return _stage("poses").stage_poses(ctx.work, progress=ctx.progress).to_json()
 
-    def after(ctx: StageContext, outcome, seconds: float) -> None:
-        result, impostor_specs = outcome
+    def after(ctx: StageContext, result, seconds: float) -> None:
         with ctx.session() as session:
+            parts_left = records.complete_part(session, ctx.bake_id, POSES_PART)  # first: it serialises the fan-in
             _finish(ctx, session, result, seconds)
-            part_ids = records.record_fan_out(session, ctx.bake_id, impostor_specs)
-            records.append_log(session, ctx.bake_id, "INFO", "impostors", f"fanning out {len(part_ids)} impostor-view tasks")
-        if not part_ids:
-            _maybe_enqueue_pack(ctx, 0)
-            return
-        queue = services().settings.queue
-        group(
-            app.signature(TASK_NAMES["impostor_views"], args=[ctx.bake_id, ctx.attempt, part_id], queue=queue, immutable=True)
-            for part_id in part_ids
-        ).apply_async(retry=True, retry_policy=BROKER_PUBLISH_RETRY)
+        _maybe_enqueue_pack(ctx, parts_left)
 
     run_stage(self, bake_id, attempt, "poses", body, after)
 

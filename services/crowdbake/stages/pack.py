@@ -29,15 +29,19 @@ from crowdbake.stages.workdir import Progress, StageOutcome, WorkDir, json_bytes
 FIGURE4_MIN_VARIATIONS = 16
 
 
-def _load_parts(work: Path, tasks: list[ImpostorTask]) -> dict[str, dict[str, np.ndarray]]:
-    missing = [task.id for task in tasks if not part_path(work, task).is_file()]
-    if missing:
-        raise StageOrderError(f"{len(missing)} impostor tasks have not run, first {missing[0]}")
-    parts = {}
-    for task in tasks:
-        with np.load(part_path(work, task)) as data:
-            parts[task.id] = {name: data[name] for name in data.files}
-    return parts
+class Parts:
+    """The impostor parts by task id, each read from its file when asked for and not kept: the pack stage
+    holds one frame's parts at a time, not the whole bake's (tens of MB a frame at the default sizes)."""
+
+    def __init__(self, work: Path, tasks: list[ImpostorTask]):
+        missing = [task.id for task in tasks if not part_path(work, task).is_file()]
+        if missing:
+            raise StageOrderError(f"{len(missing)} impostor tasks have not run, first {missing[0]}")
+        self._paths = {task.id: part_path(work, task) for task in tasks}
+
+    def __getitem__(self, task_id: str) -> dict[str, np.ndarray]:
+        with np.load(self._paths[task_id]) as data:
+            return {name: data[name] for name in data.files}
 
 
 def _split_layers(encoded: np.ndarray, material: MaterialInfo) -> list[bytes]:
@@ -78,7 +82,7 @@ def _mesh_files(work: Path, poses: PosesRecord, files: list[BundleFile]) -> list
     return meshes
 
 
-def _texture_files(poses: PosesRecord, texture_arrays: dict[str, np.ndarray], files: list[BundleFile], compression_report: dict) -> list[dict]:
+def _texture_files(poses: PosesRecord, texture_arrays, files: list[BundleFile], compression_report: dict) -> list[dict]:
     """Diffuse texture arrays and the outfit map; the diffuse compression errors go to compression_report."""
     entries = []
     for index, material in enumerate(poses.materials):
@@ -98,7 +102,7 @@ def _texture_files(poses: PosesRecord, texture_arrays: dict[str, np.ndarray], fi
     return entries
 
 
-def _impostor_files(poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict, formats: dict[str, str],
+def _impostor_files(poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: Parts, formats: dict[str, str],
                     files: list[BundleFile], compression_report: dict, progress: Progress | None, steps: int) -> tuple[dict, dict]:
     """Impostor atlases (layer k = frame_indices[k], tiles from the tasks), encoded; returns the manifest's
     maps and the fidelity frame's atlases (as stored, plus uv16 and the decoded normal map)."""
@@ -110,13 +114,14 @@ def _impostor_files(poses: PosesRecord, layout: AtlasLayout, tasks: list[Imposto
         by_frame.setdefault(task.frame, []).append(task)
     for step, frame in enumerate(poses.frame_indices, start=1):
         atlases = {}
+        frame_parts = [parts[task.id] for task in by_frame[frame]]  # this frame's only
         for kind in formats:
             tiles = {}
-            for task in by_frame[frame]:
-                data = parts[task.id]
+            for data in frame_parts:
                 for (a, e), tile in zip(data["views"].tolist(), data[kind]):
                     tiles[(a, e)] = tile
             atlases[kind] = assemble(layout, tiles)
+        del frame_parts
         covered = atlases["uv"][..., 3] > 0
         # The tiles carry 16-bit UV maps; what the bundle stores (and fidelity measures) is `stored`.
         stored = dict(atlases, uv16=atlases["uv"])
@@ -192,21 +197,23 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
     poses = load_poses(work)
     cycle = folder.load("cycle", CycleRecord)
     layout = poses.atlas_layout()
-    parts = _load_parts(work, tasks)
+    parts = Parts(work, tasks)
     steps = len(poses.frame_indices) + 3
     report(progress, "pack", 0, steps)
 
     files: list[BundleFile] = []
     meshes = _mesh_files(folder.root, poses, files)
-    with np.load(folder.root / "poses" / "textures.npz") as textures:
-        texture_arrays = {name: textures[name] for name in textures.files}
-    compression_report: dict[str, Any] = {}
-    material_entries = _texture_files(poses, texture_arrays, files, compression_report)
-    formats = map_formats(params.compress, params.uv_format)
-    maps, fidelity_atlases = _impostor_files(poses, layout, tasks, parts, formats, files, compression_report, progress, steps)
+    # Read lazily: each array when asked for (the diffuse layers, encoded and decoded, are tens of MB).
+    texture_arrays = np.load(folder.root / "poses" / "textures.npz")
+    with texture_arrays:
+        compression_report: dict[str, Any] = {}
+        material_entries = _texture_files(poses, texture_arrays, files, compression_report)
+        formats = map_formats(params.compress, params.uv_format)
+        maps, fidelity_atlases = _impostor_files(poses, layout, tasks, parts, formats, files, compression_report, progress, steps)
 
-    # Fidelity at 1:1 texel-to-pixel: per view, and at the angles between views with the nearest view.
-    fidelity_doc = score_fidelity(poses, layout, tasks, parts, fidelity_atlases, texture_arrays, formats)
+        # Fidelity at 1:1 texel-to-pixel: per view, and at the angles between views with the nearest view.
+        fidelity_doc = score_fidelity(poses, layout, tasks, parts, fidelity_atlases, texture_arrays, formats)
+        outfit_count = int(len(texture_arrays["outfits"]))
     fidelity_doc["compression"] = compression_report
     files.append(BundleFile("fidelity.json", json_bytes(fidelity_doc), "fidelity"))
     report(progress, "pack", len(poses.frame_indices) + 1, steps)
@@ -219,7 +226,7 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
         "frames_per_second": poses.frames_per_second,
         "cycle": _cycle_section(cycle),
         "materials": material_entries,
-        "outfits": {"file": "textures/outfits.cbtx", "count": int(len(texture_arrays["outfits"])), "regions": 16},
+        "outfits": {"file": "textures/outfits.cbtx", "count": outfit_count, "regions": 16},
         "meshes": meshes,
         "impostor": {**layout.to_manifest(), "frame_indices": poses.frame_indices, "bounds": poses.bounds, "maps": maps},
     }

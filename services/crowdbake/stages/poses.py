@@ -73,12 +73,14 @@ def load_rgba_png(path: Path) -> np.ndarray:
     return rgba
 
 
-def _materials(job: JobRecord, inputs: Path, character) -> tuple[list[dict], np.ndarray]:
-    """Materials [{"name", "layers" (L, H, W, 4) uint8}] and the outfit map (O, 16, 4) uint8."""
+def materials_of(job: JobRecord, inputs: Path, character, first_layer_only: bool = False) -> tuple[list[dict], np.ndarray]:
+    """Materials [{"name", "layers" (L, H, W, 4) uint8}] and the outfit map (O, 16, 4) uint8.
+
+    first_layer_only: load variation 0 alone (L = 1), all the impostor bake draws with."""
     names = job.inputs
     if "textures" in names:
         diffuse, outfits_path = texture_files(inputs / names["textures"])
-        layers = np.stack([load_rgba_png(path) for path in diffuse])
+        layers = np.stack([load_rgba_png(path) for path in (diffuse[:1] if first_layer_only else diffuse)])
         materials = [{"name": "character", "layers": layers}]
         if outfits_path is not None:
             outfits = load_rgba_png(outfits_path).reshape(-1, 16, 4)
@@ -105,8 +107,11 @@ def diffuse_format(layers: np.ndarray, compress: bool) -> str:
     return "bc2" if compress and height % 4 == 0 and width % 4 == 0 else "rgba8"
 
 
-def _high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> tuple[dict, dict, dict]:
-    """The high LOD of the body and the garment over the cycle: (parts, kinds, materials per part)."""
+def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> tuple[dict, dict, dict]:
+    """The high LOD of the body and the garment over the cycle: (parts, kinds, materials per part).
+
+    The impostor plan (crowdbake.stages.impostors.stage_impostor_plan) draws the same arrays, so both
+    stages run side by side from the cycle's output and agree to the bit."""
     inputs, names = work.inputs, job.inputs
     fps, start, frames = cycle.fps, cycle.start_frame, cycle.cycle_frames
     body_positions, body_normals = pose_body_cycle(character, fps, start, frames)
@@ -141,6 +146,20 @@ def _high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) ->
         ),
     }
     return high, {"body": "body", garment: "garment"}, {"body": 0, garment: 1}
+
+
+def part_materials(part_material: dict, materials: list[dict]) -> dict:
+    """Material index per part: one given texture set serves every part."""
+    return dict.fromkeys(part_material, 0) if len(materials) == 1 else part_material
+
+
+def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, AtlasLayout, list[int]]:
+    """The impostors' framing: bounds {"center", "radius"} over every frame and part, the atlas layout,
+    and the baked cycle frames. Shared by the poses stage and the impostor plan."""
+    centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
+    layout = AtlasLayout.rings(params.tile_size, params.azimuths, tuple(params.elevations_deg))
+    frame_indices = poses.impostor_frame_indices(cycle.cycle_frames, params.impostor_frames)
+    return {"center": [float(c) for c in centre], "radius": float(radius)}, layout, frame_indices
 
 
 def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float, out: Path) -> list[PosePart]:
@@ -204,26 +223,23 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     report(progress, "poses", 0, steps)
 
     character = load_character(folder.inputs / job.inputs["character"])
-    materials, outfits = _materials(job, folder.inputs, character)
-    high, kinds, part_material = _high_parts(job, cycle, folder, character)
-    if len(materials) == 1:
-        part_material = dict.fromkeys(part_material, 0)
+    materials, outfits = materials_of(job, folder.inputs, character)
+    high, kinds, part_material = high_parts(job, cycle, folder, character)
+    part_material = part_materials(part_material, materials)
     report(progress, "poses", 2, steps)
     parts = _write_lods(high, kinds, part_material, params, cycle.fps, out)
     report(progress, "poses", 4, steps)
     material_infos = _write_textures(materials, outfits, params.compress, out)
     report(progress, "poses", 5, steps)
 
-    centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
-    layout = AtlasLayout.rings(params.tile_size, params.azimuths, tuple(params.elevations_deg))
-    frame_indices = poses.impostor_frame_indices(cycle.cycle_frames, params.impostor_frames)
+    bounds, layout, frame_indices = impostor_framing(params, cycle, high)
     record = PosesRecord(
         frames_per_second=cycle.fps,
         cycle_frames=cycle.cycle_frames,
         parts=parts,
         materials=material_infos,
         outfit_count=int(len(outfits)),
-        bounds={"center": [float(c) for c in centre], "radius": float(radius)},
+        bounds=bounds,
         layout=layout.to_manifest(),
         frame_indices=frame_indices,
         fidelity_frame=frame_indices[0],

@@ -194,10 +194,13 @@ def is_final(bake: Bake) -> bool:
 # ------------------------------------------------------------------------------------- fan-out/in
 
 
-def record_fan_out(session: Session, bake_id: str, impostor_tasks: list[dict[str, Any]]) -> list[str]:
+def record_fan_out(session: Session, bake_id: str, impostor_tasks: list[dict[str, Any]], stages: tuple[str, ...] = ()) -> list[str]:
     """Register the parts the pack stage waits for: one per impostor-views task (crowdbake.stages.impostors.impostor_tasks,
-    which needs the poses stage's output). Returns the part ids in task order."""
+    which needs the impostor plan only), and one per stage in `stages` that runs beside them (the poses
+    stage: its part id is the stage's name). Returns the impostor part ids in task order."""
     session.execute(delete(BakePart).where(BakePart.bake_id == bake_id))
+    for stage in stages:
+        session.add(BakePart(bake_id=bake_id, part=stage, stage=stage, spec={}, done=False))
     part_ids = []
     for index, spec in enumerate(impostor_tasks):
         part_id = f"{IMPOSTOR_PART_PREFIX}{spec.get('id', index)}"
