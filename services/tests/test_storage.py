@@ -225,6 +225,22 @@ def test_fan_in_enqueues_pack_exactly_once_per_attempt(sessions):
         assert records.claim_fan_in(session, bake_id, 1) is True  # the new attempt has its own barrier
 
 
+def test_the_poses_stage_is_part_of_the_fan_in_beside_the_impostor_tasks(sessions):
+    """The impostor tasks run beside the poses stage: pack waits for both, whichever finishes last."""
+    with session_scope(sessions) as session:
+        bake_id = new_bake(session).id
+    with session_scope(sessions) as session:
+        parts = records.record_fan_out(session, bake_id, [{"id": "f0000-e0", "frame": 0}], stages=("poses",))
+    assert parts == ["impostors/f0000-e0"]
+    with session_scope(sessions) as session:
+        assert records.complete_part(session, bake_id, parts[0]) == 1  # the poses stage is still running
+        assert records.stage_row(session, bake_id, "impostors").done == 1
+        assert records.impostor_parts_left(session, bake_id) == 0
+    with session_scope(sessions) as session:
+        assert records.complete_part(session, bake_id, "poses") == 0
+        assert records.claim_fan_in(session, bake_id, 0) is True
+
+
 def test_progress_weights_cover_every_stage(sessions):
     assert set(records.STAGE_WEIGHTS) == set(records.STAGES)
     assert sum(records.STAGE_WEIGHTS.values()) == pytest.approx(1.0)

@@ -24,7 +24,7 @@ from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2
 from crowdbake.stages.records import CycleRecord, JobRecord, MaterialInfo, PosePart, PosesRecord
 from crowdbake.stages.validate import load_job, texture_files
-from crowdbake.stages.workdir import Progress, StageOutcome, WorkDir, npz_bytes, report, stage_key, write_bytes_atomic
+from crowdbake.stages.workdir import Progress, StageOutcome, WorkDir, npz_bytes, report, stage_key, write_bytes_atomic, write_json_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -186,9 +186,15 @@ def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float
     return parts
 
 
+DIFFUSE_ERRORS = "diffuse_errors.json"
+
+
 def _write_textures(materials: list[dict], outfits: np.ndarray, compress: bool, out: Path) -> list[MaterialInfo]:
-    """Encode the diffuse layers once; the impostor tasks and fidelity use what a runtime samples."""
+    """Encode the diffuse layers once; the impostor tasks and fidelity use what a runtime samples. The
+    compression error of every block-compressed layer goes to DIFFUSE_ERRORS (for the pack stage's report,
+    measured here where the layers are at hand, beside the impostor tasks rather than before the bundle)."""
     arrays: dict[str, np.ndarray] = {"outfits": outfits}
+    errors: dict[str, list[dict]] = {}
     infos = []
     for index, material in enumerate(materials):
         layers = material["layers"]
@@ -202,8 +208,11 @@ def _write_textures(materials: list[dict], outfits: np.ndarray, compress: bool, 
         # Variation 0 on its own: the impostor tasks need only it, and np.load reads whole arrays.
         arrays[f"material_{index}_v0"] = layers[0]
         arrays[f"material_{index}_decoded_v0"] = decoded[0]
+        if pixel_format != "rgba8":
+            errors[material["name"]] = [compression.compression_error(layer, back) for layer, back in zip(layers, decoded)]
         infos.append(MaterialInfo(name=material["name"], variations=int(len(layers)), width=int(width), height=int(height), pixel_format=pixel_format))
     write_bytes_atomic(out / "textures.npz", npz_bytes(arrays))
+    write_json_atomic(out / DIFFUSE_ERRORS, errors)
     return infos
 
 
@@ -214,7 +223,7 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     job = load_job(work)
     key = stage_key("poses", folder.key_of("cycle"))
     out = folder.root / "poses"
-    cached = folder.cached("poses", key, PosesRecord, [out / "textures.npz"])
+    cached = folder.cached("poses", key, PosesRecord, [out / "textures.npz", out / DIFFUSE_ERRORS])
     if cached is not None:
         return StageOutcome(cached, True, 0.0)
     params = job.bake_params

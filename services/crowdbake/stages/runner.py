@@ -15,13 +15,16 @@ Timings (BakeSummary.timings): wall, CPU (this process and its workers) and seco
 from __future__ import annotations
 
 import ctypes
+import importlib
 import ctypes.util
 import multiprocessing
 import os
 import resource
 import shutil
 import tempfile
+import threading
 import time
+from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -31,7 +34,7 @@ from crowdbake.render.offscreen import render_timings
 from crowdbake.stages import STAGES
 from crowdbake.stages.cycle import stage_cycle
 from crowdbake.stages.impostors import impostor_statistics, impostor_tasks, stage_impostor_plan, stage_impostor_views
-from crowdbake.stages.pack import stage_pack
+from crowdbake.stages.pack import stage_pack, stage_pack_frame
 from crowdbake.stages.poses import stage_poses
 from crowdbake.stages.publish import stage_publish
 from crowdbake.stages.records import PosesRecord
@@ -120,6 +123,30 @@ class _Meter:
         return figures["result"]
 
 
+class _Background:
+    """Callables run one after another in a thread; result() waits and re-raises their error. Their CPU
+    seconds (time.thread_time) are added to `figures`."""
+
+    def __init__(self, name: str, calls: list[Callable[[], None]], figures: StageFigures):
+        self._calls, self._figures, self._error = calls, figures, None
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        started = time.thread_time()
+        try:
+            for call in self._calls:
+                call()
+        except BaseException as error:  # noqa: BLE001 - handed to the caller by result()
+            self._error = error
+        self._figures.cpu_s += time.thread_time() - started
+
+    def result(self) -> None:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+
+
 def measured(body: Callable[[], Any]) -> dict[str, Any]:
     """Run body; its result and the wall, CPU (this process, every thread) and GL seconds it took."""
     gl, wall, cpu = render_timings(), time.perf_counter(), time.process_time()
@@ -129,10 +156,13 @@ def measured(body: Callable[[], Any]) -> dict[str, Any]:
             "render_s": gl.seconds, "renders": gl.renders}
 
 
-def _worker_item(work: str, item: str, task: dict | None) -> dict[str, Any]:
-    """One item of the poses ∥ impostors part, in a worker process: the poses stage or one impostor task."""
+def _worker_item(work: str, item: str, task: dict | None = None, frame: int | None = None) -> dict[str, Any]:
+    """One item of the poses ∥ impostors part, in a worker process: the poses stage, one impostor task, or
+    one baked frame's atlases for the pack stage (once that frame's tasks are done)."""
     if item == "poses":
         figures = measured(lambda: stage_poses(Path(work)).cached)
+    elif item == "pack":
+        figures = measured(lambda: str(stage_pack_frame(Path(work), frame)))
     else:
         figures = measured(lambda: str(stage_impostor_views(Path(work), task)))
     _trim_heap()
@@ -152,11 +182,12 @@ def start_pool(workers: int) -> ProcessPoolExecutor:
     return ProcessPoolExecutor(workers, mp_context=context)
 
 
-def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, meter: _Meter, progress: Progress | None) -> None:
-    """The poses stage and every impostor task: in the pool, the longest items first, or in order here."""
-    tasks = impostor_tasks(work)
-    report(progress, "impostors", 0, len(tasks))
+def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: int, meter: _Meter, progress: Progress | None) -> None:
+    """The impostor plan, the poses stage and every impostor task: in the pool (the plan here, while a
+    worker starts on the poses), the longest items first, or all in order here."""
     if pool is None:
+        meter.run("impostors", lambda: stage_impostor_plan(work, progress))
+        tasks = impostor_tasks(work)
         meter.run("poses", lambda: stage_poses(work, progress))
         for done, task in enumerate(tasks):
             report(progress, "impostors", done, len(tasks))
@@ -164,27 +195,45 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, meter: _M
         report(progress, "impostors", len(tasks), len(tasks))
         return
     started = time.perf_counter()
+    pending: dict[Future, tuple[str, int | None]] = {pool.submit(_worker_item, str(work), "poses"): ("poses", None)}
+    plan = measured(lambda: stage_impostor_plan(work, progress))
+    meter.figures("impostors").add(dict(plan, wall_s=0.0))  # within the part's wall, below
+    tasks = impostor_tasks(work)
+    report(progress, "impostors", 0, len(tasks))
     # Fidelity-frame tasks (with their mesh references) take several times an ordinary one: start them first.
     ordered = [task for task in tasks if task.references] + [task for task in tasks if not task.references]
-    pending: dict[Future, str] = {pool.submit(_worker_item, str(work), "poses", None): "poses"}
-    for task in ordered:
-        pending[pool.submit(_worker_item, str(work), "impostors", task.to_json())] = "impostors"
+    waiting: deque[tuple[str, dict | None, int | None]] = deque(("impostors", task.to_json(), task.frame) for task in ordered)
+    # A frame's atlases are packed as soon as its last task is done, ahead of the tasks still waiting; the
+    # pool is fed one item per free worker so that such an item does not queue behind them all.
+    packable: deque[tuple[str, dict | None, int | None]] = deque()
+    frame_tasks_left = {frame: sum(task.frame == frame for task in tasks) for frame in {task.frame for task in tasks}}
     done_tasks = 0
+
+    def feed() -> None:
+        while len(pending) < workers and (packable or waiting):
+            stage, task, frame = (packable or waiting).popleft()
+            pending[pool.submit(_worker_item, str(work), stage, task, frame)] = (stage, frame)
+
+    feed()
     while pending:
         finished, _ = wait(pending, return_when=FIRST_COMPLETED)
         for future in finished:
-            stage = pending.pop(future)
+            stage, frame = pending.pop(future)
             figures = future.result()
             meter.worker_peak_rss_mib = max(meter.worker_peak_rss_mib or 0.0, figures["peak_rss_mib"])
             meter.worker_cpu_s[figures["pid"]] = max(meter.worker_cpu_s.get(figures["pid"], 0.0), figures["process_cpu_s"])
-            if stage == "impostors":
-                figures = dict(figures, wall_s=0.0)  # the tasks overlap: the stage's wall is the part's, below
+            if stage in ("impostors", "pack"):
+                figures = dict(figures, wall_s=0.0)  # the items overlap: the impostor stage's wall is the part's, below
             meter.figures(stage).add(figures)
             if stage == "impostors":
                 done_tasks += 1
                 report(progress, "impostors", done_tasks, len(tasks))
-            else:
+                frame_tasks_left[frame] -= 1
+                if frame_tasks_left[frame] == 0:
+                    packable.append(("pack", None, frame))
+            elif stage == "poses":
                 report(progress, "poses", 1, 1)
+        feed()
     meter.parallel_wall_s = time.perf_counter() - started
     # Side by side, the impostor stage lasts from its plan to its last task (poses keeps its own time).
     meter.figures("impostors").wall_s += meter.parallel_wall_s
@@ -250,15 +299,22 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
     server_cpu = _fork_server_cpu_seconds() if pool is not None else 0.0
     try:
         meter.run("validate", lambda: stage_validate(inputs, work))
-        cycle = meter.run("cycle", lambda: stage_cycle(work, progress)).record
-        meter.run("impostors", lambda: stage_impostor_plan(work, progress))
+        plots: list[Callable[[], None]] = []
+        cycle = meter.run("cycle", lambda: stage_cycle(work, progress, plots=plots)).record
+        # The cycle report's plots (a second or more of matplotlib) are drawn in a thread of this process,
+        # which otherwise only waits for the workers; run_bake returns once they are written.
+        plotter = _Background("cycle-plots", plots, meter.figures("cycle"))
+        # Likewise the pack stage's scoring library (scikit-image: a third of a second to import).
+        imports = _Background("pack-imports", [lambda: importlib.import_module("skimage.metrics")], meter.figures("pack"))
         try:
-            _poses_and_impostors(work, pool, meter, progress)
+            _poses_and_impostors(work, pool, workers, meter, progress)
         finally:
             if pool is not None:
                 pool.shutdown(wait=True)
                 pool = None
                 server_cpu = _fork_server_cpu_seconds() - server_cpu  # its imports, on the first bake of a process
+        plotter.result()
+        imports.result()
         poses = PosesRecord.from_json(read_json(work / "poses" / "record.json"))
         impostor = impostor_statistics(work)
         pack = meter.run("pack", lambda: stage_pack(work, progress)).record
