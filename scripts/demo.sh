@@ -19,7 +19,7 @@ echo "== 1/4 sample content =="
 "${crowdbake[@]}" sample "$out/sample" --garment loose
 echo "== 2/4 cycle search =="
 "${crowdbake[@]}" cycle "$out/sample/cloth.pc2" --mesh "$out/sample/cloth.obj" \
-  --character "$out/sample/character.glb" --close hermite --out "$out/cycle"
+  --character "$out/sample/character.glb" --out "$out/cycle"
 echo "== 3/4 bake =="
 "${crowdbake[@]}" bake "$out/sample/character.glb" --cloth "$out/sample/cloth.pc2" \
   --cloth-mesh "$out/sample/cloth.obj" --cycle "$out/cycle/cycle.json" --textures "$out/sample/textures" \

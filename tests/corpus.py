@@ -181,7 +181,8 @@ def cloth_cases(tmp: Path) -> list[tuple[str, dict[str, tuple], str]]:
     files.append(("a PNG named .pc2", {"cache": ("cloth.pc2", png_bytes()), "mesh": ("cloth.obj", mesh)}, "format-mismatch"))
     files.append(("a PC2 named .obj", {"cache": ("cloth.pc2", cache), "mesh": ("cloth.obj", cache)}, "format-mismatch"))
     files.append(("an empty OBJ", {"cache": ("cloth.pc2", cache), "mesh": ("cloth.obj", b"")}, "invalid-file"))
-    files.append(("a .abc cache", {"cache": ("cloth.abc", cache), "mesh": ("cloth.obj", mesh)}, "unsupported-format"))
+    # Alembic is a cloth format now: a PC2 named .abc is caught by its content.
+    files.append(("a PC2 named .abc", {"cache": ("cloth.abc", cache), "mesh": ("cloth.obj", mesh)}, "format-mismatch"))
     return files
 
 
@@ -279,8 +280,122 @@ def texture_cases() -> list[tuple[str, tuple, str]]:
         ("png with a bad CRC", ("diffuse_0.png", bytes(bad_crc)), "invalid-file"),
         ("png without IHDR", ("diffuse_0.png", good[:8] + b"\0" * 40), "invalid-file"),
         ("a GLB named .png", ("diffuse_0.png", tiny_character_glb()), "format-mismatch"),
-        ("a .jpg", ("diffuse_0.jpg", b"\xff\xd8\xff\xe0" + b"\0" * 64), "unsupported-format"),
+        # JPEG variations are accepted; one whose data does not decode is not.
+        ("a .jpg that does not decode", ("diffuse_0.jpg", b"\xff\xd8\xff\xe0" + b"\0" * 64), "invalid-file"),
         ("an .svg", ("diffuse_0.svg", b"<svg xmlns='http://www.w3.org/2000/svg'/>"), "unsupported-format"),
+    ]
+
+
+# --------------------------------------------------------------------------------------- hostile
+# Inputs that are well-formed enough to reach the readers but ask them for unbounded work: each is
+# small on the wire and large (or slow) once parsed. `hostile_inputs` builds them at full size for
+# services/benchmarks/bench_hostile.py; the corpus below holds versions that fit its 1 MiB bodies.
+
+
+def glb_zero_filled_accessor(count: int, accessor_type: str = "MAT4") -> bytes:
+    """The tiny character whose POSITION accessor has no bufferView (zero-filled by the spec) and
+    `count` elements of `accessor_type`: 200 bytes of JSON that ask for count x 64 bytes."""
+    document, binary = split_glb(tiny_character_glb())
+    accessor = _position_accessor(document)
+    accessor.pop("bufferView", None)
+    accessor.pop("byteOffset", None)
+    accessor.pop("min", None)
+    accessor.pop("max", None)
+    accessor.update(count=count, type=accessor_type)
+    return make_glb(document, binary)
+
+
+def glb_node_chain(nodes: int) -> bytes:
+    """The tiny character plus `nodes` extra nodes, each the only child of the one before (a chain)."""
+    document, binary = split_glb(tiny_character_glb())
+    first = len(document["nodes"])
+    document["nodes"] += [{"name": f"n{k}", "children": [first + k + 1]} for k in range(nodes - 1)] + [{"name": f"n{nodes - 1}"}]
+    document["scenes"][document.get("scene", 0)]["nodes"].append(first)
+    return make_glb(document, binary)
+
+
+def big_png(width: int, height: int, rows_of_data: int | None = None) -> bytes:
+    """A valid RGBA PNG of width x height black pixels (deflate makes it ~1000:1 small), or with only
+    `rows_of_data` rows of pixel data (header-only checks refuse it just the same)."""
+    signature = b"\x89PNG\r\n\x1a\n"
+
+    def chunk(kind: bytes, payload: bytes) -> bytes:
+        return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", zlib.crc32(kind + payload) & 0xFFFFFFFF)
+
+    compressor = zlib.compressobj(9)
+    row = b"\0" * (1 + 4 * width)
+    data = b"".join(compressor.compress(row) for _ in range(height if rows_of_data is None else rows_of_data)) + compressor.flush()
+    header = chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 6, 0, 0, 0))
+    return signature + header + chunk(b"IDAT", data) + chunk(b"IEND", b"")
+
+
+def glb_with_image(png: bytes) -> bytes:
+    """The tiny character with a base colour texture whose embedded image is `png`."""
+    import dataclasses
+
+    from crowdbake.formats.gltf import encode_character
+    from service_fixtures import tiny_character
+
+    character = dataclasses.replace(tiny_character(), texture=np.full((4, 4, 4), 200, np.uint8))
+    document, binary = split_glb(encode_character(character))
+    binary += b"\0" * (-len(binary) % 4)
+    document["bufferViews"].append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(png)})
+    document["images"][0] = {"bufferView": len(document["bufferViews"]) - 1, "mimeType": "image/png"}
+    binary += png
+    document["buffers"][0]["byteLength"] = len(binary)
+    return make_glb(document, binary)
+
+
+def obj_faces_over_few_vertices(faces: int) -> bytes:
+    """Three positions and `faces` copies of the one triangle over them (8 bytes a face)."""
+    return b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" + b"f 1 2 3\n" * faces
+
+
+def obj_many_vertices(target_bytes: int) -> bytes:
+    """A valid OBJ of `target_bytes`: as many positions as fit, one triangle (the memory of the parse)."""
+    line = b"v 0.123456 0.654321 0.111111\n"
+    return line * (target_bytes // len(line)) + b"f 1 2 3\n"
+
+
+def zip_of_small_frames(entries: int, entry_bytes: int) -> bytes:
+    """`entries` OBJ frames of exactly `entry_bytes` each (under the per-entry ratio check's 1 MiB), every
+    one a valid frame of entry_bytes / 8 positions: ~1000:1 as a whole archive."""
+    vertex = b"v 0 0 0\n"
+    frame = vertex * (entry_bytes // len(vertex) - 1) + b"f 1 2 3\n"
+    return _zip([(f"frames/frame{k}.obj", frame) for k in range(entries)])
+
+
+def hostile_inputs() -> list[tuple[str, str, dict[str, tuple]]]:
+    """(name, route, multipart files) of the full-size hostile inputs (bench_hostile.py sends them to a
+    server with the default limits)."""
+    return [
+        ("glb: POSITION without bufferView, count 10^7 MAT4", "/v1/assets/characters", {"file": ("c.glb", glb_zero_filled_accessor(10**7))}),
+        ("glb: POSITION without bufferView, count 4x10^8 MAT4", "/v1/assets/characters", {"file": ("c.glb", glb_zero_filled_accessor(4 * 10**8))}),
+        ("glb: a chain of 16,000 nodes", "/v1/assets/characters", {"file": ("c.glb", glb_node_chain(16_000))}),
+        ("glb: an embedded 12000x12000 PNG (144 Mpx)", "/v1/assets/characters", {"file": ("c.glb", glb_with_image(big_png(12_000, 12_000)))}),
+        ("png: 12000x12000 texture upload", "/v1/assets/textures", {"file": ("diffuse_0.png", big_png(12_000, 12_000))}),
+        ("zip: 200 OBJ frames of 1 MiB each", "/v1/assets/cloth", {"sequence": ("frames.zip", zip_of_small_frames(200, 1 << 20))}),
+        ("obj: 3 vertices, 4.2 M faces (32 MiB)", "/v1/assets/cloth",
+         {"cache": ("c.pc2", pc2_header(3, 12) + bytes(12 * 3 * 12)), "mesh": ("c.obj", obj_faces_over_few_vertices(4_200_000))}),
+        ("obj: 32 MiB of vertices, PC2 of the wrong count", "/v1/assets/cloth",
+         {"cache": ("c.pc2", pc2_header(3, 12) + bytes(12 * 3 * 12)), "mesh": ("c.obj", obj_many_vertices(32 << 20))}),
+    ]
+
+
+def hostile_cases() -> list[Case]:
+    """The hostile inputs at sizes that fit the corpus's limits (1 MiB bodies, 40 zip entries)."""
+    cloth_pc2 = ("c.pc2", pc2_header(3, FRAMES) + bytes(12 * 3 * FRAMES))
+    return [
+        Case("glb whose accessor has no bufferView and count 10^7 of MAT4", "/v1/assets/characters", 422, "invalid-file",
+             files={"file": ("c.glb", glb_zero_filled_accessor(10**7))}),
+        Case("glb whose accessor has no bufferView and count 4x10^8 of MAT4", "/v1/assets/characters", 422, "invalid-file",
+             files={"file": ("c.glb", glb_zero_filled_accessor(4 * 10**8))}),
+        Case("glb with an embedded PNG declaring 12000 x 12000 pixels", "/v1/assets/characters", 422, "invalid-file",
+             files={"file": ("c.glb", glb_with_image(big_png(12_000, 12_000, rows_of_data=1)))}),
+        Case("zip of 30 frames of 256 KiB (whole-archive ratio)", "/v1/assets/cloth", 422, "unsafe-archive",
+             files={"sequence": ("frames.zip", zip_of_small_frames(30, 256 << 10))}),
+        Case("obj with 100,000 faces over 3 vertices", "/v1/assets/cloth", 422, "invalid-file",
+             files={"cache": cloth_pc2, "mesh": ("c.obj", obj_faces_over_few_vertices(100_000))}),
     ]
 
 
@@ -379,4 +494,5 @@ def corpus(tmp: Path) -> list[Case]:
     bake("elevations of NaN", b'{"name":"walker","version":"1","character":"a","cloth":"b","params":{"elevations_deg":[NaN]}}')
     bake("1000 elevations", dict(base, params={"elevations_deg": list(range(-500, 500))}))
     bake("assets that do not exist", base)
+    cases += hostile_cases()
     return cases

@@ -153,7 +153,12 @@ class Service:
 
 
 def make_service(root: Path, broker_url: str, **settings_env: str) -> Service:
-    """A migrated database with keys, and the environment of its API and workers (nothing started)."""
+    """A migrated database with keys, and the environment of its API and workers (nothing started).
+
+    The keys are one team's roles handing each other assets and bundles, so the service runs as a
+    shared workspace unless CROWDBAKE_SHARED_WORKSPACE is given (services/tests/test_ownership.py
+    checks the default, where a key sees only what it created)."""
+    settings_env.setdefault("CROWDBAKE_SHARED_WORKSPACE", "true")
     from crowdbake.settings import Settings
     from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
     from crowdbake.storage.keys import create_api_key
@@ -279,23 +284,40 @@ from pathlib import Path
 from crowdbake.params import BakeParams
 from crowdbake.stages.runner import run_bake
 from crowdbake.stages.validate import BakeInputs
-sources, out, name, version, params = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], sys.argv[4], json.loads(sys.argv[5])
+sources, out, name, version, params, created = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], sys.argv[4], json.loads(sys.argv[5]), sys.argv[6]
 textures = sources / "textures"
 character = next(sources.glob("character.*"))
 run_bake(BakeInputs(character=character, cloth=sources / "cloth.pc2", cloth_mesh=sources / "cloth.obj",
                   textures=textures if textures.is_dir() else None, cycle=None, name=name, version=version,
-                  params=BakeParams.from_dict(params)), out)
+                  params=BakeParams.from_dict(params), created=created), out)
 """
 
 
-def reference_bake(service: Service, bake: dict[str, Any], out: Path) -> Path:
-    """The same bake run undisturbed in one process (crowdbake.stages.runner.run_bake) from the very files the
-    service baked (the work folder's links to the uploaded blobs, so `created` is the same too).
+def inputs_created(sessions, bake: dict[str, Any]) -> str:
+    """The `created` a service bake gives its manifest: when its newest input asset was uploaded
+    (crowdbake.jobs.tasks.inputs_created), read from the asset records."""
+    from crowdbake.jobs.tasks import inputs_created as created_of
+    from crowdbake.storage.models import Asset
+
+    ids = [bake["inputs"]["character"], bake["inputs"]["cloth"], *(bake["inputs"].get("textures") or {}).values()]
+    with sessions() as session:
+        return created_of([session.get(Asset, asset_id) for asset_id in ids])
+
+
+def run_reference_bake(sources: Path, env: dict[str, str], bake: dict[str, Any], created: str, out: Path) -> Path:
+    """Bake `sources` (character.*, cloth.pc2, cloth.obj, textures/) undisturbed in one process
+    (crowdbake.stages.runner.run_bake) with the bake's name, version, parameters and `created`.
     Returns the bundle folder."""
-    sources = service.settings.work_dir / bake["input_key"] / "sources"
     import json
 
-    result = subprocess.run([sys.executable, "-c", REFERENCE_BAKE, str(sources), str(out), bake["name"], bake["version"], json.dumps(bake["params"])],
-                            env=service.env, capture_output=True, text=True, timeout=300)
+    result = subprocess.run([sys.executable, "-c", REFERENCE_BAKE, str(sources), str(out), bake["name"], bake["version"], json.dumps(bake["params"]), created],
+                            env=env, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     return out / bake["name"] / bake["version"]
+
+
+def reference_bake(service: Service, bake: dict[str, Any], out: Path) -> Path:
+    """The same bake run undisturbed in one process from the very files the service baked (the work
+    folder's links to the uploaded blobs) with the same `created`. Returns the bundle folder."""
+    sources = service.settings.work_dir / bake["input_key"] / "sources"
+    return run_reference_bake(sources, service.env, bake, inputs_created(service.sessions(), bake), out)

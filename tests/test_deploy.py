@@ -38,13 +38,17 @@ DOCS = REPO / "docs" / "deploy.md"
 
 ENV_PREFIX = Settings.model_config["env_prefix"]
 IMAGE = f"crowdbake:{crowdbake.__version__}"
-# Services of compose.yaml that run once and exit (backups); everything else runs until stopped.
+# Services of compose.yaml that run once and exit: the backups (a profile of their own) and the job
+# that creates the store's bucket at start; everything else runs until stopped.
 ONE_SHOT_PROFILE = "backup"
+START_UP_JOBS = {"minio-init"}
 # Settings the deployments set on purpose to something other than the code's default, and why:
-# /data is the shared volume; Kubernetes migrates in a Job (k8s/migrate-job.yaml), not in each API pod;
-# the database, the broker and the bootstrap key are the deployment's own (the code's defaults are a
-# SQLite file, the one-machine filesystem broker and no key).
-INTENTIONAL_OVERRIDES = {"data_dir", "migrate_on_start", "database_url", "broker_url", "bootstrap_key"}
+# /data is each container's private folder; Kubernetes migrates in a Job (k8s/migrate-job.yaml), not in
+# each API pod; the database, the broker, the bootstrap key and the object store (store s3, its
+# endpoint, bucket and keys) are the deployment's own (the code's defaults are a SQLite file, the
+# one-machine filesystem broker, no key and local folders, none of which several machines can share).
+INTENTIONAL_OVERRIDES = {"data_dir", "migrate_on_start", "database_url", "broker_url", "bootstrap_key",
+                         "store", "s3_endpoint_url", "s3_bucket", "s3_access_key_id", "s3_secret_access_key"}
 # Env names that look like secrets; their values must be references or placeholders, never literals.
 SECRET_NAME = re.compile(r"PASSWORD|SECRET|_KEY$|^MC_HOST_|TOKEN|CREDENTIAL")
 SECRET_PLACEHOLDER = "REPLACE-ME"
@@ -233,7 +237,7 @@ def test_compose_runs_the_whole_stack(compose):
 
 def test_every_long_running_compose_service_has_a_healthcheck(compose):
     for name, service in compose["services"].items():
-        if ONE_SHOT_PROFILE in service.get("profiles", []):
+        if ONE_SHOT_PROFILE in service.get("profiles", []) or name in START_UP_JOBS:
             assert service.get("restart") == "no", f"one-shot service {name} must not be restarted"
             continue
         check = service.get("healthcheck")
@@ -253,22 +257,36 @@ def test_compose_depends_on_waits_for_health_or_completion(compose):
                 assert "healthcheck" in services[target], f"{name} waits for {target}, which has no health check"
             else:
                 assert rule["condition"] == "service_completed_successfully", (name, target, rule)
-                assert ONE_SHOT_PROFILE in services[target].get("profiles", []), (name, target)
+                assert ONE_SHOT_PROFILE in services[target].get("profiles", []) or target in START_UP_JOBS, (name, target)
     # Workers write bake records: they start after the API, which migrates the database at start.
     assert services["worker"]["depends_on"]["api"]["condition"] == "service_healthy"
     assert services["api"]["environment"][f"{ENV_PREFIX}MIGRATE_ON_START"] == "true"
 
 
-def test_compose_uses_only_named_volumes_and_shares_the_data_volume(compose):
+def test_compose_api_and_workers_share_no_volume_and_keep_their_data_in_the_store(compose):
+    """Several machines share only PostgreSQL, Redis and the bucket: the API and each worker container
+    get a private anonymous volume at their data folder, and no named volume or host folder."""
     declared = set(compose["volumes"])
     for name, service in compose["services"].items():
         for mount in service.get("volumes", []):
-            source = mount.split(":")[0]
-            assert source in declared, f"{name} mounts {source!r}, not a named volume"
+            if ":" in mount:
+                source = mount.split(":")[0]
+                assert source in declared, f"{name} mounts {source!r}, not a named volume"
     for name in ("api", "worker"):
         service = compose["services"][name]
         data_dir = service["environment"][f"{ENV_PREFIX}DATA_DIR"]
-        assert f"crowdbake-data:{data_dir}" in service["volumes"], name
+        assert service["volumes"] == [data_dir], f"{name} must keep only a private anonymous volume at {data_dir}"
+    env = compose["x-crowdbake-env"]
+    assert env[f"{ENV_PREFIX}STORE"] == "s3" and env[f"{ENV_PREFIX}S3_ENDPOINT_URL"] == "http://minio:9000"
+    # The bucket exists before the API starts: minio-init creates the very bucket the service uses.
+    init = compose["services"]["minio-init"]
+    assert init["environment"]["STORE_BUCKET"] == env[f"{ENV_PREFIX}S3_BUCKET"]
+    assert "mc mb --ignore-existing" in " ".join(init["command"])
+    assert compose["services"]["api"]["depends_on"]["minio-init"]["condition"] == "service_completed_successfully"
+    # The backup mirrors the store's bucket; no data volume is left to mirror.
+    assert "crowdbake-data" not in declared
+    backup = compose["services"]["backup"]
+    assert backup["environment"]["STORE_BUCKET"] == env[f"{ENV_PREFIX}S3_BUCKET"] and "store/" in " ".join(backup["command"])
 
 
 def test_every_compose_variable_is_in_env_example_and_the_docs(compose_text, env_example):
@@ -403,6 +421,12 @@ def test_commands_name_real_entry_points(compose, monkeypatch, tmp_path):
     module_name, _, attribute = api[2].partition(":")
     factory = getattr(importlib.import_module(module_name), attribute)
     assert callable(factory)
+    # Slow clients: the header deadline's protocol class exists and keep-alive is short.
+    protocol_module, _, protocol = api[api.index("--http") + 1].partition(":")
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    assert issubclass(getattr(importlib.import_module(protocol_module), protocol), H11Protocol)
+    assert 0 < int(api[api.index("--timeout-keep-alive") + 1]) <= 10
     worker = compose["services"]["worker"]["command"]
     assert worker[:4] == ["celery", "-A", "crowdbake.jobs.celery_app", "worker"]
     from celery import Celery
@@ -489,14 +513,15 @@ def test_api_serves_the_metrics_path_prometheus_scrapes(k8s_objects, api_client)
     assert "# TYPE" in response.text
 
 
-def test_pods_run_as_the_image_user_and_mount_the_shared_volume(k8s_objects):
+def test_pods_run_as_the_image_user_and_keep_their_data_in_an_empty_dir(k8s_objects):
     dockerfile = (DEPLOY / "Dockerfile").read_text()
     uid = re.search(r"^USER (\d+):(\d+)$", dockerfile, re.MULTILINE)
     assert uid, "the Dockerfile must name a numeric non-root USER"
     assert int(uid.group(1)) != 0
     config = by_kind_and_name(k8s_objects, "ConfigMap", "crowdbake-config")["data"]
-    claim = by_kind_and_name(k8s_objects, "PersistentVolumeClaim", "crowdbake-data")
-    assert claim["spec"]["accessModes"] == ["ReadWriteMany"]
+    assert config[f"{ENV_PREFIX}STORE"] == "s3"
+    # Nothing is shared through a volume: no claim at all, and each pod's data folder is its emptyDir.
+    assert not [o for o in k8s_objects if o["kind"] == "PersistentVolumeClaim"]
     for deployment in ("crowdbake-api", "crowdbake-worker"):
         spec = pod_spec(by_kind_and_name(k8s_objects, "Deployment", deployment))
         assert spec["securityContext"]["runAsNonRoot"] is True
@@ -504,7 +529,10 @@ def test_pods_run_as_the_image_user_and_mount_the_shared_volume(k8s_objects):
         volumes = {v["name"]: v for v in spec["volumes"]}
         mounts = {m["mountPath"]: m["name"] for m in spec["containers"][0]["volumeMounts"]}
         data_volume = volumes[mounts[config[f"{ENV_PREFIX}DATA_DIR"]]]
-        assert data_volume["persistentVolumeClaim"]["claimName"] == "crowdbake-data", deployment
+        assert "emptyDir" in data_volume, deployment
+        assert not [v for v in volumes.values() if "persistentVolumeClaim" in v], deployment
+        env = {entry["name"]: entry for entry in spec["containers"][0]["env"]}
+        assert env[f"{ENV_PREFIX}S3_BUCKET"]["valueFrom"]["secretKeyRef"]["key"] == "s3-bucket", deployment
 
 
 def test_worker_autoscaler_targets_the_worker_deployment(k8s_objects):
@@ -592,11 +620,15 @@ def test_secret_scan_catches_generated_secrets_and_spares_image_tags():
     assert real_looking_secrets("url: postgresql+psycopg://crowdbake:REPLACE-ME-postgres-password@postgres") == []
 
 
+# An S3 URL whose key pair is made of two compose references (mc's MC_HOST_<alias> form).
+URL_OF_REFERENCES = re.compile(r"^[a-z]+://\$\{[A-Za-z_]\w*(?::[-?][^}]*)?\}:\$\{[A-Za-z_]\w*(?::[-?][^}]*)?\}@[\w.-]+(:\d+)?$")
+
+
 def test_compose_sets_no_literal_secret(compose):
     for name, service in compose["services"].items():
         for key, value in dict(service.get("environment", {})).items():
             if SECRET_NAME.search(key):
-                assert str(value).startswith("${"), f"{name}: {key} is a literal"
+                assert str(value).startswith("${") or URL_OF_REFERENCES.match(str(value)), f"{name}: {key} is a literal"
 
 
 # --- the image ----------------------------------------------------------------------------------

@@ -25,6 +25,7 @@ import pytest
 from sqlalchemy import select
 
 from crowdbake.formats.bundle import verify_bundle
+from service_fixtures import STORES, database_env, published_files, store_env
 from reliability_fixtures import (
     SLOW_IMPOSTOR_PARAMS,
     RedisServer,
@@ -57,7 +58,9 @@ STALL_S = 6.0
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
 
-def running_service(tmp_path, concurrency: int, **settings_env: str):
+def running_service(tmp_path, concurrency: int, store: str = "local", **settings_env: str):
+    backends = {**database_env(), **store_env(store)} if store != "local" else {}  # PostgreSQL + S3 when the tests have them
+    settings_env = {**backends, **settings_env}
     redis = RedisServer(tmp_path / "redis").start()
     service = make_service(tmp_path / "service", redis.url, **settings_env)
     service.start_api()
@@ -74,14 +77,21 @@ def service(tmp_path):
     yield from running_service(tmp_path, concurrency=2)
 
 
+@pytest.fixture(params=STORES)
+def service_on_each_store(tmp_path, request):
+    """The service on local folders, and on PostgreSQL + S3 when the tests have those servers."""
+    yield from running_service(tmp_path, concurrency=2, store=request.param)
+
+
 @pytest.fixture
 def poisoned_service(tmp_path):
     yield from running_service(tmp_path, concurrency=1, CROWDBAKE_TASK_MAX_RETRIES=str(POISON_RETRIES))
 
 
-def test_sigkill_during_impostor_views_completes_exactly_once_with_identical_bytes(service, sample, tmp_path):
+def test_sigkill_during_impostor_views_completes_exactly_once_with_identical_bytes(service_on_each_store, sample, tmp_path):
     from crowdbake.storage.models import BakeLog, Bundle
 
+    service = service_on_each_store
     worker = service.workers[0]
     with service.client() as client:
         ids = upload_sample(client, sample)
@@ -123,10 +133,10 @@ def test_sigkill_during_impostor_views_completes_exactly_once_with_identical_byt
     # The killed tasks really ran again: Redis handed them back and the worker recorded it.
     assert sum("delivered again" in line for line in lines) >= 1, lines
 
-    published = service.settings.bundles_dir / "killed-walker" / "1.0.0"
-    verify_bundle(published)
+    got = published_files(service.settings, "killed-walker", "1.0.0")
     reference = reference_bake(service, bake, tmp_path / "reference")
-    got, expected = tree_bytes(published), tree_bytes(reference)
+    verify_bundle(reference)
+    expected = tree_bytes(reference)
     assert sorted(got) == sorted(expected)
     differing = [path for path in expected if got[path] != expected[path]]
     assert not differing, f"files differ from the undisturbed bake: {differing}"

@@ -57,6 +57,7 @@ const char* pixel_format_name(PixelFormat format) {
     case PixelFormat::bc1: return "bc1";
     case PixelFormat::bc2: return "bc2";
     case PixelFormat::uv32: return "uv32";
+    case PixelFormat::uvblock: return "uvblock";
     }
     return "unknown";
 }
@@ -88,6 +89,7 @@ unsigned __int128 layer_bytes_wide(uint32_t format, uint32_t width, uint32_t hei
     case 3: return (width % 4 || height % 4) ? 0 : 8 * (w / 4) * (h / 4);
     case 4: return (width % 4 || height % 4) ? 0 : 16 * (w / 4) * (h / 4);
     case 5: return 4 * w * h;
+    case 6: return (width % 4 || height % 4) ? 0 : 24 * (w / 4) * (h / 4);
     default: return 0;
     }
 }
@@ -131,6 +133,25 @@ size_t texture_layer_size(PixelFormat format, uint32_t width, uint32_t height) {
 }
 
 size_t TextureArray::layer_size() const { return texture_layer_size(format, width, height); }
+
+UvBlockTexel unpack_uvblock_texel(const uint8_t* block, uint32_t i) {
+    UvBlockTexel t;
+    const uint32_t state = (read_u32(block) >> (2 * i)) & 3u;
+    if (state == 0) return t;
+    const uint64_t headers = uint64_t(read_u32(block + 4)) | uint64_t(read_u32(block + 8)) << 32;
+    const uint32_t header = uint32_t(headers >> (21 * (state - 1))) & 0x1FFFFFu;
+    // The 96-bit offset stream: 6 bits of texel i at bit 6i, possibly across two words.
+    const uint32_t bit = 6 * i, word = bit / 32, shift_in = bit % 32;
+    uint64_t pair = read_u32(block + 12 + 4 * word);
+    if (word < 2) pair |= uint64_t(read_u32(block + 16 + 4 * word)) << 32;
+    const uint32_t field = uint32_t(pair >> shift_in) & 63u;
+    const uint32_t shift = (header >> 18) & 7u;
+    t.qu = 16 * (header & 255u) + ((field & 7u) << shift);
+    t.qv = 16 * ((header >> 8) & 255u) + ((field >> 3) << shift);
+    t.material = (header >> 16) & 3u;
+    t.covered = true;
+    return t;
+}
 
 uint32_t pack_uv32(float u, float v, uint32_t material, bool covered) {
     if (!covered) return 0;
@@ -220,7 +241,7 @@ Status parse_texture_array(const uint8_t* data, size_t size, const std::string& 
 
     const uint32_t width = read_u32(data + 16), height = read_u32(data + 20);
     const uint32_t layer_count = read_u32(data + 24), format = read_u32(data + 28);
-    if (format < 1 || format > 5)
+    if (format < 1 || format > 6)
         return make_error(ErrorCode::invalid_header, fn, file, "unknown pixel_format " + std::to_string(format));
     if (width == 0 || height == 0 || layer_count == 0)
         return make_error(ErrorCode::invalid_header, fn, file,
@@ -235,6 +256,16 @@ Status parse_texture_array(const uint8_t* data, size_t size, const std::string& 
     if (expected != size)
         return make_error(ErrorCode::size_mismatch, fn, file,
                           "sizes imply " + std::to_string(uint64_t(expected)) + " bytes, file has " + std::to_string(size));
+    if (format == uint32_t(PixelFormat::uvblock)) {  // SPEC.md: every covered coordinate <= 4095
+        const size_t blocks = size_t(layer / kUvBlockBytes) * layer_count;
+        for (size_t b = 0; b < blocks; ++b)
+            for (uint32_t i = 0; i < 16; ++i) {
+                const UvBlockTexel t = unpack_uvblock_texel(data + kTextureHeaderSize + b * kUvBlockBytes, i);
+                if (t.qu > kUvBlockCoordMax || t.qv > kUvBlockCoordMax)
+                    return make_error(ErrorCode::invalid_data, fn, file,
+                                      "uvblock block " + std::to_string(b) + " texel " + std::to_string(i) + ": a coordinate above 4095");
+            }
+    }
     TextureArray texture;
     texture.width = width;
     texture.height = height;
@@ -305,6 +336,16 @@ std::vector<uint8_t> decode_layer_rgba8(const TextureArray& texture, uint32_t la
             rgba[4 * i + 2] = uint8_t(t.material);
             rgba[4 * i + 3] = t.covered ? 255 : 0;
         }
+        break;
+    case PixelFormat::uvblock:  // (u, v) to 8 bits, material and coverage 255/0, as rgba16 would
+        for (uint32_t by = 0; by < h / 4; ++by)
+            for (uint32_t bx = 0; bx < w / 4; ++bx)
+                for (uint32_t i = 0; i < 16; ++i) {
+                    const UvBlockTexel t = unpack_uvblock_texel(src + (size_t(by) * (w / 4) + bx) * kUvBlockBytes, i);
+                    uint8_t* texel = &rgba[((size_t(by) * 4 + i / 4) * w + bx * 4 + i % 4) * 4];
+                    texel[0] = uint8_t(t.qu >> 4), texel[1] = uint8_t(t.qv >> 4);
+                    texel[2] = uint8_t(t.material), texel[3] = t.covered ? 255 : 0;
+                }
         break;
     case PixelFormat::bc1:
     case PixelFormat::bc2: {
@@ -704,8 +745,9 @@ Status cross_check(const Manifest& m, const std::map<std::string, PoseCache>& po
                                           std::to_string(imp.frame_indices.size()));
         *target.second = *atlas;
     }
-    if (bundle->impostor_uv.format != PixelFormat::rgba16 && bundle->impostor_uv.format != PixelFormat::uv32)
-        return bad(imp.uv_map, "the UV map must be rgba16 or uv32 (8 bits cannot address a 1024-texel texture)");
+    if (bundle->impostor_uv.format != PixelFormat::rgba16 && bundle->impostor_uv.format != PixelFormat::uv32 &&
+        bundle->impostor_uv.format != PixelFormat::uvblock)
+        return bad(imp.uv_map, "the UV map must be rgba16, uv32 or uvblock (8 bits cannot address a 1024-texel texture)");
     return {};
 }
 

@@ -57,7 +57,7 @@ Status make_error(ErrorCode code, const char* function, const std::string& file,
 // ---------------------------------------------------------------------------------------
 // Binary files
 
-enum class PixelFormat : uint32_t { rgba8 = 1, rgba16 = 2, bc1 = 3, bc2 = 4, uv32 = 5 };
+enum class PixelFormat : uint32_t { rgba8 = 1, rgba16 = 2, bc1 = 3, bc2 = 4, uv32 = 5, uvblock = 6 };
 const char* pixel_format_name(PixelFormat format);
 
 // uv32 (SPEC.md pixel format 5): one little-endian u32 a UV-map texel, u in bits 0..13,
@@ -74,6 +74,21 @@ inline Uv32Texel unpack_uv32(uint32_t word) {
 }
 // u, v in [0, 1] (clamped); material 0..7 (masked); uncovered texels are 0.
 uint32_t pack_uv32(float u, float v, uint32_t material, bool covered);
+
+// uvblock (SPEC.md pixel format 6): 4x4 texels in 24 bytes, six little-endian u32 words. w0: a
+// 2-bit state per texel (0 outside, 1..3 subset 0..2); w1 | w2 << 32: three 21-bit subset
+// headers (u base 8 bits, v base 8 bits in units of 16/4095, material 2 bits, shift 3 bits);
+// w3..w5: 3-bit u and v offsets of texel i at stream bits 6i and 6i + 3. A covered texel's
+// coordinate is (16 * base + (offset << shift)) / 4095. impostor_uv_map.glsl decodes the same.
+constexpr uint32_t kUvBlockBytes = 24;
+constexpr uint32_t kUvBlockCoordMax = 4095;
+struct UvBlockTexel {
+    uint32_t qu = 0, qv = 0;  // coordinates in 1/4095; 0 outside
+    uint32_t material = 0;
+    bool covered = false;
+};
+// Texel i (x = i % 4, y = i / 4) of the 24-byte block at `block`.
+UvBlockTexel unpack_uvblock_texel(const uint8_t* block, uint32_t i);
 
 constexpr uint32_t kPoseCacheHeaderSize = 64;
 constexpr uint32_t kTextureHeaderSize = 32;

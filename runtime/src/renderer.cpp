@@ -139,7 +139,8 @@ struct Upload {
 
 // A CBTX as a GL_TEXTURE_2D_ARRAY. BC blocks go up untouched where S3TC is available and
 // are decoded to RGBA8 otherwise; rgba16 stays 16-bit and uv32 goes up as one unsigned
-// integer a texel (R32UI) for the shader to unpack (UV maps need the bits, SPEC.md).
+// integer a texel (R32UI) for the shader to unpack (UV maps need the bits, SPEC.md); uvblock
+// goes up as its blocks, three RG32UI texels each, decoded in impostor_uv_map.glsl.
 // `filtered`: trilinear with mipmaps (diffuse maps); otherwise nearest, base level only.
 GLuint upload_texture_array(const TextureArray& t, bool filtered, const std::string& name, Upload* upload) {
     GLuint texture = 0;
@@ -165,6 +166,9 @@ GLuint upload_texture_array(const TextureArray& t, bool filtered, const std::str
         glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA16, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_SHORT, t.data.data());
     } else if (t.format == PixelFormat::uv32) {  // integer texture: nearest filtering only (set below)
         glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_R32UI, w, h, layers, 0, GL_RED_INTEGER, GL_UNSIGNED_INT, t.data.data());
+    } else if (t.format == PixelFormat::uvblock) {
+        // Each 24-byte block is three RG32UI texels in a row: block rows are texture rows, as stored.
+        glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RG32UI, 3 * (w / 4), h / 4, layers, 0, GL_RG_INTEGER, GL_UNSIGNED_INT, t.data.data());
     } else {
         glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA8, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_BYTE, t.data.data());
     }
@@ -343,7 +347,8 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
     // The impostor programs read the UV map in the bundle's format (impostor_uv_map.glsl).
     std::string shader_error;
     const std::string uv_defines =
-        std::string("#define CV_UV_MAP_UV32 ") + (bundle.impostor_uv.format == PixelFormat::uv32 ? "1" : "0") + "\n";
+        std::string("#define CV_UV_MAP_UV32 ") + (bundle.impostor_uv.format == PixelFormat::uv32 ? "1" : "0") + "\n" +
+        "#define CV_UV_MAP_UVBLOCK " + (bundle.impostor_uv.format == PixelFormat::uvblock ? "1" : "0") + "\n";
     g.mesh_program = build_program(desc.shader_dir, "mesh", "mesh", &shader_error);
     if (!g.mesh_program) {
         *error = fn + shader_error;

@@ -1,5 +1,5 @@
-// The shared vectors (shared_formats/vectors/v1 and v1-uv32), which the Python tests read too:
-// the good bundle decodes to expected.json's values (v1-uv32: its UV map's texels too), every
+// The shared vectors (shared_formats/vectors/v1, v1-uv32 and v1-uvblock), which the Python tests read
+// too: the good bundle decodes to expected.json's values (v1-uv32, v1-uvblock: its UV map's texels too), every
 // bad bundle fails with its expect.json code and file, and every strict prefix of every binary
 // file of the good bundle is `truncated`.
 #include <algorithm>
@@ -111,6 +111,32 @@ void test_uv32_texels(const fs::path& good) {
     CHECK(checked >= 4);
 }
 
+// v1-uvblock: every texel of the block-coded UV map decodes to expected.json's integers.
+void test_uvblock_texels(const fs::path& good) {
+    Bundle bundle;
+    const Status s = load_bundle_dir((good / "bundle").string(), &bundle);
+    CHECK_MSG(s.ok(), s.message);
+    if (!s.ok()) return;
+    const json expected = json::parse(synthetic::read_text((good / "expected.json").string()));
+    const TextureArray& t = bundle.impostor_uv;
+    CHECK(t.format == PixelFormat::uvblock && t.layer_size() == size_t(kUvBlockBytes) * (t.width / 4) * (t.height / 4));
+    int checked = 0;
+    for (const json& want : expected["uvblock_texels"]["texels"]) {
+        const uint32_t layer = want["layer"], row = want["row"], column = want["column"];
+        const uint8_t* block = t.layer(layer) + (size_t(row / 4) * (t.width / 4) + column / 4) * kUvBlockBytes;
+        const UvBlockTexel texel = unpack_uvblock_texel(block, (row % 4) * 4 + column % 4);
+        const std::string where = "uvblock texel " + want.dump();
+        CHECK_MSG(texel.covered == want["coverage"].get<bool>() && texel.material == want["material"].get<uint32_t>(), where);
+        CHECK_MSG(texel.qu == want["qu"].get<uint32_t>() && texel.qv == want["qv"].get<uint32_t>(), where);
+        ++checked;
+    }
+    CHECK(checked == int(t.width * t.height * t.layer_count));
+    // The CPU decode keeps the top 8 of the 12 bits and coverage, as for uv32.
+    const std::vector<uint8_t> rgba = decode_layer_rgba8(t, 0);
+    const UvBlockTexel first = unpack_uvblock_texel(t.layer(0), 0);
+    CHECK(rgba[0] == uint8_t(first.qu >> 4) && rgba[3] == (first.covered ? 255 : 0));
+}
+
 void test_bad(const fs::path& bad_root, int min_cases) {
     int cases = 0;
     for (const auto& entry : fs::directory_iterator(bad_root)) {
@@ -170,6 +196,14 @@ int main() {
         test_uv32_texels(uv32 / "good");
         test_bad(uv32 / "bad", 3);
         test_prefixes(uv32 / "good" / "bundle");
+    }
+    const fs::path uvblock = fs::path(CROWDVIEW_VECTORS_DIR) / "v1-uvblock";
+    CHECK_MSG(fs::is_directory(uvblock / "good"), "no uvblock vectors at " + uvblock.string());
+    if (fs::is_directory(uvblock / "good")) {
+        test_good(uvblock / "good");
+        test_uvblock_texels(uvblock / "good");
+        test_bad(uvblock / "bad", 3);
+        test_prefixes(uvblock / "good" / "bundle");
     }
     return check::exit_code();
 }

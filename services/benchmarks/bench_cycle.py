@@ -2,7 +2,7 @@
 
     PYTHONPATH=services python services/benchmarks/bench_cycle.py [--out out/bench/cycle.json]
 
-Targets (issue 4): pass 1 over 1,000 frames x 10,000 vertices in under 1 s; pass 2 for 5 candidates x
+Targets: pass 1 over 1,000 frames x 10,000 vertices in under 1 s; pass 2 for 5 candidates x
 5 views in under 5 s, on 2 cores. Prints the figures and writes them as JSON. The cache is synthetic: a
 skirt-like cone of 10,000 vertices swinging with the walk, plus slow non-periodic motion, so pass 1 has
 real minima to find and pass 2 renders real folds, around a 5,000-vertex cylinder standing in for the body.

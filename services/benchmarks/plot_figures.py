@@ -14,6 +14,9 @@ Reads what the benchmark scripts wrote under --bench and writes PNGs under --out
 - throughput.png: bakes per minute with 1 and 2 workers, from bench_throughput.py's JSON.
 - bake_stages.png: per stage of a default bake, wall, CPU and OpenGL seconds, from bench_bake.py's JSON
   (bake.json; with bake-before.json beside it, that run's CPU seconds too, for a before/after).
+- impostor_views.png: crowdview's blended impostor against the mesh (SSIM halfway between views and
+  frames, and at the baked views) against the impostor's memory, per tile size and view/frame count,
+  from bench_impostor_views.py's impostor_views.json.
 
 A figure whose input is missing is not drawn (and any old PNG of it is left alone); each one drawn is
 listed with the file it came from.
@@ -185,6 +188,32 @@ def plot_bake_stages(report: dict, before: dict | None, out: Path) -> None:
     plt.close(fig)
 
 
+def plot_impostor_views(report: dict, out: Path) -> None:
+    plt = pyplot()
+    rows = report["rows"]
+    fig, ax = plt.subplots(figsize=(9, 5.2), dpi=110)
+    colours = {32: "tab:green", 64: "tab:orange", 128: "tab:blue"}
+    for tile in sorted({row["tile"] for row in rows}):
+        chosen = sorted((row for row in rows if row["tile"] == tile), key=lambda row: row["impostor_mib"]["uvblock"])
+        colour = colours.get(tile, "0.4")
+        ax.scatter([row["impostor_mib"]["uvblock"] for row in chosen], [row["between_ssim_mean"] for row in chosen], color=colour,
+                   s=18, label=f"tile {tile}: halfway between views and frames")
+        ax.axhline(chosen[0]["at_views_ssim_mean"], color=colour, lw=0.8, ls=":", label=f"tile {tile}: at the baked views")
+        for row in chosen:
+            if row["azimuths"] >= 16 and row["frames"] >= 10:
+                ax.annotate(f"{row['azimuths']}x{len(row['elevations'])}x{row['frames']}",
+                            (row["impostor_mib"]["uvblock"], row["between_ssim_mean"]), fontsize=6, xytext=(3, -3), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel("UV-mapped impostor memory per character (MiB: bc1 normal + uvblock UV maps)")
+    ax.set_ylabel("SSIM against the mesh at the 1:1 switch")
+    ax.set_title("Impostor views against memory (labels: azimuths x elevation rings x baked frames)", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(out)
+    plt.close(fig)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--bench", type=Path, default=Path("out/bench"), help="folder of the benchmarks' JSON (default out/bench)")
@@ -224,6 +253,13 @@ def main() -> int:
         print(f"bake_stages.png from {args.bench / 'bake.json'}")
     else:
         print(f"bake_stages.png not drawn: no {args.bench / 'bake.json'}")
+
+    views = load_json(args.bench / "impostor_views.json")
+    if views and views.get("rows"):
+        plot_impostor_views(views, args.out / "impostor_views.png")
+        print(f"impostor_views.png from {args.bench / 'impostor_views.json'}")
+    else:
+        print(f"impostor_views.png not drawn: no {args.bench / 'impostor_views.json'}")
 
     throughput = load_json(args.bench / "throughput.json")
     if throughput and throughput.get("runs"):

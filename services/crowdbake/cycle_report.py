@@ -12,9 +12,9 @@ writes into out_dir:
       candidates.png  every candidate's pass-1 and pass-2 scores
     edges/          the winner's pictures and edge images, one PNG per view and frame
 
-Frame rate: a PC2 file stores the interval between samples in frames, not a rate, so the cache's frame
-rate is BASE_FPS / sample_rate with BASE_FPS = 24 (the film rate the sample content and most DCC scenes
-use) unless the caller passes `fps`. The cycle length, when not given, is the character's animation
+Frame rate (crowdbake.params.cache_fps): `fps` when the caller passes it, else the cache's own (MDD frame
+times, Alembic time sampling), else BASE_FPS / sample_rate with BASE_FPS = 24 (the film rate the sample
+content and most DCC scenes use): a PC2 file stores the interval between samples in frames, not a rate. The cycle length, when not given, is the character's animation
 duration times that rate.
 """
 from __future__ import annotations
@@ -89,37 +89,52 @@ def _check_two_cycles(frame_count: int, cycle_frames: int, path) -> None:
         )
 
 
+def _pc2_start_frame(path: str | os.PathLike) -> float:
+    """A PC2 header's startFrame (recorded in cycle.json); 0 for the other caches, which start at their first sample."""
+    import struct
+
+    if Path(path).suffix.lower() != ".pc2":
+        return 0.0
+    with open(path, "rb") as handle:
+        return float(struct.unpack("<f", handle.read(24)[20:24])[0])
+
+
 def load_cycle_inputs(
     cloth_pc2: str | os.PathLike,
-    cloth_obj: str | os.PathLike,
+    cloth_obj: str | os.PathLike | None = None,
     character: str | os.PathLike | None = None,
     body_pc2: str | os.PathLike | None = None,
     body_obj: str | os.PathLike | None = None,
     cycle_frames: int | None = None,
     fps: float | None = None,
+    up: str | None = None,
+    units: str | None = None,
+    animation: int | str = 0,
 ) -> CycleInputs:
-    """Read and cross-check the cycle search's input files. Raises ValueError with a one-line reason."""
+    """Read and cross-check the cycle search's input files. Raises ValueError with a one-line reason.
+
+    cloth_pc2: any cloth cache crowdbake reads (.pc2 or .mdd with `cloth_obj`, .abc or an OBJ-sequence
+    .zip alone; crowdbake.ingest.garment.read_cloth). fps: None takes the cache's own rate
+    (crowdbake.params.cache_fps). The cloth's first frame is checked against the body's
+    (crowdbake.ingest.garment.place_cloth) and converted to Y-up metres when up/units say so."""
     from crowdbake.formats.obj import read_obj
     from crowdbake.formats.pc2 import read_pc2
+    from crowdbake.ingest.garment import place_cloth, read_cloth
+    from crowdbake.params import cache_fps
 
     if character is not None and (body_pc2 is not None or body_obj is not None):
         raise ValueError("give the body either as a character (.glb) or as a body cache and mesh, not both")
     if (body_pc2 is None) != (body_obj is None):
         raise ValueError("a body cache needs its mesh: give both --body and --body-mesh")
-    cache = read_pc2(cloth_pc2)
-    mesh = read_obj(cloth_obj)
-    if mesh.position_count != cache.point_count:
-        raise ValueError(
-            f"vertex counts do not match: {cloth_obj} has {mesh.position_count} positions, {cloth_pc2} has {cache.point_count} points"
-        )
-    if len(mesh.faces) == 0:
-        raise ValueError(f"{cloth_obj} has no faces")
-    cloth_faces = mesh.source_index[mesh.faces.astype(np.int64)]
-    frame_rate = float(fps) if fps is not None else BASE_FPS / cache.sample_rate
+    cache = read_cloth(cloth_pc2, cloth_obj)
+    cloth_faces = cache.mesh.source_index[cache.faces.astype(np.int64)]
+    frame_rate = cache_fps(fps, cache.fps, cache.frame_step)
     if not frame_rate > 0:
         raise ValueError(f"fps must be positive, got {frame_rate}")
-    frame_count = cache.sample_count
-    sources = {"cloth_cache": str(cloth_pc2), "cloth_mesh": str(cloth_obj)}
+    frame_count = cache.frame_count
+    sources = {"cloth_cache": str(cloth_pc2)}
+    if cloth_obj is not None:
+        sources["cloth_mesh"] = str(cloth_obj)
     if cycle_frames is not None:
         _check_two_cycles(frame_count, int(cycle_frames), cloth_pc2)
 
@@ -128,7 +143,11 @@ def load_cycle_inputs(
     if character is not None:
         from crowdbake.formats.gltf import load_character
 
-        loaded_character = load_character(character)
+        loaded_character = load_character(character, animation=animation)
+        # The garment must sit on the character before a minute of search is spent on it.
+        from crowdbake.ingest.garment import body_at_rest
+
+        cache = place_cloth(cache, body_at_rest(loaded_character), up, units)
         body, body_normals = _pose_body(loaded_character, frame_rate, frame_count)
         body_faces = np.asarray(loaded_character.faces, dtype=np.int64)
         sources["character"] = str(character)
@@ -144,6 +163,8 @@ def load_cycle_inputs(
         if len(body_mesh.faces) == 0:
             raise ValueError(f"{body_obj} has no faces")
         body = body_cache.points
+        # The body cache is taken as Y-up metres, like a character; up/units convert the cloth only.
+        cache = place_cloth(cache, body[0], up, units)
         body_faces = body_mesh.source_index[body_mesh.faces.astype(np.int64)]
         sources.update(body_cache=str(body_pc2), body_mesh=str(body_obj))
 
@@ -155,15 +176,15 @@ def load_cycle_inputs(
         raise ValueError("the cycle length is unknown: give --cycle-frames (a body cache carries no animation length)")
     _check_two_cycles(frame_count, length, cloth_pc2)
     return CycleInputs(
-        cloth=cache.points,
+        cloth=cache.frames,
         cloth_faces=cloth_faces,
         body=body,
         body_faces=body_faces,
         body_normals=body_normals,
         cycle_frames=length,
         fps=frame_rate,
-        sample_rate=cache.sample_rate,
-        start_frame=cache.start_frame,
+        sample_rate=cache.frame_step,
+        start_frame=_pc2_start_frame(cloth_pc2),
         cycle_frames_source=origin,
         sources=sources,
     )
@@ -179,6 +200,9 @@ def run_cycle_job(
     cycle_frames: int | None = None,
     fps: float | None = None,
     params: CycleParams = CycleParams(),
+    up: str | None = None,
+    units: str | None = None,
+    animation: int | str = 0,
     progress: Progress | None = None,
     edge_pass: bool = True,
     plots: bool = True,
@@ -191,7 +215,7 @@ def run_cycle_job(
     """
     report = progress or (lambda stage, done, total: None)
     report("load", 0, 1)
-    inputs = load_cycle_inputs(cloth_pc2, cloth_obj, character, body_pc2, body_obj, cycle_frames, fps)
+    inputs = load_cycle_inputs(cloth_pc2, cloth_obj, character, body_pc2, body_obj, cycle_frames, fps, up, units, animation)
     report("load", 1, 1)
     render_views = None
     if edge_pass:

@@ -26,7 +26,15 @@ from crowdbake.errors import InputError
 # tear; linear is the paper's blend; hermite also matches velocity but spreads the correction over the loop.
 CLOSE_METHODS = ("crossfade", "none", "linear", "hermite")
 DEFAULT_CLOSE = "crossfade"
-UV_FORMATS = ("uv32", "rgba16")  # impostor UV map pixel formats a bake can write (SPEC.md); the first is the default
+UV_FORMATS = ("uvblock", "uv32", "rgba16")  # impostor UV map pixel formats a bake can write (SPEC.md); the first is the default
+# The cloth cache's frame as exported (crowdbake.bake.placement.UP_AXES / UNITS, kept equal by test_params):
+# None leaves it to placement's detection, which refuses a cache that fits only another frame.
+UP_AXES = ("y", "z")
+UNIT_CHOICES = ("m", "cm", "mm", "in")
+# A cache faster than this is no animation a crowd plays (film is 24, high-frame-rate capture 240).
+MAX_FPS = 1000.0
+# glTF animation names are free text; one longer than this is no name a person chose.
+MAX_ANIMATION_NAME = 256
 
 # The bundle spec's name and version rules (shared_formats/SPEC.md, "manifest.json").
 NAME_PATTERN = r"^[a-z0-9][a-z0-9._-]{0,63}$"
@@ -64,19 +72,31 @@ def min_cloth_frames(cycle_frames: int | None) -> int:
     return CYCLES_NEEDED * max(int(cycle_frames or MIN_CYCLE_FRAMES), MIN_CYCLE_FRAMES)
 
 
-def cycle_frames_from_animation(animation_seconds: float, sample_rate: float) -> int:
-    """The walk cycle's length in cache frames: the animation's duration at the cache's rate
-    (BASE_FPS / PC2 sample interval). 0 when there is no animation."""
+def cache_fps(given: float | None, file_fps: float | None, sample_rate: float | None = 1.0) -> float:
+    """The cloth cache's frame rate, one rule for every entry point: the `fps` parameter when given, else
+    the rate the file states (MDD frame times, Alembic time sampling), else BASE_FPS / the PC2 sample
+    interval (PC2 stores the spacing of samples in frames, not a rate)."""
+    if given is not None:
+        return float(given)
+    if file_fps is not None and file_fps > 0:
+        return float(file_fps)
+    return BASE_FPS / float(sample_rate or 1.0)
+
+
+def cycle_frames_from_animation(animation_seconds: float, fps: float) -> int:
+    """The walk cycle's length in cache frames: the animation's duration at the cache's rate `fps`
+    (crowdbake.params.cache_fps). 0 when there is no animation."""
     if not animation_seconds or animation_seconds <= 0:
         return 0
-    return int(round(float(animation_seconds) * BASE_FPS / float(sample_rate or 1.0)))
+    return int(round(float(animation_seconds) * float(fps)))
 
 
 @dataclass(frozen=True)
 class ParamSpec:
     """One bake parameter: its type, default, bounds, help and command-line flag.
 
-    kind: "int", "float", "str", "bool" or "floats" (a list of floats); optional: None is allowed and means
+    kind: "int", "float", "str", "bool", "floats" (a list of floats) or "name_or_index" (a glTF name or a
+    0-based index; on the command line digits are an index); optional: None is allowed and means
     "derived" (see help). minimum/maximum: inclusive bounds (of each item for "floats"); above_zero: the
     value must be > 0 instead of >= minimum. flags: the `crowdbake bake` flag first, aliases after.
     """
@@ -110,6 +130,12 @@ class ParamSpec:
             return None if isinstance(value, bool) else "must be true or false"
         if self.kind == "str":
             return None if value in (self.choices or ()) else f"must be one of {', '.join(self.choices or ())}"
+        if self.kind == "name_or_index":
+            if _is_integer(value):
+                return None if value >= 0 else "an index must be 0 or more"
+            if isinstance(value, str) and 0 < len(value) <= MAX_ANIMATION_NAME:
+                return None
+            return f"must be a name (1..{MAX_ANIMATION_NAME} characters) or an index (0 or more)"
         if self.kind == "floats":
             if not isinstance(value, (tuple, list)) or not self.min_items <= len(value) <= self.max_items:
                 return f"needs {self.min_items}..{self.max_items} values"
@@ -157,13 +183,21 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("close", "str", DEFAULT_CLOSE, "how the cycle's seam is closed: crossfade (a window around the seam, edge lengths kept), "
               "none, linear (the paper's blend) or hermite (also matches velocity, spreads the change over the loop)",
               ("--close",), choices=CLOSE_METHODS),
+    ParamSpec("fps", "float", None, "the cloth cache's frame rate (default: what the cache says: MDD frame times, Alembic "
+              "time sampling; else 24 / the PC2 sample interval)", ("--fps",), "FPS", optional=True, above_zero=True, maximum=MAX_FPS),
+    ParamSpec("up", "str", None, "the cloth cache's up axis as exported: y (glTF, Maya) or z (Blender, 3ds Max), converted to Y-up "
+              "(default: detect, and refuse a cache that is not Y-up)", ("--up",), optional=True, choices=UP_AXES),
+    ParamSpec("units", "str", None, "the cloth cache's length unit as exported: m, cm, mm or in, converted to metres "
+              "(default: detect, and refuse a cache that is not in metres)", ("--units",), optional=True, choices=UNIT_CHOICES),
+    ParamSpec("animation", "name_or_index", 0, "the character's walk: a glTF animation name or index",
+              ("--animation",), "NAME|INDEX"),
     ParamSpec("candidates", "int", 5, "cycle candidates kept by pass 1 and compared by the pass-2 edge metric (paper section 3)",
               ("--candidates",), "K", minimum=1, maximum=MAX_CANDIDATES),
     ParamSpec("cycle_views", "int", 5, "views of the pass-2 edge metric (paper: 5)",
               ("--cycle-views",), "N", minimum=1, maximum=MAX_CYCLE_VIEWS),
     ParamSpec("impostor_frames", "int", 10, "cycle frames baked into impostors (paper: 10)",
               ("--frames", "--impostor-frames"), "N", minimum=1, maximum=MAX_IMPOSTOR_FRAMES),
-    ParamSpec("azimuths", "int", 16, "impostor views per elevation ring",
+    ParamSpec("azimuths", "int", 32, "impostor views per elevation ring (32: docs/figures.md, impostor views against memory)",
               ("--azimuths",), "N", minimum=1, maximum=MAX_AZIMUTHS),
     ParamSpec("elevations_deg", "floats", (0.0, 20.0, 40.0), "impostor view elevations in degrees, one ring each",
               ("--elevations",), "DEG,...", minimum=-90.0, maximum=90.0, min_items=1, max_items=MAX_ELEVATIONS, distinct=True),
@@ -175,12 +209,16 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--lod-triangles",), "N", optional=True, minimum=2, exclusive_group="lod"),
     ParamSpec("compress", "bool", True, "block-compress normal maps (DXT1), detail maps and diffuse textures (DXT3); false: rgba8",
               ("--no-compress",)),
-    ParamSpec("uv_format", "str", "uv32", "impostor UV map format: uv32 (4 bytes a texel, 14-bit coordinates) or rgba16 (8 bytes)",
+    ParamSpec("uv_format", "str", "uvblock", "impostor UV map format: uvblock (1.5 bytes a texel, block-coded 12-bit coordinates), "
+              "uv32 (4 bytes, 14-bit coordinates) or rgba16 (8 bytes)",
               ("--uv-format",), choices=UV_FORMATS),
+    ParamSpec("export", "bool", True, "publish an engine export beside the bundle (glTF, KTX2, VATs: docs/export.md); false: the bundle only",
+              ("--no-export",)),
 )
 SPECS = {spec.name: spec for spec in PARAMS}
 # Parameters of the cycle search that `crowdbake cycle` shares with `crowdbake bake` (its own flag names).
-CYCLE_SHARED = {"cycle_frames": "--cycle-frames", "close": "--close", "candidates": "--candidates", "cycle_views": "--views"}
+CYCLE_SHARED = {"cycle_frames": "--cycle-frames", "close": "--close", "fps": "--fps", "up": "--up", "units": "--units",
+                "animation": "--animation", "candidates": "--candidates", "cycle_views": "--views"}
 
 
 def cross_field_problem(values: dict[str, Any]) -> tuple[str, str] | None:
@@ -200,16 +238,21 @@ class BakeParams:
 
     cycle_frames: int | None = None
     close: str = DEFAULT_CLOSE
+    fps: float | None = None
+    up: str | None = None
+    units: str | None = None
+    animation: int | str = 0
     candidates: int = 5
     cycle_views: int = 5
     impostor_frames: int = 10
-    azimuths: int = 16
+    azimuths: int = 32
     elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0)
     tile_size: int = 128
     lod_ratio: float | None = None
     lod_triangles: int | None = None
     compress: bool = True
-    uv_format: str = "uv32"
+    uv_format: str = "uvblock"
+    export: bool = True
 
     def validate(self) -> None:
         """Raise InputError(message, field) for the first parameter out of range."""
@@ -270,6 +313,10 @@ def pydantic_fields() -> dict[str, tuple[Any, Any]]:
             annotation = Literal[spec.choices]  # type: ignore[valid-type]
         elif spec.kind == "bool":
             annotation = bool
+        elif spec.kind == "name_or_index":
+            from typing import Annotated, Union
+
+            annotation = Union[Annotated[int, Field(ge=0)], Annotated[str, Field(min_length=1, max_length=MAX_ANIMATION_NAME)]]
         else:
             # Item bounds and distinctness: ParamSpec.problem, in the model's validator (one error for the field).
             annotation = list[float]
@@ -330,11 +377,19 @@ def add_cli_options(parser, names: Iterable[str] | None = None, *, server_defaul
         kwargs: dict[str, Any] = {"dest": spec.name, "default": default, "help": help_text}
         if spec.kind == "str":
             kwargs["choices"] = list(spec.choices or ())
+        elif spec.kind == "name_or_index":
+            kwargs["metavar"] = spec.metavar
+            kwargs["type"] = name_or_index
         else:
             kwargs["metavar"] = spec.metavar
             # A list stays text here and is parsed by params_from_args, so a bad one is a one-line error.
             kwargs["type"] = {"int": int, "float": float, "floats": str}[spec.kind]
         target.add_argument(*option_flags, **kwargs)
+
+
+def name_or_index(text: str) -> int | str:
+    """A command-line NAME|INDEX: digits are an index, anything else a name."""
+    return int(text) if text.isdigit() else text
 
 
 def _default_text(spec: ParamSpec) -> str:

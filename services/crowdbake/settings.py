@@ -49,6 +49,9 @@ class Settings(BaseSettings):
     )
     s3_part_bytes: int = Field(16 * MiB, ge=5 * MiB, description="Multipart upload part size; also the most one upload holds in memory.")
     s3_presign_seconds: int = Field(300, gt=0, le=7 * 24 * 3600, description="Lifetime of a presigned download URL.")
+    s3_redirect_downloads: bool = Field(
+        False, description="Answer bundle file downloads with a 307 to a presigned URL (the object store sends the bytes) instead of streaming them."
+    )
     cache_dir: Path | None = Field(None, description="Local read-through cache of an object store's blobs and bundle files; default data_dir/cache.")
     cache_max_bytes: int = Field(4096 * MiB, gt=0, description="Cache size above which the least recently used files are evicted.")
 
@@ -58,6 +61,14 @@ class Settings(BaseSettings):
     max_zip_ratio: float = Field(200.0, gt=1, description="Largest uncompressed/compressed ratio of one entry.")
     max_texture_pixels: int = Field(8192 * 8192, gt=0, description="Largest PNG (width x height) accepted.")
 
+    header_timeout_s: float = Field(10.0, gt=0, description="Seconds a connection may take to send a request's headers (then it is closed).")
+    body_min_bytes_per_s: int = Field(1024, ge=0, description="Slowest request body accepted after the grace period (408 below; 0 = no minimum).")
+    body_grace_s: float = Field(10.0, ge=0, description="Seconds a request body may start slowly before the minimum rate applies.")
+    body_max_seconds: float = Field(900.0, gt=0, description="Longest a request body may take to arrive, whatever its rate (408 after).")
+    shared_workspace: bool = Field(
+        False, description="Every key sees and changes every key's assets, bakes and bundles (one team, one workspace); "
+        "off: a key sees only what it created, plus public bundles, unless it has the admin scope.",
+    )
     bootstrap_key: SecretStr | None = Field(
         None, description="If set, an API key with every scope that exists from start-up (>= 32 characters)."
     )

@@ -95,11 +95,12 @@ class Page(Session):
 
 
 class Browser:
-    def __init__(self, profile: Path, window: tuple[int, int] = (1280, 1600)):
+    def __init__(self, profile: Path, window: tuple[int, int] = (1280, 1600), arguments: tuple[str, ...] = ()):
         if CHROMIUM is None:
             raise FileNotFoundError("chromium is not installed (scripts/apt-packages.txt lists it)")
         self.profile = profile
         self.window = window
+        self.arguments = tuple(arguments)  # extra Chromium switches (e.g. WebGL on SwiftShader)
         self.process: subprocess.Popen | None = None
         self.port = 0
 
@@ -107,7 +108,7 @@ class Browser:
         self.profile.mkdir(parents=True, exist_ok=True)
         command = [CHROMIUM, "--headless", "--disable-gpu", "--no-sandbox", "--no-first-run", "--disable-dev-shm-usage",
                    f"--user-data-dir={self.profile}", "--remote-debugging-port=0", "--remote-allow-origins=*",
-                   f"--window-size={self.window[0]},{self.window[1]}", "about:blank"]
+                   f"--window-size={self.window[0]},{self.window[1]}", *self.arguments, "about:blank"]
         self.process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         port_file = self.profile / "DevToolsActivePort"  # Chromium writes the port it chose here
         deadline = time.monotonic() + START_TIMEOUT_S

@@ -6,11 +6,9 @@ from pathlib import Path
 
 import pytest
 
+from repo_paths import REPO_ROOT, SHARED_ASSETS, VECTORS  # noqa: F401  (tests import them from repo_paths)
 from sample_fixtures import small_sample  # noqa: F401  (a session fixture shared with tests/)
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-SHARED_ASSETS = Path(os.environ.get("CROWDBAKE_SHARED_ASSETS", REPO_ROOT.parent / "shared" / "assets"))
-VECTORS = REPO_ROOT / "shared_formats" / "vectors"
 
 def pytest_configure(config) -> None:
     # scripts/test.sh leaves slow tests out unless CROWDBAKE_SLOW_TESTS=1 (which .ci/run sets).

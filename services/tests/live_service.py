@@ -1,8 +1,8 @@
 """A real service with a worker, for tests that bake through it (the submit client, the web page):
 uvicorn and a Celery worker as subprocesses on the filesystem broker (no Redis needed), a key with
-every scope and a read-only one, and the procedural sample character (baked_service.SAMPLE).
+every scope and a read-only one, and the procedural sample character (the session's small_sample).
 
-    with live_service(tmp_path) as service:
+    with live_service(tmp_path, small_sample) as service:
         service.url, service.keys["all"], service.sample, service.restart_api(down_s=2)
 """
 from __future__ import annotations
@@ -15,7 +15,6 @@ from typing import Iterator
 
 import httpx
 
-from baked_service import SAMPLE
 from service_fixtures import Process, free_port, service_env, start_api, start_worker
 
 
@@ -45,14 +44,12 @@ class Service:
 
 
 @contextlib.contextmanager
-def live_service(root: Path) -> Iterator[Service]:
-    from crowdbake.sample.generate import generate_sample
+def live_service(root: Path, sample: Path) -> Iterator[Service]:
+    """`sample`: a generated sample folder (the session's `small_sample`)."""
     from crowdbake.settings import Settings
     from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
     from crowdbake.storage.keys import create_api_key
 
-    sample = root / "sample"
-    generate_sample(sample, **SAMPLE)
     data = root / "data"
     env = service_env(data, "filesystem://")
     settings = Settings(data_dir=data, broker_url="filesystem://")

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import io
 import os
-import shutil
 import socket
 import subprocess
 import sys
@@ -30,7 +29,8 @@ GOOD_BUNDLE = REPO_ROOT / "shared_formats" / "vectors" / "v1" / "good" / "bundle
 def tiny_character(animated: bool = True):
     """A skinned tetrahedron on one joint that bobs up and down in a quarter second (a valid character;
     6 frames per cycle at crowdbake.params.BASE_FPS (24 fps), so a 12-frame cloth cache holds two cycles)."""
-    from crowdbake.formats.gltf import AnimationChannel, Character, vertex_normals
+    from crowdbake.bake.mesh import vertex_normals
+    from crowdbake.formats.gltf import AnimationChannel, Character
 
     positions = np.array([[0, 0, 0], [0.5, 0, 0], [0, 1.7, 0], [0, 0, 0.5]], np.float32)
     faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint32)
@@ -124,10 +124,10 @@ class Api:
         return self.client.app.state.services.sessions
 
     def snapshot(self) -> tuple[list[str], dict[str, int]]:
-        """Every file under the blob folder and the row count of every table except api_keys."""
+        """Every blob and staging file of the store and the row count of every table except api_keys."""
         from crowdbake.storage.models import Base
 
-        files = sorted(str(path.relative_to(self.settings.blob_dir)) for path in Path(self.settings.blob_dir).rglob("*") if path.is_file())
+        files = stored_blobs(self.settings)
         with self.sessions() as session:
             counts = {table.name: session.scalar(select(func.count()).select_from(table)) for table in Base.metadata.sorted_tables}
         return files, counts
@@ -159,7 +159,75 @@ def fresh_test_database(server_url: str) -> str:
     return make_url(server_url).set(database=name).render_as_string(hide_password=False)
 
 
-def make_api(tmp_path: Path, **overrides) -> Api:
+# The stores the service tests run on: local folders always, an S3 server when scripts/test.sh started
+# one (CROWDBAKE_TEST_S3_URL); `pytest.mark.parametrize("store", STORES)` or a fixture's params.
+STORES = ("local", pytest.param("s3", marks=pytest.mark.skipif(not os.environ.get("CROWDBAKE_TEST_S3_URL"),
+                                                               reason="CROWDBAKE_TEST_S3_URL is not set (scripts/test.sh starts an S3 server)")))
+
+
+def store_env(store: str) -> dict[str, str]:
+    """CROWDBAKE_* variables of `store` for a test: none for local folders; for "s3" the test server's
+    bucket (created if missing) under a fresh key prefix, so tests never see each other's objects."""
+    if store == "local":
+        return {}
+    import uuid
+
+    from crowdbake.storage.s3 import ensure_bucket, make_client
+
+    url = os.environ.get("CROWDBAKE_TEST_S3_URL")
+    if not url:
+        pytest.skip("CROWDBAKE_TEST_S3_URL is not set (scripts/test.sh starts an S3 server)")
+    env = {
+        "CROWDBAKE_STORE": "s3", "CROWDBAKE_S3_ENDPOINT_URL": url,
+        "CROWDBAKE_S3_BUCKET": os.environ.get("CROWDBAKE_TEST_S3_BUCKET", "crowdbake-test"),
+        "CROWDBAKE_S3_PREFIX": f"test-{uuid.uuid4().hex[:12]}",
+        "CROWDBAKE_S3_ACCESS_KEY_ID": os.environ.get("CROWDBAKE_TEST_S3_ACCESS_KEY_ID", "crowdbake-test"),
+        "CROWDBAKE_S3_SECRET_ACCESS_KEY": os.environ.get("CROWDBAKE_TEST_S3_SECRET_ACCESS_KEY", "crowdbake-test-secret"),
+    }
+    ensure_bucket(make_client(url, "us-east-1", env["CROWDBAKE_S3_ACCESS_KEY_ID"], env["CROWDBAKE_S3_SECRET_ACCESS_KEY"]), env["CROWDBAKE_S3_BUCKET"])
+    return env
+
+
+def database_env() -> dict[str, str]:
+    """CROWDBAKE_DATABASE_URL of a fresh PostgreSQL database when CROWDBAKE_TEST_DATABASE_URL is set, else none
+    (a SQLite file in the data folder)."""
+    server = os.environ.get("CROWDBAKE_TEST_DATABASE_URL")
+    return {"CROWDBAKE_DATABASE_URL": fresh_test_database(server)} if server else {}
+
+
+def settings_overrides(env: dict[str, str]) -> dict[str, str]:
+    """Settings keyword arguments of CROWDBAKE_* variables."""
+    return {key.removeprefix("CROWDBAKE_").lower(): value for key, value in env.items() if key.startswith("CROWDBAKE_")}
+
+
+def stored_blobs(settings) -> list[str]:
+    """Every digest in the blob store of `settings` and every staging file left beside it."""
+    from crowdbake.storage.store import open_store
+
+    blobs = open_store(settings).blobs
+    staging = sorted(f".incoming/{path.name}" for path in Path(blobs.staging_dir).glob("*"))
+    return sorted(blobs.digests()) + staging
+
+
+def published_files(settings, name: str, version: str) -> dict[str, bytes]:
+    """manifest.json and every listed file of a published bundle, read from the store of `settings`."""
+    from crowdbake.storage.store import open_store
+
+    store = open_store(settings).bundles
+    published = store.manifest(name, version)
+    files = {"manifest.json": published.data}
+    for path in published.files:
+        with store.open_file(name, version, path) as handle:
+            files[path] = handle.read()
+    return files
+
+
+def make_api(tmp_path: Path, store: str = "local", **overrides) -> Api:
+    """The real app on a temporary data folder, with one key per entry of KEY_SCOPES.
+
+    The keys are one team's roles (an upload key, a bake key, a read key...) that hand each other
+    assets and bundles, so the app runs as a shared workspace unless `shared_workspace=False` is given
+    (tests/test_ownership.py runs the default, where every key sees only what it created)."""
     from fastapi.testclient import TestClient
 
     from crowdbake.api.app import create_app
@@ -169,6 +237,8 @@ def make_api(tmp_path: Path, **overrides) -> Api:
 
     if "database_url" not in overrides and os.environ.get("CROWDBAKE_TEST_DATABASE_URL"):
         overrides["database_url"] = fresh_test_database(os.environ["CROWDBAKE_TEST_DATABASE_URL"])
+    overrides = {**settings_overrides(store_env(store)), **overrides}
+    overrides.setdefault("shared_workspace", True)
     settings = Settings(data_dir=tmp_path / "data", **overrides)
     app = create_app(settings)
     keys = {}
@@ -179,7 +249,7 @@ def make_api(tmp_path: Path, **overrides) -> Api:
 
 
 def publish_vector_bundle(api: Api, name: str | None = None, version: str | None = None, public: bool = False) -> tuple[str, str]:
-    """Copy the good bundle vector into the bundles folder (as name/version) and record it."""
+    """Publish the good bundle vector through the app's bundle store (as name/version) and record it."""
     import json
 
     from crowdbake.storage.bundles import register_bundle
@@ -187,9 +257,10 @@ def publish_vector_bundle(api: Api, name: str | None = None, version: str | None
 
     manifest = json.loads((GOOD_BUNDLE / "manifest.json").read_bytes())
     name, version = name or manifest["name"], version or manifest["version"]
-    shutil.copytree(GOOD_BUNDLE, Path(api.settings.bundles_dir) / name / version)
+    store = api.client.app.state.services.bundles
+    store.publish(GOOD_BUNDLE, name, version)
     with session_scope(api.sessions) as session:
-        register_bundle(session, api.settings.bundles_dir, name, version, public, None)
+        register_bundle(session, store, name, version, public, None)
     return name, version
 
 
@@ -243,7 +314,8 @@ def start_api(env: dict[str, str], port: int, log: Path, timeout: float = 60) ->
     import httpx
 
     process = start_process(
-        [sys.executable, "-m", "uvicorn", "--factory", "crowdbake.api.app:create_app", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
+        [sys.executable, "-m", "uvicorn", "--factory", "crowdbake.api.app:create_app", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning",
+         "--http", "crowdbake.api.slow_clients:HeaderTimeoutProtocol", "--timeout-keep-alive", "5"],
         env, log,
     )
     deadline = time.monotonic() + timeout

@@ -1,18 +1,19 @@
-"""Asset uploads through the real app (TestClient, SQLite and blob store in tmp_path): stored once by
-sha256, refused with RFC 9457 problems that name the field, file and place, and nothing of a refused
-upload is kept (the blob folder and every table are unchanged)."""
+"""Asset uploads through the real app (TestClient, SQLite and blob store in tmp_path, or PostgreSQL and
+an S3 bucket when the tests have those servers): stored once by sha256, refused with RFC 9457 problems
+that name the field, file and place, and nothing of a refused upload is kept (the blob store and every
+table are unchanged)."""
 from __future__ import annotations
 
 import pytest
 
-from service_fixtures import make_api, obj_bytes, obj_sequence_zip, pc2_bytes, png_bytes, tiny_character_glb, tiny_cloth
+from service_fixtures import STORES, make_api, obj_bytes, obj_sequence_zip, pc2_bytes, png_bytes, tiny_character_glb, tiny_cloth
 
 PROBLEM = "application/problem+json"
 
 
-@pytest.fixture
-def api(tmp_path):
-    return make_api(tmp_path, max_upload_bytes=200_000)
+@pytest.fixture(params=STORES)
+def api(tmp_path, request):
+    return make_api(tmp_path, request.param, max_upload_bytes=200_000)
 
 
 @pytest.fixture

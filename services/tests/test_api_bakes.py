@@ -53,7 +53,7 @@ def test_create_returns_202_with_location_and_enqueues_validate(api, assets):
     assert [stage["stage"] for stage in bake["stages"]] == ["validate", "cycle", "poses", "impostors", "pack", "publish"]
     assert all(stage["state"] == "pending" for stage in bake["stages"])
     # Parameters are validated, completed with defaults and recorded with the job.
-    assert bake["params"]["tile_size"] == 32 and bake["params"]["close"] == "hermite" and bake["params"]["elevations_deg"] == [0.0, 20.0, 40.0]
+    assert bake["params"]["tile_size"] == 32 and bake["params"]["close"] == "crossfade" and bake["params"]["elevations_deg"] == [0.0, 20.0, 40.0]
     assert bake["inputs"]["textures"] == {"diffuse_0.png": assets["texture"]}
     assert queued_messages(api) == [{"task": "crowdbake.stage.validate", "args": repr([bake["id"], 0])}]
     followed = api.client.get(response.headers["location"], headers=api.auth("bake")).json()
@@ -69,6 +69,24 @@ def test_resubmission_is_idempotent(api, assets):
     other = api.client.post("/v1/bakes", json=bake_body(assets, version="1.0.1"), headers=api.auth("ci"))
     assert other.status_code == 202 and other.json()["id"] != first.json()["id"]
     assert other.json()["input_key"] != first.json()["input_key"]
+
+
+@pytest.mark.parametrize("created", ["2006-09-04 12:00:00", "2006-13-04T12:00:00Z", "yesterday"])
+def test_created_must_be_a_real_utc_time(api, assets, created):
+    response = api.client.post("/v1/bakes", json=bake_body(assets, created=created), headers=api.auth("ci"))
+    assert response.status_code == 422 and response.headers["content-type"] == PROBLEM
+    assert [error["field"] for error in response.json()["errors"]] == ["created"]
+    assert queued_messages(api) == []
+
+
+def test_created_is_kept_with_the_inputs_and_is_part_of_the_key(api, assets):
+    """The manifest time shapes the bundle's bytes, so the same inputs with another time are another bake."""
+    plain = api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci")).json()
+    dated = api.client.post("/v1/bakes", json=bake_body(assets, version="1.0.1", created="2006-09-04T12:00:00Z"), headers=api.auth("ci"))
+    later = api.client.post("/v1/bakes", json=bake_body(assets, version="1.0.1", created="2006-09-05T12:00:00Z"), headers=api.auth("ci"))
+    assert dated.status_code == 202 and dated.json()["inputs"]["created"] == "2006-09-04T12:00:00Z"
+    assert "created" not in plain["inputs"]
+    assert later.status_code == 409  # same name/version, other inputs: a different bake, already baking
 
 
 def test_same_version_from_other_inputs_conflicts_while_baking(api, assets):

@@ -1,6 +1,7 @@
 """Bundle serving through the real app, on the good bundle vector: the URL layout the C++ runtime
 relies on, strong ETags that are the sha256, Range and conditional requests, immutable caching, the
-`latest` alias, and who may read what."""
+`latest` alias, and who may read what. Every test runs on the local bundle folder and, when the tests
+have an S3 server, on the object store (files streamed from it, or redirected to presigned URLs)."""
 from __future__ import annotations
 
 import hashlib
@@ -8,15 +9,15 @@ import json
 
 import pytest
 
-from service_fixtures import GOOD_BUNDLE, make_api, publish_vector_bundle
+from service_fixtures import GOOD_BUNDLE, STORES, make_api, publish_vector_bundle
 
 MANIFEST = json.loads((GOOD_BUNDLE / "manifest.json").read_bytes())
 ENTRY = max(MANIFEST["files"], key=lambda entry: entry["size"])  # the largest file, for ranges
 
 
-@pytest.fixture
-def api(tmp_path):
-    api = make_api(tmp_path)
+@pytest.fixture(params=STORES)
+def api(tmp_path, request):
+    api = make_api(tmp_path, request.param)
     api.name, api.version = publish_vector_bundle(api, public=False)
     api.base = f"/v1/bundles/{api.name}/{api.version}"
     return api
@@ -66,9 +67,13 @@ def test_conditional_and_head(api):
 
 def test_latest_alias_revalidates_and_names_the_version(api):
     publish_vector_bundle(api, api.name, "2.0.0", public=False)
-    response = api.client.get(f"/v1/bundles/{api.name}/latest/files/{ENTRY['path']}", headers=api.auth("read"))
-    assert response.status_code == 200 and response.headers["cache-control"] == "no-cache"
-    assert response.headers["content-location"] == f"/v1/bundles/{api.name}/2.0.0/files/{ENTRY['path']}"
+    # latest is resolved once: a 307 to the concrete version, for the manifest and for files alike.
+    for tail in (f"files/{ENTRY['path']}", "manifest.json"):
+        response = api.client.get(f"/v1/bundles/{api.name}/latest/{tail}", headers=api.auth("read"), follow_redirects=False)
+        assert response.status_code == 307 and response.headers["cache-control"] == "no-cache"
+        assert response.headers["location"] == f"/v1/bundles/{api.name}/2.0.0/{tail}"
+        followed = api.client.get(response.headers["location"], headers=api.auth("read"))
+        assert followed.status_code == 200 and "immutable" in followed.headers["cache-control"]
     info = api.client.get(f"/v1/bundles/{api.name}/latest", headers=api.auth("read")).json()
     assert info["version"] == "2.0.0"
     versions = api.client.get(f"/v1/bundles/{api.name}", headers=api.auth("read")).json()
@@ -99,3 +104,28 @@ def test_only_listed_files_are_served(api, path):
 def test_unknown_bundles_are_problems(api):
     assert api.client.get("/v1/bundles/nobody/1.0.0/manifest.json", headers=api.auth("read")).status_code == 404
     assert api.client.get("/v1/bundles/Bad Name/1.0.0/manifest.json", headers=api.auth("read")).status_code == 422
+
+
+@pytest.mark.parametrize("store", STORES)
+def test_redirected_downloads_come_from_the_store_with_the_same_bytes(tmp_path, store):
+    """CROWDBAKE_S3_REDIRECT_DOWNLOADS: an object store answers file downloads with a 307 to a presigned
+    URL (still 304 on a matching ETag, without touching the store); a local store has no such URL and
+    keeps streaming."""
+    import httpx
+
+    api = make_api(tmp_path, store, s3_redirect_downloads=True)
+    name, version = publish_vector_bundle(api, public=True)
+    expected = (GOOD_BUNDLE / ENTRY["path"]).read_bytes()
+    answer = api.client.get(f"/v1/bundles/{name}/{version}/files/{ENTRY['path']}", follow_redirects=False)
+    assert answer.headers["etag"] == f'"{ENTRY["sha256"]}"'
+    if store == "local":
+        assert answer.status_code == 200 and answer.content == expected
+        return
+    assert answer.status_code == 307, answer.text
+    assert answer.headers["cache-control"].startswith("private, max-age=")
+    fetched = httpx.get(answer.headers["location"], headers={"Range": "bytes=10-19"})
+    assert fetched.status_code == 206 and fetched.content == expected[10:20]
+    assert fetched.headers["content-type"] == ENTRY["media_type"]
+    again = api.client.get(f"/v1/bundles/{name}/{version}/files/{ENTRY['path']}", headers={"If-None-Match": answer.headers["etag"]},
+                           follow_redirects=False)
+    assert again.status_code == 304

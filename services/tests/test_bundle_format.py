@@ -1,4 +1,4 @@
-"""The Python reader against shared_formats/vectors/v1 and v1-uv32, which the C++ tests read too."""
+"""The Python reader against shared_formats/vectors/v1, v1-uv32 and v1-uvblock, which the C++ tests read too."""
 from __future__ import annotations
 
 import importlib.util
@@ -15,9 +15,11 @@ from crowdbake.formats.binary import (
     encode_texture_array,
     layer_size,
     pack_uv32,
+    pack_uvblock,
     region_alpha,
     region_codes,
     unpack_uv32,
+    unpack_uvblock,
 )
 from crowdbake.formats.bundle import BundleFile, build_manifest, check_path, verify_bundle, write_bundle
 from crowdbake.formats.errors import FormatError
@@ -31,6 +33,9 @@ BAD_CASES = sorted(p.name for p in (V1 / "bad").iterdir())
 V1_UV32 = VECTORS / "v1-uv32"
 GOOD_UV32 = V1_UV32 / "good" / "bundle"
 BAD_CASES_UV32 = sorted(p.name for p in (V1_UV32 / "bad").iterdir())
+V1_UVBLOCK = VECTORS / "v1-uvblock"
+GOOD_UVBLOCK = V1_UVBLOCK / "good" / "bundle"
+BAD_CASES_UVBLOCK = sorted(p.name for p in (V1_UVBLOCK / "bad").iterdir())
 
 
 def test_good_vector_decodes_to_the_expected_values():
@@ -212,3 +217,77 @@ def test_uv32_bit_layout_and_round_trip():
         pack_uv32(0.5, 0.5, 8, True)
     with pytest.raises(ValueError):
         pack_uv32(np.nan, 0.5, 0, True)
+
+
+# --- pixel format 6, uvblock (vectors/v1-uvblock) ---------------------------------------------------
+
+
+def test_uvblock_good_vector_decodes_to_the_expected_values():
+    expected = json.loads((V1_UVBLOCK / "good" / "expected.json").read_text())
+    bundle = verify_bundle(GOOD_UVBLOCK)
+    assert bundle.manifest["name"] == expected["name"] == "vector-good-uvblock"
+    uv_map = bundle.textures[expected["uvblock_texels"]["file"]]
+    assert uv_map.pixel_format == "uvblock" and len(uv_map.layers[0]) == 24 * (uv_map.width // 4) * (uv_map.height // 4)
+    texels = expected["uvblock_texels"]["texels"]
+    assert any(not t["coverage"] for t in texels) and {t["material"] for t in texels if t["coverage"]} == {0, 1, 2, 3}
+    decoded = [unpack_uvblock(layer, uv_map.width, uv_map.height) for layer in uv_map.layers]
+    for want in texels:
+        u, v, material, coverage = (array[want["row"], want["column"]] for array in decoded[want["layer"]])
+        assert (bool(coverage), int(material)) == (want["coverage"], want["material"])
+        assert (float(u), float(v)) == (want["qu"] / 4095, want["qv"] / 4095)
+
+
+@pytest.mark.parametrize("case", BAD_CASES_UVBLOCK)
+def test_uvblock_bad_vector_is_refused_with_its_code_and_file(case):
+    expect = json.loads((V1_UVBLOCK / "bad" / case / "expect.json").read_text())
+    with pytest.raises(FormatError) as raised:
+        verify_bundle(V1_UVBLOCK / "bad" / case / "bundle")
+    assert (raised.value.code, raised.value.file) == (expect["error"], expect["file"])
+
+
+def test_every_strict_prefix_of_a_uvblock_texture_is_truncated():
+    data = (GOOD_UVBLOCK / "impostor" / "uv.cbtx").read_bytes()
+    assert decode_texture_array(data).pixel_format == "uvblock"
+    for length in range(len(data)):
+        with pytest.raises(FormatError) as raised:
+            decode_texture_array(data[:length])
+        assert raised.value.code == "truncated", (length, raised.value)
+
+
+def test_writer_still_produces_the_committed_uvblock_vectors(tmp_path):
+    spec = importlib.util.spec_from_file_location("gen_uvblock", REPO_ROOT / "shared_formats" / "generate_vectors_v1_uvblock.py")
+    generator = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(generator)
+    generator.generate(tmp_path / "v1-uvblock")
+    committed_files = [p for p in sorted(V1_UVBLOCK.rglob("*")) if p.is_file()]
+    assert committed_files
+    for committed in committed_files:
+        assert (tmp_path / "v1-uvblock" / committed.relative_to(V1_UVBLOCK)).read_bytes() == committed.read_bytes(), committed
+
+
+def test_uvblock_keeps_coverage_and_material_and_rounds_within_half_a_step():
+    """A smooth chart with a seam through it and a second material: coverage and material come back exactly,
+    and each coordinate within half a step of the smallest shift that spans its subset (SPEC.md)."""
+    rng = np.random.default_rng(5)
+    row, column = np.meshgrid(np.arange(16), np.arange(24), indexing="ij")
+    u = 0.3 + 0.0021 * column + 0.0007 * row + rng.normal(0, 1e-4, row.shape)
+    v = 0.6 - 0.0015 * row + 0.0004 * column
+    seam = column > row + 3  # a second UV chart, far away in the texture
+    u, v = np.where(seam, u + 0.4, u), np.where(seam, v - 0.5, v)
+    material = np.where((row % 7 == 3) & ~seam, 2, 0)  # so a block holds at most three (chart, material) pairs
+    covered = rng.random(row.shape) < 0.85
+    data = pack_uvblock(u, v, material, covered)
+    assert len(data) == layer_size("uvblock", 24, 16) == 24 * 6 * 4
+    du, dv, dm, dc = unpack_uvblock(data, 24, 16)
+    np.testing.assert_array_equal(dc, covered)
+    np.testing.assert_array_equal(dm[covered], material[covered])
+    assert (du[~covered] == 0).all() and (dv[~covered] == 0).all()
+    # Inside one 4x4 block of one chart the coordinates span under 0.012 (49 steps of 1/4095): a
+    # shift of 3 at most, so the error is at most 4/4095, plus the 12-bit grid's half step.
+    error = np.maximum(np.abs(du - u), np.abs(dv - v))[covered]
+    assert error.max() <= 4.5 / 4095
+    with pytest.raises(ValueError):
+        pack_uvblock(u, v, np.full(u.shape, 4), covered)  # two bits of material
+    four = (column % 4) + 0 * row  # four materials in every block: three subsets cannot keep them
+    with pytest.raises(ValueError, match="more than 3 materials"):
+        pack_uvblock(u, v, np.clip(four, 0, 3), np.ones_like(covered))

@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from crowdbake.bake.mesh import unique_edges
 from crowdbake.sample.cloth_sim import (
     ClothParams,
     bending_pairs,
@@ -14,7 +15,6 @@ from crowdbake.sample.cloth_sim import (
     inside_closed_parts,
     settling_curve,
     simulate,
-    unique_edges,
     winding_numbers,
 )
 from crowdbake.sample.garments import grid_faces

@@ -18,7 +18,7 @@ import numpy as np
 import pygltflib
 import pytest
 
-from conftest import REPO_ROOT, SHARED_ASSETS
+from repo_paths import REPO_ROOT, SHARED_ASSETS
 from crowdbake.cli import main as cli_main
 from crowdbake.export import ktx2
 from crowdbake.export.textures import rgba8_layers
@@ -98,6 +98,65 @@ def test_ktx2_round_trips_texels_bit_for_bit(vk_format, dtype, channels):
     assert level_offset % max(4, layers.dtype.itemsize * channels) == 0
 
 
+def texture2ddecoder_rgba(blocks: bytes, vk_format: int, width: int, height: int) -> np.ndarray:
+    """(H, W, 4) uint8 RGBA of one layer of BC1/BC2 blocks, decoded by texture2ddecoder (an independent
+    decoder). It has no BC2, so a BC2 block's colour half goes through its BC3 path behind an opaque
+    alpha block (BC2 and BC3 decode colour alike, always in 4-colour mode) and the explicit 4-bit alpha
+    is expanded by the format's definition, nibble * 17."""
+    texture2ddecoder = pytest.importorskip("texture2ddecoder")
+    if ktx2.BLOCK_LAYOUTS[vk_format].block_bytes == 8:
+        bgra = texture2ddecoder.decode_bc1(bytes(blocks), width, height)
+        return np.frombuffer(bgra, np.uint8).reshape(height, width, 4)[..., [2, 1, 0, 3]].copy()
+    pairs = np.frombuffer(bytes(blocks), np.uint8).reshape(-1, 16)
+    opaque = np.tile(np.array([255, 255, 0, 0, 0, 0, 0, 0], np.uint8), (len(pairs), 1))
+    bgra = texture2ddecoder.decode_bc3(np.concatenate([opaque, pairs[:, 8:]], axis=1).tobytes(), width, height)
+    rgba = np.frombuffer(bgra, np.uint8).reshape(height, width, 4)[..., [2, 1, 0, 3]].copy()
+    nibbles = np.stack([pairs[:, :8] & 15, pairs[:, :8] >> 4], axis=-1).reshape(-1, 4, 4)  # per block, rows of 4
+    alpha = nibbles.reshape(height // 4, width // 4, 4, 4).transpose(0, 2, 1, 3).reshape(height, width)
+    rgba[..., 3] = alpha * 17
+    return rgba
+
+
+@pytest.mark.parametrize("pixel_format, colour", [("bc1", False), ("bc1", True), ("bc2", False), ("bc2", True)])
+def test_bc_ktx2_keeps_the_blocks_and_decodes_to_the_bundles_texels(pixel_format, colour):
+    """The block path copies a TextureArray's layers byte for byte; texture2ddecoder decoding the KTX2's
+    blocks gives exactly the texels crowdbake's own decoder gives for the bundle layer."""
+    from crowdbake.bake import compression
+    from crowdbake.export.textures import colour_ktx2
+    from crowdbake.formats.binary import TextureArray
+
+    rng = np.random.default_rng(11)
+    width, height = 24, 16
+    images = rng.integers(0, 256, size=(3, height, width, 4), dtype=np.uint8)
+    images[..., 3] = 17 * rng.integers(0, 16, size=(3, height, width))  # region codes survive BC2 exactly
+    texture = TextureArray(width, height, pixel_format, [compression.encode(image, pixel_format) for image in images])
+    vk_format, data = colour_ktx2(texture, colour, "bc")
+    assert ktx2.format_name(vk_format) == f"{pixel_format.upper()}{'_RGB' if pixel_format == 'bc1' else ''}_{'SRGB' if colour else 'UNORM'}_BLOCK"
+    image = ktx2.decode_ktx2(data)
+    assert image.texels is None and image.layer_count == 3 and (image.width, image.height) == (width, height)
+    assert [layer.tobytes() for layer in image.blocks] == list(texture.layers)
+    for k, layer in enumerate(image.blocks):
+        ours = compression.decode(texture.layers[k], pixel_format, width, height)
+        np.testing.assert_array_equal(texture2ddecoder_rgba(layer, vk_format, width, height), ours)
+    header = np.frombuffer(data[:80], "<u4", 17, 12)
+    assert header[1] == 1, "typeSize of a block format is 1"
+    level_offset, level_length, uncompressed = np.frombuffer(data[80:104], "<u8")
+    assert level_length == uncompressed == 3 * len(texture.layers[0]) and level_offset % ktx2.BLOCK_LAYOUTS[vk_format].block_bytes == 0
+    # rgba8 mode: the same texels, decoded, in an RGBA8 file 4x (BC2) or 8x (BC1) the size of the blocks.
+    vk_rgba8, data_rgba8 = colour_ktx2(texture, colour, "rgba8")
+    assert vk_rgba8 == (ktx2.VK_FORMAT_R8G8B8A8_SRGB if colour else ktx2.VK_FORMAT_R8G8B8A8_UNORM)
+    np.testing.assert_array_equal(ktx2.decode_ktx2(data_rgba8).texels, np.stack([compression.decode(layer, pixel_format, width, height) for layer in texture.layers]))
+
+
+def test_ktx2_block_writer_refuses_sizes_that_do_not_fit():
+    with pytest.raises(ValueError, match="multiples of 4"):
+        ktx2.encode_ktx2_blocks(ktx2.VK_FORMAT_BC1_RGB_UNORM_BLOCK, 6, 4, [b"\0" * 16])
+    with pytest.raises(ValueError, match="layers of 8 bytes"):
+        ktx2.encode_ktx2_blocks(ktx2.VK_FORMAT_BC1_RGB_UNORM_BLOCK, 4, 4, [b"\0" * 16])
+    with pytest.raises(ValueError, match="block format"):
+        ktx2.encode_ktx2_blocks(ktx2.VK_FORMAT_R8G8B8A8_UNORM, 4, 4, [b"\0" * 64])
+
+
 def test_ktx2_refuses_texels_that_do_not_fit_the_format():
     with pytest.raises(ValueError, match="uint8"):
         ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_UNORM, np.zeros((1, 4, 4, 4), np.uint16))
@@ -132,6 +191,13 @@ def sample_bundle(tmp_path_factory) -> Path:
 def sample_export(sample_bundle, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("export_out") / "sample"
     assert cli_main(["export", str(sample_bundle), "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def sample_export_rgba8(sample_bundle, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("export_out_rgba8") / "sample"
+    assert cli_main(["export", str(sample_bundle), "--out", str(out), "--ktx2", "rgba8"]) == 0
     return out
 
 
@@ -177,26 +243,48 @@ def check_export(bundle_dir: Path, out: Path) -> None:
             assert np.degrees(np.arccos(np.clip((normals * cache.normals).sum(-1), -1, 1))).max() < 0.1
 
     # 3. KTX2: ktx-parse reads every file, its writer gives back the same bytes, and the texels are
-    # the bundle's (block formats decoded as a runtime decodes them): error 0.
-    expected = {}
+    # the bundle's: error 0. In "bc" mode a BC1/BC2 bundle layer is in the file block for block and
+    # texture2ddecoder decodes it to the texels crowdbake's decoder gives; in "rgba8" mode the file holds
+    # those decoded texels.
+    expected, sources = {}, {}
     for material in sidecar["materials"]:
         source = next(m for m in manifest["materials"] if m["name"] == material["name"])
-        expected[material["diffuse"]["ktx2"]] = rgba8_layers(bundle.textures[source["diffuse"]])
-    expected[sidecar["outfits"]["ktx2"]] = rgba8_layers(bundle.textures[manifest["outfits"]["file"]])
+        sources[material["diffuse"]["ktx2"]] = bundle.textures[source["diffuse"]]
+    sources[sidecar["outfits"]["ktx2"]] = bundle.textures[manifest["outfits"]["file"]]
     for kind in ("normal", "detail"):
-        expected[sidecar["impostor"]["maps"][kind]["ktx2"]] = rgba8_layers(bundle.textures[manifest["impostor"]["maps"][kind]])
+        sources[sidecar["impostor"]["maps"][kind]["ktx2"]] = bundle.textures[manifest["impostor"]["maps"][kind]]
+    for path, texture in sources.items():
+        expected[path] = rgba8_layers(texture)
     uv = bundle.textures[manifest["impostor"]["maps"]["uv"]]
-    expected[sidecar["impostor"]["maps"]["uv"]["ktx2"]] = np.stack([uv.texels(k) for k in range(len(uv.layers))])
+    if uv.pixel_format == "uvblock":  # exported as the uv32 words of its decoded texels
+        from crowdbake.bake.impostor_maps import uvblock_to_uv32
+
+        expected[sidecar["impostor"]["maps"]["uv"]["ktx2"]] = np.stack([uvblock_to_uv32(layer, uv.width, uv.height) for layer in uv.layers])
+    else:
+        expected[sidecar["impostor"]["maps"]["uv"]["ktx2"]] = np.stack([uv.texels(k) for k in range(len(uv.layers))])
     ktx_files = sorted(out.rglob("*.ktx2"))
     reports = {Path(r["path"]).relative_to(out).as_posix(): r for r in node_tool("read-ktx2.mjs", *ktx_files)}
     assert len(reports) == len(ktx_files)
+    block_files = 0
     for path, report in reports.items():
         assert report["reserialisedIdentical"] and report["levelCount"] == 1 and report["supercompressionScheme"] == 0, path
-        texels = ktx2.decode_ktx2((out / path).read_bytes()).texels
-        assert report["levels"][0]["sha256"] == hashlib.sha256(texels.tobytes()).hexdigest(), path
-        if path in expected:
-            np.testing.assert_array_equal(texels.reshape(expected[path].shape), expected[path], err_msg=path)
+        image = ktx2.decode_ktx2((out / path).read_bytes())
+        payload = image.blocks if image.texels is None else image.texels
+        assert report["levels"][0]["sha256"] == hashlib.sha256(payload.tobytes()).hexdigest(), path
+        if path not in expected:
+            continue
+        if image.blocks is not None:
+            block_files += 1
+            texture = sources[path]
+            assert sidecar["ktx2"] == "bc" and texture.pixel_format in ("bc1", "bc2"), path
+            assert [layer.tobytes() for layer in image.blocks] == list(texture.layers[: len(image.blocks)]), path
+            decoded = np.stack([texture2ddecoder_rgba(layer, image.vk_format, image.width, image.height) for layer in image.blocks])
+            np.testing.assert_array_equal(decoded, expected[path][: len(decoded)], err_msg=path)
+        else:
+            np.testing.assert_array_equal(image.texels.reshape(expected[path].shape), expected[path], err_msg=path)
     assert set(expected) <= set(reports)
+    compressed_sources = sum(texture.pixel_format in ("bc1", "bc2") for texture in sources.values())
+    assert block_files == (compressed_sources if sidecar["ktx2"] == "bc" else 0)
 
     # 4. The sidecar describes the impostor as the bundle does.
     impostor = sidecar["impostor"]
@@ -218,7 +306,38 @@ def read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int) -> np.ndarray:
 
 
 def test_sample_export_validates_and_round_trips(sample_bundle, sample_export):
+    sidecar = json.loads((sample_export / "export.json").read_text())
+    assert sidecar["ktx2"] == "bc" and sidecar["format_version"] == 2
+    assert sidecar["impostor"]["maps"]["normal"]["vk_format"] == "BC1_RGB_UNORM_BLOCK"
+    assert sidecar["impostor"]["maps"]["detail"]["vk_format"] == "BC2_SRGB_BLOCK"
+    assert sidecar["impostor"]["maps"]["uv"]["vk_format"] == "R32_UINT"  # words stay exact, never block-compressed
     check_export(sample_bundle, sample_export)
+
+
+def test_rgba8_export_decodes_the_blocks_and_is_larger(sample_bundle, sample_export, sample_export_rgba8):
+    sidecar = json.loads((sample_export_rgba8 / "export.json").read_text())
+    assert sidecar["ktx2"] == "rgba8" and sidecar["impostor"]["maps"]["detail"]["vk_format"] == "R8G8B8A8_SRGB"
+    check_export(sample_bundle, sample_export_rgba8)
+    # Same files; the BC ones 4x (BC2) or 8x (BC1) smaller in their level data.
+    sizes = {mode: {p.relative_to(root).as_posix(): p.stat().st_size for p in root.rglob("*.ktx2")} for mode, root in (("bc", sample_export), ("rgba8", sample_export_rgba8))}
+    assert sizes["bc"].keys() == sizes["rgba8"].keys()
+    for kind, ratio in (("normal", 8), ("detail", 4)):
+        path = f"impostor/{kind}.ktx2"
+        level_bc = sizes["bc"][path] - int.from_bytes((sample_export / path).read_bytes()[80:88], "little")
+        level_rgba8 = sizes["rgba8"][path] - int.from_bytes((sample_export_rgba8 / path).read_bytes()[80:88], "little")
+        assert level_rgba8 == ratio * level_bc, path
+
+
+def test_bake_publishes_the_export_beside_the_bundle(sample_bundle, sample_export):
+    """`run_bake` (the CLI's bake) with the default export=true writes <out>/../exports/<name>/<version>/,
+    the same export `crowdbake export` writes: the same files, byte for byte."""
+    from crowdbake.storage.exports import export_home
+
+    home = export_home(sample_bundle.parent.parent, "sample", "1.0")
+    index = json.loads((home / "index.json").read_text())
+    assert sorted(index["files"]) == sorted(p.relative_to(sample_export).as_posix() for p in sample_export.rglob("*") if p.is_file())
+    for path, entry in index["files"].items():
+        assert hashlib.sha256((sample_export / path).read_bytes()).hexdigest() == entry["sha256"], path
 
 
 def test_morph_animation_keys_each_frame_once(sample_export):

@@ -22,8 +22,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import REPO_ROOT
-from test_export import PREVIEW_DIR, sample_bundle, sample_export  # noqa: F401 (module fixtures)
+from repo_paths import REPO_ROOT
+from crowdbake.export import ktx2
+from test_export import PREVIEW_DIR, sample_bundle, sample_export, sample_export_rgba8  # noqa: F401 (module fixtures)
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CROWDVIEW = Path(os.environ.get("CROWDVIEW", REPO_ROOT / "build" / "runtime" / "crowdview"))
@@ -40,12 +41,13 @@ SKY_DIFFERENCE = 12  # summed RGB difference from the corner (sky) pixel that co
 
 
 @pytest.fixture(scope="module")
-def server(sample_export, tmp_path_factory):  # noqa: F811
+def server(sample_export, sample_export_rgba8, tmp_path_factory):  # noqa: F811
     if not (PREVIEW_DIR / "node_modules" / "three").is_dir():
         pytest.skip(f"npm packages missing: run `npm ci` in {PREVIEW_DIR} (scripts/setup.sh does)")
     root = tmp_path_factory.mktemp("www")
     (root / "preview").symlink_to(PREVIEW_DIR, target_is_directory=True)
     (root / "export").symlink_to(sample_export, target_is_directory=True)
+    (root / "export_rgba8").symlink_to(sample_export_rgba8, target_is_directory=True)
 
     class Quiet(SimpleHTTPRequestHandler):
         def log_message(self, *args):
@@ -125,6 +127,20 @@ def test_preview_draws_the_crowd_with_crowdviews_lod_rule(server, sample_export,
     assert status["switch_distance_m"] == pytest.approx(sidecar["impostor"]["switch_distance"]["distance_m"], rel=1e-6)
     forced = page_status(f"{server}&time=0&count=100&lod=impostor", tmp_path / "profile2")
     assert forced["lod"] == {"high": 0, "low": 0, "impostor": 100}
+    # The BC1/BC2 KTX2 files went up as S3TC blocks (SwiftShader has WEBGL_compressed_texture_s3tc).
+    assert {ktx2.VK_FORMAT_BC1_RGB_UNORM_BLOCK, ktx2.VK_FORMAT_BC2_SRGB_BLOCK} <= set(status["texture_formats"]), status
+
+
+def test_bc_and_rgba8_exports_draw_the_same_picture(server, tmp_path):
+    """The blocks the GPU decodes and the texels the exporter decoded are the same texels, so the two
+    KTX2 modes give the same screenshot (a few pixels may differ where filtering rounds differently)."""
+    rgba8_url = server.replace("export=../export/", "export=../export_rgba8/")
+    assert page_status(f"{rgba8_url}&time=0&count=16", tmp_path / "profile")["texture_formats"][0] == ktx2.VK_FORMAT_R8G8B8A8_UNORM
+    bc = screenshot(f"{server}&time=0&count=100", SCREENSHOTS / "preview_bc.png", tmp_path / "profile_bc")
+    rgba8 = screenshot(f"{rgba8_url}&time=0&count=100", SCREENSHOTS / "preview_rgba8.png", tmp_path / "profile_rgba8")
+    differing = (np.abs(bc - rgba8).sum(axis=-1) > 3).mean()
+    (SCREENSHOTS / "compare_bc_rgba8.json").write_text(json.dumps({"differing_pixel_fraction": float(differing), "max_difference": int(np.abs(bc - rgba8).max())}) + "\n")
+    assert differing < 0.001, differing
 
 
 @pytest.mark.parametrize("mode, crowdview_args", [("auto", ()), ("impostor", ("--lod", "impostor"))])

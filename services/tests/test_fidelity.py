@@ -128,3 +128,14 @@ def test_uv_precision_shows_why_the_uv_map_keeps_14_bits(sphere):
     # 8 bits per coordinate: half a step of 1/255 is two texels of a 1024² texture.
     assert 1.0 < precision["rgba8"]["max_texels"] <= 0.5 / 255 * 1024 + 1e-6
     assert precision["bc1"]["max_texels"] >= precision["rgba8"]["max_texels"]
+
+
+def test_uv_precision_measures_uvblock_against_the_lookup_footprint(sphere):
+    """The lookup's footprint at 1:1 is several diffuse texels (a 1024² texture over a small sphere), and
+    uvblock's rounding stays well within one footprint on a smooth chart."""
+    baked = bake_view(sphere, 0.0, 0.0)
+    size = baked.uv.shape[0]
+    precision = fidelity.uv_precision(baked.uv, 1024, size)
+    assert precision["lookup_footprint_texels"]["median"] > 1.0
+    assert precision["uvblock"]["max_texels"] > precision["uv32"]["max_texels"]
+    assert precision["uvblock_error_footprints"]["p99"] < 0.5

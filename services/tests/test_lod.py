@@ -66,7 +66,7 @@ def test_garment_lod_hits_target_keeps_subset_border_and_seam(target):
 
 def test_low_lod_carries_every_frame_over():
     positions, faces, uvs = skirt(frames=4)
-    normals = poses.vertex_normals(positions, faces, weld=lod.weld_by_position(positions[0]))
+    normals = poses.pose_normals(positions, faces, weld=lod.weld_by_position(positions[0]))
     high = poses.PartPoses(faces, uvs, positions, normals)
     simplified = lod.simplify(positions[0], faces, 500, uvs=uvs, lock_border=True)
     low = poses.low_lod(high, simplified)
@@ -79,8 +79,8 @@ def test_low_lod_carries_every_frame_over():
 
 def test_seam_vertices_share_one_normal():
     positions, faces, uvs = skirt(frames=1)
-    welded = poses.vertex_normals(positions, faces, weld=lod.weld_by_position(positions[0]))[0]
-    split = poses.vertex_normals(positions, faces)[0]
+    welded = poses.pose_normals(positions, faces, weld=lod.weld_by_position(positions[0]))[0]
+    split = poses.pose_normals(positions, faces)[0]
     columns = 49
     first, last = np.arange(0, len(uvs), columns), np.arange(columns - 1, len(uvs), columns)
     np.testing.assert_allclose(welded[first], welded[last], atol=1e-6)

@@ -55,7 +55,9 @@ def test_choices_agree():
         if spec.choices is None:
             continue
         assert list(options[spec.name].choices) == list(spec.choices), spec.name
-        assert set(BakeParamsIn.model_json_schema()["properties"][spec.name]["enum"]) == set(spec.choices)
+        schema = BakeParamsIn.model_json_schema()["properties"][spec.name]
+        enums = [schema.get("enum")] + [branch.get("enum") for branch in schema.get("anyOf", [])]  # optional: anyOf [enum, null]
+        assert set(spec.choices) in [set(e) for e in enums if e], spec.name
         with pytest.raises(ValidationError):
             BakeParamsIn(**{spec.name: "not-a-choice"})
 
@@ -129,3 +131,27 @@ def test_the_closing_choices_are_the_loop_closings_own():
 
     assert set(CLOSE_METHODS) == set(loop_closing.CLOSE_METHODS)
     assert DEFAULT_CLOSE == loop_closing.DEFAULT_CLOSE_METHOD == "crossfade"
+
+
+def test_the_frame_choices_are_placements_own():
+    """up and units name exactly the frames crowdbake.bake.placement converts."""
+    from crowdbake.bake import placement
+    from crowdbake.params import UNIT_CHOICES, UP_AXES
+
+    assert UP_AXES == placement.UP_AXES
+    assert set(UNIT_CHOICES) == set(placement.UNITS)
+
+
+def test_animation_is_a_name_or_an_index_everywhere():
+    """Digits on the command line are an index; REST takes an integer index or a string name."""
+    assert parse()["animation"] == 0
+    assert parse("--animation", "2")["animation"] == 2
+    assert parse("--animation", "Walk")["animation"] == "Walk"
+    assert BakeParamsIn(animation="Walk").animation == "Walk"
+    assert BakeParamsIn(animation=1).animation == 1
+    for bad in (-1, ""):
+        with pytest.raises(ValidationError):
+            BakeParamsIn(animation=bad)
+        with pytest.raises(InputError) as caught:
+            BakeParams.from_dict({"animation": bad})
+        assert caught.value.field == "animation"

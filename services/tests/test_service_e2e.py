@@ -5,23 +5,29 @@ procedural sample character with small bake parameters.
 Upload -> bake -> publish -> download, then every file's sha256 and the bundle's schema are checked
 (verify_bundle), the same bytes are served with Range requests, a resubmission is idempotent, a bad
 upload through the real server stores nothing, and a bake that fails in a worker makes the CLI exit
-non-zero with one line.
+non-zero with one line. Every test runs on local folders and, when the tests have an S3 server, again
+on the object store (uploads, stage outputs and bundles in the bucket, private work folders).
 """
 from __future__ import annotations
 
 import hashlib
-import os
+import io
 import subprocess
 import sys
 import time
 import uuid
+import zipfile
 from pathlib import Path
 
 import httpx
 import pytest
 
 from crowdbake.formats.bundle import verify_bundle
-from service_fixtures import free_port, fresh_test_database, raw_http, redis_url_or_skip, service_env, start_api, start_process, start_worker
+from service_fixtures import (
+    STORES, database_env, free_port, published_files, raw_http, redis_url_or_skip, service_env, settings_overrides, start_api, start_process,
+    start_worker,
+    store_env, stored_blobs,
+)
 
 pytestmark = pytest.mark.integration
 
@@ -44,9 +50,9 @@ def sample(tmp_path_factory) -> Path:
     return out
 
 
-@pytest.fixture(scope="module")
-def service(tmp_path_factory):
-    """API + worker on a private data folder and a private queue of the test Redis."""
+@pytest.fixture(scope="module", params=STORES)
+def service(tmp_path_factory, request):
+    """API + worker on a private data folder and a private queue of the test Redis, on each store."""
     redis_url = redis_url_or_skip()
     from crowdbake.settings import Settings
     from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
@@ -55,11 +61,9 @@ def service(tmp_path_factory):
     root = tmp_path_factory.mktemp("service")
     data = root / "data"
     queue = f"crowdbake-e2e-{uuid.uuid4().hex[:8]}"
-    database = {}
-    if os.environ.get("CROWDBAKE_TEST_DATABASE_URL"):  # optional: PostgreSQL instead of a SQLite file
-        database["CROWDBAKE_DATABASE_URL"] = fresh_test_database(os.environ["CROWDBAKE_TEST_DATABASE_URL"])
-    env = service_env(data, redis_url, CROWDBAKE_QUEUE=queue, CROWDBAKE_MAX_UPLOAD_BYTES=str(16 << 20), **database)
-    settings = Settings(data_dir=data, database_url=database.get("CROWDBAKE_DATABASE_URL"))
+    backends = {**database_env(), **store_env(request.param)}  # PostgreSQL and S3 when the tests have them
+    env = service_env(data, redis_url, CROWDBAKE_QUEUE=queue, CROWDBAKE_MAX_UPLOAD_BYTES=str(16 << 20), **backends)
+    settings = Settings(data_dir=data, **settings_overrides(backends))
     engine = make_engine(settings.database_url)
     migrate(engine)
     with session_scope(make_sessionmaker(engine)) as session:
@@ -110,8 +114,9 @@ def test_upload_bake_publish_download_verify(service, sample, tmp_path):
     for entry in manifest["files"]:
         assert hashlib.sha256((Path(folder) / entry["path"]).read_bytes()).hexdigest() == entry["sha256"]
     # What was published on the server is byte for byte what was downloaded.
-    published = service["settings"].bundles_dir / "sample-walker" / "1.0.0"
-    assert (published / "manifest.json").read_bytes() == manifest_bytes
+    published = published_files(service["settings"], "sample-walker", "1.0.0")
+    assert published["manifest.json"] == manifest_bytes
+    assert published == {path: (Path(folder) / path).read_bytes() for path in published}
 
     headers = {"Authorization": f"Bearer {service['key']}"}
     with httpx.Client(base_url=service["url"], headers=headers, timeout=30) as client:
@@ -128,6 +133,18 @@ def test_upload_bake_publish_download_verify(service, sample, tmp_path):
         assert piece.headers["etag"] == f'"{entry["sha256"]}"' and "immutable" in piece.headers["cache-control"]
         latest = client.get("/v1/bundles/sample-walker/latest/manifest.json")
         assert latest.content == manifest_bytes and latest.headers["content-location"].endswith("/1.0.0/manifest.json")
+        # What the page shows comes from the store too: the cycle report the cycle stage wrote (as blobs
+        # when work folders are private), an atlas preview and the whole bundle as one zip.
+        report = client.get(f"/v1/bakes/{bake_id}/cycle/report.html")
+        assert report.status_code == 200 and "<html" in report.text.lower(), report.text[:300]
+        cycle_json = client.get(f"/v1/bakes/{bake_id}/cycle/cycle.json")
+        assert cycle_json.status_code == 200 and isinstance(cycle_json.json(), dict)
+        preview = client.get("/v1/bundles/sample-walker/1.0.0/preview/uv")
+        assert preview.status_code == 200 and preview.content.startswith(b"\x89PNG")
+        archive = client.get("/v1/bundles/sample-walker/1.0.0/archive.zip")
+        with zipfile.ZipFile(io.BytesIO(archive.content)) as bundle_zip:
+            assert bundle_zip.read("sample-walker/1.0.0/manifest.json") == manifest_bytes
+            assert len(bundle_zip.namelist()) == len(manifest["files"]) + 1
 
     # Idempotent resubmission: the same inputs and parameters give back the same bake, already done.
     again = submit(service, sample, "1.0.0", download=tmp_path / "again")
@@ -165,8 +182,7 @@ def test_cancel_then_retry_on_real_workers(service, sample):
 
 
 def test_bad_upload_through_the_real_server_stores_nothing(service, sample, tmp_path):
-    blob_dir = service["settings"].blob_dir
-    before = sorted(path for path in blob_dir.rglob("*") if path.is_file())
+    before = stored_blobs(service["settings"])
     cache = (sample / "cloth.pc2").read_bytes()
     headers = {"Authorization": f"Bearer {service['key']}"}
     with httpx.Client(base_url=service["url"], headers=headers, timeout=30) as client:
@@ -179,7 +195,7 @@ def test_bad_upload_through_the_real_server_stores_nothing(service, sample, tmp_
     answer = raw_http(port, (f"POST /v1/assets/characters HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {service['key']}\r\n"
                              f"Content-Type: multipart/form-data; boundary=x\r\nContent-Length: {17 << 20}\r\n\r\n--x\r\n").encode())
     assert answer.startswith(b"HTTP/1.1 413") and b"application/problem+json" in answer
-    assert sorted(path for path in blob_dir.rglob("*") if path.is_file()) == before
+    assert stored_blobs(service["settings"]) == before
 
 
 def test_a_bake_failing_in_a_worker_is_one_line_and_a_non_zero_exit(service, sample):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from crowdbake.errors import InputError, StageOrderError, VersionConflict
-from crowdbake.formats.binary import unpack_uv32
+from crowdbake.formats.binary import unpack_uvblock
 from crowdbake.formats.bundle import verify_bundle
 from crowdbake.params import BakeParams
 from crowdbake.stages import STAGES
@@ -75,7 +75,7 @@ def test_bake_writes_a_bundle_that_verifies(sample, baked):
     low = sum(m["triangle_count"] for m in manifest["meshes"] if m["lod"] == 1)
     assert abs(low - SMALL.lod_triangles) <= 0.05 * SMALL.lod_triangles
     formats = {path: bundle.textures[path].pixel_format for path in manifest["impostor"]["maps"].values()}
-    assert formats == {"impostor/normal.cbtx": "bc1", "impostor/uv.cbtx": "uv32", "impostor/detail.cbtx": "bc2"}
+    assert formats == {"impostor/normal.cbtx": "bc1", "impostor/uv.cbtx": "uvblock", "impostor/detail.cbtx": "bc2"}
     assert manifest["materials"] == [{"name": "character", "diffuse": "textures/character_diffuse.cbtx", "variations": 8}]
     # Every frame of the low LOD is the high LOD's vertices (a subset carried over).
     for part in ("body", "cloth"):
@@ -98,7 +98,7 @@ def test_bake_writes_a_bundle_that_verifies(sample, baked):
     uv = bundle.textures["impostor/uv.cbtx"]
     for layer in range(2):
         alpha = compression.decode(detail.layers[layer], "bc2", detail.width, detail.height)[..., 3]
-        u, v, material, covered = unpack_uv32(uv.texels(layer))
+        u, v, material, covered = unpack_uvblock(uv.layers[layer], uv.width, uv.height)
         assert (material[covered] == 0).all() and (u[~covered] == 0).all() and (v[~covered] == 0).all()
         assert (alpha % 17 == 0).all() and (alpha[~covered] == 0).all() and covered.any()
     fidelity = json.loads((summary.bundle / "fidelity.json").read_text())

@@ -94,7 +94,7 @@ def test_migrations_match_the_models(tmp_path):
     assert not is_migrated(engine)
     migrate(engine)
     migrate(engine)  # idempotent
-    assert is_migrated(engine) and head_revision() == "0001"
+    assert is_migrated(engine) and head_revision() == "0002"
     with engine.connect() as connection:
         differences = compare_metadata(MigrationContext.configure(connection), Base.metadata)
     assert differences == [], "the models changed without a migration"
@@ -125,8 +125,9 @@ def test_keys_verify_only_with_their_exact_secret(sessions, tmp_path):
 
 def test_unknown_scopes_are_refused():
     assert parse_scopes("upload, bake") == ("bake", "upload")
-    with pytest.raises(ValueError, match="admin"):
-        parse_scopes("upload,admin")
+    assert parse_scopes("upload,admin") == ("admin", "upload")
+    with pytest.raises(ValueError, match="root"):
+        parse_scopes("upload,root")
     with pytest.raises(ValueError):
         parse_scopes("")
 
@@ -136,7 +137,7 @@ def test_bootstrap_key_has_every_scope(sessions):
     with session_scope(sessions) as session:
         ensure_bootstrap_key(session, secret)
     with session_scope(sessions) as session:
-        assert verify_api_key(session, secret).scope_set == {"upload", "bake", "publish", "read"}
+        assert verify_api_key(session, secret).scope_set == {"upload", "bake", "publish", "read", "admin"}
         assert verify_api_key(session, "y" * 40) is None
 
 

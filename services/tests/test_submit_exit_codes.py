@@ -40,8 +40,8 @@ NAME = "exit-codes"
 
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory):
-    with live_service(tmp_path_factory.mktemp("exit-codes")) as running:
+def service(tmp_path_factory, small_sample):
+    with live_service(tmp_path_factory.mktemp("exit-codes"), small_sample) as running:
         yield running
 
 

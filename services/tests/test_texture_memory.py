@@ -53,3 +53,15 @@ def test_bundle_bytes_with_uv32_maps_break_even_at_half_the_variations():
 def test_series_needs_a_variation():
     with pytest.raises(ValueError):
         texture_memory.series(texture_memory.paper_map_bytes(), 0)
+
+
+def test_break_even_count_is_the_first_variation_count_where_uv_mapping_costs_no_more():
+    """UV-mapped(n) <= detail-mapped(n) exactly when uv <= n·detail: with a UV map 1.5 times a detail map
+    the crossing is at 2 variations; with equal maps at 1 (the paper's figure 4); never with no detail map bytes
+    to save and a UV map."""
+    from crowdbake.bake.texture_memory import MapBytes, break_even_count
+
+    assert break_even_count(MapBytes(normal=5.0, uv=15.0, detail=10.0, diffuse_per_variation=1.0)) == 2
+    assert break_even_count(MapBytes(normal=5.0, uv=10.0, detail=10.0, diffuse_per_variation=1.0)) == 1
+    assert break_even_count(MapBytes(normal=5.0, uv=40.0, detail=10.0, diffuse_per_variation=1.0)) == 4
+    assert break_even_count(MapBytes(normal=5.0, uv=1.0, detail=0.0, diffuse_per_variation=1.0), limit=100) is None

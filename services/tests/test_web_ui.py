@@ -22,7 +22,7 @@ from PIL import Image
 
 from baked_service import NAME, baked_service
 from sample_fixtures import SMALL_SAMPLE
-from crowdbake.formats.binary import decode_texture_array, unpack_uv32
+from crowdbake.formats.binary import decode_texture_array, unpack_uvblock
 from service_fixtures import REPO_ROOT, make_api, publish_vector_bundle
 
 SCREENSHOTS = REPO_ROOT / "out" / "ui"
@@ -132,19 +132,19 @@ def test_previews_of_the_baked_bundle_match_independent_decodes(service):
     folder = Path(service.settings.bundles_dir) / NAME / "1.0.0"
     normal = decode_texture_array((folder / "impostor" / "normal.cbtx").read_bytes())
     uv = decode_texture_array((folder / "impostor" / "uv.cbtx").read_bytes())
-    assert normal.pixel_format == "bc1" and uv.pixel_format == "uv32"
+    assert normal.pixel_format == "bc1" and uv.pixel_format == "uvblock"
     with service.client() as client:
         picture = png(client.get(f"/v1/bundles/{NAME}/1.0.0/preview/normal?frame=1"))
     theirs = np.frombuffer(texture2ddecoder.decode_bc1(normal.layers[1], normal.width, normal.height), np.uint8)
     theirs = theirs.reshape(normal.height, normal.width, 4)[..., [2, 1, 0]]  # BGRA -> RGB
-    covered = unpack_uv32(uv.texels(1))[3]
+    covered = unpack_uvblock(uv.layers[1], uv.width, uv.height)[3]
     assert 0.05 < covered.mean() < 0.95  # the character shows in the atlas, with background around it
     np.testing.assert_array_equal(picture[..., :3][covered], theirs[covered])
     assert (picture[..., 3] == np.where(covered, 255, 0)).all()
-    # The uv32 UV map previews as rgba16 would: u red, v green (top 8 of 16 bits), material blue.
+    # The uvblock UV map previews as rgba16 would: u red, v green (top 8 of 16 bits), material blue.
     with service.client() as client:
         uv_picture = png(client.get(f"/v1/bundles/{NAME}/1.0.0/preview/uv?frame=1"))
-    u, v, material, _ = unpack_uv32(uv.texels(1))
+    u, v, material, _ = unpack_uvblock(uv.layers[1], uv.width, uv.height)
     np.testing.assert_array_equal(uv_picture[..., 0][covered], (np.rint(u * 65535).astype(np.uint16) >> 8)[covered])
     np.testing.assert_array_equal(uv_picture[..., 1][covered], (np.rint(v * 65535).astype(np.uint16) >> 8)[covered])
     assert (uv_picture[..., 2][covered] == 64 * material[covered]).all()

@@ -25,8 +25,8 @@ NAME = "page-walker"
 
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory):
-    with live_service(tmp_path_factory.mktemp("page")) as running:
+def service(tmp_path_factory, small_sample):
+    with live_service(tmp_path_factory.mktemp("page"), small_sample) as running:
         yield running
 
 

@@ -1,7 +1,7 @@
 """The FastAPI application: `create_app(settings)` builds it (uvicorn: --factory crowdbake.api.app:create_app).
 
 Building the app prepares its state once: folders, the database (migrated to the newest schema), the
-bootstrap key if one is configured, the blob store and the Celery app used to enqueue stages.
+bootstrap key if one is configured, the blob and bundle stores (crowdbake.storage.store) and the Celery app used to enqueue stages.
 The OpenAPI document is at /openapi.json, interactive docs at /docs and /redoc: Swagger UI and ReDoc
 served from the files the fastapi-offline package ships, so they work with no internet. Each operation's
 id is `<tag>-<function>` (`assets-upload_character`), the names generated clients give their methods.
@@ -22,14 +22,15 @@ from crowdbake import __version__
 from crowdbake.api import problems
 from crowdbake.api.deps import AppServices
 from crowdbake.api.problems import PROBLEM_TYPES, Problem, problem_type_uri
+from crowdbake.api.slow_clients import MinimumBodyRate
 from crowdbake.api.schemas import Problem as ProblemDocument
-from crowdbake.api.routes import assets, bakes, bundles, health, metrics, web
+from crowdbake.api.routes import assets, bakes, bundles, exports, health, metrics, web
 from crowdbake.jobs.celery_app import make_celery
 from crowdbake.metrics import HttpMetrics, MetricsMiddleware
 from crowdbake.settings import Settings, get_settings, redact_url
-from crowdbake.storage.blobs import make_blob_store
 from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
 from crowdbake.storage.keys import ensure_bootstrap_key
+from crowdbake.storage.store import open_store
 
 logger = logging.getLogger(__name__)
 
@@ -42,7 +43,7 @@ Errors are RFC 9457 problem documents (`application/problem+json`)."""
 
 
 def build_services(settings: Settings) -> AppServices:
-    """Folders, migrated database, bootstrap key, blob store and Celery app for `settings`."""
+    """Folders, migrated database, bootstrap key, blob and bundle stores and Celery app for `settings`."""
     settings.ensure_dirs()
     engine = make_engine(settings.database_url)
     if settings.migrate_on_start:
@@ -51,7 +52,8 @@ def build_services(settings: Settings) -> AppServices:
     if settings.bootstrap_key is not None:
         with session_scope(sessions) as session:
             ensure_bootstrap_key(session, settings.bootstrap_key.get_secret_value())
-    return AppServices(settings=settings, sessions=sessions, blobs=make_blob_store(settings.blob_dir), celery=make_celery(settings))
+    stores = open_store(settings)
+    return AppServices(settings=settings, sessions=sessions, blobs=stores.blobs, bundles=stores.bundles, celery=make_celery(settings))
 
 
 # Swagger UI and ReDoc bundles as a pip package ships them (fastapi-offline, pinned in requirements.txt).
@@ -108,12 +110,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.readiness = health.readiness_probe(app.state.services)
     problems.install(app)
     add_docs_routes(app)
-    for module in (assets, bakes, bundles, health, metrics):
+    for module in (assets, bakes, bundles, exports, health, metrics):
         app.include_router(module.router)
     for router in web.routers:  # the web page, the cycle report and atlas previews it shows
         app.include_router(router)
+    app.include_router(exports.preview_router)  # the three.js crowd preview the page links to
     app.state.metrics = HttpMetrics(app.state.services.sessions)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    # Outermost: every read of a request body has a deadline (crowdbake.api.slow_clients).
+    app.add_middleware(MinimumBodyRate, min_bytes_per_s=settings.body_min_bytes_per_s, grace_s=settings.body_grace_s, max_s=settings.body_max_seconds)
 
     @app.get("/problems/{slug}", tags=["health"], summary="What a problem type means",
              responses={404: {"model": ProblemDocument, "content": {"application/problem+json": {}}, "description": "No such problem type"}})
@@ -123,6 +128,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         status, title, description = PROBLEM_TYPES[slug]
         return {"type": problem_type_uri(slug), "title": title, "status": status, "description": description}
 
-    logger.info("crowdbake API ready: database %s, blobs %s, bundles %s, broker %s",
-                redact_url(settings.database_url), settings.blob_dir, settings.bundles_dir, redact_url(settings.broker_url))
+    where = (f"s3 bucket {settings.s3_bucket} prefix {settings.s3_prefix!r}" if settings.store == "s3"
+             else f"blobs {settings.blob_dir}, bundles {settings.bundles_dir}")
+    logger.info("crowdbake API ready: database %s, %s, broker %s", redact_url(settings.database_url), where, redact_url(settings.broker_url))
     return app

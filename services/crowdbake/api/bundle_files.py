@@ -26,7 +26,7 @@ CHUNK = 256 * 1024  # bytes per chunk of a streamed response
 REDIRECT_MARGIN_S = 30
 
 
-def _chunks(body: BinaryIO) -> Iterator[bytes]:
+def stream_chunks(body: BinaryIO) -> Iterator[bytes]:
     try:
         while chunk := body.read(CHUNK):
             yield chunk
@@ -87,7 +87,7 @@ def bundle_file_response(request: Request, store: BundleStore, name: str, versio
         body = store.open_file(name, version, path, byte_range)
     except FileNotFoundError:
         raise Problem("internal-error", "a published file is missing from the bundle store", status=500) from None
-    return StreamingResponse(_chunks(body), status_code=status, headers=out, media_type=media_type)
+    return StreamingResponse(stream_chunks(body), status_code=status, headers=out, media_type=media_type)
 
 
 def bundle_file_redirect(store: BundleStore, name: str, version: str, path: str, media_type: str,

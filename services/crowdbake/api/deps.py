@@ -1,5 +1,5 @@
-"""Dependencies of the routes, as named Annotated types: settings, a database session, the blob store,
-the Celery app that enqueues stages, and the API key with the scopes an operation needs."""
+"""Dependencies of the routes, as named Annotated types: settings, a database session, the blob and
+bundle stores, the Celery app that enqueues stages, and the API key with the scopes an operation needs."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from crowdbake.api.problems import Problem
 from crowdbake.settings import Settings
 from crowdbake.storage.blobs import BlobStore
+from crowdbake.storage.bundle_store import BundleStore
 from crowdbake.storage.keys import verify_api_key
 from crowdbake.storage.models import ApiKey
 
@@ -24,6 +25,7 @@ class AppServices:
     settings: Settings
     sessions: sessionmaker[Session]
     blobs: BlobStore
+    bundles: BundleStore
     celery: Celery
 
 
@@ -42,6 +44,7 @@ def get_settings_dep(services: ServicesDep) -> Settings:
 
 def get_session(services: ServicesDep) -> Iterator[Session]:
     session = services.sessions()
+    session.info["settings"] = services.settings  # for helpers that only get the session (path redaction)
     try:
         yield session
     finally:
@@ -60,22 +63,40 @@ _api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False, description="
 _bearer = HTTPBearer(auto_error=False, description="An API key as a bearer token.")
 
 
+ADMIN_SCOPE = "admin"
+
+
 @dataclass(frozen=True)
 class Principal:
-    """Who is calling: a key id and its scopes, or anonymous (key_id None, no scopes)."""
+    """Who is calling: a key id and its scopes, or anonymous (key_id None, no scopes).
+
+    Ownership: a key sees and changes only the assets, bakes (with their logs) and bundles it created,
+    plus public bundles for reading. `sees_all` lifts that for a key with the admin scope, or for every
+    key when the service runs as one shared workspace (CROWDBAKE_SHARED_WORKSPACE); the scopes still
+    decide which operations a key may call.
+    """
 
     key_id: str | None
     scopes: frozenset[str]
+    sees_all: bool = False
 
     def has_any(self, *scopes: str) -> bool:
         return bool(self.scopes & set(scopes))
+
+    def owns(self, created_by: str | None) -> bool:
+        """Whether a resource recorded as created by `created_by` is this caller's to see and change."""
+        return self.sees_all or (self.key_id is not None and created_by == self.key_id)
+
+    def only_own(self, query, created_by_column):
+        """`query` restricted to rows this caller owns (unchanged for an admin or a shared workspace)."""
+        return query if self.sees_all else query.where(created_by_column == self.key_id)
 
 
 ANONYMOUS = Principal(None, frozenset())
 
 
 def get_principal(
-    session: SessionDep,
+    session: SessionDep, services: ServicesDep,
     header_key: Annotated[str | None, Security(_api_key_header)] = None,
     bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)] = None,
 ) -> Principal:
@@ -86,7 +107,8 @@ def get_principal(
     record: ApiKey | None = verify_api_key(session, raw)
     if record is None:
         raise Problem("unauthorized", "the API key is unknown or revoked", headers={"WWW-Authenticate": "Bearer"})
-    return Principal(record.id, record.scope_set)
+    scopes = record.scope_set
+    return Principal(record.id, scopes, sees_all=ADMIN_SCOPE in scopes or services.settings.shared_workspace)
 
 
 PrincipalDep = Annotated[Principal, Depends(get_principal)]

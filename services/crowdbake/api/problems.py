@@ -17,6 +17,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from crowdbake.redact import path_replacements, redact_text, redact_value
 from crowdbake.ingest.uploads import FieldError, UploadRejected
 
 logger = logging.getLogger(__name__)
@@ -32,6 +33,8 @@ PROBLEM_TYPES: dict[str, tuple[int, str, str]] = {
     "forbidden": (403, "The API key lacks a scope", "The key is valid but has none of the scopes the operation needs."),
     "not-found": (404, "Not found", "No such resource, or it is not visible to this key."),
     "method-not-allowed": (405, "Method not allowed", "The resource does not support this method."),
+    "request-timeout": (408, "Request body too slow", "The body arrived slower than CROWDBAKE_BODY_MIN_BYTES_PER_S after a grace period, "
+                        "or took longer than CROWDBAKE_BODY_MAX_SECONDS; nothing of it was kept."),
     "conflict": (409, "Conflict", "The request contradicts the resource's state (e.g. a published version with other bytes)."),
     "invalid-state": (409, "Not possible in the bake's state", "E.g. cancelling a finished bake, retrying one that succeeded."),
     "payload-too-large": (413, "Request body too large", "The body exceeds CROWDBAKE_MAX_UPLOAD_BYTES; refused before it is read."),
@@ -44,7 +47,7 @@ PROBLEM_TYPES: dict[str, tuple[int, str, str]] = {
     "internal-error": (500, "Internal server error", "An unexpected error; the server log has the details."),
     "not-ready": (503, "Service not ready", "A dependency (database, blob store, broker) is not usable."),
 }
-_STATUS_SLUGS = {400: "malformed-request", 401: "unauthorized", 403: "forbidden", 404: "not-found", 405: "method-not-allowed", 409: "conflict", 413: "payload-too-large", 415: "unsupported-format", 416: "range-not-satisfiable", 422: "validation-error", 503: "not-ready"}
+_STATUS_SLUGS = {400: "malformed-request", 401: "unauthorized", 403: "forbidden", 404: "not-found", 405: "method-not-allowed", 408: "request-timeout", 409: "conflict", 413: "payload-too-large", 415: "unsupported-format", 416: "range-not-satisfiable", 422: "validation-error", 503: "not-ready"}
 
 
 def problem_type_uri(slug: str) -> str:
@@ -68,15 +71,19 @@ class Problem(Exception):
 
 
 def problem_response(request: Request | None, problem: Problem) -> JSONResponse:
+    # Whatever a reader or a stage put in the message, the client never sees a server path.
+    services = getattr(getattr(request, "app", None), "state", None)
+    settings = getattr(getattr(services, "services", None), "settings", None)
+    replacements = path_replacements(settings) if settings is not None else []
     body: dict[str, Any] = {
         "type": problem_type_uri(problem.slug),
         "title": problem.title,
         "status": problem.status,
-        "detail": problem.detail,
+        "detail": redact_text(problem.detail, replacements),
         "instance": request.url.path if request is not None else None,
     }
     if problem.errors is not None:
-        body["errors"] = problem.errors
+        body["errors"] = redact_value(problem.errors, replacements)
     return JSONResponse(body, status_code=problem.status, media_type=PROBLEM_MEDIA_TYPE, headers=problem.headers)
 
 

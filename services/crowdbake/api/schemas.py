@@ -7,13 +7,14 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
-from crowdbake.params import NAME_PATTERN, PARAMS, SPECS, VERSION_PATTERN, cross_field_problem, pydantic_fields
+from crowdbake.params import CREATED_RULE, NAME_PATTERN, PARAMS, SPECS, VERSION_PATTERN, cross_field_problem, pydantic_fields
 
 # List offsets go to SQL as 64-bit integers; a larger one used to raise OverflowError (a 500).
 MAX_LIST_OFFSET = 2**62
 
 # Texture files the validate stage reads from its textures folder.
-TEXTURE_NAME_PATTERN = r"^(diffuse_[A-Za-z0-9_-]{1,40}|outfits)\.png$"
+# A diffuse variation may be a JPEG (no alpha: no colour-region codes); the outfit map is a PNG.
+TEXTURE_NAME_PATTERN = r"^(diffuse_[A-Za-z0-9_-]{1,40}\.(png|jpg|jpeg)|outfits\.png)$"
 
 
 class Problem(BaseModel):
@@ -121,8 +122,17 @@ class BakeCreate(BaseModel):
     version: str = Field(pattern=VERSION_PATTERN, examples=["1.0.0"])
     character: str = Field(description="Id of a character asset.")
     cloth: str = Field(description="Id of a cloth asset.")
-    textures: dict[str, str] = Field(default_factory=dict, description="File name (diffuse_*.png, outfits.png) -> texture asset id.")
+    textures: dict[str, str] = Field(default_factory=dict, description="File name (diffuse_*.png or diffuse_*.jpg, outfits.png) -> texture asset id.")
     params: BakeParamsIn = Field(default_factory=BakeParamsIn)
+    # `created` stands beside name and version, not among BakeParams: like them it is what the manifest
+    # says about the bundle, not how it is baked (no stage but pack reads it, and it is passed to
+    # BakeInputs.created exactly as `crowdbake bake --created`). It does enter the bake's input key, as
+    # name and version do, so the same inputs with another time are another bake.
+    created: str | None = Field(
+        None, pattern=CREATED_RULE.pattern, examples=["2006-09-04T12:00:00Z"],
+        description="The manifest's `created` time, RFC 3339 UTC (as `crowdbake bake --created`). "
+                    "Default: SOURCE_DATE_EPOCH on the worker, else the uploads' time.",
+    )
     publish: bool = Field(True, description="Publish the bundle when the bake succeeds (needs the publish scope).")
     public: bool = Field(False, description="Readable without a key once published (needs the publish scope).")
 
@@ -133,12 +143,23 @@ class BakeCreate(BaseModel):
             raise ValueError("'latest' is the alias of the newest version and cannot be a version name")
         return value
 
+    @field_validator("created")
+    @classmethod
+    def _real_time(cls, value: str | None) -> str | None:
+        # The pattern admits 2006-13-45T99:00:00Z; a manifest must carry a time that exists.
+        if value is not None:
+            try:
+                dt.datetime.strptime(value, "%Y-%m-%dT%H:%M:%SZ")
+            except ValueError:
+                raise ValueError(f"{value!r} is not a UTC time that exists (RFC 3339, like 2006-09-04T12:00:00Z)") from None
+        return value
+
     @field_validator("textures")
     @classmethod
     def _texture_names(cls, value: dict[str, str]) -> dict[str, str]:
         bad = [name for name in value if not re.match(TEXTURE_NAME_PATTERN, name)]
         if bad:
-            raise ValueError(f"texture names must be diffuse_<variation>.png or outfits.png, got {', '.join(sorted(bad))}")
+            raise ValueError(f"texture names must be diffuse_<variation>.png (or .jpg) or outfits.png, got {', '.join(sorted(bad))}")
         if value and not any(name.startswith("diffuse_") for name in value):
             raise ValueError("textures need at least one diffuse_<variation>.png")
         return value
@@ -210,6 +231,7 @@ class BundlePublic(BaseModel):
     bake_id: str | None
     published_at: dt.datetime
     manifest_url: str
+    export_url: str | None = Field(None, description="The engine export's folder (export.json and its files, docs/export.md); null: published without one.")
 
 
 class BundleVersionsPublic(BaseModel):

@@ -176,16 +176,18 @@ def summarize(values: list[dict[str, float]]) -> dict[str, float]:
     }
 
 
-def uv_precision(uv_map: np.ndarray, texture_size: int) -> dict[str, dict[str, float]]:
+def uv_precision(uv_map: np.ndarray, texture_size: int, tile_size: int | None = None) -> dict[str, dict[str, float]]:
     """Texel error of storing a UV map's coordinates at lower precision, for a texture_size² texture.
 
     uv_map: (S, S, 4) uint16 (the baked, 16-bit map). Compares the 16-bit map with the same coordinates
     packed as uv32 (14 bits each), rounded to 8 bits (rgba8) and those 8-bit coordinates block-compressed
-    as BC1 (DXT1). Returns, per variant, the max and mean error in texels over covered texels (for rgba16
-    the rounding bound, `bound` True): why the bundle stores uv32 (well under a texel) and not 8 bits.
+    as BC1 (DXT1), and as uvblock (H and W multiples of 4). Returns, per variant, the max and mean error in
+    texels over covered texels (for rgba16 the rounding bound, `bound` True): why the bundle does not store
+    8 bits. With tile_size: the diffuse footprint of the runtime's lookup at 1:1 (lookup_footprint_texels,
+    diffuse texels per impostor texel) and uvblock's error in those footprints (what the lookup sees).
     """
     from crowdbake.bake import compression
-    from crowdbake.formats.binary import unpack_uv32
+    from crowdbake.formats.binary import unpack_uv32, unpack_uvblock
 
     uv, _, covered = impostor_maps.decode_uv_map(uv_map)
     result: dict[str, dict[str, float]] = {}
@@ -208,7 +210,21 @@ def uv_precision(uv_map: np.ndarray, texture_size: int) -> dict[str, dict[str, f
         "rgba8": eight[:height, :width, :2][covered].astype(np.float64) / 255.0,
         "bc1": bc1[..., :2][covered].astype(np.float64) / 255.0,
     }
+    if height % 4 == 0 and width % 4 == 0:
+        ub, vb, _, _ = unpack_uvblock(impostor_maps.uv_map_to_uvblock(uv_map), width, height)
+        variants["uvblock"] = np.stack([ub, vb], axis=-1)[covered]
     for name, stored in variants.items():
         error = np.abs(stored - exact).max(axis=1) * texture_size
         result[name] = {"max_texels": float(error.max()), "mean_texels": float(error.mean()), "bound": False}
+    if tile_size:
+        # What precision the lookup needs: at 1:1 an impostor texel is a pixel, and the runtime samples the
+        # diffuse texture at the mip level its neighbours' coordinates span (impostor_blend.lookup_lod).
+        from crowdbake.bake.impostor_blend import lookup_lod
+
+        footprint = 2.0 ** np.clip(lookup_lod(np.where(covered[..., None], uv, 0.0), (texture_size, texture_size), tile_size), 0, None)[covered]
+        result["lookup_footprint_texels"] = {"median": float(np.median(footprint)), "p10": float(np.percentile(footprint, 10))}
+        if "uvblock" in variants:
+            relative = np.abs(variants["uvblock"] - exact).max(axis=1) * texture_size / footprint
+            result["uvblock_error_footprints"] = {"mean": float(relative.mean()), "p99": float(np.percentile(relative, 99)),
+                                                 "over_one": float((relative > 1).mean())}
     return result

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crowdbake.formats.binary import pack_uv32, unpack_uv32
+from crowdbake.formats.binary import pack_uv32, pack_uvblock, unpack_uv32, unpack_uvblock
 
 # The camera sits this many radii from the centre: the sphere of the bounds then lies at depths 2r .. 4r,
 # well inside the clip range used by the renderer (1.5r .. 4.5r). Same as crowdbake.render.offscreen.
@@ -570,6 +570,19 @@ def uv_map_to_uv32(uv_map: np.ndarray) -> np.ndarray:
     """
     uv, material, covered = decode_uv_map(uv_map)
     return pack_uv32(uv[..., 0], uv[..., 1], np.where(covered, material, 0), covered)
+
+
+def uv_map_to_uvblock(uv_map: np.ndarray) -> bytes:
+    """The bake's (H, W, 4) uint16 UV map as one uvblock layer (SPEC.md pixel format 6; H, W multiples of 4)."""
+    uv, material, covered = decode_uv_map(uv_map)
+    return pack_uvblock(uv[..., 0], uv[..., 1], np.where(covered, material, 0), covered)
+
+
+def uvblock_to_uv32(data: bytes, width: int, height: int) -> np.ndarray:
+    """One uvblock layer as (H, W) uv32 words holding the same decoded texels (12-bit coordinates fit 14
+    bits to within 1/32767), for code that reads uv32: the fidelity scoring, the export, the web preview."""
+    u, v, material, covered = unpack_uvblock(data, width, height)
+    return pack_uv32(u, v, material, covered)
 
 
 def decode_normal_map(normal_map: np.ndarray) -> np.ndarray:

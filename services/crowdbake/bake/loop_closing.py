@@ -25,16 +25,13 @@ Dobbyn et al. 2006, section 3: "in certain cases, an extra linear blend step bet
   distance constraints (Mueller et al. 2007) then bring every edge back to the blend of its two simulated
   lengths; vertices that A and B agree on (pins) stay put.
 
-Whatever the closing, cloth it pushed into the body is pushed back out smoothly in time: the depth to
-remove is spread over a few frames either side with a raised-cosine envelope (a max-convolution, so
-every penetrating frame still gets its full push), instead of a per-frame jump that would show as a spike
-in acceleration.
+Whatever the closing, cloth it pushed into the body is pushed back out smoothly in time
+(crowdbake.bake.penetration), and the result is measured against the simulation
+(crowdbake.bake.loop_quality); `close_cycle` does all three.
 
 Trajectories here run over frames Fs-1 .. Fe+1 (l + 3 frames: Fe and a frame either side are kept so the
 seam can be measured); the looped cache is Fs .. Fe-1. Velocities are per frame (central differences).
-
-Penetration is measured against the body given as arrays: for each cloth vertex the nearest body vertex
-(a k-d tree per frame) and the sign of the offset along that vertex's normal. Pure numpy/scipy; no I/O.
+Pure numpy/scipy; no I/O.
 """
 from __future__ import annotations
 
@@ -43,28 +40,80 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
-from scipy.spatial import cKDTree
+
+# The seam figures, quality ratios and push-out live in their own modules; their names are re-exported
+# here (__all__) because callers of close_cycle read them off crowdbake.bake.loop_closing.
+from crowdbake.bake.loop_quality import (
+    MIN_REFERENCE_STRAIN,
+    QUALITY_BOUNDS,
+    STILL_STEP,
+    LoopQuality,
+    SeamFigures,
+    loop_quality,
+    mean_edge_strain,
+    seam_figures,
+)
+from crowdbake.bake.mesh import as_point_frames, edge_lengths, unique_edges, vertex_normals
+from crowdbake.bake.penetration import (
+    MAX_DEPTH_FRACTION,
+    PENETRATION_TOLERANCE_FRACTION,
+    PUSH_OUT_ITERATIONS,
+    PUSH_OUT_MODES,
+    PUSH_OUT_REACH_FRACTION,
+    BodyFrames,
+    PenetrationSettings,
+    body_size,
+    penetration_mask,
+    push_out,
+    raised_cosine,
+    smooth_push_out,
+)
 
 logger = logging.getLogger(__name__)
+
+__all__ = [
+    "CLOSE_METHODS",
+    "DEFAULT_CLOSE_METHOD",
+    "EDGE_PROJECTION_ITERATIONS",
+    "EDGE_PROJECTION_RELAXATION",
+    "PINNED_GAP_FRACTION",
+    "ClosedLoop",
+    "close_cycle",
+    "close_loop",
+    "crossfade_weights",
+    "default_blend_frames",
+    "default_crossfade_frames",
+    "looped_frames",
+    "restore_edge_lengths",
+    "smootherstep",
+    "MIN_REFERENCE_STRAIN",
+    "QUALITY_BOUNDS",
+    "STILL_STEP",
+    "LoopQuality",
+    "SeamFigures",
+    "loop_quality",
+    "mean_edge_strain",
+    "seam_figures",
+    "edge_lengths",
+    "unique_edges",
+    "vertex_normals",
+    "MAX_DEPTH_FRACTION",
+    "PENETRATION_TOLERANCE_FRACTION",
+    "PUSH_OUT_ITERATIONS",
+    "PUSH_OUT_MODES",
+    "PUSH_OUT_REACH_FRACTION",
+    "BodyFrames",
+    "PenetrationSettings",
+    "body_size",
+    "penetration_mask",
+    "push_out",
+    "raised_cosine",
+    "smooth_push_out",
+]
 
 CLOSE_METHODS = ("none", "linear", "hermite", "crossfade")
 # The closing that keeps the loop nearest the simulation (see the module docstring and docs/cycle.md).
 DEFAULT_CLOSE_METHOD = "crossfade"
-PUSH_OUT_MODES = ("none", "new", "all")
-
-# A cloth vertex counts as inside the body only when it lies more than this fraction of the body's size
-# (its first frame's bounding-box diagonal) behind the nearest body vertex's tangent plane. Relative, so
-# caches in metres and in centimetres behave alike; 1/1000 of a person is ~2 mm, the order of a
-# simulator's collision thickness, so resting contact is not reported as penetration.
-PENETRATION_TOLERANCE_FRACTION = 1e-3
-# Cloth further than this fraction of the body's size from every body vertex is never "inside": with the
-# nearest-vertex test a far-away vertex behind a concave part of the body could otherwise read as inside.
-# A quarter of a person is deeper than any torso or limb is thick.
-MAX_DEPTH_FRACTION = 0.25
-# Push-out repeats this many times: after a move the nearest body vertex can change.
-PUSH_OUT_ITERATIONS = 3
-# Steps shorter than this (cache units) mean the cloth does not move: seam ratios are then undefined.
-_STILL_STEP = 1e-12
 # Jacobi iterations of the crossfade's edge-length restoration, and their over-relaxation. The blend
 # starts within a few percent of the target lengths, so 40 averaged Jacobi sweeps (relaxed by 1.5, the
 # value Macklin et al. 2014 recommend for averaged constraint projection) bring the mean strain back to
@@ -74,26 +123,6 @@ EDGE_PROJECTION_RELAXATION = 1.5
 # A vertex whose two blended frames lie closer than this fraction of the seam's RMS gap is treated as
 # pinned by the edge restoration: a waistband that follows the body is the same in A and B.
 PINNED_GAP_FRACTION = 1e-3
-# The stretch ratio's denominator is at least this mean strain (0.1 %): a cloth solver never holds its
-# edges tighter than that, and a rigid synthetic cache (strain 0) would make any change read as infinite.
-MIN_REFERENCE_STRAIN = 1e-3
-# The smooth push-out spreads each push over this fraction of the cycle either side of the frame that
-# needs it (at least 2 frames): 1/12 of a 48-frame walk is 4 frames, long enough to keep a 10 mm push
-# below the cloth's own frame-to-frame acceleration, short enough to stay local.
-PUSH_OUT_REACH_FRACTION = 1.0 / 12.0
-
-
-def _as_cache(points: np.ndarray, name: str, dtype=np.float64) -> np.ndarray:
-    """Check a (frames, vertices, 3) array; convert to `dtype` (None: keep it, so slicing a big cache copies nothing)."""
-    points = np.asarray(points, dtype=dtype)
-    if points.ndim != 3 or points.shape[2] != 3:
-        raise ValueError(f"{name}: expected a (frames, vertices, 3) array, got shape {points.shape}")
-    return points
-
-
-def _rms(delta: np.ndarray) -> np.ndarray:
-    """RMS length over vertices of (..., V, 3) offsets: (...,) float64."""
-    return np.sqrt(np.mean(np.sum(np.square(delta), axis=-1), axis=-1))
 
 
 def default_blend_frames(cycle_frames: int) -> int:
@@ -127,20 +156,6 @@ def crossfade_weights(half_width: int) -> tuple[np.ndarray, np.ndarray]:
     offsets = np.arange(-half_width, half_width)
     return offsets, smootherstep((offsets + half_width) / (2.0 * half_width))
 
-
-def unique_edges(faces: np.ndarray) -> np.ndarray:
-    """Undirected edges of (T, 3) triangles -> (E, 2) int64, each once, sorted."""
-    faces = np.asarray(faces, dtype=np.int64)
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"unique_edges: expected (T, 3) faces, got shape {faces.shape}")
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return np.unique(np.sort(edges, axis=1), axis=0)
-
-
-def edge_lengths(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Lengths of (E, 2) edges in (..., V, 3) points: (..., E) float64."""
-    points = np.asarray(points, dtype=np.float64)
-    return np.linalg.norm(points[..., edges[:, 1], :] - points[..., edges[:, 0], :], axis=-1)
 
 
 def restore_edge_lengths(
@@ -190,7 +205,7 @@ def restore_edge_lengths(
     for _ in range(iterations):
         delta = x[:, edges[:, 1]] - x[:, edges[:, 0]]
         length = np.sqrt(np.einsum("nej,nej->ne", delta, delta))
-        error = delta * (1.0 - target / np.maximum(length, _STILL_STEP))[..., None]  # what closes the gap
+        error = delta * (1.0 - target / np.maximum(length, STILL_STEP))[..., None]  # what closes the gap
         x += step_scale * (gather(share_i * error, scatter_i) - gather(share_j * error, scatter_j))
     return x
 
@@ -215,7 +230,7 @@ def close_loop(
     Fe + h < F. edges: (E, 2) cloth edges for the crossfade's edge-length restoration (None skips it).
     Every method needs Fs >= 1 and Fe + 1 < F.
     """
-    points = _as_cache(points, "close_loop", dtype=None)
+    points = as_point_frames(points, "close_loop", dtype=None)
     frame_count = points.shape[0]
     end = start + cycle_frames
     if method not in CLOSE_METHODS:
@@ -289,7 +304,7 @@ def _crossfade(
         edges = np.asarray(edges, dtype=np.int64)
         target = (1.0 - weight[:, None]) * edge_lengths(end_side, edges) + weight[:, None] * edge_lengths(start_side, edges)
         gap = np.sqrt(np.sum(np.square(start_side - end_side), axis=-1))  # (2h, V)
-        movable = gap > PINNED_GAP_FRACTION * max(float(np.sqrt(np.mean(np.square(gap)))), _STILL_STEP)
+        movable = gap > PINNED_GAP_FRACTION * max(float(np.sqrt(np.mean(np.square(gap)))), STILL_STEP)
         blended = restore_edge_lengths(blended, edges, target, movable)
     loop = points[start:end].astype(np.float64)
     before_seam = offsets < 0
@@ -302,320 +317,6 @@ def _crossfade(
 def looped_frames(trajectory: np.ndarray) -> np.ndarray:
     """The loop (l, V, 3) inside a (l + 3, V, 3) trajectory from close_loop: frames Fs .. Fe-1."""
     return trajectory[1:-2]
-
-
-@dataclass(frozen=True)
-class SeamFigures:
-    """How visible the seam is, relative to the cycle's own motion.
-
-    position_jump_ratio: RMS over vertices of x(Fe) - x(Fs), over the median RMS frame-to-frame step of the
-        cycle. 0 for a closed loop; about 1 means the seam jumps as far as a typical frame moves.
-    velocity_jump_ratio: RMS of x'(Fe) - x'(Fs) (central differences, per frame), over the same median step:
-        0 when the cloth leaves Fe as it left Fs, whatever its acceleration.
-    max_step_ratio: the largest step of the looped playback (the wrap-around step from Fe-1 to Fs
-        included) over the median step: catches a kink a closing may leave inside the cycle.
-    median_step: the median RMS frame-to-frame step from Fs to Fe (cache units per frame).
-    Ratios are inf when the cloth does not move at all and the seam does.
-    """
-
-    position_jump_ratio: float
-    velocity_jump_ratio: float
-    max_step_ratio: float
-    median_step: float
-
-
-def _ratio(value: float, scale: float) -> float:
-    if scale > _STILL_STEP:
-        return float(value / scale)
-    return 0.0 if value <= _STILL_STEP else float("inf")
-
-
-def seam_figures(trajectory: np.ndarray) -> SeamFigures:
-    """Seam figures of a (l + 3, V, 3) trajectory over Fs-1 .. Fe+1 (see close_loop), l >= 2."""
-    trajectory = _as_cache(trajectory, "seam_figures")
-    if trajectory.shape[0] < 5:
-        raise ValueError(f"seam_figures: need at least 5 frames (Fs-1 .. Fe+1), got {trajectory.shape[0]}")
-    start, end = 1, trajectory.shape[0] - 2
-    steps = _rms(np.diff(trajectory[start : end + 1], axis=0))  # the l steps Fs -> Fe
-    median_step = float(np.median(steps))
-    position_jump = float(_rms(trajectory[end] - trajectory[start]))
-    velocity_end = 0.5 * (trajectory[end + 1] - trajectory[end - 1])
-    velocity_start = 0.5 * (trajectory[start + 1] - trajectory[start - 1])
-    velocity_jump = float(_rms(velocity_end - velocity_start))
-    wrap_step = float(_rms(trajectory[start] - trajectory[end - 1]))
-    loop_steps = np.append(steps[:-1], wrap_step)
-    return SeamFigures(
-        position_jump_ratio=_ratio(position_jump, median_step),
-        velocity_jump_ratio=_ratio(velocity_jump, median_step),
-        max_step_ratio=_ratio(float(loop_steps.max()), median_step),
-        median_step=median_step,
-    )
-
-
-# Bounds a closing must keep to on every loop, each a ratio to what the simulator itself did (see LoopQuality):
-# 10 % more mean edge strain than the raw frames is below what shows as rubbery cloth; no frame further from
-# its simulated self than 1.5 seam jumps (a closing must move frames, but by the order of the jump it hides,
-# not more); and no acceleration at the seam above 1.5 times the larger of the loop's median and the
-# simulator's own acceleration there, the size of kink the eye picks out in a looping walk.
-QUALITY_BOUNDS = {"stretch_ratio": 1.10, "deviation_ratio": 1.5, "seam_acceleration_ratio": 1.5}
-
-
-@dataclass(frozen=True)
-class LoopQuality:
-    """How far a closed loop strays from the simulation it came from; every ratio is 1 or less for a good closing.
-
-    stretch_ratio: mean edge strain |L / L_rest - 1| over the loop's frames and edges, over that of the raw
-        frames Fs .. Fe-1 (at least MIN_REFERENCE_STRAIN; L_rest: the rest lengths given, by default the
-        cache's first frame). None without edges.
-    deviation_ratio: the largest per-frame RMS distance between a looped frame and the simulator's same frame,
-        over the raw seam jump RMS |x(Fe) - x(Fs)|.
-    seam_acceleration_ratio: RMS acceleration (second difference) at the two frames either side of the
-        loop's wrap, over the larger of the loop's median acceleration and the simulator's own acceleration
-        at those frames (a seam cut where the legs kick the cloth hardest is not a kink).
-    max_acceleration_ratio: the loop's largest per-frame RMS acceleration over its median (kinks anywhere).
-    seam_jump, seam_acceleration, median_acceleration, simulated_seam_acceleration: the figures behind the
-        ratios (cache units, per frame and per frame squared).
-    exceeded: names of the ratios above QUALITY_BOUNDS.
-    """
-
-    stretch_ratio: float | None
-    deviation_ratio: float
-    seam_acceleration_ratio: float
-    max_acceleration_ratio: float
-    seam_jump: float
-    seam_acceleration: float
-    median_acceleration: float
-    simulated_seam_acceleration: float
-    exceeded: tuple[str, ...]
-
-    @property
-    def within_bounds(self) -> bool:
-        return not self.exceeded
-
-
-def mean_edge_strain(points: np.ndarray, edges: np.ndarray, rest_lengths: np.ndarray) -> float:
-    """Mean over frames and edges of |L / L_rest - 1|: (N, V, 3) points, (E, 2) edges, (E,) rest lengths."""
-    rest_lengths = np.asarray(rest_lengths, dtype=np.float64)
-    valid = rest_lengths > _STILL_STEP  # a degenerate rest edge has no strain to speak of
-    strain = edge_lengths(points, edges[valid]) / rest_lengths[valid] - 1.0
-    return float(np.mean(np.abs(strain))) if strain.size else 0.0
-
-
-def _cyclic_accelerations(loop: np.ndarray) -> np.ndarray:
-    """RMS over vertices of x(i + 1) - 2 x(i) + x(i - 1) for a (l, V, 3) loop played cyclically: (l,)."""
-    return _rms(np.roll(loop, -1, axis=0) - 2.0 * loop + np.roll(loop, 1, axis=0))
-
-
-def loop_quality(
-    raw_trajectory: np.ndarray,
-    looped: np.ndarray,
-    edges: np.ndarray | None = None,
-    rest_lengths: np.ndarray | None = None,
-) -> LoopQuality:
-    """LoopQuality of `looped` (l, V, 3) against the simulator's frames.
-
-    raw_trajectory: (l + 3, V, 3) close_loop(..., "none"): frames Fs-1 .. Fe+1 as simulated.
-    edges: (E, 2) cloth edges and rest_lengths (E,) for the stretch ratio (both or neither).
-    """
-    raw_trajectory = _as_cache(raw_trajectory, "loop_quality raw")
-    looped = _as_cache(looped, "loop_quality looped")
-    length = looped.shape[0]
-    if raw_trajectory.shape != (length + 3, *looped.shape[1:]):
-        raise ValueError(f"loop_quality: raw trajectory {raw_trajectory.shape} does not frame a loop of {looped.shape}")
-    raw_loop = raw_trajectory[1:-2]
-    seam_jump = float(_rms(raw_trajectory[-2] - raw_trajectory[1]))
-    deviation = float(_rms(looped - raw_loop).max())
-    acceleration = _cyclic_accelerations(looped)
-    median_acceleration = float(np.median(acceleration))
-    seam_acceleration = float(max(acceleration[0], acceleration[-1]))
-    # The simulator's accelerations at the same frames: at Fs (from Fs-1, Fs, Fs+1) and at Fe-1.
-    simulated = _rms(raw_trajectory[2:] - 2.0 * raw_trajectory[1:-1] + raw_trajectory[:-2])  # frames Fs .. Fe
-    simulated_seam = float(max(simulated[0], simulated[length - 1]))
-    stretch = None
-    if edges is not None and rest_lengths is not None and len(edges):
-        raw_strain = mean_edge_strain(raw_loop, edges, rest_lengths)
-        stretch = _ratio(mean_edge_strain(looped, edges, rest_lengths), max(raw_strain, MIN_REFERENCE_STRAIN))
-    ratios = {
-        "stretch_ratio": stretch,
-        "deviation_ratio": _ratio(deviation, seam_jump),
-        "seam_acceleration_ratio": _ratio(seam_acceleration, max(median_acceleration, simulated_seam)),
-    }
-    exceeded = tuple(name for name, bound in QUALITY_BOUNDS.items() if ratios[name] is not None and not ratios[name] <= bound)
-    return LoopQuality(
-        stretch_ratio=ratios["stretch_ratio"],
-        deviation_ratio=ratios["deviation_ratio"],
-        seam_acceleration_ratio=ratios["seam_acceleration_ratio"],
-        max_acceleration_ratio=_ratio(float(acceleration.max()), median_acceleration),
-        seam_jump=seam_jump,
-        seam_acceleration=seam_acceleration,
-        median_acceleration=median_acceleration,
-        simulated_seam_acceleration=simulated_seam,
-        exceeded=exceeded,
-    )
-
-
-def vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals of (..., V, 3) positions with (T, 3) triangles: (..., V, 3) float64.
-
-    Counter-clockwise triangles face outwards (glTF/OBJ convention). Vertices that belong to no triangle, or
-    only to degenerate ones, get a zero normal.
-    """
-    positions = np.asarray(positions, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    if positions.ndim < 2 or positions.shape[-1] != 3:
-        raise ValueError(f"vertex_normals: expected (..., V, 3) positions, got shape {positions.shape}")
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"vertex_normals: expected (T, 3) faces, got shape {faces.shape}")
-    vertex_count = positions.shape[-2]
-    if faces.size and (faces.min() < 0 or faces.max() >= vertex_count):
-        raise ValueError(f"vertex_normals: a face index is outside [0, {vertex_count})")
-    lead = positions.shape[:-2]
-    flat = positions.reshape(-1, vertex_count, 3)
-    a, b, c = flat[:, faces[:, 0]], flat[:, faces[:, 1]], flat[:, faces[:, 2]]
-    face_normals = np.cross(b - a, c - a)  # length = 2 * area: the area weighting comes for free
-    # Vertex-by-face incidence: one sparse product sums every frame's face normals onto the vertices.
-    rows = faces.reshape(-1)
-    cols = np.repeat(np.arange(len(faces)), 3)
-    incidence = sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(vertex_count, len(faces)))
-    stacked = face_normals.transpose(1, 0, 2).reshape(len(faces), -1)  # (T, frames * 3)
-    summed = (incidence @ stacked).reshape(vertex_count, -1, 3).transpose(1, 0, 2)
-    length = np.linalg.norm(summed, axis=-1, keepdims=True)
-    normals = np.divide(summed, length, out=np.zeros_like(summed), where=length > 0)
-    return normals.reshape(*lead, vertex_count, 3)
-
-
-def body_size(body: np.ndarray) -> float:
-    """The body's size: the bounding-box diagonal of its first frame, (F, Vb, 3) -> float (cache units)."""
-    body = _as_cache(body, "body_size", dtype=None)
-    first = body[0].astype(np.float64)
-    return float(np.linalg.norm(first.max(axis=0) - first.min(axis=0)))
-
-
-@dataclass(frozen=True)
-class PenetrationSettings:
-    """Tolerances of the penetration test in cache units (see PENETRATION_TOLERANCE_FRACTION, MAX_DEPTH_FRACTION)."""
-
-    tolerance: float
-    max_depth: float
-
-    @classmethod
-    def for_body(cls, body: np.ndarray) -> "PenetrationSettings":
-        size = body_size(body)
-        return cls(tolerance=PENETRATION_TOLERANCE_FRACTION * size, max_depth=MAX_DEPTH_FRACTION * size)
-
-
-class BodyFrames:
-    """The body over the frames of a cycle, with one k-d tree per frame built on first use.
-
-    positions: (F, Vb, 3) body vertices; normals: (F, Vb, 3) unit outward normals (see vertex_normals).
-    """
-
-    def __init__(self, positions: np.ndarray, normals: np.ndarray):
-        self.positions = _as_cache(positions, "BodyFrames positions")
-        self.normals = _as_cache(normals, "BodyFrames normals")
-        if self.positions.shape != self.normals.shape:
-            raise ValueError(
-                f"BodyFrames: positions {self.positions.shape} and normals {self.normals.shape} differ in shape"
-            )
-        self._trees: dict[int, cKDTree] = {}
-
-    def __len__(self) -> int:
-        return self.positions.shape[0]
-
-    def signed_offsets(self, frame: int, cloth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For (V, 3) cloth at `frame`: offset along the nearest body vertex's normal (V,), distance (V,), nearest (V,)."""
-        tree = self._trees.get(frame)
-        if tree is None:
-            tree = self._trees[frame] = cKDTree(self.positions[frame])
-        distance, nearest = tree.query(cloth)
-        offset = np.einsum("ij,ij->i", cloth - self.positions[frame][nearest], self.normals[frame][nearest])
-        return offset, distance, nearest
-
-
-def penetration_mask(cloth: np.ndarray, body: BodyFrames, settings: PenetrationSettings) -> np.ndarray:
-    """(F, V) bool: cloth vertex v is inside the body at frame f.
-
-    cloth: (F, V, 3) with F == len(body), frame f of the cloth meeting frame f of the body.
-    """
-    cloth = _as_cache(cloth, "penetration_mask")
-    if cloth.shape[0] != len(body):
-        raise ValueError(f"penetration_mask: {cloth.shape[0]} cloth frames against {len(body)} body frames")
-    mask = np.zeros(cloth.shape[:2], dtype=bool)
-    for frame in range(cloth.shape[0]):
-        offset, distance, _ = body.signed_offsets(frame, cloth[frame])
-        mask[frame] = (offset < -settings.tolerance) & (distance < settings.max_depth)
-    return mask
-
-
-def push_out(
-    cloth: np.ndarray, body: BodyFrames, settings: PenetrationSettings, only: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Move penetrating cloth vertices out along the nearest body normal to `tolerance` above the surface.
-
-    cloth: (F, V, 3); only: optional (F, V) bool, the vertices allowed to move (default: all).
-    Returns (pushed cloth (F, V, 3) float64, moved (F, V) bool).
-    """
-    pushed = _as_cache(cloth, "push_out").copy()
-    moved = np.zeros(pushed.shape[:2], dtype=bool)
-    for frame in range(pushed.shape[0]):
-        for _ in range(PUSH_OUT_ITERATIONS):
-            offset, distance, nearest = body.signed_offsets(frame, pushed[frame])
-            inside = (offset < -settings.tolerance) & (distance < settings.max_depth)
-            if only is not None:
-                inside &= only[frame]
-            if not inside.any():
-                break
-            lift = (settings.tolerance - offset[inside])[:, None] * body.normals[frame][nearest[inside]]
-            pushed[frame][inside] += lift
-            moved[frame] |= inside
-    return pushed, moved
-
-
-def raised_cosine(reach: int) -> np.ndarray:
-    """(2 reach + 1,) weights 0.5 (1 + cos(pi t / (reach + 1))), t = -reach .. reach: 1 at t = 0, easing to 0."""
-    t = np.arange(-reach, reach + 1)
-    return 0.5 * (1.0 + np.cos(np.pi * t / (reach + 1)))
-
-
-def smooth_push_out(
-    loop: np.ndarray, body: BodyFrames, settings: PenetrationSettings, only: np.ndarray | None = None, reach: int = 2
-) -> tuple[np.ndarray, np.ndarray]:
-    """Push penetrating cloth out of the body with a push that eases in and out over `reach` frames either side.
-
-    loop: (l, V, 3) frames played cyclically, frame i meeting body frame i; only: optional (l, V) bool, the
-    (frame, vertex) pairs whose penetration is to be removed (default: all). Each pass finds the depth d(i, v)
-    a penetrating vertex must rise to sit `tolerance` above the nearest body vertex's tangent plane, spreads
-    it over time by a max-convolution with a raised cosine (so every penetrating frame still gets its whole
-    push, and its neighbours a part of it: no jump from one frame to the next), and moves every vertex along
-    its nearest body normal at that frame by the spread depth. PUSH_OUT_ITERATIONS passes, as the nearest
-    body vertex may change after a move. Returns (pushed (l, V, 3) float64, moved (l, V) bool).
-    """
-    pushed = _as_cache(loop, "smooth_push_out").copy()
-    frame_count, vertex_count, _ = pushed.shape
-    if frame_count != len(body):
-        raise ValueError(f"smooth_push_out: {frame_count} cloth frames against {len(body)} body frames")
-    kernel = raised_cosine(max(0, min(int(reach), (frame_count - 1) // 2)))
-    half = len(kernel) // 2
-    moved = np.zeros((frame_count, vertex_count), dtype=bool)
-    for _ in range(PUSH_OUT_ITERATIONS):
-        depth = np.zeros((frame_count, vertex_count))
-        normal = np.empty((frame_count, vertex_count, 3))
-        for frame in range(frame_count):
-            offset, distance, nearest = body.signed_offsets(frame, pushed[frame])
-            inside = (offset < -settings.tolerance) & (distance < settings.max_depth)
-            if only is not None:
-                inside &= only[frame]
-            depth[frame, inside] = settings.tolerance - offset[inside]
-            normal[frame] = body.normals[frame][nearest]
-        if not depth.any():
-            break
-        spread = depth.copy()
-        for shift in range(1, half + 1):  # cyclic max-convolution with the raised cosine
-            weight = kernel[half + shift]
-            spread = np.maximum(spread, weight * np.maximum(np.roll(depth, shift, axis=0), np.roll(depth, -shift, axis=0)))
-        pushed += spread[..., None] * normal
-        moved |= spread > 0
-    return pushed, moved
 
 
 @dataclass(frozen=True)
@@ -694,7 +395,7 @@ def close_cycle(
         final, pushed_count = closed, 0
         before = closed_count = after = zero
     else:
-        body = _as_cache(body, "close_cycle body", dtype=None)
+        body = as_point_frames(body, "close_cycle body", dtype=None)
         if body.shape[0] != np.asarray(cloth).shape[0]:
             raise ValueError(f"close_cycle: body has {body.shape[0]} frames, cloth {np.asarray(cloth).shape[0]}")
         rows = slice(start, start + cycle_frames)  # the looped frames Fs .. Fe-1

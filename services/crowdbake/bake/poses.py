@@ -11,9 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import sparse
-
 from crowdbake.bake.lod import Simplified
+from crowdbake.bake.mesh import vertex_normals
 
 # A vertex that belongs to no (non-degenerate) triangle has no normal of its own; the pose cache needs a
 # unit vector anyway (SPEC.md), so it gets +Y. It is never drawn, so the choice cannot show.
@@ -53,38 +52,18 @@ class PartPoses:
         return int(self.faces.shape[0])
 
 
-def vertex_normals(positions: np.ndarray, faces: np.ndarray, weld: np.ndarray | None = None) -> np.ndarray:
-    """Area-weighted unit vertex normals, (F, V, 3) float32, of (F, V, 3) positions and (T, 3) faces.
+def pose_normals(positions: np.ndarray, faces: np.ndarray, weld: np.ndarray | None = None) -> np.ndarray:
+    """Unit vertex normals for a pose cache, (F, V, 3) float32, of (F, V, 3) positions and (T, 3) faces.
 
-    weld: (V,) int, the vertex each vertex is welded to (e.g. an OBJ's source_index): welded vertices share
-    one normal, so a UV seam does not show as a lighting crease. Vertices of no triangle get FALLBACK_NORMAL.
+    crowdbake.bake.mesh.vertex_normals (area-weighted; weld: (V,) int, the vertex each vertex is welded to,
+    e.g. an OBJ's source_index, so a UV seam does not show as a lighting crease), with FALLBACK_NORMAL for
+    the vertices of no triangle: the pose cache needs unit vectors.
     """
-    positions = np.asarray(positions, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
+    positions = np.asarray(positions)
     if positions.ndim != 3 or positions.shape[2] != 3:
-        raise ValueError(f"vertex_normals: expected (F, V, 3) positions, got {positions.shape}")
-    if faces.ndim != 2 or faces.shape[1] != 3 or (faces.size and faces.max() >= positions.shape[1]):
-        raise ValueError(f"vertex_normals: expected (T, 3) faces indexing {positions.shape[1]} vertices")
-    vertex_count = positions.shape[1]
-    weld = np.arange(vertex_count) if weld is None else np.asarray(weld, dtype=np.int64)
-    if weld.shape != (vertex_count,) or weld.min() < 0:
-        raise ValueError(f"vertex_normals: weld must be ({vertex_count},) non-negative indices")
-    welded_faces = weld[faces]
-    slots = int(weld.max()) + 1
-    a = positions[:, faces[:, 0]]
-    face_normals = np.cross(positions[:, faces[:, 1]] - a, positions[:, faces[:, 2]] - a)  # length 2·area
-    # Vertex-by-face incidence: one sparse product sums every frame's face normals onto the welded vertices.
-    incidence = sparse.csr_matrix(
-        (np.ones(welded_faces.size), (welded_faces.reshape(-1), np.repeat(np.arange(len(faces)), 3))),
-        shape=(slots, len(faces)),
-    )
-    frames = positions.shape[0]
-    summed = (incidence @ face_normals.transpose(1, 0, 2).reshape(len(faces), frames * 3))
-    summed = summed.reshape(slots, frames, 3).transpose(1, 0, 2)
-    normals = summed[:, weld]
-    length = np.linalg.norm(normals, axis=-1, keepdims=True)
-    normals = np.where(length > 0, normals / np.where(length > 0, length, 1.0), FALLBACK_NORMAL)
-    return normals.astype(np.float32)
+        raise ValueError(f"pose_normals: expected (F, V, 3) positions, got {positions.shape}")
+    normals = vertex_normals(positions, faces, weld)
+    return np.where(np.any(normals != 0, axis=-1, keepdims=True), normals, FALLBACK_NORMAL).astype(np.float32)
 
 
 def unit_normals(normals: np.ndarray) -> np.ndarray:

@@ -19,8 +19,9 @@ so detail-mapped(n) = 5 + 11 n and UV-mapped(n) = 15 + n: equal at one variation
 variation costs 11 MiB against 1 MiB.
 
 `bundle_series` applies the same sums to the byte sizes of a real bundle's layers, where the UV map is
-uv32 by default (4 bytes a texel, not DXT3's 1: 14-bit coordinates address a 1024² texture to 1/16 texel,
-which block compression cannot keep) or rgba16 (8 bytes a texel), SPEC.md.
+uvblock by default (1.5 bytes a texel, not DXT3's 1: block-coded 12-bit coordinates with coverage and
+material exact, SPEC.md pixel format 6), uv32 (4 bytes) or rgba16 (8 bytes). `break_even_count` is the
+smallest variation count at which the UV-mapped impostor costs no more than the detail-mapped one.
 Pure arithmetic; no I/O.
 """
 from __future__ import annotations
@@ -92,6 +93,15 @@ def break_even_variations(map_bytes: MapBytes) -> float:
     return map_bytes.uv / map_bytes.detail
 
 
+def break_even_count(map_bytes: MapBytes, limit: int = 1 << 16) -> int | None:
+    """The smallest variation count n >= 1 at which UV-mapped costs no more than detail-mapped (figure 4's
+    crossing, as a count), or None when none up to `limit` does."""
+    for n in range(1, limit + 1):
+        if map_bytes.uv_mapped(n) <= map_bytes.detail_mapped(n):
+            return n
+    return None
+
+
 def texture_memory_report(bundle: MapBytes, max_variations: int, bundle_variations: int) -> dict:
     """The figure-4 JSON: the paper's model and the bundle's bytes, side by side.
 
@@ -108,6 +118,7 @@ def texture_memory_report(bundle: MapBytes, max_variations: int, bundle_variatio
             "break_even_variations": break_even_variations(paper),
             **series(paper, max_variations),
         },
+        "break_even_variations": break_even_count(bundle),
         "bundle": {
             "map_bytes": asdict(bundle),
             "variations_in_bundle": bundle_variations,

@@ -11,14 +11,17 @@ from crowdbake.cli.common import CommandError, progress
 from crowdbake.params import add_cli_options, option_for, params_from_args
 
 DESCRIPTION = """\
-Bake a skinned character (glTF) and its simulated garment (PC2 cache + OBJ rest mesh) into a bundle:
+Bake a skinned character (glTF) and its simulated garment (a PC2 or MDD cache with its OBJ rest mesh, an
+Alembic .abc, or a .zip of OBJ frames) into a bundle:
 the cloth cycle (searched, or given with --cycle), poses of the body and the garment for every cycle frame
 at two LODs (meshoptimizer), UV-mapped impostors (normal, UV and detail maps for --frames frames x
 --azimuths x elevations views, rendered with pyrender under OSMesa, or EGL with PYOPENGL_PLATFORM=egl),
 DXT1/DXT3 block compression, the impostor's fidelity against the mesh and the texture memory of figure 4.
 
 Writes OUT/NAME/VERSION (shared_formats bundle v1), verifies it, and prints sizes, timings and fidelity.
-A published NAME/VERSION never changes: baking it again with other results is an error."""
+A published NAME/VERSION never changes: baking it again with other results is an error.
+The garment must sit on the character at its first frame: a Z-up or centimetre cache is refused, naming
+--up or --units, and converted when they are given."""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -29,10 +32,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("character", metavar="CHAR.glb", help="the skinned, animated character (glTF 2.0, .glb or .gltf)")
-    parser.add_argument("--cloth", required=True, metavar="CLOTH.pc2", help="the garment's simulated cache (PC2), many walk cycles")
-    parser.add_argument("--cloth-mesh", required=True, metavar="CLOTH.obj", help="the garment's rest mesh (OBJ, PC2 point order)")
+    parser.add_argument("--cloth", required=True, metavar="CLOTH", help="the garment's simulated cache, many walk cycles: .pc2 or .mdd (with --cloth-mesh), .abc, or a .zip of OBJ frames")
+    parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the garment's rest mesh (OBJ, cache point order); .pc2 and .mdd need it")
     parser.add_argument("--cycle", metavar="cycle.json", help="use this cycle (from `crowdbake cycle`) instead of searching")
-    parser.add_argument("--textures", metavar="DIR", help="diffuse_*.png variations and outfits.png (default: the glTF texture)")
+    parser.add_argument("--textures", metavar="DIR", help="diffuse_*.png or diffuse_*.jpg variations (region codes in alpha: PNG only) and outfits.png (default: the glTF texture)")
     parser.add_argument("--name", required=True, help="bundle name ([a-z0-9][a-z0-9._-]*)")
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VER", help="bundle version")
     parser.add_argument("--out", required=True, metavar="DIR", help="bundles folder: the bundle goes to DIR/NAME/VER")
@@ -109,6 +112,10 @@ def format_summary(summary) -> str:
                 f"fidelity {label}: SSIM mean {f['ssim_mean']:.3f} worst {f['ssim_worst']:.3f}, "
                 f"PSNR mean {f['psnr_db_mean']:.1f} dB worst {f['psnr_db_worst']:.1f} dB over {f['views']} views"
             )
+    for key, label in (("at_views", "at baked views"), ("between_views", "between views and frames")):
+        if key in fidelity.get("runtime", {}):
+            f = fidelity["runtime"][key]
+            lines.append(f"runtime  blended impostor {label}: SSIM mean {f['ssim_mean']:.3f} worst {f['ssim_worst']:.3f} over {f['views']} views")
     precision = fidelity.get("uv_precision", {})
     if "rgba8" in precision:
         lines.append(
@@ -126,6 +133,7 @@ def format_summary(summary) -> str:
         f"figure 4 paper model: 1 variation {memory['paper_mib']['1']:.0f} MiB both; 8 variations detail-mapped "
         f"{memory['paper_mib']['detail_8']:.0f} MiB vs UV-mapped {memory['paper_mib']['uv_8']:.0f} MiB; "
         f"this bundle breaks even at {memory['bundle_break_even_variations']:.1f} variations"
+        + (f" (UV-mapped is no larger from {memory['break_even_variations']})" if memory.get("break_even_variations") else "")
     )
     for path, size in sorted(summary.files.items()):
         lines.append(f"file     {path}: {size:,} bytes")
@@ -174,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
     inputs = BakeInputs(
         character=Path(args.character),
         cloth=Path(args.cloth),
-        cloth_mesh=Path(args.cloth_mesh),
+        cloth_mesh=Path(args.cloth_mesh) if args.cloth_mesh else None,
         textures=Path(args.textures) if args.textures else None,
         cycle=Path(args.cycle) if args.cycle else None,
         name=args.name,
@@ -206,6 +214,8 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write("\n")
     else:
         print(format_summary(summary))
+        if summary.texture_note:
+            print(f"textures {summary.texture_note}")
         if args.figure4:
             print(f"figure 4 plot: {args.figure4}")
     return 0

@@ -14,8 +14,12 @@ best candidates at their first and last frame from several views and compares th
 The winner's seam is closed (none, the paper's linear blend, or a Hermite correction of position and
 velocity), with penetration into the body measured before and after.
 
-Writes OUT/cycle.json, OUT/looped.pc2 (exactly one loop) and OUT/report.html with its plots.
-The cache's frame rate is 24 / (the PC2 sample interval) unless --fps is given."""
+The cloth cache is a PC2 or MDD with its OBJ rest mesh (--mesh), or an Alembic .abc or a .zip of OBJ frames
+alone. Its first frame must sit on the body: a Z-up or centimetre cache is refused, naming --up or --units,
+and converted when they are given. The cache's frame rate is --fps, else its own (MDD, Alembic), else
+24 / (the PC2 sample interval).
+
+Writes OUT/cycle.json, OUT/looped.pc2 (exactly one loop) and OUT/report.html with its plots."""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -25,15 +29,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("cloth", metavar="CLOTH.pc2", help="the cloth cache (PC2), many walk cycles long")
-    parser.add_argument("--mesh", required=True, metavar="CLOTH.obj", help="the garment's rest mesh (OBJ, PC2 point order)")
+    parser.add_argument("cloth", metavar="CLOTH", help="the cloth cache, many walk cycles long: .pc2 or .mdd (with --mesh), .abc, or a .zip of OBJ frames")
+    parser.add_argument("--mesh", metavar="CLOTH.obj", help="the garment's rest mesh (OBJ, cache point order); .pc2 and .mdd need it")
     body = parser.add_mutually_exclusive_group(required=True)
     body.add_argument("--character", metavar="CHAR.glb", help="the skinned character whose animation drove the cloth")
     body.add_argument("--body", metavar="BODY.pc2", help="the body as a cache over the same frames (needs --body-mesh)")
     parser.add_argument("--body-mesh", metavar="BODY.obj", help="the body cache's mesh (OBJ)")
     # Shared with `crowdbake bake` (one default and bound: crowdbake.params.PARAMS).
     add_cli_options(parser, CYCLE_SHARED, flags=CYCLE_SHARED)
-    parser.add_argument("--fps", type=float, help="the cache's frame rate (default 24 / PC2 sample interval)")
     parser.add_argument("--blend-frames", type=int, metavar="B", help="frames of the linear blend (default a quarter cycle)")
     parser.add_argument("--push-out", choices=["none", "new", "all"], default="new",
                         help="push cloth out of the body: vertices closing pushed in (new, default), all, or none")
@@ -90,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
                 args.cloth, args.mesh, args.out,
                 character=args.character, body_pc2=args.body, body_obj=args.body_mesh,
                 cycle_frames=args.cycle_frames, fps=args.fps, params=params,
+                up=args.up, units=args.units, animation=args.animation,
                 progress=on_progress, edge_pass=not args.no_edge_pass,
             )
         except (ValueError, OSError) as error:

@@ -26,6 +26,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("bundle_dir", metavar="BUNDLE_DIR", type=Path, help="a bundle folder (manifest.json and its files)")
     parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="folder to write (new or empty)")
+    parser.add_argument(
+        "--ktx2", choices=("bc", "rgba8"), default="bc",
+        help="bc (default): colour and normal maps keep the bundle's BC1/BC2 blocks, copied as they are; "
+        "rgba8: decoded to RGBA8 texels, for targets without BC (S3TC) support",
+    )
     parser.add_argument("--json", action="store_true", help="print the written files and sizes as JSON")
     parser.set_defaults(func=run)
 
@@ -36,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.bundle_dir.is_dir():
         raise CommandError(f"{args.bundle_dir} is not a folder")
     try:
-        summary = export_bundle(args.bundle_dir, args.out)
+        summary = export_bundle(args.bundle_dir, args.out, args.ktx2)
     except FormatError as error:
         raise CommandError(f"the bundle does not verify: {error}") from None
     except FileExistsError as error:

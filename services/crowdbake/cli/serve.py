@@ -18,6 +18,8 @@ settings. Without --broker (or CROWDBAKE_BROKER_URL) the job queue is Celery's f
 under the data folder, so nothing else needs to run; give --broker redis://... to share a Redis.
 The database is migrated at start. Create a key first: crowdbake keys create --data DIR --scopes ..."""
 
+# Seconds an idle keep-alive connection stays open (uvicorn --timeout-keep-alive; the deploy manifests match).
+KEEP_ALIVE_S = 5
 # Seconds a worker gets to finish its current task on shutdown before it is killed.
 WORKER_STOP_TIMEOUT_S = 20
 
@@ -99,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
     from sqlalchemy import func, select
 
     from crowdbake.api.app import create_app
+    from crowdbake.api.slow_clients import HeaderTimeoutProtocol
     from crowdbake.storage.models import ApiKey
 
     app = create_app(settings)
@@ -113,7 +116,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"crowdbake serve: API on http://{args.host}:{args.port} (docs at /docs), {args.workers} worker(s), "
           f"data {settings.data_dir}, broker {redact_url(settings.broker_url)}", file=sys.stderr)
     try:
-        uvicorn.run(app, host=args.host, port=args.port, log_level="info")
+        # Slow clients: a deadline on request headers (the protocol) and a short keep-alive; the body's
+        # minimum rate is the app's own middleware (crowdbake.api.slow_clients).
+        uvicorn.run(app, host=args.host, port=args.port, log_level="info", http=HeaderTimeoutProtocol, timeout_keep_alive=KEEP_ALIVE_S)
     finally:
         if worker is not None:
             stop_worker(worker)

@@ -64,6 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--download", metavar="DIR", help="download and verify the bundle into DIR/NAME/VERSION (implies --wait)")
     parser.add_argument("--no-publish", action="store_true", help="bake without publishing (publish later from the page or the API)")
     parser.add_argument("--public", action="store_true", help="make the bundle readable without a key")
+    parser.add_argument("--created", metavar="TIME", help="manifest time, RFC 3339 UTC, as `crowdbake bake --created` (default: the server's)")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout at exit (exit_code, state, bake_id, bundle, problem)")
     # The one parameter table (crowdbake.params, standard library only, so the client stays light): the same
     # names, bounds and choices as `crowdbake bake` and the REST model; omitted options keep server defaults.
@@ -184,7 +185,8 @@ def check_locally(args: argparse.Namespace) -> Inputs:
 
 def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str, textures: dict[str, str]) -> dict[str, Any]:
     return {"name": args.name, "version": args.bundle_version, "character": character, "cloth": cloth, "textures": textures,
-            "params": inputs.params, "publish": not args.no_publish, "public": args.public}
+            "params": inputs.params, "publish": not args.no_publish, "public": args.public,
+            **({"created": args.created} if args.created else {})}
 
 
 def is_missing_asset(error: dict[str, Any]) -> bool:

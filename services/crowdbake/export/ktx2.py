@@ -1,4 +1,4 @@
-"""KTX 2.0 containers for uncompressed texture arrays: pure bytes in, bytes out.
+"""KTX 2.0 containers for texture arrays, uncompressed or BC1/BC2 blocks: pure bytes in, bytes out.
 
 No maintained KTX2 encoder installs here (the libktx binding `pyktx` builds only against a system
 libktx, and Debian 12 packages neither libktx nor `toktx`), so this module writes the container
@@ -10,12 +10,13 @@ itself, following the Khronos KTX 2.0 specification:
 - key/value data: `KTXorientation` = `rd` (rows top first, as the bundle stores them) and
   `KTXwriter`;
 - the level's data: layer 0, layer 1, ..., each rows top first, texels as `vkFormat` lays them out
-  (little-endian words).
+  (little-endian words); for a block format (`encode_ktx2_blocks`) the 4x4 blocks in row-major block
+  order, the layout BC1/BC2 (S3TC DXT1/DXT3) data has in a CBTX layer, in DDS and for glCompressedTexImage.
 
-The texels are the bundle's texels, not re-encoded: block-compressed bundle textures are decoded
-(crowdbake.bake.compression) to RGBA8 first, so a KTX2 file decodes back to exactly what a runtime
-decoding the bundle sees. The test suite reads every file back with `ktx-parse` (the parser three.js
-uses) as an independent check.
+Nothing is re-encoded: a bundle's BC1/BC2 layers are copied block for block (their DFD is the Khronos
+Data Format Specification's BC1A/BC2 model with 4x4 texel blocks), other layers as texels. The test
+suite reads every file back with `ktx-parse` (the parser three.js uses) as an independent check and
+decodes the blocks with texture2ddecoder.
 """
 from __future__ import annotations
 
@@ -38,9 +39,16 @@ VK_FORMAT_R8G8B8A8_UNORM = 37
 VK_FORMAT_R8G8B8A8_SRGB = 43
 VK_FORMAT_R16G16B16A16_UNORM = 91
 VK_FORMAT_R32_UINT = 98
+VK_FORMAT_BC1_RGB_UNORM_BLOCK = 131
+VK_FORMAT_BC1_RGB_SRGB_BLOCK = 132
+VK_FORMAT_BC2_UNORM_BLOCK = 135
+VK_FORMAT_BC2_SRGB_BLOCK = 136
 
 # Data Format Descriptor constants (Khronos Data Format Specification 1.3).
 _KHR_DF_MODEL_RGBSDA = 1
+_KHR_DF_MODEL_BC1A = 128
+_KHR_DF_MODEL_BC2 = 129
+_CHANNEL_BC_COLOUR, _CHANNEL_BC2_ALPHA = 0, 15  # BC1A_COLOR (no alpha), BC2_COLOR / BC2_ALPHA
 _KHR_DF_PRIMARIES_BT709 = 1
 _KHR_DF_TRANSFER_LINEAR = 1
 _KHR_DF_TRANSFER_SRGB = 2
@@ -74,6 +82,53 @@ LAYOUTS: dict[int, VkLayout] = {
     VK_FORMAT_R16G16B16A16_UNORM: VkLayout("R16G16B16A16_UNORM", 4, 16, True, False),
     VK_FORMAT_R32_UINT: VkLayout("R32_UINT", 1, 32, False, False),
 }
+
+
+@dataclass(frozen=True)
+class BlockLayout:
+    """What a block-compressed vkFormat means: 4x4 texels in `block_bytes` bytes, DFD colour model, sRGB."""
+
+    name: str
+    block_bytes: int
+    model: int
+    srgb: bool
+    block_size: int = 4  # texels per block side
+
+
+BLOCK_LAYOUTS: dict[int, BlockLayout] = {
+    VK_FORMAT_BC1_RGB_UNORM_BLOCK: BlockLayout("BC1_RGB_UNORM_BLOCK", 8, _KHR_DF_MODEL_BC1A, False),
+    VK_FORMAT_BC1_RGB_SRGB_BLOCK: BlockLayout("BC1_RGB_SRGB_BLOCK", 8, _KHR_DF_MODEL_BC1A, True),
+    VK_FORMAT_BC2_UNORM_BLOCK: BlockLayout("BC2_UNORM_BLOCK", 16, _KHR_DF_MODEL_BC2, False),
+    VK_FORMAT_BC2_SRGB_BLOCK: BlockLayout("BC2_SRGB_BLOCK", 16, _KHR_DF_MODEL_BC2, True),
+}
+
+
+def format_name(vk_format: int) -> str:
+    """The VkFormat's name without the VK_FORMAT_ prefix, for either kind of layout."""
+    return (LAYOUTS.get(vk_format) or BLOCK_LAYOUTS[vk_format]).name
+
+
+def _block_data_format_descriptor(layout: BlockLayout) -> bytes:
+    """The Basic DFD of a BC1 (no alpha) or BC2 format, as the Khronos Data Format Specification 1.3
+    section 5.6 gives it: 4x4x1 blocks, one 64-bit sample for BC1's colour, two for BC2 (explicit alpha
+    in bits 0..63, marked linear under sRGB; colour in bits 64..127), each spanning 0..0xFFFFFFFF."""
+    samples = [(0, _CHANNEL_BC_COLOUR)] if layout.model == _KHR_DF_MODEL_BC1A else [(0, _CHANNEL_BC2_ALPHA), (64, _CHANNEL_BC_COLOUR)]
+    block_size = 24 + 16 * len(samples)
+    transfer = _KHR_DF_TRANSFER_SRGB if layout.srgb else _KHR_DF_TRANSFER_LINEAR
+    last = layout.block_size - 1
+    words = [
+        0,
+        _KHR_DF_VERSION | (block_size << 16),
+        layout.model | (_KHR_DF_PRIMARIES_BT709 << 8) | (transfer << 16),
+        last | (last << 8),  # texelBlockDimension0/1 = 4 - 1; depth and fourth dimension 1 - 1
+        layout.block_bytes,
+        0,
+    ]
+    for offset, channel in samples:
+        qualifier = _QUALIFIER_LINEAR if (layout.srgb and channel == _CHANNEL_BC2_ALPHA) else 0
+        words += [offset | (63 << 16) | ((channel | qualifier) << 24), 0, 0, 0xFFFFFFFF]
+    body = struct.pack(f"<{len(words)}I", *words)
+    return struct.pack("<I", 4 + len(body)) + body
 
 
 def _data_format_descriptor(layout: VkLayout) -> bytes:
@@ -128,17 +183,45 @@ def encode_ktx2(vk_format: int, layers: np.ndarray, array: bool = True, writer: 
         raise ValueError(f"a non-array texture has one layer, got {layers.shape[0]}")
     layer_count, height, width, _ = layers.shape
     level = np.ascontiguousarray(layers, dtype=layout.dtype).tobytes()
+    return _container(vk_format, layout.bits // 8, width, height, layer_count if array else 0, _data_format_descriptor(layout),
+                      level, math.lcm(layout.texel_bytes, 4), writer)
 
-    dfd = _data_format_descriptor(layout)
+
+def encode_ktx2_blocks(vk_format: int, width: int, height: int, layers: list[bytes], array: bool = True, writer: str | None = None) -> bytes:
+    """A KTX2 file holding block-compressed `layers` (one bytes object a layer) copied as they are.
+
+    width, height: texels, multiples of the 4-texel block; each layer holds (height/4)·(width/4) blocks in
+    row-major block order. `array` False writes one layer as a plain 2D texture. Raises ValueError on a
+    size that does not fit.
+    """
+    if vk_format not in BLOCK_LAYOUTS:
+        raise ValueError(f"vkFormat {vk_format} is not a block format this writer supports ({sorted(BLOCK_LAYOUTS)})")
+    layout = BLOCK_LAYOUTS[vk_format]
+    if width <= 0 or height <= 0 or width % layout.block_size or height % layout.block_size:
+        raise ValueError(f"{layout.name} needs sizes that are positive multiples of {layout.block_size}, got {width}x{height}")
+    layer_bytes = (width // layout.block_size) * (height // layout.block_size) * layout.block_bytes
+    if not layers or any(len(layer) != layer_bytes for layer in layers):
+        raise ValueError(f"{layout.name} {width}x{height} needs layers of {layer_bytes} bytes, got {[len(layer) for layer in layers]}")
+    if not array and len(layers) != 1:
+        raise ValueError(f"a non-array texture has one layer, got {len(layers)}")
+    # typeSize is 1 for block-compressed formats (KTX 2.0 section 3.2).
+    return _container(vk_format, 1, width, height, len(layers) if array else 0, _block_data_format_descriptor(layout),
+                      b"".join(bytes(layer) for layer in layers), math.lcm(layout.block_bytes, 4), writer)
+
+
+def _container(vk_format: int, type_size: int, width: int, height: int, layer_count: int, dfd: bytes, level: bytes,
+               alignment: int, writer: str | None) -> bytes:
+    """Header, level index, DFD, key/values and the one level, which starts on a multiple of `alignment`
+    (the spec's mip level alignment: lcm(texel block size, 4))."""
     kvd = _key_values(writer or f"crowdbake {__version__}")
     dfd_offset = HEADER_BYTES + _LEVEL.size
     kvd_offset = dfd_offset + len(dfd)
-    # Level data starts on a multiple of lcm(texel block size, 4) (the spec's mip level alignment).
     level_offset = kvd_offset + len(kvd)
-    level_offset += -level_offset % math.lcm(layout.texel_bytes, 4)
-    header = _HEADER.pack(
-        IDENTIFIER, vk_format, layout.bits // 8, width, height, 0, layer_count if array else 0, 1, 1, 0
-    ) + _INDEX.pack(dfd_offset, len(dfd), kvd_offset, len(kvd), 0, 0)
+    level_offset += -level_offset % alignment
+    header = _HEADER.pack(IDENTIFIER, vk_format, type_size, width, height, 0, layer_count, 1, 1, 0) + _INDEX.pack(
+        dfd_offset, len(dfd), kvd_offset, len(kvd), 0, 0
+    )
+    # No supercompression: uncompressedByteLength equals byteLength.
     level_index = _LEVEL.pack(level_offset, len(level), len(level))
     padding = b"\0" * (level_offset - kvd_offset - len(kvd))
     return header + level_index + dfd + kvd + padding + level
@@ -146,12 +229,16 @@ def encode_ktx2(vk_format: int, layers: np.ndarray, array: bool = True, writer: 
 
 @dataclass(frozen=True)
 class Ktx2Image:
-    """A decoded single-level KTX2 file: texels (L, H, W, C) and what the header said."""
+    """A decoded single-level KTX2 file and what the header said: texels (L, H, W, C) for an uncompressed
+    format, or for a block format blocks (L, H/4 · W/4 · block bytes) uint8 and texels None."""
 
     vk_format: int
-    texels: np.ndarray
+    texels: np.ndarray | None
     layer_count: int  # the header's value: 0 for a plain 2D texture
     key_values: dict[str, str]
+    width: int = 0
+    height: int = 0
+    blocks: np.ndarray | None = None
 
 
 def decode_ktx2(data: bytes) -> Ktx2Image:
@@ -164,14 +251,22 @@ def decode_ktx2(data: bytes) -> Ktx2Image:
         raise ValueError("not a KTX2 file (identifier or size)")
     _, vk_format, _, width, height, depth, layers, faces, levels, scheme = _HEADER.unpack_from(data)
     dfd_offset, dfd_length, kvd_offset, kvd_length, _, _ = _INDEX.unpack_from(data, _HEADER.size)
-    if vk_format not in LAYOUTS or depth or faces != 1 or levels != 1 or scheme:
+    if (vk_format not in LAYOUTS and vk_format not in BLOCK_LAYOUTS) or depth or faces != 1 or levels != 1 or scheme:
         raise ValueError(f"unsupported KTX2 layout: vkFormat {vk_format}, depth {depth}, faces {faces}, levels {levels}, scheme {scheme}")
-    layout = LAYOUTS[vk_format]
     offset, length, _ = _LEVEL.unpack_from(data, HEADER_BYTES)
     count = max(layers, 1)
-    if length != count * height * width * layout.texel_bytes or offset + length > len(data):
-        raise ValueError("level size disagrees with the header")
-    texels = np.frombuffer(data, layout.dtype, count * height * width * layout.channels, offset)
+    if vk_format in BLOCK_LAYOUTS:
+        block = BLOCK_LAYOUTS[vk_format]
+        layer_bytes = (width // block.block_size) * (height // block.block_size) * block.block_bytes
+        if length != count * layer_bytes or offset + length > len(data):
+            raise ValueError("level size disagrees with the header")
+        texels, blocks = None, np.frombuffer(data, np.uint8, length, offset).reshape(count, layer_bytes)
+    else:
+        layout = LAYOUTS[vk_format]
+        if length != count * height * width * layout.texel_bytes or offset + length > len(data):
+            raise ValueError("level size disagrees with the header")
+        blocks = None
+        texels = np.frombuffer(data, layout.dtype, count * height * width * layout.channels, offset).reshape(count, height, width, layout.channels)
     key_values = {}
     position, end = kvd_offset, kvd_offset + kvd_length
     while position < end:
@@ -179,4 +274,4 @@ def decode_ktx2(data: bytes) -> Ktx2Image:
         key, _, value = data[position + 4 : position + 4 + size].partition(b"\0")
         key_values[key.decode()] = value.rstrip(b"\0").decode()
         position += 4 + size + (-size % 4)
-    return Ktx2Image(vk_format, texels.reshape(count, height, width, layout.channels), layers, key_values)
+    return Ktx2Image(vk_format, texels, layers, key_values, width, height, blocks)

@@ -1,7 +1,14 @@
 """Bundle textures as plain texel arrays and as KTX2 files (pure: arrays and bytes).
 
-Block-compressed layers (bc1, bc2) are decoded with the same decoder the bake's tests check against
-texture2ddecoder, so the exported texels are the ones a runtime shows from the bundle.
+A colour or normal map goes into KTX2 in one of two modes (KTX2_MODES):
+
+- "bc" (the default): a bundle's BC1/BC2 layers are copied block for block into a BC1/BC2 KTX2, so the
+  file holds exactly the bytes crowdview uploads (no re-encode, no loss, 1/4 or 1/8 of RGBA8);
+- "rgba8": every layer decoded to RGBA8 texels (the decoder the bake's tests check against
+  texture2ddecoder), for targets without BC support.
+
+Either way a KTX2 decodes to the texels a runtime shows from the bundle. rgba8 bundle layers are
+written as RGBA8 in both modes.
 """
 from __future__ import annotations
 
@@ -10,6 +17,37 @@ import numpy as np
 from crowdbake.bake import compression
 from crowdbake.export import ktx2
 from crowdbake.formats.binary import TextureArray
+
+
+KTX2_MODES = ("bc", "rgba8")  # the first is the default
+
+# The bundle's block formats as KTX2 formats: (pixel format, holds colour) -> vkFormat. Colour (diffuse,
+# detail) is authored in sRGB and tagged so, like the RGBA8 export; normals are data (UNORM). BC1 is
+# the no-alpha variant: crowdview uploads it as GL_COMPRESSED_RGB_S3TC_DXT1_EXT and the bake's encoder
+# writes four-colour blocks only, which decode the same either way.
+_BLOCK_FORMATS = {
+    ("bc1", False): ktx2.VK_FORMAT_BC1_RGB_UNORM_BLOCK,
+    ("bc1", True): ktx2.VK_FORMAT_BC1_RGB_SRGB_BLOCK,
+    ("bc2", False): ktx2.VK_FORMAT_BC2_UNORM_BLOCK,
+    ("bc2", True): ktx2.VK_FORMAT_BC2_SRGB_BLOCK,
+}
+
+
+def colour_ktx2(texture: TextureArray, colour: bool, mode: str, array: bool = True) -> tuple[int, bytes]:
+    """(vkFormat, KTX2 bytes) of an rgba8, bc1 or bc2 texture array.
+
+    colour: sRGB-encoded colour (True) or data such as normals (False). mode: "bc" copies BC blocks,
+    "rgba8" decodes them. array False: a plain 2D texture of the first layer.
+    """
+    if mode not in KTX2_MODES:
+        raise ValueError(f"colour_ktx2: mode must be one of {KTX2_MODES}, got {mode!r}")
+    if mode == "bc" and texture.pixel_format in ("bc1", "bc2"):
+        vk_format = _BLOCK_FORMATS[(texture.pixel_format, colour)]
+        layers = texture.layers if array else texture.layers[:1]
+        return vk_format, ktx2.encode_ktx2_blocks(vk_format, texture.width, texture.height, list(layers), array)
+    vk_format = ktx2.VK_FORMAT_R8G8B8A8_SRGB if colour else ktx2.VK_FORMAT_R8G8B8A8_UNORM
+    layers = rgba8_layers(texture)
+    return vk_format, ktx2.encode_ktx2(vk_format, layers if array else layers[:1], array)
 
 
 def rgba8_layers(texture: TextureArray) -> np.ndarray:
@@ -21,7 +59,13 @@ def rgba8_layers(texture: TextureArray) -> np.ndarray:
 
 def uv_map_layers(texture: TextureArray) -> tuple[int, np.ndarray]:
     """(vkFormat, texels) of an impostor UV map, bit for bit: uv32 words as R32_UINT (L, H, W),
-    rgba16 as R16G16B16A16_UNORM (L, H, W, 4)."""
+    rgba16 as R16G16B16A16_UNORM (L, H, W, 4); uvblock (a block code no engine samples) decoded into
+    uv32 words, which hold its 12-bit coordinates exactly enough (crowdbake.bake.impostor_maps.uvblock_to_uv32)."""
+    if texture.pixel_format == "uvblock":
+        from crowdbake.bake.impostor_maps import uvblock_to_uv32
+
+        words = [uvblock_to_uv32(layer, texture.width, texture.height) for layer in texture.layers]
+        return ktx2.VK_FORMAT_R32_UINT, np.stack(words).astype(np.uint32)
     if texture.pixel_format == "uv32":
         return ktx2.VK_FORMAT_R32_UINT, np.stack([texture.texels(k) for k in range(len(texture.layers))]).astype(np.uint32)
     if texture.pixel_format == "rgba16":

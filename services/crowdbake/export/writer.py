@@ -17,6 +17,7 @@ import json
 import logging
 import math
 import shutil
+import tempfile
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -29,14 +30,15 @@ from PIL import Image
 from crowdbake import __version__
 from crowdbake.export import ktx2
 from crowdbake.export.glb import GlbMaterial, GlbPart, build_glb
-from crowdbake.export.textures import region_codes_used, rgba8_layers, uv_map_layers
+from crowdbake.export.textures import KTX2_MODES, colour_ktx2, region_codes_used, rgba8_layers, uv_map_layers
 from crowdbake.export.vat import encode_vat, vat_texcoords
 from crowdbake.formats.bundle import Bundle, verify_bundle
 
 logger = logging.getLogger(__name__)
 
 EXPORT_FORMAT = "crowdbake-export"
-EXPORT_FORMAT_VERSION = 1
+# 2: colour and normal maps keep the bundle's BC1/BC2 blocks (KTX2 "bc" mode); 1 decoded them to RGBA8.
+EXPORT_FORMAT_VERSION = 2
 # crowdview's defaults (runtime/src/main.cpp, crowd.h LodRule), so the sidecar's switch distance is
 # the one crowdview uses for a window of this height.
 REFERENCE_VIEWPORT_HEIGHT_PX = 720
@@ -92,37 +94,43 @@ def _stem(name: str) -> str:
 
 
 def _texture_entry(path: str, vk_format: int, layers: int, width: int, height: int, encoding: str) -> dict[str, Any]:
-    return {"ktx2": path, "vk_format": ktx2.LAYOUTS[vk_format].name, "width": width, "height": height, "layers": layers, "encoding": encoding}
+    return {"ktx2": path, "vk_format": ktx2.format_name(vk_format), "width": width, "height": height, "layers": layers, "encoding": encoding}
 
 
-def _export_textures(bundle: Bundle, out: _Out) -> tuple[list[dict], dict, list[np.ndarray]]:
+def _export_textures(bundle: Bundle, out: _Out, mode: str) -> tuple[list[dict], dict, list[np.ndarray]]:
     manifest = bundle.manifest
     materials, diffuse_arrays = [], []
     for material in manifest["materials"]:
-        layers = rgba8_layers(bundle.textures[material["diffuse"]])
+        texture = bundle.textures[material["diffuse"]]
+        layers = rgba8_layers(texture)  # for the glTF's PNG and the region codes
         diffuse_arrays.append(layers)
-        path = out.write(f"textures/{_stem(material['name'])}_diffuse.ktx2", ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_SRGB, layers))
-        entry = _texture_entry(path, ktx2.VK_FORMAT_R8G8B8A8_SRGB, layers.shape[0], layers.shape[2], layers.shape[1], "rgb colour, alpha = 17 * region code")
+        vk_format, data = colour_ktx2(texture, True, mode)
+        path = out.write(f"textures/{_stem(material['name'])}_diffuse.ktx2", data)
+        entry = _texture_entry(path, vk_format, layers.shape[0], layers.shape[2], layers.shape[1], "rgb colour, alpha = 17 * region code")
         materials.append({"name": material["name"], "variations": material["variations"], "diffuse": entry})
-    outfit_map = rgba8_layers(bundle.textures[manifest["outfits"]["file"]])
-    path = out.write("textures/outfits.ktx2", ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_SRGB, outfit_map[:1], array=False))
+    outfit_texture = bundle.textures[manifest["outfits"]["file"]]
+    outfit_map = rgba8_layers(outfit_texture)
+    vk_format, data = colour_ktx2(outfit_texture, True, mode, array=False)
+    path = out.write("textures/outfits.ktx2", data)
     outfits = {
-        **_texture_entry(path, ktx2.VK_FORMAT_R8G8B8A8_SRGB, 0, 16, manifest["outfits"]["count"], "texel (x = region, y = outfit): rgb multiplies the diffuse colour"),
+        **_texture_entry(path, vk_format, 0, 16, manifest["outfits"]["count"], "texel (x = region, y = outfit): rgb multiplies the diffuse colour"),
         "count": manifest["outfits"]["count"],
         "colours": outfit_map[0, :, :, :3].tolist(),
     }
     return materials, outfits, diffuse_arrays
 
 
-def _export_impostor(bundle: Bundle, out: _Out) -> dict[str, Any]:
+def _export_impostor(bundle: Bundle, out: _Out, mode: str) -> dict[str, Any]:
     impostor = dict(bundle.manifest["impostor"])
     maps = {}
-    normal = rgba8_layers(bundle.textures[impostor["maps"]["normal"]])
-    path = out.write("impostor/normal.ktx2", ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_UNORM, normal))
-    maps["normal"] = _texture_entry(path, ktx2.VK_FORMAT_R8G8B8A8_UNORM, normal.shape[0], normal.shape[2], normal.shape[1], "model-space unit normal n as rgb = (n + 1) / 2")
-    detail = rgba8_layers(bundle.textures[impostor["maps"]["detail"]])
-    path = out.write("impostor/detail.ktx2", ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_SRGB, detail))
-    maps["detail"] = _texture_entry(path, ktx2.VK_FORMAT_R8G8B8A8_SRGB, detail.shape[0], detail.shape[2], detail.shape[1], "diffuse variation 0 unlit, alpha = 17 * region code")
+    for kind, colour, encoding in (
+        ("normal", False, "model-space unit normal n as rgb = (n + 1) / 2"),
+        ("detail", True, "diffuse variation 0 unlit, alpha = 17 * region code"),
+    ):
+        texture = bundle.textures[impostor["maps"][kind]]
+        vk_format, data = colour_ktx2(texture, colour, mode)
+        path = out.write(f"impostor/{kind}.ktx2", data)
+        maps[kind] = _texture_entry(path, vk_format, len(texture.layers), texture.width, texture.height, encoding)
     vk_format, uv = uv_map_layers(bundle.textures[impostor["maps"]["uv"]])
     path = out.write("impostor/uv.ktx2", ktx2.encode_ktx2(vk_format, uv))
     encoding = (
@@ -207,29 +215,34 @@ def _copy_shaders(out: _Out) -> list[str]:
     return written
 
 
-def export_bundle(bundle_dir: Path, out_dir: Path) -> ExportSummary:
+def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0]) -> ExportSummary:
     """Verify the bundle at `bundle_dir` and write its export into `out_dir` (new or empty).
 
-    Raises FormatError for a bundle that does not verify, FileExistsError for a non-empty `out_dir`.
+    ktx2_mode: "bc" keeps the bundle's BC1/BC2 blocks in the KTX2 files, "rgba8" decodes them.
+    Raises FormatError for a bundle that does not verify, FileExistsError for a non-empty `out_dir`
+    (also when another writer renamed its export into place first), ValueError for an unknown mode.
     """
+    if ktx2_mode not in KTX2_MODES:
+        raise ValueError(f"ktx2_mode must be one of {KTX2_MODES}, got {ktx2_mode!r}")
     bundle = verify_bundle(Path(bundle_dir))
     out_dir = Path(out_dir)
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
         raise FileExistsError(f"{out_dir} exists and is not an empty folder")
-    staging = out_dir.with_name(f".{out_dir.name}.partial")
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    # A staging folder of its own beside the target, so concurrent exports never share one.
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".partial", dir=out_dir.parent))
     try:
         out = _Out(staging)
         manifest = bundle.manifest
-        materials, outfits, diffuse_arrays = _export_textures(bundle, out)
-        impostor = _export_impostor(bundle, out)
+        materials, outfits, diffuse_arrays = _export_textures(bundle, out, ktx2_mode)
+        impostor = _export_impostor(bundle, out, ktx2_mode)
         lods = _export_lods(bundle, out, diffuse_arrays)
         shaders = _copy_shaders(out)
         sidecar = {
             "format": EXPORT_FORMAT,
             "format_version": EXPORT_FORMAT_VERSION,
             "producer": f"crowdbake {__version__}",
+            "ktx2": ktx2_mode,
             "bundle": {"name": manifest["name"], "version": manifest["version"]},
             "frames_per_second": manifest["frames_per_second"],
             "frame_count": manifest["cycle"]["frames"],
@@ -245,7 +258,10 @@ def export_bundle(bundle_dir: Path, out_dir: Path) -> ExportSummary:
         out.write("export.json", (json.dumps(sidecar, indent=2) + "\n").encode())
         if out_dir.exists():
             out_dir.rmdir()
-        staging.rename(out_dir)
+        try:
+            staging.rename(out_dir)
+        except OSError as error:  # another export was renamed into place first
+            raise FileExistsError(f"{out_dir} exists and is not an empty folder") from error
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

@@ -32,7 +32,7 @@ NORMAL_LENGTH_TOLERANCE = 1e-3
 # Bounds are float32 too; a position may sit this far (metres) outside them from rounding.
 BOUNDS_TOLERANCE = 1e-4
 
-PIXEL_FORMATS = {1: "rgba8", 2: "rgba16", 3: "bc1", 4: "bc2", 5: "uv32"}
+PIXEL_FORMATS = {1: "rgba8", 2: "rgba16", 3: "bc1", 4: "bc2", 5: "uv32", 6: "uvblock"}
 PIXEL_FORMAT_CODES = {name: code for code, name in PIXEL_FORMATS.items()}
 
 # uv32 (SPEC.md): one u32 a texel, u in bits 0..13, v in 14..27, material in 28..30, coverage in 31.
@@ -52,10 +52,10 @@ def layer_size(pixel_format: str, width: int, height: int) -> int:
         return 8 * width * height
     if pixel_format == "uv32":
         return 4 * width * height
-    if pixel_format in ("bc1", "bc2"):
+    if pixel_format in ("bc1", "bc2", "uvblock"):
         if width % 4 or height % 4:
             raise ValueError(f"{pixel_format} needs sizes that are multiples of 4, got {width}x{height}")
-        return (8 if pixel_format == "bc1" else 16) * (width // 4) * (height // 4)
+        return {"bc1": 8, "bc2": 16, "uvblock": 24}[pixel_format] * (width // 4) * (height // 4)
     raise ValueError(f"unknown pixel format {pixel_format!r}")
 
 
@@ -228,7 +228,7 @@ class TextureArray:
 
     def texels(self, layer: int) -> np.ndarray:
         """Layer as (H, W, 4) uint8 (rgba8) or uint16 (rgba16), or (H, W) uint32 words (uv32, see
-        unpack_uv32); block formats need a decoder."""
+        unpack_uv32); block formats need a decoder (uvblock: unpack_uvblock)."""
         if self.pixel_format == "uv32":
             return np.frombuffer(self.layers[layer], "<u4").reshape(self.height, self.width)
         if self.pixel_format == "rgba8":
@@ -279,6 +279,12 @@ def decode_texture_array(data: bytes, where: str = "texture") -> TextureArray:
     layers = tuple(
         bytes(data[TEXTURE_HEADER_SIZE + k * size : TEXTURE_HEADER_SIZE + (k + 1) * size]) for k in range(layer_count)
     )
+    if pixel_format == "uvblock":
+        for k, layer in enumerate(layers):
+            try:
+                unpack_uvblock(layer, width, height)
+            except ValueError as error:
+                raise FormatError("invalid_data", f"layer {k}: {error}", where) from None
     return TextureArray(width, height, pixel_format, layers)
 
 
@@ -351,3 +357,162 @@ def read_texture_layer(path: str | os.PathLike, layer: int) -> tuple[str, int, i
         if len(data) != size:
             raise FormatError("truncated", f"layer {layer} is truncated", where)
     return pixel_format, width, height, layer_count, data
+
+
+# uvblock (SPEC.md pixel format 6): blocks of 4x4 texels in 24 bytes (1.5 bytes a texel), six little-endian
+# u32 words. w0: each texel's state, 2 bits (0 outside the character, 1..3 subset 0..2). w1 | w2 << 32:
+# three 21-bit subset headers (bits 21s..): u base 8 bits, v base 8 bits (units of 16/4095), material
+# 2 bits, shift 3 bits. w3..w5: a 96-bit stream, texel i's 3-bit u offset at bit 6i and v offset at 6i + 3.
+# A covered texel's coordinate is (16·base + (offset << shift)) / 4095. Texel i sits at (i % 4, i // 4).
+UVBLOCK_BLOCK = 4
+UVBLOCK_BYTES = 24
+UVBLOCK_COORD_MAX = 4095  # coordinates in 1/4095: a quarter texel of a 1024² texture
+UVBLOCK_BASE_UNIT = 16
+UVBLOCK_OFFSET_MAX = 7  # 3-bit offsets
+UVBLOCK_SHIFT_MAX = 7  # 3-bit shifts
+UVBLOCK_SUBSETS = 3
+UVBLOCK_HEADER_BITS = 21
+UVBLOCK_MAX_MATERIAL = 3  # 2 bits: crowdview addresses 4 materials (CV_MAX_MATERIALS)
+# Distance between texels of different materials when seeding subsets: larger than any coordinate span.
+_OTHER_MATERIAL = 1 << 20
+
+
+def _uvblock_shift(span: np.ndarray) -> np.ndarray:
+    """Smallest shift s in 0..7 with span <= 7 · 2^s (7 where none is), for integer spans (any shape)."""
+    shift = np.full(span.shape, UVBLOCK_SHIFT_MAX, np.int64)
+    for s in range(UVBLOCK_SHIFT_MAX, -1, -1):
+        shift = np.where(span <= UVBLOCK_OFFSET_MAX << s, s, shift)
+    return shift
+
+
+def _blocks(array: np.ndarray) -> np.ndarray:
+    """(H, W, ...) -> (blocks, 16, ...), blocks in row-major order, texels row-major inside."""
+    height, width = array.shape[:2]
+    rows, columns = height // 4, width // 4
+    return array.reshape(rows, 4, columns, 4, *array.shape[2:]).swapaxes(1, 2).reshape(rows * columns, 16, *array.shape[2:])
+
+
+def _unblocks(array: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Inverse of _blocks for (blocks, 16) arrays."""
+    rows, columns = height // 4, width // 4
+    return array.reshape(rows, columns, 4, 4).swapaxes(1, 2).reshape(height, width)
+
+
+def uvblock_subsets(q: np.ndarray, material: np.ndarray, covered: np.ndarray) -> np.ndarray:
+    """Subset 0..2 of every covered texel of each block (-1 outside): (N, 16, 2) int coordinates, (N, 16) int
+    materials, (N, 16) bool -> (N, 16) int.
+
+    Farthest-point seeding (Chebyshev distance in coordinate units, another material counting as farther
+    than any coordinate): seed 0 is the first covered texel, each next seed the texel farthest from the
+    seeds so far; every texel joins its nearest seed of its own material. So a block's materials (up to
+    three) and its UV charts (a seam inside the block) fall into separate subsets, each with a small span.
+    Raises ValueError for a block with four materials.
+    """
+    count = len(q)
+    index = np.arange(count)
+
+    def distance(seed: np.ndarray) -> np.ndarray:
+        d = np.abs(q - q[index, seed][:, None, :]).max(axis=2)
+        return np.where(material == material[index, seed][:, None], d, _OTHER_MATERIAL + d)
+
+    seeds = [np.argmax(covered, axis=1)]
+    nearest = distance(seeds[0])
+    for _ in range(UVBLOCK_SUBSETS - 1):
+        seeds.append(np.argmax(np.where(covered, nearest, -1), axis=1))
+        nearest = np.minimum(nearest, distance(seeds[-1]))
+    distances = np.stack([distance(seed) for seed in seeds], axis=2)  # (N, 16, 3)
+    subset = np.argmin(distances, axis=2)
+    if (covered & (np.take_along_axis(distances, subset[..., None], axis=2)[..., 0] >= _OTHER_MATERIAL)).any():
+        bad = int(np.argmax((covered & (distances.min(axis=2) >= _OTHER_MATERIAL)).any(axis=1)))
+        raise ValueError(f"uvblock: block {bad} has more than {UVBLOCK_SUBSETS} materials")
+    return np.where(covered, subset, -1)
+
+
+def pack_uvblock(u: np.ndarray, v: np.ndarray, material: np.ndarray, coverage: np.ndarray) -> bytes:
+    """UV-map texels as one layer of uvblock bytes (SPEC.md pixel format 6), blocks in row-major order.
+
+    u, v: (H, W) float in [0, 1] (clipped); material: (H, W) int in 0..3; coverage: (H, W) bool; H and W
+    multiples of 4. Coverage and material are kept exactly (uvblock_subsets); each subset's offsets take
+    the smallest shift that spans its coordinates, so the rounding error is at most half a step of
+    2^shift / 4095 (offsets past 7 steps are clipped: a subset spanning more than 7·128/4095 of the texture).
+    """
+    u, v = np.asarray(u, np.float64), np.asarray(v, np.float64)
+    material, coverage = np.asarray(material, np.int64), np.asarray(coverage, bool)
+    height, width = coverage.shape
+    if height % 4 or width % 4 or not (u.shape == v.shape == material.shape == coverage.shape):
+        raise ValueError(f"uvblock needs (H, W) arrays alike with H and W multiples of 4, got {coverage.shape}")
+    if not (np.isfinite(u).all() and np.isfinite(v).all()):
+        raise ValueError("uvblock coordinates contain NaN or infinity")
+    if coverage.any() and (material[coverage].min() < 0 or material[coverage].max() > UVBLOCK_MAX_MATERIAL):
+        raise ValueError(f"uvblock material indices must lie in 0..{UVBLOCK_MAX_MATERIAL}")
+    q = _blocks(np.rint(np.clip(np.stack([u, v], axis=-1), 0.0, 1.0) * UVBLOCK_COORD_MAX).astype(np.int64))
+    m, c = _blocks(np.where(coverage, material, 0)), _blocks(coverage)
+    subset = uvblock_subsets(q, m, c)
+    count = len(c)
+    words = np.zeros((count, 6), np.uint64)
+    words[:, 0] = (np.where(c, subset + 1, 0).astype(np.uint64) << (2 * np.arange(16, dtype=np.uint64))).sum(axis=1)
+    offsets = np.zeros((count, 16, 2), np.int64)
+    headers = np.zeros(count, np.uint64)
+    big = np.iinfo(np.int64).max
+    for s in range(UVBLOCK_SUBSETS):
+        members = subset == s
+        present = members.any(axis=1)
+        low = np.where(present[:, None], np.where(members[..., None], q, big).min(axis=1), 0)
+        high = np.where(present[:, None], np.where(members[..., None], q, -1).max(axis=1), 0)
+        base = low // UVBLOCK_BASE_UNIT
+        origin = base * UVBLOCK_BASE_UNIT
+        shift = _uvblock_shift((high - origin).max(axis=1))
+        step = (1 << shift)[:, None, None]
+        room = (UVBLOCK_COORD_MAX - origin)[:, None, :] >> shift[:, None, None]
+        offset = np.clip(np.rint((q - origin[:, None, :]) / step), 0, np.minimum(UVBLOCK_OFFSET_MAX, room)).astype(np.int64)
+        offsets = np.where(members[..., None], offset, offsets)
+        subset_material = np.where(present, m[np.arange(count), np.argmax(members, axis=1)], 0)
+        header = base[:, 0] | base[:, 1] << 8 | subset_material << 16 | shift << 18
+        headers |= np.where(present, header, 0).astype(np.uint64) << np.uint64(UVBLOCK_HEADER_BITS * s)
+    words[:, 1] = headers & np.uint64(0xFFFFFFFF)
+    words[:, 2] = headers >> np.uint64(32)
+    fields = (offsets[..., 0] | offsets[..., 1] << 3).astype(np.uint64)  # (N, 16) 6-bit fields
+    low64 = np.zeros(count, np.uint64)
+    high32 = np.zeros(count, np.uint64)
+    for i in range(16):
+        position = 6 * i
+        if position < 64:
+            low64 |= fields[:, i] << np.uint64(position)
+        if position + 6 > 64:
+            high32 |= fields[:, i] >> np.uint64(64 - position) if position < 64 else fields[:, i] << np.uint64(position - 64)
+    words[:, 3] = low64 & np.uint64(0xFFFFFFFF)
+    words[:, 4] = low64 >> np.uint64(32)
+    words[:, 5] = high32 & np.uint64(0xFFFFFFFF)
+    return words.astype("<u4").tobytes()
+
+
+def unpack_uvblock(data: bytes, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One uvblock layer (bytes) of `height` × `width` texels -> (u, v, material, coverage), each (H, W):
+    u, v float64 in [0, 1] (0 outside), material int64 (0 outside), coverage bool. Raises ValueError for
+    a coordinate above 4095 (SPEC.md: invalid_data)."""
+    words = np.frombuffer(data, "<u4", (height // 4) * (width // 4) * 6).reshape(-1, 6).astype(np.uint64)
+    count = len(words)
+    states = ((words[:, :1] >> (2 * np.arange(16, dtype=np.uint64))) & np.uint64(3)).astype(np.int64)
+    low64 = words[:, 3] | words[:, 4] << np.uint64(32)
+    fields = np.zeros((count, 16), np.uint64)
+    for i in range(16):
+        position = 6 * i
+        if position + 6 <= 64:
+            fields[:, i] = (low64 >> np.uint64(position)) & np.uint64(63)
+        elif position >= 64:
+            fields[:, i] = (words[:, 5] >> np.uint64(position - 64)) & np.uint64(63)
+        else:  # straddles bit 64
+            fields[:, i] = ((low64 >> np.uint64(position)) | (words[:, 5] << np.uint64(64 - position))) & np.uint64(63)
+    headers = words[:, 1] | words[:, 2] << np.uint64(32)
+    subset = np.maximum(states - 1, 0).astype(np.uint64)
+    header = (headers[:, None] >> (np.uint64(UVBLOCK_HEADER_BITS) * subset)) & np.uint64((1 << UVBLOCK_HEADER_BITS) - 1)
+    shift = (header >> np.uint64(18)) & np.uint64(7)
+    qu = ((header & np.uint64(255)) * np.uint64(UVBLOCK_BASE_UNIT) + ((fields & np.uint64(7)) << shift)).astype(np.int64)
+    qv = (((header >> np.uint64(8)) & np.uint64(255)) * np.uint64(UVBLOCK_BASE_UNIT) + ((fields >> np.uint64(3)) << shift)).astype(np.int64)
+    covered = states != 0
+    if (covered & ((qu > UVBLOCK_COORD_MAX) | (qv > UVBLOCK_COORD_MAX))).any():
+        raise ValueError(f"uvblock: a coordinate above {UVBLOCK_COORD_MAX}")
+    material = ((header >> np.uint64(16)) & np.uint64(3)).astype(np.int64)
+    u = _unblocks(np.where(covered, qu, 0), height, width) / UVBLOCK_COORD_MAX
+    v = _unblocks(np.where(covered, qv, 0), height, width) / UVBLOCK_COORD_MAX
+    return u, v, _unblocks(np.where(covered, material, 0), height, width), _unblocks(covered, height, width)

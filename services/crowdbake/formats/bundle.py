@@ -272,4 +272,4 @@ def _cross_check(bundle: Bundle) -> None:
             f"{kind} atlas is {atlas.width}x{atlas.height}x{len(atlas.layers)}, layout needs {width}x{height}x{len(impostor['frame_indices'])}",
             path,
         )
-    _require(bundle.textures[impostor["maps"]["uv"]].pixel_format in ("rgba16", "uv32"), "the UV map must be rgba16 or uv32 (12+ bits per coordinate)", impostor["maps"]["uv"])
+    _require(bundle.textures[impostor["maps"]["uv"]].pixel_format in ("rgba16", "uv32", "uvblock"), "the UV map must be rgba16, uv32 or uvblock (12+ bits per coordinate)", impostor["maps"]["uv"])

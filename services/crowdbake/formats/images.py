@@ -26,6 +26,10 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8\xff"
 # Variation textures are sampled by the runtime's GPU; a side past this is no texture a crowd needs.
 MAX_TEXTURE_SIDE = 16384
+# Pixels of one decoded image (the service's default max_texture_pixels): 8192² RGBA is 256 MiB once
+# decoded. Checked on the header (PNG IHDR, JPEG SOF, read by Pillow's lazy open) before any pixel is
+# decoded, so a 765 KB PNG that claims 12000x12000 costs nothing.
+MAX_TEXTURE_PIXELS = 8192 * 8192
 
 KTX2_REFUSAL = (
     "is a KTX2 (KHR_texture_basisu) image, which crowdbake cannot decode (no libktx binding installs here); "
@@ -44,11 +48,30 @@ def image_kind(data: bytes) -> str:
     return "other"
 
 
-def decode_rgba(data: bytes, where: str) -> np.ndarray:
+def image_size(data: bytes, where: str) -> tuple[int, int]:
+    """(width, height) from the image's header only (Pillow's open is lazy: no pixel is decoded).
+    Raises ValueError naming `where` when the header does not parse."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(data)) as picture:
+            return int(picture.size[0]), int(picture.size[1])
+    except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as error:
+        raise ValueError(f"{where}: image does not decode: {error}") from None
+
+
+def check_image_size(width: int, height: int, where: str, max_pixels: int = MAX_TEXTURE_PIXELS) -> None:
+    """ValueError naming `where` when an image is larger than `max_pixels` or MAX_TEXTURE_SIDE."""
+    if max(width, height) > MAX_TEXTURE_SIDE or width * height > max_pixels:
+        raise ValueError(f"{where}: image is {width}x{height}, more than {max_pixels} pixels or {MAX_TEXTURE_SIDE} on a side")
+
+
+def decode_rgba(data: bytes, where: str, max_pixels: int = MAX_TEXTURE_PIXELS) -> np.ndarray:
     """Image bytes (PNG, JPEG, or anything Pillow reads) -> (H, W, 4) uint8 RGBA.
 
     A JPEG (no alpha) gets alpha 255, as an opaque picture. Raises ValueError naming `where` for KTX2,
-    an image that does not decode, or one with a side over MAX_TEXTURE_SIDE.
+    an image that does not decode, or one over `max_pixels` or MAX_TEXTURE_SIDE (checked on the header,
+    before decoding).
     """
     if image_kind(data) == "ktx2":
         raise ValueError(f"{where} {KTX2_REFUSAL}")
@@ -56,8 +79,7 @@ def decode_rgba(data: bytes, where: str) -> np.ndarray:
 
     try:
         with Image.open(io.BytesIO(data)) as picture:
-            if max(picture.size) > MAX_TEXTURE_SIDE:
-                raise ValueError(f"{where}: image is {picture.size[0]}x{picture.size[1]}, more than {MAX_TEXTURE_SIDE} on a side")
+            check_image_size(picture.size[0], picture.size[1], where, max_pixels)
             return np.asarray(picture.convert("RGBA"), dtype=np.uint8).copy()
     except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as error:
         raise ValueError(f"{where}: image does not decode: {error}") from None

@@ -101,6 +101,12 @@ def read_pc2(path: str | os.PathLike) -> PointCache:
     return PointCache(points=points, start_frame=float(start_frame), sample_rate=float(sample_rate))
 
 
+def pc2_header(point_count: int, sample_count: int, start_frame: float = 0.0, sample_rate: float = 1.0) -> bytes:
+    """The 32-byte header of a PC2 of `sample_count` frames of `point_count` points; the frames follow
+    it as (point_count, 3) little-endian float32 each (lets a writer stream frames one at a time)."""
+    return _HEADER.pack(PC2_MAGIC, PC2_VERSION, int(point_count), float(start_frame), float(sample_rate), int(sample_count))
+
+
 def encode_pc2(points: np.ndarray, start_frame: float = 0.0, sample_rate: float = 1.0) -> bytes:
     """PC2 bytes for points (F, V, 3) float; see write_pc2."""
     points = np.asarray(points)

@@ -253,7 +253,14 @@ def check_character(path: Path, filename: str, field: str = "file") -> dict[str,
         "joint_count": int(len(character.joint_names)),
         "animation_seconds": float(character.animation_duration),
         "has_texture": character.texture is not None,
+        "animations": _animation_summaries(path, character),
     }
+
+
+def _animation_summaries(path: Path, character) -> list[dict[str, Any]]:
+    from crowdbake.ingest.studio_inputs import animation_summaries
+
+    return animation_summaries(path, character)
 
 
 # ------------------------------------------------------------------------------------------- cloth
@@ -431,7 +438,7 @@ def convert_obj_sequence(
     Returns check_cloth's dict plus {"frames_from": "obj-sequence"}.
     """
     from crowdbake.formats.obj import read_obj
-    from crowdbake.formats.pc2 import encode_pc2
+    from crowdbake.formats.pc2 import pc2_header
 
     expect_format(zip_path, zip_name, field, SEQUENCE_EXTENSIONS)
     try:
@@ -460,6 +467,15 @@ def convert_obj_sequence(
                 # zipfile raises NotImplementedError for these when the entry is opened (a 500 before).
                 raise UploadRejected(INVALID_FILE, "an archive entry uses a compression method that cannot be read",
                                      [FieldError(field, f"entry uses compression method {info.compress_type}; use deflate or store", zip_name, f"entry {info.filename}")])
+        # After the per-entry checks (they name the entry): the whole archive's ratio, from the central
+        # directory before anything inflates. Many entries just under ZIP_RATIO_MIN_BYTES each (200 x 1 MiB
+        # of "v 0 0 0" in 324 KB) pass every per-entry check, yet together expand 600:1.
+        archive_bytes = max(zip_path.stat().st_size, 1)
+        if declared > ZIP_RATIO_MIN_BYTES and declared > limits.max_ratio * archive_bytes:
+            raise UploadRejected(
+                UNSAFE_ARCHIVE, "the archive expands too far (zip bomb guard)",
+                [FieldError(field, f"the archive expands {declared / archive_bytes:.0f}:1 ({declared} bytes from {archive_bytes}), at most {limits.max_ratio:.0f}:1 is accepted", zip_name)],
+            )
         frames = sorted(
             (info for info in infos if not info.is_dir() and info.filename.lower().endswith(".obj")
              and not info.filename.startswith("__MACOSX/") and not PurePosixPath(info.filename).name.startswith("._")),
@@ -470,11 +486,12 @@ def convert_obj_sequence(
             raise UploadRejected(INVALID_FILE, "too few frames for two cycles", [FieldError(field, f"too few frames for two cycles: {len(frames)} OBJ files, two cycles need {needed}", zip_name)])
 
         budget = limits.max_uncompressed_bytes
-        positions: list[np.ndarray] = []
         reference_faces = None
         reference_count = 0
         first_bytes = b""
         scratch = Path(tempfile.mkdtemp(prefix="obj-sequence-"))
+        # Frames stream into the PC2 one at a time (header first: the frame count is the entry count),
+        # so memory holds one frame, never the whole sequence.
         try:
             for index, info in enumerate(frames):
                 frame_path = scratch / f"frame{index}.obj"
@@ -491,18 +508,19 @@ def convert_obj_sequence(
                         raise UploadRejected(INVALID_FILE, "the first frame has no faces", [FieldError(field, "the mesh has no faces", info.filename)])
                     reference_faces, reference_count = corners, mesh.position_count
                     first_bytes = frame_path.read_bytes()
+                    cache_out.write(pc2_header(reference_count, len(frames)))
                 elif mesh.position_count != reference_count or not np.array_equal(corners, reference_faces):
                     what = (f"{mesh.position_count} vertex positions, the first frame has {reference_count}"
                             if mesh.position_count != reference_count else "faces differ from the first frame's")
                     raise UploadRejected(INVALID_FILE, "the sequence's topology changes", [FieldError(field, f"topology changes: {what}", info.filename)])
-                positions.append(mesh.positions[: mesh.position_count])
+                cache_out.write(np.ascontiguousarray(mesh.positions[: mesh.position_count], dtype="<f4").tobytes())
+                del mesh
                 frame_path.unlink()
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
-    cache_out.write(encode_pc2(np.stack(positions)))
     mesh_out.write(first_bytes)
     return {
-        "frame_count": len(positions),
+        "frame_count": len(frames),
         "vertex_count": reference_count,
         "triangle_count": int(len(reference_faces)),
         "start_frame": 0.0,

@@ -11,6 +11,11 @@ crowdbake.stages.impostors.stage_impostor_plan, so they run beside the poses sta
 
 The work folder is named by the bake's input key (hash of inputs, parameters and code version), and the
 stage functions are idempotent, so a redelivered or retried task finds its outputs and returns at once.
+With an object store (CROWDBAKE_STORE=s3) every machine has its own data folder: each stage then
+stores what it wrote as blobs (crowdbake.storage.work_outputs.push, the listing's digest goes into its
+stage row, or into its part row for an impostor task) and the next stage, on whichever machine, first
+fetches what it reads (`pull`), so a bake fans out over machines that share only the database, the
+broker and the bucket.
 The fan-in before pack is a barrier in the database (crowdbake.storage.records.complete_part/claim_fan_in).
 
 Errors: the stages' InputError and VersionConflict, and any other error that a rerun cannot fix,
@@ -29,7 +34,7 @@ import random
 import shutil
 import time
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, Callable
 
 from celery import group
@@ -42,11 +47,13 @@ from crowdbake.errors import InputError, VersionConflict
 from crowdbake.jobs.celery_app import TASK_NAMES, app
 from crowdbake.params import BakeParams
 from crowdbake.settings import Settings, get_settings
-from crowdbake.storage import records
-from crowdbake.storage.blobs import BlobStore, make_blob_store
+from crowdbake.storage import records, work_outputs
+from crowdbake.storage.blobs import BlobStore
+from crowdbake.storage.bundle_store import BundleStore
 from crowdbake.storage.bundles import BundleConflict, register_bundle
 from crowdbake.storage.db import make_engine, make_sessionmaker, session_scope
-from crowdbake.storage.models import Asset, Bake, BakePart
+from crowdbake.storage.models import Asset, Bake, BakePart, BakeStage
+from crowdbake.storage.store import open_store
 
 logger = logging.getLogger(__name__)
 
@@ -75,6 +82,13 @@ class WorkerServices:
     settings: Settings
     sessions: sessionmaker[Session]
     blobs: BlobStore
+    bundles: BundleStore
+
+    @property
+    def exchanges_work(self) -> bool:
+        """Whether stage outputs travel through the blob store (private data folders, see the module
+        docstring); with local folders every worker shares one work folder instead."""
+        return self.settings.store == "s3"
 
 
 _services: WorkerServices | None = None
@@ -87,13 +101,30 @@ def services() -> WorkerServices:
     global _services, _services_pid
     if _services is None or _services_pid != os.getpid():
         settings = get_settings()
-        _services = WorkerServices(settings, make_sessionmaker(make_engine(settings.database_url)), make_blob_store(settings.blob_dir))
+        stores = open_store(settings)
+        _services = WorkerServices(settings, make_sessionmaker(make_engine(settings.database_url)), stores.blobs, stores.bundles)
         _services_pid = os.getpid()
     return _services
 
 
 def work_dir(settings: Settings, input_key: str) -> Path:
     return settings.work_dir / input_key
+
+
+# What each stage writes in the work folder (crowdbake.stages.workdir), pushed to the blob store when
+# work travels between machines, and the earlier stages whose outputs it reads. An impostor task writes
+# impostor/parts/<id>.npz and .json (`_part_outputs`); pack reads every part.
+# The cycle task also writes the impostor plan (impostor/record.json, stage.json, scene.npz), which is all
+# an impostor task reads, so impostor tasks run beside the poses stage.
+STAGE_OUTPUTS = {"validate": ("validate", "inputs"), "cycle": ("cycle", "impostor/record.json", "impostor/stage.json", "impostor/scene.npz"),
+                 "poses": ("poses",), "pack": ("pack", "bundle")}
+STAGE_READS = {"cycle": ("validate",), "poses": ("validate", "cycle"), "impostors": ("cycle",),
+               "pack": ("validate", "cycle", "poses"), "publish": ("pack",)}
+
+
+def _part_outputs(part_id: str) -> tuple[str, ...]:
+    task_id = part_id.removeprefix(records.IMPOSTOR_PART_PREFIX)
+    return (f"impostor/parts/{task_id}.npz", f"impostor/parts/{task_id}.json")
 
 
 def _stage(name: str):
@@ -153,6 +184,37 @@ class StageContext:
         with self.session() as session:
             self.check_live(session)
             records.set_progress(session, self.bake_id, self.stage, done, total)
+
+
+def push_outputs(ctx: StageContext, roots: tuple[str, ...]) -> str | None:
+    """Store what the stage wrote under `roots` of its work folder; the listing's digest, or None when
+    work does not travel between machines."""
+    if not ctx.services.exchanges_work:
+        return None
+    return work_outputs.push(ctx.services.blobs, ctx.work, roots)
+
+
+def pull_inputs(ctx: StageContext, stage: str) -> None:
+    """Fetch into this machine's work folder what `stage` reads from the earlier stages (STAGE_READS),
+    and for pack every impostor part, from the listings their rows name."""
+    if not ctx.services.exchanges_work:
+        return
+    with ctx.session() as session:
+        ctx.check_live(session)
+        wanted = STAGE_READS.get(stage, ())
+        rows = session.query(BakeStage).filter(BakeStage.bake_id == ctx.bake_id, BakeStage.stage.in_(wanted)).all()
+        listings = {row.stage: (row.result or {}).get("outputs") for row in rows}
+        missing = [name for name in wanted if not listings.get(name)]
+        digests = [listings[name] for name in wanted]
+        if stage == "pack":
+            parts = session.query(BakePart).filter(BakePart.bake_id == ctx.bake_id, BakePart.stage == "impostors").all()
+            missing += [part.part for part in parts if not part.spec.get("outputs")]
+            digests += [part.spec["outputs"] for part in sorted(parts, key=lambda part: part.part) if part.spec.get("outputs")]
+        if missing:  # a stage only starts after the ones it reads have recorded their outputs
+            raise RuntimeError(f"the outputs of {', '.join(missing)} are not recorded, so {stage} cannot run on this machine")
+    fetched = sum(work_outputs.pull(ctx.services.blobs, ctx.work, digest) for digest in digests)
+    if fetched:
+        logger.info("bake %s: fetched %d files of earlier stages for %s", ctx.bake_id, fetched, stage)
 
 
 def _is_transient(error: BaseException) -> bool:
@@ -290,9 +352,11 @@ def _send(stage: str, bake_id: str, attempt: int, *extra: Any) -> None:
 def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
     """Link the bake's input blobs into work/sources and build the stages' BakeInputs.
 
-    Not work/inputs: stage_validate copies its inputs there and clears that folder first. The links
-    share the blobs' modification times (the upload's), which the validate stage takes the manifest's
-    `created` from, so every attempt of a bake produces the same bytes."""
+    Not work/inputs: stage_validate copies its inputs there and clears that folder first. The manifest's
+    `created` is the time the newest input was uploaded (`inputs_created`): a property of the inputs
+    that every machine reads alike from the database (a file's modification time would be the time a
+    machine downloaded it), so every attempt of a bake, wherever it runs, produces the same bytes. A `created` given with the
+    bake request (`bake.inputs["created"]`) wins over both."""
     blobs = ctx.services.blobs
     inputs_dir = ctx.work / "sources"
     if inputs_dir.exists():
@@ -302,9 +366,12 @@ def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
     if character is None or cloth is None:
         raise InputError("an input asset no longer exists", "character" if character is None else "cloth")
     character_path = blobs.materialize(character.files["file"]["sha256"], inputs_dir / f"character.{character.info.get('format', 'glb')}")
-    cloth_path = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / "cloth.pc2")
-    mesh_path = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "cloth.obj")
+    # The cache keeps its format's extension (.pc2, .mdd, .abc): the validate stage reads it by extension.
+    cache_suffix = PurePosixPath(cloth.files["cache"].get("filename") or "cloth.pc2").suffix.lower() or ".pc2"
+    cloth_path = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / f"cloth{cache_suffix}")
+    mesh_path = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "cloth.obj") if "mesh" in cloth.files else None
     textures_dir = None
+    assets = [character, cloth]
     if bake.inputs.get("textures"):
         textures_dir = inputs_dir / "textures"
         for name, asset_id in sorted(bake.inputs["textures"].items()):
@@ -312,10 +379,18 @@ def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
             if texture is None:
                 raise InputError(f"texture {name} no longer exists", f"textures.{name}")
             blobs.materialize(texture.files["file"]["sha256"], textures_dir / name)
+            assets.append(texture)
     return _stage("validate").BakeInputs(
         character=character_path, cloth=cloth_path, cloth_mesh=mesh_path, textures=textures_dir, cycle=None,
         name=bake.name, version=bake.version, params=BakeParams.from_dict(bake.params),
+        created=bake.inputs.get("created") or inputs_created(assets),
     )
+
+
+def inputs_created(assets: list[Asset]) -> str:
+    """RFC 3339 UTC time (whole seconds) the newest of `assets` was uploaded: the bundle's `created`."""
+    newest = max(records.to_utc(asset.created_at) for asset in assets)
+    return newest.strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 @app.task(name=TASK_NAMES["validate"], **TASK_OPTIONS)
@@ -324,7 +399,8 @@ def validate(self, bake_id: str, attempt: int) -> None:
         with ctx.session() as session:
             bake = ctx.check_live(session)
             inputs = _materialize_inputs(ctx, bake, session)
-        return _stage("validate").stage_validate(inputs, ctx.work).to_json()
+        result = _stage("validate").stage_validate(inputs, ctx.work).to_json()
+        return dict(result, outputs=push_outputs(ctx, STAGE_OUTPUTS["validate"]))
 
     def after(ctx: StageContext, result, seconds: float) -> None:
         with ctx.session() as session:
@@ -337,10 +413,12 @@ def validate(self, bake_id: str, attempt: int) -> None:
 @app.task(name=TASK_NAMES["cycle"], **TASK_OPTIONS)
 def cycle(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
+        pull_inputs(ctx, "cycle")
         result = _stage("cycle").stage_cycle(ctx.work, progress=ctx.progress).to_json()
         impostors = _stage("impostors")
         impostors.stage_impostor_plan(ctx.work)
-        return result, [task.to_json() for task in impostors.impostor_tasks(ctx.work)]
+        specs = [task.to_json() for task in impostors.impostor_tasks(ctx.work)]
+        return dict(result, outputs=push_outputs(ctx, STAGE_OUTPUTS["cycle"])), specs
 
     def after(ctx: StageContext, outcome, seconds: float) -> None:
         result, impostor_specs = outcome
@@ -373,7 +451,9 @@ def _maybe_enqueue_pack(ctx: StageContext, parts_left: int) -> None:
 @app.task(name=TASK_NAMES["poses"], **TASK_OPTIONS)
 def poses(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
-        return _stage("poses").stage_poses(ctx.work, progress=ctx.progress).to_json()
+        pull_inputs(ctx, "poses")
+        result = _stage("poses").stage_poses(ctx.work, progress=ctx.progress)
+        return dict(result.to_json(), outputs=push_outputs(ctx, STAGE_OUTPUTS["poses"]))
 
     def after(ctx: StageContext, result, seconds: float) -> None:
         with ctx.session() as session:
@@ -391,11 +471,18 @@ def impostor_views(self, bake_id: str, attempt: int, part_id: str) -> None:
             part = session.get(BakePart, (bake_id, part_id))
             if part is None:
                 raise BakeStopped(f"bake {bake_id} has no part {part_id} (superseded)")
-            spec = dict(part.spec)
-        return _stage("impostors").stage_impostor_views(ctx.work, spec)
+            spec = {key: value for key, value in part.spec.items() if key != "outputs"}
+        pull_inputs(ctx, "impostors")
+        path = _stage("impostors").stage_impostor_views(ctx.work, spec)
+        return path, push_outputs(ctx, _part_outputs(part_id))
 
-    def after(ctx: StageContext, result, seconds: float) -> None:
+    def after(ctx: StageContext, outcome, seconds: float) -> None:
+        _path, outputs = outcome
         with ctx.session() as session:
+            if outputs is not None:  # what pack fetches from this part (see pull_inputs)
+                part = session.get(BakePart, (ctx.bake_id, part_id))
+                if part is not None:
+                    part.spec = dict(part.spec, outputs=outputs)
             parts_left = records.complete_part(session, ctx.bake_id, part_id)
             ctx.check_live(session)
             row = records.stage_row(session, ctx.bake_id, "impostors")
@@ -412,7 +499,9 @@ def impostor_views(self, bake_id: str, attempt: int, part_id: str) -> None:
 @app.task(name=TASK_NAMES["pack"], **TASK_OPTIONS)
 def pack(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
-        return _stage("pack").stage_pack(ctx.work, progress=ctx.progress).to_json()
+        pull_inputs(ctx, "pack")
+        result = _stage("pack").stage_pack(ctx.work, progress=ctx.progress).to_json()
+        return dict(result, outputs=push_outputs(ctx, STAGE_OUTPUTS["pack"]))
 
     def after(ctx: StageContext, result, seconds: float) -> None:
         with ctx.session() as session:
@@ -431,12 +520,19 @@ def pack(self, bake_id: str, attempt: int) -> None:
 @app.task(name=TASK_NAMES["publish"], **TASK_OPTIONS)
 def publish(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
-        settings = ctx.services.settings
-        path = _stage("publish").stage_publish(ctx.work, settings.bundles_dir)
+        pull_inputs(ctx, "publish")
         with ctx.session() as session:
             bake = ctx.check_live(session)
-            register_bundle(session, settings.bundles_dir, bake.name, bake.version, bake.public, bake.id)
-        return path
+            name, version = bake.name, bake.version
+        bundles = ctx.services.bundles
+        published = bundles.publish(ctx.work / "bundle", name, version)  # BundleConflict: other bytes published
+        if ctx.services.settings.store == "local":
+            # The engine export beside the bundle, unless export=false (exports live in local folders only).
+            _stage("publish").stage_export(ctx.work, ctx.services.settings.bundles_dir)
+        with ctx.session() as session:
+            bake = ctx.check_live(session)
+            register_bundle(session, bundles, name, version, bake.public, bake.id)
+        return {"name": name, "version": version, "manifest_sha256": published.sha256}
 
     def after(ctx: StageContext, result, seconds: float) -> None:
         with ctx.session() as session:

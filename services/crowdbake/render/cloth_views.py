@@ -19,7 +19,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from crowdbake.bake.loop_closing import vertex_normals
+from crowdbake.bake.mesh import vertex_normals
 from crowdbake.render.offscreen import (
     Offscreen,
     bounding_sphere,

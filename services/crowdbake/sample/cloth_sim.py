@@ -32,6 +32,8 @@ import numpy as np
 import scipy.sparse
 from scipy.sparse.csgraph import dijkstra
 
+from crowdbake.bake.mesh import unique_edges
+
 GRAVITY = np.array([0.0, -9.81, 0.0])  # m/s^2, Y up
 
 
@@ -71,13 +73,6 @@ class ClothModel:
     @property
     def vertex_count(self) -> int:
         return int(self.rest_positions.shape[0])
-
-
-def unique_edges(faces: np.ndarray) -> np.ndarray:
-    """Undirected edges of triangles (T, 3) -> (E, 2) int64, each once, sorted."""
-    faces = np.asarray(faces, dtype=np.int64)
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return np.unique(np.sort(edges, axis=1), axis=0)
 
 
 def bending_pairs(faces: np.ndarray) -> np.ndarray:

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from crowdbake.bake.mesh import vertex_normals
 from crowdbake.formats.gltf import Character
 
 # Shared texture layout in glTF UV convention (u right, v down), as (u0, v0, u1, v1).
@@ -341,8 +342,6 @@ class BodyMesh:
 
 def build_body() -> BodyMesh:
     """The whole body mesh in the rest pose (deterministic, no parameters)."""
-    from crowdbake.formats.gltf import vertex_normals
-
     arrays: dict[str, list[np.ndarray]] = {k: [] for k in ("positions", "uvs", "faces", "joints", "weights", "axis", "around")}
     part_ranges: dict[str, tuple[int, int]] = {}
     part_faces: dict[str, tuple[int, int]] = {}
@@ -366,7 +365,7 @@ def build_body() -> BodyMesh:
     # Smooth across UV seams: compute normals on the welded surface (seam duplicates share a
     # position), then hand each copy the shared normal, so shading shows no seam.
     _, weld, inverse = np.unique(np.round(positions, 9), axis=0, return_index=True, return_inverse=True)
-    normals = vertex_normals(positions[weld], inverse.reshape(-1)[faces])[inverse.reshape(-1)]
+    normals = vertex_normals(positions[weld], inverse.reshape(-1)[faces]).astype(np.float32)[inverse.reshape(-1)]
     return BodyMesh(
         positions=positions.astype(np.float32),
         normals=normals,

@@ -59,7 +59,7 @@ def _given_cycle(job: JobRecord, inputs: Path, cycle_json: Path, looped: Path, p
     document.setdefault("end_frame", start + frames)
     document.setdefault("input", {})
     if "fps" not in document["input"]:
-        document["input"]["fps"] = BASE_FPS / cache.sample_rate
+        document["input"]["fps"] = job.fps if job.fps is not None else BASE_FPS / cache.sample_rate
     write_json_atomic(cycle_json, document)
     write_pc2(looped, looped_points, start_frame=0.0, sample_rate=cache.sample_rate)
     report(progress, "cycle", 1, 1)
@@ -81,7 +81,10 @@ def _searched_cycle(job: JobRecord, inputs: Path, out: Path, progress: Progress 
             out,
             character=inputs / names["character"],
             cycle_frames=params.cycle_frames,
+            # The staged cache is in Y-up metres already (validate placed it); its rate is the job's.
+            fps=job.fps,
             params=cycle_params,
+            animation=params.animation,
             progress=forward,
             plots=plots is None,
         )

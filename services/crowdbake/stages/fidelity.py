@@ -70,5 +70,5 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
         "nearest_view": fidelity.summarize(between),
         "per_view": per_view,
         "between_views": between,
-        "uv_precision": {"texture_size": texture_size, **fidelity.uv_precision(atlases["uv16"], texture_size)},
+        "uv_precision": {"texture_size": texture_size, **fidelity.uv_precision(atlases["uv16"], texture_size, layout.tile_size)},
     }

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from crowdbake.bake import compression, fidelity, impostor_maps
+from crowdbake.formats.binary import read_pose_frame
 from crowdbake.formats.gltf import load_character
 from crowdbake.render.impostor import shared_renderer
 from crowdbake.stages.poses import diffuse_format, high_parts, impostor_framing, materials_of, part_materials
@@ -80,7 +81,7 @@ def stage_impostor_plan(work: Path, progress: Progress | None = None) -> StageOu
     job = load_job(work)
     params = job.bake_params
     cycle = folder.load("cycle", CycleRecord)
-    character = load_character(folder.inputs / job.inputs["character"])
+    character = load_character(folder.inputs / job.inputs["character"], animation=params.animation)
     materials, outfits = materials_of(job, folder.inputs, character, first_layer_only=True)
     high, _, part_material = high_parts(job, cycle, folder, character)
     bounds, layout, frame_indices = impostor_framing(params, cycle, high)
@@ -158,6 +159,32 @@ def load_scene(work: Path, plan: ImpostorPlan, frame: int, runtime_textures: boo
             [data[f"runtime_{m}"] for m in range(count)] if runtime_textures else [],
             data["outfit_row"],
         )
+
+
+def load_pose_scene(work: Path, poses: PosesRecord, frame: int) -> Scene:
+    """The scene at any cycle frame from the poses stage's caches (the plan holds the baked frames only)."""
+    work = Path(work)
+    positions, normals, uvs, faces, materials = [], [], [], [], []
+    offset = 0
+    for part in poses.parts:
+        if part.lod != 0:
+            continue
+        indices, part_uvs, part_positions, part_normals = read_pose_frame(work / "poses" / part.file, frame)
+        positions.append(part_positions)
+        normals.append(part_normals)
+        uvs.append(part_uvs)
+        faces.append(indices.astype(np.int64) + offset)
+        materials.append(np.full(len(indices), part.material, dtype=np.int64))
+        offset += len(part_uvs)
+    with np.load(work / "poses" / "textures.npz") as textures:
+        count = len(poses.materials)
+        diffuse = [textures[f"material_{m}_v0"] for m in range(count)]
+        runtime = [textures[f"material_{m}_decoded_v0"] for m in range(count)]
+        outfit_row = textures["outfits"][0]
+    return Scene(
+        np.concatenate(positions).astype(np.float64), np.concatenate(normals).astype(np.float64),
+        np.concatenate(uvs).astype(np.float64), np.concatenate(faces), np.concatenate(materials), diffuse, runtime, outfit_row,
+    )
 
 
 def midpoint_azimuths(azimuths: list[float]) -> list[float]:

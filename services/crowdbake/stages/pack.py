@@ -19,8 +19,9 @@ from crowdbake.formats.binary import encode_texture_array, layer_size
 from crowdbake.formats.bundle import BundleFile, build_manifest, verify_bundle, write_bundle
 from crowdbake.stages.cycle import bundle_cycle_document
 from crowdbake.stages.fidelity import score_fidelity
-from crowdbake.stages.impostors import impostor_tasks, load_plan, load_poses, part_path, part_record
+from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_plan, load_poses, part_path, part_record
 from crowdbake.stages.poses import DIFFUSE_ERRORS
+from crowdbake.stages.runtime_fidelity import score_runtime
 from crowdbake.stages.records import CycleRecord, ImpostorTask, MaterialInfo, PackRecord, PosesRecord
 from crowdbake.stages.validate import load_job
 from crowdbake.stages.workdir import (
@@ -121,12 +122,17 @@ def encode_frame(layout: AtlasLayout, frame_parts: list[dict[str, np.ndarray]], 
     stored = dict(atlases, uv16=atlases["uv"])
     if formats["uv"] == "uv32":
         stored["uv"] = impostor_maps.uv_map_to_uv32(atlases["uv"])
+    elif formats["uv"] == "uvblock":  # fidelity reads the decoded texels, as uv32 words
+        uvblock = impostor_maps.uv_map_to_uvblock(atlases["uv"])
+        stored["uv"] = impostor_maps.uvblock_to_uv32(uvblock, layout.width, layout.height)
     layers, errors, fidelity_atlases = {}, {}, {}
     for kind, pixel_format in formats.items():
         if pixel_format == "rgba16":
             encoded = atlases[kind].astype("<u2").tobytes()
         elif pixel_format == "uv32":
             encoded = stored[kind].astype("<u4").tobytes()
+        elif pixel_format == "uvblock":
+            encoded = uvblock
         else:
             encoded = compression.encode(atlases[kind], pixel_format)
         layers[kind] = encoded
@@ -271,6 +277,9 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
 
         # Fidelity at 1:1 texel-to-pixel: per view, and at the angles between views with the nearest view.
         fidelity_doc = score_fidelity(poses, layout, tasks, parts, fidelity_atlases, texture_arrays, formats)
+        map_bytes = {f.path: f.data for f in files if f.path in (maps["uv"], maps["normal"])}
+        fidelity_doc["runtime"] = score_runtime(folder.root, poses, layout, tasks, parts, map_bytes[maps["uv"]], map_bytes[maps["normal"]],
+                                                texture_arrays, FIDELITY_SUPERSAMPLE)
         outfit_count = int(len(texture_arrays["outfits"]))
     fidelity_doc["compression"] = compression_report
     files.append(BundleFile("fidelity.json", json_bytes(fidelity_doc), "fidelity"))
@@ -296,13 +305,15 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
     report(progress, "pack", steps, steps)
     record = PackRecord(
         files={f.path: len(f.data) for f in sorted(files, key=lambda f: f.path)},
-        fidelity={k: fidelity_doc[k] for k in ("impostor", "nearest_view", "impostor_uncompressed_normals")},
+        fidelity={**{k: fidelity_doc[k] for k in ("impostor", "nearest_view", "impostor_uncompressed_normals")},
+                  "runtime": {k: fidelity_doc["runtime"][k] for k in ("at_views", "between_views", "between_azimuths")}},
         uv_precision=fidelity_doc["uv_precision"],
         compression=compression_report,
         texture_memory={
             "paper_mib": {"1": memory_doc["paper"]["uv_mapped_mib"][0], "detail_8": memory_doc["paper"]["detail_mapped_mib"][7],
                           "uv_8": memory_doc["paper"]["uv_mapped_mib"][7]},
             "bundle_break_even_variations": memory_doc["bundle"]["break_even_variations"],
+            "break_even_variations": memory_doc["break_even_variations"],
         },
     )
     seconds = time.perf_counter() - started

@@ -20,6 +20,7 @@ from crowdbake.bake.skinning import pose_character
 from crowdbake.errors import StageOrderError
 from crowdbake.formats.binary import encode_pose_cache
 from crowdbake.formats.gltf import load_character
+from crowdbake.formats.images import read_texture_variation
 from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2
 from crowdbake.stages.records import CycleRecord, JobRecord, MaterialInfo, PosePart, PosesRecord
@@ -80,7 +81,8 @@ def materials_of(job: JobRecord, inputs: Path, character, first_layer_only: bool
     names = job.inputs
     if "textures" in names:
         diffuse, outfits_path = texture_files(inputs / names["textures"])
-        layers = np.stack([load_rgba_png(path) for path in (diffuse[:1] if first_layer_only else diffuse)])
+        # PNG or JPEG; a JPEG's alpha is 0 (region 0), since only a PNG carries region codes.
+        layers = np.stack([read_texture_variation(path).rgba for path in (diffuse[:1] if first_layer_only else diffuse)])
         materials = [{"name": "character", "layers": layers}]
         if outfits_path is not None:
             outfits = load_rgba_png(outfits_path).reshape(-1, 16, 4)
@@ -126,7 +128,7 @@ def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> 
     if looped.points.shape[0] != frames:
         raise StageOrderError(f"looped.pc2 has {looped.points.shape[0]} frames, the cycle {frames}")
     garment_positions = poses.cloth_on_vertices(looped.points, mesh.source_index)
-    garment_normals = poses.vertex_normals(garment_positions, mesh.faces, weld=mesh.source_index)
+    garment_normals = poses.pose_normals(garment_positions, mesh.faces, weld=mesh.source_index)
     if mesh.uvs is None:
         logger.warning("%s has no texture coordinates: the garment's UV map will read (0, 0)", names["cloth_mesh"])
     garment_uvs = mesh.uvs if mesh.uvs is not None else np.zeros((mesh.vertex_count, 2), np.float32)
@@ -231,7 +233,7 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     steps = 6
     report(progress, "poses", 0, steps)
 
-    character = load_character(folder.inputs / job.inputs["character"])
+    character = load_character(folder.inputs / job.inputs["character"], animation=params.animation)
     materials, outfits = materials_of(job, folder.inputs, character)
     high, kinds, part_material = high_parts(job, cycle, folder, character)
     part_material = part_materials(part_material, materials)

@@ -1,4 +1,5 @@
-"""Stage 6, publish: work/bundle → bundles_root/<name>/<version>, atomically, once.
+"""Stage 6, publish: work/bundle → bundles_root/<name>/<version>, atomically, once; then, unless the
+bake's `export` parameter is false, its engine export beside it (crowdbake.storage.exports).
 
 The same bytes already published: nothing to do. Other bytes under that version: VersionConflict
 (a published bundle never changes).
@@ -11,6 +12,7 @@ from crowdbake.errors import StageOrderError, VersionConflict
 from crowdbake.formats.bundle import BundleFile, verify_bundle, write_bundle
 from crowdbake.stages.validate import load_job
 from crowdbake.stages.workdir import WorkDir
+from crowdbake.storage.exports import publish_export
 
 
 def same_tree(a: Path, b: Path) -> bool:
@@ -50,3 +52,15 @@ def stage_publish(work: Path, bundles_root: Path) -> Path:
     if not same_tree(source, target):
         raise VersionConflict(f"{target} differs from the packed bundle after publishing")
     return target
+
+
+def stage_export(work: Path, bundles_root: Path) -> Path | None:
+    """Publish the engine export of the bundle `stage_publish` published (once; a second call keeps
+    the first). Returns its folder, or None when the bake's `export` parameter is false."""
+    job = load_job(work)
+    if not job.bake_params.export:
+        return None
+    bundle = Path(bundles_root) / job.name / job.version
+    if not (bundle / "manifest.json").is_file():
+        raise StageOrderError(f"{work}: stage 'publish' has not run yet")
+    return publish_export(bundle, Path(bundles_root))

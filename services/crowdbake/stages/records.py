@@ -62,6 +62,10 @@ class JobRecord(Record):
     garment_triangles: int
     cache_frames: int
     cycle_frames: int
+    # The cloth cache's frame rate (crowdbake.params.cache_fps) and the format it came in; None/"pc2" in
+    # records written before they were recorded.
+    fps: float | None = None
+    cloth_format: str = "pc2"
 
     @property
     def bake_params(self) -> BakeParams:

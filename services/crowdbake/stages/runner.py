@@ -14,8 +14,10 @@ Timings (BakeSummary.timings): wall, CPU (this process and its workers) and seco
 """
 from __future__ import annotations
 
+import atexit
 import ctypes
 import importlib
+import logging
 import ctypes.util
 import multiprocessing
 import os
@@ -36,10 +38,12 @@ from crowdbake.stages.cycle import stage_cycle
 from crowdbake.stages.impostors import impostor_statistics, impostor_tasks, stage_impostor_plan, stage_impostor_views
 from crowdbake.stages.pack import stage_pack, stage_pack_frame
 from crowdbake.stages.poses import stage_poses
-from crowdbake.stages.publish import stage_publish
+from crowdbake.stages.publish import stage_export, stage_publish
 from crowdbake.stages.records import PosesRecord
 from crowdbake.stages.validate import BakeInputs, stage_validate
 from crowdbake.stages.workdir import Progress, read_json, report
+
+logger = logging.getLogger(__name__)
 
 # At most this many worker processes: the two independent stages (poses, impostor tasks) keep two busy.
 MAX_WORKERS = 2
@@ -179,7 +183,27 @@ def start_pool(workers: int) -> ProcessPoolExecutor:
     from multiprocessing import forkserver
 
     forkserver.ensure_running()
+    if not _STOP_REGISTERED:
+        atexit.register(_stop_fork_server)
+        _STOP_REGISTERED.append(True)
     return ProcessPoolExecutor(workers, mp_context=context)
+
+
+_STOP_REGISTERED: list[bool] = []
+
+
+def _stop_fork_server() -> None:
+    """At exit, stop the fork server and wait for it, so that the process's own accounting (its children's
+    CPU seconds, `time`'s figures) includes the server and the workers it reaped. multiprocessing leaves it
+    to die unwaited; its stop method is private, so only where it exists."""
+    from multiprocessing import forkserver
+
+    stop = getattr(forkserver._forkserver, "_stop", None)
+    if stop is not None:
+        try:
+            stop()
+        except OSError:
+            logger.debug("stopping the fork server failed", exc_info=True)
 
 
 def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: int, meter: _Meter, progress: Progress | None) -> None:
@@ -254,6 +278,8 @@ class BakeSummary:
     fidelity: dict[str, Any]
     compression: dict[str, Any]
     texture_memory: dict[str, Any]
+    # Set when a texture variation is a JPEG (no alpha, so no colour-region codes): what that means.
+    texture_note: str | None = None
     timings: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -298,7 +324,7 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
     pool = start_pool(workers) if workers > 1 else None
     server_cpu = _fork_server_cpu_seconds() if pool is not None else 0.0
     try:
-        meter.run("validate", lambda: stage_validate(inputs, work))
+        job = meter.run("validate", lambda: stage_validate(inputs, work)).record
         plots: list[Callable[[], None]] = []
         cycle = meter.run("cycle", lambda: stage_cycle(work, progress, plots=plots)).record
         # The cycle report's plots (a second or more of matplotlib) are drawn in a thread of this process,
@@ -318,7 +344,14 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         poses = PosesRecord.from_json(read_json(work / "poses" / "record.json"))
         impostor = impostor_statistics(work)
         pack = meter.run("pack", lambda: stage_pack(work, progress)).record
-        bundle = meter.run("publish", lambda: stage_publish(work, Path(out_root)))
+
+        def publish() -> Path:
+            # The engine export is part of publishing, as in the worker's publish task (None: export=false).
+            published = stage_publish(work, Path(out_root))
+            stage_export(work, Path(out_root))
+            return published
+
+        bundle = meter.run("publish", publish)
         report(progress, "publish", 1, 1)
     finally:
         if pool is not None:
@@ -352,5 +385,6 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         fidelity=dict(pack.fidelity, uv_precision=pack.uv_precision),
         compression=pack.compression,
         texture_memory=pack.texture_memory,
+        texture_note=(job.textures or {}).get("note"),
         timings=timings,
     )

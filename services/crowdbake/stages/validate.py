@@ -1,7 +1,9 @@
 """Stage 1, validate: check every input and parameter, copy the inputs into work/inputs, write the job.
 
 Each input file is parsed once here (the character, the cloth cache, its mesh); later stages read the
-copies. `created` in the manifest is the only clock-like value: BakeInputs.created when given, else the
+copies. Every cloth cache crowdbake takes (PC2 or MDD with an OBJ, Alembic, a zip of OBJ frames) is
+staged as work/inputs/cloth.pc2 + cloth.obj in Y-up metres, its frame rate in the JobRecord (`fps`),
+after its first frame was checked against the character (crowdbake.ingest.garment.place_cloth). `created` in the manifest is the only clock-like value: BakeInputs.created when given, else the
 SOURCE_DATE_EPOCH environment variable (the reproducible-builds convention), else the newest
 modification time of the input files: a property of the inputs, so a rebake of unchanged files gives the
 same bytes.
@@ -21,26 +23,31 @@ from urllib.parse import unquote
 
 from PIL import Image
 
+import logging
+
 from crowdbake import __version__
 from crowdbake.errors import InputError
 from crowdbake.formats.errors import FormatError
 from crowdbake.formats.gltf import load_character
-from crowdbake.formats.obj import read_obj
-from crowdbake.formats.pc2 import read_pc2
-from crowdbake.params import BASE_FPS, CLOSE_METHODS, CREATED_RULE, NAME_RULE, PART_RULE, VERSION_RULE, BakeParams, min_cloth_frames
+from crowdbake.formats.cloth_cache import ClothCache, write_pc2_obj
+from crowdbake.ingest.garment import CACHE_SUFFIXES, body_at_rest, needs_mesh, place_cloth, read_cloth
+from crowdbake.params import CLOSE_METHODS, CREATED_RULE, NAME_RULE, PART_RULE, VERSION_RULE, BakeParams, cache_fps, min_cloth_frames
 from crowdbake.stages.records import JobRecord
 from crowdbake.stages.workdir import StageOutcome, WorkDir, read_json, sha256_file, stage_key
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class BakeInputs:
-    """The files and identity of one bake. textures: folder with diffuse_*.png and outfits.png (optional:
-    else the glTF's texture, one variation, default outfits); cycle: an existing cycle.json (skips the
+    """The files and identity of one bake. cloth: .pc2 or .mdd (with cloth_mesh, an .obj), .abc or an
+    OBJ-sequence .zip (cloth_mesh None); textures: folder with diffuse_*.png or .jpg and outfits.png
+    (optional: else the glTF's texture, one variation, default outfits); cycle: an existing cycle.json (skips the
     search); created: the manifest's RFC 3339 UTC time (see the module docstring when None)."""
 
     character: Path
     cloth: Path
-    cloth_mesh: Path
+    cloth_mesh: Path | None
     textures: Path | None
     cycle: Path | None
     name: str
@@ -52,7 +59,7 @@ class BakeInputs:
         return {
             "character": str(self.character),
             "cloth": str(self.cloth),
-            "cloth_mesh": str(self.cloth_mesh),
+            "cloth_mesh": None if self.cloth_mesh is None else str(self.cloth_mesh),
             "textures": None if self.textures is None else str(self.textures),
             "cycle": None if self.cycle is None else str(self.cycle),
             "name": self.name,
@@ -71,7 +78,7 @@ class BakeInputs:
             return cls(
                 character=Path(data["character"]),
                 cloth=Path(data["cloth"]),
-                cloth_mesh=Path(data["cloth_mesh"]),
+                cloth_mesh=optional_path("cloth_mesh"),
                 textures=optional_path("textures"),
                 cycle=optional_path("cycle"),
                 name=data["name"],
@@ -88,26 +95,39 @@ def rfc3339(seconds: float) -> str:
     return moment.strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
+# Diffuse variations may be PNG or JPEG (crowdbake.formats.images.read_texture_variation); only a PNG
+# carries the alpha channel whose values are colour-region codes.
+DIFFUSE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
 def texture_files(folder: Path) -> tuple[list[Path], Path | None]:
-    """(diffuse_*.png sorted, outfits.png or None) of a textures folder."""
-    diffuse = sorted(folder.glob("diffuse_*.png"))
+    """(diffuse_*.png / .jpg / .jpeg sorted by name, outfits.png or None) of a textures folder."""
+    diffuse = sorted((path for path in folder.glob("diffuse_*") if path.suffix.lower() in DIFFUSE_SUFFIXES), key=lambda path: path.name)
     outfits = folder / "outfits.png"
     return diffuse, outfits if outfits.is_file() else None
+
+
+def without_region_codes(diffuse: list[Path]) -> list[str]:
+    """Names of the JPEG variations: no alpha, so every texel is region 0 and no outfit colour applies."""
+    return [path.name for path in diffuse if path.suffix.lower() in (".jpg", ".jpeg")]
 
 
 def _check_textures(folder: Path) -> dict[str, Any]:
     if not folder.is_dir():
         raise InputError(f"{folder} is not a folder", "textures")
     diffuse, outfits = texture_files(folder)
+    for other in ("outfits.jpg", "outfits.jpeg"):
+        if (folder / other).is_file():
+            raise InputError(f"{other}: the outfit map must be a PNG (16 exact colours a row; JPEG blurs them)", "textures")
     if not diffuse:
-        raise InputError(f"{folder} holds no diffuse_*.png", "textures")
+        raise InputError(f"{folder} holds no diffuse_*.png or diffuse_*.jpg", "textures")
     sizes = set()
     for path in diffuse:
         try:
             with Image.open(path) as image:
                 sizes.add(image.size)
         except OSError as error:
-            raise InputError(f"{path.name} is not a readable PNG: {error}", "textures") from None
+            raise InputError(f"{path.name} is not a readable PNG or JPEG: {error}", "textures") from None
     if len(sizes) != 1:
         raise InputError(f"diffuse textures differ in size: {sorted(sizes)}", "textures")
     outfit_count = None
@@ -120,7 +140,15 @@ def _check_textures(folder: Path) -> dict[str, Any]:
         if width != 16:
             raise InputError(f"outfits.png must be 16 texels wide (one per region), got {width}", "textures")
     (width, height), = sizes
-    return {"variations": len(diffuse), "size": [width, height], "outfits": outfit_count}
+    info: dict[str, Any] = {"variations": len(diffuse), "size": [width, height], "outfits": outfit_count}
+    jpegs = without_region_codes(diffuse)
+    if jpegs:
+        # Said once here, recorded with the job and shown by `crowdbake bake`.
+        info["without_region_codes"] = jpegs
+        info["note"] = (f"{', '.join(jpegs)}: a JPEG has no alpha, so no colour-region codes: every texel is region 0 and "
+                        "keeps its own colour, no outfit colour applies (use PNG with region codes in alpha for outfits)")
+        logger.warning("%s", info["note"])
+    return info
 
 
 def _check_cycle_document(path: Path, frame_count: int) -> dict[str, Any]:
@@ -183,8 +211,14 @@ def _check_identity(inputs: BakeInputs) -> BakeParams:
 
 def _source_files(inputs: BakeInputs) -> dict[str, Path]:
     sources: dict[str, Path] = {}
-    for field_name, suffixes in (("character", (".glb", ".gltf")), ("cloth", (".pc2",)), ("cloth_mesh", (".obj",))):
-        path = Path(getattr(inputs, field_name))
+    wanted = [("character", (".glb", ".gltf")), ("cloth", CACHE_SUFFIXES)]
+    if inputs.cloth_mesh is not None or needs_mesh(inputs.cloth):
+        wanted.append(("cloth_mesh", (".obj",)))
+    for field_name, suffixes in wanted:
+        value = getattr(inputs, field_name)
+        if value is None:
+            raise InputError(f"{Path(inputs.cloth).name}: a {Path(inputs.cloth).suffix.lower()} cache needs its rest mesh (.obj)", field_name)
+        path = Path(value)
         if not path.is_file():
             raise InputError(f"{path} does not exist or is not a file", field_name)
         if path.suffix.lower() not in suffixes:
@@ -197,31 +231,32 @@ def _source_files(inputs: BakeInputs) -> dict[str, Path]:
     return sources
 
 
-def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeParams) -> dict[str, int]:
-    """Parse each input file once and cross-check them; the counts the job records."""
+@dataclass(frozen=True)
+class _Parsed:
+    """What parsing the inputs gave: the counts the job records, the cloth in Y-up metres and its rate;
+    converted: the cloth's frame was changed (up axis or units)."""
+
+    counts: dict[str, int]
+    cloth: ClothCache
+    fps: float
+    converted: bool
+
+
+def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeParams) -> _Parsed:
+    """Parse each input file once and cross-check them."""
     try:
-        character = load_character(sources["character"])
+        character = load_character(sources["character"], animation=params.animation)
     except (ValueError, FormatError, OSError, KeyError) as error:
-        raise InputError(f"{sources['character'].name}: {error}", "character") from None
-    try:
-        cache = read_pc2(sources["cloth"])
-    except (ValueError, OSError) as error:
-        raise InputError(str(error), "cloth") from None
-    try:
-        mesh = read_obj(sources["cloth_mesh"])
-    except (ValueError, OSError) as error:
-        raise InputError(str(error), "cloth_mesh") from None
-    if mesh.position_count != cache.point_count:
-        raise InputError(
-            f"{sources['cloth_mesh'].name} has {mesh.position_count} positions but {sources['cloth'].name} has "
-            f"{cache.point_count} points",
-            "cloth_mesh",
-        )
-    if len(mesh.faces) == 0:
-        raise InputError(f"{sources['cloth_mesh'].name} has no faces", "cloth_mesh")
+        text = str(error).splitlines()[0] if str(error) else type(error).__name__
+        field = "animation" if "animation" in text and params.animation != 0 else "character"
+        raise InputError(f"{sources['character'].name}: {text}", field) from None
+    cache = read_cloth(sources["cloth"], sources.get("cloth_mesh"))
     if len(character.faces) == 0:
         raise InputError(f"{sources['character'].name} has no triangles", "character")
-    fps = BASE_FPS / cache.sample_rate
+    # The garment must sit on the character: a Z-up or centimetre cache is refused (naming up / units) or
+    # converted as declared, before any stage spends minutes on it.
+    placed = place_cloth(cache, body_at_rest(character), params.up, params.units)
+    fps = cache_fps(params.fps, cache.fps, cache.frame_step)
     if params.cycle_frames is not None:
         cycle_frames = params.cycle_frames
     elif character.animation_duration > 0:
@@ -229,29 +264,32 @@ def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeP
     else:
         raise InputError("the character has no animation: give cycle_frames", "cycle_frames")
     if inputs.cycle is not None:
-        cycle_frames = _check_cycle_document(sources["cycle"], cache.sample_count)["cycle_frames"]
-    elif cache.sample_count < min_cloth_frames(cycle_frames):
+        cycle_frames = _check_cycle_document(sources["cycle"], cache.frame_count)["cycle_frames"]
+    elif cache.frame_count < min_cloth_frames(cycle_frames):
         raise InputError(
-            f"{sources['cloth'].name} has {cache.sample_count} frames; the cycle search needs two cycles of "
+            f"{sources['cloth'].name} has {cache.frame_count} frames; the cycle search needs two cycles of "
             f"{cycle_frames}",
             "cloth",
         )
-    lod_parts = len(character.faces) + len(mesh.faces)
+    lod_parts = len(character.faces) + len(cache.faces)
     if params.lod_triangles is not None and params.lod_triangles >= lod_parts:
         raise InputError(f"lod_triangles {params.lod_triangles} is not below the {lod_parts} triangles of the character", "lod_triangles")
-    return {
+    counts = {
         "body_vertices": int(len(character.positions)),
         "body_triangles": int(len(character.faces)),
-        "garment_vertices": int(mesh.vertex_count),
-        "garment_triangles": int(len(mesh.faces)),
-        "cache_frames": int(cache.sample_count),
+        "garment_vertices": int(cache.mesh.vertex_count),
+        "garment_triangles": int(len(cache.faces)),
+        "cache_frames": int(cache.frame_count),
         "cycle_frames": int(cycle_frames),
     }
+    return _Parsed(counts, placed, fps, placed is not cache)
 
 
 def _copy_inputs(work: WorkDir, inputs: BakeInputs, sources: dict[str, Path], gltf_files: list[str],
-                 looped_beside_cycle: Path | None, textures: list[Path]) -> dict[str, str]:
-    """Copy the inputs into work/inputs (copy2 keeps modification times, which `created` may come from)."""
+                 looped_beside_cycle: Path | None, textures: list[Path], parsed: _Parsed) -> dict[str, str]:
+    """Copy the inputs into work/inputs (copy2 keeps modification times, which `created` may come from).
+    A PC2 + OBJ in Y-up metres is copied as it is; any other cache, or a converted one, is written as the
+    PC2 + OBJ pair the stages read."""
     inputs_dir = work.inputs
     if inputs_dir.exists():
         shutil.rmtree(inputs_dir)
@@ -269,8 +307,11 @@ def _copy_inputs(work: WorkDir, inputs: BakeInputs, sources: dict[str, Path], gl
         names["character"] = f"gltf/{character.name}"
     else:
         shutil.copy2(character, inputs_dir / names["character"])
-    shutil.copy2(sources["cloth"], inputs_dir / names["cloth"])
-    shutil.copy2(sources["cloth_mesh"], inputs_dir / names["cloth_mesh"])
+    if sources["cloth"].suffix.lower() == ".pc2" and not parsed.converted:
+        shutil.copy2(sources["cloth"], inputs_dir / names["cloth"])
+        shutil.copy2(sources["cloth_mesh"], inputs_dir / names["cloth_mesh"])
+    else:
+        write_pc2_obj(parsed.cloth, inputs_dir / names["cloth"], inputs_dir / names["cloth_mesh"])
     if inputs.cycle is not None:
         names["cycle"] = "cycle.json"
         shutil.copy2(sources["cycle"], inputs_dir / "cycle.json")
@@ -298,7 +339,8 @@ def _created(given: str | None, files: list[Path]) -> tuple[str, str]:
 
 
 def garment_part_name(cloth_mesh: Path) -> str:
-    """The garment's part name in the bundle: the OBJ's stem when it is a plain name, else "garment"."""
+    """The garment's part name in the bundle: the OBJ's (or the self-contained cache's) stem when it is a
+    plain name, else "garment"."""
     stem = re.sub(r"[^a-z0-9_-]", "", Path(cloth_mesh).stem.lower())[:32]
     return stem if PART_RULE.match(stem or "-") and stem != "body" else "garment"
 
@@ -335,13 +377,14 @@ def stage_validate(inputs: BakeInputs, work: Path) -> StageOutcome[JobRecord]:
     if cached is not None:
         return StageOutcome(cached, True, 0.0)
 
-    counts = _parse_and_check(inputs, sources, params)
-    names = _copy_inputs(folder, inputs, sources, gltf_files, looped_beside_cycle, texture_list)
+    parsed = _parse_and_check(inputs, sources, params)
+    names = _copy_inputs(folder, inputs, sources, gltf_files, looped_beside_cycle, texture_list, parsed)
     created, created_from = _created(inputs.created, [*sources.values(), *texture_list])
     record = JobRecord(
         key=key, name=inputs.name, version=inputs.version, created=created, created_from=created_from,
-        params=params.to_dict(), inputs=names, hashes=hashes, garment_part=garment_part_name(sources["cloth_mesh"]),
-        textures=texture_info, producer=f"crowdbake {__version__}", **counts,
+        params=params.to_dict(), inputs=names, hashes=hashes, garment_part=garment_part_name(sources.get("cloth_mesh", sources["cloth"])),
+        textures=texture_info, producer=f"crowdbake {__version__}", **parsed.counts,
+        fps=parsed.fps, cloth_format=parsed.cloth.source,
     )
     seconds = time.perf_counter() - started
     folder.save("validate", key, record, seconds)

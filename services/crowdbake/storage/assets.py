@@ -24,8 +24,13 @@ def asset_digest(files: dict[str, dict[str, Any]]) -> str:
     return hashlib.sha256("\n".join(f"{role}:{files[role]['sha256']}" for role in sorted(files)).encode()).hexdigest()
 
 
-def find_asset(session: Session, kind: str, digest: str) -> Asset | None:
-    return session.scalars(select(Asset).where(Asset.kind == kind, Asset.digest == digest)).first()
+def find_asset(session: Session, kind: str, digest: str, created_by: str | None) -> Asset | None:
+    """The asset of this content that `created_by` uploaded (assets are unique per owner)."""
+    return session.scalars(select(Asset).where(Asset.kind == kind, Asset.digest == digest, _owner_is(created_by))).first()
+
+
+def _owner_is(created_by: str | None):
+    return Asset.created_by.is_(None) if created_by is None else Asset.created_by == created_by
 
 
 def store_asset(
@@ -38,7 +43,7 @@ def store_asset(
     """
     files = {role: stored_file(blob, filename, media_type) for role, (blob, filename, media_type) in staged.items()}
     digest = asset_digest(files)
-    existing = find_asset(session, kind, digest)
+    existing = find_asset(session, kind, digest, created_by)
     if existing is None:
         for blob, _, _ in staged.values():
             blobs.commit(blob)
@@ -53,7 +58,7 @@ def store_asset(
             return asset, True
         except IntegrityError:  # the same content arrived concurrently; theirs was recorded first
             session.rollback()
-            existing = session.scalars(select(Asset).where(Asset.kind == kind, Asset.digest == digest)).one()
+            existing = session.scalars(select(Asset).where(Asset.kind == kind, Asset.digest == digest, _owner_is(created_by))).one()
     for blob, _, _ in staged.values():
         blob.discard()
     return existing, False

@@ -17,7 +17,9 @@ from sqlalchemy.orm import Session
 
 from crowdbake.storage.models import ApiKey
 
-SCOPES = ("upload", "bake", "publish", "read")
+# admin: see and change every key's assets, bakes and bundles (operators); without it a key sees only
+# what it created, plus public bundles (crowdbake.api.deps.Principal).
+SCOPES = ("upload", "bake", "publish", "read", "admin")
 KEY_PREFIX = "cbk"
 _KEY = re.compile(rf"^{KEY_PREFIX}_([0-9a-f]{{12}})_([A-Za-z0-9_-]{{20,}})$")
 # Keys given from outside (the bootstrap key) have their own id so they never collide with minted ones.

@@ -57,7 +57,8 @@ class Asset(Base):
     """
 
     __tablename__ = "assets"
-    __table_args__ = (UniqueConstraint("kind", "digest", name="uq_assets_kind_digest"),)
+    # Unique per owner: two keys uploading the same bytes get an asset each (the blobs are shared).
+    __table_args__ = (UniqueConstraint("kind", "digest", "created_by", name="uq_assets_kind_digest_owner"),)
 
     id: Mapped[str] = mapped_column(String(40), primary_key=True)
     kind: Mapped[str] = mapped_column(String(20))

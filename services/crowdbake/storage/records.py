@@ -34,12 +34,13 @@ def code_version() -> str:
     return __version__
 
 
-def input_key(digests: dict[str, Any], name: str, version: str, params: dict[str, Any]) -> str:
-    """sha256 of everything that decides a bake's output; names the bake's work folder."""
-    canonical = json.dumps(
-        {"inputs": digests, "name": name, "version": version, "params": params, "code": code_version()},
-        sort_keys=True, separators=(",", ":"),
-    )
+def input_key(digests: dict[str, Any], name: str, version: str, params: dict[str, Any], created: str | None = None) -> str:
+    """sha256 of everything that decides a bake's output; names the bake's work folder. `created` (the
+    manifest time) counts only when given, so the keys of bakes without one are what they were."""
+    identity = {"inputs": digests, "name": name, "version": version, "params": params, "code": code_version()}
+    if created is not None:
+        identity["created"] = created
+    canonical = json.dumps(identity, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()
 
 

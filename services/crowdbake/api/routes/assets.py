@@ -16,7 +16,9 @@ from crowdbake.api.deps import AssetReadKey, ServicesDep, SessionDep, UploadKey
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import MAX_LIST_OFFSET, AssetPublic, AssetsPublic, problem_responses
 from crowdbake.api.uploads import MultipartUpload, UploadedFile, read_multipart
-from crowdbake.ingest.uploads import ZipLimits, check_character, check_cloth, check_texture, convert_obj_sequence
+from crowdbake.ingest.studio_inputs import MEDIA_TYPES as STUDIO_MEDIA_TYPES
+from crowdbake.ingest.studio_inputs import check_jpeg_texture, check_point_cache, pc2_first_frame, placement_sample
+from crowdbake.ingest.uploads import ZipLimits, _extension, check_character, check_cloth, check_texture, convert_obj_sequence
 from crowdbake.storage.assets import store_asset
 from crowdbake.storage.blobs import BlobStore, IncomingBlob
 from crowdbake.storage.models import Asset
@@ -29,6 +31,7 @@ MEDIA_TYPES = {
     "pc2": "application/x-pc2",
     "obj": "model/obj",
     "png": "image/png",
+    **STUDIO_MEDIA_TYPES,
 }
 UPLOAD_RESPONSES = problem_responses(400, 413, 415)
 
@@ -90,7 +93,8 @@ def _cycle_frames(upload: MultipartUpload) -> int | None:
 
 @router.post(
     "/cloth", response_model=AssetPublic, status_code=201, responses=UPLOAD_RESPONSES,
-    summary="Upload a cloth cache: a PC2 with its OBJ rest mesh, or a zip of OBJ frames (one topology)",
+    summary="Upload a cloth cache: a PC2 or MDD with its OBJ rest mesh, an Alembic .abc alone (needs the crowdbake[alembic] "
+            "extra on the API host), or a zip of OBJ frames (one topology)",
     openapi_extra=_multipart_body(
         {"cache": _FILE, "mesh": _FILE, "sequence": _FILE,
          "cycle_frames": {"type": "integer", "minimum": 2, "description": "Frames per walk cycle, to check there are two cycles."}},
@@ -106,12 +110,20 @@ async def upload_cloth(request: Request, response: Response, key: UploadKey, ser
         has_pair = "cache" in upload.files or "mesh" in upload.files
         if has_pair == ("sequence" in upload.files):
             raise Problem(
-                "malformed-request", "send either 'cache' (.pc2) with 'mesh' (.obj), or 'sequence' (.zip of OBJ frames)",
+                "malformed-request", "send either 'cache' (.pc2 or .mdd) with 'mesh' (.obj), 'cache' (.abc) alone, or 'sequence' (.zip of OBJ frames)",
                 [{"field": name, "message": "missing" if name not in upload.files else "unexpected with the other form"} for name in ("cache", "mesh", "sequence")],
             )
-        if has_pair:
+        if has_pair and _extension(_require_file(upload, "cache").filename) in (".mdd", ".abc"):
+            # MDD and Alembic are stored as uploaded; the validate stage stages them as PC2 + OBJ with their fps.
+            cache, mesh = upload.files["cache"], upload.files.get("mesh")
+            info = await run_in_threadpool(check_point_cache, cache.blob.path, cache.filename, mesh and mesh.blob.path, mesh and mesh.filename, cycle_frames)
+            staged = {"cache": (cache.blob, cache.filename, MEDIA_TYPES[info["format"]])}
+            if mesh is not None:
+                staged["mesh"] = (mesh.blob, mesh.filename, MEDIA_TYPES["obj"])
+        elif has_pair:
             cache, mesh = _require_file(upload, "cache"), _require_file(upload, "mesh")
             info = await run_in_threadpool(check_cloth, cache.blob.path, cache.filename, mesh.blob.path, mesh.filename, cycle_frames)
+            info["placement_sample"] = placement_sample(pc2_first_frame(cache.blob.path))
             staged = {"cache": (cache.blob, cache.filename, MEDIA_TYPES["pc2"]), "mesh": (mesh.blob, mesh.filename, MEDIA_TYPES["obj"])}
         else:
             sequence = upload.files["sequence"]
@@ -121,6 +133,7 @@ async def upload_cloth(request: Request, response: Response, key: UploadKey, ser
             info = await run_in_threadpool(convert_obj_sequence, sequence.blob.path, sequence.filename, limits, cache_blob, mesh_blob, cycle_frames)
             cache_blob.close()
             mesh_blob.close()
+            info["placement_sample"] = placement_sample(pc2_first_frame(cache_blob.path))
             stem = sequence.filename.rsplit(".", 1)[0] or "cloth"
             staged = {"cache": (cache_blob, f"{stem}.pc2", MEDIA_TYPES["pc2"]), "mesh": (mesh_blob, f"{stem}.obj", MEDIA_TYPES["obj"])}
             info["source"] = {"filename": sequence.filename, "sha256": sequence.blob.sha256, "size": sequence.blob.size}
@@ -133,15 +146,19 @@ async def upload_cloth(request: Request, response: Response, key: UploadKey, ser
 
 @router.post(
     "/textures", response_model=AssetPublic, status_code=201, responses=UPLOAD_RESPONSES,
-    summary="Upload a texture (PNG): a diffuse variation or the outfit colour map",
+    summary="Upload a texture: a diffuse variation (PNG, or JPEG: no alpha, so no colour-region codes) or the outfit colour map (PNG)",
     openapi_extra=_multipart_body({"file": _FILE}, ["file"]),
 )
 async def upload_texture(request: Request, response: Response, key: UploadKey, services: ServicesDep, session: SessionDep) -> Asset:
     upload = await read_multipart(request, services.blobs, services.settings.max_upload_bytes, {"file"})
     try:
         uploaded = _require_file(upload, "file")
-        info = await run_in_threadpool(check_texture, uploaded.blob.path, uploaded.filename, services.settings.max_texture_pixels, "file")
-        return _store_asset(session, services.blobs, response, "texture", {"file": (uploaded.blob, uploaded.filename, MEDIA_TYPES["png"])}, info, key.key_id)
+        if _extension(uploaded.filename) in (".jpg", ".jpeg"):
+            info = await run_in_threadpool(check_jpeg_texture, uploaded.blob.path, uploaded.filename, services.settings.max_texture_pixels, "file")
+        else:
+            info = await run_in_threadpool(check_texture, uploaded.blob.path, uploaded.filename, services.settings.max_texture_pixels, "file")
+        media_type = MEDIA_TYPES["jpeg"] if info.get("format") == "jpeg" else MEDIA_TYPES["png"]
+        return _store_asset(session, services.blobs, response, "texture", {"file": (uploaded.blob, uploaded.filename, media_type)}, info, key.key_id)
     finally:
         upload.discard()
 
@@ -152,7 +169,7 @@ def list_assets(
     kind: Literal["character", "cloth", "texture"] | None = None,
     limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET),
 ) -> AssetsPublic:
-    query = select(Asset).order_by(Asset.created_at.desc(), Asset.id)
+    query = key.only_own(select(Asset).order_by(Asset.created_at.desc(), Asset.id), Asset.created_by)
     if kind:
         query = query.where(Asset.kind == kind)
     assets = session.scalars(query.offset(offset).limit(limit)).all()
@@ -162,6 +179,6 @@ def list_assets(
 @router.get("/{asset_id}", response_model=AssetPublic, responses=problem_responses(404))
 def get_asset(asset_id: str, key: AssetReadKey, session: SessionDep) -> Asset:
     asset = session.get(Asset, asset_id)
-    if asset is None:
+    if asset is None or not key.owns(asset.created_by):  # another key's asset is not there for this one
         raise Problem("not-found", f"no asset {asset_id!r}")
     return asset

@@ -15,13 +15,14 @@ from fastapi.responses import PlainTextResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from crowdbake.api.deps import BakeKey, PublishKey, ServicesDep, SessionDep
+from crowdbake.api.deps import BakeKey, Principal, PublishKey, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import MAX_LIST_OFFSET, BakeCreate, BakePublic, BakesPublic, LogLine, StagePublic, problem_responses
 from crowdbake.errors import InputError
-from crowdbake.ingest.bake_request import check_two_cycles
+from crowdbake.ingest.bake_request import check_request_placement, check_two_cycles
 from crowdbake.jobs.celery_app import send_stage
 from crowdbake.params import BakeParams
+from crowdbake.redact import path_replacements, redact_text, redact_value
 from crowdbake.storage import records
 from crowdbake.storage.bundles import find_bundle
 from crowdbake.storage.models import Asset, Bake
@@ -33,6 +34,9 @@ LOG_LINES_IN_BAKE = 50
 
 
 def bake_public(session: Session, bake: Bake, log_lines: int = LOG_LINES_IN_BAKE) -> BakePublic:
+    """The bake as clients see it; log lines and the error never show server paths (crowdbake.redact)."""
+    settings = session.info.get("settings")  # set by crowdbake.api.deps.get_session
+    replacements = path_replacements(settings) if settings is not None else []
     bundle_url = None
     if bake.publish and bake.stages and bake.stages[-1].state == "succeeded":
         bundle_url = f"/v1/bundles/{bake.name}/{bake.version}/manifest.json"
@@ -44,8 +48,8 @@ def bake_public(session: Session, bake: Bake, log_lines: int = LOG_LINES_IN_BAKE
             stage=row.stage, state=row.state, done=row.done, total=row.total, retries=row.retries, seconds=row.seconds,
             started_at=records.to_utc(row.started_at), finished_at=records.to_utc(row.finished_at),
         ) for row in bake.stages],
-        error=bake.error,
-        log=[LogLine(at=records.to_utc(line.at), level=line.level, stage=line.stage, message=line.message)
+        error=redact_value(bake.error, replacements),
+        log=[LogLine(at=records.to_utc(line.at), level=line.level, stage=line.stage, message=redact_text(line.message, replacements))
              for line in (records.log_lines(session, bake.id, log_lines) if log_lines else [])],
         bundle_url=bundle_url,
         created_at=records.to_utc(bake.created_at), updated_at=records.to_utc(bake.updated_at),
@@ -53,16 +57,17 @@ def bake_public(session: Session, bake: Bake, log_lines: int = LOG_LINES_IN_BAKE
     )
 
 
-def _get_bake(session: Session, bake_id: str) -> Bake:
+def _get_bake(session: Session, bake_id: str, key: Principal) -> Bake:
+    """The bake, if it exists and `key` owns it (another key's bake is a 404: its id reveals nothing)."""
     bake = session.get(Bake, bake_id)
-    if bake is None:
+    if bake is None or not key.owns(bake.created_by):
         raise Problem("not-found", f"no bake {bake_id!r}")
     return bake
 
 
-def _asset(session: Session, asset_id: str, kind: str, field: str, errors: list[dict[str, Any]]) -> Asset | None:
+def _asset(session: Session, asset_id: str, kind: str, field: str, errors: list[dict[str, Any]], key: Principal) -> Asset | None:
     asset = session.get(Asset, asset_id)
-    if asset is None or asset.kind != kind:
+    if asset is None or asset.kind != kind or not key.owns(asset.created_by):
         errors.append({"field": field, "message": f"no {kind} asset {asset_id!r}"})
         return None
     return asset
@@ -77,15 +82,35 @@ def _check_params(params: dict[str, Any]) -> None:
         raise Problem("validation-error", f"the parameters are not accepted: {error}", [{"field": field, "message": str(error)}]) from None
 
 
-def _check_cycle(character: Asset, cloth: Asset, cycle_frames: int | None) -> None:
-    """The cloth must hold two cycles (crowdbake.ingest.bake_request), as a problem naming the field."""
+def _check_cycle(character: Asset, cloth: Asset, params: dict[str, Any]) -> None:
+    """The animation must exist, the cloth must hold two cycles of it and sit on the character
+    (crowdbake.ingest.bake_request), as problems naming the field."""
     try:
-        check_two_cycles(character.info, cloth.info, cycle_frames)
+        check_two_cycles(character.info, cloth.info, params.get("cycle_frames"), params.get("fps"), params.get("animation", 0))
+        check_request_placement(character.info, cloth.info, params.get("animation", 0), params.get("up"), params.get("units"))
     except InputError as error:
+        if error.field in ("params.animation", "params.up", "params.units"):
+            title = {"params.animation": "the character has no such animation",
+                     "params.up": "the cloth cache is not Y-up", "params.units": "the cloth cache is not in metres"}[error.field]
+            raise Problem("validation-error", title, [{"field": error.field, "message": error.message}]) from None
+        if error.field == "cloth" and "two cycles" not in error.message:
+            raise Problem("invalid-file", "the garment does not sit on the character", [{"field": "cloth", "message": error.message}]) from None
         if error.field == "cloth":
             raise Problem("invalid-file", "too few frames for two cycles", [{"field": "cloth", "message": error.message}]) from None
         raise Problem("validation-error", "the character has no animation to take the cycle length from",
                       [{"field": error.field, "message": error.message}]) from None
+
+
+def _check_texture_formats(textures: dict[str, Asset | None]) -> None:
+    """A texture's name must say its format (the validate stage reads diffuse_*.jpg as JPEG)."""
+    errors = []
+    for name, texture in textures.items():
+        stored = (texture.info or {}).get("format", "png") if texture is not None else None
+        named = "jpeg" if name.lower().endswith((".jpg", ".jpeg")) else "png"
+        if stored is not None and stored != named:
+            errors.append({"field": f"textures.{name}", "message": f"the asset is a {stored.upper()} image; name it with its extension"})
+    if errors:
+        raise Problem("validation-error", "a texture's name does not match its format", errors)
 
 
 def _enqueue(services, session: Session, bake: Bake, stage: str) -> None:
@@ -103,23 +128,24 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: Se
     if (body.publish or body.public) and "publish" not in key.scopes:
         raise Problem("forbidden", "publishing a bundle (publish or public true) needs the publish scope")
     errors: list[dict[str, Any]] = []
-    character = _asset(session, body.character, "character", "character", errors)
-    cloth = _asset(session, body.cloth, "cloth", "cloth", errors)
-    textures = {name: _asset(session, asset_id, "texture", f"textures.{name}", errors) for name, asset_id in sorted(body.textures.items())}
+    character = _asset(session, body.character, "character", "character", errors, key)
+    cloth = _asset(session, body.cloth, "cloth", "cloth", errors, key)
+    textures = {name: _asset(session, asset_id, "texture", f"textures.{name}", errors, key) for name, asset_id in sorted(body.textures.items())}
     if errors:
         raise Problem("validation-error", "the bake names assets that do not exist", errors)
     params = body.params.model_dump()
     _check_params(params)
-    _check_cycle(character, cloth, body.params.cycle_frames)
+    _check_cycle(character, cloth, params)
+    _check_texture_formats(textures)
 
     digests = {
         "character": character.digest,
         "cloth": {role: entry["sha256"] for role, entry in cloth.files.items()},
         "textures": {name: texture.digest for name, texture in textures.items()},
     }
-    key_digest = records.input_key(digests, body.name, body.version, params)
+    key_digest = records.input_key(digests, body.name, body.version, params, created=body.created)
     existing = records.reusable_bake(session, key_digest)
-    if existing is not None:
+    if existing is not None and key.owns(existing.created_by):
         response.status_code = 200
         response.headers["Location"] = f"/v1/bakes/{existing.id}"
         return bake_public(session, existing)
@@ -134,7 +160,8 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: Se
 
     bake = records.create_bake(
         session, name=body.name, version=body.version, params=params,
-        inputs={"character": character.id, "cloth": cloth.id, "textures": {name: texture.id for name, texture in textures.items()}},
+        inputs={"character": character.id, "cloth": cloth.id, "textures": {name: texture.id for name, texture in textures.items()},
+                **({"created": body.created} if body.created is not None else {})},
         key=key_digest, publish=body.publish, public=body.public, created_by=key.key_id,
     )
     session.commit()
@@ -149,7 +176,7 @@ def list_bakes(
     state: Literal["queued", "running", "succeeded", "failed", "cancelled"] | None = None, name: str | None = None,
     limit: int = Query(50, ge=1, le=500), offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET),
 ) -> BakesPublic:
-    query = select(Bake).order_by(Bake.created_at.desc(), Bake.id)
+    query = key.only_own(select(Bake).order_by(Bake.created_at.desc(), Bake.id), Bake.created_by)
     if state:
         query = query.where(Bake.state == state)
     if name:
@@ -160,21 +187,22 @@ def list_bakes(
 
 @router.get("/{bake_id}", response_model=BakePublic, responses=problem_responses(404))
 def get_bake(bake_id: str, key: BakeKey, session: SessionDep) -> BakePublic:
-    return bake_public(session, _get_bake(session, bake_id))
+    return bake_public(session, _get_bake(session, bake_id, key))
 
 
 @router.get("/{bake_id}/log", response_class=PlainTextResponse, responses=problem_responses(404), summary="The bake's whole log as text")
-def get_bake_log(bake_id: str, key: BakeKey, session: SessionDep) -> str:
-    bake = _get_bake(session, bake_id)
+def get_bake_log(bake_id: str, key: BakeKey, services: ServicesDep, session: SessionDep) -> str:
+    bake = _get_bake(session, bake_id, key)
+    replacements = path_replacements(services.settings)
     return "".join(
-        f"{records.to_utc(line.at).strftime('%Y-%m-%dT%H:%M:%S.%fZ')} {line.level:<7} {line.stage or '-':<9} {line.message}\n"
+        f"{records.to_utc(line.at).strftime('%Y-%m-%dT%H:%M:%S.%fZ')} {line.level:<7} {line.stage or '-':<9} {redact_text(line.message, replacements)}\n"
         for line in records.log_lines(session, bake.id)
     )
 
 
 @router.post("/{bake_id}/cancel", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409))
 def cancel_bake(bake_id: str, key: BakeKey, session: SessionDep) -> BakePublic:
-    bake = _get_bake(session, bake_id)
+    bake = _get_bake(session, bake_id, key)
     if records.is_final(bake):
         raise Problem("invalid-state", f"bake {bake_id} already {bake.state}")
     records.cancel_bake(session, bake)
@@ -184,7 +212,7 @@ def cancel_bake(bake_id: str, key: BakeKey, session: SessionDep) -> BakePublic:
 
 @router.post("/{bake_id}/retry", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409, 503))
 def retry_bake(bake_id: str, key: BakeKey, services: ServicesDep, session: SessionDep) -> BakePublic:
-    bake = _get_bake(session, bake_id)
+    bake = _get_bake(session, bake_id, key)
     if bake.state not in ("failed", "cancelled"):
         raise Problem("invalid-state", f"only failed or cancelled bakes can be retried; bake {bake_id} is {bake.state}")
     records.reset_for_retry(session, bake)
@@ -196,7 +224,7 @@ def retry_bake(bake_id: str, key: BakeKey, services: ServicesDep, session: Sessi
 @router.post("/{bake_id}/publish", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409, 503),
              summary="Publish a bake that was run with publish=false")
 def publish_bake(bake_id: str, key: PublishKey, services: ServicesDep, session: SessionDep) -> BakePublic:
-    bake = _get_bake(session, bake_id)
+    bake = _get_bake(session, bake_id, key)
     stages = {row.stage: row for row in bake.stages}
     if bake.state != "succeeded" or stages["pack"].state != "succeeded":
         raise Problem("invalid-state", f"bake {bake_id} is {bake.state}; only a finished bake can be published")

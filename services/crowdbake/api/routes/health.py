@@ -58,15 +58,29 @@ def _broker_state(services: AppServices) -> str:
     return "ok" if error is None else f"unreachable: {error}"
 
 
+def _bucket_state(store) -> str:
+    """An object store's bucket answers (HEAD bucket) with this process's credentials."""
+    try:
+        store.client.head_bucket(Bucket=store.bucket)
+    except Exception as error:  # any client error means "not ready"; the log has the details
+        logger.warning("readiness: bucket %s unusable: %s", store.bucket, error)
+        return f"unreachable: {type(error).__name__}"
+    return "ok"
+
+
 def readiness_probe(services: AppServices) -> ReadinessProbe:
     """The app's dependency checks (built once per app, see crowdbake.api.readiness)."""
     bundles = services.settings.bundles_dir
-    return ReadinessProbe({
+    checks = {
         "database": lambda: _database_state(services),
+        # Uploads are staged on local disk whichever store keeps them.
         "blob_store": lambda: _writable(services.blobs.staging_dir),
         "bundles": lambda: _writable(bundles) if os.path.isdir(bundles) else "missing",
         "broker": lambda: _broker_state(services),
-    })
+    }
+    if services.settings.store == "s3":
+        checks["bundles"] = lambda: _bucket_state(services.bundles)
+    return ReadinessProbe(checks)
 
 
 @router.get("/ready", response_model=ReadinessPublic, responses=problem_responses(503), summary="Readiness: dependencies usable")

@@ -22,23 +22,25 @@ import hashlib
 import io
 import os
 import re
-import struct
 import tempfile
 import zipfile
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Callable, Literal
 
 import numpy as np
 from fastapi import APIRouter, Query, Request
-from fastapi.responses import FileResponse, RedirectResponse, Response
+from fastapi.responses import FileResponse, RedirectResponse, Response, StreamingResponse
 from starlette.background import BackgroundTask
 
+from crowdbake.api.bundle_files import stream_chunks
 from crowdbake.api.deps import BakeKey, PrincipalDep, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
-from crowdbake.api.routes.bundles import IMMUTABLE_SECONDS, NameParam, VersionParam, _bundle_or_problem
+from crowdbake.api.routes.bundles import IMMUTABLE_SECONDS, NameParam, VersionParam, _bundle_or_problem, _manifest
 from crowdbake.api.schemas import problem_responses
 from crowdbake.formats.binary import read_texture_layer
-from crowdbake.storage.bundles import LATEST, bundle_dir, read_manifest
+from crowdbake.storage import work_outputs
+from crowdbake.storage.bundle_store import BundleStore
+from crowdbake.storage.bundles import LATEST
 from crowdbake.storage.models import Bake
 
 STATIC_DIR = Path(__file__).resolve().parent.parent / "static"
@@ -98,21 +100,30 @@ def static_file(name: str) -> FileResponse:
 )
 def get_cycle_file(bake_id: str, path: str, key: BakeKey, services: ServicesDep, session: SessionDep) -> Response:
     bake = session.get(Bake, bake_id)
-    if bake is None:
+    if bake is None or not key.owns(bake.created_by):
         raise Problem("not-found", f"no bake {bake_id!r}")
     if not CYCLE_FILE.match(path):
         raise Problem("not-found", f"{path!r} is not a file of the cycle report")
+    headers = {"Cache-Control": "private, no-cache", "X-Content-Type-Options": "nosniff"}
+    suffix = Path(path).suffix
+    if suffix == ".html":
+        headers["Content-Security-Policy"] = REPORT_CSP
+    cycle = next((row for row in bake.stages if row.stage == "cycle"), None)
+    why = "the cycle stage has not finished" if cycle is None or cycle.state != "succeeded" else "no such file in the cycle report"
+    outputs = (cycle.result or {}).get("outputs") if cycle is not None else None
+    if outputs:
+        # Work folders are private to each worker machine: the cycle stage stored its files as blobs.
+        entry = work_outputs.read_listing(services.blobs, outputs).get(f"cycle/{path}")
+        if entry is None:
+            raise Problem("not-found", f"bake {bake_id}: {why} ({path})")
+        body = services.blobs.open(entry["sha256"])
+        return StreamingResponse(stream_chunks(body), media_type=CYCLE_TYPES[suffix], headers={**headers, "Content-Length": str(entry["size"])})
     # The work folder is named by the input key (crowdbake.jobs.tasks.work_dir); the cycle stage writes cycle/.
     folder = (Path(services.settings.work_dir) / bake.input_key / "cycle").resolve()
     file_path = (folder / path).resolve()
     if not file_path.is_relative_to(folder) or not file_path.is_file():
-        cycle = next((row for row in bake.stages if row.stage == "cycle"), None)
-        why = "the cycle stage has not finished" if cycle is None or cycle.state != "succeeded" else "no such file in the cycle report"
         raise Problem("not-found", f"bake {bake_id}: {why} ({path})")
-    headers = {"Cache-Control": "private, no-cache", "X-Content-Type-Options": "nosniff"}
-    if file_path.suffix == ".html":
-        headers["Content-Security-Policy"] = REPORT_CSP
-    return FileResponse(file_path, media_type=CYCLE_TYPES[file_path.suffix], headers=headers)
+    return FileResponse(file_path, media_type=CYCLE_TYPES[suffix], headers=headers)
 
 
 # --------------------------------------------------------------------------------- atlas preview
@@ -126,15 +137,18 @@ def decode_layer(data: bytes, pixel_format: str, width: int, height: int) -> np.
 
 
 def decode_uv_layer(data: bytes, pixel_format: str, width: int, height: int) -> np.ndarray:
-    """One UV-map layer (rgba16 or uv32, SPEC.md) as (height, width, 4) uint16 in rgba16's layout
+    """One UV-map layer (rgba16, uv32 or uvblock, SPEC.md) as (height, width, 4) uint16 in rgba16's layout
     (u·65535, v·65535, material, coverage 65535/0), so one preview serves both formats."""
     if pixel_format == "rgba16":
         return decode_layer(data, pixel_format, width, height)
-    if pixel_format != "uv32":
-        raise ValueError(f"a UV map must be rgba16 or uv32, not {pixel_format}")
-    from crowdbake.formats.binary import unpack_uv32
+    from crowdbake.formats.binary import unpack_uv32, unpack_uvblock
 
-    u, v, material, covered = unpack_uv32(np.frombuffer(data, "<u4").reshape(height, width))
+    if pixel_format == "uvblock":
+        u, v, material, covered = unpack_uvblock(data, width, height)
+    elif pixel_format == "uv32":
+        u, v, material, covered = unpack_uv32(np.frombuffer(data, "<u4").reshape(height, width))
+    else:
+        raise ValueError(f"a UV map must be rgba16, uv32 or uvblock, not {pixel_format}")
     uv = np.zeros((height, width, 4), dtype=np.uint16)
     uv[..., 0] = np.where(covered, np.rint(u * 65535.0), 0)
     uv[..., 1] = np.where(covered, np.rint(v * 65535.0), 0)
@@ -185,14 +199,17 @@ def png_bytes(picture: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-def render_preview(folder: Path, maps: dict[str, str], kind: str, layer: int, tile_size: int, azimuth: int | None, elevation: int | None) -> bytes:
-    """PNG of layer `layer` of the bundle's `kind` map, cut to the selected tiles."""
-    uv_format, width, height, _, uv_data = read_texture_layer(folder / maps["uv"], layer)
+def render_preview(local_file: Callable[[str], Path], maps: dict[str, str], kind: str, layer: int, tile_size: int,
+                   azimuth: int | None, elevation: int | None) -> bytes:
+    """PNG of layer `layer` of the bundle's `kind` map, cut to the selected tiles.
+
+    local_file: a bundle path -> a local file with its bytes (BundleStore.materialize)."""
+    uv_format, width, height, _, uv_data = read_texture_layer(local_file(maps["uv"]), layer)
     uv = decode_uv_layer(uv_data, uv_format, width, height)
     if kind == "uv":
         picture = uv_preview(uv)
     else:
-        pixel_format, map_width, map_height, _, data = read_texture_layer(folder / maps[kind], layer)
+        pixel_format, map_width, map_height, _, data = read_texture_layer(local_file(maps[kind]), layer)
         if (map_width, map_height) != (width, height):
             raise ValueError(f"the {kind} map is {map_width}x{map_height}, the uv map {width}x{height}")
         picture = colour_preview(decode_layer(data, pixel_format, width, height), uv[..., 3] > 0)
@@ -211,10 +228,7 @@ def get_atlas_preview(
     elevation: Annotated[int | None, Query(ge=0, description="Only this elevation's row (index into impostor.elevations_deg).")] = None,
 ) -> Response:
     bundle = _bundle_or_problem(session, principal, name, version)
-    try:
-        published = read_manifest(services.settings.bundles_dir, bundle.name, bundle.version)
-    except FileNotFoundError:
-        raise Problem("internal-error", "the published bundle is missing from the bundle store", status=500) from None
+    published = _manifest(services, bundle)
     impostor = published.manifest["impostor"]
     errors = []
     for field, value, count in (("frame", frame, len(impostor["frame_indices"])), ("azimuth", azimuth, len(impostor["azimuths_deg"])),
@@ -233,8 +247,11 @@ def get_atlas_preview(
         headers["Cache-Control"] = f"{'public' if bundle.public else 'private'}, max-age={IMMUTABLE_SECONDS}, immutable"
     if request.headers.get("if-none-match", "").strip() == headers["ETag"]:
         return Response(status_code=304, headers=headers)
-    folder = bundle_dir(services.settings.bundles_dir, bundle.name, bundle.version)
-    png = render_preview(folder, maps, kind, frame, int(impostor["tile_size"]), azimuth, elevation)
+    try:
+        png = render_preview(lambda path: services.bundles.materialize(bundle.name, bundle.version, path), maps, kind, frame,
+                             int(impostor["tile_size"]), azimuth, elevation)
+    except FileNotFoundError:
+        raise Problem("internal-error", "a published file is missing from the bundle store", status=500) from None
     return Response(png, media_type="image/png", headers=headers)
 
 
@@ -244,17 +261,16 @@ def get_atlas_preview(
 ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
 
-def write_bundle_zip(folder: Path, paths: list[str], target) -> None:
-    """manifest.json and the manifest's files (relative `paths`) of `folder` into the zip `target`
-    (a path or a binary file), under <name>/<version>/ as crowdview's cache lays bundles out.
+def write_bundle_zip(store: BundleStore, name: str, version: str, paths: list[str], target) -> None:
+    """manifest.json and the manifest's files (relative `paths`) of the published name/version into the
+    zip `target` (a path or a binary file), under <name>/<version>/ as crowdview's cache lays bundles out.
     Stored, not deflated: the atlases are block-compressed already, and the client can check each
-    file's sha256 as it is."""
-    prefix = f"{folder.parent.name}/{folder.name}"
+    file's sha256 as it is. Files are streamed from the store (an object store's are not cached here)."""
     with zipfile.ZipFile(target, "w", zipfile.ZIP_STORED) as archive:
         for path in ["manifest.json", *paths]:
-            info = zipfile.ZipInfo(f"{prefix}/{path}", date_time=ZIP_DATE)
+            info = zipfile.ZipInfo(f"{name}/{version}/{path}", date_time=ZIP_DATE)
             info.external_attr = 0o644 << 16
-            with open(folder / path, "rb") as source, archive.open(info, "w", force_zip64=True) as entry:
+            with store.open_file(name, version, path) as source, archive.open(info, "w", force_zip64=True) as entry:
                 while chunk := source.read(1 << 20):
                     entry.write(chunk)
 
@@ -265,15 +281,14 @@ def write_bundle_zip(folder: Path, paths: list[str], target) -> None:
 )
 def get_bundle_archive(name: NameParam, version: VersionParam, principal: PrincipalDep, services: ServicesDep, session: SessionDep) -> Response:
     bundle = _bundle_or_problem(session, principal, name, version)
-    try:
-        published = read_manifest(services.settings.bundles_dir, bundle.name, bundle.version)
-    except FileNotFoundError:
-        raise Problem("internal-error", "the published bundle is missing from the bundle store", status=500) from None
-    folder = bundle_dir(services.settings.bundles_dir, bundle.name, bundle.version)
+    published = _manifest(services, bundle)
     handle = tempfile.NamedTemporaryFile(prefix="bundle-", suffix=".zip", delete=False)
     try:
         with handle:
-            write_bundle_zip(folder, [entry["path"] for entry in published.manifest["files"]], handle)
+            write_bundle_zip(services.bundles, bundle.name, bundle.version, [entry["path"] for entry in published.manifest["files"]], handle)
+    except FileNotFoundError:
+        os.unlink(handle.name)
+        raise Problem("internal-error", "a published file is missing from the bundle store", status=500) from None
     except BaseException:
         os.unlink(handle.name)
         raise

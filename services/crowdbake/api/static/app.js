@@ -388,6 +388,13 @@ async function loadReport(id) {
 
 // ---------------------------------------------------------------------------------------- bundles
 
+// The three.js crowd preview of a bundle's engine export (docs/export.md). It opens in this tab, so it
+// reads the key from this tab's sessionStorage as the page does: the key never goes into the link.
+function previewLink(bundle) {
+  const href = `/ui/preview/index.html?export=${encodeURIComponent(bundle.export_url)}`;
+  return el("a", { class: "preview-link", href, title: "draw a crowd of this bundle with three.js" }, "Preview crowd");
+}
+
 async function refreshBundles() {
   let names;
   try {
@@ -412,7 +419,8 @@ async function refreshBundles() {
         el("td", { class: "number" }, bundle.file_count),
         el("td", {}, bundle.public ? "public" : "private"),
         el("td", {}, when(bundle.published_at)),
-        el("td", {}, el("button", { type: "button", onclick: () => selectBundle(bundle.name, bundle.version) }, "atlas"))));
+        el("td", {}, el("button", { type: "button", onclick: () => selectBundle(bundle.name, bundle.version) }, "atlas"),
+          bundle.export_url ? previewLink(bundle) : "")));
     }
   }
   $("bundles-table").tBodies[0].replaceChildren(...rows);

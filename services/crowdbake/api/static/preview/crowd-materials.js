@@ -1,5 +1,5 @@
 // Reference three.js materials for a crowdbake export (docs/export.md):
-//   loadKtx2Texture(url)         a KTX2 file of the export as a three.js data texture
+//   loadKtx2Texture(url, opts)   a KTX2 file of the export as a three.js data or compressed texture
 //   createVatMaterial(opts)      plays the cloth cycle from vertex-animation textures, per instance
 //   createImpostorMaterial(opts) the UV-mapped impostor (Dobbyn et al. 2006, section 5), per instance
 // Both materials draw InstancedBufferGeometry with two per-instance attributes:
@@ -15,23 +15,50 @@ const VK_R8G8B8A8_UNORM = 37;
 const VK_R8G8B8A8_SRGB = 43;
 const VK_R16G16B16A16_UNORM = 91;
 const VK_R32_UINT = 98;
+// BC1 (DXT1, no alpha) and BC2 (DXT3) blocks as the bundle stores them; sRGB and UNORM variants are
+// uploaded alike (no colour-space conversion, as crowdview does).
+const BLOCK_FORMATS = {
+  131: THREE.RGB_S3TC_DXT1_Format, 132: THREE.RGB_S3TC_DXT1_Format,
+  135: THREE.RGBA_S3TC_DXT3_Format, 136: THREE.RGBA_S3TC_DXT3_Format,
+};
+export const S3TC_EXTENSION = 'WEBGL_compressed_texture_s3tc';
 
 export const AMBIENT = 0.35;  // runtime/src/config.h CV_AMBIENT
 export const MAX_MATERIALS = 4;  // GLSL ES 3.00 indexes sampler arrays only with constants
 
 // A KTX2 file -> DataTexture (layerCount 0) or DataArrayTexture. Integer data (the UV map's uv32 words,
 // the 16-bit VATs) is uploaded as unsigned-integer textures and read with texelFetch: WebGL2 has no
-// 16-bit normalised textures without an extension, and words must not be filtered.
-export async function loadKtx2Texture(url, { filter = THREE.NearestFilter } = {}) {
-  const response = await fetch(url);
+// 16-bit normalised textures without an extension, and words must not be filtered. BC1/BC2 files become
+// CompressedTexture / CompressedArrayTexture, their blocks uploaded as they are; that needs S3TC
+// (opts.renderer, when given, is asked first, so a missing extension is a clear error, not a black crowd).
+// opts.headers go with the request (an Authorization header for a private bundle).
+export async function loadKtx2Texture(url, { filter = THREE.NearestFilter, headers = {}, renderer = null } = {}) {
+  const response = await fetch(url, { headers });
   if (!response.ok) throw new Error(`${url}: HTTP ${response.status}`);
   const container = read(new Uint8Array(await response.arrayBuffer()));
   if (container.supercompressionScheme !== 0 || container.levels.length !== 1) {
-    throw new Error(`${url}: expected one uncompressed level`);
+    throw new Error(`${url}: expected one level without supercompression`);
   }
   const level = container.levels[0].levelData;
   const { pixelWidth: width, pixelHeight: height } = container;
   const layers = Math.max(container.layerCount, 1);
+  if (container.vkFormat in BLOCK_FORMATS) {
+    if (renderer && !renderer.extensions.has(S3TC_EXTENSION)) {
+      throw new Error(`${url}: BC${container.vkFormat < 135 ? 1 : 2} blocks need ${S3TC_EXTENSION}, which this browser lacks (export with --ktx2 rgba8)`);
+    }
+    const format = BLOCK_FORMATS[container.vkFormat];
+    const mipmaps = [{ data: new Uint8Array(level.buffer, level.byteOffset, level.byteLength), width, height }];
+    const texture = container.layerCount > 0
+      ? new THREE.CompressedArrayTexture(mipmaps, width, height, layers, format, THREE.UnsignedByteType)
+      : new THREE.CompressedTexture(mipmaps, width, height, format, THREE.UnsignedByteType);
+    texture.magFilter = texture.minFilter = filter;
+    texture.generateMipmaps = false;
+    texture.wrapS = texture.wrapT = filter === THREE.NearestFilter ? THREE.ClampToEdgeWrapping : THREE.RepeatWrapping;
+    texture.flipY = false;  // compressed uploads cannot flip; rows are top first, as glTF's v wants
+    texture.needsUpdate = true;
+    texture.userData.vkFormat = container.vkFormat;
+    return texture;
+  }
   let data, format, type, internalFormat = null;
   switch (container.vkFormat) {
     case VK_R8G8B8A8_UNORM:

@@ -5,6 +5,8 @@
 //
 // Query parameters: export=URL of the export folder (default ../export/), count=N (100), seed=S (1),
 // time=T (seconds; fixed time, one frame: for screenshots), lod=auto|high|low|impostor, width, height.
+// A private bundle's export is fetched with the key the jobs page keeps in this tab's sessionStorage,
+// or one given in the fragment (#key=cbk_...; moved into sessionStorage and out of the address bar).
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { createImpostorMaterial, createVatMaterial, loadKtx2Texture } from './crowd-materials.js';
@@ -18,6 +20,15 @@ const lodMode = params.get('lod') || 'auto';
 const width = Number(params.get('width') || 1280);
 const height = Number(params.get('height') || 720);
 const status = document.getElementById('status');
+
+const KEY_STORAGE = 'crowdbake.key';  // the jobs page's (api/static/app.js)
+const fragment = new URLSearchParams(location.hash.slice(1));
+if (fragment.get('key')) {
+  sessionStorage.setItem(KEY_STORAGE, fragment.get('key'));
+  history.replaceState(null, '', location.pathname + location.search);
+}
+const key = sessionStorage.getItem(KEY_STORAGE);
+const authHeaders = key ? { Authorization: `Bearer ${key}` } : {};
 
 // crowdview's constants (runtime/src/main.cpp, crowd.cpp), so both draw the same crowd.
 const LIGHT_DIR = new THREE.Vector3(0.4, 0.8, 0.45).normalize();
@@ -136,21 +147,26 @@ function instanced(geometry, capacity) {
 }
 
 async function main() {
-  const sidecar = await (await fetch(new URL('export.json', exportUrl))).json();
+  const response = await fetch(new URL('export.json', exportUrl), { headers: authHeaders });
+  if (!response.ok) throw new Error(`export.json: HTTP ${response.status}`);
+  const sidecar = await response.json();
   const url = (path) => new URL(path, exportUrl).href;
   const fps = sidecar.frames_per_second, frameCount = sidecar.frame_count;
   const impostor = sidecar.impostor;
 
+  const renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
+  const load = (path, options = {}) => loadKtx2Texture(url(path), { headers: authHeaders, renderer, ...options });
+
   // Textures shared by every LOD: diffuse arrays per material, outfits, impostor maps.
-  const diffuse = await Promise.all(sidecar.materials.map((m) => loadKtx2Texture(url(m.diffuse.ktx2), { filter: THREE.LinearFilter })));
+  const diffuse = await Promise.all(sidecar.materials.map((m) => load(m.diffuse.ktx2, { filter: THREE.LinearFilter })));
   const variations = sidecar.materials.map((m) => m.variations);
-  const outfits = await loadKtx2Texture(url(sidecar.outfits.ktx2));
-  const [uvMap, normalMap] = await Promise.all([loadKtx2Texture(url(impostor.maps.uv.ktx2)), loadKtx2Texture(url(impostor.maps.normal.ktx2))]);
+  const outfits = await load(sidecar.outfits.ktx2);
+  const [uvMap, normalMap] = await Promise.all([load(impostor.maps.uv.ktx2), load(impostor.maps.normal.ktx2)]);
 
   const scene = new THREE.Scene();
   const capacity = count;
   const groups = {};  // lod name -> [{mesh}] drawn with that LOD's instances
-  const loader = new GLTFLoader();
+  const loader = new GLTFLoader().setRequestHeader(authHeaders);
   const lodNames = ['high', 'low'];
   for (const lod of sidecar.lods.slice(0, 2)) {
     const gltf = await loader.loadAsync(url(lod.glb));
@@ -162,7 +178,7 @@ async function main() {
       if (!mesh) throw new Error(`${lod.glb}: no mesh named ${part.part}`);
       const geometry = mesh.geometry;
       geometry.setAttribute('vatUv', geometry.getAttribute('uv1'));  // glTF TEXCOORD_1
-      const [position, normal] = await Promise.all([loadKtx2Texture(url(part.vat.position.ktx2)), loadKtx2Texture(url(part.vat.normal.ktx2))]);
+      const [position, normal] = await Promise.all([load(part.vat.position.ktx2), load(part.vat.normal.ktx2)]);
       const material = createVatMaterial({
         vat: part.vat,
         textures: { position, normal, diffuse: diffuse[part.material], outfits },
@@ -188,7 +204,6 @@ async function main() {
   scene.add(impostorMesh);
   groups.impostor = [impostorMesh];
 
-  const renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
   renderer.outputColorSpace = THREE.LinearSRGBColorSpace;  // crowdview writes shader colours as they are
   renderer.setPixelRatio(1);
   renderer.setSize(width, height);
@@ -237,7 +252,8 @@ async function main() {
   }
 
   const report = () => {
-    status.textContent = JSON.stringify({ ready: true, characters: count, lod: counts, switch_distance_m: rule.impostor, bundle: sidecar.bundle });
+    status.textContent = JSON.stringify({ ready: true, characters: count, lod: counts, switch_distance_m: rule.impostor, bundle: sidecar.bundle,
+      texture_formats: [...new Set([...diffuse, outfits, uvMap, normalMap].map((t) => t.userData.vkFormat))].sort((a, b) => a - b) });
     status.dataset.ready = 'true';
   };
   if (fixedTime !== null) {

@@ -1,0 +1,108 @@
+"""A cloth cache as every entry point takes it: read from any supported file, its frame rate decided by
+one rule, and placed on the character (up axis, units, overlap) before anything is baked.
+
+`crowdbake cycle`, `crowdbake bake` (through the validate stage) and the REST bake request all go
+through here, so a Z-up or centimetre cache is refused with the same words everywhere, naming the
+parameter that fixes it (`up`, `units`), and converted the same way when that parameter is given.
+
+    read_cloth(cache, mesh)               -> ClothCache            (InputError "cloth" / "cloth_mesh")
+    body_at_rest(character)               -> (V, 3) Y-up metres    (the character at its animation's time 0)
+    place_cloth(cache, body, up, units)   -> ClothCache in Y-up metres, or InputError "up" / "units" / "cloth"
+"""
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from crowdbake.bake.placement import Placement, check_placement
+from crowdbake.errors import InputError
+from crowdbake.formats.cloth_cache import CACHE_FORMATS, ClothCache, read_cloth_cache
+
+# Caches that carry their own rest mesh; the others need an OBJ beside them.
+SELF_CONTAINED = {".abc", ".zip"}
+CACHE_SUFFIXES = tuple(sorted(CACHE_FORMATS))
+
+
+def needs_mesh(cache: str | os.PathLike) -> bool:
+    """True for caches that need an OBJ rest mesh (PC2, MDD)."""
+    return Path(cache).suffix.lower() not in SELF_CONTAINED
+
+
+def read_cloth(cache: str | os.PathLike, mesh: str | os.PathLike | None = None, cache_field: str = "cloth",
+               mesh_field: str = "cloth_mesh") -> ClothCache:
+    """Read any cloth cache crowdbake takes (crowdbake.formats.cloth_cache) and check it can be baked.
+
+    Raises InputError naming `cache_field` or `mesh_field`: an unknown type, a PC2/MDD without its
+    mesh, a mesh given to a cache that carries its own, a parse error, no faces, non-finite points."""
+    cache = Path(cache)
+    if cache.suffix.lower() not in CACHE_FORMATS:
+        raise InputError(f"{cache.name}: a cloth cache must be one of {', '.join(CACHE_SUFFIXES)}", cache_field)
+    if needs_mesh(cache) and mesh is None:
+        raise InputError(f"{cache.name}: a {cache.suffix.lower()} cache needs its rest mesh (.obj)", mesh_field)
+    if not needs_mesh(cache) and mesh is not None:
+        raise InputError(f"{cache.name} carries its own mesh: leave out the .obj", mesh_field)
+    if mesh is not None and Path(mesh).suffix.lower() != ".obj":
+        raise InputError(f"{Path(mesh).name}: the rest mesh must be an .obj", mesh_field)
+    try:
+        result = read_cloth_cache(cache, mesh)
+    except (ValueError, OSError) as error:
+        text = str(error).splitlines()[0] if str(error) else type(error).__name__
+        # A message naming the mesh (its parse error, or a point count that does not match it) is the mesh's.
+        field = mesh_field if mesh is not None and Path(mesh).name in text.replace(str(cache), "") else cache_field
+        raise InputError(text, field) from None
+    if len(result.faces) == 0:
+        raise InputError(f"{cache.name}: the garment's mesh has no faces", mesh_field if mesh is not None else cache_field)
+    if result.frame_count == 0:
+        raise InputError(f"{cache.name}: the cache has no frames", cache_field)
+    if not np.isfinite(result.frames).all():
+        raise InputError(f"{cache.name}: the cache holds NaN or infinite positions", cache_field)
+    return result
+
+
+def body_at_rest(character) -> np.ndarray:
+    """The character posed at its animation's time 0, (V, 3) float32 Y-up metres: the body the cloth's
+    first frame was simulated on."""
+    from crowdbake.bake.skinning import pose_character
+
+    if getattr(character, "animation_duration", 0) and character.animation_duration > 0:
+        return pose_character(character, 1.0, 1)[0][0]
+    return np.asarray(character.positions, np.float32)
+
+
+def refusal_field(placement: Placement) -> str:
+    """The parameter a refusal names: up when the axis is wrong, units when only the unit is, else cloth."""
+    if placement.suggested_up is not None and placement.suggested_up != placement.up:
+        return "up"
+    if placement.suggested_units is not None and placement.suggested_units != placement.units:
+        return "units"
+    return "cloth"
+
+
+def check_cloth_placement(cloth_first_frame: np.ndarray, body: np.ndarray, up: str | None, units: str | None) -> Placement:
+    """check_placement, raising InputError(field up | units | cloth) with its one line when it refuses."""
+    placement = check_placement(cloth_first_frame, body, up=up, units=units)
+    if not placement.ok:
+        raise InputError(placement.message, refusal_field(placement))
+    return placement
+
+
+def place_cloth(cache: ClothCache, body: np.ndarray, up: str | None = None, units: str | None = None) -> ClothCache:
+    """The cache in Y-up metres after checking its first frame against `body` (Y-up metres).
+
+    Raises InputError("up" | "units" | "cloth") when the garment does not sit on the character in the
+    declared frame (None: detect; a cache that fits only another frame is refused, naming the flag)."""
+    placement = check_cloth_placement(cache.frames[0], body, up, units)
+    if (placement.up, placement.units) == ("y", "m"):
+        return cache
+    return cache.with_frames(placement.apply(cache.frames), placement.apply(cache.mesh.positions))
+
+
+_FLAG = re.compile(r"--(up|units) (\w+)")
+
+
+def rest_wording(message: str) -> str:
+    """A placement message as a REST client reads it: `pass --up z` -> `set params.up to "z"`."""
+    return _FLAG.sub(lambda m: f'params.{m.group(1)} = "{m.group(2)}"', message).replace(": pass params.", ": set params.")

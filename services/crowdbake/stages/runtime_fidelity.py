@@ -1,0 +1,162 @@
+"""The impostor as crowdview draws it (blended views and frames, crowdbake.bake.impostor_blend), scored
+against the mesh at the 1:1 switch distance: fidelity.json's `runtime` section, written by the pack stage.
+
+Everything the runtime samples is decoded from the bundle's own bytes: the UV map in its pixel format, the
+normal map after block compression, the diffuse texture as decoded. Two sets of cameras:
+
+- `at_views`: every baked view of the fidelity frame, from the mesh references the impostor tasks rendered
+  (the runtime draws one sample of weight 1 there);
+- `between_views`: halfway between baked azimuths, halfway between baked elevations and halfway between the
+  fidelity frame and the next baked frame (four views times two frames blended), one camera per azimuth
+  gap (at most BETWEEN_AZIMUTHS of them, spread evenly) and elevation gap;
+- `between_azimuths`: the impostor tasks' references halfway between azimuths at a baked elevation and
+  frame (two views blended), the cameras of fidelity.json's `nearest_view`.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from crowdbake.bake import compression, fidelity, impostor_blend, impostor_maps
+from crowdbake.bake.atlas import AtlasLayout
+from crowdbake.bake.impostor_blend import DecodedTile
+from crowdbake.formats.binary import decode_texture_array, unpack_uv32, unpack_uvblock
+from crowdbake.stages.records import ImpostorTask, PosesRecord
+
+# Azimuth gaps scored between views (each at every elevation gap): each needs a render of the mesh at
+# FIDELITY_SUPERSAMPLE² (3 x 3) samples a texel, so a 32-azimuth bake scores every other gap, 16 x 2 cameras with 3 rings.
+BETWEEN_AZIMUTHS = 16
+
+
+def decode_atlas_layer(uv_file: bytes, normal_file: bytes, layer: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(uv (H, W, 2), material (H, W), covered (H, W), normal (H, W, 3)) of one layer of the bundle's UV and
+    normal map files (CBTX bytes), decoded as crowdview samples them."""
+    uv_map, normal_map = decode_texture_array(uv_file, "uv map"), decode_texture_array(normal_file, "normal map")
+    if uv_map.pixel_format == "uvblock":
+        u, v, material, covered = unpack_uvblock(uv_map.layers[layer], uv_map.width, uv_map.height)
+        uv = np.stack([u, v], axis=-1)
+    elif uv_map.pixel_format == "uv32":
+        u, v, material, covered = unpack_uv32(uv_map.texels(layer))
+        uv = np.stack([u, v], axis=-1)
+    else:
+        uv, material, covered = impostor_maps.decode_uv_map(uv_map.texels(layer))
+    if normal_map.pixel_format in ("bc1", "bc2"):
+        normals = compression.decode(normal_map.layers[layer], normal_map.pixel_format, normal_map.width, normal_map.height)
+    else:
+        normals = normal_map.texels(layer)
+    # Outside the character the shader's decode gives coordinate 0, which its gradients then see.
+    uv = np.where(covered[..., None], uv, 0.0)
+    return uv, material, covered, impostor_maps.decode_normal_map(normals)
+
+
+class AtlasTiles:
+    """Tiles of decoded atlas layers, decoded once per layer."""
+
+    def __init__(self, layout: AtlasLayout, uv_file: bytes, normal_file: bytes):
+        self.layout, self.uv_file, self.normal_file = layout, uv_file, normal_file
+        self._layers: dict[int, tuple] = {}
+
+    def tile(self, tile: int, layer: int) -> DecodedTile:
+        if layer not in self._layers:
+            self._layers[layer] = decode_atlas_layer(self.uv_file, self.normal_file, layer)
+        size, columns = self.layout.tile_size, len(self.layout.azimuths_deg)
+        rows = slice((tile // columns) * size, (tile // columns + 1) * size)
+        cols = slice((tile % columns) * size, (tile % columns + 1) * size)
+        uv, material, covered, normal = self._layers[layer]
+        return DecodedTile(uv[rows, cols], material[rows, cols], covered[rows, cols], normal[rows, cols])
+
+
+def halfway_frame(poses: PosesRecord) -> tuple[int, impostor_blend.FrameWeights]:
+    """The cycle frame halfway (rounded down) from the fidelity frame to the next baked frame, and its weights."""
+    indices = list(poses.frame_indices)
+    k = indices.index(poses.fidelity_frame)
+    following = indices[(k + 1) % len(indices)]
+    span = following - indices[k] if following > indices[k] else following + poses.cycle_frames - indices[k]
+    frame = (indices[k] + span // 2) % poses.cycle_frames if len(indices) > 1 else indices[k]
+    return frame, impostor_blend.blend_frame_weights(frame, indices, poses.cycle_frames)
+
+
+def between_cameras(layout: AtlasLayout, max_azimuths: int = BETWEEN_AZIMUTHS) -> list[tuple[float, float]]:
+    """(azimuth, elevation) halfway between neighbouring baked azimuths and elevations (one ring: its elevation),
+    for at most `max_azimuths` azimuth gaps spread evenly round the ring, each at every elevation gap."""
+    azimuths = sorted(layout.azimuths_deg)
+    elevations = sorted(layout.elevations_deg)
+    mid_azimuths = [((a + b) / 2.0) % 360.0 for a, b in zip(azimuths, azimuths[1:] + [azimuths[0] + 360.0])]
+    if len(azimuths) == 1:
+        mid_azimuths = [(azimuths[0] + 180.0) % 360.0]
+    if len(mid_azimuths) > max_azimuths:
+        mid_azimuths = [mid_azimuths[i] for i in np.linspace(0, len(mid_azimuths), max_azimuths, endpoint=False).astype(int)]
+    mid_elevations = [(a + b) / 2.0 for a, b in zip(elevations, elevations[1:])] or elevations
+    return [(a, e) for e in mid_elevations for a in mid_azimuths]
+
+
+def render_mesh_references(work: Path, poses: PosesRecord, frame: int, cameras: list[tuple[float, float]], supersample: int) -> list[np.ndarray]:
+    """The mesh at cycle frame `frame` seen from each (azimuth, elevation), shaded as the fidelity references are
+    (crowdbake.bake.fidelity.mesh_reference): (S, S, 3) float images."""
+    from crowdbake.render.impostor import shared_renderer
+    from crowdbake.stages.impostors import load_pose_scene
+
+    scene = load_pose_scene(work, poses, frame)
+    size = int(poses.layout["tile_size"]) * supersample
+    renderer = shared_renderer(size)
+    renderer.set_mesh(scene.positions, scene.faces)
+    images = []
+    for azimuth, elevation in cameras:
+        view = impostor_maps.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
+        coverage = renderer.coverage(view, scene.positions, scene.faces)
+        images.append(fidelity.mesh_reference(
+            view, coverage, supersample, scene.positions, scene.normals, scene.uvs, scene.faces,
+            scene.triangle_material, scene.diffuse_runtime, scene.outfit_row, fidelity.camera_light(view)))
+    return images
+
+
+def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
+                  uv_file: bytes, normal_file: bytes, texture_arrays: dict[str, np.ndarray], supersample: int) -> dict[str, Any]:
+    """fidelity.json's `runtime` section (module docstring): SSIM and PSNR of crowdview's blended impostor."""
+    diffuse = [texture_arrays[f"material_{m}_decoded"][0] for m in range(len(poses.materials))]
+    chains = [impostor_blend.mip_chain(texture) for texture in diffuse]
+    outfit_row = texture_arrays["outfits"][0]
+    tiles = AtlasTiles(layout, uv_file, normal_file)
+    layer = list(poses.frame_indices).index(poses.fidelity_frame)
+    size = layout.tile_size
+
+    def draw(azimuth: float, elevation: float, frames: impostor_blend.FrameWeights) -> np.ndarray:
+        view = impostor_maps.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
+        weights = impostor_blend.blend_view_weights(azimuth, elevation, layout.azimuths_deg, layout.elevations_deg)
+        samples = [(w, tiles.tile(tile, k)) for w, tile, k in impostor_blend.samples_for(weights, frames)]
+        return impostor_blend.blend_image(samples, diffuse, outfit_row, fidelity.camera_light(view), size, chains)
+
+    baked_frame = impostor_blend.FrameWeights((layer, layer), 0.0)
+    at_views, between_azimuths = [], []
+    for task in tasks:
+        if not task.references:
+            continue
+        data = parts[task.id]
+        for index, (a, e) in enumerate(data["views"].tolist()):
+            azimuth, elevation = layout.azimuths_deg[a], layout.elevations_deg[e]
+            at_views.append({"azimuth_deg": azimuth, "elevation_deg": elevation,
+                             **fidelity.compare(data["reference"][index], draw(azimuth, elevation, baked_frame))})
+            mid = float(data["between_azimuths"][index])
+            between_azimuths.append({"azimuth_deg": mid, "elevation_deg": elevation,
+                                     **fidelity.compare(data["reference_between"][index], draw(mid, elevation, baked_frame))})
+    frame, frame_weights = halfway_frame(poses)
+    cameras = between_cameras(layout)
+    references = render_mesh_references(work, poses, frame, cameras, supersample)
+    between = [{"azimuth_deg": a, "elevation_deg": e, **fidelity.compare(reference, draw(a, e, frame_weights))}
+               for (a, e), reference in zip(cameras, references)]
+    return {
+        "description": "crowdview's blended impostor (runtime/README.md 'Impostor blending', crowdbake.bake.impostor_blend) "
+        "against the mesh at 1:1: at_views at the baked views of the fidelity frame; between_views halfway between "
+        "baked azimuths, elevations and frames; between_azimuths halfway between azimuths at baked elevations",
+        "frame": poses.fidelity_frame,
+        "between_frame": frame,
+        "between_frame_weight": frame_weights.weight,
+        "diffuse_lookup": "trilinear over a box-filtered mip chain, level from the UV map's quad gradients",
+        "at_views": fidelity.summarize(at_views),
+        "between_views": fidelity.summarize(between),
+        "between_azimuths": fidelity.summarize(between_azimuths),
+        "per_view": at_views,
+        "per_between_view": between,
+    }

@@ -1,0 +1,92 @@
+"""The bake's copy of crowdview's impostor blending (crowdbake.bake.impostor_blend).
+
+The weights are checked against runtime/tests/data/view_blend_vectors.json, which crowdview's
+view_blend ctest reads too, so both sides follow one set of answers worked out from the README's rules.
+The blended picture is checked on small tiles whose answer is known by construction.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crowdbake.bake import impostor_blend
+from crowdbake.bake.impostor_blend import DecodedTile
+
+VECTORS = Path(__file__).resolve().parents[2] / "runtime" / "tests" / "data" / "view_blend_vectors.json"
+
+
+@pytest.fixture(scope="module")
+def vectors() -> dict:
+    return json.loads(VECTORS.read_text())
+
+
+def test_view_weights_match_the_shared_vectors(vectors):
+    tolerance = vectors["tolerance"]
+    for case in vectors["views"]:
+        azimuth, elevation = impostor_blend.view_angles_deg(np.array(case["to_camera"]), case["heading"])
+        expected_azimuth, expected_elevation = case["angles_deg"]
+        assert abs((azimuth - expected_azimuth + 180) % 360 - 180) < tolerance, case["why"]
+        assert elevation == pytest.approx(expected_elevation, abs=tolerance), case["why"]
+        weights = impostor_blend.blend_view_weights(azimuth, elevation, vectors["azimuths_deg"], vectors["elevations_deg"])
+        assert sum(weights.weights) == pytest.approx(1.0)
+        used = {(t, round(w, 6)) for t, w in zip(weights.tiles, weights.weights) if w > tolerance}
+        expected = {(t, round(w, 6)) for t, w in zip(case["tiles"], case["weights"]) if w > tolerance}
+        assert used == expected, case["why"]
+
+
+def test_frame_weights_match_the_shared_vectors(vectors):
+    for case in vectors["frames"]:
+        got = impostor_blend.blend_frame_weights(case["frame"], case["frame_indices"], case["frame_count"])
+        assert list(got.layers) == case["layers"], case["why"]
+        assert got.weight == pytest.approx(case["weight"], abs=vectors["tolerance"]), case["why"]
+    for case in vectors["cycle_frames"]:
+        frame = impostor_blend.cycle_frame(case["seconds"], case["phase"], case["frames_per_second"], case["frame_count"])
+        assert frame == case["frame"], case["why"]
+
+
+def _tile(size: int, covered: np.ndarray, u: float, normal=(0.0, 0.0, 1.0)) -> DecodedTile:
+    uv = np.zeros((size, size, 2))
+    uv[..., 0], uv[..., 1] = u, 0.5
+    return DecodedTile(uv, np.zeros((size, size), np.int64), covered, np.broadcast_to(np.array(normal, float), (size, size, 3)).copy())
+
+
+def test_blend_draws_where_coverage_is_over_half_and_averages_colours():
+    """Two samples of a two-colour texture: their colours mix by weight where both cover; where only the
+    heavier one covers it is drawn alone, where only the lighter one covers nothing is drawn."""
+    size = 8
+    texture = np.zeros((4, 4, 4), np.uint8)
+    texture[:, :2, :3] = (200, 0, 0)  # u < 0.5 red
+    texture[:, 2:, :3] = (0, 0, 200)  # u > 0.5 blue
+    left = np.zeros((size, size), bool)
+    left[:, :6] = True
+    right = np.zeros((size, size), bool)
+    right[:, 2:] = True
+    samples = [(0.75, _tile(size, left, 0.125)), (0.25, _tile(size, right, 0.875))]
+    light = np.array([0.0, 0.0, 1.0])  # along the normal: full diffuse, so colour = albedo
+    outfit = np.zeros((16, 4), np.uint8)
+    image = impostor_blend.blend_image(samples, [texture], outfit, light, tile_size=size)
+    red, blue = 200 / 255.0, 200 / 255.0
+    assert np.allclose(image[:, 3], [0.75 * red, 0, 0.25 * blue])  # both cover: 3:1 mix
+    assert np.allclose(image[:, 0], [red, 0, 0])  # only the heavier sample (0.75 > 0.5)
+    assert np.allclose(image[:, 7], 0)  # only the lighter one (0.25): background
+
+
+def test_trilinear_lookup_averages_at_coarse_levels():
+    """At a level of detail of log2(size) the whole texture is one texel: its mean colour."""
+    rng = np.random.default_rng(3)
+    texture = rng.integers(0, 256, (8, 8, 4), dtype=np.uint8)
+    chain = impostor_blend.mip_chain(texture)
+    assert len(chain) == 4
+    colour = impostor_blend.sample_trilinear(chain, np.array([[0.3, 0.7]]), np.array([3.0]))
+    assert np.allclose(colour[0], texture[..., :3].reshape(-1, 3).mean(axis=0))
+    exact = impostor_blend.sample_trilinear(chain, np.array([[2.5 / 8, 5.5 / 8]]), np.array([0.0]))
+    assert np.allclose(exact[0], texture[5, 2, :3])
+
+
+def test_samples_for_merges_repeated_pairs():
+    view = impostor_blend.ViewWeights((3, 3, 3, 3), (1.0, 0.0, 0.0, 0.0))
+    frames = impostor_blend.FrameWeights((0, 1), 0.25)
+    assert sorted(impostor_blend.samples_for(view, frames)) == [(0.25, 3, 1), (0.75, 3, 0)]

@@ -1,0 +1,104 @@
+"""Slow clients against a real uvicorn over raw sockets: connections that never finish their headers are
+closed after the header deadline, and an upload whose body trickles in is answered 408 and leaves no
+staging file. Settings: 2 s for headers, bodies at least 1 KiB/s after 1 s of grace."""
+from __future__ import annotations
+
+import socket
+import time
+
+import pytest
+
+from service_fixtures import free_port, service_env, start_api
+
+HEADER_TIMEOUT_S = 2.0
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    from crowdbake.settings import Settings
+    from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
+    from crowdbake.storage.keys import create_api_key
+
+    root = tmp_path_factory.mktemp("slow")
+    settings = Settings(data_dir=root / "data")
+    settings.ensure_dirs()
+    engine = make_engine(settings.database_url)
+    migrate(engine)
+    with session_scope(make_sessionmaker(engine)) as session:
+        key, _ = create_api_key(session, "upload", "slow")
+    engine.dispose()
+    env = service_env(root / "data", "filesystem://", CROWDBAKE_HEADER_TIMEOUT_S=str(HEADER_TIMEOUT_S),
+                      CROWDBAKE_BODY_MIN_BYTES_PER_S="1024", CROWDBAKE_BODY_GRACE_S="1")
+    port = free_port()
+    process = start_api(env, port, root / "api.log")
+    yield port, key, settings
+    process.stop()
+
+
+def _closed_within(sock: socket.socket, seconds: float) -> bool:
+    """True when the server closes `sock` (recv returns b'' or the connection resets) within `seconds`."""
+    sock.settimeout(seconds)
+    try:
+        while True:
+            if sock.recv(4096) == b"":
+                return True
+    except ConnectionResetError:
+        return True
+    except socket.timeout:
+        return False
+
+
+def test_connections_with_incomplete_headers_are_closed(server):
+    port, _, _ = server
+    started = time.monotonic()
+    sockets = []
+    for k in range(20):
+        sock = socket.create_connection(("127.0.0.1", port))
+        sock.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nX-Slow: " + b"a" * k)  # never the blank line
+        sockets.append(sock)
+    # A client dribbling a byte now and then does not reset the deadline.
+    for _ in range(3):
+        time.sleep(0.5)
+        sockets[0].sendall(b"b")
+    closed = [_closed_within(sock, HEADER_TIMEOUT_S + 3) for sock in sockets]
+    for sock in sockets:
+        sock.close()
+    assert all(closed) and time.monotonic() - started < HEADER_TIMEOUT_S + 4
+    # The server still answers others.
+    with socket.create_connection(("127.0.0.1", port)) as sock:
+        sock.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        assert sock.recv(64).startswith(b"HTTP/1.1 200")
+
+
+def test_an_upload_trickling_in_is_refused_and_leaves_no_staging_file(server):
+    port, key, settings = server
+    staging = settings.blob_dir / ".incoming"
+    head = b'--x\r\nContent-Disposition: form-data; name="file"; filename="c.glb"\r\n\r\n'
+    request = (f"POST /v1/assets/characters HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {key}\r\n"
+               f"Content-Type: multipart/form-data; boundary=x\r\nContent-Length: 100000\r\n\r\n").encode() + head
+    started = time.monotonic()
+    saw_staging = False
+    with socket.create_connection(("127.0.0.1", port)) as sock:
+        sock.sendall(request)
+        sock.settimeout(0.5)
+        answer = b""
+        while time.monotonic() - started < 15 and not answer:
+            try:
+                sock.sendall(b"g")  # one byte every half second: far below 1 KiB/s
+            except (BrokenPipeError, ConnectionResetError):
+                break
+            try:
+                answer = sock.recv(4096)
+            except socket.timeout:
+                pass
+            saw_staging = saw_staging or (staging.exists() and any(staging.iterdir()))
+        sock.settimeout(2)
+        try:
+            answer += sock.recv(4096)
+        except (socket.timeout, ConnectionResetError):
+            pass
+    elapsed = time.monotonic() - started
+    assert answer.startswith(b"HTTP/1.1 408"), answer[:200]
+    assert b"request-timeout" in answer and elapsed < 6
+    assert saw_staging  # the upload had begun its staging file...
+    assert not any(staging.iterdir())  # ...and the refusal removed it
