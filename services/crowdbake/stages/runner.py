@@ -35,11 +35,14 @@ from typing import Any, Callable
 from crowdbake.render.offscreen import render_timings
 from crowdbake.stages import STAGES
 from crowdbake.stages.cycle import stage_cycle
-from crowdbake.stages.impostors import impostor_statistics, impostor_tasks, stage_impostor_plan, stage_impostor_views
+from crowdbake.stages.impostors import (
+    FIDELITY_SUPERSAMPLE, impostor_statistics, impostor_tasks, load_poses, stage_impostor_plan, stage_impostor_views,
+)
 from crowdbake.stages.pack import stage_pack, stage_pack_frame
 from crowdbake.stages.poses import stage_poses
 from crowdbake.stages.publish import stage_export, stage_publish
 from crowdbake.stages.records import PosesRecord
+from crowdbake.stages.runtime_fidelity import between_references
 from crowdbake.stages.validate import BakeInputs, stage_validate
 from crowdbake.stages.workdir import Progress, read_json, report
 
@@ -162,11 +165,14 @@ def measured(body: Callable[[], Any]) -> dict[str, Any]:
 
 def _worker_item(work: str, item: str, task: dict | None = None, frame: int | None = None) -> dict[str, Any]:
     """One item of the poses ∥ impostors part, in a worker process: the poses stage, one impostor task, or
-    one baked frame's atlases for the pack stage (once that frame's tasks are done)."""
+    one baked frame's atlases for the pack stage (once that frame's tasks are done), or the pack stage's
+    runtime-fidelity mesh references (once the poses are done)."""
     if item == "poses":
         figures = measured(lambda: stage_poses(Path(work)).cached)
     elif item == "pack":
         figures = measured(lambda: str(stage_pack_frame(Path(work), frame)))
+    elif item == "runtime":
+        figures = measured(lambda: len(between_references(Path(work), load_poses(Path(work)), FIDELITY_SUPERSAMPLE)))
     else:
         figures = measured(lambda: str(stage_impostor_views(Path(work), task)))
     _trim_heap()
@@ -242,7 +248,8 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
     while pending:
         finished, _ = wait(pending, return_when=FIRST_COMPLETED)
         for future in finished:
-            stage, frame = pending.pop(future)
+            item, frame = pending.pop(future)
+            stage = "pack" if item == "runtime" else item
             figures = future.result()
             meter.worker_peak_rss_mib = max(meter.worker_peak_rss_mib or 0.0, figures["peak_rss_mib"])
             meter.worker_cpu_s[figures["pid"]] = max(meter.worker_cpu_s.get(figures["pid"], 0.0), figures["process_cpu_s"])
@@ -257,6 +264,7 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
                     packable.append(("pack", None, frame))
             elif stage == "poses":
                 report(progress, "poses", 1, 1)
+                packable.append(("runtime", None, None))
         feed()
     meter.parallel_wall_s = time.perf_counter() - started
     # Side by side, the impostor stage lasts from its plan to its last task (poses keeps its own time).

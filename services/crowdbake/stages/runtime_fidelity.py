@@ -112,6 +112,29 @@ def render_mesh_references(work: Path, poses: PosesRecord, frame: int, cameras: 
     return images
 
 
+REFERENCES_FILE = "runtime_references.npz"
+
+
+def between_references(work: Path, poses: PosesRecord, supersample: int) -> list[np.ndarray]:
+    """render_mesh_references for score_runtime's between_views cameras, kept in work/pack/REFERENCES_FILE
+    under a key of the poses and the cameras: the bake runner renders them in a worker as soon as the poses
+    stage is done (prepare_between_references), so the pack stage only reads them."""
+    from crowdbake.stages.workdir import WorkDir, npz_bytes, stage_key, write_bytes_atomic
+
+    layout = poses.atlas_layout()
+    frame, _ = halfway_frame(poses)
+    cameras = between_cameras(layout)
+    key = stage_key("runtime-references", WorkDir(work).key_of("poses"), frame, cameras, supersample)
+    path = Path(work) / "pack" / REFERENCES_FILE
+    if path.is_file():
+        with np.load(path) as data:
+            if str(data["key"]) == key:
+                return list(data["references"])
+    references = render_mesh_references(work, poses, frame, cameras, supersample)
+    write_bytes_atomic(path, npz_bytes({"key": np.array(key), "references": np.stack(references)}))
+    return references
+
+
 def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
                   uv_file: bytes, normal_file: bytes, texture_arrays: dict[str, np.ndarray], supersample: int) -> dict[str, Any]:
     """fidelity.json's `runtime` section (module docstring): SSIM and PSNR of crowdview's blended impostor."""
@@ -143,7 +166,7 @@ def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: li
                                      **fidelity.compare(data["reference_between"][index], draw(mid, elevation, baked_frame))})
     frame, frame_weights = halfway_frame(poses)
     cameras = between_cameras(layout)
-    references = render_mesh_references(work, poses, frame, cameras, supersample)
+    references = between_references(work, poses, supersample)
     between = [{"azimuth_deg": a, "elevation_deg": e, **fidelity.compare(reference, draw(a, e, frame_weights))}
                for (a, e), reference in zip(cameras, references)]
     return {
