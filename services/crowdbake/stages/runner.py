@@ -50,6 +50,10 @@ logger = logging.getLogger(__name__)
 
 # At most this many worker processes: the two independent stages (poses, impostor tasks) keep two busy.
 MAX_WORKERS = 2
+# Items a worker process runs before a fresh one (forked from the fork server in milliseconds) replaces
+# it: a worker's resident size otherwise creeps up from item to item (the heap's fragments, pyrender's
+# caches) to twice what one item needs.
+WORKER_ITEMS = 8
 
 
 def usable_cores() -> int:
@@ -120,6 +124,11 @@ class _Meter:
         self.worker_peak_rss_mib: float | None = None  # the largest worker's high-water mark (from the fork on)
         self.worker_cpu_s: dict[int, float] = {}  # per worker process, its CPU seconds at its last item
 
+    def account_worker(self, figures: dict[str, Any]) -> None:
+        """Note a worker item's process figures: its high-water mark and its process's CPU so far."""
+        self.worker_peak_rss_mib = max(self.worker_peak_rss_mib or 0.0, figures["peak_rss_mib"])
+        self.worker_cpu_s[figures["pid"]] = max(self.worker_cpu_s.get(figures["pid"], 0.0), figures["process_cpu_s"])
+
     def figures(self, stage: str) -> StageFigures:
         return self.stages.setdefault(stage, StageFigures())
 
@@ -171,6 +180,8 @@ def _worker_item(work: str, item: str, task: dict | None = None, frame: int | No
         figures = measured(lambda: stage_poses(Path(work)).cached)
     elif item == "pack":
         figures = measured(lambda: str(stage_pack_frame(Path(work), frame)))
+    elif item == "pack-stage":
+        figures = measured(lambda: stage_pack(Path(work)).cached)
     elif item == "runtime":
         figures = measured(lambda: len(between_references(Path(work), load_poses(Path(work)), FIDELITY_SUPERSAMPLE)))
     else:
@@ -192,7 +203,7 @@ def start_pool(workers: int) -> ProcessPoolExecutor:
     if not _STOP_REGISTERED:
         atexit.register(_stop_fork_server)
         _STOP_REGISTERED.append(True)
-    return ProcessPoolExecutor(workers, mp_context=context)
+    return ProcessPoolExecutor(workers, mp_context=context, max_tasks_per_child=WORKER_ITEMS)
 
 
 _STOP_REGISTERED: list[bool] = []
@@ -251,8 +262,7 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
             item, frame = pending.pop(future)
             stage = "pack" if item == "runtime" else item
             figures = future.result()
-            meter.worker_peak_rss_mib = max(meter.worker_peak_rss_mib or 0.0, figures["peak_rss_mib"])
-            meter.worker_cpu_s[figures["pid"]] = max(meter.worker_cpu_s.get(figures["pid"], 0.0), figures["process_cpu_s"])
+            meter.account_worker(figures)
             if stage in ("impostors", "pack"):
                 figures = dict(figures, wall_s=0.0)  # the items overlap: the impostor stage's wall is the part's, below
             meter.figures(stage).add(figures)
@@ -338,10 +348,20 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         # The cycle report's plots (a second or more of matplotlib) are drawn in a thread of this process,
         # which otherwise only waits for the workers; run_bake returns once they are written.
         plotter = _Background("cycle-plots", plots, meter.figures("cycle"))
-        # Likewise the pack stage's scoring library (scikit-image: a third of a second to import).
-        imports = _Background("pack-imports", [lambda: importlib.import_module("skimage.metrics")], meter.figures("pack"))
+        # Likewise the pack stage's scoring library (scikit-image: a third of a second to import), when the pack
+        # stage runs here.
+        warm = [] if pool is not None else [lambda: importlib.import_module("skimage.metrics")]
+        imports = _Background("pack-imports", warm, meter.figures("pack"))
         try:
             _poses_and_impostors(work, pool, workers, meter, progress)
+            if pool is not None:
+                # The pack stage too, in a worker: its peak memory (the fidelity scoring holds the fidelity
+                # frame's references and atlases) then adds to no earlier stage's leftovers.
+                report(progress, "pack", 0, 1)
+                figures = pool.submit(_worker_item, str(work), "pack-stage").result()
+                meter.account_worker(figures)
+                meter.figures("pack").add(figures)
+                report(progress, "pack", 1, 1)
         finally:
             if pool is not None:
                 pool.shutdown(wait=True)
@@ -351,7 +371,7 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         imports.result()
         poses = PosesRecord.from_json(read_json(work / "poses" / "record.json"))
         impostor = impostor_statistics(work)
-        pack = meter.run("pack", lambda: stage_pack(work, progress)).record
+        pack = meter.run("pack", lambda: stage_pack(work, progress)).record  # in this process, or the worker's record
 
         def publish() -> Path:
             # The engine export is part of publishing, as in the worker's publish task (None: export=false).
