@@ -89,3 +89,38 @@ def test_python_verifies_the_runtime_test_writers_bundle(tmp_path):
     subprocess.run([str(SYNTHETIC_WRITER), str(tmp_path / "synthetic")], check=True, capture_output=True, timeout=120)
     bundle = verify_bundle(tmp_path / "synthetic")
     assert bundle.pose_caches and bundle.textures
+
+
+def test_crowdview_renders_a_private_bundle_from_the_service_by_url(python_bundle, tmp_path):
+    """A bundle published privately on a real crowdbake server: crowdview fetches it by URL with a key
+    (`--key`, sent as a bearer token), verifies and renders it; without the key it gets `unauthorized`
+    and exits with a message, and an unknown version is `not_found`, not a manifest error."""
+    from crowdbake.storage.bundles import register_bundle
+    from crowdbake.storage.db import session_scope
+    from service_fixtures import free_port, make_api, service_env, start_api
+
+    api = make_api(tmp_path / "api")
+    store = api.client.app.state.services.bundles
+    store.publish(python_bundle, "cross", "1")
+    with session_scope(api.sessions) as session:
+        register_bundle(session, store, "cross", "1", False, None)
+    settings = api.client.app.state.services.settings
+    port = free_port()
+    env = service_env(settings.data_dir, "filesystem://", CROWDBAKE_DATABASE_URL=settings.database_url, CROWDBAKE_SHARED_WORKSPACE="true")
+    server = start_api(env, port, tmp_path / "api.log")
+    try:
+        url = f"http://127.0.0.1:{port}/v1/bundles/cross/1"
+        denied = crowdview("--verify", url, "--cache", str(tmp_path / "cache0"))
+        assert denied.returncode != 0 and "unauthorized" in denied.stderr, denied.stderr
+        missing = crowdview("--verify", f"http://127.0.0.1:{port}/v1/bundles/cross/9", "--key", api.keys["read"],
+                            "--cache", str(tmp_path / "cache1"))
+        assert missing.returncode != 0 and "not_found" in missing.stderr, missing.stderr
+        picture = tmp_path / "private.png"
+        rendered = crowdview("--url", url, "--key", api.keys["read"], "--cache", str(tmp_path / "cache2"), "--count", "12",
+                             "--headless", "--frames", "2", "--width", "320", "--height", "200", "--screenshot", str(picture))
+        assert rendered.returncode == 0, rendered.stderr
+        assert api.keys["read"] not in rendered.stdout + rendered.stderr + denied.stderr
+        pixels = np.asarray(Image.open(picture).convert("RGB"), dtype=np.int16)
+        assert pixels.std() > 5, "the picture of the crowd is blank"
+    finally:
+        server.stop()

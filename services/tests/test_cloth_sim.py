@@ -15,6 +15,7 @@ from crowdbake.sample.cloth_sim import (
     inside_closed_parts,
     settling_curve,
     simulate,
+    surface_distance,
     winding_numbers,
 )
 from crowdbake.sample.garments import grid_faces
@@ -146,3 +147,28 @@ def test_winding_numbers_tell_inside_from_outside():
     np.testing.assert_allclose(winding, [1, 1, 0, 0, 0], atol=1e-9)
     inside = inside_closed_parts(points, tube.positions, tube.faces, [(0, len(tube.faces))])
     np.testing.assert_array_equal(inside, [True, True, False, False, False])
+
+
+def test_surface_distance_to_a_tube():
+    tube = tube_mesh(np.array([[0, 0, 0], [0, 0.1, 0], [0, 0.9, 0], [0, 1, 0]]), np.array([[0, 0], [0.2, 0.2], [0.2, 0.2], [0, 0]]),
+                     (0.0, 0.0, 1.0), rings=12, segments=24, uv_rect=(0, 0, 1, 1))
+    vertex = tube.positions[30]  # a ring vertex, on the surface
+    points = np.array([vertex, vertex * [1.5, 1, 1.5], [0, 0.5, 0]])
+    distance = surface_distance(points, tube.positions, tube.faces)
+    assert distance[0] == pytest.approx(0.0, abs=1e-12)
+    assert distance[1] == pytest.approx(0.5 * np.hypot(vertex[0], vertex[2]), abs=1e-3)  # straight out from the axis
+    assert 0.19 < distance[2] <= 0.2  # the axis is a radius away, less the facets' sag
+
+
+def test_tethers_allow_a_fraction_of_the_rest_detour():
+    """A sheet bent at a right angle: the straight distance to its pin is shorter than along the cloth."""
+    positions, faces, pinned = _sheet(4, 3)
+    bent = positions.copy()
+    below = bent[:, 1] < -0.05  # rows 2 and 3 fold out along +z from row 1
+    bent[below, 2] = -0.04 - bent[below, 1]
+    bent[below, 1] = -0.04
+    vertex = 3 * 3 + 1
+    straight = np.linalg.norm(bent[vertex] - bent[1])
+    assert build_cloth_model(bent, faces, pinned).tether_length[vertex] == pytest.approx(0.12)
+    assert build_cloth_model(bent, faces, pinned, tether_detour=0.0).tether_length[vertex] == pytest.approx(straight)
+    assert build_cloth_model(bent, faces, pinned, tether_detour=0.5).tether_length[vertex] == pytest.approx((0.12 + straight) / 2)

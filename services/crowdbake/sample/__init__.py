@@ -4,7 +4,8 @@ It stands in for what users bring (a skinned character from a DCC tool, cloth fr
 simulator) and goes through the same input formats: glTF 2.0 (.glb), PC2 + OBJ, PNG textures.
 
     regions    colour-region codes carried in texture alpha (alpha = 17 * code)
-    humanoid   skeleton, body mesh with UVs and skin weights, collision capsules
+    humanoid   skeleton, body mesh with UVs and skin weights
+    colliders  the collision capsules fitted inside the body, and their motion
     walk       the walk-in-place cycle as glTF keyframe channels
     garments   the loose and the tight skirt: cut, UVs, pinned waistband
     cloth_sim  the position-based cloth simulator and its measures (settling, stretch, penetration)

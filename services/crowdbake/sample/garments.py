@@ -7,9 +7,10 @@ cycle) by `ease`; the loose skirt additionally flares out as a cone from the hip
 So the garment starts without penetrating the body in the frame-0 pose, and the tight one is as
 tight as the stride allows.
 
-The waistband rows are pinned and follow the body with the same skin weights as the torso at that
-height. The loose skirt's flare starts below the hips: above it the cut follows the body like the
-tight one (a flare carried up to the waistband left it 5 cm off the waist all round). UVs unwrap the
+The waistband row is pinned on the skin: WAISTBAND_GAP outside the torso's surface (and never inside
+a capsule), so seen from above no gap opens between body and skirt. It follows the body with the same
+skin weights as the torso at that height. The loose skirt's flare starts below the hips: above it the
+cut follows the body like the tight one (a flare carried up to the waistband left it 5 cm off the waist all round). UVs unwrap the
 cylinder into GARMENT_UV_RECT of the shared texture: u around (starting at the back, like the body's tubes), v down from the waistband. The seam column has two UVs per
 position, so the OBJ keeps one position per vertex (what the PC2 cache indexes) and a reader splits
 the seam.
@@ -21,7 +22,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from crowdbake.sample.cloth_sim import ClothParams
+from crowdbake.sample.colliders import WAIST_HEIGHT, torso_radius
 from crowdbake.sample.humanoid import GARMENT_UV_RECT, UV_INSET
+
+# Metres between the torso's surface and the pinned waistband: the band's own thickness on the skin.
+WAISTBAND_GAP = 0.002
+# Metres the pinned waistband keeps outside the collision capsules where they stand proud of the skin,
+# so the body's turning under it (the spine twists against the hips) does not sink it into them.
+WAISTBAND_CAPSULE_CLEARANCE = 0.002
 
 # Both garments are the same cloth (ClothParams defaults); only cut and length differ. The paper
 # (section 3) found tight clothing settles into a cycle within a few walk cycles and loose skirts
@@ -46,22 +54,25 @@ class GarmentSpec:
 
 
 GARMENT_SPECS: dict[str, GarmentSpec] = {
-    # Ankle-length, flaring from the hips to a 0.36 m hem radius: lots of free cloth the legs kick.
+    # Ankle-length, flaring from the hips to a 0.36 m hem radius: lots of free cloth the legs kick. The
+    # cone starts at 0.14 m, inside the hips' cut at the sides and a little outside it at front and back,
+    # so the cloth falls from the hips; a wider top (0.17 m) left a shelf standing out from the waistband
+    # on the skin that never settled into a cycle.
     "loose": GarmentSpec(
         name="loose",
-        waist_y=1.06,
+        waist_y=WAIST_HEIGHT,
         hem_y=0.26,
         rows=30,
         columns=72,
         ease=0.012,
         flare_top_y=0.98,
-        flare_top_radius=0.17,
+        flare_top_radius=0.14,
         hem_radius=0.36,
     ),
     # Mid-thigh, cut just around the hips and the thighs' range of motion: it rides on the body.
     "tight": GarmentSpec(
         name="tight",
-        waist_y=1.06,
+        waist_y=WAIST_HEIGHT,
         hem_y=0.64,
         rows=15,
         columns=72,
@@ -147,6 +158,11 @@ def build_garment(spec: GarmentSpec, capsules_local: np.ndarray, radii: np.ndarr
     heights = np.linspace(spec.waist_y, spec.hem_y, spec.rows)
     angles = 2.0 * np.pi * np.arange(spec.columns) / spec.columns
     radius = outer_radius(heights, angles, capsules_local, np.asarray(radii) + thickness) + spec.ease
+    # The pinned waistband sits on the skin; the rows below hang clear of the capsules as cut above.
+    for row in range(spec.pinned_rows):
+        on_skin = torso_radius(heights[row], angles) + WAISTBAND_GAP
+        clear = outer_radius(heights[row : row + 1], angles, capsules_local, np.asarray(radii))[0] + WAISTBAND_CAPSULE_CLEARANCE
+        radius[row] = np.maximum(on_skin, clear)
     if spec.hem_radius > 0:
         # The cone flares below its top only: above it (the hips, the waistband) the cut follows the body.
         fraction = (spec.flare_top_y - heights) / (spec.flare_top_y - spec.hem_y)

@@ -39,17 +39,16 @@ from crowdbake.sample.cloth_sim import (
     inside_closed_parts,
     settling_curve,
     simulate,
+    surface_distance,
 )
 from crowdbake.sample.garments import GARMENT_SPECS, Garment, build_garment
+from crowdbake.sample.colliders import Capsules, capsule_track, fit_capsules
 from crowdbake.sample.humanoid import (
     JOINT_INDEX,
     JOINT_REST_POSITIONS,
     BodyMesh,
-    Capsules,
     build_body,
     build_character,
-    capsule_track,
-    fit_capsules,
     torso_skin_weights,
 )
 from crowdbake.sample.textures import OUTFIT_COUNT, VARIATION_COUNT, diffuse_textures, outfit_map
@@ -102,7 +101,8 @@ class SampleSimulation:
 
         Penetration is measured twice: against the collision capsules on every frame (depth beyond
         PENETRATION_TOLERANCE), and against the skinned body mesh itself (inside any closed body part,
-        by winding number) on body_frames frames spread over the last cycle. Stretch is edge
+        by winding number) on body_frames frames spread over the last cycle, where the pinned
+        waistband's largest distance to the torso's surface is measured too. Stretch is edge
         extension in percent over every frame after the first cycle (the first holds the drop from rest).
         """
         depth = capsule_penetration(self.points, self.capsule_track, self.capsules.radii, self.frame_track_index())
@@ -116,6 +116,11 @@ class SampleSimulation:
         inside_body = [
             int(inside_closed_parts(self.points[f], posed[f % self.cycle_frames], self.body.faces, parts).sum()) for f in frames
         ]
+        first, stop = self.body.part_faces["torso"]
+        waistband_gap = max(
+            float(surface_distance(self.points[f, self.model.pinned], posed[f % self.cycle_frames], self.body.faces[first:stop]).max())
+            for f in frames
+        )
         return {
             "vertex_count": int(self.points.shape[1]),
             "capsule_penetration_tolerance_m": PENETRATION_TOLERANCE,
@@ -124,6 +129,7 @@ class SampleSimulation:
             "capsule_penetration_depth_max_m": round(float(max(depth.max(), 0.0)), 5),
             "inside_body_mesh_frames": [int(f) for f in frames],
             "inside_body_mesh_vertices": inside_body,
+            "waistband_gap_to_body_max_m": round(waistband_gap, 5),
             "edge_stretch_percent_p99": round(float(np.percentile(extension, 99)), 3),
             "edge_stretch_percent_max": round(float(extension.max()), 3),
         }
@@ -181,7 +187,7 @@ def simulate_sample(
     cut = build_garment(spec, local[:, shaping], capsules.radii[shaping], params.thickness)
 
     # Waistband targets: skinned with the torso's weights at the waistband height.
-    model = build_cloth_model(cut.rest_positions, cut.faces, cut.pinned)
+    model = build_cloth_model(cut.rest_positions, cut.faces, cut.pinned, params.tether_detour)
     pin_rest = cut.rest_positions[cut.pinned]
     pin_joints, pin_weights = torso_skin_weights(pin_rest[:, 1])
     skinning = (world @ character.inverse_bind_matrices.astype(np.float64)).astype(np.float32)

@@ -1,4 +1,5 @@
-"""The procedural sample humanoid: skeleton, body mesh with UVs, skin weights and collision capsules.
+"""The procedural sample humanoid: skeleton, body mesh with UVs and skin weights (its collision capsules
+are in crowdbake.sample.colliders).
 
 Coordinates: metres, Y up, the character faces +Z, its left is +X, feet on y = 0 (glTF's
 conventions, so the .glb needs no root transform). Rest pose: standing, arms slightly away from
@@ -11,8 +12,10 @@ tube starting at its back (so seams face away from the viewer), v runs along the
 uses GARMENT_UV_RECT of the same texture.
 
 Skin weights blend at most two joints per vertex, piecewise linear along each tube's axis.
-Collision capsules are attached to joints and their radii are fitted to the rest-pose mesh, so the
-capsules enclose the body surface they stand in for (test_sample checks that).
+Collision capsules are attached to joints. Most have radii fitted to the rest-pose mesh so they
+enclose the body surface they stand in for; at the waist, where a skirt's waistband sits on the
+skin, a belt of capsules follows the torso's surface within a few millimetres instead (test_sample
+checks both).
 """
 from __future__ import annotations
 
@@ -418,98 +421,6 @@ def build_character(body: BodyMesh, channels: list, duration: float, texture: np
         texture=texture,
         name="crowdbake_sample_humanoid",
     )
-
-
-# ----------------------------------------------------------------------------------------------
-# Collision capsules: (name, joint, part, rest endpoints, axis range of the part they cover)
-
-
-@dataclass(frozen=True)
-class Capsules:
-    """names (C,); joints (C,) int: the joint each capsule rides on; endpoints (C, 2, 3) rest-pose
-    world positions; radii (C,) metres, fitted so the capsule encloses the body vertices it covers."""
-
-    names: tuple[str, ...]
-    joints: np.ndarray
-    endpoints: np.ndarray
-    radii: np.ndarray
-
-
-def _capsule_specs() -> list[tuple[str, str, tuple[str, ...], np.ndarray, tuple[float, float]]]:
-    """(name, joint, body parts covered, rest endpoints (2, 3), y range of the covered vertices)."""
-    specs = []
-    # Pairs of vertical capsules a distance 2d apart fit an elliptical cross-section (a, b) best when
-    # d = (a^2 - b^2) / (2 a): hips (0.175, 0.12) -> d = 0.046; waist (0.147, 0.104) -> d = 0.036.
-    for side, sign in (("l", 1.0), ("r", -1.0)):
-        specs.append((f"pelvis_{side}", "hips", ("torso",), np.array([[0.046 * sign, 0.84, -0.008], [0.046 * sign, 1.0, -0.008]]), (0.76, 1.03)))
-    for side, sign in (("l", 1.0), ("r", -1.0)):
-        specs.append((f"waist_{side}", "hips", ("torso",), np.array([[0.036 * sign, 1.03, 0.0], [0.036 * sign, 1.14, 0.0]]), (1.03, 1.14)))
-    for side, sign in (("l", 1.0), ("r", -1.0)):
-        x = 0.09 * sign
-        specs += [
-            (f"thigh_upper_{side}", f"thigh_{side}", (f"leg_{side}",), np.array([[x, 0.90, 0.0], [x, 0.72, 0.0]]), (0.70, 0.93)),
-            (f"thigh_lower_{side}", f"thigh_{side}", (f"leg_{side}",), np.array([[x, 0.72, 0.0], [x, 0.52, 0.0]]), (0.50, 0.74)),
-            (f"shin_upper_{side}", f"shin_{side}", (f"leg_{side}",), np.array([[x, 0.50, 0.0], [x, 0.30, 0.0]]), (0.28, 0.52)),
-            (f"shin_lower_{side}", f"shin_{side}", (f"leg_{side}",), np.array([[x, 0.30, 0.0], [x, 0.08, 0.0]]), (0.04, 0.32)),
-            (f"foot_{side}", f"foot_{side}", (f"foot_{side}",), np.array([[x, 0.045, -0.03], [x, 0.035, 0.13]]), (-1.0, 1.0)),
-        ]
-    for side in ("l", "r"):
-        elbow = JOINT_REST_POSITIONS[JOINT_INDEX[f"forearm_{side}"]]
-        wrist = JOINT_REST_POSITIONS[JOINT_INDEX[f"hand_{side}"]]
-        direction = (wrist - elbow) / np.linalg.norm(wrist - elbow)
-        specs.append(
-            (f"forearm_{side}", f"forearm_{side}", (f"arm_{side}",), np.array([elbow, wrist + 0.11 * direction]), (0.0, elbow[1] + 0.01))
-        )
-    return specs
-
-
-def fit_capsules(body: BodyMesh) -> Capsules:
-    """Collision capsules whose radii enclose the covered rest-pose body vertices.
-
-    Joint-blended vertices are covered by both neighbouring capsules' ranges; a capsule's radius is
-    the largest distance from its segment to a vertex it covers (the vertex's nearest capsule among
-    those covering the same part, so paired capsules like the two pelvis ones share the work).
-    """
-    specs = _capsule_specs()
-    positions = body.positions.astype(np.float64)
-    radii = np.zeros(len(specs))
-    for index, (name, _, parts, endpoints, (low, high)) in enumerate(specs):
-        selected = np.zeros(len(positions), dtype=bool)
-        for part in parts:
-            first, stop = body.part_ranges[part]
-            selected[first:stop] = True
-        selected &= (positions[:, 1] >= low) & (positions[:, 1] <= high)
-        # Among capsules covering the same parts and heights, a vertex belongs to its nearest one.
-        peers = [k for k, spec in enumerate(specs) if spec[2] == parts and spec[4] == (low, high)]
-        distances = np.stack([segment_distance(positions[selected], specs[k][3][0], specs[k][3][1]) for k in peers])
-        mine = distances.argmin(axis=0) == peers.index(index)
-        radii[index] = float(distances[peers.index(index)][mine].max()) if mine.any() else 0.0
-    return Capsules(
-        names=tuple(spec[0] for spec in specs),
-        joints=np.array([JOINT_INDEX[spec[1]] for spec in specs], dtype=np.int64),
-        endpoints=np.stack([spec[3] for spec in specs]),
-        radii=radii,
-    )
-
-
-def segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distance from points (N, 3) to the segment a-b -> (N,)."""
-    ab = b - a
-    t = np.clip(((points - a) @ ab) / (ab @ ab), 0.0, 1.0)
-    return np.linalg.norm(points - (a + t[:, None] * ab), axis=1)
-
-
-def capsule_track(capsules: Capsules, world_matrices: np.ndarray) -> np.ndarray:
-    """Capsule endpoints over time: world_matrices (F, J, 4, 4) joint world transforms -> (F, C, 2, 3).
-
-    Each capsule moves rigidly with its joint: p(t) = world(t) @ world_rest^-1 @ p_rest.
-    """
-    rest_world = np.tile(np.eye(4), (len(JOINT_NAMES), 1, 1))
-    rest_world[:, :3, 3] = JOINT_REST_POSITIONS
-    relative = world_matrices[:, capsules.joints] @ np.linalg.inv(rest_world[capsules.joints])  # (F, C, 4, 4)
-    homogeneous = np.concatenate([capsules.endpoints, np.ones(capsules.endpoints.shape[:2] + (1,))], axis=-1)  # (C, 2, 4)
-    moved = np.einsum("fcij,ckj->fcki", relative, homogeneous)
-    return moved[..., :3]
 
 
 def part_height(name: str, axis_param: np.ndarray) -> np.ndarray:
