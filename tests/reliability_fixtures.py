@@ -122,9 +122,10 @@ class Service:
         self.api = start_api(self.env, self.port, self.root / f"api-{len(list(self.root.glob('api-*.log')))}.log")
         return self.api
 
-    def start_worker(self, concurrency: int = 1, extra_env: dict[str, str] | None = None, preexec_fn=None) -> Process:
+    def start_worker(self, concurrency: int = 1, extra_env: dict[str, str] | None = None, preexec_fn=None, own_group: bool = False) -> Process:
         """A Celery worker (prefork) on the service's queue; `preexec_fn` runs in the child before exec
-        (to set resource limits)."""
+        (to set resource limits); `own_group` starts it in a process group of its own (its pid), so a
+        test can SIGKILL the worker and its pool at once, as a lost machine."""
         index = len(self.workers)
         env = dict(self.env, **(extra_env or {}))
         command = [sys.executable, "-m", "celery", "-A", "crowdbake.jobs.celery_app", "worker", "--loglevel", "INFO", "--pool", "prefork",
@@ -132,7 +133,8 @@ class Service:
                    "--without-gossip", "--without-mingle"]
         log = self.root / f"worker-{index}.log"
         with open(log, "wb") as handle:
-            popen = subprocess.Popen(command, env=env, stdout=handle, stderr=subprocess.STDOUT, cwd=str(self.root), preexec_fn=preexec_fn)
+            popen = subprocess.Popen(command, env=env, stdout=handle, stderr=subprocess.STDOUT, cwd=str(self.root), preexec_fn=preexec_fn,
+                                     start_new_session=own_group)
         worker = Process(popen, log)
         self.workers.append(worker)
         return worker
@@ -293,10 +295,28 @@ run_bake(BakeInputs(character=character, cloth=sources / "cloth.pc2", cloth_mesh
 """
 
 
+def materialize_sources(service: Service, bake: dict[str, Any], sources: Path) -> Path:
+    """The bake's input files linked from the blob store as the worker links them (crowdbake.jobs.tasks.
+    crowdbake.jobs.inputs.materialize_inputs: the same names)."""
+    from crowdbake.storage.models import Asset
+    from crowdbake.storage.store import open_store
+
+    blobs = open_store(service.settings).blobs  # the local folder or the bucket, as the service stores them
+    with service.sessions()() as session:
+        character = session.get(Asset, bake["inputs"]["character"])
+        cloth = session.get(Asset, bake["inputs"]["cloth"])
+        blobs.materialize(character.files["file"]["sha256"], sources / f"character.{character.info.get('format', 'glb')}")
+        blobs.materialize(cloth.files["cache"]["sha256"], sources / "cloth.pc2")
+        blobs.materialize(cloth.files["mesh"]["sha256"], sources / "cloth.obj")
+        for name, asset_id in sorted((bake["inputs"].get("textures") or {}).items()):
+            blobs.materialize(session.get(Asset, asset_id).files["file"]["sha256"], sources / "textures" / name)
+    return sources
+
+
 def inputs_created(sessions, bake: dict[str, Any]) -> str:
     """The `created` a service bake gives its manifest: when its newest input asset was uploaded
-    (crowdbake.jobs.tasks.inputs_created), read from the asset records."""
-    from crowdbake.jobs.tasks import inputs_created as created_of
+    (crowdbake.jobs.inputs.inputs_created), read from the asset records."""
+    from crowdbake.jobs.inputs import inputs_created as created_of
     from crowdbake.storage.models import Asset
 
     ids = [bake["inputs"]["character"], bake["inputs"]["cloth"], *(bake["inputs"].get("textures") or {}).values()]
@@ -317,7 +337,8 @@ def run_reference_bake(sources: Path, env: dict[str, str], bake: dict[str, Any],
 
 
 def reference_bake(service: Service, bake: dict[str, Any], out: Path) -> Path:
-    """The same bake run undisturbed in one process from the very files the service baked (the work
-    folder's links to the uploaded blobs) with the same `created`. Returns the bundle folder."""
-    sources = service.settings.work_dir / bake["input_key"] / "sources"
+    """The same bake run undisturbed in one process from the very files the service baked (linked from
+    the blob store: a published bake's work folder is gone) with the same `created`. Returns the
+    bundle folder."""
+    sources = materialize_sources(service, bake, out / "sources")
     return run_reference_bake(sources, service.env, bake, inputs_created(service.sessions(), bake), out)

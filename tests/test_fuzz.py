@@ -30,6 +30,7 @@ import tracemalloc
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -260,6 +261,7 @@ def test_convert_obj_sequence_refuses_cleanly(data):
 # ------------------------------------------------------------------------------------------- API
 
 
+@pytest.mark.slow  # tens of seconds; runs in CI (CROWDBAKE_SLOW_TESTS=1)
 def test_the_api_against_its_openapi_document(tmp_path):
     import schemathesis
     from hypothesis.errors import Unsatisfiable

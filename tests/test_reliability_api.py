@@ -23,7 +23,8 @@ from sqlalchemy import func, select
 from crowdbake.storage.blobs import STALE_STAGING_S
 from reliability_fixtures import files_under, make_service
 
-pytestmark = [pytest.mark.integration]
+# slow: a real server and worker (or browser) for tens of seconds; scripts/test.sh runs it with CROWDBAKE_SLOW_TESTS=1, as CI does
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 BOUNDARY = "reliabilityboundary"
 

@@ -15,7 +15,7 @@ And the API: an upload onto a full blob store is a 503 problem, and leaves nothi
 
 Regressions (fixed): an upload that filled the blob store's disk was a 500 "unexpected error"
 (crowdbake.api.problems now answers ENOSPC/EDQUOT with 503 not-ready); a bake failed by an OSError
-showed the server's work-folder path in its error (crowdbake.jobs.tasks.describe_error now gives
+showed the server's work-folder path in its error (crowdbake.jobs.failures.describe_error now gives
 the errno and its reason; the path stays in the worker's log).
 """
 from __future__ import annotations

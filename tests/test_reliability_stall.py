@@ -21,6 +21,9 @@ from crowdbake.api.readiness import READY_FRESH_S
 from reliability_fixtures import RedisServer, child_pids, make_service
 from service_fixtures import free_port
 
+# slow: real Redis, API and serve processes for tens of seconds; runs in CI (CROWDBAKE_SLOW_TESTS=1)
+pytestmark = pytest.mark.slow
+
 # Readiness callers fired at once: more than the request pool's 40 threads (anyio's default).
 STORM = 45
 

@@ -50,7 +50,7 @@ HTTP_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
 # random paths cannot blow up the number of series.
 UNMATCHED_ROUTE = "<unmatched>"
 UPLOAD_PREFIX = "/v1/assets/"
-UPLOAD_KINDS = {"characters": "character", "cloth": "cloth", "textures": "texture"}
+UPLOAD_KINDS = {"characters": "character", "cloth": "cloth", "textures": "texture", "cycles": "cycle"}
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 
 
@@ -141,7 +141,7 @@ def read_bake_figures(session: Session) -> BakeFigures:
 
     pending_parts = session.scalar(
         select(func.count()).select_from(BakePart).join(Bake, Bake.id == BakePart.bake_id)
-        .where(BakePart.done.is_(False), BakePart.stage == "impostors", Bake.state.in_(("queued", "running")))
+        .where(BakePart.done.is_(False), Bake.state.in_(("queued", "running")))
     )
     asset_bytes, asset_count = {}, {}
     for kind, size, count in session.execute(select(Asset.kind, func.coalesce(func.sum(Asset.size), 0), func.count()).group_by(Asset.kind)):
@@ -179,7 +179,7 @@ def figures_to_metrics(figures: BakeFigures) -> list[Metric]:
                                 value=figures.impostor_tasks_pending)
     asset_bytes = GaugeMetricFamily("crowdbake_asset_bytes", "Bytes of validated uploads stored, by asset kind.", labels=["kind"])
     asset_count = GaugeMetricFamily("crowdbake_assets", "Validated uploads stored, by asset kind.", labels=["kind"])
-    for kind in ("character", "cloth", "texture"):
+    for kind in ("character", "cloth", "texture", "cycle"):
         asset_bytes.add_metric([kind], figures.asset_bytes.get(kind, 0))
         asset_count.add_metric([kind], figures.asset_count.get(kind, 0))
     return [

@@ -53,6 +53,11 @@ MAX_TILE_SIZE = 1024
 MAX_AZIMUTHS = 64
 MAX_ELEVATIONS = 9
 MAX_IMPOSTOR_FRAMES = 256
+# Texels of one impostor map set: impostor_frames x views (azimuths x elevation rings) x tile_size².
+# Each texel is rendered as a normal, a detail and a UV map and held while packing (4 bytes each as
+# rgba8 before compression), so 2^27 texels is 1.5 GiB of maps: 8.5 times the default bake (10 frames x
+# 32 x 3 views x 128²), and the most a 4 GiB worker should be asked for. Each parameter alone is within its bound; together they may not be.
+MAX_IMPOSTOR_TEXELS = 1 << 27
 # The cycle search's cost grows with candidates x views renders; these bound one request's work.
 MAX_CANDIDATES = 50
 MAX_CYCLE_VIEWS = 32
@@ -221,10 +226,28 @@ CYCLE_SHARED = {"cycle_frames": "--cycle-frames", "close": "--close", "fps": "--
                 "animation": "--animation", "candidates": "--candidates", "cycle_views": "--views"}
 
 
+def impostor_texels(values: dict[str, Any]) -> int | None:
+    """impostor_frames x azimuths x len(elevations_deg) x tile_size², or None when a value is missing or
+    not a number (each field's own check reports that)."""
+    try:
+        frames, azimuths, tile = (int(values.get(name, SPECS[name].default)) for name in ("impostor_frames", "azimuths", "tile_size"))
+        rings = len(values.get("elevations_deg", SPECS["elevations_deg"].default))
+    except (TypeError, ValueError):
+        return None
+    return frames * azimuths * rings * tile * tile
+
+
 def cross_field_problem(values: dict[str, Any]) -> tuple[str, str] | None:
-    """(field, message) for a combination of parameters that cannot go together, else None."""
+    """(field, message) for a combination of parameters that cannot go together, else None. The field
+    is None when the problem is the combination of several (the message names them)."""
     if values.get("lod_ratio") is not None and values.get("lod_triangles") is not None:
         return "lod_ratio", "give lod_ratio or lod_triangles, not both"
+    texels = impostor_texels(values)
+    if texels is not None and texels > MAX_IMPOSTOR_TEXELS:
+        return None, (f"impostor_frames x azimuths x elevations_deg (rings) x tile_size² = {values.get('impostor_frames', SPECS['impostor_frames'].default)}"
+                      f" x {values.get('azimuths', SPECS['azimuths'].default)} x {len(values.get('elevations_deg', SPECS['elevations_deg'].default))}"
+                      f" x {values.get('tile_size', SPECS['tile_size'].default)}² = {texels:,} texels, more than {MAX_IMPOSTOR_TEXELS:,} "
+                      "(MAX_IMPOSTOR_TEXELS); lower one of them")
     return None
 
 
@@ -263,7 +286,7 @@ class BakeParams:
                 raise InputError(f"{spec.name}: {problem}", spec.name)
         clash = cross_field_problem(values)
         if clash is not None:
-            raise InputError(f"{clash[0]}: {clash[1]}", clash[0])
+            raise InputError(f"{clash[0]}: {clash[1]}" if clash[0] else clash[1], clash[0])
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)

@@ -76,6 +76,17 @@ class Settings(BaseSettings):
     task_retry_backoff_max: float = Field(60.0, gt=0, description="Longest wait between retries (seconds).")
     progress_interval: float = Field(0.5, ge=0, description="Least seconds between two progress writes of a stage.")
     migrate_on_start: bool = Field(True, description="Run the database migrations when the API starts.")
+    heartbeat_interval: float = Field(10.0, gt=0, description="Seconds between two heartbeats of a running stage (written by a thread in the worker).")
+    heartbeat_timeout: float = Field(
+        60.0, gt=0, description="A running stage whose last heartbeat is older than this many seconds lost its worker and is re-queued."
+    )
+    sweep_interval: float = Field(
+        15.0, ge=0, description="Seconds between two passes of the API's sweeper (re-queue lost stages, send unsent ones, delete old work folders); 0 turns it off."
+    )
+    dispatch_after: float = Field(5.0, ge=0, description="A queued stage whose message was not sent for this many seconds is sent by the sweeper.")
+    work_keep_seconds: float = Field(
+        7 * 24 * 3600.0, ge=0, description="Work folders of failed and unpublished bakes are deleted this long after the bake ended."
+    )
 
     @field_validator("bootstrap_key")
     @classmethod
@@ -104,6 +115,8 @@ class Settings(BaseSettings):
             raise ValueError("CROWDBAKE_STORE=s3 needs CROWDBAKE_S3_BUCKET")
         if (self.s3_access_key_id is None) != (self.s3_secret_access_key is None):
             raise ValueError("set both CROWDBAKE_S3_ACCESS_KEY_ID and CROWDBAKE_S3_SECRET_ACCESS_KEY, or neither")
+        if self.heartbeat_timeout <= self.heartbeat_interval:
+            raise ValueError("CROWDBAKE_HEARTBEAT_TIMEOUT must be longer than CROWDBAKE_HEARTBEAT_INTERVAL")
         if not self.database_url:
             self.database_url = f"sqlite:///{data / 'crowdbake.sqlite3'}"
         return self

@@ -358,3 +358,21 @@ def redis_url_or_skip() -> str:
     if not url:
         pytest.skip("CROWDBAKE_TEST_REDIS_URL is not set (scripts/test.sh starts redis-server on loopback and sets it)")
     return url
+
+
+def upload_small_assets(api: Api, tmp_path: Path) -> dict[str, str]:
+    """A tiny character, a 12-frame cloth and one texture uploaded with the upload key: their asset ids."""
+    points, faces = tiny_cloth(frames=12)
+    upload = api.auth("upload")
+    character = api.client.post("/v1/assets/characters", files={"file": ("walker.glb", tiny_character_glb())}, headers=upload).json()
+    cloth = api.client.post("/v1/assets/cloth", files={"cache": ("c.pc2", pc2_bytes(points)), "mesh": ("c.obj", obj_bytes(points[0], faces, tmp_path))}, headers=upload).json()
+    texture = api.client.post("/v1/assets/textures", files={"file": ("d.png", png_bytes())}, headers=upload).json()
+    return {"character": character["id"], "cloth": cloth["id"], "texture": texture["id"]}
+
+
+def bake_body(assets: dict[str, str], **changes) -> dict:
+    """A small bake request of `assets` (upload_small_assets), with `changes` applied."""
+    body = {"name": "walker", "version": "1.0.0", "character": assets["character"], "cloth": assets["cloth"],
+            "textures": {"diffuse_0.png": assets["texture"]}, "params": {"impostor_frames": 2, "azimuths": 4, "tile_size": 32}}
+    body.update(changes)
+    return body

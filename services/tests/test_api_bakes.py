@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from service_fixtures import make_api, obj_bytes, pc2_bytes, png_bytes, tiny_character_glb, tiny_cloth
+from service_fixtures import bake_body, make_api, tiny_character_glb, upload_small_assets
 
 PROBLEM = "application/problem+json"
 
@@ -20,19 +20,7 @@ def api(tmp_path):
 
 @pytest.fixture
 def assets(api, tmp_path):
-    points, faces = tiny_cloth(frames=12)
-    upload = api.auth("upload")
-    character = api.client.post("/v1/assets/characters", files={"file": ("walker.glb", tiny_character_glb())}, headers=upload).json()
-    cloth = api.client.post("/v1/assets/cloth", files={"cache": ("c.pc2", pc2_bytes(points)), "mesh": ("c.obj", obj_bytes(points[0], faces, tmp_path))}, headers=upload).json()
-    texture = api.client.post("/v1/assets/textures", files={"file": ("d.png", png_bytes())}, headers=upload).json()
-    return {"character": character["id"], "cloth": cloth["id"], "texture": texture["id"]}
-
-
-def bake_body(assets, **changes):
-    body = {"name": "walker", "version": "1.0.0", "character": assets["character"], "cloth": assets["cloth"],
-            "textures": {"diffuse_0.png": assets["texture"]}, "params": {"impostor_frames": 2, "azimuths": 4, "tile_size": 32}}
-    body.update(changes)
-    return body
+    return upload_small_assets(api, tmp_path)
 
 
 def queued_messages(api) -> list[dict]:
@@ -51,7 +39,8 @@ def test_create_returns_202_with_location_and_enqueues_validate(api, assets):
     assert response.headers["location"] == f"/v1/bakes/{bake['id']}"
     assert bake["state"] == "queued" and bake["attempt"] == 0 and bake["progress"] == 0.0
     assert [stage["stage"] for stage in bake["stages"]] == ["validate", "cycle", "poses", "impostors", "pack", "publish"]
-    assert all(stage["state"] == "pending" for stage in bake["stages"])
+    # The first stage is due (its message sent), the others wait for it.
+    assert [stage["state"] for stage in bake["stages"]] == ["queued"] + ["pending"] * 5
     # Parameters are validated, completed with defaults and recorded with the job.
     assert bake["params"]["tile_size"] == 32 and bake["params"]["close"] == "crossfade" and bake["params"]["elevations_deg"] == [0.0, 20.0, 40.0]
     assert bake["inputs"]["textures"] == {"diffuse_0.png": assets["texture"]}
@@ -122,6 +111,23 @@ def test_unknown_assets_and_reserved_version(api, assets):
     assert response.status_code == 422 and response.json()["errors"][0]["field"] == "textures"
 
 
+def test_ids_with_nul_or_odd_characters_name_nothing(api, assets):
+    """A NUL in an id once reached PostgreSQL (which refuses text holding NUL) as a server error; such an
+    id is as unknown as any other, wherever it comes from."""
+    response = api.client.post("/v1/bakes", json=bake_body(assets, cloth="\u0000", textures={"diffuse_0.png": "as_\u0000x"}), headers=api.auth("ci"))
+    assert response.status_code == 422 and response.headers["content-type"] == PROBLEM
+    assert {error["field"] for error in response.json()["errors"]} == {"cloth", "textures.diffuse_0.png"}, response.json()
+    for path in ("/v1/bakes/%00", "/v1/assets/%00", "/v1/bakes/bk_%00/log", f"/v1/bakes/{'b' * 65}"):
+        missing = api.client.get(path, headers=api.auth("ci"))
+        assert missing.status_code == 404 and missing.headers["content-type"] == PROBLEM, (path, missing.text)
+    odd_name = api.client.get("/v1/bakes", params={"name": "walker\x00"}, headers=api.auth("bake"))
+    assert odd_name.status_code == 422 and odd_name.headers["content-type"] == PROBLEM
+    # An upload's file name is a label: control characters are dropped, the file is kept.
+    uploaded = api.client.post("/v1/assets/characters", files={"file": ("walk\x00er\x07.glb", tiny_character_glb())}, headers=api.auth("upload"))
+    assert uploaded.status_code in (200, 201), uploaded.text
+    assert uploaded.json()["filename"] == "walker.glb"
+
+
 def test_too_few_frames_for_the_requested_cycle(api, assets):
     response = api.client.post("/v1/bakes", json=bake_body(assets, params={"cycle_frames": 7}), headers=api.auth("ci"))
     assert response.status_code == 422 and response.json()["type"] == "/problems/invalid-file"
@@ -154,9 +160,13 @@ def test_cancel_then_retry(api, assets):
     assert {stage["state"] for stage in cancelled.json()["stages"]} == {"cancelled"}
     again = api.client.post(f"/v1/bakes/{bake['id']}/cancel", headers=api.auth("bake"))
     assert again.status_code == 409 and again.json()["type"] == "/problems/invalid-state"
-    # A cancelled bake is not reused by a resubmission: a new bake starts.
+    # A cancelled bake is not reused by a resubmission: a new bake starts...
     fresh = api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci"))
     assert fresh.status_code == 202 and fresh.json()["id"] != bake["id"]
+    # ...and holds the inputs and the version: the old one cannot run beside it in the same work folder.
+    blocked = api.client.post(f"/v1/bakes/{bake['id']}/retry", headers=api.auth("bake"))
+    assert blocked.status_code == 409 and blocked.json()["type"] == "/problems/conflict", blocked.text
+    assert api.client.post(f"/v1/bakes/{fresh.json()['id']}/cancel", headers=api.auth("bake")).status_code == 202
     retried = api.client.post(f"/v1/bakes/{bake['id']}/retry", headers=api.auth("bake"))
     assert retried.status_code == 202
     assert retried.json()["attempt"] == 1 and retried.json()["state"] == "queued"
@@ -182,7 +192,7 @@ def test_worker_errors_are_classified():
     from sqlalchemy.exc import OperationalError
 
     from crowdbake.errors import InputError, VersionConflict
-    from crowdbake.jobs.tasks import _is_transient, describe_error
+    from crowdbake.jobs.failures import describe_error, is_transient as _is_transient
 
     bad = describe_error(InputError("lod_triangles 9 is not below 4", "lod_triangles"), "validate")
     assert bad == {"type": "invalid-input", "title": "the inputs cannot be baked", "detail": "lod_triangles 9 is not below 4", "field": "lod_triangles"}

@@ -1,6 +1,8 @@
 """Health, readiness, the OpenAPI document and the problem types every error points to."""
 from __future__ import annotations
 
+import os
+
 from service_fixtures import free_port, make_api
 
 
@@ -50,7 +52,8 @@ def test_every_problem_type_is_described(tmp_path):
 
 def test_no_generated_request_gets_a_server_error(tmp_path):
     """Requests generated from the OpenAPI document (schemathesis), with a key of every scope: whatever
-    they send, the answer is never a 500, and every error is a problem document."""
+    they send, the answer is never a 500, and every error is a problem document. CROWDBAKE_FUZZ_EXAMPLES
+    (default 5) sets the examples per operation, for a longer hunt than CI's."""
     import schemathesis
     from hypothesis import HealthCheck, given, settings
 
@@ -64,7 +67,7 @@ def test_no_generated_request_gets_a_server_error(tmp_path):
         operation = result.ok()
 
         @given(case=operation.as_strategy())
-        @settings(max_examples=5, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+        @settings(max_examples=int(os.environ.get("CROWDBAKE_FUZZ_EXAMPLES", "5")), deadline=None, suppress_health_check=list(HealthCheck), database=None)
         def check(case):
             case.headers = {**(case.headers or {}), "Authorization": f"Bearer {api.keys['all']}"}
             response = case.call()

@@ -44,7 +44,9 @@ def test_a_rest_bake_with_created_gives_the_manifest_time_the_cli_gives(small_sa
     created = api.client.post("/v1/bakes", json=body, headers=api.auth("ci"))
     assert created.status_code == 202, created.text
 
-    worker = start_worker(service_env(api.settings.data_dir, api.settings.broker_url), tmp_path / "worker.log", concurrency=1)
+    # The worker shares the API's database (a PostgreSQL one when scripts/test.sh started a server).
+    env = service_env(api.settings.data_dir, api.settings.broker_url, CROWDBAKE_DATABASE_URL=api.settings.database_url)
+    worker = start_worker(env, tmp_path / "worker.log", concurrency=1)
     try:
         deadline = time.monotonic() + BAKE_TIMEOUT_S
         while (bake := api.client.get(created.headers["location"], headers=api.auth("all")).json())["state"] not in ("succeeded", "failed"):

@@ -26,6 +26,9 @@ from repo_paths import REPO_ROOT
 from crowdbake.export import ktx2
 from test_export import PREVIEW_DIR, sample_bundle, sample_export, sample_export_rgba8  # noqa: F401 (module fixtures)
 
+# slow: a real server and worker (or browser) for tens of seconds; scripts/test.sh runs it with CROWDBAKE_SLOW_TESTS=1, as CI does
+pytestmark = pytest.mark.slow
+
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CROWDVIEW = Path(os.environ.get("CROWDVIEW", REPO_ROOT / "build" / "runtime" / "crowdview"))
 SCREENSHOTS = REPO_ROOT / "out" / "export"

@@ -4,7 +4,9 @@ DracoPy's or meshoptimizer's encoder) from the shared CesiumMan, whose plain loa
 from __future__ import annotations
 
 import copy
+import io
 import struct
+import subprocess
 import time
 from pathlib import Path
 
@@ -316,18 +318,115 @@ def test_animation_chosen_by_name_or_index(shared_asset, tmp_path):
 # ---------------------------------------------------------------------------------------------- refusals
 
 
-def test_ktx2_texture_is_refused_by_name(shared_asset, tmp_path):
-    """A KHR_texture_basisu texture was baked untextured before; it is refused, naming KTX2."""
-    gltf = _load(shared_asset("CesiumMan.glb"))
-    gltf.textures[0].extensions = {"KHR_texture_basisu": {"source": 0}}
-    gltf.textures[0].source = None
-    gltf.images[0].mimeType = "image/ktx2"
+def _with_ktx2_texture(gltf: pygltflib.GLTF2, ktx2: bytes, fallback: bool = False) -> pygltflib.GLTF2:
+    """CesiumMan with its base colour texture replaced by `ktx2` through KHR_texture_basisu (required,
+    as exporters write it when they ship no PNG fallback; with `fallback` the plain source stays)."""
+    gltf.images.append(pygltflib.Image(mimeType="image/ktx2", bufferView=_append_view(gltf, ktx2)))
+    gltf.textures[0].extensions = {"KHR_texture_basisu": {"source": len(gltf.images) - 1}}
     gltf.extensionsUsed = ["KHR_texture_basisu"]
-    with pytest.raises(ValueError, match="KTX2 .KHR_texture_basisu."):
-        load_character(_save(gltf, tmp_path / "ktx2_used.glb"))
-    gltf.extensionsRequired = ["KHR_texture_basisu"]
-    with pytest.raises(ValueError, match="requires KHR_texture_basisu"):
+    if not fallback:
+        gltf.textures[0].source = None
+        gltf.extensionsRequired = ["KHR_texture_basisu"]
+    return gltf
+
+
+def _with_png_texture(gltf: pygltflib.GLTF2, png: bytes) -> pygltflib.GLTF2:
+    gltf.images[0] = pygltflib.Image(mimeType="image/png", bufferView=_append_view(gltf, png))
+    return gltf
+
+
+def _basisu_encode(png_path: Path, *options: str) -> bytes:
+    """PNG -> KTX2 with the same basisu tool the reader transcodes with."""
+    from crowdbake.formats.basisu import basisu_tool
+
+    tool = basisu_tool()
+    assert tool is not None, "basisu is not installed: run scripts/setup.sh"
+    out = png_path.parent / "ktx2"
+    out.mkdir(exist_ok=True)
+    subprocess.run([str(tool), "-ktx2", *options, str(png_path), "-output_path", str(out)], check=True, capture_output=True, timeout=120)
+    return (out / f"{png_path.stem}.ktx2").read_bytes()
+
+
+@pytest.fixture(scope="module")
+def cesium_texture_png(shared_asset, tmp_path_factory) -> Path:
+    """CesiumMan's own diffuse texture at 256x256 with an alpha ramp (so both codecs carry alpha), as PNG."""
+    from PIL import Image
+
+    gltf = _load(shared_asset("CesiumMan.glb"))
+    view = gltf.bufferViews[gltf.images[0].bufferView]
+    jpeg = gltf.binary_blob()[view.byteOffset or 0 : (view.byteOffset or 0) + view.byteLength]
+    rgba = np.asarray(Image.open(io.BytesIO(jpeg)).convert("RGBA").resize((256, 256), Image.LANCZOS)).copy()
+    rgba[..., 3] = np.linspace(64, 255, 256).astype(np.uint8)[:, None]
+    path = tmp_path_factory.mktemp("ktx2") / "cesium.png"
+    Image.fromarray(rgba, "RGBA").save(path)
+    return path
+
+
+# Largest mean absolute error per channel (0..255) over the texture: UASTC is near-lossless; ETC1S at
+# basisu's default quality is a coarse codec (a shared codebook of endpoints and selectors).
+KTX2_MEAN_ERROR = {"ETC1S": 6.0, "UASTC": 1.5}
+
+
+@pytest.mark.parametrize("codec", ["ETC1S", "UASTC"])
+def test_ktx2_texture_bakes_textured(shared_asset, cesium_texture_png, tmp_path, codec):
+    """KHR_texture_basisu (KTX2, Basis Universal ETC1S or UASTC) decodes through basisu and matches
+    the same texture loaded from PNG within the codec's error. It was refused before."""
+    png = cesium_texture_png.read_bytes()
+    ktx2 = _basisu_encode(cesium_texture_png, *(["-uastc"] if codec == "UASTC" else []))
+    assert ktx2.startswith(b"\xabKTX 20")
+    reference = load_character(_save(_with_png_texture(_load(shared_asset("CesiumMan.glb")), png), tmp_path / "png.glb"))
+    character = load_character(_save(_with_ktx2_texture(_load(shared_asset("CesiumMan.glb")), ktx2), tmp_path / "ktx2.glb"))
+
+    assert character.texture.shape == reference.texture.shape == (256, 256, 4)
+    error = np.abs(character.texture.astype(np.int16) - reference.texture.astype(np.int16))
+    assert error.mean(axis=(0, 1)).max() < KTX2_MEAN_ERROR[codec], error.mean(axis=(0, 1))
+    # The picture, not a flat colour: the decoded texture varies as the PNG does.
+    assert np.corrcoef(character.texture[..., :3].ravel(), reference.texture[..., :3].ravel())[0, 1] > 0.98
+    np.testing.assert_array_equal(character.uvs, reference.uvs)
+
+
+def test_ktx2_with_a_png_fallback_reads_the_png(shared_asset, cesium_texture_png, tmp_path):
+    """A texture with both a plain source and a KTX2 one is read from the plain (lossless) one."""
+    png = cesium_texture_png.read_bytes()
+    ktx2 = _basisu_encode(cesium_texture_png)
+    reference = load_character(_save(_with_png_texture(_load(shared_asset("CesiumMan.glb")), png), tmp_path / "png.glb"))
+    both = _with_ktx2_texture(_with_png_texture(_load(shared_asset("CesiumMan.glb")), png), ktx2, fallback=True)
+    np.testing.assert_array_equal(load_character(_save(both, tmp_path / "both.glb")).texture, reference.texture)
+
+
+def test_ktx2_texture_is_refused_by_name_without_basisu(shared_asset, cesium_texture_png, tmp_path, monkeypatch):
+    """Where the basisu tool is not installed, a KTX2 texture is refused by name, never baked untextured."""
+    ktx2 = _basisu_encode(cesium_texture_png)
+    monkeypatch.setenv("CROWDBAKE_BASISU", str(tmp_path / "no-such-basisu"))
+    gltf = _with_ktx2_texture(_load(shared_asset("CesiumMan.glb")), ktx2)
+    with pytest.raises(ValueError, match="requires KHR_texture_basisu: every texture is a KTX2 .KHR_texture_basisu.*basisu is not installed"):
         load_character(_save(gltf, tmp_path / "ktx2_required.glb"))
+    gltf.extensionsRequired = []
+    with pytest.raises(ValueError, match=r"images\[1\] is a KTX2 .KHR_texture_basisu. image.*basisu is not installed"):
+        load_character(_save(gltf, tmp_path / "ktx2_used.glb"))
+
+
+def test_broken_ktx2_textures_are_refused_naming_the_image(shared_asset, cesium_texture_png, tmp_path):
+    """Truncated, corrupted, oversized, or not Basis Universal: one line naming the image, from the
+    header check or from basisu's own error."""
+    from crowdbake.export import ktx2 as ktx2_writer
+
+    good = _basisu_encode(cesium_texture_png, "-uastc")
+    oversized = bytearray(good)
+    struct.pack_into("<2I", oversized, 20, 20000, 20000)  # pixelWidth, pixelHeight
+    corrupted = bytearray(good)
+    corrupted[-200:] = bytes(200)  # the Zstandard-compressed level data
+    rgba8 = ktx2_writer.encode_ktx2(ktx2_writer.VK_FORMAT_R8G8B8A8_UNORM, np.zeros((1, 8, 8, 4), np.uint8), array=False)
+    cases = {
+        "truncated": (good[:40], "KTX2 image is truncated"),
+        "oversized": (bytes(oversized), "image is 20000x20000, more than"),
+        "corrupted": (bytes(corrupted), r"KTX2 image does not transcode \(basisu exit"),
+        "rgba8": (rgba8, "KTX2 image is vkFormat 37, not Basis Universal"),
+    }
+    for name, (data, message) in cases.items():
+        gltf = _with_ktx2_texture(_load(shared_asset("CesiumMan.glb")), data)
+        with pytest.raises(ValueError, match=r"images\[1\]: " + message):
+            load_character(_save(gltf, tmp_path / f"{name}.glb"))
 
 
 def test_unknown_required_extension_is_refused_by_name(shared_asset, tmp_path):

@@ -28,10 +28,7 @@ NOT_BUNDLE_SHAPING = {
 # Options whose REST field has another name: the cloth asset is uploaded as its cache and mesh together.
 REST_NAMES = {"bundle_version": "version", "cloth_mesh": "cloth"}
 # Options that shape the bundle but have no REST field yet, with the reason (each is a known gap).
-NOT_YET_REST = {
-    "cycle": "a cycle.json from `crowdbake cycle` cannot be sent yet; a REST bake searches its cycle "
-             "(params cycle_frames, close, candidates, cycle_views)",
-}
+NOT_YET_REST: dict[str, str] = {}
 
 
 def test_no_module_is_over_the_line_limit():

@@ -263,6 +263,7 @@ def test_cli_prints_where_it_wrote_what(tmp_path, capsys):
 # ---------------------------------------------------------------------------------------------- simulation quality
 
 
+@pytest.mark.slow  # tens of seconds; runs in CI (CROWDBAKE_SLOW_TESTS=1)
 def test_cloth_stays_outside_the_body(settling_runs):
     """Against the skinned body *mesh* (not the capsules the simulator uses), frame by frame."""
     for garment, run in settling_runs.items():

@@ -29,7 +29,8 @@ from baked_service import PARAMS
 from live_service import Service, live_service
 from service_fixtures import free_port
 
-pytestmark = pytest.mark.integration
+# slow: a real server and worker (or browser) for tens of seconds; scripts/test.sh runs it with CROWDBAKE_SLOW_TESTS=1, as CI does
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 CLIENT_ONLY = Path(__file__).resolve().parent / "client_only.py"
 BAKE_FLAGS = ["--impostor-frames", str(PARAMS["impostor_frames"]), "--azimuths", str(PARAMS["azimuths"]),

@@ -105,6 +105,7 @@ def service(tmp_path_factory, small_sample):
         yield running
 
 
+@pytest.mark.slow  # tens of seconds; runs in CI (CROWDBAKE_SLOW_TESTS=1)
 def test_cycle_report_of_a_bake_is_served_with_its_plots(service):
     bake_id = service.bake["id"]
     with service.client() as client:
@@ -127,6 +128,7 @@ def test_cycle_report_of_a_bake_is_served_with_its_plots(service):
     assert httpx.get(f"{service.url}/v1/bakes/{bake_id}/cycle/report.html").status_code == 401
 
 
+@pytest.mark.slow  # tens of seconds; runs in CI (CROWDBAKE_SLOW_TESTS=1)
 def test_previews_of_the_baked_bundle_match_independent_decodes(service):
     texture2ddecoder = pytest.importorskip("texture2ddecoder")
     folder = Path(service.settings.bundles_dir) / NAME / "1.0.0"
@@ -157,6 +159,7 @@ def run_chromium(*arguments: str, profile: Path) -> subprocess.CompletedProcess:
     return subprocess.run(command, capture_output=True, text=True, timeout=CHROMIUM_TIMEOUT_S)
 
 
+@pytest.mark.slow  # tens of seconds; runs in CI (CROWDBAKE_SLOW_TESTS=1)
 def test_page_in_headless_chromium_shows_the_bake_its_report_bundles_and_atlas(service, tmp_path):
     if CHROMIUM is None:
         pytest.skip("chromium is not installed (scripts/apt-packages.txt lists it; apt-get install chromium)")

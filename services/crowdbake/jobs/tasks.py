@@ -4,10 +4,10 @@ Each task takes the bake's id and attempt (and, for an impostor task, its part i
 from the database, calls the stage function (crowdbake.stages.<stage>) on the bake's work folder, records the outcome,
 and enqueues what comes next:
 
-    validate -> cycle (+ impostor plan) -> poses | impostor_views x N (all in parallel) -> pack -> publish
+    validate -> cycle -> poses -> impostor_views x N (in parallel) -> pack -> publish
 
-(The impostor tasks need only the impostor plan, which the cycle task draws from the cycle's output,
-crowdbake.stages.impostors.stage_impostor_plan, so they run beside the poses stage; pack waits for both.)
+(The impostor tasks are derived from the poses stage's output, crowdbake.stages.impostors.impostor_tasks, so they follow
+it rather than run beside it.)
 
 The work folder is named by the bake's input key (hash of inputs, parameters and code version), and the
 stage functions are idempotent, so a redelivered or retried task finds its outputs and returns at once.
@@ -18,63 +18,77 @@ fetches what it reads (`pull`), so a bake fans out over machines that share only
 broker and the bucket.
 The fan-in before pack is a barrier in the database (crowdbake.storage.records.complete_part/claim_fan_in).
 
+Deliveries: a task first claims its stage (or part) in the database (records.claim_delivery), so of
+two messages for one unit only one runs it: a duplicate (sent twice, a visibility timeout, a message
+the sweeper re-sent) is dropped, and a late original that lost its unit records nothing. While a task
+runs, a thread writes its heartbeat every CROWDBAKE_HEARTBEAT_INTERVAL seconds; the sweeper
+(crowdbake.jobs.sweeper) re-queues a unit whose heartbeat stopped. The next stage is queued in the
+same transaction that records a stage's success, and its message sent after the commit: if the
+broker is away, the sweeper sends it later, so no bake is left waiting on a message never sent.
+
 Errors: the stages' InputError and VersionConflict, and any other error that a rerun cannot fix,
 fail the bake with a one-line reason; transient errors (a locked database, a full disk) are retried
-with exponential backoff up to `task_max_retries`. Cancellation is cooperative: the bake's state in the
-database is checked before each stage and at every progress report.
+with exponential backoff up to `task_max_retries`. Cancellation reaches running stages: the heartbeat
+thread sees the bake's state every heartbeat, the progress callback then raises BakeCancelled, and a
+stage that does not report progress within CANCEL_GRACE_BEATS heartbeats has its pool process ended
+(the message comes back, finds the bake cancelled and is dropped).
 """
 from __future__ import annotations
 
-import errno
+import datetime as dt
 import importlib
 import json
 import logging
 import os
 import random
 import shutil
+import threading
 import time
-from dataclasses import dataclass
-from pathlib import Path, PurePosixPath
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable
 
-from celery import group
+from celery import group, signals
 from celery.exceptions import Reject
 from kombu.exceptions import OperationalError as KombuOperationalError
-from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
-from crowdbake.errors import InputError, VersionConflict
 from crowdbake.jobs.celery_app import TASK_NAMES, app
-from crowdbake.params import BakeParams
+from crowdbake.jobs.exchange import STAGE_OUTPUTS, part_outputs, pull_inputs, push_outputs
+from crowdbake.jobs.failures import describe_error, is_transient
+from crowdbake.jobs.inputs import materialize_inputs
 from crowdbake.settings import Settings, get_settings
-from crowdbake.storage import records, work_outputs
+from crowdbake.storage import records
 from crowdbake.storage.blobs import BlobStore
 from crowdbake.storage.bundle_store import BundleStore
-from crowdbake.storage.bundles import BundleConflict, register_bundle
+from crowdbake.storage.bundles import register_bundle
 from crowdbake.storage.db import make_engine, make_sessionmaker, session_scope
-from crowdbake.storage.models import Asset, Bake, BakePart, BakeStage
+from crowdbake.storage.models import Bake, BakePart, utcnow
 from crowdbake.storage.store import open_store
 
 logger = logging.getLogger(__name__)
 
-# OS errors a later attempt can get past; others (a missing file, a permission) would fail again.
-TRANSIENT_ERRNOS = frozenset({errno.ENOSPC, errno.EIO, errno.EAGAIN, errno.EBUSY, errno.ETIMEDOUT, errno.EMFILE, errno.ENFILE, errno.EINTR})
 # Lines of a stage's own log kept in the bake's log (a chatty stage must not fill the database).
 MAX_CAPTURED_LINES = 200
 
 TASK_OPTIONS = dict(bind=True, acks_late=True, reject_on_worker_lost=True, ignore_result=True)
 # How long a worker keeps trying to hand a finished stage to the next one while the broker is away
-# (a Redis restart or failover): about two minutes (0.5 + 1.5 + ... + 5 s, 30 tries). Kombu's default
-# gives up after about one second, which dropped the bake's next stage on any broker restart.
-BROKER_PUBLISH_RETRY = {"max_retries": 30, "interval_start": 0.5, "interval_step": 1.0, "interval_max": 5.0}
-
-
-# The poses stage runs beside the impostor tasks: pack waits for this part as for theirs.
-POSES_PART = "poses"
+# (a Redis restart or failover): about 15 s (0.5 + 1.5 + ... + 5 s, 6 tries). Past that the next
+# stage stays queued without a message and the sweeper sends it once the broker is back.
+BROKER_PUBLISH_RETRY = {"max_retries": 6, "interval_start": 0.5, "interval_step": 1.0, "interval_max": 5.0}
+# Heartbeats a stopped stage (cancelled, or its unit handed to another delivery) gets to notice and
+# return before its pool process is ended: a stage in a long loop without progress reports (a huge
+# mesh in the cycle search) would otherwise run to its end, holding its memory.
+CANCEL_GRACE_BEATS = 3
 
 
 class BakeStopped(Exception):
     """The bake was cancelled, failed elsewhere, or a newer attempt replaced this one."""
+
+
+class BakeCancelled(BakeStopped):
+    """Raised by the progress callback in a running stage once its bake was cancelled (or its unit was
+    handed to another delivery)."""
 
 
 @dataclass
@@ -100,6 +114,10 @@ def services() -> WorkerServices:
     their connections must not be shared between processes)."""
     global _services, _services_pid
     if _services is None or _services_pid != os.getpid():
+        if _services is not None:
+            # Inherited from the worker's main process across the fork (it marks received messages):
+            # drop its pooled connections without closing them, which would close the parent's too.
+            _services.sessions.kw["bind"].dispose(close=False)
         settings = get_settings()
         stores = open_store(settings)
         _services = WorkerServices(settings, make_sessionmaker(make_engine(settings.database_url)), stores.blobs, stores.bundles)
@@ -109,22 +127,6 @@ def services() -> WorkerServices:
 
 def work_dir(settings: Settings, input_key: str) -> Path:
     return settings.work_dir / input_key
-
-
-# What each stage writes in the work folder (crowdbake.stages.workdir), pushed to the blob store when
-# work travels between machines, and the earlier stages whose outputs it reads. An impostor task writes
-# impostor/parts/<id>.npz and .json (`_part_outputs`); pack reads every part.
-# The cycle task also writes the impostor plan (impostor/record.json, stage.json, scene.npz), which is all
-# an impostor task reads, so impostor tasks run beside the poses stage.
-STAGE_OUTPUTS = {"validate": ("validate", "inputs"), "cycle": ("cycle", "impostor/record.json", "impostor/stage.json", "impostor/scene.npz"),
-                 "poses": ("poses",), "pack": ("pack", "bundle")}
-STAGE_READS = {"cycle": ("validate",), "poses": ("validate", "cycle"), "impostors": ("cycle",),
-               "pack": ("validate", "cycle", "poses"), "publish": ("pack",)}
-
-
-def _part_outputs(part_id: str) -> tuple[str, ...]:
-    task_id = part_id.removeprefix(records.IMPOSTOR_PART_PREFIX)
-    return (f"impostor/parts/{task_id}.npz", f"impostor/parts/{task_id}.json")
 
 
 def _stage(name: str):
@@ -163,6 +165,9 @@ class StageContext:
     attempt: int
     stage: str
     work: Path
+    owner: str = ""
+    part: str | None = None
+    stop_reason: str | None = None
     _last_report: float = 0.0
 
     def session(self):
@@ -171,12 +176,15 @@ class StageContext:
     def check_live(self, session: Session) -> Bake:
         bake = session.get(Bake, self.bake_id)
         if bake is None or bake.attempt != self.attempt or records.is_final(bake):
-            raise BakeStopped(f"bake {self.bake_id} attempt {self.attempt} is no longer running")
+            raise BakeCancelled(f"bake {self.bake_id} attempt {self.attempt} is no longer running")
         return bake
 
     def progress(self, _stage: str, done: int, total: int) -> None:
-        """The stages' progress callback: records done/total (at most every progress_interval
-        seconds, and always at the end) and stops the stage if the bake was cancelled."""
+        """The stages' progress callback: raises BakeCancelled once the heartbeat saw the bake stop,
+        records done/total (at most every progress_interval seconds, and always at the end) and checks
+        the bake's state then too."""
+        if self.stop_reason is not None:
+            raise BakeCancelled(self.stop_reason)
         now = time.monotonic()
         if done < total and now - self._last_report < self.services.settings.progress_interval:
             return
@@ -186,67 +194,54 @@ class StageContext:
             records.set_progress(session, self.bake_id, self.stage, done, total)
 
 
-def push_outputs(ctx: StageContext, roots: tuple[str, ...]) -> str | None:
-    """Store what the stage wrote under `roots` of its work folder; the listing's digest, or None when
-    work does not travel between machines."""
-    if not ctx.services.exchanges_work:
-        return None
-    return work_outputs.push(ctx.services.blobs, ctx.work, roots)
+def _in_pool_process() -> bool:
+    """True in a Celery prefork pool process, which its worker replaces when it exits."""
+    from billiard.process import current_process
+
+    return current_process().name.startswith(("ForkPoolWorker", "PoolWorker"))
 
 
-def pull_inputs(ctx: StageContext, stage: str) -> None:
-    """Fetch into this machine's work folder what `stage` reads from the earlier stages (STAGE_READS),
-    and for pack every impostor part, from the listings their rows name."""
-    if not ctx.services.exchanges_work:
-        return
-    with ctx.session() as session:
-        ctx.check_live(session)
-        wanted = STAGE_READS.get(stage, ())
-        rows = session.query(BakeStage).filter(BakeStage.bake_id == ctx.bake_id, BakeStage.stage.in_(wanted)).all()
-        listings = {row.stage: (row.result or {}).get("outputs") for row in rows}
-        missing = [name for name in wanted if not listings.get(name)]
-        digests = [listings[name] for name in wanted]
-        if stage == "pack":
-            parts = session.query(BakePart).filter(BakePart.bake_id == ctx.bake_id, BakePart.stage == "impostors").all()
-            missing += [part.part for part in parts if not part.spec.get("outputs")]
-            digests += [part.spec["outputs"] for part in sorted(parts, key=lambda part: part.part) if part.spec.get("outputs")]
-        if missing:  # a stage only starts after the ones it reads have recorded their outputs
-            raise RuntimeError(f"the outputs of {', '.join(missing)} are not recorded, so {stage} cannot run on this machine")
-    fetched = sum(work_outputs.pull(ctx.services.blobs, ctx.work, digest) for digest in digests)
-    if fetched:
-        logger.info("bake %s: fetched %d files of earlier stages for %s", ctx.bake_id, fetched, stage)
+@dataclass
+class Heartbeat:
+    """A thread that writes the running delivery's heartbeat every `interval` seconds, and stops the
+    stage when the bake stops: it sets `ctx.stop_reason` (the next progress report raises), and after
+    CANCEL_GRACE_BEATS more beats without the stage returning it ends this pool process."""
 
+    ctx: StageContext
+    interval: float
+    _stopped: threading.Event = field(default_factory=threading.Event)
+    _thread: threading.Thread | None = None
 
-def _is_transient(error: BaseException) -> bool:
-    if isinstance(error, (OperationalError, KombuOperationalError)):  # database busy, broker unreachable
-        return True
-    return isinstance(error, OSError) and error.errno in TRANSIENT_ERRNOS
+    def __enter__(self) -> "Heartbeat":
+        self._thread = threading.Thread(target=self._run, name=f"heartbeat-{self.ctx.part or self.ctx.stage}", daemon=True)
+        self._thread.start()
+        return self
 
+    def __exit__(self, *_exc) -> None:
+        self._stopped.set()
+        if self._thread is not None:
+            self._thread.join(timeout=self.interval + 5)
 
-def describe_error(error: BaseException, stage: str) -> dict[str, Any]:
-    """A bake's error record: a problem type, a title, a one-line detail and the input field if known."""
-    detail = " ".join(str(error).split()) or type(error).__name__
-    if isinstance(error, OSError) and error.errno is not None and error.filename is not None:
-        # The file name is a path in the server's work folder: the log has it, the API user gets the reason.
-        detail = f"[Errno {error.errno}] {error.strerror}"
-    if isinstance(error, InputError):
-        record = {"type": "invalid-input", "title": "the inputs cannot be baked", "detail": detail}
-        field = getattr(error, "field", None)
-        if field:
-            record["field"] = str(field)
-        return record
-    if isinstance(error, KombuOperationalError):
-        return {"type": "not-ready", "title": "the job queue is unreachable",
-                "detail": f"the {stage} stage could not queue what comes next: {detail}; retry the bake once the broker is back"}
-    if isinstance(error, (BundleConflict, VersionConflict)):
-        return {"type": "version-conflict", "title": "this version is already published with other bytes", "detail": detail}
-    return {"type": "stage-failed", "title": f"the {stage} stage failed", "detail": f"{type(error).__name__}: {detail}"}
-
-
-def _redelivered(task) -> bool:
-    """True when the broker hands this message out again (Redis sets the flag when it restores an
-    unacknowledged message: the worker running it was lost, or it was restored at a reconnection)."""
-    return bool((task.request.delivery_info or {}).get("redelivered"))
+    def _run(self) -> None:
+        ctx, beats_since_stop = self.ctx, 0
+        while not self._stopped.wait(self.interval):
+            if ctx.stop_reason is None:
+                try:
+                    with ctx.session() as session:
+                        alive = records.heartbeat(session, ctx.bake_id, ctx.attempt, ctx.stage, ctx.part, ctx.owner)
+                except Exception as error:  # a busy database: the next beat tries again
+                    logger.warning("heartbeat of bake %s %s failed: %s", ctx.bake_id, ctx.part or ctx.stage, error)
+                    continue
+                if not alive:
+                    ctx.stop_reason = f"bake {ctx.bake_id} attempt {ctx.attempt}: {ctx.part or ctx.stage} stopped (cancelled, failed or handed to another worker)"
+                    logger.info("%s", ctx.stop_reason)
+                continue
+            beats_since_stop += 1
+            if beats_since_stop >= CANCEL_GRACE_BEATS and _in_pool_process():
+                logger.warning("%s, and the stage did not return within %d heartbeats: ending pool process %d",
+                               ctx.stop_reason, CANCEL_GRACE_BEATS, os.getpid())
+                logging.shutdown()
+                os._exit(1)
 
 
 def run_stage(task, bake_id: str, attempt: int, stage: str, body: Callable[[StageContext], Any],
@@ -254,34 +249,40 @@ def run_stage(task, bake_id: str, attempt: int, stage: str, body: Callable[[Stag
     """Run `body` as stage `stage` of the bake (or its fan-out part `part`), then `after(ctx, result,
     seconds)`, recording state, timings, captured log lines and errors; retries transient errors with
     backoff, and gives up on a task whose worker keeps dying (a poison job: acks_late with
-    reject_on_worker_lost would otherwise hand it out forever)."""
+    reject_on_worker_lost would otherwise hand it out forever).
+
+    First the delivery claims its unit (records.claim_delivery): a duplicate is dropped, and a message
+    handed out again because the process running it died (this host), or whose unit's heartbeat
+    stopped, takes over and counts one retry, for every broker (the filesystem one sets no
+    `redelivered` flag)."""
     svc = services()
+    settings = svc.settings
+    label = part or stage
+    owner = records.delivery_owner(task.request.id)
+    stale_before = utcnow() - dt.timedelta(seconds=settings.heartbeat_timeout)
     with session_scope(svc.sessions) as session:
+        claim = records.claim_delivery(session, bake_id, attempt, stage, part, owner, stale_before)
+        if not claim.won:
+            logger.info("dropping a %s task: %s", label, claim.reason)
+            return
         bake = session.get(Bake, bake_id)
-        if bake is None:
-            logger.warning("bake %s does not exist; dropping its %s task", bake_id, stage)
-            return
-        if bake.attempt != attempt or records.is_final(bake):
-            logger.info("bake %s attempt %s is %s; dropping its %s task", bake_id, attempt, bake.state, stage)
-            return
-        if _redelivered(task):
-            label = part or stage
-            redeliveries = records.record_redelivery(session, bake_id, attempt, stage, label)
-            records.stage_row(session, bake_id, stage).retries += 1
-            if redeliveries > svc.settings.task_max_retries:
-                logger.error("bake %s: %s lost its worker %d times; giving up", bake_id, label, redeliveries)
+        if claim.lost_owner is not None:
+            records.append_log(session, bake_id, "WARNING", stage,
+                               f"{label}: delivered again in attempt {attempt}, retry {claim.retries} of {settings.task_max_retries}: "
+                               f"the worker running it ({claim.lost_owner}) was lost (killed, out of memory or crashed)")
+            if claim.retries > settings.task_max_retries:
+                logger.error("bake %s: %s lost its worker %d times; giving up", bake_id, label, claim.retries)
                 records.fail_bake(session, bake, stage, {
                     "type": "worker-lost", "title": f"the {stage} stage keeps losing its worker",
-                    "detail": f"{label} was handed out again {redeliveries} times, more than {svc.settings.task_max_retries} "
+                    "detail": f"{label} was handed out again {claim.retries} times, more than {settings.task_max_retries} "
                               "(CROWDBAKE_TASK_MAX_RETRIES), because the worker running it was lost each time "
                               "(killed, out of memory or crashed); retry the bake, with fewer or smaller views if memory is the cause",
                 })
                 return
-        records.mark_running(session, bake, stage)
         if log_start:
             records.append_log(session, bake_id, "INFO", stage, f"{stage} started (attempt {attempt}, delivery {task.request.retries + 1})")
         key = bake.input_key
-    ctx = StageContext(svc, bake_id, attempt, stage, work_dir(svc.settings, key))
+    ctx = StageContext(svc, bake_id, attempt, stage, work_dir(svc.settings, key), owner=owner, part=part)
     ctx.work.mkdir(parents=True, exist_ok=True)
 
     capture = _LogCapture()
@@ -294,7 +295,8 @@ def run_stage(task, bake_id: str, attempt: int, stage: str, body: Callable[[Stag
     error: BaseException | None = None
     try:
         try:
-            result = body(ctx)
+            with Heartbeat(ctx, settings.heartbeat_interval):
+                result = body(ctx)
         finally:
             package_logger.removeHandler(capture)
             package_logger.setLevel(previous_level)
@@ -308,6 +310,8 @@ def run_stage(task, bake_id: str, attempt: int, stage: str, body: Callable[[Stag
         after(ctx, result, seconds)
     except BakeStopped as stopped:
         logger.info("%s", stopped)
+        with session_scope(svc.sessions) as session:
+            records.release_delivery(session, bake_id, stage, part, owner)
         return
     except Exception as caught:  # every failure is recorded; nothing escapes unrecorded
         error = caught
@@ -317,9 +321,12 @@ def run_stage(task, bake_id: str, attempt: int, stage: str, body: Callable[[Stag
     retries = task.request.retries
     # A broker error here means BROKER_PUBLISH_RETRY already waited for it in vain; a retry would need
     # that same broker, so the bake fails with the reason instead (and can be retried from the API).
-    if _is_transient(error) and not isinstance(error, KombuOperationalError) and retries < svc.settings.task_max_retries:
+    if is_transient(error) and not isinstance(error, KombuOperationalError) and retries < svc.settings.task_max_retries:
         countdown = min(svc.settings.task_retry_backoff_max, 2.0**retries) * (0.5 + random.random())
         with session_scope(svc.sessions) as session:
+            if records.still_owner(session, bake_id, attempt, stage, part, owner) is None:
+                return  # cancelled meanwhile, or the unit belongs to another delivery now
+            records.release_delivery(session, bake_id, stage, part, owner)
             row = records.stage_row(session, bake_id, stage)
             row.state, row.retries = "retrying", row.retries + 1
             records.append_log(session, bake_id, "WARNING", stage, f"transient error, retry {retries + 1} in {countdown:.1f} s: {type(error).__name__}: {error}")
@@ -329,68 +336,97 @@ def run_stage(task, bake_id: str, attempt: int, stage: str, body: Callable[[Stag
             error = rejected.reason if isinstance(rejected.reason, BaseException) else error
     logger.error("bake %s: %s failed", bake_id, stage, exc_info=error)
     with session_scope(svc.sessions) as session:
-        bake = session.get(Bake, bake_id)
-        if bake is not None and bake.attempt == attempt and not records.is_final(bake):
+        bake = records.still_owner(session, bake_id, attempt, stage, part, owner)
+        if bake is not None:
             records.fail_bake(session, bake, stage, describe_error(error, stage))
 
 
 def _finish(ctx: StageContext, session: Session, result: Any, seconds: float) -> Bake:
-    bake = ctx.check_live(session)
+    """Record the stage's success, if this delivery still owns it (else BakeStopped: a late original
+    whose stage was re-queued records nothing; its replacement does)."""
+    bake = records.still_owner(session, ctx.bake_id, ctx.attempt, ctx.stage, None, ctx.owner)
+    if bake is None:
+        raise BakeStopped(f"bake {ctx.bake_id} attempt {ctx.attempt}: {ctx.stage} is no longer this delivery's")
     records.finish_stage(session, ctx.bake_id, ctx.stage, seconds, _jsonable(result))
     records.append_log(session, ctx.bake_id, "INFO", ctx.stage, f"{ctx.stage} finished in {seconds:.2f} s")
     return bake
 
 
-def _send(stage: str, bake_id: str, attempt: int, *extra: Any) -> None:
-    app.send_task(TASK_NAMES[stage], args=[bake_id, attempt, *extra], queue=services().settings.queue,
-                  retry=True, retry_policy=BROKER_PUBLISH_RETRY)
+def _send_queued(stage: str, bake_id: str, attempt: int, *parts: str) -> None:
+    """Send the message(s) of a stage queued by a committed transaction, then mark them sent. When the
+    broker stays away past BROKER_PUBLISH_RETRY the stage stays queued without a message, and the
+    sweeper sends it later: the bake waits instead of failing, and nothing is lost."""
+    queue = services().settings.queue
+    try:
+        if parts:
+            group(app.signature(TASK_NAMES["impostor_views"], args=[bake_id, attempt, part], queue=queue, immutable=True) for part in parts) \
+                .apply_async(retry=True, retry_policy=BROKER_PUBLISH_RETRY)
+        else:
+            app.send_task(TASK_NAMES[stage], args=[bake_id, attempt], queue=queue, retry=True, retry_policy=BROKER_PUBLISH_RETRY)
+    except KombuOperationalError as error:
+        logger.warning("bake %s: could not send %s (%s); the sweeper sends it once the broker answers", bake_id, stage, error)
+        with session_scope(services().sessions) as session:
+            records.append_log(session, bake_id, "WARNING", stage, f"the job queue did not take {stage} ({type(error).__name__}); "
+                               "it stays queued and is sent once the broker answers")
+        return
+    with session_scope(services().sessions) as session:
+        records.mark_sent(session, bake_id, attempt, "impostors" if parts else stage, parts)
+
+
+def _queue_next(session: Session, ctx: StageContext, stage: str) -> None:
+    records.queue_stage(session, ctx.bake_id, stage)
+
+
+# ------------------------------------------------------------------- messages held by a worker
+
+
+# Which unit a task message is for: (stage, part) from the task name and its args.
+_STAGE_OF_TASK = {name: ("impostors" if stage == "impostor_views" else stage) for stage, name in TASK_NAMES.items()}
+_received_beat: threading.Thread | None = None
+
+
+@signals.task_received.connect
+def _mark_received(sender=None, request=None, **_kwargs) -> None:
+    """In the worker's main process, as a message arrives (records.mark_received): a worker lost while
+    it holds messages no pool process has started yet leaves marks that stop beating."""
+    stage = _STAGE_OF_TASK.get(getattr(request, "task_name", None))
+    args = list(getattr(request, "args", None) or [])
+    if stage is None or len(args) < 2:
+        return
+    part = args[2] if stage == "impostors" and len(args) > 2 else None
+    try:
+        with session_scope(services().sessions) as session:
+            records.mark_received(session, args[0], int(args[1]), stage, part, records.delivery_owner(request.id))
+    except Exception as error:  # a busy database: the task's own claim still works without the mark
+        logger.warning("could not mark %s of bake %s as received: %s", part or stage, args[0], error)
+    _start_received_beat()
+
+
+def _start_received_beat() -> None:
+    global _received_beat
+    if _received_beat is not None and _received_beat.is_alive():
+        return
+    prefix = f"{records.this_host()}:{os.getpid()}:"
+
+    def beat() -> None:
+        while True:
+            time.sleep(services().settings.heartbeat_interval)
+            try:
+                with session_scope(services().sessions) as session:
+                    records.beat_received(session, prefix)
+            except Exception as error:
+                logger.warning("heartbeat of received messages failed: %s", error)
+
+    _received_beat = threading.Thread(target=beat, name="received-heartbeat", daemon=True)
+    _received_beat.start()
 
 
 # ------------------------------------------------------------------------------------------ stages
 
 
 def _materialize_inputs(ctx: StageContext, bake: Bake, session: Session):
-    """Link the bake's input blobs into work/sources and build the stages' BakeInputs.
-
-    Not work/inputs: stage_validate copies its inputs there and clears that folder first. The manifest's
-    `created` is the time the newest input was uploaded (`inputs_created`): a property of the inputs
-    that every machine reads alike from the database (a file's modification time would be the time a
-    machine downloaded it), so every attempt of a bake, wherever it runs, produces the same bytes. A `created` given with the
-    bake request (`bake.inputs["created"]`) wins over both."""
-    blobs = ctx.services.blobs
-    inputs_dir = ctx.work / "sources"
-    if inputs_dir.exists():
-        shutil.rmtree(inputs_dir)
-    character = session.get(Asset, bake.inputs["character"])
-    cloth = session.get(Asset, bake.inputs["cloth"])
-    if character is None or cloth is None:
-        raise InputError("an input asset no longer exists", "character" if character is None else "cloth")
-    character_path = blobs.materialize(character.files["file"]["sha256"], inputs_dir / f"character.{character.info.get('format', 'glb')}")
-    # The cache keeps its format's extension (.pc2, .mdd, .abc): the validate stage reads it by extension.
-    cache_suffix = PurePosixPath(cloth.files["cache"].get("filename") or "cloth.pc2").suffix.lower() or ".pc2"
-    cloth_path = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / f"cloth{cache_suffix}")
-    mesh_path = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "cloth.obj") if "mesh" in cloth.files else None
-    textures_dir = None
-    assets = [character, cloth]
-    if bake.inputs.get("textures"):
-        textures_dir = inputs_dir / "textures"
-        for name, asset_id in sorted(bake.inputs["textures"].items()):
-            texture = session.get(Asset, asset_id)
-            if texture is None:
-                raise InputError(f"texture {name} no longer exists", f"textures.{name}")
-            blobs.materialize(texture.files["file"]["sha256"], textures_dir / name)
-            assets.append(texture)
-    return _stage("validate").BakeInputs(
-        character=character_path, cloth=cloth_path, cloth_mesh=mesh_path, textures=textures_dir, cycle=None,
-        name=bake.name, version=bake.version, params=BakeParams.from_dict(bake.params),
-        created=bake.inputs.get("created") or inputs_created(assets),
-    )
-
-
-def inputs_created(assets: list[Asset]) -> str:
-    """RFC 3339 UTC time (whole seconds) the newest of `assets` was uploaded: the bundle's `created`."""
-    newest = max(records.to_utc(asset.created_at) for asset in assets)
-    return newest.strftime("%Y-%m-%dT%H:%M:%SZ")
+    """The bake's inputs in this stage's work folder (crowdbake.jobs.inputs)."""
+    return materialize_inputs(ctx.services.blobs, ctx.work, bake, session)
 
 
 @app.task(name=TASK_NAMES["validate"], **TASK_OPTIONS)
@@ -405,7 +441,8 @@ def validate(self, bake_id: str, attempt: int) -> None:
     def after(ctx: StageContext, result, seconds: float) -> None:
         with ctx.session() as session:
             _finish(ctx, session, result, seconds)
-        _send("cycle", ctx.bake_id, ctx.attempt)
+            _queue_next(session, ctx, "cycle")
+        _send_queued("cycle", ctx.bake_id, ctx.attempt)
 
     run_stage(self, bake_id, attempt, "validate", body, after)
 
@@ -415,37 +452,27 @@ def cycle(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
         pull_inputs(ctx, "cycle")
         result = _stage("cycle").stage_cycle(ctx.work, progress=ctx.progress).to_json()
-        impostors = _stage("impostors")
-        impostors.stage_impostor_plan(ctx.work)
-        specs = [task.to_json() for task in impostors.impostor_tasks(ctx.work)]
-        return dict(result, outputs=push_outputs(ctx, STAGE_OUTPUTS["cycle"])), specs
+        return dict(result, outputs=push_outputs(ctx, STAGE_OUTPUTS["cycle"], keep=True))
 
-    def after(ctx: StageContext, outcome, seconds: float) -> None:
-        result, impostor_specs = outcome
+    def after(ctx: StageContext, result, seconds: float) -> None:
         with ctx.session() as session:
             _finish(ctx, session, result, seconds)
-            part_ids = records.record_fan_out(session, ctx.bake_id, impostor_specs, stages=(POSES_PART,))
-            records.append_log(session, ctx.bake_id, "INFO", "impostors", f"fanning out {len(part_ids)} impostor-view tasks beside the poses stage")
-        _send("poses", ctx.bake_id, ctx.attempt)
-        if part_ids:
-            queue = services().settings.queue
-            group(
-                app.signature(TASK_NAMES["impostor_views"], args=[ctx.bake_id, ctx.attempt, part_id], queue=queue, immutable=True)
-                for part_id in part_ids
-            ).apply_async(retry=True, retry_policy=BROKER_PUBLISH_RETRY)
+            _queue_next(session, ctx, "poses")
+        _send_queued("poses", ctx.bake_id, ctx.attempt)
 
     run_stage(self, bake_id, attempt, "cycle", body, after)
 
 
 def _maybe_enqueue_pack(ctx: StageContext, parts_left: int) -> None:
-    """The last part to finish enqueues pack. The claim commits only once the message is sent, so a
-    failed send leaves the barrier open for the retry instead of losing the pack stage."""
+    """The last part to finish queues pack (the claim queues it in the same transaction; its message is
+    sent after the commit, or by the sweeper if the broker is away)."""
     if parts_left:
         return
     with ctx.session() as session:
         ctx.check_live(session)
-        if records.claim_fan_in(session, ctx.bake_id, ctx.attempt):
-            _send("pack", ctx.bake_id, ctx.attempt)
+        claimed = records.claim_fan_in(session, ctx.bake_id, ctx.attempt)
+    if claimed:
+        _send_queued("pack", ctx.bake_id, ctx.attempt)
 
 
 @app.task(name=TASK_NAMES["poses"], **TASK_OPTIONS)
@@ -453,13 +480,23 @@ def poses(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
         pull_inputs(ctx, "poses")
         result = _stage("poses").stage_poses(ctx.work, progress=ctx.progress)
-        return dict(result.to_json(), outputs=push_outputs(ctx, STAGE_OUTPUTS["poses"]))
+        # The impostor plan (framing, atlas layout, the scene the tasks render) goes with the poses'
+        # outputs: every impostor task reads it. (run_bake makes it beside the poses stage instead.)
+        impostors = _stage("impostors")
+        impostors.stage_impostor_plan(ctx.work)
+        specs = [task.to_json() for task in impostors.impostor_tasks(ctx.work)]
+        return dict(result.to_json(), outputs=push_outputs(ctx, STAGE_OUTPUTS["poses"])), specs
 
-    def after(ctx: StageContext, result, seconds: float) -> None:
+    def after(ctx: StageContext, outcome, seconds: float) -> None:
+        result, impostor_specs = outcome
         with ctx.session() as session:
-            parts_left = records.complete_part(session, ctx.bake_id, POSES_PART)  # first: it serialises the fan-in
             _finish(ctx, session, result, seconds)
-        _maybe_enqueue_pack(ctx, parts_left)
+            part_ids = records.record_fan_out(session, ctx.bake_id, impostor_specs)
+            records.append_log(session, ctx.bake_id, "INFO", "impostors", f"fanning out {len(part_ids)} impostor-view tasks")
+        if not part_ids:
+            _maybe_enqueue_pack(ctx, 0)
+            return
+        _send_queued("impostors", ctx.bake_id, ctx.attempt, *part_ids)
 
     run_stage(self, bake_id, attempt, "poses", body, after)
 
@@ -474,17 +511,18 @@ def impostor_views(self, bake_id: str, attempt: int, part_id: str) -> None:
             spec = {key: value for key, value in part.spec.items() if key != "outputs"}
         pull_inputs(ctx, "impostors")
         path = _stage("impostors").stage_impostor_views(ctx.work, spec)
-        return path, push_outputs(ctx, _part_outputs(part_id))
+        return path, push_outputs(ctx, part_outputs(part_id))
 
     def after(ctx: StageContext, outcome, seconds: float) -> None:
         _path, outputs = outcome
         with ctx.session() as session:
+            if records.still_owner(session, ctx.bake_id, ctx.attempt, "impostors", part_id, ctx.owner) is None:
+                raise BakeStopped(f"bake {ctx.bake_id} attempt {ctx.attempt}: {part_id} is no longer this delivery's")
             if outputs is not None:  # what pack fetches from this part (see pull_inputs)
                 part = session.get(BakePart, (ctx.bake_id, part_id))
                 if part is not None:
                     part.spec = dict(part.spec, outputs=outputs)
             parts_left = records.complete_part(session, ctx.bake_id, part_id)
-            ctx.check_live(session)
             row = records.stage_row(session, ctx.bake_id, "impostors")
             row.seconds = round((row.seconds or 0.0) + seconds, 3)  # summed render seconds over parts
             if records.impostor_parts_left(session, ctx.bake_id) == 0:
@@ -507,12 +545,14 @@ def pack(self, bake_id: str, attempt: int) -> None:
         with ctx.session() as session:
             bake = _finish(ctx, session, result, seconds)
             publish_next = bake.publish
-            if not publish_next:
+            if publish_next:
+                _queue_next(session, ctx, "publish")
+            else:
                 row = records.stage_row(session, ctx.bake_id, "publish")
                 row.state = "skipped"
                 records.succeed_bake(session, bake)
         if publish_next:
-            _send("publish", ctx.bake_id, ctx.attempt)
+            _send_queued("publish", ctx.bake_id, ctx.attempt)
 
     run_stage(self, bake_id, attempt, "pack", body, after)
 
@@ -529,14 +569,16 @@ def publish(self, bake_id: str, attempt: int) -> None:
         if ctx.services.settings.store == "local":
             # The engine export beside the bundle, unless export=false (exports live in local folders only).
             _stage("publish").stage_export(ctx.work, ctx.services.settings.bundles_dir)
-        with ctx.session() as session:
-            bake = ctx.check_live(session)
-            register_bundle(session, bundles, name, version, bake.public, bake.id)
         return {"name": name, "version": version, "manifest_sha256": published.sha256}
 
     def after(ctx: StageContext, result, seconds: float) -> None:
+        # The record, the stage's success and the bake's in one transaction; a cancel cannot come
+        # between folder and record (records.cancel_bake refuses once publish has started).
         with ctx.session() as session:
             bake = _finish(ctx, session, result, seconds)
+            register_bundle(session, ctx.services.bundles, bake.name, bake.version, bake.public, bake.id)
             records.succeed_bake(session, bake)
+        # Published: the work folder has served its purpose (an identical submit returns this bake).
+        shutil.rmtree(ctx.work, ignore_errors=True)
 
     run_stage(self, bake_id, attempt, "publish", body, after)

@@ -30,8 +30,9 @@ from crowdbake.errors import InputError
 from crowdbake.formats.errors import FormatError
 from crowdbake.formats.gltf import load_character
 from crowdbake.formats.cloth_cache import ClothCache, write_pc2_obj
+from crowdbake.ingest.cycle_document import check_cycle_document
 from crowdbake.ingest.garment import CACHE_SUFFIXES, body_at_rest, needs_mesh, place_cloth, read_cloth
-from crowdbake.params import CLOSE_METHODS, CREATED_RULE, NAME_RULE, PART_RULE, VERSION_RULE, BakeParams, cache_fps, min_cloth_frames
+from crowdbake.params import CREATED_RULE, NAME_RULE, PART_RULE, VERSION_RULE, BakeParams, cache_fps, min_cloth_frames
 from crowdbake.stages.records import JobRecord
 from crowdbake.stages.workdir import StageOutcome, WorkDir, read_json, sha256_file, stage_key
 
@@ -151,31 +152,6 @@ def _check_textures(folder: Path) -> dict[str, Any]:
     return info
 
 
-def _check_cycle_document(path: Path, frame_count: int) -> dict[str, Any]:
-    try:
-        document = read_json(path)
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise InputError(f"{path.name} is not JSON: {error}", "cycle") from None
-    if not isinstance(document, dict):
-        raise InputError(f"{path.name} must hold a JSON object", "cycle")
-    for key in ("start_frame", "cycle_frames"):
-        value = document.get(key)
-        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-            raise InputError(f"{path.name}: {key} must be a non-negative integer", "cycle")
-    if document["cycle_frames"] < 2:
-        raise InputError(f"{path.name}: cycle_frames must be at least 2", "cycle")
-    if document["start_frame"] + document["cycle_frames"] > frame_count:
-        raise InputError(
-            f"{path.name}: the cycle [{document['start_frame']}, {document['start_frame'] + document['cycle_frames']}) "
-            f"runs past the cache's {frame_count} frames",
-            "cycle",
-        )
-    method = (document.get("closing") or {}).get("method", "none")
-    if method not in CLOSE_METHODS:
-        raise InputError(f"{path.name}: closing.method must be one of {CLOSE_METHODS}", "cycle")
-    return document
-
-
 def gltf_dependencies(path: Path) -> list[str]:
     """Relative paths of the files a .gltf refers to (buffers, images), checked to stay beside it."""
     try:
@@ -264,7 +240,7 @@ def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeP
     else:
         raise InputError("the character has no animation: give cycle_frames", "cycle_frames")
     if inputs.cycle is not None:
-        cycle_frames = _check_cycle_document(sources["cycle"], cache.frame_count)["cycle_frames"]
+        cycle_frames = check_cycle_document(sources["cycle"], cache.frame_count)["cycle_frames"]
     elif cache.frame_count < min_cloth_frames(cycle_frames):
         raise InputError(
             f"{sources['cloth'].name} has {cache.frame_count} frames; the cycle search needs two cycles of "

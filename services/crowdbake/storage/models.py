@@ -25,10 +25,11 @@ class Base(DeclarativeBase):
 
 
 # Bake and stage states. A bake is "queued" until a worker starts it and ends "succeeded", "failed" or
-# "cancelled"; a stage is additionally "skipped" (publish when the caller did not ask for it).
+# "cancelled"; a stage is "queued" once it is due (its message is sent, or is left for the sweeper to
+# send while `sent_at` is empty), and additionally "skipped" (publish when the caller did not ask for it).
 BAKE_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 FINAL_BAKE_STATES = frozenset({"succeeded", "failed", "cancelled"})
-STAGE_STATES = ("pending", "running", "retrying", "succeeded", "failed", "skipped", "cancelled")
+STAGE_STATES = ("pending", "queued", "running", "retrying", "succeeded", "failed", "skipped", "cancelled")
 
 
 class ApiKey(Base):
@@ -78,9 +79,16 @@ class Bake(Base):
     version: the work folder is named by it, so a rerun finds its finished stages. `attempt` grows on
     each retry; task messages of an older attempt are dropped. `fan_in_attempt` is the attempt whose
     pack stage has been enqueued (set once by whichever fan-out task finished last).
+
+    Two unique columns reserve what a bake must not share while it is queued or running (both NULL
+    once it ended; NULLs never collide): `live_key`, its input key (identical submits get the same bake
+    and two bakes never run in one work folder), and `publish_slot`, "<name>/<version>" of a bake that
+    publishes (a submit of the same version from other inputs is a conflict at once, not after a whole
+    bake; once published, the bundle's row holds the version).
     """
 
     __tablename__ = "bakes"
+    __table_args__ = (UniqueConstraint("live_key", name="uq_bakes_live_key"), UniqueConstraint("publish_slot", name="uq_bakes_publish_slot"))
 
     id: Mapped[str] = mapped_column(String(40), primary_key=True)
     state: Mapped[str] = mapped_column(String(20), default="queued", index=True)
@@ -99,6 +107,8 @@ class Bake(Base):
     started_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     finished_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     created_by: Mapped[str | None] = mapped_column(String(32), default=None)
+    live_key: Mapped[str | None] = mapped_column(String(64), default=None)
+    publish_slot: Mapped[str | None] = mapped_column(String(130), default=None)
 
     stages: Mapped[list["BakeStage"]] = relationship(
         back_populates="bake", cascade="all, delete-orphan", order_by="BakeStage.position"
@@ -106,7 +116,13 @@ class Bake(Base):
 
 
 class BakeStage(Base):
-    """One stage of a bake: state, progress (done of total) and timings."""
+    """One stage of a bake: state, progress (done of total) and timings.
+
+    Delivery bookkeeping (crowdbake.jobs.sweeper): `queued_at`/`sent_at` say when the stage became due
+    and when its message went to the broker (empty: the sweeper sends it); `owner` is the delivery
+    running it ("host:pid:task id") and `heartbeat_at` its last sign of life. `retries` counts transient
+    errors and lost workers alike, against CROWDBAKE_TASK_MAX_RETRIES.
+    """
 
     __tablename__ = "bake_stages"
 
@@ -121,6 +137,10 @@ class BakeStage(Base):
     started_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     finished_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     result: Mapped[dict[str, Any] | None] = mapped_column(JSON, default=None)
+    queued_at: Mapped[dt.datetime | None] = mapped_column(default=None)
+    sent_at: Mapped[dt.datetime | None] = mapped_column(default=None)
+    owner: Mapped[str | None] = mapped_column(String(160), default=None)
+    heartbeat_at: Mapped[dt.datetime | None] = mapped_column(default=None)
 
     bake: Mapped[Bake] = relationship(back_populates="stages")
 
@@ -128,8 +148,8 @@ class BakeStage(Base):
 class BakePart(Base):
     """One fanned-out task of a bake (the poses stage, or one impostor-views task): the fan-in barrier.
 
-    Rows are inserted (done = false) when the cycle stage fans out; each task marks its own row done;
-    the task that leaves no row undone enqueues the pack stage.
+    Rows are inserted (done = false) when the poses stage fans out; each task marks its own row done;
+    the task that leaves no row undone enqueues the pack stage. Delivery bookkeeping as in BakeStage.
     """
 
     __tablename__ = "bake_parts"
@@ -139,6 +159,11 @@ class BakePart(Base):
     stage: Mapped[str] = mapped_column(String(20))
     spec: Mapped[dict[str, Any]] = mapped_column(JSON)
     done: Mapped[bool] = mapped_column(Boolean, default=False)
+    retries: Mapped[int] = mapped_column(Integer, default=0)
+    queued_at: Mapped[dt.datetime | None] = mapped_column(default=None)
+    sent_at: Mapped[dt.datetime | None] = mapped_column(default=None)
+    owner: Mapped[str | None] = mapped_column(String(160), default=None)
+    heartbeat_at: Mapped[dt.datetime | None] = mapped_column(default=None)
 
 
 class BakeLog(Base):

@@ -1,16 +1,28 @@
 """What the API and the workers write about a bake, in one place: creation, stage state and progress,
-the log, the fan-in barrier, cancel and retry.
+the log, the fan-in barrier, cancel and retry, and the delivery bookkeeping of the sweeper (which
+stage is due, which delivery runs it, its heartbeat).
 
 Every function takes an open Session and leaves committing to the caller (crowdbake.storage.db.
 session_scope), so a route or a task changes a bake in one transaction.
+
+State transitions that two callers may race for (retry, cancel, publish later, a worker claiming a
+stage, the sweeper re-queuing one) start with `lock_bake`: a conditional UPDATE of the bake's row,
+which takes the row lock in PostgreSQL and the write lock in SQLite, so the checks that follow read
+what every earlier transition committed and exactly one of two racing callers wins (the rowcount of
+the UPDATE decides).
 """
 from __future__ import annotations
 
 import datetime as dt
 import hashlib
 import json
+import math
+import os
+import re
+import socket
 import uuid
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Iterable
 
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
@@ -18,6 +30,8 @@ from sqlalchemy.orm import Session
 from crowdbake import __version__
 from crowdbake.stages import STAGES
 from crowdbake.storage.models import FINAL_BAKE_STATES, Bake, BakeLog, BakePart, BakeStage, utcnow
+
+LIVE_BAKE_STATES = ("queued", "running")
 
 # Share of a bake's time each stage takes, for one overall progress figure (measured on the sample
 # character: the cycle search and the impostor renders dominate).
@@ -27,6 +41,19 @@ IMPOSTOR_PART_PREFIX = "impostors/"
 
 def new_id(prefix: str) -> str:
     return f"{prefix}_{uuid.uuid4().hex[:20]}"
+
+
+# Ids that come from outside (paths, request bodies) are looked up only when they could be ids at all:
+# PostgreSQL refuses a text parameter holding NUL with an error, and no id is longer than this.
+_ID_SHAPE = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+
+
+def by_id(session: Session, model: type, ident: str):
+    """The `model` row whose primary key is the caller-given `ident`, or None, also when `ident` cannot
+    be an id (wrong characters or length): a malformed id names nothing, like an unknown one."""
+    if not isinstance(ident, str) or not _ID_SHAPE.fullmatch(ident):
+        return None
+    return session.get(model, ident)
 
 
 def code_version() -> str:
@@ -48,15 +75,24 @@ def create_bake(
     session: Session, *, name: str, version: str, params: dict[str, Any], inputs: dict[str, Any], key: str,
     publish: bool, public: bool, created_by: str | None,
 ) -> Bake:
+    """A new queued bake holding its reservations (`live_key`, and `publish_slot` when it publishes).
+    The caller's commit raises IntegrityError when a live bake holds either already (`live_bake`,
+    `slot_holder`); its first stage is queued, its message not yet sent."""
+    now = utcnow()
     bake = Bake(
         id=new_id("bk"), state="queued", name=name, version=version, params=params, inputs=inputs,
         input_key=key, publish=publish, public=public, created_by=created_by, attempt=0,
-        created_at=utcnow(), updated_at=utcnow(),
+        created_at=now, updated_at=now, live_key=key, publish_slot=publish_slot(name, version) if publish else None,
     )
     bake.stages = [BakeStage(stage=stage, position=position, state="pending", done=0, total=0, retries=0) for position, stage in enumerate(STAGES)]
+    bake.stages[0].state, bake.stages[0].queued_at = "queued", now
     session.add(bake)
     append_log(session, bake.id, "INFO", None, f"bake {name}/{version} queued (input key {key[:12]})")
     return bake
+
+
+def publish_slot(name: str, version: str) -> str:
+    return f"{name}/{version}"
 
 
 def reusable_bake(session: Session, key: str) -> Bake | None:
@@ -64,6 +100,24 @@ def reusable_bake(session: Session, key: str) -> Bake | None:
     return session.scalars(
         select(Bake).where(Bake.input_key == key, Bake.state.not_in(("failed", "cancelled"))).order_by(Bake.created_at.desc())
     ).first()
+
+
+def live_bake(session: Session, key: str) -> Bake | None:
+    """The queued or running bake holding this input key, if any."""
+    return session.scalars(select(Bake).where(Bake.live_key == key)).first()
+
+
+def slot_holder(session: Session, name: str, version: str) -> Bake | None:
+    """The queued or running bake that will publish name/version, if any (once published, the bundle's
+    own row holds the version)."""
+    return session.scalars(select(Bake).where(Bake.publish_slot == publish_slot(name, version))).first()
+
+
+def release_reservations(bake: Bake) -> None:
+    """A bake that ended lets go of its input key and version: a failed or cancelled one can be
+    submitted again as a new bake, and a published version is held by its bundle row from then on."""
+    bake.live_key = None
+    bake.publish_slot = None
 
 
 def append_log(session: Session, bake_id: str, level: str, stage: str | None, message: str) -> None:
@@ -75,23 +129,6 @@ def log_lines(session: Session, bake_id: str, limit: int | None = None) -> list[
     if limit:
         query = query.limit(limit)
     return list(reversed(session.scalars(query).all()))
-
-
-def record_redelivery(session: Session, bake_id: str, attempt: int, stage: str, label: str) -> int:
-    """Log that a stage task (label: the stage, or a fan-out part's id) arrived again in this attempt,
-    which happens when the worker running it was lost (killed, out of memory, crashed) and the broker
-    handed the message back. Returns how many times that has happened (this time included).
-
-    The log is the count: no schema change, and the user sees every redelivery in the bake's log.
-    """
-    marker = f"{label}: delivered again in attempt {attempt}"
-    earlier = session.scalar(
-        select(func.count()).select_from(BakeLog)
-        .where(BakeLog.bake_id == bake_id, BakeLog.message.startswith(marker + ",", autoescape=True))
-    )
-    count = int(earlier) + 1
-    append_log(session, bake_id, "WARNING", stage, f"{marker}, redelivery {count}: the worker running it was lost (killed, out of memory or crashed)")
-    return count
 
 
 def stage_row(session: Session, bake_id: str, stage: str) -> BakeStage:
@@ -119,22 +156,35 @@ def mark_running(session: Session, bake: Bake, stage: str) -> BakeStage:
         bake.state = "running"
     bake.started_at = bake.started_at or now
     row = stage_row(session, bake.id, stage)
-    if row.state in ("pending", "retrying", "failed", "cancelled"):
+    if row.state in ("pending", "queued", "retrying", "failed", "cancelled"):
         row.state = "running"
     row.started_at = row.started_at or now
     return row
+
+
+def json_safe(value: Any) -> Any:
+    """`value` with every non-finite float (a PSNR of identical pictures is +inf) as None: JSON has no
+    Infinity or NaN, and PostgreSQL's json type refuses them where SQLite stored them."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    return value
 
 
 def finish_stage(session: Session, bake_id: str, stage: str, seconds: float, result: dict[str, Any] | None) -> None:
     row = stage_row(session, bake_id, stage)
     row.state = "succeeded"
     row.finished_at = utcnow()
+    row.owner = row.heartbeat_at = None
     row.seconds = round((row.seconds or 0.0) + seconds, 3) if stage == "impostors" else round(seconds, 3)
     if row.total == 0:
         row.done = row.total = 1
     else:
         row.done = row.total
-    row.result = result
+    row.result = json_safe(result)
 
 
 def set_progress(session: Session, bake_id: str, stage: str, done: int, total: int) -> None:
@@ -150,65 +200,304 @@ def fail_bake(session: Session, bake: Bake, stage: str, error: dict[str, Any]) -
     bake.state = "failed"
     bake.error = {"stage": stage, **error}
     bake.finished_at = now
+    release_reservations(bake)
     row = stage_row(session, bake.id, stage)
     row.state = "failed"
     row.finished_at = now
+    row.owner = row.heartbeat_at = None
     append_log(session, bake.id, "ERROR", stage, f"{error.get('title', 'failed')}: {error.get('detail', '')}")
 
 
 def succeed_bake(session: Session, bake: Bake) -> None:
     bake.state = "succeeded"
     bake.finished_at = utcnow()
+    release_reservations(bake)
     append_log(session, bake.id, "INFO", None, "bake succeeded")
 
 
-def cancel_bake(session: Session, bake: Bake) -> None:
-    """Mark the bake cancelled; running tasks see it at their next progress report and stop."""
+class TransitionRefused(Exception):
+    """A state transition lost its race or does not apply to the bake's state (the API answers 409)."""
+
+
+def lock_bake(session: Session, bake_id: str, attempt: int | None = None, states: Iterable[str] | None = None) -> Bake | None:
+    """Lock the bake's row for this transaction (call first in a fresh transaction) and return it,
+    freshly read; None when it does not exist or is not at `attempt` / in one of `states`.
+
+    The lock is a conditional UPDATE: PostgreSQL holds the row lock and SQLite the database's write
+    lock until commit, so every check made after this sees the latest committed state, and two
+    transitions of one bake (a retry and a retry, a cancel and a publish claim) run one after the other."""
+    query = update(Bake).where(Bake.id == bake_id)
+    if attempt is not None:
+        query = query.where(Bake.attempt == attempt)
+    if states is not None:
+        query = query.where(Bake.state.in_(tuple(states)))
+    if session.execute(query.values(updated_at=utcnow())).rowcount != 1:
+        return None
+    return session.scalars(select(Bake).where(Bake.id == bake_id).execution_options(populate_existing=True)).one()
+
+
+def cancel_bake(session: Session, bake_id: str) -> Bake:
+    """Cancel a queued or running bake; running tasks see it within a heartbeat and stop.
+
+    A bake whose publish stage is running is not cancelled (TransitionRefused): the bundle folder and
+    its record are written together, and a cancel between the two left a folder without a record."""
+    bake = lock_bake(session, bake_id, states=LIVE_BAKE_STATES)
+    if bake is None:
+        current = session.get(Bake, bake_id)
+        raise TransitionRefused(f"bake {bake_id} already {current.state if current else 'gone'}")
+    publish = stage_row(session, bake_id, "publish")
+    if publish.started_at is not None and publish.state in ("queued", "running", "retrying"):
+        raise TransitionRefused(f"bake {bake_id} is publishing {bake.name}/{bake.version}; a publish is not interrupted")
     now = utcnow()
     bake.state = "cancelled"
     bake.finished_at = now
+    release_reservations(bake)
     for row in bake.stages:
-        if row.state in ("pending", "running", "retrying"):
+        if row.state in ("pending", "queued", "running", "retrying"):
             row.state = "cancelled"
     append_log(session, bake.id, "INFO", None, "bake cancelled")
+    return bake
 
 
-def reset_for_retry(session: Session, bake: Bake) -> None:
-    """Start a failed or cancelled bake again as a new attempt. Stage outputs stay in the work folder,
-    so stages that had finished return at once; messages of the old attempt are ignored."""
-    bake.attempt += 1
-    bake.state = "queued"
-    bake.error = None
-    bake.finished_at = None
-    bake.fan_in_attempt = None
+def retry_bake(session: Session, bake_id: str, seen_attempt: int) -> Bake:
+    """Start a failed or cancelled bake again as a new attempt, if it is still at `seen_attempt`.
+
+    A compare-and-set: of two retries of the same attempt exactly one gets the row (the other
+    TransitionRefused), so the pipeline never runs twice in one work folder. The retry takes the
+    bake's reservations back; IntegrityError at commit means another live bake holds one now.
+    Stage outputs stay in the work folder, so stages that had finished return at once; messages of
+    the old attempt are dropped by the attempt check."""
+    result = session.execute(
+        update(Bake).where(Bake.id == bake_id, Bake.attempt == seen_attempt, Bake.state.in_(("failed", "cancelled")))
+        .values(attempt=Bake.attempt + 1, state="queued", error=None, finished_at=None, fan_in_attempt=None, updated_at=utcnow())
+    )
+    if result.rowcount != 1:
+        current = session.get(Bake, bake_id)
+        raise TransitionRefused(f"bake {bake_id} is {current.state if current else 'gone'} at attempt "
+                                f"{current.attempt if current else '-'}; only a failed or cancelled bake can be retried, once")
+    bake = session.scalars(select(Bake).where(Bake.id == bake_id).execution_options(populate_existing=True)).one()
+    bake.live_key = bake.input_key
+    bake.publish_slot = publish_slot(bake.name, bake.version) if bake.publish else None
+    now = utcnow()
     for row in bake.stages:
         row.state, row.done, row.total, row.retries = "pending", 0, 0, 0
         row.seconds = row.started_at = row.finished_at = row.result = None
+        row.queued_at = row.sent_at = row.owner = row.heartbeat_at = None
+    bake.stages[0].state, bake.stages[0].queued_at = "queued", now
     session.execute(delete(BakePart).where(BakePart.bake_id == bake.id))
     append_log(session, bake.id, "INFO", None, f"retry: attempt {bake.attempt}")
+    return bake
+
+
+def request_publish(session: Session, bake_id: str) -> Bake:
+    """Queue the publish stage of a bake that succeeded without publishing (TransitionRefused if it
+    is not one, or lost the race); IntegrityError at commit when another bake holds the version."""
+    bake = lock_bake(session, bake_id, states=("succeeded",))
+    if bake is None:
+        current = session.get(Bake, bake_id)
+        raise TransitionRefused(f"bake {bake_id} is {current.state if current else 'gone'}; only a finished bake can be published")
+    stages = {row.stage: row for row in bake.stages}
+    if stages["pack"].state != "succeeded":
+        raise TransitionRefused(f"bake {bake_id} was not packed; only a finished bake can be published")
+    if stages["publish"].state == "succeeded":
+        raise TransitionRefused(f"bake {bake_id} is already published")
+    bake.publish, bake.state, bake.finished_at = True, "running", None
+    bake.publish_slot = publish_slot(bake.name, bake.version)
+    queue_stage(session, bake_id, "publish")
+    append_log(session, bake.id, "INFO", "publish", "publish requested")
+    return bake
 
 
 def is_final(bake: Bake) -> bool:
     return bake.state in FINAL_BAKE_STATES
 
 
+# ------------------------------------------------------------------------------------- deliveries
+
+
+def queue_stage(session: Session, bake_id: str, stage: str) -> BakeStage:
+    """Make `stage` due: state queued, no message sent yet (the caller sends it and calls `mark_sent`;
+    if it never does, the sweeper sends it after CROWDBAKE_DISPATCH_AFTER seconds)."""
+    row = stage_row(session, bake_id, stage)
+    row.state, row.queued_at, row.sent_at, row.owner, row.heartbeat_at = "queued", utcnow(), None, None, None
+    return row
+
+
+def mark_sent(session: Session, bake_id: str, attempt: int, stage: str, parts: Iterable[str] = ()) -> None:
+    """Record that the message of a queued stage (or of its fan-out parts) went to the broker."""
+    live = select(Bake.id).where(Bake.id == bake_id, Bake.attempt == attempt).scalar_subquery()
+    parts = list(parts)
+    if parts:
+        session.execute(update(BakePart).where(BakePart.bake_id == live, BakePart.part.in_(parts), BakePart.sent_at.is_(None)).values(sent_at=utcnow()))
+    else:
+        session.execute(update(BakeStage).where(BakeStage.bake_id == live, BakeStage.stage == stage, BakeStage.state == "queued",
+                                                BakeStage.sent_at.is_(None)).values(sent_at=utcnow()))
+
+
+def this_host() -> str:
+    return socket.gethostname()
+
+
+def delivery_owner(task_id: str | None) -> str:
+    """Who runs a delivery: "host:pid:task id" (the pid tells a redelivery on the same host whether
+    the process that had the message is gone)."""
+    return f"{this_host()}:{os.getpid()}:{task_id or '-'}"
+
+
+def owner_is_dead(owner: str) -> bool:
+    """True when `owner` ran on this host and its process is gone (or a zombie); False when it is
+    alive or on another host (there only its heartbeat can tell)."""
+    host, _, rest = owner.partition(":")
+    pid_text = rest.partition(":")[0]
+    if host != this_host() or not pid_text.isdigit():
+        return False
+    pid = int(pid_text)
+    if pid == os.getpid():
+        return False
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except (FileNotFoundError, ProcessLookupError):
+        return True
+    except OSError:
+        return False
+
+
+def _host_pid(owner: str) -> tuple[str, int | None]:
+    host, _, rest = owner.partition(":")
+    pid_text = rest.partition(":")[0]
+    return host, int(pid_text) if pid_text.isdigit() else None
+
+
+def _marked_by_my_worker(owner: str) -> bool:
+    """True when `owner` is the receipt mark of this pool process's own worker (see `mark_received`)."""
+    host, pid = _host_pid(owner)
+    return host == this_host() and pid == os.getppid()
+
+
+def mark_received(session: Session, bake_id: str, attempt: int, stage: str, part: str | None, owner: str) -> bool:
+    """A worker's main process took this unit's message from the broker (before a pool process runs
+    it): the unit is marked as that worker's, and the worker's heartbeat (`beat_received`) keeps the
+    mark fresh. If the worker dies holding the message (a lost machine; the filesystem broker loses
+    such a message, Redis keeps it for its visibility timeout), the mark goes stale and the sweeper
+    re-queues the unit. Only an unowned, unfinished unit of a live attempt is marked."""
+    table = BakePart if part else BakeStage
+    key = (BakePart.part == part) if part else (BakeStage.stage == stage)
+    live = select(Bake.id).where(Bake.id == bake_id, Bake.attempt == attempt, Bake.state.in_(LIVE_BAKE_STATES)).scalar_subquery()
+    query = update(table).where(table.bake_id == live, key, table.owner.is_(None))
+    query = query.where(BakePart.done.is_(False)) if part else query.where(BakeStage.state.in_(("pending", "queued", "retrying")))
+    return session.execute(query.values(owner=owner, heartbeat_at=utcnow())).rowcount == 1
+
+
+def beat_received(session: Session, owner_prefix: str) -> int:
+    """Refresh the marks of every unit a worker's main process received and no pool process has
+    claimed yet (their owner starts with "host:pid:"). Returns how many."""
+    now, count = utcnow(), 0
+    for table in (BakeStage, BakePart):
+        count += session.execute(update(table).where(table.owner.startswith(owner_prefix, autoescape=True)).values(heartbeat_at=now)).rowcount
+    return count
+
+
+@dataclass(frozen=True)
+class Claim:
+    """The outcome of a delivery's claim: `won` (run it), with `retries` taken so far and `lost_owner`
+    when it took over from a delivery whose worker was lost; else `reason` says why to drop it."""
+
+    won: bool
+    reason: str = ""
+    retries: int = 0
+    lost_owner: str | None = None
+
+
+def _unit(session: Session, bake_id: str, stage: str, part: str | None):
+    return session.get(BakePart, (bake_id, part)) if part else session.get(BakeStage, (bake_id, stage))
+
+
+def claim_delivery(session: Session, bake_id: str, attempt: int, stage: str, part: str | None, owner: str,
+                   stale_before: dt.datetime) -> Claim:
+    """Decide whether this delivery of `stage` (or fan-out `part`) runs it. Exactly one delivery owns a
+    unit at a time; a duplicate message (sent twice, a visibility timeout, the sweeper) finds it done
+    or owned by a live delivery and is dropped, so a late original never runs beside its replacement.
+
+    A unit owned by a delivery whose process is gone (this host) or whose heartbeat is older than
+    `stale_before` is taken over: its worker was lost, which counts one retry."""
+    bake = lock_bake(session, bake_id, attempt=attempt, states=LIVE_BAKE_STATES)
+    if bake is None:
+        return Claim(False, f"bake {bake_id} attempt {attempt} is no longer live")
+    unit = _unit(session, bake_id, stage, part)
+    if unit is None:
+        return Claim(False, f"bake {bake_id} has no {part or stage} in attempt {attempt}")
+    finished = unit.done if part else unit.state in ("succeeded", "skipped", "failed", "cancelled")
+    if finished:
+        return Claim(False, f"{part or stage} of bake {bake_id} is already {('done' if part else unit.state)}")
+    lost_owner = None
+    if unit.owner is not None and unit.owner != owner and not _marked_by_my_worker(unit.owner):
+        beat = to_utc(unit.heartbeat_at)
+        if not owner_is_dead(unit.owner) and beat is not None and beat >= stale_before:
+            return Claim(False, f"{part or stage} of bake {bake_id} is running elsewhere ({unit.owner})")
+        lost_owner = unit.owner
+        unit.retries += 1
+        if part:
+            stage_row(session, bake_id, stage).retries += 1
+    now = utcnow()
+    unit.owner, unit.heartbeat_at = owner, now
+    if part:
+        # The impostors stage row shows the fan-out as a whole.
+        mark_running(session, bake, stage)
+    else:
+        if bake.state == "queued":
+            bake.state = "running"
+        bake.started_at = bake.started_at or now
+        unit.state = "running"
+        unit.started_at = unit.started_at or now
+    return Claim(True, retries=unit.retries, lost_owner=lost_owner)
+
+
+def still_owner(session: Session, bake_id: str, attempt: int, stage: str, part: str | None, owner: str) -> Bake | None:
+    """Lock the bake and return it if this delivery still owns its unit in a live attempt, else None
+    (a worker finishing a stage checks this before it records the result and queues the next one:
+    a late original whose unit was handed to another delivery records nothing)."""
+    bake = lock_bake(session, bake_id, attempt=attempt, states=LIVE_BAKE_STATES)
+    if bake is None:
+        return None
+    unit = _unit(session, bake_id, stage, part)
+    return bake if unit is not None and unit.owner == owner else None
+
+
+def release_delivery(session: Session, bake_id: str, stage: str, part: str | None, owner: str) -> None:
+    """The delivery stopped owning its unit (finished, failed or handed to a Celery retry)."""
+    table = BakePart if part else BakeStage
+    key = (BakePart.part == part) if part else (BakeStage.stage == stage)
+    session.execute(update(table).where(table.bake_id == bake_id, key, table.owner == owner).values(owner=None, heartbeat_at=None))
+
+
+def heartbeat(session: Session, bake_id: str, attempt: int, stage: str, part: str | None, owner: str) -> bool:
+    """One heartbeat of a running delivery. False when it should stop: the bake was cancelled or
+    failed, a newer attempt replaced it, or the sweeper gave its unit to another delivery."""
+    table = BakePart if part else BakeStage
+    key = (BakePart.part == part) if part else (BakeStage.stage == stage)
+    live = select(Bake.id).where(Bake.id == bake_id, Bake.attempt == attempt, Bake.state.in_(LIVE_BAKE_STATES)).scalar_subquery()
+    result = session.execute(update(table).where(table.bake_id == live, key, table.owner == owner).values(heartbeat_at=utcnow()))
+    return result.rowcount == 1
+
+
 # ------------------------------------------------------------------------------------- fan-out/in
 
 
-def record_fan_out(session: Session, bake_id: str, impostor_tasks: list[dict[str, Any]], stages: tuple[str, ...] = ()) -> list[str]:
+def record_fan_out(session: Session, bake_id: str, impostor_tasks: list[dict[str, Any]]) -> list[str]:
     """Register the parts the pack stage waits for: one per impostor-views task (crowdbake.stages.impostors.impostor_tasks,
-    which needs the impostor plan only), and one per stage in `stages` that runs beside them (the poses
-    stage: its part id is the stage's name). Returns the impostor part ids in task order."""
+    which needs the poses stage's output). Returns the part ids in task order."""
     session.execute(delete(BakePart).where(BakePart.bake_id == bake_id))
-    for stage in stages:
-        session.add(BakePart(bake_id=bake_id, part=stage, stage=stage, spec={}, done=False))
     part_ids = []
+    now = utcnow()
     for index, spec in enumerate(impostor_tasks):
         part_id = f"{IMPOSTOR_PART_PREFIX}{spec.get('id', index)}"
         part_ids.append(part_id)
-        session.add(BakePart(bake_id=bake_id, part=part_id, stage="impostors", spec=spec, done=False))
+        session.add(BakePart(bake_id=bake_id, part=part_id, stage="impostors", spec=spec, done=False, retries=0, queued_at=now))
     impostors = stage_row(session, bake_id, "impostors")
     impostors.total, impostors.done = len(impostor_tasks), 0
+    if impostors.state == "pending":
+        impostors.state, impostors.queued_at = "queued", now
     return part_ids
 
 
@@ -220,7 +509,7 @@ def complete_part(session: Session, bake_id: str, part: str) -> int:
     finishing together sees the other's mark and no count is taken from a stale snapshot.
     """
     session.execute(update(Bake).where(Bake.id == bake_id).values(updated_at=utcnow()))
-    session.execute(update(BakePart).where(BakePart.bake_id == bake_id, BakePart.part == part).values(done=True))
+    session.execute(update(BakePart).where(BakePart.bake_id == bake_id, BakePart.part == part).values(done=True, owner=None, heartbeat_at=None))
     if part.startswith(IMPOSTOR_PART_PREFIX):
         done = session.scalar(
             select(func.count()).select_from(BakePart)
@@ -245,7 +534,10 @@ def claim_fan_in(session: Session, bake_id: str, attempt: int) -> bool:
         .where(Bake.id == bake_id, Bake.attempt == attempt, (Bake.fan_in_attempt.is_(None)) | (Bake.fan_in_attempt < attempt))
         .values(fan_in_attempt=attempt)
     )
-    return result.rowcount == 1
+    if result.rowcount != 1:
+        return False
+    queue_stage(session, bake_id, "pack")
+    return True
 
 
 def to_utc(value: dt.datetime | None) -> dt.datetime | None:

@@ -1,4 +1,4 @@
-"""Assets: upload a character, a cloth cache or a texture; read their records.
+"""Assets: upload a character, a cloth cache, a texture or a chosen cycle; read their records.
 
 An upload is streamed to a staging file while it is hashed, validated (crowdbake.ingest.uploads), and only
 then committed to the blob store and recorded. The same content uploaded again returns the existing
@@ -6,7 +6,7 @@ asset (200 instead of 201). A rejected upload leaves neither blobs nor rows behi
 """
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 from fastapi import APIRouter, Query, Request, Response
 from sqlalchemy import select
@@ -14,11 +14,13 @@ from starlette.concurrency import run_in_threadpool
 
 from crowdbake.api.deps import AssetReadKey, ServicesDep, SessionDep, UploadKey
 from crowdbake.api.problems import Problem
-from crowdbake.api.schemas import MAX_LIST_OFFSET, AssetPublic, AssetsPublic, problem_responses
+from crowdbake.api.schemas import MAX_LIST_OFFSET, AssetKind, AssetPublic, AssetsPublic, problem_responses
 from crowdbake.api.uploads import MultipartUpload, UploadedFile, read_multipart
+from crowdbake.ingest.cycle_document import check_cycle_upload
 from crowdbake.ingest.studio_inputs import MEDIA_TYPES as STUDIO_MEDIA_TYPES
 from crowdbake.ingest.studio_inputs import check_jpeg_texture, check_point_cache, pc2_first_frame, placement_sample
 from crowdbake.ingest.uploads import ZipLimits, _extension, check_character, check_cloth, check_texture, convert_obj_sequence
+from crowdbake.storage import records
 from crowdbake.storage.assets import store_asset
 from crowdbake.storage.blobs import BlobStore, IncomingBlob
 from crowdbake.storage.models import Asset
@@ -31,6 +33,7 @@ MEDIA_TYPES = {
     "pc2": "application/x-pc2",
     "obj": "model/obj",
     "png": "image/png",
+    "json": "application/json",
     **STUDIO_MEDIA_TYPES,
 }
 UPLOAD_RESPONSES = problem_responses(400, 413, 415)
@@ -163,10 +166,28 @@ async def upload_texture(request: Request, response: Response, key: UploadKey, s
         upload.discard()
 
 
+@router.post(
+    "/cycles", response_model=AssetPublic, status_code=201, responses=UPLOAD_RESPONSES,
+    summary="Upload a chosen cycle: cycle.json from `crowdbake cycle`, with its looped.pc2 or alone (the bake closes it again)",
+    openapi_extra=_multipart_body({"cycle": _FILE, "looped": _FILE}, ["cycle"]),
+)
+async def upload_cycle(request: Request, response: Response, key: UploadKey, services: ServicesDep, session: SessionDep) -> Asset:
+    upload = await read_multipart(request, services.blobs, services.settings.max_upload_bytes, {"cycle", "looped"})
+    try:
+        document, looped = _require_file(upload, "cycle"), upload.files.get("looped")
+        info = await run_in_threadpool(check_cycle_upload, document.blob.path, document.filename, looped and looped.blob.path, looped and looped.filename)
+        staged = {"file": (document.blob, document.filename, MEDIA_TYPES["json"])}
+        if looped is not None:
+            staged["looped"] = (looped.blob, looped.filename, MEDIA_TYPES["pc2"])
+        return _store_asset(session, services.blobs, response, "cycle", staged, info, key.key_id)
+    finally:
+        upload.discard()
+
+
 @router.get("", response_model=AssetsPublic, responses=problem_responses())
 def list_assets(
     key: AssetReadKey, session: SessionDep,
-    kind: Literal["character", "cloth", "texture"] | None = None,
+    kind: AssetKind | None = None,
     limit: int = Query(100, ge=1, le=1000), offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET),
 ) -> AssetsPublic:
     query = key.only_own(select(Asset).order_by(Asset.created_at.desc(), Asset.id), Asset.created_by)
@@ -178,7 +199,7 @@ def list_assets(
 
 @router.get("/{asset_id}", response_model=AssetPublic, responses=problem_responses(404))
 def get_asset(asset_id: str, key: AssetReadKey, session: SessionDep) -> Asset:
-    asset = session.get(Asset, asset_id)
+    asset = records.by_id(session, Asset, asset_id)
     if asset is None or not key.owns(asset.created_by):  # another key's asset is not there for this one
         raise Problem("not-found", f"no asset {asset_id!r}")
     return asset

@@ -3,27 +3,37 @@ retry it, publish it later.
 
 Submitting the same inputs, parameters, name and version again returns the existing bake (200) unless
 it failed or was cancelled: the input key (crowdbake.storage.records.input_key) makes resubmission
-idempotent, and the work folder it names makes a rerun fast.
+idempotent, and the work folder it names makes a rerun fast. While a bake is queued or running it
+holds its input key and, when it publishes, its name/version in unique columns, so of two concurrent
+submits one creates the bake and the other gets it (same inputs) or a 409 at once (other inputs),
+and no two bakes ever run in one work folder.
+
+Starting a bake never waits on the broker for more than ENQUEUE_WAIT_S: the bake is saved as queued,
+its first message sent by a thread of the dispatcher; a message that did not go out is sent by the
+sweeper (crowdbake.jobs.sweeper), and by a re-submit of the same bake. Cancel, retry and publish are
+compare-and-set transitions (crowdbake.storage.records): of two racing calls one wins, the other 409.
 """
 from __future__ import annotations
 
 import logging
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, Depends, Query, Request, Response
 from fastapi.responses import PlainTextResponse
 from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from crowdbake.api.deps import BakeKey, Principal, PublishKey, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import MAX_LIST_OFFSET, BakeCreate, BakePublic, BakesPublic, LogLine, StagePublic, problem_responses
 from crowdbake.errors import InputError
-from crowdbake.ingest.bake_request import check_request_placement, check_two_cycles
-from crowdbake.jobs.celery_app import send_stage
-from crowdbake.params import BakeParams
+from crowdbake.ingest.bake_request import check_request_placement, check_two_cycles, cycle_frames_for
+from crowdbake.ingest.cycle_document import check_cycle_fits_cloth
+from crowdbake.jobs.sweeper import ENQUEUE_WAIT_S, Dispatcher
+from crowdbake.params import NAME_PATTERN, BakeParams
 from crowdbake.redact import path_replacements, redact_text, redact_value
-from crowdbake.storage import records
+from crowdbake.storage import records, sweeps
 from crowdbake.storage.bundles import find_bundle
 from crowdbake.storage.models import Asset, Bake
 
@@ -31,6 +41,13 @@ logger = logging.getLogger(__name__)
 router = APIRouter(prefix="/v1/bakes", tags=["bakes"])
 
 LOG_LINES_IN_BAKE = 50
+
+
+async def get_dispatcher(request: Request) -> Dispatcher:
+    return request.app.state.dispatcher
+
+
+DispatcherDep = Annotated[Dispatcher, Depends(get_dispatcher)]
 
 
 def bake_public(session: Session, bake: Bake, log_lines: int = LOG_LINES_IN_BAKE) -> BakePublic:
@@ -59,14 +76,14 @@ def bake_public(session: Session, bake: Bake, log_lines: int = LOG_LINES_IN_BAKE
 
 def _get_bake(session: Session, bake_id: str, key: Principal) -> Bake:
     """The bake, if it exists and `key` owns it (another key's bake is a 404: its id reveals nothing)."""
-    bake = session.get(Bake, bake_id)
+    bake = records.by_id(session, Bake, bake_id)
     if bake is None or not key.owns(bake.created_by):
         raise Problem("not-found", f"no bake {bake_id!r}")
     return bake
 
 
 def _asset(session: Session, asset_id: str, kind: str, field: str, errors: list[dict[str, Any]], key: Principal) -> Asset | None:
-    asset = session.get(Asset, asset_id)
+    asset = records.by_id(session, Asset, asset_id)
     if asset is None or asset.kind != kind or not key.owns(asset.created_by):
         errors.append({"field": field, "message": f"no {kind} asset {asset_id!r}"})
         return None
@@ -82,17 +99,24 @@ def _check_params(params: dict[str, Any]) -> None:
         raise Problem("validation-error", f"the parameters are not accepted: {error}", [{"field": field, "message": str(error)}]) from None
 
 
-def _check_cycle(character: Asset, cloth: Asset, params: dict[str, Any]) -> None:
-    """The animation must exist, the cloth must hold two cycles of it and sit on the character
+def _check_cycle(character: Asset, cloth: Asset, cycle: Asset | None, params: dict[str, Any]) -> None:
+    """The animation must exist, the cloth must hold two cycles of it (or the given cycle, whose frames
+    must lie within it: crowdbake.ingest.cycle_document) and sit on the character
     (crowdbake.ingest.bake_request), as problems naming the field."""
     try:
-        check_two_cycles(character.info, cloth.info, params.get("cycle_frames"), params.get("fps"), params.get("animation", 0))
+        if cycle is None:
+            check_two_cycles(character.info, cloth.info, params.get("cycle_frames"), params.get("fps"), params.get("animation", 0))
+        else:  # as the validate stage: the cycle length must still be known, the given cycle then sets it
+            cycle_frames_for(character.info, cloth.info, params.get("cycle_frames"), params.get("fps"), params.get("animation", 0))
+            check_cycle_fits_cloth(cycle.info, cloth.info)
         check_request_placement(character.info, cloth.info, params.get("animation", 0), params.get("up"), params.get("units"))
     except InputError as error:
         if error.field in ("params.animation", "params.up", "params.units"):
             title = {"params.animation": "the character has no such animation",
                      "params.up": "the cloth cache is not Y-up", "params.units": "the cloth cache is not in metres"}[error.field]
             raise Problem("validation-error", title, [{"field": error.field, "message": error.message}]) from None
+        if error.field == "cycle":
+            raise Problem("invalid-file", "the cycle does not fit the cloth", [{"field": "cycle", "message": error.message}]) from None
         if error.field == "cloth" and "two cycles" not in error.message:
             raise Problem("invalid-file", "the garment does not sit on the character", [{"field": "cloth", "message": error.message}]) from None
         if error.field == "cloth":
@@ -113,59 +137,86 @@ def _check_texture_formats(textures: dict[str, Asset | None]) -> None:
         raise Problem("validation-error", "a texture's name does not match its format", errors)
 
 
-def _enqueue(services, session: Session, bake: Bake, stage: str) -> None:
-    try:
-        send_stage(services.celery, services.settings, stage, bake.id, bake.attempt)
-    except Exception as error:  # the broker is down: nothing will run this bake
-        logger.exception("could not enqueue %s for bake %s", stage, bake.id)
-        records.fail_bake(session, bake, stage, {"type": "not-ready", "title": "the job queue is unreachable", "detail": f"{type(error).__name__}: {error}"})
-        session.commit()
-        raise Problem("not-ready", "the job queue is unreachable; the bake was recorded as failed and can be retried") from None
+def _dispatch(dispatcher: Dispatcher, session: Session, bake: Bake) -> None:
+    """Send the bake's queued, unsent stage, waiting ENQUEUE_WAIT_S at most. A broker that does not
+    take it in time leaves the bake queued: the sweeper sends it later, and the bake's log says so."""
+    delivery = sweeps.current_delivery(session, bake)
+    if delivery is None or dispatcher.send(delivery):
+        return
+    records.append_log(session, bake.id, "WARNING", delivery.stage, "the job queue did not take the bake within "
+                       f"{ENQUEUE_WAIT_S:.0f} s; it stays queued and is sent once the broker answers")
+    session.commit()
+
+
+def _held_elsewhere(session: Session, name: str, version: str, key_digest: str) -> Problem:
+    """The 409 for a submit whose version (or identical inputs) another live bake holds."""
+    holder = records.slot_holder(session, name, version)
+    if holder is not None and holder.input_key != key_digest:
+        return Problem("conflict", f"bake {holder.id} is already baking {name}/{version} from other inputs; "
+                       "bundles never change, choose a new version")
+    return Problem("conflict", f"an identical bake of {name}/{version} is already queued or running; submit again once it has finished")
 
 
 @router.post("", response_model=BakePublic, status_code=202, responses=problem_responses(400, 404, 409, 503), summary="Start a bake")
-def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: ServicesDep, session: SessionDep) -> BakePublic:
+def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: DispatcherDep, session: SessionDep) -> BakePublic:
     if (body.publish or body.public) and "publish" not in key.scopes:
         raise Problem("forbidden", "publishing a bundle (publish or public true) needs the publish scope")
     errors: list[dict[str, Any]] = []
     character = _asset(session, body.character, "character", "character", errors, key)
     cloth = _asset(session, body.cloth, "cloth", "cloth", errors, key)
     textures = {name: _asset(session, asset_id, "texture", f"textures.{name}", errors, key) for name, asset_id in sorted(body.textures.items())}
+    cycle = _asset(session, body.cycle, "cycle", "cycle", errors, key) if body.cycle is not None else None
     if errors:
         raise Problem("validation-error", "the bake names assets that do not exist", errors)
     params = body.params.model_dump()
     _check_params(params)
-    _check_cycle(character, cloth, params)
+    _check_cycle(character, cloth, cycle, params)
     _check_texture_formats(textures)
 
     digests = {
         "character": character.digest,
         "cloth": {role: entry["sha256"] for role, entry in cloth.files.items()},
         "textures": {name: texture.digest for name, texture in textures.items()},
+        # Only when given, so the keys of bakes that search their cycle are what they were.
+        **({"cycle": {role: entry["sha256"] for role, entry in cycle.files.items()}} if cycle is not None else {}),
     }
     key_digest = records.input_key(digests, body.name, body.version, params, created=body.created)
     existing = records.reusable_bake(session, key_digest)
     if existing is not None and key.owns(existing.created_by):
-        response.status_code = 200
-        response.headers["Location"] = f"/v1/bakes/{existing.id}"
-        return bake_public(session, existing)
+        return _existing(dispatcher, session, response, existing)
     published = find_bundle(session, body.name, body.version)
     if published is not None:
         raise Problem("conflict", f"{body.name}/{body.version} is already published from other inputs; bundles never change, choose a new version")
-    competing = session.scalars(
-        select(Bake).where(Bake.name == body.name, Bake.version == body.version, Bake.state.in_(("queued", "running")), Bake.publish.is_(True))
-    ).first()
-    if competing is not None and body.publish:
-        raise Problem("conflict", f"bake {competing.id} is already baking {body.name}/{body.version} from other inputs")
+    holder = records.slot_holder(session, body.name, body.version) if body.publish else None
+    if holder is not None:
+        if holder.input_key == key_digest and key.owns(holder.created_by):
+            return _existing(dispatcher, session, response, holder)  # committed since the lookup above
+        raise _held_elsewhere(session, body.name, body.version, key_digest)
 
     bake = records.create_bake(
         session, name=body.name, version=body.version, params=params,
         inputs={"character": character.id, "cloth": cloth.id, "textures": {name: texture.id for name, texture in textures.items()},
-                **({"created": body.created} if body.created is not None else {})},
+                **({"cycle": cycle.id} if cycle is not None else {}), **({"created": body.created} if body.created is not None else {})},
         key=key_digest, publish=body.publish, public=body.public, created_by=key.key_id,
     )
-    session.commit()
-    _enqueue(services, session, bake, "validate")
+    try:
+        session.commit()
+    except IntegrityError:
+        # A concurrent submit reserved the input key or the version first: the same bake, or a 409.
+        session.rollback()
+        existing = records.live_bake(session, key_digest)
+        if existing is not None and key.owns(existing.created_by):
+            return _existing(dispatcher, session, response, existing)
+        raise _held_elsewhere(session, body.name, body.version, key_digest) from None
+    _dispatch(dispatcher, session, bake)
+    response.headers["Location"] = f"/v1/bakes/{bake.id}"
+    return bake_public(session, bake)
+
+
+def _existing(dispatcher: Dispatcher, session: Session, response: Response, bake: Bake) -> BakePublic:
+    """The same bake again: 200, and its first message is sent now if it never was."""
+    _dispatch(dispatcher, session, bake)
+    response.status_code = 200
     response.headers["Location"] = f"/v1/bakes/{bake.id}"
     return bake_public(session, bake)
 
@@ -173,7 +224,8 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, services: Se
 @router.get("", response_model=BakesPublic, responses=problem_responses())
 def list_bakes(
     key: BakeKey, session: SessionDep,
-    state: Literal["queued", "running", "succeeded", "failed", "cancelled"] | None = None, name: str | None = None,
+    state: Literal["queued", "running", "succeeded", "failed", "cancelled"] | None = None,
+    name: str | None = Query(None, pattern=NAME_PATTERN, description="Only bakes of this bundle name."),
     limit: int = Query(50, ge=1, le=500), offset: int = Query(0, ge=0, le=MAX_LIST_OFFSET),
 ) -> BakesPublic:
     query = key.only_own(select(Bake).order_by(Bake.created_at.desc(), Bake.id), Bake.created_by)
@@ -202,37 +254,47 @@ def get_bake_log(bake_id: str, key: BakeKey, services: ServicesDep, session: Ses
 
 @router.post("/{bake_id}/cancel", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409))
 def cancel_bake(bake_id: str, key: BakeKey, session: SessionDep) -> BakePublic:
-    bake = _get_bake(session, bake_id, key)
-    if records.is_final(bake):
-        raise Problem("invalid-state", f"bake {bake_id} already {bake.state}")
-    records.cancel_bake(session, bake)
+    _get_bake(session, bake_id, key)
+    try:
+        bake = records.cancel_bake(session, bake_id)
+    except records.TransitionRefused as refused:
+        session.rollback()
+        raise Problem("invalid-state", str(refused)) from None
     session.commit()
     return bake_public(session, bake)
 
 
 @router.post("/{bake_id}/retry", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409, 503))
-def retry_bake(bake_id: str, key: BakeKey, services: ServicesDep, session: SessionDep) -> BakePublic:
-    bake = _get_bake(session, bake_id, key)
-    if bake.state not in ("failed", "cancelled"):
-        raise Problem("invalid-state", f"only failed or cancelled bakes can be retried; bake {bake_id} is {bake.state}")
-    records.reset_for_retry(session, bake)
-    session.commit()
-    _enqueue(services, session, bake, "validate")
+def retry_bake(bake_id: str, key: BakeKey, dispatcher: DispatcherDep, session: SessionDep) -> BakePublic:
+    seen = _get_bake(session, bake_id, key)
+    if seen.state not in ("failed", "cancelled"):
+        raise Problem("invalid-state", f"only failed or cancelled bakes can be retried; bake {bake_id} is {seen.state}")
+    try:
+        bake = records.retry_bake(session, bake_id, seen.attempt)
+        session.commit()
+    except records.TransitionRefused as refused:
+        session.rollback()
+        raise Problem("invalid-state", str(refused)) from None
+    except IntegrityError:
+        session.rollback()
+        raise Problem("conflict", f"another bake is now baking the inputs or the version {seen.name}/{seen.version} of bake {bake_id}; "
+                      "retry once it has finished") from None
+    _dispatch(dispatcher, session, bake)
     return bake_public(session, bake)
 
 
 @router.post("/{bake_id}/publish", response_model=BakePublic, status_code=202, responses=problem_responses(404, 409, 503),
              summary="Publish a bake that was run with publish=false")
-def publish_bake(bake_id: str, key: PublishKey, services: ServicesDep, session: SessionDep) -> BakePublic:
-    bake = _get_bake(session, bake_id, key)
-    stages = {row.stage: row for row in bake.stages}
-    if bake.state != "succeeded" or stages["pack"].state != "succeeded":
-        raise Problem("invalid-state", f"bake {bake_id} is {bake.state}; only a finished bake can be published")
-    if stages["publish"].state == "succeeded":
-        raise Problem("invalid-state", f"bake {bake_id} is already published")
-    bake.publish, bake.state, bake.finished_at = True, "running", None
-    stages["publish"].state = "pending"
-    records.append_log(session, bake.id, "INFO", "publish", "publish requested")
-    session.commit()
-    _enqueue(services, session, bake, "publish")
+def publish_bake(bake_id: str, key: PublishKey, dispatcher: DispatcherDep, session: SessionDep) -> BakePublic:
+    seen = _get_bake(session, bake_id, key)
+    try:
+        bake = records.request_publish(session, bake_id)
+        session.commit()
+    except records.TransitionRefused as refused:
+        session.rollback()
+        raise Problem("invalid-state", str(refused)) from None
+    except IntegrityError:
+        session.rollback()
+        raise Problem("conflict", f"another bake is baking {seen.name}/{seen.version}; bundles never change") from None
+    _dispatch(dispatcher, session, bake)
     return bake_public(session, bake)

@@ -38,7 +38,7 @@ from crowdbake.api.problems import Problem
 from crowdbake.api.routes.bundles import IMMUTABLE_SECONDS, NameParam, VersionParam, _bundle_or_problem, _manifest
 from crowdbake.api.schemas import problem_responses
 from crowdbake.formats.binary import read_texture_layer
-from crowdbake.storage import work_outputs
+from crowdbake.storage import records, work_outputs
 from crowdbake.storage.bundle_store import BundleStore
 from crowdbake.storage.bundles import LATEST
 from crowdbake.storage.models import Bake
@@ -99,7 +99,7 @@ def static_file(name: str) -> FileResponse:
     summary="The cycle search's report of a bake (report.html, its PNG plots, cycle.json)",
 )
 def get_cycle_file(bake_id: str, path: str, key: BakeKey, services: ServicesDep, session: SessionDep) -> Response:
-    bake = session.get(Bake, bake_id)
+    bake = records.by_id(session, Bake, bake_id)
     if bake is None or not key.owns(bake.created_by):
         raise Problem("not-found", f"no bake {bake_id!r}")
     if not CYCLE_FILE.match(path):
@@ -112,7 +112,8 @@ def get_cycle_file(bake_id: str, path: str, key: BakeKey, services: ServicesDep,
     why = "the cycle stage has not finished" if cycle is None or cycle.state != "succeeded" else "no such file in the cycle report"
     outputs = (cycle.result or {}).get("outputs") if cycle is not None else None
     if outputs:
-        # Work folders are private to each worker machine: the cycle stage stored its files as blobs.
+        # The cycle stage stores its files as blobs: work folders are private to each worker machine, and
+        # deleted once the bundle is published.
         entry = work_outputs.read_listing(services.blobs, outputs).get(f"cycle/{path}")
         if entry is None:
             raise Problem("not-found", f"bake {bake_id}: {why} ({path})")

@@ -116,14 +116,26 @@ function problemText(error) {
 
 // ------------------------------------------------------------------------------- upload and bake
 
-// Which input a dropped or chosen file is, by its name.
+// Which input a dropped or chosen file is, by its name. The cloth forms are those POST /v1/assets/cloth
+// takes: a .pc2 or .mdd cache with its .obj rest mesh, an Alembic .abc or a .zip of OBJ frames alone.
+const CLOTH_SUFFIXES = [".pc2", ".mdd", ".abc", ".zip"];
+const TEXTURE_SUFFIXES = [".png", ".jpg", ".jpeg"];
+const hasSuffix = (file, suffixes) => suffixes.some((suffix) => file.name.toLowerCase().endsWith(suffix));
+const clothNeedsMesh = (cloth) => hasSuffix(cloth, [".pc2", ".mdd"]);
+
 function classify(file) {
   const name = file.name.toLowerCase();
   if (name.endsWith(".glb") || name.endsWith(".gltf")) return "character";
-  if (name.endsWith(".pc2") || name.endsWith(".zip")) return "cloth";
+  if (hasSuffix(file, CLOTH_SUFFIXES)) return "cloth";
   if (name.endsWith(".obj")) return "clothMesh";
-  if (name.endsWith(".png")) return "textures";
+  if (hasSuffix(file, TEXTURE_SUFFIXES)) return "textures";
   return null;
+}
+
+// The multipart fields of the cloth upload for the chosen cache (and mesh).
+function clothUploadFields(cloth, clothMesh) {
+  if (hasSuffix(cloth, [".zip"])) return { sequence: cloth };
+  return clothNeedsMesh(cloth) ? { cache: cloth, mesh: clothMesh } : { cache: cloth };
 }
 
 function chooseFiles(files) {
@@ -142,7 +154,7 @@ function renderChosen() {
   const { character, cloth, clothMesh, textures } = state.files;
   const item = (label, file) => el("li", { dataset: { input: label } }, `${label}: `, file ? `${file.name} (${bytes(file.size)})` : el("span", { class: "muted" }, "none"));
   const items = [item("character", character), item("cloth", cloth)];
-  if (!cloth || !cloth.name.toLowerCase().endsWith(".zip")) items.push(item("cloth mesh", clothMesh));
+  if (!cloth || clothNeedsMesh(cloth)) items.push(item("cloth mesh", clothMesh));
   items.push(el("li", { dataset: { input: "textures" } }, `textures: `, textures.size ? [...textures.keys()].sort().join(", ") : el("span", { class: "muted" }, "none")));
   $("chosen-files").replaceChildren(...items);
 }
@@ -169,9 +181,8 @@ async function upload(endpoint, fields, what) {
 async function startBake(event) {
   event.preventDefault();
   const { character, cloth, clothMesh, textures } = state.files;
-  const isSequence = cloth && cloth.name.toLowerCase().endsWith(".zip");
-  const missing = [!character && "a character (.glb)", !cloth && "a cloth cache (.pc2) or a zip of OBJ frames",
-                   cloth && !isSequence && !clothMesh && "the cloth's mesh (.obj)"].filter(Boolean);
+  const missing = [!character && "a character (.glb)", !cloth && "a cloth cache (.pc2, .mdd, .abc) or a zip of OBJ frames",
+                   cloth && clothNeedsMesh(cloth) && !clothMesh && "the cloth's mesh (.obj)"].filter(Boolean);
   if (missing.length) {
     $("bake-form-status").textContent = `Choose ${missing.join(" and ")}.`;
     return;
@@ -195,7 +206,7 @@ async function startBake(event) {
       if (!onlyAssets) throw error;
     }
     const characterAsset = await upload("/v1/assets/characters", { file: character }, character.name);
-    const clothFields = isSequence ? { sequence: cloth } : { cache: cloth, mesh: clothMesh };
+    const clothFields = clothUploadFields(cloth, clothMesh);
     if (params.cycle_frames) clothFields.cycle_frames = String(params.cycle_frames);
     const clothAsset = await upload("/v1/assets/cloth", clothFields, cloth.name);
     const textureIds = {};

@@ -2,7 +2,8 @@
 
 The document model is pygltflib's (typed dataclasses for nodes, accessors, materials...); compressed
 geometry is decoded by DracoPy (KHR_draco_mesh_compression) and meshoptimizer
-(EXT_meshopt_compression, its vertex, index and filter decoders); images by Pillow. This module does
+(EXT_meshopt_compression, its vertex, index and filter decoders); images by Pillow, KTX2
+(KHR_texture_basisu) by Basis Universal's `basisu` tool. This module does
 the parts no library does: checked accessor reads into numpy, the skin and its hierarchy, the
 animation, and merging materials into what the bake consumes.
 
@@ -22,8 +23,8 @@ What is read (`load_character`):
     factor's colour) with the UVs moved into each material's tile. None when nothing is textured and
     every factor is white (the bake's default colour then).
 
-A required extension this reader cannot honour is refused by name (KHR_texture_basisu: KTX2 images
-need libktx, see crowdbake.formats.images). Extensions that are only *used* are ignored.
+A required extension this reader cannot honour is refused by name (KHR_texture_basisu too where
+`basisu` is not installed, see crowdbake.formats.basisu). Extensions that are only *used* are ignored.
 
 Transforms, as the glTF spec defines skinning: a skinned vertex is
 ``sum_k w_k * world(joint_k) @ inverseBind(joint_k) @ p``; the transform of the node that holds the

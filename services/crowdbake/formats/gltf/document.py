@@ -21,7 +21,7 @@ import pygltflib
 
 from crowdbake.formats.gltf.accessors import read_accessor
 from crowdbake.formats.gltf.compression import DRACO, MESHOPT, decode_meshopt_view
-from crowdbake.formats.images import KTX2_REFUSAL
+from crowdbake.formats.basisu import KTX2_REFUSAL, basisu_tool
 
 GLB_MAGIC = b"glTF"
 GLB_VERSION = 2
@@ -254,8 +254,8 @@ def open_document(path: Path) -> _Document:
 
 def _refuse_unreadable_extensions(document: pygltflib.GLTF2, where: str) -> None:
     required = document.extensionsRequired or []
-    if BASISU in required:
+    if BASISU in required and basisu_tool() is None:
         raise ValueError(f"{where}: requires {BASISU}: every texture {KTX2_REFUSAL}")
-    unreadable = sorted(set(required) - READABLE_REQUIRED_EXTENSIONS)
+    unreadable = sorted(set(required) - READABLE_REQUIRED_EXTENSIONS - {BASISU})
     if unreadable:
         raise ValueError(f"{where}: requires the glTF extension(s) {', '.join(unreadable)}, which crowdbake cannot read")

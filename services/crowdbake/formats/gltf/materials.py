@@ -3,7 +3,9 @@
 A material's base colour is its texture (sRGB) times its baseColorFactor (linear, glTF 2.0 section
 3.9.2). When several materials cover the merged mesh they are packed side by side into one atlas
 (a flat tile for an untextured one) and the UVs moved into each material's tile. KTX2 (basisu)
-images are refused by name: they need libktx (see crowdbake.formats.images).
+images are transcoded by Basis Universal's `basisu` tool, or refused by name where it is not installed
+(see crowdbake.formats.basisu); a texture with both a plain source and a KTX2 one reads the plain one,
+which is lossless.
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ import numpy as np
 
 from crowdbake.formats.gltf.document import BASISU, _Document, decode_uri, extension
 from crowdbake.formats.gltf.model import Material
-from crowdbake.formats.images import KTX2_REFUSAL, decode_rgba
+from crowdbake.formats.images import decode_rgba
 
 logger = logging.getLogger(__name__)
 
@@ -27,8 +29,6 @@ FLAT_TILE = 8
 def _image_bytes(doc: _Document, image_index: int) -> bytes:
     image = doc.item("images", image_index)
     where = f"{doc.where}: images[{image_index}]"
-    if image.mimeType == "image/ktx2":
-        raise ValueError(f"{where} {KTX2_REFUSAL}")
     if image.bufferView is not None:
         data, _ = doc.view_bytes(image.bufferView)
         return bytes(data)
@@ -41,10 +41,8 @@ def _texture_image(doc: _Document, texture_index: int, cache: dict[int, np.ndarr
     texture = doc.item("textures", texture_index)
     source = texture.source
     if source is None:
-        for name in ("EXT_texture_webp", "MSFT_texture_dds"):
+        for name in ("EXT_texture_webp", "MSFT_texture_dds", BASISU):
             source = (extension(texture, name) or {}).get("source", source)
-        if source is None and extension(texture, BASISU) is not None:
-            raise ValueError(f"{doc.where}: textures[{texture_index}] {KTX2_REFUSAL}")
         if source is None:
             raise ValueError(f"{doc.where}: textures[{texture_index}] has no source image crowdbake can read")
     if source not in cache:

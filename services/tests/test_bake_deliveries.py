@@ -1,0 +1,358 @@
+"""Bake state transitions, reservations, claims, heartbeats and the sweeper, on the real app and a
+real SQLite file shared by threads (no worker: deliveries are driven through crowdbake.storage.records
+and crowdbake.jobs.sweeper as a worker and the API drive them).
+
+Regressions:
+* two simultaneous retries of one failed bake both answered 202 with the same attempt, and the
+  pipeline then ran twice in one work folder (FileNotFoundError, "Directory not empty"): a retry is
+  now a compare-and-set on (state, attempt), one wins and the other is a 409;
+* concurrent submits of one name/version from different inputs were all accepted (the loser failed
+  after a whole bake), identical ones made several bakes sharing a work folder: the input key and
+  the version are reserved by unique columns at submit;
+* a cancel while `publish` ran left a bundle folder without a record (GET 404) and the next bake of
+  that version failed `version-conflict`: a cancel is refused once publish has started;
+* a stage whose worker vanished stayed `running` forever: the sweeper re-queues it after the
+  heartbeat timeout, counts the retry and logs it; a late original then records nothing;
+* a bake whose message never reached the broker stayed `queued` forever: the sweeper sends it;
+* a huge bake was accepted and ran for minutes: the product of its impostor parameters is capped.
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import datetime as dt
+import threading
+import time
+
+import pytest
+from sqlalchemy import select
+
+from crowdbake.storage import records
+from crowdbake.storage.db import session_scope
+from crowdbake.storage.models import Bake, BakeLog, BakePart, BakeStage, utcnow
+from service_fixtures import bake_body, make_api, upload_small_assets
+
+PROBLEM = "application/problem+json"
+CONCURRENT = 8
+
+
+@pytest.fixture
+def api(tmp_path):
+    # The sweeper thread does not run under TestClient (no lifespan); the tests call sweep_once.
+    return make_api(tmp_path, heartbeat_interval=0.2, heartbeat_timeout=2.0, dispatch_after=0.0)
+
+
+@pytest.fixture
+def assets(api, tmp_path):
+    return upload_small_assets(api, tmp_path)
+
+
+def at_once(count: int, call):
+    """`call(index)` from `count` threads released together; their results in order."""
+    barrier = threading.Barrier(count)
+
+    def run(index):
+        barrier.wait()
+        return call(index)
+
+    with concurrent.futures.ThreadPoolExecutor(count) as pool:
+        return list(pool.map(run, range(count)))
+
+
+def new_bake(api, assets, **changes) -> str:
+    response = api.client.post("/v1/bakes", json=bake_body(assets, **changes), headers=api.auth("ci"))
+    assert response.status_code == 202, response.text
+    return response.json()["id"]
+
+
+def claim(api, bake_id: str, stage: str, owner: str, part: str | None = None, stale_s: float | None = None) -> records.Claim:
+    stale_before = utcnow() - dt.timedelta(seconds=stale_s if stale_s is not None else api.settings.heartbeat_timeout)
+    with session_scope(api.sessions) as session:
+        attempt = session.get(Bake, bake_id).attempt
+        return records.claim_delivery(session, bake_id, attempt, stage, part, owner, stale_before)
+
+
+def log_of(api, bake_id: str) -> list[str]:
+    with session_scope(api.sessions) as session:
+        return [row.message for row in session.scalars(select(BakeLog).where(BakeLog.bake_id == bake_id).order_by(BakeLog.id))]
+
+
+# ---------------------------------------------------------------------------------- transitions
+
+
+def test_of_simultaneous_retries_one_wins_and_the_other_is_a_conflict(api, assets):
+    bake_id = new_bake(api, assets)
+    assert api.client.post(f"/v1/bakes/{bake_id}/cancel", headers=api.auth("bake")).status_code == 202
+
+    answers = at_once(CONCURRENT, lambda _: api.client.post(f"/v1/bakes/{bake_id}/retry", headers=api.auth("bake")))
+    statuses = sorted(answer.status_code for answer in answers)
+    assert statuses == [202] + [409] * (CONCURRENT - 1), [answer.text for answer in answers]
+    winner = next(answer.json() for answer in answers if answer.status_code == 202)
+    assert winner["attempt"] == 1
+    loser = next(answer for answer in answers if answer.status_code == 409)
+    assert loser.headers["content-type"] == PROBLEM and loser.json()["type"] == "/problems/invalid-state"
+    assert sum(line == "retry: attempt 1" for line in log_of(api, bake_id)) == 1
+
+
+def test_retry_compare_and_set_in_sql_lets_one_of_two_sessions_win(api, assets):
+    """The same race below the API: two sessions retry attempt 0 at once; the UPDATE's rowcount decides."""
+    bake_id = new_bake(api, assets)
+    with session_scope(api.sessions) as session:
+        records.cancel_bake(session, bake_id)
+
+    def retry(_):
+        try:
+            with session_scope(api.sessions) as session:
+                return records.retry_bake(session, bake_id, 0).attempt
+        except records.TransitionRefused:
+            return None
+
+    outcomes = at_once(2, retry)
+    assert sorted(outcomes, key=str) == [1, None]
+
+
+def test_identical_concurrent_submits_make_one_bake(api, assets):
+    answers = at_once(CONCURRENT, lambda _: api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci")))
+    assert {answer.json().get("id") for answer in answers} == {answers[0].json().get("id")}, [answer.text for answer in answers]
+    assert sorted(answer.status_code for answer in answers) == [200] * (CONCURRENT - 1) + [202]
+    with session_scope(api.sessions) as session:
+        assert session.scalar(select(Bake.id).where(Bake.name == "walker").limit(2).offset(1)) is None
+
+
+def test_concurrent_submits_of_one_version_from_other_inputs_conflict_at_once(api, assets):
+    answers = at_once(CONCURRENT, lambda index: api.client.post(
+        "/v1/bakes", json=bake_body(assets, params={"impostor_frames": 2, "azimuths": 4, "tile_size": 32, "candidates": index + 1}),
+        headers=api.auth("ci")))
+    statuses = sorted(answer.status_code for answer in answers)
+    assert statuses == [202] + [409] * (CONCURRENT - 1), [answer.text for answer in answers]
+    conflict = next(answer for answer in answers if answer.status_code == 409)
+    assert conflict.json()["type"] == "/problems/conflict" and "walker/1.0.0" in conflict.json()["detail"]
+    # A bake that does not publish reserves no version; a failed or cancelled one lets it go.
+    assert api.client.post("/v1/bakes", json=bake_body(assets, publish=False, params={"tile_size": 48}), headers=api.auth("ci")).status_code == 202
+    winner = next(answer.json()["id"] for answer in answers if answer.status_code == 202)
+    assert api.client.post(f"/v1/bakes/{winner}/cancel", headers=api.auth("bake")).status_code == 202
+    assert api.client.post("/v1/bakes", json=bake_body(assets, params={"tile_size": 64}), headers=api.auth("ci")).status_code == 202
+
+
+def test_a_bake_is_not_cancelled_once_publish_has_started(api, assets):
+    bake_id = new_bake(api, assets)
+    with session_scope(api.sessions) as session:
+        for row in session.scalars(select(BakeStage).where(BakeStage.bake_id == bake_id)):
+            row.state = "succeeded" if row.stage != "publish" else "pending"
+        records.queue_stage(session, bake_id, "publish")
+    assert claim(api, bake_id, "publish", "host:1:publish-task").won
+    refused = api.client.post(f"/v1/bakes/{bake_id}/cancel", headers=api.auth("bake"))
+    assert refused.status_code == 409 and "publishing" in refused.json()["detail"], refused.text
+    assert api.client.get(f"/v1/bakes/{bake_id}", headers=api.auth("bake")).json()["state"] == "running"
+
+
+# ------------------------------------------------------------------------- claims and heartbeats
+
+
+def test_a_duplicate_delivery_is_dropped_while_the_owner_beats(api, assets):
+    bake_id = new_bake(api, assets)
+    first = claim(api, bake_id, "validate", "otherhost:1:task-a")
+    assert first.won and first.lost_owner is None
+    duplicate = claim(api, bake_id, "validate", "otherhost:2:task-b")
+    assert not duplicate.won and "running elsewhere" in duplicate.reason
+
+
+def test_a_delivery_of_a_dead_process_on_this_host_is_taken_over_and_counted(api, assets):
+    bake_id = new_bake(api, assets)
+    import subprocess
+    import sys
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True).stdout.strip()
+    dead_owner = f"{records.this_host()}:{gone}:task-a"
+    assert claim(api, bake_id, "validate", dead_owner).won
+    again = claim(api, bake_id, "validate", records.delivery_owner("task-a"))
+    assert again.won and again.lost_owner == dead_owner and again.retries == 1
+
+
+def test_the_sweeper_requeues_a_lost_stage_counts_it_logs_it_and_the_late_original_records_nothing(api, assets):
+    from crowdbake.jobs.sweeper import sweep_once
+
+    bake_id = new_bake(api, assets)
+    services = api.client.app.state.services
+    lost_owner = "lost-host:4242:task-a"
+    assert claim(api, bake_id, "validate", lost_owner).won
+    # Not yet stale: nothing happens.
+    assert sweep_once(services.sessions, services.celery, api.settings).requeued == []
+    later = utcnow() + dt.timedelta(seconds=api.settings.heartbeat_timeout + 1)
+    report = sweep_once(services.sessions, services.celery, api.settings, now=later)
+    assert report.requeued == [f"{bake_id}:validate"] and report.sent == [f"{bake_id}:validate"], report
+    with session_scope(api.sessions) as session:
+        row = session.get(BakeStage, (bake_id, "validate"))
+        assert (row.state, row.owner, row.retries) == ("queued", None, 1) and row.sent_at is not None
+        # The late original comes back: it no longer owns the stage, records nothing, beats no more.
+        assert records.still_owner(session, bake_id, 0, "validate", None, lost_owner) is None
+        assert not records.heartbeat(session, bake_id, 0, "validate", None, lost_owner)
+    line = next(line for line in log_of(api, bake_id) if "lost its worker" in line)
+    assert line.startswith("stage validate lost its worker at ") and f"re-queued, retry 1 of {api.settings.task_max_retries}" in line
+    # The new message claims it normally.
+    assert claim(api, bake_id, "validate", "host-b:1:task-b").won
+
+
+def test_a_stage_that_keeps_losing_its_worker_fails_the_bake_past_the_budget(api, assets):
+    from crowdbake.jobs.sweeper import sweep_once
+
+    bake_id = new_bake(api, assets)
+    services = api.client.app.state.services
+    for round_ in range(api.settings.task_max_retries + 1):
+        assert claim(api, bake_id, "validate", f"lost-host:{round_}:task").won
+        later = utcnow() + dt.timedelta(seconds=api.settings.heartbeat_timeout + 1)
+        sweep_once(services.sessions, services.celery, api.settings, now=later)
+    bake = api.client.get(f"/v1/bakes/{bake_id}", headers=api.auth("bake")).json()
+    assert bake["state"] == "failed" and bake["error"]["type"] == "worker-lost", bake["error"]
+    assert f"more than {api.settings.task_max_retries}" in bake["error"]["detail"]
+
+
+def test_a_lost_impostor_part_is_requeued_alone(api, assets):
+    from crowdbake.jobs.sweeper import sweep_once
+
+    bake_id = new_bake(api, assets)
+    services = api.client.app.state.services
+    with session_scope(api.sessions) as session:
+        records.record_fan_out(session, bake_id, [{"id": "f0"}, {"id": "f1"}])
+        records.mark_sent(session, bake_id, 0, "impostors", ["impostors/f0", "impostors/f1"])
+    assert claim(api, bake_id, "impostors", "lost-host:1:a", part="impostors/f0").won
+    assert claim(api, bake_id, "impostors", f"{records.this_host()}:1:b", part="impostors/f1").won
+    with session_scope(api.sessions) as session:  # f1 keeps beating
+        session.get(BakePart, (bake_id, "impostors/f1")).heartbeat_at = utcnow() + dt.timedelta(seconds=60)
+    later = utcnow() + dt.timedelta(seconds=api.settings.heartbeat_timeout + 1)
+    report = sweep_once(services.sessions, services.celery, api.settings, now=later)
+    assert report.requeued == [f"{bake_id}:impostors/f0"] and report.sent == [f"{bake_id}:impostors/f0"]
+    messages = [message for message in queued_messages(api) if message["task"] == "crowdbake.stage.impostor_views"]
+    assert messages == [{"task": "crowdbake.stage.impostor_views", "args": repr([bake_id, 0, "impostors/f0"])}]
+
+
+def test_the_heartbeat_stops_a_running_stage_when_the_bake_is_cancelled(api, assets):
+    from crowdbake.jobs.tasks import BakeCancelled, Heartbeat, StageContext, WorkerServices
+
+    bake_id = new_bake(api, assets)
+    owner = records.delivery_owner("task-a")
+    assert claim(api, bake_id, "validate", owner).won
+    services = WorkerServices(api.settings, api.sessions, None, None)
+    ctx = StageContext(services, bake_id, 0, "validate", api.settings.work_dir / "unused", owner=owner)
+    with Heartbeat(ctx, api.settings.heartbeat_interval):
+        ctx.progress("validate", 0, 10)  # live: no exception
+        with session_scope(api.sessions) as session:
+            records.cancel_bake(session, bake_id)
+        deadline = time.monotonic() + 5 * api.settings.heartbeat_interval
+        while ctx.stop_reason is None:
+            assert time.monotonic() < deadline, "the heartbeat did not see the cancel"
+            time.sleep(0.05)
+        with pytest.raises(BakeCancelled):
+            ctx.progress("validate", 1, 10)
+
+
+# ---------------------------------------------------------------------------------- dispatching
+
+
+def queued_messages(api) -> list[dict]:
+    import json
+    from pathlib import Path
+
+    messages = []
+    for path in sorted((Path(api.settings.broker_dir) / "queue").glob("*.msg")):
+        envelope = json.loads(path.read_bytes())
+        messages.append({"task": envelope["headers"]["task"], "args": envelope["headers"]["argsrepr"]})
+    return messages
+
+
+def test_an_unsent_stage_is_sent_by_the_sweeper_and_by_a_resubmit(api, assets):
+    from crowdbake.jobs.sweeper import sweep_once
+
+    # A bake saved as queued whose message never went out (the broker did not answer in time).
+    bake_id = new_bake(api, assets)
+    for path in (api.settings.broker_dir / "queue").glob("*.msg"):
+        path.unlink()
+    with session_scope(api.sessions) as session:
+        session.get(BakeStage, (bake_id, "validate")).sent_at = None
+    # A resubmit of the same bake sends it now.
+    again = api.client.post("/v1/bakes", json=bake_body(assets), headers=api.auth("ci"))
+    assert again.status_code == 200 and again.json()["id"] == bake_id
+    assert queued_messages(api) == [{"task": "crowdbake.stage.validate", "args": repr([bake_id, 0])}]
+    # And the sweeper sends what nobody resubmits; a sent stage is not sent again.
+    other = new_bake(api, assets, version="2.0.0")
+    with session_scope(api.sessions) as session:
+        session.get(BakeStage, (other, "validate")).sent_at = None
+    services = api.client.app.state.services
+    report = sweep_once(services.sessions, services.celery, api.settings, now=utcnow() + dt.timedelta(seconds=1))
+    assert report.sent == [f"{other}:validate"]
+    assert sweep_once(services.sessions, services.celery, api.settings, now=utcnow() + dt.timedelta(seconds=1)).sent == []
+
+
+# ---------------------------------------------------------------------------------- work folders
+
+
+def test_the_sweeper_deletes_work_folders_of_published_and_cancelled_bakes_and_keeps_failed_ones(api, assets):
+    from crowdbake.jobs.sweeper import sweep_once
+
+    services = api.client.app.state.services
+    ids = {state: new_bake(api, assets, version=f"1.0.{index}") for index, state in enumerate(("succeeded", "cancelled", "failed", "queued"))}
+    with session_scope(api.sessions) as session:
+        bakes = {state: session.get(Bake, bake_id) for state, bake_id in ids.items()}
+        for row in bakes["succeeded"].stages:
+            row.state = "succeeded"
+        records.succeed_bake(session, bakes["succeeded"])
+        records.fail_bake(session, bakes["failed"], "cycle", {"type": "stage-failed", "title": "t", "detail": "d"})
+        keys = {state: bake.input_key for state, bake in bakes.items()}
+    with session_scope(api.sessions) as session:
+        records.cancel_bake(session, ids["cancelled"])
+    for key in keys.values():
+        (api.settings.work_dir / key / "cycle").mkdir(parents=True)
+    orphan = api.settings.work_dir / ("0" * 64)
+    orphan.mkdir()
+
+    soon = utcnow() + dt.timedelta(seconds=api.settings.heartbeat_timeout + 1)
+    report = sweep_once(services.sessions, services.celery, api.settings, now=soon)
+    assert sorted(report.removed_work) == sorted([keys["succeeded"], keys["cancelled"]])
+    assert (api.settings.work_dir / keys["failed"]).is_dir() and (api.settings.work_dir / keys["queued"]).is_dir() and orphan.is_dir()
+    much_later = utcnow() + dt.timedelta(seconds=api.settings.work_keep_seconds + 1)
+    report = sweep_once(services.sessions, services.celery, api.settings, now=much_later)
+    assert report.removed_work == [keys["failed"]]
+    assert (api.settings.work_dir / keys["queued"]).is_dir()
+
+
+# ------------------------------------------------------------------------------------ parameters
+
+
+def test_too_many_impostor_texels_is_a_422_naming_the_parameters(api, assets):
+    from crowdbake.params import MAX_IMPOSTOR_TEXELS, BakeParams
+
+    huge = {"impostor_frames": 256, "azimuths": 64, "elevations_deg": [0, 30], "tile_size": 1024}
+    response = api.client.post("/v1/bakes", json=bake_body(assets, params=huge), headers=api.auth("ci"))
+    assert response.status_code == 422 and response.headers["content-type"] == PROBLEM, response.text
+    message = response.text
+    for name in ("impostor_frames", "azimuths", "elevations_deg", "tile_size", f"{MAX_IMPOSTOR_TEXELS:,}"):
+        assert name in message, message
+    # The same rule where the CLI and the workers read parameters.
+    with pytest.raises(ValueError, match="tile_size"):
+        BakeParams.from_dict(huge)
+    # Exactly the cap is accepted (1 x 64 x 2 x 1024² = 2^27).
+    BakeParams.from_dict({"impostor_frames": 1, "azimuths": 64, "elevations_deg": [0, 30], "tile_size": 1024})
+
+
+def test_a_message_held_by_a_lost_worker_before_it_started_is_requeued(api, assets):
+    """A worker's main process takes a message, then the machine is lost before a pool process starts
+    it (the filesystem broker loses the message; Redis keeps it for hours): the receipt mark stops
+    beating and the sweeper re-queues the stage. A pool process of the worker that holds the mark
+    claims it without counting a retry."""
+    import os
+
+    from crowdbake.jobs.sweeper import sweep_once
+
+    services = api.client.app.state.services
+    lost = new_bake(api, assets)
+    with session_scope(api.sessions) as session:
+        assert records.mark_received(session, lost, 0, "validate", None, "lost-host:77:task-a")
+        assert records.beat_received(session, "lost-host:77:") == 1
+    later = utcnow() + dt.timedelta(seconds=api.settings.heartbeat_timeout + 1)
+    report = sweep_once(services.sessions, services.celery, api.settings, now=later)
+    assert report.requeued == [f"{lost}:validate"] and report.sent == [f"{lost}:validate"]
+
+    mine = new_bake(api, assets, version="3.0.0")
+    with session_scope(api.sessions) as session:
+        assert records.mark_received(session, mine, 0, "validate", None, f"{records.this_host()}:{os.getppid()}:task-b")
+    taken = claim(api, mine, "validate", records.delivery_owner("task-b"))
+    assert taken.won and taken.lost_owner is None and taken.retries == 0
