@@ -10,17 +10,19 @@ defaults (10 frames x 16 azimuths x 3 elevations of 128² texels):
   variations of 1024²), generated into out/bench/sample unless --sample names one;
 - cesium: CesiumMan with the shared long skirt (../shared/assets, skipped when absent).
 
-The bake runs through crowdbake.stages.runner.run_bake, as `crowdbake bake` does. A stage's figures cover the
-time from its first progress report to the next stage's (validate: from the start), so a stage's set-up
-before its first report counts towards the stage before; run_bake's own wall seconds per stage are
-printed beside them as a check (publish reports only when it is done, so its seconds fall in pack's).
-Per stage:
+The bake runs through crowdbake.stages.runner.run_bake, as `crowdbake bake` does (--workers as its
+option: default two worker processes for the poses stage beside the impostor tasks where two cores are
+usable). Per stage, from run_bake's own figures (BakeSummary.timings, measured around each stage in this
+process and around each item in the workers):
 
-- wall and CPU seconds (CPU of every thread of the process: more than wall means threads ran in parallel);
+- wall and CPU seconds (CPU of every thread; in workers, summed over the stage's items; the poses stage's
+  wall is its own time in its worker, the impostor stage's runs from its plan to its last task, so the
+  two overlap);
 - render: seconds inside pyrender/OpenGL (draw and read-back), summed by crowdbake.render.offscreen over
-  every render of the bake (cycle views, impostor views, fidelity references), context set-up apart;
+  every render of the bake (cycle views, impostor views, fidelity references), workers included;
 - wall / render: 1.0 would be a bake bound by its renderer;
-- peak RSS while the stage ran (sampled every 10 ms from /proc/self/statm) and the process's high-water mark.
+- peak RSS of this process while the stage's progress reports came (sampled every 10 ms from
+  /proc/self/statm); the process's and the largest worker's high-water marks are in the totals.
 
 Prints a table per case and writes everything as JSON. The figures are for this machine's cores under
 OSMesa (llvmpipe) unless PYOPENGL_PLATFORM=egl.
@@ -146,7 +148,7 @@ def case_inputs(case: str, sample: Path, assets: Path):
     return BakeInputs(*files, None, "bench", "1", params, created="2006-09-04T12:00:00Z")
 
 
-def run_case(case: str, sample: Path, assets: Path) -> dict | None:
+def run_case(case: str, sample: Path, assets: Path, workers: int | None = None) -> dict | None:
     """Bake one case in this process and measure it (call in a fresh process)."""
     started = time.perf_counter()
     from crowdbake.stages import runner
@@ -158,20 +160,26 @@ def run_case(case: str, sample: Path, assets: Path) -> dict | None:
     with tempfile.TemporaryDirectory(prefix="crowdbake-bench-") as scratch:
         meter = StageMeter()
         wall, cpu = time.perf_counter(), time.process_time()
-        summary = runner.run_bake(inputs, Path(scratch) / "bundles", Path(scratch) / "work", progress=meter)
+        summary = runner.run_bake(inputs, Path(scratch) / "bundles", Path(scratch) / "work", progress=meter, workers=workers)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-        stages = meter.finish()
+        sampled = meter.finish()
+        stages = {}
+        for name, figures in summary.timings["stages"].items():
+            stages[name] = dict(figures, peak_rss_mib=sampled.get(name, {}).get("peak_rss_mib"),
+                                wall_over_render=figures["wall_s"] / figures["render_s"] if figures["render_s"] > 0 else None)
         bundle_bytes = sum(p.stat().st_size for p in summary.bundle.rglob("*") if p.is_file())
-    render = render_totals()
+    timings = summary.timings
     return {
         "case": case,
         "params": inputs.params.to_dict(),
         "import_runner_s": import_s,
         "stages": stages,
         "run_bake_stage_wall_s": summary.timings_s,
-        "timings": {"wall_s": wall, "cpu_s": cpu, "render_s": render["seconds"], "renders": render["renders"], "render_setup_s": render["setup_seconds"]},
-        "wall_over_render": wall / render["seconds"] if render["seconds"] > 0 else None,
+        "timings": {"wall_s": wall, "cpu_s": timings["cpu_s"], "cpu_this_process_s": cpu, "render_s": timings["render_s"],
+                    "renders": timings["renders"], "workers": timings["workers"], "poses_with_impostors_s": timings["poses_with_impostors_s"]},
+        "wall_over_render": wall / timings["render_s"] if timings["render_s"] > 0 else None,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "peak_rss_largest_worker_mib": timings["peak_rss_mib"]["largest_worker"],
         "impostor": summary.impostor,
         "compression": summary.compression,
         "fidelity": {k: summary.fidelity[k] for k in ("impostor", "nearest_view") if k in summary.fidelity},
@@ -181,14 +189,16 @@ def run_case(case: str, sample: Path, assets: Path) -> dict | None:
 
 def print_case(report: dict) -> None:
     timings = report["timings"]
-    print(f"\n{report['case']}: wall {timings['wall_s']:.2f} s, CPU {timings['cpu_s']:.2f} s, render {timings['render_s']:.2f} s "
-          f"({timings['renders']} renders), wall/render {report['wall_over_render'] or float('nan'):.1f}, peak RSS {report['peak_rss_mib']:.0f} MiB")
-    print(f"  {'stage':10s} {'wall s':>8s} {'CPU s':>8s} {'render s':>9s} {'wall/render':>11s} {'peak MiB':>9s} {'run_bake s':>10s}")
+    worker_peak = report["peak_rss_largest_worker_mib"]
+    print(f"\n{report['case']}: wall {timings['wall_s']:.2f} s, CPU {timings['cpu_s']:.2f} s (workers included), render {timings['render_s']:.2f} s "
+          f"({timings['renders']} renders), wall/render {report['wall_over_render'] or float('nan'):.2f}, {timings['workers']} worker(s), "
+          f"peak RSS {report['peak_rss_mib']:.0f} MiB" + (f", largest worker {worker_peak:.0f} MiB" if worker_peak else ""))
+    print(f"  {'stage':10s} {'wall s':>8s} {'CPU s':>8s} {'render s':>9s} {'wall/render':>11s} {'peak MiB':>9s}")
     for name, figures in report["stages"].items():
-        ratio = figures["wall_over_render"]
+        ratio, peak = figures["wall_over_render"], figures["peak_rss_mib"]
         print(
             f"  {name:10s} {figures['wall_s']:8.2f} {figures['cpu_s']:8.2f} {figures['render_s']:9.2f} "
-            f"{'-' if ratio is None else f'{ratio:.1f}':>11s} {figures['peak_rss_mib']:9.0f} {report['run_bake_stage_wall_s'].get(name, float('nan')):10.2f}"
+            f"{'-' if ratio is None else f'{ratio:.1f}':>11s} {'-' if peak is None else f'{peak:.0f}':>9s}"
         )
     for kind, figures in report["compression"].items():
         print(f"  compression {kind}: {figures['pixel_format']} mean |error| {figures['rgb_mean_abs']:.3f}, worst PSNR {figures['rgb_psnr_db_worst']:.2f} dB")
@@ -200,17 +210,19 @@ def main() -> int:
     parser.add_argument("--sample", type=Path, help="a `crowdbake sample` folder (default: generate out/bench/sample)")
     parser.add_argument("--out", type=Path, default=Path("out/bench/bake.json"), help="JSON report (default out/bench/bake.json)")
     parser.add_argument("--assets", type=Path, default=ASSETS, help=f"the shared assets folder (default {ASSETS})")
+    parser.add_argument("--workers", type=int, help="run_bake's worker processes (default: its own choice, 2 on two cores)")
     parser.add_argument("--one-case", help=argparse.SUPPRESS)  # internal: bake this case here, print its JSON
     args = parser.parse_args()
     sample = args.sample or args.out.parent / "sample"
 
     if args.one_case:
-        print(json.dumps(run_case(args.one_case, sample, args.assets)))
+        print(json.dumps(run_case(args.one_case, sample, args.assets, args.workers)))
         return 0
     reports = []
     for case in args.cases:
         done = subprocess.run(
-            [sys.executable, __file__, "--one-case", case, "--sample", str(sample), "--assets", str(args.assets), "--out", str(args.out)],
+            [sys.executable, __file__, "--one-case", case, "--sample", str(sample), "--assets", str(args.assets), "--out", str(args.out)]
+            + ([] if args.workers is None else ["--workers", str(args.workers)]),
             stdout=subprocess.PIPE, text=True, check=True,
         )
         report = json.loads(done.stdout.strip().splitlines()[-1])

@@ -22,7 +22,7 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from crowdbake.stages.impostors import load_poses, load_scene  # noqa: E402
+from crowdbake.stages.impostors import load_plan, load_scene  # noqa: E402
 from crowdbake.bake import impostor_maps  # noqa: E402
 from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
 
@@ -45,7 +45,7 @@ def main() -> int:
     parser.add_argument("--save", type=Path, help="write the per-view maps here (.npz)")
     args = parser.parse_args()
 
-    poses = load_poses(args.work)
+    poses = load_plan(args.work)  # the impostor plan: framing, baked frames, scene
     frame = poses.frame_indices[0] if args.frame is None else args.frame
     scene = load_scene(args.work, poses, frame)
     layout = poses.layout

@@ -12,6 +12,8 @@ Reads what the benchmark scripts wrote under --bench and writes PNGs under --out
   the paper's assumptions (crowdbake.bake.texture_memory.paper_map_bytes) and, with --bundle, for the
   layer sizes of a real bundle (its texture_memory.json, written by the pack stage).
 - throughput.png: bakes per minute with 1 and 2 workers, from bench_throughput.py's JSON.
+- bake_stages.png: per stage of a default bake, wall, CPU and OpenGL seconds, from bench_bake.py's JSON
+  (bake.json; with bake-before.json beside it, that run's CPU seconds too, for a before/after).
 - impostor_views.png: crowdview's blended impostor against the mesh (SSIM halfway between views and
   frames, and at the baked views) against the impostor's memory, per tile size and view/frame count,
   from bench_impostor_views.py's impostor_views.json.
@@ -157,6 +159,35 @@ def plot_throughput(report: dict, out: Path) -> None:
     plt.close(fig)
 
 
+def plot_bake_stages(report: dict, before: dict | None, out: Path) -> None:
+    """One panel per case: grouped bars per stage (wall, CPU, render; CPU before when given)."""
+    plt = pyplot()
+    cases = report["cases"]
+    earlier = {case["case"]: case for case in (before or {}).get("cases", [])}
+    fig, axes = plt.subplots(1, len(cases), figsize=(6 * len(cases), 4.2), dpi=110, squeeze=False)
+    for ax, case in zip(axes[0], cases):
+        stages = list(case["stages"])
+        series = [("wall", "wall_s", "tab:blue"), ("CPU", "cpu_s", "tab:orange"), ("in OpenGL", "render_s", "tab:green")]
+        if case["case"] in earlier:
+            series.append(("CPU before", "cpu_before", "tab:gray"))
+        width = 0.8 / len(series)
+        for k, (label, key, colour) in enumerate(series):
+            if key == "cpu_before":
+                values = [earlier[case["case"]]["stages"].get(stage, {}).get("cpu_s", 0.0) for stage in stages]
+            else:
+                values = [case["stages"][stage][key] for stage in stages]
+            ax.bar([i + (k - (len(series) - 1) / 2) * width for i in range(len(stages))], values, width, label=label, color=colour)
+        timings = case["timings"]
+        ax.set_xticks(range(len(stages)), stages, fontsize=8)
+        ax.set_ylabel("seconds")
+        ax.set_title(f"{case['case']}: {timings['wall_s']:.1f} s wall, {timings['cpu_s']:.1f} s CPU, "
+                     f"{timings['render_s']:.1f} s OpenGL\n({timings.get('workers', 1)} worker processes; poses and impostors overlap)", fontsize=9)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out)
+    plt.close(fig)
+
+
 def plot_impostor_views(report: dict, out: Path) -> None:
     plt = pyplot()
     rows = report["rows"]
@@ -215,6 +246,13 @@ def main() -> int:
     print(f"figure4.png: paper model {paper['detail_mapped_mib'][0]:.0f}/{paper['uv_mapped_mib'][0]:.0f} MiB at 1 variation, "
           f"{paper['detail_mapped_mib'][7]:.0f}/{paper['uv_mapped_mib'][7]:.0f} MiB at 8 (detail/UV)"
           + (f"; bundle {args.bundle}" if bundle_report else ""))
+
+    bake = load_json(args.bench / "bake.json")
+    if bake and bake.get("cases"):
+        plot_bake_stages(bake, load_json(args.bench / "bake-before.json"), args.out / "bake_stages.png")
+        print(f"bake_stages.png from {args.bench / 'bake.json'}")
+    else:
+        print(f"bake_stages.png not drawn: no {args.bench / 'bake.json'}")
 
     views = load_json(args.bench / "impostor_views.json")
     if views and views.get("rows"):

@@ -205,10 +205,12 @@ def run_cycle_job(
     animation: int | str = 0,
     progress: Progress | None = None,
     edge_pass: bool = True,
+    plots: bool = True,
 ) -> CycleResult:
     """The whole `crowdbake cycle` job: files in, cycle.json + looped.pc2 + report.html out.
 
     edge_pass: run pass 2 (rendering under OSMesa/EGL); False picks the best pass-1 candidate.
+    plots: draw the report's plots now; False leaves them to write_cycle_plots(result, out_dir).
     Raises ValueError on bad input (with a one-line reason).
     """
     report = progress or (lambda stage, done, total: None)
@@ -227,13 +229,17 @@ def run_cycle_job(
         params, render_views, body_normals=inputs.body_normals, progress=progress,
     )
     report("report", 0, 1)
-    write_cycle_outputs(result, out_dir, inputs)
+    write_cycle_outputs(result, out_dir, inputs, plots=plots)
     report("report", 1, 1)
     return result
 
 
-def write_cycle_outputs(result: CycleResult, out_dir: str | os.PathLike, inputs: CycleInputs | None = None) -> dict[str, Path]:
-    """Write cycle.json, looped.pc2, the PNG plots, the edge images and report.html; returns the paths."""
+def write_cycle_outputs(result: CycleResult, out_dir: str | os.PathLike, inputs: CycleInputs | None = None,
+                        plots: bool = True) -> dict[str, Path]:
+    """Write cycle.json, looped.pc2, the PNG plots, the edge images and report.html; returns the paths.
+
+    plots: False skips the matplotlib plots (a second or more), for write_cycle_plots to draw later (the bake
+    runner draws them beside the next stages); every other file, the report's links included, is written."""
     from crowdbake.formats.pc2 import write_pc2
 
     out = Path(out_dir)
@@ -249,13 +255,11 @@ def write_cycle_outputs(result: CycleResult, out_dir: str | os.PathLike, inputs:
     sample_rate = inputs.sample_rate if inputs is not None else 1.0
     write_pc2(paths["looped_cache"], result.looped, start_frame=0.0, sample_rate=sample_rate)
 
-    _plot_pass1(result, paths["pass1_plot"])
-    _plot_seam(result, paths["seam_plot"])
-    _plot_candidates(result, paths["candidates_plot"])
     if result.winner_images is not None and result.winner_edges is not None:
         paths["edges_plot"] = out / "edges.png"
-        _plot_edges(result, paths["edges_plot"])
         paths.update(_write_edge_images(result, out / "edges"))
+    if plots:
+        write_cycle_plots(result, out)
 
     document = result.to_dict()
     document["files"] = {name: path.relative_to(out).as_posix() for name, path in paths.items() if name != "cycle_json"}
@@ -271,6 +275,16 @@ def write_cycle_outputs(result: CycleResult, out_dir: str | os.PathLike, inputs:
     paths["report"].write_text(_report_html(result, document), encoding="utf-8")
     logger.info("cycle outputs written to %s", out)
     return paths
+
+
+def write_cycle_plots(result: CycleResult, out_dir: str | os.PathLike) -> None:
+    """The report's plots: pass1.png, seam.png, candidates.png and, after pass 2, edges.png."""
+    out = Path(out_dir)
+    _plot_pass1(result, out / "pass1.png")
+    _plot_seam(result, out / "seam.png")
+    _plot_candidates(result, out / "candidates.png")
+    if result.winner_images is not None and result.winner_edges is not None:
+        _plot_edges(result, out / "edges.png")
 
 
 # --- plots -------------------------------------------------------------------------------------------

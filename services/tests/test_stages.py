@@ -15,7 +15,7 @@ from crowdbake.formats.bundle import verify_bundle
 from crowdbake.params import BakeParams
 from crowdbake.stages import STAGES
 from crowdbake.stages.cycle import stage_cycle
-from crowdbake.stages.impostors import impostor_tasks, part_path, stage_impostor_views
+from crowdbake.stages.impostors import SCENE_FILE, impostor_tasks, load_plan, load_scene, part_path, stage_impostor_plan, stage_impostor_views
 from crowdbake.stages.pack import stage_pack
 from crowdbake.stages.poses import stage_poses
 from crowdbake.stages.publish import stage_publish
@@ -111,15 +111,18 @@ def test_bake_writes_a_bundle_that_verifies(sample, baked):
 
 
 def test_baking_twice_gives_identical_bytes(sample, baked, tmp_path):
-    """Same inputs, fresh work folder, impostor tasks in the opposite order: every byte of the bundle,
-    manifest included, is the same (created comes from the inputs' modification time)."""
+    """Same inputs, fresh work folder, in this process (the fixture's bake ran poses and the impostor tasks
+    in two worker processes), the impostor tasks in the opposite order and before the poses stage: every
+    byte of the bundle, manifest included, is the same (created comes from the inputs' modification time)."""
     root, summary = baked
     work = tmp_path / "work"
     stage_validate(inputs_for(sample), work)
     stage_cycle(work)
-    stage_poses(work)
+    stage_impostor_plan(work)
     for task in reversed(impostor_tasks(work)):
         stage_impostor_views(work, task)
+    assert not (work / "poses").exists()
+    stage_poses(work)
     stage_pack(work)
     first = tree(summary.bundle)
     assert tree(work / "bundle") == first
@@ -129,6 +132,38 @@ def test_baking_twice_gives_identical_bytes(sample, baked, tmp_path):
     # Publishing the same bytes again is a no-op.
     assert stage_publish(work, root / "bundles") == summary.bundle
     assert tree(summary.bundle) == first
+
+
+def test_impostor_plan_draws_the_poses_stage_geometry(baked):
+    """The impostor tasks draw the plan's scene, made without the poses stage: at every baked frame it is
+    the pose caches' high LOD to the bit, with the same framing and textures."""
+    from crowdbake.formats.binary import read_pose_frame
+    from crowdbake.stages.impostors import load_poses
+
+    work = baked[0] / "work"
+    plan, poses = load_plan(work), load_poses(work)
+    assert (plan.bounds, plan.layout, plan.frame_indices, plan.fidelity_frame) == (poses.bounds, poses.layout, poses.frame_indices, poses.fidelity_frame)
+    high = [part for part in poses.parts if part.lod == 0]
+    for frame in plan.frame_indices:
+        scene = load_scene(work, plan, frame)
+        cached = [read_pose_frame(work / "poses" / part.file, frame) for part in high]
+        assert np.array_equal(scene.positions, np.concatenate([c[2] for c in cached]))
+        assert np.array_equal(scene.normals, np.concatenate([c[3] for c in cached]))
+        assert np.array_equal(scene.uvs, np.concatenate([c[1] for c in cached]))
+    with np.load(work / "poses" / "textures.npz") as textures:
+        assert np.array_equal(scene.diffuse[0], textures["material_0_v0"])
+        assert np.array_equal(scene.diffuse_runtime[0], textures["material_0_decoded_v0"])
+    assert (work / "impostor" / SCENE_FILE).is_file()
+
+
+def test_bake_reports_wall_cpu_and_render_seconds(baked):
+    timings = baked[1].timings
+    assert set(timings["stages"]) == set(STAGES)
+    assert 0 < timings["render_s"] < timings["total_s"] and timings["cpu_s"] > 0
+    assert timings["render_s"] == pytest.approx(sum(stage["render_s"] for stage in timings["stages"].values()))
+    # Every GL render of the bake is counted, those of the worker processes included.
+    assert timings["stages"]["impostors"]["renders"] >= baked[1].impostor["views"]
+    assert timings["stages"]["cycle"]["renders"] > 0 and timings["peak_rss_mib"]["process"] > 0
 
 
 def test_stages_are_idempotent_and_ordered(baked, tmp_path):

@@ -85,6 +85,12 @@ def format_summary(summary) -> str:
         f"closing {cycle['closing']}, seam position/velocity jump {_ratio(cycle['position_jump_ratio'])} / {_ratio(cycle['velocity_jump_ratio'])}"
     )
     lines.append("timings  " + ", ".join(f"{stage} {seconds:.2f} s" for stage, seconds in summary.timings_s.items()))
+    timings = summary.timings
+    if timings:
+        lines.append(
+            f"time     {timings['total_s']:.2f} s wall, {timings['cpu_s']:.2f} s CPU, {timings['render_s']:.2f} s in OpenGL "
+            f"({timings['renders']} renders), {timings['workers']} process{'es' if timings['workers'] > 1 else ''} for poses and impostors"
+        )
     impostor = summary.impostor
     if impostor.get("views"):
         render = impostor["render_seconds"]

@@ -16,8 +16,10 @@ logger = logging.getLogger(__name__)
 
 # What each stage writes in the work folder (crowdbake.stages.workdir), pushed to the blob store when
 # work travels between machines, and the earlier stages whose outputs it reads. An impostor task writes
-# impostor/parts/<id>.npz and .json (`_part_outputs`); pack reads every part.
-STAGE_OUTPUTS = {"validate": ("validate", "inputs"), "cycle": ("cycle",), "poses": ("poses",), "pack": ("pack", "bundle")}
+# impostor/parts/<id>.npz and .json (`_part_outputs`); pack reads every part. The poses task also writes
+# the impostor plan, which is all an impostor task reads.
+IMPOSTOR_PLAN = ("impostor/record.json", "impostor/stage.json", "impostor/scene.npz")
+STAGE_OUTPUTS = {"validate": ("validate", "inputs"), "cycle": ("cycle",), "poses": ("poses", *IMPOSTOR_PLAN), "pack": ("pack", "bundle")}
 STAGE_READS = {"cycle": ("validate",), "poses": ("validate", "cycle"), "impostors": ("poses",),
                "pack": ("validate", "cycle", "poses"), "publish": ("pack",)}
 

@@ -480,7 +480,11 @@ def poses(self, bake_id: str, attempt: int) -> None:
     def body(ctx: StageContext):
         pull_inputs(ctx, "poses")
         result = _stage("poses").stage_poses(ctx.work, progress=ctx.progress)
-        specs = [task.to_json() for task in _stage("impostors").impostor_tasks(ctx.work)]
+        # The impostor plan (framing, atlas layout, the scene the tasks render) goes with the poses'
+        # outputs: every impostor task reads it. (run_bake makes it beside the poses stage instead.)
+        impostors = _stage("impostors")
+        impostors.stage_impostor_plan(ctx.work)
+        specs = [task.to_json() for task in impostors.impostor_tasks(ctx.work)]
         return dict(result.to_json(), outputs=push_outputs(ctx, STAGE_OUTPUTS["poses"])), specs
 
     def after(ctx: StageContext, outcome, seconds: float) -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import atexit
 import logging
+import os
 import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -153,6 +154,16 @@ def shared_renderer(size: int) -> VisibilityRenderer:
         renderer = VisibilityRenderer(size).__enter__()
         _SHARED[key] = renderer
     return renderer
+
+
+def _forget_shared() -> None:
+    """In a forked child: drop the parent's renderers unclosed. Their GL contexts belong to the parent (the
+    child has none of OSMesa's rasteriser threads); the child creates its own on first use."""
+    _SHARED.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_shared)
 
 
 @atexit.register

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from crowdbake.bake.cycle import CycleParams
 from crowdbake.bake.loop_closing import close_cycle
-from crowdbake.cycle_report import run_cycle_job
+from crowdbake.cycle_report import run_cycle_job, write_cycle_plots
 from crowdbake.errors import InputError
 from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2, write_pc2
@@ -66,7 +66,7 @@ def _given_cycle(job: JobRecord, inputs: Path, cycle_json: Path, looped: Path, p
     return document
 
 
-def _searched_cycle(job: JobRecord, inputs: Path, out: Path, progress: Progress | None) -> dict:
+def _searched_cycle(job: JobRecord, inputs: Path, out: Path, progress: Progress | None, plots: list | None = None) -> dict:
     params = job.bake_params
     names = job.inputs
     cycle_params = CycleParams(max_candidates=params.candidates, views=params.cycle_views, close=params.close)
@@ -75,7 +75,7 @@ def _searched_cycle(job: JobRecord, inputs: Path, out: Path, progress: Progress 
         report(progress, f"cycle:{stage}", done, total)
 
     try:
-        run_cycle_job(
+        result = run_cycle_job(
             inputs / names["cloth"],
             inputs / names["cloth_mesh"],
             out,
@@ -86,14 +86,20 @@ def _searched_cycle(job: JobRecord, inputs: Path, out: Path, progress: Progress 
             params=cycle_params,
             animation=params.animation,
             progress=forward,
+            plots=plots is None,
         )
     except ValueError as error:
         raise InputError(f"cycle search: {error}", "cloth") from None
+    if plots is not None:
+        plots.append(lambda: write_cycle_plots(result, out))
     return read_json(out / "cycle.json")
 
 
-def stage_cycle(work: Path, progress: Progress | None = None) -> StageOutcome[CycleRecord]:
-    """Find and close the cloth cycle (crowdbake.cycle_report), or take the given cycle.json."""
+def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None = None) -> StageOutcome[CycleRecord]:
+    """Find and close the cloth cycle (crowdbake.cycle_report), or take the given cycle.json.
+
+    plots: a list to append the report's plotting to (a callable) instead of drawing it here: nothing
+    later reads the plots, so a caller may draw them beside the next stages."""
     started = time.perf_counter()
     folder = WorkDir(work)
     job = load_job(work)
@@ -107,7 +113,7 @@ def stage_cycle(work: Path, progress: Progress | None = None) -> StageOutcome[Cy
     if "cycle" in job.inputs:
         document = _given_cycle(job, folder.inputs, cycle_json, looped, progress)
     else:
-        document = _searched_cycle(job, folder.inputs, out, progress)
+        document = _searched_cycle(job, folder.inputs, out, progress, plots)
 
     seam = document.get("seam") or {}
     record = CycleRecord(

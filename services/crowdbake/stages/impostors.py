@@ -1,9 +1,16 @@
 """Stage 4, impostors (paper sections 4, 5): normal, UV and detail maps per baked frame and view, fanned
 out as independent tasks, one per (baked frame, elevation ring).
 
-Reads the PosesRecord and the pose caches (one frame each, crowdbake.formats.binary.read_pose_frame);
-writes work/impostor/parts/<id>.npz and its sidecar <id>.json (ImpostorPartRecord). Fidelity-frame
-tasks also render the mesh references the pack stage scores the impostor against.
+The impostor plan (stage_impostor_plan) runs on the cycle's output alone: the framing, the baked frames
+and, in work/impostor/scene.npz, the high LOD at those frames and the textures the tasks draw with,
+computed by the same functions as the poses stage (crowdbake.stages.poses.high_parts). So the tasks do
+not wait for the poses stage: both run side by side (two workers, or the CLI runner's two processes).
+
+Each task renders its views (crowdbake.render.impostor), resolves their coverage and maps in one batch
+(crowdbake.bake.impostor_maps.resolve_coverage_views, view_maps_views) and writes
+work/impostor/parts/<id>.npz and its sidecar <id>.json (ImpostorPartRecord). Fidelity-frame tasks also
+render the mesh references the pack stage scores the impostor against; a reference at a baked view is
+the same render as that view's maps (see FIDELITY_SUPERSAMPLE).
 """
 from __future__ import annotations
 
@@ -14,14 +21,24 @@ from pathlib import Path
 
 import numpy as np
 
-from crowdbake.bake import fidelity, impostor_maps
+from crowdbake.bake import compression, fidelity, impostor_maps
 from crowdbake.formats.binary import read_pose_frame
+from crowdbake.formats.gltf import load_character
 from crowdbake.render.impostor import shared_renderer
-from crowdbake.stages.records import ImpostorPartRecord, ImpostorStatistics, ImpostorTask, PosesRecord
-from crowdbake.stages.workdir import Progress, WorkDir, npz_bytes, read_json, report, stage_key, write_bytes_atomic, write_json_atomic
+from crowdbake.stages.poses import diffuse_format, high_parts, impostor_framing, materials_of, part_materials
+from crowdbake.stages.records import CycleRecord, ImpostorPartRecord, ImpostorPlan, ImpostorStatistics, ImpostorTask, PosesRecord
+from crowdbake.stages.validate import load_job
+from crowdbake.stages.workdir import (
+    Progress, StageOutcome, WorkDir, npz_bytes, read_json, report, stage_key, write_bytes_atomic, write_json_atomic,
+)
 
-# Samples per texel side of the fidelity stage's mesh reference (crowdbake.bake.fidelity).
-FIDELITY_SUPERSAMPLE = 4
+# Samples per texel side of the fidelity stage's mesh reference (crowdbake.bake.fidelity): 3² = 9. Odd on
+# purpose: the middle sample of a texel's 3 x 3 lies on the texel's centre, so the reference render of a
+# baked view is also that view's visibility buffer at tile size (every third pixel), and the maps of the
+# fidelity frame come from the same render. 4² samples scored the sample's impostor within 0.003 SSIM of
+# 3² (docs/bake.md, "Speed") for 16/9 the shading work.
+FIDELITY_SUPERSAMPLE = 3
+SCENE_FILE = "scene.npz"
 _TASK_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
@@ -29,18 +46,75 @@ def load_poses(work: Path) -> PosesRecord:
     return WorkDir(work).load("poses", PosesRecord)
 
 
+def load_plan(work: Path) -> ImpostorPlan:
+    return WorkDir(work).load("impostor", ImpostorPlan)
+
+
+def scene_arrays(high: dict, part_material: dict[str, int], frame_indices: list[int]) -> dict[str, np.ndarray]:
+    """The high LOD of every part concatenated (as load_scene reads it): faces (T, 3) int64, uvs (V, 2)
+    float32, triangle_material (T,) int64, and per baked frame f positions_f, normals_f (V, 3) float32."""
+    faces, uvs, materials, offset = [], [], [], 0
+    for name, part in high.items():
+        faces.append(np.asarray(part.faces, dtype=np.int64) + offset)
+        uvs.append(np.asarray(part.uvs, dtype=np.float32))
+        materials.append(np.full(len(part.faces), part_material[name], dtype=np.int64))
+        offset += len(part.uvs)
+    arrays = {"faces": np.concatenate(faces), "uvs": np.concatenate(uvs), "triangle_material": np.concatenate(materials)}
+    for frame in frame_indices:
+        arrays[f"positions_{frame}"] = np.concatenate([np.asarray(part.positions[frame], dtype=np.float32) for part in high.values()])
+        arrays[f"normals_{frame}"] = np.concatenate([np.asarray(part.normals[frame], dtype=np.float32) for part in high.values()])
+    return arrays
+
+
+def stage_impostor_plan(work: Path, progress: Progress | None = None) -> StageOutcome[ImpostorPlan]:
+    """The impostors' framing, baked frames and scene (work/impostor/scene.npz) from the cycle's output.
+
+    The same figures as the poses stage's (impostor_framing over the same high_parts), without its LODs
+    and texture compression: what the impostor tasks need, so they can start beside the poses stage."""
+    started = time.perf_counter()
+    folder = WorkDir(work)
+    key = stage_key("impostor-plan", folder.key_of("cycle"))
+    scene_path = folder.root / "impostor" / SCENE_FILE
+    cached = folder.cached("impostor", key, ImpostorPlan, [scene_path])
+    if cached is not None:
+        return StageOutcome(cached, True, 0.0)
+    job = load_job(work)
+    params = job.bake_params
+    cycle = folder.load("cycle", CycleRecord)
+    character = load_character(folder.inputs / job.inputs["character"], animation=params.animation)
+    materials, outfits = materials_of(job, folder.inputs, character, first_layer_only=True)
+    high, _, part_material = high_parts(job, cycle, folder, character)
+    bounds, layout, frame_indices = impostor_framing(params, cycle, high)
+    arrays = scene_arrays(high, part_materials(part_material, materials), frame_indices)
+    for index, material in enumerate(materials):
+        layers = material["layers"]
+        pixel_format = diffuse_format(layers, params.compress)
+        height, width = layers.shape[1:3]
+        arrays[f"diffuse_{index}"] = layers[0]
+        # What a runtime samples: variation 0 through the bundle's block compression (as the poses stage encodes it).
+        arrays[f"runtime_{index}"] = compression.decode(compression.encode(layers[0], pixel_format), pixel_format, width, height)
+    arrays["outfit_row"] = outfits[0]
+    write_bytes_atomic(scene_path, npz_bytes(arrays))
+    record = ImpostorPlan(bounds=bounds, layout=layout.to_manifest(), frame_indices=frame_indices,
+                          fidelity_frame=frame_indices[0], material_count=len(materials))
+    seconds = time.perf_counter() - started
+    folder.save("impostor", key, record, seconds)
+    report(progress, "impostor-plan", 1, 1)
+    return StageOutcome(record, False, seconds)
+
+
 def impostor_tasks(work: Path) -> list[ImpostorTask]:
     """The impostor bake split into independent tasks: one per (baked frame, elevation ring).
 
     "references" marks the fidelity frame's tasks, which also render the mesh references. The order is
-    deterministic (frame, then elevation).
+    deterministic (frame, then elevation). Needs the impostor plan only.
     """
-    poses = load_poses(work)
-    azimuths, elevations = len(poses.layout["azimuths_deg"]), len(poses.layout["elevations_deg"])
+    plan = load_plan(work)
+    azimuths, elevations = len(plan.layout["azimuths_deg"]), len(plan.layout["elevations_deg"])
     return [
         ImpostorTask(id=f"f{frame:04d}-e{elevation}", frame=int(frame), elevation=elevation,
-                     views=[[azimuth, elevation] for azimuth in range(azimuths)], references=frame == poses.fidelity_frame)
-        for frame in poses.frame_indices
+                     views=[[azimuth, elevation] for azimuth in range(azimuths)], references=frame == plan.fidelity_frame)
+        for frame in plan.frame_indices
         for elevation in range(elevations)
     ]
 
@@ -67,11 +141,28 @@ class Scene:
     faces: np.ndarray
     triangle_material: np.ndarray
     diffuse: list[np.ndarray]  # variation 0 per material, as given (detail maps)
-    diffuse_runtime: list[np.ndarray]  # variation 0 per material, as the runtime samples it (after compression)
+    diffuse_runtime: list[np.ndarray]  # variation 0 per material, as the runtime samples it (after compression); [] unless asked
     outfit_row: np.ndarray
 
 
-def load_scene(work: Path, poses: PosesRecord, frame: int) -> Scene:
+def load_scene(work: Path, plan: ImpostorPlan, frame: int, runtime_textures: bool = True) -> Scene:
+    """One baked frame of the plan's scene (float64 geometry); runtime_textures: also the decoded diffuse."""
+    with np.load(Path(work) / "impostor" / SCENE_FILE) as data:
+        count = plan.material_count
+        return Scene(
+            data[f"positions_{frame}"].astype(np.float64),
+            data[f"normals_{frame}"].astype(np.float64),
+            data["uvs"].astype(np.float64),
+            data["faces"],
+            data["triangle_material"],
+            [data[f"diffuse_{m}"] for m in range(count)],
+            [data[f"runtime_{m}"] for m in range(count)] if runtime_textures else [],
+            data["outfit_row"],
+        )
+
+
+def load_pose_scene(work: Path, poses: PosesRecord, frame: int) -> Scene:
+    """The scene at any cycle frame from the poses stage's caches (the plan holds the baked frames only)."""
     work = Path(work)
     positions, normals, uvs, faces, materials = [], [], [], [], []
     offset = 0
@@ -91,14 +182,8 @@ def load_scene(work: Path, poses: PosesRecord, frame: int) -> Scene:
         runtime = [textures[f"material_{m}_decoded_v0"] for m in range(count)]
         outfit_row = textures["outfits"][0]
     return Scene(
-        np.concatenate(positions).astype(np.float64),
-        np.concatenate(normals).astype(np.float64),
-        np.concatenate(uvs).astype(np.float64),
-        np.concatenate(faces),
-        np.concatenate(materials),
-        diffuse,
-        runtime,
-        outfit_row,
+        np.concatenate(positions).astype(np.float64), np.concatenate(normals).astype(np.float64),
+        np.concatenate(uvs).astype(np.float64), np.concatenate(faces), np.concatenate(materials), diffuse, runtime, outfit_row,
     )
 
 
@@ -110,57 +195,74 @@ def midpoint_azimuths(azimuths: list[float]) -> list[float]:
     return [((a + b) / 2.0) % 360.0 for a, b in zip(azimuths, following)]
 
 
-def _render_maps(scene: Scene, poses: PosesRecord, views: list[tuple[int, int]], timings: dict) -> tuple[dict, int]:
-    layout = poses.layout
+def _reference(scene: Scene, view: impostor_maps.OrthoView, coverage: impostor_maps.Coverage) -> np.ndarray:
+    """The mesh at `view` (FIDELITY_SUPERSAMPLE x the tile) lit as the runtime lights the impostor: (S, S, 3) float32."""
+    return fidelity.mesh_reference(
+        view, coverage, FIDELITY_SUPERSAMPLE, scene.positions, scene.normals, scene.uvs, scene.faces,
+        scene.triangle_material, scene.diffuse_runtime, scene.outfit_row, fidelity.camera_light(view),
+    ).astype(np.float32)
+
+
+def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dict[str, float]) -> tuple[dict[str, np.ndarray], int]:
+    """A task's maps (and, for the fidelity frame, references): the arrays of its part and the texels repaired.
+
+    Views render one by one (one GL context) into a (V, S, S) stack of ids and depths; coverage and maps
+    are then resolved for the whole ring at once. With references, each baked view renders once at
+    FIDELITY_SUPERSAMPLE x the tile: its full image is the reference's visibility, its middle samples the
+    maps' (the texel centres). timings: adds "render", "maps" and "references" seconds.
+    """
+    layout = plan.layout
     tile = int(layout["tile_size"])
-    normal, uv, detail, repaired = [], [], [], 0
-    renderer = shared_renderer(tile)
+    supersample = FIDELITY_SUPERSAMPLE if task.references else 1
+    middle = supersample // 2
+    views = [(int(a), int(e)) for a, e in task.views]
+    renderer = shared_renderer(tile * supersample)
     renderer.set_mesh(scene.positions, scene.faces)
-    for a, e in views:
-        view = impostor_maps.ortho_view(poses.center, poses.radius, layout["azimuths_deg"][a], layout["elevations_deg"][e], tile)
+    map_views, ids, depth, references = [], np.empty((len(views), tile, tile), np.int64), np.empty((len(views), tile, tile)), []
+    for k, (a, e) in enumerate(views):
+        azimuth, elevation = layout["azimuths_deg"][a], layout["elevations_deg"][e]
+        map_views.append(impostor_maps.ortho_view(plan.center, plan.radius, azimuth, elevation, tile))
+        view = impostor_maps.ortho_view(plan.center, plan.radius, azimuth, elevation, tile * supersample)
         clock = time.perf_counter()
         image = renderer.render(view)
         timings["render"] += time.perf_counter() - clock
-        clock = time.perf_counter()
-        coverage = impostor_maps.resolve_coverage(view, image.ids, scene.positions, scene.faces, image.depth)
-        maps = impostor_maps.view_maps(
-            view, coverage, scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material, scene.diffuse
-        )
-        timings["maps"] += time.perf_counter() - clock
-        repaired += coverage.repaired
-        normal.append(maps.normal)
-        uv.append(maps.uv)
-        detail.append(maps.detail)
+        ids[k] = image.ids[middle::supersample, middle::supersample]
+        depth[k] = image.depth[middle::supersample, middle::supersample]
+        if task.references:
+            clock = time.perf_counter()
+            coverage = impostor_maps.resolve_coverage(view, image.ids, scene.positions, scene.faces, image.depth)
+            references.append(_reference(scene, view, coverage))
+            timings["references"] += time.perf_counter() - clock
+    clock = time.perf_counter()
+    coverages = impostor_maps.resolve_coverage_views(map_views, ids, scene.positions, scene.faces, depth)
+    maps = impostor_maps.view_maps_views(
+        map_views, coverages, scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material, scene.diffuse
+    )
+    timings["maps"] += time.perf_counter() - clock
     arrays = {
         "views": np.asarray(views, dtype=np.int64).reshape(-1, 2),
-        "normal": np.stack(normal),
-        "uv": np.stack(uv),
-        "detail": np.stack(detail),
+        "normal": np.stack([m.normal for m in maps]),
+        "uv": np.stack([m.uv for m in maps]),
+        "detail": np.stack([m.detail for m in maps]),
     }
-    return arrays, repaired
+    if task.references:
+        clock = time.perf_counter()
+        arrays.update(reference=np.stack(references), **_between_references(scene, plan, views))
+        timings["references"] += time.perf_counter() - clock
+    return arrays, sum(coverage.repaired for coverage in coverages)
 
 
-def _render_references(scene: Scene, poses: PosesRecord, views: list[tuple[int, int]]) -> dict[str, np.ndarray]:
-    """Per view, the mesh at the view's angle and at the angle halfway to the next azimuth, lit as the
-    runtime lights the impostor (crowdbake.bake.fidelity.mesh_reference), FIDELITY_SUPERSAMPLE² samples a texel."""
-    layout = poses.layout
+def _between_references(scene: Scene, plan: ImpostorPlan, views: list[tuple[int, int]]) -> dict[str, np.ndarray]:
+    """Per view, the mesh at the angle halfway to the next azimuth (no baked view shares that render)."""
+    layout = plan.layout
     size = int(layout["tile_size"]) * FIDELITY_SUPERSAMPLE
     midpoints = midpoint_azimuths(list(layout["azimuths_deg"]))
-    references, between = [], []
     renderer = shared_renderer(size)
-    renderer.set_mesh(scene.positions, scene.faces)
+    between = []
     for a, e in views:
-        for azimuth, store in ((layout["azimuths_deg"][a], references), (midpoints[a], between)):
-            view = impostor_maps.ortho_view(poses.center, poses.radius, azimuth, layout["elevations_deg"][e], size)
-            coverage = renderer.coverage(view, scene.positions, scene.faces)
-            store.append(
-                fidelity.mesh_reference(
-                    view, coverage, FIDELITY_SUPERSAMPLE, scene.positions, scene.normals, scene.uvs, scene.faces,
-                    scene.triangle_material, scene.diffuse_runtime, scene.outfit_row, fidelity.camera_light(view),
-                ).astype(np.float32)
-            )
+        view = impostor_maps.ortho_view(plan.center, plan.radius, midpoints[a], layout["elevations_deg"][e], size)
+        between.append(_reference(scene, view, renderer.coverage(view, scene.positions, scene.faces)))
     return {
-        "reference": np.stack(references),
         "reference_between": np.stack(between),
         "between_azimuths": np.asarray([midpoints[a] for a, _ in views], dtype=np.float64),
     }
@@ -169,12 +271,13 @@ def _render_references(scene: Scene, poses: PosesRecord, views: list[tuple[int, 
 def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
     """Render one task's views (normal, UV and detail maps) into work/impostor/parts/<id>.npz.
 
-    Returns the .npz path. Idempotent: a part written for the same poses and task is kept.
+    Returns the .npz path. Idempotent: a part written for the same plan and task is kept. Needs the
+    impostor plan, not the poses stage.
     """
     work = Path(work)
     task = as_task(task)
     path = part_path(work, task)
-    key = stage_key("impostor-part", WorkDir(work).key_of("poses"), task.to_json())
+    key = stage_key("impostor-part", WorkDir(work).key_of("impostor"), task.to_json())
     stats_path = path.with_suffix(".json")
     if path.is_file() and stats_path.is_file():
         try:
@@ -182,19 +285,14 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
                 return path
         except (OSError, ValueError):
             pass
-    poses = load_poses(work)
-    if task.frame not in poses.frame_indices:
-        raise ValueError(f"impostor task frame {task.frame} is not one of the baked frames {poses.frame_indices}")
-    scene = load_scene(work, poses, task.frame)
-    views = [(int(a), int(e)) for a, e in task.views]
+    plan = load_plan(work)
+    if task.frame not in plan.frame_indices:
+        raise ValueError(f"impostor task frame {task.frame} is not one of the baked frames {plan.frame_indices}")
+    scene = load_scene(work, plan, task.frame, runtime_textures=task.references)
     timings = {"render": 0.0, "maps": 0.0, "references": 0.0}
-    arrays, repaired = _render_maps(scene, poses, views, timings)
-    if task.references:
-        clock = time.perf_counter()
-        arrays.update(_render_references(scene, poses, views))
-        timings["references"] = time.perf_counter() - clock
+    arrays, repaired = render_task(scene, plan, task, timings)
     write_bytes_atomic(path, npz_bytes(arrays))
-    write_json_atomic(stats_path, ImpostorPartRecord(key=key, views=len(views), repaired_texels=repaired, seconds=timings).to_json())
+    write_json_atomic(stats_path, ImpostorPartRecord(key=key, views=len(task.views), repaired_texels=repaired, seconds=timings).to_json())
     return path
 
 

@@ -19,26 +19,33 @@ from crowdbake.formats.binary import encode_texture_array, layer_size
 from crowdbake.formats.bundle import BundleFile, build_manifest, verify_bundle, write_bundle
 from crowdbake.stages.cycle import bundle_cycle_document
 from crowdbake.stages.fidelity import score_fidelity
+from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_plan, load_poses, part_path, part_record
+from crowdbake.stages.poses import DIFFUSE_ERRORS
 from crowdbake.stages.runtime_fidelity import score_runtime
-from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_poses, part_path, part_record
 from crowdbake.stages.records import CycleRecord, ImpostorTask, MaterialInfo, PackRecord, PosesRecord
 from crowdbake.stages.validate import load_job
-from crowdbake.stages.workdir import Progress, StageOutcome, WorkDir, json_bytes, read_json, report, stage_key
+from crowdbake.stages.workdir import (
+    Progress, StageOutcome, WorkDir, json_bytes, npz_bytes, read_json, report, stage_key, write_bytes_atomic, write_json_atomic,
+)
 
 # Variations drawn in the figure-4 series at least: twice the paper's 8 diffuse textures (figure 2b), so the
 # crossover of a bundle with 16-bit UV maps (about 8) shows.
 FIGURE4_MIN_VARIATIONS = 16
 
 
-def _load_parts(work: Path, tasks: list[ImpostorTask]) -> dict[str, dict[str, np.ndarray]]:
-    missing = [task.id for task in tasks if not part_path(work, task).is_file()]
-    if missing:
-        raise StageOrderError(f"{len(missing)} impostor tasks have not run, first {missing[0]}")
-    parts = {}
-    for task in tasks:
-        with np.load(part_path(work, task)) as data:
-            parts[task.id] = {name: data[name] for name in data.files}
-    return parts
+class Parts:
+    """The impostor parts by task id, each read from its file when asked for and not kept: the pack stage
+    holds one frame's parts at a time, not the whole bake's (tens of MB a frame at the default sizes)."""
+
+    def __init__(self, work: Path, tasks: list[ImpostorTask]):
+        missing = [task.id for task in tasks if not part_path(work, task).is_file()]
+        if missing:
+            raise StageOrderError(f"{len(missing)} impostor tasks have not run, first {missing[0]}")
+        self._paths = {task.id: part_path(work, task) for task in tasks}
+
+    def __getitem__(self, task_id: str) -> dict[str, np.ndarray]:
+        with np.load(self._paths[task_id]) as data:
+            return {name: data[name] for name in data.files}
 
 
 def _split_layers(encoded: np.ndarray, material: MaterialInfo) -> list[bytes]:
@@ -79,8 +86,10 @@ def _mesh_files(work: Path, poses: PosesRecord, files: list[BundleFile]) -> list
     return meshes
 
 
-def _texture_files(poses: PosesRecord, texture_arrays: dict[str, np.ndarray], files: list[BundleFile], compression_report: dict) -> list[dict]:
-    """Diffuse texture arrays and the outfit map; the diffuse compression errors go to compression_report."""
+def _texture_files(work: Path, poses: PosesRecord, texture_arrays, files: list[BundleFile], compression_report: dict) -> list[dict]:
+    """Diffuse texture arrays and the outfit map; the diffuse compression errors (measured by the poses
+    stage, crowdbake.stages.poses.DIFFUSE_ERRORS) go to compression_report."""
+    measured = read_json(Path(work) / "poses" / DIFFUSE_ERRORS)
     entries = []
     for index, material in enumerate(poses.materials):
         path = f"textures/{material.name}_diffuse.cbtx"
@@ -89,65 +98,119 @@ def _texture_files(poses: PosesRecord, texture_arrays: dict[str, np.ndarray], fi
         files.append(BundleFile(path, data, "diffuse"))
         entries.append({"name": material.name, "diffuse": path, "variations": material.variations})
         if material.pixel_format != "rgba8":
-            errors = [
-                compression.compression_error(original, decoded)
-                for original, decoded in zip(texture_arrays[f"material_{index}"], texture_arrays[f"material_{index}_decoded"])
-            ]
-            compression_report[f"diffuse_{material.name}"] = _worst_errors(errors, material.pixel_format)
+            compression_report[f"diffuse_{material.name}"] = _worst_errors(measured[material.name], material.pixel_format)
     outfits = texture_arrays["outfits"]
     files.append(BundleFile("textures/outfits.cbtx", encode_texture_array(16, len(outfits), "rgba8", outfits[None]), "outfit-colours"))
     return entries
 
 
-def _impostor_files(poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict, formats: dict[str, str],
+def encode_frame(layout: AtlasLayout, frame_parts: list[dict[str, np.ndarray]], formats: dict[str, str], fidelity_frame: bool) -> tuple[dict, dict, dict]:
+    """One baked frame's atlases from its tasks' parts, encoded in the bundle's formats.
+
+    Returns (layers {kind: bytes}, compression errors {kind: compression_error dict} of the block-compressed
+    kinds, over covered texels) and, for the fidelity frame, its atlases as stored plus "uv16" and the decoded
+    normal map "normal_decoded" when compressed (else {})."""
+    atlases = {}
+    for kind in formats:
+        tiles = {}
+        for data in frame_parts:
+            for (a, e), tile in zip(data["views"].tolist(), data[kind]):
+                tiles[(a, e)] = tile
+        atlases[kind] = assemble(layout, tiles)
+    covered = atlases["uv"][..., 3] > 0
+    # The tiles carry 16-bit UV maps; what the bundle stores (and fidelity measures) is `stored`.
+    stored = dict(atlases, uv16=atlases["uv"])
+    if formats["uv"] == "uv32":
+        stored["uv"] = impostor_maps.uv_map_to_uv32(atlases["uv"])
+    elif formats["uv"] == "uvblock":  # fidelity reads the decoded texels, as uv32 words
+        uvblock = impostor_maps.uv_map_to_uvblock(atlases["uv"])
+        stored["uv"] = impostor_maps.uvblock_to_uv32(uvblock, layout.width, layout.height)
+    layers, errors, fidelity_atlases = {}, {}, {}
+    for kind, pixel_format in formats.items():
+        if pixel_format == "rgba16":
+            encoded = atlases[kind].astype("<u2").tobytes()
+        elif pixel_format == "uv32":
+            encoded = stored[kind].astype("<u4").tobytes()
+        elif pixel_format == "uvblock":
+            encoded = uvblock
+        else:
+            encoded = compression.encode(atlases[kind], pixel_format)
+        layers[kind] = encoded
+        if pixel_format in ("bc1", "bc2"):
+            decoded = compression.decode(encoded, pixel_format, layout.width, layout.height)
+            errors[kind] = compression.compression_error(atlases[kind], decoded, covered)
+            if fidelity_frame and kind == "normal":
+                fidelity_atlases["normal_decoded"] = decoded
+    if fidelity_frame:
+        fidelity_atlases.update(stored)
+    return layers, errors, fidelity_atlases
+
+
+def frame_path(work: Path, frame: int) -> Path:
+    return WorkDir(work).root / "pack" / "frames" / f"f{int(frame):04d}.npz"
+
+
+def stage_pack_frame(work: Path, frame: int) -> Path:
+    """Assemble and encode one baked frame's atlases into work/pack/frames/f<frame>.npz (+ .json: its key
+    and compression errors) as soon as that frame's impostor tasks are done, while others still render.
+
+    Needs the frame's parts and the impostor plan only (not the poses stage). Idempotent: a file written
+    from the same parts and formats is kept. stage_pack reads these files, and writes any that are missing.
+    """
+    work = Path(work)
+    folder = WorkDir(work)
+    plan = load_plan(work)
+    params = load_job(work).bake_params
+    formats = map_formats(params.compress, params.uv_format)
+    tasks = [task for task in impostor_tasks(work) if task.frame == frame]
+    if not tasks:
+        raise ValueError(f"pack frame {frame} is not one of the baked frames {plan.frame_indices}")
+    part_keys = [None if (stats := part_record(work, task)) is None else stats.key for task in tasks]
+    key = stage_key("pack-frame", folder.key_of("impostor"), part_keys, formats)
+    path = frame_path(work, frame)
+    sidecar = path.with_suffix(".json")
+    if path.is_file() and sidecar.is_file():
+        try:
+            if read_json(sidecar).get("key") == key:
+                return path
+        except (OSError, ValueError):
+            pass
+    parts = Parts(work, tasks)
+    layout = AtlasLayout(int(plan.layout["tile_size"]), tuple(plan.layout["azimuths_deg"]), tuple(plan.layout["elevations_deg"]))
+    layers, errors, fidelity_atlases = encode_frame(layout, [parts[task.id] for task in tasks], formats, frame == plan.fidelity_frame)
+    arrays = {f"layer_{kind}": np.frombuffer(data, dtype=np.uint8) for kind, data in layers.items()}
+    arrays.update({f"fidelity_{name}": atlas for name, atlas in fidelity_atlases.items()})
+    write_bytes_atomic(path, npz_bytes(arrays))
+    write_json_atomic(sidecar, {"key": key, "errors": errors})
+    return path
+
+
+def _impostor_files(work: Path, poses: PosesRecord, layout: AtlasLayout, formats: dict[str, str],
                     files: list[BundleFile], compression_report: dict, progress: Progress | None, steps: int) -> tuple[dict, dict]:
-    """Impostor atlases (layer k = frame_indices[k], tiles from the tasks), encoded; returns the manifest's
-    maps and the fidelity frame's atlases (as stored, plus uv16 and the decoded normal map)."""
+    """Impostor atlases (layer k = frame_indices[k]), encoded frame by frame (stage_pack_frame: done already
+    when the runner packed frames as their tasks finished); returns the manifest's maps and the fidelity
+    frame's atlases (as stored, plus uv16 and the decoded normal map)."""
     layers: dict[str, list[bytes]] = {kind: [] for kind in formats}
     normal_errors, detail_errors = [], []
     fidelity_atlases: dict[str, np.ndarray] = {}
-    by_frame: dict[int, list[ImpostorTask]] = {}
-    for task in tasks:
-        by_frame.setdefault(task.frame, []).append(task)
     for step, frame in enumerate(poses.frame_indices, start=1):
-        atlases = {}
-        for kind in formats:
-            tiles = {}
-            for task in by_frame[frame]:
-                data = parts[task.id]
-                for (a, e), tile in zip(data["views"].tolist(), data[kind]):
-                    tiles[(a, e)] = tile
-            atlases[kind] = assemble(layout, tiles)
-        covered = atlases["uv"][..., 3] > 0
-        # The tiles carry 16-bit UV maps; what the bundle stores (and fidelity measures) is `stored`.
-        stored = dict(atlases, uv16=atlases["uv"])
-        if formats["uv"] == "uv32":
-            stored["uv"] = impostor_maps.uv_map_to_uv32(atlases["uv"])
-        elif formats["uv"] == "uvblock":  # fidelity reads the decoded texels, as uv32 words
-            uvblock = impostor_maps.uv_map_to_uvblock(atlases["uv"])
-            stored["uv"] = impostor_maps.uvblock_to_uv32(uvblock, layout.width, layout.height)
-        for kind, pixel_format in formats.items():
-            if pixel_format == "rgba16":
-                encoded = atlases[kind].astype("<u2").tobytes()
-            elif pixel_format == "uv32":
-                encoded = stored[kind].astype("<u4").tobytes()
-            elif pixel_format == "uvblock":
-                encoded = uvblock
-            else:
-                encoded = compression.encode(atlases[kind], pixel_format)
-            layers[kind].append(encoded)
-            if pixel_format in ("bc1", "bc2"):
-                decoded = compression.decode(encoded, pixel_format, layout.width, layout.height)
-                (normal_errors if kind == "normal" else detail_errors).append(compression.compression_error(atlases[kind], decoded, covered))
-                if frame == poses.fidelity_frame and kind == "normal":
-                    fidelity_atlases["normal_decoded"] = decoded
-        if frame == poses.fidelity_frame:
-            fidelity_atlases.update(stored)
+        path = stage_pack_frame(work, frame)
+        errors = read_json(path.with_suffix(".json"))["errors"]
+        with np.load(path) as data:
+            for kind in formats:
+                layers[kind].append(data[f"layer_{kind}"].tobytes())
+            if frame == poses.fidelity_frame:
+                fidelity_atlases = {name[len("fidelity_"):]: data[name] for name in data.files if name.startswith("fidelity_")}
+        if "normal" in errors:
+            normal_errors.append(errors["normal"])
+        if "detail" in errors:
+            detail_errors.append(errors["detail"])
         report(progress, "pack", step, steps)
     maps = {}
     for kind, role in (("normal", "impostor-normal"), ("uv", "impostor-uv"), ("detail", "impostor-detail")):
         path = f"impostor/{kind}.cbtx"
         files.append(BundleFile(path, encode_texture_array(layout.width, layout.height, formats[kind], layers[kind]), role))
+        layers[kind] = []  # the CBTX holds them now
         maps[kind] = path
     if normal_errors:
         compression_report["impostor_normal"] = _worst_errors(normal_errors, formats["normal"])
@@ -198,24 +261,26 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
     poses = load_poses(work)
     cycle = folder.load("cycle", CycleRecord)
     layout = poses.atlas_layout()
-    parts = _load_parts(work, tasks)
+    parts = Parts(work, tasks)
     steps = len(poses.frame_indices) + 3
     report(progress, "pack", 0, steps)
 
     files: list[BundleFile] = []
     meshes = _mesh_files(folder.root, poses, files)
-    with np.load(folder.root / "poses" / "textures.npz") as textures:
-        texture_arrays = {name: textures[name] for name in textures.files}
-    compression_report: dict[str, Any] = {}
-    material_entries = _texture_files(poses, texture_arrays, files, compression_report)
-    formats = map_formats(params.compress, params.uv_format)
-    maps, fidelity_atlases = _impostor_files(poses, layout, tasks, parts, formats, files, compression_report, progress, steps)
+    # Read lazily: each array when asked for (the diffuse layers, encoded and decoded, are tens of MB).
+    texture_arrays = np.load(folder.root / "poses" / "textures.npz")
+    with texture_arrays:
+        compression_report: dict[str, Any] = {}
+        material_entries = _texture_files(folder.root, poses, texture_arrays, files, compression_report)
+        formats = map_formats(params.compress, params.uv_format)
+        maps, fidelity_atlases = _impostor_files(work, poses, layout, formats, files, compression_report, progress, steps)
 
-    # Fidelity at 1:1 texel-to-pixel: per view, and at the angles between views with the nearest view.
-    fidelity_doc = score_fidelity(poses, layout, tasks, parts, fidelity_atlases, texture_arrays, formats)
-    map_bytes = {f.path: f.data for f in files if f.path in (maps["uv"], maps["normal"])}
-    fidelity_doc["runtime"] = score_runtime(folder.root, poses, layout, tasks, parts, map_bytes[maps["uv"]], map_bytes[maps["normal"]],
-                                            texture_arrays, FIDELITY_SUPERSAMPLE)
+        # Fidelity at 1:1 texel-to-pixel: per view, and at the angles between views with the nearest view.
+        fidelity_doc = score_fidelity(poses, layout, tasks, parts, fidelity_atlases, texture_arrays, formats)
+        map_bytes = {f.path: f.data for f in files if f.path in (maps["uv"], maps["normal"])}
+        fidelity_doc["runtime"] = score_runtime(folder.root, poses, layout, tasks, parts, map_bytes[maps["uv"]], map_bytes[maps["normal"]],
+                                                texture_arrays, FIDELITY_SUPERSAMPLE)
+        outfit_count = int(len(texture_arrays["outfits"]))
     fidelity_doc["compression"] = compression_report
     files.append(BundleFile("fidelity.json", json_bytes(fidelity_doc), "fidelity"))
     report(progress, "pack", len(poses.frame_indices) + 1, steps)
@@ -228,7 +293,7 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
         "frames_per_second": poses.frames_per_second,
         "cycle": _cycle_section(cycle),
         "materials": material_entries,
-        "outfits": {"file": "textures/outfits.cbtx", "count": int(len(texture_arrays["outfits"])), "regions": 16},
+        "outfits": {"file": "textures/outfits.cbtx", "count": outfit_count, "regions": 16},
         "meshes": meshes,
         "impostor": {**layout.to_manifest(), "frame_indices": poses.frame_indices, "bounds": poses.bounds, "maps": maps},
     }

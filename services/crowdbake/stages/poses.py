@@ -25,7 +25,7 @@ from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2
 from crowdbake.stages.records import CycleRecord, JobRecord, MaterialInfo, PosePart, PosesRecord
 from crowdbake.stages.validate import load_job, texture_files
-from crowdbake.stages.workdir import Progress, StageOutcome, WorkDir, npz_bytes, report, stage_key, write_bytes_atomic
+from crowdbake.stages.workdir import Progress, StageOutcome, WorkDir, npz_bytes, report, stage_key, write_bytes_atomic, write_json_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -74,13 +74,15 @@ def load_rgba_png(path: Path) -> np.ndarray:
     return rgba
 
 
-def _materials(job: JobRecord, inputs: Path, character) -> tuple[list[dict], np.ndarray]:
-    """Materials [{"name", "layers" (L, H, W, 4) uint8}] and the outfit map (O, 16, 4) uint8."""
+def materials_of(job: JobRecord, inputs: Path, character, first_layer_only: bool = False) -> tuple[list[dict], np.ndarray]:
+    """Materials [{"name", "layers" (L, H, W, 4) uint8}] and the outfit map (O, 16, 4) uint8.
+
+    first_layer_only: load variation 0 alone (L = 1), all the impostor bake draws with."""
     names = job.inputs
     if "textures" in names:
         diffuse, outfits_path = texture_files(inputs / names["textures"])
         # PNG or JPEG; a JPEG's alpha is 0 (region 0), since only a PNG carries region codes.
-        layers = np.stack([read_texture_variation(path).rgba for path in diffuse])
+        layers = np.stack([read_texture_variation(path).rgba for path in (diffuse[:1] if first_layer_only else diffuse)])
         materials = [{"name": "character", "layers": layers}]
         if outfits_path is not None:
             outfits = load_rgba_png(outfits_path).reshape(-1, 16, 4)
@@ -107,8 +109,11 @@ def diffuse_format(layers: np.ndarray, compress: bool) -> str:
     return "bc2" if compress and height % 4 == 0 and width % 4 == 0 else "rgba8"
 
 
-def _high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> tuple[dict, dict, dict]:
-    """The high LOD of the body and the garment over the cycle: (parts, kinds, materials per part)."""
+def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> tuple[dict, dict, dict]:
+    """The high LOD of the body and the garment over the cycle: (parts, kinds, materials per part).
+
+    The impostor plan (crowdbake.stages.impostors.stage_impostor_plan) draws the same arrays, so both
+    stages run side by side from the cycle's output and agree to the bit."""
     inputs, names = work.inputs, job.inputs
     fps, start, frames = cycle.fps, cycle.start_frame, cycle.cycle_frames
     body_positions, body_normals = pose_body_cycle(character, fps, start, frames)
@@ -145,6 +150,20 @@ def _high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) ->
     return high, {"body": "body", garment: "garment"}, {"body": 0, garment: 1}
 
 
+def part_materials(part_material: dict, materials: list[dict]) -> dict:
+    """Material index per part: one given texture set serves every part."""
+    return dict.fromkeys(part_material, 0) if len(materials) == 1 else part_material
+
+
+def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, AtlasLayout, list[int]]:
+    """The impostors' framing: bounds {"center", "radius"} over every frame and part, the atlas layout,
+    and the baked cycle frames. Shared by the poses stage and the impostor plan."""
+    centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
+    layout = AtlasLayout.rings(params.tile_size, params.azimuths, tuple(params.elevations_deg))
+    frame_indices = poses.impostor_frame_indices(cycle.cycle_frames, params.impostor_frames)
+    return {"center": [float(c) for c in centre], "radius": float(radius)}, layout, frame_indices
+
+
 def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float, out: Path) -> list[PosePart]:
     """The low LOD (the paper's ratio unless told otherwise; garments keep their borders) and both LODs'
     pose caches."""
@@ -169,9 +188,15 @@ def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float
     return parts
 
 
+DIFFUSE_ERRORS = "diffuse_errors.json"
+
+
 def _write_textures(materials: list[dict], outfits: np.ndarray, compress: bool, out: Path) -> list[MaterialInfo]:
-    """Encode the diffuse layers once; the impostor tasks and fidelity use what a runtime samples."""
+    """Encode the diffuse layers once; the impostor tasks and fidelity use what a runtime samples. The
+    compression error of every block-compressed layer goes to DIFFUSE_ERRORS (for the pack stage's report,
+    measured here where the layers are at hand, beside the impostor tasks rather than before the bundle)."""
     arrays: dict[str, np.ndarray] = {"outfits": outfits}
+    errors: dict[str, list[dict]] = {}
     infos = []
     for index, material in enumerate(materials):
         layers = material["layers"]
@@ -185,8 +210,11 @@ def _write_textures(materials: list[dict], outfits: np.ndarray, compress: bool, 
         # Variation 0 on its own: the impostor tasks need only it, and np.load reads whole arrays.
         arrays[f"material_{index}_v0"] = layers[0]
         arrays[f"material_{index}_decoded_v0"] = decoded[0]
+        if pixel_format != "rgba8":
+            errors[material["name"]] = [compression.compression_error(layer, back) for layer, back in zip(layers, decoded)]
         infos.append(MaterialInfo(name=material["name"], variations=int(len(layers)), width=int(width), height=int(height), pixel_format=pixel_format))
     write_bytes_atomic(out / "textures.npz", npz_bytes(arrays))
+    write_json_atomic(out / DIFFUSE_ERRORS, errors)
     return infos
 
 
@@ -197,7 +225,7 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     job = load_job(work)
     key = stage_key("poses", folder.key_of("cycle"))
     out = folder.root / "poses"
-    cached = folder.cached("poses", key, PosesRecord, [out / "textures.npz"])
+    cached = folder.cached("poses", key, PosesRecord, [out / "textures.npz", out / DIFFUSE_ERRORS])
     if cached is not None:
         return StageOutcome(cached, True, 0.0)
     params = job.bake_params
@@ -206,26 +234,23 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     report(progress, "poses", 0, steps)
 
     character = load_character(folder.inputs / job.inputs["character"], animation=params.animation)
-    materials, outfits = _materials(job, folder.inputs, character)
-    high, kinds, part_material = _high_parts(job, cycle, folder, character)
-    if len(materials) == 1:
-        part_material = dict.fromkeys(part_material, 0)
+    materials, outfits = materials_of(job, folder.inputs, character)
+    high, kinds, part_material = high_parts(job, cycle, folder, character)
+    part_material = part_materials(part_material, materials)
     report(progress, "poses", 2, steps)
     parts = _write_lods(high, kinds, part_material, params, cycle.fps, out)
     report(progress, "poses", 4, steps)
     material_infos = _write_textures(materials, outfits, params.compress, out)
     report(progress, "poses", 5, steps)
 
-    centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
-    layout = AtlasLayout.rings(params.tile_size, params.azimuths, tuple(params.elevations_deg))
-    frame_indices = poses.impostor_frame_indices(cycle.cycle_frames, params.impostor_frames)
+    bounds, layout, frame_indices = impostor_framing(params, cycle, high)
     record = PosesRecord(
         frames_per_second=cycle.fps,
         cycle_frames=cycle.cycle_frames,
         parts=parts,
         materials=material_infos,
         outfit_count=int(len(outfits)),
-        bounds={"center": [float(c) for c in centre], "radius": float(radius)},
+        bounds=bounds,
         layout=layout.to_manifest(),
         frame_indices=frame_indices,
         fidelity_frame=frame_indices[0],

@@ -154,6 +154,27 @@ class PosesRecord(Record):
 
 
 @dataclass
+class ImpostorPlan(Record):
+    """impostor plan → impostor tasks, pack: the impostors' framing (layout, bounds) and baked frames, drawn
+    from the cycle's output alone so that the impostor tasks need not wait for the poses stage. The high
+    LOD at those frames and the textures the tasks draw with are in work/impostor/scene.npz."""
+
+    bounds: dict[str, Any]  # {"center": [x, y, z], "radius": r}, as PosesRecord.bounds
+    layout: dict[str, Any]  # AtlasLayout.to_manifest(), as PosesRecord.layout
+    frame_indices: list[int]
+    fidelity_frame: int
+    material_count: int
+
+    @property
+    def center(self) -> list[float]:
+        return self.bounds["center"]
+
+    @property
+    def radius(self) -> float:
+        return self.bounds["radius"]
+
+
+@dataclass
 class ImpostorTask(Record):
     """One unit of the impostor fan-out: the views of one elevation ring at one baked frame.
     references: this is the fidelity frame, so the task also renders the mesh references."""

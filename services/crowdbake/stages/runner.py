@@ -1,25 +1,284 @@
-"""Every stage of a bake in one process (`crowdbake bake`, the tests, the benchmarks).
+"""Every stage of a bake from one process (`crowdbake bake`, the tests, the benchmarks).
 
 The service runs the same stage functions as Celery tasks (crowdbake.jobs.tasks); this runner is the
-sequential version: validate → cycle → poses → impostors → pack → publish.
+one-machine version: validate → cycle → impostor plan → (poses ∥ impostor tasks) → pack → publish.
+
+The poses stage and the impostor tasks need only the cycle's output (crowdbake.stages.impostors.
+stage_impostor_plan), so where two cores are free they run side by side in a pool of two worker
+processes (see start_pool). Between stages this process hands the
+heap's free pages back to the system (glibc's malloc_trim): NumPy's and OpenCV's many mid-sized
+temporaries otherwise leave the resident size at its high-water mark for the rest of the bake.
+
+Timings (BakeSummary.timings): wall, CPU (this process and its workers) and seconds inside OpenGL
+(crowdbake.render.offscreen.render_timings, read around every stage and in the workers), per stage and in all.
 """
 from __future__ import annotations
 
+import atexit
+import ctypes
+import importlib
+import logging
+import ctypes.util
+import multiprocessing
+import os
+import resource
 import shutil
 import tempfile
+import threading
 import time
-from dataclasses import asdict, dataclass
+from collections import deque
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
+from crowdbake.render.offscreen import render_timings
+from crowdbake.stages import STAGES
 from crowdbake.stages.cycle import stage_cycle
-from crowdbake.stages.impostors import impostor_statistics, stage_impostors
-from crowdbake.stages.pack import stage_pack
+from crowdbake.stages.impostors import (
+    FIDELITY_SUPERSAMPLE, impostor_statistics, impostor_tasks, load_poses, stage_impostor_plan, stage_impostor_views,
+)
+from crowdbake.stages.pack import stage_pack, stage_pack_frame
 from crowdbake.stages.poses import stage_poses
 from crowdbake.stages.publish import stage_export, stage_publish
 from crowdbake.stages.records import PosesRecord
+from crowdbake.stages.runtime_fidelity import between_references
 from crowdbake.stages.validate import BakeInputs, stage_validate
 from crowdbake.stages.workdir import Progress, read_json, report
+
+logger = logging.getLogger(__name__)
+
+# At most this many worker processes: the two independent stages (poses, impostor tasks) keep two busy.
+MAX_WORKERS = 2
+# Items a worker process runs before a fresh one (forked from the fork server in milliseconds) replaces
+# it: a worker's resident size otherwise creeps up from item to item (the heap's fragments, pyrender's
+# caches) to twice what one item needs.
+WORKER_ITEMS = 8
+
+
+def usable_cores() -> int:
+    """Processors this process may run on (its affinity), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def default_workers() -> int:
+    """Worker processes for the poses ∥ impostors part: 2 where two cores are usable, else 0 (in process)."""
+    return MAX_WORKERS if usable_cores() >= 2 and "forkserver" in multiprocessing.get_all_start_methods() else 0
+
+
+def _trim_heap() -> None:
+    """Return the C heap's free pages to the system (glibc only; elsewhere nothing)."""
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name) if name else None
+    except OSError:
+        libc = None
+    trim = getattr(libc, "malloc_trim", None)
+    if trim is not None:
+        trim(0)
+
+
+def _cpu_seconds(who: int) -> float:
+    usage = resource.getrusage(who)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _fork_server_cpu_seconds() -> float:
+    """CPU seconds of the fork server so far (its imports), from /proc; 0 where it cannot be read."""
+    from multiprocessing import forkserver
+
+    pid = getattr(forkserver._forkserver, "_forkserver_pid", None)  # no public accessor
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, TypeError):
+        return 0.0
+
+
+@dataclass
+class StageFigures:
+    """One stage's wall, CPU and OpenGL seconds (in workers: summed over its tasks; wall of a stage that ran
+    in a worker is its own time there)."""
+
+    wall_s: float = 0.0
+    cpu_s: float = 0.0
+    render_s: float = 0.0
+    renders: int = 0
+
+    def add(self, other: dict[str, float]) -> None:
+        self.wall_s += other["wall_s"]
+        self.cpu_s += other["cpu_s"]
+        self.render_s += other["render_s"]
+        self.renders += int(other["renders"])
+
+
+class _Meter:
+    """Wall, CPU and GL seconds of blocks run in this process."""
+
+    def __init__(self) -> None:
+        self.stages: dict[str, StageFigures] = {stage: StageFigures() for stage in STAGES}
+        self.parallel_wall_s = 0.0  # the poses ∥ impostors part, when it ran in the pool
+        self.worker_peak_rss_mib: float | None = None  # the largest worker's high-water mark (from the fork on)
+        self.worker_cpu_s: dict[int, float] = {}  # per worker process, its CPU seconds at its last item
+
+    def account_worker(self, figures: dict[str, Any]) -> None:
+        """Note a worker item's process figures: its high-water mark and its process's CPU so far."""
+        self.worker_peak_rss_mib = max(self.worker_peak_rss_mib or 0.0, figures["peak_rss_mib"])
+        self.worker_cpu_s[figures["pid"]] = max(self.worker_cpu_s.get(figures["pid"], 0.0), figures["process_cpu_s"])
+
+    def figures(self, stage: str) -> StageFigures:
+        return self.stages.setdefault(stage, StageFigures())
+
+    def run(self, stage: str, body: Callable[[], Any]) -> Any:
+        figures = measured(body)
+        self.figures(stage).add(figures)
+        _trim_heap()
+        return figures["result"]
+
+
+class _Background:
+    """Callables run one after another in a thread; result() waits and re-raises their error. Their CPU
+    seconds (time.thread_time) are added to `figures`."""
+
+    def __init__(self, name: str, calls: list[Callable[[], None]], figures: StageFigures):
+        self._calls, self._figures, self._error = calls, figures, None
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        started = time.thread_time()
+        try:
+            for call in self._calls:
+                call()
+        except BaseException as error:  # noqa: BLE001 - handed to the caller by result()
+            self._error = error
+        self._figures.cpu_s += time.thread_time() - started
+
+    def result(self) -> None:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+
+
+def measured(body: Callable[[], Any]) -> dict[str, Any]:
+    """Run body; its result and the wall, CPU (this process, every thread) and GL seconds it took."""
+    gl, wall, cpu = render_timings(), time.perf_counter(), time.process_time()
+    result = body()
+    gl = render_timings().minus(gl)
+    return {"result": result, "wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu,
+            "render_s": gl.seconds, "renders": gl.renders}
+
+
+def _worker_item(work: str, item: str, task: dict | None = None, frame: int | None = None) -> dict[str, Any]:
+    """One item of the poses ∥ impostors part, in a worker process: the poses stage, one impostor task, or
+    one baked frame's atlases for the pack stage (once that frame's tasks are done), or the pack stage's
+    runtime-fidelity mesh references (once the poses are done)."""
+    if item == "poses":
+        figures = measured(lambda: stage_poses(Path(work)).cached)
+    elif item == "pack":
+        figures = measured(lambda: str(stage_pack_frame(Path(work), frame)))
+    elif item == "pack-stage":
+        figures = measured(lambda: stage_pack(Path(work)).cached)
+    elif item == "runtime":
+        figures = measured(lambda: len(between_references(Path(work), load_poses(Path(work)), FIDELITY_SUPERSAMPLE)))
+    else:
+        figures = measured(lambda: str(stage_impostor_views(Path(work), task)))
+    _trim_heap()
+    figures["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    figures["pid"], figures["process_cpu_s"] = os.getpid(), _cpu_seconds(resource.RUSAGE_SELF)
+    return figures
+
+
+def start_pool(workers: int) -> ProcessPoolExecutor:
+    """A pool of `workers` processes forked from the fork server, which starts now (in the background, while
+    this process validates and searches the cycle) and imports the stages and pyrender once for them all."""
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(["crowdbake.stages.runner", "pyrender"])
+    from multiprocessing import forkserver
+
+    forkserver.ensure_running()
+    if not _STOP_REGISTERED:
+        atexit.register(_stop_fork_server)
+        _STOP_REGISTERED.append(True)
+    return ProcessPoolExecutor(workers, mp_context=context, max_tasks_per_child=WORKER_ITEMS)
+
+
+_STOP_REGISTERED: list[bool] = []
+
+
+def _stop_fork_server() -> None:
+    """At exit, stop the fork server and wait for it, so that the process's own accounting (its children's
+    CPU seconds, `time`'s figures) includes the server and the workers it reaped. multiprocessing leaves it
+    to die unwaited; its stop method is private, so only where it exists."""
+    from multiprocessing import forkserver
+
+    stop = getattr(forkserver._forkserver, "_stop", None)
+    if stop is not None:
+        try:
+            stop()
+        except OSError:
+            logger.debug("stopping the fork server failed", exc_info=True)
+
+
+def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: int, meter: _Meter, progress: Progress | None) -> None:
+    """The impostor plan, the poses stage and every impostor task: in the pool (the plan here, while a
+    worker starts on the poses), the longest items first, or all in order here."""
+    if pool is None:
+        meter.run("impostors", lambda: stage_impostor_plan(work, progress))
+        tasks = impostor_tasks(work)
+        meter.run("poses", lambda: stage_poses(work, progress))
+        for done, task in enumerate(tasks):
+            report(progress, "impostors", done, len(tasks))
+            meter.run("impostors", lambda task=task: stage_impostor_views(work, task))
+        report(progress, "impostors", len(tasks), len(tasks))
+        return
+    started = time.perf_counter()
+    pending: dict[Future, tuple[str, int | None]] = {pool.submit(_worker_item, str(work), "poses"): ("poses", None)}
+    plan = measured(lambda: stage_impostor_plan(work, progress))
+    meter.figures("impostors").add(dict(plan, wall_s=0.0))  # within the part's wall, below
+    tasks = impostor_tasks(work)
+    report(progress, "impostors", 0, len(tasks))
+    # Fidelity-frame tasks (with their mesh references) take several times an ordinary one: start them first.
+    ordered = [task for task in tasks if task.references] + [task for task in tasks if not task.references]
+    waiting: deque[tuple[str, dict | None, int | None]] = deque(("impostors", task.to_json(), task.frame) for task in ordered)
+    # A frame's atlases are packed as soon as its last task is done, ahead of the tasks still waiting; the
+    # pool is fed one item per free worker so that such an item does not queue behind them all.
+    packable: deque[tuple[str, dict | None, int | None]] = deque()
+    frame_tasks_left = {frame: sum(task.frame == frame for task in tasks) for frame in {task.frame for task in tasks}}
+    done_tasks = 0
+
+    def feed() -> None:
+        while len(pending) < workers and (packable or waiting):
+            stage, task, frame = (packable or waiting).popleft()
+            pending[pool.submit(_worker_item, str(work), stage, task, frame)] = (stage, frame)
+
+    feed()
+    while pending:
+        finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+        for future in finished:
+            item, frame = pending.pop(future)
+            stage = "pack" if item == "runtime" else item
+            figures = future.result()
+            meter.account_worker(figures)
+            if stage in ("impostors", "pack"):
+                figures = dict(figures, wall_s=0.0)  # the items overlap: the impostor stage's wall is the part's, below
+            meter.figures(stage).add(figures)
+            if stage == "impostors":
+                done_tasks += 1
+                report(progress, "impostors", done_tasks, len(tasks))
+                frame_tasks_left[frame] -= 1
+                if frame_tasks_left[frame] == 0:
+                    packable.append(("pack", None, frame))
+            elif stage == "poses":
+                report(progress, "poses", 1, 1)
+                packable.append(("runtime", None, None))
+        feed()
+    meter.parallel_wall_s = time.perf_counter() - started
+    # Side by side, the impostor stage lasts from its plan to its last task (poses keeps its own time).
+    meter.figures("impostors").wall_s += meter.parallel_wall_s
 
 
 @dataclass
@@ -39,6 +298,7 @@ class BakeSummary:
     texture_memory: dict[str, Any]
     # Set when a texture variation is a JPEG (no alpha, so no colour-region codes): what that means.
     texture_note: str | None = None
+    timings: dict[str, Any] = field(default_factory=dict)
 
     @property
     def total_bytes(self) -> int:
@@ -64,29 +324,54 @@ def _mesh_summary(meshes: list[dict], poses: PosesRecord) -> list[dict]:
     return out
 
 
-def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progress: Progress | None = None) -> BakeSummary:
-    """Run every stage in this process and publish to out_root/<name>/<version>; returns a BakeSummary.
+def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progress: Progress | None = None,
+             workers: int | None = None) -> BakeSummary:
+    """Run every stage and publish to out_root/<name>/<version>; returns a BakeSummary.
 
     work: the work directory (kept, so a rerun resumes); None = a temporary one, removed afterwards.
+    workers: processes for the poses ∥ impostors part (None = default_workers(); 0 or 1 = this process).
+    As with any multiprocessing start method but "fork", a script that calls this with workers must
+    guard its top level with `if __name__ == "__main__":` (the workers import the main module).
     """
     temporary = work is None
     work = Path(tempfile.mkdtemp(prefix="crowdbake-work-")) if temporary else Path(work)
     work.mkdir(parents=True, exist_ok=True)
-    timings: dict[str, float] = {}
-
-    def timed(stage: str, run):
-        clock = time.perf_counter()
-        result = run()
-        timings[stage] = time.perf_counter() - clock
-        return result
-
+    workers = default_workers() if workers is None else int(workers)
+    meter = _Meter()
+    wall, cpu = time.perf_counter(), _cpu_seconds(resource.RUSAGE_SELF)
+    pool = start_pool(workers) if workers > 1 else None
+    server_cpu = _fork_server_cpu_seconds() if pool is not None else 0.0
     try:
-        job = timed("validate", lambda: stage_validate(inputs, work)).record
-        cycle = timed("cycle", lambda: stage_cycle(work, progress)).record
-        poses = timed("poses", lambda: stage_poses(work, progress)).record
-        timed("impostors", lambda: stage_impostors(work, progress))
+        job = meter.run("validate", lambda: stage_validate(inputs, work)).record
+        plots: list[Callable[[], None]] = []
+        cycle = meter.run("cycle", lambda: stage_cycle(work, progress, plots=plots)).record
+        # The cycle report's plots (a second or more of matplotlib) are drawn in a thread of this process,
+        # which otherwise only waits for the workers; run_bake returns once they are written.
+        plotter = _Background("cycle-plots", plots, meter.figures("cycle"))
+        # Likewise the pack stage's scoring library (scikit-image: a third of a second to import), when the pack
+        # stage runs here.
+        warm = [] if pool is not None else [lambda: importlib.import_module("skimage.metrics")]
+        imports = _Background("pack-imports", warm, meter.figures("pack"))
+        try:
+            _poses_and_impostors(work, pool, workers, meter, progress)
+            if pool is not None:
+                # The pack stage too, in a worker: its peak memory (the fidelity scoring holds the fidelity
+                # frame's references and atlases) then adds to no earlier stage's leftovers.
+                report(progress, "pack", 0, 1)
+                figures = pool.submit(_worker_item, str(work), "pack-stage").result()
+                meter.account_worker(figures)
+                meter.figures("pack").add(figures)
+                report(progress, "pack", 1, 1)
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True)
+                pool = None
+                server_cpu = _fork_server_cpu_seconds() - server_cpu  # its imports, on the first bake of a process
+        plotter.result()
+        imports.result()
+        poses = PosesRecord.from_json(read_json(work / "poses" / "record.json"))
         impostor = impostor_statistics(work)
-        pack = timed("pack", lambda: stage_pack(work, progress)).record
+        pack = meter.run("pack", lambda: stage_pack(work, progress)).record  # in this process, or the worker's record
 
         def publish() -> Path:
             # The engine export is part of publishing, as in the worker's publish task (None: export=false).
@@ -94,17 +379,33 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
             stage_export(work, Path(out_root))
             return published
 
-        bundle = timed("publish", publish)
+        bundle = meter.run("publish", publish)
         report(progress, "publish", 1, 1)
     finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
         if temporary:
             shutil.rmtree(work, ignore_errors=True)
+    timings = {
+        "total_s": time.perf_counter() - wall,
+        # This process, each worker (whole life: fresh from the fork server) and the fork server's imports.
+        "cpu_s": _cpu_seconds(resource.RUSAGE_SELF) - cpu + sum(meter.worker_cpu_s.values()) + server_cpu,
+        "render_s": sum(f.render_s for f in meter.stages.values()),
+        "renders": sum(f.renders for f in meter.stages.values()),
+        "workers": workers if workers > 1 else 1,
+        "poses_with_impostors_s": meter.parallel_wall_s or None,
+        "peak_rss_mib": {
+            "process": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "largest_worker": meter.worker_peak_rss_mib,
+        },
+        "stages": {stage: asdict(meter.figures(stage)) for stage in STAGES},
+    }
     manifest = read_json(bundle / "manifest.json")
     return BakeSummary(
         bundle=bundle,
         name=manifest["name"],
         version=manifest["version"],
-        timings_s=timings,
+        timings_s={stage: meter.figures(stage).wall_s for stage in STAGES},
         files={entry["path"]: entry["size"] for entry in manifest["files"]},
         meshes=_mesh_summary(manifest["meshes"], poses),
         cycle={k: getattr(cycle, k) for k in ("start_frame", "end_frame", "cycle_frames", "closing", "position_jump_ratio", "velocity_jump_ratio", "fps")},
@@ -113,4 +414,5 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         compression=pack.compression,
         texture_memory=pack.texture_memory,
         texture_note=(job.textures or {}).get("note"),
+        timings=timings,
     )

@@ -26,7 +26,7 @@ from crowdbake.formats.binary import decode_texture_array, unpack_uv32, unpack_u
 from crowdbake.stages.records import ImpostorTask, PosesRecord
 
 # Azimuth gaps scored between views (each at every elevation gap): each needs a render of the mesh at
-# 4x4 samples a texel, so a 32-azimuth bake scores every other gap, 16 x 2 cameras with 3 rings.
+# FIDELITY_SUPERSAMPLE² (3 x 3) samples a texel, so a 32-azimuth bake scores every other gap, 16 x 2 cameras with 3 rings.
 BETWEEN_AZIMUTHS = 16
 
 
@@ -96,9 +96,9 @@ def render_mesh_references(work: Path, poses: PosesRecord, frame: int, cameras: 
     """The mesh at cycle frame `frame` seen from each (azimuth, elevation), shaded as the fidelity references are
     (crowdbake.bake.fidelity.mesh_reference): (S, S, 3) float images."""
     from crowdbake.render.impostor import shared_renderer
-    from crowdbake.stages.impostors import load_scene
+    from crowdbake.stages.impostors import load_pose_scene
 
-    scene = load_scene(work, poses, frame)
+    scene = load_pose_scene(work, poses, frame)
     size = int(poses.layout["tile_size"]) * supersample
     renderer = shared_renderer(size)
     renderer.set_mesh(scene.positions, scene.faces)
@@ -110,6 +110,29 @@ def render_mesh_references(work: Path, poses: PosesRecord, frame: int, cameras: 
             view, coverage, supersample, scene.positions, scene.normals, scene.uvs, scene.faces,
             scene.triangle_material, scene.diffuse_runtime, scene.outfit_row, fidelity.camera_light(view)))
     return images
+
+
+REFERENCES_FILE = "runtime_references.npz"
+
+
+def between_references(work: Path, poses: PosesRecord, supersample: int) -> list[np.ndarray]:
+    """render_mesh_references for score_runtime's between_views cameras, kept in work/pack/REFERENCES_FILE
+    under a key of the poses and the cameras: the bake runner renders them in a worker as soon as the poses
+    stage is done (prepare_between_references), so the pack stage only reads them."""
+    from crowdbake.stages.workdir import WorkDir, npz_bytes, stage_key, write_bytes_atomic
+
+    layout = poses.atlas_layout()
+    frame, _ = halfway_frame(poses)
+    cameras = between_cameras(layout)
+    key = stage_key("runtime-references", WorkDir(work).key_of("poses"), frame, cameras, supersample)
+    path = Path(work) / "pack" / REFERENCES_FILE
+    if path.is_file():
+        with np.load(path) as data:
+            if str(data["key"]) == key:
+                return list(data["references"])
+    references = render_mesh_references(work, poses, frame, cameras, supersample)
+    write_bytes_atomic(path, npz_bytes({"key": np.array(key), "references": np.stack(references)}))
+    return references
 
 
 def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
@@ -143,7 +166,7 @@ def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: li
                                      **fidelity.compare(data["reference_between"][index], draw(mid, elevation, baked_frame))})
     frame, frame_weights = halfway_frame(poses)
     cameras = between_cameras(layout)
-    references = render_mesh_references(work, poses, frame, cameras, supersample)
+    references = between_references(work, poses, supersample)
     between = [{"azimuth_deg": a, "elevation_deg": e, **fidelity.compare(reference, draw(a, e, frame_weights))}
                for (a, e), reference in zip(cameras, references)]
     return {
