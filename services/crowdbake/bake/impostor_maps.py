@@ -360,7 +360,7 @@ def face_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.cross(positions[faces[:, 1]] - a, positions[faces[:, 2]] - a)
 
 
-def _shading_normals_at(back: np.ndarray, interpolated: np.ndarray, face_normal: np.ndarray) -> np.ndarray:
+def shading_normals_at(back: np.ndarray, interpolated: np.ndarray, face_normal: np.ndarray) -> np.ndarray:
     """Unit shading normals (N, 3) from interpolated vertex normals (N, 3), the face normals of the
     triangles hit (N, 3) and each texel's view direction back (N, 3) (see shading_normals)."""
     facing_away = (face_normal * back).sum(axis=1) < 0
@@ -385,7 +385,7 @@ def shading_normals(view: OrthoView, normals: np.ndarray, positions: np.ndarray,
     bary = coverage.barycentric[mask]
     interpolated = np.einsum("nk,nkc->nc", bary, np.asarray(normals, dtype=np.float64)[faces[hit]])
     out = np.zeros(coverage.triangle.shape + (3,), dtype=np.float64)
-    out[mask] = _shading_normals_at(np.broadcast_to(view.back, interpolated.shape), interpolated, face_normals(positions, faces[hit]))
+    out[mask] = shading_normals_at(np.broadcast_to(view.back, interpolated.shape), interpolated, face_normals(positions, faces[hit]))
     return out
 
 
@@ -517,7 +517,7 @@ def view_maps_views(
         return np.einsum("nk,nkc->nc", bary, np.asarray(values, dtype=np.float64)[corners])
 
     backs = np.stack([view.back for view in views])[which]
-    normal = _shading_normals_at(backs, at_texels(normals), face_normals(positions, faces)[hit])
+    normal = shading_normals_at(backs, at_texels(normals), face_normals(positions, faces)[hit])
     normal_rgb = np.clip(np.rint((normal + 1.0) * 0.5 * 255.0), 0, 255).astype(np.uint8)
     uv = wrap_uv(at_texels(uvs))
     material = triangle_material[hit]
