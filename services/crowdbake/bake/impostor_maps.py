@@ -177,16 +177,29 @@ def row_min(values: np.ndarray) -> np.ndarray:
 def _edge_distances(corners: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Signed distances (N, 3) of points (N, 2) to the edges of triangles (N, 3, 2), positive inside,
     and barycentrics (N, 3). Degenerate triangles get -inf distances (never inside)."""
-    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    corners = np.asarray(corners, dtype=np.float64)
+    points = np.asarray(points, dtype=np.float64)
+    return _edge_distances_xy(corners[..., 0].T, corners[..., 1].T, points[:, 0], points[:, 1])
 
-    def cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        return u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
 
-    area = cross(b - a, c - a)  # twice the signed area; its sign is the winding on screen
-    weights = np.stack([cross(c - b, points - b), cross(a - c, points - c), cross(b - a, points - a)], axis=-1)
+def _edge_distances_xy(x: np.ndarray, y: np.ndarray, px: np.ndarray, py: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """_edge_distances with the corners' coordinates as (3, N) arrays x, y (corner a, b, c by row) and the
+    points' as (N,) px, py: the same arithmetic, operation for operation, on whole columns."""
+    (ax, bx, cx), (ay, by, cy) = x, y
+
+    def cross(ux: np.ndarray, uy: np.ndarray, vx: np.ndarray, vy: np.ndarray) -> np.ndarray:
+        return ux * vy - uy * vx
+
+    def length(ux: np.ndarray, uy: np.ndarray) -> np.ndarray:
+        return np.sqrt(ux * ux + uy * uy)  # bitwise row_norm of the (N, 2) edge vectors
+
+    area = cross(bx - ax, by - ay, cx - ax, cy - ay)  # twice the signed area; its sign is the winding on screen
+    weights = np.stack([
+        cross(cx - bx, cy - by, px - bx, py - by), cross(ax - cx, ay - cy, px - cx, py - cy), cross(bx - ax, by - ay, px - ax, py - ay),
+    ], axis=-1)
     valid = np.abs(area) > 1e-12
     sign = np.where(area < 0, -1.0, 1.0)[:, None]
-    lengths = np.stack([row_norm(c - b), row_norm(a - c), row_norm(b - a)], axis=-1)
+    lengths = np.stack([length(cx - bx, cy - by), length(ax - cx, ay - cy), length(bx - ax, by - ay)], axis=-1)
     distances = np.where(valid[:, None], sign * weights / np.maximum(lengths, 1e-300), -np.inf)
     barycentric = np.where(valid[:, None], weights / np.where(valid, area, 1.0)[:, None], 0.0)
     return distances, barycentric
@@ -256,26 +269,30 @@ def resolve_coverage_views(
     screen, vertex_depth = project_views(views, positions)  # (V, P, 2), (V, P)
     triangle_count = len(faces)
 
-    which, rows, columns = np.nonzero(ids >= 0)
-    centres = np.stack([columns + 0.5, rows + 0.5], axis=-1).astype(np.float64)
-    candidate = ids[which, rows, columns]
+    # Texels as flat indices into the (V, S, S) stack and corners as flat indices into the views' (V * P)
+    # projected points: one integer gather per array instead of fancy indexing by three index arrays.
+    texel = np.flatnonzero(ids >= 0)
+    which, rows, columns = np.unravel_index(texel, ids.shape)
+    candidate = ids.reshape(-1)[texel]
     in_range = candidate < triangle_count
-    corner_index = faces[np.where(in_range, candidate, 0)]  # (N, 3)
-    distances, barycentric = _edge_distances(screen[which[:, None], corner_index], centres)
+    corner_index = faces[np.where(in_range, candidate, 0)].T + which * screen.shape[1]  # (3, N)
+    screen_x, screen_y = screen[..., 0].reshape(-1), screen[..., 1].reshape(-1)
+    distances, barycentric = _edge_distances_xy(screen_x[corner_index], screen_y[corner_index], columns + 0.5, rows + 0.5)
     accepted = in_range & (row_min(distances) >= -INSIDE_TOLERANCE_PX)
     if depth is not None:
-        interpolated = row_sum(barycentric * vertex_depth[which[:, None], corner_index])
+        interpolated = row_sum(barycentric * vertex_depth.reshape(-1)[corner_index.T])
         radii = np.array([view.radius for view in views])
-        accepted &= np.abs(interpolated - np.asarray(depth)[which, rows, columns]) <= DEPTH_TOLERANCE_RADII * radii[which]
+        accepted &= np.abs(interpolated - np.asarray(depth).reshape(-1)[texel]) <= DEPTH_TOLERANCE_RADII * radii[which]
 
     triangle = np.full(ids.shape, -1, dtype=np.int64)
     bary = np.zeros(ids.shape + (3,), dtype=np.float64)
-    triangle[which[accepted], rows[accepted], columns[accepted]] = candidate[accepted]
+    kept = texel[accepted]
+    triangle.reshape(-1)[kept] = candidate[accepted]
     # Clamp into the triangle and renormalise, on the covered texels only.
     clamped = np.clip(barycentric[accepted], 0.0, None)
     total = row_sum(clamped)[:, None]
     np.divide(clamped, total, out=clamped, where=total > 0)
-    bary[which[accepted], rows[accepted], columns[accepted]] = clamped
+    bary.reshape(-1, 3)[kept] = clamped
 
     failed = ~accepted
     repaired = np.bincount(which[failed], minlength=len(views))
