@@ -96,12 +96,18 @@ def ortho_view(center, radius: float, azimuth_deg: float, elevation_deg: float, 
     if not radius > 0 or size < 1:
         raise ValueError(f"ortho_view: radius must be positive and size at least 1, got {radius}, {size}")
     back = view_direction(azimuth_deg, elevation_deg)
-    right = np.cross([0.0, 1.0, 0.0], back)
+    right = _cross3(np.array([0.0, 1.0, 0.0]), back)
     if np.linalg.norm(right) < _PARALLEL:
-        right = np.cross([0.0, 0.0, 1.0], back)
+        right = _cross3(np.array([0.0, 0.0, 1.0]), back)
     right /= np.linalg.norm(right)
-    up = np.cross(back, right)
+    up = _cross3(back, right)
     return OrthoView(center, float(radius), float(azimuth_deg), float(elevation_deg), int(size), right, up, back)
+
+
+def _cross3(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(3,) u x v with np.cross's arithmetic (a product minus a product per component), without its set-up
+    (a ring of views builds two cameras a view)."""
+    return np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])
 
 
 def project(view: OrthoView, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -222,7 +222,9 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
     for k, (a, e) in enumerate(views):
         azimuth, elevation = layout["azimuths_deg"][a], layout["elevations_deg"][e]
         map_views.append(impostor_maps.ortho_view(plan.center, plan.radius, azimuth, elevation, tile))
-        view = impostor_maps.ortho_view(plan.center, plan.radius, azimuth, elevation, tile * supersample)
+        view = map_views[-1]
+        if supersample != 1:
+            view = impostor_maps.ortho_view(plan.center, plan.radius, azimuth, elevation, tile * supersample)
         clock = time.perf_counter()
         image = renderer.render(view)
         timings["render"] += time.perf_counter() - clock
