@@ -556,9 +556,13 @@ def view_maps_views(
     if triangles.shape[1:] != (views[0].size, views[0].size):
         raise ValueError(f"view_maps: coverage is {triangles.shape[1:]}, the view {views[0].size}²")
     masks = triangles >= 0
-    which, rows, columns = np.nonzero(masks)
-    hit = triangles[which, rows, columns]  # (N,) the covered texels of every view, view by view
-    bary = np.stack([coverage.barycentric for coverage in coverages])[which, rows, columns]  # (N, 3)
+    texel = np.flatnonzero(masks)  # the covered texels of every view, view by view, as flat indices
+    which = texel // (triangles.shape[1] * triangles.shape[2])
+    hit = triangles.reshape(-1)[texel]  # (N,)
+    # Gathered view by view (the same order): stacking the views' barycentrics first would copy them all.
+    bary = np.concatenate([
+        coverage.barycentric.reshape(-1, 3)[np.flatnonzero(mask)] for coverage, mask in zip(coverages, masks)
+    ])  # (N, 3)
     corners = faces[hit]  # (N, 3)
 
     def at_texels(values: np.ndarray) -> np.ndarray:
@@ -578,14 +582,16 @@ def view_maps_views(
 
     shape = triangles.shape
     normal_map = np.zeros(shape + (4,), dtype=np.uint8)
-    normal_map[which, rows, columns, :3] = normal_rgb
+    normal_map.reshape(-1, 4)[texel, :3] = normal_rgb
     normal_map[..., 3] = np.where(masks, 255, 0)
     uv_map = np.zeros(shape + (4,), dtype=np.uint16)
-    uv_map[which, rows, columns, :2] = np.clip(np.rint(uv * 65535.0), 0, 65535)
-    uv_map[which, rows, columns, 2] = material
-    uv_map[which, rows, columns, 3] = 65535
+    uv_texels = np.empty((len(texel), 4), dtype=np.uint16)
+    uv_texels[:, :2] = np.clip(np.rint(uv * 65535.0), 0, 65535)
+    uv_texels[:, 2] = material
+    uv_texels[:, 3] = 65535
+    uv_map.reshape(-1, 4)[texel] = uv_texels
     detail_map = np.zeros(shape + (4,), dtype=np.uint8)
-    detail_map[which, rows, columns] = detail_rgba
+    detail_map.reshape(-1, 4)[texel] = detail_rgba
 
     # The background takes the silhouette's values (block compression then spends nothing on it): one
     # gather over every view's texels from the per-view distance transforms, then the empty blocks flat.
