@@ -230,3 +230,16 @@ def test_all_views_at_once_equal_view_by_view():
         alone_maps = maps.view_maps(view, alone, positions, normals, uvs, faces, material, [sphere_texture()])
         for kind in ("normal", "uv", "detail"):
             np.testing.assert_array_equal(getattr(together_maps[k], kind), getattr(alone_maps, kind))
+
+
+def test_row_reductions_are_bitwise_numpys():
+    """The maps' column arithmetic must give numpy's own row sums, norms and minima to the bit (the bake's
+    bytes depend on it), for rows of 2 and 3 values of very different magnitudes."""
+    rng = np.random.default_rng(7)
+    for width in (2, 3):
+        values = rng.standard_normal((5000, width)) * 10.0 ** rng.uniform(-6, 6, (5000, width))
+        assert np.array_equal(maps.row_sum(values), values.sum(axis=1))
+        assert np.array_equal(maps.row_norm(values), np.linalg.norm(values, axis=1))
+        assert np.array_equal(maps.row_min(values), values.min(axis=1))
+    u, v = rng.standard_normal((2, 5000, 3))
+    assert np.array_equal(maps.face_normals(np.concatenate([np.zeros((5000, 3)), u, v]), np.arange(15000).reshape(3, 5000).T), np.cross(u, v))
