@@ -447,6 +447,18 @@ def pack_uvblock(u: np.ndarray, v: np.ndarray, material: np.ndarray, coverage: n
         raise ValueError(f"uvblock material indices must lie in 0..{UVBLOCK_MAX_MATERIAL}")
     q = _blocks(np.rint(np.clip(np.stack([u, v], axis=-1), 0.0, 1.0) * UVBLOCK_COORD_MAX).astype(np.int64))
     m, c = _blocks(np.where(coverage, material, 0)), _blocks(coverage)
+    # A block the character does not touch is six zero words; an impostor atlas is mostly such blocks,
+    # so only the others are encoded.
+    live = c.any(axis=1)
+    words = np.zeros((len(c), 6), np.uint64)
+    if live.any():
+        words[live] = _uvblock_words(q[live], m[live], c[live])
+    return words.astype("<u4").tobytes()
+
+
+def _uvblock_words(q: np.ndarray, m: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The six words of each block: (N, 16, 2) int coordinates in 1/4095, (N, 16) materials, (N, 16)
+    coverage -> (N, 6) uint64 holding u32 values (pack_uvblock's layout)."""
     subset = uvblock_subsets(q, m, c)
     count = len(c)
     words = np.zeros((count, 6), np.uint64)
@@ -483,14 +495,30 @@ def pack_uvblock(u: np.ndarray, v: np.ndarray, material: np.ndarray, coverage: n
     words[:, 3] = low64 & np.uint64(0xFFFFFFFF)
     words[:, 4] = low64 >> np.uint64(32)
     words[:, 5] = high32 & np.uint64(0xFFFFFFFF)
-    return words.astype("<u4").tobytes()
+    return words
 
 
 def unpack_uvblock(data: bytes, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One uvblock layer (bytes) of `height` × `width` texels -> (u, v, material, coverage), each (H, W):
     u, v float64 in [0, 1] (0 outside), material int64 (0 outside), coverage bool. Raises ValueError for
     a coordinate above 4095 (SPEC.md: invalid_data)."""
-    words = np.frombuffer(data, "<u4", (height // 4) * (width // 4) * 6).reshape(-1, 6).astype(np.uint64)
+    all_words = np.frombuffer(data, "<u4", (height // 4) * (width // 4) * 6).reshape(-1, 6)
+    # Texels of a block whose states word is 0 are all outside (u, v, material 0) whatever its other
+    # words hold, so only the other blocks are decoded.
+    live = all_words[:, 0] != 0
+    qu_all = np.zeros((len(all_words), 16), np.int64)
+    qv_all, material_all = np.zeros_like(qu_all), np.zeros_like(qu_all)
+    covered_all = np.zeros((len(all_words), 16), bool)
+    if live.any():
+        qu_all[live], qv_all[live], material_all[live], covered_all[live] = _uvblock_texels(all_words[live].astype(np.uint64))
+    u = _unblocks(qu_all, height, width) / UVBLOCK_COORD_MAX
+    v = _unblocks(qv_all, height, width) / UVBLOCK_COORD_MAX
+    return u, v, _unblocks(material_all, height, width), _unblocks(covered_all, height, width)
+
+
+def _uvblock_texels(words: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(N, 6) uint64 block words -> (qu, qv, material, covered), each (N, 16): coordinates in 1/4095 and
+    materials 0 outside the character. Raises ValueError for a covered coordinate above 4095."""
     count = len(words)
     states = ((words[:, :1] >> (2 * np.arange(16, dtype=np.uint64))) & np.uint64(3)).astype(np.int64)
     low64 = words[:, 3] | words[:, 4] << np.uint64(32)
@@ -513,6 +541,4 @@ def unpack_uvblock(data: bytes, width: int, height: int) -> tuple[np.ndarray, np
     if (covered & ((qu > UVBLOCK_COORD_MAX) | (qv > UVBLOCK_COORD_MAX))).any():
         raise ValueError(f"uvblock: a coordinate above {UVBLOCK_COORD_MAX}")
     material = ((header >> np.uint64(16)) & np.uint64(3)).astype(np.int64)
-    u = _unblocks(np.where(covered, qu, 0), height, width) / UVBLOCK_COORD_MAX
-    v = _unblocks(np.where(covered, qv, 0), height, width) / UVBLOCK_COORD_MAX
-    return u, v, _unblocks(np.where(covered, material, 0), height, width), _unblocks(covered, height, width)
+    return np.where(covered, qu, 0), np.where(covered, qv, 0), np.where(covered, material, 0), covered
