@@ -172,11 +172,14 @@ def measured(body: Callable[[], Any]) -> dict[str, Any]:
             "render_s": gl.seconds, "renders": gl.renders}
 
 
-def _worker_item(work: str, item: str, task: dict | None = None, frame: int | None = None) -> dict[str, Any]:
+def _worker_item(work: str, item: str, task: dict | None = None, frame: int | None = None, out_root: str | None = None) -> dict[str, Any]:
     """One item of the poses ∥ impostors part, in a worker process: the poses stage, one impostor task, or
     one baked frame's atlases for the pack stage (once that frame's tasks are done), or the pack stage's
-    runtime-fidelity mesh references (once the poses are done)."""
-    if item == "poses":
+    runtime-fidelity mesh references (once the poses are done); then the pack stage and the publish stage
+    (with the engine export) into `out_root`."""
+    if item == "publish":
+        figures = measured(lambda: str(_publish(Path(work), Path(out_root))))
+    elif item == "poses":
         figures = measured(lambda: stage_poses(Path(work)).cached)
     elif item == "pack":
         figures = measured(lambda: str(stage_pack_frame(Path(work), frame)))
@@ -190,6 +193,14 @@ def _worker_item(work: str, item: str, task: dict | None = None, frame: int | No
     figures["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     figures["pid"], figures["process_cpu_s"] = os.getpid(), _cpu_seconds(resource.RUSAGE_SELF)
     return figures
+
+
+def _publish(work: Path, out_root: Path) -> Path:
+    """The publish stage and the engine export, which is part of publishing as in the worker's publish task
+    (none when the bake's `export` parameter is false)."""
+    published = stage_publish(work, out_root)
+    stage_export(work, out_root)
+    return published
 
 
 def start_pool(workers: int) -> ProcessPoolExecutor:
@@ -355,32 +366,32 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         try:
             _poses_and_impostors(work, pool, workers, meter, progress)
             if pool is not None:
-                # The pack stage too, in a worker: its peak memory (the fidelity scoring holds the fidelity
-                # frame's references and atlases) then adds to no earlier stage's leftovers.
+                # The pack and publish stages too, in workers: their peak memory (the fidelity scoring holds
+                # the fidelity frame's references and atlases; publishing reads the bundle twice and the
+                # export decodes every atlas layer) then adds to no earlier stage's leftovers here.
                 report(progress, "pack", 0, 1)
                 figures = pool.submit(_worker_item, str(work), "pack-stage").result()
                 meter.account_worker(figures)
                 meter.figures("pack").add(figures)
                 report(progress, "pack", 1, 1)
+            plotter.result()
+            imports.result()
+            poses = PosesRecord.from_json(read_json(work / "poses" / "record.json"))
+            impostor = impostor_statistics(work)
+            pack = meter.run("pack", lambda: stage_pack(work, progress)).record  # in this process, or the worker's record
+            if pool is not None:
+                figures = pool.submit(_worker_item, str(work), "publish", out_root=str(out_root)).result()
+                meter.account_worker(figures)
+                meter.figures("publish").add(figures)
+                bundle = Path(figures["result"])
+            else:
+                bundle = meter.run("publish", lambda: _publish(work, Path(out_root)))
+            report(progress, "publish", 1, 1)
         finally:
             if pool is not None:
                 pool.shutdown(wait=True)
                 pool = None
                 server_cpu = _fork_server_cpu_seconds() - server_cpu  # its imports, on the first bake of a process
-        plotter.result()
-        imports.result()
-        poses = PosesRecord.from_json(read_json(work / "poses" / "record.json"))
-        impostor = impostor_statistics(work)
-        pack = meter.run("pack", lambda: stage_pack(work, progress)).record  # in this process, or the worker's record
-
-        def publish() -> Path:
-            # The engine export is part of publishing, as in the worker's publish task (None: export=false).
-            published = stage_publish(work, Path(out_root))
-            stage_export(work, Path(out_root))
-            return published
-
-        bundle = meter.run("publish", publish)
-        report(progress, "publish", 1, 1)
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
