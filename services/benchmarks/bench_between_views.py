@@ -175,6 +175,36 @@ class SurfaceFields:
         return self._fields[(tile, layer)]
 
 
+    def motion_to(self, tile: int, layer: int, frame: int) -> np.ndarray:
+        """(S, S, 3) motion of each texel's surface point to cycle frame `frame` (any, baked or not), dilated."""
+        from crowdbake.render.impostor import shared_renderer
+
+        scene = self._scene(self.bench.frames[layer])
+        view = self.view(tile)
+        renderer = shared_renderer(view.size)
+        renderer.set_mesh(scene.positions, scene.faces)
+        coverage = renderer.coverage(view, scene.positions, scene.faces)
+        points = impostor_maps.interpolate(scene.positions, scene.faces, coverage)
+        moved = impostor_maps.interpolate(self._scene(frame).positions, scene.faces, coverage)
+        nearest = impostor_maps.nearest_inside(coverage.mask)
+        motion = np.where(coverage.mask[..., None], moved - points, 0.0)
+        return motion if nearest is None else motion[nearest[0], nearest[1]]
+
+
+def oracle_image(bench: Bench, azimuth: float, elevation: float, frame: int) -> np.ndarray:
+    """warp_motion with each sample's motion taken to the cycle frame itself (no linear interpolation
+    between baked frames): the ceiling of motion fields, what is left being occlusion and resampling."""
+    surface = surface_fields(bench)
+    target = impostor_maps.ortho_view(bench.poses.center, bench.poses.radius, azimuth, elevation, bench.size)
+    decoded = []
+    for w, tile, layer in bench.samples(azimuth, elevation, frame):
+        depth = surface.fields(tile, layer)[0]
+        field = surface.motion_to(tile, layer, frame) if bench.frames[layer] != frame else None
+        xy, _ = impostor_warp.reproject(surface.view(tile), depth, target, field, 1.0)
+        decoded.append((w, impostor_warp.gather(bench.tiles.tile(tile, layer), xy)))
+    return impostor_blend.blend_image(decoded, bench.diffuse, bench.outfit_row, bench.light(azimuth, elevation), bench.size, bench.chains)
+
+
 _SURFACE: dict[int, SurfaceFields] = {}
 
 
@@ -184,8 +214,18 @@ def surface_fields(bench: Bench) -> SurfaceFields:
     return _SURFACE[id(bench)]
 
 
+def quantized(values: np.ndarray, limit: float, bits: int | None) -> np.ndarray:
+    """Values in [-limit, limit] rounded to `bits` bits (unchanged when bits is None)."""
+    if bits is None:
+        return values
+    steps = (1 << bits) - 1
+    codes = np.rint((np.clip(values, -limit, limit) + limit) / (2 * limit) * steps)
+    return codes / steps * (2 * limit) - limit
+
+
 def warped_image(bench: Bench, azimuth: float, elevation: float, frame: int, motion: bool, samples: list[Sample] | None = None,
-                 max_miss: float | None = None) -> np.ndarray:
+                 max_miss: float | None = None, backward: str = "stored", planar: bool = False, bits: int | None = None,
+                 iterations: int = impostor_warp.DEFAULT_ITERATIONS) -> np.ndarray:
     """crowdview's blend of the same samples, each reprojected to the camera (and, with `motion`, to the
     cycle frame) first (crowdbake.bake.impostor_warp)."""
     surface = surface_fields(bench)
@@ -194,11 +234,20 @@ def warped_image(bench: Bench, azimuth: float, elevation: float, frame: int, mot
     decoded = []
     for w, tile, layer in samples if samples is not None else bench.samples(azimuth, elevation, frame):
         depth, to_previous, to_next = surface.fields(tile, layer)
+        view = surface.view(tile)
+        if backward == "negated_next":  # constant velocity: one motion field a layer
+            to_previous = -to_next
+        if planar:  # motion in the tile's plane only: two channels
+            to_previous = to_previous - (to_previous @ view.back)[..., None] * view.back
+            to_next = to_next - (to_next @ view.back)[..., None] * view.back
+        radius = bench.poses.radius
+        depth = quantized(depth, radius, bits)
+        to_previous, to_next = quantized(to_previous, radius / 2, bits), quantized(to_next, radius / 2, bits)
         fraction, field = 0.0, None
         if motion and frames.layers[0] != frames.layers[1]:
             # The earlier baked frame moves forward by the frame weight, the later one back by the rest.
             fraction, field = (frames.weight, to_next) if layer == frames.layers[0] else (1.0 - frames.weight, to_previous)
-        xy, miss = impostor_warp.reproject(surface.view(tile), depth, target, field, fraction)
+        xy, miss = impostor_warp.reproject(view, depth, target, field, fraction, iterations)
         valid = None if max_miss is None else miss <= max_miss
         decoded.append((w, impostor_warp.gather(bench.tiles.tile(tile, layer), xy, valid)))
     return impostor_blend.blend_image(decoded, bench.diffuse, bench.outfit_row, bench.light(azimuth, elevation), bench.size, bench.chains)
@@ -217,6 +266,14 @@ METHODS: dict[str, Callable[[Bench, float, float, int], np.ndarray]] = {
     "warp": lambda b, a, e, f: warped_image(b, a, e, f, motion=False),
     "warp_motion": lambda b, a, e, f: warped_image(b, a, e, f, motion=True),
     "warp_nearest": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, samples=nearest_sample(b.samples(a, e, f))),
+    "warp_oracle": oracle_image,
+    "warp_motion_it2": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, iterations=2),
+    "warp_motion_it8": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, iterations=8),
+    "warp_motion_miss1": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, max_miss=1.0),
+    "warp_velocity": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, backward="negated_next"),
+    "warp_planar": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, planar=True),
+    "warp_planar8": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, planar=True, bits=8),
+    "warp_planar6": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, planar=True, bits=6),
 }
 
 
@@ -275,6 +332,9 @@ def main() -> int:
         result["cases"][name] = scores
         print(f"{name:<12} {len(cameras):>7} " + " ".join(
             f"{scores[m]['ssim_mean']:>13.4f} / {scores[m]['ssim_worst']:.4f}" for m in args.methods), flush=True)
+    if id(bench) in _SURFACE:
+        result["surface_mask_mismatch_texels"] = _SURFACE[id(bench)].mask_mismatch
+        print(f"surface fields: {result['surface_mask_mismatch_texels']} texels whose coverage differs from the bundle's")
     result["seconds"] = time.perf_counter() - clock
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1))
