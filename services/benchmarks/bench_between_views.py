@@ -223,9 +223,22 @@ def quantized(values: np.ndarray, limit: float, bits: int | None) -> np.ndarray:
     return codes / steps * (2 * limit) - limit
 
 
+def bc1_roundtrip(depth: np.ndarray, motion: np.ndarray, view: impostor_maps.OrthoView, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (±radius) and the tile-plane motion (right, up components, ±radius/2) through one BC1 layer."""
+    from crowdbake.bake import compression
+
+    channels = [(depth, radius), (motion @ view.right, radius / 2), (motion @ view.up, radius / 2)]
+    rgb = [np.rint((np.clip(v, -r, r) + r) / (2 * r) * 255) for v, r in channels]
+    rgba = np.dstack(rgb + [np.full_like(depth, 255)]).astype(np.uint8)
+    size = depth.shape[0]
+    back = compression.decode_bc1(compression.encode_bc1(rgba), size, size)[..., :3].astype(np.float64) / 255
+    decoded = [back[..., k] * 2 * r - r for k, (_, r) in enumerate(channels)]
+    return decoded[0], decoded[1][..., None] * view.right + decoded[2][..., None] * view.up
+
+
 def warped_image(bench: Bench, azimuth: float, elevation: float, frame: int, motion: bool, samples: list[Sample] | None = None,
                  max_miss: float | None = None, backward: str = "stored", planar: bool = False, bits: int | None = None,
-                 iterations: int = impostor_warp.DEFAULT_ITERATIONS) -> np.ndarray:
+                 iterations: int = impostor_warp.DEFAULT_ITERATIONS, bc1: bool = False) -> np.ndarray:
     """crowdview's blend of the same samples, each reprojected to the camera (and, with `motion`, to the
     cycle frame) first (crowdbake.bake.impostor_warp)."""
     surface = surface_fields(bench)
@@ -241,6 +254,9 @@ def warped_image(bench: Bench, azimuth: float, elevation: float, frame: int, mot
             to_previous = to_previous - (to_previous @ view.back)[..., None] * view.back
             to_next = to_next - (to_next @ view.back)[..., None] * view.back
         radius = bench.poses.radius
+        if bc1:  # one RGB layer a tile: depth, and the constant-velocity motion in the tile's plane
+            depth, to_next = bc1_roundtrip(depth, to_next, view, radius)
+            to_previous = -to_next
         depth = quantized(depth, radius, bits)
         to_previous, to_next = quantized(to_previous, radius / 2, bits), quantized(to_next, radius / 2, bits)
         fraction, field = 0.0, None
@@ -272,6 +288,7 @@ METHODS: dict[str, Callable[[Bench, float, float, int], np.ndarray]] = {
     "warp_motion_miss1": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, max_miss=1.0),
     "warp_velocity": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, backward="negated_next"),
     "warp_planar": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, planar=True),
+    "warp_velocity_bc1": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, backward="negated_next", bc1=True),
     "warp_planar8": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, planar=True, bits=8),
     "warp_planar6": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, planar=True, bits=6),
 }
