@@ -17,7 +17,13 @@ cameras against the mesh rendered there (crowdbake.stages.runtime_fidelity.rende
 `--azimuths` of the baked azimuths (or of the gaps between them) are used, spread evenly, at every ring
 or ring gap. Methods: `blend` is crowdview's blend (crowdbake.bake.impostor_blend, decoded from the bundle's
 files, as runtime_fidelity scores it); `nearest` draws the one (view, frame) sample of highest blend weight,
-ties going to the lower azimuth, ring and frame (the paper's nearest view and frame). Mesh references are
+ties going to the lower azimuth, ring and frame (the paper's nearest view and frame). Candidates reproject
+every sample before the same blend (crowdbake.bake.impostor_warp), from per-texel depth and motion taken
+from the mesh at each baked view (SurfaceFields; what a bake could store beside the maps): `warp` (depth),
+`warp_motion` (and 3D motion to both neighbouring baked frames), `warp_velocity` (one motion field a layer,
+reversed for the way back), `warp_velocity_bc1` (depth and in-tile motion through one BC1 layer),
+`warp_planar8` (8-bit, in-tile motion), `warp_oracle` (motion to the cycle frame itself: the ceiling).
+`sharpen2`/`sharpen4` raise the blend weights to a power: no change exactly halfway. Mesh references are
 cached in WORK/bench_between/ (keyed by frame and camera), so later runs only blend and score.
 """
 from __future__ import annotations
