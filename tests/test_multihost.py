@@ -28,7 +28,7 @@ from reliability_fixtures import (
     SLOW_IMPOSTOR_PARAMS,
     RedisServer,
     bake_body,
-    busy_children,
+    child_pids,
     files_under,
     inputs_created,
     make_service,
@@ -45,6 +45,8 @@ BAKE_TIMEOUT_S = 300
 # A sweeper that acts within seconds: heartbeats every 0.5 s, a task without one for 4 s is lost.
 QUICK_SWEEP = {"CROWDBAKE_HEARTBEAT_INTERVAL": "0.5", "CROWDBAKE_HEARTBEAT_TIMEOUT": "4", "CROWDBAKE_SWEEP_INTERVAL": "0.5"}
 NAME, VERSION = "multihost-walker", "1.0.0"
+# Enough impostor tasks (8 frames x 2 rings) that both hosts are still rendering when one is lost.
+MULTIHOST_PARAMS = {**SLOW_IMPOSTOR_PARAMS, "impostor_frames": 8}
 # The Celery log line of a finished impostor task (crowdbake.jobs.celery_app.TASK_NAMES["impostor_views"]).
 IMPOSTOR_DONE = "crowdbake.stage.impostor_views["
 
@@ -71,6 +73,18 @@ def impostor_tasks_done(worker) -> int:
     return sum(IMPOSTOR_DONE in line and "succeeded" in line for line in worker.log.read_text(errors="replace").splitlines())
 
 
+def holder_of_an_unfinished_part(service, sessions, bake_id: str):
+    """The worker whose pool process owns an impostor part not yet done (claimed, so rendering it), or
+    None. Choosing by CPU alone could pick a process finishing a part already marked done, or between
+    tasks: killing it would lose nothing for the sweeper to find."""
+    from crowdbake.storage.models import BakePart
+
+    with sessions() as session:
+        owners = session.scalars(select(BakePart.owner).where(BakePart.bake_id == bake_id, BakePart.done.is_(False), BakePart.owner.is_not(None))).all()
+    pids = {int(owner.split(":")[1]) for owner in owners if owner.count(":") >= 2 and owner.split(":")[1].isdigit()}
+    return next((worker for worker in service.workers if set(child_pids(worker.popen.pid)) & pids), None)
+
+
 def test_a_bake_fans_out_over_two_hosts_and_survives_losing_one(hosts, sample, tmp_path):
     from crowdbake.storage.models import BakeLog, Bundle
 
@@ -78,19 +92,19 @@ def test_a_bake_fans_out_over_two_hosts_and_survives_losing_one(hosts, sample, t
     with service.client() as client:
         ids = upload_sample(client, sample)
         started = time.monotonic()
-        created = client.post("/v1/bakes", json=bake_body(ids, NAME, VERSION, SLOW_IMPOSTOR_PARAMS))
+        created = client.post("/v1/bakes", json=bake_body(ids, NAME, VERSION, MULTIHOST_PARAMS))
         assert created.status_code == 202, created.text
         bake_id = created.json()["id"]
 
         # Both hosts render impostor views; then the one rendering right now loses its machine.
-        victim = None
+        victim, sessions = None, service.sessions()
         deadline = time.monotonic() + BAKE_TIMEOUT_S
         while victim is None:
             bake = client.get(f"/v1/bakes/{bake_id}").json()
             assert bake["state"] not in ("succeeded", "failed"), f"the bake ended before a host was lost: {bake['state']} {bake['error']}"
             assert time.monotonic() < deadline, service.worker_logs()[-4000:]
             if all(impostor_tasks_done(worker) >= 1 for worker in service.workers):
-                victim = next((worker for worker in service.workers if busy_children(worker.popen.pid, window_s=0.2, min_ticks=3)), None)
+                victim = holder_of_an_unfinished_part(service, sessions, bake_id)
             time.sleep(0.05)
         fanned_out = [impostor_tasks_done(worker) for worker in service.workers]
         os.killpg(os.getpgid(victim.popen.pid), signal.SIGKILL)
