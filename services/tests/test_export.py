@@ -257,7 +257,7 @@ def check_export(bundle_dir: Path, out: Path) -> None:
         expected[path] = rgba8_layers(texture)
     uv = bundle.textures[manifest["impostor"]["maps"]["uv"]]
     if uv.pixel_format == "uvblock":  # exported as the uv32 words of its decoded texels
-        from crowdbake.bake.impostor_maps import uvblock_to_uv32
+        from crowdbake.bake.map_codecs import uvblock_to_uv32
 
         expected[sidecar["impostor"]["maps"]["uv"]["ktx2"]] = np.stack([uvblock_to_uv32(layer, uv.width, uv.height) for layer in uv.layers])
     else:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from crowdbake.bake import impostor_maps as maps
+from crowdbake.bake import map_codecs, short_rows
 from crowdbake.formats.binary import region_alpha
 
 pyrender = pytest.importorskip("pyrender")
@@ -78,7 +79,7 @@ def test_uv_map_decodes_to_the_texel_on_a_facing_quad():
         image = renderer.render(view)
         coverage = maps.resolve_coverage(view, image.ids, positions, faces, image.depth)
     result = maps.view_maps(view, coverage, positions, normals, uvs, faces, np.zeros(2, int), [texture])
-    uv, material, covered = maps.decode_uv_map(result.uv)
+    uv, material, covered = map_codecs.decode_uv_map(result.uv)
     expected = np.zeros((64, 64), bool)
     expected[16:48, 16:48] = True  # the quad spans [-0.5, 0.5] of [-1, 1]: texels 16..47
     np.testing.assert_array_equal(covered, expected)
@@ -96,9 +97,9 @@ def test_uv_map_decodes_to_the_texel_on_a_facing_quad():
     np.testing.assert_array_equal(result.normal[expected][:, :3], np.tile([128, 128, 255], (expected.sum(), 1)))
     # Packed as uv32 (what a default bundle stores): the same coverage and material, and coordinates
     # within half a 14-bit step of the exact ones, 1/32 texel of a 1024² texture.
-    words = maps.uv_map_to_uv32(result.uv)
+    words = map_codecs.uv_map_to_uv32(result.uv)
     assert words.shape == (64, 64) and words.dtype == np.uint32 and (words[~expected] == 0).all()
-    uv32, material32, covered32 = maps.decode_uv_map(words)
+    uv32, material32, covered32 = map_codecs.decode_uv_map(words)
     np.testing.assert_array_equal(covered32, expected)
     assert (material32 == 0).all()
     assert np.abs(uv32[..., 0] - exact_u)[expected].max() <= UV32_STEP / 2 + UV_STEP
@@ -142,7 +143,7 @@ def test_silhouette_texels_carry_their_own_triangles_coordinates():
     the background is all zero, and the region codes in the detail map are whole codes."""
     positions, normals, uvs, faces = uv_sphere()
     view, result = render_maps(positions, normals, uvs, faces, sphere_texture(), 75.0, 10.0)
-    uv, _, covered = maps.decode_uv_map(result.uv)
+    uv, _, covered = map_codecs.decode_uv_map(result.uv)
     triangles = result.coverage.triangle[covered]
     corner_uvs = uvs[faces[triangles]]
     low, high = corner_uvs.min(axis=1) - UV_STEP, corner_uvs.max(axis=1) + UV_STEP
@@ -179,7 +180,7 @@ def test_inside_of_an_open_shape_is_lit_from_the_camera_side():
     positions, normals, uvs, faces = uv_sphere()
     open_top = faces[positions[faces].mean(axis=1)[:, 1] < 0.3]  # cut the cap off: the inside shows from above
     view, result = render_maps(positions, normals, uvs, open_top, sphere_texture(), 0.0, 70.0)
-    decoded = maps.decode_normal_map(result.normal)[result.coverage.mask]
+    decoded = map_codecs.decode_normal_map(result.normal)[result.coverage.mask]
     inside = (result.coverage.triangle[result.coverage.mask] >= 0)
     assert inside.all()
     # Normals point towards the camera side even where the camera sees the back of a triangle.
@@ -238,8 +239,8 @@ def test_row_reductions_are_bitwise_numpys():
     rng = np.random.default_rng(7)
     for width in (2, 3):
         values = rng.standard_normal((5000, width)) * 10.0 ** rng.uniform(-6, 6, (5000, width))
-        assert np.array_equal(maps.row_sum(values), values.sum(axis=1))
-        assert np.array_equal(maps.row_norm(values), np.linalg.norm(values, axis=1))
-        assert np.array_equal(maps.row_min(values), values.min(axis=1))
+        assert np.array_equal(short_rows.row_sum(values), values.sum(axis=1))
+        assert np.array_equal(short_rows.row_norm(values), np.linalg.norm(values, axis=1))
+        assert np.array_equal(short_rows.row_min(values), values.min(axis=1))
     u, v = rng.standard_normal((2, 5000, 3))
     assert np.array_equal(maps.face_normals(np.concatenate([np.zeros((5000, 3)), u, v]), np.arange(15000).reshape(3, 5000).T), np.cross(u, v))

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.bake import impostor_maps
+from crowdbake.bake import impostor_maps, map_codecs
 from crowdbake.bake.impostor_maps import Coverage, OrthoView
 
 AMBIENT = 0.3
@@ -130,8 +130,8 @@ def impostor_image(
     uv_map: (S, S, 4) uint16 (rgba16) or (S, S) uint32 (uv32), as stored; normal_map: (S, S, 4) uint8
     as decoded from its (compressed) layer.
     """
-    uv, material, covered = impostor_maps.decode_uv_map(uv_map)
-    normals = impostor_maps.decode_normal_map(normal_map)
+    uv, material, covered = map_codecs.decode_uv_map(uv_map)
+    normals = map_codecs.decode_normal_map(normal_map)
     image = np.zeros(uv.shape[:2] + (3,), dtype=np.float64)
     if covered.any():
         material = np.clip(material[covered], 0, len(diffuse) - 1)
@@ -208,7 +208,7 @@ def uv_precision(uv_map: np.ndarray, texture_size: int, tile_size: int | None = 
     from crowdbake.bake import compression
     from crowdbake.formats.binary import unpack_uv32, unpack_uvblock
 
-    uv, _, covered = impostor_maps.decode_uv_map(uv_map)
+    uv, _, covered = map_codecs.decode_uv_map(uv_map)
     result: dict[str, dict[str, float]] = {}
     if not covered.any():
         return result
@@ -223,14 +223,14 @@ def uv_precision(uv_map: np.ndarray, texture_size: int, tile_size: int | None = 
     # The 16-bit map is the reference: its own rounding is at most half a step.
     half_step = 0.5 / 65535.0 * texture_size
     result["rgba16"] = {"max_texels": half_step, "mean_texels": half_step / 2.0, "bound": True}
-    u32, v32, _, _ = unpack_uv32(impostor_maps.uv_map_to_uv32(uv_map))
+    u32, v32, _, _ = unpack_uv32(map_codecs.uv_map_to_uv32(uv_map))
     variants = {
         "uv32": np.stack([u32, v32], axis=-1)[covered],
         "rgba8": eight[:height, :width, :2][covered].astype(np.float64) / 255.0,
         "bc1": bc1[..., :2][covered].astype(np.float64) / 255.0,
     }
     if height % 4 == 0 and width % 4 == 0:
-        ub, vb, _, _ = unpack_uvblock(impostor_maps.uv_map_to_uvblock(uv_map), width, height)
+        ub, vb, _, _ = unpack_uvblock(map_codecs.uv_map_to_uvblock(uv_map), width, height)
         variants["uvblock"] = np.stack([ub, vb], axis=-1)[covered]
     for name, stored in variants.items():
         error = np.abs(stored - exact).max(axis=1) * texture_size

@@ -60,9 +60,9 @@ def rgba8_layers(texture: TextureArray) -> np.ndarray:
 def uv_map_layers(texture: TextureArray) -> tuple[int, np.ndarray]:
     """(vkFormat, texels) of an impostor UV map, bit for bit: uv32 words as R32_UINT (L, H, W),
     rgba16 as R16G16B16A16_UNORM (L, H, W, 4); uvblock (a block code no engine samples) decoded into
-    uv32 words, which hold its 12-bit coordinates exactly enough (crowdbake.bake.impostor_maps.uvblock_to_uv32)."""
+    uv32 words, which hold its 12-bit coordinates exactly enough (crowdbake.bake.map_codecs.uvblock_to_uv32)."""
     if texture.pixel_format == "uvblock":
-        from crowdbake.bake.impostor_maps import uvblock_to_uv32
+        from crowdbake.bake.map_codecs import uvblock_to_uv32
 
         words = [uvblock_to_uv32(layer, texture.width, texture.height) for layer in texture.layers]
         return ktx2.VK_FORMAT_R32_UINT, np.stack(words).astype(np.uint32)

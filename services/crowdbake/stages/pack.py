@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.bake import compression, impostor_maps, texture_memory
+from crowdbake.bake import compression, map_codecs, texture_memory
 from crowdbake.bake.atlas import AtlasLayout, assemble
 from crowdbake.errors import StageOrderError
 from crowdbake.formats.binary import encode_texture_array, layer_size
@@ -121,10 +121,10 @@ def encode_frame(layout: AtlasLayout, frame_parts: list[dict[str, np.ndarray]], 
     # The tiles carry 16-bit UV maps; what the bundle stores (and fidelity measures) is `stored`.
     stored = dict(atlases, uv16=atlases["uv"])
     if formats["uv"] == "uv32":
-        stored["uv"] = impostor_maps.uv_map_to_uv32(atlases["uv"])
+        stored["uv"] = map_codecs.uv_map_to_uv32(atlases["uv"])
     elif formats["uv"] == "uvblock":  # fidelity reads the decoded texels, as uv32 words
-        uvblock = impostor_maps.uv_map_to_uvblock(atlases["uv"])
-        stored["uv"] = impostor_maps.uvblock_to_uv32(uvblock, layout.width, layout.height)
+        uvblock = map_codecs.uv_map_to_uvblock(atlases["uv"])
+        stored["uv"] = map_codecs.uvblock_to_uv32(uvblock, layout.width, layout.height)
     layers, errors, fidelity_atlases = {}, {}, {}
     for kind, pixel_format in formats.items():
         if pixel_format == "rgba16":

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.bake import compression, fidelity, impostor_blend, impostor_maps
+from crowdbake.bake import compression, fidelity, impostor_blend, impostor_maps, map_codecs
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.bake.impostor_blend import DecodedTile
 from crowdbake.formats.binary import decode_texture_array, unpack_uv32, unpack_uvblock
@@ -41,14 +41,14 @@ def decode_atlas_layer(uv_file: bytes, normal_file: bytes, layer: int) -> tuple[
         u, v, material, covered = unpack_uv32(uv_map.texels(layer))
         uv = np.stack([u, v], axis=-1)
     else:
-        uv, material, covered = impostor_maps.decode_uv_map(uv_map.texels(layer))
+        uv, material, covered = map_codecs.decode_uv_map(uv_map.texels(layer))
     if normal_map.pixel_format in ("bc1", "bc2"):
         normals = compression.decode(normal_map.layers[layer], normal_map.pixel_format, normal_map.width, normal_map.height)
     else:
         normals = normal_map.texels(layer)
     # Outside the character the shader's decode gives coordinate 0, which its gradients then see.
     uv = np.where(covered[..., None], uv, 0.0)
-    return uv, material, covered, impostor_maps.decode_normal_map(normals)
+    return uv, material, covered, map_codecs.decode_normal_map(normals)
 
 
 class AtlasTiles:

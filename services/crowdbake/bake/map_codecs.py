@@ -1,0 +1,52 @@
+"""The impostor maps as a bundle stores them and a reader decodes them: the bake's 16-bit UV map to and
+from the uv32 and uvblock pixel formats (SPEC.md formats 5 and 6, byte layouts in crowdbake.formats.binary),
+and the 8-bit normal map back to unit normals. numpy in, numpy out."""
+from __future__ import annotations
+
+import numpy as np
+
+from crowdbake.formats.binary import pack_uv32, pack_uvblock, unpack_uv32, unpack_uvblock
+
+
+def decode_uv_map(uv_map: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A UV map as stored -> uv (S, S, 2) float64, material (S, S) int64, coverage (S, S) bool.
+
+    uv_map: (S, S, 4) uint16 (rgba16, and the bake's own 16-bit maps) or (S, S) uint32 words (uv32).
+    """
+    uv_map = np.asarray(uv_map)
+    if uv_map.ndim == 2 and uv_map.dtype == np.uint32:
+        u, v, material, covered = unpack_uv32(uv_map)
+        return np.stack([u, v], axis=-1), material, covered
+    if uv_map.ndim != 3 or uv_map.shape[2] != 4:
+        raise ValueError(f"decode_uv_map: expected (H, W, 4) uint16 or (H, W) uint32, got {uv_map.shape} {uv_map.dtype}")
+    return uv_map[..., :2].astype(np.float64) / 65535.0, uv_map[..., 2].astype(np.int64), uv_map[..., 3] >= 32768
+
+
+def uv_map_to_uv32(uv_map: np.ndarray) -> np.ndarray:
+    """The bake's (H, W, 4) uint16 UV map as (H, W) uint32 uv32 words (SPEC.md pixel format 5).
+
+    Coordinates are re-rounded from 16 to 14 bits (at most 0.5/16383 + 0.5/65535 off the exact
+    value); material indices above 7 cannot be stored and raise ValueError.
+    """
+    uv, material, covered = decode_uv_map(uv_map)
+    return pack_uv32(uv[..., 0], uv[..., 1], np.where(covered, material, 0), covered)
+
+
+def uv_map_to_uvblock(uv_map: np.ndarray) -> bytes:
+    """The bake's (H, W, 4) uint16 UV map as one uvblock layer (SPEC.md pixel format 6; H, W multiples of 4)."""
+    uv, material, covered = decode_uv_map(uv_map)
+    return pack_uvblock(uv[..., 0], uv[..., 1], np.where(covered, material, 0), covered)
+
+
+def uvblock_to_uv32(data: bytes, width: int, height: int) -> np.ndarray:
+    """One uvblock layer as (H, W) uv32 words holding the same decoded texels (12-bit coordinates fit 14
+    bits to within 1/32767), for code that reads uv32: the fidelity scoring, the export, the web preview."""
+    u, v, material, covered = unpack_uvblock(data, width, height)
+    return pack_uv32(u, v, material, covered)
+
+
+def decode_normal_map(normal_map: np.ndarray) -> np.ndarray:
+    """(S, S, 4) uint8 normal map -> (S, S, 3) float64 unit normals ((rgb / 255) · 2 - 1, renormalised)."""
+    n = np.asarray(normal_map)[..., :3].astype(np.float64) / 255.0 * 2.0 - 1.0
+    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 1e-12)
