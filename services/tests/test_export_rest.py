@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from service_fixtures import GOOD_BUNDLE, free_port, make_api, publish_vector_bundle
+from service_fixtures import GOOD_BUNDLE, STORES, free_port, make_api, publish_vector_bundle
 from crowdbake.export import ktx2
 from crowdbake.storage.exports import INDEX_NAME, export_home, exports_root, publish_export
 
@@ -29,20 +29,26 @@ UV32_BUNDLE = GOOD_BUNDLE.parents[2] / "v1-uv32" / "good" / "bundle"
 PREVIEW_DIR = Path(__file__).resolve().parents[1] / "crowdbake" / "api" / "static" / "preview"
 
 
-def publish_with_export(api, name=None, version=None, public=False) -> tuple[str, str]:
-    name, version = publish_vector_bundle(api, name, version, public)
-    publish_export(Path(api.settings.bundles_dir) / name / version, Path(api.settings.bundles_dir))
+def publish_with_export(api, public=False) -> tuple[str, str]:
+    """The good vector published (under its own name and version) with its export, through the app's stores."""
+    name, version = publish_vector_bundle(api, public=public)
+    api.client.app.state.services.exports.publish(GOOD_BUNDLE)
     return name, version
 
 
-@pytest.fixture
-def api(tmp_path):
-    api = make_api(tmp_path)
+def export_index(api, name: str, version: str) -> dict:
+    return api.client.app.state.services.exports.index(name, version)
+
+
+@pytest.fixture(params=STORES)
+def api(tmp_path, request):
+    api = make_api(tmp_path, request.param)
     yield api
     api.client.close()
 
 
-def test_publish_writes_the_export_beside_the_bundle_once(api):
+def test_publish_writes_the_export_beside_the_bundle_once(tmp_path):
+    api = make_api(tmp_path)
     name, version = publish_with_export(api)
     home = export_home(api.settings.bundles_dir, name, version)
     assert home == Path(api.settings.bundles_dir).parent / "exports" / name / version
@@ -60,8 +66,7 @@ def test_publish_writes_the_export_beside_the_bundle_once(api):
 
 def test_export_files_are_served_like_bundle_files(api):
     name, version = publish_with_export(api)
-    home = export_home(api.settings.bundles_dir, name, version)
-    index = json.loads((home / INDEX_NAME).read_text())
+    index = export_index(api, name, version)
     base = f"/v1/bundles/{name}/{version}"
     assert api.client.get(base, headers=api.auth("read")).json()["export_url"] == f"{base}/export/"
     for path, entry in index["files"].items():
@@ -87,7 +92,7 @@ def test_export_files_are_served_like_bundle_files(api):
 
 def test_export_zip_holds_every_file(api):
     name, version = publish_with_export(api)
-    index = json.loads((export_home(api.settings.bundles_dir, name, version) / INDEX_NAME).read_text())
+    index = export_index(api, name, version)
     response = api.client.get(f"/v1/bundles/{name}/{version}/export.zip", headers=api.auth("read"))
     assert response.status_code == 200 and response.headers["content-type"] == "application/zip"
     assert response.headers["etag"] == f'"{index["zip"]["sha256"]}"' == f'"{hashlib.sha256(response.content).hexdigest()}"'
@@ -155,7 +160,8 @@ def import_closure(entry: str) -> set[str]:
     return seen
 
 
-def test_preview_page_serves_exactly_what_it_imports(api):
+def test_preview_page_serves_exactly_what_it_imports(local_api):
+    api = local_api
     if not (PREVIEW_DIR / "node_modules" / "three").is_dir():
         pytest.skip(f"npm packages missing: run `npm ci` in {PREVIEW_DIR} (scripts/setup.sh does)")
     from crowdbake.api.routes.exports import PREVIEW_FILES
@@ -175,7 +181,14 @@ def test_preview_page_serves_exactly_what_it_imports(api):
         assert api.client.get(f"/ui/preview/{path}").status_code == 404, path
 
 
-def test_jobs_page_links_the_preview_and_the_preview_draws_the_crowd(api, tmp_path):
+@pytest.fixture
+def local_api(tmp_path):
+    api = make_api(tmp_path)
+    yield api
+    api.client.close()
+
+
+def test_jobs_page_links_the_preview_and_the_preview_draws_the_crowd(local_api, tmp_path):
     """Headless Chromium: the jobs page lists the bundle with a "Preview crowd" link; following it (same
     tab, so the key stays in sessionStorage) the preview fetches the private export with that key and
     draws the crowd, its BC textures uploaded as S3TC blocks."""
@@ -189,6 +202,7 @@ def test_jobs_page_links_the_preview_and_the_preview_draws_the_crowd(api, tmp_pa
     from crowdbake.storage.bundles import register_bundle
     from crowdbake.storage.db import session_scope
 
+    api = local_api
     manifest = json.loads((UV32_BUNDLE / "manifest.json").read_text())  # the preview draws uv32 impostors
     name, version = manifest["name"], manifest["version"]
     folder = Path(api.settings.bundles_dir) / name / version
@@ -222,3 +236,25 @@ def test_jobs_page_links_the_preview_and_the_preview_draws_the_crowd(api, tmp_pa
     finally:
         server.should_exit = True
         thread.join(timeout=10)
+
+
+@pytest.mark.parametrize("store", [store for store in STORES if "s3" in str(store)])
+def test_an_object_store_export_is_written_once_under_its_index_and_can_redirect(tmp_path, store):
+    """On the S3 store as in folders: the index is written last, once (a second publish keeps it), the
+    files sit under the index's digest, and with presigned downloads a file answers 307 to the bucket."""
+    api = make_api(tmp_path, "s3", s3_redirect_downloads=True)
+    name, version = publish_with_export(api)
+    exports = api.client.app.state.services.exports
+    client, bucket, home = exports.client, exports.bucket, exports.home(name, version)
+    stored = client.get_object(Bucket=bucket, Key=home + INDEX_NAME)
+    data = stored["Body"].read()
+    digest = hashlib.sha256(data).hexdigest()
+    keys = {item["Key"] for item in client.list_objects_v2(Bucket=bucket, Prefix=home)["Contents"]}
+    index = json.loads(data)
+    assert keys == {home + INDEX_NAME, f"{home}{digest}/export.zip"} | {f"{home}{digest}/export/{path}" for path in index["files"]}
+    exports.publish(GOOD_BUNDLE)  # kept: the same object, not rewritten
+    assert client.head_object(Bucket=bucket, Key=home + INDEX_NAME)["ETag"] == stored["ETag"]
+    base = f"/v1/bundles/{name}/{version}"
+    redirect = api.client.get(f"{base}/export/export.json", headers=api.auth("read"), follow_redirects=False)
+    assert redirect.status_code == 307 and digest in redirect.headers["location"]
+    assert redirect.headers["etag"] == f'"{index["files"]["export.json"]["sha256"]}"'

@@ -148,6 +148,14 @@ def test_upload_bake_publish_download_verify(service, sample, tmp_path):
         with zipfile.ZipFile(io.BytesIO(archive.content)) as bundle_zip:
             assert bundle_zip.read("sample-walker/1.0.0/manifest.json") == manifest_bytes
             assert len(bundle_zip.namelist()) == len(manifest["files"]) + 1
+        # The engine export was published beside the bundle, in the same store (folders or bucket).
+        listed = client.get("/v1/bundles/sample-walker/1.0.0").json()
+        assert listed["export_url"] == "/v1/bundles/sample-walker/1.0.0/export/"
+        sidecar = client.get(f"{listed['export_url']}export.json")
+        assert sidecar.status_code == 200 and sidecar.json()["bundle"] == {"name": "sample-walker", "version": "1.0.0"}
+        export_zip = client.get("/v1/bundles/sample-walker/1.0.0/export.zip")
+        with zipfile.ZipFile(io.BytesIO(export_zip.content)) as exported:
+            assert "sample-walker-1.0.0/export.json" in exported.namelist()
 
     # Idempotent resubmission: the same inputs and parameters give back the same bake, already done.
     again = submit(service, sample, "1.0.0", download=tmp_path / "again")

@@ -55,7 +55,7 @@ def build_services(settings: Settings) -> AppServices:
         with session_scope(sessions) as session:
             ensure_bootstrap_key(session, settings.bootstrap_key.get_secret_value())
     stores = open_store(settings)
-    return AppServices(settings=settings, sessions=sessions, blobs=stores.blobs, bundles=stores.bundles, celery=make_celery(settings))
+    return AppServices(settings=settings, sessions=sessions, blobs=stores.blobs, bundles=stores.bundles, exports=stores.exports, celery=make_celery(settings))
 
 
 # Swagger UI and ReDoc bundles as a pip package ships them (fastapi-offline, pinned in requirements.txt).

@@ -14,6 +14,7 @@ from crowdbake.api.problems import Problem
 from crowdbake.settings import Settings
 from crowdbake.storage.blobs import BlobStore
 from crowdbake.storage.bundle_store import BundleStore
+from crowdbake.storage.exports import ExportStore
 from crowdbake.storage.keys import verify_api_key
 from crowdbake.storage.models import ApiKey
 
@@ -26,6 +27,7 @@ class AppServices:
     sessions: sessionmaker[Session]
     blobs: BlobStore
     bundles: BundleStore
+    exports: ExportStore
     celery: Celery
 
 

@@ -62,6 +62,7 @@ from crowdbake.storage import records
 from crowdbake.storage.blobs import BlobStore
 from crowdbake.storage.bundle_store import BundleStore
 from crowdbake.storage.bundles import register_bundle
+from crowdbake.storage.exports import ExportStore
 from crowdbake.storage.db import make_engine, make_sessionmaker, session_scope
 from crowdbake.storage.models import Bake, BakePart, utcnow
 from crowdbake.storage.store import open_store
@@ -97,6 +98,7 @@ class WorkerServices:
     sessions: sessionmaker[Session]
     blobs: BlobStore
     bundles: BundleStore
+    exports: ExportStore
 
     @property
     def exchanges_work(self) -> bool:
@@ -120,7 +122,7 @@ def services() -> WorkerServices:
             _services.sessions.kw["bind"].dispose(close=False)
         settings = get_settings()
         stores = open_store(settings)
-        _services = WorkerServices(settings, make_sessionmaker(make_engine(settings.database_url)), stores.blobs, stores.bundles)
+        _services = WorkerServices(settings, make_sessionmaker(make_engine(settings.database_url)), stores.blobs, stores.bundles, stores.exports)
         _services_pid = os.getpid()
     return _services
 
@@ -566,9 +568,8 @@ def publish(self, bake_id: str, attempt: int) -> None:
             name, version = bake.name, bake.version
         bundles = ctx.services.bundles
         published = bundles.publish(ctx.work / "bundle", name, version)  # BundleConflict: other bytes published
-        if ctx.services.settings.store == "local":
-            # The engine export beside the bundle, unless export=false (exports live in local folders only).
-            _stage("publish").stage_export(ctx.work, ctx.services.settings.bundles_dir)
+        # The engine export, unless export=false: beside the bundle, in its folders or its bucket.
+        _stage("publish").stage_export(ctx.work, ctx.services.exports)
         return {"name": name, "version": version, "manifest_sha256": published.sha256}
 
     def after(ctx: StageContext, result, seconds: float) -> None:

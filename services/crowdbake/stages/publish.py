@@ -12,7 +12,7 @@ from crowdbake.errors import StageOrderError, VersionConflict
 from crowdbake.formats.bundle import BundleFile, verify_bundle, write_bundle
 from crowdbake.stages.validate import load_job
 from crowdbake.stages.workdir import WorkDir
-from crowdbake.storage.exports import publish_export
+from crowdbake.storage.exports import ExportStore, LocalExportStore
 
 
 def same_tree(a: Path, b: Path) -> bool:
@@ -54,13 +54,16 @@ def stage_publish(work: Path, bundles_root: Path) -> Path:
     return target
 
 
-def stage_export(work: Path, bundles_root: Path) -> Path | None:
-    """Publish the engine export of the bundle `stage_publish` published (once; a second call keeps
-    the first). Returns its folder, or None when the bake's `export` parameter is false."""
+def stage_export(work: Path, exports: ExportStore | Path) -> bool:
+    """Publish the engine export of the bundle the bake packed (once; a second call keeps the first)
+    into `exports` (a store, or a bundles folder for the exports beside it). False when the bake's
+    `export` parameter is false. The export is made from work/bundle, the bytes `stage_publish` published."""
     job = load_job(work)
     if not job.bake_params.export:
-        return None
-    bundle = Path(bundles_root) / job.name / job.version
+        return False
+    bundle = WorkDir(work).bundle
     if not (bundle / "manifest.json").is_file():
-        raise StageOrderError(f"{work}: stage 'publish' has not run yet")
-    return publish_export(bundle, Path(bundles_root))
+        raise StageOrderError(f"{work}: stage 'pack' has not run yet")
+    store = exports if isinstance(exports, ExportStore) else LocalExportStore(Path(exports))
+    store.publish(bundle)
+    return True

@@ -65,11 +65,30 @@ def write_export_zip(files_dir: Path, paths: list[str], prefix: str, target: Pat
             archive.writestr(info, (files_dir / path).read_bytes())
 
 
+def build_export(bundle_folder: Path, staging: Path, ktx2_mode: str = "bc") -> dict[str, Any]:
+    """Write the export of the bundle at `bundle_folder` into the empty folder `staging` (export/,
+    export.zip, index.json) and return the index."""
+    from crowdbake.export import export_bundle
+
+    manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())
+    name, version = manifest["name"], manifest["version"]
+    summary = export_bundle(bundle_folder, staging / FILES_FOLDER, ktx2_mode)
+    paths = sorted(summary.files)
+    write_export_zip(staging / FILES_FOLDER, paths, f"{name}-{version}", staging / ZIP_NAME)
+    index = {
+        "format": INDEX_FORMAT,
+        "bundle": {"name": name, "version": version, "manifest_sha256": _sha256(Path(bundle_folder) / "manifest.json")},
+        "ktx2": ktx2_mode,
+        "files": {path: {"size": summary.files[path], "sha256": _sha256(staging / FILES_FOLDER / path), "media_type": media_type(path)} for path in paths},
+        "zip": {"size": (staging / ZIP_NAME).stat().st_size, "sha256": _sha256(staging / ZIP_NAME), "media_type": MEDIA_TYPES[".zip"]},
+    }
+    (staging / INDEX_NAME).write_text(json.dumps(index, indent=2) + "\n")
+    return index
+
+
 def publish_export(bundle_folder: Path, bundles_dir: Path, ktx2_mode: str = "bc") -> Path:
     """Export the published bundle at `bundle_folder` (= bundles_dir/<name>/<version>) once, into its
     export home; returns that folder. An export already there is kept (the bundle cannot have changed)."""
-    from crowdbake.export import export_bundle
-
     manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())
     name, version = manifest["name"], manifest["version"]
     home = export_home(bundles_dir, name, version)
@@ -78,17 +97,7 @@ def publish_export(bundle_folder: Path, bundles_dir: Path, ktx2_mode: str = "bc"
     home.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{version}.", suffix=".partial", dir=home.parent))
     try:
-        summary = export_bundle(bundle_folder, staging / FILES_FOLDER, ktx2_mode)
-        paths = sorted(summary.files)
-        write_export_zip(staging / FILES_FOLDER, paths, f"{name}-{version}", staging / ZIP_NAME)
-        index = {
-            "format": INDEX_FORMAT,
-            "bundle": {"name": name, "version": version, "manifest_sha256": _sha256(Path(bundle_folder) / "manifest.json")},
-            "ktx2": ktx2_mode,
-            "files": {path: {"size": summary.files[path], "sha256": _sha256(staging / FILES_FOLDER / path), "media_type": media_type(path)} for path in paths},
-            "zip": {"size": (staging / ZIP_NAME).stat().st_size, "sha256": _sha256(staging / ZIP_NAME), "media_type": MEDIA_TYPES[".zip"]},
-        }
-        (staging / INDEX_NAME).write_text(json.dumps(index, indent=2) + "\n")
+        build_export(bundle_folder, staging, ktx2_mode)
         try:
             staging.rename(home)
         except OSError:
@@ -111,3 +120,54 @@ def read_export_index(bundles_dir: Path, name: str, version: str) -> dict[str, A
 @lru_cache(maxsize=256)
 def _load_index(path: str, _mtime_ns: int) -> dict[str, Any]:
     return json.loads(Path(path).read_text())
+
+
+class ExportStore:
+    """Where published exports live, for the publish stage and the REST routes; a file is named by its
+    path in the export's home: `export/<path>` (a path of index.json's "files") or `export.zip`.
+    LocalExportStore keeps them in folders beside the bundles, crowdbake.storage.s3_exports in the bucket."""
+
+    def publish(self, bundle_folder: Path, ktx2_mode: str = "bc") -> None:
+        """Export the bundle at `bundle_folder` once (a second publish keeps the first export)."""
+        raise NotImplementedError
+
+    def index(self, name: str, version: str) -> dict[str, Any]:
+        """The export's index.json; FileNotFoundError when the bundle has no export."""
+        raise NotImplementedError
+
+    def has(self, name: str, version: str) -> bool:
+        try:
+            self.index(name, version)
+        except FileNotFoundError:
+            return False
+        return True
+
+    def local_path(self, name: str, version: str, path: str) -> Path | None:
+        """The file in a local folder, or None when the store is remote (then open_file streams it)."""
+        return None
+
+    def open_file(self, name: str, version: str, path: str, byte_range: tuple[int, int] | None = None):
+        raise NotImplementedError
+
+    def presigned_url(self, name: str, version: str, path: str, expires_s: int, media_type: str | None = None,
+                      cache_control: str | None = None) -> str | None:
+        return None
+
+
+class LocalExportStore(ExportStore):
+    """Exports in `<bundles_dir>/../exports/<name>/<version>/` (the layout at the top of this module)."""
+
+    def __init__(self, bundles_dir: Path):
+        self.bundles_dir = Path(bundles_dir)
+
+    def publish(self, bundle_folder: Path, ktx2_mode: str = "bc") -> None:
+        publish_export(bundle_folder, self.bundles_dir, ktx2_mode)
+
+    def index(self, name: str, version: str) -> dict[str, Any]:
+        return read_export_index(self.bundles_dir, name, version)
+
+    def has(self, name: str, version: str) -> bool:
+        return (export_home(self.bundles_dir, name, version) / INDEX_NAME).is_file()
+
+    def local_path(self, name: str, version: str, path: str) -> Path:
+        return export_home(self.bundles_dir, name, version) / path

@@ -13,14 +13,11 @@ key with the read scope that published it (or an admin key, or any key in a shar
 """
 from __future__ import annotations
 
-import os
-from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, Path as PathParam, Request
 from fastapi.responses import FileResponse, Response
 from sqlalchemy import or_, select
-from starlette.responses import MalformedRangeHeader, RangeNotSatisfiable
 
 from crowdbake.api.bundle_files import bundle_file_redirect, bundle_file_response
 from crowdbake.api.deps import PrincipalDep, PublishKey, ServicesDep, SessionDep, Principal
@@ -38,7 +35,7 @@ from crowdbake.formats.errors import FormatError
 from crowdbake.storage.records import to_utc
 from crowdbake.storage.bundle_store import MANIFEST
 from crowdbake.storage.bundles import LATEST, PublishedManifest, find_bundle
-from crowdbake.storage.exports import INDEX_NAME, export_home
+from crowdbake.storage.exports import ExportStore
 from crowdbake.storage.models import Bake, Bundle
 
 router = APIRouter(prefix="/v1/bundles", tags=["bundles"])
@@ -107,8 +104,8 @@ def _latest_redirect(request: Request, bundle: Bundle) -> Response:
     return Response(status_code=307, headers={"Location": location, "Content-Location": location, "Cache-Control": "no-cache"})
 
 
-def _public(bundle: Bundle, bundles_dir: Path) -> BundlePublic:
-    has_export = (export_home(bundles_dir, bundle.name, bundle.version) / INDEX_NAME).is_file()
+def _public(bundle: Bundle, exports: ExportStore) -> BundlePublic:
+    has_export = exports.has(bundle.name, bundle.version)
     return BundlePublic(
         name=bundle.name, version=bundle.version, manifest_sha256=bundle.manifest_sha256, size=bundle.size,
         file_count=bundle.file_count, public=bundle.public, bake_id=bundle.bake_id,
@@ -144,33 +141,6 @@ def _serve_file(request: Request, services, bundle: Bundle, path: str, sha256: s
     return bundle_file_response(request, store, bundle.name, bundle.version, path, size, media_type, headers)
 
 
-def serve_local_file(request: Request, path: Path, sha256: str, media_type: str, bundle: Bundle) -> Response:
-    """A file kept in a local folder beside a published bundle (its engine export) with the same headers,
-    conditional and range handling as the bundle's own files."""
-    headers = _file_headers(sha256, bundle)
-    if_none_match = request.headers.get("if-none-match")
-    if if_none_match and _etag_matches(if_none_match, sha256):
-        return Response(status_code=304, headers=headers)
-    try:
-        stat_result = os.stat(path)
-    except FileNotFoundError:
-        raise Problem("internal-error", "a published file is missing", status=500) from None
-    range_header = request.headers.get("range")
-    if_range = request.headers.get("if-range")
-    if range_header and (if_range is None or if_range.strip() == headers["ETag"]):
-        try:
-            FileResponse._parse_range_header(range_header, stat_result.st_size)
-        except MalformedRangeHeader:
-            # RFC 9110 section 14.2: a server may ignore a Range header it cannot parse and send the whole file.
-            request.scope["headers"] = [(k, v) for k, v in request.scope["headers"] if k != b"range"]
-        except RangeNotSatisfiable:
-            raise Problem(
-                "range-not-satisfiable", f"the file has {stat_result.st_size} bytes",
-                headers={"Content-Range": f"bytes */{stat_result.st_size}", **headers},
-            ) from None
-    return FileResponse(path, media_type=media_type, headers=headers, stat_result=stat_result)
-
-
 @router.get("", response_model=BundleNamesPublic, responses=problem_responses())
 def list_bundle_names(principal: PrincipalDep, session: SessionDep) -> BundleNamesPublic:
     query = _readable_bundles(principal, (Bundle.name,)).distinct().order_by(Bundle.name)
@@ -185,12 +155,12 @@ def list_versions(name: NameParam, principal: PrincipalDep, services: ServicesDe
         if principal.key_id is None and find_bundle(session, name, LATEST) is not None:
             raise Problem("unauthorized", f"bundle {name} is not public; send a key with the read scope", headers={"WWW-Authenticate": "Bearer"})
         raise Problem("not-found", f"no bundle named {name!r}")
-    return BundleVersionsPublic(name=name, latest=bundles[0].version, versions=[_public(bundle, services.settings.bundles_dir) for bundle in bundles])
+    return BundleVersionsPublic(name=name, latest=bundles[0].version, versions=[_public(bundle, services.exports) for bundle in bundles])
 
 
 @router.get("/{name}/{version}", response_model=BundlePublic, responses=problem_responses(404))
 def get_bundle(name: NameParam, version: VersionParam, principal: PrincipalDep, services: ServicesDep, session: SessionDep) -> BundlePublic:
-    return _public(_bundle_or_problem(session, principal, name, version), services.settings.bundles_dir)
+    return _public(_bundle_or_problem(session, principal, name, version), services.exports)
 
 
 @router.patch("/{name}/{version}", response_model=BundlePublic, responses=problem_responses(400, 404), summary="Make a bundle public or private")
@@ -202,7 +172,7 @@ def update_bundle(name: NameParam, version: VersionParam, body: BundleUpdate, ke
         raise Problem("not-found", f"no bundle {name}/{version}")
     bundle.public = body.public
     session.commit()
-    return _public(bundle, services.settings.bundles_dir)
+    return _public(bundle, services.exports)
 
 
 def _manifest(services, bundle: Bundle) -> PublishedManifest:

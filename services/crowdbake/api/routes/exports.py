@@ -21,9 +21,10 @@ from fastapi.responses import FileResponse, Response
 
 from crowdbake.api.deps import PrincipalDep, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
-from crowdbake.api.routes.bundles import FILE_RESPONSES, NameParam, VersionParam, _bundle_or_problem, _latest_redirect, serve_local_file
+from crowdbake.api.bundle_files import bundle_file_redirect, bundle_file_response
+from crowdbake.api.routes.bundles import FILE_RESPONSES, NameParam, VersionParam, _bundle_or_problem, _etag_matches, _file_headers, _latest_redirect
 from crowdbake.storage.bundles import LATEST
-from crowdbake.storage.exports import FILES_FOLDER, ZIP_NAME, export_home, read_export_index
+from crowdbake.storage.exports import FILES_FOLDER, ZIP_NAME
 from crowdbake.storage.models import Bundle
 
 router = APIRouter(prefix="/v1/bundles", tags=["bundles"])
@@ -62,7 +63,7 @@ PREVIEW_CSP = ("default-src 'self'; script-src 'self' {import_map}; style-src 's
 
 def _export_index(services, bundle: Bundle) -> dict:
     try:
-        return read_export_index(services.settings.bundles_dir, bundle.name, bundle.version)
+        return services.exports.index(bundle.name, bundle.version)
     except FileNotFoundError:
         raise Problem("not-found", f"{bundle.name}/{bundle.version} was published without an export (bake parameter export=false)") from None
 
@@ -79,8 +80,7 @@ def get_export_file(name: NameParam, version: VersionParam, path: str, request: 
     entry = index["files"].get(path)  # only the listed paths: nothing else under the folder is reachable
     if entry is None:
         raise Problem("not-found", f"the export of {bundle.name}/{bundle.version} has no file {path!r} (export.json lists them)")
-    file_path = export_home(services.settings.bundles_dir, bundle.name, bundle.version) / FILES_FOLDER / path
-    return serve_local_file(request, file_path, entry["sha256"], entry["media_type"], bundle)
+    return _serve_export_file(request, services, bundle, f"{FILES_FOLDER}/{path}", entry)
 
 
 @router.get("/{name}/{version}/export.zip", responses=FILE_RESPONSES, response_class=FileResponse,
@@ -92,10 +92,24 @@ def get_export_zip(name: NameParam, version: VersionParam, request: Request, pri
     entry = _export_index(services, bundle)["zip"]
     if version == LATEST:
         return _latest_redirect(request, bundle)
-    file_path = export_home(services.settings.bundles_dir, bundle.name, bundle.version) / ZIP_NAME
-    response = serve_local_file(request, file_path, entry["sha256"], entry["media_type"], bundle)
+    response = _serve_export_file(request, services, bundle, ZIP_NAME, entry)
     response.headers["Content-Disposition"] = f'attachment; filename="{bundle.name}-{bundle.version}-export.zip"'
     return response
+
+
+def _serve_export_file(request: Request, services, bundle: Bundle, path: str, entry: dict) -> Response:
+    """An export file (`export/<path>` or `export.zip` of its home) with the bundle files' ETag, cache,
+    conditional and range handling, from whichever store holds it (a presigned redirect where enabled)."""
+    headers = _file_headers(entry["sha256"], bundle)
+    if_none_match = request.headers.get("if-none-match")
+    if if_none_match and _etag_matches(if_none_match, entry["sha256"]):
+        return Response(status_code=304, headers=headers)
+    store = services.exports
+    if services.settings.s3_redirect_downloads:
+        redirect = bundle_file_redirect(store, bundle.name, bundle.version, path, entry["media_type"], headers, services.settings.s3_presign_seconds)
+        if redirect is not None:
+            return redirect
+    return bundle_file_response(request, store, bundle.name, bundle.version, path, int(entry["size"]), entry["media_type"], headers)
 
 
 @preview_router.get("/ui/preview")

@@ -1,0 +1,115 @@
+"""Published exports in an S3-compatible bucket, with the guarantees of the bundles beside them.
+
+Keys, for an export whose index.json bytes hash to X:
+
+    <prefix>exports/<name>/<version>/X/export/<path>   every file index.json lists
+    <prefix>exports/<name>/<version>/X/export.zip      the same files in one zip
+    <prefix>exports/<name>/<version>/index.json        the index: written last, and only if absent
+
+As for bundles (crowdbake.storage.s3_bundles), the index is the pointer: it is visible only once every
+file is in place, its digest names the prefix of the files, its put is conditional, and no object is
+ever overwritten. An export is made from a published bundle, which never changes, so a second
+publisher finding an index there keeps it.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import tempfile
+import threading
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from crowdbake.storage.bundle_store import check_name_version
+from crowdbake.storage.exports import FILES_FOLDER, INDEX_NAME, ZIP_NAME, ExportStore, build_export
+from crowdbake.storage.s3 import error_code, get_stream, is_missing, is_taken, put_file_once
+
+INDEX_CACHE_SIZE = 256  # parsed indexes kept per process (each revalidated by its ETag)
+
+
+class S3ExportStore(ExportStore):
+    """Exports under `<prefix>exports/` of a bucket; `scratch` is a local folder to build them in."""
+
+    def __init__(self, client, bucket: str, prefix: str, part_bytes: int, scratch: Path):
+        self.client, self.bucket, self.prefix, self.part_bytes, self.scratch = client, bucket, prefix, int(part_bytes), Path(scratch)
+        self._indexes: OrderedDict[tuple[str, str], tuple[str, str, dict[str, Any]]] = OrderedDict()
+        self._lock = threading.Lock()  # the API serves requests from a thread pool
+
+    def home(self, name: str, version: str) -> str:
+        check_name_version(name, version)
+        return f"{self.prefix}exports/{name}/{version}/"
+
+    def publish(self, bundle_folder: Path, ktx2_mode: str = "bc") -> None:
+        manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())
+        name, version = manifest["name"], manifest["version"]
+        if self.has(name, version):
+            return
+        self.scratch.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".export-{version}.", dir=self.scratch))
+        try:
+            index = build_export(Path(bundle_folder), staging, ktx2_mode)
+            index_data = (staging / INDEX_NAME).read_bytes()
+            digest = hashlib.sha256(index_data).hexdigest()
+            objects = [(f"{FILES_FOLDER}/{path}", entry) for path, entry in index["files"].items()] + [(ZIP_NAME, index["zip"])]
+            for path, entry in objects:
+                # False: a crashed or concurrent publish of the same index put it already (same bytes: the
+                # prefix names the index, which names every file's sha256).
+                put_file_once(self.client, self.bucket, self._file_key(name, version, digest, path), staging / path,
+                              self.part_bytes, entry["media_type"], {"sha256": entry["sha256"]})
+            try:
+                self.client.put_object(Bucket=self.bucket, Key=self.home(name, version) + INDEX_NAME, Body=index_data,
+                                       ContentType="application/json", Metadata={"sha256": digest}, IfNoneMatch="*")
+            except Exception as error:
+                if not is_taken(error):  # taken: another publisher's export of the same bundle is the one
+                    raise
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+
+    def _file_key(self, name: str, version: str, digest: str, path: str) -> str:
+        return f"{self.home(name, version)}{digest}/{path}"
+
+    def _index(self, name: str, version: str) -> tuple[str, dict[str, Any]]:
+        """(digest of index.json, its content), revalidated by ETag; FileNotFoundError when absent."""
+        key = self.home(name, version) + INDEX_NAME
+        with self._lock:
+            cached = self._indexes.get((name, version))
+        try:
+            kwargs = {"IfNoneMatch": cached[0]} if cached else {}
+            response = self.client.get_object(Bucket=self.bucket, Key=key, **kwargs)
+        except Exception as error:
+            if cached and error_code(error) in {"304", "NotModified"}:
+                return cached[1], cached[2]
+            if is_missing(error):
+                with self._lock:
+                    self._indexes.pop((name, version), None)
+                raise FileNotFoundError(f"{name}/{version} has no export in s3://{self.bucket}/{self.prefix}") from None
+            raise
+        with response["Body"] as body:
+            data = body.read()
+        digest, index = hashlib.sha256(data).hexdigest(), json.loads(data)
+        with self._lock:
+            self._indexes[(name, version)] = (response["ETag"], digest, index)
+            self._indexes.move_to_end((name, version))
+            while len(self._indexes) > INDEX_CACHE_SIZE:
+                self._indexes.popitem(last=False)
+        return digest, index
+
+    def index(self, name: str, version: str) -> dict[str, Any]:
+        return self._index(name, version)[1]
+
+    def _key_of(self, name: str, version: str, path: str) -> str:
+        return self._file_key(name, version, self._index(name, version)[0], path)
+
+    def open_file(self, name: str, version: str, path: str, byte_range: tuple[int, int] | None = None) -> BinaryIO:
+        return get_stream(self.client, self.bucket, self._key_of(name, version, path), byte_range)
+
+    def presigned_url(self, name: str, version: str, path: str, expires_s: int, media_type: str | None = None,
+                      cache_control: str | None = None) -> str:
+        params = {"Bucket": self.bucket, "Key": self._key_of(name, version, path)}
+        if media_type:
+            params["ResponseContentType"] = media_type
+        if cache_control:
+            params["ResponseCacheControl"] = cache_control
+        return self.client.generate_presigned_url("get_object", Params=params, ExpiresIn=int(expires_s))
