@@ -231,7 +231,7 @@ def test_the_heartbeat_stops_a_running_stage_when_the_bake_is_cancelled(api, ass
     bake_id = new_bake(api, assets)
     owner = records.delivery_owner("task-a")
     assert claim(api, bake_id, "validate", owner).won
-    services = WorkerServices(api.settings, api.sessions, None, None)
+    services = WorkerServices(api.settings, api.sessions, None, None, None)
     ctx = StageContext(services, bake_id, 0, "validate", api.settings.work_dir / "unused", owner=owner)
     with Heartbeat(ctx, api.settings.heartbeat_interval):
         ctx.progress("validate", 0, 10)  # live: no exception

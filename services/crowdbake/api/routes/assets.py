@@ -36,7 +36,10 @@ MEDIA_TYPES = {
     "json": "application/json",
     **STUDIO_MEDIA_TYPES,
 }
-UPLOAD_RESPONSES = problem_responses(400, 413, 415)
+# 201 with the new asset; 200 with the asset already stored under the same content (uploads are
+# stored once by sha256, and the Location names the existing asset).
+UPLOAD_RESPONSES = {200: {"model": AssetPublic, "description": "Already stored: the existing asset with these bytes"},
+                    **problem_responses(400, 413, 415)}
 
 
 def _multipart_body(properties: dict[str, dict[str, Any]], required: list[str]) -> dict[str, Any]:
