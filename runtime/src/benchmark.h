@@ -33,7 +33,7 @@ struct BenchmarkDesc {
     std::vector<BenchmarkMode> modes{std::begin(kAllBenchmarkModes), std::end(kAllBenchmarkModes)};
     // How impostors blend views and frames in uv_impostor, detail_impostor and hybrid. The
     // report also times UV impostors with blending off and on at one crowd size.
-    ImpostorBlend blend = ImpostorBlend::full;
+    ImpostorBlend blend = ImpostorBlend::warp;
     std::string device;        // GlContext::describe(), for the report
     std::function<void(const std::string&)> log;  // one progress line per measurement; may be empty
 };

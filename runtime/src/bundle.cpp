@@ -604,6 +604,7 @@ Status parse_manifest(const std::string& text, Manifest* out) {
             info.normal_map = check.path(*maps, "impostor/maps", "normal");
             info.uv_map = check.path(*maps, "impostor/maps", "uv");
             info.detail_map = check.path(*maps, "impostor/maps", "detail");
+            if (maps->contains("surface")) info.surface_map = check.path(*maps, "impostor/maps", "surface");
         }
     }
     if (const json* files = check.array(doc, "", "files", 1))
@@ -626,7 +627,7 @@ Status parse_manifest(const std::string& text, Manifest* out) {
             entry.media_type = check.string(item, where, "media_type", nullptr, 1);
             entry.role = check.enumerated(item, where, "role",
                                           {"pose-cache", "diffuse", "outfit-colours", "impostor-normal", "impostor-uv",
-                                           "impostor-detail", "cycle", "fidelity", "texture-memory", "report", "preview"});
+                                           "impostor-detail", "impostor-surface", "cycle", "fidelity", "texture-memory", "report", "preview"});
             m.files.push_back(entry);
         }
     if (check.failed()) return make_error(ErrorCode::manifest_invalid, fn, file, check.error());
@@ -733,9 +734,11 @@ Status cross_check(const Manifest& m, const std::map<std::string, PoseCache>& po
     const std::pair<const char*, std::pair<const std::string*, TextureArray*>> maps[] = {
         {"detail", {&imp.detail_map, &bundle->impostor_detail}},
         {"normal", {&imp.normal_map, &bundle->impostor_normal}},
+        {"surface", {&imp.surface_map, &bundle->impostor_surface}},
         {"uv", {&imp.uv_map, &bundle->impostor_uv}},
     };
     for (const auto& [kind, target] : maps) {
+        if (target.first->empty()) continue;  // the optional surface map, absent
         const TextureArray* atlas = nullptr;
         if (Status s = texture(*target.first, &atlas); !s) return s;
         if (atlas->width != width || atlas->height != height || atlas->layer_count != imp.frame_indices.size())
@@ -748,6 +751,9 @@ Status cross_check(const Manifest& m, const std::map<std::string, PoseCache>& po
     if (bundle->impostor_uv.format != PixelFormat::rgba16 && bundle->impostor_uv.format != PixelFormat::uv32 &&
         bundle->impostor_uv.format != PixelFormat::uvblock)
         return bad(imp.uv_map, "the UV map must be rgba16, uv32 or uvblock (8 bits cannot address a 1024-texel texture)");
+    if (!imp.surface_map.empty() && bundle->impostor_surface.format != PixelFormat::bc1 &&
+        bundle->impostor_surface.format != PixelFormat::rgba8)
+        return bad(imp.surface_map, "the surface map must be bc1 or rgba8");
     return {};
 }
 

@@ -173,6 +173,7 @@ struct ImpostorInfo {
     float center[3] = {0, 0, 0};
     float radius = 0;
     std::string normal_map, uv_map, detail_map;
+    std::string surface_map;  // optional (SPEC.md "Impostor maps"): "" when the bundle has none
 };
 
 struct Manifest {
@@ -208,6 +209,7 @@ struct Bundle {
     std::vector<TextureArray> diffuse;    // parallel to manifest.materials
     TextureArray outfits;
     TextureArray impostor_normal, impostor_uv, impostor_detail;
+    TextureArray impostor_surface;  // layer_count 0 when the bundle has no surface map
 };
 
 // Supplies the bytes of one listed file whose path already passed is_safe_path. Return

@@ -30,6 +30,17 @@
 #define CV_UNIT_IMPOSTOR_UV 3
 #define CV_UNIT_IMPOSTOR_DETAIL 4
 #define CV_UNIT_DIFFUSE0 5        // CV_MAX_MATERIALS consecutive units: units 5..8, under GL 3.3's 16
+#define CV_UNIT_IMPOSTOR_SURFACE 9
+
+// Impostor reprojection (shaders/impostor_warp.glsl). The surface map's codes span +-range * radius
+// metres (SPEC.md "Impostor maps"; crowdbake.bake.surface_maps DEPTH_RANGE, MOTION_RANGE); the
+// fixed-point steps are crowdbake.bake.impostor_warp.DEFAULT_ITERATIONS. A bundle with more views than
+// the uniform arrays hold is drawn without reprojection (the bake allows 64 azimuths, 9 rings).
+#define CV_SURFACE_DEPTH_RANGE 1.0
+#define CV_SURFACE_MOTION_RANGE 0.5
+#define CV_WARP_ITERATIONS 4
+#define CV_MAX_AZIMUTHS 64
+#define CV_MAX_ELEVATIONS 9
 
 // Ambient term of the Lambert lighting shared by mesh and impostor shaders, so a mesh and
 // its impostor are lit alike at the LOD switch.

@@ -244,8 +244,9 @@ void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& 
     for (auto& list : out->by_lod) list.clear();
     out->impostor_samples.clear();
     out->blend = blend;
-    const bool blend_views = blend == ImpostorBlend::views || blend == ImpostorBlend::full;
-    const bool blend_frames = blend == ImpostorBlend::frames || blend == ImpostorBlend::full;
+    const bool all = blend == ImpostorBlend::full || blend == ImpostorBlend::warp;
+    const bool blend_views = blend == ImpostorBlend::views || all;
+    const bool blend_frames = blend == ImpostorBlend::frames || all;
     out->culled = 0;
     const size_t n = crowd.characters.size();
     if (lod_state->size() != n) lod_state->assign(n, Lod(255));  // 255: no history yet

@@ -200,7 +200,7 @@ constexpr float kFixedTimeStep = 1.0f / 30.0f;
 struct FrameInstances {
     std::vector<Instance> by_lod[3];  // indexed by Lod; impostors carry their nearest view and frame
     std::vector<ImpostorSamples> impostor_samples;  // one per by_lod[Lod::impostor] entry
-    ImpostorBlend blend = ImpostorBlend::full;      // how they were chosen: the shader variant to draw them
+    ImpostorBlend blend = ImpostorBlend::warp;      // how they were chosen: the shader variant to draw them
     uint32_t culled = 0;
 };
 
@@ -209,6 +209,6 @@ struct FrameInstances {
 // `blend` says (the cycle frame the mesh would show is the point between baked frames).
 void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,
                  const LodRule& rule, float time_s, std::vector<Lod>* lod_state,
-                 FrameInstances* out, ImpostorBlend blend = ImpostorBlend::full);
+                 FrameInstances* out, ImpostorBlend blend = ImpostorBlend::warp);
 
 }  // namespace crowdview

@@ -2,7 +2,7 @@
 //
 //   crowdview (--bundle DIR | --url URL) [--cache DIR] [--count N] [--seed S] [--layout spot|paths]
 //             [--headless --frames N --screenshot out.png] [--benchmark --report out.json]
-//             [--width W --height H] [--lod auto|high|low|impostor|detail] [--impostor-blend off|views|frames|full]
+//             [--width W --height H] [--lod auto|high|low|impostor|detail] [--impostor-blend off|views|frames|full|warp]
 //             [--key KEY] [--cache-budget-mib N] [--min-rate B] [--timeout S]
 //   crowdview --verify DIR|URL
 //
@@ -63,7 +63,7 @@ struct Options {
     LodChoice lod = LodChoice::automatic;
     CameraView camera = CameraView::overview;
     ImpostorKind impostors = ImpostorKind::uv;  // what LodChoice::automatic draws far away
-    ImpostorBlend blend = ImpostorBlend::full;
+    ImpostorBlend blend = ImpostorBlend::warp;
     double max_seconds = 300;
     std::vector<BenchmarkMode> modes{std::begin(kAllBenchmarkModes), std::end(kAllBenchmarkModes)};
     bool cpu_decode = false;
@@ -86,7 +86,8 @@ const char* kUsage =
     "  --lod MODE            auto (default) | high | low | impostor | detail\n"
     "  --camera VIEW         overview (default: the whole crowd) | street (eye level at the crowd's edge)\n"
     "  --impostors uv|detail impostor maps used by --lod auto (default uv)\n"
-    "  --impostor-blend B    off (the paper: nearest view and frame) | views | frames | full (default)\n"
+    "  --impostor-blend B    off (the paper: nearest view and frame) | views | frames | full |\n"
+    "                        warp (default: full, reprojected by the bundle's surface map; full without one)\n"
     "  --width W --height H  framebuffer size (default 1280x720)\n"
     "  --headless            no window: EGL surfaceless, else a hidden GLFW window\n"
     "  --frames N            frames to draw, then exit (headless default 1)\n"
@@ -172,7 +173,8 @@ Options parse_args(int argc, char** argv) {
                                                           {"impostor", LodChoice::impostor}, {"detail", LodChoice::detail}});
         else if (a == "--impostor-blend")
             o.blend = parse_choice<ImpostorBlend>(a, value(i), {{"off", ImpostorBlend::off}, {"views", ImpostorBlend::views},
-                                                                {"frames", ImpostorBlend::frames}, {"full", ImpostorBlend::full}});
+                                                                {"frames", ImpostorBlend::frames}, {"full", ImpostorBlend::full},
+                                                                {"warp", ImpostorBlend::warp}});
         else if (a == "--impostors")
             o.impostors = parse_choice<ImpostorKind>(a, value(i), {{"uv", ImpostorKind::uv}, {"detail", ImpostorKind::detail}});
         else usage_error("unknown argument '" + a + "'");

@@ -204,7 +204,8 @@ struct Renderer::Part {
     bool garment = false;
 };
 
-static_assert(int(ImpostorBlend::off) == 0 && int(ImpostorBlend::full) == 3, "impostor programs are indexed by ImpostorBlend");
+static_assert(int(ImpostorBlend::off) == 0 && int(ImpostorBlend::warp) == 4, "impostor programs are indexed by ImpostorBlend");
+constexpr int kBlendModes = 5;
 
 namespace {
 
@@ -255,8 +256,8 @@ struct Renderer::Impl {
     GLuint mesh_program = 0;
     // Impostor programs by ImpostorKind and ImpostorBlend: each blend mode is its own shader
     // variant with constant sample counts, so blending off costs what the paper's lookup does.
-    GLuint impostor_programs[2][4] = {};
-    ImpostorUniforms impostor_uniforms[2][4];
+    GLuint impostor_programs[2][kBlendModes] = {};
+    ImpostorUniforms impostor_uniforms[2][kBlendModes];
     MeshUniforms mesh_uniforms;
     std::vector<Part> parts;
     GLuint impostor_vao = 0;
@@ -268,6 +269,7 @@ struct Renderer::Impl {
     std::vector<bool> has_regions;
     GLuint empty_array = 0;  // bound to unused material units so every sampler is complete
     GLuint outfits = 0, normal_map = 0, uv_map = 0, detail_map = 0;
+    GLuint surface_map = 0;  // 0: the bundle has none (or more views than the warp shader holds), warp draws as full
     uint32_t tile_size = 0, azimuth_count = 0;
 
     ~Impl() {
@@ -281,8 +283,8 @@ struct Renderer::Impl {
         glDeleteBuffers(3, instance_buffers);
         glDeleteBuffers(1, &impostor_sample_buffer);
         glDeleteTextures(GLsizei(diffuse.size()), diffuse.data());
-        GLuint textures[] = {empty_array, outfits, normal_map, uv_map, detail_map};
-        glDeleteTextures(5, textures);
+        GLuint textures[] = {empty_array, outfits, normal_map, uv_map, detail_map, surface_map};
+        glDeleteTextures(6, textures);
         glDeleteProgram(mesh_program);
         for (auto& by_blend : impostor_programs)
             for (GLuint program : by_blend) glDeleteProgram(program);
@@ -361,11 +363,13 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
     glUniform1i(uniform(g.mesh_program, "u_outfits"), CV_UNIT_OUTFITS);
     glUniform1i(uniform(g.mesh_program, "u_diffuse"), CV_UNIT_DIFFUSE0);
     for (int kind = 0; kind < 2; ++kind)
-        for (int blend = 0; blend < 4; ++blend) {
-            const bool views = ImpostorBlend(blend) == ImpostorBlend::views || ImpostorBlend(blend) == ImpostorBlend::full;
-            const bool frames = ImpostorBlend(blend) == ImpostorBlend::frames || ImpostorBlend(blend) == ImpostorBlend::full;
+        for (int blend = 0; blend < kBlendModes; ++blend) {
+            const bool warp = ImpostorBlend(blend) == ImpostorBlend::warp;
+            const bool all = ImpostorBlend(blend) == ImpostorBlend::full || warp;
+            const bool views = ImpostorBlend(blend) == ImpostorBlend::views || all;
+            const bool frames = ImpostorBlend(blend) == ImpostorBlend::frames || all;
             const std::string defines = uv_defines + "#define CV_VIEW_SAMPLES " + (views ? "4" : "1") + "\n#define CV_FRAME_SAMPLES " +
-                                        (frames ? "2" : "1") + "\n";
+                                        (frames ? "2" : "1") + "\n#define CV_WARP " + (warp ? "1" : "0") + "\n";
             const GLuint program = build_program(desc.shader_dir, "impostor", kind == 0 ? "impostor_uv" : "impostor_detail",
                                                  &shader_error, defines);
             if (!program) {
@@ -379,6 +383,13 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
             glUniform1i(uniform(program, "u_normal_map"), CV_UNIT_IMPOSTOR_NORMAL);
             glUniform1i(uniform(program, "u_uv_map"), CV_UNIT_IMPOSTOR_UV);
             glUniform1i(uniform(program, "u_detail_map"), CV_UNIT_IMPOSTOR_DETAIL);
+            glUniform1i(uniform(program, "u_surface_map"), CV_UNIT_IMPOSTOR_SURFACE);
+            // The baked views' angles, for the warp shader's per-sample view bases (unused lengths stay 0).
+            const std::vector<float>& azimuths = m.impostor.azimuths_deg;
+            const std::vector<float>& elevations = m.impostor.elevations_deg;
+            glUniform1fv(uniform(program, "u_azimuths_deg"), GLsizei(std::min<size_t>(azimuths.size(), CV_MAX_AZIMUTHS)), azimuths.data());
+            glUniform1fv(uniform(program, "u_elevations_deg"), GLsizei(std::min<size_t>(elevations.size(), CV_MAX_ELEVATIONS)),
+                         elevations.data());
             for (int k = 0; k < CV_MAX_MATERIALS; ++k)
                 glUniform1i(uniform(program, ("u_diffuse[" + std::to_string(k) + "]").c_str()), CV_UNIT_DIFFUSE0 + k);
         }
@@ -474,6 +485,13 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
     g.normal_map = upload_texture_array(bundle.impostor_normal, false, "impostor:normal", &upload);
     g.uv_map = upload_texture_array(bundle.impostor_uv, false, "impostor:uv", &upload);
     g.detail_map = upload_texture_array(bundle.impostor_detail, false, "impostor:detail", &upload);
+    if (bundle.impostor_surface.layer_count > 0 && m.impostor.azimuths_deg.size() <= CV_MAX_AZIMUTHS &&
+        m.impostor.elevations_deg.size() <= CV_MAX_ELEVATIONS) {
+        // Depth and motion are smooth and dilated past the silhouette: read bilinearly, within a level.
+        g.surface_map = upload_texture_array(bundle.impostor_surface, false, "impostor:surface", &upload);
+        glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_MAG_FILTER, GL_LINEAR);
+        glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_MIN_FILTER, GL_LINEAR);
+    }
     TextureArray empty;
     empty.width = empty.height = empty.layer_count = 1;
     empty.data.assign(4, 255);
@@ -598,7 +616,7 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
     // 3. Impostors: one instanced draw of camera-facing quads.
     const std::vector<Instance>& quads = frame.by_lod[int(Lod::impostor)];
     if (!quads.empty()) {
-        const int kind = impostors == ImpostorKind::uv ? 0 : 1, blend = int(frame.blend);
+        const int kind = impostors == ImpostorKind::uv ? 0 : 1, blend = int(effective_blend(frame.blend));
         const ImpostorUniforms& iu = g.impostor_uniforms[kind][blend];
         glUseProgram(g.impostor_programs[kind][blend]);
         glUniformMatrix4fv(iu.view_projection, 1, GL_FALSE, glm::value_ptr(view_projection));
@@ -615,6 +633,8 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
         glBindTexture(GL_TEXTURE_2D_ARRAY, g.uv_map);
         glActiveTexture(GL_TEXTURE0 + CV_UNIT_IMPOSTOR_DETAIL);
         glBindTexture(GL_TEXTURE_2D_ARRAY, g.detail_map);
+        glActiveTexture(GL_TEXTURE0 + CV_UNIT_IMPOSTOR_SURFACE);
+        glBindTexture(GL_TEXTURE_2D_ARRAY, g.surface_map ? g.surface_map : g.empty_array);
         for (int k = 0; k < CV_MAX_MATERIALS; ++k) {
             const bool used = size_t(k) < g.diffuse.size();
             glActiveTexture(GL_TEXTURE0 + CV_UNIT_DIFFUSE0 + k);
@@ -629,6 +649,10 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
     }
     glBindVertexArray(0);
     return stats;
+}
+
+ImpostorBlend Renderer::effective_blend(ImpostorBlend blend) const {
+    return blend == ImpostorBlend::warp && !impl_->surface_map ? ImpostorBlend::full : blend;
 }
 
 void Renderer::present(int window_width, int window_height) const {

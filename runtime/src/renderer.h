@@ -59,6 +59,9 @@ public:
     float aspect() const { return float(width_) / float(height_); }
     const CharacterModel& model() const { return model_; }
     bool compressed_textures() const { return compressed_; }  // S3TC used, not the CPU decode
+    // The blend a frame built for `blend` is drawn with: warp is full where the bundle has no
+    // surface map (or more views than CV_MAX_AZIMUTHS x CV_MAX_ELEVATIONS).
+    ImpostorBlend effective_blend(ImpostorBlend blend) const;
     uint32_t triangles_per_character(Lod lod) const;
 
 private:

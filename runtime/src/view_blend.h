@@ -13,8 +13,10 @@
 
 namespace crowdview {
 
-// --impostor-blend: off is the paper (nearest view, nearest frame).
-enum class ImpostorBlend { off, views, frames, full };
+// --impostor-blend: off is the paper (nearest view, nearest frame); warp is full blending with
+// every sample reprojected by the bundle's surface map (shaders/impostor_warp.glsl), drawn as
+// full where a bundle has no surface map.
+enum class ImpostorBlend { off, views, frames, full, warp };
 
 // Up to four atlas tiles (azimuth + elevation * azimuth_count) and their weights, summing to 1;
 // unused entries have weight 0 (and repeat a used tile).

@@ -27,6 +27,7 @@ flat out float v_frame_weight;
 flat out float v_heading;
 flat out uint v_variation;
 flat out uint v_outfit;
+flat out vec3 v_to_camera;   // model space (the bake's views' frame), unit
 
 void main() {
     // Triangle strip corners (-1,-1), (1,-1), (-1,1), (1,1).
@@ -50,4 +51,5 @@ void main() {
     v_heading = i_pose.w;
     v_variation = i_ids.y;
     v_outfit = i_ids.z;
+    v_to_camera = transpose(heading) * to_camera;
 }

@@ -18,12 +18,14 @@ flat in float v_frame_weight;
 flat in float v_heading;
 flat in uint v_variation;
 flat in uint v_outfit;
+flat in vec3 v_to_camera;  // model space, unit
 
 uniform sampler2DArray u_normal_map;
 uniform sampler2DArray u_detail_map;
 uniform sampler2D u_outfits;
 uniform int u_tile_size;
 uniform vec3 u_light_dir;
+#include "impostor_warp.glsl"
 
 out vec4 o_color;
 
@@ -40,17 +42,19 @@ void main() {
     vec3 model_normal = texelFetch(u_normal_map, texel, 0).rgb * 2.0 - 1.0;
 #else
 void main() {
-    ivec2 local = clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1));
+    vec2 pixel = v_tile_uv * float(u_tile_size);
+    ViewBasis target = view_basis(v_to_camera);
     float coverage = 0.0;
     vec3 albedo = vec3(0.0), model_normal = vec3(0.0);
     // Constant bounds (the renderer's CV_VIEW_SAMPLES, CV_FRAME_SAMPLES: 1 or 4, 1 or 2), so
     // the loops unroll.
     for (int j = 0; j < CV_FRAME_SAMPLES; ++j) {
         float frame_weight = j == 0 ? 1.0 - v_frame_weight : v_frame_weight;
+        float fraction = v_layers[0] == v_layers[1] ? 0.0 : (j == 0 ? v_frame_weight : v_frame_weight - 1.0);  // see impostor_uv
         for (int i = 0; i < CV_VIEW_SAMPLES; ++i) {
             float w = v_view_weights[i] * frame_weight;
-            ivec3 texel = ivec3(ivec2(v_tile_x[i], v_tile_y[i]) + local, v_layers[j]);
-            if (!fetch_uv_map(texel).covered) continue;
+            ivec3 texel = sample_texel(ivec2(v_tile_x[i], v_tile_y[i]), v_layers[j], pixel, target, fraction);
+            if (texel.x < 0 || !fetch_uv_map(texel).covered) continue;
             vec4 detail = texelFetch(u_detail_map, texel, 0);
             vec3 colour = detail.rgb;
             int region = int(detail.a * 255.0 / CV_REGION_SCALE + 0.5);

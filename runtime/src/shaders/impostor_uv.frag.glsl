@@ -26,6 +26,7 @@ flat in float v_frame_weight;
 flat in float v_heading;
 flat in uint v_variation;
 flat in uint v_outfit;
+flat in vec3 v_to_camera;  // model space, unit
 
 uniform sampler2DArray u_normal_map;
 uniform sampler2DArray u_diffuse[CV_MAX_MATERIALS];
@@ -35,6 +36,7 @@ uniform int u_material_count;
 uniform sampler2D u_outfits;
 uniform int u_tile_size;
 uniform vec3 u_light_dir;
+#include "impostor_warp.glsl"
 
 out vec4 o_color;
 
@@ -69,7 +71,8 @@ vec3 albedo_at(UvTexel t, vec2 dx, vec2 dy) {
 }
 
 void main() {
-    ivec2 local = clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1));
+    vec2 pixel = v_tile_uv * float(u_tile_size);
+    ViewBasis target = view_basis(v_to_camera);
     // Neighbours across the silhouette or a UV seam would ask for a far too coarse mip level;
     // clamp the gradients to a few tile texels' worth of footprint.
     float limit = 4.0 * max(length(dFdx(v_tile_uv)), length(dFdy(v_tile_uv))) + 1e-6;
@@ -79,10 +82,13 @@ void main() {
     // the loops unroll; with blending off this is the paper's single lookup.
     for (int j = 0; j < CV_FRAME_SAMPLES; ++j) {
         float frame_weight = j == 0 ? 1.0 - v_frame_weight : v_frame_weight;
+        // The earlier baked frame moves forward by the frame weight, the later one back by the rest.
+        float fraction = v_layers[0] == v_layers[1] ? 0.0 : (j == 0 ? v_frame_weight : v_frame_weight - 1.0);
         for (int i = 0; i < CV_VIEW_SAMPLES; ++i) {
             float w = v_view_weights[i] * frame_weight;
-            ivec3 texel = ivec3(ivec2(v_tile_x[i], v_tile_y[i]) + local, v_layers[j]);
-            UvTexel t = fetch_uv_map(texel);
+            ivec3 texel = sample_texel(ivec2(v_tile_x[i], v_tile_y[i]), v_layers[j], pixel, target, fraction);
+            UvTexel t = fetch_uv_map(max(texel, ivec3(0)));
+            t.covered = t.covered && texel.x >= 0;
             vec2 dx = dFdx(t.uv), dy = dFdy(t.uv);
             dx *= min(1.0, limit / max(length(dx), 1e-9));
             dy *= min(1.0, limit / max(length(dy), 1e-9));

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.bake.impostor_blend import DecodedTile
+from crowdbake.bake import surface_maps
+from crowdbake.bake.impostor_blend import DecodedTile, FrameWeights
 from crowdbake.bake.impostor_maps import OrthoView
 
 # Fixed-point steps: at halfway between 32 azimuths (5.6°) or 20° rings (10°) each step shrinks the miss by
@@ -98,3 +99,26 @@ def gather(tile: DecodedTile, xy: np.ndarray, valid: np.ndarray | None = None) -
         covered &= valid
     uv = np.where(covered[..., None], tile.uv[y, x], 0.0)
     return DecodedTile(uv, tile.material[y, x], covered, tile.normal[y, x])
+
+
+def motion_fraction(layer: int, frames: FrameWeights) -> float:
+    """How far a sample of atlas layer `layer` moves along its layer's motion to the next baked frame:
+    the earlier of the two blended frames forward by the frame weight, the later one back by the rest
+    (shaders/impostor_warp.glsl: +w for frame sample 0, -(1 - w) for sample 1); 0 when both are one."""
+    if frames.layers[0] == frames.layers[1]:
+        return 0.0
+    return frames.weight if layer == frames.layers[0] else -(1.0 - frames.weight)
+
+
+def warp_tile(tile: DecodedTile, source: OrthoView, surface: tuple[np.ndarray, np.ndarray], target: OrthoView,
+              fraction: float, iterations: int = DEFAULT_ITERATIONS) -> DecodedTile:
+    """A (view, frame) sample as crowdview draws it with reprojection: `tile` gathered where each pixel of
+    the `target` view finds its surface point. surface: the tile's (depth (S, S), motion (S, S, 2)) metres,
+    decoded from the bundle's surface map (crowdbake.bake.surface_maps.decode_surface). At the sample's own
+    view and frame the reprojection is the identity, and the tile is returned as it is."""
+    same_view = source.azimuth_deg == target.azimuth_deg and source.elevation_deg == target.elevation_deg
+    if same_view and fraction == 0.0:
+        return tile
+    depth, motion = surface
+    xy, _ = reproject(source, depth, target, surface_maps.motion_in_model(source, motion), fraction, iterations)
+    return gather(tile, xy)

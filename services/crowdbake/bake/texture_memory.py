@@ -49,19 +49,22 @@ class MapBytes:
     """Bytes resident for one character: all frames of each impostor map, one diffuse variation.
 
     normal, uv, detail: every baked frame of that map (detail = one diffuse variation baked in);
-    diffuse_per_variation: one layer of every material's diffuse texture.
+    diffuse_per_variation: one layer of every material's diffuse texture; surface: every baked frame of the
+    surface map both impostor kinds reproject with (crowdbake.bake.surface_maps; not in the paper: 0 there),
+    shared by both schemes as the normal maps are.
     """
 
     normal: float
     uv: float
     detail: float
     diffuse_per_variation: float
+    surface: float = 0.0
 
     def detail_mapped(self, variations: int) -> float:
-        return self.normal + variations * (self.detail + self.diffuse_per_variation)
+        return self.normal + self.surface + variations * (self.detail + self.diffuse_per_variation)
 
     def uv_mapped(self, variations: int) -> float:
-        return self.normal + self.uv + variations * self.diffuse_per_variation
+        return self.normal + self.surface + self.uv + variations * self.diffuse_per_variation
 
 
 def paper_map_bytes(assumptions: PaperAssumptions = PaperAssumptions()) -> MapBytes:

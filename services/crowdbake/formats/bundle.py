@@ -41,6 +41,7 @@ MEDIA_TYPES = {
     "impostor-normal": "application/vnd.crowdbake.texture",
     "impostor-uv": "application/vnd.crowdbake.texture",
     "impostor-detail": "application/vnd.crowdbake.texture",
+    "impostor-surface": "application/vnd.crowdbake.texture",
     "cycle": "application/json",
     "fidelity": "application/json",
     "texture-memory": "application/json",
@@ -273,3 +274,6 @@ def _cross_check(bundle: Bundle) -> None:
             path,
         )
     _require(bundle.textures[impostor["maps"]["uv"]].pixel_format in ("rgba16", "uv32", "uvblock"), "the UV map must be rgba16, uv32 or uvblock (12+ bits per coordinate)", impostor["maps"]["uv"])
+    if "surface" in impostor["maps"]:
+        surface = impostor["maps"]["surface"]
+        _require(bundle.textures[surface].pixel_format in ("bc1", "rgba8"), "the surface map must be bc1 or rgba8", surface)

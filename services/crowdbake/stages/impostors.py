@@ -1,4 +1,5 @@
-"""Stage 4, impostors (paper sections 4, 5): normal, UV and detail maps per baked frame and view, fanned
+"""Stage 4, impostors (paper sections 4, 5): normal, UV and detail maps per baked frame and view (and the
+surface map crowdview reprojects its blended samples with, crowdbake.bake.surface_maps), fanned
 out as independent tasks, one per (baked frame, elevation ring).
 
 The impostor plan (stage_impostor_plan) runs on the cycle's output alone: the framing, the baked frames
@@ -21,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crowdbake.bake import compression, fidelity, impostor_maps
+from crowdbake.bake import compression, fidelity, impostor_maps, surface_maps
 from crowdbake.formats.binary import read_pose_frame
 from crowdbake.formats.gltf import load_character
 from crowdbake.render.impostor import shared_renderer
@@ -39,6 +40,8 @@ from crowdbake.stages.workdir import (
 # 3² (docs/bake.md, "Speed") for 16/9 the shading work.
 FIDELITY_SUPERSAMPLE = 3
 SCENE_FILE = "scene.npz"
+# The maps a part holds; part of its key, so parts written before a map was added are rendered again.
+PART_MAPS = ("normal", "uv", "detail", "surface")
 _TASK_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
@@ -203,8 +206,12 @@ def _reference(scene: Scene, view: impostor_maps.OrthoView, coverage: impostor_m
     ).astype(np.float32)
 
 
-def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dict[str, float]) -> tuple[dict[str, np.ndarray], int]:
+def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dict[str, float],
+                next_positions: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], int]:
     """A task's maps (and, for the fidelity frame, references): the arrays of its part and the texels repaired.
+
+    next_positions: (V, 3) the scene's vertices at the next baked frame, for the surface maps' motion
+    (crowdbake.bake.surface_maps); None: no motion.
 
     Views render one by one (one GL context) into a (V, S, S) stack of ids and depths; coverage and maps
     are then resolved for the whole ring at once. With references, each baked view renders once at
@@ -240,12 +247,17 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
     maps = impostor_maps.view_maps_views(
         map_views, coverages, scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material, scene.diffuse
     )
+    if next_positions is None:
+        next_positions = scene.positions
+    surfaces = [surface_maps.encode_surface(*surface_maps.surface_fields(view, coverage, scene.positions, next_positions, scene.faces),
+                                            plan.radius) for view, coverage in zip(map_views, coverages)]
     timings["maps"] += time.perf_counter() - clock
     arrays = {
         "views": np.asarray(views, dtype=np.int64).reshape(-1, 2),
         "normal": np.stack([m.normal for m in maps]),
         "uv": np.stack([m.uv for m in maps]),
         "detail": np.stack([m.detail for m in maps]),
+        "surface": np.stack(surfaces),
     }
     if task.references:
         clock = time.perf_counter()
@@ -279,7 +291,7 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
     work = Path(work)
     task = as_task(task)
     path = part_path(work, task)
-    key = stage_key("impostor-part", WorkDir(work).key_of("impostor"), task.to_json())
+    key = stage_key("impostor-part", PART_MAPS, WorkDir(work).key_of("impostor"), task.to_json())
     stats_path = path.with_suffix(".json")
     if path.is_file() and stats_path.is_file():
         try:
@@ -291,8 +303,10 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
     if task.frame not in plan.frame_indices:
         raise ValueError(f"impostor task frame {task.frame} is not one of the baked frames {plan.frame_indices}")
     scene = load_scene(work, plan, task.frame, runtime_textures=task.references)
+    with np.load(work / "impostor" / SCENE_FILE) as data:
+        next_positions = data[f"positions_{surface_maps.next_baked_frame(task.frame, plan.frame_indices)}"].astype(np.float64)
     timings = {"render": 0.0, "maps": 0.0, "references": 0.0}
-    arrays, repaired = render_task(scene, plan, task, timings)
+    arrays, repaired = render_task(scene, plan, task, timings, next_positions)
     write_bytes_atomic(path, npz_bytes(arrays))
     write_json_atomic(stats_path, ImpostorPartRecord(key=key, views=len(task.views), repaired_texels=repaired, seconds=timings).to_json())
     return path

@@ -207,7 +207,7 @@ def _impostor_files(work: Path, poses: PosesRecord, layout: AtlasLayout, formats
             detail_errors.append(errors["detail"])
         report(progress, "pack", step, steps)
     maps = {}
-    for kind, role in (("normal", "impostor-normal"), ("uv", "impostor-uv"), ("detail", "impostor-detail")):
+    for kind, role in (("normal", "impostor-normal"), ("uv", "impostor-uv"), ("detail", "impostor-detail"), ("surface", "impostor-surface")):
         path = f"impostor/{kind}.cbtx"
         files.append(BundleFile(path, encode_texture_array(layout.width, layout.height, formats[kind], layers[kind]), role))
         layers[kind] = []  # the CBTX holds them now
@@ -224,7 +224,8 @@ def _texture_memory(poses: PosesRecord, layout: AtlasLayout, formats: dict[str, 
     frames = len(poses.frame_indices)
     layer_bytes = {kind: layer_size(formats[kind], layout.width, layout.height) * frames for kind in formats}
     diffuse_per_variation = sum(layer_size(m.pixel_format, m.width, m.height) for m in poses.materials)
-    bundle_bytes = texture_memory.MapBytes(layer_bytes["normal"], layer_bytes["uv"], layer_bytes["detail"], diffuse_per_variation)
+    bundle_bytes = texture_memory.MapBytes(layer_bytes["normal"], layer_bytes["uv"], layer_bytes["detail"], diffuse_per_variation,
+                                           layer_bytes["surface"])
     variations = max(m.variations for m in poses.materials)
     return texture_memory.texture_memory_report(bundle_bytes, max(FIGURE4_MIN_VARIATIONS, variations), variations)
 
@@ -241,8 +242,10 @@ def _cycle_section(cycle: CycleRecord) -> dict:
 
 
 def map_formats(compress: bool, uv_format: str) -> dict[str, str]:
-    """Pixel formats of the impostor maps: DXT1 normals and DXT3 detail when compressing (paper section 5)."""
-    return {"normal": "bc1" if compress else "rgba8", "uv": uv_format, "detail": "bc2" if compress else "rgba8"}
+    """Pixel formats of the impostor maps: DXT1 normals and DXT3 detail when compressing (paper section 5);
+    the surface map (crowdbake.bake.surface_maps: smooth depth and motion) is DXT1 too."""
+    return {"normal": "bc1" if compress else "rgba8", "uv": uv_format, "detail": "bc2" if compress else "rgba8",
+            "surface": "bc1" if compress else "rgba8"}
 
 
 def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[PackRecord]:
@@ -277,9 +280,9 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
 
         # Fidelity at 1:1 texel-to-pixel: per view, and at the angles between views with the nearest view.
         fidelity_doc = score_fidelity(poses, layout, tasks, parts, fidelity_atlases, texture_arrays, formats)
-        map_bytes = {f.path: f.data for f in files if f.path in (maps["uv"], maps["normal"])}
+        map_bytes = {f.path: f.data for f in files if f.path in (maps["uv"], maps["normal"], maps["surface"])}
         fidelity_doc["runtime"] = score_runtime(folder.root, poses, layout, tasks, parts, map_bytes[maps["uv"]], map_bytes[maps["normal"]],
-                                                texture_arrays, FIDELITY_SUPERSAMPLE)
+                                                texture_arrays, FIDELITY_SUPERSAMPLE, map_bytes[maps["surface"]])
         outfit_count = int(len(texture_arrays["outfits"]))
     fidelity_doc["compression"] = compression_report
     files.append(BundleFile("fidelity.json", json_bytes(fidelity_doc), "fidelity"))

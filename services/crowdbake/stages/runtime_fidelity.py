@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.bake import compression, fidelity, impostor_blend, impostor_maps, map_codecs
+from crowdbake.bake import compression, fidelity, impostor_blend, impostor_maps, impostor_warp, map_codecs, surface_maps
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.bake.impostor_blend import DecodedTile
 from crowdbake.formats.binary import decode_texture_array, unpack_uv32, unpack_uvblock
@@ -51,21 +51,59 @@ def decode_atlas_layer(uv_file: bytes, normal_file: bytes, layer: int) -> tuple[
     return uv, material, covered, map_codecs.decode_normal_map(normals)
 
 
-class AtlasTiles:
-    """Tiles of decoded atlas layers, decoded once per layer."""
+def decode_surface_layer(surface_file: bytes, layer: int) -> np.ndarray:
+    """(H, W, 4) uint8 texels of one layer of the bundle's surface map file (CBTX), decoded as crowdview samples it."""
+    surface_map = decode_texture_array(surface_file, "surface map")
+    if surface_map.pixel_format in ("bc1", "bc2"):
+        return compression.decode(surface_map.layers[layer], surface_map.pixel_format, surface_map.width, surface_map.height)
+    return surface_map.texels(layer)
 
-    def __init__(self, layout: AtlasLayout, uv_file: bytes, normal_file: bytes):
+
+class AtlasTiles:
+    """Tiles of decoded atlas layers, decoded once per layer; the surface map's too when given."""
+
+    def __init__(self, layout: AtlasLayout, uv_file: bytes, normal_file: bytes, surface_file: bytes | None = None,
+                 radius: float = 1.0):
         self.layout, self.uv_file, self.normal_file = layout, uv_file, normal_file
+        self.surface_file, self.radius = surface_file, radius
         self._layers: dict[int, tuple] = {}
+        self._surfaces: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def _window(self, tile: int) -> tuple[slice, slice]:
+        size, columns = self.layout.tile_size, len(self.layout.azimuths_deg)
+        return (slice((tile // columns) * size, (tile // columns + 1) * size),
+                slice((tile % columns) * size, (tile % columns + 1) * size))
+
+    def surface(self, tile: int, layer: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(depth (S, S), motion (S, S, 2)) metres of a tile (crowdbake.bake.surface_maps); None without a surface map."""
+        if self.surface_file is None:
+            return None
+        if layer not in self._surfaces:
+            self._surfaces[layer] = surface_maps.decode_surface(decode_surface_layer(self.surface_file, layer), self.radius)
+        rows, cols = self._window(tile)
+        depth, motion = self._surfaces[layer]
+        return depth[rows, cols], motion[rows, cols]
 
     def tile(self, tile: int, layer: int) -> DecodedTile:
         if layer not in self._layers:
             self._layers[layer] = decode_atlas_layer(self.uv_file, self.normal_file, layer)
-        size, columns = self.layout.tile_size, len(self.layout.azimuths_deg)
-        rows = slice((tile // columns) * size, (tile // columns + 1) * size)
-        cols = slice((tile % columns) * size, (tile % columns + 1) * size)
+        rows, cols = self._window(tile)
         uv, material, covered, normal = self._layers[layer]
         return DecodedTile(uv[rows, cols], material[rows, cols], covered[rows, cols], normal[rows, cols])
+
+
+def sample_tile(tiles: AtlasTiles, tile: int, layer: int, target: impostor_maps.OrthoView,
+                frames: impostor_blend.FrameWeights) -> DecodedTile:
+    """One (view, frame) sample as crowdview draws it for a camera at `target` and cycle position `frames`:
+    reprojected (crowdbake.bake.impostor_warp.warp_tile) when the bundle has a surface map."""
+    decoded = tiles.tile(tile, layer)
+    surface = tiles.surface(tile, layer)
+    if surface is None:
+        return decoded
+    columns = len(tiles.layout.azimuths_deg)
+    source = impostor_maps.ortho_view(target.center, target.radius, tiles.layout.azimuths_deg[tile % columns],
+                                      tiles.layout.elevations_deg[tile // columns], target.size)
+    return impostor_warp.warp_tile(decoded, source, surface, target, impostor_warp.motion_fraction(layer, frames))
 
 
 def halfway_frame(poses: PosesRecord) -> tuple[int, impostor_blend.FrameWeights]:
@@ -136,19 +174,21 @@ def between_references(work: Path, poses: PosesRecord, supersample: int) -> list
 
 
 def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
-                  uv_file: bytes, normal_file: bytes, texture_arrays: dict[str, np.ndarray], supersample: int) -> dict[str, Any]:
-    """fidelity.json's `runtime` section (module docstring): SSIM and PSNR of crowdview's blended impostor."""
+                  uv_file: bytes, normal_file: bytes, texture_arrays: dict[str, np.ndarray], supersample: int,
+                  surface_file: bytes | None = None) -> dict[str, Any]:
+    """fidelity.json's `runtime` section (module docstring): SSIM and PSNR of crowdview's blended impostor,
+    each sample reprojected with the surface map when the bundle has one (crowdview's default)."""
     diffuse = [texture_arrays[f"material_{m}_decoded"][0] for m in range(len(poses.materials))]
     chains = [impostor_blend.mip_chain(texture) for texture in diffuse]
     outfit_row = texture_arrays["outfits"][0]
-    tiles = AtlasTiles(layout, uv_file, normal_file)
+    tiles = AtlasTiles(layout, uv_file, normal_file, surface_file, poses.radius)
     layer = list(poses.frame_indices).index(poses.fidelity_frame)
     size = layout.tile_size
 
     def draw(azimuth: float, elevation: float, frames: impostor_blend.FrameWeights) -> np.ndarray:
         view = impostor_maps.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
         weights = impostor_blend.blend_view_weights(azimuth, elevation, layout.azimuths_deg, layout.elevations_deg)
-        samples = [(w, tiles.tile(tile, k)) for w, tile, k in impostor_blend.samples_for(weights, frames)]
+        samples = [(w, sample_tile(tiles, tile, k, view, frames)) for w, tile, k in impostor_blend.samples_for(weights, frames)]
         return impostor_blend.blend_image(samples, diffuse, outfit_row, fidelity.camera_light(view), size, chains)
 
     baked_frame = impostor_blend.FrameWeights((layer, layer), 0.0)
@@ -177,6 +217,7 @@ def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: li
         "between_frame": frame,
         "between_frame_weight": frame_weights.weight,
         "diffuse_lookup": "trilinear over a box-filtered mip chain, level from the UV map's quad gradients",
+        "reprojection": "surface map (depth and motion), crowdbake.bake.impostor_warp" if surface_file is not None else "none",
         "at_views": fidelity.summarize(at_views),
         "between_views": fidelity.summarize(between),
         "between_azimuths": fidelity.summarize(between_azimuths),
