@@ -1,0 +1,88 @@
+"""The impostor surface map (crowdbake.bake.surface_maps) and the reprojection of a stored sample
+(crowdbake.bake.impostor_warp.warp_tile, motion_fraction), on geometry whose answer is known by construction."""
+from __future__ import annotations
+
+import numpy as np
+
+from crowdbake.bake import impostor_maps, impostor_warp, surface_maps
+from crowdbake.bake.impostor_blend import DecodedTile, FrameWeights
+
+SIZE = 16
+CENTER = np.array([0.0, 1.0, 0.0])
+RADIUS = 1.0
+
+
+def square_coverage(view: impostor_maps.OrthoView, depth: float, rows: slice, columns: slice):
+    """A two-triangle square facing `view` at `depth` along view.back, covering texels [rows, columns]
+    exactly, with its Coverage (triangle and barycentrics of every covered texel centre)."""
+    scale = SIZE / (2 * RADIUS)
+    corners_xy = [(columns.start, rows.start), (columns.stop, rows.start), (columns.stop, rows.stop), (columns.start, rows.stop)]
+    positions = np.array([view.center + (x / scale - RADIUS) * view.right + (RADIUS - y / scale) * view.up + depth * view.back
+                          for x, y in corners_xy])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    triangle = np.full((SIZE, SIZE), -1, dtype=np.int64)
+    barycentric = np.zeros((SIZE, SIZE, 3))
+    for r in range(rows.start, rows.stop):
+        for c in range(columns.start, columns.stop):
+            point = view.center + ((c + 0.5) / scale - RADIUS) * view.right + (RADIUS - (r + 0.5) / scale) * view.up + depth * view.back
+            for t, face in enumerate(faces):
+                a, b, d = positions[face]
+                matrix = np.stack([b - a, d - a], axis=1)
+                (u, v), *_ = np.linalg.lstsq(matrix, point - a, rcond=None)
+                if u >= -1e-9 and v >= -1e-9 and u + v <= 1 + 1e-9:
+                    triangle[r, c], barycentric[r, c] = t, (1 - u - v, u, v)
+                    break
+    return positions, faces, impostor_maps.Coverage(triangle, barycentric, 0)
+
+
+def test_depth_and_motion_of_a_moving_square_and_the_background_takes_the_nearest_inside_texel():
+    view = impostor_maps.ortho_view(CENTER, RADIUS, 30.0, 20.0, SIZE)
+    positions, faces, coverage = square_coverage(view, 0.25, slice(4, 10), slice(6, 12))
+    shift = 0.1 * view.right - 0.05 * view.up + 0.3 * view.back  # the part along back is not stored
+    depth, motion = surface_maps.surface_fields(view, coverage, positions, positions + shift, faces)
+    assert coverage.mask.sum() == 36
+    np.testing.assert_allclose(depth, 0.25, atol=1e-9)  # inside, and dilated into the background
+    np.testing.assert_allclose(motion[..., 0], 0.1, atol=1e-9)
+    np.testing.assert_allclose(motion[..., 1], -0.05, atol=1e-9)
+
+
+def test_codes_round_trip_within_half_a_step_and_clamp_at_the_range():
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(-RADIUS, RADIUS, (SIZE, SIZE))
+    motion = rng.uniform(-0.5 * RADIUS, 0.5 * RADIUS, (SIZE, SIZE, 2))
+    texels = surface_maps.encode_surface(depth, motion, RADIUS)
+    assert texels.dtype == np.uint8 and texels.shape == (SIZE, SIZE, 4) and (texels[..., 3] == 255).all()
+    back_depth, back_motion = surface_maps.decode_surface(texels, RADIUS)
+    assert np.abs(back_depth - depth).max() <= RADIUS / 255 + 1e-12
+    assert np.abs(back_motion - motion).max() <= 0.5 * RADIUS / 255 + 1e-12
+    far = surface_maps.decode_surface(surface_maps.encode_surface(np.full((1, 1), 5.0), np.full((1, 1, 2), -5.0), RADIUS), RADIUS)
+    assert far[0][0, 0] == RADIUS and (far[1][0, 0] == -0.5 * RADIUS).all()
+
+
+def test_the_next_baked_frame_wraps_round_the_cycle():
+    assert surface_maps.next_baked_frame(8, [0, 8, 16]) == 16
+    assert surface_maps.next_baked_frame(16, [0, 8, 16]) == 0
+    assert surface_maps.next_baked_frame(5, [5]) == 5
+
+
+def test_motion_fraction_moves_the_earlier_frame_forward_and_the_later_back():
+    frames = FrameWeights((2, 3), 0.25)
+    assert impostor_warp.motion_fraction(2, frames) == 0.25
+    assert impostor_warp.motion_fraction(3, frames) == -0.75
+    assert impostor_warp.motion_fraction(2, FrameWeights((2, 2), 0.0)) == 0.0
+
+
+def test_a_sample_moved_a_quarter_of_the_way_shows_its_texels_a_quarter_of_the_motion_along():
+    """A flat surface at the centre plane moving 8 texels right between baked frames: at fraction 0.25 each
+    pixel reads the texel 2 to its left; at its own view and frame the tile comes back unchanged."""
+    view = impostor_maps.ortho_view(CENTER, RADIUS, 0.0, 0.0, SIZE)
+    rows, columns = np.mgrid[0:SIZE, 0:SIZE]
+    tile = DecodedTile(np.stack([columns, rows], axis=-1) / SIZE, np.zeros((SIZE, SIZE), dtype=np.int64),
+                       np.ones((SIZE, SIZE), dtype=bool), np.tile([0.0, 0.0, 1.0], (SIZE, SIZE, 1)))
+    motion = np.zeros((SIZE, SIZE, 2))
+    motion[..., 0] = 8 * (2 * RADIUS / SIZE)
+    surface = (np.zeros((SIZE, SIZE)), motion)
+    assert impostor_warp.warp_tile(tile, view, surface, view, 0.0) is tile
+    moved = impostor_warp.warp_tile(tile, view, surface, view, 0.25)
+    np.testing.assert_allclose(moved.uv[:, 2:, 0], tile.uv[:, :-2, 0])
+    assert not moved.covered[:, :2].any() and moved.covered[:, 2:].all()
