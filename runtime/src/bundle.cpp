@@ -58,6 +58,7 @@ const char* pixel_format_name(PixelFormat format) {
     case PixelFormat::bc2: return "bc2";
     case PixelFormat::uv32: return "uv32";
     case PixelFormat::uvblock: return "uvblock";
+    case PixelFormat::bc5: return "bc5";
     }
     return "unknown";
 }
@@ -90,6 +91,7 @@ unsigned __int128 layer_bytes_wide(uint32_t format, uint32_t width, uint32_t hei
     case 4: return (width % 4 || height % 4) ? 0 : 16 * (w / 4) * (h / 4);
     case 5: return 4 * w * h;
     case 6: return (width % 4 || height % 4) ? 0 : 24 * (w / 4) * (h / 4);
+    case 7: return (width % 4 || height % 4) ? 0 : 16 * (w / 4) * (h / 4);
     default: return 0;
     }
 }
@@ -241,7 +243,7 @@ Status parse_texture_array(const uint8_t* data, size_t size, const std::string& 
 
     const uint32_t width = read_u32(data + 16), height = read_u32(data + 20);
     const uint32_t layer_count = read_u32(data + 24), format = read_u32(data + 28);
-    if (format < 1 || format > 6)
+    if (format < 1 || format > 7)
         return make_error(ErrorCode::invalid_header, fn, file, "unknown pixel_format " + std::to_string(format));
     if (width == 0 || height == 0 || layer_count == 0)
         return make_error(ErrorCode::invalid_header, fn, file,
@@ -312,6 +314,22 @@ void decode_colour_block(const uint8_t* block, bool always_four_colours, uint8_t
     }
 }
 
+// One BC4 block (RGTC unsigned) to 16 values: endpoints r0 > r1 interpolate six values in sevenths,
+// otherwise four in fifths, then 0 and 255; rounded to nearest (crowdbake.bake.compression._decode_bc4).
+void decode_bc4_block(const uint8_t* block, uint8_t values[16]) {
+    const int r0 = block[0], r1 = block[1];
+    int palette[8] = {r0, r1, 0, 0, 0, 0, 0, 0};
+    if (r0 > r1) {
+        for (int k = 1; k < 7; ++k) palette[k + 1] = ((7 - k) * r0 + k * r1 + 3) / 7;
+    } else {
+        for (int k = 1; k < 5; ++k) palette[k + 1] = ((5 - k) * r0 + k * r1 + 2) / 5;
+        palette[6] = 0, palette[7] = 255;
+    }
+    uint64_t bits = 0;
+    for (int b = 0; b < 6; ++b) bits |= uint64_t(block[2 + b]) << (8 * b);
+    for (int i = 0; i < 16; ++i) values[i] = uint8_t(palette[(bits >> (3 * i)) & 7]);
+}
+
 }  // namespace
 
 std::vector<uint8_t> decode_layer_rgba8(const TextureArray& texture, uint32_t layer) {
@@ -360,6 +378,20 @@ std::vector<uint8_t> decode_layer_rgba8(const TextureArray& texture, uint32_t la
                     for (int i = 0; i < 16; ++i) texels[i][3] = uint8_t(((block[i / 2] >> (4 * (i % 2))) & 15) * 17);
                 for (int i = 0; i < 16; ++i)
                     std::memcpy(&rgba[((size_t(by) * 4 + i / 4) * w + bx * 4 + i % 4) * 4], texels[i], 4);
+            }
+        break;
+    }
+    case PixelFormat::bc5: {  // R and G, B = 0, A = 255, as OpenGL returns an RG texture
+        uint8_t red[16], green[16];
+        for (uint32_t by = 0; by < h / 4; ++by)
+            for (uint32_t bx = 0; bx < w / 4; ++bx) {
+                const uint8_t* block = src + (size_t(by) * (w / 4) + bx) * 16;
+                decode_bc4_block(block, red);
+                decode_bc4_block(block + 8, green);
+                for (int i = 0; i < 16; ++i) {
+                    uint8_t* texel = &rgba[((size_t(by) * 4 + i / 4) * w + bx * 4 + i % 4) * 4];
+                    texel[0] = red[i], texel[1] = green[i], texel[2] = 0, texel[3] = 255;
+                }
             }
         break;
     }

@@ -57,7 +57,7 @@ Status make_error(ErrorCode code, const char* function, const std::string& file,
 // ---------------------------------------------------------------------------------------
 // Binary files
 
-enum class PixelFormat : uint32_t { rgba8 = 1, rgba16 = 2, bc1 = 3, bc2 = 4, uv32 = 5, uvblock = 6 };
+enum class PixelFormat : uint32_t { rgba8 = 1, rgba16 = 2, bc1 = 3, bc2 = 4, uv32 = 5, uvblock = 6, bc5 = 7 };
 const char* pixel_format_name(PixelFormat format);
 
 // uv32 (SPEC.md pixel format 5): one little-endian u32 a UV-map texel, u in bits 0..13,

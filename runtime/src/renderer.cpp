@@ -134,6 +134,7 @@ GLint uniform(GLuint program, const char* name) { return glGetUniformLocation(pr
 
 struct Upload {
     bool s3tc = false;           // driver takes S3TC blocks as they are
+    bool force_cpu_decode = false;  // RendererDesc::force_cpu_texture_decode: every block format decoded here
     bool cpu_decode_used = false;
 };
 
@@ -162,6 +163,19 @@ GLuint upload_texture_array(const TextureArray& t, bool filtered, const std::str
         }
         glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA8, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_BYTE, rgba.data());
         upload->cpu_decode_used = true;
+    } else if (t.format == PixelFormat::bc5) {  // RGTC2: core since OpenGL 3.0, no extension needed
+        if (!upload->force_cpu_decode) {
+            glCompressedTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_COMPRESSED_RG_RGTC2, w, h, layers, 0, GLsizei(t.data.size()), t.data.data());
+        } else {
+            std::vector<uint8_t> rgba;
+            rgba.reserve(size_t(w) * h * 4 * layers);
+            for (uint32_t k = 0; k < t.layer_count; ++k) {
+                const std::vector<uint8_t> layer = decode_layer_rgba8(t, k);
+                rgba.insert(rgba.end(), layer.begin(), layer.end());
+            }
+            glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA8, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_BYTE, rgba.data());
+            upload->cpu_decode_used = true;
+        }
     } else if (t.format == PixelFormat::rgba16) {
         glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA16, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_SHORT, t.data.data());
     } else if (t.format == PixelFormat::uv32) {  // integer texture: nearest filtering only (set below)
@@ -350,7 +364,16 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
     std::string shader_error;
     const std::string uv_defines =
         std::string("#define CV_UV_MAP_UV32 ") + (bundle.impostor_uv.format == PixelFormat::uv32 ? "1" : "0") + "\n" +
-        "#define CV_UV_MAP_UVBLOCK " + (bundle.impostor_uv.format == PixelFormat::uvblock ? "1" : "0") + "\n";
+        "#define CV_UV_MAP_UVBLOCK " + (bundle.impostor_uv.format == PixelFormat::uvblock ? "1" : "0") + "\n" +
+        "#define CV_NORMAL_VIEW_XY " + (bundle.impostor_normal.format == PixelFormat::bc5 ? "1" : "0") + "\n";
+    if (bundle.impostor_normal.format == PixelFormat::bc5 &&
+        (m.impostor.azimuths_deg.size() > CV_MAX_AZIMUTHS || m.impostor.elevations_deg.size() > CV_MAX_ELEVATIONS)) {
+        // The bc5 normal map is in each tile's view; the shaders rebuild the views from uniform arrays this long.
+        *error = fn + "a bc5 normal map needs at most " + std::to_string(CV_MAX_AZIMUTHS) + " azimuths and " +
+                 std::to_string(CV_MAX_ELEVATIONS) + " elevations, the bundle has " + std::to_string(m.impostor.azimuths_deg.size()) +
+                 " and " + std::to_string(m.impostor.elevations_deg.size());
+        return nullptr;
+    }
     g.mesh_program = build_program(desc.shader_dir, "mesh", "mesh", &shader_error);
     if (!g.mesh_program) {
         *error = fn + shader_error;
@@ -476,6 +499,7 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
 
     // Textures.
     Upload upload;
+    upload.force_cpu_decode = desc.force_cpu_texture_decode;
     upload.s3tc = !desc.force_cpu_texture_decode && epoxy_has_gl_extension("GL_EXT_texture_compression_s3tc");
     for (size_t k = 0; k < m.materials.size(); ++k) {
         g.diffuse.push_back(upload_texture_array(bundle.diffuse[k], true, "diffuse:" + m.materials[k].name, &upload));

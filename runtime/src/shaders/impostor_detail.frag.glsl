@@ -39,7 +39,7 @@ void main() {
     vec3 albedo = detail.rgb;
     int region = int(detail.a * 255.0 / CV_REGION_SCALE + 0.5);
     if (region != 0) albedo *= texelFetch(u_outfits, ivec2(region, int(v_outfit)), 0).rgb;
-    vec3 model_normal = texelFetch(u_normal_map, texel, 0).rgb * 2.0 - 1.0;
+    vec3 model_normal = sample_normal(texel);
 #else
 void main() {
     vec2 pixel = v_tile_uv * float(u_tile_size);
@@ -61,7 +61,7 @@ void main() {
             if (region != 0) colour *= texelFetch(u_outfits, ivec2(region, int(v_outfit)), 0).rgb;
             coverage += w;
             albedo += w * colour;
-            model_normal += w * (texelFetch(u_normal_map, texel, 0).rgb * 2.0 - 1.0);
+            model_normal += w * sample_normal(texel);
         }
     }
     if (coverage <= 0.5) discard;  // see impostor_uv.frag.glsl

@@ -95,7 +95,7 @@ void main() {
             if (t.covered) {
                 coverage += w;
                 albedo += w * albedo_at(t, dx, dy);
-                model_normal += w * (texelFetch(u_normal_map, texel, 0).rgb * 2.0 - 1.0);
+                model_normal += w * sample_normal(texel);
             }
         }
     }

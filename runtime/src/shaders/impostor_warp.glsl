@@ -11,8 +11,8 @@
 // move the point by the frame fraction, project it to the camera and shift the tile coordinate by the
 // screen miss, mapped into the tile's axes. Everything is in the character's model frame, lengths in
 // tile texels or metres as named.
-#if !defined(CV_WARP)
-#error "the renderer defines CV_WARP (0 or 1)"
+#if !defined(CV_WARP) || !defined(CV_NORMAL_VIEW_XY)
+#error "the renderer defines CV_WARP and CV_NORMAL_VIEW_XY (0 or 1 each)"
 #endif
 
 struct ViewBasis {
@@ -32,19 +32,33 @@ ViewBasis view_basis(vec3 back) {
     return b;
 }
 
-#if CV_WARP
-uniform sampler2DArray u_surface_map;  // bilinear, no mipmaps
 uniform float u_azimuths_deg[CV_MAX_AZIMUTHS];
 uniform float u_elevations_deg[CV_MAX_ELEVATIONS];
-uniform int u_azimuth_count;
 uniform float u_radius;
 
-// The baked view of the tile whose origin texel is `origin`.
-ViewBasis tile_basis(ivec2 origin) {
-    float a = radians(u_azimuths_deg[(origin.x / u_tile_size) % CV_MAX_AZIMUTHS]);
-    float e = radians(u_elevations_deg[(origin.y / u_tile_size) % CV_MAX_ELEVATIONS]);
+// The baked view of the tile holding atlas texel `texel` (any texel of it, its origin included).
+ViewBasis tile_basis(ivec2 texel) {
+    float a = radians(u_azimuths_deg[(texel.x / u_tile_size) % CV_MAX_AZIMUTHS]);
+    float e = radians(u_elevations_deg[(texel.y / u_tile_size) % CV_MAX_ELEVATIONS]);
     return view_basis(vec3(sin(a) * cos(e), sin(e), cos(a) * cos(e)));
 }
+
+// The model-space normal at atlas texel `texel`, to be blended and then normalised. CV_NORMAL_VIEW_XY
+// (the bc5 normal map, SPEC.md "Impostor maps"): R, G are the normal's components along the tile's
+// right and up, the third, towards the camera, is sqrt(1 - x² - y²); otherwise RGB is (n + 1) / 2.
+vec3 sample_normal(ivec3 texel) {
+    vec3 n = texelFetch(u_normal_map, texel, 0).rgb * 2.0 - 1.0;
+#if CV_NORMAL_VIEW_XY
+    ViewBasis b = tile_basis(texel.xy);
+    float z = sqrt(max(0.0, 1.0 - dot(n.xy, n.xy)));
+    return n.x * b.right + n.y * b.up + z * b.back;
+#else
+    return n;
+#endif
+}
+
+#if CV_WARP
+uniform sampler2DArray u_surface_map;  // bilinear, no mipmaps
 
 // (depth along back, motion along right, motion along up) in metres at tile texel coordinate xy,
 // filtered within the tile (texel centres at +0.5, clamped so no neighbouring tile is read).

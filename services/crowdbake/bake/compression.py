@@ -16,6 +16,10 @@ highest-quality BC1 encoders) in its **four-colour-only** mode:
 BC2's explicit alpha is 4 bits per texel, `round(a * 15 / 255)`, written here: a region code stored as
 `17 * r` (SPEC.md) survives it exactly.
 
+BC5 (RGTC2, core OpenGL 3.0) holds two channels, each a BC4 block of two 8-bit endpoints and 3-bit
+indices: 1 byte a texel. The impostor normal map uses it for the normal's two in-view components
+(SPEC.md pixel format 7), from quicktex's BC5 encoder.
+
 Decoders are plain numpy (the runtime's GPU does the real decoding); the tests check them against
 texture2ddecoder and Pillow's DDS reader. Everything here is pure: bytes and arrays in and out.
 """
@@ -28,6 +32,7 @@ import numpy as np
 BLOCK = 4  # texels per block side
 BC1_BLOCK_BYTES = 8
 BC2_BLOCK_BYTES = 16
+BC5_BLOCK_BYTES = 16
 # quicktex's preset level (0 fastest .. 18 slowest). On the sample bake's own layers (8 diffuse 1024²,
 # 10 normal and 10 detail atlases) level 5 encodes 10x faster than the previous etcpak + least-squares
 # path with lower error in every kind; level 12 lowers the mean error by another 0.03..0.14 levels for
@@ -145,6 +150,45 @@ def encode_bc2(rgba: np.ndarray) -> bytes:
     return blocks.tobytes()
 
 
+def encode_bc5(rgba: np.ndarray) -> bytes:
+    """BC5/RGTC2 blocks of the R and G channels of (H, W, 4) uint8 RGBA: two BC4 blocks (R, then G) of 8 bytes."""
+    from quicktex import RawTexture
+    from quicktex.s3tc.bc5 import BC5Encoder
+
+    rgba = _check_rgba(rgba, "encode_bc5")
+    height, width = rgba.shape[:2]
+    return BC5Encoder(0, 1).encode(RawTexture.frombytes(rgba.tobytes(), width, height)).tobytes()
+
+
+def _decode_bc4(blocks: np.ndarray) -> np.ndarray:
+    """(N, 8) uint8 BC4 blocks -> (N, 16) uint8 values: endpoints r0 > r1 interpolate 6 values between them
+    in sevenths; otherwise 4 in fifths, then 0 and 255 (the RGTC unsigned rules), rounded to nearest."""
+    r0, r1 = blocks[:, 0].astype(np.int64), blocks[:, 1].astype(np.int64)
+    seven = r0 > r1
+    palette = np.empty((len(blocks), 8), dtype=np.int64)
+    palette[:, 0], palette[:, 1] = r0, r1
+    for k in range(1, 7):  # sevenths
+        palette[:, k + 1] = ((7 - k) * r0 + k * r1 + 3) // 7
+    five = np.stack([((5 - k) * r0 + k * r1 + 2) // 5 for k in range(1, 5)] + [np.zeros_like(r0), np.full_like(r0, 255)], axis=1)
+    palette[~seven, 2:] = five[~seven]
+    bits = np.zeros(len(blocks), dtype=np.uint64)
+    for byte in range(6):
+        bits |= blocks[:, 2 + byte].astype(np.uint64) << np.uint64(8 * byte)
+    indices = (bits[:, None] >> (np.uint64(3) * np.arange(16, dtype=np.uint64))) & np.uint64(7)
+    return np.take_along_axis(palette, indices.astype(np.intp), axis=1).astype(np.uint8)
+
+
+def decode_bc5(data: bytes, width: int, height: int) -> np.ndarray:
+    """BC5 bytes -> (H, W, 4) uint8: R and G decoded, B = 0, A = 255 (as OpenGL returns an RG texture)."""
+    _block_count(data, width, height, BC5_BLOCK_BYTES, "decode_bc5")
+    blocks = np.frombuffer(data, dtype=np.uint8).reshape(-1, BC5_BLOCK_BYTES)
+    texels = np.zeros((len(blocks), 16, 4), dtype=np.uint8)
+    texels[:, :, 0] = _decode_bc4(np.ascontiguousarray(blocks[:, :8]))
+    texels[:, :, 1] = _decode_bc4(np.ascontiguousarray(blocks[:, 8:]))
+    texels[:, :, 3] = 255
+    return from_blocks(texels, width, height).astype(np.uint8)
+
+
 def _block_count(data: bytes, width: int, height: int, block_bytes: int, name: str) -> int:
     if width <= 0 or height <= 0 or width % BLOCK or height % BLOCK:
         raise ValueError(f"{name}: width and height must be positive multiples of 4, got {width}x{height}")
@@ -180,18 +224,20 @@ def decode_bc2(data: bytes, width: int, height: int) -> np.ndarray:
 
 
 def encode(rgba: np.ndarray, pixel_format: str) -> bytes:
-    """One layer in a CBTX pixel format: rgba8 (raw), bc1 or bc2. rgba: (H, W, 4) uint8."""
+    """One layer in a CBTX pixel format: rgba8 (raw), bc1, bc2 or bc5 (R and G only). rgba: (H, W, 4) uint8."""
     if pixel_format == "rgba8":
         return np.ascontiguousarray(rgba, dtype=np.uint8).tobytes()
     if pixel_format == "bc1":
         return encode_bc1(rgba)
     if pixel_format == "bc2":
         return encode_bc2(rgba)
+    if pixel_format == "bc5":
+        return encode_bc5(rgba)
     raise ValueError(f"encode: no encoder for pixel format {pixel_format!r}")
 
 
 def decode(data: bytes, pixel_format: str, width: int, height: int) -> np.ndarray:
-    """One CBTX layer back to texels: (H, W, 4) uint8 for rgba8/bc1/bc2, uint16 for rgba16."""
+    """One CBTX layer back to texels: (H, W, 4) uint8 for rgba8/bc1/bc2/bc5, uint16 for rgba16."""
     if pixel_format == "rgba8":
         return np.frombuffer(data, dtype=np.uint8).reshape(height, width, 4)
     if pixel_format == "rgba16":
@@ -200,6 +246,8 @@ def decode(data: bytes, pixel_format: str, width: int, height: int) -> np.ndarra
         return decode_bc1(data, width, height)
     if pixel_format == "bc2":
         return decode_bc2(data, width, height)
+    if pixel_format == "bc5":
+        return decode_bc5(data, width, height)
     raise ValueError(f"decode: unknown pixel format {pixel_format!r}")
 
 

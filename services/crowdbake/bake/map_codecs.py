@@ -50,3 +50,53 @@ def decode_normal_map(normal_map: np.ndarray) -> np.ndarray:
     n = np.asarray(normal_map)[..., :3].astype(np.float64) / 255.0 * 2.0 - 1.0
     length = np.linalg.norm(n, axis=-1, keepdims=True)
     return np.divide(n, length, out=np.zeros_like(n), where=length > 1e-12)
+
+
+def _tile_bases(layout) -> np.ndarray:
+    """(E, A, 3, 3) rows right, up, back of every tile's orthographic view (crowdbake.bake.impostor_maps.ortho_view)."""
+    from crowdbake.bake.impostor_maps import ortho_view
+
+    bases = np.empty((len(layout.elevations_deg), len(layout.azimuths_deg), 3, 3))
+    for e, elevation in enumerate(layout.elevations_deg):
+        for a, azimuth in enumerate(layout.azimuths_deg):
+            view = ortho_view(np.zeros(3), 1.0, azimuth, elevation, layout.tile_size)
+            bases[e, a] = view.right, view.up, view.back
+    return bases
+
+
+def _by_tile(atlas: np.ndarray, layout) -> np.ndarray:
+    """(H, W, C) atlas as (E, A, S, S, C) tiles (a view, no copy)."""
+    size, rings, columns = layout.tile_size, len(layout.elevations_deg), len(layout.azimuths_deg)
+    return atlas.reshape(rings, size, columns, size, -1).transpose(0, 2, 1, 3, 4)
+
+
+def normal_atlas_to_view_xy(normal_atlas: np.ndarray, layout) -> np.ndarray:
+    """The bake's (H, W, 4) uint8 model-space normal atlas (RGB = (n + 1) / 2) as the bc5 normal map stores
+    it (SPEC.md "Impostor maps"): R, G = (n · right + 1) / 2, (n · up + 1) / 2 in each tile's own view, B = 0,
+    A = 255. The third component, n · back, is left out: the reader takes it as sqrt(1 - x² - y²)."""
+    normals = decode_normal_map(normal_atlas)
+    in_view = np.einsum("eaxyc,eakc->eaxyk", _by_tile(normals, layout), _tile_bases(layout))
+    out = np.zeros(normal_atlas.shape[:2] + (4,), dtype=np.uint8)
+    _by_tile(out, layout)[..., :2] = np.rint((np.clip(in_view[..., :2], -1.0, 1.0) + 1.0) * 127.5).astype(np.uint8)
+    out[..., 3] = 255
+    return out
+
+
+def view_xy_to_model_normals(texels: np.ndarray, layout) -> np.ndarray:
+    """(H, W, 4) uint8 texels of a bc5 normal map, decoded -> (H, W, 3) float64 model-space unit normals:
+    x, y = rg / 255 · 2 - 1 in the tile's view, z = sqrt(max(0, 1 - x² - y²)) towards the camera, rotated out
+    of the view (the shader's sample_normal, shaders/impostor_warp.glsl)."""
+    xy = np.asarray(texels)[..., :2].astype(np.float64) / 255.0 * 2.0 - 1.0
+    z = np.sqrt(np.maximum(0.0, 1.0 - (xy ** 2).sum(axis=-1, keepdims=True)))
+    in_view = np.concatenate([xy, z], axis=-1)
+    model = np.empty_like(in_view)
+    _by_tile(model, layout)[...] = np.einsum("eaxyk,eakc->eaxyc", _by_tile(in_view, layout), _tile_bases(layout))
+    length = np.linalg.norm(model, axis=-1, keepdims=True)
+    return np.divide(model, length, out=np.zeros_like(model), where=length > 1e-12)
+
+
+def model_normals_to_codes(normals: np.ndarray) -> np.ndarray:
+    """(H, W, 3) unit normals -> (H, W, 4) uint8 RGB = (n + 1) / 2, A = 255 (the bake's normal atlas)."""
+    out = np.full(normals.shape[:2] + (4,), 255, dtype=np.uint8)
+    out[..., :3] = np.rint((np.clip(normals, -1.0, 1.0) + 1.0) * 127.5).astype(np.uint8)
+    return out

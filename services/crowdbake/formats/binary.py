@@ -32,7 +32,7 @@ NORMAL_LENGTH_TOLERANCE = 1e-3
 # Bounds are float32 too; a position may sit this far (metres) outside them from rounding.
 BOUNDS_TOLERANCE = 1e-4
 
-PIXEL_FORMATS = {1: "rgba8", 2: "rgba16", 3: "bc1", 4: "bc2", 5: "uv32", 6: "uvblock"}
+PIXEL_FORMATS = {1: "rgba8", 2: "rgba16", 3: "bc1", 4: "bc2", 5: "uv32", 6: "uvblock", 7: "bc5"}
 PIXEL_FORMAT_CODES = {name: code for code, name in PIXEL_FORMATS.items()}
 
 # uv32 (SPEC.md): one u32 a texel, u in bits 0..13, v in 14..27, material in 28..30, coverage in 31.
@@ -52,10 +52,10 @@ def layer_size(pixel_format: str, width: int, height: int) -> int:
         return 8 * width * height
     if pixel_format == "uv32":
         return 4 * width * height
-    if pixel_format in ("bc1", "bc2", "uvblock"):
+    if pixel_format in ("bc1", "bc2", "bc5", "uvblock"):
         if width % 4 or height % 4:
             raise ValueError(f"{pixel_format} needs sizes that are multiples of 4, got {width}x{height}")
-        return {"bc1": 8, "bc2": 16, "uvblock": 24}[pixel_format] * (width // 4) * (height // 4)
+        return {"bc1": 8, "bc2": 16, "bc5": 16, "uvblock": 24}[pixel_format] * (width // 4) * (height // 4)
     raise ValueError(f"unknown pixel format {pixel_format!r}")
 
 

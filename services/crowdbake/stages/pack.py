@@ -133,13 +133,18 @@ def encode_frame(layout: AtlasLayout, frame_parts: list[dict[str, np.ndarray]], 
             encoded = stored[kind].astype("<u4").tobytes()
         elif pixel_format == "uvblock":
             encoded = uvblock
+        elif pixel_format == "bc5":  # normals: two components in each tile's view (map_codecs.normal_atlas_to_view_xy)
+            in_view = map_codecs.normal_atlas_to_view_xy(atlases[kind], layout)
+            encoded = compression.encode(in_view, pixel_format)
         else:
             encoded = compression.encode(atlases[kind], pixel_format)
         layers[kind] = encoded
-        if pixel_format in ("bc1", "bc2"):
+        if pixel_format in ("bc1", "bc2", "bc5"):
             decoded = compression.decode(encoded, pixel_format, layout.width, layout.height)
-            errors[kind] = compression.compression_error(atlases[kind], decoded, covered)
+            errors[kind] = compression.compression_error(in_view if pixel_format == "bc5" else atlases[kind], decoded, covered)
             if fidelity_frame and kind == "normal":
+                if pixel_format == "bc5":  # fidelity reads model-space normal codes
+                    decoded = map_codecs.model_normals_to_codes(map_codecs.view_xy_to_model_normals(decoded, layout))
                 fidelity_atlases["normal_decoded"] = decoded
     if fidelity_frame:
         fidelity_atlases.update(stored)
@@ -242,9 +247,10 @@ def _cycle_section(cycle: CycleRecord) -> dict:
 
 
 def map_formats(compress: bool, uv_format: str) -> dict[str, str]:
-    """Pixel formats of the impostor maps: DXT1 normals and DXT3 detail when compressing (paper section 5);
-    the surface map (crowdbake.bake.surface_maps: smooth depth and motion) is DXT1 too."""
-    return {"normal": "bc1" if compress else "rgba8", "uv": uv_format, "detail": "bc2" if compress else "rgba8",
+    """Pixel formats of the impostor maps when compressing: DXT3 detail (paper section 5); BC5 normals, two
+    components in each tile's view at 1 byte a texel, where the paper's DXT1 (0.5 byte) costs the impostor
+    0.016 SSIM against the mesh (docs/bake.md); DXT1 for the surface map (smooth depth and motion)."""
+    return {"normal": "bc5" if compress else "rgba8", "uv": uv_format, "detail": "bc2" if compress else "rgba8",
             "surface": "bc1" if compress else "rgba8"}
 
 

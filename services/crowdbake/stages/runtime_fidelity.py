@@ -30,9 +30,9 @@ from crowdbake.stages.records import ImpostorTask, PosesRecord
 BETWEEN_AZIMUTHS = 16
 
 
-def decode_atlas_layer(uv_file: bytes, normal_file: bytes, layer: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(uv (H, W, 2), material (H, W), covered (H, W), normal (H, W, 3)) of one layer of the bundle's UV and
-    normal map files (CBTX bytes), decoded as crowdview samples them."""
+def decode_atlas_layer(uv_file: bytes, normal_file: bytes, layer: int, layout: AtlasLayout) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(uv (H, W, 2), material (H, W), covered (H, W), normal (H, W, 3) model space) of one layer of the
+    bundle's UV and normal map files (CBTX bytes), decoded as crowdview samples them."""
     uv_map, normal_map = decode_texture_array(uv_file, "uv map"), decode_texture_array(normal_file, "normal map")
     if uv_map.pixel_format == "uvblock":
         u, v, material, covered = unpack_uvblock(uv_map.layers[layer], uv_map.width, uv_map.height)
@@ -42,12 +42,15 @@ def decode_atlas_layer(uv_file: bytes, normal_file: bytes, layer: int) -> tuple[
         uv = np.stack([u, v], axis=-1)
     else:
         uv, material, covered = map_codecs.decode_uv_map(uv_map.texels(layer))
+    # Outside the character the shader's decode gives coordinate 0, which its gradients then see.
+    uv = np.where(covered[..., None], uv, 0.0)
+    if normal_map.pixel_format == "bc5":
+        normals = compression.decode(normal_map.layers[layer], "bc5", normal_map.width, normal_map.height)
+        return uv, material, covered, map_codecs.view_xy_to_model_normals(normals, layout)
     if normal_map.pixel_format in ("bc1", "bc2"):
         normals = compression.decode(normal_map.layers[layer], normal_map.pixel_format, normal_map.width, normal_map.height)
     else:
         normals = normal_map.texels(layer)
-    # Outside the character the shader's decode gives coordinate 0, which its gradients then see.
-    uv = np.where(covered[..., None], uv, 0.0)
     return uv, material, covered, map_codecs.decode_normal_map(normals)
 
 
@@ -86,7 +89,7 @@ class AtlasTiles:
 
     def tile(self, tile: int, layer: int) -> DecodedTile:
         if layer not in self._layers:
-            self._layers[layer] = decode_atlas_layer(self.uv_file, self.normal_file, layer)
+            self._layers[layer] = decode_atlas_layer(self.uv_file, self.normal_file, layer, self.layout)
         rows, cols = self._window(tile)
         uv, material, covered, normal = self._layers[layer]
         return DecodedTile(uv[rows, cols], material[rows, cols], covered[rows, cols], normal[rows, cols])
