@@ -21,7 +21,7 @@ import pytest
 from repo_paths import REPO_ROOT, SHARED_ASSETS
 from crowdbake.cli import main as cli_main
 from crowdbake.export import ktx2
-from crowdbake.export.textures import rgba8_layers
+from crowdbake.export.textures import model_space_normals, rgba8_layers
 from crowdbake.export.vat import VertexAnimation, decode_vat, encode_vat, vat_layout, vat_texcoords
 from crowdbake.formats.bundle import verify_bundle
 
@@ -254,7 +254,8 @@ def check_export(bundle_dir: Path, out: Path) -> None:
     for kind in ("normal", "detail"):
         sources[sidecar["impostor"]["maps"][kind]["ktx2"]] = bundle.textures[manifest["impostor"]["maps"][kind]]
     for path, texture in sources.items():
-        expected[path] = rgba8_layers(texture)
+        # A bc5 normal map (two in-view components) is exported as model-space RGBA8 codes.
+        expected[path] = model_space_normals(texture, manifest["impostor"]) if texture.pixel_format == "bc5" else rgba8_layers(texture)
     uv = bundle.textures[manifest["impostor"]["maps"]["uv"]]
     if uv.pixel_format == "uvblock":  # exported as the uv32 words of its decoded texels
         from crowdbake.bake.map_codecs import uvblock_to_uv32
@@ -308,7 +309,7 @@ def read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int) -> np.ndarray:
 def test_sample_export_validates_and_round_trips(sample_bundle, sample_export):
     sidecar = json.loads((sample_export / "export.json").read_text())
     assert sidecar["ktx2"] == "bc" and sidecar["format_version"] == 2
-    assert sidecar["impostor"]["maps"]["normal"]["vk_format"] == "BC1_RGB_UNORM_BLOCK"
+    assert sidecar["impostor"]["maps"]["normal"]["vk_format"] == "R8G8B8A8_UNORM"  # from the bundle's bc5, in model space
     assert sidecar["impostor"]["maps"]["detail"]["vk_format"] == "BC2_SRGB_BLOCK"
     assert sidecar["impostor"]["maps"]["uv"]["vk_format"] == "R32_UINT"  # words stay exact, never block-compressed
     check_export(sample_bundle, sample_export)
@@ -318,10 +319,10 @@ def test_rgba8_export_decodes_the_blocks_and_is_larger(sample_bundle, sample_exp
     sidecar = json.loads((sample_export_rgba8 / "export.json").read_text())
     assert sidecar["ktx2"] == "rgba8" and sidecar["impostor"]["maps"]["detail"]["vk_format"] == "R8G8B8A8_SRGB"
     check_export(sample_bundle, sample_export_rgba8)
-    # Same files; the BC ones 4x (BC2) or 8x (BC1) smaller in their level data.
+    # Same files; the BC ones 4x (BC2) smaller in their level data. (The bc5 normal map is RGBA8 in both.)
     sizes = {mode: {p.relative_to(root).as_posix(): p.stat().st_size for p in root.rglob("*.ktx2")} for mode, root in (("bc", sample_export), ("rgba8", sample_export_rgba8))}
     assert sizes["bc"].keys() == sizes["rgba8"].keys()
-    for kind, ratio in (("normal", 8), ("detail", 4)):
+    for kind, ratio in (("normal", 1), ("detail", 4)):
         path = f"impostor/{kind}.ktx2"
         level_bc = sizes["bc"][path] - int.from_bytes((sample_export / path).read_bytes()[80:88], "little")
         level_rgba8 = sizes["rgba8"][path] - int.from_bytes((sample_export_rgba8 / path).read_bytes()[80:88], "little")

@@ -57,6 +57,18 @@ def rgba8_layers(texture: TextureArray) -> np.ndarray:
     return np.stack([compression.decode(layer, texture.pixel_format, texture.width, texture.height) for layer in texture.layers])
 
 
+def model_space_normals(texture: TextureArray, impostor: dict) -> np.ndarray:
+    """(L, H, W, 4) uint8 model-space normal codes (RGB = (n + 1) / 2) of a bc5 impostor normal map, whose
+    texels hold two components in each tile's view (crowdbake.bake.map_codecs.view_xy_to_model_normals);
+    impostor: the manifest's impostor section (the tile layout)."""
+    from crowdbake.bake.atlas import AtlasLayout
+    from crowdbake.bake.map_codecs import model_normals_to_codes, view_xy_to_model_normals
+
+    layout = AtlasLayout(int(impostor["tile_size"]), tuple(impostor["azimuths_deg"]), tuple(impostor["elevations_deg"]))
+    return np.stack([model_normals_to_codes(view_xy_to_model_normals(compression.decode(layer, "bc5", texture.width, texture.height), layout))
+                     for layer in texture.layers])
+
+
 def uv_map_layers(texture: TextureArray) -> tuple[int, np.ndarray]:
     """(vkFormat, texels) of an impostor UV map, bit for bit: uv32 words as R32_UINT (L, H, W),
     rgba16 as R16G16B16A16_UNORM (L, H, W, 4); uvblock (a block code no engine samples) decoded into
