@@ -6,9 +6,10 @@ view and halfway between baked views and frames (docs/bake.md, "What the runtime
 
 WORK is a bake's work folder (`crowdbake bake ... --work WORK`, its pack stage run). Row 1: a baked view of
 the fidelity frame. Row 2: halfway to the next azimuth, halfway between the lowest two elevation rings and
-halfway to the next baked frame. Columns: the mesh (crowdbake.bake.fidelity.mesh_reference, 4x4 samples a
-pixel), crowdview's blended impostor (crowdbake.bake.impostor_blend, decoded from the bundle's files), the
-paper's nearest view and frame, and 4x the absolute difference of the blended impostor from the mesh.
+halfway to the next baked frame. Columns: the mesh (crowdbake.bake.fidelity.mesh_reference, 3x3 samples a
+pixel), crowdview's default impostor (`--impostor-blend warp`: every sample reprojected by the surface map,
+crowdbake.bake.impostor_warp), the plain blend (`full`, crowdbake.bake.impostor_blend), the paper's nearest
+view and frame, all decoded from the bundle's files, and 4x the absolute difference of the default from the mesh.
 Each picture is one tile, scaled up by --scale with nearest-neighbour so pixels stay visible.
 """
 from __future__ import annotations
@@ -24,7 +25,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 from crowdbake.bake import fidelity, impostor_blend, impostor_maps  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, load_poses  # noqa: E402
-from crowdbake.stages.runtime_fidelity import AtlasTiles, halfway_frame, render_mesh_references  # noqa: E402
+from crowdbake.stages.runtime_fidelity import AtlasTiles, halfway_frame, render_mesh_references, sample_tile  # noqa: E402
 
 
 def main() -> int:
@@ -41,7 +42,8 @@ def main() -> int:
     layout = poses.atlas_layout()
     bundle = args.work / "bundle"
     maps = json.loads((bundle / "manifest.json").read_text())["impostor"]["maps"]
-    tiles = AtlasTiles(layout, (bundle / maps["uv"]).read_bytes(), (bundle / maps["normal"]).read_bytes())
+    surface = (bundle / maps["surface"]).read_bytes() if "surface" in maps else None
+    tiles = AtlasTiles(layout, (bundle / maps["uv"]).read_bytes(), (bundle / maps["normal"]).read_bytes(), surface, poses.radius)
     textures = dict(np.load(args.work / "poses" / "textures.npz"))
     diffuse = [textures[f"material_{m}_decoded"][0] for m in range(len(poses.materials))]
     chains = [impostor_blend.mip_chain(texture) for texture in diffuse]
@@ -56,30 +58,33 @@ def main() -> int:
         ("halfway", azimuths[a] + step / 2.0, (elevations[0] + elevations[min(1, len(elevations) - 1)]) / 2.0, between_frame, between_weights),
     ]
 
-    def draw(weights: list[tuple[float, int, int]], azimuth: float, elevation: float) -> np.ndarray:
+    def draw(weights: list[tuple[float, int, int]], azimuth: float, elevation: float,
+             frames: impostor_blend.FrameWeights | None = None) -> np.ndarray:
+        """The samples blended; with `frames`, each reprojected to the camera and that cycle position first."""
         view = impostor_maps.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
-        samples = [(w, tiles.tile(tile, k)) for w, tile, k in weights]
+        samples = [(w, tiles.tile(tile, k) if frames is None else sample_tile(tiles, tile, k, view, frames)) for w, tile, k in weights]
         return impostor_blend.blend_image(samples, diffuse, textures["outfits"][0], fidelity.camera_light(view), size, chains)
 
     rows = []
     for label, azimuth, elevation, frame, frames in cases:
         mesh = render_mesh_references(args.work, poses, frame, [(azimuth, elevation)], FIDELITY_SUPERSAMPLE)[0]
-        blended = draw(impostor_blend.samples_for(
-            impostor_blend.blend_view_weights(azimuth, elevation, azimuths, layout.elevations_deg), frames), azimuth, elevation)
+        weights = impostor_blend.samples_for(impostor_blend.blend_view_weights(azimuth, elevation, azimuths, layout.elevations_deg), frames)
+        reprojected = draw(weights, azimuth, elevation, frames)
+        blended = draw(weights, azimuth, elevation)
         nearest_tile = impostor_blend.blend_view_weights(azimuth, elevation, azimuths, layout.elevations_deg)
         best = int(np.argmax(nearest_tile.weights))
         nearest_layer = frames.layers[1] if frames.weight > 0.5 else frames.layers[0]
         nearest = draw([(1.0, nearest_tile.tiles[best], nearest_layer)], azimuth, elevation)
-        difference = np.clip(np.abs(mesh - blended) * 4.0, 0.0, 1.0)
-        score = fidelity.compare(mesh, blended)["ssim"]
+        difference = np.clip(np.abs(mesh - reprojected) * 4.0, 0.0, 1.0)
         print(f"{label}: azimuth {azimuth:.2f}, elevation {elevation:.1f}, frame {frame} (frame weight {frames.weight:.2f}): "
-              f"SSIM blended {score:.3f}, nearest {fidelity.compare(mesh, nearest)['ssim']:.3f}")
-        rows.append(np.concatenate([mesh, blended, nearest, difference], axis=1))
+              f"SSIM reprojected {fidelity.compare(mesh, reprojected)['ssim']:.3f}, blended {fidelity.compare(mesh, blended)['ssim']:.3f}, "
+              f"nearest {fidelity.compare(mesh, nearest)['ssim']:.3f}")
+        rows.append(np.concatenate([mesh, reprojected, blended, nearest, difference], axis=1))
     picture = np.concatenate(rows, axis=0)
     picture = np.repeat(np.repeat(picture, args.scale, axis=0), args.scale, axis=1)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(args.out), (picture[..., ::-1] * 255.0 + 0.5).astype(np.uint8))
-    print(f"wrote {args.out}: columns mesh, blended impostor, nearest view and frame, 4x |mesh - blended|")
+    print(f"wrote {args.out}: columns mesh, reprojected impostor, blended, nearest view and frame, 4x |mesh - reprojected|")
     return 0
 
 
