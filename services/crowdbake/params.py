@@ -212,7 +212,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--lod-ratio",), "R", optional=True, maximum=1.0, above_zero=True, exclusive_group="lod"),
     ParamSpec("lod_triangles", "int", None, "low LOD triangles for the whole character (instead of lod_ratio)",
               ("--lod-triangles",), "N", optional=True, minimum=2, exclusive_group="lod"),
-    ParamSpec("compress", "bool", True, "block-compress normal maps (DXT1), detail maps and diffuse textures (DXT3); false: rgba8",
+    ParamSpec("compress", "bool", True,
+              "block-compress normal maps (BC5), surface maps (DXT1), detail maps and diffuse textures (DXT3); false: rgba8",
               ("--no-compress",)),
     ParamSpec("uv_format", "str", "uvblock", "impostor UV map format: uvblock (1.5 bytes a texel, block-coded 12-bit coordinates), "
               "uv32 (4 bytes, 14-bit coordinates) or rgba16 (8 bytes)",

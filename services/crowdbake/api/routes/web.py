@@ -131,7 +131,7 @@ def get_cycle_file(bake_id: str, path: str, key: BakeKey, services: ServicesDep,
 
 
 def decode_layer(data: bytes, pixel_format: str, width: int, height: int) -> np.ndarray:
-    """One CBTX layer as (height, width, 4) texels: uint8 for rgba8/bc1/bc2, uint16 for rgba16."""
+    """One CBTX layer as (height, width, 4) texels: uint8 for rgba8/bc1/bc2/bc5, uint16 for rgba16."""
     from crowdbake.bake.compression import decode
 
     return np.asarray(decode(data, pixel_format, width, height))
@@ -213,7 +213,12 @@ def render_preview(local_file: Callable[[str], Path], maps: dict[str, str], kind
         pixel_format, map_width, map_height, _, data = read_texture_layer(local_file(maps[kind]), layer)
         if (map_width, map_height) != (width, height):
             raise ValueError(f"the {kind} map is {map_width}x{map_height}, the uv map {width}x{height}")
-        picture = colour_preview(decode_layer(data, pixel_format, width, height), uv[..., 3] > 0)
+        texels = decode_layer(data, pixel_format, width, height)
+        if pixel_format == "bc5":  # the normal's two in-view components: show the rebuilt third in blue, as a view-space map
+            xy = texels[..., :2].astype(np.float64) / 255.0 * 2.0 - 1.0
+            texels = texels.copy()
+            texels[..., 2] = np.rint((np.sqrt(np.maximum(0.0, 1.0 - (xy ** 2).sum(axis=-1))) + 1.0) * 127.5).astype(np.uint8)
+        picture = colour_preview(texels, uv[..., 3] > 0)
     return png_bytes(select_tiles(picture, tile_size, azimuth, elevation))
 
 
