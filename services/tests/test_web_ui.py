@@ -134,14 +134,18 @@ def test_previews_of_the_baked_bundle_match_independent_decodes(service):
     folder = Path(service.settings.bundles_dir) / NAME / "1.0.0"
     normal = decode_texture_array((folder / "impostor" / "normal.cbtx").read_bytes())
     uv = decode_texture_array((folder / "impostor" / "uv.cbtx").read_bytes())
-    assert normal.pixel_format == "bc1" and uv.pixel_format == "uvblock"
+    assert normal.pixel_format == "bc5" and uv.pixel_format == "uvblock"
     with service.client() as client:
         picture = png(client.get(f"/v1/bundles/{NAME}/1.0.0/preview/normal?frame=1"))
-    theirs = np.frombuffer(texture2ddecoder.decode_bc1(normal.layers[1], normal.width, normal.height), np.uint8)
-    theirs = theirs.reshape(normal.height, normal.width, 4)[..., [2, 1, 0]]  # BGRA -> RGB
+    theirs = np.frombuffer(texture2ddecoder.decode_bc5(normal.layers[1], normal.width, normal.height), np.uint8)
+    theirs = theirs.reshape(normal.height, normal.width, 4)[..., [2, 1]].astype(int)  # BGRA -> the normal's in-view x, y
     covered = unpack_uvblock(uv.layers[1], uv.width, uv.height)[3]
     assert 0.05 < covered.mean() < 0.95  # the character shows in the atlas, with background around it
-    np.testing.assert_array_equal(picture[..., :3][covered], theirs[covered])
+    # BC5's interpolation rounds by a level differently here and there; blue is the rebuilt third component.
+    assert np.abs(picture[..., :2][covered].astype(int) - theirs[covered]).max() <= 1
+    xy = picture[..., :2][covered] / 255.0 * 2.0 - 1.0  # z is steep near the silhouette: rebuilt from the preview's own x, y
+    z = np.rint((np.sqrt(np.maximum(0.0, 1.0 - (xy ** 2).sum(axis=-1))) + 1.0) * 127.5)
+    assert np.abs(picture[..., 2][covered].astype(int) - z).max() <= 1
     assert (picture[..., 3] == np.where(covered, 255, 0)).all()
     # The uvblock UV map previews as rgba16 would: u red, v green (top 8 of 16 bits), material blue.
     with service.client() as client:

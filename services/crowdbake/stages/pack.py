@@ -15,14 +15,14 @@ import numpy as np
 from crowdbake.bake import compression, map_codecs, texture_memory
 from crowdbake.bake.atlas import AtlasLayout, assemble
 from crowdbake.errors import StageOrderError
-from crowdbake.formats.binary import encode_texture_array, layer_size
+from crowdbake.formats.binary import TextureArray, encode_texture_array, layer_size
 from crowdbake.formats.bundle import BundleFile, build_manifest, verify_bundle, write_bundle
 from crowdbake.stages.cycle import bundle_cycle_document
 from crowdbake.stages.fidelity import score_fidelity
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_plan, load_poses, part_path, part_record
 from crowdbake.stages.poses import DIFFUSE_ERRORS
 from crowdbake.stages.runtime_fidelity import score_runtime
-from crowdbake.stages.records import CycleRecord, ImpostorTask, MaterialInfo, PackRecord, PosesRecord
+from crowdbake.stages.records import CycleRecord, ImpostorPlan, ImpostorTask, MaterialInfo, PackRecord, PosesRecord
 from crowdbake.stages.validate import load_job
 from crowdbake.stages.workdir import (
     Progress, StageOutcome, WorkDir, json_bytes, npz_bytes, read_json, report, stage_key, write_bytes_atomic, write_json_atomic,
@@ -190,22 +190,70 @@ def stage_pack_frame(work: Path, frame: int) -> Path:
     return path
 
 
+SCORES_FILE = "scores.json"
+
+
+def score_frames(record: PosesRecord | ImpostorPlan) -> list[int]:
+    """The baked frames the scores read: the fidelity frame and the next one (runtime between_views is halfway to it)."""
+    from crowdbake.bake.surface_maps import next_baked_frame
+
+    return sorted({record.fidelity_frame, next_baked_frame(record.fidelity_frame, record.frame_indices)})
+
+
+def stage_pack_scores(work: Path) -> Path:
+    """fidelity.json's scores (crowdbake.stages.fidelity.score_fidelity and its `runtime` section,
+    crowdbake.stages.runtime_fidelity.score_runtime) → work/pack/SCORES_FILE, as soon as the poses, the
+    fidelity frame's tasks and the two frames the scores read are done (stage_pack_frame packs those if they
+    are not yet): the bake runner runs this in a worker while other impostor tasks still render, and
+    stage_pack only reads it. Idempotent: kept when written from the same poses, parts and frames."""
+    work = Path(work)
+    folder = WorkDir(work)
+    poses = load_poses(work)
+    layout = poses.atlas_layout()
+    formats = map_formats(load_job(work).bake_params.compress, load_job(work).bake_params.uv_format)
+    tasks = impostor_tasks(work)
+    frame_paths = {frame: stage_pack_frame(work, frame) for frame in score_frames(poses)}
+    scored = [task for task in tasks if task.references]
+    key = stage_key("pack-scores", folder.key_of("poses"), [read_json(path.with_suffix(".json"))["key"] for path in frame_paths.values()],
+                    [None if (stats := part_record(work, task)) is None else stats.key for task in scored], formats)
+    path = folder.root / "pack" / SCORES_FILE
+    if path.is_file():
+        try:
+            if read_json(path).get("key") == key:
+                return path
+        except (OSError, ValueError):
+            pass
+    layer_of = {frame: k for k, frame in enumerate(poses.frame_indices)}
+    layers: dict[str, list[bytes]] = {kind: [b""] * len(poses.frame_indices) for kind in formats}
+    for frame, frame_path in frame_paths.items():
+        with np.load(frame_path) as data:
+            for kind in formats:
+                layers[kind][layer_of[frame]] = data[f"layer_{kind}"].tobytes()
+            if frame == poses.fidelity_frame:
+                fidelity_atlases = {name[len("fidelity_"):]: data[name] for name in data.files if name.startswith("fidelity_")}
+    # Only the two frames' layers are filled: the scores read no other.
+    maps = {kind: TextureArray(layout.width, layout.height, formats[kind], tuple(layers[kind])) for kind in formats}
+    parts = Parts(work, scored)
+    with np.load(folder.root / "poses" / "textures.npz") as texture_arrays:
+        fidelity_doc = score_fidelity(poses, layout, scored, parts, fidelity_atlases, texture_arrays, formats)
+        fidelity_doc["runtime"] = score_runtime(folder.root, poses, layout, scored, parts, maps["uv"], maps["normal"], texture_arrays,
+                                                FIDELITY_SUPERSAMPLE, maps["surface"])
+    write_json_atomic(path, {"key": key, "fidelity": fidelity_doc})
+    return path
+
+
 def _impostor_files(work: Path, poses: PosesRecord, layout: AtlasLayout, formats: dict[str, str],
-                    files: list[BundleFile], compression_report: dict, progress: Progress | None, steps: int) -> tuple[dict, dict]:
+                    files: list[BundleFile], compression_report: dict, progress: Progress | None, steps: int) -> dict:
     """Impostor atlases (layer k = frame_indices[k]), encoded frame by frame (stage_pack_frame: done already
-    when the runner packed frames as their tasks finished); returns the manifest's maps and the fidelity
-    frame's atlases (as stored, plus uv16 and the decoded normal map)."""
+    when the runner packed frames as their tasks finished); returns the manifest's maps."""
     layers: dict[str, list[bytes]] = {kind: [] for kind in formats}
     normal_errors, detail_errors = [], []
-    fidelity_atlases: dict[str, np.ndarray] = {}
     for step, frame in enumerate(poses.frame_indices, start=1):
         path = stage_pack_frame(work, frame)
         errors = read_json(path.with_suffix(".json"))["errors"]
         with np.load(path) as data:
             for kind in formats:
                 layers[kind].append(data[f"layer_{kind}"].tobytes())
-            if frame == poses.fidelity_frame:
-                fidelity_atlases = {name[len("fidelity_"):]: data[name] for name in data.files if name.startswith("fidelity_")}
         if "normal" in errors:
             normal_errors.append(errors["normal"])
         if "detail" in errors:
@@ -221,7 +269,7 @@ def _impostor_files(work: Path, poses: PosesRecord, layout: AtlasLayout, formats
         compression_report["impostor_normal"] = _worst_errors(normal_errors, formats["normal"])
     if detail_errors:
         compression_report["impostor_detail"] = _worst_errors(detail_errors, formats["detail"])
-    return maps, fidelity_atlases
+    return maps
 
 
 def _texture_memory(poses: PosesRecord, layout: AtlasLayout, formats: dict[str, str]) -> dict:
@@ -270,7 +318,7 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
     poses = load_poses(work)
     cycle = folder.load("cycle", CycleRecord)
     layout = poses.atlas_layout()
-    parts = Parts(work, tasks)
+    Parts(work, tasks)  # StageOrderError unless every impostor task has run
     steps = len(poses.frame_indices) + 3
     report(progress, "pack", 0, steps)
 
@@ -282,14 +330,11 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
         compression_report: dict[str, Any] = {}
         material_entries = _texture_files(folder.root, poses, texture_arrays, files, compression_report)
         formats = map_formats(params.compress, params.uv_format)
-        maps, fidelity_atlases = _impostor_files(work, poses, layout, formats, files, compression_report, progress, steps)
-
-        # Fidelity at 1:1 texel-to-pixel: per view, and at the angles between views with the nearest view.
-        fidelity_doc = score_fidelity(poses, layout, tasks, parts, fidelity_atlases, texture_arrays, formats)
-        map_bytes = {f.path: f.data for f in files if f.path in (maps["uv"], maps["normal"], maps["surface"])}
-        fidelity_doc["runtime"] = score_runtime(folder.root, poses, layout, tasks, parts, map_bytes[maps["uv"]], map_bytes[maps["normal"]],
-                                                texture_arrays, FIDELITY_SUPERSAMPLE, map_bytes[maps["surface"]])
+        maps = _impostor_files(work, poses, layout, formats, files, compression_report, progress, steps)
         outfit_count = int(len(texture_arrays["outfits"]))
+    # Fidelity at 1:1 texel-to-pixel, per view, between views, and as crowdview draws (already scored when the
+    # runner ran stage_pack_scores in a worker).
+    fidelity_doc = read_json(stage_pack_scores(work))["fidelity"]
     fidelity_doc["compression"] = compression_report
     files.append(BundleFile("fidelity.json", json_bytes(fidelity_doc), "fidelity"))
     report(progress, "pack", len(poses.frame_indices) + 1, steps)

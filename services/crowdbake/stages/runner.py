@@ -36,9 +36,9 @@ from crowdbake.render.offscreen import render_timings
 from crowdbake.stages import STAGES
 from crowdbake.stages.cycle import stage_cycle
 from crowdbake.stages.impostors import (
-    FIDELITY_SUPERSAMPLE, impostor_statistics, impostor_tasks, load_poses, stage_impostor_plan, stage_impostor_views,
+    FIDELITY_SUPERSAMPLE, impostor_statistics, impostor_tasks, load_plan, load_poses, stage_impostor_plan, stage_impostor_views,
 )
-from crowdbake.stages.pack import stage_pack, stage_pack_frame
+from crowdbake.stages.pack import score_frames, stage_pack, stage_pack_frame, stage_pack_scores
 from crowdbake.stages.poses import stage_poses
 from crowdbake.stages.publish import stage_export, stage_publish
 from crowdbake.stages.records import PosesRecord
@@ -187,6 +187,8 @@ def _worker_item(work: str, item: str, task: dict | None = None, frame: int | No
         figures = measured(lambda: stage_pack(Path(work)).cached)
     elif item == "runtime":
         figures = measured(lambda: len(between_references(Path(work), load_poses(Path(work)), FIDELITY_SUPERSAMPLE)))
+    elif item == "scores":
+        figures = measured(lambda: str(stage_pack_scores(Path(work))))
     else:
         figures = measured(lambda: str(stage_impostor_views(Path(work), task)))
     _trim_heap()
@@ -260,6 +262,16 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
     packable: deque[tuple[str, dict | None, int | None]] = deque()
     frame_tasks_left = {frame: sum(task.frame == frame for task in tasks) for frame in {task.frame for task in tasks}}
     done_tasks = 0
+    # The pack stage's scoring (stage_pack_scores) starts once the poses, their mesh references and the
+    # frames it reads are done, while later tasks still render, instead of after them all on one core.
+    scoring_needs: set = {"runtime", *(("frame", f) for f in score_frames(load_plan(work)))}
+    scoring_queued = False
+
+    def ready_to_score() -> None:
+        nonlocal scoring_queued
+        if not scoring_queued and not scoring_needs:
+            scoring_queued = True
+            packable.append(("scores", None, None))
 
     def feed() -> None:
         while len(pending) < workers and (packable or waiting):
@@ -271,7 +283,7 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
         finished, _ = wait(pending, return_when=FIRST_COMPLETED)
         for future in finished:
             item, frame = pending.pop(future)
-            stage = "pack" if item == "runtime" else item
+            stage = "pack" if item in ("runtime", "scores") else item
             figures = future.result()
             meter.account_worker(figures)
             if stage in ("impostors", "pack"):
@@ -286,6 +298,11 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
             elif stage == "poses":
                 report(progress, "poses", 1, 1)
                 packable.append(("runtime", None, None))
+            if item == "pack":
+                scoring_needs.discard(("frame", frame))
+            elif item == "runtime":
+                scoring_needs.discard("runtime")
+            ready_to_score()
         feed()
     meter.parallel_wall_s = time.perf_counter() - started
     # Side by side, the impostor stage lasts from its plan to its last task (poses keeps its own time).

@@ -22,7 +22,7 @@ import numpy as np
 from crowdbake.bake import compression, fidelity, impostor_blend, impostor_maps, impostor_warp, map_codecs, surface_maps
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.bake.impostor_blend import DecodedTile
-from crowdbake.formats.binary import decode_texture_array, unpack_uv32, unpack_uvblock
+from crowdbake.formats.binary import TextureArray, decode_texture_array, unpack_uv32, unpack_uvblock
 from crowdbake.stages.records import ImpostorTask, PosesRecord
 
 # Azimuth gaps scored between views (each at every elevation gap): each needs a render of the mesh at
@@ -30,10 +30,9 @@ from crowdbake.stages.records import ImpostorTask, PosesRecord
 BETWEEN_AZIMUTHS = 16
 
 
-def decode_atlas_layer(uv_file: bytes, normal_file: bytes, layer: int, layout: AtlasLayout) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def decode_atlas_layer(uv_map: TextureArray, normal_map: TextureArray, layer: int, layout: AtlasLayout) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(uv (H, W, 2), material (H, W), covered (H, W), normal (H, W, 3) model space) of one layer of the
-    bundle's UV and normal map files (CBTX bytes), decoded as crowdview samples them."""
-    uv_map, normal_map = decode_texture_array(uv_file, "uv map"), decode_texture_array(normal_file, "normal map")
+    bundle's UV and normal maps (parsed CBTX), decoded as crowdview samples them."""
     if uv_map.pixel_format == "uvblock":
         u, v, material, covered = unpack_uvblock(uv_map.layers[layer], uv_map.width, uv_map.height)
         uv = np.stack([u, v], axis=-1)
@@ -54,21 +53,26 @@ def decode_atlas_layer(uv_file: bytes, normal_file: bytes, layer: int, layout: A
     return uv, material, covered, map_codecs.decode_normal_map(normals)
 
 
-def decode_surface_layer(surface_file: bytes, layer: int) -> np.ndarray:
-    """(H, W, 4) uint8 texels of one layer of the bundle's surface map file (CBTX), decoded as crowdview samples it."""
-    surface_map = decode_texture_array(surface_file, "surface map")
+def decode_surface_layer(surface_map: TextureArray, layer: int) -> np.ndarray:
+    """(H, W, 4) uint8 texels of one layer of the bundle's surface map, decoded as crowdview samples it."""
     if surface_map.pixel_format in ("bc1", "bc2"):
         return compression.decode(surface_map.layers[layer], surface_map.pixel_format, surface_map.width, surface_map.height)
     return surface_map.texels(layer)
 
 
 class AtlasTiles:
-    """Tiles of decoded atlas layers, decoded once per layer; the surface map's too when given."""
+    """Tiles of decoded atlas layers, decoded once per layer; the surface map's too when given.
 
-    def __init__(self, layout: AtlasLayout, uv_file: bytes, normal_file: bytes, surface_file: bytes | None = None,
-                 radius: float = 1.0):
-        self.layout, self.uv_file, self.normal_file = layout, uv_file, normal_file
-        self.surface_file, self.radius = surface_file, radius
+    uv_file, normal_file, surface_file: the bundle's CBTX files (bytes) or already parsed TextureArrays."""
+
+    def __init__(self, layout: AtlasLayout, uv_file: bytes | TextureArray, normal_file: bytes | TextureArray,
+                 surface_file: bytes | TextureArray | None = None, radius: float = 1.0):
+        def parsed(data, where):
+            return data if data is None or isinstance(data, TextureArray) else decode_texture_array(data, where)
+
+        self.layout, self.radius = layout, radius
+        self.uv_map, self.normal_map = parsed(uv_file, "uv map"), parsed(normal_file, "normal map")
+        self.surface_map = parsed(surface_file, "surface map")
         self._layers: dict[int, tuple] = {}
         self._surfaces: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -79,17 +83,17 @@ class AtlasTiles:
 
     def surface(self, tile: int, layer: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(depth (S, S), motion (S, S, 2)) metres of a tile (crowdbake.bake.surface_maps); None without a surface map."""
-        if self.surface_file is None:
+        if self.surface_map is None:
             return None
         if layer not in self._surfaces:
-            self._surfaces[layer] = surface_maps.decode_surface(decode_surface_layer(self.surface_file, layer), self.radius)
+            self._surfaces[layer] = surface_maps.decode_surface(decode_surface_layer(self.surface_map, layer), self.radius)
         rows, cols = self._window(tile)
         depth, motion = self._surfaces[layer]
         return depth[rows, cols], motion[rows, cols]
 
     def tile(self, tile: int, layer: int) -> DecodedTile:
         if layer not in self._layers:
-            self._layers[layer] = decode_atlas_layer(self.uv_file, self.normal_file, layer, self.layout)
+            self._layers[layer] = decode_atlas_layer(self.uv_map, self.normal_map, layer, self.layout)
         rows, cols = self._window(tile)
         uv, material, covered, normal = self._layers[layer]
         return DecodedTile(uv[rows, cols], material[rows, cols], covered[rows, cols], normal[rows, cols])
@@ -177,8 +181,8 @@ def between_references(work: Path, poses: PosesRecord, supersample: int) -> list
 
 
 def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
-                  uv_file: bytes, normal_file: bytes, texture_arrays: dict[str, np.ndarray], supersample: int,
-                  surface_file: bytes | None = None) -> dict[str, Any]:
+                  uv_file: bytes | TextureArray, normal_file: bytes | TextureArray, texture_arrays: dict[str, np.ndarray],
+                  supersample: int, surface_file: bytes | TextureArray | None = None) -> dict[str, Any]:
     """fidelity.json's `runtime` section (module docstring): SSIM and PSNR of crowdview's blended impostor,
     each sample reprojected with the surface map when the bundle has one (crowdview's default)."""
     diffuse = [texture_arrays[f"material_{m}_decoded"][0] for m in range(len(poses.materials))]
