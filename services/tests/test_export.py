@@ -20,6 +20,7 @@ import pytest
 
 from repo_paths import REPO_ROOT, SHARED_ASSETS
 from crowdbake.cli import main as cli_main
+from crowdbake.bake import compression
 from crowdbake.export import ktx2
 from crowdbake.export.textures import model_space_normals, rgba8_layers
 from crowdbake.export.vat import VertexAnimation, decode_vat, encode_vat, vat_layout, vat_texcoords
@@ -254,8 +255,15 @@ def check_export(bundle_dir: Path, out: Path) -> None:
     for kind in ("normal", "detail"):
         sources[sidecar["impostor"]["maps"][kind]["ktx2"]] = bundle.textures[manifest["impostor"]["maps"][kind]]
     for path, texture in sources.items():
-        # A bc5 normal map (two in-view components) is exported as model-space RGBA8 codes.
-        expected[path] = model_space_normals(texture, manifest["impostor"]) if texture.pixel_format == "bc5" else rgba8_layers(texture)
+        # A bc5 normal map (two in-view components) is exported in model space: BC1 blocks of those codes in
+        # "bc" mode (decoded here as an engine would), the codes themselves in "rgba8" mode.
+        if texture.pixel_format == "bc5":
+            codes = model_space_normals(texture, manifest["impostor"])
+            if sidecar["ktx2"] == "bc":
+                codes = np.stack([compression.decode(compression.encode_bc1(layer), "bc1", texture.width, texture.height) for layer in codes])
+            expected[path] = codes
+        else:
+            expected[path] = rgba8_layers(texture)
     uv = bundle.textures[manifest["impostor"]["maps"]["uv"]]
     if uv.pixel_format == "uvblock":  # exported as the uv32 words of its decoded texels
         from crowdbake.bake.map_codecs import uvblock_to_uv32
@@ -277,14 +285,15 @@ def check_export(bundle_dir: Path, out: Path) -> None:
         if image.blocks is not None:
             block_files += 1
             texture = sources[path]
-            assert sidecar["ktx2"] == "bc" and texture.pixel_format in ("bc1", "bc2"), path
-            assert [layer.tobytes() for layer in image.blocks] == list(texture.layers[: len(image.blocks)]), path
+            assert sidecar["ktx2"] == "bc" and texture.pixel_format in ("bc1", "bc2", "bc5"), path
+            if texture.pixel_format != "bc5":  # bc5 normals are re-encoded in model space (checked by their texels)
+                assert [layer.tobytes() for layer in image.blocks] == list(texture.layers[: len(image.blocks)]), path
             decoded = np.stack([texture2ddecoder_rgba(layer, image.vk_format, image.width, image.height) for layer in image.blocks])
             np.testing.assert_array_equal(decoded, expected[path][: len(decoded)], err_msg=path)
         else:
             np.testing.assert_array_equal(image.texels.reshape(expected[path].shape), expected[path], err_msg=path)
     assert set(expected) <= set(reports)
-    compressed_sources = sum(texture.pixel_format in ("bc1", "bc2") for texture in sources.values())
+    compressed_sources = sum(texture.pixel_format in ("bc1", "bc2", "bc5") for texture in sources.values())
     assert block_files == (compressed_sources if sidecar["ktx2"] == "bc" else 0)
 
     # 4. The sidecar describes the impostor as the bundle does.
@@ -309,7 +318,7 @@ def read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int) -> np.ndarray:
 def test_sample_export_validates_and_round_trips(sample_bundle, sample_export):
     sidecar = json.loads((sample_export / "export.json").read_text())
     assert sidecar["ktx2"] == "bc" and sidecar["format_version"] == 2
-    assert sidecar["impostor"]["maps"]["normal"]["vk_format"] == "R8G8B8A8_UNORM"  # from the bundle's bc5, in model space
+    assert sidecar["impostor"]["maps"]["normal"]["vk_format"] == "BC1_RGB_UNORM_BLOCK"  # the bundle's bc5, in model space
     assert sidecar["impostor"]["maps"]["detail"]["vk_format"] == "BC2_SRGB_BLOCK"
     assert sidecar["impostor"]["maps"]["uv"]["vk_format"] == "R32_UINT"  # words stay exact, never block-compressed
     check_export(sample_bundle, sample_export)
@@ -319,10 +328,10 @@ def test_rgba8_export_decodes_the_blocks_and_is_larger(sample_bundle, sample_exp
     sidecar = json.loads((sample_export_rgba8 / "export.json").read_text())
     assert sidecar["ktx2"] == "rgba8" and sidecar["impostor"]["maps"]["detail"]["vk_format"] == "R8G8B8A8_SRGB"
     check_export(sample_bundle, sample_export_rgba8)
-    # Same files; the BC ones 4x (BC2) smaller in their level data. (The bc5 normal map is RGBA8 in both.)
+    # Same files; the BC ones 4x (BC2) or 8x (BC1) smaller in their level data.
     sizes = {mode: {p.relative_to(root).as_posix(): p.stat().st_size for p in root.rglob("*.ktx2")} for mode, root in (("bc", sample_export), ("rgba8", sample_export_rgba8))}
     assert sizes["bc"].keys() == sizes["rgba8"].keys()
-    for kind, ratio in (("normal", 1), ("detail", 4)):
+    for kind, ratio in (("normal", 8), ("detail", 4)):
         path = f"impostor/{kind}.ktx2"
         level_bc = sizes["bc"][path] - int.from_bytes((sample_export / path).read_bytes()[80:88], "little")
         level_rgba8 = sizes["rgba8"][path] - int.from_bytes((sample_export_rgba8 / path).read_bytes()[80:88], "little")

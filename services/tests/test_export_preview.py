@@ -130,9 +130,8 @@ def test_preview_draws_the_crowd_with_crowdviews_lod_rule(server, sample_export,
     assert status["switch_distance_m"] == pytest.approx(sidecar["impostor"]["switch_distance"]["distance_m"], rel=1e-6)
     forced = page_status(f"{server}&time=0&count=100&lod=impostor", tmp_path / "profile2")
     assert forced["lod"] == {"high": 0, "low": 0, "impostor": 100}
-    # The BC2 KTX2 files went up as S3TC blocks (SwiftShader has WEBGL_compressed_texture_s3tc); the impostor
-    # normal map, BC5 in the bundle, is exported as model-space RGBA8.
-    assert {ktx2.VK_FORMAT_BC2_SRGB_BLOCK, ktx2.VK_FORMAT_R8G8B8A8_UNORM} <= set(status["texture_formats"]), status
+    # The BC1/BC2 KTX2 files went up as S3TC blocks (SwiftShader has WEBGL_compressed_texture_s3tc).
+    assert {ktx2.VK_FORMAT_BC1_RGB_UNORM_BLOCK, ktx2.VK_FORMAT_BC2_SRGB_BLOCK} <= set(status["texture_formats"]), status
 
 
 def test_bc_and_rgba8_exports_draw_the_same_picture(server, tmp_path):

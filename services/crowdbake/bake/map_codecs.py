@@ -53,10 +53,10 @@ def decode_normal_map(normal_map: np.ndarray) -> np.ndarray:
 
 
 def _tile_bases(layout) -> np.ndarray:
-    """(E, A, 3, 3) rows right, up, back of every tile's orthographic view (crowdbake.bake.impostor_maps.ortho_view)."""
+    """(E, A, 3, 3) float32 rows right, up, back of every tile's orthographic view (crowdbake.bake.impostor_maps.ortho_view)."""
     from crowdbake.bake.impostor_maps import ortho_view
 
-    bases = np.empty((len(layout.elevations_deg), len(layout.azimuths_deg), 3, 3))
+    bases = np.empty((len(layout.elevations_deg), len(layout.azimuths_deg), 3, 3), dtype=np.float32)
     for e, elevation in enumerate(layout.elevations_deg):
         for a, azimuth in enumerate(layout.azimuths_deg):
             view = ortho_view(np.zeros(3), 1.0, azimuth, elevation, layout.tile_size)
@@ -70,27 +70,35 @@ def _by_tile(atlas: np.ndarray, layout) -> np.ndarray:
     return atlas.reshape(rings, size, columns, size, -1).transpose(0, 2, 1, 3, 4)
 
 
+def _rotate_tiles(vectors: np.ndarray, matrices: np.ndarray, layout) -> np.ndarray:
+    """(H, W, 3) float32 atlas of vectors, each tile's times its (3, 3) matrix from `matrices` (E, A, 3, 3):
+    one batched matmul over (E, A, S·S, 3)."""
+    size, rings, columns = layout.tile_size, len(layout.elevations_deg), len(layout.azimuths_deg)
+    tiles = np.ascontiguousarray(_by_tile(vectors, layout)).reshape(rings, columns, size * size, 3)
+    rotated = np.matmul(tiles, matrices).reshape(rings, columns, size, size, 3)
+    return np.ascontiguousarray(rotated.transpose(0, 2, 1, 3, 4)).reshape(vectors.shape)
+
+
 def normal_atlas_to_view_xy(normal_atlas: np.ndarray, layout) -> np.ndarray:
     """The bake's (H, W, 4) uint8 model-space normal atlas (RGB = (n + 1) / 2) as the bc5 normal map stores
     it (SPEC.md "Impostor maps"): R, G = (n · right + 1) / 2, (n · up + 1) / 2 in each tile's own view, B = 0,
     A = 255. The third component, n · back, is left out: the reader takes it as sqrt(1 - x² - y²)."""
-    normals = decode_normal_map(normal_atlas)
-    in_view = np.einsum("eaxyc,eakc->eaxyk", _by_tile(normals, layout), _tile_bases(layout))
+    normals = decode_normal_map(normal_atlas).astype(np.float32)
+    in_view = _rotate_tiles(normals, np.swapaxes(_tile_bases(layout), -1, -2), layout)  # n · (right, up, back)
     out = np.zeros(normal_atlas.shape[:2] + (4,), dtype=np.uint8)
-    _by_tile(out, layout)[..., :2] = np.rint((np.clip(in_view[..., :2], -1.0, 1.0) + 1.0) * 127.5).astype(np.uint8)
+    out[..., :2] = np.rint((np.clip(in_view[..., :2], -1.0, 1.0) + 1.0) * 127.5).astype(np.uint8)
     out[..., 3] = 255
     return out
 
 
 def view_xy_to_model_normals(texels: np.ndarray, layout) -> np.ndarray:
-    """(H, W, 4) uint8 texels of a bc5 normal map, decoded -> (H, W, 3) float64 model-space unit normals:
+    """(H, W, 4) uint8 texels of a bc5 normal map, decoded -> (H, W, 3) float32 model-space unit normals:
     x, y = rg / 255 · 2 - 1 in the tile's view, z = sqrt(max(0, 1 - x² - y²)) towards the camera, rotated out
     of the view (the shader's sample_normal, shaders/impostor_warp.glsl)."""
-    xy = np.asarray(texels)[..., :2].astype(np.float64) / 255.0 * 2.0 - 1.0
-    z = np.sqrt(np.maximum(0.0, 1.0 - (xy ** 2).sum(axis=-1, keepdims=True)))
-    in_view = np.concatenate([xy, z], axis=-1)
-    model = np.empty_like(in_view)
-    _by_tile(model, layout)[...] = np.einsum("eaxyk,eakc->eaxyc", _by_tile(in_view, layout), _tile_bases(layout))
+    in_view = np.empty(np.shape(texels)[:2] + (3,), dtype=np.float32)
+    in_view[..., :2] = np.asarray(texels)[..., :2].astype(np.float32) * np.float32(2.0 / 255.0) - np.float32(1.0)
+    in_view[..., 2] = np.sqrt(np.maximum(0.0, 1.0 - in_view[..., 0] ** 2 - in_view[..., 1] ** 2))
+    model = _rotate_tiles(in_view, _tile_bases(layout), layout)
     length = np.linalg.norm(model, axis=-1, keepdims=True)
     return np.divide(model, length, out=np.zeros_like(model), where=length > 1e-12)
 

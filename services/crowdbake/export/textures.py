@@ -69,6 +69,20 @@ def model_space_normals(texture: TextureArray, impostor: dict) -> np.ndarray:
                      for layer in texture.layers])
 
 
+def model_space_normal_ktx2(texture: TextureArray, impostor: dict, mode: str) -> tuple[int, bytes]:
+    """(vkFormat, KTX2 bytes) of a bc5 impostor normal map turned into model space, the encoding every other
+    normal map of the export has: BC1 blocks in "bc" mode (the paper's DXT1, 0.5 byte a texel; a second
+    lossy step, but the file an engine can sample as it samples the rest), RGBA8 texels in "rgba8" mode."""
+    if mode not in KTX2_MODES:
+        raise ValueError(f"model_space_normal_ktx2: mode must be one of {KTX2_MODES}, got {mode!r}")
+    layers = model_space_normals(texture, impostor)
+    if mode == "rgba8":
+        return ktx2.VK_FORMAT_R8G8B8A8_UNORM, ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_UNORM, layers)
+    blocks = [compression.encode_bc1(layer) for layer in layers]
+    vk_format = ktx2.VK_FORMAT_BC1_RGB_UNORM_BLOCK
+    return vk_format, ktx2.encode_ktx2_blocks(vk_format, texture.width, texture.height, blocks)
+
+
 def uv_map_layers(texture: TextureArray) -> tuple[int, np.ndarray]:
     """(vkFormat, texels) of an impostor UV map, bit for bit: uv32 words as R32_UINT (L, H, W),
     rgba16 as R16G16B16A16_UNORM (L, H, W, 4); uvblock (a block code no engine samples) decoded into

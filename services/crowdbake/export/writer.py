@@ -30,7 +30,7 @@ from PIL import Image
 from crowdbake import __version__
 from crowdbake.export import ktx2
 from crowdbake.export.glb import GlbMaterial, GlbPart, build_glb
-from crowdbake.export.textures import KTX2_MODES, colour_ktx2, model_space_normals, region_codes_used, rgba8_layers, uv_map_layers
+from crowdbake.export.textures import KTX2_MODES, colour_ktx2, model_space_normal_ktx2, region_codes_used, rgba8_layers, uv_map_layers
 from crowdbake.export.vat import encode_vat, vat_texcoords
 from crowdbake.formats.bundle import Bundle, verify_bundle
 
@@ -128,8 +128,8 @@ def _export_impostor(bundle: Bundle, out: _Out, mode: str) -> dict[str, Any]:
         ("detail", True, "diffuse variation 0 unlit, alpha = 17 * region code"),
     ):
         texture = bundle.textures[impostor["maps"][kind]]
-        if texture.pixel_format == "bc5":  # two in-view components: handed to engines as plain model-space RGBA8
-            vk_format, data = ktx2.VK_FORMAT_R8G8B8A8_UNORM, ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_UNORM, model_space_normals(texture, impostor))
+        if texture.pixel_format == "bc5":  # two components in each tile's view: handed to engines in model space
+            vk_format, data = model_space_normal_ktx2(texture, impostor, mode)
         else:
             vk_format, data = colour_ktx2(texture, colour, mode)
         path = out.write(f"impostor/{kind}.ktx2", data)

@@ -56,13 +56,14 @@ def _sha256(path: Path) -> str:
 
 def write_export_zip(files_dir: Path, paths: list[str], prefix: str, target: Path) -> None:
     """The files `paths` (relative to files_dir) into the zip `target` under prefix/, deflated (the glTF
-    buffers and VATs shrink; BC blocks a little), with fixed dates so the bytes are reproducible."""
-    with zipfile.ZipFile(target, "w", zipfile.ZIP_DEFLATED) as archive:
+    buffers and VATs shrink; BC blocks a little), with fixed dates so the bytes are reproducible. zlib level 1:
+    on the sample's export 0.7 s against 1.7 s at the default level 6, for 22.0 MB against 20.5 MB."""
+    with zipfile.ZipFile(target, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
         for path in paths:
             info = zipfile.ZipInfo(f"{prefix}/{path}", date_time=ZIP_DATE)
             info.external_attr = 0o644 << 16
             info.compress_type = zipfile.ZIP_DEFLATED
-            archive.writestr(info, (files_dir / path).read_bytes())
+            archive.writestr(info, (files_dir / path).read_bytes(), compresslevel=1)
 
 
 def build_export(bundle_folder: Path, staging: Path, ktx2_mode: str = "bc") -> dict[str, Any]:
