@@ -32,17 +32,22 @@ def crowdview(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
     return subprocess.run([str(CROWDVIEW), *args], capture_output=True, text=True, timeout=timeout)
 
 
-@pytest.fixture(scope="module")
-def python_bundle(tmp_path_factory, small_sample) -> Path:
-    """A small bundle baked by crowdbake from the procedural sample (the session's, generated once)."""
-    root = tmp_path_factory.mktemp("cross")
-    params = BakeParams(impostor_frames=2, azimuths=4, elevations_deg=(0.0, 30.0), tile_size=32,
-                                 lod_triangles=1200, cycle_views=3, candidates=3)
+def bake_sample(tmp_path_factory, small_sample: Path, folder: str, **params) -> Path:
+    """The procedural sample (the session's, generated once) baked by crowdbake with `params` over the small
+    defaults below; returns the bundle folder."""
+    root = tmp_path_factory.mktemp(folder)
+    settings = dict(impostor_frames=2, azimuths=4, elevations_deg=(0.0, 30.0), tile_size=32, lod_triangles=1200, cycle_views=3, candidates=3)
     inputs = BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
-                                 cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures",
-                                 cycle=None, name="cross", version="1", params=params)
+                        cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures",
+                        cycle=None, name="cross", version="1", params=BakeParams(**{**settings, **params}))
     run_bake(inputs, root / "bundles", work=root / "work")
     return root / "bundles" / "cross" / "1"
+
+
+@pytest.fixture(scope="module")
+def python_bundle(tmp_path_factory, small_sample) -> Path:
+    """A small bundle baked by crowdbake from the procedural sample."""
+    return bake_sample(tmp_path_factory, small_sample, "cross")
 
 
 @pytest.mark.parametrize("case", sorted(p.name for p in (VECTORS / "bad").iterdir()))
@@ -138,14 +143,7 @@ def _shot(bundle: Path, out: Path, *extra: str) -> np.ndarray:
 @pytest.fixture(scope="module")
 def uv32_bundle(tmp_path_factory, small_sample) -> Path:
     """The python_bundle's bake with the 4-byte uv32 UV map instead of the default uvblock."""
-    root = tmp_path_factory.mktemp("cross-uv32")
-    params = BakeParams(impostor_frames=2, azimuths=4, elevations_deg=(0.0, 30.0), tile_size=32,
-                        lod_triangles=1200, cycle_views=3, candidates=3, uv_format="uv32")
-    inputs = BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
-                        cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures",
-                        cycle=None, name="cross", version="1", params=params)
-    run_bake(inputs, root / "bundles", work=root / "work")
-    return root / "bundles" / "cross" / "1"
+    return bake_sample(tmp_path_factory, small_sample, "cross-uv32", uv_format="uv32")
 
 
 def test_crowdview_draws_uvblock_impostors_as_uv32_ones_and_near_the_mesh(python_bundle, uv32_bundle, tmp_path):
@@ -177,14 +175,8 @@ def test_crowdview_draws_uvblock_impostors_as_uv32_ones_and_near_the_mesh(python
 def views16_bundle(tmp_path_factory, small_sample) -> Path:
     """The sample baked with views 22.5° apart in 3 rings and 4 frames: the spacing reprojection is for
     (the defaults are 32 x 3; with 4 azimuths, 90° apart, halfway is too far for a few fixed-point steps)."""
-    root = tmp_path_factory.mktemp("cross-views16")
-    params = BakeParams(impostor_frames=4, azimuths=16, elevations_deg=(0.0, 20.0, 40.0), tile_size=64,
-                        lod_triangles=1200, cycle_views=3, candidates=3)
-    inputs = BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
-                        cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures",
-                        cycle=None, name="cross", version="1", params=params)
-    run_bake(inputs, root / "bundles", work=root / "work")
-    return root / "bundles" / "cross" / "1"
+    return bake_sample(tmp_path_factory, small_sample, "cross-views16", impostor_frames=4, azimuths=16,
+                       elevations_deg=(0.0, 20.0, 40.0), tile_size=64)
 
 
 @pytest.mark.parametrize("camera", ["street", "overview"])

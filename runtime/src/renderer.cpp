@@ -149,12 +149,16 @@ GLuint upload_texture_array(const TextureArray& t, bool filtered, const std::str
     glBindTexture(GL_TEXTURE_2D_ARRAY, texture);
     glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
     const GLsizei w = GLsizei(t.width), h = GLsizei(t.height), layers = GLsizei(t.layer_count);
-    const bool bc = t.format == PixelFormat::bc1 || t.format == PixelFormat::bc2;
-    if (bc && upload->s3tc) {
-        // bc1 is RGB in the spec (normal maps): the RGB flavour keeps alpha at 1.
-        const GLenum format = t.format == PixelFormat::bc1 ? GL_COMPRESSED_RGB_S3TC_DXT1_EXT : GL_COMPRESSED_RGBA_S3TC_DXT3_EXT;
+    const bool s3tc = t.format == PixelFormat::bc1 || t.format == PixelFormat::bc2;
+    // BC5 (RGTC2) is core since OpenGL 3.0; S3TC needs the extension. Either may be decoded here instead.
+    const bool gpu_blocks = t.format == PixelFormat::bc5 ? !upload->force_cpu_decode : s3tc && upload->s3tc;
+    if (gpu_blocks) {
+        // bc1 is RGB in the spec (normal and surface maps): the RGB flavour keeps alpha at 1.
+        const GLenum format = t.format == PixelFormat::bc5   ? GL_COMPRESSED_RG_RGTC2
+                              : t.format == PixelFormat::bc1 ? GL_COMPRESSED_RGB_S3TC_DXT1_EXT
+                                                             : GL_COMPRESSED_RGBA_S3TC_DXT3_EXT;
         glCompressedTexImage3D(GL_TEXTURE_2D_ARRAY, 0, format, w, h, layers, 0, GLsizei(t.data.size()), t.data.data());
-    } else if (bc) {
+    } else if (s3tc || t.format == PixelFormat::bc5) {
         std::vector<uint8_t> rgba;
         rgba.reserve(size_t(w) * h * 4 * layers);
         for (uint32_t k = 0; k < t.layer_count; ++k) {
@@ -163,19 +167,6 @@ GLuint upload_texture_array(const TextureArray& t, bool filtered, const std::str
         }
         glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA8, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_BYTE, rgba.data());
         upload->cpu_decode_used = true;
-    } else if (t.format == PixelFormat::bc5) {  // RGTC2: core since OpenGL 3.0, no extension needed
-        if (!upload->force_cpu_decode) {
-            glCompressedTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_COMPRESSED_RG_RGTC2, w, h, layers, 0, GLsizei(t.data.size()), t.data.data());
-        } else {
-            std::vector<uint8_t> rgba;
-            rgba.reserve(size_t(w) * h * 4 * layers);
-            for (uint32_t k = 0; k < t.layer_count; ++k) {
-                const std::vector<uint8_t> layer = decode_layer_rgba8(t, k);
-                rgba.insert(rgba.end(), layer.begin(), layer.end());
-            }
-            glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA8, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_BYTE, rgba.data());
-            upload->cpu_decode_used = true;
-        }
     } else if (t.format == PixelFormat::rgba16) {
         glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA16, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_SHORT, t.data.data());
     } else if (t.format == PixelFormat::uv32) {  // integer texture: nearest filtering only (set below)
