@@ -219,6 +219,12 @@ def start_pool(workers: int) -> ProcessPoolExecutor:
     return ProcessPoolExecutor(workers, mp_context=context, max_tasks_per_child=WORKER_ITEMS)
 
 
+def one_shot_pool() -> ProcessPoolExecutor:
+    """One process from the fork server (start_pool started it) that runs a single item and exits: for an item
+    whose peak memory should not add to a worker's high-water mark."""
+    return ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("forkserver"), max_tasks_per_child=1)
+
+
 _STOP_REGISTERED: list[bool] = []
 
 
@@ -276,34 +282,45 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
     def feed() -> None:
         while len(pending) < workers and (packable or waiting):
             stage, task, frame = (packable or waiting).popleft()
-            pending[pool.submit(_worker_item, str(work), stage, task, frame)] = (stage, frame)
+            pending[submit(stage, task, frame)] = (stage, frame)
 
-    feed()
-    while pending:
-        finished, _ = wait(pending, return_when=FIRST_COMPLETED)
-        for future in finished:
-            item, frame = pending.pop(future)
-            stage = "pack" if item in ("runtime", "scores") else item
-            figures = future.result()
-            meter.account_worker(figures)
-            if stage in ("impostors", "pack"):
-                figures = dict(figures, wall_s=0.0)  # the items overlap: the impostor stage's wall is the part's, below
-            meter.figures(stage).add(figures)
-            if stage == "impostors":
-                done_tasks += 1
-                report(progress, "impostors", done_tasks, len(tasks))
-                frame_tasks_left[frame] -= 1
-                if frame_tasks_left[frame] == 0:
-                    packable.append(("pack", None, frame))
-            elif stage == "poses":
-                report(progress, "poses", 1, 1)
-                packable.append(("runtime", None, None))
-            if item == "pack":
-                scoring_needs.discard(("frame", frame))
-            elif item == "runtime":
-                scoring_needs.discard("runtime")
-            ready_to_score()
+    # The scoring item holds the fidelity frame's references and decoded atlases (about 560 MB alone): it runs
+    # in a process of its own, fresh from the fork server, not on top of a worker's rendering leftovers.
+    # It counts as one of the `workers` busy processes.
+    scorer = one_shot_pool()
+
+    def submit(stage: str, task: dict | None, frame: int | None) -> Future:
+        return (scorer if stage == "scores" else pool).submit(_worker_item, str(work), stage, task, frame)
+
+    try:
         feed()
+        while pending:
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in finished:
+                item, frame = pending.pop(future)
+                stage = "pack" if item in ("runtime", "scores") else item
+                figures = future.result()
+                meter.account_worker(figures)
+                if stage in ("impostors", "pack"):
+                    figures = dict(figures, wall_s=0.0)  # the items overlap: the impostor stage's wall is the part's, below
+                meter.figures(stage).add(figures)
+                if stage == "impostors":
+                    done_tasks += 1
+                    report(progress, "impostors", done_tasks, len(tasks))
+                    frame_tasks_left[frame] -= 1
+                    if frame_tasks_left[frame] == 0:
+                        packable.append(("pack", None, frame))
+                elif stage == "poses":
+                    report(progress, "poses", 1, 1)
+                    packable.append(("runtime", None, None))
+                if item == "pack":
+                    scoring_needs.discard(("frame", frame))
+                elif item == "runtime":
+                    scoring_needs.discard("runtime")
+                ready_to_score()
+            feed()
+    finally:
+        scorer.shutdown(wait=True, cancel_futures=True)
     meter.parallel_wall_s = time.perf_counter() - started
     # Side by side, the impostor stage lasts from its plan to its last task (poses keeps its own time).
     meter.figures("impostors").wall_s += meter.parallel_wall_s
