@@ -226,3 +226,46 @@ def test_crowdview_decodes_bc5_normal_maps_on_the_cpu_as_the_gpu_does(python_bun
     print(f"\nbc5 normals, GPU against CPU decode: mean |diff| {difference.mean():.3f}, over 8 levels {(difference > 8).mean():.4f}")
     assert (np.abs(gpu - _shot(python_bundle, tmp_path / "mesh.png", "--lod", "high")).sum(axis=-1) > 30).mean() > 0.005
     assert difference.mean() < 0.5 and (difference > 8).mean() < 0.005
+
+
+def test_crowdview_draws_the_reprojected_silhouette_the_bake_scores(views16_bundle, tmp_path):
+    """One character at the impostor switch distance, halfway between baked azimuths, rings and frames
+    (`crowdview --switch-view`): the impostor's silhouette on the GPU is the one crowdbake's numpy copy of
+    the shader draws for the same camera and frame (crowdbake.stages.runtime_fidelity.sample_tile, what
+    fidelity.json's `runtime` scores), and plainly not the unreprojected blend's."""
+    from crowdbake.bake import impostor_blend, impostor_maps
+    from crowdbake.stages.impostors import load_poses
+    from crowdbake.stages.runtime_fidelity import AtlasTiles, halfway_frame, sample_tile
+
+    poses = load_poses(views16_bundle.parents[2] / "work")
+    layout = poses.atlas_layout()
+    maps = {kind: (views16_bundle / path).read_bytes() for kind, path in json.loads((views16_bundle / "manifest.json").read_text())["impostor"]["maps"].items()}
+    size = layout.tile_size
+    frame, frames = halfway_frame(poses)
+    results = []
+    for azimuth, elevation in ((11.25, 10.0), (191.25, 30.0), (303.75, 10.0)):
+        view = impostor_maps.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
+        weights = impostor_blend.blend_view_weights(azimuth, elevation, layout.azimuths_deg, layout.elevations_deg)
+
+        def drawn(tiles: AtlasTiles) -> np.ndarray:
+            coverage = sum(w * sample_tile(tiles, tile, k, view, frames).covered for w, tile, k in impostor_blend.samples_for(weights, frames))
+            return coverage > 0.5
+
+        warped = drawn(AtlasTiles(layout, maps["uv"], maps["normal"], maps["surface"], poses.radius))
+        plain = drawn(AtlasTiles(layout, maps["uv"], maps["normal"]))
+        out = tmp_path / f"switch_{azimuth}.png"
+        result = crowdview("--bundle", str(views16_bundle), "--headless", "--frames", "1", "--lod", "impostor", "--width", "256",
+                           "--height", "256", "--switch-view", f"{azimuth},{elevation},{frame}", "--screenshot", str(out))
+        assert result.returncode == 0, result.stderr
+        picture = np.asarray(Image.open(out).convert("RGB"), dtype=np.int16)
+        gpu = (picture != picture[0, 0]).any(axis=-1)[128 - size // 2:128 + size // 2, 128 - size // 2:128 + size // 2]
+        assert gpu.sum() == (picture != picture[0, 0]).any(axis=-1).sum(), "the impostor reaches outside its 1:1 quad"
+
+        def iou(mask: np.ndarray) -> float:
+            return float((gpu & mask).sum() / (gpu | mask).sum())
+
+        results.append((azimuth, elevation, iou(warped), iou(plain)))
+    print("\nazimuth, elevation, silhouette IoU of crowdview's against numpy's reprojected / plain: " +
+          "; ".join(f"{a}, {e}: {w:.3f} / {p:.3f}" for a, e, w, p in results))
+    for _, _, warped_iou, plain_iou in results:
+        assert warped_iou > 0.95 and warped_iou > plain_iou + 0.05

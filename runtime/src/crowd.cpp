@@ -309,4 +309,14 @@ void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& 
     }
 }
 
+Camera look_at(glm::vec3 eye, glm::vec3 target) {
+    Camera c;
+    const glm::vec3 f = glm::normalize(target - eye);
+    c.position = eye;
+    c.yaw = std::atan2(-f.x, -f.z);
+    c.pitch = std::asin(f.y);
+    c.near_m = 0.1f, c.far_m = 200.0f;
+    return c;
+}
+
 }  // namespace crowdview

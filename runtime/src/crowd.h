@@ -151,6 +151,9 @@ struct Camera {
     glm::mat4 projection(float aspect) const;
 };
 
+// A camera at `eye` looking at `target` (no roll).
+Camera look_at(glm::vec3 eye, glm::vec3 target);
+
 struct Frustum {
     glm::vec4 planes[6];  // inward normals: dot(plane.xyz, p) + plane.w >= 0 inside
 };

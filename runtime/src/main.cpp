@@ -67,6 +67,11 @@ struct Options {
     double max_seconds = 300;
     std::vector<BenchmarkMode> modes{std::begin(kAllBenchmarkModes), std::end(kAllBenchmarkModes)};
     bool cpu_decode = false;
+    // --switch-view: one character at the origin seen from (azimuth, elevation) degrees at the impostor
+    // switch distance, at cycle frame `frame` (the bake's fidelity cameras, for comparing pictures).
+    bool switch_view = false;
+    float switch_azimuth_deg = 0, switch_elevation_deg = 0;
+    int switch_frame = 0;
 };
 
 const char* kUsage =
@@ -89,6 +94,8 @@ const char* kUsage =
     "  --impostor-blend B    off (the paper: nearest view and frame) | views | frames | full |\n"
     "                        warp (default: full, reprojected by the bundle's surface map; full without one)\n"
     "  --width W --height H  framebuffer size (default 1280x720)\n"
+    "  --switch-view A,E,F   one character (heading 0, variation 0, outfit 0) seen from azimuth A, elevation E\n"
+    "                        (degrees) at the impostor switch distance, at cycle frame F\n"
     "  --headless            no window: EGL surfaceless, else a hidden GLFW window\n"
     "  --frames N            frames to draw, then exit (headless default 1)\n"
     "  --screenshot PNG      write the last frame\n"
@@ -175,7 +182,14 @@ Options parse_args(int argc, char** argv) {
             o.blend = parse_choice<ImpostorBlend>(a, value(i), {{"off", ImpostorBlend::off}, {"views", ImpostorBlend::views},
                                                                 {"frames", ImpostorBlend::frames}, {"full", ImpostorBlend::full},
                                                                 {"warp", ImpostorBlend::warp}});
-        else if (a == "--impostors")
+        else if (a == "--switch-view") {
+            const std::string v = value(i);
+            char rest = 0;
+            if (std::sscanf(v.c_str(), "%f,%f,%d%c", &o.switch_azimuth_deg, &o.switch_elevation_deg, &o.switch_frame, &rest) != 3 ||
+                o.switch_frame < 0 || std::fabs(o.switch_elevation_deg) > 90.0f)
+                usage_error("--switch-view takes AZIMUTH,ELEVATION,FRAME (degrees, elevation within +-90, frame >= 0); got '" + v + "'");
+            o.switch_view = true;
+        } else if (a == "--impostors")
             o.impostors = parse_choice<ImpostorKind>(a, value(i), {{"uv", ImpostorKind::uv}, {"detail", ImpostorKind::detail}});
         else usage_error("unknown argument '" + a + "'");
     }
@@ -294,11 +308,17 @@ int run_view(GlContext& context, Renderer& renderer, const Bundle& bundle, const
     desc.layout = o.layout;
     uint32_t variations = 1;
     for (const MaterialInfo& m : bundle.manifest.materials) variations = std::max(variations, m.variations);
-    const Crowd crowd = make_crowd(desc, variations, bundle.manifest.outfit_count, float(model.frame_count) / model.frames_per_second);
+    Crowd crowd = make_crowd(desc, variations, bundle.manifest.outfit_count, float(model.frame_count) / model.frames_per_second);
     Camera camera = o.camera == CameraView::street ? street_camera(crowd, character_height(model))
                                                    : camera_for_crowd(crowd, character_height(model), renderer.aspect(), 0.35f);
     camera.near_m = 0.1f;
     camera.far_m = std::max(camera.far_m * 4.0f, 200.0f);
+    if (o.switch_view) {  // the bake's view (SPEC.md "Impostor maps"): the camera in direction (sin A cos E, sin E, cos A cos E)
+        crowd.characters.assign(1, Character{glm::vec3(0), 0.0f, 0.0f, 0, 0});
+        const float a = glm::radians(o.switch_azimuth_deg), e = glm::radians(o.switch_elevation_deg);
+        const float d = impostor_switch_distance(Camera().fov_y, float(renderer.height()), model.radius, model.tile_size);
+        camera = look_at(model.center + glm::vec3(std::sin(a) * std::cos(e), std::sin(e), std::cos(a) * std::cos(e)) * d, model.center);
+    }
     DrawChoice choice = draw_choice(o.lod, o.impostors);
     const LodRule rule = lod_rule_for(model, camera, float(renderer.height()));
     const glm::vec3 light = scene_light_dir();
@@ -317,6 +337,8 @@ int run_view(GlContext& context, Renderer& renderer, const Bundle& bundle, const
         const float dt = windowed ? std::chrono::duration<float>(now - last).count() : kFixedTimeStep;
         last = now;
         time_s = windowed ? time_s + dt : float(i) * kFixedTimeStep;
+        // Half a frame in, so floor(t * fps) is the frame asked for.
+        if (o.switch_view) time_s = (float(o.switch_frame % std::max(model.frame_count, 1u)) + 0.5f) / model.frames_per_second;
         if (windowed) {
             GLFWwindow* w = context.window();
             controls.update(w, &camera, dt);

@@ -73,16 +73,6 @@ double ssim(const Image& a, const Image& b, int x0, int y0, int x1, int y1) {
     return windows ? total / windows : 0;
 }
 
-Camera look_at(glm::vec3 eye, glm::vec3 target) {
-    Camera c;
-    const glm::vec3 f = glm::normalize(target - eye);
-    c.position = eye;
-    c.yaw = std::atan2(-f.x, -f.z);
-    c.pitch = std::asin(f.y);
-    c.near_m = 0.1f, c.far_m = 200.0f;
-    return c;
-}
-
 struct Scene {
     const Bundle* bundle;
     std::string shaders;
