@@ -252,8 +252,10 @@ def check_export(bundle_dir: Path, out: Path) -> None:
         source = next(m for m in manifest["materials"] if m["name"] == material["name"])
         sources[material["diffuse"]["ktx2"]] = bundle.textures[source["diffuse"]]
     sources[sidecar["outfits"]["ktx2"]] = bundle.textures[manifest["outfits"]["file"]]
-    for kind in ("normal", "detail"):
-        sources[sidecar["impostor"]["maps"][kind]["ktx2"]] = bundle.textures[manifest["impostor"]["maps"][kind]]
+    assert ("surface" in sidecar["impostor"]["maps"]) == ("surface" in manifest["impostor"]["maps"])
+    for kind in ("normal", "detail", "surface"):
+        if kind in manifest["impostor"]["maps"]:
+            sources[sidecar["impostor"]["maps"][kind]["ktx2"]] = bundle.textures[manifest["impostor"]["maps"][kind]]
     for path, texture in sources.items():
         # A bc5 normal map (two in-view components) is exported in model space: BC1 blocks of those codes in
         # "bc" mode (decoded here as an engine would), the codes themselves in "rgba8" mode.

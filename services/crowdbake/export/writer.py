@@ -4,7 +4,7 @@
     OUT/character_lod<k>.glb            glTF 2.0 per LOD: parts, materials, morph-target cycle, VAT extras
     OUT/vat/<part>_lod<k>.<position|normal>.<png|ktx2>   vertex-animation textures (16-bit)
     OUT/textures/<material>_diffuse.ktx2, outfits.ktx2   diffuse variations (array), outfit colours
-    OUT/impostor/<normal|uv|detail>.ktx2                 impostor atlases, one layer per baked frame
+    OUT/impostor/<normal|uv|detail|surface>.ktx2         impostor atlases, one layer per baked frame
     OUT/shaders/*.glsl, *.hlsl                           reference shaders for engines
 
 The heavy lifting is in pure modules (vat, glb, ktx2, textures); this one reads the bundle, calls them
@@ -123,10 +123,15 @@ def _export_textures(bundle: Bundle, out: _Out, mode: str) -> tuple[list[dict], 
 def _export_impostor(bundle: Bundle, out: _Out, mode: str) -> dict[str, Any]:
     impostor = dict(bundle.manifest["impostor"])
     maps = {}
-    for kind, colour, encoding in (
+    kinds = [
         ("normal", False, "model-space unit normal n as rgb = (n + 1) / 2"),
         ("detail", True, "diffuse variation 0 unlit, alpha = 17 * region code"),
-    ):
+    ]
+    if "surface" in impostor["maps"]:  # SPEC.md "Impostor maps": for reprojecting samples between views and frames
+        kinds.append(("surface", False, "per texel, metres = (c / 255 * 2 - 1) * range: r = depth along the view's back axis "
+                      "(range bounds.radius), g, b = motion to the next baked frame along the view's right and up axes "
+                      "(range bounds.radius / 2); dilated past the silhouette"))
+    for kind, colour, encoding in kinds:
         texture = bundle.textures[impostor["maps"][kind]]
         if texture.pixel_format == "bc5":  # two components in each tile's view: handed to engines in model space
             vk_format, data = model_space_normal_ktx2(texture, impostor, mode)
