@@ -164,31 +164,39 @@ def test_serve_counts_pool_kills_restarts_a_dead_worker_and_the_sweeper_finishes
         ids = upload_sample(client, sample)
         bake_id = client.post("/v1/bakes", json=bake_body(ids, "served-walker", "1.0.0", SLOW_PARAMS)).json()["id"]
 
-        def impostors_busy() -> int | None:
+        def impostors_busy() -> tuple[int, list[int]]:
+            """The worker and its pool processes rendering right now, while the impostor stage runs."""
             deadline = time.monotonic() + BAKE_TIMEOUT_S
             while True:
                 bake = client.get(f"/v1/bakes/{bake_id}").json()
                 assert bake["state"] not in ("succeeded", "failed", "cancelled"), (bake["state"], bake["error"], log.read_text()[-3000:])
                 impostors = next(stage for stage in bake["stages"] if stage["stage"] == "impostors")
                 worker = worker_of(process.pid)
-                if impostors["state"] == "running" and worker and busy_children(worker, window_s=0.2, min_ticks=3):
-                    return worker
+                if impostors["state"] == "running" and worker and (busy := busy_children(worker, window_s=0.2, min_ticks=3)):
+                    return worker, busy
                 assert time.monotonic() < deadline, log.read_text()[-3000:]
                 time.sleep(0.05)
 
+        def impostor_retries() -> int:
+            return next(stage["retries"] for stage in client.get(f"/v1/bakes/{bake_id}").json()["stages"] if stage["stage"] == "impostors")
+
         # 1. A pool process dies mid-render: the filesystem broker hands the message back and the
-        #    delivery that takes over counts a retry.
-        worker = impostors_busy()
-        pool = child_pids(worker)
-        assert any(kill(pid) for pid in busy_children(worker, window_s=0.2, min_ticks=3) or pool[:1])
-        deadline = time.monotonic() + 60
-        while not (retries := next(stage["retries"] for stage in client.get(f"/v1/bakes/{bake_id}").json()["stages"] if stage["stage"] == "impostors")):
-            assert time.monotonic() < deadline, "a pool kill under the filesystem broker was not counted\n" + log.read_text()[-3000:]
-            time.sleep(0.2)
+        #    delivery that takes over counts a retry. A process seen busy may finish its task between the
+        #    look and the kill (then nothing is lost and nothing is counted): up to three tries.
+        retries = 0
+        for _ in range(3):
+            worker, busy = impostors_busy()
+            assert any(kill(pid) for pid in busy)
+            deadline = time.monotonic() + 20
+            while not (retries := impostor_retries()) and time.monotonic() < deadline:
+                time.sleep(0.2)
+            if retries:
+                break
+        assert retries, "a pool kill under the filesystem broker was not counted\n" + log.read_text()[-3000:]
 
         # 2. The whole worker dies (main process and pool): serve reaps it and starts another, and the
         #    sweeper re-queues what it was running.
-        worker = impostors_busy()
+        worker, _ = impostors_busy()
         pool = child_pids(worker)
         kill(worker)
         for pid in pool:
