@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from crowdbake.formats.binary import (
+    check_uvblock,
     decode_pose_cache,
     decode_texture_array,
     encode_pose_cache,
@@ -291,3 +292,28 @@ def test_uvblock_keeps_coverage_and_material_and_rounds_within_half_a_step():
     four = (column % 4) + 0 * row  # four materials in every block: three subsets cannot keep them
     with pytest.raises(ValueError, match="more than 3 materials"):
         pack_uvblock(u, v, np.clip(four, 0, 3), np.ones_like(covered))
+
+
+def test_check_uvblock_refuses_exactly_what_unpack_uvblock_refuses():
+    """The verifier's uvblock check decodes only blocks whose header bound could pass 4095: on random words
+    (most blocks out of range) and on a packed map it refuses a layer exactly when the full decode does."""
+    rng = np.random.default_rng(11)
+    outcomes = []
+    for _ in range(400):
+        words = rng.integers(0, 2**32, (4, 6), dtype=np.uint64)
+        words[rng.random(4) < 0.3, 0] = 0  # some blocks outside the character
+        data = words.astype("<u4").tobytes()
+        try:
+            unpack_uvblock(data, 8, 8)
+            refused = False
+        except ValueError:
+            refused = True
+        if refused:
+            with pytest.raises(ValueError, match="above 4095"):
+                check_uvblock(data, 8, 8)
+        else:
+            check_uvblock(data, 8, 8)
+        outcomes.append(refused)
+    assert any(outcomes) and not all(outcomes)
+    row, column = np.meshgrid(np.arange(16), np.arange(24), indexing="ij")
+    check_uvblock(pack_uvblock(0.99 + 0.0004 * column, 1.0 - 0.0004 * row, 0 * row, row >= 0), 24, 16)  # near u = v = 1

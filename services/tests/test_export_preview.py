@@ -74,11 +74,18 @@ def run_chromium(*arguments: str, profile: Path) -> subprocess.CompletedProcess:
     return subprocess.run(command, capture_output=True, text=True, timeout=CHROMIUM_TIMEOUT_S)
 
 
-def page_status(url: str, profile: Path) -> dict:
-    result = run_chromium("--dump-dom", url, profile=profile)
-    match = re.search(r'<pre id="status"[^>]*>(.*?)</pre>', result.stdout, re.S)
-    assert match, result.stderr[-2000:]
-    return json.loads(match.group(1).replace("&quot;", '"'))
+def page_status(url: str, profile: Path, attempts: int = 3) -> dict:
+    """The page's status JSON once it has loaded. Work that holds no request open (shader compiles, texture
+    uploads) does not pause Chromium's virtual time, so on a busy machine the DOM can be dumped while the
+    page still says "loading": then it is asked again, with a fresh profile."""
+    for attempt in range(attempts):
+        result = run_chromium("--dump-dom", url, profile=profile.with_name(f"{profile.name}-{attempt}"))
+        match = re.search(r'<pre id="status"[^>]*>(.*?)</pre>', result.stdout, re.S)
+        assert match, result.stderr[-2000:]
+        text = match.group(1).replace("&quot;", '"')
+        if text.strip() != "loading":
+            return json.loads(text)
+    pytest.fail(f"the preview still said 'loading' after {attempts} tries: {url}")
 
 
 def screenshot(url: str, path: Path, profile: Path) -> np.ndarray:

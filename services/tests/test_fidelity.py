@@ -139,3 +139,27 @@ def test_uv_precision_measures_uvblock_against_the_lookup_footprint(sphere):
     assert precision["lookup_footprint_texels"]["median"] > 1.0
     assert precision["uvblock"]["max_texels"] > precision["uv32"]["max_texels"]
     assert precision["uvblock_error_footprints"]["p99"] < 0.5
+
+
+def test_ssim_and_psnr_are_scikit_images():
+    """compare's SSIM (OpenCV box filter) and PSNR are scikit-image's structural_similarity (defaults,
+    data range 1) and peak_signal_noise_ratio, on images of the measured sizes, and they move with the error."""
+    metrics = pytest.importorskip("skimage.metrics")
+    rng = np.random.default_rng(4)
+    scores = []
+    for shape, window in (((100, 90, 3), 7), ((40, 33, 3), 7), ((7, 9, 3), 7), ((5, 6, 3), 5)):
+        a = rng.random(shape)
+        for noise in (0.02, 0.2):
+            b = np.clip(a + rng.normal(0, noise, shape), 0, 1)
+            want = metrics.structural_similarity(a, b, channel_axis=2, data_range=1.0, win_size=window)
+            assert fidelity.ssim(a, b, window) == pytest.approx(want, abs=1e-12)
+            scores.append(want)
+    a = rng.random((64, 64, 3))
+    a[:2] = 0  # measure_box keeps the whole image where both have content
+    b = np.clip(a + rng.normal(0, 0.05, a.shape), 0, 1)
+    got = fidelity.compare(a, b)
+    rows, columns = fidelity.measure_box(a, b)
+    assert got["psnr_db"] == pytest.approx(metrics.peak_signal_noise_ratio(a[rows, columns], b[rows, columns], data_range=1.0), rel=1e-12)
+    assert got["ssim"] == pytest.approx(metrics.structural_similarity(a[rows, columns], b[rows, columns], channel_axis=2, data_range=1.0, win_size=7), abs=1e-12)
+    assert fidelity.compare(a, a)["psnr_db"] == float("inf") and fidelity.compare(a, a)["ssim"] == pytest.approx(1.0)
+    assert min(scores[1::2]) < max(scores[0::2])  # more noise, lower SSIM

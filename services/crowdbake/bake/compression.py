@@ -163,19 +163,22 @@ def encode_bc5(rgba: np.ndarray) -> bytes:
 def _decode_bc4(blocks: np.ndarray) -> np.ndarray:
     """(N, 8) uint8 BC4 blocks -> (N, 16) uint8 values: endpoints r0 > r1 interpolate 6 values between them
     in sevenths; otherwise 4 in fifths, then 0 and 255 (the RGTC unsigned rules), rounded to nearest."""
-    r0, r1 = blocks[:, 0].astype(np.int64), blocks[:, 1].astype(np.int64)
-    seven = r0 > r1
-    palette = np.empty((len(blocks), 8), dtype=np.int64)
+    r0, r1 = blocks[:, 0].astype(np.int32), blocks[:, 1].astype(np.int32)
+    seven = (r0 > r1)[:, None]
+    steps = np.arange(1, 7, dtype=np.int32)
+    sevenths = ((7 - steps) * r0[:, None] + steps * r1[:, None] + 3) // 7  # (N, 6)
+    fifths = np.concatenate([((5 - steps[:4]) * r0[:, None] + steps[:4] * r1[:, None] + 2) // 5,
+                             np.zeros((len(blocks), 1), np.int32), np.full((len(blocks), 1), 255, np.int32)], axis=1)
+    palette = np.empty((len(blocks), 8), dtype=np.uint8)
     palette[:, 0], palette[:, 1] = r0, r1
-    for k in range(1, 7):  # sevenths
-        palette[:, k + 1] = ((7 - k) * r0 + k * r1 + 3) // 7
-    five = np.stack([((5 - k) * r0 + k * r1 + 2) // 5 for k in range(1, 5)] + [np.zeros_like(r0), np.full_like(r0, 255)], axis=1)
-    palette[~seven, 2:] = five[~seven]
+    palette[:, 2:] = np.where(seven, sevenths, fifths)
+    # The 48 index bits, little-endian in bytes 2..7: 16 three-bit indices.
     bits = np.zeros(len(blocks), dtype=np.uint64)
-    for byte in range(6):
-        bits |= blocks[:, 2 + byte].astype(np.uint64) << np.uint64(8 * byte)
+    bits.view(np.uint8).reshape(-1, 8)[:, :6] = blocks[:, 2:8]
+    if not np.little_endian:
+        bits = bits.byteswap()
     indices = (bits[:, None] >> (np.uint64(3) * np.arange(16, dtype=np.uint64))) & np.uint64(7)
-    return np.take_along_axis(palette, indices.astype(np.intp), axis=1).astype(np.uint8)
+    return np.take_along_axis(palette, indices.astype(np.intp), axis=1)
 
 
 def decode_bc5(data: bytes, width: int, height: int) -> np.ndarray:
@@ -199,10 +202,13 @@ def _block_count(data: bytes, width: int, height: int, block_bytes: int, name: s
 
 
 def _decode_colour(colour_blocks: np.ndarray, four_colour_always: bool) -> np.ndarray:
+    """(N, 8) uint8 colour blocks -> (N, 16, 4) uint8 texels. The palette is gathered as one uint32 per
+    RGBA colour (a quarter of the work of gathering channels)."""
     colour0, colour1, indices = _split_colour_blocks(colour_blocks)
     four = np.ones(len(colour0), dtype=bool) if four_colour_always else colour0 > colour1
-    palette = _palette(colour0, colour1, four)
-    return np.take_along_axis(palette, indices[:, :, None].astype(np.intp), axis=1)  # (N, 16, 4)
+    palette = np.ascontiguousarray(_palette(colour0, colour1, four).astype(np.uint8)).view("<u4")[..., 0]  # (N, 4)
+    texels = np.take_along_axis(palette, indices.astype(np.intp), axis=1)  # (N, 16) uint32
+    return texels.view(np.uint8).reshape(len(colour0), 16, 4)
 
 
 def decode_bc1(data: bytes, width: int, height: int) -> np.ndarray:

@@ -45,20 +45,39 @@ def to_texels(view: OrthoView, points: np.ndarray) -> np.ndarray:
     return np.stack([(offset @ view.right + view.radius) * scale, (view.radius - offset @ view.up) * scale], axis=-1)
 
 
+def bilinear_planes(planes: np.ndarray, size_x: int, x: np.ndarray, y: np.ndarray) -> list[np.ndarray]:
+    """A field held as (C, H·W) planes (row-major texels) read bilinearly at texel coordinates x, y (any
+    shape, alike), clamped to the edge: C arrays shaped like x. One plane at a time, four `take`s of
+    contiguous float rows: about twice as fast as gathering (H·W, C) rows."""
+    size_y = planes.shape[1] // size_x
+    x = np.clip(x - 0.5, 0.0, size_x - 1.0)
+    y = np.clip(y - 0.5, 0.0, size_y - 1.0)
+    x0 = np.minimum(x.astype(np.intp), size_x - 2)  # x >= 0, so truncation is floor
+    y0 = np.minimum(y.astype(np.intp), size_y - 2)
+    fx, fy = x - x0, y - y0
+    corner = y0 * size_x + x0
+    out = []
+    for plane in planes:
+        top_left, top_right = plane.take(corner), plane.take(corner + 1)
+        bottom_left, bottom_right = plane.take(corner + size_x), plane.take(corner + size_x + 1)
+        top = top_left + (top_right - top_left) * fx
+        bottom = bottom_left + (bottom_right - bottom_left) * fx
+        out.append(top + (bottom - top) * fy)
+    return out
+
+
+def field_planes(field: np.ndarray) -> np.ndarray:
+    """(S, S, C) or (S, S) field -> (C, S·S) contiguous planes for bilinear_planes."""
+    field = np.asarray(field, np.float64)
+    if field.ndim == 2:
+        return field.reshape(1, -1)
+    return np.ascontiguousarray(np.moveaxis(field, -1, 0)).reshape(field.shape[-1], -1)
+
+
 def bilinear(field: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """(S, S, C) or (S, S) field read bilinearly at (..., 2) texel coordinates, clamped to the edge."""
-    size_y, size_x = field.shape[:2]
-    x = np.clip(xy[..., 0] - 0.5, 0.0, size_x - 1.0)
-    y = np.clip(xy[..., 1] - 0.5, 0.0, size_y - 1.0)
-    x0 = np.minimum(x.astype(np.int64), size_x - 2)  # x >= 0, so truncation is floor
-    y0 = np.minimum(y.astype(np.int64), size_y - 2)
-    fx, fy = x - x0, y - y0
-    flat = field.reshape(size_y * size_x, -1)
-    corner = y0 * size_x + x0
-    top = flat[corner] * (1 - fx)[..., None] + flat[corner + 1] * fx[..., None]
-    bottom = flat[corner + size_x] * (1 - fx)[..., None] + flat[corner + size_x + 1] * fx[..., None]
-    out = top * (1 - fy)[..., None] + bottom * fy[..., None]
-    return out if field.ndim == 3 else out[..., 0]
+    read = bilinear_planes(field_planes(field), field.shape[1], xy[..., 0], xy[..., 1])
+    return np.stack(read, axis=-1) if np.ndim(field) == 3 else read[0]
 
 
 def reproject(source: OrthoView, depth: np.ndarray, target: OrthoView, motion: np.ndarray | None = None,
@@ -87,16 +106,17 @@ def reproject(source: OrthoView, depth: np.ndarray, target: OrthoView, motion: n
     x = (start @ source.right + radius) * scale
     y = (radius - start @ source.up) * scale
     # Depth and, with motion, its three components along the source's axes: one bilinear read a step.
-    field = depth[..., None] if motion is None or not fraction else np.concatenate([depth[..., None], fraction * (motion @ source_axes.T)], axis=-1)
+    field = depth if motion is None or not fraction else np.concatenate([depth[..., None], fraction * (motion @ source_axes.T)], axis=-1)
+    planes = field_planes(field)
     # A screen miss (dx right, dy down, target texels) as a move in the source's texels.
     sx_dx, sx_dy = target.right @ source.right, -(target.up @ source.right)
     sy_dx, sy_dy = -(target.right @ source.up), target.up @ source.up
     miss = np.zeros((size, size))
     for _ in range(iterations + 1):
-        read = bilinear(field, np.stack([x, y], axis=-1))
-        along_right, along_up, along_back = x / scale - radius, radius - y / scale, read[..., 0]
-        if read.shape[-1] == 4:
-            along_right, along_up, along_back = along_right + read[..., 1], along_up + read[..., 2], along_back + read[..., 3]
+        read = bilinear_planes(planes, depth.shape[1], x, y)
+        along_right, along_up, along_back = x / scale - radius, radius - y / scale, read[0]
+        if len(read) == 4:
+            along_right, along_up, along_back = along_right + read[1], along_up + read[2], along_back + read[3]
         dx = pixel_x - (on_right[0] * along_right + on_right[1] * along_up + on_right[2] * along_back + radius) * scale
         dy = pixel_y - (radius - (on_up[0] * along_right + on_up[1] * along_up + on_up[2] * along_back)) * scale
         miss = np.hypot(dx, dy)

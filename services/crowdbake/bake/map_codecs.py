@@ -64,29 +64,38 @@ def _tile_bases(layout) -> np.ndarray:
     return bases
 
 
-def _by_tile(atlas: np.ndarray, layout) -> np.ndarray:
-    """(H, W, C) atlas as (E, A, S, S, C) tiles (a view, no copy)."""
+def _tile_planes(atlas: np.ndarray, layout, channels: int) -> list[np.ndarray]:
+    """The first `channels` channels of an (H, W, C) atlas as float32 planes viewed (E, S, A, S): tile (e, a)
+    is plane[e, :, a, :]."""
     size, rings, columns = layout.tile_size, len(layout.elevations_deg), len(layout.azimuths_deg)
-    return atlas.reshape(rings, size, columns, size, -1).transpose(0, 2, 1, 3, 4)
+    return [np.asarray(atlas)[..., c].astype(np.float32).reshape(rings, size, columns, size) for c in range(channels)]
 
 
-def _rotate_tiles(vectors: np.ndarray, matrices: np.ndarray, layout) -> np.ndarray:
-    """(H, W, 3) float32 atlas of vectors, each tile's times its (3, 3) matrix from `matrices` (E, A, 3, 3):
-    one batched matmul over (E, A, S·S, 3)."""
-    size, rings, columns = layout.tile_size, len(layout.elevations_deg), len(layout.azimuths_deg)
-    tiles = np.ascontiguousarray(_by_tile(vectors, layout)).reshape(rings, columns, size * size, 3)
-    rotated = np.matmul(tiles, matrices).reshape(rings, columns, size, size, 3)
-    return np.ascontiguousarray(rotated.transpose(0, 2, 1, 3, 4)).reshape(vectors.shape)
+def _rotate_planes(planes: list[np.ndarray], matrices: np.ndarray, outputs: int = 3) -> list[np.ndarray]:
+    """Vectors held as three (E, S, A, S) planes, each tile's times its (3, 3) matrix from `matrices`
+    (E, A, 3, 3), as `outputs` planes: out_j = Σ_i plane_i · M[i, j], broadcast per tile. Working on planes
+    (not (..., 3) vectors) keeps every product a plain contiguous array operation."""
+    m = matrices.astype(np.float32)[:, None, :, None]  # (E, 1, A, 1, 3, 3)
+    return [planes[0] * m[..., 0, j] + planes[1] * m[..., 1, j] + planes[2] * m[..., 2, j] for j in range(outputs)]
+
+
+def _unit_code(component: np.ndarray) -> np.ndarray:
+    """A normal component in [-1, 1] as its 8-bit code round((c + 1) · 127.5)."""
+    return np.rint((np.clip(component, -1.0, 1.0) + 1.0) * 127.5).astype(np.uint8)
 
 
 def normal_atlas_to_view_xy(normal_atlas: np.ndarray, layout) -> np.ndarray:
     """The bake's (H, W, 4) uint8 model-space normal atlas (RGB = (n + 1) / 2) as the bc5 normal map stores
     it (SPEC.md "Impostor maps"): R, G = (n · right + 1) / 2, (n · up + 1) / 2 in each tile's own view, B = 0,
-    A = 255. The third component, n · back, is left out: the reader takes it as sqrt(1 - x² - y²)."""
-    normals = decode_normal_map(normal_atlas).astype(np.float32)
-    in_view = _rotate_tiles(normals, np.swapaxes(_tile_bases(layout), -1, -2), layout)  # n · (right, up, back)
+    A = 255. The third component, n · back, is left out: the reader takes it as sqrt(1 - x² - y²).
+    The codes are decoded as decode_normal_map does ((rgb / 255) · 2 - 1, renormalised), in float32."""
+    planes = [p * np.float32(2.0 / 255.0) - np.float32(1.0) for p in _tile_planes(normal_atlas, layout, 3)]
+    length = np.sqrt(planes[0] ** 2 + planes[1] ** 2 + planes[2] ** 2)
+    inverse = np.divide(1.0, length, out=np.zeros_like(length), where=length > 1e-12)
+    right, up = _rotate_planes(planes, np.swapaxes(_tile_bases(layout), -1, -2), outputs=2)  # n · right, n · up
     out = np.zeros(normal_atlas.shape[:2] + (4,), dtype=np.uint8)
-    out[..., :2] = np.rint((np.clip(in_view[..., :2], -1.0, 1.0) + 1.0) * 127.5).astype(np.uint8)
+    out[..., 0] = _unit_code(right * inverse).reshape(out.shape[:2])
+    out[..., 1] = _unit_code(up * inverse).reshape(out.shape[:2])
     out[..., 3] = 255
     return out
 
@@ -95,12 +104,15 @@ def view_xy_to_model_normals(texels: np.ndarray, layout) -> np.ndarray:
     """(H, W, 4) uint8 texels of a bc5 normal map, decoded -> (H, W, 3) float32 model-space unit normals:
     x, y = rg / 255 · 2 - 1 in the tile's view, z = sqrt(max(0, 1 - x² - y²)) towards the camera, rotated out
     of the view (the shader's sample_normal, shaders/impostor_warp.glsl)."""
-    in_view = np.empty(np.shape(texels)[:2] + (3,), dtype=np.float32)
-    in_view[..., :2] = np.asarray(texels)[..., :2].astype(np.float32) * np.float32(2.0 / 255.0) - np.float32(1.0)
-    in_view[..., 2] = np.sqrt(np.maximum(0.0, 1.0 - in_view[..., 0] ** 2 - in_view[..., 1] ** 2))
-    model = _rotate_tiles(in_view, _tile_bases(layout), layout)
-    length = np.linalg.norm(model, axis=-1, keepdims=True)
-    return np.divide(model, length, out=np.zeros_like(model), where=length > 1e-12)
+    x, y = (p * np.float32(2.0 / 255.0) - np.float32(1.0) for p in _tile_planes(texels, layout, 2))
+    z = np.sqrt(np.maximum(np.float32(0.0), 1.0 - x * x - y * y))
+    # A texel past the unit circle (x² + y² > 1) has z = 0 and a length above 1: renormalised here.
+    length = np.sqrt(x * x + y * y + z * z)
+    inverse = np.divide(1.0, length, out=np.zeros_like(length), where=length > 1e-12)
+    model = np.empty(np.shape(texels)[:2] + (3,), dtype=np.float32)
+    for j, plane in enumerate(_rotate_planes([x * inverse, y * inverse, z * inverse], _tile_bases(layout))):
+        model[..., j] = plane.reshape(model.shape[:2])
+    return model
 
 
 def model_normals_to_codes(normals: np.ndarray) -> np.ndarray:

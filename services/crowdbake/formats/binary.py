@@ -282,7 +282,7 @@ def decode_texture_array(data: bytes, where: str = "texture") -> TextureArray:
     if pixel_format == "uvblock":
         for k, layer in enumerate(layers):
             try:
-                unpack_uvblock(layer, width, height)
+                check_uvblock(layer, width, height)
             except ValueError as error:
                 raise FormatError("invalid_data", f"layer {k}: {error}", where) from None
     return TextureArray(width, height, pixel_format, layers)
@@ -410,9 +410,11 @@ def uvblock_subsets(q: np.ndarray, material: np.ndarray, covered: np.ndarray) ->
     """
     count = len(q)
     index = np.arange(count)
+    # u and v as separate (N, 16) planes: every pass then runs along contiguous rows.
+    qu, qv = np.ascontiguousarray(q[..., 0]), np.ascontiguousarray(q[..., 1])
 
     def distance(seed: np.ndarray) -> np.ndarray:
-        d = np.abs(q - q[index, seed][:, None, :]).max(axis=2)
+        d = np.maximum(np.abs(qu - qu[index, seed][:, None]), np.abs(qv - qv[index, seed][:, None]))
         return np.where(material == material[index, seed][:, None], d, _OTHER_MATERIAL + d)
 
     seeds = [np.argmax(covered, axis=1)]
@@ -445,8 +447,10 @@ def pack_uvblock(u: np.ndarray, v: np.ndarray, material: np.ndarray, coverage: n
         raise ValueError("uvblock coordinates contain NaN or infinity")
     if coverage.any() and (material[coverage].min() < 0 or material[coverage].max() > UVBLOCK_MAX_MATERIAL):
         raise ValueError(f"uvblock material indices must lie in 0..{UVBLOCK_MAX_MATERIAL}")
-    q = _blocks(np.rint(np.clip(np.stack([u, v], axis=-1), 0.0, 1.0) * UVBLOCK_COORD_MAX).astype(np.int64))
-    m, c = _blocks(np.where(coverage, material, 0)), _blocks(coverage)
+    # int32 throughout: coordinates, distances (below _OTHER_MATERIAL + 4095) and offsets all fit, and the
+    # per-block passes move half the bytes of int64.
+    q = _blocks(np.rint(np.clip(np.stack([u, v], axis=-1), 0.0, 1.0) * UVBLOCK_COORD_MAX).astype(np.int32))
+    m, c = _blocks(np.where(coverage, material, 0).astype(np.int32)), _blocks(coverage)
     # A block the character does not touch is six zero words; an impostor atlas is mostly such blocks,
     # so only the others are encoded.
     live = c.any(axis=1)
@@ -463,27 +467,31 @@ def _uvblock_words(q: np.ndarray, m: np.ndarray, c: np.ndarray) -> np.ndarray:
     count = len(c)
     words = np.zeros((count, 6), np.uint64)
     words[:, 0] = (np.where(c, subset + 1, 0).astype(np.uint64) << (2 * np.arange(16, dtype=np.uint64))).sum(axis=1)
-    offsets = np.zeros((count, 16, 2), np.int64)
+    planes = (np.ascontiguousarray(q[..., 0]), np.ascontiguousarray(q[..., 1]))  # u, v: (N, 16) each
+    offsets = (np.zeros((count, 16), np.int32), np.zeros((count, 16), np.int32))
     headers = np.zeros(count, np.uint64)
-    big = np.iinfo(np.int64).max
+    big = np.iinfo(q.dtype).max
     for s in range(UVBLOCK_SUBSETS):
         members = subset == s
         present = members.any(axis=1)
-        low = np.where(present[:, None], np.where(members[..., None], q, big).min(axis=1), 0)
-        high = np.where(present[:, None], np.where(members[..., None], q, -1).max(axis=1), 0)
-        base = low // UVBLOCK_BASE_UNIT
-        origin = base * UVBLOCK_BASE_UNIT
-        shift = _uvblock_shift((high - origin).max(axis=1))
-        step = (1 << shift)[:, None, None]
-        room = (UVBLOCK_COORD_MAX - origin)[:, None, :] >> shift[:, None, None]
-        offset = np.clip(np.rint((q - origin[:, None, :]) / step), 0, np.minimum(UVBLOCK_OFFSET_MAX, room)).astype(np.int64)
-        offsets = np.where(members[..., None], offset, offsets)
+        bases, highs = [], []
+        for plane in planes:
+            low = np.where(present, np.where(members, plane, big).min(axis=1), 0)
+            highs.append(np.where(present, np.where(members, plane, -1).max(axis=1), 0))
+            bases.append(low // UVBLOCK_BASE_UNIT)
+        origins = [base * UVBLOCK_BASE_UNIT for base in bases]
+        shift = _uvblock_shift(np.maximum(highs[0] - origins[0], highs[1] - origins[1]))
+        step = (1 << shift)[:, None]
+        for plane, origin, out in zip(planes, origins, offsets):
+            room = (UVBLOCK_COORD_MAX - origin)[:, None] >> shift[:, None]
+            offset = np.clip(np.rint((plane - origin[:, None]) / step), 0, np.minimum(UVBLOCK_OFFSET_MAX, room)).astype(np.int32)
+            np.copyto(out, offset, where=members)
         subset_material = np.where(present, m[np.arange(count), np.argmax(members, axis=1)], 0)
-        header = base[:, 0] | base[:, 1] << 8 | subset_material << 16 | shift << 18
+        header = bases[0].astype(np.int64) | bases[1].astype(np.int64) << 8 | subset_material.astype(np.int64) << 16 | shift << 18
         headers |= np.where(present, header, 0).astype(np.uint64) << np.uint64(UVBLOCK_HEADER_BITS * s)
     words[:, 1] = headers & np.uint64(0xFFFFFFFF)
     words[:, 2] = headers >> np.uint64(32)
-    fields = (offsets[..., 0] | offsets[..., 1] << 3).astype(np.uint64)  # (N, 16) 6-bit fields
+    fields = (offsets[0] | offsets[1] << 3).astype(np.uint64)  # (N, 16) 6-bit fields
     low64 = np.zeros(count, np.uint64)
     high32 = np.zeros(count, np.uint64)
     for i in range(16):
@@ -514,6 +522,28 @@ def unpack_uvblock(data: bytes, width: int, height: int) -> tuple[np.ndarray, np
     u = _unblocks(qu_all, height, width) / UVBLOCK_COORD_MAX
     v = _unblocks(qv_all, height, width) / UVBLOCK_COORD_MAX
     return u, v, _unblocks(material_all, height, width), _unblocks(covered_all, height, width)
+
+
+def check_uvblock(data: bytes, width: int, height: int) -> None:
+    """Raise ValueError where unpack_uvblock would (a covered coordinate above 4095), decoding only the
+    blocks that could hold one: a subset's coordinates are at most 16·base + (7 << shift), so a block whose
+    used subsets all stay within 4095 by that bound needs no texel decoded (every block of a baked map)."""
+    words = np.frombuffer(data, "<u4", (height // 4) * (width // 4) * 6).reshape(-1, 6)
+    words = words[words[:, 0] != 0].astype(np.uint64)
+    if not len(words):
+        return
+    states = (words[:, :1] >> (2 * np.arange(16, dtype=np.uint64))) & np.uint64(3)  # (N, 16): 0 outside, 1..3
+    headers = words[:, 1] | words[:, 2] << np.uint64(32)
+    risky = np.zeros(len(words), bool)
+    for s in range(UVBLOCK_SUBSETS):
+        used = (states == s + 1).any(axis=1)
+        header = (headers >> np.uint64(UVBLOCK_HEADER_BITS * s)) & np.uint64((1 << UVBLOCK_HEADER_BITS) - 1)
+        reach = np.uint64(UVBLOCK_OFFSET_MAX) << ((header >> np.uint64(18)) & np.uint64(7))
+        base_u = (header & np.uint64(255)) * np.uint64(UVBLOCK_BASE_UNIT)
+        base_v = ((header >> np.uint64(8)) & np.uint64(255)) * np.uint64(UVBLOCK_BASE_UNIT)
+        risky |= used & (np.maximum(base_u, base_v) + reach > UVBLOCK_COORD_MAX)
+    if risky.any():
+        _uvblock_texels(words[risky])
 
 
 def _uvblock_texels(words: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

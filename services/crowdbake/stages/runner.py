@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import atexit
 import ctypes
-import importlib
 import logging
 import ctypes.util
 import multiprocessing
@@ -393,10 +392,6 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         # The cycle report's plots (a second or more of matplotlib) are drawn in a thread of this process,
         # which otherwise only waits for the workers; run_bake returns once they are written.
         plotter = _Background("cycle-plots", plots, meter.figures("cycle"))
-        # Likewise the pack stage's scoring library (scikit-image: a third of a second to import), when the pack
-        # stage runs here.
-        warm = [] if pool is not None else [lambda: importlib.import_module("skimage.metrics")]
-        imports = _Background("pack-imports", warm, meter.figures("pack"))
         try:
             _poses_and_impostors(work, pool, workers, meter, progress)
             if pool is not None:
@@ -409,7 +404,6 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
                 meter.figures("pack").add(figures)
                 report(progress, "pack", 1, 1)
             plotter.result()
-            imports.result()
             poses = PosesRecord.from_json(read_json(work / "poses" / "record.json"))
             impostor = impostor_statistics(work)
             pack = meter.run("pack", lambda: stage_pack(work, progress)).record  # in this process, or the worker's record
