@@ -192,6 +192,24 @@ def test_publishing_other_bytes_under_a_published_version_is_refused(baked, tmp_
         stage_publish(root / "work", other_root)
 
 
+def test_a_version_conflict_leaves_no_export_behind(sample, baked, tmp_path):
+    """The runner builds the engine export while publish runs and puts it in place only after publishing:
+    a bake refused for a version conflict leaves neither an export nor a staging folder; one that publishes
+    has its export in place."""
+    root, summary = baked
+    assert (root / "exports" / "sample" / "1.0" / "index.json").is_file()
+    other_root = tmp_path / "bundles"
+    shutil.copytree(summary.bundle, other_root / "sample" / "1.0")
+    manifest_path = other_root / "sample" / "1.0" / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    manifest["created"] = "2001-01-01T00:00:00Z"
+    manifest_path.write_text(json.dumps(manifest))
+    with pytest.raises(VersionConflict):
+        run_bake(inputs_for(sample), other_root, work=root / "work", workers=2)
+    exports = tmp_path / "exports"
+    assert not [p for p in exports.rglob("*") if p.is_file() or p.name.endswith(".partial")] if exports.exists() else True
+
+
 def test_bad_inputs_name_their_field(sample, tmp_path):
     bad_mesh = tmp_path / "small.obj"
     bad_mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")

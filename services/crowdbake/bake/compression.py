@@ -271,13 +271,14 @@ def compression_error(original: np.ndarray, decoded: np.ndarray, mask: np.ndarra
         mask = np.ones(original.shape[:2], dtype=bool)
     if not mask.any():
         return {"rgb_max": 0.0, "rgb_mean_abs": 0.0, "rgb_rmse": 0.0, "rgb_psnr_db": float("inf"), "alpha_max": 0.0}
-    # int32 differences of 8-bit values are exact; sums in float64.
-    diff = decoded[mask].astype(np.int32) - original[mask].astype(np.int32)
-    absolute = np.abs(diff[:, :3])
-    rmse = float(np.sqrt(np.mean(absolute.astype(np.float64) ** 2)))
+    # int16 differences of 8-bit values are exact, and so are the integer sums (int64).
+    diff = decoded[mask].astype(np.int16) - original[mask].astype(np.int16)
+    absolute = np.abs(diff[:, :3]).astype(np.int32)
+    count = absolute.size
+    rmse = float(np.sqrt(int(np.square(absolute).sum(dtype=np.int64)) / count))
     return {
         "rgb_max": float(absolute.max()),
-        "rgb_mean_abs": float(absolute.mean()),
+        "rgb_mean_abs": int(absolute.sum(dtype=np.int64)) / count,
         "rgb_rmse": rmse,
         "rgb_psnr_db": float(20 * np.log10(255.0 / rmse)) if rmse > 0 else float("inf"),
         "alpha_max": float(np.abs(diff[:, 3]).max()),

@@ -193,12 +193,14 @@ def lookup_lod(uv: np.ndarray, texture_size: tuple[int, int], tile_size: int) ->
     dx, dy = quad_gradients(uv)
     limit = GRADIENT_LIMIT_TEXELS / tile_size + 1e-6
 
-    def clamp(g: np.ndarray) -> np.ndarray:
-        length = np.linalg.norm(g, axis=-1, keepdims=True)
-        return g * np.minimum(1.0, limit / np.maximum(length, 1e-9))
+    height, width = texture_size
 
-    scale = np.array([texture_size[1], texture_size[0]], dtype=np.float64)  # (width, height)
-    rho = np.maximum(np.linalg.norm(clamp(dx) * scale, axis=-1), np.linalg.norm(clamp(dy) * scale, axis=-1))
+    def texels_per_pixel(g: np.ndarray) -> np.ndarray:
+        """|clamp(g) · (width, height)|: the gradient shortened to `limit`, in texels."""
+        shorten = np.minimum(1.0, limit / np.maximum(np.hypot(g[..., 0], g[..., 1]), 1e-9))
+        return np.hypot(g[..., 0] * (shorten * width), g[..., 1] * (shorten * height))
+
+    rho = np.maximum(texels_per_pixel(dx), texels_per_pixel(dy))
     return np.log2(np.maximum(rho, 1e-12))
 
 
@@ -212,11 +214,14 @@ def albedo(tile: DecodedTile, diffuse: list[np.ndarray], chains: list[list[np.nd
     texels = np.zeros((int(covered.sum()), 4))
     material = np.clip(tile.material[covered], 0, len(diffuse) - 1)
     uv = tile.uv[covered]
+    lods: dict[tuple[int, int], np.ndarray] = {}  # by texture size: materials often share one
     for index, texture in enumerate(diffuse):
         chosen = material == index
         if not chosen.any():
             continue
-        lod = lookup_lod(tile.uv, texture.shape[:2], tile_size)[covered][chosen]
+        if texture.shape[:2] not in lods:
+            lods[texture.shape[:2]] = lookup_lod(tile.uv, texture.shape[:2], tile_size)[covered]
+        lod = lods[texture.shape[:2]][chosen]
         texels[chosen, :3] = sample_trilinear(chains[index], uv[chosen], lod)
         height, width = texture.shape[:2]
         wrapped = impostor_maps.wrap_uv(uv[chosen])

@@ -122,9 +122,10 @@ def encode_frame(layout: AtlasLayout, frame_parts: list[dict[str, np.ndarray]], 
     stored = dict(atlases, uv16=atlases["uv"])
     if formats["uv"] == "uv32":
         stored["uv"] = map_codecs.uv_map_to_uv32(atlases["uv"])
-    elif formats["uv"] == "uvblock":  # fidelity reads the decoded texels, as uv32 words
+    elif formats["uv"] == "uvblock":
         uvblock = map_codecs.uv_map_to_uvblock(atlases["uv"])
-        stored["uv"] = map_codecs.uvblock_to_uv32(uvblock, layout.width, layout.height)
+        if fidelity_frame:  # fidelity reads the decoded texels, as uv32 words
+            stored["uv"] = map_codecs.uvblock_to_uv32(uvblock, layout.width, layout.height)
     layers, errors, fidelity_atlases = {}, {}, {}
     for kind, pixel_format in formats.items():
         if pixel_format == "rgba16":

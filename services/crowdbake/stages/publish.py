@@ -12,7 +12,7 @@ from crowdbake.errors import StageOrderError, VersionConflict
 from crowdbake.formats.bundle import BundleFile, verify_bundle, write_bundle
 from crowdbake.stages.validate import load_job
 from crowdbake.stages.workdir import WorkDir
-from crowdbake.storage.exports import ExportStore, LocalExportStore
+from crowdbake.storage.exports import ExportStore, LocalExportStore, build_export_beside_home
 
 
 def same_tree(a: Path, b: Path) -> bool:
@@ -67,3 +67,17 @@ def stage_export(work: Path, exports: ExportStore | Path) -> bool:
     store = exports if isinstance(exports, ExportStore) else LocalExportStore(Path(exports))
     store.publish(bundle)
     return True
+
+
+def stage_export_ahead(work: Path, bundles_root: Path) -> Path | None:
+    """The engine export of work/bundle built beside its home in the exports folder of `bundles_root`, not
+    yet in place: the bake runner builds it while stage_publish publishes, and puts it in place
+    (crowdbake.storage.exports.commit_export) only once that succeeded, or discards it. None when the
+    bake's `export` parameter is false or the export is already there."""
+    job = load_job(work)
+    if not job.bake_params.export:
+        return None
+    bundle = WorkDir(work).bundle
+    if not (bundle / "manifest.json").is_file():
+        raise StageOrderError(f"{work}: stage 'pack' has not run yet")
+    return build_export_beside_home(bundle, Path(bundles_root))

@@ -39,7 +39,8 @@ from crowdbake.stages.impostors import (
 )
 from crowdbake.stages.pack import score_frames, stage_pack, stage_pack_frame, stage_pack_scores
 from crowdbake.stages.poses import stage_poses
-from crowdbake.stages.publish import stage_export, stage_publish
+from crowdbake.stages.publish import stage_export, stage_export_ahead, stage_publish
+from crowdbake.storage.exports import commit_export, discard_export, export_home
 from crowdbake.stages.records import PosesRecord
 from crowdbake.stages.runtime_fidelity import between_references
 from crowdbake.stages.validate import BakeInputs, stage_validate
@@ -174,10 +175,12 @@ def measured(body: Callable[[], Any]) -> dict[str, Any]:
 def _worker_item(work: str, item: str, task: dict | None = None, frame: int | None = None, out_root: str | None = None) -> dict[str, Any]:
     """One item of the poses ∥ impostors part, in a worker process: the poses stage, one impostor task, or
     one baked frame's atlases for the pack stage (once that frame's tasks are done), or the pack stage's
-    runtime-fidelity mesh references (once the poses are done); then the pack stage and the publish stage
-    (with the engine export) into `out_root`."""
-    if item == "publish":
-        figures = measured(lambda: str(_publish(Path(work), Path(out_root))))
+    runtime-fidelity mesh references (once the poses are done); then the pack stage, and the publish stage
+    into `out_root` beside the engine export built ahead of it."""
+    if item == "publish-bundle":
+        figures = measured(lambda: str(stage_publish(Path(work), Path(out_root))))
+    elif item == "export":
+        figures = measured(lambda: None if (staging := stage_export_ahead(Path(work), Path(out_root))) is None else str(staging))
     elif item == "poses":
         figures = measured(lambda: stage_poses(Path(work)).cached)
     elif item == "pack":
@@ -194,6 +197,35 @@ def _worker_item(work: str, item: str, task: dict | None = None, frame: int | No
     figures["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     figures["pid"], figures["process_cpu_s"] = os.getpid(), _cpu_seconds(resource.RUSAGE_SELF)
     return figures
+
+
+def _publish_beside_export(work: Path, out_root: Path, pool: ProcessPoolExecutor, meter: _Meter) -> Path:
+    """The publish stage and the engine export in two workers at once: the export is built from work/bundle
+    beside its home and put in place only once the bundle is published (a version conflict discards it)."""
+    started = time.perf_counter()
+    export = pool.submit(_worker_item, str(work), "export", out_root=str(out_root))
+    publish = pool.submit(_worker_item, str(work), "publish-bundle", out_root=str(out_root))
+    results = {}
+    for name, future in (("publish", publish), ("export", export)):
+        try:
+            results[name] = future.result()
+        except BaseException as error:
+            results[name] = error
+    staging = results["export"]["result"] if isinstance(results["export"], dict) else None
+    for figures in results.values():
+        if isinstance(figures, dict):
+            meter.account_worker(figures)
+            meter.figures("publish").add(dict(figures, wall_s=0.0))  # side by side: the stage's wall is both's, below
+    meter.figures("publish").wall_s += time.perf_counter() - started
+    for outcome in (results["publish"], results["export"]):
+        if isinstance(outcome, BaseException):
+            discard_export(Path(staging) if staging else None)
+            raise outcome
+    bundle = Path(results["publish"]["result"])
+    if staging:
+        manifest = read_json(bundle / "manifest.json")
+        commit_export(Path(staging), export_home(out_root, manifest["name"], manifest["version"]))
+    return bundle
 
 
 def _publish(work: Path, out_root: Path) -> Path:
@@ -408,10 +440,7 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
             impostor = impostor_statistics(work)
             pack = meter.run("pack", lambda: stage_pack(work, progress)).record  # in this process, or the worker's record
             if pool is not None:
-                figures = pool.submit(_worker_item, str(work), "publish", out_root=str(out_root)).result()
-                meter.account_worker(figures)
-                meter.figures("publish").add(figures)
-                bundle = Path(figures["result"])
+                bundle = _publish_beside_export(work, Path(out_root), pool, meter)
             else:
                 bundle = meter.run("publish", lambda: _publish(work, Path(out_root)))
             report(progress, "publish", 1, 1)

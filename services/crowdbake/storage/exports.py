@@ -90,26 +90,47 @@ def build_export(bundle_folder: Path, staging: Path, ktx2_mode: str = "bc") -> d
 def publish_export(bundle_folder: Path, bundles_dir: Path, ktx2_mode: str = "bc") -> Path:
     """Export the published bundle at `bundle_folder` (= bundles_dir/<name>/<version>) once, into its
     export home; returns that folder. An export already there is kept (the bundle cannot have changed)."""
+    staging = build_export_beside_home(bundle_folder, bundles_dir, ktx2_mode)
+    manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())
+    home = export_home(bundles_dir, manifest["name"], manifest["version"])
+    return home if staging is None else commit_export(staging, home)
+
+
+def build_export_beside_home(bundle_folder: Path, bundles_dir: Path, ktx2_mode: str = "bc") -> Path | None:
+    """Build the export of the bundle at `bundle_folder` in a staging folder of its own beside its export
+    home, and return it (commit_export puts it in place); None when the home already holds an export.
+    Built from a bundle before it is published, it is committed only once publishing has succeeded."""
     manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())
     name, version = manifest["name"], manifest["version"]
     home = export_home(bundles_dir, name, version)
     if (home / INDEX_NAME).is_file():
-        return home
+        return None
     home.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{version}.", suffix=".partial", dir=home.parent))
     try:
         build_export(bundle_folder, staging, ktx2_mode)
-        try:
-            staging.rename(home)
-        except OSError:
-            if (home / INDEX_NAME).is_file():  # another publisher renamed the same export into place first
-                shutil.rmtree(staging, ignore_errors=True)
-                return home
-            raise
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
+    return staging
+
+
+def commit_export(staging: Path, home: Path) -> Path:
+    """Rename a built export (build_export_beside_home) into its home, once: where another publisher renamed one
+    there first, that one is kept and `staging` removed. Returns `home`."""
+    try:
+        staging.rename(home)
+    except OSError:
+        shutil.rmtree(staging, ignore_errors=True)
+        if not (home / INDEX_NAME).is_file():
+            raise
     return home
+
+
+def discard_export(staging: Path | None) -> None:
+    """Remove a built export that is not to be committed (publishing failed)."""
+    if staging is not None:
+        shutil.rmtree(staging, ignore_errors=True)
 
 
 def read_export_index(bundles_dir: Path, name: str, version: str) -> dict[str, Any]:
