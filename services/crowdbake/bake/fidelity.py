@@ -144,7 +144,9 @@ def measure_box(*images: np.ndarray) -> tuple[slice, slice]:
     """(rows, columns) slices of the pixels any image lights, grown by MEASURE_MARGIN_PX (whole image if none)."""
     lit = np.zeros(images[0].shape[:2], dtype=bool)
     for image in images:
-        lit |= np.asarray(image).max(axis=-1) > 0
+        image = np.asarray(image)
+        for channel in range(image.shape[-1]):  # (a max over a 3-long last axis is several times slower)
+            lit |= image[..., channel] > 0
     height, width = lit.shape
     if not lit.any():
         return slice(0, height), slice(0, width)

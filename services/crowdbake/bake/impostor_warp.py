@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.bake import surface_maps
 from crowdbake.bake.impostor_blend import DecodedTile, FrameWeights
 from crowdbake.bake.impostor_maps import OrthoView
 
@@ -88,10 +87,21 @@ def reproject(source: OrthoView, depth: np.ndarray, target: OrthoView, motion: n
     into the background; motion: optional (S, S, 3) metres each texel's surface point moves to the other
     baked frame, dilated likewise, applied times `fraction`. Returns (S, S, 2) source texel coordinates and
     (S, S) the remaining screen miss in target texels.
+    """
+    field = depth if motion is None or not fraction else np.concatenate(
+        [depth[..., None], fraction * (motion @ np.stack([source.right, source.up, source.back]).T)], axis=-1)
+    return reproject_planes(source, field_planes(field), depth.shape[1], target, iterations)
+
+
+def reproject_planes(source: OrthoView, planes: np.ndarray, width: int, target: OrthoView,
+                     iterations: int = DEFAULT_ITERATIONS) -> tuple[np.ndarray, np.ndarray]:
+    """reproject with the source's fields as (C, S·S) planes (field_planes): depth, then optionally the
+    motion times the fraction along the source's right, up and (optionally) back. Returns the same.
 
     The views' axes are constant, so the surface point is kept as its coordinates along the source's
-    right, up and back, and its projection to the target as six dot products of the axes (the same sums
-    as surface_points then to_texels, fewer operations per pixel).
+    right, up and back, and the screen miss of a step is an affine function of the texel coordinate and
+    the reads: its constant and coefficients are taken once (the sums of surface_points then to_texels,
+    fewer operations per pixel).
     """
     size = target.size
     scale = _texel_scale(target)
@@ -105,37 +115,38 @@ def reproject(source: OrthoView, depth: np.ndarray, target: OrthoView, motion: n
     start = plane_right[..., None] * target.right + plane_up[..., None] * target.up
     x = (start @ source.right + radius) * scale
     y = (radius - start @ source.up) * scale
-    # Depth and, with motion, its three components along the source's axes: one bilinear read a step.
-    field = depth if motion is None or not fraction else np.concatenate([depth[..., None], fraction * (motion @ source_axes.T)], axis=-1)
-    planes = field_planes(field)
+    # A point at source texel (x, y) plus (right, up, back) metres lands at target texel
+    #   (on_right · (x/s - r + right, r - y/s + up, back) + r) · s  across, and
+    #   (r - on_up · (...)) · s  down; the miss is the pixel minus that.
+    miss_x0 = pixel_x - scale * radius * (1.0 - on_right[0] + on_right[1])
+    miss_y0 = pixel_y - scale * radius * (1.0 + on_up[0] - on_up[1])
+    along = [scale * on_right, scale * on_up]  # per metre along the source's right, up, back
     # A screen miss (dx right, dy down, target texels) as a move in the source's texels.
     sx_dx, sx_dy = target.right @ source.right, -(target.up @ source.right)
     sy_dx, sy_dy = -(target.right @ source.up), target.up @ source.up
-    miss = np.zeros((size, size))
     for _ in range(iterations + 1):
-        read = bilinear_planes(planes, depth.shape[1], x, y)
-        along_right, along_up, along_back = x / scale - radius, radius - y / scale, read[0]
-        if len(read) == 4:
-            along_right, along_up, along_back = along_right + read[1], along_up + read[2], along_back + read[3]
-        dx = pixel_x - (on_right[0] * along_right + on_right[1] * along_up + on_right[2] * along_back + radius) * scale
-        dy = pixel_y - (radius - (on_up[0] * along_right + on_up[1] * along_up + on_up[2] * along_back)) * scale
-        miss = np.hypot(dx, dy)
+        read = bilinear_planes(planes, width, x, y)
+        dx = miss_x0 - on_right[0] * x + on_right[1] * y - along[0][2] * read[0]
+        dy = miss_y0 + on_up[0] * x - on_up[1] * y + along[1][2] * read[0]
+        for axis, moved in enumerate(read[1:]):  # right, up, back
+            dx -= along[0][axis] * moved
+            dy += along[1][axis] * moved
         x, y = x + sx_dx * dx + sx_dy * dy, y + sy_dx * dx + sy_dy * dy
-    return np.stack([x, y], axis=-1), miss
+    return np.stack([x, y], axis=-1), np.hypot(dx, dy)
 
 
 def gather(tile: DecodedTile, xy: np.ndarray, valid: np.ndarray | None = None) -> DecodedTile:
     """The tile read at (S, S, 2) texel coordinates, nearest texel; outside the tile or not `valid`: uncovered."""
     size_y, size_x = tile.covered.shape
-    x = np.floor(xy[..., 0]).astype(np.int64)
-    y = np.floor(xy[..., 1]).astype(np.int64)
+    x = np.floor(xy[..., 0]).astype(np.intp)
+    y = np.floor(xy[..., 1]).astype(np.intp)
     inside = (x >= 0) & (x < size_x) & (y >= 0) & (y < size_y)
-    x, y = np.clip(x, 0, size_x - 1), np.clip(y, 0, size_y - 1)
-    covered = tile.covered[y, x] & inside
+    texel = np.clip(y, 0, size_y - 1) * size_x + np.clip(x, 0, size_x - 1)  # flat indices: one `take` a map
+    covered = tile.covered.reshape(-1).take(texel) & inside
     if valid is not None:
         covered &= valid
-    uv = np.where(covered[..., None], tile.uv[y, x], 0.0)
-    return DecodedTile(uv, tile.material[y, x], covered, tile.normal[y, x])
+    uv = np.where(covered[..., None], tile.uv.reshape(-1, 2).take(texel, axis=0), 0.0)
+    return DecodedTile(uv, tile.material.reshape(-1).take(texel), covered, tile.normal.reshape(-1, 3).take(texel, axis=0))
 
 
 def motion_fraction(layer: int, frames: FrameWeights) -> float:
@@ -157,5 +168,9 @@ def warp_tile(tile: DecodedTile, source: OrthoView, surface: tuple[np.ndarray, n
     if same_view and fraction == 0.0:
         return tile
     depth, motion = surface
-    xy, _ = reproject(source, depth, target, surface_maps.motion_in_model(source, motion), fraction, iterations)
+    if fraction:  # the surface map's motion is along the source's right and up already
+        planes = np.stack([depth.ravel(), fraction * motion[..., 0].ravel(), fraction * motion[..., 1].ravel()])
+    else:
+        planes = depth.reshape(1, -1)
+    xy, _ = reproject_planes(source, planes, depth.shape[1], target, iterations)
     return gather(tile, xy)
