@@ -22,7 +22,7 @@ from repo_paths import REPO_ROOT, SHARED_ASSETS
 from crowdbake.cli import main as cli_main
 from crowdbake.bake import compression
 from crowdbake.export import ktx2
-from crowdbake.export.textures import model_space_normals, rgba8_layers
+from crowdbake.export.textures import layer_digest, model_space_normal_bc1, model_space_normals, rgba8_layers
 from crowdbake.export.vat import VertexAnimation, decode_vat, encode_vat, vat_layout, vat_texcoords
 from crowdbake.formats.bundle import verify_bundle
 
@@ -350,6 +350,29 @@ def test_bake_publishes_the_export_beside_the_bundle(sample_bundle, sample_expor
     assert sorted(index["files"]) == sorted(p.relative_to(sample_export).as_posix() for p in sample_export.rglob("*") if p.is_file())
     for path, entry in index["files"].items():
         assert hashlib.sha256((sample_export / path).read_bytes()).hexdigest() == entry["sha256"], path
+
+
+def test_the_bake_converts_the_export_layers_while_it_packs(sample_bundle):
+    """The pack stage converts every impostor normal and UV layer for the export as it encodes the frame, keyed
+    by the bundle layer's digest, to what the export itself makes of that layer (the byte-for-byte test above
+    shows the bake's export, which uses them, is the CLI's, which does not)."""
+    from crowdbake.bake.atlas import AtlasLayout
+    from crowdbake.bake.map_codecs import uvblock_to_uv32
+    from crowdbake.stages.pack import prepared_export_layers
+
+    prepared = prepared_export_layers(sample_bundle.parent.parent.parent / "work")
+    bundle = verify_bundle(sample_bundle)
+    impostor = bundle.manifest["impostor"]
+    normal, uv = (bundle.textures[impostor["maps"][kind]] for kind in ("normal", "uv"))
+    assert (normal.pixel_format, uv.pixel_format) == ("bc5", "uvblock")
+    assert sorted(prepared.model_normal_bc1) == sorted(layer_digest(layer) for layer in normal.layers)
+    assert sorted(prepared.uv32) == sorted(layer_digest(layer) for layer in uv.layers)
+    layout = AtlasLayout(impostor["tile_size"], tuple(impostor["azimuths_deg"]), tuple(impostor["elevations_deg"]))
+    for layer in normal.layers:
+        decoded = compression.decode(layer, "bc5", normal.width, normal.height)
+        assert prepared.model_normal_bc1[layer_digest(layer)] == model_space_normal_bc1(decoded, layout)
+    for layer in uv.layers:
+        assert np.array_equal(prepared.uv32[layer_digest(layer)], uvblock_to_uv32(layer, uv.width, uv.height))
 
 
 def test_morph_animation_keys_each_frame_once(sample_export):

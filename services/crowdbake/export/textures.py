@@ -12,6 +12,9 @@ written as RGBA8 in both modes.
 """
 from __future__ import annotations
 
+import hashlib
+from dataclasses import dataclass, field
+
 import numpy as np
 
 from crowdbake.bake import compression
@@ -57,40 +60,85 @@ def rgba8_layers(texture: TextureArray) -> np.ndarray:
     return np.stack([compression.decode(layer, texture.pixel_format, texture.width, texture.height) for layer in texture.layers])
 
 
-def model_space_normals(texture: TextureArray, impostor: dict) -> np.ndarray:
-    """(L, H, W, 4) uint8 model-space normal codes (RGB = (n + 1) / 2) of a bc5 impostor normal map, whose
-    texels hold two components in each tile's view (crowdbake.bake.map_codecs.view_xy_to_model_normals);
-    impostor: the manifest's impostor section (the tile layout)."""
+@dataclass(frozen=True)
+class PreparedLayers:
+    """Impostor layers already converted for the export, keyed by layer_digest of the bundle layer they came
+    from: the bake's pack stage converts each frame as it encodes it, in parallel with other frames, so
+    the export built beside publishing only looks them up. A layer missing here is converted as usual;
+    a key is the digest of the layer's bytes, so a stale entry can never be used for other bytes.
+
+    model_normal_bc1: bc5 normal layer -> BC1 blocks of its model-space codes (model_space_normal_bc1);
+    uv32: uvblock layer -> (H, W) uint32 words (crowdbake.bake.map_codecs.uvblock_to_uv32)."""
+
+    model_normal_bc1: dict[str, bytes] = field(default_factory=dict)
+    uv32: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+NOTHING_PREPARED = PreparedLayers()
+
+
+def layer_digest(layer: bytes) -> str:
+    """SHA-256 (hex) of one layer's bytes, PreparedLayers' key."""
+    return hashlib.sha256(layer).hexdigest()
+
+
+def _layout(impostor: dict):
     from crowdbake.bake.atlas import AtlasLayout
+
+    return AtlasLayout(int(impostor["tile_size"]), tuple(impostor["azimuths_deg"]), tuple(impostor["elevations_deg"]))
+
+
+def model_space_codes(decoded_bc5: np.ndarray, layout) -> np.ndarray:
+    """(H, W, 4) uint8 texels of a decoded bc5 impostor normal layer (two components in each tile's view,
+    crowdbake.bake.map_codecs.view_xy_to_model_normals) -> (H, W, 4) uint8 model-space codes (RGB = (n + 1) / 2)."""
     from crowdbake.bake.map_codecs import model_normals_to_codes, view_xy_to_model_normals
 
-    layout = AtlasLayout(int(impostor["tile_size"]), tuple(impostor["azimuths_deg"]), tuple(impostor["elevations_deg"]))
-    return np.stack([model_normals_to_codes(view_xy_to_model_normals(compression.decode(layer, "bc5", texture.width, texture.height), layout))
-                     for layer in texture.layers])
+    return model_normals_to_codes(view_xy_to_model_normals(decoded_bc5, layout))
 
 
-def model_space_normal_ktx2(texture: TextureArray, impostor: dict, mode: str) -> tuple[int, bytes]:
+def model_space_normal_bc1(decoded_bc5: np.ndarray, layout) -> bytes:
+    """BC1 blocks of model_space_codes: one layer of model_space_normal_ktx2's "bc" file."""
+    return compression.encode_bc1(model_space_codes(decoded_bc5, layout))
+
+
+def model_space_normals(texture: TextureArray, impostor: dict) -> np.ndarray:
+    """(L, H, W, 4) uint8 model-space normal codes (RGB = (n + 1) / 2) of a bc5 impostor normal map;
+    impostor: the manifest's impostor section (the tile layout)."""
+    layout = _layout(impostor)
+    return np.stack([model_space_codes(compression.decode(layer, "bc5", texture.width, texture.height), layout) for layer in texture.layers])
+
+
+def model_space_normal_ktx2(texture: TextureArray, impostor: dict, mode: str, prepared: PreparedLayers = NOTHING_PREPARED) -> tuple[int, bytes]:
     """(vkFormat, KTX2 bytes) of a bc5 impostor normal map turned into model space, the encoding every other
     normal map of the export has: BC1 blocks in "bc" mode (the paper's DXT1, 0.5 byte a texel; a second
-    lossy step, but the file an engine can sample as it samples the rest), RGBA8 texels in "rgba8" mode."""
+    lossy step, but the file an engine can sample as it samples the rest), RGBA8 texels in "rgba8" mode.
+    prepared: layers already converted (PreparedLayers.model_normal_bc1), used in "bc" mode."""
     if mode not in KTX2_MODES:
         raise ValueError(f"model_space_normal_ktx2: mode must be one of {KTX2_MODES}, got {mode!r}")
-    layers = model_space_normals(texture, impostor)
     if mode == "rgba8":
+        layers = model_space_normals(texture, impostor)
         return ktx2.VK_FORMAT_R8G8B8A8_UNORM, ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_UNORM, layers)
-    blocks = [compression.encode_bc1(layer) for layer in layers]
+    layout = _layout(impostor)
+    blocks = []
+    for layer in texture.layers:
+        done = prepared.model_normal_bc1.get(layer_digest(layer)) if prepared.model_normal_bc1 else None
+        blocks.append(done if done is not None else model_space_normal_bc1(compression.decode(layer, "bc5", texture.width, texture.height), layout))
     vk_format = ktx2.VK_FORMAT_BC1_RGB_UNORM_BLOCK
     return vk_format, ktx2.encode_ktx2_blocks(vk_format, texture.width, texture.height, blocks)
 
 
-def uv_map_layers(texture: TextureArray) -> tuple[int, np.ndarray]:
+def uv_map_layers(texture: TextureArray, prepared: PreparedLayers = NOTHING_PREPARED) -> tuple[int, np.ndarray]:
     """(vkFormat, texels) of an impostor UV map, bit for bit: uv32 words as R32_UINT (L, H, W),
     rgba16 as R16G16B16A16_UNORM (L, H, W, 4); uvblock (a block code no engine samples) decoded into
-    uv32 words, which hold its 12-bit coordinates exactly enough (crowdbake.bake.map_codecs.uvblock_to_uv32)."""
+    uv32 words, which hold its 12-bit coordinates exactly enough (crowdbake.bake.map_codecs.uvblock_to_uv32;
+    prepared.uv32 holds layers already decoded)."""
     if texture.pixel_format == "uvblock":
         from crowdbake.bake.map_codecs import uvblock_to_uv32
 
-        words = [uvblock_to_uv32(layer, texture.width, texture.height) for layer in texture.layers]
+        words = []
+        for layer in texture.layers:
+            done = prepared.uv32.get(layer_digest(layer)) if prepared.uv32 else None
+            words.append(done if done is not None else uvblock_to_uv32(layer, texture.width, texture.height))
         return ktx2.VK_FORMAT_R32_UINT, np.stack(words).astype(np.uint32)
     if texture.pixel_format == "uv32":
         return ktx2.VK_FORMAT_R32_UINT, np.stack([texture.texels(k) for k in range(len(texture.layers))]).astype(np.uint32)

@@ -30,7 +30,7 @@ from PIL import Image
 from crowdbake import __version__
 from crowdbake.export import ktx2
 from crowdbake.export.glb import GlbMaterial, GlbPart, build_glb
-from crowdbake.export.textures import KTX2_MODES, colour_ktx2, model_space_normal_ktx2, region_codes_used, rgba8_layers, uv_map_layers
+from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, region_codes_used, rgba8_layers, uv_map_layers
 from crowdbake.export.vat import encode_vat, vat_texcoords
 from crowdbake.formats.bundle import Bundle, verify_bundle
 
@@ -120,7 +120,7 @@ def _export_textures(bundle: Bundle, out: _Out, mode: str) -> tuple[list[dict], 
     return materials, outfits, diffuse_arrays
 
 
-def _export_impostor(bundle: Bundle, out: _Out, mode: str) -> dict[str, Any]:
+def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLayers) -> dict[str, Any]:
     impostor = dict(bundle.manifest["impostor"])
     maps = {}
     kinds = [
@@ -134,12 +134,12 @@ def _export_impostor(bundle: Bundle, out: _Out, mode: str) -> dict[str, Any]:
     for kind, colour, encoding in kinds:
         texture = bundle.textures[impostor["maps"][kind]]
         if texture.pixel_format == "bc5":  # two components in each tile's view: handed to engines in model space
-            vk_format, data = model_space_normal_ktx2(texture, impostor, mode)
+            vk_format, data = model_space_normal_ktx2(texture, impostor, mode, prepared)
         else:
             vk_format, data = colour_ktx2(texture, colour, mode)
         path = out.write(f"impostor/{kind}.ktx2", data)
         maps[kind] = _texture_entry(path, vk_format, len(texture.layers), texture.width, texture.height, encoding)
-    vk_format, uv = uv_map_layers(bundle.textures[impostor["maps"]["uv"]])
+    vk_format, uv = uv_map_layers(bundle.textures[impostor["maps"]["uv"]], prepared)
     path = out.write("impostor/uv.ktx2", ktx2.encode_ktx2(vk_format, uv))
     encoding = (
         "uv32: u = (w & 0x3FFF) / 16383, v = ((w >> 14) & 0x3FFF) / 16383, material = (w >> 28) & 7, covered = w >> 31"
@@ -223,10 +223,11 @@ def _copy_shaders(out: _Out) -> list[str]:
     return written
 
 
-def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0]) -> ExportSummary:
+def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0], prepared: PreparedLayers = NOTHING_PREPARED) -> ExportSummary:
     """Verify the bundle at `bundle_dir` and write its export into `out_dir` (new or empty).
 
     ktx2_mode: "bc" keeps the bundle's BC1/BC2 blocks in the KTX2 files, "rgba8" decodes them.
+    prepared: impostor layers the bake converted already (the same bytes either way).
     Raises FormatError for a bundle that does not verify, FileExistsError for a non-empty `out_dir`
     (also when another writer renamed its export into place first), ValueError for an unknown mode.
     """
@@ -243,7 +244,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
         out = _Out(staging)
         manifest = bundle.manifest
         materials, outfits, diffuse_arrays = _export_textures(bundle, out, ktx2_mode)
-        impostor = _export_impostor(bundle, out, ktx2_mode)
+        impostor = _export_impostor(bundle, out, ktx2_mode, prepared)
         lods = _export_lods(bundle, out, diffuse_arrays)
         shaders = _copy_shaders(out)
         sidecar = {

@@ -15,6 +15,7 @@ import numpy as np
 from crowdbake.bake import compression, map_codecs, texture_memory
 from crowdbake.bake.atlas import AtlasLayout, assemble
 from crowdbake.errors import StageOrderError
+from crowdbake.export import textures as export_textures
 from crowdbake.formats.binary import TextureArray, encode_texture_array, layer_size
 from crowdbake.formats.bundle import BundleFile, build_manifest, verify_bundle, write_bundle
 from crowdbake.stages.cycle import bundle_cycle_document
@@ -104,12 +105,14 @@ def _texture_files(work: Path, poses: PosesRecord, texture_arrays, files: list[B
     return entries
 
 
-def encode_frame(layout: AtlasLayout, frame_parts: list[dict[str, np.ndarray]], formats: dict[str, str], fidelity_frame: bool) -> tuple[dict, dict, dict]:
+def encode_frame(layout: AtlasLayout, frame_parts: list[dict[str, np.ndarray]], formats: dict[str, str], fidelity_frame: bool,
+                 for_export: bool = False) -> tuple[dict, dict, dict, dict]:
     """One baked frame's atlases from its tasks' parts, encoded in the bundle's formats.
 
     Returns (layers {kind: bytes}, compression errors {kind: compression_error dict} of the block-compressed
-    kinds, over covered texels) and, for the fidelity frame, its atlases as stored plus "uv16" and the decoded
-    normal map "normal_decoded" when compressed (else {})."""
+    kinds, over covered texels), for the fidelity frame its atlases as stored plus "uv16" and the decoded
+    normal map "normal_decoded" when compressed (else {}), and with `for_export` the layers the engine
+    export converts, already converted (crowdbake.export.textures.PreparedLayers' fields, else {})."""
     atlases = {}
     for kind in formats:
         tiles = {}
@@ -120,12 +123,13 @@ def encode_frame(layout: AtlasLayout, frame_parts: list[dict[str, np.ndarray]], 
     covered = atlases["uv"][..., 3] > 0
     # The tiles carry 16-bit UV maps; what the bundle stores (and fidelity measures) is `stored`.
     stored = dict(atlases, uv16=atlases["uv"])
+    export_layers = {}
     if formats["uv"] == "uv32":
         stored["uv"] = map_codecs.uv_map_to_uv32(atlases["uv"])
     elif formats["uv"] == "uvblock":
         uvblock = map_codecs.uv_map_to_uvblock(atlases["uv"])
-        if fidelity_frame:  # fidelity reads the decoded texels, as uv32 words
-            stored["uv"] = map_codecs.uvblock_to_uv32(uvblock, layout.width, layout.height)
+        if fidelity_frame or for_export:  # fidelity and the export read the decoded texels, as uv32 words
+            stored["uv"] = export_layers["uv32"] = map_codecs.uvblock_to_uv32(uvblock, layout.width, layout.height)
     layers, errors, fidelity_atlases = {}, {}, {}
     for kind, pixel_format in formats.items():
         if pixel_format == "rgba16":
@@ -143,13 +147,15 @@ def encode_frame(layout: AtlasLayout, frame_parts: list[dict[str, np.ndarray]], 
         if pixel_format in ("bc1", "bc2", "bc5"):
             decoded = compression.decode(encoded, pixel_format, layout.width, layout.height)
             errors[kind] = compression.compression_error(in_view if pixel_format == "bc5" else atlases[kind], decoded, covered)
+            if kind == "normal" and pixel_format == "bc5" and (fidelity_frame or for_export):
+                decoded = export_textures.model_space_codes(decoded, layout)  # what fidelity and the export read
+                if for_export:
+                    export_layers["model_normal_bc1"] = compression.encode_bc1(decoded)
             if fidelity_frame and kind == "normal":
-                if pixel_format == "bc5":  # fidelity reads model-space normal codes
-                    decoded = map_codecs.model_normals_to_codes(map_codecs.view_xy_to_model_normals(decoded, layout))
                 fidelity_atlases["normal_decoded"] = decoded
     if fidelity_frame:
         fidelity_atlases.update(stored)
-    return layers, errors, fidelity_atlases
+    return layers, errors, fidelity_atlases, export_layers if for_export else {}
 
 
 def frame_path(work: Path, frame: int) -> Path:
@@ -172,7 +178,7 @@ def stage_pack_frame(work: Path, frame: int) -> Path:
     if not tasks:
         raise ValueError(f"pack frame {frame} is not one of the baked frames {plan.frame_indices}")
     part_keys = [None if (stats := part_record(work, task)) is None else stats.key for task in tasks]
-    key = stage_key("pack-frame", folder.key_of("impostor"), part_keys, formats)
+    key = stage_key("pack-frame", folder.key_of("impostor"), part_keys, formats, params.export)
     path = frame_path(work, frame)
     sidecar = path.with_suffix(".json")
     if path.is_file() and sidecar.is_file():
@@ -183,12 +189,33 @@ def stage_pack_frame(work: Path, frame: int) -> Path:
             pass
     parts = Parts(work, tasks)
     layout = AtlasLayout(int(plan.layout["tile_size"]), tuple(plan.layout["azimuths_deg"]), tuple(plan.layout["elevations_deg"]))
-    layers, errors, fidelity_atlases = encode_frame(layout, [parts[task.id] for task in tasks], formats, frame == plan.fidelity_frame)
+    layers, errors, fidelity_atlases, export_layers = encode_frame(layout, [parts[task.id] for task in tasks], formats, frame == plan.fidelity_frame,
+                                                                   for_export=params.export)
     arrays = {f"layer_{kind}": np.frombuffer(data, dtype=np.uint8) for kind, data in layers.items()}
     arrays.update({f"fidelity_{name}": atlas for name, atlas in fidelity_atlases.items()})
+    arrays.update({f"export_{name}": np.frombuffer(data, dtype=np.uint8) if isinstance(data, bytes) else data for name, data in export_layers.items()})
     write_bytes_atomic(path, npz_bytes(arrays))
     write_json_atomic(sidecar, {"key": key, "errors": errors})
     return path
+
+
+def prepared_export_layers(work: Path) -> export_textures.PreparedLayers:
+    """The layers the frames in work/pack/frames converted for the engine export (encode_frame's for_export),
+    keyed by the digests of their bundle layers. A frame file that cannot be read adds nothing: the export
+    converts that layer itself."""
+    import zipfile
+
+    prepared = export_textures.PreparedLayers()
+    for path in sorted((WorkDir(work).root / "pack" / "frames").glob("f*.npz")):
+        try:
+            with np.load(path) as data:
+                if "export_model_normal_bc1" in data.files:
+                    prepared.model_normal_bc1[export_textures.layer_digest(data["layer_normal"].tobytes())] = data["export_model_normal_bc1"].tobytes()
+                if "export_uv32" in data.files:
+                    prepared.uv32[export_textures.layer_digest(data["layer_uv"].tobytes())] = data["export_uv32"]
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+            continue
+    return prepared
 
 
 SCORES_FILE = "scores.json"

@@ -72,7 +72,8 @@ def stage_export(work: Path, exports: ExportStore | Path) -> bool:
 def stage_export_ahead(work: Path, bundles_root: Path) -> Path | None:
     """The engine export of work/bundle built beside its home in the exports folder of `bundles_root`, not
     yet in place: the bake runner builds it while stage_publish publishes, and puts it in place
-    (crowdbake.storage.exports.commit_export) only once that succeeded, or discards it. None when the
+    (crowdbake.storage.exports.commit_export) only once that succeeded, or discards it. The impostor
+    layers the pack stage already converted for it (prepared_export_layers) are not converted again. None when the
     bake's `export` parameter is false or the export is already there."""
     job = load_job(work)
     if not job.bake_params.export:
@@ -80,4 +81,6 @@ def stage_export_ahead(work: Path, bundles_root: Path) -> Path | None:
     bundle = WorkDir(work).bundle
     if not (bundle / "manifest.json").is_file():
         raise StageOrderError(f"{work}: stage 'pack' has not run yet")
-    return build_export_beside_home(bundle, Path(bundles_root))
+    from crowdbake.stages.pack import prepared_export_layers
+
+    return build_export_beside_home(bundle, Path(bundles_root), prepared=prepared_export_layers(work))

@@ -66,14 +66,15 @@ def write_export_zip(files_dir: Path, paths: list[str], prefix: str, target: Pat
             archive.writestr(info, (files_dir / path).read_bytes(), compresslevel=1)
 
 
-def build_export(bundle_folder: Path, staging: Path, ktx2_mode: str = "bc") -> dict[str, Any]:
+def build_export(bundle_folder: Path, staging: Path, ktx2_mode: str = "bc", prepared=None) -> dict[str, Any]:
     """Write the export of the bundle at `bundle_folder` into the empty folder `staging` (export/,
-    export.zip, index.json) and return the index."""
+    export.zip, index.json) and return the index. prepared: crowdbake.export.textures.PreparedLayers or None."""
     from crowdbake.export import export_bundle
+    from crowdbake.export.textures import NOTHING_PREPARED
 
     manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())
     name, version = manifest["name"], manifest["version"]
-    summary = export_bundle(bundle_folder, staging / FILES_FOLDER, ktx2_mode)
+    summary = export_bundle(bundle_folder, staging / FILES_FOLDER, ktx2_mode, NOTHING_PREPARED if prepared is None else prepared)
     paths = sorted(summary.files)
     write_export_zip(staging / FILES_FOLDER, paths, f"{name}-{version}", staging / ZIP_NAME)
     index = {
@@ -96,10 +97,11 @@ def publish_export(bundle_folder: Path, bundles_dir: Path, ktx2_mode: str = "bc"
     return home if staging is None else commit_export(staging, home)
 
 
-def build_export_beside_home(bundle_folder: Path, bundles_dir: Path, ktx2_mode: str = "bc") -> Path | None:
+def build_export_beside_home(bundle_folder: Path, bundles_dir: Path, ktx2_mode: str = "bc", prepared=None) -> Path | None:
     """Build the export of the bundle at `bundle_folder` in a staging folder of its own beside its export
     home, and return it (commit_export puts it in place); None when the home already holds an export.
-    Built from a bundle before it is published, it is committed only once publishing has succeeded."""
+    Built from a bundle before it is published, it is committed only once publishing has succeeded.
+    prepared: as in build_export."""
     manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())
     name, version = manifest["name"], manifest["version"]
     home = export_home(bundles_dir, name, version)
@@ -108,7 +110,7 @@ def build_export_beside_home(bundle_folder: Path, bundles_dir: Path, ktx2_mode: 
     home.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{version}.", suffix=".partial", dir=home.parent))
     try:
-        build_export(bundle_folder, staging, ktx2_mode)
+        build_export(bundle_folder, staging, ktx2_mode, prepared)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
