@@ -180,16 +180,21 @@ def test_stages_are_idempotent_and_ordered(baked, tmp_path):
         stage_poses(tmp_path / "empty")
 
 
-def test_publishing_other_bytes_under_a_published_version_is_refused(baked, tmp_path):
-    root, summary = baked
+def other_bytes_published(bundle: Path, tmp_path: Path) -> Path:
+    """A bundles folder holding `bundle`'s name and version with other bytes (another `created`)."""
     other_root = tmp_path / "bundles"
-    shutil.copytree(summary.bundle, other_root / "sample" / "1.0")
+    shutil.copytree(bundle, other_root / "sample" / "1.0")
     manifest_path = other_root / "sample" / "1.0" / "manifest.json"
     manifest = json.loads(manifest_path.read_text())
     manifest["created"] = "2001-01-01T00:00:00Z"
     manifest_path.write_text(json.dumps(manifest))
+    return other_root
+
+
+def test_publishing_other_bytes_under_a_published_version_is_refused(baked, tmp_path):
+    root, summary = baked
     with pytest.raises(VersionConflict):
-        stage_publish(root / "work", other_root)
+        stage_publish(root / "work", other_bytes_published(summary.bundle, tmp_path))
 
 
 def test_a_version_conflict_leaves_no_export_behind(sample, baked, tmp_path):
@@ -198,14 +203,8 @@ def test_a_version_conflict_leaves_no_export_behind(sample, baked, tmp_path):
     has its export in place."""
     root, summary = baked
     assert (root / "exports" / "sample" / "1.0" / "index.json").is_file()
-    other_root = tmp_path / "bundles"
-    shutil.copytree(summary.bundle, other_root / "sample" / "1.0")
-    manifest_path = other_root / "sample" / "1.0" / "manifest.json"
-    manifest = json.loads(manifest_path.read_text())
-    manifest["created"] = "2001-01-01T00:00:00Z"
-    manifest_path.write_text(json.dumps(manifest))
     with pytest.raises(VersionConflict):
-        run_bake(inputs_for(sample), other_root, work=root / "work", workers=2)
+        run_bake(inputs_for(sample), other_bytes_published(summary.bundle, tmp_path), work=root / "work", workers=2)
     exports = tmp_path / "exports"
     assert not [p for p in exports.rglob("*") if p.is_file() or p.name.endswith(".partial")] if exports.exists() else True
 

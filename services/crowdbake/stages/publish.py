@@ -54,33 +54,40 @@ def stage_publish(work: Path, bundles_root: Path) -> Path:
     return target
 
 
-def stage_export(work: Path, exports: ExportStore | Path) -> bool:
-    """Publish the engine export of the bundle the bake packed (once; a second call keeps the first)
-    into `exports` (a store, or a bundles folder for the exports beside it). False when the bake's
-    `export` parameter is false. The export is made from work/bundle, the bytes `stage_publish` published."""
-    job = load_job(work)
-    if not job.bake_params.export:
-        return False
+def _bundle_to_export(work: Path) -> Path | None:
+    """work/bundle when the bake's `export` parameter is true, else None; StageOrderError before the pack stage."""
+    if not load_job(work).bake_params.export:
+        return None
     bundle = WorkDir(work).bundle
     if not (bundle / "manifest.json").is_file():
         raise StageOrderError(f"{work}: stage 'pack' has not run yet")
+    return bundle
+
+
+def stage_export(work: Path, exports: ExportStore | Path) -> bool:
+    """Publish the engine export of the bundle the bake packed (once; a second call keeps the first)
+    into `exports` (a store, or a bundles folder for the exports beside it). False when the bake's
+    `export` parameter is false. The export is made from work/bundle, the bytes `stage_publish` published,
+    with the impostor layers the pack stage already converted for it (pack.prepared_export_layers)."""
+    from crowdbake.stages.pack import prepared_export_layers
+
+    bundle = _bundle_to_export(work)
+    if bundle is None:
+        return False
     store = exports if isinstance(exports, ExportStore) else LocalExportStore(Path(exports))
-    store.publish(bundle)
+    store.publish(bundle, prepared=prepared_export_layers(work))
     return True
 
 
 def stage_export_ahead(work: Path, bundles_root: Path) -> Path | None:
     """The engine export of work/bundle built beside its home in the exports folder of `bundles_root`, not
     yet in place: the bake runner builds it while stage_publish publishes, and puts it in place
-    (crowdbake.storage.exports.commit_export) only once that succeeded, or discards it. The impostor
-    layers the pack stage already converted for it (prepared_export_layers) are not converted again. None when the
-    bake's `export` parameter is false or the export is already there."""
-    job = load_job(work)
-    if not job.bake_params.export:
-        return None
-    bundle = WorkDir(work).bundle
-    if not (bundle / "manifest.json").is_file():
-        raise StageOrderError(f"{work}: stage 'pack' has not run yet")
+    (crowdbake.storage.exports.commit_export) only once that succeeded, or discards it. The impostor layers
+    the pack stage already converted for it (pack.prepared_export_layers) are not converted again. None when
+    the bake's `export` parameter is false or the export is already there."""
     from crowdbake.stages.pack import prepared_export_layers
 
+    bundle = _bundle_to_export(work)
+    if bundle is None:
+        return None
     return build_export_beside_home(bundle, Path(bundles_root), prepared=prepared_export_layers(work))

@@ -88,10 +88,10 @@ def build_export(bundle_folder: Path, staging: Path, ktx2_mode: str = "bc", prep
     return index
 
 
-def publish_export(bundle_folder: Path, bundles_dir: Path, ktx2_mode: str = "bc") -> Path:
+def publish_export(bundle_folder: Path, bundles_dir: Path, ktx2_mode: str = "bc", prepared=None) -> Path:
     """Export the published bundle at `bundle_folder` (= bundles_dir/<name>/<version>) once, into its
     export home; returns that folder. An export already there is kept (the bundle cannot have changed)."""
-    staging = build_export_beside_home(bundle_folder, bundles_dir, ktx2_mode)
+    staging = build_export_beside_home(bundle_folder, bundles_dir, ktx2_mode, prepared)
     manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())
     home = export_home(bundles_dir, manifest["name"], manifest["version"])
     return home if staging is None else commit_export(staging, home)
@@ -151,8 +151,9 @@ class ExportStore:
     path in the export's home: `export/<path>` (a path of index.json's "files") or `export.zip`.
     LocalExportStore keeps them in folders beside the bundles, crowdbake.storage.s3_exports in the bucket."""
 
-    def publish(self, bundle_folder: Path, ktx2_mode: str = "bc") -> None:
-        """Export the bundle at `bundle_folder` once (a second publish keeps the first export)."""
+    def publish(self, bundle_folder: Path, ktx2_mode: str = "bc", prepared=None) -> None:
+        """Export the bundle at `bundle_folder` once (a second publish keeps the first export). prepared:
+        impostor layers already converted (crowdbake.export.textures.PreparedLayers) or None."""
         raise NotImplementedError
 
     def index(self, name: str, version: str) -> dict[str, Any]:
@@ -184,8 +185,8 @@ class LocalExportStore(ExportStore):
     def __init__(self, bundles_dir: Path):
         self.bundles_dir = Path(bundles_dir)
 
-    def publish(self, bundle_folder: Path, ktx2_mode: str = "bc") -> None:
-        publish_export(bundle_folder, self.bundles_dir, ktx2_mode)
+    def publish(self, bundle_folder: Path, ktx2_mode: str = "bc", prepared=None) -> None:
+        publish_export(bundle_folder, self.bundles_dir, ktx2_mode, prepared)
 
     def index(self, name: str, version: str) -> dict[str, Any]:
         return read_export_index(self.bundles_dir, name, version)

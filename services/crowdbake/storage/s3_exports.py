@@ -41,7 +41,7 @@ class S3ExportStore(ExportStore):
         check_name_version(name, version)
         return f"{self.prefix}exports/{name}/{version}/"
 
-    def publish(self, bundle_folder: Path, ktx2_mode: str = "bc") -> None:
+    def publish(self, bundle_folder: Path, ktx2_mode: str = "bc", prepared=None) -> None:
         manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())
         name, version = manifest["name"], manifest["version"]
         if self.has(name, version):
@@ -49,7 +49,7 @@ class S3ExportStore(ExportStore):
         self.scratch.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=f".export-{version}.", dir=self.scratch))
         try:
-            index = build_export(Path(bundle_folder), staging, ktx2_mode)
+            index = build_export(Path(bundle_folder), staging, ktx2_mode, prepared)
             index_data = (staging / INDEX_NAME).read_bytes()
             digest = hashlib.sha256(index_data).hexdigest()
             objects = [(f"{FILES_FOLDER}/{path}", entry) for path, entry in index["files"].items()] + [(ZIP_NAME, index["zip"])]
