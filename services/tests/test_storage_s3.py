@@ -273,6 +273,35 @@ def test_presigned_blob_url(blobs):
 # ---------------------------------------------------------------------------------------- bundles
 
 
+def test_small_objects_are_parsed_once_and_revalidated_by_etag(s3):
+    """Manifests and export indexes (RevalidatedObjects): a read whose ETag still matches keeps the parsed
+    copy (no second parse), a changed object is parsed again, a deleted one is noticed, and only the most
+    recently read `size` are kept."""
+    from crowdbake.storage.s3 import RevalidatedObjects
+
+    client, bucket, prefix = s3
+    parsed = []
+
+    def parse(data: bytes) -> str:
+        parsed.append(data)
+        return data.decode()
+
+    objects = RevalidatedObjects(client, bucket, size=2)
+    key = prefix + "small/a.json"
+    client.put_object(Bucket=bucket, Key=key, Body=b"one")
+    assert objects.get(key, parse, "gone") == "one" and objects.get(key, parse, "gone") == "one"
+    assert parsed == [b"one"]
+    client.put_object(Bucket=bucket, Key=key, Body=b"two")
+    assert objects.get(key, parse, "gone") == "two" and parsed == [b"one", b"two"]
+    for other in ("b", "c"):
+        client.put_object(Bucket=bucket, Key=f"{prefix}small/{other}.json", Body=other.encode())
+        objects.get(f"{prefix}small/{other}.json", parse, "gone")
+    assert objects.get(key, parse, "gone") == "two" and parsed[-1] == b"two" and len(parsed) == 5  # evicted, parsed again
+    client.delete_object(Bucket=bucket, Key=key)
+    with pytest.raises(FileNotFoundError, match="gone"):
+        objects.get(key, parse, "gone")
+
+
 def test_publish_reads_back_and_is_idempotent(bundles, tmp_path):
     published = bundles.publish(GOOD_BUNDLE, "walker", "1.0.0")
     data = (GOOD_BUNDLE / "manifest.json").read_bytes()

@@ -10,8 +10,10 @@ local cache (crowdbake.storage.cache.ReadCache) that checks each download agains
 from __future__ import annotations
 
 import logging
+import threading
+from collections import OrderedDict
 from pathlib import Path
-from typing import Any, BinaryIO, Iterator
+from typing import Any, BinaryIO, Callable, Iterator
 
 from crowdbake.storage.blobs import STAGING_DIRNAME, BlobStore, IncomingBlob, check_digest, link_read_only
 from crowdbake.storage.cache import ReadCache
@@ -145,6 +147,51 @@ def head(client, bucket: str, key: str) -> dict[str, Any] | None:
         if is_missing(error):
             return None
         raise
+
+
+def presigned_get(client, bucket: str, key: str, expires_s: int, media_type: str | None = None, cache_control: str | None = None) -> str:
+    """A presigned GET of the object, answering with `media_type` and `cache_control` when given."""
+    params = {"Bucket": bucket, "Key": key}
+    if media_type:
+        params["ResponseContentType"] = media_type
+    if cache_control:
+        params["ResponseCacheControl"] = cache_control
+    return client.generate_presigned_url("get_object", Params=params, ExpiresIn=int(expires_s))
+
+
+class RevalidatedObjects:
+    """Small objects (manifests, export indexes) read and parsed once, then revalidated by ETag on every
+    read: one round trip, a 304 keeps the parsed copy, and an object an operator deleted is noticed.
+    Keeps the `size` most recently read; safe across threads (the API serves from a thread pool)."""
+
+    def __init__(self, client, bucket: str, size: int):
+        self.client, self.bucket, self.size = client, bucket, int(size)
+        self._parsed: OrderedDict[str, tuple[str, Any]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: str, parse: Callable[[bytes], Any], missing: str) -> Any:
+        """parse(the object's bytes), cached; FileNotFoundError(missing) when the object is absent."""
+        with self._lock:
+            cached = self._parsed.get(key)
+        try:
+            kwargs = {"IfNoneMatch": cached[0]} if cached else {}
+            response = self.client.get_object(Bucket=self.bucket, Key=key, **kwargs)
+        except Exception as error:
+            if cached and error_code(error) in {"304", "NotModified"}:
+                return cached[1]
+            if is_missing(error):
+                with self._lock:
+                    self._parsed.pop(key, None)
+                raise FileNotFoundError(missing) from None
+            raise
+        with response["Body"] as body:
+            parsed = parse(body.read())
+        with self._lock:
+            self._parsed[key] = (response["ETag"], parsed)
+            self._parsed.move_to_end(key)
+            while len(self._parsed) > self.size:
+                self._parsed.popitem(last=False)
+        return parsed
 
 
 class S3BlobStore(BlobStore):

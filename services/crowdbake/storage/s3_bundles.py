@@ -15,15 +15,13 @@ No object is ever overwritten, so a published version cannot change under a read
 from __future__ import annotations
 
 import hashlib
-import threading
-from collections import OrderedDict
 from pathlib import Path
 from typing import Any, BinaryIO, Iterator
 
 from crowdbake.storage.bundle_store import MANIFEST, BundleStore, check_name_version
 from crowdbake.storage.bundles import PublishedManifest, parse_manifest
 from crowdbake.storage.cache import ReadCache
-from crowdbake.storage.s3 import error_code, get_stream, is_missing, is_taken, put_file_once
+from crowdbake.storage.s3 import RevalidatedObjects, get_stream, is_taken, presigned_get, put_file_once
 
 MANIFEST_MEDIA_TYPE = "application/json"
 MANIFEST_CACHE_SIZE = 256  # parsed manifests kept per process (each revalidated by its ETag)
@@ -34,8 +32,7 @@ class S3BundleStore(BundleStore):
 
     def __init__(self, client, bucket: str, prefix: str, cache: ReadCache, part_bytes: int):
         self.client, self.bucket, self.prefix, self.cache, self.part_bytes = client, bucket, prefix, cache, int(part_bytes)
-        self._manifests: OrderedDict[tuple[str, str], tuple[str, PublishedManifest]] = OrderedDict()
-        self._lock = threading.Lock()  # the API serves requests from a thread pool
+        self._manifests = RevalidatedObjects(client, bucket, MANIFEST_CACHE_SIZE)
 
     def version_prefix(self, name: str, version: str) -> str:
         check_name_version(name, version)
@@ -90,29 +87,8 @@ class S3BundleStore(BundleStore):
     # ------------------------------------------------------------------------------------- reading
 
     def manifest(self, name: str, version: str) -> PublishedManifest:
-        key = self.manifest_key(name, version)
-        with self._lock:
-            cached = self._manifests.get((name, version))
-        try:
-            # Revalidate by ETag: one round trip, and a version deleted by an operator is noticed.
-            kwargs = {"IfNoneMatch": cached[0]} if cached else {}
-            response = self.client.get_object(Bucket=self.bucket, Key=key, **kwargs)
-        except Exception as error:
-            if cached and error_code(error) in {"304", "NotModified"}:
-                return cached[1]
-            if is_missing(error):
-                with self._lock:
-                    self._manifests.pop((name, version), None)
-                raise FileNotFoundError(f"{name}/{version} is not published in s3://{self.bucket}/{self.prefix}") from None
-            raise
-        with response["Body"] as body:
-            published = parse_manifest(body.read())
-        with self._lock:
-            self._manifests[(name, version)] = (response["ETag"], published)
-            self._manifests.move_to_end((name, version))
-            while len(self._manifests) > MANIFEST_CACHE_SIZE:
-                self._manifests.popitem(last=False)
-        return published
+        return self._manifests.get(self.manifest_key(name, version), parse_manifest,
+                                   f"{name}/{version} is not published in s3://{self.bucket}/{self.prefix}")
 
     def _key_of(self, name: str, version: str, path: str) -> str:
         entry = self._entry(name, version, path)
@@ -131,9 +107,4 @@ class S3BundleStore(BundleStore):
 
     def presigned_url(self, name: str, version: str, path: str, expires_s: int, media_type: str | None = None,
                       cache_control: str | None = None) -> str:
-        params = {"Bucket": self.bucket, "Key": self._key_of(name, version, path)}
-        if media_type:
-            params["ResponseContentType"] = media_type
-        if cache_control:
-            params["ResponseCacheControl"] = cache_control
-        return self.client.generate_presigned_url("get_object", Params=params, ExpiresIn=int(expires_s))
+        return presigned_get(self.client, self.bucket, self._key_of(name, version, path), expires_s, media_type, cache_control)

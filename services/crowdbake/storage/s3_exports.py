@@ -17,14 +17,12 @@ import hashlib
 import json
 import shutil
 import tempfile
-import threading
-from collections import OrderedDict
 from pathlib import Path
 from typing import Any, BinaryIO
 
 from crowdbake.storage.bundle_store import check_name_version
 from crowdbake.storage.exports import FILES_FOLDER, INDEX_NAME, ZIP_NAME, ExportStore, build_export
-from crowdbake.storage.s3 import error_code, get_stream, is_missing, is_taken, put_file_once
+from crowdbake.storage.s3 import RevalidatedObjects, get_stream, is_taken, presigned_get, put_file_once
 
 INDEX_CACHE_SIZE = 256  # parsed indexes kept per process (each revalidated by its ETag)
 
@@ -34,8 +32,7 @@ class S3ExportStore(ExportStore):
 
     def __init__(self, client, bucket: str, prefix: str, part_bytes: int, scratch: Path):
         self.client, self.bucket, self.prefix, self.part_bytes, self.scratch = client, bucket, prefix, int(part_bytes), Path(scratch)
-        self._indexes: OrderedDict[tuple[str, str], tuple[str, str, dict[str, Any]]] = OrderedDict()
-        self._lock = threading.Lock()  # the API serves requests from a thread pool
+        self._indexes = RevalidatedObjects(client, bucket, INDEX_CACHE_SIZE)
 
     def home(self, name: str, version: str) -> str:
         check_name_version(name, version)
@@ -72,29 +69,8 @@ class S3ExportStore(ExportStore):
 
     def _index(self, name: str, version: str) -> tuple[str, dict[str, Any]]:
         """(digest of index.json, its content), revalidated by ETag; FileNotFoundError when absent."""
-        key = self.home(name, version) + INDEX_NAME
-        with self._lock:
-            cached = self._indexes.get((name, version))
-        try:
-            kwargs = {"IfNoneMatch": cached[0]} if cached else {}
-            response = self.client.get_object(Bucket=self.bucket, Key=key, **kwargs)
-        except Exception as error:
-            if cached and error_code(error) in {"304", "NotModified"}:
-                return cached[1], cached[2]
-            if is_missing(error):
-                with self._lock:
-                    self._indexes.pop((name, version), None)
-                raise FileNotFoundError(f"{name}/{version} has no export in s3://{self.bucket}/{self.prefix}") from None
-            raise
-        with response["Body"] as body:
-            data = body.read()
-        digest, index = hashlib.sha256(data).hexdigest(), json.loads(data)
-        with self._lock:
-            self._indexes[(name, version)] = (response["ETag"], digest, index)
-            self._indexes.move_to_end((name, version))
-            while len(self._indexes) > INDEX_CACHE_SIZE:
-                self._indexes.popitem(last=False)
-        return digest, index
+        return self._indexes.get(self.home(name, version) + INDEX_NAME, lambda data: (hashlib.sha256(data).hexdigest(), json.loads(data)),
+                                 f"{name}/{version} has no export in s3://{self.bucket}/{self.prefix}")
 
     def index(self, name: str, version: str) -> dict[str, Any]:
         return self._index(name, version)[1]
@@ -107,9 +83,4 @@ class S3ExportStore(ExportStore):
 
     def presigned_url(self, name: str, version: str, path: str, expires_s: int, media_type: str | None = None,
                       cache_control: str | None = None) -> str:
-        params = {"Bucket": self.bucket, "Key": self._key_of(name, version, path)}
-        if media_type:
-            params["ResponseContentType"] = media_type
-        if cache_control:
-            params["ResponseCacheControl"] = cache_control
-        return self.client.generate_presigned_url("get_object", Params=params, ExpiresIn=int(expires_s))
+        return presigned_get(self.client, self.bucket, self._key_of(name, version, path), expires_s, media_type, cache_control)
