@@ -15,5 +15,9 @@ class VersionConflict(Exception):
     """The bundle <name>/<version> is already published with other bytes; published bundles never change."""
 
 
+class ExportConflict(VersionConflict):
+    """An export home already holds the export of other bundle bytes under the same name and version."""
+
+
 class StageOrderError(RuntimeError):
     """A stage ran before the stage it depends on produced its outputs in this work directory."""

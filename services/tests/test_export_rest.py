@@ -22,6 +22,7 @@ from pathlib import Path
 import pytest
 
 from service_fixtures import GOOD_BUNDLE, STORES, free_port, make_api, publish_vector_bundle
+from crowdbake.errors import ExportConflict
 from crowdbake.export import ktx2
 from crowdbake.storage.exports import INDEX_NAME, export_home, exports_root, publish_export
 
@@ -253,6 +254,14 @@ def test_an_object_store_export_is_written_once_under_its_index_and_can_redirect
     index = json.loads(data)
     assert keys == {home + INDEX_NAME, f"{home}{digest}/export.zip"} | {f"{home}{digest}/export/{path}" for path in index["files"]}
     exports.publish(GOOD_BUNDLE)  # kept: the same object, not rewritten
+    assert client.head_object(Bucket=bucket, Key=home + INDEX_NAME)["ETag"] == stored["ETag"]
+    other = tmp_path / "other-bytes"  # another bundle's bytes under the same name and version: refused
+    shutil.copytree(GOOD_BUNDLE, other)
+    manifest = json.loads((other / "manifest.json").read_text())
+    manifest["created"] = "2001-01-01T00:00:00Z"
+    (other / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ExportConflict, match="other bytes"):
+        exports.publish(other)
     assert client.head_object(Bucket=bucket, Key=home + INDEX_NAME)["ETag"] == stored["ETag"]
     base = f"/v1/bundles/{name}/{version}"
     redirect = api.client.get(f"{base}/export/export.json", headers=api.auth("read"), follow_redirects=False)

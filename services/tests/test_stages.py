@@ -209,6 +209,33 @@ def test_a_version_conflict_leaves_no_export_behind(sample, baked, tmp_path):
     assert not [p for p in exports.rglob("*") if p.is_file() or p.name.endswith(".partial")] if exports.exists() else True
 
 
+@pytest.mark.parametrize("workers", [2, 0])
+def test_a_bundles_folder_beside_another_does_not_take_its_export(sample, baked, tmp_path, workers):
+    """Bundles folders with the same parent share one exports folder: a bake whose export home holds the
+    export of other bytes under its name and version fails with ExportConflict before anything is
+    published, and leaves that export as it was; one whose home holds its own export keeps it."""
+    from crowdbake.errors import ExportConflict
+
+    root, summary = baked
+    for same in (False, True):
+        parent = tmp_path / ("same" if same else "other")
+        home = parent / "exports" / "sample" / "1.0"
+        shutil.copytree(root / "exports" / "sample" / "1.0", home)
+        if not same:
+            index = json.loads((home / "index.json").read_text())
+            index["bundle"]["manifest_sha256"] = "0" * 64
+            (home / "index.json").write_text(json.dumps(index))
+        before = {p: p.read_bytes() for p in sorted(home.rglob("*")) if p.is_file()}
+        if same:
+            assert run_bake(inputs_for(sample), parent / "bundles", work=root / "work", workers=workers).bundle.is_dir()
+        else:
+            with pytest.raises(ExportConflict, match="other bytes published as sample/1.0"):
+                run_bake(inputs_for(sample), parent / "bundles", work=root / "work", workers=workers)
+            assert not (parent / "bundles" / "sample" / "1.0").exists()
+        assert {p: p.read_bytes() for p in sorted(home.rglob("*")) if p.is_file()} == before
+        assert not list((parent / "exports" / "sample").glob("*.partial"))
+
+
 def test_bad_inputs_name_their_field(sample, tmp_path):
     bad_mesh = tmp_path / "small.obj"
     bad_mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")

@@ -12,7 +12,7 @@ from crowdbake.errors import StageOrderError, VersionConflict
 from crowdbake.formats.bundle import BundleFile, verify_bundle, write_bundle
 from crowdbake.stages.validate import load_job
 from crowdbake.stages.workdir import WorkDir
-from crowdbake.storage.exports import ExportStore, LocalExportStore, build_export_beside_home
+from crowdbake.storage.exports import ExportStore, LocalExportStore, build_export_beside_home, check_export_home
 
 
 def same_tree(a: Path, b: Path) -> bool:
@@ -62,6 +62,15 @@ def _bundle_to_export(work: Path) -> Path | None:
     if not (bundle / "manifest.json").is_file():
         raise StageOrderError(f"{work}: stage 'pack' has not run yet")
     return bundle
+
+
+def check_export_before_publishing(work: Path, bundles_root: Path) -> None:
+    """ExportConflict, before anything is published, when the export home of work/bundle in the exports
+    folder of `bundles_root` holds the export of another bundle under the same name and version
+    (crowdbake.storage.exports.check_export_home); nothing when the bake makes no export."""
+    bundle = _bundle_to_export(work)
+    if bundle is not None:
+        check_export_home(bundle, Path(bundles_root))
 
 
 def stage_export(work: Path, exports: ExportStore | Path) -> bool:

@@ -39,7 +39,7 @@ from crowdbake.stages.impostors import (
 )
 from crowdbake.stages.pack import score_frames, stage_pack, stage_pack_frame, stage_pack_scores
 from crowdbake.stages.poses import stage_poses
-from crowdbake.stages.publish import stage_export, stage_export_ahead, stage_publish
+from crowdbake.stages.publish import check_export_before_publishing, stage_export, stage_export_ahead, stage_publish
 from crowdbake.storage.exports import commit_export, discard_export, export_home
 from crowdbake.stages.records import PosesRecord
 from crowdbake.stages.runtime_fidelity import between_references
@@ -203,6 +203,7 @@ def _publish_beside_export(work: Path, out_root: Path, pool: ProcessPoolExecutor
     """The publish stage and the engine export in two workers at once: the export is built from work/bundle
     beside its home and put in place only once the bundle is published (a version conflict discards it)."""
     started = time.perf_counter()
+    check_export_before_publishing(work, out_root)
     export = pool.submit(_worker_item, str(work), "export", out_root=str(out_root))
     publish = pool.submit(_worker_item, str(work), "publish-bundle", out_root=str(out_root))
     results = {}
@@ -231,6 +232,7 @@ def _publish_beside_export(work: Path, out_root: Path, pool: ProcessPoolExecutor
 def _publish(work: Path, out_root: Path) -> Path:
     """The publish stage and the engine export, which is part of publishing as in the worker's publish task
     (none when the bake's `export` parameter is false)."""
+    check_export_before_publishing(work, out_root)
     published = stage_publish(work, out_root)
     stage_export(work, out_root)
     return published

@@ -88,9 +88,39 @@ def build_export(bundle_folder: Path, staging: Path, ktx2_mode: str = "bc", prep
     return index
 
 
+def check_export_home(bundle_folder: Path, bundles_dir: Path) -> bool:
+    """True when the export home of the bundle at `bundle_folder` holds its export already, False when it
+    holds none. ExportConflict when it holds the export of other bytes under the same name and version:
+    bundles folders with the same parent share one exports folder (the layout above), so a bake into a
+    sibling folder must not keep, or serve, the other bundle's export."""
+    manifest_path = Path(bundle_folder) / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    home = export_home(bundles_dir, manifest["name"], manifest["version"])
+    try:
+        index = json.loads((home / INDEX_NAME).read_text())
+    except FileNotFoundError:
+        return False
+    refuse_other_export(str(home), manifest, index, _sha256(manifest_path))
+    return True
+
+
+def refuse_other_export(where: str, manifest: dict[str, Any], index: dict[str, Any], manifest_sha256: str) -> None:
+    """ExportConflict when the export `index` found at `where` was made from other manifest bytes than the
+    bundle's (`manifest`, whose bytes hash to `manifest_sha256`)."""
+    from crowdbake.errors import ExportConflict
+
+    theirs = index.get("bundle", {}).get("manifest_sha256")
+    if theirs != manifest_sha256:
+        raise ExportConflict(
+            f"{where} holds the export of other bytes published as {manifest['name']}/{manifest['version']} "
+            f"(manifest sha256 {str(theirs)[:12]}…, this bundle's {manifest_sha256[:12]}…): bundles folders with the "
+            "same parent share their exports folder; publish into a folder of its own, or without the export")
+
+
 def publish_export(bundle_folder: Path, bundles_dir: Path, ktx2_mode: str = "bc", prepared=None) -> Path:
     """Export the published bundle at `bundle_folder` (= bundles_dir/<name>/<version>) once, into its
-    export home; returns that folder. An export already there is kept (the bundle cannot have changed)."""
+    export home; returns that folder. Its export already there is kept (the bundle cannot have changed);
+    another bundle's is refused (check_export_home)."""
     staging = build_export_beside_home(bundle_folder, bundles_dir, ktx2_mode, prepared)
     manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())
     home = export_home(bundles_dir, manifest["name"], manifest["version"])
@@ -99,14 +129,14 @@ def publish_export(bundle_folder: Path, bundles_dir: Path, ktx2_mode: str = "bc"
 
 def build_export_beside_home(bundle_folder: Path, bundles_dir: Path, ktx2_mode: str = "bc", prepared=None) -> Path | None:
     """Build the export of the bundle at `bundle_folder` in a staging folder of its own beside its export
-    home, and return it (commit_export puts it in place); None when the home already holds an export.
-    Built from a bundle before it is published, it is committed only once publishing has succeeded.
-    prepared: as in build_export."""
+    home, and return it (commit_export puts it in place); None when the home already holds its export,
+    ExportConflict when it holds another bundle's (check_export_home). Built from a bundle before it is
+    published, it is committed only once publishing has succeeded. prepared: as in build_export."""
+    if check_export_home(bundle_folder, bundles_dir):
+        return None
     manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())
     name, version = manifest["name"], manifest["version"]
     home = export_home(bundles_dir, name, version)
-    if (home / INDEX_NAME).is_file():
-        return None
     home.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{version}.", suffix=".partial", dir=home.parent))
     try:

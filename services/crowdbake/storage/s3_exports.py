@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from crowdbake.storage.bundle_store import check_name_version
-from crowdbake.storage.exports import FILES_FOLDER, INDEX_NAME, ZIP_NAME, ExportStore, build_export
+from crowdbake.storage.exports import FILES_FOLDER, INDEX_NAME, ZIP_NAME, ExportStore, build_export, refuse_other_export
 from crowdbake.storage.s3 import RevalidatedObjects, get_stream, is_taken, presigned_get, put_file_once
 
 INDEX_CACHE_SIZE = 256  # parsed indexes kept per process (each revalidated by its ETag)
@@ -39,9 +39,15 @@ class S3ExportStore(ExportStore):
         return f"{self.prefix}exports/{name}/{version}/"
 
     def publish(self, bundle_folder: Path, ktx2_mode: str = "bc", prepared=None) -> None:
-        manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())
+        manifest_data = (Path(bundle_folder) / "manifest.json").read_bytes()
+        manifest = json.loads(manifest_data)
         name, version = manifest["name"], manifest["version"]
-        if self.has(name, version):
+        try:
+            index = self.index(name, version)
+        except FileNotFoundError:
+            index = None
+        if index is not None:  # kept when it is this bundle's export; another bundle's is refused
+            refuse_other_export(f"s3://{self.bucket}/{self.home(name, version)}", manifest, index, hashlib.sha256(manifest_data).hexdigest())
             return
         self.scratch.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=f".export-{version}.", dir=self.scratch))
