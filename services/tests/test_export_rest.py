@@ -104,6 +104,27 @@ def test_export_zip_holds_every_file(api):
     assert contents == {path: entry["sha256"] for path, entry in index["files"].items()}
 
 
+def test_export_builds_are_reproducible_and_a_failed_one_reports_its_own_error(tmp_path):
+    """Two builds of one bundle are the same bytes, export.zip and index.json included, and a bundle that
+    does not verify fails with its FormatError."""
+    from crowdbake.formats.bundle import FormatError
+    from crowdbake.storage.exports import build_export
+
+    builds = []
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        build_export(GOOD_BUNDLE, tmp_path / name)
+        builds.append({p.relative_to(tmp_path / name).as_posix(): p.read_bytes() for p in sorted((tmp_path / name).rglob("*")) if p.is_file()})
+    assert builds[0] == builds[1] and "export.zip" in builds[0]
+    broken = tmp_path / "broken"
+    shutil.copytree(GOOD_BUNDLE, broken)
+    victim = next(p for p in sorted(broken.rglob("*")) if p.is_file() and p.name != "manifest.json")
+    victim.write_bytes(b"not the listed bytes")
+    (tmp_path / "c").mkdir()
+    with pytest.raises(FormatError):
+        build_export(broken, tmp_path / "c")
+
+
 def test_export_follows_the_bundles_access_rules_and_says_what_is_missing(api):
     name, version = publish_with_export(api)
     base = f"/v1/bundles/{name}/{version}"
