@@ -352,6 +352,30 @@ def test_bake_publishes_the_export_beside_the_bundle(sample_bundle, sample_expor
         assert hashlib.sha256((sample_export / path).read_bytes()).hexdigest() == entry["sha256"], path
 
 
+def test_the_export_zip_is_deflated_as_the_files_are_written(tmp_path):
+    """ZipAsWritten: entries in the order the files came, bytes as given, zip's epoch as every date; a zip that
+    cannot be written fails at close() without add() ever blocking."""
+    import zipfile
+
+    from crowdbake.storage.exports import ZipAsWritten
+
+    files = [("b.bin", np.random.default_rng(0).bytes(5000)), ("a/z.txt", b"z" * 200_000), ("a/empty", b"")]
+    zipper = ZipAsWritten(tmp_path / "export.zip", "walker-1.0")
+    for path, data in files:
+        zipper.add(path, data)
+    zipper.close()
+    with zipfile.ZipFile(tmp_path / "export.zip") as archive:
+        assert archive.namelist() == [f"walker-1.0/{path}" for path, _ in files]
+        assert [archive.read(f"walker-1.0/{path}") for path, _ in files] == [data for _, data in files]
+        assert {info.date_time for info in archive.infolist()} == {(1980, 1, 1, 0, 0, 0)}
+        assert archive.getinfo("walker-1.0/a/z.txt").compress_size < 2000
+    broken = ZipAsWritten(tmp_path / "no such folder" / "export.zip", "walker-1.0")
+    for path, data in files * 50:
+        broken.add(path, data)
+    with pytest.raises(FileNotFoundError):
+        broken.close()
+
+
 def test_the_bake_converts_the_export_layers_while_it_packs(sample_bundle):
     """The pack stage converts every impostor normal and UV layer for the export as it encodes the frame, keyed
     by the bundle layer's digest, to what the export itself makes of that layer (the byte-for-byte test above

@@ -54,6 +54,26 @@ def test_camera_is_the_spec_camera_and_matches_offscreen():
     np.testing.assert_allclose(side.back, [1, 0, 0], atol=1e-12)  # azimuth 90: the camera on +X
 
 
+def test_one_offscreen_compiles_each_shader_program_once():
+    """Many renders through one Offscreen (new meshes and scenes each time, as the cycle search and the
+    impostor tasks draw) compile each shader program once: pyrender's own cache, keyed by a context handle
+    that PyOpenGL's OSMesa binding makes anew on every call, compiled them on every render."""
+    positions, normals, _, faces = uv_sphere(8, 12)
+    material = offscreen.lit_material((0.8, 0.6, 0.4))
+    with offscreen.Offscreen(32, 32) as shared:
+        images = []
+        for k in range(6):
+            scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 1.0], ambient_light=[0.3] * 3)
+            scene.add(offscreen.triangle_mesh(positions * (1.0 + 0.1 * k), faces, normals, material))
+            pose = offscreen.view_pose((0.0, 0.0, 0.0), 2.0, 30.0 * k, 10.0)
+            scene.add(offscreen.orthographic_camera(2.0), pose=pose)
+            scene.add(pyrender.DirectionalLight(color=np.ones(3), intensity=3.0), pose=pose)
+            images.append(shared.render(scene)[0])
+        programs = shared._renderer._renderer._program_cache  # pyrender's, as Offscreen installed it
+        assert len(programs._program_cache) == len(programs._by_source) == 1
+    assert all(image.max() > 0 for image in images)
+
+
 def test_triangle_ids_round_trip():
     colours = maps.triangle_id_colours(70_000)
     image = colours.reshape(1, -1, 3)

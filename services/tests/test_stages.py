@@ -15,9 +15,11 @@ from crowdbake.formats.bundle import verify_bundle
 from crowdbake.params import BakeParams
 from crowdbake.stages import STAGES
 from crowdbake.stages.cycle import stage_cycle
-from crowdbake.stages.impostors import SCENE_FILE, impostor_tasks, load_plan, load_scene, part_path, stage_impostor_plan, stage_impostor_views
+from crowdbake.stages.impostors import (
+    SCENE_FILE, impostor_tasks, load_plan, load_scene, part_path, spread_gaps, stage_impostor_plan, stage_impostor_views,
+)
 from crowdbake.stages.pack import stage_pack
-from crowdbake.stages.poses import stage_poses
+from crowdbake.stages.poses import TEXTURES_FILE, stage_poses, stage_textures
 from crowdbake.stages.publish import stage_publish
 from crowdbake.stages.runner import run_bake
 from crowdbake.stages.validate import BakeInputs, gltf_dependencies, load_job, stage_validate
@@ -165,6 +167,68 @@ def test_bake_reports_wall_cpu_and_render_seconds(baked):
     # Every GL render of the bake is counted, those of the worker processes included.
     assert timings["stages"]["impostors"]["renders"] >= baked[1].impostor["views"]
     assert timings["stages"]["cycle"]["renders"] > 0 and timings["peak_rss_mib"]["process"] > 0
+
+
+def test_the_timeline_names_every_item_where_and_when_it_ran(baked):
+    """timings.timeline: every stage run here and every worker item, with its process, start and end (seconds
+    from the bake's start) and CPU seconds; the textures were encoded in a worker, the poses stage waited for them."""
+    timings = baked[1].timings
+    timeline = timings["timeline"]
+    assert [span["start_s"] for span in timeline] == sorted(span["start_s"] for span in timeline)
+    assert all(0 <= span["start_s"] <= span["end_s"] <= timings["total_s"] and span["cpu_s"] >= 0 for span in timeline)
+    items = {span["item"]: span for span in timeline}
+    assert {"validate", "cycle"} <= set(items)
+    if timings["workers"] > 1:
+        assert items["textures"]["pid"] != items["cycle"]["pid"]
+        assert items["textures"]["end_s"] <= items["poses"]["start_s"]
+        assert {f"impostors:{task.id}" for task in impostor_tasks(baked[0] / "work")} <= set(items)
+        assert {"scores", "pack-stage", "export", "publish-bundle"} <= set(items)
+        assert max(span["process_peak_rss_mib"] for span in timeline if "process_peak_rss_mib" in span) == timings["peak_rss_mib"]["largest_worker"]
+
+
+def test_the_textures_need_the_job_alone(sample, baked, tmp_path):
+    """stage_textures runs on a validated job with no cycle yet (the runner encodes the textures while the
+    cycle is searched); the poses stage then keeps its output as it is, and it holds the bake's textures."""
+    work = tmp_path / "work"
+    stage_validate(inputs_for(sample), work)
+    record = stage_textures(work)
+    assert not (work / "cycle").exists()
+    path = work / "poses" / TEXTURES_FILE
+    written, stamp = path.read_bytes(), path.stat().st_mtime_ns
+    assert stage_textures(work) == record and path.stat().st_mtime_ns == stamp
+    stage_cycle(work)
+    poses = stage_poses(work).record
+    assert path.stat().st_mtime_ns == stamp and path.read_bytes() == written
+    assert poses.materials == record.materials and poses.outfit_count == record.outfit_count == 8
+    with np.load(path) as mine, np.load(baked[0] / "work" / "poses" / TEXTURES_FILE) as bakes:
+        assert mine.files == bakes.files and all(np.array_equal(mine[name], bakes[name]) for name in mine.files)
+
+
+def test_the_scored_azimuth_gaps_spread_round_the_ring():
+    assert spread_gaps(4) == [0, 1, 2, 3] and spread_gaps(16) == list(range(16))
+    assert spread_gaps(32) == list(range(0, 32, 2))
+    assert spread_gaps(24, 16) == [0, 1, 3, 4, 6, 7, 9, 10, 12, 13, 15, 16, 18, 19, 21, 22]
+    assert spread_gaps(48, 16) == list(range(0, 48, 3)) and spread_gaps(1) == [0]
+
+
+def test_fidelity_tasks_render_the_mesh_between_the_scored_azimuths(baked):
+    """Each fidelity task holds, for the views whose azimuth gap is scored (all four here), the mesh halfway
+    to the next azimuth; fidelity.json's nearest_view and runtime between_azimuths score exactly those."""
+    root, summary = baked
+    work = root / "work"
+    layout = load_plan(work).layout
+    count = 0
+    for task in impostor_tasks(work):
+        with np.load(part_path(work, task)) as part:
+            if not task.references:
+                assert "reference_between" not in part.files
+                continue
+            between = part["between_views"].tolist()
+            assert between == [view for view in part["views"].tolist() if view[0] in spread_gaps(len(layout["azimuths_deg"]))]
+            assert part["reference_between"].shape[0] == len(part["between_azimuths"]) == len(between)
+            count += len(between)
+    fidelity = json.loads((summary.bundle / "fidelity.json").read_text())
+    assert fidelity["nearest_view"]["views"] == fidelity["runtime"]["between_azimuths"]["views"] == count == 4 * 2
 
 
 def test_stages_are_idempotent_and_ordered(baked, tmp_path):

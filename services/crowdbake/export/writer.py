@@ -21,7 +21,7 @@ import tempfile
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -75,17 +75,21 @@ def png_rgb(rgba: np.ndarray) -> bytes:
 
 
 class _Out:
-    """Writes files under the export folder and remembers their sizes."""
+    """Writes files under the export folder and remembers their sizes; hands each to `on_write` (path, bytes)
+    once written, when given."""
 
-    def __init__(self, root: Path):
+    def __init__(self, root: Path, on_write: Callable[[str, bytes], None] | None = None):
         self.root = root
         self.files: dict[str, int] = {}
+        self.on_write = on_write
 
     def write(self, path: str, data: bytes) -> str:
         target = self.root / path
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_bytes(data)
         self.files[path] = len(data)
+        if self.on_write is not None:
+            self.on_write(path, data)
         return path
 
 
@@ -223,11 +227,13 @@ def _copy_shaders(out: _Out) -> list[str]:
     return written
 
 
-def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0], prepared: PreparedLayers = NOTHING_PREPARED) -> ExportSummary:
+def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0], prepared: PreparedLayers = NOTHING_PREPARED,
+                  on_write: Callable[[str, bytes], None] | None = None) -> ExportSummary:
     """Verify the bundle at `bundle_dir` and write its export into `out_dir` (new or empty).
 
     ktx2_mode: "bc" keeps the bundle's BC1/BC2 blocks in the KTX2 files, "rgba8" decodes them.
     prepared: impostor layers the bake converted already (the same bytes either way).
+    on_write: called with (path under out_dir, bytes) as each file is written, always in the same order.
     Raises FormatError for a bundle that does not verify, FileExistsError for a non-empty `out_dir`
     (also when another writer renamed its export into place first), ValueError for an unknown mode.
     """
@@ -241,7 +247,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
     # A staging folder of its own beside the target, so concurrent exports never share one.
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".partial", dir=out_dir.parent))
     try:
-        out = _Out(staging)
+        out = _Out(staging, on_write)
         manifest = bundle.manifest
         materials, outfits, diffuse_arrays = _export_textures(bundle, out, ktx2_mode)
         impostor = _export_impostor(bundle, out, ktx2_mode, prepared)

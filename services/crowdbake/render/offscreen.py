@@ -234,6 +234,34 @@ def triangle_mesh(
     return pyrender.Mesh(primitives=[primitive])
 
 
+def one_context_program_cache():
+    """A pyrender shader program cache that compiles each program once per Offscreen.
+
+    pyrender keys its programs by the current GL context's handle object as well as by shader files and
+    defines; PyOpenGL's OSMesa binding returns a new handle object on every call, so under OSMesa every
+    render compiled its shaders again (about 2 ms a program, two or more programs a render) and kept every
+    copy until the renderer closed. An Offscreen owns exactly one context, so files and defines suffice."""
+    from pyrender.shader_program import ShaderProgramCache
+
+    class OneContextProgramCache(ShaderProgramCache):
+        def __init__(self) -> None:
+            super().__init__()
+            self._by_source: dict[tuple, object] = {}
+
+        def get_program(self, vertex_shader, fragment_shader, geometry_shader=None, defines=None):
+            key = (vertex_shader, fragment_shader, geometry_shader, tuple(sorted((defines or {}).items())))
+            program = self._by_source.get(key)
+            if program is None:
+                program = self._by_source[key] = super().get_program(vertex_shader, fragment_shader, geometry_shader, defines)
+            return program
+
+        def clear(self) -> None:
+            super().clear()
+            self._by_source = {}
+
+    return OneContextProgramCache()
+
+
 class Offscreen:
     """One offscreen GL renderer of a fixed size, reused across renders and released on exit.
 
@@ -258,6 +286,7 @@ class Offscreen:
 
         started = time.perf_counter()
         self._renderer = pyrender.OffscreenRenderer(self.width, self.height)
+        self._renderer._renderer._program_cache = one_context_program_cache()  # no public hook: see that function
         _add_time(setup_seconds=time.perf_counter() - started)
         logger.debug("offscreen renderer %dx%d on %s", self.width, self.height, os.environ["PYOPENGL_PLATFORM"])
         return self

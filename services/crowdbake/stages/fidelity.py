@@ -19,10 +19,11 @@ from crowdbake.stages.records import ImpostorTask, PosesRecord
 def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
                    atlases: dict[str, np.ndarray], texture_arrays: dict[str, np.ndarray], formats: dict[str, str]) -> dict[str, Any]:
     """fidelity.json: SSIM and PSNR per view of the fidelity frame, with and without normal-map compression,
-    and the mesh halfway between two azimuths against the nearest baked view.
+    and the mesh halfway between two azimuths (the scored gaps) against the nearest baked view.
 
     atlases: the fidelity frame's "uv" (as stored), "uv16", "normal" and, when compressed, "normal_decoded";
-    parts: task id -> the task's arrays ("views", "reference", "reference_between", "between_azimuths").
+    parts: task id -> the task's arrays ("views", "reference", and for the scored azimuth gaps
+    (crowdbake.stages.impostors.spread_gaps) "between_views", "between_azimuths", "reference_between").
     """
     centre, radius = poses.center, poses.radius
     count = len(poses.materials)
@@ -43,8 +44,7 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
             per_view.append({"azimuth_deg": layout.azimuths_deg[a], "elevation_deg": layout.elevations_deg[e], **score})
             exact = fidelity.impostor_image(uv_tile, tile_of(layout, atlases["normal"], a, e), runtime_diffuse, outfit_row, light)
             uncompressed.append(fidelity.compare(data["reference"][index], exact))
-
-            azimuth = float(data["between_azimuths"][index])
+        for (a, e), azimuth, reference in zip(data["between_views"].tolist(), data["between_azimuths"].tolist(), data["reference_between"]):
             mid_view = impostor_maps.ortho_view(centre, radius, azimuth, layout.elevations_deg[e], layout.tile_size)
             na, ne = nearest_view(layout, azimuth, layout.elevations_deg[e])
             near_image = fidelity.impostor_image(
@@ -53,8 +53,9 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
             )
             between.append(
                 {"azimuth_deg": azimuth, "elevation_deg": layout.elevations_deg[e], "nearest_azimuth_deg": layout.azimuths_deg[na],
-                 **fidelity.compare(data["reference_between"][index], near_image)}
+                 **fidelity.compare(reference, near_image)}
             )
+
     texture_size = max(max(m.width, m.height) for m in poses.materials)
     return {
         "description": "Impostor vs mesh at 1:1 texel-to-pixel (crowdbake.bake.fidelity): SSIM and PSNR per view "

@@ -42,6 +42,11 @@ FIDELITY_SUPERSAMPLE = 3
 SCENE_FILE = "scene.npz"
 # The maps a part holds; part of its key, so parts written before a map was added are rendered again.
 PART_MAPS = ("normal", "uv", "detail", "surface")
+# Azimuth gaps the fidelity scores render the mesh in, halfway between two baked azimuths (each at every
+# elevation): each is a render at FIDELITY_SUPERSAMPLE x the tile and its shading, so a bake with more
+# azimuths scores this many gaps spread evenly round the ring (spread_gaps), 16 x 3 cameras of a 32-azimuth
+# bake instead of 96. Part of a part's key, with the sampling it implies.
+BETWEEN_AZIMUTHS = 16
 _TASK_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
@@ -190,6 +195,14 @@ def load_pose_scene(work: Path, poses: PosesRecord, frame: int) -> Scene:
     )
 
 
+def spread_gaps(count: int, limit: int = BETWEEN_AZIMUTHS) -> list[int]:
+    """The gaps scored of `count` azimuth gaps (gap i: from baked azimuth i to the next), at most `limit`
+    of them spread evenly round the ring: all when count <= limit, else every (count / limit)-th."""
+    if count <= limit:
+        return list(range(count))
+    return [int(i) for i in np.linspace(0, count, limit, endpoint=False).astype(int)]
+
+
 def midpoint_azimuths(azimuths: list[float]) -> list[float]:
     """The azimuth halfway to the next baked one, per baked azimuth (wrapping at 360°)."""
     if len(azimuths) == 1:
@@ -267,18 +280,23 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
 
 
 def _between_references(scene: Scene, plan: ImpostorPlan, views: list[tuple[int, int]]) -> dict[str, np.ndarray]:
-    """Per view, the mesh at the angle halfway to the next azimuth (no baked view shares that render)."""
+    """The mesh at the angle halfway to the next azimuth (no baked view shares that render), for the views
+    whose azimuth gap is scored (spread_gaps): "between_views" (B, 2) their (azimuth, elevation) indices,
+    "between_azimuths" (B,) degrees, "reference_between" (B, S, S, 3)."""
     layout = plan.layout
     size = int(layout["tile_size"]) * FIDELITY_SUPERSAMPLE
     midpoints = midpoint_azimuths(list(layout["azimuths_deg"]))
+    scored = set(spread_gaps(len(midpoints)))
+    chosen = [(a, e) for a, e in views if a in scored]
     renderer = shared_renderer(size)
     between = []
-    for a, e in views:
+    for a, e in chosen:
         view = impostor_maps.ortho_view(plan.center, plan.radius, midpoints[a], layout["elevations_deg"][e], size)
         between.append(_reference(scene, view, renderer.coverage(view, scene.positions, scene.faces)))
     return {
-        "reference_between": np.stack(between),
-        "between_azimuths": np.asarray([midpoints[a] for a, _ in views], dtype=np.float64),
+        "between_views": np.asarray(chosen, dtype=np.int64).reshape(-1, 2),
+        "reference_between": np.stack(between) if between else np.zeros((0, size, size, 3), np.float32),
+        "between_azimuths": np.asarray([midpoints[a] for a, _ in chosen], dtype=np.float64),
     }
 
 
@@ -291,7 +309,7 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
     work = Path(work)
     task = as_task(task)
     path = part_path(work, task)
-    key = stage_key("impostor-part", PART_MAPS, WorkDir(work).key_of("impostor"), task.to_json())
+    key = stage_key("impostor-part", PART_MAPS, BETWEEN_AZIMUTHS, WorkDir(work).key_of("impostor"), task.to_json())
     stats_path = path.with_suffix(".json")
     if path.is_file() and stats_path.is_file():
         try:

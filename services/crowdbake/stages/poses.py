@@ -2,7 +2,8 @@
 high and a low LOD, plus the materials' textures and the impostors' framing.
 
 Reads the JobRecord and CycleRecord; writes work/poses/<part>_lod<k>.cbpc, textures.npz (materials,
-their encoded and decoded diffuse layers, the outfit map) and the PosesRecord.
+their encoded and decoded diffuse layers, the outfit map) and the PosesRecord. The textures need the job
+alone, not the cycle (stage_textures): the bake runner encodes them in a worker while the cycle is searched.
 """
 from __future__ import annotations
 
@@ -23,9 +24,11 @@ from crowdbake.formats.gltf import load_character
 from crowdbake.formats.images import read_texture_variation
 from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2
-from crowdbake.stages.records import CycleRecord, JobRecord, MaterialInfo, PosePart, PosesRecord
+from crowdbake.stages.records import CycleRecord, JobRecord, MaterialInfo, PosePart, PosesRecord, TexturesRecord
 from crowdbake.stages.validate import load_job, texture_files
-from crowdbake.stages.workdir import Progress, StageOutcome, WorkDir, npz_bytes, report, stage_key, write_bytes_atomic, write_json_atomic
+from crowdbake.stages.workdir import (
+    Progress, StageOutcome, WorkDir, npz_bytes, read_json, report, stage_key, write_bytes_atomic, write_json_atomic,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -77,6 +80,7 @@ def load_rgba_png(path: Path) -> np.ndarray:
 def materials_of(job: JobRecord, inputs: Path, character, first_layer_only: bool = False) -> tuple[list[dict], np.ndarray]:
     """Materials [{"name", "layers" (L, H, W, 4) uint8}] and the outfit map (O, 16, 4) uint8.
 
+    character: the loaded character, read only when the job brings no textures (None will do then).
     first_layer_only: load variation 0 alone (L = 1), all the impostor bake draws with."""
     names = job.inputs
     if "textures" in names:
@@ -150,7 +154,7 @@ def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> 
     return high, {"body": "body", garment: "garment"}, {"body": 0, garment: 1}
 
 
-def part_materials(part_material: dict, materials: list[dict]) -> dict:
+def part_materials(part_material: dict, materials: list) -> dict:
     """Material index per part: one given texture set serves every part."""
     return dict.fromkeys(part_material, 0) if len(materials) == 1 else part_material
 
@@ -189,6 +193,8 @@ def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float
 
 
 DIFFUSE_ERRORS = "diffuse_errors.json"
+TEXTURES_FILE = "textures.npz"
+TEXTURES_RECORD = "textures.json"
 
 
 def _write_textures(materials: list[dict], outfits: np.ndarray, compress: bool, out: Path) -> list[MaterialInfo]:
@@ -213,9 +219,34 @@ def _write_textures(materials: list[dict], outfits: np.ndarray, compress: bool, 
         if pixel_format != "rgba8":
             errors[material["name"]] = [compression.compression_error(layer, back) for layer, back in zip(layers, decoded)]
         infos.append(MaterialInfo(name=material["name"], variations=int(len(layers)), width=int(width), height=int(height), pixel_format=pixel_format))
-    write_bytes_atomic(out / "textures.npz", npz_bytes(arrays))
+    write_bytes_atomic(out / TEXTURES_FILE, npz_bytes(arrays))
     write_json_atomic(out / DIFFUSE_ERRORS, errors)
     return infos
+
+
+def stage_textures(work: Path) -> TexturesRecord:
+    """The materials' diffuse layers, encoded and decoded, and the outfit map → work/poses/TEXTURES_FILE
+    (and DIFFUSE_ERRORS; its record in TEXTURES_RECORD). Part of the poses stage, but it needs only the
+    validated job: the bake runner runs it in a worker while this process searches the cycle. Idempotent:
+    kept when written for the same job."""
+    folder = WorkDir(work)
+    out = folder.root / "poses"
+    key = stage_key("textures", folder.key_of("validate"))
+    try:
+        if (out / TEXTURES_FILE).is_file() and (out / DIFFUSE_ERRORS).is_file():
+            record = TexturesRecord.from_json(read_json(out / TEXTURES_RECORD))
+            if record.key == key:
+                return record
+    except (OSError, ValueError, KeyError, TypeError, StageOrderError):
+        pass
+    job = load_job(work)
+    # The character's own texture serves only when the job brings none (its glTF is parsed only then).
+    character = None if "textures" in job.inputs else load_character(folder.inputs / job.inputs["character"], animation=job.bake_params.animation)
+    materials, outfits = materials_of(job, folder.inputs, character)
+    infos = _write_textures(materials, outfits, job.bake_params.compress, out)
+    record = TexturesRecord(key=key, materials=infos, outfit_count=int(len(outfits)))
+    write_json_atomic(out / TEXTURES_RECORD, record.to_json())
+    return record
 
 
 def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[PosesRecord]:
@@ -225,7 +256,7 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     job = load_job(work)
     key = stage_key("poses", folder.key_of("cycle"))
     out = folder.root / "poses"
-    cached = folder.cached("poses", key, PosesRecord, [out / "textures.npz", out / DIFFUSE_ERRORS])
+    cached = folder.cached("poses", key, PosesRecord, [out / TEXTURES_FILE, out / DIFFUSE_ERRORS])
     if cached is not None:
         return StageOutcome(cached, True, 0.0)
     params = job.bake_params
@@ -233,14 +264,12 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     steps = 6
     report(progress, "poses", 0, steps)
 
+    textures = stage_textures(work)
     character = load_character(folder.inputs / job.inputs["character"], animation=params.animation)
-    materials, outfits = materials_of(job, folder.inputs, character)
     high, kinds, part_material = high_parts(job, cycle, folder, character)
-    part_material = part_materials(part_material, materials)
+    part_material = part_materials(part_material, textures.materials)
     report(progress, "poses", 2, steps)
     parts = _write_lods(high, kinds, part_material, params, cycle.fps, out)
-    report(progress, "poses", 4, steps)
-    material_infos = _write_textures(materials, outfits, params.compress, out)
     report(progress, "poses", 5, steps)
 
     bounds, layout, frame_indices = impostor_framing(params, cycle, high)
@@ -248,8 +277,8 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
         frames_per_second=cycle.fps,
         cycle_frames=cycle.cycle_frames,
         parts=parts,
-        materials=material_infos,
-        outfit_count=int(len(outfits)),
+        materials=textures.materials,
+        outfit_count=textures.outfit_count,
         bounds=bounds,
         layout=layout.to_manifest(),
         frame_indices=frame_indices,

@@ -115,6 +115,18 @@ class MaterialInfo(Record):
 
 
 @dataclass
+class TexturesRecord(Record):
+    """The poses stage's textures (work/poses/textures.npz), written as soon as the job is validated: the
+    materials' diffuse arrays as baked and the outfit map's size."""
+
+    key: str
+    materials: list[MaterialInfo]
+    outfit_count: int
+
+    _nested: ClassVar[dict[str, type]] = {"materials": MaterialInfo}
+
+
+@dataclass
 class PosesRecord(Record):
     """poses → impostors, pack: the parts, materials, the impostor framing (layout, bounds) and frames."""
 

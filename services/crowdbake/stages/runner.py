@@ -2,6 +2,8 @@
 
 The service runs the same stage functions as Celery tasks (crowdbake.jobs.tasks); this runner is the
 one-machine version: validate → cycle → impostor plan → (poses ∥ impostor tasks) → pack → publish.
+The poses stage's textures need only the validated job: a worker encodes them while this process searches
+the cycle (crowdbake.stages.poses.stage_textures).
 
 The poses stage and the impostor tasks need only the cycle's output (crowdbake.stages.impostors.
 stage_impostor_plan), so where two cores are free they run side by side in a pool of two worker
@@ -38,7 +40,7 @@ from crowdbake.stages.impostors import (
     FIDELITY_SUPERSAMPLE, impostor_statistics, impostor_tasks, load_plan, load_poses, stage_impostor_plan, stage_impostor_views,
 )
 from crowdbake.stages.pack import score_frames, stage_pack, stage_pack_frame, stage_pack_scores
-from crowdbake.stages.poses import stage_poses
+from crowdbake.stages.poses import stage_poses, stage_textures
 from crowdbake.stages.publish import check_export_before_publishing, stage_export, stage_export_ahead, stage_publish
 from crowdbake.storage.exports import commit_export, discard_export, export_home
 from crowdbake.stages.records import PosesRecord
@@ -123,9 +125,14 @@ class _Meter:
         self.parallel_wall_s = 0.0  # the poses ∥ impostors part, when it ran in the pool
         self.worker_peak_rss_mib: float | None = None  # the largest worker's high-water mark (from the fork on)
         self.worker_cpu_s: dict[int, float] = {}  # per worker process, its CPU seconds at its last item
+        self.epoch = time.time()  # the bake's start, for the timeline
+        self.timeline: list[dict[str, Any]] = []  # worker items: name, process, start and end seconds, CPU seconds
 
     def account_worker(self, figures: dict[str, Any]) -> None:
-        """Note a worker item's process figures: its high-water mark and its process's CPU so far."""
+        """Note a worker item's process figures: its high-water mark, its process's CPU so far and its span."""
+        name, began, ended = figures["span"]
+        self.timeline.append({"item": name, "pid": figures["pid"], "start_s": began - self.epoch, "end_s": ended - self.epoch,
+                              "cpu_s": figures["cpu_s"], "process_peak_rss_mib": figures["peak_rss_mib"]})
         self.worker_peak_rss_mib = max(self.worker_peak_rss_mib or 0.0, figures["peak_rss_mib"])
         self.worker_cpu_s[figures["pid"]] = max(self.worker_cpu_s.get(figures["pid"], 0.0), figures["process_cpu_s"])
 
@@ -133,7 +140,10 @@ class _Meter:
         return self.stages.setdefault(stage, StageFigures())
 
     def run(self, stage: str, body: Callable[[], Any]) -> Any:
+        began = time.time()
         figures = measured(body)
+        self.timeline.append({"item": stage, "pid": os.getpid(), "start_s": began - self.epoch,
+                              "end_s": time.time() - self.epoch, "cpu_s": figures["cpu_s"]})
         self.figures(stage).add(figures)
         _trim_heap()
         return figures["result"]
@@ -173,22 +183,26 @@ def measured(body: Callable[[], Any]) -> dict[str, Any]:
 
 
 def _worker_item(work: str, item: str, task: dict | None = None, frame: int | None = None, out_root: str | None = None) -> dict[str, Any]:
-    """One item of the poses ∥ impostors part, in a worker process: the poses stage, one impostor task, or
-    one baked frame's atlases for the pack stage (once that frame's tasks are done), or the pack stage's
-    runtime-fidelity mesh references (once the poses are done); then the pack stage, and the publish stage
-    into `out_root` beside the engine export built ahead of it."""
+    """One item of the poses ∥ impostors part, in a worker process: the poses stage's textures (during the
+    cycle search), the poses stage with the pack stage's runtime-fidelity mesh references, one impostor
+    task, or one baked frame's atlases for the pack stage (once that frame's tasks are done); then the pack
+    stage, and the publish stage into `out_root` beside the engine export built ahead of it."""
+    began = time.time()
     if item == "publish-bundle":
         figures = measured(lambda: str(stage_publish(Path(work), Path(out_root))))
     elif item == "export":
         figures = measured(lambda: None if (staging := stage_export_ahead(Path(work), Path(out_root))) is None else str(staging))
     elif item == "poses":
-        figures = measured(lambda: stage_poses(Path(work)).cached)
+        # Then the pack stage's mesh references for the runtime scores, which need only the poses: in the
+        # same worker, while this process plans the impostor tasks.
+        figures = measured(lambda: (stage_poses(Path(work)).cached,
+                                    len(between_references(Path(work), load_poses(Path(work)), FIDELITY_SUPERSAMPLE))))
+    elif item == "textures":
+        figures = measured(lambda: stage_textures(Path(work)).key)
     elif item == "pack":
         figures = measured(lambda: str(stage_pack_frame(Path(work), frame)))
     elif item == "pack-stage":
         figures = measured(lambda: stage_pack(Path(work)).cached)
-    elif item == "runtime":
-        figures = measured(lambda: len(between_references(Path(work), load_poses(Path(work)), FIDELITY_SUPERSAMPLE)))
     elif item == "scores":
         figures = measured(lambda: str(stage_pack_scores(Path(work))))
     else:
@@ -196,6 +210,7 @@ def _worker_item(work: str, item: str, task: dict | None = None, frame: int | No
     _trim_heap()
     figures["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     figures["pid"], figures["process_cpu_s"] = os.getpid(), _cpu_seconds(resource.RUSAGE_SELF)
+    figures["span"] = (item if frame is None and task is None else f"{item}:{(task or {}).get('id', frame)}", began, time.time())
     return figures
 
 
@@ -204,14 +219,20 @@ def _publish_beside_export(work: Path, out_root: Path, pool: ProcessPoolExecutor
     beside its home and put in place only once the bundle is published (a version conflict discards it)."""
     started = time.perf_counter()
     check_export_before_publishing(work, out_root)
-    export = pool.submit(_worker_item, str(work), "export", out_root=str(out_root))
-    publish = pool.submit(_worker_item, str(work), "publish-bundle", out_root=str(out_root))
+    # The export holds the bundle's layers decoded and its zip's input at once: in a process of its own,
+    # fresh from the fork server, its peak adds to no worker's rendering leftovers.
+    exporter = one_shot_pool()
     results = {}
-    for name, future in (("publish", publish), ("export", export)):
-        try:
-            results[name] = future.result()
-        except BaseException as error:
-            results[name] = error
+    try:
+        export = exporter.submit(_worker_item, str(work), "export", out_root=str(out_root))
+        publish = pool.submit(_worker_item, str(work), "publish-bundle", out_root=str(out_root))
+        for name, future in (("publish", publish), ("export", export)):
+            try:
+                results[name] = future.result()
+            except BaseException as error:
+                results[name] = error
+    finally:
+        exporter.shutdown(wait=True, cancel_futures=True)
     staging = results["export"]["result"] if isinstance(results["export"], dict) else None
     for figures in results.values():
         if isinstance(figures, dict):
@@ -252,6 +273,25 @@ def start_pool(workers: int) -> ProcessPoolExecutor:
     return ProcessPoolExecutor(workers, mp_context=context, max_tasks_per_child=WORKER_ITEMS)
 
 
+def submit_in_background(pool: ProcessPoolExecutor, *call: Any) -> Future:
+    """pool.submit(*call) from a thread, and a future of its result. The pool's first item waits for its
+    worker to fork, which waits for the fork server's imports (start_pool): this process need not."""
+    outcome: Future = Future()
+
+    def settle(done: Future) -> None:
+        error = done.exception()
+        outcome.set_exception(error) if error is not None else outcome.set_result(done.result())
+
+    def submit() -> None:
+        try:
+            pool.submit(*call).add_done_callback(settle)
+        except BaseException as error:  # noqa: BLE001 - the pool shut down first: handed to whoever waits
+            outcome.set_exception(error)
+
+    threading.Thread(target=submit, name="submit", daemon=True).start()
+    return outcome
+
+
 def one_shot_pool() -> ProcessPoolExecutor:
     """One process from the fork server (start_pool started it) that runs a single item and exits: for an item
     whose peak memory should not add to a worker's high-water mark."""
@@ -275,9 +315,11 @@ def _stop_fork_server() -> None:
             logger.debug("stopping the fork server failed", exc_info=True)
 
 
-def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: int, meter: _Meter, progress: Progress | None) -> None:
+def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: int, meter: _Meter, progress: Progress | None,
+                         textures: Future | None = None) -> None:
     """The impostor plan, the poses stage and every impostor task: in the pool (the plan here, while a
-    worker starts on the poses), the longest items first, or all in order here."""
+    worker starts on the poses), the longest items first, or all in order here. textures: the pool's
+    stage_textures item, started before the cycle; the poses stage starts once it is done."""
     if pool is None:
         meter.run("impostors", lambda: stage_impostor_plan(work, progress))
         tasks = impostor_tasks(work)
@@ -288,6 +330,10 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
         report(progress, "impostors", len(tasks), len(tasks))
         return
     started = time.perf_counter()
+    if textures is not None:
+        figures = textures.result()  # the cycle search took longer: normally done already
+        meter.account_worker(figures)
+        meter.figures("poses").add(figures)
     pending: dict[Future, tuple[str, int | None]] = {pool.submit(_worker_item, str(work), "poses"): ("poses", None)}
     plan = measured(lambda: stage_impostor_plan(work, progress))
     meter.figures("impostors").add(dict(plan, wall_s=0.0))  # within the part's wall, below
@@ -303,7 +349,7 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
     done_tasks = 0
     # The pack stage's scoring (stage_pack_scores) starts once the poses, their mesh references and the
     # frames it reads are done, while later tasks still render, instead of after them all on one core.
-    scoring_needs: set = {"runtime", *(("frame", f) for f in score_frames(load_plan(work)))}
+    scoring_needs: set = {"poses", *(("frame", f) for f in score_frames(load_plan(work)))}
     scoring_queued = False
 
     def ready_to_score() -> None:
@@ -331,7 +377,7 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for future in finished:
                 item, frame = pending.pop(future)
-                stage = "pack" if item in ("runtime", "scores") else item
+                stage = "pack" if item == "scores" else item
                 figures = future.result()
                 meter.account_worker(figures)
                 if stage in ("impostors", "pack"):
@@ -345,11 +391,10 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
                         packable.append(("pack", None, frame))
                 elif stage == "poses":
                     report(progress, "poses", 1, 1)
-                    packable.append(("runtime", None, None))
                 if item == "pack":
                     scoring_needs.discard(("frame", frame))
-                elif item == "runtime":
-                    scoring_needs.discard("runtime")
+                elif item == "poses":
+                    scoring_needs.discard("poses")
                 ready_to_score()
             feed()
     finally:
@@ -421,13 +466,15 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
     server_cpu = _fork_server_cpu_seconds() if pool is not None else 0.0
     try:
         job = meter.run("validate", lambda: stage_validate(inputs, work)).record
+        # The textures (part of the poses stage) need the job alone: a worker encodes them during the cycle search.
+        textures = submit_in_background(pool, _worker_item, str(work), "textures") if pool is not None else None
         plots: list[Callable[[], None]] = []
         cycle = meter.run("cycle", lambda: stage_cycle(work, progress, plots=plots)).record
         # The cycle report's plots (a second or more of matplotlib) are drawn in a thread of this process,
         # which otherwise only waits for the workers; run_bake returns once they are written.
         plotter = _Background("cycle-plots", plots, meter.figures("cycle"))
         try:
-            _poses_and_impostors(work, pool, workers, meter, progress)
+            _poses_and_impostors(work, pool, workers, meter, progress, textures)
             if pool is not None:
                 # The pack and publish stages too, in workers: their peak memory (the fidelity scoring holds
                 # the fidelity frame's references and atlases; publishing reads the bundle twice and the
@@ -469,6 +516,7 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
             "largest_worker": meter.worker_peak_rss_mib,
         },
         "stages": {stage: asdict(meter.figures(stage)) for stage in STAGES},
+        "timeline": sorted(meter.timeline, key=lambda span: span["start_s"]),
     }
     manifest = read_json(bundle / "manifest.json")
     return BakeSummary(

@@ -10,7 +10,8 @@ normal map after block compression, the diffuse texture as decoded. Two sets of 
   fidelity frame and the next baked frame (four views times two frames blended), one camera per azimuth
   gap (at most BETWEEN_AZIMUTHS of them, spread evenly) and elevation gap;
 - `between_azimuths`: the impostor tasks' references halfway between azimuths at a baked elevation and
-  frame (two views blended), the cameras of fidelity.json's `nearest_view`.
+  frame (two views blended), the cameras of fidelity.json's `nearest_view`: at most BETWEEN_AZIMUTHS gaps
+  spread round each ring (crowdbake.stages.impostors.spread_gaps).
 """
 from __future__ import annotations
 
@@ -23,11 +24,8 @@ from crowdbake.bake import compression, fidelity, impostor_blend, impostor_maps,
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.bake.impostor_blend import DecodedTile
 from crowdbake.formats.binary import TextureArray, decode_texture_array, unpack_uv32, unpack_uvblock
+from crowdbake.stages.impostors import BETWEEN_AZIMUTHS, spread_gaps
 from crowdbake.stages.records import ImpostorTask, PosesRecord
-
-# Azimuth gaps scored between views (each at every elevation gap): each needs a render of the mesh at
-# FIDELITY_SUPERSAMPLE² (3 x 3) samples a texel, so a 32-azimuth bake scores every other gap, 16 x 2 cameras with 3 rings.
-BETWEEN_AZIMUTHS = 16
 
 
 def decode_atlas_layer(uv_map: TextureArray, normal_map: TextureArray, layer: int, layout: AtlasLayout) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -131,8 +129,7 @@ def between_cameras(layout: AtlasLayout, max_azimuths: int = BETWEEN_AZIMUTHS) -
     mid_azimuths = [((a + b) / 2.0) % 360.0 for a, b in zip(azimuths, azimuths[1:] + [azimuths[0] + 360.0])]
     if len(azimuths) == 1:
         mid_azimuths = [(azimuths[0] + 180.0) % 360.0]
-    if len(mid_azimuths) > max_azimuths:
-        mid_azimuths = [mid_azimuths[i] for i in np.linspace(0, len(mid_azimuths), max_azimuths, endpoint=False).astype(int)]
+    mid_azimuths = [mid_azimuths[i] for i in spread_gaps(len(mid_azimuths), max_azimuths)]
     mid_elevations = [(a + b) / 2.0 for a, b in zip(elevations, elevations[1:])] or elevations
     return [(a, e) for e in mid_elevations for a in mid_azimuths]
 
@@ -208,9 +205,10 @@ def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: li
             azimuth, elevation = layout.azimuths_deg[a], layout.elevations_deg[e]
             at_views.append({"azimuth_deg": azimuth, "elevation_deg": elevation,
                              **fidelity.compare(data["reference"][index], draw(azimuth, elevation, baked_frame))})
-            mid = float(data["between_azimuths"][index])
+        for (_, e), mid, reference in zip(data["between_views"].tolist(), data["between_azimuths"].tolist(), data["reference_between"]):
+            elevation = layout.elevations_deg[e]
             between_azimuths.append({"azimuth_deg": mid, "elevation_deg": elevation,
-                                     **fidelity.compare(data["reference_between"][index], draw(mid, elevation, baked_frame))})
+                                     **fidelity.compare(reference, draw(mid, elevation, baked_frame))})
     frame, frame_weights = halfway_frame(poses)
     cameras = between_cameras(layout)
     references = between_references(work, poses, supersample)
