@@ -377,7 +377,8 @@ def test_the_export_zip_is_deflated_as_the_files_are_written(tmp_path):
 
 
 def test_the_bake_converts_the_export_layers_while_it_packs(sample_bundle):
-    """The pack stage converts every impostor normal and UV layer for the export as it encodes the frame, keyed
+    """The pack stage converts every impostor normal and UV layer for the export as it encodes the frame (and the
+    poses stage decodes every diffuse layer), keyed
     by the bundle layer's digest, to what the export itself makes of that layer (the byte-for-byte test above
     shows the bake's export, which uses them, is the CLI's, which does not)."""
     from crowdbake.bake.atlas import AtlasLayout
@@ -397,6 +398,10 @@ def test_the_bake_converts_the_export_layers_while_it_packs(sample_bundle):
         assert prepared.model_normal_bc1[layer_digest(layer)] == model_space_normal_bc1(decoded, layout)
     for layer in uv.layers:
         assert np.array_equal(prepared.uv32[layer_digest(layer)], uvblock_to_uv32(layer, uv.width, uv.height))
+    # The diffuse layers as the poses stage decoded them: what rgba8_layers decodes without them.
+    diffuse = bundle.textures[bundle.manifest["materials"][0]["diffuse"]]
+    assert sorted(prepared.rgba8) == sorted(layer_digest(layer) for layer in diffuse.layers)
+    assert np.array_equal(rgba8_layers(diffuse, prepared), rgba8_layers(diffuse))
 
 
 def test_morph_animation_keys_each_frame_once(sample_export):

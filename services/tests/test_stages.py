@@ -204,6 +204,19 @@ def test_the_textures_need_the_job_alone(sample, baked, tmp_path):
         assert mine.files == bakes.files and all(np.array_equal(mine[name], bakes[name]) for name in mine.files)
 
 
+def test_the_last_frames_tasks_alternate_so_their_packs_run_side_by_side():
+    from crowdbake.stages.records import ImpostorTask
+    from crowdbake.stages.runner import task_order
+
+    tasks = [ImpostorTask(id=f"f{frame:04d}-e{ring}", frame=frame, elevation=ring, views=[[0, ring]], references=frame == 0)
+             for frame in (0, 4, 8, 12) for ring in range(3)]
+    order = [task.id for task in task_order(tasks, 2)]
+    assert order == ["f0000-e0", "f0000-e1", "f0000-e2", "f0004-e0", "f0004-e1", "f0004-e2",
+                     "f0008-e0", "f0012-e0", "f0008-e1", "f0012-e1", "f0008-e2", "f0012-e2"]
+    assert task_order(tasks, 0) == task_order(tasks, 1) == tasks
+    assert sorted(task.id for task in task_order(tasks, 5)) == sorted(task.id for task in tasks)
+
+
 def test_the_scored_azimuth_gaps_spread_round_the_ring():
     assert spread_gaps(4) == [0, 1, 2, 3] and spread_gaps(16) == list(range(16))
     assert spread_gaps(32) == list(range(0, 32, 2))

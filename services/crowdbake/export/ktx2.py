@@ -182,7 +182,8 @@ def encode_ktx2(vk_format: int, layers: np.ndarray, array: bool = True, writer: 
     if not array and layers.shape[0] != 1:
         raise ValueError(f"a non-array texture has one layer, got {layers.shape[0]}")
     layer_count, height, width, _ = layers.shape
-    level = np.ascontiguousarray(layers, dtype=layout.dtype).tobytes()
+    # The texels' own buffer, not a copy: _container copies it once, into the file's bytes.
+    level = memoryview(np.ascontiguousarray(layers, dtype=layout.dtype)).cast("B")
     return _container(vk_format, layout.bits // 8, width, height, layer_count if array else 0, _data_format_descriptor(layout),
                       level, math.lcm(layout.texel_bytes, 4), writer)
 
@@ -209,7 +210,7 @@ def encode_ktx2_blocks(vk_format: int, width: int, height: int, layers: list[byt
                       b"".join(bytes(layer) for layer in layers), math.lcm(layout.block_bytes, 4), writer)
 
 
-def _container(vk_format: int, type_size: int, width: int, height: int, layer_count: int, dfd: bytes, level: bytes,
+def _container(vk_format: int, type_size: int, width: int, height: int, layer_count: int, dfd: bytes, level: bytes | memoryview,
                alignment: int, writer: str | None) -> bytes:
     """Header, level index, DFD, key/values and the one level, which starts on a multiple of `alignment`
     (the spec's mip level alignment: lcm(texel block size, 4))."""

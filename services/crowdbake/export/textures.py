@@ -53,11 +53,17 @@ def colour_ktx2(texture: TextureArray, colour: bool, mode: str, array: bool = Tr
     return vk_format, ktx2.encode_ktx2(vk_format, layers if array else layers[:1], array)
 
 
-def rgba8_layers(texture: TextureArray) -> np.ndarray:
-    """(L, H, W, 4) uint8 texels of an rgba8, bc1 or bc2 texture array."""
+def rgba8_layers(texture: TextureArray, prepared: "PreparedLayers | None" = None) -> np.ndarray:
+    """(L, H, W, 4) uint8 texels of an rgba8, bc1 or bc2 texture array; prepared.rgba8 holds layers already decoded."""
     if texture.pixel_format not in ("rgba8", "bc1", "bc2"):
         raise ValueError(f"rgba8_layers: {texture.pixel_format} is not a colour format")
-    return np.stack([compression.decode(layer, texture.pixel_format, texture.width, texture.height) for layer in texture.layers])
+    done = prepared.rgba8 if prepared is not None and texture.pixel_format != "rgba8" else {}
+
+    def decoded(layer: bytes) -> np.ndarray:
+        texels = done.get(layer_digest(layer)) if done else None
+        return texels if texels is not None else compression.decode(layer, texture.pixel_format, texture.width, texture.height)
+
+    return np.stack([decoded(layer) for layer in texture.layers])
 
 
 @dataclass(frozen=True)
@@ -68,10 +74,13 @@ class PreparedLayers:
     a key is the digest of the layer's bytes, so a stale entry can never be used for other bytes.
 
     model_normal_bc1: bc5 normal layer -> BC1 blocks of its model-space codes (model_space_normal_bc1);
-    uv32: uvblock layer -> (H, W) uint32 words (crowdbake.bake.map_codecs.uvblock_to_uv32)."""
+    uv32: uvblock layer -> (H, W) uint32 words (crowdbake.bake.map_codecs.uvblock_to_uv32);
+    rgba8: bc1/bc2 diffuse layer -> (H, W, 4) uint8 texels as decoded (the poses stage decodes every diffuse
+    layer it encodes)."""
 
     model_normal_bc1: dict[str, bytes] = field(default_factory=dict)
     uv32: dict[str, np.ndarray] = field(default_factory=dict)
+    rgba8: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 NOTHING_PREPARED = PreparedLayers()
@@ -139,7 +148,7 @@ def uv_map_layers(texture: TextureArray, prepared: PreparedLayers = NOTHING_PREP
         for layer in texture.layers:
             done = prepared.uv32.get(layer_digest(layer)) if prepared.uv32 else None
             words.append(done if done is not None else uvblock_to_uv32(layer, texture.width, texture.height))
-        return ktx2.VK_FORMAT_R32_UINT, np.stack(words).astype(np.uint32)
+        return ktx2.VK_FORMAT_R32_UINT, np.stack(words).astype(np.uint32, copy=False)
     if texture.pixel_format == "uv32":
         return ktx2.VK_FORMAT_R32_UINT, np.stack([texture.texels(k) for k in range(len(texture.layers))]).astype(np.uint32)
     if texture.pixel_format == "rgba16":

@@ -101,12 +101,12 @@ def _texture_entry(path: str, vk_format: int, layers: int, width: int, height: i
     return {"ktx2": path, "vk_format": ktx2.format_name(vk_format), "width": width, "height": height, "layers": layers, "encoding": encoding}
 
 
-def _export_textures(bundle: Bundle, out: _Out, mode: str) -> tuple[list[dict], dict, list[np.ndarray]]:
+def _export_textures(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLayers) -> tuple[list[dict], dict, list[np.ndarray]]:
     manifest = bundle.manifest
     materials, diffuse_arrays = [], []
     for material in manifest["materials"]:
         texture = bundle.textures[material["diffuse"]]
-        layers = rgba8_layers(texture)  # for the glTF's PNG and the region codes
+        layers = rgba8_layers(texture, prepared)  # for the glTF's PNG and the region codes
         diffuse_arrays.append(layers)
         vk_format, data = colour_ktx2(texture, True, mode)
         path = out.write(f"textures/{_stem(material['name'])}_diffuse.ktx2", data)
@@ -249,7 +249,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
     try:
         out = _Out(staging, on_write)
         manifest = bundle.manifest
-        materials, outfits, diffuse_arrays = _export_textures(bundle, out, ktx2_mode)
+        materials, outfits, diffuse_arrays = _export_textures(bundle, out, ktx2_mode, prepared)
         impostor = _export_impostor(bundle, out, ktx2_mode, prepared)
         lods = _export_lods(bundle, out, diffuse_arrays)
         shaders = _copy_shaders(out)

@@ -200,12 +200,21 @@ def stage_pack_frame(work: Path, frame: int) -> Path:
 
 
 def prepared_export_layers(work: Path) -> export_textures.PreparedLayers:
-    """The layers the frames in work/pack/frames converted for the engine export (encode_frame's for_export),
-    keyed by the digests of their bundle layers. A frame file that cannot be read adds nothing: the export
-    converts that layer itself."""
+    """The layers the frames in work/pack/frames converted for the engine export (encode_frame's for_export)
+    and the diffuse layers the poses stage decoded (work/poses/textures.npz), keyed by the digests of their
+    bundle layers. A file that cannot be read adds nothing: the export converts those layers itself."""
     import zipfile
 
     prepared = export_textures.PreparedLayers()
+    try:
+        with np.load(WorkDir(work).root / "poses" / "textures.npz") as textures:
+            for name in textures.files:
+                if name.startswith("material_") and name.endswith("_encoded"):
+                    decoded = textures[name[: -len("_encoded")] + "_decoded"]
+                    for layer, texels in zip(np.split(textures[name], len(decoded)), decoded):
+                        prepared.rgba8[export_textures.layer_digest(layer.tobytes())] = texels
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        pass
     for path in sorted((WorkDir(work).root / "pack" / "frames").glob("f*.npz")):
         try:
             with np.load(path) as data:

@@ -30,6 +30,7 @@ import time
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
+from itertools import zip_longest
 from pathlib import Path
 from typing import Any, Callable
 
@@ -315,6 +316,20 @@ def _stop_fork_server() -> None:
             logger.debug("stopping the fork server failed", exc_info=True)
 
 
+def task_order(tasks: list, workers: int) -> list:
+    """The order the pool takes impostor tasks in. Fidelity-frame tasks (with their mesh references) take
+    several times an ordinary one: they go first. The rest go frame by frame, so that each frame's atlases
+    can be packed while later frames render, except the last `workers` frames, whose tasks alternate: those
+    frames then finish together and their packs run side by side at the end instead of one after another
+    on one core. tasks: ImpostorTasks (frame, id), in the plan's order."""
+    plain = [task for task in tasks if not task.references]
+    frames = list(dict.fromkeys(task.frame for task in plain))
+    tail = set(frames[-workers:]) if workers > 1 else set()
+    by_frame = [[task for task in plain if task.frame == frame] for frame in frames if frame in tail]
+    interleaved = [task for ring in zip_longest(*by_frame) for task in ring if task is not None]
+    return [task for task in tasks if task.references] + [task for task in plain if task.frame not in tail] + interleaved
+
+
 def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: int, meter: _Meter, progress: Progress | None,
                          textures: Future | None = None) -> None:
     """The impostor plan, the poses stage and every impostor task: in the pool (the plan here, while a
@@ -339,8 +354,7 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
     meter.figures("impostors").add(dict(plan, wall_s=0.0))  # within the part's wall, below
     tasks = impostor_tasks(work)
     report(progress, "impostors", 0, len(tasks))
-    # Fidelity-frame tasks (with their mesh references) take several times an ordinary one: start them first.
-    ordered = [task for task in tasks if task.references] + [task for task in tasks if not task.references]
+    ordered = task_order(tasks, workers)
     waiting: deque[tuple[str, dict | None, int | None]] = deque(("impostors", task.to_json(), task.frame) for task in ordered)
     # A frame's atlases are packed as soon as its last task is done, ahead of the tasks still waiting; the
     # pool is fed one item per free worker so that such an item does not queue behind them all.
