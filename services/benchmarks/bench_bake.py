@@ -24,7 +24,8 @@ process and around each item in the workers):
 - peak RSS of this process while the stage's progress reports came (sampled every 10 ms from
   /proc/self/statm); the process's and the largest worker's high-water marks are in the totals.
 
-Prints a table per case and writes everything as JSON. The figures are for this machine's cores under
+Prints a table per case and writes everything as JSON, with run_bake's timeline (timings.timeline: every
+worker item and stage, its process, start, end and CPU seconds). The figures are for this machine's cores under
 OSMesa (llvmpipe) unless PYOPENGL_PLATFORM=egl.
 """
 from __future__ import annotations
@@ -176,7 +177,8 @@ def run_case(case: str, sample: Path, assets: Path, workers: int | None = None) 
         "stages": stages,
         "run_bake_stage_wall_s": summary.timings_s,
         "timings": {"wall_s": wall, "cpu_s": timings["cpu_s"], "cpu_this_process_s": cpu, "render_s": timings["render_s"],
-                    "renders": timings["renders"], "workers": timings["workers"], "poses_with_impostors_s": timings["poses_with_impostors_s"]},
+                    "renders": timings["renders"], "workers": timings["workers"], "poses_with_impostors_s": timings["poses_with_impostors_s"],
+                    "timeline": timings["timeline"]},
         "wall_over_render": wall / timings["render_s"] if timings["render_s"] > 0 else None,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "peak_rss_largest_worker_mib": timings["peak_rss_mib"]["largest_worker"],
