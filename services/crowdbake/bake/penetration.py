@@ -78,7 +78,9 @@ class BodyFrames:
         tree = self._trees.get(frame)
         if tree is None:
             tree = self._trees[frame] = cKDTree(self.positions[frame])
-        distance, nearest = tree.query(cloth)
+        # Every core: the cycle stage runs this on the bake's critical path (nothing else can start before
+        # the cycle is known); the answers do not depend on the threads.
+        distance, nearest = tree.query(cloth, workers=-1)
         offset = np.einsum("ij,ij->i", cloth - self.positions[frame][nearest], self.normals[frame][nearest])
         return offset, distance, nearest
 
