@@ -19,7 +19,7 @@ logger = logging.getLogger(__name__)
 # impostor/parts/<id>.npz and .json (`_part_outputs`); pack reads every part. The poses task also writes
 # the impostor plan, which is all an impostor task reads.
 IMPOSTOR_PLAN = ("impostor/record.json", "impostor/stage.json", "impostor/scene.npz")
-STAGE_OUTPUTS = {"validate": ("validate", "inputs"), "cycle": ("cycle",), "poses": ("poses", *IMPOSTOR_PLAN), "pack": ("pack", "bundle")}
+STAGE_OUTPUTS = {"validate": ("validate", "inputs"), "cycle": ("cycle",), "poses": ("poses", "textures", *IMPOSTOR_PLAN), "pack": ("pack", "bundle")}
 STAGE_READS = {"cycle": ("validate",), "poses": ("validate", "cycle"), "impostors": ("poses",),
                "pack": ("validate", "cycle", "poses"), "publish": ("pack",)}
 

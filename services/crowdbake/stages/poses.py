@@ -27,7 +27,7 @@ from crowdbake.formats.pc2 import read_pc2
 from crowdbake.stages.records import CycleRecord, JobRecord, MaterialInfo, PosePart, PosesRecord, TexturesRecord
 from crowdbake.stages.validate import load_job, texture_files
 from crowdbake.stages.workdir import (
-    Progress, StageOutcome, WorkDir, npz_bytes, read_json, report, stage_key, write_bytes_atomic, write_json_atomic,
+    Progress, StageOutcome, WorkDir, npz_bytes, report, stage_key, write_bytes_atomic, write_json_atomic,
 )
 
 logger = logging.getLogger(__name__)
@@ -194,7 +194,6 @@ def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float
 
 DIFFUSE_ERRORS = "diffuse_errors.json"
 TEXTURES_FILE = "textures.npz"
-TEXTURES_RECORD = "textures.json"
 
 
 def _write_textures(materials: list[dict], outfits: np.ndarray, compress: bool, out: Path) -> list[MaterialInfo]:
@@ -226,26 +225,22 @@ def _write_textures(materials: list[dict], outfits: np.ndarray, compress: bool, 
 
 def stage_textures(work: Path) -> TexturesRecord:
     """The materials' diffuse layers, encoded and decoded, and the outfit map → work/poses/TEXTURES_FILE
-    (and DIFFUSE_ERRORS; its record in TEXTURES_RECORD). Part of the poses stage, but it needs only the
-    validated job: the bake runner runs it in a worker while this process searches the cycle. Idempotent:
-    kept when written for the same job."""
+    and DIFFUSE_ERRORS (its record and stamp in work/textures/). Part of the poses stage, but it needs only
+    the validated job: the bake runner runs it in a worker while this process searches the cycle.
+    Idempotent: kept when written for the same job."""
+    started = time.perf_counter()
     folder = WorkDir(work)
     out = folder.root / "poses"
     key = stage_key("textures", folder.key_of("validate"))
-    try:
-        if (out / TEXTURES_FILE).is_file() and (out / DIFFUSE_ERRORS).is_file():
-            record = TexturesRecord.from_json(read_json(out / TEXTURES_RECORD))
-            if record.key == key:
-                return record
-    except (OSError, ValueError, KeyError, TypeError, StageOrderError):
-        pass
+    cached = folder.cached("textures", key, TexturesRecord, [out / TEXTURES_FILE, out / DIFFUSE_ERRORS])
+    if cached is not None:
+        return cached
     job = load_job(work)
     # The character's own texture serves only when the job brings none (its glTF is parsed only then).
     character = None if "textures" in job.inputs else load_character(folder.inputs / job.inputs["character"], animation=job.bake_params.animation)
     materials, outfits = materials_of(job, folder.inputs, character)
-    infos = _write_textures(materials, outfits, job.bake_params.compress, out)
-    record = TexturesRecord(key=key, materials=infos, outfit_count=int(len(outfits)))
-    write_json_atomic(out / TEXTURES_RECORD, record.to_json())
+    record = TexturesRecord(materials=_write_textures(materials, outfits, job.bake_params.compress, out), outfit_count=int(len(outfits)))
+    folder.save("textures", key, record, time.perf_counter() - started)
     return record
 
 

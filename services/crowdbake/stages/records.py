@@ -119,7 +119,6 @@ class TexturesRecord(Record):
     """The poses stage's textures (work/poses/textures.npz), written as soon as the job is validated: the
     materials' diffuse arrays as baked and the outfit map's size."""
 
-    key: str
     materials: list[MaterialInfo]
     outfit_count: int
 

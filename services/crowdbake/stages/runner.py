@@ -199,7 +199,7 @@ def _worker_item(work: str, item: str, task: dict | None = None, frame: int | No
         figures = measured(lambda: (stage_poses(Path(work)).cached,
                                     len(between_references(Path(work), load_poses(Path(work)), FIDELITY_SUPERSAMPLE))))
     elif item == "textures":
-        figures = measured(lambda: stage_textures(Path(work)).key)
+        figures = measured(lambda: len(stage_textures(Path(work)).materials))
     elif item == "pack":
         figures = measured(lambda: str(stage_pack_frame(Path(work), frame)))
     elif item == "pack-stage":
