@@ -37,7 +37,7 @@ def run_once(work: Path, plan, task) -> dict[str, float]:
     timings = {"render": 0.0, "maps": 0.0, "references": 0.0}
     gl_before = render_timings().seconds
     clock = time.process_time()
-    arrays, _ = render_task(scene, plan, task, timings)
+    arrays = render_task(scene, plan, task, timings)
     pieces["render_task_cpu_s"] = time.process_time() - clock
     clock = time.process_time()
     npz_bytes(arrays)
@@ -55,7 +55,7 @@ def profile_once(work: Path, plan, task, top: int) -> list[dict]:
     profiler = cProfile.Profile(time.process_time)
     profiler.enable()
     scene = load_scene(work, plan, task.frame, runtime_textures=task.references)
-    arrays, _ = render_task(scene, plan, task, {"render": 0.0, "maps": 0.0, "references": 0.0})
+    arrays = render_task(scene, plan, task, {"render": 0.0, "maps": 0.0, "references": 0.0})
     npz_bytes(arrays)
     profiler.disable()
     stats = pstats.Stats(profiler)

@@ -1,4 +1,5 @@
-"""Seconds to turn rendered visibility buffers into impostor maps: view by view, and all views at once.
+"""Seconds to make impostor maps: from visibility buffers in numpy (view by view, and all views at once),
+and drawn by the map shader.
 
     PYTHONPATH=services python services/benchmarks/bench_maps.py --work WORK [--frame 0] [--repeat 3]
         [--out out/bench/maps.json] [--save maps.npz]
@@ -6,8 +7,10 @@
 WORK is a bake's work folder (`crowdbake bake ... --work WORK`). One frame's scene is loaded and every
 view of the layout (default 16 x 3 of 128²) rendered once; then the map resolution is timed apart from
 the renderer: resolve_coverage + view_maps called per view (what the impostor stage does), and
-resolve_coverage_views + view_maps_views over each elevation ring at once, where this checkout has them.
-CPU seconds, best of --repeat. --save writes the per-view maps, so that two checkouts' outputs can be
+resolve_coverage_views + view_maps_views over each elevation ring at once, where this checkout has them;
+the visibility renders themselves; and, where this checkout has it, the map shader (what the impostor
+stage does now: crowdbake.render.map_shader over each ring, then fill_background), with how far its maps
+are from the numpy ones. CPU seconds of the process (llvmpipe's threads included), best of --repeat. --save writes the per-view maps, so that two checkouts' outputs can be
 compared texel for texel (PYTHONPATH pointing at the other one).
 """
 from __future__ import annotations
@@ -52,12 +55,26 @@ def main() -> int:
     tile = int(layout["tile_size"])
     centre, radius = poses.bounds["center"], poses.bounds["radius"]
     rings = []
+    report = {"work": str(args.work), "frame": frame, "tile": tile, "cpu_seconds": {}}
     with VisibilityRenderer(tile) as renderer:
         renderer.set_mesh(scene.positions, scene.faces)
         for elevation in layout["elevations_deg"]:
             views = [impostor_maps.ortho_view(centre, radius, azimuth, elevation, tile) for azimuth in layout["azimuths_deg"]]
             rings.append((views, [renderer.render(view) for view in views]))
-    view_count = sum(len(views) for views, _ in rings)
+        report["cpu_seconds"]["visibility_renders"] = best_cpu(lambda: [renderer.render(view) for views, _ in rings for view in views], args.repeat)
+        if hasattr(renderer, "shader_maps"):
+            def shaded() -> list:
+                out = []
+                for views, _ in rings:
+                    drawn = renderer.shader_maps(views, scene.positions, scene.normals, scene.uvs, scene.positions, scene.faces,
+                                                 scene.triangle_material, scene.diffuse)
+                    impostor_maps.fill_background(drawn.mask, [drawn.normal, drawn.detail], unflattened=[drawn.surface])
+                    out.append(drawn)
+                return out
+
+            report["cpu_seconds"]["shader"] = best_cpu(shaded, args.repeat)
+            shader_maps = shaded()
+    report["views"] = view_count = sum(len(views) for views, _ in rings)
     arguments = (scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material, scene.diffuse)
 
     def per_view() -> list:
@@ -77,7 +94,6 @@ def main() -> int:
             out.extend(impostor_maps.view_maps_views(views, coverages, *arguments))
         return out
 
-    report = {"work": str(args.work), "frame": frame, "views": view_count, "tile": tile, "cpu_seconds": {}}
     report["cpu_seconds"]["per_view"] = best_cpu(per_view, args.repeat)
     if hasattr(impostor_maps, "view_maps_views"):
         report["cpu_seconds"]["batched"] = best_cpu(batched, args.repeat)
@@ -86,6 +102,15 @@ def main() -> int:
             for a, b in zip(per_view(), batched())
         )
         report["batched_equals_per_view"] = same
+    if "shader" in report["cpu_seconds"]:
+        exact = batched() if hasattr(impostor_maps, "view_maps_views") else per_view()
+        report["shader_against_numpy"] = agreement = {}
+        for kind in ("normal", "uv", "detail"):
+            want = np.stack([getattr(m, kind) for m in exact]).astype(np.int64)
+            got = np.concatenate([getattr(drawn, kind) for drawn in shader_maps]).astype(np.int64)
+            agreement[f"{kind}_share_over_one_code"] = float((np.abs(got - want) > 1).any(axis=-1).mean())
+        mask = np.concatenate([drawn.mask for drawn in shader_maps])
+        agreement["coverage_differs"] = int((mask != np.stack([m.coverage.mask for m in exact])).sum())
     if args.save:
         maps = per_view()
         np.savez_compressed(args.save, **{kind: np.stack([getattr(m, kind) for m in maps]) for kind in ("normal", "uv", "detail")})
@@ -93,6 +118,8 @@ def main() -> int:
         print(f"{name:9s} {seconds:7.3f} s CPU for {view_count} views of {tile}²: {1000 * seconds / view_count:6.2f} ms a view")
     if "batched_equals_per_view" in report:
         print(f"batched maps equal the per-view maps: {report['batched_equals_per_view']}")
+    if "shader_against_numpy" in report:
+        print("shader maps against numpy's:", ", ".join(f"{k} {v:.2g}" for k, v in report["shader_against_numpy"].items()))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2) + "\n")
     print(f"wrote {args.out}")

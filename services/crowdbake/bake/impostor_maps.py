@@ -548,7 +548,6 @@ def view_maps_views(
 
     backs = np.stack([view.back for view in views])[which]
     normal = shading_normals_at(backs, at_texels(normals), face_normals(positions, faces)[hit])
-    normal_rgb = np.clip(np.rint((normal + 1.0) * 0.5 * 255.0), 0, 255).astype(np.uint8)
     uv = wrap_uv(at_texels(uvs))
     material = triangle_material[hit]
     detail = np.zeros((len(hit), 4), dtype=np.float64)
@@ -556,11 +555,10 @@ def view_maps_views(
         selected = material == index
         if selected.any():
             detail[selected] = sample_texture(texture, uv[selected])
-    detail_rgba = np.clip(np.rint(detail), 0, 255).astype(np.uint8)
 
-    shape = triangles.shape
+    shape = masks.shape
     normal_map = np.zeros(shape + (4,), dtype=np.uint8)
-    normal_map.reshape(-1, 4)[texel, :3] = normal_rgb
+    normal_map.reshape(-1, 4)[texel, :3] = np.clip(np.rint((normal + 1.0) * 0.5 * 255.0), 0, 255)
     normal_map[..., 3] = np.where(masks, 255, 0)
     uv_map = np.zeros(shape + (4,), dtype=np.uint16)
     uv_texels = np.empty((len(texel), 4), dtype=np.uint16)
@@ -569,12 +567,26 @@ def view_maps_views(
     uv_texels[:, 3] = 65535
     uv_map.reshape(-1, 4)[texel] = uv_texels
     detail_map = np.zeros(shape + (4,), dtype=np.uint8)
-    detail_map.reshape(-1, 4)[texel] = detail_rgba
-
-    # The background takes the silhouette's values (block compression then spends nothing on it): one
-    # gather over every view's texels from the per-view distance transforms, then the empty blocks flat.
-    nearest = nearest_inside_views(masks).reshape(-1)
-    for image in (normal_map, detail_map):
-        filled = image[..., :3].reshape(-1, 3)[nearest].reshape(shape + (3,))
-        image[..., :3] = flatten_empty_blocks(filled, masks)
+    detail_map.reshape(-1, 4)[texel] = np.clip(np.rint(detail), 0, 255)
+    fill_background(masks, [normal_map, detail_map])
     return [ViewMaps(normal_map[k], uv_map[k], detail_map[k], coverage) for k, coverage in enumerate(coverages)]
+
+
+def fill_background(mask: np.ndarray, maps: list[np.ndarray], unflattened: list[np.ndarray] = ()) -> np.ndarray:
+    """Give the texels outside `mask` the RGB of their view's nearest covered texel, in place.
+
+    mask: (V, S, S) bool; maps, unflattened: (V, S, S, C >= 3) images of those views (alpha left alone).
+    The 4 x 4 blocks of `maps` holding no covered texel are then made flat (flatten_empty_blocks); those
+    of `unflattened` keep the filled values. Returns the flat index (V·S·S,) of every texel's nearest
+    covered texel (nearest_inside_views).
+
+    Block compression fits each block's endpoints to all 16 texels: filling the background with the
+    silhouette's own values keeps it from spending precision on texels nobody sees, and a flat block
+    costs the encoder nothing. Both map makers end here: view_maps_views (numpy, float64) and
+    crowdbake.render.map_shader (a shader)."""
+    shape = mask.shape
+    nearest = nearest_inside_views(mask).reshape(-1)
+    for image in [*maps, *unflattened]:
+        filled = image[..., :3].reshape(-1, 3)[nearest].reshape(shape + (3,))
+        image[..., :3] = flatten_empty_blocks(filled, mask) if any(image is other for other in maps) else filled
+    return nearest

@@ -24,6 +24,8 @@ import numpy as np
 from crowdbake.render import offscreen  # (also chooses the GL platform before pyrender loads)
 from crowdbake.bake import impostor_maps
 from crowdbake.bake.impostor_maps import Coverage, OrthoView
+from crowdbake.render import map_shader
+from crowdbake.render.map_shader import MapShader, ShaderMaps
 
 if TYPE_CHECKING:
     import pyrender  # imported where drawn (see crowdbake.render.offscreen), after the platform choice
@@ -93,6 +95,7 @@ class VisibilityRenderer:
         self._mesh_node: pyrender.Node | None = None
         self._camera_node: pyrender.Node | None = None
         self._triangle_count = 0
+        self._shaders: dict[tuple[int, str], MapShader] = {}  # by (view size, pass)
 
     def __enter__(self) -> "VisibilityRenderer":
         self._offscreen.__enter__()
@@ -103,8 +106,43 @@ class VisibilityRenderer:
         self.close()
 
     def close(self) -> None:
+        if self._shaders and self._open:
+            with self._offscreen.current(setup=True):
+                for shader in self._shaders.values():
+                    shader.delete()
+        self._shaders = {}
         self._offscreen.close()
         self._open = False
+
+    def _shader(self, size: int, shader_pass) -> MapShader:
+        """This context's MapShader of `shader_pass` for views of `size`² (the context must be current)."""
+        key = (int(size), shader_pass.name)
+        if key not in self._shaders:
+            self._shaders[key] = MapShader(size, shader_pass)
+        return self._shaders[key]
+
+    def shader_maps(self, views: list[OrthoView], positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray,
+                    next_positions: np.ndarray, faces: np.ndarray, triangle_material: np.ndarray,
+                    diffuse: list[np.ndarray]) -> ShaderMaps:
+        """The impostor maps of every view of a mesh, drawn by crowdbake.render.map_shader in this renderer's
+        context (views of one size, any size; arguments as map_shader.MapShader.draw). Independent of
+        set_mesh: the mesh is given here."""
+        if not self._open:
+            raise RuntimeError("VisibilityRenderer.shader_maps called outside its `with` block")
+        with self._offscreen.current():
+            shader = self._shader(views[0].size if views else self.size, map_shader.MAPS)
+            return map_shader.draw_maps(shader, views, positions, normals, uvs, next_positions, faces, triangle_material, diffuse)
+
+    def shader_references(self, views: list[OrthoView], positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray,
+                          faces: np.ndarray, triangle_material: np.ndarray, diffuse: list[np.ndarray], outfit_row: np.ndarray,
+                          supersample: int) -> np.ndarray:
+        """The fidelity stage's mesh references of `views` (size S · supersample), (V, S, S, 3) float32:
+        crowdbake.render.map_shader.draw_references in this renderer's context."""
+        if not self._open:
+            raise RuntimeError("VisibilityRenderer.shader_references called outside its `with` block")
+        with self._offscreen.current():
+            shader = self._shader(views[0].size if views else self.size, map_shader.REFERENCE)
+            return map_shader.draw_references(shader, views, positions, normals, uvs, faces, triangle_material, diffuse, outfit_row, supersample)
 
     def set_mesh(self, positions: np.ndarray, faces: np.ndarray) -> None:
         """Replace the mesh: positions (V, 3) model space, faces (T, 3) int (all parts concatenated)."""

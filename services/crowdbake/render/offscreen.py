@@ -301,6 +301,26 @@ class Offscreen:
             self._renderer = None
             _add_time(setup_seconds=time.perf_counter() - started)
 
+    @contextmanager
+    def current(self, setup: bool = False) -> Iterator[None]:
+        """Make this renderer's GL context current for GL calls of one's own (crowdbake.render.map_shader)
+        inside the block, whose seconds count as one render (setup: as set-up time instead, for freeing
+        GL objects). pyrender sets the state it needs at every render, so what the block leaves bound
+        does not reach pyrender's draws."""
+        if self._renderer is None:
+            raise RuntimeError("Offscreen.current used outside its `with` block")
+        started = time.perf_counter()
+        self._renderer._platform.make_current()
+        try:
+            yield
+        finally:
+            self._renderer._platform.make_uncurrent()
+            elapsed = time.perf_counter() - started
+            if setup:
+                _add_time(setup_seconds=elapsed)
+            else:
+                _add_time(seconds=elapsed, renders=1)
+
     def render(self, scene: "pyrender.Scene", flags: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """Render `scene` through its main camera: colour (H, W, 3 or 4) uint8 and depth (H, W) float32.
 

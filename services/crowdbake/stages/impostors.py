@@ -7,11 +7,11 @@ and, in work/impostor/scene.npz, the high LOD at those frames and the textures t
 computed by the same functions as the poses stage (crowdbake.stages.poses.high_parts). So the tasks do
 not wait for the poses stage: both run side by side (two workers, or the CLI runner's two processes).
 
-Each task renders its views (crowdbake.render.impostor), resolves their coverage and maps in one batch
-(crowdbake.bake.impostor_maps.resolve_coverage_views, view_maps_views) and writes
-work/impostor/parts/<id>.npz and its sidecar <id>.json (ImpostorPartRecord). Fidelity-frame tasks also
-render the mesh references the pack stage scores the impostor against; a reference at a baked view is
-the same render as that view's maps (see FIDELITY_SUPERSAMPLE).
+Each task draws its views' maps in one pass of a shader (crowdbake.render.map_shader, through
+crowdbake.render.impostor's renderer), fills their backgrounds in one batch
+(crowdbake.bake.impostor_maps.fill_background) and writes work/impostor/parts/<id>.npz and its sidecar
+<id>.json (ImpostorPartRecord). Fidelity-frame tasks also draw the mesh references the pack stage scores
+the impostor against, shaded per sample by the same shader's reference pass.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crowdbake.bake import compression, fidelity, impostor_maps, surface_maps
+from crowdbake.bake import compression, impostor_maps, surface_maps
 from crowdbake.formats.binary import read_pose_frame
 from crowdbake.formats.gltf import load_character
 from crowdbake.render.impostor import shared_renderer
@@ -33,15 +33,16 @@ from crowdbake.stages.workdir import (
     Progress, StageOutcome, WorkDir, npz_bytes, read_json, report, stage_key, write_bytes_atomic, write_json_atomic,
 )
 
-# Samples per texel side of the fidelity stage's mesh reference (crowdbake.bake.fidelity): 3² = 9. Odd on
-# purpose: the middle sample of a texel's 3 x 3 lies on the texel's centre, so the reference render of a
-# baked view is also that view's visibility buffer at tile size (every third pixel), and the maps of the
-# fidelity frame come from the same render. 4² samples scored the sample's impostor within 0.003 SSIM of
-# 3² (docs/bake.md, "Speed") for 16/9 the shading work.
+# Samples per texel side of the fidelity stage's mesh reference (crowdbake.bake.fidelity): 3² = 9. 4²
+# samples scored the sample's impostor within 0.003 SSIM of 3² (docs/bake.md, "Speed") for 16/9 the
+# shading work.
 FIDELITY_SUPERSAMPLE = 3
 SCENE_FILE = "scene.npz"
 # The maps a part holds; part of its key, so parts written before a map was added are rendered again.
 PART_MAPS = ("normal", "uv", "detail", "surface")
+# What draws the maps and the references, part of a part's key too: parts that numpy resolved from
+# triangle-id renders are drawn again.
+MAP_MAKER = "map_shader-1"
 # Azimuth gaps the fidelity scores render the mesh in, halfway between two baked azimuths (each at every
 # elevation): each is a render at FIDELITY_SUPERSAMPLE x the tile and its shading, so a bake with more
 # azimuths scores this many gaps spread evenly round the ring (spread_gaps), 16 x 3 cameras of a 32-azimuth
@@ -211,72 +212,56 @@ def midpoint_azimuths(azimuths: list[float]) -> list[float]:
     return [((a + b) / 2.0) % 360.0 for a, b in zip(azimuths, following)]
 
 
-def _reference(scene: Scene, view: impostor_maps.OrthoView, coverage: impostor_maps.Coverage) -> np.ndarray:
-    """The mesh at `view` (FIDELITY_SUPERSAMPLE x the tile) lit as the runtime lights the impostor: (S, S, 3) float32."""
-    return fidelity.mesh_reference(
-        view, coverage, FIDELITY_SUPERSAMPLE, scene.positions, scene.normals, scene.uvs, scene.faces,
-        scene.triangle_material, scene.diffuse_runtime, scene.outfit_row, fidelity.camera_light(view),
-    ).astype(np.float32)
-
-
 def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dict[str, float],
-                next_positions: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], int]:
-    """A task's maps (and, for the fidelity frame, references): the arrays of its part and the texels repaired.
+                next_positions: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """A task's maps (and, for the fidelity frame, references): the arrays of its part.
 
     next_positions: (V, 3) the scene's vertices at the next baked frame, for the surface maps' motion
     (crowdbake.bake.surface_maps); None: no motion.
 
-    Views render one by one (one GL context) into a (V, S, S) stack of ids and depths; coverage and maps
-    are then resolved for the whole ring at once. With references, each baked view renders once at
-    FIDELITY_SUPERSAMPLE x the tile: its full image is the reference's visibility, its middle samples the
-    maps' (the texel centres). timings: adds "render", "maps" and "references" seconds.
+    The maps of every view are drawn, encoded, in one pass of crowdbake.render.map_shader; their
+    backgrounds are filled for the whole ring at once (impostor_maps.fill_background). With references,
+    the mesh is also drawn shaded at FIDELITY_SUPERSAMPLE x the tile from every baked view and halfway
+    to the next azimuth (_between_references), box-filtered on the GPU. timings: adds "render" (the
+    maps' pass), "maps" (the background fill) and "references" seconds.
     """
     layout = plan.layout
     tile = int(layout["tile_size"])
-    supersample = FIDELITY_SUPERSAMPLE if task.references else 1
-    middle = supersample // 2
     views = [(int(a), int(e)) for a, e in task.views]
-    renderer = shared_renderer(tile * supersample)
-    renderer.set_mesh(scene.positions, scene.faces)
-    map_views, ids, depth, references = [], np.empty((len(views), tile, tile), np.int64), np.empty((len(views), tile, tile)), []
-    for k, (a, e) in enumerate(views):
-        azimuth, elevation = layout["azimuths_deg"][a], layout["elevations_deg"][e]
-        map_views.append(impostor_maps.ortho_view(plan.center, plan.radius, azimuth, elevation, tile))
-        view = map_views[-1]
-        if supersample != 1:
-            view = impostor_maps.ortho_view(plan.center, plan.radius, azimuth, elevation, tile * supersample)
-        clock = time.perf_counter()
-        image = renderer.render(view)
-        timings["render"] += time.perf_counter() - clock
-        ids[k] = image.ids[middle::supersample, middle::supersample]
-        depth[k] = image.depth[middle::supersample, middle::supersample]
-        if task.references:
-            clock = time.perf_counter()
-            coverage = impostor_maps.resolve_coverage(view, image.ids, scene.positions, scene.faces, image.depth)
-            references.append(_reference(scene, view, coverage))
-            timings["references"] += time.perf_counter() - clock
+    angles = [(layout["azimuths_deg"][a], layout["elevations_deg"][e]) for a, e in views]
+    map_views = [impostor_maps.ortho_view(plan.center, plan.radius, azimuth, elevation, tile) for azimuth, elevation in angles]
+    renderer = shared_renderer(tile)
     clock = time.perf_counter()
-    coverages = impostor_maps.resolve_coverage_views(map_views, ids, scene.positions, scene.faces, depth)
-    maps = impostor_maps.view_maps_views(
-        map_views, coverages, scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material, scene.diffuse
-    )
-    if next_positions is None:
-        next_positions = scene.positions
-    surfaces = [surface_maps.encode_surface(*surface_maps.surface_fields(view, coverage, scene.positions, next_positions, scene.faces),
-                                            plan.radius) for view, coverage in zip(map_views, coverages)]
+    maps = renderer.shader_maps(map_views, scene.positions, scene.normals, scene.uvs,
+                                scene.positions if next_positions is None else next_positions,
+                                scene.faces, scene.triangle_material, scene.diffuse)
+    timings["render"] += time.perf_counter() - clock
+    clock = time.perf_counter()
+    # The surface map's background is filled as the others' but keeps its blocks as filled: its values
+    # beside the silhouette are read back by the runtime's reprojection.
+    impostor_maps.fill_background(maps.mask, [maps.normal, maps.detail], unflattened=[maps.surface])
+    maps.surface[..., 3] = 255
     timings["maps"] += time.perf_counter() - clock
-    arrays = {
-        "views": np.asarray(views, dtype=np.int64).reshape(-1, 2),
-        "normal": np.stack([m.normal for m in maps]),
-        "uv": np.stack([m.uv for m in maps]),
-        "detail": np.stack([m.detail for m in maps]),
-        "surface": np.stack(surfaces),
-    }
+    arrays = {"views": np.asarray(views, dtype=np.int64).reshape(-1, 2), "normal": maps.normal, "uv": maps.uv, "detail": maps.detail,
+              "surface": maps.surface}
     if task.references:
         clock = time.perf_counter()
-        arrays.update(reference=np.stack(references), **_between_references(scene, plan, views))
+        arrays.update(reference=mesh_references(scene, plan, angles), **_between_references(scene, plan, views))
         timings["references"] += time.perf_counter() - clock
-    return arrays, sum(coverage.repaired for coverage in coverages)
+    return arrays
+
+
+def mesh_references(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]]) -> np.ndarray:
+    """The mesh from each (azimuth, elevation) in degrees, lit as the runtime lights the impostor, at
+    FIDELITY_SUPERSAMPLE² samples a texel (crowdbake.render.map_shader.draw_references, which
+    crowdbake.bake.fidelity.mesh_reference is the float64 reference of): (V, S, S, 3) float32."""
+    size = int(plan.layout["tile_size"]) * FIDELITY_SUPERSAMPLE
+    views = [impostor_maps.ortho_view(plan.center, plan.radius, azimuth, elevation, size) for azimuth, elevation in angles]
+    if not views:
+        return np.zeros((0, size // FIDELITY_SUPERSAMPLE, size // FIDELITY_SUPERSAMPLE, 3), np.float32)
+    return shared_renderer(int(plan.layout["tile_size"])).shader_references(
+        views, scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material, scene.diffuse_runtime,
+        scene.outfit_row, FIDELITY_SUPERSAMPLE)
 
 
 def _between_references(scene: Scene, plan: ImpostorPlan, views: list[tuple[int, int]]) -> dict[str, np.ndarray]:
@@ -284,18 +269,12 @@ def _between_references(scene: Scene, plan: ImpostorPlan, views: list[tuple[int,
     whose azimuth gap is scored (spread_gaps): "between_views" (B, 2) their (azimuth, elevation) indices,
     "between_azimuths" (B,) degrees, "reference_between" (B, S, S, 3)."""
     layout = plan.layout
-    size = int(layout["tile_size"]) * FIDELITY_SUPERSAMPLE
     midpoints = midpoint_azimuths(list(layout["azimuths_deg"]))
     scored = set(spread_gaps(len(midpoints)))
     chosen = [(a, e) for a, e in views if a in scored]
-    renderer = shared_renderer(size)
-    between = []
-    for a, e in chosen:
-        view = impostor_maps.ortho_view(plan.center, plan.radius, midpoints[a], layout["elevations_deg"][e], size)
-        between.append(_reference(scene, view, renderer.coverage(view, scene.positions, scene.faces)))
     return {
         "between_views": np.asarray(chosen, dtype=np.int64).reshape(-1, 2),
-        "reference_between": np.stack(between) if between else np.zeros((0, size, size, 3), np.float32),
+        "reference_between": mesh_references(scene, plan, [(midpoints[a], layout["elevations_deg"][e]) for a, e in chosen]),
         "between_azimuths": np.asarray([midpoints[a] for a, _ in chosen], dtype=np.float64),
     }
 
@@ -309,7 +288,7 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
     work = Path(work)
     task = as_task(task)
     path = part_path(work, task)
-    key = stage_key("impostor-part", PART_MAPS, BETWEEN_AZIMUTHS, WorkDir(work).key_of("impostor"), task.to_json())
+    key = stage_key("impostor-part", PART_MAPS, MAP_MAKER, BETWEEN_AZIMUTHS, WorkDir(work).key_of("impostor"), task.to_json())
     stats_path = path.with_suffix(".json")
     if path.is_file() and stats_path.is_file():
         try:
@@ -324,9 +303,9 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
     with np.load(work / "impostor" / SCENE_FILE) as data:
         next_positions = data[f"positions_{surface_maps.next_baked_frame(task.frame, plan.frame_indices)}"].astype(np.float64)
     timings = {"render": 0.0, "maps": 0.0, "references": 0.0}
-    arrays, repaired = render_task(scene, plan, task, timings, next_positions)
+    arrays = render_task(scene, plan, task, timings, next_positions)
     write_bytes_atomic(path, npz_bytes(arrays))
-    write_json_atomic(stats_path, ImpostorPartRecord(key=key, views=len(task.views), repaired_texels=repaired, seconds=timings).to_json())
+    write_json_atomic(stats_path, ImpostorPartRecord(key=key, views=len(task.views), seconds=timings).to_json())
     return path
 
 
@@ -355,7 +334,6 @@ def impostor_statistics(work: Path) -> ImpostorStatistics:
             continue
         totals.tasks += 1
         totals.views += int(stats.views)
-        totals.repaired_texels += int(stats.repaired_texels)
         totals.render_seconds += float(stats.seconds["render"])
         totals.maps_seconds += float(stats.seconds["maps"])
         totals.reference_seconds += float(stats.seconds["references"])

@@ -207,7 +207,6 @@ class ImpostorPartRecord(Record):
 
     key: str
     views: int
-    repaired_texels: int
     seconds: dict[str, float] = field(default_factory=dict)  # render, maps, references
 
 
@@ -217,7 +216,6 @@ class ImpostorStatistics(Record):
 
     tasks: int = 0
     views: int = 0
-    repaired_texels: int = 0
     render_seconds: float = 0.0
     maps_seconds: float = 0.0
     reference_seconds: float = 0.0

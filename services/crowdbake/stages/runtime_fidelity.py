@@ -24,7 +24,7 @@ from crowdbake.bake import compression, fidelity, impostor_blend, impostor_maps,
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.bake.impostor_blend import DecodedTile
 from crowdbake.formats.binary import TextureArray, decode_texture_array, unpack_uv32, unpack_uvblock
-from crowdbake.stages.impostors import BETWEEN_AZIMUTHS, spread_gaps
+from crowdbake.stages.impostors import BETWEEN_AZIMUTHS, MAP_MAKER, spread_gaps
 from crowdbake.stages.records import ImpostorTask, PosesRecord
 
 
@@ -136,22 +136,18 @@ def between_cameras(layout: AtlasLayout, max_azimuths: int = BETWEEN_AZIMUTHS) -
 
 def render_mesh_references(work: Path, poses: PosesRecord, frame: int, cameras: list[tuple[float, float]], supersample: int) -> list[np.ndarray]:
     """The mesh at cycle frame `frame` seen from each (azimuth, elevation), shaded as the fidelity references are
-    (crowdbake.bake.fidelity.mesh_reference): (S, S, 3) float images."""
+    (crowdbake.render.map_shader.draw_references): (S, S, 3) float32 images."""
     from crowdbake.render.impostor import shared_renderer
     from crowdbake.stages.impostors import load_pose_scene
 
+    if not cameras:
+        return []
     scene = load_pose_scene(work, poses, frame)
-    size = int(poses.layout["tile_size"]) * supersample
-    renderer = shared_renderer(size)
-    renderer.set_mesh(scene.positions, scene.faces)
-    images = []
-    for azimuth, elevation in cameras:
-        view = impostor_maps.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
-        coverage = renderer.coverage(view, scene.positions, scene.faces)
-        images.append(fidelity.mesh_reference(
-            view, coverage, supersample, scene.positions, scene.normals, scene.uvs, scene.faces,
-            scene.triangle_material, scene.diffuse_runtime, scene.outfit_row, fidelity.camera_light(view)))
-    return images
+    tile = int(poses.layout["tile_size"])
+    views = [impostor_maps.ortho_view(poses.center, poses.radius, azimuth, elevation, tile * supersample) for azimuth, elevation in cameras]
+    references = shared_renderer(tile).shader_references(views, scene.positions, scene.normals, scene.uvs, scene.faces,
+                                                          scene.triangle_material, scene.diffuse_runtime, scene.outfit_row, supersample)
+    return list(references)
 
 
 REFERENCES_FILE = "runtime_references.npz"
@@ -166,7 +162,7 @@ def between_references(work: Path, poses: PosesRecord, supersample: int) -> list
     layout = poses.atlas_layout()
     frame, _ = halfway_frame(poses)
     cameras = between_cameras(layout)
-    key = stage_key("runtime-references", WorkDir(work).key_of("poses"), frame, cameras, supersample)
+    key = stage_key("runtime-references", WorkDir(work).key_of("poses"), frame, cameras, supersample, MAP_MAKER)
     path = Path(work) / "pack" / REFERENCES_FILE
     if path.is_file():
         with np.load(path) as data:
