@@ -28,9 +28,11 @@ REDIS_SERVER = shutil.which("redis-server")
 
 # Small bakes of the procedural sample (3 walk cycles, 64² textures): a few seconds each on one core.
 FAST_PARAMS = {"impostor_frames": 2, "azimuths": 4, "elevations_deg": [0, 30], "tile_size": 32, "candidates": 2, "cycle_views": 2}
-# Impostor tasks long enough (measured 1.6 s for each fidelity-frame task on one core) for a signal to
-# land in the middle of one: 3 frames x 2 rings of 8 views of 128² texels.
-SLOW_IMPOSTOR_PARAMS = {"impostor_frames": 3, "azimuths": 8, "elevations_deg": [0, 30], "tile_size": 128, "candidates": 2, "cycle_views": 2}
+# Impostor tasks long enough for a signal to land in the middle of one: 3 frames x 2 rings of 16 views of
+# 256² texels. (The map shader draws a ring of 8 views of 128² in 0.03 s: a pool process seen busy had
+# often finished by the time the kill landed, and under the filesystem broker a pool process killed
+# while it waits for its next task takes the pool's shared queue lock with it.)
+SLOW_IMPOSTOR_PARAMS = {"impostor_frames": 3, "azimuths": 16, "elevations_deg": [0, 30], "tile_size": 256, "candidates": 2, "cycle_views": 2}
 FINAL_STATES = ("succeeded", "failed", "cancelled")
 
 
