@@ -10,7 +10,9 @@ the renderer: resolve_coverage + view_maps called per view (what the impostor st
 resolve_coverage_views + view_maps_views over each elevation ring at once, where this checkout has them;
 the visibility renders themselves; and, where this checkout has it, the map shader (what the impostor
 stage does now: crowdbake.render.map_shader over each ring, then fill_background), with how far its maps
-are from the numpy ones. CPU seconds of the process (llvmpipe's threads included), best of --repeat. --save writes the per-view maps, so that two checkouts' outputs can be
+are from the numpy ones; and the fidelity references of the first ring (3 x 3 samples a texel): the
+shader's reference pass against id renders, exact coverage and fidelity.mesh_reference in numpy. CPU
+seconds of the process (llvmpipe's threads included), best of --repeat. --save writes the per-view maps, so that two checkouts' outputs can be
 compared texel for texel (PYTHONPATH pointing at the other one).
 """
 from __future__ import annotations
@@ -111,11 +113,37 @@ def main() -> int:
             agreement[f"{kind}_share_over_one_code"] = float((np.abs(got - want) > 1).any(axis=-1).mean())
         mask = np.concatenate([drawn.mask for drawn in shader_maps])
         agreement["coverage_differs"] = int((mask != np.stack([m.coverage.mask for m in exact])).sum())
+    if hasattr(VisibilityRenderer, "shader_references"):
+        from crowdbake.bake import fidelity
+        from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE
+
+        supersample = FIDELITY_SUPERSAMPLE
+        ring = [impostor_maps.ortho_view(centre, radius, view.azimuth_deg, view.elevation_deg, tile * supersample) for view in rings[0][0]]
+        with VisibilityRenderer(tile * supersample) as renderer:
+            def shaded_references() -> np.ndarray:
+                return renderer.shader_references(ring, scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material,
+                                                  scene.diffuse_runtime, scene.outfit_row, supersample)
+
+            def numpy_references() -> np.ndarray:
+                renderer.set_mesh(scene.positions, scene.faces)
+                return np.stack([fidelity.mesh_reference(view, renderer.coverage(view, scene.positions, scene.faces), supersample,
+                                                         scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material,
+                                                         scene.diffuse_runtime, scene.outfit_row, fidelity.camera_light(view)) for view in ring])
+
+            report["cpu_seconds"]["references_shader"] = best_cpu(shaded_references, args.repeat)
+            report["cpu_seconds"]["references_numpy"] = best_cpu(numpy_references, args.repeat)
+            difference = np.abs(shaded_references() - numpy_references())
+        report["references"] = {"views": len(ring), "size": tile * supersample, "max_difference": float(difference.max()),
+                                "mean_difference": float(difference.mean())}
     if args.save:
         maps = per_view()
         np.savez_compressed(args.save, **{kind: np.stack([getattr(m, kind) for m in maps]) for kind in ("normal", "uv", "detail")})
     for name, seconds in report["cpu_seconds"].items():
-        print(f"{name:9s} {seconds:7.3f} s CPU for {view_count} views of {tile}²: {1000 * seconds / view_count:6.2f} ms a view")
+        views, size = (report["references"]["views"], report["references"]["size"]) if name.startswith("references") else (view_count, tile)
+        print(f"{name:18s} {seconds:7.3f} s CPU for {views} views of {size}²: {1000 * seconds / views:6.2f} ms a view")
+    if "references" in report:
+        print(f"references, shader against numpy: max difference {report['references']['max_difference']:.2g}, "
+              f"mean {report['references']['mean_difference']:.2g} (colours 0..1)")
     if "batched_equals_per_view" in report:
         print(f"batched maps equal the per-view maps: {report['batched_equals_per_view']}")
     if "shader_against_numpy" in report:
