@@ -84,7 +84,8 @@ def mesh_reference(
     outfit_row: np.ndarray,
     light: np.ndarray,
 ) -> np.ndarray:
-    """The mesh, shaded and anti-aliased: (S, S, 3) float64 0..1, black background.
+    """The mesh, shaded and anti-aliased: (S, S, 3) float64 0..1, black background. The bake draws the
+    same picture with a shader (crowdbake.render.map_shader.draw_references); this is its float64 reference.
 
     view, coverage: at S·supersample texels (view.size = S · supersample); the other arrays as in
     impostor_maps.view_maps; diffuse: per material, the texture to use (h, w, 4) uint8.

@@ -1,10 +1,12 @@
 """Impostor maps from a visibility buffer: normal, UV and detail maps, computed exactly per texel.
 
 Dobbyn et al. 2006, sections 4 and 5: per viewpoint, a normal map (normals as RGB), a detail map (diffuse
-RGBA with the colour regions in alpha) and the paper's UV map (texture coordinates as colour). The GL side
-(crowdbake.render.impostor) renders only *which triangle* covers each texel centre: every triangle drawn in
-one flat colour, its index + 1 in 24 bits, with no lighting, blending, or filtering. Everything else happens
-here in float64, so nothing passes through 8-bit colour:
+RGBA with the colour regions in alpha) and the paper's UV map (texture coordinates as colour). The bake
+draws them with a shader (crowdbake.render.map_shader); this module is their exact float64 reference,
+which the shader is tested against, and the background fill both share (fill_background). Here the GL
+side (crowdbake.render.impostor) renders only *which triangle* covers each texel centre: every triangle
+drawn in one flat colour, its index + 1 in 24 bits, with no lighting, blending, or filtering. Everything
+else happens here in float64, so nothing passes through 8-bit colour:
 
 - The views are orthographic, so a triangle's projection is an affine map and the barycentric coordinates
   of a texel centre are exact 2D arithmetic (no perspective correction).

@@ -1,14 +1,21 @@
-"""Visibility buffers for the impostor bake, rendered with pyrender (OSMesa by default, EGL selectable).
+"""The impostor bake's GL, with pyrender's context (OSMesa by default, EGL selectable).
 
-The GL part of the impostor bake is deliberately small: draw every triangle in one flat colour that
-encodes its index + 1 in 24 bits (unwelded vertices, so no colour is interpolated between triangles),
-unlit (RenderFlags.FLAT), opaque, double-sided, through the orthographic camera of crowdbake.bake.
-impostor_maps.OrthoView, and read back the colour and depth. crowdbake.bake.impostor_maps turns that into
-exact normal, UV and detail maps in float64, because pyrender reads back 8-bit colour only.
+Two kinds of drawing share one context per view size (VisibilityRenderer):
+
+- the map shader (crowdbake.render.map_shader): every view of a task's normal, UV, detail and surface
+  maps drawn, already encoded, in one pass (shader_maps), and the fidelity references shaded per sample
+  and box-filtered (shader_references). This is what the bake draws with.
+- a visibility buffer through pyrender: every triangle drawn in one flat colour that encodes its index
+  + 1 in 24 bits (unwelded vertices, so no colour is interpolated between triangles), unlit
+  (RenderFlags.FLAT), opaque, double-sided, through the orthographic camera of
+  crowdbake.bake.impostor_maps.OrthoView, with its depth (render, coverage). crowdbake.bake.impostor_maps
+  turns that into the exact float64 maps and crowdbake.bake.fidelity into the exact references that
+  the shader is tested against.
 
 Under OSMesa pyrender draws straight into the context's buffer (no multisampling). Under EGL it draws
 into a 4x multisampled framebuffer and resolves it, which can mix two ids on a silhouette; the inside and
-depth tests of resolve_coverage catch those texels and repair them from their neighbours.
+depth tests of resolve_coverage catch those texels and repair them from their neighbours. The map
+shader's framebuffer is never multisampled.
 """
 from __future__ import annotations
 
