@@ -588,7 +588,8 @@ def fill_background(mask: np.ndarray, maps: list[np.ndarray], unflattened: list[
     crowdbake.render.map_shader (a shader)."""
     shape = mask.shape
     nearest = nearest_inside_views(mask).reshape(-1)
-    for image in [*maps, *unflattened]:
-        filled = image[..., :3].reshape(-1, 3)[nearest].reshape(shape + (3,))
-        image[..., :3] = flatten_empty_blocks(filled, mask) if any(image is other for other in maps) else filled
+    for image in maps:
+        image[..., :3] = flatten_empty_blocks(image[..., :3].reshape(-1, 3)[nearest].reshape(shape + (3,)), mask)
+    for image in unflattened:
+        image[..., :3] = image[..., :3].reshape(-1, 3)[nearest].reshape(shape + (3,))
     return nearest

@@ -35,8 +35,8 @@ import numpy as np
 from crowdbake.bake import fidelity, impostor_maps, surface_maps
 from crowdbake.bake.impostor_maps import OrthoView
 
-# Widest framebuffer row of views, in texels: under every GL implementation's minimum texture size for
-# GL 3.3 (8192 on llvmpipe's 16384 and any GPU's).
+# Widest framebuffer row of views, in texels (and never wider than the context's GL_MAX_TEXTURE_SIZE,
+# 16384 on llvmpipe): float32 interpolation loses precision far from the framebuffer's origin.
 MAX_ROW_TEXELS = 8192
 
 VERTEX_SHADER = """#version 330 core
@@ -255,6 +255,7 @@ class MapShader:
         self._grid = (0, 0)  # (columns, rows) of views the framebuffer holds
         self._textures: list[int] = []
         self._box: dict | None = None  # the box filter's program, framebuffer and target (_box_filter)
+        self._max_texture_size = MAX_ROW_TEXELS  # the context's, once the program is made
 
     def draw(self, views: list[OrthoView], positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray,
              next_positions: np.ndarray, faces: np.ndarray, triangle_material: np.ndarray, diffuse: list[np.ndarray],
@@ -272,7 +273,7 @@ class MapShader:
             raise ValueError(f"MapShader.draw: views must all be {self.size}²")
         triangle_material = np.asarray(triangle_material, dtype=np.int64)
         self._ensure_program()
-        columns = max(1, min(len(views), MAX_ROW_TEXELS // self.size))
+        columns = max(1, min(len(views), min(MAX_ROW_TEXELS, self._max_texture_size) // self.size))
         self._ensure_framebuffer(columns, -(-len(views) // columns))
         # Triangles grouped by material, so that each material is one draw with its texture bound.
         order = np.argsort(triangle_material, kind="stable")
@@ -418,6 +419,7 @@ class MapShader:
             validate=False,  # validation needs a bound VAO, which core profile contexts lack at this point
         )
         self._locations = {name: GL.glGetUniformLocation(self._program, name) for name in (*_VIEW_UNIFORMS, *self.shader_pass.uniforms)}
+        self._max_texture_size = int(GL.glGetIntegerv(GL.GL_MAX_TEXTURE_SIZE))
         self._vao = GL.glGenVertexArrays(1)
         self._buffer = GL.glGenBuffers(1)
         GL.glBindVertexArray(self._vao)

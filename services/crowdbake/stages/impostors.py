@@ -222,7 +222,7 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
     The maps of every view are drawn, encoded, in one pass of crowdbake.render.map_shader; their
     backgrounds are filled for the whole ring at once (impostor_maps.fill_background). With references,
     the mesh is also drawn shaded at FIDELITY_SUPERSAMPLE x the tile from every baked view and halfway
-    to the next azimuth (_between_references), box-filtered on the GPU. timings: adds "render" (the
+    to the next azimuth (_between_cameras), box-filtered on the GPU, in one pass. timings: adds "render" (the
     maps' pass), "maps" (the background fill) and "references" seconds.
     """
     layout = plan.layout
@@ -246,7 +246,11 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
               "surface": maps.surface}
     if task.references:
         clock = time.perf_counter()
-        arrays.update(reference=mesh_references(scene, plan, angles), **_between_references(scene, plan, views))
+        between = _between_cameras(plan, views)
+        # One pass for the baked views and the cameras between them: the mesh and textures go up once.
+        references = mesh_references(scene, plan, angles + [(azimuth, plan.layout["elevations_deg"][e])
+                                                           for (_, e), azimuth in zip(between["between_views"].tolist(), between["between_azimuths"])])
+        arrays.update(reference=references[:len(angles)], reference_between=references[len(angles):], **between)
         timings["references"] += time.perf_counter() - clock
     return arrays
 
@@ -264,17 +268,15 @@ def mesh_references(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, 
         scene.outfit_row, FIDELITY_SUPERSAMPLE)
 
 
-def _between_references(scene: Scene, plan: ImpostorPlan, views: list[tuple[int, int]]) -> dict[str, np.ndarray]:
-    """The mesh at the angle halfway to the next azimuth (no baked view shares that render), for the views
-    whose azimuth gap is scored (spread_gaps): "between_views" (B, 2) their (azimuth, elevation) indices,
-    "between_azimuths" (B,) degrees, "reference_between" (B, S, S, 3)."""
-    layout = plan.layout
-    midpoints = midpoint_azimuths(list(layout["azimuths_deg"]))
+def _between_cameras(plan: ImpostorPlan, views: list[tuple[int, int]]) -> dict[str, np.ndarray]:
+    """The cameras halfway to the next azimuth (no baked view shares their references), for the views whose
+    azimuth gap is scored (spread_gaps): "between_views" (B, 2) their (azimuth, elevation) indices and
+    "between_azimuths" (B,) degrees."""
+    midpoints = midpoint_azimuths(list(plan.layout["azimuths_deg"]))
     scored = set(spread_gaps(len(midpoints)))
     chosen = [(a, e) for a, e in views if a in scored]
     return {
         "between_views": np.asarray(chosen, dtype=np.int64).reshape(-1, 2),
-        "reference_between": mesh_references(scene, plan, [(midpoints[a], layout["elevations_deg"][e]) for a, e in chosen]),
         "between_azimuths": np.asarray([midpoints[a] for a, _ in chosen], dtype=np.float64),
     }
 

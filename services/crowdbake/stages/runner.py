@@ -281,7 +281,10 @@ def submit_in_background(pool: ProcessPoolExecutor, *call: Any) -> Future:
 
     def settle(done: Future) -> None:
         error = done.exception()
-        outcome.set_exception(error) if error is not None else outcome.set_result(done.result())
+        if error is not None:
+            outcome.set_exception(error)
+        else:
+            outcome.set_result(done.result())
 
     def submit() -> None:
         try:
