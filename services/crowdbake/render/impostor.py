@@ -33,6 +33,7 @@ from crowdbake.bake import impostor_maps
 from crowdbake.bake.impostor_maps import Coverage, OrthoView
 from crowdbake.render import map_shader
 from crowdbake.render.map_shader import MapShader, ShaderMaps
+from crowdbake.render.runtime_shader import RuntimeAtlas, RuntimeImpostorShader, RuntimePicture
 
 if TYPE_CHECKING:
     import pyrender  # imported where drawn (see crowdbake.render.offscreen), after the platform choice
@@ -103,6 +104,7 @@ class VisibilityRenderer:
         self._camera_node: pyrender.Node | None = None
         self._triangle_count = 0
         self._shaders: dict[tuple[int, str], MapShader] = {}  # by (view size, pass)
+        self._runtime_shader: RuntimeImpostorShader | None = None
 
     def __enter__(self) -> "VisibilityRenderer":
         self._offscreen.__enter__()
@@ -113,11 +115,11 @@ class VisibilityRenderer:
         self.close()
 
     def close(self) -> None:
-        if self._shaders and self._open:
+        if (self._shaders or self._runtime_shader) and self._open:
             with self._offscreen.current(setup=True):
-                for shader in self._shaders.values():
+                for shader in [*self._shaders.values(), *([self._runtime_shader] if self._runtime_shader else [])]:
                     shader.delete()
-        self._shaders = {}
+        self._shaders, self._runtime_shader = {}, None
         self._offscreen.close()
         self._open = False
 
@@ -150,6 +152,16 @@ class VisibilityRenderer:
         with self._offscreen.current():
             shader = self._shader(views[0].size if views else self.size, map_shader.REFERENCE)
             return map_shader.draw_references(shader, views, positions, normals, uvs, faces, triangle_material, diffuse, outfit_row, supersample)
+
+    def runtime_impostors(self, atlas: RuntimeAtlas, pictures: list[RuntimePicture]) -> np.ndarray:
+        """crowdview's impostor shader's pictures of `atlas` (crowdbake.render.runtime_shader), drawn in this
+        renderer's context: (N, S, S, 3) float32."""
+        if not self._open:
+            raise RuntimeError("VisibilityRenderer.runtime_impostors called outside its `with` block")
+        with self._offscreen.current():
+            if self._runtime_shader is None:
+                self._runtime_shader = RuntimeImpostorShader()
+            return self._runtime_shader.draw(atlas, pictures)
 
     def set_mesh(self, positions: np.ndarray, faces: np.ndarray) -> None:
         """Replace the mesh: positions (V, 3) model space, faces (T, 3) int (all parts concatenated)."""

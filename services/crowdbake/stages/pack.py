@@ -22,7 +22,7 @@ from crowdbake.stages.cycle import bundle_cycle_document
 from crowdbake.stages.fidelity import score_fidelity
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_plan, load_poses, part_path, part_record
 from crowdbake.stages.poses import DIFFUSE_ERRORS
-from crowdbake.stages.runtime_fidelity import score_runtime
+from crowdbake.stages.runtime_fidelity import RUNTIME_PICTURES, score_runtime
 from crowdbake.stages.records import CycleRecord, ImpostorPlan, ImpostorTask, MaterialInfo, PackRecord, PosesRecord
 from crowdbake.stages.validate import load_job
 from crowdbake.stages.workdir import (
@@ -252,7 +252,7 @@ def stage_pack_scores(work: Path) -> Path:
     frame_paths = {frame: stage_pack_frame(work, frame) for frame in score_frames(poses)}
     scored = [task for task in tasks if task.references]
     key = stage_key("pack-scores", folder.key_of("poses"), [read_json(path.with_suffix(".json"))["key"] for path in frame_paths.values()],
-                    [None if (stats := part_record(work, task)) is None else stats.key for task in scored], formats)
+                    [None if (stats := part_record(work, task)) is None else stats.key for task in scored], formats, RUNTIME_PICTURES)
     path = folder.root / "pack" / SCORES_FILE
     if path.is_file():
         try:

@@ -1,8 +1,11 @@
-"""The impostor as crowdview draws it (blended views and frames, crowdbake.bake.impostor_blend), scored
-against the mesh at the 1:1 switch distance: fidelity.json's `runtime` section, written by the pack stage.
+"""The impostor as crowdview draws it (blended views and frames, reprojected), scored against the mesh at
+the 1:1 switch distance: fidelity.json's `runtime` section, written by the pack stage.
 
-Everything the runtime samples is decoded from the bundle's own bytes: the UV map in its pixel format, the
-normal map after block compression, the diffuse texture as decoded. Two sets of cameras:
+The pictures are drawn by crowdview's own impostor shader in the bake's GL context
+(crowdbake.render.runtime_shader), from the bundle's own bytes: the UV map in its pixel format, the normal
+and surface maps after block compression, the diffuse texture as decoded. numpy_picture draws the same
+picture with the numpy copy of that shader (crowdbake.bake.impostor_blend, impostor_warp), the reference
+the shader is tested against. Three sets of cameras:
 
 - `at_views`: every baked view of the fidelity frame, from the mesh references the impostor tasks rendered
   (the runtime draws one sample of weight 1 there);
@@ -24,6 +27,7 @@ from crowdbake.bake import compression, fidelity, impostor_blend, impostor_maps,
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.bake.impostor_blend import DecodedTile
 from crowdbake.formats.binary import TextureArray, decode_texture_array, unpack_uv32, unpack_uvblock
+from crowdbake.render.runtime_shader import RuntimeAtlas, RuntimePicture
 from crowdbake.stages.impostors import BETWEEN_AZIMUTHS, MAP_MAKER, spread_gaps
 from crowdbake.stages.records import ImpostorTask, PosesRecord
 
@@ -151,6 +155,8 @@ def render_mesh_references(work: Path, poses: PosesRecord, frame: int, cameras: 
 
 
 REFERENCES_FILE = "runtime_references.npz"
+# What draws the scored pictures, in the pack stage's scores key: scores of another maker are redrawn.
+RUNTIME_PICTURES = "runtime_shader-1"
 
 
 def between_references(work: Path, poses: PosesRecord, supersample: int) -> list[np.ndarray]:
@@ -173,55 +179,96 @@ def between_references(work: Path, poses: PosesRecord, supersample: int) -> list
     return references
 
 
-def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
-                  uv_file: bytes | TextureArray, normal_file: bytes | TextureArray, texture_arrays: dict[str, np.ndarray],
-                  supersample: int, surface_file: bytes | TextureArray | None = None) -> dict[str, Any]:
-    """fidelity.json's `runtime` section (module docstring): SSIM and PSNR of crowdview's blended impostor,
-    each sample reprojected with the surface map when the bundle has one (crowdview's default)."""
-    diffuse = [texture_arrays[f"material_{m}_decoded"][0] for m in range(len(poses.materials))]
-    chains = [impostor_blend.mip_chain(texture) for texture in diffuse]
-    outfit_row = texture_arrays["outfits"][0]
-    tiles = AtlasTiles(layout, uv_file, normal_file, surface_file, poses.radius)
+def picture_at(layout: AtlasLayout, azimuth: float, elevation: float, frames: impostor_blend.FrameWeights) -> RuntimePicture:
+    """What crowdview hands its impostor shader for a camera at (azimuth, elevation) degrees and cycle
+    position `frames` (view_blend.h; crowdbake.bake.impostor_blend.blend_view_weights)."""
+    weights = impostor_blend.blend_view_weights(azimuth, elevation, layout.azimuths_deg, layout.elevations_deg)
+    return RuntimePicture(float(azimuth), float(elevation), weights.tiles, weights.weights, frames.layers, frames.weight)
+
+
+def runtime_atlas(poses: PosesRecord, layout: AtlasLayout, uv_map: TextureArray, normal_map: TextureArray,
+                  surface_map: TextureArray | None, texture_arrays: dict[str, np.ndarray]) -> RuntimeAtlas:
+    """The bundle's impostor as crowdview samples it (crowdbake.render.runtime_shader.RuntimeAtlas):
+    variation 0 of every material as decoded, outfit 0."""
+    return RuntimeAtlas(layout.tile_size, tuple(layout.azimuths_deg), tuple(layout.elevations_deg),
+                        np.asarray(poses.center, dtype=np.float64), float(poses.radius), uv_map, normal_map, surface_map,
+                        [texture_arrays[f"material_{m}_decoded"][0] for m in range(len(poses.materials))],
+                        [material.pixel_format != "bc1" for material in poses.materials], texture_arrays["outfits"][0])
+
+
+def numpy_picture(atlas: RuntimeAtlas, tiles: AtlasTiles, picture: RuntimePicture, chains: list[list[np.ndarray]] | None = None) -> np.ndarray:
+    """The picture crowdbake.render.runtime_shader draws, drawn by the numpy copy of crowdview's shader
+    (crowdbake.bake.impostor_blend, impostor_warp) in float64: (S, S, 3), the reference the shader is
+    tested against. tiles: AtlasTiles of the same maps; chains: the diffuse textures' mip chains."""
+    # A material without region codes (bc1) is drawn with none, as crowdview's u_has_regions.
+    diffuse = [texture if regions else np.concatenate([texture[..., :3], np.zeros_like(texture[..., :1])], axis=-1)
+               for texture, regions in zip(atlas.diffuse, atlas.has_regions)]
+    chains = chains if chains is not None else [impostor_blend.mip_chain(texture) for texture in diffuse]
+    view = impostor_maps.ortho_view(atlas.center, atlas.radius, picture.azimuth_deg, picture.elevation_deg, atlas.tile_size)
+    frames = impostor_blend.FrameWeights(picture.layers, picture.frame_weight)
+    weights = impostor_blend.ViewWeights(picture.tiles, picture.view_weights)
+    samples = [(w, sample_tile(tiles, tile, k, view, frames)) for w, tile, k in impostor_blend.samples_for(weights, frames)]
+    return impostor_blend.blend_image(samples, diffuse, atlas.outfit_row, fidelity.camera_light(view), atlas.tile_size, chains)
+
+
+def scored_cameras(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
+                   supersample: int) -> list[tuple[str, dict[str, float], np.ndarray, RuntimePicture]]:
+    """(section, camera, mesh reference, picture) of every camera score_runtime scores (module docstring):
+    section "at_views", "between_azimuths" or "between_views"; camera {"azimuth_deg", "elevation_deg"};
+    the reference (S, S, 3) float32; what crowdview's shader is handed there."""
     layer = list(poses.frame_indices).index(poses.fidelity_frame)
-    size = layout.tile_size
-
-    def draw(azimuth: float, elevation: float, frames: impostor_blend.FrameWeights) -> np.ndarray:
-        view = impostor_maps.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
-        weights = impostor_blend.blend_view_weights(azimuth, elevation, layout.azimuths_deg, layout.elevations_deg)
-        samples = [(w, sample_tile(tiles, tile, k, view, frames)) for w, tile, k in impostor_blend.samples_for(weights, frames)]
-        return impostor_blend.blend_image(samples, diffuse, outfit_row, fidelity.camera_light(view), size, chains)
-
     baked_frame = impostor_blend.FrameWeights((layer, layer), 0.0)
-    at_views, between_azimuths = [], []
+    scored: list[tuple[str, dict[str, float], np.ndarray, RuntimePicture]] = []
     for task in tasks:
         if not task.references:
             continue
         data = parts[task.id]
         for index, (a, e) in enumerate(data["views"].tolist()):
             azimuth, elevation = layout.azimuths_deg[a], layout.elevations_deg[e]
-            at_views.append({"azimuth_deg": azimuth, "elevation_deg": elevation,
-                             **fidelity.compare(data["reference"][index], draw(azimuth, elevation, baked_frame))})
+            scored.append(("at_views", {"azimuth_deg": azimuth, "elevation_deg": elevation}, data["reference"][index],
+                           picture_at(layout, azimuth, elevation, baked_frame)))
         for (_, e), mid, reference in zip(data["between_views"].tolist(), data["between_azimuths"].tolist(), data["reference_between"]):
             elevation = layout.elevations_deg[e]
-            between_azimuths.append({"azimuth_deg": mid, "elevation_deg": elevation,
-                                     **fidelity.compare(reference, draw(mid, elevation, baked_frame))})
+            scored.append(("between_azimuths", {"azimuth_deg": mid, "elevation_deg": elevation}, reference,
+                           picture_at(layout, mid, elevation, baked_frame)))
+    _, frame_weights = halfway_frame(poses)
+    for (a, e), reference in zip(between_cameras(layout), between_references(work, poses, supersample)):
+        scored.append(("between_views", {"azimuth_deg": a, "elevation_deg": e}, reference, picture_at(layout, a, e, frame_weights)))
+    return scored
+
+
+def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
+                  uv_file: bytes | TextureArray, normal_file: bytes | TextureArray, texture_arrays: dict[str, np.ndarray],
+                  supersample: int, surface_file: bytes | TextureArray | None = None) -> dict[str, Any]:
+    """fidelity.json's `runtime` section (module docstring): SSIM and PSNR of crowdview's blended impostor,
+    each sample reprojected with the surface map when the bundle has one (crowdview's default), drawn by
+    crowdview's own shader in this process's GL context (crowdbake.render.runtime_shader)."""
+    from crowdbake.render.impostor import shared_renderer
+
+    def parsed(data, where):
+        return data if data is None or isinstance(data, TextureArray) else decode_texture_array(data, where)
+
+    atlas = runtime_atlas(poses, layout, parsed(uv_file, "uv map"), parsed(normal_file, "normal map"), parsed(surface_file, "surface map"),
+                          texture_arrays)
+    scored = scored_cameras(work, poses, layout, tasks, parts, supersample)
     frame, frame_weights = halfway_frame(poses)
-    cameras = between_cameras(layout)
-    references = between_references(work, poses, supersample)
-    between = [{"azimuth_deg": a, "elevation_deg": e, **fidelity.compare(reference, draw(a, e, frame_weights))}
-               for (a, e), reference in zip(cameras, references)]
+    pictures = shared_renderer(layout.tile_size).runtime_impostors(atlas, [picture for *_, picture in scored])
+    sections: dict[str, list[dict[str, Any]]] = {"at_views": [], "between_views": [], "between_azimuths": []}
+    for (section, camera, reference, _), picture in zip(scored, pictures):
+        sections[section].append({**camera, **fidelity.compare(reference, picture.astype(np.float64))})
     return {
-        "description": "crowdview's blended impostor (runtime/README.md 'Impostor blending', crowdbake.bake.impostor_blend) "
-        "against the mesh at 1:1: at_views at the baked views of the fidelity frame; between_views halfway between "
-        "baked azimuths, elevations and frames; between_azimuths halfway between azimuths at baked elevations",
+        "description": "crowdview's blended impostor (runtime/README.md 'Impostor blending'), drawn by its own shader "
+        "(crowdbake.render.runtime_shader), against the mesh at 1:1: at_views at the baked views of the fidelity frame; "
+        "between_views halfway between baked azimuths, elevations and frames; between_azimuths halfway between azimuths "
+        "at baked elevations",
         "frame": poses.fidelity_frame,
         "between_frame": frame,
         "between_frame_weight": frame_weights.weight,
-        "diffuse_lookup": "trilinear over a box-filtered mip chain, level from the UV map's quad gradients",
-        "reprojection": "surface map (depth and motion), crowdbake.bake.impostor_warp" if surface_file is not None else "none",
-        "at_views": fidelity.summarize(at_views),
-        "between_views": fidelity.summarize(between),
-        "between_azimuths": fidelity.summarize(between_azimuths),
-        "per_view": at_views,
-        "per_between_view": between,
+        "diffuse_lookup": "crowdview's: trilinear over glGenerateMipmap's chain, level from the UV map's quad gradients",
+        "reprojection": "surface map (depth and motion), runtime/src/shaders/impostor_warp.glsl" if surface_file is not None else "none",
+        "at_views": fidelity.summarize(sections["at_views"]),
+        "between_views": fidelity.summarize(sections["between_views"]),
+        "between_azimuths": fidelity.summarize(sections["between_azimuths"]),
+        "per_view": sections["at_views"],
+        "per_between_view": sections["between_views"],
     }
