@@ -33,7 +33,7 @@ from crowdbake.bake import impostor_maps
 from crowdbake.bake.impostor_maps import Coverage, OrthoView
 from crowdbake.render import map_shader
 from crowdbake.render.map_shader import MapShader, ShaderMaps
-from crowdbake.render.runtime_shader import RuntimeAtlas, RuntimeImpostorShader, RuntimePicture
+from crowdbake.render.runtime_shader import RuntimeAtlas, RuntimeImpostorShader, RuntimePicture, map_texels
 
 if TYPE_CHECKING:
     import pyrender  # imported where drawn (see crowdbake.render.offscreen), after the platform choice
@@ -158,10 +158,11 @@ class VisibilityRenderer:
         renderer's context: (N, S, S, 3) float32."""
         if not self._open:
             raise RuntimeError("VisibilityRenderer.runtime_impostors called outside its `with` block")
+        maps = map_texels(atlas, pictures)  # the CPU's decoding, outside the render's seconds
         with self._offscreen.current():
             if self._runtime_shader is None:
                 self._runtime_shader = RuntimeImpostorShader()
-            return self._runtime_shader.draw(atlas, pictures)
+            return self._runtime_shader.draw(atlas, pictures, maps)
 
     def set_mesh(self, positions: np.ndarray, faces: np.ndarray) -> None:
         """Replace the mesh: positions (V, 3) model space, faces (T, 3) int (all parts concatenated)."""

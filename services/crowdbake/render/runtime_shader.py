@@ -155,6 +155,20 @@ _UPLOADS = {"uvblock": ("GL_RG32UI", "GL_RG_INTEGER", "GL_UNSIGNED_INT"), "uv32"
 _RGBA8 = ("GL_RGBA8", "GL_RGBA", "GL_UNSIGNED_BYTE")
 
 
+def used_layers(pictures: list[RuntimePicture]) -> list[int]:
+    """The atlas layers the pictures read, ascending: the only ones uploaded (in this order)."""
+    return sorted({layer for picture in pictures for layer in picture.layers})
+
+
+def map_texels(atlas: RuntimeAtlas, pictures: list[RuntimePicture]) -> list[tuple[int, np.ndarray, tuple[str, str, str], str]]:
+    """(texture unit, (L, H, W[, C]) texels, upload formats, filtering) of each impostor map, the layers
+    the pictures read only (used_layers): the CPU's part of the upload, BC blocks decoded here."""
+    layers = used_layers(pictures)
+    return [(unit, np.stack([_layer_texels(array, layer) for layer in layers]), _UPLOADS.get(array.pixel_format, _RGBA8), filtering)
+            for unit, array, filtering in ((UNIT_UV, atlas.uv_map, "nearest"), (UNIT_NORMAL, atlas.normal_map, "nearest"),
+                                           (UNIT_SURFACE, atlas.surface_map, "linear")) if array is not None]
+
+
 class RuntimeImpostorShader:
     """crowdview's impostor programs in the current context (by their defines), and a framebuffer. Every
     method needs the owning context current (crowdbake.render.offscreen.Offscreen.current)."""
@@ -166,8 +180,9 @@ class RuntimeImpostorShader:
         self._target_size = (0, 0)
         self._textures: list[int] = []
 
-    def draw(self, atlas: RuntimeAtlas, pictures: list[RuntimePicture]) -> np.ndarray:
-        """(N, S, S, 3) float32 pictures, 0..1, black where crowdview draws nothing; rows top first."""
+    def draw(self, atlas: RuntimeAtlas, pictures: list[RuntimePicture], maps: list | None = None) -> np.ndarray:
+        """(N, S, S, 3) float32 pictures, 0..1, black where crowdview draws nothing; rows top first. maps:
+        map_texels(atlas, pictures), when the caller decoded them already (outside its GL timing)."""
         from OpenGL import GL
 
         if len(atlas.azimuths_deg) > MAX_AZIMUTHS or len(atlas.elevations_deg) > MAX_ELEVATIONS:
@@ -175,12 +190,11 @@ class RuntimeImpostorShader:
         if not pictures:
             return np.zeros((0, atlas.tile_size, atlas.tile_size, 3), dtype=np.float32)
         size = atlas.tile_size
-        used_layers = sorted({layer for picture in pictures for layer in picture.layers})
-        compact = {layer: k for k, layer in enumerate(used_layers)}
+        compact = {layer: k for k, layer in enumerate(used_layers(pictures))}
         columns = max(1, min(len(pictures), MAX_ROW_PIXELS // size))
         rows = -(-len(pictures) // columns)
         self._ensure_framebuffer(columns * size, rows * size)
-        self._upload(atlas, used_layers)
+        self._upload(atlas, map_texels(atlas, pictures) if maps is None else maps)
 
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._framebuffer)
         GL.glDrawBuffers(1, [GL.GL_COLOR_ATTACHMENT0])
@@ -303,16 +317,13 @@ class RuntimeImpostorShader:
             GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MIN_FILTER, chosen)
             GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MAG_FILTER, chosen)
 
-    def _upload(self, atlas: RuntimeAtlas, layers: list[int]) -> None:
-        """The atlas's textures on crowdview's units (config.h), the maps' `layers` only, in that order."""
+    def _upload(self, atlas: RuntimeAtlas, maps: list) -> None:
+        """The atlas's textures on crowdview's units (config.h): the maps' texels (map_texels), diffuse, outfits."""
         from OpenGL import GL
 
         self._delete_textures()
-        for unit, array, filtering in ((UNIT_UV, atlas.uv_map, "nearest"), (UNIT_NORMAL, atlas.normal_map, "nearest"),
-                                       (UNIT_SURFACE, atlas.surface_map, "linear")):
-            if array is not None:
-                texels = np.stack([_layer_texels(array, layer) for layer in layers])
-                self._texture_array(unit, texels, _UPLOADS.get(array.pixel_format, _RGBA8), filtering)
+        for unit, texels, upload, filtering in maps:
+            self._texture_array(unit, texels, upload, filtering)
         for material in range(MAX_MATERIALS):
             # A material the character lacks gets a 1x1 white array, as crowdview binds (never sampled).
             texture = atlas.diffuse[material] if material < len(atlas.diffuse) else np.full((1, 1, 4), 255, dtype=np.uint8)
