@@ -232,7 +232,7 @@ def _processes_with(marker: str) -> list[int]:
 @pytest.mark.slow
 def test_serve_bakes_with_the_filesystem_broker_and_stops_its_workers(sample, tmp_path):
     """`crowdbake serve` alone (no Redis): the filesystem broker and prefork workers bake the sample,
-    and stopping serve stops its workers."""
+    and stopping serve (SIGTERM) stops its workers, without a traceback."""
     data = tmp_path / "data"
     env = {key: value for key, value in service_env(data, "unused").items() if key != "CROWDBAKE_BROKER_URL"}
     minted = subprocess.run([sys.executable, "-m", "crowdbake", "keys", "create", "--data", str(data), "--scopes", "upload,bake,publish,read"],
@@ -260,6 +260,7 @@ def test_serve_bakes_with_the_filesystem_broker_and_stops_its_workers(sample, tm
     finally:
         serve.stop(timeout=40)
     assert serve.popen.returncode is not None
+    assert "Traceback" not in serve.log.read_text(errors="replace"), serve.tail()
     deadline = time.monotonic() + 10
     while _processes_with(marker) and time.monotonic() < deadline:
         time.sleep(0.2)

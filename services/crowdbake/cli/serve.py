@@ -176,5 +176,5 @@ def run(args: argparse.Namespace) -> int:
         uvicorn.run(app, host=args.host, port=args.port, log_level="info", http=HeaderTimeoutProtocol, timeout_keep_alive=KEEP_ALIVE_S)
     finally:
         if worker is not None:
-            stop_worker(worker)
+            worker.stop()
     return 0
