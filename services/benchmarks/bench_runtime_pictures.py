@@ -25,11 +25,11 @@ import numpy as np
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 from crowdbake.bake import fidelity, impostor_blend  # noqa: E402
-from crowdbake.formats.binary import decode_texture_array  # noqa: E402
+from crowdbake.formats.bundle import verify_bundle  # noqa: E402
 from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_poses  # noqa: E402
 from crowdbake.stages.pack import Parts  # noqa: E402
-from crowdbake.stages.runtime_fidelity import AtlasTiles, numpy_picture, runtime_atlas, scored_cameras  # noqa: E402
+from crowdbake.stages.runtime_fidelity import AtlasTiles, numpy_picture, runtime_atlas, runtime_textures, scored_cameras  # noqa: E402
 
 
 def main() -> int:
@@ -42,12 +42,9 @@ def main() -> int:
     poses = load_poses(args.work)
     layout = poses.atlas_layout()
     tasks = [task for task in impostor_tasks(args.work) if task.references]
-    bundle = args.work / "bundle"
-    files = {kind: decode_texture_array((bundle / path).read_bytes(), kind)
-             for kind, path in json.loads((bundle / "manifest.json").read_text())["impostor"]["maps"].items()}
-    with np.load(args.work / "poses" / "textures.npz") as data:
-        textures = {name: data[name] for name in data.files if name == "outfits" or name.endswith("_decoded")}
-    atlas = runtime_atlas(poses, layout, files["uv"], files["normal"], files.get("surface"), textures)
+    bundle = verify_bundle(args.work / "bundle")
+    files = {kind: bundle.textures[path] for kind, path in bundle.manifest["impostor"]["maps"].items()}
+    atlas = runtime_atlas(poses, layout, files["uv"], files["normal"], files.get("surface"), runtime_textures(args.work))
     scored = scored_cameras(args.work, poses, layout, tasks, Parts(args.work, tasks), FIDELITY_SUPERSAMPLE)
     pictures = [picture for *_, picture in scored]
 

@@ -3,14 +3,14 @@ fidelity.json's `runtime` section scores, against the numpy copy of that shader 
 impostor_blend, impostor_warp) on a small bake's own bundle, under OSMesa."""
 from __future__ import annotations
 
-import json
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from crowdbake.bake import fidelity, impostor_blend, map_codecs
-from crowdbake.formats.binary import TextureArray, decode_texture_array
+from crowdbake.formats.binary import TextureArray
+from crowdbake.formats.bundle import verify_bundle
 from crowdbake.params import BakeParams
 from crowdbake.render import runtime_shader
 from crowdbake.render.runtime_shader import RuntimePicture, samples_needed, shader_source
@@ -20,7 +20,9 @@ from crowdbake.render import offscreen  # noqa: E402
 from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
 from crowdbake.stages.impostors import load_poses  # noqa: E402
 from crowdbake.stages.runner import run_bake  # noqa: E402
-from crowdbake.stages.runtime_fidelity import AtlasTiles, halfway_frame, numpy_picture, picture_at, runtime_atlas  # noqa: E402
+from crowdbake.stages.runtime_fidelity import (  # noqa: E402
+    AtlasTiles, halfway_frame, numpy_picture, picture_at, runtime_atlas, runtime_textures,
+)
 from crowdbake.stages.validate import BakeInputs  # noqa: E402
 
 # Eight azimuths, two rings, two baked frames of 64² texels: every kind of blend, in seconds.
@@ -34,11 +36,9 @@ def bundle(small_sample, tmp_path_factory):
     summary = run_bake(BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
                                   cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures", cycle=None,
                                   name="sample", version="1.0", params=PARAMS), root / "bundles", work=root / "work")
-    manifest = json.loads((summary.bundle / "manifest.json").read_text())
-    maps = {kind: decode_texture_array((summary.bundle / path).read_bytes(), kind) for kind, path in manifest["impostor"]["maps"].items()}
-    with np.load(root / "work" / "poses" / "textures.npz") as data:
-        textures = {name: data[name] for name in data.files if name == "outfits" or name.endswith("_decoded")}
-    return load_poses(root / "work"), maps, textures
+    baked = verify_bundle(summary.bundle)
+    maps = {kind: baked.textures[path] for kind, path in baked.manifest["impostor"]["maps"].items()}
+    return load_poses(root / "work"), maps, runtime_textures(root / "work")
 
 
 def pictures_of(poses) -> list[RuntimePicture]:
@@ -88,9 +88,10 @@ def compare_with_numpy(layout, atlas, pictures, drawn) -> tuple[float, float, fl
     """(worst share of pixels whose coverage differs, worst SSIM, mean absolute difference over both
     coverages) of the shader's pictures against numpy's."""
     layout_tiles = AtlasTiles(layout, atlas.uv_map, atlas.normal_map, atlas.surface_map, atlas.radius)
+    chains = [impostor_blend.mip_chain(texture) for texture in atlas.diffuse]
     worst_coverage, worst_ssim, differences = 0.0, 1.0, []
     for picture, image in zip(pictures, drawn):
-        reference = numpy_picture(atlas, layout_tiles, picture)
+        reference = numpy_picture(atlas, layout_tiles, picture, chains)
         covered, expected = image.max(axis=-1) > 0, reference.max(axis=-1) > 0
         worst_coverage = max(worst_coverage, float((covered != expected).mean()))
         worst_ssim = min(worst_ssim, fidelity.compare(reference, image.astype(np.float64))["ssim"])

@@ -115,9 +115,10 @@ class VisibilityRenderer:
         self.close()
 
     def close(self) -> None:
-        if (self._shaders or self._runtime_shader) and self._open:
+        shaders = [*self._shaders.values(), *filter(None, [self._runtime_shader])]
+        if shaders and self._open:
             with self._offscreen.current(setup=True):
-                for shader in [*self._shaders.values(), *([self._runtime_shader] if self._runtime_shader else [])]:
+                for shader in shaders:
                     shader.delete()
         self._shaders, self._runtime_shader = {}, None
         self._offscreen.close()

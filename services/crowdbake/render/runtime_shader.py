@@ -180,9 +180,9 @@ class RuntimeImpostorShader:
         self._target_size = (0, 0)
         self._textures: list[int] = []
 
-    def draw(self, atlas: RuntimeAtlas, pictures: list[RuntimePicture], maps: list | None = None) -> np.ndarray:
+    def draw(self, atlas: RuntimeAtlas, pictures: list[RuntimePicture], maps: list) -> np.ndarray:
         """(N, S, S, 3) float32 pictures, 0..1, black where crowdview draws nothing; rows top first. maps:
-        map_texels(atlas, pictures), when the caller decoded them already (outside its GL timing)."""
+        map_texels(atlas, pictures), decoded by the caller (outside its GL timing)."""
         from OpenGL import GL
 
         if len(atlas.azimuths_deg) > MAX_AZIMUTHS or len(atlas.elevations_deg) > MAX_ELEVATIONS:
@@ -194,7 +194,7 @@ class RuntimeImpostorShader:
         columns = max(1, min(len(pictures), MAX_ROW_PIXELS // size))
         rows = -(-len(pictures) // columns)
         self._ensure_framebuffer(columns * size, rows * size)
-        self._upload(atlas, map_texels(atlas, pictures) if maps is None else maps)
+        self._upload(atlas, maps)
 
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._framebuffer)
         GL.glDrawBuffers(1, [GL.GL_COLOR_ATTACHMENT0])

@@ -62,6 +62,18 @@ def decode_surface_layer(surface_map: TextureArray, layer: int) -> np.ndarray:
     return surface_map.texels(layer)
 
 
+def parsed_map(data: bytes | TextureArray | None, where: str) -> TextureArray | None:
+    """A bundle's CBTX file (bytes) parsed; a TextureArray or None as it is."""
+    return data if data is None or isinstance(data, TextureArray) else decode_texture_array(data, where)
+
+
+def runtime_textures(work: Path) -> dict[str, np.ndarray]:
+    """What runtime_atlas reads of the poses stage's textures (work/poses/textures.npz): the decoded diffuse
+    arrays ("material_<m>_decoded") and the outfit map ("outfits")."""
+    with np.load(Path(work) / "poses" / "textures.npz") as data:
+        return {name: data[name] for name in data.files if name == "outfits" or name.endswith("_decoded")}
+
+
 class AtlasTiles:
     """Tiles of decoded atlas layers, decoded once per layer; the surface map's too when given.
 
@@ -69,12 +81,9 @@ class AtlasTiles:
 
     def __init__(self, layout: AtlasLayout, uv_file: bytes | TextureArray, normal_file: bytes | TextureArray,
                  surface_file: bytes | TextureArray | None = None, radius: float = 1.0):
-        def parsed(data, where):
-            return data if data is None or isinstance(data, TextureArray) else decode_texture_array(data, where)
-
         self.layout, self.radius = layout, radius
-        self.uv_map, self.normal_map = parsed(uv_file, "uv map"), parsed(normal_file, "normal map")
-        self.surface_map = parsed(surface_file, "surface map")
+        self.uv_map, self.normal_map = parsed_map(uv_file, "uv map"), parsed_map(normal_file, "normal map")
+        self.surface_map = parsed_map(surface_file, "surface map")
         self._layers: dict[int, tuple] = {}
         self._surfaces: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -245,11 +254,8 @@ def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: li
     crowdview's own shader in this process's GL context (crowdbake.render.runtime_shader)."""
     from crowdbake.render.impostor import shared_renderer
 
-    def parsed(data, where):
-        return data if data is None or isinstance(data, TextureArray) else decode_texture_array(data, where)
-
-    atlas = runtime_atlas(poses, layout, parsed(uv_file, "uv map"), parsed(normal_file, "normal map"), parsed(surface_file, "surface map"),
-                          texture_arrays)
+    atlas = runtime_atlas(poses, layout, parsed_map(uv_file, "uv map"), parsed_map(normal_file, "normal map"),
+                          parsed_map(surface_file, "surface map"), texture_arrays)
     scored = scored_cameras(work, poses, layout, tasks, parts, supersample)
     frame, frame_weights = halfway_frame(poses)
     pictures = shared_renderer(layout.tile_size).runtime_impostors(atlas, [picture for *_, picture in scored])
