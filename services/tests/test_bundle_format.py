@@ -317,3 +317,39 @@ def test_check_uvblock_refuses_exactly_what_unpack_uvblock_refuses():
     assert any(outcomes) and not all(outcomes)
     row, column = np.meshgrid(np.arange(16), np.arange(24), indexing="ij")
     check_uvblock(pack_uvblock(0.99 + 0.0004 * column, 1.0 - 0.0004 * row, 0 * row, row >= 0), 24, 16)  # near u = v = 1
+
+
+def test_the_bakes_uvblock_paths_match_their_definitions_on_a_mostly_empty_atlas():
+    """map_codecs.uv_map_to_uvblock gathers only the blocks the character touches, and uvblock_to_uv32
+    decodes only those: the same bytes as pack_uvblock of decode_uv_map's planes, and the same words as
+    pack_uv32 of unpack_uvblock, on a 16-bit atlas with empty blocks, partly covered blocks, two charts,
+    three materials and uncovered texels holding stray values (which neither path may read)."""
+    from crowdbake.bake.map_codecs import decode_uv_map, uv_map_to_uvblock, uvblock_to_uv32
+
+    rng = np.random.default_rng(17)
+    height, width = 32, 48
+    row, column = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
+    covered = ((row - 14) ** 2 / 100 + (column - 20) ** 2 / 150 < 1) & (rng.random(row.shape) < 0.9)
+    seam = column > row + 12
+    u = np.where(seam, 0.7, 0.2) + 0.002 * column + rng.normal(0, 2e-4, row.shape)
+    v = np.where(seam, 0.1, 0.5) + 0.0017 * row
+    material = np.where(seam, 0, np.where(row % 9 == 4, 2, 1))
+    uv_map = np.zeros((height, width, 4), np.uint16)
+    uv_map[..., 0], uv_map[..., 1] = np.rint(np.clip(u, 0, 1) * 65535), np.rint(np.clip(v, 0, 1) * 65535)
+    uv_map[..., 2] = np.where(covered, material, rng.integers(0, 65536, row.shape))  # stray material outside
+    uv_map[..., 3] = np.where(covered, 65535, rng.integers(0, 32768, row.shape))  # below half: uncovered
+    blocks_touched = covered.reshape(height // 4, 4, width // 4, 4).any(axis=(1, 3))
+    assert blocks_touched.any() and not blocks_touched.all()
+
+    uv, decoded_material, decoded_covered = decode_uv_map(uv_map)
+    np.testing.assert_array_equal(decoded_covered, covered)
+    data = uv_map_to_uvblock(uv_map)
+    assert data == pack_uvblock(uv[..., 0], uv[..., 1], np.where(covered, decoded_material, 0), covered)
+    np.testing.assert_array_equal(uvblock_to_uv32(data, width, height), pack_uv32(*unpack_uvblock(data, width, height)))
+    empty = np.zeros_like(uv_map)
+    assert uv_map_to_uvblock(empty) == bytes(layer_size("uvblock", width, height))
+    assert not uvblock_to_uv32(uv_map_to_uvblock(empty), width, height).any()
+    with pytest.raises(ValueError, match="0..3"):
+        uv_map_to_uvblock(np.where(covered[..., None], np.array([0, 0, 4, 65535], np.uint16), uv_map))
+    with pytest.raises(ValueError, match="multiples of 4"):
+        uv_map_to_uvblock(uv_map[:30])

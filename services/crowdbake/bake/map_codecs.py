@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.formats.binary import pack_uv32, pack_uvblock, unpack_uv32, unpack_uvblock
+from crowdbake.formats.binary import (
+    UVBLOCK_COORD_MAX, UVBLOCK_MAX_MATERIAL, pack_uv32, pack_uvblock_blocks, unblocks, unpack_uv32, uvblock_coordinates,
+    uvblock_live_texels,
+)
 
 
 def decode_uv_map(uv_map: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -33,16 +36,32 @@ def uv_map_to_uv32(uv_map: np.ndarray) -> np.ndarray:
 
 
 def uv_map_to_uvblock(uv_map: np.ndarray) -> bytes:
-    """The bake's (H, W, 4) uint16 UV map as one uvblock layer (SPEC.md pixel format 6; H, W multiples of 4)."""
-    uv, material, covered = decode_uv_map(uv_map)
-    return pack_uvblock(uv[..., 0], uv[..., 1], np.where(covered, material, 0), covered)
+    """The bake's (H, W, 4) uint16 UV map as one uvblock layer (SPEC.md pixel format 6; H, W multiples of 4).
+
+    The same bytes as pack_uvblock of decode_uv_map's planes, but only the blocks the character touches are
+    gathered and decoded: an impostor atlas is mostly empty, and converting every texel to float64 took
+    most of a frame's pack time."""
+    uv_map = np.asarray(uv_map)
+    height, width = uv_map.shape[:2]
+    if uv_map.ndim != 3 or uv_map.shape[2] != 4 or height % 4 or width % 4:
+        raise ValueError(f"uv_map_to_uvblock: expected (H, W, 4) uint16 with H and W multiples of 4, got {uv_map.shape} {uv_map.dtype}")
+    blocks = uv_map.reshape(height // 4, 4, width // 4, 4, 4)
+    live = (blocks[..., 3] >= 32768).any(axis=(1, 3))  # (rows, columns) of blocks
+    rows, columns = np.nonzero(live)
+    texels = blocks[rows, :, columns].reshape(-1, 16, 4)  # (N, 16, 4): the live blocks, texels row-major
+    uv, material, covered = decode_uv_map(texels)
+    if covered.any() and material[covered].max() > UVBLOCK_MAX_MATERIAL:
+        raise ValueError(f"uvblock material indices must lie in 0..{UVBLOCK_MAX_MATERIAL}")
+    return pack_uvblock_blocks(live.ravel(), uvblock_coordinates(uv), material, covered)
 
 
 def uvblock_to_uv32(data: bytes, width: int, height: int) -> np.ndarray:
     """One uvblock layer as (H, W) uv32 words holding the same decoded texels (12-bit coordinates fit 14
     bits to within 1/32767), for code that reads uv32: the fidelity scoring, the export, the web preview."""
-    u, v, material, covered = unpack_uvblock(data, width, height)
-    return pack_uv32(u, v, material, covered)
+    live, (qu, qv, material, covered) = uvblock_live_texels(data, width, height)
+    blocks = np.zeros((len(live), 16), np.uint32)  # a block the character does not touch: uv32 words 0
+    blocks[live] = pack_uv32(qu / UVBLOCK_COORD_MAX, qv / UVBLOCK_COORD_MAX, material, covered)
+    return unblocks(blocks, height, width)
 
 
 def decode_normal_map(normal_map: np.ndarray) -> np.ndarray:

@@ -392,7 +392,7 @@ def _blocks(array: np.ndarray) -> np.ndarray:
     return array.reshape(rows, 4, columns, 4, *array.shape[2:]).swapaxes(1, 2).reshape(rows * columns, 16, *array.shape[2:])
 
 
-def _unblocks(array: np.ndarray, height: int, width: int) -> np.ndarray:
+def unblocks(array: np.ndarray, height: int, width: int) -> np.ndarray:
     """Inverse of _blocks for (blocks, 16) arrays."""
     rows, columns = height // 4, width // 4
     return array.reshape(rows, columns, 4, 4).swapaxes(1, 2).reshape(height, width)
@@ -447,16 +447,30 @@ def pack_uvblock(u: np.ndarray, v: np.ndarray, material: np.ndarray, coverage: n
         raise ValueError("uvblock coordinates contain NaN or infinity")
     if coverage.any() and (material[coverage].min() < 0 or material[coverage].max() > UVBLOCK_MAX_MATERIAL):
         raise ValueError(f"uvblock material indices must lie in 0..{UVBLOCK_MAX_MATERIAL}")
-    # int32 throughout: coordinates, distances (below _OTHER_MATERIAL + 4095) and offsets all fit, and the
-    # per-block passes move half the bytes of int64.
-    q = _blocks(np.rint(np.clip(np.stack([u, v], axis=-1), 0.0, 1.0) * UVBLOCK_COORD_MAX).astype(np.int32))
-    m, c = _blocks(np.where(coverage, material, 0).astype(np.int32)), _blocks(coverage)
-    # A block the character does not touch is six zero words; an impostor atlas is mostly such blocks,
-    # so only the others are encoded.
+    c = _blocks(coverage)
     live = c.any(axis=1)
-    words = np.zeros((len(c), 6), np.uint64)
-    if live.any():
-        words[live] = _uvblock_words(q[live], m[live], c[live])
+    q = np.stack([_blocks(u)[live], _blocks(v)[live]], axis=-1)
+    return pack_uvblock_blocks(live, uvblock_coordinates(q), _blocks(material)[live], c[live])
+
+
+def uvblock_coordinates(uv: np.ndarray) -> np.ndarray:
+    """Texture coordinates in [0, 1] (clipped), any shape, float -> the same shape of int32 in 1/4095."""
+    # int32 throughout the block passes: coordinates, distances (below _OTHER_MATERIAL + 4095) and offsets
+    # all fit, and they move half the bytes of int64.
+    return np.rint(np.clip(uv, 0.0, 1.0) * UVBLOCK_COORD_MAX).astype(np.int32)
+
+
+def pack_uvblock_blocks(live: np.ndarray, q: np.ndarray, material: np.ndarray, covered: np.ndarray) -> bytes:
+    """One uvblock layer's bytes from its live blocks alone (pack_uvblock without its checks).
+
+    live: (B,) bool, every block of the layer in row-major order, True where the character touches it (a
+    block it does not touch is six zero words; an impostor atlas is mostly such blocks, so only the others
+    are encoded). For the N live blocks, texels row-major inside: q (N, 16, 2) int32 coordinates in
+    1/4095 (uvblock_coordinates), material (N, 16) int in 0..3 where covered, covered (N, 16) bool.
+    """
+    words = np.zeros((len(live), 6), np.uint64)
+    if len(q):
+        words[live] = _uvblock_words(q, np.where(covered, material, 0).astype(np.int32), covered)
     return words.astype("<u4").tobytes()
 
 
@@ -510,18 +524,30 @@ def unpack_uvblock(data: bytes, width: int, height: int) -> tuple[np.ndarray, np
     """One uvblock layer (bytes) of `height` × `width` texels -> (u, v, material, coverage), each (H, W):
     u, v float64 in [0, 1] (0 outside), material int64 (0 outside), coverage bool. Raises ValueError for
     a coordinate above 4095 (SPEC.md: invalid_data)."""
-    all_words = np.frombuffer(data, "<u4", (height // 4) * (width // 4) * 6).reshape(-1, 6)
-    # Texels of a block whose states word is 0 are all outside (u, v, material 0) whatever its other
-    # words hold, so only the other blocks are decoded.
-    live = all_words[:, 0] != 0
-    qu_all = np.zeros((len(all_words), 16), np.int64)
+    live, texels = uvblock_live_texels(data, width, height)
+    qu_all = np.zeros((len(live), 16), np.int64)
     qv_all, material_all = np.zeros_like(qu_all), np.zeros_like(qu_all)
-    covered_all = np.zeros((len(all_words), 16), bool)
-    if live.any():
-        qu_all[live], qv_all[live], material_all[live], covered_all[live] = _uvblock_texels(all_words[live].astype(np.uint64))
-    u = _unblocks(qu_all, height, width) / UVBLOCK_COORD_MAX
-    v = _unblocks(qv_all, height, width) / UVBLOCK_COORD_MAX
-    return u, v, _unblocks(material_all, height, width), _unblocks(covered_all, height, width)
+    covered_all = np.zeros((len(live), 16), bool)
+    qu_all[live], qv_all[live], material_all[live], covered_all[live] = texels
+    u = unblocks(qu_all, height, width) / UVBLOCK_COORD_MAX
+    v = unblocks(qv_all, height, width) / UVBLOCK_COORD_MAX
+    return u, v, unblocks(material_all, height, width), unblocks(covered_all, height, width)
+
+
+def uvblock_live_texels(data: bytes, width: int, height: int) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """The blocks of a uvblock layer the character touches, decoded: (live, (qu, qv, material, covered)).
+
+    live: (B,) bool over every block in row-major order; for the N live blocks, texels row-major inside,
+    qu, qv (N, 16) int64 coordinates in 1/4095, material (N, 16) int64 (0 outside), covered (N, 16) bool.
+    Texels of a block whose states word is 0 are all outside whatever its other words hold, so only the
+    other blocks are decoded. Raises ValueError for a covered coordinate above 4095.
+    """
+    words = np.frombuffer(data, "<u4", (height // 4) * (width // 4) * 6).reshape(-1, 6)
+    live = words[:, 0] != 0
+    if not live.any():
+        empty = np.zeros((0, 16), np.int64)
+        return live, (empty, empty, empty, np.zeros((0, 16), bool))
+    return live, _uvblock_texels(words[live].astype(np.uint64))
 
 
 def check_uvblock(data: bytes, width: int, height: int) -> None:

@@ -151,13 +151,17 @@ class _Meter:
 
 
 class _Background:
-    """Callables run one after another in a thread; result() waits and re-raises their error. Their CPU
+    """Callables run one after another in a thread from start() on; result() waits and re-raises their error. Their CPU
     seconds (time.thread_time) are added to `figures`."""
 
     def __init__(self, name: str, calls: list[Callable[[], None]], figures: StageFigures):
         self._calls, self._figures, self._error = calls, figures, None
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
+
+    def start(self) -> None:
+        """Start the thread (once; a second call does nothing)."""
+        if self._thread.ident is None:
+            self._thread.start()
 
     def _run(self) -> None:
         started = time.thread_time()
@@ -169,6 +173,7 @@ class _Background:
         self._figures.cpu_s += time.thread_time() - started
 
     def result(self) -> None:
+        self.start()  # where nothing started it (an error before its moment)
         self._thread.join()
         if self._error is not None:
             raise self._error
@@ -334,12 +339,14 @@ def task_order(tasks: list, workers: int) -> list:
 
 
 def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: int, meter: _Meter, progress: Progress | None,
-                         textures: Future | None = None) -> None:
+                         textures: Future | None = None, after_plan: Callable[[], None] = lambda: None) -> None:
     """The impostor plan, the poses stage and every impostor task: in the pool (the plan here, while a
     worker starts on the poses), the longest items first, or all in order here. textures: the pool's
-    stage_textures item, started before the cycle; the poses stage starts once it is done."""
+    stage_textures item, started before the cycle; the poses stage starts once it is done. after_plan:
+    called once the first impostor tasks are handed out."""
     if pool is None:
         meter.run("impostors", lambda: stage_impostor_plan(work, progress))
+        after_plan()
         tasks = impostor_tasks(work)
         meter.run("poses", lambda: stage_poses(work, progress))
         for done, task in enumerate(tasks):
@@ -390,6 +397,7 @@ def _poses_and_impostors(work: Path, pool: ProcessPoolExecutor | None, workers: 
 
     try:
         feed()
+        after_plan()
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for future in finished:
@@ -488,10 +496,13 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         plots: list[Callable[[], None]] = []
         cycle = meter.run("cycle", lambda: stage_cycle(work, progress, plots=plots)).record
         # The cycle report's plots (a second or more of matplotlib) are drawn in a thread of this process,
-        # which otherwise only waits for the workers; run_bake returns once they are written.
+        # which otherwise only waits for the workers; run_bake returns once they are written. The thread
+        # starts once the impostor plan is made and its first tasks handed out: the plan, in this process
+        # too, waits for the interpreter lock while matplotlib holds it, and every impostor task waits for
+        # the plan.
         plotter = _Background("cycle-plots", plots, meter.figures("cycle"))
         try:
-            _poses_and_impostors(work, pool, workers, meter, progress, textures)
+            _poses_and_impostors(work, pool, workers, meter, progress, textures, after_plan=plotter.start)
             if pool is not None:
                 # The pack and publish stages too, in workers: their peak memory (the fidelity scoring holds
                 # the fidelity frame's references and atlases; publishing reads the bundle twice and the
