@@ -73,6 +73,25 @@ def test_impostor_reproduces_the_mesh_render(sphere):
     assert compressed["ssim"] <= score["ssim"] + 1e-9  # compression cannot make it more faithful
 
 
+def test_impostor_images_of_one_tile_equal_the_picture_of_each_normal_map(sphere):
+    """impostor_images samples the diffuse once and decodes only the covered texels' normals: each picture is
+    the whole-tile picture (decode_normal_map of the whole map, lit where covered) to the bit."""
+    from crowdbake.bake import map_codecs
+
+    baked = bake_view(sphere, 40.0, 15.0)
+    _, light = reference(sphere, 40.0, 15.0)
+    decoded = compression.decode_bc1(compression.encode_bc1(baked.normal), SIZE, SIZE)
+    pictures = fidelity.impostor_images(baked.uv, [baked.normal, decoded], sphere[5], OUTFIT, light)
+    uv, material, covered = map_codecs.decode_uv_map(baked.uv)
+    albedo = fidelity.apply_outfit(fidelity._texels(uv[covered], np.clip(material[covered], 0, len(sphere[5]) - 1), sphere[5]), OUTFIT)
+    for picture, normal_map in zip(pictures, (baked.normal, decoded)):
+        whole = np.zeros_like(picture)
+        whole[covered] = fidelity.lambert(albedo, map_codecs.decode_normal_map(normal_map)[covered], light)
+        assert np.array_equal(picture, whole)
+    assert not np.array_equal(*pictures)  # the two normal maps light it differently
+    assert np.array_equal(pictures[0], fidelity.impostor_image(baked.uv, baked.normal, sphere[5], OUTFIT, light))
+
+
 def test_a_wrong_impostor_is_caught(sphere):
     """The metric must notice a broken UV map (v flipped) and a view from the wrong angle."""
     baked = bake_view(sphere, 40.0, 15.0)

@@ -131,14 +131,23 @@ def impostor_image(
     uv_map: (S, S, 4) uint16 (rgba16) or (S, S) uint32 (uv32), as stored; normal_map: (S, S, 4) uint8
     as decoded from its (compressed) layer.
     """
+    return impostor_images(uv_map, [normal_map], diffuse, outfit_row, light)[0]
+
+
+def impostor_images(
+    uv_map: np.ndarray, normal_maps: list[np.ndarray], diffuse: list[np.ndarray], outfit_row: np.ndarray, light: np.ndarray
+) -> list[np.ndarray]:
+    """impostor_image of one UV tile with each of several normal maps (the stored and the uncompressed
+    normals of a view): the UV map is decoded and the diffuse sampled once, and only the covered texels'
+    normals are decoded (a character covers a fraction of its tile). The same pictures, to the bit."""
     uv, material, covered = map_codecs.decode_uv_map(uv_map)
-    normals = map_codecs.decode_normal_map(normal_map)
-    image = np.zeros(uv.shape[:2] + (3,), dtype=np.float64)
+    images = [np.zeros(uv.shape[:2] + (3,), dtype=np.float64) for _ in normal_maps]
     if covered.any():
         material = np.clip(material[covered], 0, len(diffuse) - 1)
-        texels = _texels(uv[covered], material, diffuse)
-        image[covered] = lambert(apply_outfit(texels, outfit_row), normals[covered], light)
-    return image
+        albedo = apply_outfit(_texels(uv[covered], material, diffuse), outfit_row)
+        for image, normal_map in zip(images, normal_maps):
+            image[covered] = lambert(albedo, map_codecs.decode_normal_map(np.asarray(normal_map)[covered]), light)
+    return images
 
 
 def measure_box(*images: np.ndarray) -> tuple[slice, slice]:

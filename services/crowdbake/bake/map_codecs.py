@@ -65,7 +65,7 @@ def uvblock_to_uv32(data: bytes, width: int, height: int) -> np.ndarray:
 
 
 def decode_normal_map(normal_map: np.ndarray) -> np.ndarray:
-    """(S, S, 4) uint8 normal map -> (S, S, 3) float64 unit normals ((rgb / 255) · 2 - 1, renormalised)."""
+    """(..., 4) uint8 normal codes (a map, or chosen texels of one) -> (..., 3) float64 unit normals ((rgb / 255) · 2 - 1, renormalised)."""
     n = np.asarray(normal_map)[..., :3].astype(np.float64) / 255.0 * 2.0 - 1.0
     length = np.linalg.norm(n, axis=-1, keepdims=True)
     return np.divide(n, length, out=np.zeros_like(n), where=length > 1e-12)

@@ -38,11 +38,11 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
         for index, (a, e) in enumerate(data["views"].tolist()):
             view = impostor_maps.ortho_view(centre, radius, layout.azimuths_deg[a], layout.elevations_deg[e], layout.tile_size)
             light = fidelity.camera_light(view)
-            uv_tile = tile_of(layout, atlases["uv"], a, e)
-            image = fidelity.impostor_image(uv_tile, tile_of(layout, normals_drawn, a, e), runtime_diffuse, outfit_row, light)
+            image, exact = fidelity.impostor_images(tile_of(layout, atlases["uv"], a, e),
+                                                    [tile_of(layout, normals_drawn, a, e), tile_of(layout, atlases["normal"], a, e)],
+                                                    runtime_diffuse, outfit_row, light)
             score = fidelity.compare(data["reference"][index], image)
             per_view.append({"azimuth_deg": layout.azimuths_deg[a], "elevation_deg": layout.elevations_deg[e], **score})
-            exact = fidelity.impostor_image(uv_tile, tile_of(layout, atlases["normal"], a, e), runtime_diffuse, outfit_row, light)
             uncompressed.append(fidelity.compare(data["reference"][index], exact))
         for (a, e), azimuth, reference in zip(data["between_views"].tolist(), data["between_azimuths"].tolist(), data["reference_between"]):
             mid_view = impostor_maps.ortho_view(centre, radius, azimuth, layout.elevations_deg[e], layout.tile_size)

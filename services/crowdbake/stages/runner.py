@@ -476,7 +476,8 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
              workers: int | None = None) -> BakeSummary:
     """Run every stage and publish to out_root/<name>/<version>; returns a BakeSummary.
 
-    work: the work directory (kept, so a rerun resumes); None = a temporary one, removed afterwards.
+    work: the work directory (kept, so a rerun resumes); None = a temporary one, removed afterwards (the
+    cycle report it would hold is written without its plots).
     workers: processes for the poses ∥ impostors part (None = default_workers(); 0 or 1 = this process).
     As with any multiprocessing start method but "fork", a script that calls this with workers must
     guard its top level with `if __name__ == "__main__":` (the workers import the main module).
@@ -500,7 +501,8 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         # starts once the impostor plan is made and its first tasks handed out: the plan, in this process
         # too, waits for the interpreter lock while matplotlib holds it, and every impostor task waits for
         # the plan.
-        plotter = _Background("cycle-plots", plots, meter.figures("cycle"))
+        # In a temporary work folder nobody will see the report: its plots are not drawn at all.
+        plotter = _Background("cycle-plots", [] if temporary else plots, meter.figures("cycle"))
         try:
             _poses_and_impostors(work, pool, workers, meter, progress, textures, after_plan=plotter.start)
             if pool is not None:
