@@ -92,6 +92,29 @@ def test_decoded_error_of_smooth_content_is_small(encode, decode):
     assert errors["rgb_max"] <= SMOOTH_MAX_ABS
 
 
+def test_compression_error_is_the_plain_statistics_of_the_differences():
+    """compression_error's histogram sums against the statistics written out in float64, on random layers
+    with and without a mask, equal layers and an empty mask."""
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        height, width = rng.integers(1, 24, 2)
+        original = rng.integers(0, 256, (height, width, 4), dtype=np.uint8)
+        spread = int(rng.integers(0, 256))
+        decoded = np.clip(original + rng.integers(-spread, spread + 1, original.shape), 0, 255).astype(np.uint8)
+        mask = None if trial % 3 == 0 else rng.random((height, width)) < 0.5
+        errors = compression.compression_error(original, decoded, mask)
+        chosen = np.ones((height, width), bool) if mask is None else mask
+        if not chosen.any():
+            assert errors["rgb_max"] == 0.0 and errors["rgb_psnr_db"] == float("inf")
+            continue
+        difference = np.abs(decoded[chosen].astype(np.float64) - original[chosen].astype(np.float64))
+        assert errors["rgb_max"] == difference[:, :3].max() and errors["alpha_max"] == difference[:, 3].max()
+        assert errors["rgb_mean_abs"] == pytest.approx(difference[:, :3].mean(), rel=1e-12)
+        assert errors["rgb_rmse"] == pytest.approx(np.sqrt(np.mean(difference[:, :3] ** 2)), rel=1e-12)
+    same = compression.compression_error(original, original)
+    assert same["rgb_rmse"] == 0.0 and same["rgb_psnr_db"] == float("inf")
+
+
 def texture2ddecoder_colour(colour_blocks: bytes, width: int, height: int, four_colour_always: bool) -> np.ndarray:
     """texture2ddecoder's RGB of 8-byte colour blocks: as BC1 (3-colour mode where color0 <= color1), or
     in 4-colour mode always, as the colour half of BC3 (behind an opaque BC4 alpha block) - what BC2/BC3
