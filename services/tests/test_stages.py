@@ -219,6 +219,23 @@ def test_the_last_frames_tasks_alternate_so_their_packs_run_side_by_side():
     assert sorted(task.id for task in task_order(tasks, 5)) == sorted(task.id for task in tasks)
 
 
+def test_workers_get_the_reusing_malloc_and_this_process_keeps_its_own():
+    """The fork server, and so every worker, starts with WORKER_MALLOC in its environment (glibc reads it at
+    start); the caller's environment is as it was."""
+    import os
+
+    from crowdbake.stages import runner
+
+    before = {name: os.environ.get(name) for name in runner.WORKER_MALLOC}
+    pool = runner.start_pool(2)
+    try:
+        seen = {name: pool.submit(os.getenv, name).result(timeout=60) for name in runner.WORKER_MALLOC}
+    finally:
+        pool.shutdown(wait=True)
+    assert seen == runner.WORKER_MALLOC
+    assert {name: os.environ.get(name) for name in runner.WORKER_MALLOC} == before
+
+
 def test_the_scored_azimuth_gaps_spread_round_the_ring():
     assert spread_gaps(4) == [0, 1, 2, 3] and spread_gaps(16) == list(range(16))
     assert spread_gaps(32) == list(range(0, 32, 2))
