@@ -44,7 +44,8 @@ def uv_map_to_uvblock(uv_map: np.ndarray) -> bytes:
     uv_map = np.asarray(uv_map)
     height, width = uv_map.shape[:2]
     if uv_map.ndim != 3 or uv_map.shape[2] != 4 or height % 4 or width % 4:
-        raise ValueError(f"uv_map_to_uvblock: expected (H, W, 4) uint16 with H and W multiples of 4, got {uv_map.shape} {uv_map.dtype}")
+        raise ValueError(f"uv_map_to_uvblock: expected (H, W, 4) uint16 with H and W multiples of 4, "
+                         f"got {uv_map.shape} {uv_map.dtype}")
     blocks = uv_map.reshape(height // 4, 4, width // 4, 4, 4)
     live = (blocks[..., 3] >= 32768).any(axis=(1, 3))  # (rows, columns) of blocks
     rows, columns = np.nonzero(live)
@@ -65,7 +66,8 @@ def uvblock_to_uv32(data: bytes, width: int, height: int) -> np.ndarray:
 
 
 def decode_normal_map(normal_map: np.ndarray) -> np.ndarray:
-    """(..., 4) uint8 normal codes (a map, or chosen texels of one) -> (..., 3) float64 unit normals ((rgb / 255) · 2 - 1, renormalised)."""
+    """(..., 4) uint8 normal codes (a map, or chosen texels of one) -> (..., 3) float64 unit normals
+    ((rgb / 255) · 2 - 1, renormalised)."""
     n = np.asarray(normal_map)[..., :3].astype(np.float64) / 255.0 * 2.0 - 1.0
     length = np.linalg.norm(n, axis=-1, keepdims=True)
     return np.divide(n, length, out=np.zeros_like(n), where=length > 1e-12)

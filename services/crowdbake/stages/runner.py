@@ -62,9 +62,9 @@ WORKER_ITEMS = 16
 # The workers' malloc: a worker's items allocate and free the same large arrays item after item, and
 # every page glibc hands back to the kernel (a freed array over the dynamic mmap threshold, the heap's top
 # above the trim threshold) is zeroed again on its next use, llvmpipe's buffers included: 1.4 million page
-# faults in a sample bake, 0.7 million with these settings. Arrays up to 32 MiB (glibc's largest fixed threshold) come
-# from the heap and the heap is never trimmed, so a worker reuses its own pages; the high-water mark that
-# bounds a worker's memory stays as it was (each is replaced after WORKER_ITEMS items anyway).
+# faults in a sample bake, 0.6 million with these settings. Arrays up to 32 MiB (glibc's largest fixed
+# threshold) come from the heap and the heap is never trimmed, so a worker reuses its own pages; the
+# high-water mark that bounds a worker's memory stays as it was (each is replaced after WORKER_ITEMS items).
 WORKER_MALLOC = {"MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(1 << 40)}
 
 
@@ -160,8 +160,8 @@ class _Meter:
 
 
 class _Background:
-    """Callables run one after another in a thread from start() on; result() waits and re-raises their error. Their CPU
-    seconds (time.thread_time) are added to `figures`."""
+    """Callables run one after another in a thread from start() on; result() waits and re-raises their
+    error. Their CPU seconds (time.thread_time) are added to `figures`."""
 
     def __init__(self, name: str, calls: list[Callable[[], None]], figures: StageFigures):
         self._calls, self._figures, self._error = calls, figures, None
@@ -520,8 +520,7 @@ def run_bake(inputs: BakeInputs, out_root: Path, work: Path | None = None, progr
         # which otherwise only waits for the workers; run_bake returns once they are written. The thread
         # starts once the impostor plan is made and its first tasks handed out: the plan, in this process
         # too, waits for the interpreter lock while matplotlib holds it, and every impostor task waits for
-        # the plan.
-        # In a temporary work folder nobody will see the report: its plots are not drawn at all.
+        # the plan. In a temporary work folder nobody will see the report: its plots are not drawn at all.
         plotter = _Background("cycle-plots", [] if temporary else plots, meter.figures("cycle"))
         try:
             _poses_and_impostors(work, pool, workers, meter, progress, textures, after_plan=plotter.start)
