@@ -21,6 +21,8 @@ process and around each item in the workers):
 - render: seconds inside pyrender/OpenGL (draw and read-back), summed by crowdbake.render.offscreen over
   every render of the bake (cycle views, impostor views, fidelity references), workers included;
 - wall / render: 1.0 would be a bake bound by its renderer;
+- for the case's whole process tree (its imports, the fork server and every worker; the kernel's
+  accounting of the processes it waited for): user and system CPU seconds and minor page faults;
 - peak RSS of this process while the stage's progress reports came (sampled every 10 ms from
   /proc/self/statm); the process's and the largest worker's high-water marks are in the totals.
 
@@ -189,12 +191,24 @@ def run_case(case: str, sample: Path, assets: Path, workers: int | None = None) 
     }
 
 
+def process_tree(before: resource.struct_rusage, after: resource.struct_rusage) -> dict[str, float]:
+    """The case's process and every process it waited for (the fork server, which waited for the workers),
+    from the kernel's accounting: user and system CPU seconds and minor page faults (a page touched for the
+    first time: the kernel zeroes it)."""
+    return {"user_s": after.ru_utime - before.ru_utime, "sys_s": after.ru_stime - before.ru_stime,
+            "minor_page_faults": after.ru_minflt - before.ru_minflt}
+
+
 def print_case(report: dict) -> None:
     timings = report["timings"]
     worker_peak = report["peak_rss_largest_worker_mib"]
     print(f"\n{report['case']}: wall {timings['wall_s']:.2f} s, CPU {timings['cpu_s']:.2f} s (workers included), render {timings['render_s']:.2f} s "
           f"({timings['renders']} renders), wall/render {report['wall_over_render'] or float('nan'):.2f}, {timings['workers']} worker(s), "
           f"peak RSS {report['peak_rss_mib']:.0f} MiB" + (f", largest worker {worker_peak:.0f} MiB" if worker_peak else ""))
+    tree = report.get("process_tree")
+    if tree:
+        print(f"  whole process tree (imports included): user {tree['user_s']:.2f} s, system {tree['sys_s']:.2f} s, "
+              f"{tree['minor_page_faults'] / 1e6:.2f} million minor page faults")
     print(f"  {'stage':10s} {'wall s':>8s} {'CPU s':>8s} {'render s':>9s} {'wall/render':>11s} {'peak MiB':>9s}")
     for name, figures in report["stages"].items():
         ratio, peak = figures["wall_over_render"], figures["peak_rss_mib"]
@@ -222,6 +236,7 @@ def main() -> int:
         return 0
     reports = []
     for case in args.cases:
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
         done = subprocess.run(
             [sys.executable, __file__, "--one-case", case, "--sample", str(sample), "--assets", str(args.assets), "--out", str(args.out)]
             + ([] if args.workers is None else ["--workers", str(args.workers)]),
@@ -231,6 +246,7 @@ def main() -> int:
         if report is None:
             print(f"\n{case}: skipped (assets missing under {args.assets})")
             continue
+        report["process_tree"] = process_tree(before, resource.getrusage(resource.RUSAGE_CHILDREN))
         reports.append(report)
         print_case(report)
     document = {

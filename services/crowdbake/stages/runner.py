@@ -56,15 +56,16 @@ MAX_WORKERS = 2
 # Items a worker process runs before a fresh one (forked from the fork server in milliseconds) replaces
 # it: a worker's resident size otherwise creeps up from item to item (the heap's fragments, pyrender's
 # caches) to twice what one item needs. A fresh worker starts with none of its pages (WORKER_MALLOC):
-# at 16 the sample's largest worker peaks where it did at 8 (608 MiB), with 15 % fewer page faults.
+# at 16 the sample's largest worker peaks as it did at 8 (608 to 612 MiB, bench_bake.py).
 WORKER_ITEMS = 16
 
 # The workers' malloc: a worker's items allocate and free the same large arrays item after item, and
 # every page glibc hands back to the kernel (a freed array over the dynamic mmap threshold, the heap's top
-# above the trim threshold) is zeroed again on its next use, llvmpipe's buffers included: 1.4 million page
-# faults in a sample bake, 0.6 million with these settings. Arrays up to 32 MiB (glibc's largest fixed
-# threshold) come from the heap and the heap is never trimmed, so a worker reuses its own pages; the
-# high-water mark that bounds a worker's memory stays as it was (each is replaced after WORKER_ITEMS items).
+# above the trim threshold) is zeroed again on its next use, llvmpipe's buffers included: 1.3 million page
+# faults in a sample bake, 0.6 million with these settings (bench_bake.py's process_tree). Arrays up to
+# 32 MiB (glibc's largest fixed threshold) come from the heap and the heap is never trimmed, so a worker
+# reuses its own pages; the high-water mark that bounds a worker's memory stays as it was (each is
+# replaced after WORKER_ITEMS items).
 WORKER_MALLOC = {"MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(1 << 40)}
 
 
