@@ -183,8 +183,8 @@ def test_the_timeline_names_every_item_where_and_when_it_ran(baked):
     if timings["workers"] > 1:
         assert items["textures"]["pid"] != items["cycle"]["pid"]
         assert items["textures"]["end_s"] <= items["poses"]["start_s"]
-        assert {f"impostors:{task.id}" for task in impostor_tasks(baked[0] / "work")} <= set(items)
-        assert {"scores", "pack-stage", "export", "publish-bundle"} <= set(items)
+        assert {f"impostor_views:{task.id}" for task in impostor_tasks(baked[0] / "work")} <= set(items)
+        assert {"references", "scores", "pack", "export", "publish", "commit_export"} <= set(items)
         assert max(span["process_peak_rss_mib"] for span in timeline if "process_peak_rss_mib" in span) == timings["peak_rss_mib"]["largest_worker"]
 
 
@@ -208,7 +208,7 @@ def test_the_textures_need_the_job_alone(sample, baked, tmp_path):
 
 def test_the_last_frames_tasks_alternate_so_their_packs_run_side_by_side():
     from crowdbake.stages.records import ImpostorTask
-    from crowdbake.stages.runner import task_order
+    from crowdbake.stages.plan import task_order
 
     tasks = [ImpostorTask(id=f"f{frame:04d}-e{ring}", frame=frame, elevation=ring, views=[[0, ring]], references=frame == 0)
              for frame in (0, 4, 8, 12) for ring in range(3)]
@@ -224,7 +224,7 @@ def test_workers_get_the_reusing_malloc_and_this_process_keeps_its_own():
     start); the caller's environment is as it was."""
     import os
 
-    from crowdbake.stages import runner
+    from crowdbake.stages import worker_pool as runner
 
     before = {name: os.environ.get(name) for name in runner.WORKER_MALLOC}
     pool = runner.start_pool(2)

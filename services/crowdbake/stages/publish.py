@@ -6,13 +6,17 @@ The same bytes already published: nothing to do. Other bytes under that version:
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from crowdbake.errors import StageOrderError, VersionConflict
 from crowdbake.formats.bundle import BundleFile, verify_bundle, write_bundle
 from crowdbake.stages.validate import load_job
-from crowdbake.stages.workdir import WorkDir
-from crowdbake.storage.exports import ExportStore, LocalExportStore, build_export_beside_home, check_export_home
+from crowdbake.stages.workdir import WorkDir, read_json, write_json_atomic
+from crowdbake.storage.exports import (
+    ExportStore, LocalExportStore, build_export_beside_home, check_export_home, commit_export, discard_export, export_home,
+)
 
 
 def same_tree(a: Path, b: Path) -> bool:
@@ -100,3 +104,45 @@ def stage_export_ahead(work: Path, bundles_root: Path) -> Path | None:
     if bundle is None:
         return None
     return build_export_beside_home(bundle, Path(bundles_root), prepared=prepared_export_layers(work))
+
+
+STAGING_FILE = "export/staging.json"  # where the export node leaves the folder it built, for commit_export
+
+
+@dataclass
+class LocalDestination:
+    """Publishing into a bundles folder: the bundle under out_root/<name>/<version>, its engine export
+    built beside its home while the bundle is published, and put in place only once that succeeded."""
+
+    out_root: Path
+
+    def publish(self, work: Path) -> dict[str, Any]:
+        check_export_before_publishing(work, self.out_root)
+        return {"path": str(stage_publish(work, self.out_root))}
+
+    def export(self, work: Path) -> str | None:
+        staging = stage_export_ahead(work, self.out_root)
+        write_json_atomic(Path(work) / STAGING_FILE, {"path": None if staging is None else str(staging)})
+        return None if staging is None else str(staging)
+
+    def commit_export(self, work: Path) -> str | None:
+        staging = self._staging(work)
+        if staging is None:
+            return None
+        manifest = read_json(Path(work) / "bundle" / "manifest.json")
+        home = commit_export(staging, export_home(self.out_root, manifest["name"], manifest["version"]))
+        (Path(work) / STAGING_FILE).unlink(missing_ok=True)
+        return str(home)
+
+    def abort(self, work: Path) -> None:
+        """Remove an export built for a bundle that was not published."""
+        discard_export(self._staging(work))
+        (Path(work) / STAGING_FILE).unlink(missing_ok=True)
+
+    @staticmethod
+    def _staging(work: Path) -> Path | None:
+        try:
+            path = read_json(Path(work) / STAGING_FILE)["path"]
+        except (OSError, ValueError, KeyError):
+            return None
+        return Path(path) if path else None
