@@ -9,7 +9,7 @@ under way:
   database barrier lets exactly one finishing task enqueue `pack`, and the bundle is byte-identical
   to the same bake run undisturbed in one process (crowdbake.stages.runner.run_bake);
 * a poison job kills every pool process that runs it: it stops after its retry budget and says why.
-  Regression (fixed in crowdbake.jobs.tasks.run_stage): `reject_on_worker_lost` handed such a message
+  Regression (fixed in crowdbake.jobs.deliveries.run_stage): `reject_on_worker_lost` handed such a message
   out forever; a delivery that takes over the unit of a dead process counts one retry
   (records.claim_delivery) and the bake fails past CROWDBAKE_TASK_MAX_RETRIES;
 * the whole worker is killed (its process group: main process and pool): its messages wait in Redis

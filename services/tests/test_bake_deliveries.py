@@ -226,7 +226,7 @@ def test_a_lost_impostor_part_is_requeued_alone(api, assets):
 
 
 def test_the_heartbeat_stops_a_running_stage_when_the_bake_is_cancelled(api, assets):
-    from crowdbake.jobs.tasks import BakeCancelled, Heartbeat, StageContext, WorkerServices
+    from crowdbake.jobs.deliveries import BakeCancelled, Heartbeat, StageContext, WorkerServices
 
     bake_id = new_bake(api, assets)
     owner = records.delivery_owner("task-a")
