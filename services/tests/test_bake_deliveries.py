@@ -26,7 +26,7 @@ import time
 import pytest
 from sqlalchemy import select
 
-from crowdbake.storage import records
+from crowdbake.storage import bake_requests, records
 from crowdbake.storage.db import session_scope
 from crowdbake.storage.models import Bake, BakeLog, BakePart, BakeStage, utcnow
 from service_fixtures import bake_body, make_api, upload_small_assets
@@ -97,13 +97,13 @@ def test_retry_compare_and_set_in_sql_lets_one_of_two_sessions_win(api, assets):
     """The same race below the API: two sessions retry attempt 0 at once; the UPDATE's rowcount decides."""
     bake_id = new_bake(api, assets)
     with session_scope(api.sessions) as session:
-        records.cancel_bake(session, bake_id)
+        bake_requests.cancel_bake(session, bake_id)
 
     def retry(_):
         try:
             with session_scope(api.sessions) as session:
-                return records.retry_bake(session, bake_id, 0).attempt
-        except records.TransitionRefused:
+                return bake_requests.retry_bake(session, bake_id, 0).attempt
+        except bake_requests.TransitionRefused:
             return None
 
     outcomes = at_once(2, retry)
@@ -236,7 +236,7 @@ def test_the_heartbeat_stops_a_running_stage_when_the_bake_is_cancelled(api, ass
     with Heartbeat(ctx, api.settings.heartbeat_interval):
         ctx.progress("validate", 0, 10)  # live: no exception
         with session_scope(api.sessions) as session:
-            records.cancel_bake(session, bake_id)
+            bake_requests.cancel_bake(session, bake_id)
         deadline = time.monotonic() + 5 * api.settings.heartbeat_interval
         while ctx.stop_reason is None:
             assert time.monotonic() < deadline, "the heartbeat did not see the cancel"
@@ -298,7 +298,7 @@ def test_the_sweeper_deletes_work_folders_of_published_and_cancelled_bakes_and_k
         records.fail_bake(session, bakes["failed"], "cycle", {"type": "stage-failed", "title": "t", "detail": "d"})
         keys = {state: bake.input_key for state, bake in bakes.items()}
     with session_scope(api.sessions) as session:
-        records.cancel_bake(session, ids["cancelled"])
+        bake_requests.cancel_bake(session, ids["cancelled"])
     for key in keys.values():
         (api.settings.work_dir / key / "cycle").mkdir(parents=True)
     orphan = api.settings.work_dir / ("0" * 64)
