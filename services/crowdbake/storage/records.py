@@ -329,10 +329,12 @@ def still_owner(session: Session, bake_id: str, attempt: int, stage: str, part: 
 
 
 def release_delivery(session: Session, bake_id: str, stage: str, part: str | None, owner: str) -> None:
-    """The delivery stopped owning its unit (finished, failed or handed to a Celery retry)."""
+    """The delivery stopped owning its unit (finished, failed or handed to a Celery retry). The release
+    stays in `heartbeat_at` as the unit's last sign of life: a unit handed to a Celery retry is sent
+    again by the sweeper only if the retry's message does not take it in time (sweeps.resend_due)."""
     table = BakePart if part else BakeStage
     key = (BakePart.part == part) if part else (BakeStage.stage == stage)
-    session.execute(update(table).where(table.bake_id == bake_id, key, table.owner == owner).values(owner=None, heartbeat_at=None))
+    session.execute(update(table).where(table.bake_id == bake_id, key, table.owner == owner).values(owner=None, heartbeat_at=utcnow()))
 
 
 def heartbeat(session: Session, bake_id: str, attempt: int, stage: str, part: str | None, owner: str) -> bool:
