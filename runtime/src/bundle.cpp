@@ -42,11 +42,33 @@ const char* error_code_name(ErrorCode code) {
     return "unknown";
 }
 
+std::string printable(const std::string& text) {
+    static const char* hex = "0123456789abcdef";
+    std::string out;
+    out.reserve(text.size());
+    for (size_t i = 0; i < text.size(); ++i) {
+        const uint8_t c = uint8_t(text[i]);
+        if (c < 0x20 || c == 0x7f) {
+            out += "\\x";
+            out += hex[c >> 4];
+            out += hex[c & 15];
+        } else if (c == 0xc2 && i + 1 < text.size() && uint8_t(text[i + 1]) >= 0x80 && uint8_t(text[i + 1]) <= 0x9f) {
+            const uint8_t code = uint8_t(text[++i]);  // U+0080..U+009F
+            out += "\\u00";
+            out += hex[code >> 4];
+            out += hex[code & 15];
+        } else {
+            out += char(c);
+        }
+    }
+    return out;
+}
+
 Status make_error(ErrorCode code, const char* function, const std::string& file, const std::string& detail) {
     Status status;
     status.code = code;
-    status.file = file;
-    status.message = std::string(function) + ": " + file + ": " + error_code_name(code) + ": " + detail;
+    status.file = printable(file);
+    status.message = std::string(function) + ": " + status.file + ": " + error_code_name(code) + ": " + printable(detail);
     return status;
 }
 
@@ -473,6 +495,32 @@ public:
         return uint32_t(d);
     }
 
+    // A file size: an exact integer in [0, kMaxFileSize]. Read exactly, never through a cast that
+    // could overflow: 2^64 - 1 as a double is 2^64, and converting that to uint64_t is undefined
+    // (it read as 0, and the file then had to be empty).
+    uint64_t size_value(const json& v, const std::string& where) {
+        const std::string range = "is out of range [0, " + std::to_string(kMaxFileSize) + "]";
+        if (v.is_number_unsigned()) {
+            const uint64_t n = v.get<uint64_t>();
+            if (n > kMaxFileSize) fail(where, range);
+            return n <= kMaxFileSize ? n : 0;
+        }
+        if (v.is_number_integer()) {  // signed, so negative here
+            fail(where, range);
+            return 0;
+        }
+        if (!is_integer(v)) {
+            fail(where, "is not of type 'integer'");
+            return 0;
+        }
+        const double d = v.get<double>();  // integral and finite; compared before any conversion
+        if (d < 0 || d > double(kMaxFileSize)) {
+            fail(where, range);
+            return 0;
+        }
+        return uint64_t(d);
+    }
+
     // Number with optional bounds; `exclusive_min` makes the minimum exclusive.
     double number(const json& parent, const std::string& where, const char* key, double minimum = -INFINITY,
                   bool exclusive_min = false) {
@@ -649,12 +697,7 @@ Status parse_manifest(const std::string& text, Manifest* out) {
             }
             FileEntry entry;
             entry.path = check.string(item, where, "path", nullptr, 1);
-            if (const json* size = check.member(item, where, "size")) {
-                if (!SchemaCheck::is_integer(*size) || size->get<double>() < 0)
-                    check.fail(where + "/size", "is not a non-negative integer");
-                else
-                    entry.size = uint64_t(size->get<double>());
-            }
+            if (const json* size = check.member(item, where, "size")) entry.size = check.size_value(*size, where + "/size");
             entry.sha256 = check.string(item, where, "sha256", "^[0-9a-f]{64}$");
             entry.media_type = check.string(item, where, "media_type", nullptr, 1);
             entry.role = check.enumerated(item, where, "role",
@@ -799,6 +842,10 @@ Status load_bundle(const std::string& manifest_text, const FileSource& source, B
     // Step 2: every file entry, in order.
     std::map<std::string, std::vector<uint8_t>> contents;
     for (const FileEntry& entry : manifest.files) {
+        if (printable(entry.path) != entry.path)
+            return make_error(ErrorCode::unsafe_path, fn, entry.path,
+                              "path holds control characters (written here as \\xNN or \\u00NN), which the bundle path "
+                              "rule forbids ([A-Za-z0-9._-] components)");
         if (!is_safe_path(entry.path))
             return make_error(ErrorCode::unsafe_path, fn, entry.path,
                               "path breaks the bundle path rule (relative, no '..', [A-Za-z0-9._-])");

@@ -44,15 +44,22 @@ const char* error_code_name(ErrorCode code);
 
 struct Status {
     ErrorCode code = ErrorCode::ok;
-    std::string file;     // bundle path the error concerns ("manifest.json" for the manifest)
-    std::string message;  // "<function>: <file>: <code>: <detail>"
+    std::string file;     // bundle path the error concerns ("manifest.json" for the manifest), printable()
+    std::string message;  // "<function>: <file>: <code>: <detail>", printable()
 
     bool ok() const { return code == ErrorCode::ok; }
     explicit operator bool() const { return ok(); }
 };
 
-// Builds a failing Status; `function` leads the message.
+// Builds a failing Status; `function` leads the message. `file` and `detail` may come from a
+// hostile manifest: both pass through printable(), so the message is whole and on one line.
 Status make_error(ErrorCode code, const char* function, const std::string& file, const std::string& detail);
+
+// `text` with every control character written out: C0 bytes and DEL as \xNN, the C1 controls
+// (U+0080..U+009F, two bytes in UTF-8) as \u00NN; everything else unchanged. A path holding NUL
+// would otherwise cut a C string short, and an escape sequence would reach the terminal.
+// crowdbake.formats.errors.printable writes the same.
+std::string printable(const std::string& text);
 
 // ---------------------------------------------------------------------------------------
 // Binary files
@@ -190,6 +197,11 @@ struct Manifest {
 };
 
 constexpr uint32_t kFormatVersion = 1;
+
+// Largest file size a manifest may declare: 2^53 - 1, the largest integer a double (and so every
+// JSON reader, JavaScript's included) holds exactly; manifest.schema.json has the same maximum.
+// A real bundle is tens of megabytes, and the cache budget refuses far less than this anyway.
+constexpr uint64_t kMaxFileSize = (uint64_t(1) << 53) - 1;
 
 // Parse manifest.json's text and check it against manifest.schema.json (the checks are
 // written out here; there is no schema engine). Returns manifest_invalid or

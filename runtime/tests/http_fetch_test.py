@@ -1,7 +1,8 @@
 """crowdview fetching a bundle over real HTTP: dropped connections resume with Range requests,
 servers without Range support are downloaded again, tampered and missing files are refused, a
 dripping server meets the deadline, a manifest claiming a huge file meets the cache budget, a
-private bundle needs the bearer key (never printed), and `latest` is resolved to one version.
+private bundle needs the bearer key (never printed), `latest` is resolved to one version, and a
+redirect loop ends after a few requests.
 
     python3 http_fetch_test.py CROWDVIEW MAKE_SYNTHETIC_BUNDLE
 
@@ -40,6 +41,15 @@ class Handler(http.server.BaseHTTPRequestHandler):
     def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
         path = self.path.lstrip("/")
         Handler.log.append((path, self.headers.get("Range")))
+        if path.startswith("loop/"):  # redirects to itself, for ever
+            self.redirect(path)
+            return
+        if path.startswith("hops/"):  # hops/N/<rest>: N redirects before <rest> is served
+            _, hops, rest = path.split("/", 2)
+            if int(hops) > 0:
+                self.redirect(f"hops/{int(hops) - 1}/{rest}")
+                return
+            path = rest
         if path.startswith(self.private_prefix):
             if self.headers.get("Authorization") != f"Bearer {KEY}":
                 self.send_error(401)
@@ -90,6 +100,12 @@ class Handler(http.server.BaseHTTPRequestHandler):
             return
         self.wfile.write(body)
 
+    def redirect(self, path: str) -> None:
+        self.send_response(302)
+        self.send_header("Location", "/" + path)
+        self.send_header("Content-Length", "0")
+        self.end_headers()
+
     def log_message(self, *args) -> None:  # keep test output to the checks
         pass
 
@@ -129,6 +145,22 @@ def check_limits(run, check, crowdview, served: Path, base: str, work: Path) -> 
     check(result.returncode == 1 and result.stdout.strip() == "size_mismatch impostor/uv.cbtx", "huge file admitted: size_mismatch", result)
     check(not list((work / "cache-huge2" / "partial").glob("*")), "huge file admitted: partial file deleted")
     shutil.rmtree(huge)
+
+
+def check_redirects(run, check, crowdview, base: str, work: Path) -> None:
+    # 10. A redirect loop: before the limit, 2,008 requests in 0.4 s, stopped only by libcurl's cap
+    #     on header bytes. Now it ends after kMaxRedirects (5) with a message that says so; a chain
+    #     of 3 (more than the service makes) still works, for the manifest and every file.
+    Handler.log.clear()
+    result = run(crowdview, "--verify", f"{base}/loop/{BUNDLE}", "--cache", str(work / "cache-loop"))
+    requests = len(Handler.log)
+    check(result.returncode == 1 and result.stdout.strip() == "fetch_failed manifest.json", "redirect loop: fetch_failed", result)
+    check("more than 5 redirects" in result.stderr and "/loop/" in result.stderr, "redirect loop: named, with the URL", result)
+    check(requests == 6, f"redirect loop: {requests} requests, 1 + 5 redirects")
+    result = run(crowdview, "--verify", f"{base}/hops/3/{BUNDLE}", "--cache", str(work / "cache-hops"))
+    check(result.returncode == 0 and result.stdout.startswith("OK synthetic-walker"), "3 redirects: fetched", result)
+    result = run(crowdview, "--verify", f"{base}/hops/6/{BUNDLE}", "--cache", str(work / "cache-hops6"))
+    check(result.returncode == 1 and "more than 5 redirects" in result.stderr, "6 redirects: refused", result)
 
 
 def check_key(run, check, crowdview, base: str, work: Path) -> None:
@@ -250,6 +282,7 @@ def main() -> int:
         check_limits(run, check, crowdview, served, base, work)
         check_key(run, check, crowdview, base, work)
         check_latest(run, check, crowdview, served, base, work)
+        check_redirects(run, check, crowdview, base, work)
         server.shutdown()
     finally:
         shutil.rmtree(work, ignore_errors=True)

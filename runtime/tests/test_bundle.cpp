@@ -330,6 +330,47 @@ void test_whole_bundle() {
         expect(b, ErrorCode::ok, "", "extra properties");
     }
 
+    // File sizes: exact integers in [0, kMaxFileSize], checked before any conversion. 2^64 - 1 read
+    // as 0 (a double of 2^64 converted to uint64_t, undefined behaviour), so an empty file matched it.
+    {
+        const std::vector<std::pair<json, const char*>> bad_sizes = {
+            {json(UINT64_MAX), "2^64 - 1"},
+            {json(kMaxFileSize + 1), "2^53"},
+            {json(1e300), "1e300, an integral double"},
+            {json(18446744073709551616.0), "2^64 as a double"},
+            {json(-1), "negative"},
+            {json(12.5), "a fraction"},
+        };
+        for (const auto& [size, what] : bad_sizes) {
+            MemoryBundle b = tiny_bundle();
+            b.manifest["files"][0]["size"] = size;
+            expect(b, ErrorCode::manifest_invalid, "manifest.json", what);
+            Manifest m;
+            const Status s = parse_manifest(b.manifest.dump(), &m);
+            CHECK_MSG(s.message.find("at files/0/size: ") != std::string::npos, std::string(what) + ": names the field: " + s.message);
+        }
+        for (const json& size : {json(kMaxFileSize), json(double(kMaxFileSize)), json(0)}) {
+            MemoryBundle b = tiny_bundle();
+            b.manifest["files"][0]["size"] = size;
+            Manifest m;
+            const Status s = parse_manifest(b.manifest.dump(), &m);
+            CHECK_MSG(s.ok() && m.files[0].size == size.get<uint64_t>(), "size " + size.dump() + " read exactly: " + s.message);
+        }
+    }
+    // A path holding NUL or another control character: refused in full, the bytes escaped (the
+    // message was cut off at the NUL).
+    {
+        MemoryBundle b = tiny_bundle();
+        b.manifest["files"][1]["path"] = std::string("t/a\0b\x1b[31m.cbtx", sizeof "t/a\0b\x1b[31m.cbtx" - 1);
+        const Status s = b.load();
+        CHECK_MSG(s.code == ErrorCode::unsafe_path && s.file == "t/a\\x00b\\x1b[31m.cbtx", s.file);
+        CHECK_MSG(s.message == "load_bundle: t/a\\x00b\\x1b[31m.cbtx: unsafe_path: path holds control characters (written here "
+                               "as \\xNN or \\u00NN), which the bundle path rule forbids ([A-Za-z0-9._-] components)",
+                  s.message);
+        CHECK(std::strlen(s.message.c_str()) == s.message.size());
+        CHECK(printable("a\x7f\xc2\x85" "b\xc3\xa9") == "a\\x7f\\u0085b\xc3\xa9");  // DEL, NEL (C1); é stays
+    }
+
     // Files: path rule, duplicates, presence, size, hash, in listing order.
     {
         MemoryBundle b = tiny_bundle();

@@ -1,4 +1,4 @@
-// The shared vectors (shared_formats/vectors/v1, v1-uv32 and v1-uvblock), which the Python tests read
+// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock and v1-hostile), which the Python tests read
 // too: the good bundle decodes to expected.json's values (v1-uv32, v1-uvblock: its UV map's texels too), every
 // bad bundle fails with its expect.json code and file, and every strict prefix of every binary
 // file of the good bundle is `truncated`.
@@ -205,5 +205,10 @@ int main() {
         test_bad(uvblock / "bad", 3);
         test_prefixes(uvblock / "good" / "bundle");
     }
+    // Manifests a hostile server could send (generate_vectors_v1_hostile.py): sizes past 2^53 - 1,
+    // paths holding control characters.
+    const fs::path hostile = fs::path(CROWDVIEW_VECTORS_DIR) / "v1-hostile";
+    CHECK_MSG(fs::is_directory(hostile / "bad"), "no hostile vectors at " + hostile.string());
+    if (fs::is_directory(hostile / "bad")) test_bad(hostile / "bad", 4);
     return check::exit_code();
 }

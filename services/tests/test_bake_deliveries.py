@@ -14,6 +14,9 @@ Regressions:
 * a stage whose worker vanished stayed `running` forever: the sweeper re-queues it after the
   heartbeat timeout, counts the retry and logs it; a late original then records nothing;
 * a bake whose message never reached the broker stayed `queued` forever: the sweeper sends it;
+* a bake stayed `running` for good after its worker was SIGKILLed between taking an impostor part's
+  message from the broker and committing its receipt (sent, unowned, undone: neither lost nor unsent to
+  the sweeper): such a unit is sent again after the heartbeat timeout, and the second copy is dropped;
 * a huge bake was accepted and ran for minutes: the product of its impostor parameters is capped.
 """
 from __future__ import annotations
@@ -26,7 +29,7 @@ import time
 import pytest
 from sqlalchemy import select
 
-from crowdbake.storage import records
+from crowdbake.storage import bake_requests, records
 from crowdbake.storage.db import session_scope
 from crowdbake.storage.models import Bake, BakeLog, BakePart, BakeStage, utcnow
 from service_fixtures import bake_body, make_api, upload_small_assets
@@ -97,13 +100,13 @@ def test_retry_compare_and_set_in_sql_lets_one_of_two_sessions_win(api, assets):
     """The same race below the API: two sessions retry attempt 0 at once; the UPDATE's rowcount decides."""
     bake_id = new_bake(api, assets)
     with session_scope(api.sessions) as session:
-        records.cancel_bake(session, bake_id)
+        bake_requests.cancel_bake(session, bake_id)
 
     def retry(_):
         try:
             with session_scope(api.sessions) as session:
-                return records.retry_bake(session, bake_id, 0).attempt
-        except records.TransitionRefused:
+                return bake_requests.retry_bake(session, bake_id, 0).attempt
+        except bake_requests.TransitionRefused:
             return None
 
     outcomes = at_once(2, retry)
@@ -206,14 +209,22 @@ def test_a_stage_that_keeps_losing_its_worker_fails_the_bake_past_the_budget(api
     assert f"more than {api.settings.task_max_retries}" in bake["error"]["detail"]
 
 
+def fan_out(api, bake_id: str, *parts: str) -> None:
+    """The bake as the poses stage leaves it: the stages before it finished, and its impostor parts
+    queued and their messages sent."""
+    with session_scope(api.sessions) as session:
+        for stage in ("validate", "cycle", "poses"):
+            records.finish_stage(session, bake_id, stage, 0.1, None)
+        records.record_fan_out(session, bake_id, [{"id": part} for part in parts])
+        records.mark_sent(session, bake_id, 0, "impostors", [f"impostors/{part}" for part in parts])
+
+
 def test_a_lost_impostor_part_is_requeued_alone(api, assets):
     from crowdbake.jobs.sweeper import sweep_once
 
     bake_id = new_bake(api, assets)
     services = api.client.app.state.services
-    with session_scope(api.sessions) as session:
-        records.record_fan_out(session, bake_id, [{"id": "f0"}, {"id": "f1"}])
-        records.mark_sent(session, bake_id, 0, "impostors", ["impostors/f0", "impostors/f1"])
+    fan_out(api, bake_id, "f0", "f1")
     assert claim(api, bake_id, "impostors", "lost-host:1:a", part="impostors/f0").won
     assert claim(api, bake_id, "impostors", f"{records.this_host()}:1:b", part="impostors/f1").won
     with session_scope(api.sessions) as session:  # f1 keeps beating
@@ -236,7 +247,7 @@ def test_the_heartbeat_stops_a_running_stage_when_the_bake_is_cancelled(api, ass
     with Heartbeat(ctx, api.settings.heartbeat_interval):
         ctx.progress("validate", 0, 10)  # live: no exception
         with session_scope(api.sessions) as session:
-            records.cancel_bake(session, bake_id)
+            bake_requests.cancel_bake(session, bake_id)
         deadline = time.monotonic() + 5 * api.settings.heartbeat_interval
         while ctx.stop_reason is None:
             assert time.monotonic() < deadline, "the heartbeat did not see the cancel"
@@ -298,7 +309,7 @@ def test_the_sweeper_deletes_work_folders_of_published_and_cancelled_bakes_and_k
         records.fail_bake(session, bakes["failed"], "cycle", {"type": "stage-failed", "title": "t", "detail": "d"})
         keys = {state: bake.input_key for state, bake in bakes.items()}
     with session_scope(api.sessions) as session:
-        records.cancel_bake(session, ids["cancelled"])
+        bake_requests.cancel_bake(session, ids["cancelled"])
     for key in keys.values():
         (api.settings.work_dir / key / "cycle").mkdir(parents=True)
     orphan = api.settings.work_dir / ("0" * 64)
@@ -356,3 +367,97 @@ def test_a_message_held_by_a_lost_worker_before_it_started_is_requeued(api, asse
         assert records.mark_received(session, mine, 0, "validate", None, f"{records.this_host()}:{os.getppid()}:task-b")
     taken = claim(api, mine, "validate", records.delivery_owner("task-b"))
     assert taken.won and taken.lost_owner is None and taken.retries == 0
+
+
+# ------------------------------------------------------------------------- sent but never taken
+
+
+def sweep_at(api, now: dt.datetime):
+    from crowdbake.jobs.sweeper import sweep_once
+
+    services = api.client.app.state.services
+    return sweep_once(services.sessions, services.celery, api.settings, now=now)
+
+
+def test_a_part_whose_message_was_lost_before_its_receipt_committed_is_sent_again_once(api, assets):
+    """Regression (60 uploads, 20 bakes, the worker SIGKILLed): the worker logged "received" for an
+    impostor part about a second before the kill, but its receipt (records.mark_received) never
+    committed. The part stayed sent, unowned and undone; the sweeper re-queued only owned or unsent
+    units, and Redis hands an unacknowledged message out again only after its visibility timeout
+    (6 h), so the bake stayed `running` 15 minutes later. Now such a unit is sent again once it has
+    been quiet for the heartbeat timeout; exactly once still holds: the copy that comes second is
+    dropped by claim_delivery, while the first runs and after it finished."""
+    bake_id = new_bake(api, assets)
+    fan_out(api, bake_id, "f0", "f1")
+    # f1 was taken and beats; f0's message went down with the killed worker, nothing recorded.
+    assert claim(api, bake_id, "impostors", "host-a:1:f1", part="impostors/f1").won
+    with session_scope(api.sessions) as session:
+        session.get(BakePart, (bake_id, "impostors/f1")).heartbeat_at = utcnow() + dt.timedelta(seconds=60)
+    timeout = api.settings.heartbeat_timeout
+
+    assert sweep_at(api, utcnow() + dt.timedelta(seconds=timeout / 2)).sent == []  # not quiet long enough
+    report = sweep_at(api, utcnow() + dt.timedelta(seconds=timeout + 1))
+    assert report.sent == [f"{bake_id}:impostors/f0"] and report.resent == [f"{bake_id}:impostors/f0"], report
+    assert report.requeued == [] and report.failed == []
+    messages = [message for message in queued_messages(api) if message["task"] == "crowdbake.stage.impostor_views"]
+    assert messages == [{"task": "crowdbake.stage.impostor_views", "args": repr([bake_id, 0, "impostors/f0"])}]
+    with session_scope(api.sessions) as session:
+        part = session.get(BakePart, (bake_id, "impostors/f0"))
+        assert part.sent_at is not None and part.owner is None and part.retries == 0  # a resend is no retry
+    line = next(line for line in log_of(api, bake_id) if "no worker has recorded taking it" in line)
+    assert line.startswith("impostors/f0: sent at ") and "sent again" in line
+    # Just sent again: the next pass leaves it alone.
+    assert sweep_at(api, utcnow() + dt.timedelta(seconds=timeout / 2)).sent == []
+
+    # The new copy runs it; the original (Redis hands it out after its visibility timeout) is dropped.
+    assert claim(api, bake_id, "impostors", "host-b:1:copy", part="impostors/f0").won
+    late = claim(api, bake_id, "impostors", "host-c:1:original", part="impostors/f0")
+    assert not late.won and "running elsewhere" in late.reason
+    with session_scope(api.sessions) as session:
+        records.complete_part(session, bake_id, "impostors/f0")
+    late = claim(api, bake_id, "impostors", "host-c:1:original", part="impostors/f0")
+    assert not late.won and "already done" in late.reason
+    assert sweep_at(api, utcnow() + dt.timedelta(seconds=10 * timeout)).sent == []  # f0 done, f1 beats
+
+
+def test_a_stage_sent_recently_or_after_a_long_wait_is_not_sent_again_yet(api, assets):
+    """A message may simply wait behind others in the queue; the database cannot tell it from a lost
+    one. So a unit is sent again only once it has been quiet for the heartbeat timeout and for as
+    long as it waited before its last send: a long queue gets a few copies, not one per pass."""
+    bake_id = new_bake(api, assets)  # validate: queued, its message sent just now
+    timeout = api.settings.heartbeat_timeout
+    assert sweep_at(api, utcnow() + dt.timedelta(seconds=timeout / 2)).sent == []
+
+    # Queued 100 s before its message went out 10 s ago (the broker was away meanwhile).
+    with session_scope(api.sessions) as session:
+        row = session.get(BakeStage, (bake_id, "validate"))
+        row.queued_at, row.sent_at = utcnow() - dt.timedelta(seconds=110), utcnow() - dt.timedelta(seconds=10)
+    assert timeout < 10 and sweep_at(api, utcnow()).sent == []
+    assert sweep_at(api, utcnow() + dt.timedelta(seconds=80)).sent == []
+    assert sweep_at(api, utcnow() + dt.timedelta(seconds=91)).sent == [f"{bake_id}:validate"]
+    with session_scope(api.sessions) as session:
+        row = session.get(BakeStage, (bake_id, "validate"))
+        assert (row.state, row.owner, row.retries) == ("queued", None, 0) and row.sent_at is not None
+
+
+def test_a_stage_let_go_of_for_a_celery_retry_waits_for_the_retry_countdown(api, assets):
+    """A delivery that hit a transient error releases its unit and leaves a Celery retry with a
+    countdown of up to 1.5 x CROWDBAKE_TASK_RETRY_BACKOFF_MAX: the sweeper does not send a copy that
+    would run before it, but does send one if that retry never takes the unit (its worker died)."""
+    from crowdbake.jobs.sweeper import RETRY_JITTER_MAX
+
+    bake_id = new_bake(api, assets)
+    owner = "host-a:1:task-a"
+    assert claim(api, bake_id, "validate", owner).won
+    with session_scope(api.sessions) as session:  # what run_stage does before task.retry
+        records.release_delivery(session, bake_id, "validate", None, owner)
+        records.stage_row(session, bake_id, "validate").state = "retrying"
+    countdown = api.settings.task_retry_backoff_max * RETRY_JITTER_MAX
+    timeout = api.settings.heartbeat_timeout
+    assert sweep_at(api, utcnow() + dt.timedelta(seconds=timeout + 1)).sent == []
+    assert sweep_at(api, utcnow() + dt.timedelta(seconds=timeout + countdown - 1)).sent == []
+    report = sweep_at(api, utcnow() + dt.timedelta(seconds=timeout + countdown + 1))
+    assert report.sent == report.resent == [f"{bake_id}:validate"], report
+    with session_scope(api.sessions) as session:
+        assert records.stage_row(session, bake_id, "validate").state == "queued"
+    assert claim(api, bake_id, "validate", "host-b:1:task-b").won

@@ -37,6 +37,8 @@ BAD_CASES_UV32 = sorted(p.name for p in (V1_UV32 / "bad").iterdir())
 V1_UVBLOCK = VECTORS / "v1-uvblock"
 GOOD_UVBLOCK = V1_UVBLOCK / "good" / "bundle"
 BAD_CASES_UVBLOCK = sorted(p.name for p in (V1_UVBLOCK / "bad").iterdir())
+V1_HOSTILE = VECTORS / "v1-hostile"
+BAD_CASES_HOSTILE = sorted(p.name for p in (V1_HOSTILE / "bad").iterdir())
 
 
 def test_good_vector_decodes_to_the_expected_values():
@@ -353,3 +355,24 @@ def test_the_bakes_uvblock_paths_match_their_definitions_on_a_mostly_empty_atlas
         uv_map_to_uvblock(np.where(covered[..., None], np.array([0, 0, 4, 65535], np.uint16), uv_map))
     with pytest.raises(ValueError, match="multiples of 4"):
         uv_map_to_uvblock(uv_map[:30])
+
+
+@pytest.mark.parametrize("case", BAD_CASES_HOSTILE)
+def test_hostile_manifest_is_refused_like_crowdview_refuses_it(case):
+    """Regression (read by crowdview's test_vectors too): a file size of 2^64 - 1 passed the schema here
+    and read as 0 in crowdview; a path holding NUL cut crowdview's message short. Both readers now give
+    the same code and file, the bad characters escaped."""
+    expect = json.loads((V1_HOSTILE / "bad" / case / "expect.json").read_text())
+    with pytest.raises(FormatError) as raised:
+        verify_bundle(V1_HOSTILE / "bad" / case / "bundle")
+    assert (raised.value.code, raised.value.file) == (expect["error"], expect["file"])
+    assert "\x00" not in str(raised.value) and "\x1b" not in str(raised.value)
+    if expect["error"] == "manifest_invalid":
+        assert "at files/0/size" in str(raised.value)
+
+
+def test_a_path_with_a_trailing_newline_breaks_the_path_rule():
+    """`$` matched before a final newline, so "a.cbpc\\n" passed the path rule (fullmatch now)."""
+    with pytest.raises(FormatError) as raised:
+        check_path("poses/a.cbpc\n")
+    assert raised.value.file == "poses/a.cbpc\\x0a"

@@ -10,8 +10,9 @@ import pytest
 from pydantic import ValidationError
 from sqlalchemy import inspect
 
-from crowdbake.storage import records
+from crowdbake.storage import bake_requests, records
 from crowdbake.settings import Settings
+from crowdbake.stages import STAGES
 from crowdbake.storage.blobs import LocalBlobStore, check_digest
 from crowdbake.storage.bundles import BundleConflict, find_bundle, register_bundle
 from crowdbake.storage.db import head_revision, is_migrated, make_engine, make_sessionmaker, migrate, session_scope
@@ -189,16 +190,16 @@ def test_latest_is_the_most_recent(sessions, tmp_path):
 
 def new_bake(session, name="walker", params=None) -> Bake:
     params = params or {"tile_size": 32}
-    key = records.input_key({"character": "a" * 64}, name, "1.0.0", params)
-    return records.create_bake(session, name=name, version="1.0.0", params=params, inputs={}, key=key, publish=True, public=False, created_by=None)
+    key = bake_requests.input_key({"character": "a" * 64}, name, "1.0.0", params)
+    return bake_requests.create_bake(session, name=name, version="1.0.0", params=params, inputs={}, key=key, publish=True, public=False, created_by=None)
 
 
 def test_input_key_depends_on_everything_that_decides_the_output():
-    base = records.input_key({"character": "a"}, "walker", "1.0.0", {"tile_size": 32})
-    assert base == records.input_key({"character": "a"}, "walker", "1.0.0", {"tile_size": 32})
-    assert base != records.input_key({"character": "b"}, "walker", "1.0.0", {"tile_size": 32})
-    assert base != records.input_key({"character": "a"}, "walker", "1.0.1", {"tile_size": 32})
-    assert base != records.input_key({"character": "a"}, "walker", "1.0.0", {"tile_size": 64})
+    base = bake_requests.input_key({"character": "a"}, "walker", "1.0.0", {"tile_size": 32})
+    assert base == bake_requests.input_key({"character": "a"}, "walker", "1.0.0", {"tile_size": 32})
+    assert base != bake_requests.input_key({"character": "b"}, "walker", "1.0.0", {"tile_size": 32})
+    assert base != bake_requests.input_key({"character": "a"}, "walker", "1.0.1", {"tile_size": 32})
+    assert base != bake_requests.input_key({"character": "a"}, "walker", "1.0.0", {"tile_size": 64})
 
 
 def test_fan_in_enqueues_pack_exactly_once_per_attempt(sessions):
@@ -221,14 +222,14 @@ def test_fan_in_enqueues_pack_exactly_once_per_attempt(sessions):
         bake = session.get(Bake, bake_id)
         records.fail_bake(session, bake, "pack", {"type": "stage-failed", "title": "t", "detail": "d"})
     with session_scope(sessions) as session:
-        bake = records.retry_bake(session, bake_id, 0)
+        bake = bake_requests.retry_bake(session, bake_id, 0)
         assert bake.attempt == 1 and bake.state == "queued" and bake.error is None
     with session_scope(sessions) as session:
         assert records.claim_fan_in(session, bake_id, 1) is True  # the new attempt has its own barrier
 
 
 def test_progress_weights_cover_every_stage(sessions):
-    assert set(records.STAGE_WEIGHTS) == set(records.STAGES)
+    assert set(records.STAGE_WEIGHTS) == set(STAGES)
     assert sum(records.STAGE_WEIGHTS.values()) == pytest.approx(1.0)
     with session_scope(sessions) as session:
         bake = new_bake(session)

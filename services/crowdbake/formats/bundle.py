@@ -26,7 +26,7 @@ from crowdbake.formats.binary import (
     decode_pose_cache,
     decode_texture_array,
 )
-from crowdbake.formats.errors import FormatError
+from crowdbake.formats.errors import FormatError, printable
 
 FORMAT_NAME = "crowdbake-bundle"
 FORMAT_VERSION = 1
@@ -50,10 +50,13 @@ MEDIA_TYPES = {
 
 def check_path(path: str) -> None:
     """Raise FormatError('unsafe_path') unless `path` obeys the spec's path rule (stays inside the bundle)."""
+    if isinstance(path, str) and printable(path) != path:
+        raise FormatError("unsafe_path", "path holds control characters (written here as \\xNN or \\u00NN), which the bundle path "
+                          "rule forbids ([A-Za-z0-9._-] components)", path)
     if (
         not isinstance(path, str)
         or len(path) > MAX_PATH_LENGTH
-        or not _PATH_RULE.match(path)
+        or not _PATH_RULE.fullmatch(path)
         or any(part in (".", "..") for part in path.split("/"))
         or path == "manifest.json"
     ):

@@ -1,6 +1,6 @@
 """The sweeper: no bake is left queued or running forever.
 
-One pass (`sweep_once`) does three things, each safe to run in several processes at once:
+One pass (`sweep_once`) does four things, each safe to run in several processes at once:
 
 1. **Lost workers.** A running stage (or impostor part) whose heartbeat is older than
    CROWDBAKE_HEARTBEAT_TIMEOUT lost its worker (the machine died, the process group was killed, the
@@ -8,11 +8,19 @@ One pass (`sweep_once`) does three things, each safe to run in several processes
    CROWDBAKE_TASK_MAX_RETRIES, and the bake's log says so; past the budget the bake fails with type
    `worker-lost`. The re-queue is a compare-and-set on the unit's owner and heartbeat
    (sweeps.requeue_lost), so of several sweepers exactly one re-queues it.
-2. **Unsent messages.** A stage queued in the database whose message never reached the broker (the
+2. **Messages sent but never taken.** A stage or part whose message was sent but that no delivery
+   owns or finished lost its message with a worker that died between taking it from the broker and
+   committing its receipt (records.mark_received); Redis hands such a message out again only after
+   its visibility timeout (hours). It is sent again once it has been quiet for the heartbeat timeout
+   and for as long as it had waited before its last send (sweeps.resend_due: a unit waiting behind a
+   long queue gets a few copies, not one per pass), counted as no retry; the copy that comes second
+   is dropped by records.claim_delivery. A unit let go of for a Celery retry waits for the retry's
+   countdown first.
+3. **Unsent messages.** A stage queued in the database whose message never reached the broker (the
    broker was down or frozen when the API or a worker tried) is sent once it has waited
    CROWDBAKE_DISPATCH_AFTER seconds. Sending twice is harmless: the second delivery finds the unit
    claimed or done and is dropped (records.claim_delivery).
-3. **Work folders.** A bake's work folder is deleted when it is of no more use: published bakes (the
+4. **Work folders.** A bake's work folder is deleted when it is of no more use: published bakes (the
    worker deletes it right away; this catches the rest), cancelled bakes once their workers had time
    to stop, failed and unpublished bakes CROWDBAKE_WORK_KEEP_SECONDS after they ended, and folders no
    bake names.
@@ -50,11 +58,16 @@ ENQUEUE_WAIT_S = 3.0
 # Threads that send messages for requests: a frozen broker ties them up for its socket timeout, and
 # requests beyond these wait ENQUEUE_WAIT_S at most and leave their message to the sweeper.
 SEND_THREADS = 4
+# run_stage's Celery retry countdown is the backoff times (0.5 + random()), at most 1.5 times
+# CROWDBAKE_TASK_RETRY_BACKOFF_MAX (crowdbake.jobs.tasks): a unit let go of for a retry is not sent
+# again before that countdown could have run out.
+RETRY_JITTER_MAX = 1.5
 
 
 @dataclass
 class SweepReport:
     requeued: list[str] = field(default_factory=list)
+    resent: list[str] = field(default_factory=list)
     failed: list[str] = field(default_factory=list)
     sent: list[str] = field(default_factory=list)
     unsent: list[str] = field(default_factory=list)
@@ -93,6 +106,23 @@ def requeue_lost_workers(sessions: sessionmaker[Session], settings: Settings, no
             logger.error("bake %s: %s lost its worker past the retry budget; failed", delivery.bake_id, delivery.label)
             report.failed.append(f"{delivery.bake_id}:{delivery.label}")
     return requeued
+
+
+def take_back_silent(sessions: sessionmaker[Session], settings: Settings, now: dt.datetime, report: SweepReport) -> list[sweeps.Delivery]:
+    """Units whose message was sent but never taken (module docstring, 2.), declared unsent: the caller
+    sends them in this pass."""
+    retry_wait = settings.task_retry_backoff_max * RETRY_JITTER_MAX
+    with session_scope(sessions) as session:
+        silent = sweeps.silent_deliveries(session, now, settings.heartbeat_timeout, retry_wait)
+    taken = []
+    for delivery in silent:
+        with session_scope(sessions) as session:
+            if not sweeps.take_back_silent(session, delivery):
+                continue
+        logger.warning("bake %s: %s was sent at %s and never taken; sending it again", delivery.bake_id, delivery.label, delivery.sent_at)
+        report.resent.append(f"{delivery.bake_id}:{delivery.label}")
+        taken.append(delivery)
+    return taken
 
 
 def dispatch_unsent(sessions: sessionmaker[Session], celery: Celery, settings: Settings, queued_before: dt.datetime,
@@ -159,6 +189,7 @@ def sweep_once(sessions: sessionmaker[Session], celery: Celery, settings: Settin
     now = now or utcnow()
     report = SweepReport()
     requeued = requeue_lost_workers(sessions, settings, now, report)
+    requeued += take_back_silent(sessions, settings, now, report)
     dispatch_unsent(sessions, celery, settings, now - dt.timedelta(seconds=settings.dispatch_after), report, also=requeued)
     clean_work_folders(sessions, settings, now, report)
     return report
@@ -188,9 +219,9 @@ class Sweeper:
             except Exception:  # a busy or unreachable database: the next pass tries again
                 logger.exception("sweeper pass failed")
                 continue
-            if report.requeued or report.failed or report.sent or report.removed_work:
-                logger.info("sweeper: re-queued %s, failed %s, sent %s, removed %d work folder(s)",
-                            report.requeued, report.failed, report.sent, len(report.removed_work))
+            if report.requeued or report.resent or report.failed or report.sent or report.removed_work:
+                logger.info("sweeper: re-queued %s, sent again %s, failed %s, sent %s, removed %d work folder(s)",
+                            report.requeued, report.resent, report.failed, report.sent, len(report.removed_work))
 
 
 class Dispatcher:

@@ -1,6 +1,7 @@
-"""What the API and the workers write about a bake, in one place: creation, stage state and progress,
-the log, the fan-in barrier, cancel and retry, and the delivery bookkeeping of the sweeper (which
-stage is due, which delivery runs it, its heartbeat).
+"""What the workers and the sweeper write about a bake, in one place: stage state and progress, the
+log, a bake's end, the delivery bookkeeping of the sweeper (which stage is due, which delivery runs it,
+its heartbeat) and the fan-in barrier. What a caller's request does (submit, cancel, retry, publish
+later) is in crowdbake.storage.bake_requests, built on this module.
 
 Every function takes an open Session and leaves committing to the caller (crowdbake.storage.db.
 session_scope), so a route or a task changes a bake in one transaction.
@@ -14,8 +15,6 @@ the UPDATE decides).
 from __future__ import annotations
 
 import datetime as dt
-import hashlib
-import json
 import math
 import os
 import re
@@ -27,8 +26,6 @@ from typing import Any, Iterable
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
-from crowdbake import __version__
-from crowdbake.stages import STAGES
 from crowdbake.storage.models import FINAL_BAKE_STATES, Bake, BakeLog, BakePart, BakeStage, utcnow
 
 LIVE_BAKE_STATES = ("queued", "running")
@@ -54,63 +51,6 @@ def by_id(session: Session, model: type, ident: str):
     if not isinstance(ident, str) or not _ID_SHAPE.fullmatch(ident):
         return None
     return session.get(model, ident)
-
-
-def code_version() -> str:
-    """What, besides inputs and parameters, decides a bake's bytes: the package version."""
-    return __version__
-
-
-def input_key(digests: dict[str, Any], name: str, version: str, params: dict[str, Any], created: str | None = None) -> str:
-    """sha256 of everything that decides a bake's output; names the bake's work folder. `created` (the
-    manifest time) counts only when given, so the keys of bakes without one are what they were."""
-    identity = {"inputs": digests, "name": name, "version": version, "params": params, "code": code_version()}
-    if created is not None:
-        identity["created"] = created
-    canonical = json.dumps(identity, sort_keys=True, separators=(",", ":"))
-    return hashlib.sha256(canonical.encode()).hexdigest()
-
-
-def create_bake(
-    session: Session, *, name: str, version: str, params: dict[str, Any], inputs: dict[str, Any], key: str,
-    publish: bool, public: bool, created_by: str | None,
-) -> Bake:
-    """A new queued bake holding its reservations (`live_key`, and `publish_slot` when it publishes).
-    The caller's commit raises IntegrityError when a live bake holds either already (`live_bake`,
-    `slot_holder`); its first stage is queued, its message not yet sent."""
-    now = utcnow()
-    bake = Bake(
-        id=new_id("bk"), state="queued", name=name, version=version, params=params, inputs=inputs,
-        input_key=key, publish=publish, public=public, created_by=created_by, attempt=0,
-        created_at=now, updated_at=now, live_key=key, publish_slot=publish_slot(name, version) if publish else None,
-    )
-    bake.stages = [BakeStage(stage=stage, position=position, state="pending", done=0, total=0, retries=0) for position, stage in enumerate(STAGES)]
-    bake.stages[0].state, bake.stages[0].queued_at = "queued", now
-    session.add(bake)
-    append_log(session, bake.id, "INFO", None, f"bake {name}/{version} queued (input key {key[:12]})")
-    return bake
-
-
-def publish_slot(name: str, version: str) -> str:
-    return f"{name}/{version}"
-
-
-def reusable_bake(session: Session, key: str) -> Bake | None:
-    """The newest bake with this input key that did not fail or get cancelled (idempotent resubmission)."""
-    return session.scalars(
-        select(Bake).where(Bake.input_key == key, Bake.state.not_in(("failed", "cancelled"))).order_by(Bake.created_at.desc())
-    ).first()
-
-
-def live_bake(session: Session, key: str) -> Bake | None:
-    """The queued or running bake holding this input key, if any."""
-    return session.scalars(select(Bake).where(Bake.live_key == key)).first()
-
-
-def slot_holder(session: Session, name: str, version: str) -> Bake | None:
-    """The queued or running bake that will publish name/version, if any (once published, the bundle's
-    own row holds the version)."""
-    return session.scalars(select(Bake).where(Bake.publish_slot == publish_slot(name, version))).first()
 
 
 def release_reservations(bake: Bake) -> None:
@@ -215,10 +155,6 @@ def succeed_bake(session: Session, bake: Bake) -> None:
     append_log(session, bake.id, "INFO", None, "bake succeeded")
 
 
-class TransitionRefused(Exception):
-    """A state transition lost its race or does not apply to the bake's state (the API answers 409)."""
-
-
 def lock_bake(session: Session, bake_id: str, attempt: int | None = None, states: Iterable[str] | None = None) -> Bake | None:
     """Lock the bake's row for this transaction (call first in a fresh transaction) and return it,
     freshly read; None when it does not exist or is not at `attempt` / in one of `states`.
@@ -234,78 +170,6 @@ def lock_bake(session: Session, bake_id: str, attempt: int | None = None, states
     if session.execute(query.values(updated_at=utcnow())).rowcount != 1:
         return None
     return session.scalars(select(Bake).where(Bake.id == bake_id).execution_options(populate_existing=True)).one()
-
-
-def cancel_bake(session: Session, bake_id: str) -> Bake:
-    """Cancel a queued or running bake; running tasks see it within a heartbeat and stop.
-
-    A bake whose publish stage is running is not cancelled (TransitionRefused): the bundle folder and
-    its record are written together, and a cancel between the two left a folder without a record."""
-    bake = lock_bake(session, bake_id, states=LIVE_BAKE_STATES)
-    if bake is None:
-        current = session.get(Bake, bake_id)
-        raise TransitionRefused(f"bake {bake_id} already {current.state if current else 'gone'}")
-    publish = stage_row(session, bake_id, "publish")
-    if publish.started_at is not None and publish.state in ("queued", "running", "retrying"):
-        raise TransitionRefused(f"bake {bake_id} is publishing {bake.name}/{bake.version}; a publish is not interrupted")
-    now = utcnow()
-    bake.state = "cancelled"
-    bake.finished_at = now
-    release_reservations(bake)
-    for row in bake.stages:
-        if row.state in ("pending", "queued", "running", "retrying"):
-            row.state = "cancelled"
-    append_log(session, bake.id, "INFO", None, "bake cancelled")
-    return bake
-
-
-def retry_bake(session: Session, bake_id: str, seen_attempt: int) -> Bake:
-    """Start a failed or cancelled bake again as a new attempt, if it is still at `seen_attempt`.
-
-    A compare-and-set: of two retries of the same attempt exactly one gets the row (the other
-    TransitionRefused), so the pipeline never runs twice in one work folder. The retry takes the
-    bake's reservations back; IntegrityError at commit means another live bake holds one now.
-    Stage outputs stay in the work folder, so stages that had finished return at once; messages of
-    the old attempt are dropped by the attempt check."""
-    result = session.execute(
-        update(Bake).where(Bake.id == bake_id, Bake.attempt == seen_attempt, Bake.state.in_(("failed", "cancelled")))
-        .values(attempt=Bake.attempt + 1, state="queued", error=None, finished_at=None, fan_in_attempt=None, updated_at=utcnow())
-    )
-    if result.rowcount != 1:
-        current = session.get(Bake, bake_id)
-        raise TransitionRefused(f"bake {bake_id} is {current.state if current else 'gone'} at attempt "
-                                f"{current.attempt if current else '-'}; only a failed or cancelled bake can be retried, once")
-    bake = session.scalars(select(Bake).where(Bake.id == bake_id).execution_options(populate_existing=True)).one()
-    bake.live_key = bake.input_key
-    bake.publish_slot = publish_slot(bake.name, bake.version) if bake.publish else None
-    now = utcnow()
-    for row in bake.stages:
-        row.state, row.done, row.total, row.retries = "pending", 0, 0, 0
-        row.seconds = row.started_at = row.finished_at = row.result = None
-        row.queued_at = row.sent_at = row.owner = row.heartbeat_at = None
-    bake.stages[0].state, bake.stages[0].queued_at = "queued", now
-    session.execute(delete(BakePart).where(BakePart.bake_id == bake.id))
-    append_log(session, bake.id, "INFO", None, f"retry: attempt {bake.attempt}")
-    return bake
-
-
-def request_publish(session: Session, bake_id: str) -> Bake:
-    """Queue the publish stage of a bake that succeeded without publishing (TransitionRefused if it
-    is not one, or lost the race); IntegrityError at commit when another bake holds the version."""
-    bake = lock_bake(session, bake_id, states=("succeeded",))
-    if bake is None:
-        current = session.get(Bake, bake_id)
-        raise TransitionRefused(f"bake {bake_id} is {current.state if current else 'gone'}; only a finished bake can be published")
-    stages = {row.stage: row for row in bake.stages}
-    if stages["pack"].state != "succeeded":
-        raise TransitionRefused(f"bake {bake_id} was not packed; only a finished bake can be published")
-    if stages["publish"].state == "succeeded":
-        raise TransitionRefused(f"bake {bake_id} is already published")
-    bake.publish, bake.state, bake.finished_at = True, "running", None
-    bake.publish_slot = publish_slot(bake.name, bake.version)
-    queue_stage(session, bake_id, "publish")
-    append_log(session, bake.id, "INFO", "publish", "publish requested")
-    return bake
 
 
 def is_final(bake: Bake) -> bool:
@@ -465,10 +329,12 @@ def still_owner(session: Session, bake_id: str, attempt: int, stage: str, part: 
 
 
 def release_delivery(session: Session, bake_id: str, stage: str, part: str | None, owner: str) -> None:
-    """The delivery stopped owning its unit (finished, failed or handed to a Celery retry)."""
+    """The delivery stopped owning its unit (finished, failed or handed to a Celery retry). The release
+    stays in `heartbeat_at` as the unit's last sign of life: a unit handed to a Celery retry is sent
+    again by the sweeper only if the retry's message does not take it in time (sweeps.resend_due)."""
     table = BakePart if part else BakeStage
     key = (BakePart.part == part) if part else (BakeStage.stage == stage)
-    session.execute(update(table).where(table.bake_id == bake_id, key, table.owner == owner).values(owner=None, heartbeat_at=None))
+    session.execute(update(table).where(table.bake_id == bake_id, key, table.owner == owner).values(owner=None, heartbeat_at=utcnow()))
 
 
 def heartbeat(session: Session, bake_id: str, attempt: int, stage: str, part: str | None, owner: str) -> bool:

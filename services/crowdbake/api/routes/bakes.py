@@ -2,7 +2,7 @@
 retry it, publish it later.
 
 Submitting the same inputs, parameters, name and version again returns the existing bake (200) unless
-it failed or was cancelled: the input key (crowdbake.storage.records.input_key) makes resubmission
+it failed or was cancelled: the input key (crowdbake.storage.bake_requests.input_key) makes resubmission
 idempotent, and the work folder it names makes a rerun fast. While a bake is queued or running it
 holds its input key and, when it publishes, its name/version in unique columns, so of two concurrent
 submits one creates the bake and the other gets it (same inputs) or a 409 at once (other inputs),
@@ -11,7 +11,7 @@ and no two bakes ever run in one work folder.
 Starting a bake never waits on the broker for more than ENQUEUE_WAIT_S: the bake is saved as queued,
 its first message sent by a thread of the dispatcher; a message that did not go out is sent by the
 sweeper (crowdbake.jobs.sweeper), and by a re-submit of the same bake. Cancel, retry and publish are
-compare-and-set transitions (crowdbake.storage.records): of two racing calls one wins, the other 409.
+compare-and-set transitions (crowdbake.storage.bake_requests): of two racing calls one wins, the other 409.
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ from crowdbake.ingest.cycle_document import check_cycle_fits_cloth
 from crowdbake.jobs.sweeper import ENQUEUE_WAIT_S, Dispatcher
 from crowdbake.params import NAME_PATTERN, BakeParams
 from crowdbake.redact import path_replacements, redact_text, redact_value
-from crowdbake.storage import records, sweeps
+from crowdbake.storage import bake_requests, records, sweeps
 from crowdbake.storage.bundles import find_bundle
 from crowdbake.storage.models import Asset, Bake
 
@@ -150,7 +150,7 @@ def _dispatch(dispatcher: Dispatcher, session: Session, bake: Bake) -> None:
 
 def _held_elsewhere(session: Session, name: str, version: str, key_digest: str) -> Problem:
     """The 409 for a submit whose version (or identical inputs) another live bake holds."""
-    holder = records.slot_holder(session, name, version)
+    holder = bake_requests.slot_holder(session, name, version)
     if holder is not None and holder.input_key != key_digest:
         return Problem("conflict", f"bake {holder.id} is already baking {name}/{version} from other inputs; "
                        "bundles never change, choose a new version")
@@ -180,20 +180,20 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
         # Only when given, so the keys of bakes that search their cycle are what they were.
         **({"cycle": {role: entry["sha256"] for role, entry in cycle.files.items()}} if cycle is not None else {}),
     }
-    key_digest = records.input_key(digests, body.name, body.version, params, created=body.created)
-    existing = records.reusable_bake(session, key_digest)
+    key_digest = bake_requests.input_key(digests, body.name, body.version, params, created=body.created)
+    existing = bake_requests.reusable_bake(session, key_digest)
     if existing is not None and key.owns(existing.created_by):
         return _existing(dispatcher, session, response, existing)
     published = find_bundle(session, body.name, body.version)
     if published is not None:
         raise Problem("conflict", f"{body.name}/{body.version} is already published from other inputs; bundles never change, choose a new version")
-    holder = records.slot_holder(session, body.name, body.version) if body.publish else None
+    holder = bake_requests.slot_holder(session, body.name, body.version) if body.publish else None
     if holder is not None:
         if holder.input_key == key_digest and key.owns(holder.created_by):
             return _existing(dispatcher, session, response, holder)  # committed since the lookup above
         raise _held_elsewhere(session, body.name, body.version, key_digest)
 
-    bake = records.create_bake(
+    bake = bake_requests.create_bake(
         session, name=body.name, version=body.version, params=params,
         inputs={"character": character.id, "cloth": cloth.id, "textures": {name: texture.id for name, texture in textures.items()},
                 **({"cycle": cycle.id} if cycle is not None else {}), **({"created": body.created} if body.created is not None else {})},
@@ -204,7 +204,7 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
     except IntegrityError:
         # A concurrent submit reserved the input key or the version first: the same bake, or a 409.
         session.rollback()
-        existing = records.live_bake(session, key_digest)
+        existing = bake_requests.live_bake(session, key_digest)
         if existing is not None and key.owns(existing.created_by):
             return _existing(dispatcher, session, response, existing)
         raise _held_elsewhere(session, body.name, body.version, key_digest) from None
@@ -256,8 +256,8 @@ def get_bake_log(bake_id: str, key: BakeKey, services: ServicesDep, session: Ses
 def cancel_bake(bake_id: str, key: BakeKey, session: SessionDep) -> BakePublic:
     _get_bake(session, bake_id, key)
     try:
-        bake = records.cancel_bake(session, bake_id)
-    except records.TransitionRefused as refused:
+        bake = bake_requests.cancel_bake(session, bake_id)
+    except bake_requests.TransitionRefused as refused:
         session.rollback()
         raise Problem("invalid-state", str(refused)) from None
     session.commit()
@@ -270,9 +270,9 @@ def retry_bake(bake_id: str, key: BakeKey, dispatcher: DispatcherDep, session: S
     if seen.state not in ("failed", "cancelled"):
         raise Problem("invalid-state", f"only failed or cancelled bakes can be retried; bake {bake_id} is {seen.state}")
     try:
-        bake = records.retry_bake(session, bake_id, seen.attempt)
+        bake = bake_requests.retry_bake(session, bake_id, seen.attempt)
         session.commit()
-    except records.TransitionRefused as refused:
+    except bake_requests.TransitionRefused as refused:
         session.rollback()
         raise Problem("invalid-state", str(refused)) from None
     except IntegrityError:
@@ -288,9 +288,9 @@ def retry_bake(bake_id: str, key: BakeKey, dispatcher: DispatcherDep, session: S
 def publish_bake(bake_id: str, key: PublishKey, dispatcher: DispatcherDep, session: SessionDep) -> BakePublic:
     seen = _get_bake(session, bake_id, key)
     try:
-        bake = records.request_publish(session, bake_id)
+        bake = bake_requests.request_publish(session, bake_id)
         session.commit()
-    except records.TransitionRefused as refused:
+    except bake_requests.TransitionRefused as refused:
         session.rollback()
         raise Problem("invalid-state", str(refused)) from None
     except IntegrityError:
