@@ -72,7 +72,7 @@ def check_cycle_upload(cycle_path: Path, cycle_name: str, looped_path: Path | No
     with the asset for the check of a bake request (check_cycle_fits_cloth).
     """
     from crowdbake.formats.pc2 import read_pc2
-    from crowdbake.ingest.uploads import CACHE_EXTENSIONS, INVALID_FILE, FieldError, UploadRejected, _clean, _pc2_where, expect_format
+    from crowdbake.ingest.uploads import CACHE_EXTENSIONS, INVALID_FILE, FieldError, UploadRejected, _pc2_where, clean_message, expect_format
 
     expect_format(cycle_path, cycle_name, "cycle", CYCLE_EXTENSIONS)
     try:
@@ -88,7 +88,7 @@ def check_cycle_upload(cycle_path: Path, cycle_name: str, looped_path: Path | No
     try:
         looped = read_pc2(looped_path)
     except ValueError as error:
-        message = _clean(str(error), looped_path, looped_name)
+        message = clean_message(str(error), looped_path, looped_name)
         raise UploadRejected(INVALID_FILE, "the looped cache does not parse", [FieldError("looped", message, looped_name, _pc2_where(looped_path))]) from None
     if looped.sample_count != fields["cycle_frames"]:
         raise UploadRejected(INVALID_FILE, "the looped cache is not the cycle's loop", [FieldError(
