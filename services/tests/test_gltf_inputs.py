@@ -217,7 +217,7 @@ def test_meshopt_views_are_budgeted_per_document_before_decoding(shared_asset, t
     assert 8 * count * 12 > MAX_DECODED_DOCUMENT_BYTES
     path = _save(gltf, tmp_path / "eight-views.glb")
     start = time.perf_counter()
-    with pytest.raises(ValueError, match=rf"claims {8 * count * 12} decoded bytes in 8 parts, .* more than the {MAX_DECODED_DOCUMENT_BYTES} one document may decode"):
+    with pytest.raises(ValueError, match=rf"claims {8 * count * 12} decoded bytes in 8 parts, more than the {MAX_DECODED_DOCUMENT_BYTES} one document may decode"):
         load_character(path)
     assert time.perf_counter() - start < 2.0  # refused from the JSON, nothing decoded
 
