@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from crowdbake.ingest.uploads import INVALID_FILE, UNSUPPORTED_FORMAT, FieldError, UploadRejected, clean_message, expect_format
-from crowdbake.params import min_cloth_frames
+from crowdbake.params import fps_problem, min_cloth_frames
 
 POINT_CACHE_EXTENSIONS = {".mdd": "mdd", ".abc": "abc"}
 JPEG_EXTENSIONS = {".jpg": "jpeg", ".jpeg": "jpeg"}
@@ -127,6 +127,9 @@ def check_point_cache(
         errors.append(FieldError(mesh_field if mesh_path is not None else cache_field, "the mesh has no faces", mesh_name or cache_name))
     if not np.isfinite(cache.frames).all():
         errors.append(FieldError(cache_field, "NaN or infinite point positions", cache_name))
+    rate_problem = fps_problem(cache.fps) if cache.fps is not None else None
+    if rate_problem is not None:
+        errors.append(FieldError(cache_field, f"the cache's frame rate: {rate_problem}", cache_name))
     needed = min_cloth_frames(cycle_frames)
     if cache.frame_count < needed:
         errors.append(FieldError(cache_field, f"too few frames for two cycles: the cache has {cache.frame_count}, two cycles need {needed}", cache_name))
