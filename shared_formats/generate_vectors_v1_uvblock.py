@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crowdbake.formats.binary import PIXEL_FORMAT_CODES, decode_texture_array, encode_texture_array, pack_uvblock, unpack_uvblock
+from crowdbake.formats.binary import PIXEL_FORMAT_CODES, decode_texture_array, encode_texture_array
+from crowdbake.formats.texel_codecs import pack_uvblock, unpack_uvblock
 from crowdbake.formats.bundle import BundleFile, build_manifest, manifest_bytes, write_bundle
 
 HERE = Path(__file__).resolve().parent

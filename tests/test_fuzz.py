@@ -39,7 +39,8 @@ from crowdbake.formats.binary import decode_pose_cache, decode_texture_array, en
 from crowdbake.formats.gltf import load_character
 from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2
-from crowdbake.ingest.uploads import UploadRejected, ZipLimits, convert_obj_sequence
+from crowdbake.ingest.obj_sequence import ZipLimits, convert_obj_sequence
+from crowdbake.ingest.uploads import UploadRejected
 from service_fixtures import obj_bytes, obj_sequence_zip, pc2_bytes, tiny_character_glb, tiny_cloth
 
 # A reader may hold a few copies of its input as arrays or Python objects (an OBJ line of 8 bytes

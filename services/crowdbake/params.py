@@ -31,8 +31,28 @@ UV_FORMATS = ("uvblock", "uv32", "rgba16")  # impostor UV map pixel formats a ba
 # None leaves it to placement's detection, which refuses a cache that fits only another frame.
 UP_AXES = ("y", "z")
 UNIT_CHOICES = ("m", "cm", "mm", "in")
-# A cache faster than this is no animation a crowd plays (film is 24, high-frame-rate capture 240).
+# The one sane frame-rate range every input's rate must lie in (the fps parameter of the CLI and REST,
+# MDD frame times, Alembic time sampling, a PC2's or OBJ sequence's 24 / sample interval, a cycle
+# document's input.fps). Slower than 1 frame a second is a slideshow, not a walk (and 1e-30 published as
+# is, or 1e-300 divided into seconds, overflowed later); faster than 1000 is no animation a crowd plays
+# (film is 24, high-frame-rate capture 240), and a bigger rate turns seconds into frame counts that
+# overflow ("Python int too large" at 1e30).
+MIN_FPS = 1.0
 MAX_FPS = 1000.0
+
+
+class FrameRateError(InputError):
+    """A frame rate outside MIN_FPS..MAX_FPS (cache_fps); `field` is "params.fps" or "cloth"."""
+
+
+def fps_problem(value: Any) -> str | None:
+    """Why `value` is not a frame rate a bake takes (see MIN_FPS / MAX_FPS), or None."""
+    shown = f"{value!r}"[:40]
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return f"{shown} is not a number of frames per second (the sane range is {MIN_FPS:g}..{MAX_FPS:g})"
+    if not math.isfinite(value) or not MIN_FPS <= value <= MAX_FPS:
+        return f"{shown} frames per second is outside the sane range {MIN_FPS:g}..{MAX_FPS:g}"
+    return None
 # glTF animation names are free text; one longer than this is no name a person chose.
 MAX_ANIMATION_NAME = 256
 
@@ -80,12 +100,20 @@ def min_cloth_frames(cycle_frames: int | None) -> int:
 def cache_fps(given: float | None, file_fps: float | None, sample_rate: float | None = 1.0) -> float:
     """The cloth cache's frame rate, one rule for every entry point: the `fps` parameter when given, else
     the rate the file states (MDD frame times, Alembic time sampling), else BASE_FPS / the PC2 sample
-    interval (PC2 stores the spacing of samples in frames, not a rate)."""
+    interval (PC2 stores the spacing of samples in frames, not a rate).
+    Raises InputError when the rate is outside MIN_FPS..MAX_FPS, naming where it came from (field
+    "params.fps" for the parameter, "cloth" for the cache's own)."""
     if given is not None:
-        return float(given)
-    if file_fps is not None and file_fps > 0:
-        return float(file_fps)
-    return BASE_FPS / float(sample_rate or 1.0)
+        rate, source, field = given, "the fps parameter", "params.fps"
+    elif file_fps is not None and file_fps > 0:
+        rate, source, field = file_fps, "the cloth cache's frame rate", "cloth"
+    else:
+        rate, field = BASE_FPS / float(sample_rate or 1.0), "cloth"
+        source = f"the cloth cache's frame rate ({BASE_FPS:g} / its sample interval {sample_rate!r})"
+    problem = fps_problem(rate)
+    if problem is not None:
+        raise FrameRateError(f"{source}: {problem}", field)
+    return float(rate)
 
 
 def cycle_frames_from_animation(animation_seconds: float, fps: float) -> int:
@@ -189,7 +217,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               "none, linear (the paper's blend) or hermite (also matches velocity, spreads the change over the loop)",
               ("--close",), choices=CLOSE_METHODS),
     ParamSpec("fps", "float", None, "the cloth cache's frame rate (default: what the cache says: MDD frame times, Alembic "
-              "time sampling; else 24 / the PC2 sample interval)", ("--fps",), "FPS", optional=True, above_zero=True, maximum=MAX_FPS),
+              "time sampling; else 24 / the PC2 sample interval)", ("--fps",), "FPS", optional=True, minimum=MIN_FPS, maximum=MAX_FPS),
     ParamSpec("up", "str", None, "the cloth cache's up axis as exported: y (glTF, Maya) or z (Blender, 3ds Max), converted to Y-up "
               "(default: detect, and refuse a cache that is not Y-up)", ("--up",), optional=True, choices=UP_AXES),
     ParamSpec("units", "str", None, "the cloth cache's length unit as exported: m, cm, mm or in, converted to metres "

@@ -71,10 +71,10 @@ def tiny_cloth(frames: int = 12, grid: int = 3, seed: int = 0) -> tuple[np.ndarr
     return points.astype(np.float32), np.asarray(faces)
 
 
-def pc2_bytes(points: np.ndarray) -> bytes:
+def pc2_bytes(points: np.ndarray, sample_rate: float = 1.0) -> bytes:
     from crowdbake.formats.pc2 import encode_pc2
 
-    return encode_pc2(points)
+    return encode_pc2(points, sample_rate=sample_rate)
 
 
 def obj_bytes(positions: np.ndarray, faces: np.ndarray, tmp: Path) -> bytes:

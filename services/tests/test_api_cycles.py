@@ -72,11 +72,11 @@ def test_a_cycle_is_stored_once_with_or_without_its_loop(api, assets):
 @pytest.mark.parametrize("document, words", [
     (b"{not json", "is not JSON"),
     (b"[1, 2]", "must hold a JSON object"),
-    (cycle_json(start=-1), "start_frame must be a non-negative integer"),
-    (json.dumps({"start_frame": True, "cycle_frames": 6}).encode(), "start_frame must be a non-negative integer"),
-    (json.dumps({"start_frame": 0}).encode(), "cycle_frames must be a non-negative integer"),
-    (cycle_json(frames=1), "cycle_frames must be at least 2"),
-    (cycle_json(method="cubic"), "closing.method must be one of"),
+    (cycle_json(start=-1), "/start_frame must be an integer in 0.."),
+    (json.dumps({"start_frame": True, "cycle_frames": 6}).encode(), "/start_frame must be an integer in 0.."),
+    (json.dumps({"start_frame": 0}).encode(), "/cycle_frames must be an integer in 0.."),
+    (cycle_json(frames=1), "/cycle_frames must be at least 2"),
+    (cycle_json(method="cubic"), "/closing/method must be one of"),
 ])
 def test_a_bad_cycle_document_is_refused_and_nothing_is_kept(api, document, words):
     before = api.snapshot()
@@ -89,6 +89,61 @@ def test_a_bad_cycle_document_is_refused_and_nothing_is_kept(api, document, word
     assert api.snapshot() == before
 
 
+def _hostile(**fields) -> bytes:
+    document = {"start_frame": 2, "cycle_frames": 6, "end_frame": 8, "closing": {"method": "crossfade"}}
+    document.update(fields)
+    return json.dumps(document).encode()
+
+
+@pytest.mark.parametrize("document, pointer", [
+    (_hostile(input={"fps": float("nan")}), "/input/fps"),
+    (_hostile(input={"fps": -24}), "/input/fps"),
+    (_hostile(input={"fps": 1e308}), "/input/fps"),
+    (_hostile(input={"fps": "fast"}), "/input/fps"),
+    (_hostile(input={"fps": 1e-300}), "/input/fps"),
+    (_hostile(input=[24]), "/input"),
+    (_hostile(input="24 fps"), "/input"),
+    (_hostile(seam=[1, 2]), "/seam"),
+    (_hostile(seam={"position_jump_ratio": "big"}), "/seam/position_jump_ratio"),
+    (_hostile(seam={"velocity_jump_ratio": float("inf")}), "/seam/velocity_jump_ratio"),
+    (_hostile(root_motion=True), "/root_motion"),
+    (_hostile(root_motion={"removed": "yes"}), "/root_motion/removed"),
+    (_hostile(end_frame="8"), "/end_frame"),
+    (_hostile(end_frame=8.5), "/end_frame"),
+    (_hostile(end_frame=99), "/end_frame"),
+    (_hostile(closing="crossfade"), "/closing"),
+    (_hostile(start_frame=10**400), "/start_frame"),
+], ids=lambda value: value if isinstance(value, str) else None)
+def test_every_field_a_stage_reads_is_checked_at_upload(api, document, pointer):
+    """Regression: the upload checked start_frame, cycle_frames and closing.method only. input.fps NaN,
+    -24, 1e308, "fast" or 1e-300, and input, seam, root_motion, end_frame of the wrong type were stored
+    with a 201; the bake then failed with a raw TypeError, AttributeError or "cannot convert float NaN
+    to integer". Each is now a 422 naming the field by its JSON pointer."""
+    before = api.snapshot()
+    response = upload_cycle(api, document)
+    assert response.status_code == 422 and response.headers["content-type"] == PROBLEM, response.text
+    error = response.json()["errors"][0]
+    assert (error["field"], error["file"], error["where"]) == ("cycle", "cycle.json", pointer)
+    assert error["message"].startswith(f"cycle.json: {pointer} ")
+    assert api.snapshot() == before
+
+
+def test_a_5000_digit_number_is_a_422_not_a_500(api):
+    """Regression: json refuses integers over 4,300 digits with a ValueError that is no JSONDecodeError;
+    it escaped the upload's check as a 500."""
+    response = upload_cycle(api, b'{"start_frame": ' + b"9" * 5000 + b', "cycle_frames": 6}')
+    assert response.status_code == 422 and response.headers["content-type"] == PROBLEM, response.text
+    assert "is not JSON" in response.json()["errors"][0]["message"]
+
+
+def test_a_cycle_document_as_crowdbake_cycle_writes_it_is_accepted(api):
+    """The optional sections, filled as `crowdbake cycle` fills them (nulls included), pass."""
+    document = _hostile(input={"fps": 30.0, "frame_count": 12}, seam={"position_jump_ratio": 0.4, "velocity_jump_ratio": None},
+                        root_motion={"removed": True, "offset_per_loop": [0.0, 0.0, 1.2]})
+    assert upload_cycle(api, document).status_code == 201
+    assert upload_cycle(api, _hostile(input={"fps": None}, seam=None, root_motion=None)).status_code == 201
+
+
 def test_the_validate_stage_applies_the_same_checks(tmp_path):
     """`crowdbake bake --cycle` reads cycle.json through the same function, then the cache's frame count."""
     from crowdbake.errors import InputError
@@ -96,7 +151,7 @@ def test_the_validate_stage_applies_the_same_checks(tmp_path):
 
     path = tmp_path / "cycle.json"
     path.write_bytes(cycle_json(method="cubic"))
-    with pytest.raises(InputError, match="closing.method must be one of") as refused:
+    with pytest.raises(InputError, match="/closing/method must be one of") as refused:
         check_cycle_document(path, CLOTH_FRAMES)
     assert refused.value.field == "cycle"
     path.write_bytes(cycle_json(start=8, frames=6))

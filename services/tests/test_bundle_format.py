@@ -9,12 +9,14 @@ import numpy as np
 import pytest
 
 from crowdbake.formats.binary import (
-    check_uvblock,
     decode_pose_cache,
     decode_texture_array,
     encode_pose_cache,
     encode_texture_array,
     layer_size,
+)
+from crowdbake.formats.texel_codecs import (
+    check_uvblock,
     pack_uv32,
     pack_uvblock,
     region_alpha,

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from crowdbake.bake import compression
-from crowdbake.formats.binary import region_alpha, region_codes
+from crowdbake.formats.texel_codecs import region_alpha, region_codes
 
 # Error bounds measured on the synthetic images below with some margin; they would catch an encoder that
 # dropped a channel, swapped RGB/BGR, broke block order or let 3-colour blocks through.

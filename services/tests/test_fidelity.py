@@ -7,7 +7,7 @@ import pytest
 
 from crowdbake.bake import compression, fidelity
 from crowdbake.bake import impostor_maps as maps
-from crowdbake.formats.binary import region_alpha
+from crowdbake.formats.texel_codecs import region_alpha
 
 pytest.importorskip("pyrender")
 from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402

@@ -186,8 +186,66 @@ def test_meshopt_view_that_claims_a_huge_count_is_refused(shared_asset, tmp_path
     index = gltf.meshes[0].primitives[0].attributes.POSITION
     _compress_attribute(gltf, index, _accessor_array(gltf, index))
     gltf.bufferViews[-1].extensions["EXT_meshopt_compression"]["count"] = 10**9
-    with pytest.raises(ValueError, match="decodes to 12000000000 bytes"):
+    with pytest.raises(ValueError, match=r"claims 12000000000 decoded bytes .*bufferViews\[\d+\] \(EXT_meshopt_compression\) 12000000000"):
         load_character(_save(gltf, tmp_path / "bomb.glb"))
+
+
+
+def _views_sharing_one_stream(gltf: pygltflib.GLTF2, views: int, count: int, stride: int) -> None:
+    """`views` EXT_meshopt_compression views (each read by its own accessor) that all point at one real
+    stream of `count` zero vertices of `stride` bytes: every view decodes, each to count * stride bytes."""
+    import meshoptimizer
+
+    encoded = meshoptimizer.encode_vertex_buffer(np.zeros((count, stride), np.uint8), count, stride)
+    first = _meshopt_view(gltf, count, stride, "ATTRIBUTES", encoded)
+    for _ in range(views):
+        gltf.bufferViews.append(copy.deepcopy(gltf.bufferViews[first]))
+        gltf.accessors.append(pygltflib.Accessor(bufferView=len(gltf.bufferViews) - 1, componentType=pygltflib.FLOAT,
+                                                 count=count, type="VEC3"))
+
+
+def test_meshopt_views_are_budgeted_per_document_before_decoding(shared_asset, tmp_path):
+    """Regression: the decoded-size cap was per view, so eight views of one small stream, each under
+    the cap, decoded 8x their claim (a 4.2 MB .glb of eight 256 MiB views: 2.3 GB in the API, then a 201).
+    The document's claims are now summed before anything decodes; here 8 x 24 MiB > 128 MiB."""
+    from crowdbake.formats.gltf.compression import MAX_DECODED_DOCUMENT_BYTES
+
+    gltf = _load(shared_asset("CesiumMan.glb"))
+    _with_fallback_buffer(gltf)
+    count = (24 << 20) // 12
+    _views_sharing_one_stream(gltf, 8, count, 12)
+    assert 8 * count * 12 > MAX_DECODED_DOCUMENT_BYTES
+    path = _save(gltf, tmp_path / "eight-views.glb")
+    start = time.perf_counter()
+    with pytest.raises(ValueError, match=rf"claims {8 * count * 12} decoded bytes in 8 parts, more than the {MAX_DECODED_DOCUMENT_BYTES} one document may decode"):
+        load_character(path)
+    assert time.perf_counter() - start < 2.0  # refused from the JSON, nothing decoded
+
+
+def test_meshopt_budget_counts_only_views_accessors_read(shared_asset, tmp_path):
+    """Views no accessor reads are never decoded, so they do not count against the budget: the same
+    eight big views without accessors load as the plain file does."""
+    reference = load_character(shared_asset("CesiumMan.glb"))
+    gltf = _load(shared_asset("CesiumMan.glb"))
+    _with_fallback_buffer(gltf)
+    count = (24 << 20) // 12
+    _views_sharing_one_stream(gltf, 8, count, 12)
+    del gltf.accessors[-8:]
+    character = load_character(_save(gltf, tmp_path / "unread-views.glb"))
+    np.testing.assert_array_equal(character.positions, reference.positions)
+
+
+def test_accessor_extent_is_checked_before_its_view_decodes(shared_asset, tmp_path):
+    """An accessor that reads past its compressed view's claimed size is refused from the sizes alone."""
+    gltf = _load(shared_asset("CesiumMan.glb"))
+    _with_fallback_buffer(gltf)
+    index = gltf.meshes[0].primitives[0].attributes.POSITION
+    _compress_attribute(gltf, index, _accessor_array(gltf, index))
+    extension = gltf.bufferViews[-1].extensions["EXT_meshopt_compression"]
+    extension["byteLength"] = 4  # a stream that cannot decode: only the size check can answer first
+    gltf.accessors[index].byteOffset = 12
+    with pytest.raises(ValueError, match=r"accessors\[\d+\]: .* its bufferView has"):
+        load_character(_save(gltf, tmp_path / "past-the-end.glb"))
 
 
 # ---------------------------------------------------------------------------------------------- materials

@@ -7,7 +7,7 @@ import pytest
 
 from crowdbake.bake import impostor_maps as maps
 from crowdbake.bake import map_codecs, short_rows
-from crowdbake.formats.binary import region_alpha
+from crowdbake.formats.texel_codecs import region_alpha
 
 pyrender = pytest.importorskip("pyrender")
 from crowdbake.render import offscreen  # noqa: E402

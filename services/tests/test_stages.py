@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from crowdbake.errors import InputError, StageOrderError, VersionConflict
-from crowdbake.formats.binary import unpack_uvblock
+from crowdbake.formats.texel_codecs import unpack_uvblock
 from crowdbake.formats.bundle import verify_bundle
 from crowdbake.params import BakeParams
 from crowdbake.stages import STAGES

@@ -256,6 +256,43 @@ def test_rest_mdd_frame_rate_sets_the_cycle_length(api, tmp_path):
     assert _bake(api, character, fast.json()["id"], fps=24.0).status_code == 202
 
 
+@pytest.mark.parametrize("fps", [1e-30, 1e30, 0.5, 5000.0])
+def test_rest_mdd_frame_rate_outside_the_sane_range_is_refused_at_upload(api, tmp_path, fps):
+    """Regression: an MDD at 1e-30 fps was stored and baked, publishing frames_per_second 1e-30; at 1e30
+    the bake failed with "OverflowError: Python int too large". The one range, crowdbake.params'
+    MIN_FPS..MAX_FPS, now refuses both at upload, naming the value and the range."""
+    points, faces = tiny_cloth(frames=12)
+    response = api.client.post("/v1/assets/cloth", files={"cache": ("odd.mdd", _mdd_bytes(points, fps, tmp_path)),
+                                                          "mesh": ("odd.obj", obj_bytes(points[0], faces, tmp_path))}, headers=api.auth("upload"))
+    assert response.status_code == 422 and response.headers["content-type"] == "application/problem+json", response.text
+    error = response.json()["errors"][0]
+    assert error["field"] == "cache" and "frames per second is outside the sane range 1..1000" in error["message"]
+
+
+@pytest.mark.parametrize("fps, sample_rate, field", [(0.5, 1.0, "params.fps"), (1e30, 1.0, "params.fps"), (None, 1e-30, "cloth"), (None, 100.0, "cloth")])
+def test_rest_bake_frame_rate_outside_the_sane_range_is_a_422(api, tmp_path, fps, sample_rate, field):
+    """The fps parameter and a PC2's rate (24 / its sample interval) meet the same range at the request."""
+    points, faces = tiny_cloth(frames=12)
+    character = _upload_character(api)
+    cloth = api.client.post("/v1/assets/cloth", files={"cache": ("c.pc2", pc2_bytes(points, sample_rate=sample_rate)),
+                                                       "mesh": ("c.obj", obj_bytes(points[0], faces, tmp_path))}, headers=api.auth("upload"))
+    assert cloth.status_code == 201, cloth.text
+    response = _bake(api, character, cloth.json()["id"], cycle_frames=4, **({} if fps is None else {"fps": fps}))
+    assert response.status_code == 422 and response.headers["content-type"] == "application/problem+json", response.text
+    error = response.json()["errors"][0]
+    # The parameter meets its schema's bounds (ge 1, le 1000); a cache's rate meets crowdbake.params.cache_fps.
+    assert error["field"] == field and ("1..1000" in error["message"] or "equal to 1" in error["message"]), error
+
+
+def test_cache_fps_is_the_one_range_every_input_meets():
+    from crowdbake.params import MAX_FPS, MIN_FPS, FrameRateError, cache_fps
+
+    assert cache_fps(None, 30.0) == 30.0 and cache_fps(None, None, 2.0) == 12.0 and cache_fps(MIN_FPS, None) == MIN_FPS
+    for given, file_fps, sample_rate in [(MAX_FPS * 2, None, 1.0), (None, 1e-300, 1.0), (None, None, 1e-30), (float("nan"), None, 1.0)]:
+        with pytest.raises(FrameRateError, match=r"outside the sane range 1\.\.1000"):
+            cache_fps(given, file_fps, sample_rate)
+
+
 def test_rest_animation_by_name_or_index(api, tmp_path):
     points, faces = tiny_cloth(frames=12)
     character = _upload_character(api)

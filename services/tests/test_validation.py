@@ -12,17 +12,16 @@ import numpy as np
 import pytest
 
 from crowdbake.formats.pc2 import read_pc2
+from crowdbake.ingest.obj_sequence import ZipLimits, convert_obj_sequence
 from crowdbake.ingest.uploads import (
     FORMAT_MISMATCH,
     INVALID_FILE,
     UNSAFE_ARCHIVE,
     UNSUPPORTED_FORMAT,
     UploadRejected,
-    ZipLimits,
     check_character,
     check_cloth,
     check_texture,
-    convert_obj_sequence,
     sniff_format,
 )
 from service_fixtures import obj_bytes, obj_sequence_zip, pc2_bytes, png_bytes, tiny_character_glb, tiny_cloth

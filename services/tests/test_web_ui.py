@@ -22,7 +22,8 @@ from PIL import Image
 
 from baked_service import NAME, baked_service
 from sample_fixtures import SMALL_SAMPLE
-from crowdbake.formats.binary import decode_texture_array, unpack_uvblock
+from crowdbake.formats.binary import decode_texture_array
+from crowdbake.formats.texel_codecs import unpack_uvblock
 from service_fixtures import REPO_ROOT, make_api, publish_vector_bundle
 
 SCREENSHOTS = REPO_ROOT / "out" / "ui"

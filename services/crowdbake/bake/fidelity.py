@@ -238,7 +238,7 @@ def uv_precision(uv_map: np.ndarray, texture_size: int, tile_size: int | None = 
     diffuse texels per impostor texel) and uvblock's error in those footprints (what the lookup sees).
     """
     from crowdbake.bake import compression
-    from crowdbake.formats.binary import unpack_uv32, unpack_uvblock
+    from crowdbake.formats.texel_codecs import unpack_uv32, unpack_uvblock
 
     uv, _, covered = map_codecs.decode_uv_map(uv_map)
     result: dict[str, dict[str, float]] = {}

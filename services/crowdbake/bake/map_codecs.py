@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.formats.binary import (
+from crowdbake.formats.texel_codecs import (
     UVBLOCK_COORD_MAX, UVBLOCK_MAX_MATERIAL, pack_uv32, pack_uvblock_blocks, unblocks, unpack_uv32, uvblock_coordinates,
     uvblock_live_texels,
 )

@@ -26,7 +26,9 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import resource
 import shutil
+import signal
 import struct
 import subprocess
 import sys
@@ -37,13 +39,22 @@ from pathlib import Path
 import numpy as np
 
 from crowdbake.formats.cloth_cache import ClothCache, mesh_from_polygons
+from crowdbake.params import fps_problem
 
 OGAWA_MAGIC = b"Ogawa"
 _DATA_BIT = 1 << 63
 # Alembic's marker for an acyclic time sampling's time per cycle (AbcCoreAbstract TimeSamplingType).
 ACYCLIC_TIME_PER_CYCLE = sys.float_info.max / 32.0
-# A child process that imports a big cache may take this long; beyond it the cache is refused.
-BPY_TIMEOUT_SECONDS = 1800
+# Points x samples one cache may hold, checked before Blender starts (the samples the archive claims)
+# and by the child as soon as it knows the points (before it writes a frame): 2^24 is 192 MiB of
+# float32 frames, far more than a garment needs (long_skirt: 385 samples of a few thousand points) and
+# within the API's +300 MB target. A 2.4 MB .abc of 10,201 points claiming 2,000 samples (20 million)
+# ran 123 s and took 1.85 GB; one claiming 2^32 - 1 samples ran to the old 1,800 s limit.
+MAX_POINT_SAMPLES = 1 << 24
+# The Blender child's deadline and address space: a cache within MAX_POINT_SAMPLES reads in well under
+# a minute; bpy itself maps about 2 GB of address space before reading anything.
+BPY_TIMEOUT_SECONDS = 300
+BPY_ADDRESS_SPACE_BYTES = 8 << 30
 MISSING_BPY = (
     "reading Alembic (.abc) needs the crowdbake[alembic] extra (Blender's bpy module): "
     "pip install -r services/requirements-alembic.txt, or set CROWDBAKE_BPY_PYTHON to a Python that has bpy"
@@ -105,6 +116,13 @@ def read_time_samplings(path: str | os.PathLike) -> list[TimeSampling]:
             kind = "an HDF5 Alembic (only Ogawa, the format of every exporter since 2013, is read)" if header[1:4] == b"HDF" else "not an Alembic (Ogawa) file"
             raise ValueError(f"{where}: {kind}")
         data = header + handle.read()
+    try:
+        return _time_samplings(data, where)
+    except (struct.error, OverflowError, MemoryError) as error:  # a corrupt (e.g. byte-flipped) archive
+        raise ValueError(f"{where}: a corrupt Alembic archive: {error}") from None
+
+
+def _time_samplings(data: bytes, where: str) -> list[TimeSampling]:
     (root,) = struct.unpack_from("<Q", data, 8)
     children = _ogawa_children(data, root, where)
     if len(children) < 5:
@@ -170,17 +188,18 @@ def read_alembic(path: str | os.PathLike, object_name: str | None = None) -> Clo
     fps = sampling.fps
     if fps is None or not np.isfinite(fps) or fps <= 0:
         raise ValueError(f"{where}: the Alembic time sampling gives no frame rate")
+    if (problem := fps_problem(fps)) is not None:
+        raise ValueError(f"{where}: the Alembic time sampling's frame rate: {problem}")
     start = sampling.times[0] if sampling.times else 0.0
     samples = max(1, sampling.max_samples)
+    if samples > MAX_POINT_SAMPLES:  # even one point a sample is too many: refused before Blender starts
+        raise ValueError(f"{where}: the Alembic time sampling claims {samples} samples, more than the {MAX_POINT_SAMPLES} point samples a cache may hold")
     python = bpy_python()
     with tempfile.TemporaryDirectory(prefix="crowdbake-abc-") as out:
         command = [python, str(DUMP_SCRIPT), str(path.resolve()), out, repr(fps), repr(start), str(samples)]
         if object_name is not None:
             command.append(object_name)
-        try:
-            done = subprocess.run(command, capture_output=True, text=True, timeout=BPY_TIMEOUT_SECONDS, check=False)
-        except subprocess.TimeoutExpired:
-            raise ValueError(f"{where}: Blender took more than {BPY_TIMEOUT_SECONDS} s to read the cache") from None
+        done = _run_bpy(command, where)
         if done.returncode != 0:
             lines = [line for line in done.stderr.splitlines() if line.startswith("crowdbake-alembic:")]
             reason = lines[-1].split(":", 1)[1].strip() if lines else (done.stderr.strip().splitlines() or ["no message"])[-1]
@@ -193,12 +212,47 @@ def read_alembic(path: str | os.PathLike, object_name: str | None = None) -> Clo
         corner_uvs = None
         if meta["has_uvs"]:
             corner_uvs = topology[polygons + corners :].view("<f4").reshape(corners, 2)
-        raw = np.fromfile(Path(out) / "frames.bin", dtype="<f4").reshape(samples, 16 + 3 * points)
-    matrices = raw[:, :16].reshape(samples, 4, 4).astype(np.float64)
-    local = raw[:, 16:].reshape(samples, points, 3).astype(np.float64)
-    world = np.einsum("fij,fpj->fpi", matrices[:, :3, :3], local) + matrices[:, None, :3, 3]
-    frames = blender_to_y_up(world).astype(np.float32)
+        frames = _world_frames(Path(out) / "frames.bin", samples, points, where)
     if not np.isfinite(frames).all():
         raise ValueError(f"{where}: the cache holds NaN or infinite points")
     mesh = mesh_from_polygons(frames[0], sizes, corner_points, corner_uvs)
     return ClothCache(mesh=mesh, frames=frames, fps=float(fps), frame_step=1.0, source="alembic")
+
+
+def _run_bpy(command: list[str], where: str) -> subprocess.CompletedProcess:
+    """Run the Blender child in its own process group under BPY_TIMEOUT_SECONDS and an address-space
+    limit, telling it MAX_POINT_SAMPLES; the whole group is killed on a timeout or any error (the caller
+    leaving included), so no Blender outlives its request."""
+
+    def limit_memory() -> None:  # runs in the child, before exec
+        resource.setrlimit(resource.RLIMIT_AS, (BPY_ADDRESS_SPACE_BYTES, BPY_ADDRESS_SPACE_BYTES))
+
+    env = {**os.environ, "CROWDBAKE_ABC_MAX_POINT_SAMPLES": str(MAX_POINT_SAMPLES)}
+    child = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+                             start_new_session=True, preexec_fn=limit_memory)
+    try:
+        _, stderr = child.communicate(timeout=BPY_TIMEOUT_SECONDS)
+    except subprocess.TimeoutExpired:
+        raise ValueError(f"{where}: Blender took more than {BPY_TIMEOUT_SECONDS} s to read the cache") from None
+    finally:
+        if child.poll() is None:
+            os.killpg(child.pid, signal.SIGKILL)
+            child.wait()
+    return subprocess.CompletedProcess(command, child.returncode, "", stderr)
+
+
+def _world_frames(frames_file: Path, samples: int, points: int, where: str) -> np.ndarray:
+    """frames.bin (per sample: float32 world matrix, then (points, 3) float32 local points) -> (samples,
+    points, 3) float32 Y-up world points, one sample at a time: the file is mapped, never copied whole,
+    and nothing is widened to float64 (which held several float64 copies of every frame)."""
+    row = 16 + 3 * points
+    if frames_file.stat().st_size != 4 * row * samples:
+        raise ValueError(f"{where}: Blender wrote {frames_file.stat().st_size} bytes of frames, {samples} samples of {points} points need {4 * row * samples}")
+    raw = np.memmap(frames_file, dtype="<f4", mode="r", shape=(samples, row))
+    frames = np.empty((samples, points, 3), np.float32)
+    for sample in range(samples):
+        matrix = raw[sample, :16].reshape(4, 4)
+        world = raw[sample, 16:].reshape(points, 3) @ matrix[:3, :3].T + matrix[:3, 3]
+        frames[sample] = blender_to_y_up(world)
+    del raw
+    return frames

@@ -63,6 +63,10 @@ def main(argv):
     scene.frame_set(math.floor(first_frame), subframe=first_frame - math.floor(first_frame))
     mesh, _ = evaluated_mesh()
     points, polygons, corners = len(mesh.vertices), len(mesh.polygons), len(mesh.loops)
+    # The caller's budget (crowdbake.formats.alembic.MAX_POINT_SAMPLES), checked before any frame is written.
+    budget = int(os.environ.get("CROWDBAKE_ABC_MAX_POINT_SAMPLES", "0"))
+    if budget and samples * points > budget:
+        fail(f"{samples} samples of {points} points are {samples * points} point samples, more than the {budget} a cache may hold")
     sizes = array.array("i", [0]) * polygons
     mesh.polygons.foreach_get("loop_total", sizes)
     starts = array.array("i", [0]) * polygons

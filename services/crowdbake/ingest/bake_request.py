@@ -45,12 +45,14 @@ def cycle_frames_for(character_info: dict[str, Any], cloth_info: dict[str, Any],
                      fps: float | None = None, animation: int | str = 0) -> int:
     """The walk cycle's length in cache frames, as the validate stage will take it: the parameter, else
     the chosen animation at the cache's rate (crowdbake.params.cycle_frames_from_animation).
-    InputError("params.cycle_frames") when neither gives one."""
+    InputError("params.cycle_frames") when neither gives one; FrameRateError when the cache's rate is
+    outside crowdbake.params' range, whether or not it sets the length (the validate stage refuses it too)."""
+    rate = request_fps(cloth_info, fps)
     if cycle_frames is not None:
         return int(cycle_frames)
     summary = chosen_animation(character_info, animation)
     seconds = summary.get("seconds") if summary is not None else character_info.get("animation_seconds")
-    frames = cycle_frames_from_animation(float(seconds or 0.0), request_fps(cloth_info, fps))
+    frames = cycle_frames_from_animation(float(seconds or 0.0), rate)
     if frames <= 0:
         raise InputError("give cycle_frames, or upload a character with a walk animation", "params.cycle_frames")
     return max(frames, 2)

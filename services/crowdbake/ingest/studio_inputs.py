@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.ingest.uploads import INVALID_FILE, UNSUPPORTED_FORMAT, FieldError, UploadRejected, _clean, expect_format
-from crowdbake.params import min_cloth_frames
+from crowdbake.ingest.uploads import INVALID_FILE, UNSUPPORTED_FORMAT, FieldError, UploadRejected, clean_message, expect_format
+from crowdbake.params import fps_problem, min_cloth_frames
 
 POINT_CACHE_EXTENSIONS = {".mdd": "mdd", ".abc": "abc"}
 JPEG_EXTENSIONS = {".jpg": "jpeg", ".jpeg": "jpeg"}
@@ -117,7 +117,7 @@ def check_point_cache(
         try:
             cache = read_cloth_cache(cache_file, mesh_file)
         except (ValueError, OSError) as error:
-            message = _clean(_clean(str(error).splitlines()[0], cache_file, cache_name), mesh_file or cache_file, mesh_name or cache_name)
+            message = clean_message(clean_message(str(error).splitlines()[0], cache_file, cache_name), mesh_file or cache_file, mesh_name or cache_name)
             field = mesh_field if mesh_name and mesh_name in message and "points per frame" not in message else cache_field
             raise UploadRejected(INVALID_FILE, "the cloth cache does not parse", [FieldError(field, message, mesh_name if field == mesh_field else cache_name)]) from None
     finally:
@@ -127,6 +127,9 @@ def check_point_cache(
         errors.append(FieldError(mesh_field if mesh_path is not None else cache_field, "the mesh has no faces", mesh_name or cache_name))
     if not np.isfinite(cache.frames).all():
         errors.append(FieldError(cache_field, "NaN or infinite point positions", cache_name))
+    rate_problem = fps_problem(cache.fps) if cache.fps is not None else None
+    if rate_problem is not None:
+        errors.append(FieldError(cache_field, f"the cache's frame rate: {rate_problem}", cache_name))
     needed = min_cloth_frames(cycle_frames)
     if cache.frame_count < needed:
         errors.append(FieldError(cache_field, f"too few frames for two cycles: the cache has {cache.frame_count}, two cycles need {needed}", cache_name))
@@ -163,6 +166,6 @@ def check_jpeg_texture(path: Path, filename: str, max_pixels: int, field: str = 
     except UploadRejected:
         raise
     except Exception as error:  # Pillow raises OSError, SyntaxError, ValueError... for broken JPEGs
-        message = _clean(str(error), path, filename) or type(error).__name__
+        message = clean_message(str(error), path, filename) or type(error).__name__
         raise UploadRejected(INVALID_FILE, f"the JPEG does not decode: {message}", [FieldError(field, message, filename)]) from None
     return {"format": "jpeg", "width": int(width), "height": int(height), "mode": mode, "has_region_codes": False, "note": JPEG_REGION_NOTE}

@@ -58,7 +58,7 @@ def _given_cycle(job: JobRecord, inputs: Path, cycle_json: Path, looped: Path, p
             looped_points = close_cycle(cache.points, start, frames, method, cloth_faces=faces).looped
     document.setdefault("end_frame", start + frames)
     document.setdefault("input", {})
-    if "fps" not in document["input"]:
+    if document["input"].get("fps") is None:  # absent or null (crowdbake.ingest.cycle_document checked the rest)
         document["input"]["fps"] = job.fps if job.fps is not None else BASE_FPS / cache.sample_rate
     write_json_atomic(cycle_json, document)
     write_pc2(looped, looped_points, start_frame=0.0, sample_rate=cache.sample_rate)

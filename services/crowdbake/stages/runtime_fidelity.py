@@ -26,7 +26,8 @@ import numpy as np
 from crowdbake.bake import compression, fidelity, impostor_blend, impostor_maps, impostor_warp, map_codecs, surface_maps
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.bake.impostor_blend import DecodedTile
-from crowdbake.formats.binary import TextureArray, decode_texture_array, unpack_uv32, unpack_uvblock
+from crowdbake.formats.binary import TextureArray, decode_texture_array
+from crowdbake.formats.texel_codecs import unpack_uv32, unpack_uvblock
 from crowdbake.render.runtime_shader import RuntimeAtlas, RuntimePicture
 from crowdbake.stages.impostors import BETWEEN_AZIMUTHS, MAP_MAKER, spread_gaps
 from crowdbake.stages.records import ImpostorTask, PosesRecord

@@ -19,7 +19,8 @@ from crowdbake.api.uploads import MultipartUpload, UploadedFile, read_multipart
 from crowdbake.ingest.cycle_document import check_cycle_upload
 from crowdbake.ingest.studio_inputs import MEDIA_TYPES as STUDIO_MEDIA_TYPES
 from crowdbake.ingest.studio_inputs import check_jpeg_texture, check_point_cache, pc2_first_frame, placement_sample
-from crowdbake.ingest.uploads import ZipLimits, _extension, check_character, check_cloth, check_texture, convert_obj_sequence
+from crowdbake.ingest.obj_sequence import ZipLimits, convert_obj_sequence
+from crowdbake.ingest.uploads import _extension, check_character, check_cloth, check_texture
 from crowdbake.storage import records
 from crowdbake.storage.assets import store_asset
 from crowdbake.storage.blobs import BlobStore, IncomingBlob

@@ -31,7 +31,7 @@ from crowdbake.errors import InputError
 from crowdbake.ingest.bake_request import check_request_placement, check_two_cycles, cycle_frames_for
 from crowdbake.ingest.cycle_document import check_cycle_fits_cloth
 from crowdbake.jobs.sweeper import ENQUEUE_WAIT_S, Dispatcher
-from crowdbake.params import NAME_PATTERN, BakeParams
+from crowdbake.params import NAME_PATTERN, BakeParams, FrameRateError
 from crowdbake.redact import path_replacements, redact_text, redact_value
 from crowdbake.storage import bake_requests, records, sweeps
 from crowdbake.storage.bundles import find_bundle
@@ -111,6 +111,8 @@ def _check_cycle(character: Asset, cloth: Asset, cycle: Asset | None, params: di
             check_cycle_fits_cloth(cycle.info, cloth.info)
         check_request_placement(character.info, cloth.info, params.get("animation", 0), params.get("up"), params.get("units"))
     except InputError as error:
+        if isinstance(error, FrameRateError):
+            raise Problem("validation-error", "the frame rate is out of range", [{"field": error.field, "message": error.message}]) from None
         if error.field in ("params.animation", "params.up", "params.units"):
             title = {"params.animation": "the character has no such animation",
                      "params.up": "the cloth cache is not Y-up", "params.units": "the cloth cache is not in metres"}[error.field]

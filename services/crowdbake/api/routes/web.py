@@ -142,7 +142,7 @@ def decode_uv_layer(data: bytes, pixel_format: str, width: int, height: int) -> 
     (u·65535, v·65535, material, coverage 65535/0), so one preview serves both formats."""
     if pixel_format == "rgba16":
         return decode_layer(data, pixel_format, width, height)
-    from crowdbake.formats.binary import unpack_uv32, unpack_uvblock
+    from crowdbake.formats.texel_codecs import unpack_uv32, unpack_uvblock
 
     if pixel_format == "uvblock":
         u, v, material, covered = unpack_uvblock(data, width, height)

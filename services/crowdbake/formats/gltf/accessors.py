@@ -47,17 +47,19 @@ def read_accessor(doc, index: int) -> np.ndarray:
         raise ValueError(f"{where}: padded {accessor.type} of {dtype} components is not supported")
     element_size = dtype.itemsize * width
     if accessor.bufferView is not None:
-        data, stride = doc.view_bytes(accessor.bufferView)
-        stride = int(stride or element_size)
+        # The extent is checked against the view's (claimed) length before a compressed view decodes.
+        stride = int(doc.view_stride(accessor.bufferView) or element_size)
         offset = int(accessor.byteOffset or 0)
         if stride < element_size or offset < 0:
             raise ValueError(f"{where}: byteStride {stride} is smaller than an element ({element_size} bytes)")
         end = offset + stride * (count - 1) + element_size
-        if end > len(data):  # checked before numpy is asked for anything
+        length = doc.view_length(accessor.bufferView)
+        if end > length:  # checked before numpy (or a decoder) is asked for anything
             raise ValueError(
                 f"{where}: {count} elements of {element_size} bytes (stride {stride}) from byte {offset} need "
-                f"{end} bytes, its bufferView has {len(data)}"
+                f"{end} bytes, its bufferView has {length}"
             )
+        data, _ = doc.view_bytes(accessor.bufferView)
         values = np.ndarray((count, width), dtype=dtype, buffer=data, offset=offset, strides=(stride, dtype.itemsize)).copy()
     else:
         values = np.zeros((count, width), dtype=dtype)

@@ -14,6 +14,25 @@ MESHOPT = "EXT_meshopt_compression"
 # A compressed bufferView may claim any decoded size; a character's biggest view (positions of a
 # million vertices) is 12 MB, so 256 MiB refuses a lying count before it becomes an allocation.
 MAX_DECODED_VIEW_BYTES = 1 << 28
+# What one document may decode in all (meshopt views and Draco primitives together), checked from the
+# sizes the file claims before anything decodes: a per-view cap alone let eight views of one 4 MB stream
+# each claim 256 MiB (2 GB decoded in 18 s, inside the API). A million-vertex character with normals,
+# UVs, skin and 2 million triangles decodes to about 100 MB; 128 MiB keeps an upload's check within
+# the service's +300 MB memory target.
+MAX_DECODED_DOCUMENT_BYTES = 1 << 27
+
+
+def claimed_meshopt_bytes(ext: dict, label: str) -> int:
+    """The decoded size (count * byteStride) an EXT_meshopt_compression bufferView claims; raises
+    ValueError naming `label` when count or byteStride is not a positive integer."""
+    count, stride = ext.get("count"), ext.get("byteStride")
+    if not _positive_int(count) or not _positive_int(stride):
+        raise ValueError(f"{label}: count {count!r} and byteStride {stride!r} must be positive integers")
+    return count * stride
+
+
+def _positive_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 1
 
 
 def decode_meshopt_view(source: bytes, ext: dict, label: str) -> bytes:
@@ -26,11 +45,10 @@ def decode_meshopt_view(source: bytes, ext: dict, label: str) -> bytes:
     that does not decode."""
     import meshoptimizer
 
-    count, stride = ext.get("count"), ext.get("byteStride")
+    claimed = claimed_meshopt_bytes(ext, label)
+    count, stride = ext["count"], ext["byteStride"]
     mode, filter_name = ext.get("mode"), ext.get("filter", "NONE")
-    if not isinstance(count, int) or not isinstance(stride, int) or count < 1 or stride < 1:
-        raise ValueError(f"{label}: count {count!r} and byteStride {stride!r} must be positive integers")
-    if count * stride > MAX_DECODED_VIEW_BYTES:
+    if claimed > MAX_DECODED_VIEW_BYTES:
         raise ValueError(f"{label} decodes to {count * stride} bytes, more than {MAX_DECODED_VIEW_BYTES}")
     try:
         if mode == "ATTRIBUTES":

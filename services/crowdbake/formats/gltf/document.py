@@ -19,8 +19,10 @@ from pathlib import Path
 import numpy as np
 import pygltflib
 
-from crowdbake.formats.gltf.accessors import read_accessor
-from crowdbake.formats.gltf.compression import DRACO, MESHOPT, decode_meshopt_view
+from crowdbake.formats.gltf.accessors import TYPE_WIDTHS, read_accessor
+from crowdbake.formats.gltf.compression import (
+    DRACO, MAX_DECODED_DOCUMENT_BYTES, MESHOPT, claimed_meshopt_bytes, decode_meshopt_view,
+)
 from crowdbake.formats.basisu import KTX2_REFUSAL, basisu_tool
 
 GLB_MAGIC = b"glTF"
@@ -177,6 +179,7 @@ class _Document:
         self.where = where
         self.base = base
         self._decoded_views: dict[int, bytes] = {}
+        check_decode_budget(self.gltf, where)
 
     def item(self, kind: str, index):
         items = getattr(self.gltf, kind) or []
@@ -196,6 +199,21 @@ class _Document:
                 f"{self.where}: {what} (bytes {offset}..{offset + length}) lies outside buffer {buffer_index} ({len(buffer)} bytes)"
             )
         return memoryview(buffer)[offset : offset + length]
+
+    def view_length(self, view_index: int) -> int:
+        """The byte length bufferViews[view_index] has once decoded, without decoding it: what an
+        accessor's extent is checked against before a compressed view is asked for its bytes."""
+        view = self.item("bufferViews", view_index)
+        compressed = extension(view, MESHOPT)
+        if compressed is not None:
+            return claimed_meshopt_bytes(compressed, f"{self.where}: bufferViews[{view_index}] ({MESHOPT})")
+        return int(view.byteLength or 0)
+
+    def view_stride(self, view_index: int) -> int | None:
+        """The byteStride of bufferViews[view_index] (a meshopt view's decoded stride), or None."""
+        view = self.item("bufferViews", view_index)
+        compressed = extension(view, MESHOPT)
+        return compressed.get("byteStride") if compressed is not None else view.byteStride
 
     def view_bytes(self, view_index: int) -> tuple[memoryview, int | None]:
         """The bytes of bufferViews[view_index] (decompressed for EXT_meshopt_compression) and its stride."""
@@ -221,6 +239,50 @@ class _Document:
         """Accessor `index` as (count, width) array: float32 for floats and normalised ints, else int64
         (see crowdbake.formats.gltf.accessors.read_accessor)."""
         return read_accessor(self, index)
+
+
+def check_decode_budget(gltf: pygltflib.GLTF2, where: str) -> None:
+    """Refuse, before anything decodes, a document whose compressed geometry claims more than
+    MAX_DECODED_DOCUMENT_BYTES decoded in all: every EXT_meshopt_compression view an accessor (or a
+    sparse block, or a Draco primitive) reads, counted once however many accessors share it, plus each
+    Draco primitive's attributes and indices at 4 bytes a component, as their accessors size them."""
+    accessors, views = gltf.accessors or [], gltf.bufferViews or []
+    used: set = set()
+    for accessor in accessors:
+        used.add(accessor.bufferView)
+        if accessor.sparse is not None:
+            used.update({getattr(accessor.sparse.indices, "bufferView", None), getattr(accessor.sparse.values, "bufferView", None)})
+    claims: list[tuple[str, int]] = []
+    for mesh_index, mesh in enumerate(gltf.meshes or []):
+        for primitive_index, primitive in enumerate(mesh.primitives or []):
+            draco = extension(primitive, DRACO)
+            if not isinstance(draco, dict):
+                continue
+            used.add(draco.get("bufferView"))
+            attributes = primitive.attributes or {}
+            read = [attributes.get(name) for name in (draco.get("attributes") or {})] + [primitive.indices]
+            claims.append((f"meshes[{mesh_index}].primitives[{primitive_index}] ({DRACO})", sum(_draco_claim(accessors, index) for index in read)))
+    for index in sorted(view for view in used if isinstance(view, int) and 0 <= view < len(views)):
+        compressed = extension(views[index], MESHOPT)
+        if isinstance(compressed, dict):
+            label = f"bufferViews[{index}] ({MESHOPT})"
+            claims.append((label, claimed_meshopt_bytes(compressed, f"{where}: {label}")))
+    total = sum(size for _, size in claims)
+    if total > MAX_DECODED_DOCUMENT_BYTES:
+        largest = ", ".join(f"{label} {size}" for label, size in sorted(claims, key=lambda claim: -claim[1])[:3])
+        raise ValueError(
+            f"{where}: the compressed geometry claims {total} decoded bytes in {len(claims)} parts, more than the "
+            f"{MAX_DECODED_DOCUMENT_BYTES} one document may decode (largest: {largest})"
+        )
+
+
+def _draco_claim(accessors: list, index) -> int:
+    """Decoded bytes a Draco primitive's accessor claims: count x width x 4 (Draco decodes 32-bit)."""
+    if not isinstance(index, int) or not 0 <= index < len(accessors):
+        return 0  # the primitive's reader names the missing accessor
+    accessor = accessors[index]
+    count, width = accessor.count, TYPE_WIDTHS.get(accessor.type, 16)
+    return count * width * 4 if isinstance(count, int) and count > 0 else 0
 
 
 def open_document(path: Path) -> _Document:
