@@ -72,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VERSION", help="bundle version; a published version never changes")
     parser.add_argument("--wait", action="store_true", help="follow the bake until it ends")
     parser.add_argument("--download", metavar="DIR", help="download and verify the bundle into DIR/NAME/VERSION (implies --wait)")
-    parser.add_argument("--no-publish", action="store_true", help="bake without publishing (publish later from the page or the API)")
+    parser.add_argument("--no-publish", action="store_true", help="do not publish the bundle when the bake succeeds (publish later from the page or the API)")
     parser.add_argument("--public", action="store_true", help="make the bundle readable without a key")
     parser.add_argument("--created", metavar="TIME", help="manifest time, RFC 3339 UTC, as `crowdbake bake --created` (default: the server's)")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout at exit (exit_code, state, bake_id, bundle, problem)")
