@@ -53,7 +53,10 @@ struct Sample {
     double cpu_ms = 0;      // median CPU time of this process per frame, all threads (llvmpipe
                             // renders on the CPU): the cost, whatever else the machine ran
     uint32_t by_lod[3] = {0, 0, 0};
+    bool cut_short = false;  // the deadline ended it before its usual frame count (fewer timed frames)
 };
+
+using Clock = std::chrono::steady_clock;
 
 // How a mode draws: build_frame's LOD choice and the impostor maps.
 struct ModeDraw {
@@ -94,8 +97,10 @@ double process_cpu_seconds() {
     return double(t.tv_sec) + 1e-9 * double(t.tv_nsec);
 }
 
-// Frame rate of a crowd of n in view, drawn as `draw`, after a warm-up.
-Sample measure(Renderer& renderer, const Bundle& bundle, uint64_t seed, uint32_t n, const ModeDraw& draw) {
+// Frame rate of a crowd of n in view, drawn as `draw`, after a warm-up. Past `deadline` it stops
+// after its first timed frame (one warm-up, one timed: the least that says anything), so a
+// crowd that draws slowly on a software rasteriser cannot run the benchmark past --max-seconds.
+Sample measure(Renderer& renderer, const Bundle& bundle, uint64_t seed, uint32_t n, const ModeDraw& draw, Clock::time_point deadline) {
     const CharacterModel& model = renderer.model();
     CrowdDesc desc;
     desc.count = n;
@@ -112,6 +117,7 @@ Sample measure(Renderer& renderer, const Bundle& bundle, uint64_t seed, uint32_t
     std::vector<Lod> state;
     FrameInstances frame;
     std::vector<double> seconds, cpu_seconds;
+    bool cut_short = false;
     // Two warm-up frames (shader variants, buffer growth), then fifteen timed ones. The
     // search uses the fastest: on a machine shared with other work the median measures
     // the other work too (both are reported).
@@ -124,6 +130,11 @@ Sample measure(Renderer& renderer, const Bundle& bundle, uint64_t seed, uint32_t
         renderer.finish();
         const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
         if (i >= 2) seconds.push_back(s), cpu_seconds.push_back(process_cpu_seconds() - cpu_start);
+        if (Clock::now() > deadline && (i >= 2 || i == 1)) {
+            if (i == 1) seconds.push_back(s), cpu_seconds.push_back(process_cpu_seconds() - cpu_start);  // timed, not warm-up
+            cut_short = seconds.size() < 3;
+            break;
+        }
         // Slow crowds need fewer frames to show it: three timed frames after half a second
         // of rendering bound each measurement.
         if (seconds.size() >= 3 && std::chrono::steady_clock::now() - first > std::chrono::milliseconds(500)) break;
@@ -135,6 +146,7 @@ Sample measure(Renderer& renderer, const Bundle& bundle, uint64_t seed, uint32_t
     sample.fps = 1.0 / std::max(seconds.front(), 1e-6);
     sample.fps_median = 1.0 / std::max(seconds[seconds.size() / 2], 1e-6);
     sample.cpu_ms = 1000.0 * cpu_seconds[cpu_seconds.size() / 2];
+    sample.cut_short = cut_short;
     for (int l = 0; l < 3; ++l) sample.by_lod[l] = uint32_t(frame.by_lod[l].size());
     return sample;
 }
@@ -192,27 +204,40 @@ double load_average_1min() {
 // both see the same background load.
 template <typename Log>
 nlohmann::json blend_cost(Renderer& renderer, const Bundle& bundle, const BenchmarkDesc& desc, const nlohmann::json& results,
-                          const Log& log) {
+                          Clock::time_point deadline, const Log& log) {
     const ImpostorBlend on = renderer.effective_blend(desc.blend == ImpostorBlend::off ? ImpostorBlend::full : desc.blend);
     // With reprojection, the plain blend is measured too: what the surface map costs on its own.
     const bool warped = on == ImpostorBlend::warp;
-    uint32_t n = 256;
+    // The crowd size: uv_impostor's 30 fps answer; without one (uv_impostor not run), the largest
+    // 30 fps answer of the modes that ran, at most 256 (a software rasteriser blends 256 impostors in
+    // seconds a frame: that phase once ran 485 s of a 10 s budget), at least 8.
+    uint32_t n = 0;
     if (results.contains("uv_impostor") && results["uv_impostor"].value("n_at_30fps", 0u) > 0)
         n = results["uv_impostor"]["n_at_30fps"].get<uint32_t>();
+    else {
+        for (const auto& [name, entry] : results.items()) n = std::max(n, entry.value("n_at_30fps", 0u));
+        n = std::clamp(n, 8u, 256u);
+    }
     Sample best_off, best_on, best_full;
-    for (int round = 0; round < 3; ++round) {
-        const Sample off = measure(renderer, bundle, desc.seed, n, {LodMode::impostor, ImpostorKind::uv, ImpostorBlend::off});
-        const Sample blended = measure(renderer, bundle, desc.seed, n, {LodMode::impostor, ImpostorKind::uv, on});
+    int rounds = 0;
+    for (int round = 0; round < 3 && (round == 0 || Clock::now() < deadline); ++round) {
+        const Sample off = measure(renderer, bundle, desc.seed, n, {LodMode::impostor, ImpostorKind::uv, ImpostorBlend::off}, deadline);
+        const Sample blended = measure(renderer, bundle, desc.seed, n, {LodMode::impostor, ImpostorKind::uv, on}, deadline);
         if (off.fps > best_off.fps) best_off = off;
         if (blended.fps > best_on.fps) best_on = blended;
         if (warped) {
-            const Sample full = measure(renderer, bundle, desc.seed, n, {LodMode::impostor, ImpostorKind::uv, ImpostorBlend::full});
+            const Sample full = measure(renderer, bundle, desc.seed, n, {LodMode::impostor, ImpostorKind::uv, ImpostorBlend::full}, deadline);
             if (full.fps > best_full.fps) best_full = full;
         }
+        ++rounds;
     }
-    log("benchmark: uv_impostor N=%u blending off %.1f fps (CPU %.1f ms), %s %.1f fps (CPU %.1f ms)", best_off.n, best_off.fps,
-        best_off.cpu_ms, impostor_blend_name(on), best_on.fps, best_on.cpu_ms);
+    const bool cut_short = rounds < 3 || best_off.cut_short || best_on.cut_short;
+    log("benchmark: uv_impostor N=%u blending off %.1f fps (CPU %.1f ms/frame), %s %.1f fps (CPU %.1f ms/frame)%s", best_off.n,
+        best_off.fps, best_off.cpu_ms, impostor_blend_name(on), best_on.fps, best_on.cpu_ms,
+        cut_short ? " (cut short by --max-seconds)" : "");
     nlohmann::json cost = {{"mode", "uv_impostor"},
+                           {"rounds", rounds},
+                           {"cut_short", cut_short},
                            {"n", best_off.n},
                            {"blend", impostor_blend_name(on)},
                            {"fps_off", std::round(best_off.fps * 10) / 10},
@@ -221,7 +246,8 @@ nlohmann::json blend_cost(Renderer& renderer, const Bundle& bundle, const Benchm
                            {"cpu_ms_per_frame_blended", std::round(best_on.cpu_ms * 100) / 100},
                            {"fps_ratio_blended_to_off", std::round(best_on.fps / std::max(best_off.fps, 1e-9) * 100) / 100}};
     if (warped) {
-        log("benchmark: uv_impostor N=%u full blending without reprojection %.1f fps", best_full.n, best_full.fps);
+        log("benchmark: uv_impostor N=%u full blending without reprojection %.1f fps (CPU %.1f ms/frame)", best_full.n, best_full.fps,
+            best_full.cpu_ms);
         cost["fps_full_unwarped"] = std::round(best_full.fps * 10) / 10;
         cost["fps_ratio_warped_to_full"] = std::round(best_on.fps / std::max(best_full.fps, 1e-9) * 100) / 100;
     }
@@ -259,7 +285,17 @@ nlohmann::json run_benchmark(Renderer& renderer, const Bundle& bundle, const Ben
                        "then 15 frames, each timed from build_frame (cull, LOD, views) to glFinish; fps from the "
                        "fastest frame (fps_median from the median one); N doubles from 8, then bisects to 5 %";
     nlohmann::json results = nlohmann::json::object();
-    const double per_mode = desc.max_seconds / double(std::max<size_t>(desc.modes.size(), 1));
+    nlohmann::json phases = nlohmann::json::array();  // every phase: name, seconds, cut_short
+    // --max-seconds bounds the whole run: the modes and the blend-cost phase each get an even share,
+    // and none runs past the run's end (measure() stops at its deadline after one timed frame).
+    const auto end = start + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(desc.max_seconds));
+    const double share = desc.max_seconds / double(desc.modes.size() + 1);
+    auto checkpoint = [&] {
+        report["results"] = results;
+        report["phases"] = phases;
+        report["seconds"] = std::chrono::duration<double>(Clock::now() - start).count();
+        if (desc.checkpoint) desc.checkpoint(report);
+    };
     for (size_t m = 0; m < desc.modes.size(); ++m) {
         const char* name = benchmark_mode_name(desc.modes[m]);
         ModeDraw draw = mode_draw(desc.modes[m]);
@@ -269,13 +305,16 @@ nlohmann::json run_benchmark(Renderer& renderer, const Bundle& bundle, const Ben
             results[name] = {{"skipped", "no lod 1 mesh"}};
             continue;
         }
-        const auto deadline = start + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
-                                          std::chrono::duration<double>(per_mode * double(m + 1)));
+        const auto phase_start = Clock::now();
+        const auto deadline = std::min(end, start + std::chrono::duration_cast<Clock::duration>(
+                                                        std::chrono::duration<double>(share * double(m + 1))));
         std::map<uint32_t, Sample> samples;
+        bool sample_cut = false;
         auto measure_n = [&](uint32_t n) {
-            const Sample s = measure(renderer, bundle, desc.seed, n, draw);
-            log("benchmark: %-15s N=%-7u %7.1f fps (median frame %6.1f, CPU %7.1f ms)  high %u, low %u, impostor %u", name, n,
-                s.fps, s.fps_median, s.cpu_ms, s.by_lod[0], s.by_lod[1], s.by_lod[2]);
+            const Sample s = measure(renderer, bundle, desc.seed, n, draw, deadline);
+            sample_cut |= s.cut_short;
+            log("benchmark: %-15s N=%-7u %7.1f fps (median frame %6.1f fps, CPU %7.1f ms/frame)  high %u, low %u, impostor %u%s", name, n,
+                s.fps, s.fps_median, s.cpu_ms, s.by_lod[0], s.by_lod[1], s.by_lod[2], s.cut_short ? " (cut short)" : "");
             return s;
         };
         bool converged30 = false, converged60 = false;
@@ -297,13 +336,24 @@ nlohmann::json run_benchmark(Renderer& renderer, const Bundle& bundle, const Ben
                             {"fps_median", std::round(s.fps_median * 10) / 10},
                             {"cpu_ms_per_frame", std::round(s.cpu_ms * 100) / 100}});
         entry["samples"] = list;
+        const bool cut_short = !(converged30 && converged60) || sample_cut;
+        entry["cut_short"] = cut_short;
         results[name] = entry;
-        log("benchmark: %-15s %u at 30 fps, %u at 60 fps%s", name, n30, n60,
-            converged30 && converged60 ? "" : " (time budget hit: lower bounds)");
+        const double phase_s = std::chrono::duration<double>(Clock::now() - phase_start).count();
+        phases.push_back({{"name", name}, {"seconds", std::round(phase_s * 100) / 100}, {"cut_short", cut_short}});
+        log("benchmark: %-15s %u at 30 fps, %u at 60 fps, %.1f s%s", name, n30, n60, phase_s,
+            cut_short ? " (cut short by --max-seconds: lower bounds)" : "");
+        checkpoint();
     }
-    report["results"] = results;
     report["impostor_blend"] = impostor_blend_name(renderer.effective_blend(desc.blend));
-    report["impostor_blend_cost"] = blend_cost(renderer, bundle, desc, results, log);
+    const auto blend_start = Clock::now();
+    report["impostor_blend_cost"] = blend_cost(renderer, bundle, desc, results, end, log);
+    const double blend_s = std::chrono::duration<double>(Clock::now() - blend_start).count();
+    phases.push_back({{"name", "impostor_blend_cost"}, {"seconds", std::round(blend_s * 100) / 100},
+                      {"cut_short", report["impostor_blend_cost"]["cut_short"]}});
+    log("benchmark: impostor_blend_cost %.1f s", blend_s);
+    report["results"] = results;
+    report["phases"] = phases;
     const double high = results.contains("high_mesh") ? results["high_mesh"].value("n_at_30fps", 0u) : 0.0;
     if (high > 0) {
         nlohmann::json ratios;

@@ -29,13 +29,16 @@ const char* impostor_blend_name(ImpostorBlend blend);
 
 struct BenchmarkDesc {
     uint64_t seed = 1;
-    double max_seconds = 300;  // the whole run, split evenly between the modes
+    double max_seconds = 300;  // the whole run: split evenly between the modes and the blend-cost phase
     std::vector<BenchmarkMode> modes{std::begin(kAllBenchmarkModes), std::end(kAllBenchmarkModes)};
     // How impostors blend views and frames in uv_impostor, detail_impostor and hybrid. The
     // report also times UV impostors with blending off and on at one crowd size.
     ImpostorBlend blend = ImpostorBlend::warp;
     std::string device;        // GlContext::describe(), for the report
     std::function<void(const std::string&)> log;  // one progress line per measurement; may be empty
+    // Called with the report so far after each phase (the caller writes it, so a run stopped from
+    // outside still leaves one); may be empty.
+    std::function<void(const nlohmann::json&)> checkpoint;
 };
 
 // Runs every mode of `desc` and returns the report (README.md lists its fields).

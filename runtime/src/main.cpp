@@ -101,7 +101,7 @@ const char* kUsage =
     "  --screenshot PNG      write the last frame\n"
     "  --benchmark           largest crowd at 30 and 60 fps per representation (headless)\n"
     "  --report JSON         benchmark figures\n"
-    "  --max-seconds S       benchmark time budget (default 300)\n"
+    "  --max-seconds S       benchmark time budget in seconds, every phase included (default 300)\n"
     "  --modes LIST          benchmark these of high_mesh,low_mesh,uv_impostor,detail_impostor,hybrid\n"
     "  --shaders DIR         shader folder (default: the source tree's src/shaders)\n"
     "  --cpu-decode          upload BC textures decoded to RGBA8 even where S3TC exists\n";
@@ -260,6 +260,12 @@ int run_benchmark_mode(const GlContext& context, Renderer& renderer, const Bundl
     desc.blend = o.blend;
     desc.device = context.describe();
     desc.log = [](const std::string& line) { std::fprintf(stderr, "%s\n", line.c_str()); };
+    // The report so far after every phase, so a run stopped from outside still leaves one.
+    if (!o.report.empty())
+        desc.checkpoint = [&](const nlohmann::json& partial) {
+            std::ofstream out(o.report);
+            out << partial.dump(2) << "\n";
+        };
     const std::string text = run_benchmark(renderer, bundle, desc).dump(2) + "\n";
     std::fputs(text.c_str(), stdout);
     if (!o.report.empty()) {

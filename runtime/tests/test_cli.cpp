@@ -5,6 +5,7 @@
 // and nothing failed, the test exits 77.
 #include <sys/wait.h>
 
+#include <chrono>
 #include <cstdio>
 #include <filesystem>
 
@@ -125,6 +126,41 @@ void test_headless(const std::string& bundle, const std::string& work) {
     CHECK_MSG(r.status == 0, describe(r));
 }
 
+// --max-seconds bounds every phase, the blend-cost one included: `--modes low_mesh --max-seconds 10`
+// once ran 485 s (the blend cost, hidden, at 256 characters) and a 30 s run never wrote its report.
+// Every printed figure carries its unit ("median frame 50.7" had none).
+void test_benchmark_budget(const std::string& bundle, const std::string& work) {
+    const std::string report = work + "/budget.json";
+    const double max_seconds = 3;
+    const auto start = std::chrono::steady_clock::now();
+    Run r = crowdview("--bundle '" + bundle + "' --benchmark --modes low_mesh --max-seconds 3 --report '" + report + "'");
+    const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (r.status == 3) {
+        ++g_skipped;
+        std::fprintf(stderr, "SKIP benchmark budget: %s", r.err.c_str());
+        return;
+    }
+    CHECK_MSG(r.status == 0, describe(r));
+    CHECK_MSG(wall <= max_seconds + 10, "ran " + std::to_string(wall) + " s for --max-seconds 3");
+    const nlohmann::json j = nlohmann::json::parse(synthetic::read_text(report), nullptr, false);
+    CHECK_MSG(!j.is_discarded() && j.contains("phases"), "the report is written, with its phases");
+    if (j.is_discarded()) return;
+    std::vector<std::string> names;
+    for (const auto& phase : j["phases"]) {
+        names.push_back(phase["name"]);
+        CHECK(phase.contains("cut_short") && phase["seconds"].get<double>() >= 0);
+    }
+    CHECK_MSG((names == std::vector<std::string>{"low_mesh", "impostor_blend_cost"}), j["phases"].dump());
+    CHECK(j["seconds"].get<double>() <= max_seconds + 5);
+    // Units: every "fps" or "ms" figure is followed by its unit; "median frame N" without one was the bug.
+    CHECK_MSG(r.err.find("median frame ") != std::string::npos && r.err.find(" fps, CPU ") != std::string::npos, r.err);
+    for (size_t at = r.err.find("median frame "); at != std::string::npos; at = r.err.find("median frame ", at + 1)) {
+        const size_t close = r.err.find(',', at);
+        CHECK_MSG(r.err.substr(at, close - at).find("fps") != std::string::npos, r.err.substr(at, 40));
+    }
+    CHECK_MSG(r.err.find("ms/frame") != std::string::npos, r.err);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -141,6 +177,7 @@ int main(int argc, char** argv) {
     test_arguments();
     test_verify(work + "/bundle", argv[2], work);
     test_headless(work + "/bundle", work);
+    test_benchmark_budget(work + "/bundle", work);
     fs::remove_all(work);
     const int code = check::exit_code();
     return code == 0 && g_skipped ? 77 : code;

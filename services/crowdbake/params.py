@@ -130,7 +130,9 @@ class ParamSpec:
 
     kind: "int", "float", "str", "bool", "floats" (a list of floats) or "name_or_index" (a glTF name or a
     0-based index; on the command line digits are an index); optional: None is allowed and means
-    "derived" (see help). minimum/maximum: inclusive bounds (of each item for "floats"); above_zero: the
+    "derived", as `derived` says. help: what the parameter is, without its default (the REST model,
+    the CLI and the web page add it, once). off_help: for a default-on "bool", what its `--no-…` flag
+    does when given (the flag turns the parameter off, so its help must say so). minimum/maximum: inclusive bounds (of each item for "floats"); above_zero: the
     value must be > 0 instead of >= minimum. flags: the `crowdbake bake` flag first, aliases after.
     """
 
@@ -150,6 +152,8 @@ class ParamSpec:
     max_items: int | None = None
     distinct: bool = False
     exclusive_group: str | None = None
+    derived: str | None = None
+    off_help: str | None = None
 
     @property
     def flag(self) -> str:
@@ -211,17 +215,17 @@ def _is_number(value: Any) -> bool:
 
 
 PARAMS: tuple[ParamSpec, ...] = (
-    ParamSpec("cycle_frames", "int", None, "walk cycle length in frames (default: the character's animation)",
-              ("--cycle-frames",), "L", optional=True, minimum=2, maximum=MAX_CYCLE_FRAMES),
+    ParamSpec("cycle_frames", "int", None, "walk cycle length in frames",
+              ("--cycle-frames",), "L", derived="the character's animation", optional=True, minimum=2, maximum=MAX_CYCLE_FRAMES),
     ParamSpec("close", "str", DEFAULT_CLOSE, "how the cycle's seam is closed: crossfade (a window around the seam, edge lengths kept), "
               "none, linear (the paper's blend) or hermite (also matches velocity, spreads the change over the loop)",
               ("--close",), choices=CLOSE_METHODS),
-    ParamSpec("fps", "float", None, "the cloth cache's frame rate (default: what the cache says: MDD frame times, Alembic "
-              "time sampling; else 24 / the PC2 sample interval)", ("--fps",), "FPS", optional=True, minimum=MIN_FPS, maximum=MAX_FPS),
-    ParamSpec("up", "str", None, "the cloth cache's up axis as exported: y (glTF, Maya) or z (Blender, 3ds Max), converted to Y-up "
-              "(default: detect, and refuse a cache that is not Y-up)", ("--up",), optional=True, choices=UP_AXES),
-    ParamSpec("units", "str", None, "the cloth cache's length unit as exported: m, cm, mm or in, converted to metres "
-              "(default: detect, and refuse a cache that is not in metres)", ("--units",), optional=True, choices=UNIT_CHOICES),
+    ParamSpec("fps", "float", None, "the cloth cache's frame rate", ("--fps",), "FPS",
+              derived="what the cache says: MDD frame times, Alembic time sampling; else 24 / the PC2 sample interval", optional=True, minimum=MIN_FPS, maximum=MAX_FPS),
+    ParamSpec("up", "str", None, "the cloth cache's up axis as exported: y (glTF, Maya) or z (Blender, 3ds Max), converted to Y-up",
+              ("--up",), derived="detect, and refuse a cache that is not Y-up", optional=True, choices=UP_AXES),
+    ParamSpec("units", "str", None, "the cloth cache's length unit as exported: m, cm, mm or in, converted to metres",
+              ("--units",), derived="detect, and refuse a cache that is not in metres", optional=True, choices=UNIT_CHOICES),
     ParamSpec("animation", "name_or_index", 0, "the character's walk: a glTF animation name or index",
               ("--animation",), "NAME|INDEX"),
     ParamSpec("candidates", "int", 5, "cycle candidates kept by pass 1 and compared by the pass-2 edge metric (paper section 3)",
@@ -236,18 +240,18 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--elevations",), "DEG,...", minimum=-90.0, maximum=90.0, min_items=1, max_items=MAX_ELEVATIONS, distinct=True),
     ParamSpec("tile_size", "int", 128, "texels per impostor view side (a multiple of 4: BC1/BC2 blocks are 4x4 texels)",
               ("--tile", "--tile-size"), "PX", minimum=4, maximum=MAX_TILE_SIZE, multiple_of=4),
-    ParamSpec("lod_ratio", "float", None, "low LOD as a fraction of the high one (default: the paper's 1899/13056)",
-              ("--lod-ratio",), "R", optional=True, maximum=1.0, above_zero=True, exclusive_group="lod"),
+    ParamSpec("lod_ratio", "float", None, "low LOD as a fraction of the high one",
+              ("--lod-ratio",), "R", derived="the paper's 1899/13056", optional=True, maximum=1.0, above_zero=True, exclusive_group="lod"),
     ParamSpec("lod_triangles", "int", None, "low LOD triangles for the whole character (instead of lod_ratio)",
-              ("--lod-triangles",), "N", optional=True, minimum=2, exclusive_group="lod"),
+              ("--lod-triangles",), "N", derived="from lod_ratio", optional=True, minimum=2, exclusive_group="lod"),
     ParamSpec("compress", "bool", True,
               "block-compress normal maps (BC5), surface maps (DXT1), detail maps and diffuse textures (DXT3); false: rgba8",
-              ("--no-compress",)),
+              ("--no-compress",), off_help="do not block-compress the maps: store normal, surface, detail maps and diffuse textures as rgba8"),
     ParamSpec("uv_format", "str", "uvblock", "impostor UV map format: uvblock (1.5 bytes a texel, block-coded 12-bit coordinates), "
               "uv32 (4 bytes, 14-bit coordinates) or rgba16 (8 bytes)",
               ("--uv-format",), choices=UV_FORMATS),
     ParamSpec("export", "bool", True, "publish an engine export beside the bundle (glTF, KTX2, VATs: docs/export.md); false: the bundle only",
-              ("--no-export",)),
+              ("--no-export",), off_help="do not publish an engine export (glTF, KTX2, VATs: docs/export.md) beside the bundle: the bundle only"),
 )
 SPECS = {spec.name: spec for spec in PARAMS}
 # Parameters of the cycle search that `crowdbake cycle` shares with `crowdbake bake` (its own flag names).
@@ -377,11 +381,16 @@ def pydantic_fields() -> dict[str, tuple[Any, Any]]:
             annotation = Optional[annotation]
         default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
         if isinstance(default, list):
-            info = Field(default_factory=lambda d=tuple(default): list(d), description=_sentence(spec.help), **bounds)
+            info = Field(default_factory=lambda d=tuple(default): list(d), description=_sentence(rest_help(spec)), **bounds)
         else:
-            info = Field(default, description=_sentence(spec.help), **bounds)
+            info = Field(default, description=_sentence(rest_help(spec)), **bounds)
         definitions[spec.name] = (annotation, info)
     return definitions
+
+
+def rest_help(spec: ParamSpec) -> str:
+    """The parameter's help for the REST model: what a null value (the default) means, said once."""
+    return f"{spec.help} (default: {spec.derived})" if spec.derived else spec.help
 
 
 def _sentence(text: str) -> str:
@@ -419,14 +428,16 @@ def add_cli_options(parser, names: Iterable[str] | None = None, *, server_defaul
             target = groups[spec.exclusive_group]
         option_flags = (flags[spec.name],) if flags and spec.name in flags else spec.flags
         default = None if server_defaults or spec.default is None else spec.default
-        shown = "the server's" if server_defaults else _default_text(spec)
-        help_text = f"{spec.help} (default {shown})" if shown else spec.help
         if spec.kind == "bool":
-            # A flag that turns off a default-on parameter (--no-compress): stored as the parameter's value.
+            # A flag that turns off a default-on parameter (--no-compress): stored as the parameter's value,
+            # and described by what giving it does (off_help), not by what the parameter does when on.
             target.add_argument(*option_flags, dest=spec.name, action="store_const", const=not spec.default,
-                                default=None if server_defaults else spec.default, help=spec.help)
+                                default=None if server_defaults else spec.default, help=spec.off_help)
             continue
-        kwargs: dict[str, Any] = {"dest": spec.name, "default": default, "help": help_text}
+        shown = default_text(spec)
+        if server_defaults:
+            shown = f"the server's, {shown} in this release"
+        kwargs: dict[str, Any] = {"dest": spec.name, "default": default, "help": f"{spec.help} (default: {shown})"}
         if spec.kind == "str":
             kwargs["choices"] = list(spec.choices or ())
         elif spec.kind == "name_or_index":
@@ -444,13 +455,14 @@ def name_or_index(text: str) -> int | str:
     return int(text) if text.isdigit() else text
 
 
-def _default_text(spec: ParamSpec) -> str:
+def default_text(spec: ParamSpec) -> str:
+    """The default as a person reads it: the value as typed on the command line, or what `derived` says."""
     if spec.default is None:
-        return ""
+        return spec.derived or "none"
     if spec.kind == "floats":
         return ",".join(f"{v:g}" for v in spec.default)
     if spec.kind == "bool":
-        return ""
+        return "on" if spec.default else "off"
     return str(spec.default)
 
 

@@ -60,6 +60,7 @@ def fill_form(page, version: str, publish: bool) -> None:
     values = {"bake-name": NAME, "bake-version": version, "param-impostor_frames": PARAMS["impostor_frames"], "param-azimuths": PARAMS["azimuths"],
               "param-elevations_deg": ",".join(str(value) for value in PARAMS["elevations_deg"]), "param-tile_size": PARAMS["tile_size"],
               "param-candidates": PARAMS["candidates"], "param-cycle_views": PARAMS["cycle_views"]}
+    page.wait_for("document.getElementById('param-azimuths') !== null")  # the fields are built from GET /v1/params
     page.evaluate(f"""(() => {{
         for (const [id, value] of Object.entries({json.dumps(values)})) document.getElementById(id).value = String(value);
         document.getElementById("bake-publish").checked = {json.dumps(publish)};

@@ -116,6 +116,25 @@ BakeParamsIn = create_model("BakeParamsIn", __base__=_BakeParamsChecks, __module
 BakeParamsIn.__doc__ = "Bake parameters (crowdbake.params.PARAMS: one table for REST and CLI); unknown keys are refused."
 
 
+class ParamPublic(BaseModel):
+    """One bake parameter of GET /v1/params (crowdbake.params.ParamSpec): what a form needs to offer it."""
+
+    name: str
+    kind: Literal["int", "float", "str", "bool", "floats", "name_or_index"]
+    default: Any = Field(description="The value a bake uses when the parameter is left out; null: derived, as default_text says.")
+    default_text: str = Field(description="The default as a person reads it (a value, or how a null default is derived).")
+    optional: bool = Field(description="Whether null is accepted (it means the derived default).")
+    choices: list[str] | None = None
+    minimum: float | None = None
+    maximum: float | None = None
+    above_zero: bool = False
+    multiple_of: int | None = None
+    min_items: int | None = None
+    max_items: int | None = None
+    help: str = Field(description="What the parameter is (its default in default_text).")
+    flag: str = Field(description="The `crowdbake bake` command-line flag.")
+
+
 class BakeCreate(BaseModel):
     """Start a bake from uploaded assets; it publishes <name>/<version> when `publish` is true."""
 

@@ -105,3 +105,46 @@ def download_bundle(server: Server, name: str, version: str, out_root: Path, on_
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return destination, verified
+
+
+def download_export(server: Server, name: str, version: str, out_root: Path) -> Path:
+    """Fetch name/version's engine export (GET /v1/bundles/{name}/{version}/export.zip, docs/export.md) and
+    unpack its NAME-VERSION folder into out_root/name/version; returns the folder. Every member's CRC is checked and its path
+    must stay inside the folder; an identical export already there is kept, another one refused."""
+    import zipfile
+
+    bundle = server.request("GET", f"/v1/bundles/{name}/{version}", f"reading bundle {name}/{version}").json()
+    if not bundle.get("export_url"):
+        raise ClientError(f"{name}/{version} was published without an engine export (params export false)", Exit.BAKE_FAILED)
+    destination = out_root / name / version
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{version}.export.", dir=destination.parent))
+    try:
+        archive = staging / "export.zip"
+        fetch_file(server, f"/v1/bundles/{name}/{version}/export.zip", archive, None, None, "export.zip")
+        unpacked = staging / "export"
+        try:
+            with zipfile.ZipFile(archive) as zipped:
+                broken = zipped.testzip()
+                if broken is not None:
+                    raise ClientError(f"the export of {name}/{version}: {broken} fails its CRC check", Exit.BAKE_FAILED)
+                top = f"{name}-{version}/"  # the zip holds one folder, NAME-VERSION (api/routes/exports.py)
+                for member in zipped.infolist():
+                    if member.is_dir():
+                        continue
+                    target = unpacked / safe_relative_path(member.filename.removeprefix(top))
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    with zipped.open(member) as source, open(target, "wb") as handle:
+                        shutil.copyfileobj(source, handle)
+        except (zipfile.BadZipFile, ValueError) as error:
+            raise ClientError(f"the export of {name}/{version} is not a usable zip: {error}", Exit.BAKE_FAILED) from None
+        if not (unpacked / "export.json").is_file():
+            raise ClientError(f"the export of {name}/{version} has no export.json", Exit.BAKE_FAILED)
+        if destination.exists():
+            if (destination / "export.json").is_file() and (destination / "export.json").read_bytes() == (unpacked / "export.json").read_bytes():
+                return destination
+            raise ClientError(f"{destination} already holds another export; remove it or choose another --export-out folder", Exit.USAGE)
+        os.rename(unpacked, destination)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return destination

@@ -39,6 +39,11 @@ AUTH_STATUSES = frozenset({401, 403})
 # quickly and a long outage costs one request every BACKOFF_MAX_S.
 BACKOFF_FIRST_S = 0.5
 BACKOFF_MAX_S = 8.0
+# A server that refuses the connection before it has ever answered is not restarting: most likely the URL
+# is wrong or nothing runs there. So the first contact is tried this many times (0.5 s, then 1 s apart)
+# and then reported in one line, instead of waiting out --retry-for; once the server has answered, a
+# refused connection is a restart and is retried for --retry-for as before. 429/503 are always retried.
+FIRST_CONTACT_TRIES = 3
 
 
 class ClientError(Exception):
@@ -105,6 +110,7 @@ class Server:
     sleep: Callable[[float], None] = time.sleep
     clock: Callable[[], float] = time.monotonic
     retries: int = field(default=0, init=False)
+    answered: bool = field(default=False, init=False)  # whether the server has answered once (see FIRST_CONTACT_TRIES)
 
     @property
     def url(self) -> str:
@@ -118,18 +124,27 @@ class Server:
         a successful answer's body is left unread (iterate it, then close the response)."""
         deadline = self.clock() + self.retry_for
         delays = backoff_delays()
+        tries = 0
         while True:
+            tries += 1
             kwargs = {name: value() if callable(value) else value for name, value in make_kwargs.items()}
             try:
                 response = self.client.send(self.client.build_request(method, path, **kwargs), stream=stream)
                 if stream and response.status_code >= 400:
                     response.read()
                 reason = None if response.status_code not in RETRY_STATUSES else f"HTTP {response.status_code} {problem_of(response).get('detail', '')}".strip()
-            except httpx.TransportError as error:  # refused, reset, DNS, timeouts: the server is not there (yet)
+            except httpx.ConnectError as error:  # refused, DNS: nobody there, or a server restarting
+                if not self.answered and tries >= FIRST_CONTACT_TRIES:
+                    cause = "connection refused" if "refused" in str(error).lower() else str(error)
+                    raise ClientError(f"cannot connect to {self.url}: {cause}", Exit.UNREACHABLE) from None
+                response, reason = None, f"{type(error).__name__}: {error}"
+            except httpx.TransportError as error:  # reset, timeouts: the server is not there (yet)
                 response, reason = None, f"{type(error).__name__}: {error}"
             finally:
                 for value in kwargs.get("files", {}).values() if isinstance(kwargs.get("files"), dict) else ():
                     _close(value)
+            if response is not None:
+                self.answered = True
             if reason is None:
                 break
             delay = next(delays)

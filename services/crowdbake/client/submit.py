@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from crowdbake.client.http import ClientError, Exit, Server, problem_line
+from crowdbake.client.preflight import check_glb_magic, check_not_published_otherwise
 from crowdbake.client.progress import FINAL_STATES, Reporter
 from crowdbake.errors import InputError
 from crowdbake.params import add_cli_options, option_for, params_from_args
@@ -31,8 +32,12 @@ With --wait, follows it until it ends; with --download DIR, also fetches the pub
 DIR/NAME/VERSION and checks every file's size and sha256 (and, with the full crowdbake package,
 the bundle's formats).
 
+With --export-out DIR, also fetches the engine export (glTF, KTX2, VATs: docs/export.md) into
+DIR/NAME/VERSION.
+
 Before uploading anything, the server checks the key, its scopes, NAME, VERSION and the bake
-parameters (a bake request naming no real assets, which starts nothing).
+parameters (a bake request naming no real assets, which starts nothing), and the client checks that
+NAME/VERSION is not already published from other inputs (bundles never change).
 
 The key comes from --key or CROWDBAKE_API_KEY (better in CI: it stays out of the process list)."""
 
@@ -72,7 +77,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VERSION", help="bundle version; a published version never changes")
     parser.add_argument("--wait", action="store_true", help="follow the bake until it ends")
     parser.add_argument("--download", metavar="DIR", help="download and verify the bundle into DIR/NAME/VERSION (implies --wait)")
-    parser.add_argument("--no-publish", action="store_true", help="bake without publishing (publish later from the page or the API)")
+    parser.add_argument("--export-out", metavar="DIR", help="fetch the engine export (docs/export.md) into DIR/NAME/VERSION (implies --wait)")
+    parser.add_argument("--no-publish", action="store_true", help="do not publish the bundle when the bake succeeds (publish later from the page or the API)")
     parser.add_argument("--public", action="store_true", help="make the bundle readable without a key")
     parser.add_argument("--created", metavar="TIME", help="manifest time, RFC 3339 UTC, as `crowdbake bake --created` (default: the server's)")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout at exit (exit_code, state, bake_id, bundle, problem)")
@@ -200,8 +206,11 @@ def cycle_files(path: str | None) -> dict[str, Path]:
 
 def check_locally(args: argparse.Namespace) -> Inputs:
     """Everything about the command line that needs no server: files, flag combinations, numbers."""
-    if args.download and args.no_publish:
-        raise usage("--download needs a published bundle; drop --no-publish (or publish later and download then)")
+    for option, value in (("--download", args.download), ("--export-out", args.export_out)):
+        if value and args.no_publish:
+            raise usage(f"{option} needs a published bundle; drop --no-publish (or publish later and download then)")
+    if args.export_out and args.export is False:
+        raise usage("--export-out needs an engine export; drop --no-export")
     for option in ("poll", "timeout", "retry_for"):
         if getattr(args, option) <= 0:
             raise usage(f"--{option.replace('_', '-')} must be positive, got {getattr(args, option)}")
@@ -210,8 +219,12 @@ def check_locally(args: argparse.Namespace) -> Inputs:
     for path in (character, *cloth.values()):
         if not path.is_file():
             raise usage(f"{path}: no such file")
-    if args.download and Path(args.download).exists() and not Path(args.download).is_dir():
-        raise usage(f"--download {args.download}: not a folder")
+    for option, value in (("--download", args.download), ("--export-out", args.export_out)):
+        if value and Path(value).exists() and not Path(value).is_dir():
+            raise usage(f"{option} {value}: not a folder")
+    not_glb = check_glb_magic(character)
+    if not_glb:
+        raise usage(not_glb)
     cloth_data = {"cycle_frames": str(args.cycle_frames)} if args.cycle_frames else {}
     return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args), cycle_files(args.cycle))
 
@@ -247,6 +260,13 @@ def preflight(server: Server, args: argparse.Namespace, inputs: Inputs) -> None:
         raise ClientError(f"the server refuses this bake: {problem_line(problem)}", Exit.REJECTED, problem)
     raise ClientError(f"checking the bake request: the server accepted a bake of assets that do not exist (HTTP {response.status_code})",
                       Exit.UNREACHABLE, {"title": "Unexpected answer", "status": response.status_code, "detail": response.text[:200]})
+
+
+def local_inputs(inputs: Inputs) -> dict[str, list[Path]]:
+    """Input role (as the bake record names it) -> its local files, for the published-version check."""
+    return {"character": [inputs.character], "cloth": list(inputs.cloth_files.values()),
+            **({"cycle": list(inputs.cycle_files.values())} if inputs.cycle_files else {}),
+            **{f"textures.{name}": [path] for name, path in inputs.textures.items()}}
 
 
 def upload(server: Server, endpoint: str, files: dict[str, Path], what: str, say, data: dict[str, str] | None = None) -> dict[str, Any]:
@@ -296,7 +316,7 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
     """The whole command; raises ClientError for every outcome but success."""
     import httpx
 
-    from crowdbake.client.download import download_bundle
+    from crowdbake.client.download import download_bundle, download_export
 
     outcome.name, outcome.version = args.name, args.bundle_version
     inputs = check_locally(args)
@@ -307,6 +327,7 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
         server = Server(client, retry_for=args.retry_for, say=say)
         try:
             preflight(server, args, inputs)
+            check_not_published_otherwise(server, args.name, args.bundle_version, local_inputs(inputs), inputs.params, args.created)
             character = upload(server, "/v1/assets/characters", {"file": inputs.character}, f"character {inputs.character.name}", say)
             cloth_name = next(iter(inputs.cloth_files.values())).name
             cloth = upload(server, "/v1/assets/cloth", inputs.cloth_files, f"cloth {cloth_name}", say, inputs.cloth_data)
@@ -320,7 +341,7 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
             reused = " (same inputs as an earlier bake: reusing it)" if response.status_code == 200 else ""
             say(f"bake {bake['id']} {bake['state']}{reused}")
             out(bake["id"])
-            if not (args.wait or args.download):
+            if not (args.wait or args.download or args.export_out):
                 return
             bake = follow(server, bake["id"], args.poll, args.timeout, Reporter(bake["id"], stream=sys.stderr), outcome)
             if bake["state"] != "succeeded":
@@ -331,6 +352,10 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
                 folder, verified = download_bundle(server, args.name, args.bundle_version, Path(args.download))
                 outcome.bundle, outcome.verified = str(folder), verified
                 say(f"bundle verified ({verified}): {folder}")
+                out(str(folder))
+            if args.export_out:
+                folder = download_export(server, args.name, args.bundle_version, Path(args.export_out))
+                say(f"engine export: {folder}")
                 out(str(folder))
         finally:
             outcome.retries = server.retries

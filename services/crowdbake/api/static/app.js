@@ -27,6 +27,7 @@ const state = {
   reportFor: null,     // the bake whose cycle report is loaded (or loading)
   bundle: null,        // {name, version} shown in the atlas viewer
   manifest: null,
+  params: null,        // the server's bake parameter table (GET /v1/params), which the form is built from
   atlasUrl: null,      // object URL of the current preview, revoked when replaced
   atlasRequest: 0,     // the newest preview request; older answers are dropped
 };
@@ -159,15 +160,56 @@ function renderChosen() {
   $("chosen-files").replaceChildren(...items);
 }
 
+// The bake form's parameter fields come from the server's own table (GET /v1/params, crowdbake.params.PARAMS),
+// so their defaults, choices and bounds are the ones it bakes with. An empty field leaves the server's default.
+function paramField(spec) {
+  const id = `param-${spec.name}`;
+  const title = `${spec.help} (default: ${spec.default_text})`;
+  const data = { param: spec.name, kind: spec.kind, default: JSON.stringify(spec.default) };
+  let input;
+  if (spec.kind === "bool") {
+    input = el("input", { id, type: "checkbox", title, dataset: data });
+    input.checked = Boolean(spec.default);
+  } else if (spec.kind === "str") {
+    input = el("select", { id, title, dataset: data },
+      el("option", { value: "" }, `default (${spec.default_text})`), ...spec.choices.map((choice) => el("option", { value: choice }, choice)));
+  } else {
+    const numeric = spec.kind === "int" || spec.kind === "float";
+    input = el("input", { id, title, placeholder: spec.default_text, dataset: data, type: numeric ? "number" : "text" });
+    if (numeric) {
+      if (spec.minimum !== null) input.min = String(spec.minimum);
+      if (spec.maximum !== null) input.max = String(spec.maximum);
+      input.step = spec.multiple_of ? String(spec.multiple_of) : spec.kind === "int" ? "1" : "any";
+    }
+  }
+  const label = spec.name.replaceAll("_", " ");
+  return spec.kind === "bool" ? el("label", { title }, input, ` ${label}`) : el("label", { title }, `${label} `, input);
+}
+
+async function loadParamFields() {
+  try {
+    state.params = await api("/v1/params");
+    $("param-fields").replaceChildren(...state.params.map(paramField));
+  } catch (error) {
+    $("param-fields").replaceChildren(el("span", { class: "error" }, `Cannot load the bake parameters: ${error.message}`));
+  }
+}
+
 function bakeParams() {
   const params = {};
-  for (const name of ["impostor_frames", "azimuths", "tile_size", "candidates", "cycle_views", "cycle_frames"]) {
-    const value = $(`param-${name}`).value.trim();
-    if (value) params[name] = Number(value);
+  for (const spec of state.params || []) {
+    const input = $(`param-${spec.name}`);
+    if (spec.kind === "bool") {
+      if (input.checked !== spec.default) params[spec.name] = input.checked;
+      continue;
+    }
+    const value = input.value.trim();
+    if (!value) continue;
+    if (spec.kind === "int" || spec.kind === "float") params[spec.name] = Number(value);
+    else if (spec.kind === "floats") params[spec.name] = value.split(",").map((item) => Number(item.trim()));
+    else if (spec.kind === "name_or_index") params[spec.name] = /^\d+$/.test(value) ? Number(value) : value;
+    else params[spec.name] = value;
   }
-  const elevations = $("param-elevations_deg").value.trim();
-  if (elevations) params.elevations_deg = elevations.split(",").map((value) => Number(value.trim()));
-  if ($("param-close").value) params.close = $("param-close").value;
   return params;
 }
 
@@ -556,6 +598,7 @@ function start() {
   for (const id of ["atlas-map", "atlas-frame", "atlas-azimuth", "atlas-elevation"]) $(id).addEventListener("change", loadAtlas);
   $("atlas-zoom").addEventListener("change", applyZoom);
   setUpDropZone();
+  loadParamFields();
   $("bake-form").addEventListener("submit", startBake);
   $("action-cancel").addEventListener("click", () => bakeAction("cancel"));
   $("action-retry").addEventListener("click", () => bakeAction("retry"));
