@@ -177,15 +177,10 @@ def render(document: dict[str, Any]) -> str:
         "",
         info.get("description", "").strip(),
         "",
-        "## Operations",
+        "Operations: " + ", ".join(f"[`{method.upper()} {path}`](#{anchor(f'{method.upper()} {path}')})"
+                                   for operations in by_tag.values() for method, path, _ in operations) + ".",
         "",
-        "| method and path | summary |",
-        "|---|---|",
     ]
-    for tag, operations in by_tag.items():
-        for method, path, operation in operations:
-            lines.append(f"| [`{method.upper()} {path}`](#{anchor(f'{method.upper()} {path}')}) | {cell(operation.get('summary', ''))} |")
-    lines.append("")
     for tag, operations in by_tag.items():
         if not operations:
             continue
