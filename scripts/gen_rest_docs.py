@@ -119,7 +119,8 @@ def render_operation(method: str, path: str, operation: dict[str, Any]) -> list[
         lines += [operation["summary"] + ("" if operation["summary"].endswith(".") else "."), ""]
     if operation.get("description"):
         lines += [operation["description"].strip(), ""]
-    lines += ["Authentication: an API key." if operation.get("security") else "Authentication: none.", ""]
+    if not operation.get("security"):
+        lines += ["Authentication: none.", ""]
     parameters = operation.get("parameters", [])
     if parameters:
         lines += ["| parameter | in | type | required | default | constraints | description |", "|---|---|---|---|---|---|---|"]
