@@ -21,6 +21,7 @@ from typing import Any
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 OUTPUT = REPO_ROOT / "docs" / "rest-api.md"
+PROBLEM_MEDIA_TYPE = "application/problem+json"
 METHODS = ("get", "post", "put", "patch", "delete", "head")
 # JSON Schema keywords shown in the constraints column, with how to write them.
 CONSTRAINTS = {
@@ -118,8 +119,8 @@ def render_operation(method: str, path: str, operation: dict[str, Any]) -> list[
         lines += [operation["summary"] + ("" if operation["summary"].endswith(".") else "."), ""]
     if operation.get("description"):
         lines += [operation["description"].strip(), ""]
-    lines += ["Authentication: an API key (`Authorization: Bearer <key>` or `X-API-Key`)." if operation.get("security")
-              else "Authentication: none.", ""]
+    if not operation.get("security"):
+        lines += ["Authentication: none.", ""]
     parameters = operation.get("parameters", [])
     if parameters:
         lines += ["| parameter | in | type | required | default | constraints | description |", "|---|---|---|---|---|---|---|"]
@@ -137,13 +138,20 @@ def render_operation(method: str, path: str, operation: dict[str, Any]) -> list[
             else:
                 lines += [f"Request body (`{media_type}`{', required' if body.get('required') else ''}):", "", *properties_table(schema), ""]
     lines += ["| status | media type | body | meaning |", "|---|---|---|---|"]
+    problems = []
     for status, response in sorted(operation.get("responses", {}).items()):
         content = response.get("content") or {}
         media_types = [media for media in content if media != "application/json" or len(content) == 1] or list(content)
+        if media_types == [PROBLEM_MEDIA_TYPE]:
+            # Every error answers the same problem document: listed once per operation, below the table.
+            problems.append(f"{status} {cell(response.get('description', ''))}")
+            continue
         schema = next((entry.get("schema") for entry in content.values() if entry.get("schema")), None)
         lines.append(f"| {status} | {', '.join(f'`{media}`' for media in media_types)} | {cell(schema_type(schema)) if schema else ''} | "
                      f"{cell(response.get('description', ''))} |")
     lines.append("")
+    if problems:
+        lines += [f"Errors ([Problem](#problem), `{PROBLEM_MEDIA_TYPE}`): " + "; ".join(problems) + ".", ""]
     return lines
 
 
@@ -170,15 +178,10 @@ def render(document: dict[str, Any]) -> str:
         "",
         info.get("description", "").strip(),
         "",
-        "## Operations",
+        "Operations: " + ", ".join(f"[`{method.upper()} {path}`](#{anchor(f'{method.upper()} {path}')})"
+                                   for operations in by_tag.values() for method, path, _ in operations) + ".",
         "",
-        "| method and path | summary |",
-        "|---|---|",
     ]
-    for tag, operations in by_tag.items():
-        for method, path, operation in operations:
-            lines.append(f"| [`{method.upper()} {path}`](#{anchor(f'{method.upper()} {path}')}) | {cell(operation.get('summary', ''))} |")
-    lines.append("")
     for tag, operations in by_tag.items():
         if not operations:
             continue
