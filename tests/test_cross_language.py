@@ -233,7 +233,8 @@ def test_crowdview_draws_the_reprojected_silhouette_the_bake_scores(views16_bund
     (`crowdview --switch-view`): the impostor's silhouette on the GPU is the one crowdbake's numpy copy of
     the shader draws for the same camera and frame (crowdbake.stages.runtime_fidelity.sample_tile, what
     fidelity.json's `runtime` scores), and plainly not the unreprojected blend's."""
-    from crowdbake.bake import impostor_blend, impostor_maps
+    from crowdbake.bake import impostor_views
+    from crowdbake.bake.reference import impostor_blend
     from crowdbake.stages.impostors import load_poses
     from crowdbake.stages.runtime_fidelity import AtlasTiles, halfway_frame, sample_tile
 
@@ -244,7 +245,7 @@ def test_crowdview_draws_the_reprojected_silhouette_the_bake_scores(views16_bund
     frame, frames = halfway_frame(poses)
     results = []
     for azimuth, elevation in ((11.25, 10.0), (191.25, 30.0), (303.75, 10.0)):
-        view = impostor_maps.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
+        view = impostor_views.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
         weights = impostor_blend.blend_view_weights(azimuth, elevation, layout.azimuths_deg, layout.elevations_deg)
 
         def drawn(tiles: AtlasTiles) -> np.ndarray:

@@ -15,10 +15,10 @@ cameras against the mesh rendered there (crowdbake.stages.runtime_fidelity.rende
 - `d_all`: halfway in all three (fidelity.json runtime.between_views' cameras and frame).
 
 `--azimuths` of the baked azimuths (or of the gaps between them) are used, spread evenly, at every ring
-or ring gap. Methods: `blend` is crowdview's blend (crowdbake.bake.impostor_blend, decoded from the bundle's
+or ring gap. Methods: `blend` is crowdview's blend (crowdbake.bake.reference.impostor_blend, decoded from the bundle's
 files, as runtime_fidelity scores it); `nearest` draws the one (view, frame) sample of highest blend weight,
 ties going to the lower azimuth, ring and frame (the paper's nearest view and frame). Candidates reproject
-every sample before the same blend (crowdbake.bake.impostor_warp), from per-texel depth and motion taken
+every sample before the same blend (crowdbake.bake.reference.impostor_warp), from per-texel depth and motion taken
 from the mesh at each baked view (SurfaceFields; what a bake could store beside the maps): `warp` (depth),
 `warp_motion` (and 3D motion to both neighbouring baked frames), `warp_velocity` (one motion field a layer,
 reversed for the way back), `warp_velocity_bc1` (depth and in-tile motion through one BC1 layer),
@@ -39,7 +39,8 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from crowdbake.bake import fidelity, impostor_blend, impostor_maps, impostor_warp  # noqa: E402
+from crowdbake.bake import fidelity  # noqa: E402
+from crowdbake.bake.reference import impostor_blend, impostor_warp  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_poses, part_path  # noqa: E402
 from crowdbake.stages.runtime_fidelity import AtlasTiles, halfway_frame, render_mesh_references  # noqa: E402
 
@@ -106,7 +107,7 @@ class Bench:
         return impostor_blend.samples_for(views, self.frame_weights(frame))
 
     def light(self, azimuth: float, elevation: float) -> np.ndarray:
-        return fidelity.camera_light(impostor_maps.ortho_view(self.poses.center, self.poses.radius, azimuth, elevation, self.size))
+        return fidelity.camera_light(impostor_views.ortho_view(self.poses.center, self.poses.radius, azimuth, elevation, self.size))
 
     def blend(self, samples: list[Sample], azimuth: float, elevation: float) -> np.ndarray:
         decoded = [(w, self.tiles.tile(tile, layer)) for w, tile, layer in samples]
@@ -148,10 +149,10 @@ class SurfaceFields:
             self._scenes[frame] = load_scene(self.bench.work, self.bench.poses, frame)
         return self._scenes[frame]
 
-    def view(self, tile: int) -> impostor_maps.OrthoView:
+    def view(self, tile: int) -> impostor_views.OrthoView:
         layout, poses = self.bench.layout, self.bench.poses
         columns = len(layout.azimuths_deg)
-        return impostor_maps.ortho_view(poses.center, poses.radius, layout.azimuths_deg[tile % columns],
+        return impostor_views.ortho_view(poses.center, poses.radius, layout.azimuths_deg[tile % columns],
                                         layout.elevations_deg[tile // columns], layout.tile_size)
 
     def fields(self, tile: int, layer: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -167,13 +168,13 @@ class SurfaceFields:
             coverage = renderer.coverage(view, scene.positions, scene.faces)
             mask = coverage.mask
             self.mask_mismatch += int((mask != self.bench.tiles.tile(tile, layer).covered).sum())
-            points = impostor_maps.interpolate(scene.positions, scene.faces, coverage)
+            points = impostor_views.interpolate(scene.positions, scene.faces, coverage)
             depth = np.where(mask, (points - view.center) @ view.back, 0.0)
             motions = []
             for other in (frames[layer - 1], frames[(layer + 1) % len(frames)]):
-                moved = impostor_maps.interpolate(self._scene(other).positions, scene.faces, coverage)
+                moved = impostor_views.interpolate(self._scene(other).positions, scene.faces, coverage)
                 motions.append(np.where(mask[..., None], moved - points, 0.0))
-            nearest = impostor_maps.nearest_inside(mask)
+            nearest = impostor_views.nearest_inside(mask)
             if nearest is not None:
                 depth = depth[nearest[0], nearest[1]]
                 motions = [m[nearest[0], nearest[1]] for m in motions]
@@ -190,9 +191,9 @@ class SurfaceFields:
         renderer = shared_renderer(view.size)
         renderer.set_mesh(scene.positions, scene.faces)
         coverage = renderer.coverage(view, scene.positions, scene.faces)
-        points = impostor_maps.interpolate(scene.positions, scene.faces, coverage)
-        moved = impostor_maps.interpolate(self._scene(frame).positions, scene.faces, coverage)
-        nearest = impostor_maps.nearest_inside(coverage.mask)
+        points = impostor_views.interpolate(scene.positions, scene.faces, coverage)
+        moved = impostor_views.interpolate(self._scene(frame).positions, scene.faces, coverage)
+        nearest = impostor_views.nearest_inside(coverage.mask)
         motion = np.where(coverage.mask[..., None], moved - points, 0.0)
         return motion if nearest is None else motion[nearest[0], nearest[1]]
 
@@ -201,7 +202,7 @@ def oracle_image(bench: Bench, azimuth: float, elevation: float, frame: int) -> 
     """warp_motion with each sample's motion taken to the cycle frame itself (no linear interpolation
     between baked frames): the ceiling of motion fields, what is left being occlusion and resampling."""
     surface = surface_fields(bench)
-    target = impostor_maps.ortho_view(bench.poses.center, bench.poses.radius, azimuth, elevation, bench.size)
+    target = impostor_views.ortho_view(bench.poses.center, bench.poses.radius, azimuth, elevation, bench.size)
     decoded = []
     for w, tile, layer in bench.samples(azimuth, elevation, frame):
         depth = surface.fields(tile, layer)[0]
@@ -229,7 +230,7 @@ def quantized(values: np.ndarray, limit: float, bits: int | None) -> np.ndarray:
     return codes / steps * (2 * limit) - limit
 
 
-def bc1_roundtrip(depth: np.ndarray, motion: np.ndarray, view: impostor_maps.OrthoView, radius: float) -> tuple[np.ndarray, np.ndarray]:
+def bc1_roundtrip(depth: np.ndarray, motion: np.ndarray, view: impostor_views.OrthoView, radius: float) -> tuple[np.ndarray, np.ndarray]:
     """Depth (±radius) and the tile-plane motion (right, up components, ±radius/2) through one BC1 layer."""
     from crowdbake.bake import compression
 
@@ -246,9 +247,9 @@ def warped_image(bench: Bench, azimuth: float, elevation: float, frame: int, mot
                  max_miss: float | None = None, backward: str = "stored", planar: bool = False, bits: int | None = None,
                  iterations: int = impostor_warp.DEFAULT_ITERATIONS, bc1: bool = False) -> np.ndarray:
     """crowdview's blend of the same samples, each reprojected to the camera (and, with `motion`, to the
-    cycle frame) first (crowdbake.bake.impostor_warp)."""
+    cycle frame) first (crowdbake.bake.reference.impostor_warp)."""
     surface = surface_fields(bench)
-    target = impostor_maps.ortho_view(bench.poses.center, bench.poses.radius, azimuth, elevation, bench.size)
+    target = impostor_views.ortho_view(bench.poses.center, bench.poses.radius, azimuth, elevation, bench.size)
     frames = bench.frame_weights(frame)
     decoded = []
     for w, tile, layer in samples if samples is not None else bench.samples(azimuth, elevation, frame):

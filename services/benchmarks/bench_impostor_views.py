@@ -12,7 +12,7 @@ Each WORK is the work folder of one dense bake of the sample at one tile size, f
 
 A coarser bake's views and frames are a subset of the dense bake's (the same orthographic cameras and
 poses), so every coarser setting is scored from the dense atlases, as crowdview would blend that subset
-(crowdbake.bake.impostor_blend): no bake per setting. Per setting, `--cameras` cameras halfway between
+(crowdbake.bake.reference.impostor_blend): no bake per setting. Per setting, `--cameras` cameras halfway between
 the setting's neighbouring azimuths, elevations and baked frames (around the fidelity frame), against
 the mesh rendered there (crowdbake.stages.runtime_fidelity). At the baked views the picture does not
 depend on the subset, so `at_views` is the dense bake's own (fidelity.json runtime.at_views).
@@ -30,7 +30,8 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from crowdbake.bake import fidelity, impostor_blend, impostor_maps  # noqa: E402
+from crowdbake.bake import fidelity  # noqa: E402
+from crowdbake.bake.reference import impostor_blend  # noqa: E402
 from crowdbake.formats.binary import layer_size  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, load_poses  # noqa: E402
 from crowdbake.stages.runtime_fidelity import AtlasTiles, render_mesh_references  # noqa: E402
@@ -73,7 +74,7 @@ def score_setting(work: Path, poses, tiles: AtlasTiles, diffuse, chains, outfit_
             a = dense.azimuths_deg.index(azimuths[tile % len(azimuths)])
             e = dense.elevations_deg.index(elevations[tile // len(azimuths)])
             samples.append((w, tiles.tile(a + e * len(dense.azimuths_deg), dense_frames.index(frames[layer]))))
-        view = impostor_maps.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
+        view = impostor_views.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
         image = impostor_blend.blend_image(samples, diffuse, outfit_row, fidelity.camera_light(view), size, chains)
         scores.append(fidelity.compare(reference, image)["ssim"])
     return {"between_frame_weight": frame_weights.weight, "ssim_mean": float(np.mean(scores)), "ssim_worst": float(np.min(scores))}

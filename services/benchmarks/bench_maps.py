@@ -28,7 +28,8 @@ import numpy as np
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 from crowdbake.stages.impostors import load_plan, load_scene  # noqa: E402
-from crowdbake.bake import impostor_maps  # noqa: E402
+from crowdbake.bake.reference import impostor_maps  # noqa: E402
+from crowdbake.bake.reference import mesh_reference  # noqa: E402
 from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
 
 
@@ -61,7 +62,7 @@ def main() -> int:
     with VisibilityRenderer(tile) as renderer:
         renderer.set_mesh(scene.positions, scene.faces)
         for elevation in layout["elevations_deg"]:
-            views = [impostor_maps.ortho_view(centre, radius, azimuth, elevation, tile) for azimuth in layout["azimuths_deg"]]
+            views = [impostor_views.ortho_view(centre, radius, azimuth, elevation, tile) for azimuth in layout["azimuths_deg"]]
             rings.append((views, [renderer.render(view) for view in views]))
         report["cpu_seconds"]["visibility_renders"] = best_cpu(lambda: [renderer.render(view) for views, _ in rings for view in views], args.repeat)
         if hasattr(renderer, "shader_maps"):
@@ -70,7 +71,7 @@ def main() -> int:
                 for views, _ in rings:
                     drawn = renderer.shader_maps(views, scene.positions, scene.normals, scene.uvs, scene.positions, scene.faces,
                                                  scene.triangle_material, scene.diffuse)
-                    impostor_maps.fill_background(drawn.mask, [drawn.normal, drawn.detail], unflattened=[drawn.surface])
+                    impostor_views.fill_background(drawn.mask, [drawn.normal, drawn.detail], unflattened=[drawn.surface])
                     out.append(drawn)
                 return out
 
@@ -83,7 +84,7 @@ def main() -> int:
         out = []
         for views, images in rings:
             for view, image in zip(views, images):
-                coverage = impostor_maps.resolve_coverage(view, image.ids, scene.positions, scene.faces, image.depth)
+                coverage = impostor_views.resolve_coverage(view, image.ids, scene.positions, scene.faces, image.depth)
                 out.append(impostor_maps.view_maps(view, coverage, *arguments))
         return out
 
@@ -92,7 +93,7 @@ def main() -> int:
         for views, images in rings:
             ids = np.stack([image.ids for image in images])
             depth = np.stack([image.depth for image in images])
-            coverages = impostor_maps.resolve_coverage_views(views, ids, scene.positions, scene.faces, depth)
+            coverages = impostor_views.resolve_coverage_views(views, ids, scene.positions, scene.faces, depth)
             out.extend(impostor_maps.view_maps_views(views, coverages, *arguments))
         return out
 
@@ -118,7 +119,7 @@ def main() -> int:
         from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE
 
         supersample = FIDELITY_SUPERSAMPLE
-        ring = [impostor_maps.ortho_view(centre, radius, view.azimuth_deg, view.elevation_deg, tile * supersample) for view in rings[0][0]]
+        ring = [impostor_views.ortho_view(centre, radius, view.azimuth_deg, view.elevation_deg, tile * supersample) for view in rings[0][0]]
         with VisibilityRenderer(tile * supersample) as renderer:
             def shaded_references() -> np.ndarray:
                 return renderer.shader_references(ring, scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material,
@@ -126,7 +127,7 @@ def main() -> int:
 
             def numpy_references() -> np.ndarray:
                 renderer.set_mesh(scene.positions, scene.faces)
-                return np.stack([fidelity.mesh_reference(view, renderer.coverage(view, scene.positions, scene.faces), supersample,
+                return np.stack([mesh_reference.mesh_reference(view, renderer.coverage(view, scene.positions, scene.faces), supersample,
                                                          scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material,
                                                          scene.diffuse_runtime, scene.outfit_row, fidelity.camera_light(view)) for view in ring])
 

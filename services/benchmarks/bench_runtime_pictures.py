@@ -1,6 +1,6 @@
 """The pictures fidelity.json's `runtime` section scores, drawn by crowdview's own shader in the bake's GL
 context (crowdbake.render.runtime_shader, what the pack stage does) and by its numpy copy
-(crowdbake.bake.impostor_blend and impostor_warp, what it did before): seconds, and how far apart the
+(crowdbake.bake.reference.impostor_blend and impostor_warp, what it did before): seconds, and how far apart the
 pictures and their scores are.
 
     PYTHONPATH=services python services/benchmarks/bench_runtime_pictures.py --work WORK [--repeat 3]

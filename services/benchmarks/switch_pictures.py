@@ -6,9 +6,9 @@ view and halfway between baked views and frames (docs/bake.md, "What the runtime
 
 WORK is a bake's work folder (`crowdbake bake ... --work WORK`, its pack stage run). Row 1: a baked view of
 the fidelity frame. Row 2: halfway to the next azimuth, halfway between the lowest two elevation rings and
-halfway to the next baked frame. Columns: the mesh (crowdbake.bake.fidelity.mesh_reference, 3x3 samples a
+halfway to the next baked frame. Columns: the mesh (crowdbake.bake.reference.mesh_reference, 3x3 samples a
 pixel), crowdview's default impostor (`--impostor-blend warp`: every sample reprojected by the surface map,
-crowdbake.bake.impostor_warp), the plain blend (`full`, crowdbake.bake.impostor_blend), the paper's nearest
+crowdbake.bake.reference.impostor_warp), the plain blend (`full`, crowdbake.bake.reference.impostor_blend), the paper's nearest
 view and frame, all decoded from the bundle's files, and 4x the absolute difference of the default from the mesh.
 Each picture is one tile, scaled up by --scale with nearest-neighbour so pixels stay visible.
 """
@@ -23,7 +23,8 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from crowdbake.bake import fidelity, impostor_blend, impostor_maps  # noqa: E402
+from crowdbake.bake import fidelity  # noqa: E402
+from crowdbake.bake.reference import impostor_blend  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, load_poses  # noqa: E402
 from crowdbake.stages.runtime_fidelity import AtlasTiles, halfway_frame, render_mesh_references, sample_tile  # noqa: E402
 
@@ -61,7 +62,7 @@ def main() -> int:
     def draw(weights: list[tuple[float, int, int]], azimuth: float, elevation: float,
              frames: impostor_blend.FrameWeights | None = None) -> np.ndarray:
         """The samples blended; with `frames`, each reprojected to the camera and that cycle position first."""
-        view = impostor_maps.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
+        view = impostor_views.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
         samples = [(w, tiles.tile(tile, k) if frames is None else sample_tile(tiles, tile, k, view, frames)) for w, tile, k in weights]
         return impostor_blend.blend_image(samples, diffuse, textures["outfits"][0], fidelity.camera_light(view), size, chains)
 

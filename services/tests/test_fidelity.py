@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from crowdbake.bake import compression, fidelity
-from crowdbake.bake import impostor_maps as maps
+from crowdbake.bake.reference import mesh_reference
+from crowdbake.bake import impostor_views
+from crowdbake.bake.reference import impostor_maps as maps
 from crowdbake.formats.texel_codecs import region_alpha
 
 pytest.importorskip("pyrender")
@@ -44,21 +46,21 @@ def sphere():
 
 def bake_view(scene, azimuth: float, elevation: float):
     positions, normals, uvs, faces, material, diffuse = scene
-    view = maps.ortho_view((0, 0, 0), 0.6, azimuth, elevation, SIZE)
+    view = impostor_views.ortho_view((0, 0, 0), 0.6, azimuth, elevation, SIZE)
     with VisibilityRenderer(SIZE) as renderer:
         renderer.set_mesh(positions, faces)
         coverage = renderer.coverage(view, positions, faces)
     return maps.view_maps(view, coverage, positions, normals, uvs, faces, material, diffuse)
 
 
-def reference(scene, azimuth: float, elevation: float, supersample: int = fidelity.DEFAULT_SUPERSAMPLE):
+def reference(scene, azimuth: float, elevation: float, supersample: int = mesh_reference.DEFAULT_SUPERSAMPLE):
     positions, normals, uvs, faces, material, diffuse = scene
-    view = maps.ortho_view((0, 0, 0), 0.6, azimuth, elevation, SIZE * supersample)
+    view = impostor_views.ortho_view((0, 0, 0), 0.6, azimuth, elevation, SIZE * supersample)
     with VisibilityRenderer(view.size) as renderer:
         renderer.set_mesh(positions, faces)
         coverage = renderer.coverage(view, positions, faces)
     light = fidelity.camera_light(view)
-    return fidelity.mesh_reference(view, coverage, supersample, positions, normals, uvs, faces, material, diffuse, OUTFIT, light), light
+    return mesh_reference.mesh_reference(view, coverage, supersample, positions, normals, uvs, faces, material, diffuse, OUTFIT, light), light
 
 
 def test_impostor_reproduces_the_mesh_render(sphere):
@@ -83,7 +85,7 @@ def test_impostor_images_of_one_tile_equal_the_picture_of_each_normal_map(sphere
     decoded = compression.decode_bc1(compression.encode_bc1(baked.normal), SIZE, SIZE)
     pictures = fidelity.impostor_images(baked.uv, [baked.normal, decoded], sphere[5], OUTFIT, light)
     uv, material, covered = map_codecs.decode_uv_map(baked.uv)
-    albedo = fidelity.apply_outfit(fidelity._texels(uv[covered], np.clip(material[covered], 0, len(sphere[5]) - 1), sphere[5]), OUTFIT)
+    albedo = fidelity.apply_outfit(fidelity.texels_at(uv[covered], np.clip(material[covered], 0, len(sphere[5]) - 1), sphere[5]), OUTFIT)
     for picture, normal_map in zip(pictures, (baked.normal, decoded)):
         whole = np.zeros_like(picture)
         whole[covered] = fidelity.lambert(albedo, map_codecs.decode_normal_map(normal_map)[covered], light)

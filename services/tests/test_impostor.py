@@ -1,11 +1,12 @@
 """Impostor maps: pyrender's visibility buffer (crowdbake.render.impostor) and the exact per-texel maps
-computed from it (crowdbake.bake.impostor_maps)."""
+computed from it (crowdbake.bake.reference.impostor_maps)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from crowdbake.bake import impostor_maps as maps
+from crowdbake.bake import impostor_views
+from crowdbake.bake.reference import impostor_maps as maps
 from crowdbake.bake import map_codecs, short_rows
 from crowdbake.formats.texel_codecs import region_alpha
 
@@ -34,7 +35,7 @@ def sphere_texture(size: int = 64) -> np.ndarray:
 
 
 def render_maps(positions, normals, uvs, faces, texture, azimuth, elevation, size=64, center=(0.0, 0.0, 0.0), radius=1.0):
-    view = maps.ortho_view(center, radius, azimuth, elevation, size)
+    view = impostor_views.ortho_view(center, radius, azimuth, elevation, size)
     with VisibilityRenderer(size) as renderer:
         renderer.set_mesh(positions, faces)
         coverage = renderer.coverage(view, positions, faces)
@@ -43,14 +44,14 @@ def render_maps(positions, normals, uvs, faces, texture, azimuth, elevation, siz
 
 def test_camera_is_the_spec_camera_and_matches_offscreen():
     for azimuth, elevation in ((0, 0), (90, 0), (200, 35), (30, -60), (0, 90)):
-        view = maps.ortho_view((0.1, 0.9, -0.2), 0.8, azimuth, elevation, 32)
+        view = impostor_views.ortho_view((0.1, 0.9, -0.2), 0.8, azimuth, elevation, 32)
         np.testing.assert_allclose(view.camera_pose(), offscreen.view_pose((0.1, 0.9, -0.2), 0.8, azimuth, elevation), atol=1e-12)
-    front = maps.ortho_view((0, 0, 0), 1.0, 0.0, 0.0, 64)
+    front = impostor_views.ortho_view((0, 0, 0), 1.0, 0.0, 0.0, 64)
     # From the front (+Z) the character's left (+X) is on the image's right, its head (+Y) at the top.
-    xy, depth = maps.project(front, np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 0]]))
+    xy, depth = impostor_views.project(front, np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 0]]))
     np.testing.assert_allclose(xy, [[64, 32], [32, 0], [32, 32]])
-    assert depth[2] == pytest.approx(maps.CAMERA_DISTANCE_RADII)
-    side = maps.ortho_view((0, 0, 0), 1.0, 90.0, 0.0, 64)
+    assert depth[2] == pytest.approx(impostor_views.CAMERA_DISTANCE_RADII)
+    side = impostor_views.ortho_view((0, 0, 0), 1.0, 90.0, 0.0, 64)
     np.testing.assert_allclose(side.back, [1, 0, 0], atol=1e-12)  # azimuth 90: the camera on +X
 
 
@@ -75,10 +76,10 @@ def test_one_offscreen_compiles_each_shader_program_once():
 
 
 def test_triangle_ids_round_trip():
-    colours = maps.triangle_id_colours(70_000)
+    colours = impostor_views.triangle_id_colours(70_000)
     image = colours.reshape(1, -1, 3)
-    np.testing.assert_array_equal(maps.decode_triangle_ids(image)[0], np.arange(70_000))
-    assert maps.decode_triangle_ids(np.zeros((1, 1, 3), np.uint8))[0, 0] == -1
+    np.testing.assert_array_equal(impostor_views.decode_triangle_ids(image)[0], np.arange(70_000))
+    assert impostor_views.decode_triangle_ids(np.zeros((1, 1, 3), np.uint8))[0, 0] == -1
 
 
 def test_uv_map_decodes_to_the_texel_on_a_facing_quad():
@@ -93,11 +94,11 @@ def test_uv_map_decodes_to_the_texel_on_a_facing_quad():
     faces = np.array([[0, 1, 2], [0, 2, 3]])
     normals = np.tile([0.0, 0.0, 1.0], (4, 1))
     texture = sphere_texture(1024)
-    view = maps.ortho_view((0, 0, 0), 1.0, 0.0, 0.0, 64)
+    view = impostor_views.ortho_view((0, 0, 0), 1.0, 0.0, 0.0, 64)
     with VisibilityRenderer(64) as renderer:
         renderer.set_mesh(positions, faces)
         image = renderer.render(view)
-        coverage = maps.resolve_coverage(view, image.ids, positions, faces, image.depth)
+        coverage = impostor_views.resolve_coverage(view, image.ids, positions, faces, image.depth)
     result = maps.view_maps(view, coverage, positions, normals, uvs, faces, np.zeros(2, int), [texture])
     uv, material, covered = map_codecs.decode_uv_map(result.uv)
     expected = np.zeros((64, 64), bool)
@@ -112,7 +113,7 @@ def test_uv_map_decodes_to_the_texel_on_a_facing_quad():
     # To the texel of a 1024² texture: the stored coordinates address the same texel as the exact ones.
     np.testing.assert_array_equal(np.floor(uv[expected] * 1024), np.floor(np.stack([exact_u, exact_v], -1)[expected] * 1024))
     assert (material == 0).all() and (result.uv[~expected] == 0).all()
-    np.testing.assert_allclose(image.depth[expected], maps.CAMERA_DISTANCE_RADII, atol=1e-4)
+    np.testing.assert_allclose(image.depth[expected], impostor_views.CAMERA_DISTANCE_RADII, atol=1e-4)
     assert (image.depth[~expected] == 0).all()
     np.testing.assert_array_equal(result.normal[expected][:, :3], np.tile([128, 128, 255], (expected.sum(), 1)))
     # Packed as uv32 (what a default bundle stores): the same coverage and material, and coordinates
@@ -178,21 +179,21 @@ def test_multisample_blends_on_the_silhouette_are_repaired():
     """Under EGL pyrender resolves a 4x multisampled buffer, which can average two ids into a third.
     Corrupting the silhouette's ids that way must leave the same coverage after the repair."""
     positions, normals, uvs, faces = uv_sphere()
-    view = maps.ortho_view((0, 0, 0), 1.0, 10.0, 5.0, 64)
+    view = impostor_views.ortho_view((0, 0, 0), 1.0, 10.0, 5.0, 64)
     with VisibilityRenderer(64) as renderer:
         renderer.set_mesh(positions, faces)
         image = renderer.render(view)
-    clean = maps.resolve_coverage(view, image.ids, positions, faces, image.depth)
+    clean = impostor_views.resolve_coverage(view, image.ids, positions, faces, image.depth)
     inside = image.ids >= 0
     border = inside & ~(np.roll(inside, 1, 0) & np.roll(inside, -1, 0) & np.roll(inside, 1, 1) & np.roll(inside, -1, 1))
     blended = image.ids.copy()
     blended[border] = (image.ids[border] + 1) // 2 + 7  # an averaged colour decodes to an unrelated id
-    repaired = maps.resolve_coverage(view, blended, positions, faces, image.depth)
+    repaired = impostor_views.resolve_coverage(view, blended, positions, faces, image.depth)
     assert repaired.repaired >= border.sum() * 0.9
     np.testing.assert_array_equal(repaired.mask, clean.mask)
     # Where a centre sits on an edge either triangle is right; the surface point must be the same.
     texel_metres = 2.0 * view.radius / view.size
-    moved = np.linalg.norm(maps.interpolate(positions, faces, repaired) - maps.interpolate(positions, faces, clean), axis=-1)
+    moved = np.linalg.norm(impostor_views.interpolate(positions, faces, repaired) - impostor_views.interpolate(positions, faces, clean), axis=-1)
     assert moved.max() <= 0.1 * texel_metres
 
 
@@ -214,14 +215,14 @@ def test_texture_sampling_conventions():
     texture[1, 0] = (0, 0, 255, 51)
     texture[1, 1] = (255, 255, 255, 68)
     # glTF (0, 0) is the top-left texel's corner; texel centres sit at (0.25, 0.25) etc. for 2x2.
-    samples = maps.sample_texture(texture, np.array([[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.5, 0.5], [1.25, 0.25]]))
+    samples = impostor_views.sample_texture(texture, np.array([[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.5, 0.5], [1.25, 0.25]]))
     np.testing.assert_allclose(samples[0], [255, 0, 0, 17])
     np.testing.assert_allclose(samples[1], [0, 255, 0, 34])
     np.testing.assert_allclose(samples[2], [0, 0, 255, 51])
     np.testing.assert_allclose(samples[3, :3], [127.5, 127.5, 127.5])  # bilinear RGB
     assert samples[3, 3] in (17, 34, 51, 68)  # nearest alpha: a region code, never a blend
     np.testing.assert_allclose(samples[4], samples[0])  # REPEAT
-    np.testing.assert_allclose(maps.wrap_uv(np.array([1.0, -0.25, 1.5])), [1.0, 0.75, 0.5])
+    np.testing.assert_allclose(impostor_views.wrap_uv(np.array([1.0, -0.25, 1.5])), [1.0, 0.75, 0.5])
 
 
 def test_all_views_at_once_equal_view_by_view():
@@ -230,7 +231,7 @@ def test_all_views_at_once_equal_view_by_view():
     of different azimuths and elevations, one of them with corrupted (repaired) ids, one empty."""
     positions, normals, uvs, faces = uv_sphere()
     material = np.zeros(len(faces), int)
-    views = [maps.ortho_view((0, 0, 0), 1.0, azimuth, elevation, 32) for azimuth, elevation in ((0, 0), (70, 20), (200, -40))]
+    views = [impostor_views.ortho_view((0, 0, 0), 1.0, azimuth, elevation, 32) for azimuth, elevation in ((0, 0), (70, 20), (200, -40))]
     with VisibilityRenderer(32) as renderer, offscreen.timed_renders() as gl:
         renderer.set_mesh(positions, faces)
         images = [renderer.render(view) for view in views]
@@ -240,11 +241,11 @@ def test_all_views_at_once_equal_view_by_view():
     ids[1][ids[1] >= 0] += 5  # wrong ids in view 1: every covered texel there needs repairing
     ids[2] = -1  # nothing drawn in view 2
     depth[2] = 0.0
-    together = maps.resolve_coverage_views(views, ids, positions, faces, depth)
+    together = impostor_views.resolve_coverage_views(views, ids, positions, faces, depth)
     assert together[1].repaired > 0 and not together[2].mask.any()
     together_maps = maps.view_maps_views(views, together, positions, normals, uvs, faces, material, [sphere_texture()])
     for k, view in enumerate(views):
-        alone = maps.resolve_coverage(view, ids[k], positions, faces, depth[k])
+        alone = impostor_views.resolve_coverage(view, ids[k], positions, faces, depth[k])
         np.testing.assert_array_equal(together[k].triangle, alone.triangle)
         np.testing.assert_array_equal(together[k].barycentric, alone.barycentric)
         assert together[k].repaired == alone.repaired
@@ -263,4 +264,4 @@ def test_row_reductions_are_bitwise_numpys():
         assert np.array_equal(short_rows.row_norm(values), np.linalg.norm(values, axis=1))
         assert np.array_equal(short_rows.row_min(values), values.min(axis=1))
     u, v = rng.standard_normal((2, 5000, 3))
-    assert np.array_equal(maps.face_normals(np.concatenate([np.zeros((5000, 3)), u, v]), np.arange(15000).reshape(3, 5000).T), np.cross(u, v))
+    assert np.array_equal(impostor_views.face_normals(np.concatenate([np.zeros((5000, 3)), u, v]), np.arange(15000).reshape(3, 5000).T), np.cross(u, v))

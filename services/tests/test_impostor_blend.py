@@ -1,4 +1,4 @@
-"""The bake's copy of crowdview's impostor blending (crowdbake.bake.impostor_blend).
+"""The bake's copy of crowdview's impostor blending (crowdbake.bake.reference.impostor_blend).
 
 The weights are checked against runtime/tests/data/view_blend_vectors.json, which crowdview's
 view_blend ctest reads too, so both sides follow one set of answers worked out from the README's rules.
@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from crowdbake.bake import impostor_blend
-from crowdbake.bake.impostor_blend import DecodedTile
+from crowdbake.bake.reference import impostor_blend
+from crowdbake.bake.reference.impostor_blend import DecodedTile
 
 VECTORS = Path(__file__).resolve().parents[2] / "runtime" / "tests" / "data" / "view_blend_vectors.json"
 

@@ -1,19 +1,20 @@
-"""Reprojection of impostor tiles to the camera and the cycle frame (crowdbake.bake.impostor_warp), on
+"""Reprojection of impostor tiles to the camera and the cycle frame (crowdbake.bake.reference.impostor_warp), on
 surfaces whose answer is known by construction: a flat tilted plane seen from two angles, a uniform motion."""
 from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.bake import impostor_maps, impostor_warp
-from crowdbake.bake.impostor_blend import DecodedTile
+from crowdbake.bake import impostor_views
+from crowdbake.bake.reference import impostor_warp
+from crowdbake.bake.reference.impostor_blend import DecodedTile
 
 SIZE = 32
 CENTER = np.array([0.0, 1.0, 0.0])
 RADIUS = 1.0
 
 
-def view(azimuth: float, elevation: float = 0.0) -> impostor_maps.OrthoView:
-    return impostor_maps.ortho_view(CENTER, RADIUS, azimuth, elevation, SIZE)
+def view(azimuth: float, elevation: float = 0.0) -> impostor_views.OrthoView:
+    return impostor_views.ortho_view(CENTER, RADIUS, azimuth, elevation, SIZE)
 
 
 def pixel_centres() -> np.ndarray:

@@ -1,12 +1,14 @@
 """The impostor maps drawn by a shader (crowdbake.render.map_shader) against the exact float64 maps of
-crowdbake.bake.impostor_maps, which resolve a triangle-id render in numpy: the same texels covered, the
+crowdbake.bake.reference.impostor_maps, which resolve a triangle-id render in numpy: the same texels covered, the
 same values up to rounding, on a closed and an open shape with two materials, under OSMesa."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from crowdbake.bake import impostor_maps as maps
+from crowdbake.bake import impostor_views
+from crowdbake.bake.reference import impostor_maps as maps
+from crowdbake.bake.reference import mesh_reference
 from crowdbake.bake import map_codecs, surface_maps
 
 pytest.importorskip("pyrender")
@@ -43,7 +45,7 @@ def exact_maps(views, positions, normals, uvs, faces, material, textures, next_p
 
 def test_shader_maps_are_the_exact_maps_up_to_rounding():
     positions, normals, uvs, faces, material, textures, next_positions = scene()
-    views = [maps.ortho_view((0.0, 0.0, 0.0), 1.0, azimuth, elevation, SIZE) for azimuth, elevation in ANGLES]
+    views = [impostor_views.ortho_view((0.0, 0.0, 0.0), 1.0, azimuth, elevation, SIZE) for azimuth, elevation in ANGLES]
     with VisibilityRenderer(SIZE) as renderer, offscreen.timed_renders() as gl:
         drawn = renderer.shader_maps(views, positions, normals, uvs, next_positions, faces, material, textures)
     assert gl.renders == 1 and gl.seconds > 0, "the shader's pass counts as a render"
@@ -53,7 +55,7 @@ def test_shader_maps_are_the_exact_maps_up_to_rounding():
     assert (drawn.mask != mask).mean() < 1e-3
     assert drawn.mask.sum() > 0.1 * drawn.mask.size
     both = drawn.mask & mask
-    maps.fill_background(drawn.mask, [drawn.normal, drawn.detail], unflattened=[drawn.surface])
+    impostor_views.fill_background(drawn.mask, [drawn.normal, drawn.detail], unflattened=[drawn.surface])
     drawn.surface[..., 3] = 255
 
     uv_exact = np.stack([m.uv for m in exact])
@@ -86,11 +88,11 @@ def test_views_of_other_sizes_and_many_rows_share_one_renderer():
     code, the UV's 16 bits within 1/2048 (the interpolation's float32 arithmetic sees the offset: these
     views lie up to 7,000 texels from the framebuffer's origin)."""
     positions, normals, uvs, faces, material, textures, next_positions = scene()
-    many = [maps.ortho_view((0.0, 0.0, 0.0), 1.0, 360.0 * k / 9, 10.0, 1024) for k in range(9)]
+    many = [impostor_views.ortho_view((0.0, 0.0, 0.0), 1.0, 360.0 * k / 9, 10.0, 1024) for k in range(9)]
     with VisibilityRenderer(16) as renderer:
         together = renderer.shader_maps(many, positions, normals, uvs, next_positions, faces, material, textures)
         alone = renderer.shader_maps(many[5:6], positions, normals, uvs, next_positions, faces, material, textures)
-        small = renderer.shader_maps([maps.ortho_view((0.0, 0.0, 0.0), 1.0, 40.0, 10.0, 16)], positions, normals, uvs,
+        small = renderer.shader_maps([impostor_views.ortho_view((0.0, 0.0, 0.0), 1.0, 40.0, 10.0, 16)], positions, normals, uvs,
                                      next_positions, faces, material, textures)
     np.testing.assert_array_equal(together.mask[5], alone.mask[0])
     for kind, tolerance in (("normal", 1), ("uv", 32), ("detail", 1), ("surface", 1)):
@@ -102,7 +104,7 @@ def test_views_of_other_sizes_and_many_rows_share_one_renderer():
 
 def test_a_view_that_misses_the_mesh_is_empty():
     positions, normals, uvs, faces, material, textures, next_positions = scene()
-    away = maps.ortho_view((5.0, 0.0, 0.0), 0.5, 0.0, 0.0, SIZE)
+    away = impostor_views.ortho_view((5.0, 0.0, 0.0), 0.5, 0.0, 0.0, SIZE)
     with VisibilityRenderer(SIZE) as renderer:
         drawn = renderer.shader_maps([away], positions, normals, uvs, next_positions, faces, material, textures)
     assert not drawn.mask.any()
@@ -112,7 +114,7 @@ def test_a_view_that_misses_the_mesh_is_empty():
 
 def test_shader_references_are_the_exact_mesh_references(monkeypatch):
     """The fidelity references (shaded per sample, outfit colours by region, box-filtered on the GPU)
-    against crowdbake.bake.fidelity.mesh_reference in float64 from exact coverage: the same picture to
+    against crowdbake.bake.reference.mesh_reference in float64 from exact coverage: the same picture to
     float32 rounding but for texels where the two disagree on an edge, and more views than one pass
     draws (MAX_PASS_TEXELS, lowered here to 8 views), so that the batches land in order."""
     from crowdbake.bake import fidelity
@@ -124,14 +126,14 @@ def test_shader_references_are_the_exact_mesh_references(monkeypatch):
     outfit[3] = (60, 200, 90, 255)
     supersample = 3
     angles = [(360.0 * k / 7, elevation) for k in range(7) for elevation in (-30.0, 0.0, 40.0)]
-    views = [maps.ortho_view((0.0, 0.0, 0.0), 1.0, azimuth, elevation, SIZE * supersample) for azimuth, elevation in angles]
+    views = [impostor_views.ortho_view((0.0, 0.0, 0.0), 1.0, azimuth, elevation, SIZE * supersample) for azimuth, elevation in angles]
     monkeypatch.setattr(map_shader, "MAX_PASS_TEXELS", 8 * (SIZE * supersample) ** 2)
     with VisibilityRenderer(SIZE) as renderer:
         drawn = renderer.shader_references(views, positions, normals, uvs, faces, material, textures, outfit, supersample)
     assert drawn.shape == (len(views), SIZE, SIZE, 3) and drawn.dtype == np.float32
     with VisibilityRenderer(SIZE * supersample) as renderer:
         renderer.set_mesh(positions, faces)
-        exact = np.stack([fidelity.mesh_reference(view, renderer.coverage(view, positions, faces), supersample, positions, normals, uvs,
+        exact = np.stack([mesh_reference.mesh_reference(view, renderer.coverage(view, positions, faces), supersample, positions, normals, uvs,
                                                   faces, material, textures, outfit, fidelity.camera_light(view)) for view in views])
     difference = np.abs(drawn - exact)
     assert (difference <= 1e-4).mean() > 0.999, f"worst {difference.max()}"

@@ -8,7 +8,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from crowdbake.bake import fidelity, impostor_blend, map_codecs
+from crowdbake.bake import fidelity, map_codecs
+from crowdbake.bake.reference import impostor_blend
 from crowdbake.formats.binary import TextureArray
 from crowdbake.formats.bundle import verify_bundle
 from crowdbake.params import BakeParams

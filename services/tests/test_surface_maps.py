@@ -1,18 +1,19 @@
 """The impostor surface map (crowdbake.bake.surface_maps) and the reprojection of a stored sample
-(crowdbake.bake.impostor_warp.warp_tile, motion_fraction), on geometry whose answer is known by construction."""
+(crowdbake.bake.reference.impostor_warp.warp_tile, motion_fraction), on geometry whose answer is known by construction."""
 from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.bake import impostor_maps, impostor_warp, surface_maps
-from crowdbake.bake.impostor_blend import DecodedTile, FrameWeights
+from crowdbake.bake import impostor_views, surface_maps
+from crowdbake.bake.reference import impostor_warp
+from crowdbake.bake.reference.impostor_blend import DecodedTile, FrameWeights
 
 SIZE = 16
 CENTER = np.array([0.0, 1.0, 0.0])
 RADIUS = 1.0
 
 
-def square_coverage(view: impostor_maps.OrthoView, depth: float, rows: slice, columns: slice):
+def square_coverage(view: impostor_views.OrthoView, depth: float, rows: slice, columns: slice):
     """A two-triangle square facing `view` at `depth` along view.back, covering texels [rows, columns]
     exactly, with its Coverage (triangle and barycentrics of every covered texel centre)."""
     scale = SIZE / (2 * RADIUS)
@@ -32,11 +33,11 @@ def square_coverage(view: impostor_maps.OrthoView, depth: float, rows: slice, co
                 if u >= -1e-9 and v >= -1e-9 and u + v <= 1 + 1e-9:
                     triangle[r, c], barycentric[r, c] = t, (1 - u - v, u, v)
                     break
-    return positions, faces, impostor_maps.Coverage(triangle, barycentric, 0)
+    return positions, faces, impostor_views.Coverage(triangle, barycentric, 0)
 
 
 def test_depth_and_motion_of_a_moving_square_and_the_background_takes_the_nearest_inside_texel():
-    view = impostor_maps.ortho_view(CENTER, RADIUS, 30.0, 20.0, SIZE)
+    view = impostor_views.ortho_view(CENTER, RADIUS, 30.0, 20.0, SIZE)
     positions, faces, coverage = square_coverage(view, 0.25, slice(4, 10), slice(6, 12))
     shift = 0.1 * view.right - 0.05 * view.up + 0.3 * view.back  # the part along back is not stored
     depth, motion = surface_maps.surface_fields(view, coverage, positions, positions + shift, faces)
@@ -75,7 +76,7 @@ def test_motion_fraction_moves_the_earlier_frame_forward_and_the_later_back():
 def test_a_sample_moved_a_quarter_of_the_way_shows_its_texels_a_quarter_of_the_motion_along():
     """A flat surface at the centre plane moving 8 texels right between baked frames: at fraction 0.25 each
     pixel reads the texel 2 to its left; at its own view and frame the tile comes back unchanged."""
-    view = impostor_maps.ortho_view(CENTER, RADIUS, 0.0, 0.0, SIZE)
+    view = impostor_views.ortho_view(CENTER, RADIUS, 0.0, 0.0, SIZE)
     rows, columns = np.mgrid[0:SIZE, 0:SIZE]
     tile = DecodedTile(np.stack([columns, rows], axis=-1) / SIZE, np.zeros((SIZE, SIZE), dtype=np.int64),
                        np.ones((SIZE, SIZE), dtype=bool), np.tile([0.0, 0.0, 1.0], (SIZE, SIZE, 1)))
@@ -107,7 +108,7 @@ def test_bc5_decoder_matches_quicktex_and_two_channel_normals_round_trip():
     normals = np.empty((layout.height, layout.width, 3))
     for e, elevation in enumerate(layout.elevations_deg):
         for a, azimuth in enumerate(layout.azimuths_deg):
-            view = impostor_maps.ortho_view(np.zeros(3), 1.0, azimuth, elevation, 16)
+            view = impostor_views.ortho_view(np.zeros(3), 1.0, azimuth, elevation, 16)
             # A smooth bulge facing the tile's camera, as a visible surface does, tilted differently per tile.
             rows, columns = np.mgrid[0:16, 0:16] / 16.0 - 0.5
             local = np.stack([1.5 * columns + 0.2 * a, -1.5 * rows - 0.1 * e, np.ones((16, 16))], axis=-1)

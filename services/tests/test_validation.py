@@ -13,17 +13,8 @@ import pytest
 
 from crowdbake.formats.pc2 import read_pc2
 from crowdbake.ingest.obj_sequence import ZipLimits, convert_obj_sequence
-from crowdbake.ingest.uploads import (
-    FORMAT_MISMATCH,
-    INVALID_FILE,
-    UNSAFE_ARCHIVE,
-    UNSUPPORTED_FORMAT,
-    UploadRejected,
-    check_character,
-    check_cloth,
-    check_texture,
-    sniff_format,
-)
+from crowdbake.ingest.rejections import FORMAT_MISMATCH, INVALID_FILE, UNSAFE_ARCHIVE, UNSUPPORTED_FORMAT, UploadRejected, sniff_format
+from crowdbake.ingest.uploads import check_character, check_cloth, check_texture
 from service_fixtures import obj_bytes, obj_sequence_zip, pc2_bytes, png_bytes, tiny_character_glb, tiny_cloth
 
 LIMITS = ZipLimits(max_entries=100, max_uncompressed_bytes=50 << 20, max_ratio=200.0)

@@ -4,7 +4,8 @@ The paper switches from mesh to impostor where one impostor texel covers one scr
 are perceptually equivalent to the mesh (Dobbyn et al. 2006, section 6, after Hamill et al. 2005). At
 that distance an orthographic view of the mesh at the tile's resolution *is* the screen image, so:
 
-- the **mesh reference** is the mesh shaded per sample at `supersample`² samples per pixel (exact
+- the **mesh reference** (crowdbake.bake.reference.mesh_reference; the bake draws it with a shader) is the
+  mesh shaded per sample at `supersample`² samples per pixel (exact
   visibility, interpolated normals, the diffuse texture sampled at the interpolated UV) and box-filtered
   down to the tile: an anti-aliased rendering of the mesh;
 - the **impostor image** is what the runtime reconstructs from the baked, compressed maps: the UV map's
@@ -21,106 +22,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.bake import impostor_maps, map_codecs
-from crowdbake.bake.impostor_maps import Coverage, OrthoView
+from crowdbake.bake import map_codecs
+from crowdbake.bake.shading import AMBIENT, DIFFUSE, apply_outfit, camera_light, lambert, texels_at  # noqa: F401 (fidelity.camera_light etc.: the scores' light model)
 
-AMBIENT = 0.3
-DIFFUSE = 0.7
-# Light direction in the camera's frame: towards the camera, up, and to the left (right, up, back weights).
-LIGHT_IN_CAMERA = np.array([-0.4, 0.6, 0.7])
 # Pixels added around the union of both images' coverage before measuring, so that the silhouette's
 # outside is part of the comparison but an empty frame does not inflate SSIM.
 MEASURE_MARGIN_PX = 4
 # SSIM's window is 7 pixels; smaller boxes are grown to this.
 MIN_MEASURE_SIZE = 7
-# Samples per pixel side for the mesh reference (4 = 16 samples, the anti-aliasing of a good runtime).
-DEFAULT_SUPERSAMPLE = 4
-
-
-def camera_light(view: OrthoView) -> np.ndarray:
-    """(3,) unit model-space direction towards the light for `view` (fixed to the camera)."""
-    direction = LIGHT_IN_CAMERA[0] * view.right + LIGHT_IN_CAMERA[1] * view.up + LIGHT_IN_CAMERA[2] * view.back
-    return direction / np.linalg.norm(direction)
-
-
-def apply_outfit(texels: np.ndarray, outfit_row: np.ndarray) -> np.ndarray:
-    """Outfit colours (SPEC.md): (N, 4) texels 0..255 (alpha = 17·region) -> (N, 3) RGB 0..1.
-
-    Region 0 keeps the texture's colour; region r multiplies it by the outfit map's texel r.
-    outfit_row: (16, 4) uint8, one row of the outfit map.
-    """
-    texels = np.asarray(texels, dtype=np.float64)
-    regions = np.clip(np.rint(texels[:, 3] / 17.0).astype(np.int64), 0, 15)
-    tint = np.asarray(outfit_row, dtype=np.float64)[regions, :3] / 255.0
-    tint[regions == 0] = 1.0
-    return texels[:, :3] / 255.0 * tint
-
-
-def lambert(albedo: np.ndarray, normals: np.ndarray, light: np.ndarray) -> np.ndarray:
-    """(N, 3) albedo 0..1 lit by a directional light: albedo · (AMBIENT + DIFFUSE · max(0, n·l))."""
-    intensity = AMBIENT + DIFFUSE * np.clip(np.asarray(normals) @ np.asarray(light), 0.0, None)
-    return np.clip(albedo * intensity[:, None], 0.0, 1.0)
-
-
-def _texels(uv: np.ndarray, material: np.ndarray, diffuse: list[np.ndarray]) -> np.ndarray:
-    texels = np.zeros((len(uv), 4), dtype=np.float64)
-    for index, texture in enumerate(diffuse):
-        selected = material == index
-        if selected.any():
-            texels[selected] = impostor_maps.sample_texture(texture, uv[selected])
-    return texels
-
-
-def mesh_reference(
-    view: OrthoView,
-    coverage: Coverage,
-    supersample: int,
-    positions: np.ndarray,
-    normals: np.ndarray,
-    uvs: np.ndarray,
-    faces: np.ndarray,
-    triangle_material: np.ndarray,
-    diffuse: list[np.ndarray],
-    outfit_row: np.ndarray,
-    light: np.ndarray,
-) -> np.ndarray:
-    """The mesh, shaded and anti-aliased: (S, S, 3) float64 0..1, black background. The bake draws the
-    same picture with a shader (crowdbake.render.map_shader.draw_references); this is its float64 reference.
-
-    view, coverage: at S·supersample texels (view.size = S · supersample); the other arrays as in
-    impostor_maps.view_maps; diffuse: per material, the texture to use (h, w, 4) uint8.
-    """
-    if view.size % supersample:
-        raise ValueError(f"mesh_reference: view size {view.size} is not a multiple of {supersample}")
-    faces = np.asarray(faces, dtype=np.int64)
-    size = view.size // supersample
-    reference = np.zeros((size, size, 3), dtype=np.float64)
-    # Shade the covered samples only (a character covers a seventh of its frame), as lists, and box-filter
-    # only the block-aligned box around them: the rest of the picture is black either way. Per sample the
-    # arithmetic is the whole-image one, operation for operation, so the picture is the same to the bit.
-    rows, columns = np.nonzero(coverage.mask)
-    if rows.size == 0:
-        return reference
-    hit = coverage.triangle[rows, columns]
-    bary = coverage.barycentric[rows, columns]  # (N, 3)
-    corners = faces[hit]  # (N, 3)
-
-    def at_samples(values: np.ndarray) -> np.ndarray:
-        return np.einsum("nk,nkc->nc", bary, np.asarray(values, dtype=np.float64)[corners])
-
-    uv = impostor_maps.wrap_uv(at_samples(uvs))
-    material = np.asarray(triangle_material, dtype=np.int64)[hit]
-    interpolated = at_samples(normals)
-    shading = impostor_maps.shading_normals_at(
-        np.broadcast_to(view.back, interpolated.shape), interpolated, impostor_maps.face_normals(positions, faces)[hit]
-    )
-    colour = lambert(apply_outfit(_texels(uv, material, diffuse), outfit_row), shading, light)
-    top, left = rows.min() // supersample, columns.min() // supersample
-    bottom, right = rows.max() // supersample + 1, columns.max() // supersample + 1
-    box = np.zeros(((bottom - top) * supersample, (right - left) * supersample, 3), dtype=np.float64)
-    box[rows - top * supersample, columns - left * supersample] = colour
-    reference[top:bottom, left:right] = box.reshape(bottom - top, supersample, right - left, supersample, 3).mean(axis=(1, 3))
-    return reference
 
 
 def impostor_image(
@@ -144,7 +53,7 @@ def impostor_images(
     images = [np.zeros(uv.shape[:2] + (3,), dtype=np.float64) for _ in normal_maps]
     if covered.any():
         material = np.clip(material[covered], 0, len(diffuse) - 1)
-        albedo = apply_outfit(_texels(uv[covered], material, diffuse), outfit_row)
+        albedo = apply_outfit(texels_at(uv[covered], material, diffuse), outfit_row)
         for image, normal_map in zip(images, normal_maps):
             image[covered] = lambert(albedo, map_codecs.decode_normal_map(np.asarray(normal_map)[covered]), light)
     return images
@@ -269,8 +178,8 @@ def uv_precision(uv_map: np.ndarray, texture_size: int, tile_size: int | None = 
         result[name] = {"max_texels": float(error.max()), "mean_texels": float(error.mean()), "bound": False}
     if tile_size:
         # What precision the lookup needs: at 1:1 an impostor texel is a pixel, and the runtime samples the
-        # diffuse texture at the mip level its neighbours' coordinates span (impostor_blend.lookup_lod).
-        from crowdbake.bake.impostor_blend import lookup_lod
+        # diffuse texture at the mip level its neighbours' coordinates span (crowdbake.bake.reference.impostor_blend.lookup_lod).
+        from crowdbake.bake.reference.impostor_blend import lookup_lod
 
         footprint = 2.0 ** np.clip(lookup_lod(np.where(covered[..., None], uv, 0.0), (texture_size, texture_size), tile_size), 0, None)[covered]
         result["lookup_footprint_texels"] = {"median": float(np.median(footprint)), "p10": float(np.percentile(footprint, 10))}

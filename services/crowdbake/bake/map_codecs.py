@@ -74,8 +74,8 @@ def decode_normal_map(normal_map: np.ndarray) -> np.ndarray:
 
 
 def _tile_bases(layout) -> np.ndarray:
-    """(E, A, 3, 3) float32 rows right, up, back of every tile's orthographic view (crowdbake.bake.impostor_maps.ortho_view)."""
-    from crowdbake.bake.impostor_maps import ortho_view
+    """(E, A, 3, 3) float32 rows right, up, back of every tile's orthographic view (crowdbake.bake.impostor_views.ortho_view)."""
+    from crowdbake.bake.impostor_views import ortho_view
 
     bases = np.empty((len(layout.elevations_deg), len(layout.azimuths_deg), 3, 3), dtype=np.float32)
     for e, elevation in enumerate(layout.elevations_deg):

@@ -1,7 +1,7 @@
 """The impostor surface map (SPEC.md "Impostor maps", role impostor-surface): per texel of a (view, frame)
 tile, how far the surface it shows lies along the view axis, and how that surface point moves in the tile's
 plane on the way to the next baked frame. crowdview reprojects every blended sample with it
-(crowdbake.bake.impostor_warp, shaders/impostor_warp.glsl), so a camera between baked views, or a cycle
+(crowdbake.bake.reference.impostor_warp, shaders/impostor_warp.glsl), so a camera between baked views, or a cycle
 frame between baked frames, sees the character where the mesh would be instead of a cross-fade of two
 misplaced pictures.
 
@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.bake import impostor_maps
+from crowdbake.bake import impostor_views
 
 DEPTH_RANGE = 1.0   # depth codes span +-DEPTH_RANGE * radius
 MOTION_RANGE = 0.5  # motion codes span +-MOTION_RANGE * radius
 
 
-def surface_fields(view: impostor_maps.OrthoView, coverage: impostor_maps.Coverage, positions: np.ndarray,
+def surface_fields(view: impostor_views.OrthoView, coverage: impostor_views.Coverage, positions: np.ndarray,
                    next_positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(depth (S, S) metres along view.back from view.center, motion (S, S, 2) metres along view.right and
     view.up to the next baked frame) of one view's coverage, dilated into the background.
@@ -35,11 +35,11 @@ def surface_fields(view: impostor_maps.OrthoView, coverage: impostor_maps.Covera
     positions, next_positions: (V, 3) model-space vertices at this baked frame and the next; faces: (T, 3).
     The motion is that of the surface point the texel shows (same triangle, same barycentrics)."""
     mask = coverage.mask
-    points = impostor_maps.interpolate(positions, faces, coverage)
-    moved = impostor_maps.interpolate(next_positions, faces, coverage) - points
+    points = impostor_views.interpolate(positions, faces, coverage)
+    moved = impostor_views.interpolate(next_positions, faces, coverage) - points
     depth = np.where(mask, (points - view.center) @ view.back, 0.0)
     motion = np.where(mask[..., None], np.stack([moved @ view.right, moved @ view.up], axis=-1), 0.0)
-    nearest = impostor_maps.nearest_inside(mask)
+    nearest = impostor_views.nearest_inside(mask)
     if nearest is not None:
         depth, motion = depth[nearest], motion[nearest]
     return depth, motion
@@ -68,7 +68,7 @@ def decode_surface(texels: np.ndarray, radius: float) -> tuple[np.ndarray, np.nd
     return _values(texels[..., 0], DEPTH_RANGE * radius), _values(texels[..., 1:3], MOTION_RANGE * radius)
 
 
-def motion_in_model(view: impostor_maps.OrthoView, motion: np.ndarray) -> np.ndarray:
+def motion_in_model(view: impostor_views.OrthoView, motion: np.ndarray) -> np.ndarray:
     """(..., 3) model-space motion of (..., 2) tile-plane motion (right, up components) in `view`."""
     return motion[..., 0:1] * view.right + motion[..., 1:2] * view.up
 

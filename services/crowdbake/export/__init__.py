@@ -4,6 +4,3 @@
 describes; the pure parts are `vat` (vertex-animation textures), `glb` (the glTF per LOD), `ktx2`
 (the KTX 2.0 container) and `textures` (bundle textures as texel arrays).
 """
-from crowdbake.export.writer import ExportSummary, export_bundle
-
-__all__ = ["ExportSummary", "export_bundle"]

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crowdbake.formats.cloth_cache import ClothCache, mesh_from_polygons
+from crowdbake.formats.cloth_frames import ClothCache, mesh_from_polygons
 from crowdbake.params import fps_problem
 
 OGAWA_MAGIC = b"Ogawa"

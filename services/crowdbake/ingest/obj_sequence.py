@@ -19,7 +19,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from crowdbake.ingest.uploads import (
+from crowdbake.ingest.rejections import (
     COPY_CHUNK, INVALID_FILE, SEQUENCE_EXTENSIONS, UNSAFE_ARCHIVE, FieldError, UploadRejected, clean_message, expect_format,
     where_from_message,
 )

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.ingest.uploads import INVALID_FILE, UNSUPPORTED_FORMAT, FieldError, UploadRejected, clean_message, expect_format
+from crowdbake.ingest.rejections import INVALID_FILE, UNSUPPORTED_FORMAT, FieldError, UploadRejected, clean_message, expect_format
 from crowdbake.params import fps_problem, min_cloth_frames
 
 POINT_CACHE_EXTENSIONS = {".mdd": "mdd", ".abc": "abc"}

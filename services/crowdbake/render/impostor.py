@@ -8,7 +8,7 @@ Two kinds of drawing share one context per view size (VisibilityRenderer):
 - a visibility buffer through pyrender: every triangle drawn in one flat colour that encodes its index
   + 1 in 24 bits (unwelded vertices, so no colour is interpolated between triangles), unlit
   (RenderFlags.FLAT), opaque, double-sided, through the orthographic camera of
-  crowdbake.bake.impostor_maps.OrthoView, with its depth (render, coverage). crowdbake.bake.impostor_maps
+  crowdbake.bake.impostor_views.OrthoView, with its depth (render, coverage). crowdbake.bake.reference.impostor_maps
   turns that into the exact float64 maps and crowdbake.bake.fidelity into the exact references that
   the shader is tested against.
 
@@ -29,8 +29,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from crowdbake.render import offscreen  # (also chooses the GL platform before pyrender loads)
-from crowdbake.bake import impostor_maps
-from crowdbake.bake.impostor_maps import Coverage, OrthoView
+from crowdbake.bake import impostor_views
+from crowdbake.bake.impostor_views import Coverage, OrthoView
 from crowdbake.render import map_shader
 from crowdbake.render.map_shader import MapShader, ShaderMaps
 from crowdbake.render.runtime_shader import RuntimeAtlas, RuntimeImpostorShader, RuntimePicture, map_texels
@@ -49,7 +49,7 @@ def _id_mesh(positions: np.ndarray, faces: np.ndarray) -> pyrender.Mesh:
     corners = np.ascontiguousarray(np.asarray(positions, dtype=np.float32)[faces].reshape(-1, 3))
     colours = np.ones((len(corners), 4), dtype=np.float32)
     # k / 255 is written back to an 8-bit buffer as exactly k (the GL conversion rounds to nearest).
-    colours[:, :3] = np.repeat(impostor_maps.triangle_id_colours(len(faces)), 3, axis=0) / np.float32(255.0)
+    colours[:, :3] = np.repeat(impostor_views.triangle_id_colours(len(faces)), 3, axis=0) / np.float32(255.0)
     material = pyrender.MetallicRoughnessMaterial(
         # Floats, not ints: pyrender reads an integer list as 0..255 and would make the mesh transparent.
         baseColorFactor=[1.0, 1.0, 1.0, 1.0],
@@ -188,12 +188,12 @@ class VisibilityRenderer:
             self._scene.remove_node(self._camera_node)
         self._camera_node = self._scene.add(camera, pose=view.camera_pose())
         colour, depth = self._offscreen.render(self._scene, flags=pyrender.RenderFlags.FLAT)
-        return VisibilityImage(impostor_maps.decode_triangle_ids(colour), eye_depth(depth, znear, zfar))
+        return VisibilityImage(impostor_views.decode_triangle_ids(colour), eye_depth(depth, znear, zfar))
 
     def coverage(self, view: OrthoView, positions: np.ndarray, faces: np.ndarray) -> Coverage:
         """Render `view` of the current mesh (which must be positions/faces) and resolve exact coverage."""
         image = self.render(view)
-        return impostor_maps.resolve_coverage(view, image.ids, positions, faces, image.depth)
+        return impostor_views.resolve_coverage(view, image.ids, positions, faces, image.depth)
 
 
 _SHARED: dict[tuple[int, int], VisibilityRenderer] = {}

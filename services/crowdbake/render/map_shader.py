@@ -17,10 +17,10 @@ SPEC.md's encodings ("Impostor maps"), into four integer targets:
 
 All four are 0 where no triangle covers the texel. The views are orthographic, so the interpolation is
 affine (no perspective division): a texel's values are those of the point of the triangle at its centre,
-computed in float32 and rounded to the nearest code, where crowdbake.bake.impostor_maps.view_maps computes
+computed in float32 and rounded to the nearest code, where crowdbake.bake.reference.impostor_maps.view_maps computes
 them in float64 from a triangle-id render (it stays the reference: tests compare the two). The framebuffer
 is not multisampled, so no texel mixes two triangles on the silhouette. The background fill is
-crowdbake.bake.impostor_maps.fill_background, in numpy.
+crowdbake.bake.impostor_views.fill_background, in numpy.
 
 Used through crowdbake.render.impostor.VisibilityRenderer.shader_maps, which owns the GL context.
 """
@@ -32,8 +32,8 @@ from typing import Callable
 
 import numpy as np
 
-from crowdbake.bake import fidelity, impostor_maps, surface_maps
-from crowdbake.bake.impostor_maps import OrthoView
+from crowdbake.bake import impostor_views, shading, surface_maps
+from crowdbake.bake.impostor_views import OrthoView
 
 # Widest framebuffer row of views, in texels (and never wider than the context's GL_MAX_TEXTURE_SIZE,
 # 16384 on llvmpipe): float32 interpolation loses precision far from the framebuffer's origin.
@@ -82,7 +82,7 @@ uniform vec3 back;
 uniform sampler2D diffuse;
 
 // The unit normal, flipped towards the camera where it sees the triangle's back: the side the camera
-// sees decides, by the face normal (crowdbake.bake.impostor_maps.shading_normals_at).
+// sees decides, by the face normal (crowdbake.bake.impostor_views.shading_normals_at).
 vec3 shading_normal() {
     float facing = dot(v_face_normal, back) < 0.0 ? -1.0 : 1.0;
     vec3 n = v_normal * facing;
@@ -105,7 +105,7 @@ vec4 texel(ivec2 at, ivec2 size) {
 
 // The diffuse texture at uv, 0..1: RGB bilinear between texel centres, by hand in float32 (a sampler's
 // own filter has 8-bit weights on llvmpipe, rounding otherwise than the numpy reference); alpha the
-// nearest texel's (region codes are labels, not blendable). crowdbake.bake.impostor_maps.sample_texture.
+// nearest texel's (region codes are labels, not blendable). crowdbake.bake.impostor_views.sample_texture.
 vec4 diffuse_at(vec2 uv) {
     ivec2 size = textureSize(diffuse, 0);
     vec2 at = uv * vec2(size) - 0.5;
@@ -142,7 +142,7 @@ void main() {
 }
 """
 
-# The fidelity stage's mesh reference per sample (crowdbake.bake.fidelity.mesh_reference): the diffuse
+# The fidelity stage's mesh reference per sample (crowdbake.bake.reference.mesh_reference): the diffuse
 # colour tinted by its region's outfit colour, lit by Lambert with an ambient term from a light fixed to
 # the camera; covered samples get alpha 1.
 REFERENCE_FRAGMENT_SHADER = _FRAGMENT_COMMON + """
@@ -232,7 +232,7 @@ def corner_attributes(positions: np.ndarray, normals: np.ndarray, uvs: np.ndarra
     """(3T, 14) float32 vertex data of unwelded corners, triangle by triangle: position, normal, uv, next
     position and the triangle's face normal (the same at its three corners)."""
     corners = np.asarray(faces, dtype=np.int64).reshape(-1)
-    face_normal = impostor_maps.face_normals(positions, faces)
+    face_normal = impostor_views.face_normals(positions, faces)
     return np.concatenate([
         np.asarray(positions)[corners], np.asarray(normals)[corners], np.asarray(uvs)[corners],
         np.asarray(next_positions)[corners], np.repeat(face_normal, 3, axis=0),
@@ -520,7 +520,7 @@ def draw_maps(shader: MapShader, views: list[OrthoView], positions: np.ndarray, 
 def draw_references(shader: MapShader, views: list[OrthoView], positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray,
                     faces: np.ndarray, triangle_material: np.ndarray, diffuse: list[np.ndarray], outfit_row: np.ndarray,
                     supersample: int) -> np.ndarray:
-    """The fidelity stage's mesh references (crowdbake.bake.fidelity.mesh_reference) of views of size
+    """The fidelity stage's mesh references (crowdbake.bake.reference.mesh_reference) of views of size
     S · supersample: each sample shaded by the REFERENCE pass, box-filtered down to (V, S, S, 3) float32
     in 0..1, black background. diffuse: per material, the texture as the runtime holds it; outfit_row:
     (16, 4) uint8, one row of the outfit map. Views are drawn MAX_PASS_TEXELS at a time; the box filter
@@ -530,7 +530,7 @@ def draw_references(shader: MapShader, views: list[OrthoView], positions: np.nda
     outfit = np.asarray(outfit_row, dtype=np.float32)[:, :3] / np.float32(255.0)
 
     def uniforms(material: int, view: OrthoView) -> dict:
-        return {"light": fidelity.camera_light(view), "outfit": outfit, "ambient": fidelity.AMBIENT, "diffuse_weight": fidelity.DIFFUSE}
+        return {"light": shading.camera_light(view), "outfit": outfit, "ambient": shading.AMBIENT, "diffuse_weight": shading.DIFFUSE}
 
     most = max(1, MAX_PASS_TEXELS // (shader.size * shader.size))
     batch = -(-len(views) // -(-len(views) // most))  # as even as the fewest passes allow

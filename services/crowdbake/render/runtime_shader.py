@@ -9,7 +9,7 @@ four views times two frames, reprojected by the surface map where the bundle has
 scores measure the runtime's code, not a copy of it. Two things differ from a crowd frame, both so that
 the picture can be compared with the fidelity references (crowdbake.render.map_shader's REFERENCE pass):
 
-- the light: the references' (crowdbake.bake.fidelity.camera_light, ambient fidelity.AMBIENT), config.h's
+- the light: the references' (crowdbake.bake.shading.camera_light, ambient shading.AMBIENT), config.h's
   CV_AMBIENT replaced in the pasted source;
 - the camera: orthographic along the view, the tile's framing at one texel a pixel; the character at the
   origin with heading 0, variation 0 of every material, the outfit row given.
@@ -19,10 +19,10 @@ blocks, uv32 as R32UI words, rgba16 as RGBA16, BC blocks decoded to RGBA8 on the
 where a driver lacks S3TC; crowdbake.bake.compression.decode); diffuse textures as the bundle's decoded
 texels under glGenerateMipmap's chain, trilinear and REPEAT. The instance data crowdview's CPU computes
 (view_blend.h: four tiles and their weights, two layers and the frame weight) are the numpy copies'
-(crowdbake.bake.impostor_blend), set as constant vertex attributes, one draw a picture into its own
+(crowdbake.bake.reference.impostor_blend), set as constant vertex attributes, one draw a picture into its own
 viewport of a float framebuffer that is read back once.
 
-crowdbake.bake.impostor_blend and impostor_warp draw the same picture in float64 numpy; they stay as the
+crowdbake.bake.reference.impostor_blend and impostor_warp draw the same picture in float64 numpy; they stay as the
 reference this is tested against (services/tests/test_runtime_shader.py).
 """
 from __future__ import annotations
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crowdbake.bake import compression, fidelity, impostor_maps
+from crowdbake.bake import compression, impostor_views, shading
 from crowdbake.formats.binary import TextureArray
 from crowdbake.render.map_shader import tiles_of
 
@@ -218,7 +218,7 @@ class RuntimeImpostorShader:
                 GL.glBindVertexArray(self._vao)
                 self._set_atlas_uniforms(atlas, program)
                 location = {name: GL.glGetUniformLocation(program, name) for name in ("u_view_projection", "u_camera_position", "u_light_dir")}
-            view = impostor_maps.ortho_view(atlas.center, atlas.radius, picture.azimuth_deg, picture.elevation_deg, size)
+            view = impostor_views.ortho_view(atlas.center, atlas.radius, picture.azimuth_deg, picture.elevation_deg, size)
             tiles = list(picture.tiles) + [0] * (4 - len(picture.tiles))
             weights = list(picture.view_weights) + [0.0] * (4 - len(picture.view_weights))
             layers = [compact[layer] for layer in picture.layers]
@@ -229,7 +229,7 @@ class RuntimeImpostorShader:
             GL.glVertexAttrib1f(ATTR_FRAME_WEIGHT, picture.frame_weight)
             GL.glUniformMatrix4fv(location["u_view_projection"], 1, GL.GL_TRUE, quad_view_projection(atlas.center, atlas.radius, view.back))
             GL.glUniform3f(location["u_camera_position"], *(atlas.center + view.back * 4.0 * atlas.radius).tolist())
-            GL.glUniform3f(location["u_light_dir"], *fidelity.camera_light(view).tolist())
+            GL.glUniform3f(location["u_light_dir"], *shading.camera_light(view).tolist())
             column, row = k % columns, k // columns
             GL.glViewport(column * size, (rows - 1 - row) * size, size, size)  # GL's rows grow upwards
             GL.glDrawArrays(GL.GL_TRIANGLE_STRIP, 0, 4)
@@ -249,7 +249,7 @@ class RuntimeImpostorShader:
 
         key = tuple(sorted(defines.items()))
         if key not in self._programs:
-            replace = {"CV_AMBIENT": repr(float(fidelity.AMBIENT))}
+            replace = {"CV_AMBIENT": repr(float(shading.AMBIENT))}
             self._programs[key] = shaders.compileProgram(
                 shaders.compileShader(shader_source("impostor.vert.glsl", defines, replace), GL.GL_VERTEX_SHADER),
                 shaders.compileShader(shader_source("impostor_uv.frag.glsl", defines, replace), GL.GL_FRAGMENT_SHADER),

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.bake import fidelity, impostor_maps
+from crowdbake.bake import fidelity, impostor_views
 from crowdbake.bake.atlas import AtlasLayout, nearest_view, tile_of
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE
 from crowdbake.stages.records import ImpostorTask, PosesRecord
@@ -36,7 +36,7 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
             continue
         data = parts[task.id]
         for index, (a, e) in enumerate(data["views"].tolist()):
-            view = impostor_maps.ortho_view(centre, radius, layout.azimuths_deg[a], layout.elevations_deg[e], layout.tile_size)
+            view = impostor_views.ortho_view(centre, radius, layout.azimuths_deg[a], layout.elevations_deg[e], layout.tile_size)
             light = fidelity.camera_light(view)
             image, exact = fidelity.impostor_images(tile_of(layout, atlases["uv"], a, e),
                                                     [tile_of(layout, normals_drawn, a, e), tile_of(layout, atlases["normal"], a, e)],
@@ -45,7 +45,7 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
             per_view.append({"azimuth_deg": layout.azimuths_deg[a], "elevation_deg": layout.elevations_deg[e], **score})
             uncompressed.append(fidelity.compare(data["reference"][index], exact))
         for (a, e), azimuth, reference in zip(data["between_views"].tolist(), data["between_azimuths"].tolist(), data["reference_between"]):
-            mid_view = impostor_maps.ortho_view(centre, radius, azimuth, layout.elevations_deg[e], layout.tile_size)
+            mid_view = impostor_views.ortho_view(centre, radius, azimuth, layout.elevations_deg[e], layout.tile_size)
             na, ne = nearest_view(layout, azimuth, layout.elevations_deg[e])
             near_image = fidelity.impostor_image(
                 tile_of(layout, atlases["uv"], na, ne), tile_of(layout, normals_drawn, na, ne),

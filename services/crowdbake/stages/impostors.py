@@ -9,7 +9,7 @@ not wait for the poses stage: both run side by side (two workers, or the CLI run
 
 Each task draws its views' maps in one pass of a shader (crowdbake.render.map_shader, through
 crowdbake.render.impostor's renderer), fills their backgrounds in one batch
-(crowdbake.bake.impostor_maps.fill_background) and writes work/impostor/parts/<id>.npz and its sidecar
+(crowdbake.bake.impostor_views.fill_background) and writes work/impostor/parts/<id>.npz and its sidecar
 <id>.json (ImpostorPartRecord). Fidelity-frame tasks also draw the mesh references the pack stage scores
 the impostor against, shaded per sample by the same shader's reference pass.
 """
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crowdbake.bake import compression, impostor_maps, surface_maps
+from crowdbake.bake import compression, impostor_views, surface_maps
 from crowdbake.formats.binary import read_pose_frame
 from crowdbake.formats.gltf import load_character
 from crowdbake.render.impostor import shared_renderer
@@ -220,7 +220,7 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
     (crowdbake.bake.surface_maps); None: no motion.
 
     The maps of every view are drawn, encoded, in one pass of crowdbake.render.map_shader; their
-    backgrounds are filled for the whole ring at once (impostor_maps.fill_background). With references,
+    backgrounds are filled for the whole ring at once (impostor_views.fill_background). With references,
     the mesh is also drawn shaded at FIDELITY_SUPERSAMPLE x the tile from every baked view and halfway
     to the next azimuth (_between_cameras), box-filtered on the GPU, in one pass. timings: adds "render" (the
     maps' pass), "maps" (the background fill) and "references" seconds.
@@ -229,7 +229,7 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
     tile = int(layout["tile_size"])
     views = [(int(a), int(e)) for a, e in task.views]
     angles = [(layout["azimuths_deg"][a], layout["elevations_deg"][e]) for a, e in views]
-    map_views = [impostor_maps.ortho_view(plan.center, plan.radius, azimuth, elevation, tile) for azimuth, elevation in angles]
+    map_views = [impostor_views.ortho_view(plan.center, plan.radius, azimuth, elevation, tile) for azimuth, elevation in angles]
     renderer = shared_renderer(tile)
     clock = time.perf_counter()
     maps = renderer.shader_maps(map_views, scene.positions, scene.normals, scene.uvs,
@@ -239,7 +239,7 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
     clock = time.perf_counter()
     # The surface map's background is filled as the others' but keeps its blocks as filled: its values
     # beside the silhouette are read back by the runtime's reprojection.
-    impostor_maps.fill_background(maps.mask, [maps.normal, maps.detail], unflattened=[maps.surface])
+    impostor_views.fill_background(maps.mask, [maps.normal, maps.detail], unflattened=[maps.surface])
     maps.surface[..., 3] = 255
     timings["maps"] += time.perf_counter() - clock
     arrays = {"views": np.asarray(views, dtype=np.int64).reshape(-1, 2), "normal": maps.normal, "uv": maps.uv, "detail": maps.detail,
@@ -258,9 +258,9 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
 def mesh_references(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]]) -> np.ndarray:
     """The mesh from each (azimuth, elevation) in degrees, lit as the runtime lights the impostor, at
     FIDELITY_SUPERSAMPLE² samples a texel (crowdbake.render.map_shader.draw_references, which
-    crowdbake.bake.fidelity.mesh_reference is the float64 reference of): (V, S, S, 3) float32."""
+    crowdbake.bake.reference.mesh_reference is the float64 reference of): (V, S, S, 3) float32."""
     size = int(plan.layout["tile_size"]) * FIDELITY_SUPERSAMPLE
-    views = [impostor_maps.ortho_view(plan.center, plan.radius, azimuth, elevation, size) for azimuth, elevation in angles]
+    views = [impostor_views.ortho_view(plan.center, plan.radius, azimuth, elevation, size) for azimuth, elevation in angles]
     if not views:
         return np.zeros((0, size // FIDELITY_SUPERSAMPLE, size // FIDELITY_SUPERSAMPLE, 3), np.float32)
     return shared_renderer(int(plan.layout["tile_size"])).shader_references(

@@ -4,7 +4,7 @@ the 1:1 switch distance: fidelity.json's `runtime` section, written by the pack 
 The pictures are drawn by crowdview's own impostor shader in the bake's GL context
 (crowdbake.render.runtime_shader), from the bundle's own bytes: the UV map in its pixel format, the normal
 and surface maps after block compression, the diffuse texture as decoded. numpy_picture draws the same
-picture with the numpy copy of that shader (crowdbake.bake.impostor_blend, impostor_warp), the reference
+picture with the numpy copy of that shader (crowdbake.bake.reference.impostor_blend, impostor_warp), the reference
 the shader is tested against. Three sets of cameras:
 
 - `at_views`: every baked view of the fidelity frame, from the mesh references the impostor tasks rendered
@@ -23,9 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.bake import compression, fidelity, impostor_blend, impostor_maps, impostor_warp, map_codecs, surface_maps
+from crowdbake.bake import compression, fidelity, impostor_views, map_codecs, surface_maps
+from crowdbake.bake.reference import impostor_blend, impostor_warp
 from crowdbake.bake.atlas import AtlasLayout
-from crowdbake.bake.impostor_blend import DecodedTile
+from crowdbake.bake.reference.impostor_blend import DecodedTile
 from crowdbake.formats.binary import TextureArray, decode_texture_array
 from crowdbake.formats.texel_codecs import unpack_uv32, unpack_uvblock
 from crowdbake.render.runtime_shader import RuntimeAtlas, RuntimePicture
@@ -111,16 +112,16 @@ class AtlasTiles:
         return DecodedTile(uv[rows, cols], material[rows, cols], covered[rows, cols], normal[rows, cols])
 
 
-def sample_tile(tiles: AtlasTiles, tile: int, layer: int, target: impostor_maps.OrthoView,
+def sample_tile(tiles: AtlasTiles, tile: int, layer: int, target: impostor_views.OrthoView,
                 frames: impostor_blend.FrameWeights) -> DecodedTile:
     """One (view, frame) sample as crowdview draws it for a camera at `target` and cycle position `frames`:
-    reprojected (crowdbake.bake.impostor_warp.warp_tile) when the bundle has a surface map."""
+    reprojected (crowdbake.bake.reference.impostor_warp.warp_tile) when the bundle has a surface map."""
     decoded = tiles.tile(tile, layer)
     surface = tiles.surface(tile, layer)
     if surface is None:
         return decoded
     columns = len(tiles.layout.azimuths_deg)
-    source = impostor_maps.ortho_view(target.center, target.radius, tiles.layout.azimuths_deg[tile % columns],
+    source = impostor_views.ortho_view(target.center, target.radius, tiles.layout.azimuths_deg[tile % columns],
                                       tiles.layout.elevations_deg[tile // columns], target.size)
     return impostor_warp.warp_tile(decoded, source, surface, target, impostor_warp.motion_fraction(layer, frames))
 
@@ -158,7 +159,7 @@ def render_mesh_references(work: Path, poses: PosesRecord, frame: int, cameras: 
         return []
     scene = load_pose_scene(work, poses, frame)
     tile = int(poses.layout["tile_size"])
-    views = [impostor_maps.ortho_view(poses.center, poses.radius, azimuth, elevation, tile * supersample) for azimuth, elevation in cameras]
+    views = [impostor_views.ortho_view(poses.center, poses.radius, azimuth, elevation, tile * supersample) for azimuth, elevation in cameras]
     references = shared_renderer(tile).shader_references(views, scene.positions, scene.normals, scene.uvs, scene.faces,
                                                           scene.triangle_material, scene.diffuse_runtime, scene.outfit_row, supersample)
     return list(references)
@@ -191,7 +192,7 @@ def between_references(work: Path, poses: PosesRecord, supersample: int) -> list
 
 def picture_at(layout: AtlasLayout, azimuth: float, elevation: float, frames: impostor_blend.FrameWeights) -> RuntimePicture:
     """What crowdview hands its impostor shader for a camera at (azimuth, elevation) degrees and cycle
-    position `frames` (view_blend.h; crowdbake.bake.impostor_blend.blend_view_weights)."""
+    position `frames` (view_blend.h; crowdbake.bake.reference.impostor_blend.blend_view_weights)."""
     weights = impostor_blend.blend_view_weights(azimuth, elevation, layout.azimuths_deg, layout.elevations_deg)
     return RuntimePicture(float(azimuth), float(elevation), weights.tiles, weights.weights, frames.layers, frames.weight)
 
@@ -208,13 +209,13 @@ def runtime_atlas(poses: PosesRecord, layout: AtlasLayout, uv_map: TextureArray,
 
 def numpy_picture(atlas: RuntimeAtlas, tiles: AtlasTiles, picture: RuntimePicture, chains: list[list[np.ndarray]] | None = None) -> np.ndarray:
     """The picture crowdbake.render.runtime_shader draws, drawn by the numpy copy of crowdview's shader
-    (crowdbake.bake.impostor_blend, impostor_warp) in float64: (S, S, 3), the reference the shader is
+    (crowdbake.bake.reference.impostor_blend, impostor_warp) in float64: (S, S, 3), the reference the shader is
     tested against. tiles: AtlasTiles of the same maps; chains: the diffuse textures' mip chains."""
     # A material without region codes (bc1) is drawn with none, as crowdview's u_has_regions.
     diffuse = [texture if regions else np.concatenate([texture[..., :3], np.zeros_like(texture[..., :1])], axis=-1)
                for texture, regions in zip(atlas.diffuse, atlas.has_regions)]
     chains = chains if chains is not None else [impostor_blend.mip_chain(texture) for texture in diffuse]
-    view = impostor_maps.ortho_view(atlas.center, atlas.radius, picture.azimuth_deg, picture.elevation_deg, atlas.tile_size)
+    view = impostor_views.ortho_view(atlas.center, atlas.radius, picture.azimuth_deg, picture.elevation_deg, atlas.tile_size)
     frames = impostor_blend.FrameWeights(picture.layers, picture.frame_weight)
     weights = impostor_blend.ViewWeights(picture.tiles, picture.view_weights)
     samples = [(w, sample_tile(tiles, tile, k, view, frames)) for w, tile, k in impostor_blend.samples_for(weights, frames)]

@@ -110,7 +110,7 @@ class ZipAsWritten:
 def build_export(bundle_folder: Path, staging: Path, ktx2_mode: str = "bc", prepared=None) -> dict[str, Any]:
     """Write the export of the bundle at `bundle_folder` into the empty folder `staging` (export/,
     export.zip, index.json) and return the index. prepared: crowdbake.export.textures.PreparedLayers or None."""
-    from crowdbake.export import export_bundle
+    from crowdbake.export.writer import export_bundle
     from crowdbake.export.textures import NOTHING_PREPARED
 
     manifest = json.loads((Path(bundle_folder) / "manifest.json").read_text())

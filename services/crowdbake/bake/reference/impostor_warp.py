@@ -1,5 +1,5 @@
 """Parallax- and motion-corrected impostor samples: each baked (view, frame) tile reprojected to the camera's
-direction and the cycle frame before crowdview's blend (crowdbake.bake.impostor_blend) mixes them.
+direction and the cycle frame before crowdview's blend (crowdbake.bake.reference.impostor_blend) mixes them.
 
 A baked tile holds, per texel, the surface point its orthographic view saw. With that point's depth along
 the view axis (and, optionally, its motion to a neighbouring baked frame), the texel's surface point is known
@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.bake.impostor_blend import DecodedTile, FrameWeights
-from crowdbake.bake.impostor_maps import OrthoView
+from crowdbake.bake.reference.impostor_blend import DecodedTile, FrameWeights
+from crowdbake.bake.impostor_views import OrthoView
 
 # Fixed-point steps: at halfway between 32 azimuths (5.6°) or 20° rings (10°) each step shrinks the miss by
 # about the camera angle's sine times the surface slope, so a few steps converge except at depth jumps.
@@ -38,7 +38,7 @@ def surface_points(view: OrthoView, xy: np.ndarray, depth: np.ndarray) -> np.nda
 
 
 def to_texels(view: OrthoView, points: np.ndarray) -> np.ndarray:
-    """(..., 2) texel coordinates of (..., 3) model-space points in `view` (crowdbake.bake.impostor_maps.project)."""
+    """(..., 2) texel coordinates of (..., 3) model-space points in `view` (crowdbake.bake.impostor_views.project)."""
     offset = points - view.center
     scale = _texel_scale(view)
     return np.stack([(offset @ view.right + view.radius) * scale, (view.radius - offset @ view.up) * scale], axis=-1)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crowdbake.bake import fidelity, impostor_maps
+from crowdbake.bake import impostor_views, shading
 
 # impostor_uv.frag.glsl: texture-coordinate gradients are clamped to this many tile texels' worth of
 # tile UV, so neighbours across the silhouette or a UV seam do not pick a far too coarse mip level.
@@ -164,7 +164,7 @@ def _bilinear(level: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 def sample_trilinear(chain: list[np.ndarray], uv: np.ndarray, lod: np.ndarray) -> np.ndarray:
     """(N, 3) RGB 0..255 of a mip chain at (N, 2) uv (REPEAT) and (N,) level of detail (clamped to the chain)."""
-    uv = impostor_maps.wrap_uv(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
+    uv = impostor_views.wrap_uv(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
     lod = np.clip(np.asarray(lod, dtype=np.float64).reshape(-1), 0.0, len(chain) - 1)
     low = np.floor(lod).astype(np.int64)
     fraction = (lod - low)[:, None]
@@ -224,11 +224,11 @@ def albedo(tile: DecodedTile, diffuse: list[np.ndarray], chains: list[list[np.nd
         lod = lods[texture.shape[:2]][chosen]
         texels[chosen, :3] = sample_trilinear(chains[index], uv[chosen], lod)
         height, width = texture.shape[:2]
-        wrapped = impostor_maps.wrap_uv(uv[chosen])
+        wrapped = impostor_views.wrap_uv(uv[chosen])
         x = np.clip((wrapped[:, 0] * width).astype(np.int64), 0, width - 1)
         y = np.clip((wrapped[:, 1] * height).astype(np.int64), 0, height - 1)
         texels[chosen, 3] = texture[y, x, 3]  # region codes: the texel's own, unfiltered
-    out[covered] = fidelity.apply_outfit(texels, outfit_row)
+    out[covered] = shading.apply_outfit(texels, outfit_row)
     return out
 
 
@@ -259,7 +259,7 @@ def blend_image(samples: list[tuple[float, DecodedTile]], diffuse: list[np.ndarr
         base = colour[drawn] / coverage[drawn][:, None]
         length = np.linalg.norm(normal[drawn], axis=-1, keepdims=True)
         unit = np.divide(normal[drawn], length, out=np.zeros_like(normal[drawn]), where=length > 1e-12)
-        image[drawn] = fidelity.lambert(base, unit, light)
+        image[drawn] = shading.lambert(base, unit, light)
     return image
 
 
