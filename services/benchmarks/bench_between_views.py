@@ -39,7 +39,7 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from crowdbake.bake import fidelity  # noqa: E402
+from crowdbake.bake import fidelity, impostor_views, shading  # noqa: E402
 from crowdbake.bake.reference import impostor_blend, impostor_warp  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_poses, part_path  # noqa: E402
 from crowdbake.stages.runtime_fidelity import AtlasTiles, halfway_frame, render_mesh_references  # noqa: E402
@@ -107,7 +107,7 @@ class Bench:
         return impostor_blend.samples_for(views, self.frame_weights(frame))
 
     def light(self, azimuth: float, elevation: float) -> np.ndarray:
-        return fidelity.camera_light(impostor_views.ortho_view(self.poses.center, self.poses.radius, azimuth, elevation, self.size))
+        return shading.camera_light(impostor_views.ortho_view(self.poses.center, self.poses.radius, azimuth, elevation, self.size))
 
     def blend(self, samples: list[Sample], azimuth: float, elevation: float) -> np.ndarray:
         decoded = [(w, self.tiles.tile(tile, layer)) for w, tile, layer in samples]

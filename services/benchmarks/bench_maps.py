@@ -28,6 +28,7 @@ import numpy as np
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 from crowdbake.stages.impostors import load_plan, load_scene  # noqa: E402
+from crowdbake.bake import impostor_views  # noqa: E402
 from crowdbake.bake.reference import impostor_maps  # noqa: E402
 from crowdbake.bake.reference import mesh_reference  # noqa: E402
 from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
@@ -115,7 +116,7 @@ def main() -> int:
         mask = np.concatenate([drawn.mask for drawn in shader_maps])
         agreement["coverage_differs"] = int((mask != np.stack([m.coverage.mask for m in exact])).sum())
     if hasattr(VisibilityRenderer, "shader_references"):
-        from crowdbake.bake import fidelity
+        from crowdbake.bake import shading
         from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE
 
         supersample = FIDELITY_SUPERSAMPLE
@@ -129,7 +130,7 @@ def main() -> int:
                 renderer.set_mesh(scene.positions, scene.faces)
                 return np.stack([mesh_reference.mesh_reference(view, renderer.coverage(view, scene.positions, scene.faces), supersample,
                                                          scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material,
-                                                         scene.diffuse_runtime, scene.outfit_row, fidelity.camera_light(view)) for view in ring])
+                                                         scene.diffuse_runtime, scene.outfit_row, shading.camera_light(view)) for view in ring])
 
             report["cpu_seconds"]["references_shader"] = best_cpu(shaded_references, args.repeat)
             report["cpu_seconds"]["references_numpy"] = best_cpu(numpy_references, args.repeat)

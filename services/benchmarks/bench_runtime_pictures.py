@@ -24,7 +24,8 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from crowdbake.bake import fidelity, impostor_blend  # noqa: E402
+from crowdbake.bake import fidelity  # noqa: E402
+from crowdbake.bake.reference import impostor_blend  # noqa: E402
 from crowdbake.formats.bundle import verify_bundle  # noqa: E402
 from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_poses  # noqa: E402

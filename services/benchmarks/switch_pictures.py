@@ -23,7 +23,7 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from crowdbake.bake import fidelity  # noqa: E402
+from crowdbake.bake import fidelity, impostor_views, shading  # noqa: E402
 from crowdbake.bake.reference import impostor_blend  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, load_poses  # noqa: E402
 from crowdbake.stages.runtime_fidelity import AtlasTiles, halfway_frame, render_mesh_references, sample_tile  # noqa: E402
@@ -64,7 +64,7 @@ def main() -> int:
         """The samples blended; with `frames`, each reprojected to the camera and that cycle position first."""
         view = impostor_views.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
         samples = [(w, tiles.tile(tile, k) if frames is None else sample_tile(tiles, tile, k, view, frames)) for w, tile, k in weights]
-        return impostor_blend.blend_image(samples, diffuse, textures["outfits"][0], fidelity.camera_light(view), size, chains)
+        return impostor_blend.blend_image(samples, diffuse, textures["outfits"][0], shading.camera_light(view), size, chains)
 
     rows = []
     for label, azimuth, elevation, frame, frames in cases:

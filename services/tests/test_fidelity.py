@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crowdbake.bake import compression, fidelity
+from crowdbake.bake import compression, fidelity, shading
 from crowdbake.bake.reference import mesh_reference
 from crowdbake.bake import impostor_views
 from crowdbake.bake.reference import impostor_maps as maps
@@ -59,7 +59,7 @@ def reference(scene, azimuth: float, elevation: float, supersample: int = mesh_r
     with VisibilityRenderer(view.size) as renderer:
         renderer.set_mesh(positions, faces)
         coverage = renderer.coverage(view, positions, faces)
-    light = fidelity.camera_light(view)
+    light = shading.camera_light(view)
     return mesh_reference.mesh_reference(view, coverage, supersample, positions, normals, uvs, faces, material, diffuse, OUTFIT, light), light
 
 
@@ -85,10 +85,10 @@ def test_impostor_images_of_one_tile_equal_the_picture_of_each_normal_map(sphere
     decoded = compression.decode_bc1(compression.encode_bc1(baked.normal), SIZE, SIZE)
     pictures = fidelity.impostor_images(baked.uv, [baked.normal, decoded], sphere[5], OUTFIT, light)
     uv, material, covered = map_codecs.decode_uv_map(baked.uv)
-    albedo = fidelity.apply_outfit(fidelity.texels_at(uv[covered], np.clip(material[covered], 0, len(sphere[5]) - 1), sphere[5]), OUTFIT)
+    albedo = shading.apply_outfit(shading.texels_at(uv[covered], np.clip(material[covered], 0, len(sphere[5]) - 1), sphere[5]), OUTFIT)
     for picture, normal_map in zip(pictures, (baked.normal, decoded)):
         whole = np.zeros_like(picture)
-        whole[covered] = fidelity.lambert(albedo, map_codecs.decode_normal_map(normal_map)[covered], light)
+        whole[covered] = shading.lambert(albedo, map_codecs.decode_normal_map(normal_map)[covered], light)
         assert np.array_equal(picture, whole)
     assert not np.array_equal(*pictures)  # the two normal maps light it differently
     assert np.array_equal(pictures[0], fidelity.impostor_image(baked.uv, baked.normal, sphere[5], OUTFIT, light))
@@ -131,12 +131,12 @@ def test_outfit_colours_follow_the_region_codes():
     outfit = np.zeros((16, 4), dtype=np.uint8)
     outfit[3] = (255, 0, 128, 255)
     outfit[15] = (10, 20, 30, 255)
-    rgb = fidelity.apply_outfit(texels, outfit)
+    rgb = shading.apply_outfit(texels, outfit)
     np.testing.assert_allclose(rgb[0], [200 / 255, 100 / 255, 50 / 255])  # region 0 keeps its colour
     np.testing.assert_allclose(rgb[1], [200 / 255, 0, 50 / 255 * 128 / 255])
     np.testing.assert_allclose(rgb[2], [10 / 255, 20 / 255, 30 / 255])
-    lit = fidelity.lambert(np.ones((2, 3)), np.array([[0, 0, 1.0], [0, 0, -1.0]]), np.array([0, 0, 1.0]))
-    np.testing.assert_allclose(lit[:, 0], [fidelity.AMBIENT + fidelity.DIFFUSE, fidelity.AMBIENT])
+    lit = shading.lambert(np.ones((2, 3)), np.array([[0, 0, 1.0], [0, 0, -1.0]]), np.array([0, 0, 1.0]))
+    np.testing.assert_allclose(lit[:, 0], [shading.AMBIENT + shading.DIFFUSE, shading.AMBIENT])
 
 
 def test_uv_precision_shows_why_the_uv_map_keeps_14_bits(sphere):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crowdbake.bake import impostor_views
+from crowdbake.bake import impostor_views, shading
 from crowdbake.bake.reference import impostor_maps as maps
 from crowdbake.bake.reference import mesh_reference
 from crowdbake.bake import map_codecs, surface_maps
@@ -134,7 +134,7 @@ def test_shader_references_are_the_exact_mesh_references(monkeypatch):
     with VisibilityRenderer(SIZE * supersample) as renderer:
         renderer.set_mesh(positions, faces)
         exact = np.stack([mesh_reference.mesh_reference(view, renderer.coverage(view, positions, faces), supersample, positions, normals, uvs,
-                                                  faces, material, textures, outfit, fidelity.camera_light(view)) for view in views])
+                                                  faces, material, textures, outfit, shading.camera_light(view)) for view in views])
     difference = np.abs(drawn - exact)
     assert (difference <= 1e-4).mean() > 0.999, f"worst {difference.max()}"
     assert difference.mean() < 1e-5

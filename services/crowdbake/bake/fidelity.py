@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from crowdbake.bake import map_codecs
-from crowdbake.bake.shading import AMBIENT, DIFFUSE, apply_outfit, camera_light, lambert, texels_at  # noqa: F401 (fidelity.camera_light etc.: the scores' light model)
+from crowdbake.bake.shading import apply_outfit, lambert, texels_at
 
 # Pixels added around the union of both images' coverage before measuring, so that the silhouette's
 # outside is part of the comparison but an empty frame does not inflate SSIM.

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.bake import fidelity, impostor_views
+from crowdbake.bake import fidelity, impostor_views, shading
 from crowdbake.bake.atlas import AtlasLayout, nearest_view, tile_of
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE
 from crowdbake.stages.records import ImpostorTask, PosesRecord
@@ -37,7 +37,7 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
         data = parts[task.id]
         for index, (a, e) in enumerate(data["views"].tolist()):
             view = impostor_views.ortho_view(centre, radius, layout.azimuths_deg[a], layout.elevations_deg[e], layout.tile_size)
-            light = fidelity.camera_light(view)
+            light = shading.camera_light(view)
             image, exact = fidelity.impostor_images(tile_of(layout, atlases["uv"], a, e),
                                                     [tile_of(layout, normals_drawn, a, e), tile_of(layout, atlases["normal"], a, e)],
                                                     runtime_diffuse, outfit_row, light)
@@ -49,7 +49,7 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
             na, ne = nearest_view(layout, azimuth, layout.elevations_deg[e])
             near_image = fidelity.impostor_image(
                 tile_of(layout, atlases["uv"], na, ne), tile_of(layout, normals_drawn, na, ne),
-                runtime_diffuse, outfit_row, fidelity.camera_light(mid_view),
+                runtime_diffuse, outfit_row, shading.camera_light(mid_view),
             )
             between.append(
                 {"azimuth_deg": azimuth, "elevation_deg": layout.elevations_deg[e], "nearest_azimuth_deg": layout.azimuths_deg[na],
@@ -63,7 +63,7 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
         "frame": poses.fidelity_frame,
         "tile_size": layout.tile_size,
         "supersample": FIDELITY_SUPERSAMPLE,
-        "light": {"ambient": fidelity.AMBIENT, "diffuse": fidelity.DIFFUSE, "direction_in_camera": fidelity.LIGHT_IN_CAMERA.tolist()},
+        "light": {"ambient": shading.AMBIENT, "diffuse": shading.DIFFUSE, "direction_in_camera": shading.LIGHT_IN_CAMERA.tolist()},
         "normal_map_format": formats["normal"],
         "uv_map_format": formats["uv"],
         "impostor": fidelity.summarize(per_view),

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.bake import compression, fidelity, impostor_views, map_codecs, surface_maps
+from crowdbake.bake import compression, fidelity, impostor_views, map_codecs, shading, surface_maps
 from crowdbake.bake.reference import impostor_blend, impostor_warp
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.bake.reference.impostor_blend import DecodedTile
@@ -219,7 +219,7 @@ def numpy_picture(atlas: RuntimeAtlas, tiles: AtlasTiles, picture: RuntimePictur
     frames = impostor_blend.FrameWeights(picture.layers, picture.frame_weight)
     weights = impostor_blend.ViewWeights(picture.tiles, picture.view_weights)
     samples = [(w, sample_tile(tiles, tile, k, view, frames)) for w, tile, k in impostor_blend.samples_for(weights, frames)]
-    return impostor_blend.blend_image(samples, diffuse, atlas.outfit_row, fidelity.camera_light(view), atlas.tile_size, chains)
+    return impostor_blend.blend_image(samples, diffuse, atlas.outfit_row, shading.camera_light(view), atlas.tile_size, chains)
 
 
 def scored_cameras(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
