@@ -103,55 +103,106 @@ def default(schema: dict[str, Any]) -> str:
     return f"`{json.dumps(schema['default'])}`" if "default" in schema else ""
 
 
-def properties_table(schema: dict[str, Any]) -> list[str]:
+def field_facts(schema: dict[str, Any], required: bool) -> str:
+    """Type, whether required, default and constraints of one field or parameter, comma-separated."""
+    facts = [schema_type(schema)]
+    if required:
+        facts.append("required")
+    if "default" in schema:
+        facts.append(f"default {default(schema)}")
+    if constraints(schema):
+        facts.append(constraints(schema))
+    return ", ".join(facts)
+
+
+def field_list(schema: dict[str, Any]) -> list[str]:
+    """The fields of an object schema: inline when none has a description, else one line each."""
     required = set(schema.get("required", []))
-    lines = ["| field | type | required | default | constraints | description |", "|---|---|---|---|---|---|"]
-    for name, prop in schema.get("properties", {}).items():
-        lines.append(f"| `{name}` | {cell(schema_type(prop))} | {'yes' if name in required else ''} | {cell(default(prop))} | "
-                     f"{cell(constraints(prop))} | {cell(prop.get('description', ''))} |")
+    props = schema.get("properties", {})
+    if not any(prop.get("description") for prop in props.values()):
+        return ["Fields: " + "; ".join(f"`{name}` {field_facts(prop, name in required)}" for name, prop in props.items()) + "."]
+    lines = []
+    for name, prop in props.items():
+        description = " ".join(prop.get("description", "").split())
+        lines.append(f"- `{name}` ({field_facts(prop, name in required)})" + (f": {description}" if description else ""))
     return lines
 
 
-def render_operation(method: str, path: str, operation: dict[str, Any]) -> list[str]:
+def is_problem(status: str, response: dict[str, Any]) -> bool:
+    return status >= "400" and PROBLEM_MEDIA_TYPE in (response.get("content") or {})
+
+
+def common_errors(document: dict[str, Any]) -> dict[str, str]:
+    """The usual meaning of each error status (the one most operations give it)."""
+    counts: dict[tuple[str, str], int] = {}
+    for item in document["paths"].values():
+        for method in METHODS:
+            for status, response in item.get(method, {}).get("responses", {}).items():
+                if is_problem(status, response):
+                    key = (status, response.get("description", ""))
+                    counts[key] = counts.get(key, 0) + 1
+    usual: dict[str, str] = {}
+    for (status, description), count in sorted(counts.items(), key=lambda entry: -entry[1]):
+        usual.setdefault(status, description)
+    return dict(sorted(usual.items()))
+
+
+def render_operation(method: str, path: str, operation: dict[str, Any], errors: dict[str, str]) -> list[str]:
     title = f"`{method.upper()} {path}`"
     lines = [f"### {title}", ""]
+    text = []
     if operation.get("summary"):
-        lines += [operation["summary"] + ("" if operation["summary"].endswith(".") else "."), ""]
+        text.append(operation["summary"] + ("" if operation["summary"].endswith(".") else "."))
     if operation.get("description"):
-        lines += [operation["description"].strip(), ""]
+        text.append(" ".join(operation["description"].split()))
     if not operation.get("security"):
-        lines += ["Authentication: none.", ""]
-    parameters = operation.get("parameters", [])
+        text.append("Authentication: none.")
+    if text:
+        lines += [" ".join(text), ""]
+    # Path parameters that are plain required strings are already named by the path.
+    parameters = [parameter for parameter in operation.get("parameters", [])
+                  if not (parameter["in"] == "path" and parameter.get("schema", {}).get("type") == "string"
+                          and not parameter.get("description") and not constraints(parameter.get("schema", {})))]
+    for parameter in parameters:
+        description = " ".join(parameter.get("description", "").split())
+        lines.append(f"- `{parameter['name']}` ({parameter['in']}, {field_facts(parameter.get('schema', {}), parameter.get('required', False))})"
+                     + (f": {description}" if description else ""))
     if parameters:
-        lines += ["| parameter | in | type | required | default | constraints | description |", "|---|---|---|---|---|---|---|"]
-        for parameter in parameters:
-            schema = parameter.get("schema", {})
-            lines.append(f"| `{parameter['name']}` | {parameter['in']} | {cell(schema_type(schema))} | {'yes' if parameter.get('required') else ''} | "
-                         f"{cell(default(schema))} | {cell(constraints(schema))} | {cell(parameter.get('description', ''))} |")
         lines.append("")
     body = operation.get("requestBody")
     if body:
         for media_type, content in body.get("content", {}).items():
             schema = content.get("schema", {})
+            head = f"Request body (`{media_type}`{', required' if body.get('required') else ''})"
             if "$ref" in schema or "properties" not in schema:
-                lines += [f"Request body (`{media_type}`{', required' if body.get('required') else ''}): {schema_type(schema)}.", ""]
+                lines += [f"{head}: {schema_type(schema)}.", ""]
             else:
-                lines += [f"Request body (`{media_type}`{', required' if body.get('required') else ''}):", "", *properties_table(schema), ""]
-    lines += ["| status | media type | body | meaning |", "|---|---|---|---|"]
-    problems = []
+                fields = field_list(schema)
+                if fields[0].startswith("Fields: "):
+                    lines += [f"{head}, fields: {fields[0][len('Fields: '):]}", ""]
+                else:
+                    lines += [f"{head}:", "", *fields, ""]
+    answers, problems = [], []
     for status, response in sorted(operation.get("responses", {}).items()):
-        content = response.get("content") or {}
-        media_types = [media for media in content if media != "application/json" or len(content) == 1] or list(content)
-        if media_types == [PROBLEM_MEDIA_TYPE]:
-            # Every error answers the same problem document: listed once per operation, below the table.
-            problems.append(f"{status} {cell(response.get('description', ''))}")
+        description = response.get("description", "")
+        if is_problem(status, response):
+            problems.append(status if errors.get(status) == description else f"{status} ({description})")
             continue
+        content = response.get("content") or {}
         schema = next((entry.get("schema") for entry in content.values() if entry.get("schema")), None)
-        lines.append(f"| {status} | {', '.join(f'`{media}`' for media in media_types)} | {cell(schema_type(schema)) if schema else ''} | "
-                     f"{cell(response.get('description', ''))} |")
+        parts = [status]
+        if schema and "$ref" in schema:
+            parts.append(schema_type(schema))
+        else:
+            parts += [f"`{media}`" for media in content]
+            if schema and schema_type(schema) not in ("string", "any"):
+                parts.append(schema_type(schema))
+        answer = " ".join(parts)
+        if description and description != "Successful Response":
+            answer += f" ({description})"
+        answers.append(answer)
+    lines.append("Returns " + "; ".join(answers) + "." + (f" Errors: {', '.join(problems)}." if problems else ""))
     lines.append("")
-    if problems:
-        lines += [f"Errors ([Problem](#problem), `{PROBLEM_MEDIA_TYPE}`): " + "; ".join(problems) + ".", ""]
     return lines
 
 
@@ -165,6 +216,7 @@ def render(document: dict[str, Any]) -> str:
                 operation = item[method]
                 by_tag.setdefault((operation.get("tags") or ["other"])[0], []).append((method, path, operation))
     descriptions = {tag["name"]: tag.get("description", "") for tag in document.get("tags", [])}
+    errors = common_errors(document)
 
     lines = [
         "# REST API reference",
@@ -178,8 +230,11 @@ def render(document: dict[str, Any]) -> str:
         "",
         info.get("description", "").strip(),
         "",
-        "Operations: " + ", ".join(f"[`{method.upper()} {path}`](#{anchor(f'{method.upper()} {path}')})"
-                                   for operations in by_tag.values() for method, path, _ in operations) + ".",
+        "How to read an operation: path parameters in braces are required strings; query parameters and body fields are "
+        "listed as name (type, required, default, constraints): description; \"Returns\" gives each success status with its "
+        "body (JSON unless a media type is named). \"Errors\" lists the statuses that answer a "
+        f"[Problem](#problem) document (`{PROBLEM_MEDIA_TYPE}`), with these meanings unless the operation says otherwise: "
+        + "; ".join(f"{status} {description}" for status, description in errors.items()) + ".",
         "",
     ]
     for tag, operations in by_tag.items():
@@ -189,14 +244,27 @@ def render(document: dict[str, Any]) -> str:
         if descriptions.get(tag):
             lines += [descriptions[tag], ""]
         for method, path, operation in operations:
-            lines += render_operation(method, path, operation)
-    lines += ["## Schemas", ""]
-    for name, schema in sorted(document.get("components", {}).get("schemas", {}).items()):
+            lines += render_operation(method, path, operation, errors)
+    body_text = "\n".join(lines)
+    lines += ["## Schemas", "", "Objects that operations return or accept, by name.", ""]
+    schemas = document.get("components", {}).get("schemas", {})
+    # Only schemas some operation (or a shown schema) refers to; the rest are FastAPI's unused defaults.
+    shown = {name for name in schemas if f"](#{anchor(name)})" in body_text}
+    pending = list(shown)
+    while pending:
+        text = json.dumps(schemas[pending.pop()])
+        for name in schemas:
+            if name not in shown and f'"#/components/schemas/{name}"' in text:
+                shown.add(name)
+                pending.append(name)
+    for name, schema in sorted(schemas.items()):
+        if name not in shown:
+            continue
         lines += [f"### {name}", ""]
         if schema.get("description"):
             lines += [" ".join(schema["description"].split()), ""]
         if schema.get("properties"):
-            lines += properties_table(schema)
+            lines += field_list(schema)
             if schema.get("additionalProperties") is False:
                 lines += ["", "Other fields are refused."]
         else:
@@ -204,10 +272,10 @@ def render(document: dict[str, Any]) -> str:
         lines.append("")
     security = document.get("components", {}).get("securitySchemes", {})
     if security:
-        lines += ["## Authentication schemes", "", "| scheme | how | description |", "|---|---|---|"]
+        lines += ["## Authentication schemes", ""]
         for name, scheme in sorted(security.items()):
             how = f"header `{scheme['name']}`" if scheme.get("type") == "apiKey" else f"{scheme.get('type')} {scheme.get('scheme', '')}".strip()
-            lines.append(f"| {name} | {how} | {cell(scheme.get('description', ''))} |")
+            lines.append(f"- {name} ({how}): {' '.join(scheme.get('description', '').split())}")
         lines.append("")
     return "\n".join(lines).rstrip() + "\n"
 
