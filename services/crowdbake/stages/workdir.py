@@ -4,7 +4,7 @@ Layout (see docs/bake.md):
 
     validate/record.json     the checked job: inputs (copied into inputs/), their sha256, parameters, created
     inputs/                  character.glb|gltf, cloth.pc2, cloth.obj, textures/, cycle.json (+ looped.pc2)
-    cycle/                   cycle.json, looped.pc2, report.html (crowdbake.cycle_report), record.json
+    cycle/                   cycle.json, looped.pc2, report.html (crowdbake.stages.cycle_report), record.json
     poses/                   <part>_lod<k>.cbpc, textures.npz, record.json
     textures/record.json     the poses stage's textures (in poses/), made from the job alone
     impostor/parts/<id>.npz  one impostor task's views (+ <id>.json: its key and statistics)

@@ -1,280 +1,24 @@
-"""The cycle search's file side: read the inputs, run crowdbake.bake.cycle.find_cycle, write the outputs.
+"""The cycle search's report, for a person to read: report.html and its pictures.
 
-    run_cycle_job(cloth_pc2, cloth_obj, out_dir, character=... | body_pc2=..., body_obj=...) -> CycleResult
-
-writes into out_dir:
-    cycle.json      the chosen cycle, every candidate's scores, the closing and seam figures, every parameter
-    looped.pc2      the looped cloth cache: exactly cycle_frames frames, frame 0 = Fs
-    report.html     a page a person can read, with PNG plots:
+    report.html     the chosen cycle, every candidate's scores, the closing and its quality bounds
       pass1.png       the pass-1 distance curve with the candidates marked
       edges.png       the winner's pictures and Canny edges at Fs and Fe from every view
       seam.png        penetrating vertices per frame before/after closing, and the seam ratios
       candidates.png  every candidate's pass-1 and pass-2 scores
     edges/          the winner's pictures and edge images, one PNG per view and frame
 
-Frame rate (crowdbake.params.cache_fps): `fps` when the caller passes it, else the cache's own (MDD frame
-times, Alembic time sampling), else BASE_FPS / sample_rate with BASE_FPS = 24 (the film rate the sample
-content and most DCC scenes use): a PC2 file stores the interval between samples in frames, not a rate. The cycle length, when not given, is the character's animation
-duration times that rate.
+crowdbake.stages.cycle writes cycle.json and the looped cache and calls these. Plots with matplotlib
+(Agg), edge images with OpenCV.
 """
 from __future__ import annotations
 
 import html
-import json
-import logging
 import os
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from crowdbake.bake.cycle import CycleParams, CycleResult, find_cycle
-from crowdbake.params import BASE_FPS, min_cloth_frames
-
-logger = logging.getLogger(__name__)
-
-# The animation's duration times the frame rate must be this close to a whole number of frames for the
-# body to be tiled from one posed cycle; otherwise each frame is posed at its own wrapped time.
-_WHOLE_FRAME_TOLERANCE = 1e-3
-
-Progress = Callable[[str, int, int], None]
-
-
-@dataclass
-class CycleInputs:
-    """Arrays for find_cycle plus what the files said.
-
-    cloth: (F, V, 3) float32 in PC2 point order; cloth_faces: (T, 3) int64 into those points.
-    body: (F, Vb, 3) float32 or None; body_faces (Tb, 3) int64; body_normals (F, Vb, 3) or None.
-    cycle_frames: l; fps: the cache's frame rate; sample_rate/start_frame: from the cloth PC2 header.
-    """
-
-    cloth: np.ndarray
-    cloth_faces: np.ndarray
-    body: np.ndarray | None
-    body_faces: np.ndarray | None
-    body_normals: np.ndarray | None
-    cycle_frames: int
-    fps: float
-    sample_rate: float
-    start_frame: float
-    cycle_frames_source: str
-    sources: dict
-
-
-def _pose_body(character, fps: float, frame_count: int) -> tuple[np.ndarray, np.ndarray]:
-    """The character's looping animation at the cache's frames: frame f at time (f / fps) mod duration."""
-    from crowdbake.bake.skinning import pose_character
-
-    duration = float(character.animation_duration)
-    if duration <= 0:
-        raise ValueError("the character has no animation to pose the body with")
-    frames_per_loop = duration * fps
-    whole = round(frames_per_loop)
-    if whole >= 1 and abs(frames_per_loop - whole) < _WHOLE_FRAME_TOLERANCE:
-        positions, normals = pose_character(character, fps, min(whole, frame_count))
-        index = np.arange(frame_count) % whole
-        return positions[index], normals[index]
-    posed = [pose_character(character, fps, 1, start_time=(f / fps) % duration) for f in range(frame_count)]
-    return np.concatenate([p for p, _ in posed]), np.concatenate([n for _, n in posed])
-
-
-def _check_two_cycles(frame_count: int, cycle_frames: int, path) -> None:
-    if cycle_frames < 2:
-        raise ValueError(f"the cycle length must be at least 2 frames, got {cycle_frames}")
-    if frame_count < min_cloth_frames(cycle_frames):
-        raise ValueError(
-            f"too few frames for two cycles: {path} has {frame_count} frames, two cycles of {cycle_frames} need {min_cloth_frames(cycle_frames)}"
-        )
-
-
-def _pc2_start_frame(path: str | os.PathLike) -> float:
-    """A PC2 header's startFrame (recorded in cycle.json); 0 for the other caches, which start at their first sample."""
-    import struct
-
-    if Path(path).suffix.lower() != ".pc2":
-        return 0.0
-    with open(path, "rb") as handle:
-        return float(struct.unpack("<f", handle.read(24)[20:24])[0])
-
-
-def load_cycle_inputs(
-    cloth_pc2: str | os.PathLike,
-    cloth_obj: str | os.PathLike | None = None,
-    character: str | os.PathLike | None = None,
-    body_pc2: str | os.PathLike | None = None,
-    body_obj: str | os.PathLike | None = None,
-    cycle_frames: int | None = None,
-    fps: float | None = None,
-    up: str | None = None,
-    units: str | None = None,
-    animation: int | str = 0,
-) -> CycleInputs:
-    """Read and cross-check the cycle search's input files. Raises ValueError with a one-line reason.
-
-    cloth_pc2: any cloth cache crowdbake reads (.pc2 or .mdd with `cloth_obj`, .abc or an OBJ-sequence
-    .zip alone; crowdbake.ingest.garment.read_cloth). fps: None takes the cache's own rate
-    (crowdbake.params.cache_fps). The cloth's first frame is checked against the body's
-    (crowdbake.ingest.garment.place_cloth) and converted to Y-up metres when up/units say so."""
-    from crowdbake.formats.obj import read_obj
-    from crowdbake.formats.pc2 import read_pc2
-    from crowdbake.ingest.garment import place_cloth, read_cloth
-    from crowdbake.params import cache_fps
-
-    if character is not None and (body_pc2 is not None or body_obj is not None):
-        raise ValueError("give the body either as a character (.glb) or as a body cache and mesh, not both")
-    if (body_pc2 is None) != (body_obj is None):
-        raise ValueError("a body cache needs its mesh: give both --body and --body-mesh")
-    cache = read_cloth(cloth_pc2, cloth_obj)
-    cloth_faces = cache.mesh.source_index[cache.faces.astype(np.int64)]
-    frame_rate = cache_fps(fps, cache.fps, cache.frame_step)
-    if not frame_rate > 0:
-        raise ValueError(f"fps must be positive, got {frame_rate}")
-    frame_count = cache.frame_count
-    sources = {"cloth_cache": str(cloth_pc2)}
-    if cloth_obj is not None:
-        sources["cloth_mesh"] = str(cloth_obj)
-    if cycle_frames is not None:
-        _check_two_cycles(frame_count, int(cycle_frames), cloth_pc2)
-
-    body = body_faces = body_normals = None
-    loaded_character = None
-    if character is not None:
-        from crowdbake.formats.gltf import load_character
-
-        loaded_character = load_character(character, animation=animation)
-        # The garment must sit on the character before a minute of search is spent on it.
-        from crowdbake.ingest.garment import body_at_rest
-
-        cache = place_cloth(cache, body_at_rest(loaded_character), up, units)
-        body, body_normals = _pose_body(loaded_character, frame_rate, frame_count)
-        body_faces = np.asarray(loaded_character.faces, dtype=np.int64)
-        sources["character"] = str(character)
-    elif body_pc2 is not None:
-        body_cache = read_pc2(body_pc2)
-        body_mesh = read_obj(body_obj)
-        if body_mesh.position_count != body_cache.point_count:
-            raise ValueError(
-                f"vertex counts do not match: {body_obj} has {body_mesh.position_count} positions, {body_pc2} has {body_cache.point_count} points"
-            )
-        if body_cache.sample_count != frame_count:
-            raise ValueError(f"frame counts do not match: {body_pc2} has {body_cache.sample_count} frames, {cloth_pc2} has {frame_count}")
-        if len(body_mesh.faces) == 0:
-            raise ValueError(f"{body_obj} has no faces")
-        body = body_cache.points
-        # The body cache is taken as Y-up metres, like a character; up/units convert the cloth only.
-        cache = place_cloth(cache, body[0], up, units)
-        body_faces = body_mesh.source_index[body_mesh.faces.astype(np.int64)]
-        sources.update(body_cache=str(body_pc2), body_mesh=str(body_obj))
-
-    if cycle_frames is not None:
-        length, origin = int(cycle_frames), "given"
-    elif loaded_character is not None:
-        length, origin = int(round(loaded_character.animation_duration * frame_rate)), "character animation"
-    else:
-        raise ValueError("the cycle length is unknown: give --cycle-frames (a body cache carries no animation length)")
-    _check_two_cycles(frame_count, length, cloth_pc2)
-    return CycleInputs(
-        cloth=cache.frames,
-        cloth_faces=cloth_faces,
-        body=body,
-        body_faces=body_faces,
-        body_normals=body_normals,
-        cycle_frames=length,
-        fps=frame_rate,
-        sample_rate=cache.frame_step,
-        start_frame=_pc2_start_frame(cloth_pc2),
-        cycle_frames_source=origin,
-        sources=sources,
-    )
-
-
-def run_cycle_job(
-    cloth_pc2: str | os.PathLike,
-    cloth_obj: str | os.PathLike,
-    out_dir: str | os.PathLike,
-    character: str | os.PathLike | None = None,
-    body_pc2: str | os.PathLike | None = None,
-    body_obj: str | os.PathLike | None = None,
-    cycle_frames: int | None = None,
-    fps: float | None = None,
-    params: CycleParams = CycleParams(),
-    up: str | None = None,
-    units: str | None = None,
-    animation: int | str = 0,
-    progress: Progress | None = None,
-    edge_pass: bool = True,
-    plots: bool = True,
-) -> CycleResult:
-    """The whole `crowdbake cycle` job: files in, cycle.json + looped.pc2 + report.html out.
-
-    edge_pass: run pass 2 (rendering under OSMesa/EGL); False picks the best pass-1 candidate.
-    plots: draw the report's plots now; False leaves them to write_cycle_plots(result, out_dir).
-    Raises ValueError on bad input (with a one-line reason).
-    """
-    report = progress or (lambda stage, done, total: None)
-    report("load", 0, 1)
-    inputs = load_cycle_inputs(cloth_pc2, cloth_obj, character, body_pc2, body_obj, cycle_frames, fps, up, units, animation)
-    report("load", 1, 1)
-    render_views = None
-    if edge_pass:
-        from crowdbake.render.cloth_views import ClothViewRenderer
-
-        render_views = ClothViewRenderer(
-            inputs.cloth_faces, inputs.body_faces, params.views, params.image_size, params.elevation_deg
-        )
-    result = find_cycle(
-        inputs.cloth, inputs.cloth_faces, inputs.body, inputs.body_faces, inputs.cycle_frames,
-        params, render_views, body_normals=inputs.body_normals, progress=progress,
-    )
-    report("report", 0, 1)
-    write_cycle_outputs(result, out_dir, inputs, plots=plots)
-    report("report", 1, 1)
-    return result
-
-
-def write_cycle_outputs(result: CycleResult, out_dir: str | os.PathLike, inputs: CycleInputs | None = None,
-                        plots: bool = True) -> dict[str, Path]:
-    """Write cycle.json, looped.pc2, the PNG plots, the edge images and report.html; returns the paths.
-
-    plots: False skips the matplotlib plots (a second or more), for write_cycle_plots to draw later (the bake
-    runner draws them beside the next stages); every other file, the report's links included, is written."""
-    from crowdbake.formats.pc2 import write_pc2
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {
-        "cycle_json": out / "cycle.json",
-        "looped_cache": out / "looped.pc2",
-        "report": out / "report.html",
-        "pass1_plot": out / "pass1.png",
-        "seam_plot": out / "seam.png",
-        "candidates_plot": out / "candidates.png",
-    }
-    sample_rate = inputs.sample_rate if inputs is not None else 1.0
-    write_pc2(paths["looped_cache"], result.looped, start_frame=0.0, sample_rate=sample_rate)
-
-    if result.winner_images is not None and result.winner_edges is not None:
-        paths["edges_plot"] = out / "edges.png"
-        paths.update(_write_edge_images(result, out / "edges"))
-    if plots:
-        write_cycle_plots(result, out)
-
-    document = result.to_dict()
-    document["files"] = {name: path.relative_to(out).as_posix() for name, path in paths.items() if name != "cycle_json"}
-    if inputs is not None:
-        document["input"].update(
-            fps=inputs.fps,
-            sample_rate=inputs.sample_rate,
-            pc2_start_frame=inputs.start_frame,
-            cycle_frames_source=inputs.cycle_frames_source,
-            sources=inputs.sources,
-        )
-    paths["cycle_json"].write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
-    paths["report"].write_text(_report_html(result, document), encoding="utf-8")
-    logger.info("cycle outputs written to %s", out)
-    return paths
+from crowdbake.bake.cycle import CycleResult
 
 
 def write_cycle_plots(result: CycleResult, out_dir: str | os.PathLike) -> None:
@@ -357,7 +101,8 @@ def _plot_edges(result: CycleResult, path: Path) -> None:
     plt.close(fig)
 
 
-def _write_edge_images(result: CycleResult, folder: Path) -> dict[str, Path]:
+def write_edge_images(result: CycleResult, folder: Path) -> dict[str, Path]:
+    """The winner's pictures and Canny edges at Fs and Fe, one PNG per view and frame, into `folder`."""
     import cv2
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -464,7 +209,8 @@ def _quality_html(quality: dict | None, method: str) -> str:
     return f"<h2>Loop quality against the simulation</h2>{banner}{table}"
 
 
-def _report_html(result: CycleResult, document: dict) -> str:
+def report_html(result: CycleResult, document: dict) -> str:
+    """report.html: the chosen cycle, the closing and its quality bounds, the plots and the candidates."""
     closing = result.closing
     candidates = _table(
         ["rank", "Fs", "Fe", "cycles", "vertex distance", "edge distance (px)", "chosen"],
