@@ -79,7 +79,7 @@ def timed_renders() -> Iterator[RenderTimings]:
     """Measure the renderer's time inside a `with` block (this process, every thread):
 
         with timed_renders() as gl:
-            stage_impostors(work)
+            stage_impostor_views(work, task)
         timings["render_s"] = gl.seconds
 
     The yielded RenderTimings is filled in when the block ends.

@@ -311,16 +311,6 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
     return path
 
 
-def stage_impostors(work: Path, progress: Progress | None = None) -> ImpostorStatistics:
-    """Every impostor task in this process, in order (what the CLI does; the service fans them out)."""
-    tasks = impostor_tasks(work)
-    for done, task in enumerate(tasks):
-        report(progress, "impostors", done, len(tasks))
-        stage_impostor_views(work, task)
-    report(progress, "impostors", len(tasks), len(tasks))
-    return impostor_statistics(work)
-
-
 def part_record(work: Path, task: ImpostorTask) -> ImpostorPartRecord | None:
     """The sidecar of a written part, or None."""
     stats_path = part_path(work, task).with_suffix(".json")
