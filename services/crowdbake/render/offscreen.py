@@ -234,6 +234,28 @@ def triangle_mesh(
     return pyrender.Mesh(primitives=[primitive])
 
 
+def single_sample_framebuffer(offscreen: "pyrender.OffscreenRenderer") -> None:
+    """Make pyrender draw into a single-sample framebuffer where it draws into one of its own (EGL), as it
+    draws into OSMesa's buffer: the bake's pictures must be the same on every platform.
+
+    pyrender allocates its offscreen framebuffer with 4 samples (RenderFlags.OFFSCREEN, used where the
+    platform supports framebuffers) and resolves it on read-back, so a triangle-id render mixes ids on the
+    silhouette and the edge images blur: under EGL 0.5 % of an id render's texels differed from OSMesa's.
+    Its sample count has no public setting: the framebuffer is made here as pyrender would make it, and its
+    "multisample" renderbuffers re-specified with one sample (the read-back's blit then copies)."""
+    renderer = offscreen._renderer
+    if not offscreen._platform.supports_framebuffers():
+        return  # OSMesa: pyrender draws into the context's own single-sample buffer
+    from OpenGL.GL import GL_DEPTH_COMPONENT24, GL_RENDERBUFFER, GL_RGBA, glBindRenderbuffer, glRenderbufferStorage
+
+    offscreen._platform.make_current()
+    renderer._configure_main_framebuffer()
+    for buffer, pixel_format in ((renderer._main_cb_ms, GL_RGBA), (renderer._main_db_ms, GL_DEPTH_COMPONENT24)):
+        glBindRenderbuffer(GL_RENDERBUFFER, buffer)
+        glRenderbufferStorage(GL_RENDERBUFFER, pixel_format, renderer.viewport_width, renderer.viewport_height)
+    glBindRenderbuffer(GL_RENDERBUFFER, 0)
+
+
 def one_context_program_cache():
     """A pyrender shader program cache that compiles each program once per Offscreen.
 
@@ -287,6 +309,7 @@ class Offscreen:
         started = time.perf_counter()
         self._renderer = pyrender.OffscreenRenderer(self.width, self.height)
         self._renderer._renderer._program_cache = one_context_program_cache()  # no public hook: see that function
+        single_sample_framebuffer(self._renderer)
         _add_time(setup_seconds=time.perf_counter() - started)
         logger.debug("offscreen renderer %dx%d on %s", self.width, self.height, os.environ["PYOPENGL_PLATFORM"])
         return self
