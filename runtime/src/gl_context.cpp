@@ -6,6 +6,7 @@
 #define GLFW_INCLUDE_NONE
 #include <GLFW/glfw3.h>
 
+#include <cctype>
 #include <cstring>
 
 namespace crowdview {
@@ -120,12 +121,25 @@ void GlContext::set_title(const std::string& title) {
     if (window_) glfwSetWindowTitle(window_, title.c_str());
 }
 
-std::string GlContext::describe() const {
-    auto text = [](GLenum name) {
-        const GLubyte* s = glGetString(name);
-        return s ? std::string(reinterpret_cast<const char*>(s)) : std::string("?");
-    };
-    return kind_ + ": " + text(GL_RENDERER) + ", " + text(GL_VERSION);
+namespace {
+
+std::string gl_text(GLenum name) {
+    const GLubyte* s = glGetString(name);
+    return s ? std::string(reinterpret_cast<const char*>(s)) : std::string("?");
+}
+
+}  // namespace
+
+std::string GlContext::describe() const { return kind_ + ": " + gl_text(GL_RENDERER) + ", " + gl_text(GL_VERSION); }
+std::string GlContext::renderer_name() const { return gl_text(GL_RENDERER); }
+std::string GlContext::version() const { return gl_text(GL_VERSION); }
+
+bool is_software_renderer(const std::string& gl_renderer) {
+    std::string lower = gl_renderer;
+    for (char& c : lower) c = char(std::tolower(static_cast<unsigned char>(c)));
+    for (const char* name : {"llvmpipe", "softpipe", "swrast"})
+        if (lower.find(name) != std::string::npos) return true;
+    return false;
 }
 
 }  // namespace crowdview

@@ -32,6 +32,8 @@ public:
     void swap_and_poll();
     void set_title(const std::string& title);
     std::string describe() const;  // "EGL surfaceless: llvmpipe (LLVM 15...), 4.5 (Core Profile) Mesa ..."
+    std::string renderer_name() const;  // GL_RENDERER, "?" where the driver gives none
+    std::string version() const;        // GL_VERSION
 
 private:
     GlContext() = default;
@@ -41,5 +43,9 @@ private:
     bool visible_ = false;
     std::string kind_;
 };
+
+// True where `gl_renderer` (GL_RENDERER) names one of Mesa's CPU rasterisers: llvmpipe,
+// softpipe or swrast. Blended impostors cost about 6x there (3 frames: 2.4 s off, 14.5 s warp).
+bool is_software_renderer(const std::string& gl_renderer);
 
 }  // namespace crowdview

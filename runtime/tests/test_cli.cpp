@@ -12,6 +12,7 @@
 #include <nlohmann/json.hpp>
 
 #include "check.h"
+#include "gl_context.h"
 #include "renderer.h"
 #include "synthetic_bundle.h"
 
@@ -161,6 +162,39 @@ void test_benchmark_budget(const std::string& bundle, const std::string& work) {
     CHECK_MSG(r.err.find("ms/frame") != std::string::npos, r.err);
 }
 
+// A 200 x 30 render on llvmpipe ran 4-5 minutes and printed nothing until the picture, and the
+// default warp blend cost 6x there unannounced. crowdview now names its GL renderer at start,
+// prints "frame k of N" while a headless run goes on, and on a software rasteriser says what the
+// default blend costs and how to turn it off, unless --impostor-blend was given.
+void test_messages(const std::string& bundle) {
+    const std::string common = "--bundle '" + bundle + "' --headless --frames 3 --count 12 --width 160 --height 120";
+    Run r = crowdview(common + " --progress-every 0.000001");
+    if (r.status == 3) {
+        ++g_skipped;
+        std::fprintf(stderr, "SKIP messages: %s", r.err.c_str());
+        return;
+    }
+    CHECK_MSG(r.status == 0, describe(r));
+    const std::string tag = "crowdview: GL_RENDERER ";
+    const size_t at = r.err.find(tag);
+    CHECK_MSG(at != std::string::npos && r.err.find("; GL_VERSION ", at) != std::string::npos, r.err);
+    if (at == std::string::npos) return;
+    const size_t name_start = at + tag.size();
+    const std::string gl_renderer = r.err.substr(name_start, r.err.find("; GL_VERSION ", name_start) - name_start);
+    CHECK_MSG(r.err.find("crowdview: frame 1 of 3, ") != std::string::npos && r.err.find("crowdview: frame 3 of 3, ") != std::string::npos &&
+                  r.err.find(" s elapsed\n") != std::string::npos,
+              r.err);
+    const bool software = crowdview::is_software_renderer(gl_renderer);
+    const bool noted = r.err.find("note: ") != std::string::npos && r.err.find("--impostor-blend off") != std::string::npos;
+    CHECK_MSG(noted == software, "renderer '" + gl_renderer + "': " + r.err);
+    r = crowdview(common + " --impostor-blend warp");
+    CHECK_MSG(r.status == 0 && r.err.find("note: ") == std::string::npos, "a chosen blend gets no note: " + describe(r));
+
+    CHECK(crowdview::is_software_renderer("llvmpipe (LLVM 15.0.7, 256 bits)"));
+    CHECK(crowdview::is_software_renderer("Mesa X11 SWRAST") && crowdview::is_software_renderer("softpipe"));
+    CHECK(!crowdview::is_software_renderer("NVIDIA H100 80GB HBM3/PCIe/SSE2"));
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -177,6 +211,7 @@ int main(int argc, char** argv) {
     test_arguments();
     test_verify(work + "/bundle", argv[2], work);
     test_headless(work + "/bundle", work);
+    test_messages(work + "/bundle");
     test_benchmark_budget(work + "/bundle", work);
     fs::remove_all(work);
     const int code = check::exit_code();

@@ -9,6 +9,7 @@ to out/export/.
 from __future__ import annotations
 
 import functools
+import html
 import json
 import os
 import re
@@ -80,10 +81,12 @@ def page_status(url: str, profile: Path, attempts: int = 3) -> dict:
     page still says "loading": then it is asked again, with a fresh profile."""
     for attempt in range(attempts):
         result = run_chromium("--dump-dom", url, profile=profile.with_name(f"{profile.name}-{attempt}"))
-        match = re.search(r'<pre id="status"[^>]*>(.*?)</pre>', result.stdout, re.S)
+        match = re.search(r'<pre id="status" data-ready="(\w+)"[^>]*>(.*?)</pre>', result.stdout, re.S)
         assert match, result.stderr[-2000:]
-        text = match.group(1).replace("&quot;", '"')
-        if text.strip() != "loading":
+        state, text = match.group(1), html.unescape(match.group(2))
+        if state in ("error", "empty"):
+            return {"ready": False, "error": text}
+        if state == "true":
             return json.loads(text)
     pytest.fail(f"the preview still said 'loading' after {attempts} tries: {url}")
 

@@ -240,6 +240,11 @@ def _quality_dict(quality: loop_closing.LoopQuality | None) -> dict | None:
     figures["exceeded"] = list(quality.exceeded)
     figures["within_bounds"] = quality.within_bounds
     figures["bounds"] = dict(loop_closing.QUALITY_BOUNDS)
+    # Both seam ratios: the bounded one divides by the larger reference (seam_acceleration_judged_against).
+    figures["seam_acceleration_vs_median"] = _float(quality.seam_acceleration_vs_median)
+    figures["seam_acceleration_vs_simulation"] = _float(quality.seam_acceleration_vs_simulation)
+    figures["seam_acceleration_judged_against"] = quality.seam_acceleration_judged_against
+    figures["seam_acceleration_note"] = quality.seam_acceleration_note()
     return figures
 
 

@@ -6,7 +6,8 @@ through here, so a Z-up or centimetre cache is refused with the same words every
 parameter that fixes it (`up`, `units`), and converted the same way when that parameter is given.
 
     read_cloth(cache, mesh)               -> ClothCache            (InputError "cloth" / "cloth_mesh")
-    body_at_rest(character)               -> (V, 3) Y-up metres    (the character at its animation's time 0)
+    body_at_rest(character)               -> (V, 3) Y-up metres    (the character at its animation's time 0;
+                                                                    InputError "character" if not 0.3-10 m tall)
     place_cloth(cache, body, up, units)   -> ClothCache in Y-up metres, or InputError "up" / "units" / "cloth"
 """
 from __future__ import annotations
@@ -62,14 +63,51 @@ def read_cloth(cache: str | os.PathLike, mesh: str | os.PathLike | None = None, 
     return result
 
 
+# Heights (metres, after every node transform) a character may have. A human's 0.5-3 m would refuse
+# robots and creatures, so the range is wide: a 0.3 m toy robot to a 10 m mech. Outside it the file's
+# scale is wrong: a Mixamo-style export whose root node scales it to 0.215 m, or centimetres read as metres.
+CHARACTER_HEIGHT_RANGE_M = (0.3, 10.0)
+
+
+def _root_node_scale(character) -> float:
+    """The uniform scale the nodes above the skeleton's root joint apply (1 without joints)."""
+    parents = np.asarray(getattr(character, "joint_parents", []))
+    transforms = np.asarray(getattr(character, "joint_parent_transforms", []), np.float64)
+    roots = np.flatnonzero(parents < 0)
+    if roots.size == 0 or transforms.ndim != 3:
+        return 1.0
+    return float(abs(np.linalg.det(transforms[roots[0]][:3, :3])) ** (1.0 / 3.0))
+
+
+def check_character_height(character, body: np.ndarray) -> None:
+    """Refuse (InputError "character") a body (V, 3) Y-up metres outside CHARACTER_HEIGHT_RANGE_M, naming
+    the scale its root node applies and what to change: no parameter scales the character."""
+    height = float(np.ptp(body[:, 1])) if len(body) else 0.0
+    low, high = CHARACTER_HEIGHT_RANGE_M
+    if low <= height <= high:
+        return
+    scale = _root_node_scale(character)
+    names = list(getattr(character, "joint_names", []))
+    root = names[int(np.flatnonzero(np.asarray(character.joint_parents) < 0)[0])] if names else ""
+    cause = (f"the node above its root joint {root!r} scales it by {scale:.3g}: set that node's scale in the file "
+             f"(to about {scale * 1.75 / height:.3g} for a 1.75 m human)" if abs(scale - 1.0) > 1e-3 else
+             "its mesh is in another unit than metres: scale it (or its root node) in the file")
+    raise InputError(f"the character is {height:.3g} m tall after its node transforms, outside the {low:g}-{high:g} m crowdbake "
+                     f"takes: {cause}; no parameter scales the character (`units` converts only the cloth cache)", "character")
+
+
 def body_at_rest(character) -> np.ndarray:
     """The character posed at its animation's time 0, (V, 3) float32 Y-up metres: the body the cloth's
-    first frame was simulated on."""
+    first frame was simulated on. InputError "character" when its height is implausible (check_character_height),
+    so a mis-scaled character is refused before its garment is blamed for not fitting it."""
     from crowdbake.bake.skinning import pose_character
 
     if getattr(character, "animation_duration", 0) and character.animation_duration > 0:
-        return pose_character(character, 1.0, 1)[0][0]
-    return np.asarray(character.positions, np.float32)
+        body = pose_character(character, 1.0, 1)[0][0]
+    else:
+        body = np.asarray(character.positions, np.float32)
+    check_character_height(character, body)
+    return body
 
 
 def refusal_field(placement: Placement) -> str:

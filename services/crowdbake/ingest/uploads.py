@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from crowdbake.errors import InputError
 from crowdbake.ingest.rejections import (  # noqa: F401 (the API and the tests import these from here)
     CACHE_EXTENSIONS, CHARACTER_EXTENSIONS, COPY_CHUNK, GLB_MAGIC, INVALID_FILE, MESH_EXTENSIONS, PC2_MAGIC, PNG_SIGNATURE,
     TEXTURE_EXTENSIONS, FieldError, UploadRejected, _extension, clean_message, expect_format, where_from_message,
@@ -98,6 +99,12 @@ def check_character(path: Path, filename: str, field: str = "file") -> dict[str,
         raise UploadRejected(INVALID_FILE, "the character has no triangles", [FieldError(field, "no skinned triangles", filename)])
     if not np.isfinite(positions).all():
         raise UploadRejected(INVALID_FILE, "the character has NaN or infinite positions", [FieldError(field, "NaN or infinite vertex position", filename)])
+    from crowdbake.ingest.garment import body_at_rest  # refuses a character of implausible height
+
+    try:
+        body_at_rest(character)
+    except InputError as error:
+        raise UploadRejected(INVALID_FILE, error.message, [FieldError(field, error.message, filename)]) from None
     return {
         "format": file_format,
         "vertex_count": int(positions.shape[0]),

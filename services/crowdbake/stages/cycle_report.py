@@ -206,7 +206,7 @@ def _quality_html(quality: dict | None, method: str) -> str:
         )
     else:
         banner = f'<p class="ok">The {html.escape(method)} closing keeps within every quality bound.</p>'
-    return f"<h2>Loop quality against the simulation</h2>{banner}{table}"
+    return f"<h2>Loop quality against the simulation</h2>{banner}{table}<p>{html.escape(quality.get('seam_acceleration_note', ''))}</p>"
 
 
 def report_html(result: CycleResult, document: dict) -> str:

@@ -3,8 +3,11 @@
 // impostor at the 1:1 pixel-to-texel distance), each character with its own texture variation,
 // outfit colours and phase in the cycle.
 //
-// Query parameters: export=URL of the export folder (default ../export/), count=N (100), seed=S (1),
-// time=T (seconds; fixed time, one frame: for screenshots), lod=auto|high|low|impostor, width, height.
+// Query parameters: export=URL of the export folder (none: the page says how to give one), count=N (100),
+// seed=S (1), time=T (seconds; fixed time, one frame: for screenshots), lod=auto|high|low|impostor,
+// width, height (the drawing buffer, 1280 x 720; the canvas scales it to the window).
+// The status line (#status, data-ready false | true | empty | error) says what is loading, what failed,
+// or, once drawn, the figures the tests read.
 // A private bundle's export is fetched with the key the jobs page keeps in this tab's sessionStorage,
 // or one given in the fragment (#key=cbk_...; moved into sessionStorage and out of the address bar).
 import * as THREE from 'three';
@@ -12,7 +15,7 @@ import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { createImpostorMaterial, createVatMaterial, loadKtx2Texture } from './crowd-materials.js';
 
 const params = new URLSearchParams(location.search);
-const exportUrl = new URL(params.get('export') || '../export/', location.href);
+const exportUrl = params.get('export') ? new URL(params.get('export'), location.href) : null;
 const count = Number(params.get('count') || 100);
 const seed = BigInt(params.get('seed') || 1);
 const fixedTime = params.has('time') ? Number(params.get('time')) : null;
@@ -20,6 +23,23 @@ const lodMode = params.get('lod') || 'auto';
 const width = Number(params.get('width') || 1280);
 const height = Number(params.get('height') || 720);
 const status = document.getElementById('status');
+
+// Loading (false), drawn (true), nothing to draw (empty) or failed (error), in words a user reads.
+function showStatus(state, text) {
+  status.dataset.ready = state;
+  status.textContent = text;
+}
+
+// Refuses, in words, an export the page cannot animate: no frames, no meshes or no impostor.
+function checkExport(sidecar) {
+  const frames = sidecar.frame_count, fps = sidecar.frames_per_second;
+  if (!(Number.isInteger(frames) && frames >= 1) || !(fps > 0)) {
+    throw new Error(`the export has no animation (frame_count ${frames}, frames_per_second ${fps}): re-export a bake whose character has an animation`);
+  }
+  if (!Array.isArray(sidecar.lods) || sidecar.lods.length === 0 || !sidecar.impostor) {
+    throw new Error('the export lists no meshes (lods) or no impostor: re-export the bake');
+  }
+}
 
 const KEY_STORAGE = 'crowdbake.key';  // the jobs page's (api/static/app.js)
 const fragment = new URLSearchParams(location.hash.slice(1));
@@ -147,9 +167,29 @@ function instanced(geometry, capacity) {
 }
 
 async function main() {
-  const response = await fetch(new URL('export.json', exportUrl), { headers: authHeaders });
-  if (!response.ok) throw new Error(`export.json: HTTP ${response.status}`);
-  const sidecar = await response.json();
+  if (exportUrl === null) {
+    showStatus('empty', 'No export to show: open this page with ?export=URL of an export folder ' +
+      '(the jobs page\'s "Preview crowd" link gives one).');
+    return;
+  }
+  if (!(Number.isInteger(count) && count >= 0) || !(width >= 16 && height >= 16)) {
+    throw new Error(`count must be a whole number >= 0 and width, height at least 16 (got count=${params.get('count')}, ` +
+      `width=${params.get('width')}, height=${params.get('height')})`);
+  }
+  if (count === 0) {
+    showStatus('empty', 'count=0: no characters to draw.');
+    return;
+  }
+  const sidecarUrl = new URL('export.json', exportUrl);
+  showStatus('false', `Loading ${sidecarUrl.href} …`);
+  const response = await fetch(sidecarUrl, { headers: authHeaders });
+  if (!response.ok) {
+    const hint = response.status === 401 || response.status === 403 ? ' (a private bundle: open the preview from the jobs page, which holds the key)' : '';
+    throw new Error(`${sidecarUrl.href}: HTTP ${response.status}${hint}`);
+  }
+  const sidecar = await response.json().catch(() => { throw new Error(`${sidecarUrl.href} is not JSON`); });
+  checkExport(sidecar);
+  showStatus('false', `Loading textures and meshes of ${sidecar.bundle?.name ?? 'the export'} …`);
   const url = (path) => new URL(path, exportUrl).href;
   const fps = sidecar.frames_per_second, frameCount = sidecar.frame_count;
   const impostor = sidecar.impostor;
@@ -206,7 +246,7 @@ async function main() {
 
   renderer.outputColorSpace = THREE.LinearSRGBColorSpace;  // crowdview writes shader colours as they are
   renderer.setPixelRatio(1);
-  renderer.setSize(width, height);
+  renderer.setSize(width, height, false);  // the stylesheet fits the canvas to the window
   renderer.setClearColor(new THREE.Color().setRGB(...SKY, THREE.LinearSRGBColorSpace), 1);
   document.body.appendChild(renderer.domElement);
 
@@ -271,7 +311,6 @@ async function main() {
 }
 
 main().catch((error) => {
-  status.textContent = JSON.stringify({ ready: false, error: String(error && error.stack || error) });
-  status.dataset.ready = 'error';
+  showStatus('error', `Could not show the export: ${error && error.message || error}`);
   console.error(error);
 });
