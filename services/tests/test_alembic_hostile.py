@@ -6,13 +6,14 @@ from __future__ import annotations
 import os
 import struct
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from crowdbake.formats import alembic
-from crowdbake.formats.alembic import MAX_POINT_SAMPLES, read_alembic
+from crowdbake.formats.alembic import MAX_POINT_SAMPLES, ReadCancelled, read_alembic
 
 
 def _samplings_block(data: bytes) -> int:
@@ -37,10 +38,12 @@ def _rewrite_animated_sampling(source: Path, target: Path, max_samples: int | No
 
 @pytest.fixture
 def private_tmp(tmp_path, monkeypatch):
-    """tempfile's folder for this test alone, to see that nothing stays behind."""
+    """tempfile's folder for this test alone, and TMPDIR for the Blender child (which makes its own
+    blender_XXXXXX folder there), to see that nothing stays behind."""
     folder = tmp_path / "tmp"
     folder.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(folder))
+    monkeypatch.setenv("TMPDIR", str(folder))
     return folder
 
 
@@ -98,3 +101,75 @@ def _parent(pid: str) -> int | None:
         return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
     except (OSError, IndexError, ValueError):
         return None
+
+
+def _descendants(pid: int) -> list[int]:
+    """Every process below `pid` (children, their children, ...), from /proc."""
+    parents = {int(entry): _parent(entry) for entry in os.listdir("/proc") if entry.isdigit()}
+    found, frontier = [], [pid]
+    while frontier:
+        below = [child for child, parent in parents.items() if parent in frontier]
+        found += below
+        frontier = below
+    return found
+
+
+def _wait_for(condition, seconds: float) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return condition()
+
+
+def slow_alembic(source: Path, target: Path) -> Path:
+    """long_skirt.abc (4,032 points) claiming as many samples as the budget allows: Blender reads for
+    about 10 s (2 cores), long enough to cancel it midway."""
+    return _rewrite_animated_sampling(source, target, max_samples=MAX_POINT_SAMPLES // 4032)
+
+
+def test_a_cancelled_read_kills_the_blender_child_and_removes_its_folder(shared_asset, tmp_path, private_tmp):
+    """Regression: the Blender child of an upload whose client had left ran on for up to its 300 s
+    deadline. The reader now watches a cancellation event (the API sets it on the client's disconnect,
+    crowdbake.api.disconnects): set from another thread while Blender works, the read raises
+    ReadCancelled within a second, with no child process and no temp folder left."""
+    if not alembic.alembic_available():
+        pytest.skip("the crowdbake[alembic] extra (Blender's bpy) is not installed: pip install -r services/requirements-alembic.txt")
+    hostile = slow_alembic(shared_asset("long_skirt/long_skirt.abc"), tmp_path / "slow.abc")
+    cancel = threading.Event()
+    outcome: dict[str, object] = {}
+
+    def read() -> None:
+        try:
+            outcome["cache"] = read_alembic(hostile, cancel=cancel)
+        except BaseException as error:  # noqa: BLE001 (reported to the test thread)
+            outcome["error"] = error
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    try:
+        assert _wait_for(lambda: _descendants(os.getpid()), 20), "Blender never started"
+        time.sleep(1.0)  # Blender is importing and reading, seconds from done
+        assert _descendants(os.getpid()) and "cache" not in outcome
+        cancel.set()
+        cancelled_at = time.monotonic()
+        reader.join(timeout=10)
+        seconds = time.monotonic() - cancelled_at
+    finally:
+        cancel.set()
+        reader.join()
+    assert isinstance(outcome.get("error"), ReadCancelled), outcome
+    assert seconds < 1.5, seconds
+    assert _descendants(os.getpid()) == []
+    assert list(private_tmp.iterdir()) == []
+
+
+def test_a_cancel_set_before_the_read_starts_no_blender(shared_asset, private_tmp):
+    if not alembic.alembic_available():
+        pytest.skip("the crowdbake[alembic] extra (Blender's bpy) is not installed")
+    cancel = threading.Event()
+    cancel.set()
+    with pytest.raises(ReadCancelled, match="cancelled before Blender started"):
+        read_alembic(shared_asset("long_skirt/long_skirt.abc"), cancel=cancel)
+    assert list(private_tmp.iterdir()) == []

@@ -14,8 +14,9 @@ from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from crowdbake.redact import path_replacements, redact_text, redact_value
 from crowdbake.ingest.uploads import FieldError, UploadRejected
@@ -96,6 +97,10 @@ def _field_name(location: tuple[Any, ...]) -> str:
     return ".".join(parts) or "body"
 
 
+# nginx's status for a request whose client left before the answer; never seen by that client.
+CLIENT_CLOSED_REQUEST = 499
+
+
 def install(app: FastAPI) -> None:
     """Answer every error, including FastAPI's own validation and routing errors, as a problem."""
 
@@ -121,6 +126,13 @@ def install(app: FastAPI) -> None:
         slug = _STATUS_SLUGS.get(error.status_code, "malformed-request" if error.status_code < 500 else "internal-error")
         detail = error.detail if isinstance(error.detail, str) else PROBLEM_TYPES[slug][2]
         return problem_response(request, Problem(slug, detail, status=error.status_code, headers=dict(error.headers or {})))
+
+    @app.exception_handler(ClientDisconnect)
+    async def _client_left(request: Request, error: ClientDisconnect) -> Response:
+        # The client closed its connection during the body or the work after it (crowdbake.api.disconnects):
+        # nobody reads an answer; 499 (nginx's "client closed request") is for the logs and metrics.
+        logger.info("%s %s: the client closed the connection before the answer", request.method, request.url.path)
+        return Response(status_code=CLIENT_CLOSED_REQUEST)
 
     @app.exception_handler(OSError)
     async def _storage(request: Request, error: OSError) -> JSONResponse:

@@ -33,6 +33,8 @@ import struct
 import subprocess
 import sys
 import tempfile
+import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,11 +57,19 @@ MAX_POINT_SAMPLES = 1 << 24
 # a minute; bpy itself maps about 2 GB of address space before reading anything.
 BPY_TIMEOUT_SECONDS = 300
 BPY_ADDRESS_SPACE_BYTES = 8 << 30
+# How often the wait on the child looks at the caller's cancellation: a request whose client left ends
+# its Blender within this (plus the kill).
+CANCEL_POLL_SECONDS = 0.2
 MISSING_BPY = (
     "reading Alembic (.abc) needs the crowdbake[alembic] extra (Blender's bpy module): "
     "pip install -r services/requirements-alembic.txt, or set CROWDBAKE_BPY_PYTHON to a Python that has bpy"
 )
 DUMP_SCRIPT = Path(__file__).with_name("bpy_alembic_dump.py")
+
+
+class ReadCancelled(Exception):
+    """The caller cancelled the read (its request's client left): the Blender child was killed and its
+    temp folder removed. Not a ValueError: nothing is wrong with the file."""
 
 
 @dataclass(frozen=True)
@@ -176,9 +186,11 @@ def blender_to_y_up(points: np.ndarray) -> np.ndarray:
     return np.stack([points[..., 0], points[..., 2], -points[..., 1]], axis=-1)
 
 
-def read_alembic(path: str | os.PathLike, object_name: str | None = None) -> ClothCache:
+def read_alembic(path: str | os.PathLike, object_name: str | None = None, cancel: threading.Event | None = None) -> ClothCache:
     """An Alembic cloth cache -> ClothCache (frames (F, P, 3) float32, Y-up, the file's units; fps from the
     archive). `object_name` picks the mesh when the file holds several (Blender's object name).
+    `cancel`, set from another thread, ends the Blender child (its process group) and raises ReadCancelled
+    once its temp folder is removed.
 
     Raises ValueError with one line: no bpy (naming the extra), not Ogawa, no mesh, several meshes
     without a name, a topology that changes, or Blender's own failure."""
@@ -199,7 +211,7 @@ def read_alembic(path: str | os.PathLike, object_name: str | None = None) -> Clo
         command = [python, str(DUMP_SCRIPT), str(path.resolve()), out, repr(fps), repr(start), str(samples)]
         if object_name is not None:
             command.append(object_name)
-        done = _run_bpy(command, where)
+        done = _run_bpy(command, where, Path(out), cancel)
         if done.returncode != 0:
             lines = [line for line in done.stderr.splitlines() if line.startswith("crowdbake-alembic:")]
             reason = lines[-1].split(":", 1)[1].strip() if lines else (done.stderr.strip().splitlines() or ["no message"])[-1]
@@ -219,21 +231,34 @@ def read_alembic(path: str | os.PathLike, object_name: str | None = None) -> Clo
     return ClothCache(mesh=mesh, frames=frames, fps=float(fps), frame_step=1.0, source="alembic")
 
 
-def _run_bpy(command: list[str], where: str) -> subprocess.CompletedProcess:
+def _run_bpy(command: list[str], where: str, out: Path, cancel: threading.Event | None = None) -> subprocess.CompletedProcess:
     """Run the Blender child in its own process group under BPY_TIMEOUT_SECONDS and an address-space
-    limit, telling it MAX_POINT_SAMPLES; the whole group is killed on a timeout or any error (the caller
-    leaving included), so no Blender outlives its request."""
+    limit, telling it MAX_POINT_SAMPLES; the whole group is killed on a timeout, on `cancel` being set
+    (ReadCancelled, within CANCEL_POLL_SECONDS) or on any error, so no Blender outlives its request.
+    Blender's own session folder (blender_XXXXXX, left behind when it is killed) goes under `out`, which
+    the caller removes: TMPDIR points there."""
 
     def limit_memory() -> None:  # runs in the child, before exec
         resource.setrlimit(resource.RLIMIT_AS, (BPY_ADDRESS_SPACE_BYTES, BPY_ADDRESS_SPACE_BYTES))
 
-    env = {**os.environ, "CROWDBAKE_ABC_MAX_POINT_SAMPLES": str(MAX_POINT_SAMPLES)}
+    if cancel is not None and cancel.is_set():
+        raise ReadCancelled(f"{where}: cancelled before Blender started")
+    blender_tmp = out / "blender-tmp"
+    blender_tmp.mkdir()
+    env = {**os.environ, "CROWDBAKE_ABC_MAX_POINT_SAMPLES": str(MAX_POINT_SAMPLES), "TMPDIR": str(blender_tmp)}
+    deadline = time.monotonic() + BPY_TIMEOUT_SECONDS
     child = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
                              start_new_session=True, preexec_fn=limit_memory)
     try:
-        _, stderr = child.communicate(timeout=BPY_TIMEOUT_SECONDS)
-    except subprocess.TimeoutExpired:
-        raise ValueError(f"{where}: Blender took more than {BPY_TIMEOUT_SECONDS} s to read the cache") from None
+        while True:
+            try:  # communicate may be called again after a timeout without losing output
+                _, stderr = child.communicate(timeout=min(CANCEL_POLL_SECONDS, max(deadline - time.monotonic(), 0.0)))
+                break
+            except subprocess.TimeoutExpired:
+                if cancel is not None and cancel.is_set():
+                    raise ReadCancelled(f"{where}: cancelled while Blender read the cache") from None
+                if time.monotonic() >= deadline:
+                    raise ValueError(f"{where}: Blender took more than {BPY_TIMEOUT_SECONDS} s to read the cache") from None
     finally:
         if child.poll() is None:
             os.killpg(child.pid, signal.SIGKILL)

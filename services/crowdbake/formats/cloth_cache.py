@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import re
+import threading
 import zipfile
 from pathlib import Path, PurePosixPath
 
@@ -69,13 +70,15 @@ def read_obj_sequence(path: str | os.PathLike) -> ClothCache:
     return ClothCache(rest, np.stack(frames).astype(np.float32), None, 1.0, "obj-sequence")
 
 
-def read_cloth_cache(cache: str | os.PathLike, mesh: str | os.PathLike | None = None, alembic_object: str | None = None) -> ClothCache:
+def read_cloth_cache(cache: str | os.PathLike, mesh: str | os.PathLike | None = None, alembic_object: str | None = None,
+                     cancel: threading.Event | None = None) -> ClothCache:
     """Read any supported cloth cache (by extension, see the module table) into a ClothCache.
 
     PC2 and MDD need `mesh` (their OBJ rest mesh, one position per cache point); an Alembic file carries
     its own mesh (`alembic_object` names the garment when the file holds several meshes); an OBJ
     sequence's first frame is its rest mesh. Raises ValueError naming the file for anything wrong,
     including an Alembic file when the `crowdbake[alembic]` extra is not installed.
+    `cancel` (another thread sets it) ends an Alembic read's Blender child: alembic.ReadCancelled.
     """
     cache = Path(cache)
     kind = CACHE_FORMATS.get(cache.suffix.lower())
@@ -84,7 +87,7 @@ def read_cloth_cache(cache: str | os.PathLike, mesh: str | os.PathLike | None = 
     if kind == "alembic":
         from crowdbake.formats.alembic import read_alembic
 
-        return read_alembic(cache, alembic_object)
+        return read_alembic(cache, alembic_object, cancel)
     if kind == "obj-sequence":
         return read_obj_sequence(cache)
     if mesh is None:

@@ -15,6 +15,7 @@ import os
 import shutil
 import struct
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -89,9 +90,10 @@ def _with_suffix(path: Path, suffix: str, scratch: Path) -> Path:
 
 def check_point_cache(
     cache_path: Path, cache_name: str, mesh_path: Path | None, mesh_name: str | None, cycle_frames: int | None = None,
-    cache_field: str = "cache", mesh_field: str = "mesh",
+    cache_field: str = "cache", mesh_field: str = "mesh", cancel: threading.Event | None = None,
 ) -> dict[str, Any]:
-    """Validate an MDD (with its OBJ rest mesh) or an Alembic (alone) cloth upload.
+    """Validate an MDD (with its OBJ rest mesh) or an Alembic (alone) cloth upload. `cancel`, set from
+    another thread (the request's client left), ends an Alembic's Blender child: alembic.ReadCancelled.
 
     Returns {format, frame_count, vertex_count, triangle_count, start_frame, sample_rate, fps,
     placement_sample}; raises UploadRejected naming the field and file."""
@@ -115,7 +117,7 @@ def check_point_cache(
         cache_file = _with_suffix(cache_path, "." + ("abc" if file_format == "abc" else "mdd"), scratch)
         mesh_file = _with_suffix(mesh_path, ".obj", scratch) if mesh_path is not None else None
         try:
-            cache = read_cloth_cache(cache_file, mesh_file)
+            cache = read_cloth_cache(cache_file, mesh_file, cancel=cancel)
         except (ValueError, OSError) as error:
             message = clean_message(clean_message(str(error).splitlines()[0], cache_file, cache_name), mesh_file or cache_file, mesh_name or cache_name)
             field = mesh_field if mesh_name and mesh_name in message and "points per frame" not in message else cache_field

@@ -13,6 +13,7 @@ from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
 from crowdbake.api.deps import AssetReadKey, ServicesDep, SessionDep, UploadKey
+from crowdbake.api.disconnects import run_until_disconnect
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import MAX_LIST_OFFSET, AssetKind, AssetPublic, AssetsPublic, problem_responses
 from crowdbake.api.uploads import MultipartUpload, UploadedFile, read_multipart
@@ -123,7 +124,8 @@ async def upload_cloth(request: Request, response: Response, key: UploadKey, ser
         if has_pair and _extension(_require_file(upload, "cache").filename) in (".mdd", ".abc"):
             # MDD and Alembic are stored as uploaded; the validate stage stages them as PC2 + OBJ with their fps.
             cache, mesh = upload.files["cache"], upload.files.get("mesh")
-            info = await run_in_threadpool(check_point_cache, cache.blob.path, cache.filename, mesh and mesh.blob.path, mesh and mesh.filename, cycle_frames)
+            # Alembic runs a Blender child for up to 300 s: it ends when this request's client leaves.
+            info = await run_until_disconnect(request, check_point_cache, cache.blob.path, cache.filename, mesh and mesh.blob.path, mesh and mesh.filename, cycle_frames)
             staged = {"cache": (cache.blob, cache.filename, MEDIA_TYPES[info["format"]])}
             if mesh is not None:
                 staged["mesh"] = (mesh.blob, mesh.filename, MEDIA_TYPES["obj"])
