@@ -268,7 +268,7 @@ def test_submit_sends_the_cycle_with_the_loop_beside_it(tmp_path):
     from crowdbake.client.submit import build_parser, check_locally
 
     for name in ("walker.glb", "cloth.pc2", "cloth.obj", "cycle.json"):
-        (tmp_path / name).write_bytes(b"x")
+        (tmp_path / name).write_bytes(b"glTF" if name.endswith(".glb") else b"x")  # the client checks a .glb's magic
     common = [str(tmp_path / "walker.glb"), "--server", "http://127.0.0.1:9", "--cloth", str(tmp_path / "cloth.pc2"),
               "--cloth-mesh", str(tmp_path / "cloth.obj"), "--name", "walker", "--version", "1"]
     parse = build_parser().parse_args

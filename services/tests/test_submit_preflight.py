@@ -105,7 +105,9 @@ def published(tmp_path):
     name, version = publish_vector_bundle(api, "walker", "1.0.0")
     port = free_port()
     # The same workspace as make_api's app (shared: one team's keys see each other's bundles and bakes).
-    env = service_env(Path(api.settings.data_dir), "filesystem://", CROWDBAKE_SHARED_WORKSPACE="true")
+    # Its database too: make_api's is PostgreSQL where CROWDBAKE_TEST_DATABASE_URL is set.
+    env = service_env(Path(api.settings.data_dir), "filesystem://", CROWDBAKE_SHARED_WORKSPACE="true",
+                      CROWDBAKE_DATABASE_URL=api.settings.database_url)
     process = start_api(env, port, tmp_path / "api.log")
     try:
         yield api, f"http://127.0.0.1:{port}", name, version

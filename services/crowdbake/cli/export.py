@@ -36,7 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from crowdbake.export import export_bundle
+    from crowdbake.export.writer import export_bundle
 
     if not args.bundle_dir.is_dir():
         raise CommandError(f"{args.bundle_dir} is not a folder")
