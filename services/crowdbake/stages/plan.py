@@ -302,6 +302,13 @@ BAKE_PLAN: tuple[Node, ...] = (
 
 NODES: dict[str, Node] = {node.name: node for node in BAKE_PLAN}
 
+# The modules the nodes run (imported when a node first runs, so that this module stays light): what a
+# process that runs nodes may import ahead (crowdbake.stages.worker_pool preloads them in its fork server).
+STAGE_MODULES = (
+    "crowdbake.stages.validate", "crowdbake.stages.cycle", "crowdbake.stages.poses", "crowdbake.stages.impostors",
+    "crowdbake.stages.runtime_fidelity", "crowdbake.stages.pack", "crowdbake.stages.publish", "crowdbake.storage.exports",
+)
+
 
 def nodes_of(unit: str) -> list[Node]:
     """The nodes a unit (a STAGES entry: a service task) runs, in plan order."""

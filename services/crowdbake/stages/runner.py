@@ -12,11 +12,11 @@ stage and in all, and the timeline of every item (crowdbake.stages.timings).
 """
 from __future__ import annotations
 
+import itertools
 import resource
 import shutil
 import tempfile
 import time
-from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -89,8 +89,10 @@ def _execute(work: Path, inputs, destination: LocalDestination, pool: ProcessPoo
     """Run every node of the plan; the results of the nodes that do not fan out, by name."""
     schedule, results = _Schedule(work, workers), {}
     pending: dict[Future, tuple[_Item, ProcessPoolExecutor | None]] = {}
-    urgent: deque[_Item] = deque()
-    waiting: deque[_Item] = deque()
+    # Items that can start, best first: urgent nodes (they unblock later ones), then plan order, then the
+    # order their node listed them in (Node.order).
+    ready: list[tuple[tuple, _Item]] = []
+    position, listed = {node.name: k for k, node in enumerate(BAKE_PLAN)}, itertools.count()
     units_done = {stage: 0 for stage in STAGES}
 
     def finished(it: _Item, figures: dict[str, Any], in_worker: bool) -> None:
@@ -103,38 +105,41 @@ def _execute(work: Path, inputs, destination: LocalDestination, pool: ProcessPoo
         total = sum(len(items) for name, items in schedule.listed.items() if NODES[name].unit == it.node.unit)
         report(progress, it.node.unit, units_done[it.node.unit], total)
 
+    def collect(futures) -> None:
+        for future in futures:
+            it, own = pending.pop(future)
+            if own is not None:
+                own.shutdown(wait=False)
+            finished(it, future.result(), in_worker=True)
+
     try:
         while not schedule.all_done():
+            collect([future for future in pending if future.done()])  # done while this process ran a node
             for it in schedule.refresh():
                 schedule.started.add((it.node.name, it.key))
-                (urgent if it.node.urgent or it.node.placement == HERE else waiting).append(it)
-            here = next((it for it in urgent if pool is None or it.node.placement == HERE), None)
-            if pool is None and here is None and waiting:
-                here = waiting[0]
+                ready.append(((not it.node.urgent, position[it.node.name], next(listed)), it))
+            ready.sort(key=lambda entry: entry[0])
             # Pool items first, so that workers are busy while this process runs a node of its own.
-            while pool is not None and len(pending) < workers and any(it.node.placement != HERE for it in (*urgent, *waiting)):
-                queue = urgent if any(it.node.placement != HERE for it in urgent) else waiting
-                it = next(it for it in queue if it.node.placement != HERE)
-                queue.remove(it)
+            for entry in [entry for entry in ready if pool is not None and entry[1].node.placement != HERE]:
+                if len(pending) >= workers:
+                    break
+                ready.remove(entry)
+                it = entry[1]
                 own = one_shot_pool() if it.node.placement == ALONE else None
                 pending[submit_in_background(own or pool, run_node, it.node.name, str(work), it.item, destination)] = (it, own)
                 if it.node.fans_out:
                     plotter.start()  # the report's plots wait for the first fan-out: its plan took the GIL first
+            here = next((entry for entry in ready if pool is None or entry[1].node.placement == HERE), None)
             if here is not None:
-                (urgent if here in urgent else waiting).remove(here)
-                call = Call(work, here.item, progress, inputs, destination, plots)
-                figures = measured(lambda: here.node.run(call))
+                ready.remove(here)
+                it, call = here[1], Call(work, here[1].item, progress, inputs, destination, plots)
+                figures = measured(lambda: it.node.run(call))
                 trim_heap()
-                finished(here, figures, in_worker=False)
+                finished(it, figures, in_worker=False)
                 continue
             if not pending:
                 raise RuntimeError(f"the bake plan is stuck: {sorted(node.name for node in BAKE_PLAN if not schedule.node_done(node.name))} cannot start")
-            done, _ = wait(pending, return_when=FIRST_COMPLETED)
-            for future in done:
-                it, own = pending.pop(future)
-                if own is not None:
-                    own.shutdown(wait=False)
-                finished(it, future.result(), in_worker=True)
+            collect(wait(pending, return_when=FIRST_COMPLETED)[0])
     except BaseException:
         for future, (_it, own) in pending.items():
             future.cancel()

@@ -38,9 +38,13 @@ WORKER_ITEMS = 16
 # replaced after WORKER_ITEMS items). services/benchmarks/bench_bake.py measures the page faults.
 WORKER_MALLOC = {"MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(1 << 40)}
 
-# What the fork server imports once for every worker: the plan (and through it every stage), pyrender,
-# and jsonschema, which the pack stage, publishing and the export each verify a bundle with.
-PRELOAD = ["crowdbake.stages.plan", "pyrender", "jsonschema"]
+# What the fork server imports once for every worker: the runner, the stages its nodes run
+# (plan.STAGE_MODULES), pyrender, and jsonschema, which the pack stage, publishing and the export each
+# verify a bundle with. A worker forked after these imports starts its first item at once.
+def preload() -> list[str]:
+    from crowdbake.stages.plan import STAGE_MODULES
+
+    return ["crowdbake.stages.runner", *STAGE_MODULES, "pyrender", "jsonschema"]
 
 
 def usable_cores() -> int:
@@ -88,9 +92,9 @@ def fork_server_cpu_seconds() -> float:
 
 def start_pool(workers: int) -> ProcessPoolExecutor:
     """A pool of `workers` processes forked from the fork server, which starts now (in the background, while
-    this process validates and searches the cycle) and imports PRELOAD once for them all."""
+    this process validates and searches the cycle) and imports preload() once for them all."""
     context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload(PRELOAD)
+    context.set_forkserver_preload(preload())
     from multiprocessing import forkserver
 
     # glibc reads its malloc settings from the environment when a process starts: the fork server's
