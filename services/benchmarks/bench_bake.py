@@ -15,9 +15,9 @@ option: default two worker processes for the poses stage beside the impostor tas
 usable). Per stage, from run_bake's own figures (BakeSummary.timings, measured around each stage in this
 process and around each item in the workers):
 
-- wall and CPU seconds (CPU of every thread; in workers, summed over the stage's items; the poses stage's
-  wall is its own time in its worker, the impostor stage's runs from its plan to its last task, so the
-  two overlap);
+- wall and CPU seconds (CPU of every thread; in workers, summed over the stage's items; a stage's wall is
+  the time during which at least one of its plan nodes ran, so stages that overlap add up to more than
+  the bake);
 - render: seconds inside pyrender/OpenGL (draw and read-back), summed by crowdbake.render.offscreen over
   every render of the bake (cycle views, impostor views, fidelity references), workers included;
 - wall / render: 1.0 would be a bake bound by its renderer;
