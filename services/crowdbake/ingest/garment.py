@@ -9,6 +9,8 @@ parameter that fixes it (`up`, `units`), and converted the same way when that pa
     body_at_rest(character)               -> (V, 3) Y-up metres    (the character at its animation's time 0;
                                                                     InputError "character" if not 0.3-10 m tall)
     place_cloth(cache, body, up, units)   -> ClothCache in Y-up metres, or InputError "up" / "units" / "cloth"
+    check_garment_fit(character, cache, fps) -> GarmentFit, or InputError "cloth" when the garment does not
+                                            follow this body over the cache (crowdbake.bake.garment_fit)
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from crowdbake.bake.garment_fit import FAR_FROM_BODY, MAX_FAR_FRACTION, GarmentFit, checked_frames, measure_garment_fit
 from crowdbake.bake.placement import Placement, check_placement
 from crowdbake.errors import InputError
 from crowdbake.formats.cloth_cache import CACHE_FORMATS, ClothCache, read_cloth_cache
@@ -136,6 +139,28 @@ def place_cloth(cache: ClothCache, body: np.ndarray, up: str | None = None, unit
     if (placement.up, placement.units) == ("y", "m"):
         return cache
     return cache.with_frames(placement.apply(cache.frames), placement.apply(cache.mesh.positions))
+
+
+def check_garment_fit(character, cache: ClothCache, fps: float) -> GarmentFit:
+    """Refuse (InputError "cloth") a garment, already placed in Y-up metres, that does not follow the
+    character posed at each frame's time (animation time = frame / fps, looped over the animation):
+    a garment simulated on another character. The message says how far off it is and how to bake anyway
+    (`--no-garment-check`, params.garment_check = false)."""
+    from crowdbake.bake.skinning import joint_matrices, skin
+
+    frames = checked_frames(cache.frame_count)
+    duration = float(getattr(character, "animation_duration", 0) or 0)
+    times = (frames / float(fps)) % duration if duration > 0 else np.zeros(len(frames))
+    body, _ = skin(character.positions, character.normals, character.joints, character.weights, joint_matrices(character, times))
+    fit = measure_garment_fit(cache.frames[frames], body, character.faces, frames)
+    if not fit.ok:
+        raise InputError(
+            f"the garment does not fit the character: over the cache {fit.far_fraction:.0%} of the cloth hangs more than "
+            f"{FAR_FROM_BODY * fit.height:.2f} m ({FAR_FROM_BODY:.0%} of its {fit.height:.2f} m height) from its body "
+            f"(frame {fit.worst_frame}: {fit.worst_far_fraction:.0%}), above the {MAX_FAR_FRACTION:.0%} a garment simulated on "
+            "this character and animation shows: simulate the garment on this character (or pick the animation it was "
+            "simulated with), or pass --no-garment-check (params.garment_check = false) to bake it anyway", "cloth")
+    return fit
 
 
 _FLAG = re.compile(r"--(up|units) (\w+)")

@@ -31,7 +31,7 @@ from crowdbake.formats.errors import FormatError
 from crowdbake.formats.gltf import load_character
 from crowdbake.formats.cloth_cache import ClothCache, write_pc2_obj
 from crowdbake.ingest.cycle_document import check_cycle_document
-from crowdbake.ingest.garment import CACHE_SUFFIXES, body_at_rest, needs_mesh, place_cloth, read_cloth
+from crowdbake.ingest.garment import CACHE_SUFFIXES, body_at_rest, check_garment_fit, needs_mesh, place_cloth, read_cloth
 from crowdbake.params import CREATED_RULE, NAME_RULE, PART_RULE, VERSION_RULE, BakeParams, cache_fps, min_cloth_frames
 from crowdbake.stages.records import JobRecord
 from crowdbake.stages.workdir import StageOutcome, WorkDir, read_json, sha256_file, stage_key
@@ -233,6 +233,8 @@ def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeP
     # converted as declared, before any stage spends minutes on it.
     placed = place_cloth(cache, body_at_rest(character), params.up, params.units)
     fps = cache_fps(params.fps, cache.fps, cache.frame_step)
+    if params.garment_check:  # ...and follow this body over the whole cache (not a garment made for another)
+        check_garment_fit(character, placed, fps)
     if params.cycle_frames is not None:
         cycle_frames = params.cycle_frames
     elif character.animation_duration > 0:
