@@ -226,9 +226,9 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--up",), derived="detect, and refuse a cache that is not Y-up", optional=True, choices=UP_AXES),
     ParamSpec("units", "str", None, "the cloth cache's length unit as exported: m, cm, mm or in, converted to metres",
               ("--units",), derived="detect, and refuse a cache that is not in metres", optional=True, choices=UNIT_CHOICES),
-    ParamSpec("garment_check", "bool", True,
+    ParamSpec("fit", "bool", True,
               "refuse a garment that does not follow the character over the cache (simulated on another character)",
-              ("--no-garment-check",), off_help="do not refuse a garment that hangs far from the character's body over the cache: bake it anyway"),
+              ("--no-fit",), off_help="do not check the garment's fit on the character over the cache: bake one made for another character anyway"),
     ParamSpec("animation", "name_or_index", 0, "the character's walk: a glTF animation name or index",
               ("--animation",), "NAME|INDEX"),
     ParamSpec("candidates", "int", 5, "cycle candidates kept by pass 1 and compared by the pass-2 edge metric (paper section 3)",
@@ -300,7 +300,7 @@ class BakeParams:
     fps: float | None = None
     up: str | None = None
     units: str | None = None
-    garment_check: bool = True
+    fit: bool = True
     animation: int | str = 0
     candidates: int = 5
     cycle_views: int = 5

@@ -69,9 +69,9 @@ def test_cesium_mans_skirt_on_rigged_figure_is_refused_naming_how_far_off_and_th
     logger.warning("RiggedFigure + long_skirt: %s", message)
     assert caught.value.field == "cloth"
     assert "does not fit the character" in message and f"{FAR_FROM_BODY:.0%} of its" in message
-    assert "--no-garment-check" in message and "params.garment_check = false" in message
+    assert "--no-fit" in message and "params.fit = false" in message
     share = float(message.split("over the cache ")[1].split("%")[0]) / 100
     assert share > MAX_FAR_FRACTION
     # The override bakes it anyway: validation goes past the check.
-    record = stage_validate(BakeInputs(**inputs, params=BakeParams(garment_check=False)), tmp_path / "work2").record
-    assert record.garment_vertices == 4032 and record.params["garment_check"] is False
+    record = stage_validate(BakeInputs(**inputs, params=BakeParams(fit=False)), tmp_path / "work2").record
+    assert record.garment_vertices == 4032 and record.params["fit"] is False

@@ -145,7 +145,7 @@ def check_garment_fit(character, cache: ClothCache, fps: float) -> GarmentFit:
     """Refuse (InputError "cloth") a garment, already placed in Y-up metres, that does not follow the
     character posed at each frame's time (animation time = frame / fps, looped over the animation):
     a garment simulated on another character. The message says how far off it is and how to bake anyway
-    (`--no-garment-check`, params.garment_check = false)."""
+    (`--no-fit`, params.fit = false)."""
     from crowdbake.bake.skinning import joint_matrices, skin
 
     frames = checked_frames(cache.frame_count)
@@ -159,7 +159,7 @@ def check_garment_fit(character, cache: ClothCache, fps: float) -> GarmentFit:
             f"{FAR_FROM_BODY * fit.height:.2f} m ({FAR_FROM_BODY:.0%} of its {fit.height:.2f} m height) from its body "
             f"(frame {fit.worst_frame}: {fit.worst_far_fraction:.0%}), above the {MAX_FAR_FRACTION:.0%} a garment simulated on "
             "this character and animation shows: simulate the garment on this character (or pick the animation it was "
-            "simulated with), or pass --no-garment-check (params.garment_check = false) to bake it anyway", "cloth")
+            "simulated with), or pass --no-fit (params.fit = false) to bake it anyway", "cloth")
     return fit
 
 

@@ -233,7 +233,7 @@ def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeP
     # converted as declared, before any stage spends minutes on it.
     placed = place_cloth(cache, body_at_rest(character), params.up, params.units)
     fps = cache_fps(params.fps, cache.fps, cache.frame_step)
-    if params.garment_check:  # ...and follow this body over the whole cache (not a garment made for another)
+    if params.fit:  # ...and follow this body over the whole cache (not a garment made for another)
         check_garment_fit(character, placed, fps)
     if params.cycle_frames is not None:
         cycle_frames = params.cycle_frames
