@@ -23,6 +23,8 @@ logger = logging.getLogger(__name__)
 
 # Primitive modes read as triangles (points and lines are skipped with a warning).
 MODE_TRIANGLES, MODE_TRIANGLE_STRIP, MODE_TRIANGLE_FAN = pygltflib.TRIANGLES, pygltflib.TRIANGLE_STRIP, pygltflib.TRIANGLE_FAN
+# Two skins over one skeleton are one skin when their bind matrices agree to this (relative): float32 files.
+BIND_TOLERANCE = 1e-4
 # Skin weights are normalised on load; a vertex whose weights sum below this is unskinned (a file error).
 MIN_WEIGHT_SUM = 1e-6
 # Weight rows summing further than this from 1 are renormalised on load (glTF asks for sums of 1).
@@ -162,11 +164,43 @@ def _mesh_primitives(doc: _Document, mesh_index: int, rigid_joint: int | None):
     return out
 
 
+def skin_inverse_binds(doc: _Document, skin_index: int) -> np.ndarray:
+    """skins[skin_index]'s inverse bind matrices, (J, 4, 4) float32 (identity when the file gives none)."""
+    skin = doc.item("skins", skin_index)
+    count = len(skin.joints or [])
+    if skin.inverseBindMatrices is None:
+        return np.tile(np.eye(4, dtype=np.float32), (count, 1, 1))
+    ibm = doc.accessor(skin.inverseBindMatrices)
+    if ibm.shape != (count, 16):
+        raise ValueError(f"{doc.where}: skins[{skin_index}].inverseBindMatrices is {ibm.shape}, expected ({count}, 16) MAT4")
+    return ibm.reshape(count, 4, 4).transpose(0, 2, 1).astype(np.float32)
+
+
+def _other_skin(doc: _Document, other: int, node_to_joint: dict[int, int], inverse_bind: np.ndarray):
+    """(joint map, bind matrix) that re-expresses skins[other]'s meshes in the chosen skin, or None when
+    its joints are not all joints of the chosen skin. A second skin over the same skeleton (RobotExpressive's
+    left hand) binds each joint j with its own inverse bind matrix; when inverse(chosen(j)) @ other(j) is
+    one matrix for all its joints (the identity when both skins were bound in one pose), that matrix
+    moves its vertices into the chosen skin's bind space, and the joint indices are remapped."""
+    joints = doc.item("skins", other).joints or []
+    if not joints or any(node not in node_to_joint for node in joints):
+        return None
+    mapping = np.array([node_to_joint[node] for node in joints], np.int64)
+    corrections = np.linalg.inv(inverse_bind[mapping].astype(np.float64)) @ skin_inverse_binds(doc, other).astype(np.float64)
+    if np.abs(corrections - corrections[:1]).max() > BIND_TOLERANCE * max(1.0, np.abs(corrections).max()):
+        raise ValueError(f"{doc.where}: skins[{other}] shares the skeleton but was bound in another pose than the chosen skin; "
+                         "re-export the character with one skin")
+    return mapping, corrections[0]
+
+
 def read_meshes(doc: _Document, skin_index: int, joint_count: int, anchor: np.ndarray, between: np.ndarray,
-                 local: np.ndarray, inverse_bind: np.ndarray) -> tuple[dict[str, np.ndarray], list[Material]]:
-    """Merge every primitive of the skinned meshes (and of rigid meshes under a joint) into one mesh."""
+                 local: np.ndarray, inverse_bind: np.ndarray,
+                 node_to_joint: dict[int, int] | None = None) -> tuple[dict[str, np.ndarray], list[Material]]:
+    """Merge every primitive of the skinned meshes (those of other skins over the same joints too, see
+    _other_skin) and of rigid meshes under a joint into one mesh."""
     nodes = doc.gltf.nodes
     wanted: list[tuple[int, int | None, np.ndarray | None]] = []  # (mesh, rigid joint, bind matrix)
+    remaps: dict[int, np.ndarray] = {}  # mesh of another skin -> its joint indices in the chosen skin
     seen_skinned: set[int] = set()
     for index, node in enumerate(nodes):
         if node.mesh is None:
@@ -176,7 +210,14 @@ def read_meshes(doc: _Document, skin_index: int, joint_count: int, anchor: np.nd
                 seen_skinned.add(node.mesh)
                 wanted.append((node.mesh, None, None))
         elif node.skin is not None:
-            logger.warning("%s: nodes[%d] uses skins[%d], not the chosen skin %d; left out", doc.where, index, node.skin, skin_index)
+            shared = _other_skin(doc, node.skin, node_to_joint or {}, inverse_bind)
+            if shared is None:
+                logger.warning("%s: nodes[%d] uses skins[%d], whose joints are not all joints of the chosen skin %d; left out",
+                               doc.where, index, node.skin, skin_index)
+            elif node.mesh not in seen_skinned:
+                seen_skinned.add(node.mesh)
+                remaps[node.mesh] = shared[0]
+                wanted.append((node.mesh, None, None if np.allclose(shared[1], np.eye(4)) else shared[1]))
         elif anchor[index] >= 0:
             joint = int(anchor[index])
             # A rigid mesh under joint j sits at world(j) @ between @ local(node) @ p; in bind space that is
@@ -199,7 +240,10 @@ def read_meshes(doc: _Document, skin_index: int, joint_count: int, anchor: np.nd
                 materials.append(material)
                 uv_sets.append(uv_set)
             slot = material_slots[primitive.material]
-            part = _read_primitive(doc, primitive, where, joint_count, uv_sets[slot], joint)
+            remap = remaps.get(mesh_index)
+            part = _read_primitive(doc, primitive, where, joint_count if remap is None else len(remap), uv_sets[slot], joint)
+            if remap is not None:
+                part["joints"] = remap[part["joints"]]
             if bind is not None:
                 part["positions"] = (part["positions"].astype(np.float64) @ bind[:3, :3].T + bind[:3, 3]).astype(np.float32)
                 normal_matrix = np.linalg.inv(bind[:3, :3]).T

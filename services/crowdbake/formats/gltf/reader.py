@@ -104,7 +104,7 @@ def _load_character(path: Path, skin: int, animation: int | str) -> Character:
     else:
         inverse_bind = np.tile(np.eye(4, dtype=np.float32), (joint_count, 1, 1))
 
-    mesh, materials = read_meshes(doc, skin, joint_count, anchor, between, local, inverse_bind)
+    mesh, materials = read_meshes(doc, skin, joint_count, anchor, between, local, inverse_bind, node_to_joint)
     animation_index = choose_animation(doc, animation)
     channels, duration = read_animation(doc, animation_index, node_to_joint, joint_ancestors)
     animation_names = [a.name or f"animation{k}" for k, a in enumerate(doc.gltf.animations or [])]
