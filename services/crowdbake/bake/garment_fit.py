@@ -33,8 +33,9 @@ FAR_FROM_BODY = 0.15
 MAX_FAR_FRACTION = 0.12
 # Body surface points per checked frame: the nearest one is within about 1 cm on a 1.8 m body.
 SURFACE_SAMPLES = 20000
-# Frames checked, spread evenly over the cache: the measure is a mean, 100 frames settle it to 0.01.
-MAX_FRAMES_CHECKED = 100
+# Frames checked, spread evenly over the cache: the measure is a mean over the cycles the cache holds;
+# 32 frames give the pairs of bench_garment_fit.py the figures of 100 within 0.01.
+MAX_FRAMES_CHECKED = 32
 # Fixed seed: the same inputs get the same verdict.
 SAMPLE_SEED = 0
 
@@ -101,7 +102,10 @@ def measure_garment_fit(cloth_frames: np.ndarray, body_frames: np.ndarray, body_
     shares = np.empty(len(cloth_frames))
     for k, (cloth, body) in enumerate(zip(cloth_frames, body_frames)):
         surface = np.einsum("nk,nkc->nc", weights, body[corners])
-        distance, _ = cKDTree(np.vstack([surface, body])).query(cloth)
-        shares[k] = float((distance > FAR_FROM_BODY * height).mean())
+        # Only "farther than the limit or not" counts: the search stops at the limit (inf beyond it), and
+        # an unbalanced tree builds in a fraction of the time for the one query it serves.
+        tree = cKDTree(np.vstack([surface, body]), balanced_tree=False, compact_nodes=False)
+        distance, _ = tree.query(cloth, distance_upper_bound=FAR_FROM_BODY * height)
+        shares[k] = float(np.isinf(distance).mean())
     worst = int(np.argmax(shares))
     return GarmentFit(float(shares.mean()), int(frame_numbers[worst]), float(shares[worst]), height, len(shares))
