@@ -193,6 +193,32 @@ def _run_meshoptimizer(
     return destination[:count].reshape(-1, 3), float(result_error[0])
 
 
+def _sloppy_near_target(positions: np.ndarray, faces: np.ndarray, target_triangles: int) -> tuple[np.ndarray, float]:
+    """meshopt_simplifySloppy's result nearest `target_triangles`: (T', 3) uint32 indices into `positions`
+    and its relative error. Its grid makes the count move in steps, so the asked count is searched (by
+    bisection between the target and the input's size) for the result closest to the target."""
+    import meshoptimizer
+
+    indices = faces.reshape(-1)
+
+    def run(asked: int) -> tuple[np.ndarray, float]:
+        destination = np.zeros(indices.size, dtype=np.uint32)
+        result_error = np.zeros(1, dtype=np.float32)
+        count = meshoptimizer.simplify_sloppy(destination, indices, positions, target_index_count=3 * asked,
+                                              target_error=UNBOUNDED_RELATIVE_ERROR, result_error=result_error)
+        return destination[:count].reshape(-1, 3), float(result_error[0])
+
+    best = run(target_triangles)
+    low, high = target_triangles, len(faces)
+    while len(best[0]) != target_triangles and high - low > 1:
+        middle = (low + high) // 2
+        tried = run(middle)
+        if abs(len(tried[0]) - target_triangles) < abs(len(best[0]) - target_triangles):
+            best = tried
+        low, high = (middle, high) if len(tried[0]) < target_triangles else (low, middle)
+    return best
+
+
 def simplify(
     positions: np.ndarray,
     faces: np.ndarray,
@@ -237,6 +263,16 @@ def simplify(
         )
         simplified, error = _run_meshoptimizer(positions, faces, uvs, target_triangles, 0)
         locked = False
+    if len(simplified) > target_triangles * (1 + TARGET_TOLERANCE):
+        # Edge collapses cannot get there: a flat-shaded mesh of many small closed parts (a robot of boxes)
+        # has every edge on a normal seam, and a box cannot lose a triangle without losing its shape. Vertex
+        # clustering can: it keeps a subset of the vertices too, but may tear texture seams, so it is the
+        # fallback only, and said.
+        sloppy, sloppy_error = _sloppy_near_target(positions, faces, target_triangles)
+        logger.warning("edge collapses leave %d triangles for a target of %d (a flat-shaded or many-part mesh); "
+                       "clustering vertices instead: %d triangles", len(simplified), target_triangles, len(sloppy))
+        if len(sloppy):
+            simplified, error, locked = sloppy, sloppy_error, False
     if len(simplified) == 0:
         raise ValueError(f"simplify: nothing left of {len(faces)} triangles for a target of {target_triangles}")
     kept = np.unique(simplified).astype(np.int64)
