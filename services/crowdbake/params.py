@@ -226,8 +226,9 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--up",), derived="detect, and refuse a cache that is not Y-up", optional=True, choices=UP_AXES),
     ParamSpec("units", "str", None, "the cloth cache's length unit as exported: m, cm, mm or in, converted to metres",
               ("--units",), derived="detect, and refuse a cache that is not in metres", optional=True, choices=UNIT_CHOICES),
-    ParamSpec("animation", "name_or_index", 0, "the character's walk: a glTF animation name or index",
-              ("--animation",), "NAME|INDEX"),
+    ParamSpec("animation", "name_or_index", None, "the character's walk: a glTF animation name or index",
+              ("--animation",), "NAME|INDEX", optional=True,
+              derived="the only animation, else the one the cloth cache repeats after (crowdbake.ingest.clip_choice)"),
     ParamSpec("candidates", "int", 5, "cycle candidates kept by pass 1 and compared by the pass-2 edge metric (paper section 3)",
               ("--candidates",), "K", minimum=1, maximum=MAX_CANDIDATES),
     ParamSpec("cycle_views", "int", 5, "views of the pass-2 edge metric (paper: 5)",
@@ -297,7 +298,7 @@ class BakeParams:
     fps: float | None = None
     up: str | None = None
     units: str | None = None
-    animation: int | str = 0
+    animation: int | str | None = None
     candidates: int = 5
     cycle_views: int = 5
     impostor_frames: int = 10

@@ -214,6 +214,9 @@ def run(args: argparse.Namespace) -> int:
         print(format_summary(summary))
         if summary.texture_note:
             print(f"textures {summary.texture_note}")
+        if summary.animation_choice:
+            choice = summary.animation_choice
+            print(f"animation {choice['name']!r} ({choice['frames']} frames) picked: {choice['reason']}")
         if args.figure4:
             print(f"figure 4 plot: {args.figure4}")
     return 0

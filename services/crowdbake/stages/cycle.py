@@ -108,7 +108,7 @@ def load_cycle_inputs(
     fps: float | None = None,
     up: str | None = None,
     units: str | None = None,
-    animation: int | str = 0,
+    animation: int | str | None = None,
 ) -> CycleInputs:
     """Read and cross-check the cycle search's input files. Raises ValueError with a one-line reason.
 
@@ -142,6 +142,11 @@ def load_cycle_inputs(
     if character is not None:
         from crowdbake.formats.gltf import load_character
 
+        if animation is None:  # not told: the clip the cloth repeats after (crowdbake.ingest.clip_choice)
+            from crowdbake.ingest.clip_choice import character_clips, choose_clip
+
+            clips = character_clips(character)
+            animation = choose_clip(clips, cache.frames, frame_rate).index if len(clips) > 1 and cycle_frames is None else 0
         loaded_character = load_character(character, animation=animation)
         # The garment must sit on the character before a minute of search is spent on it.
         from crowdbake.ingest.garment import body_at_rest
@@ -201,7 +206,7 @@ def run_cycle_job(
     params: CycleParams = CycleParams(),
     up: str | None = None,
     units: str | None = None,
-    animation: int | str = 0,
+    animation: int | str | None = None,
     progress: Progress | None = None,
     edge_pass: bool = True,
     plots: bool = True,

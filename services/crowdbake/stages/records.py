@@ -66,6 +66,9 @@ class JobRecord(Record):
     # records written before they were recorded.
     fps: float | None = None
     cloth_format: str = "pc2"
+    # The animation the bake picked when not told (crowdbake.ingest.clip_choice.ClipChoice: index, name,
+    # frames, reason); None when `animation` was given or the character has one.
+    animation_choice: dict[str, Any] | None = None
 
     @property
     def bake_params(self) -> BakeParams:

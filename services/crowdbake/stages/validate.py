@@ -216,17 +216,24 @@ class _Parsed:
     cloth: ClothCache
     fps: float
     converted: bool
+    animation: int | str = 0
+    animation_choice: dict | None = None
 
 
 def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeParams) -> _Parsed:
     """Parse each input file once and cross-check them."""
+    cache = read_cloth(sources["cloth"], sources.get("cloth_mesh"))
+    # Not told which animation: the one the cloth repeats after (crowdbake.ingest.clip_choice).
+    choice = None
+    if params.animation is None and params.cycle_frames is None:
+        choice = _choose_animation(sources["character"], cache, cache_fps(params.fps, cache.fps, cache.frame_step))
+    animation = choice.index if choice is not None else (params.animation if params.animation is not None else 0)
     try:
-        character = load_character(sources["character"], animation=params.animation)
+        character = load_character(sources["character"], animation=animation)
     except (ValueError, FormatError, OSError, KeyError) as error:
         text = str(error).splitlines()[0] if str(error) else type(error).__name__
-        field = "animation" if "animation" in text and params.animation != 0 else "character"
+        field = "animation" if "animation" in text and params.animation not in (0, None) else "character"
         raise InputError(f"{sources['character'].name}: {text}", field) from None
-    cache = read_cloth(sources["cloth"], sources.get("cloth_mesh"))
     if len(character.faces) == 0:
         raise InputError(f"{sources['character'].name} has no triangles", "character")
     # The garment must sit on the character: a Z-up or centimetre cache is refused (naming up / units) or
@@ -258,7 +265,18 @@ def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeP
         "cache_frames": int(cache.frame_count),
         "cycle_frames": int(cycle_frames),
     }
-    return _Parsed(counts, placed, fps, placed is not cache)
+    return _Parsed(counts, placed, fps, placed is not cache, animation, choice.to_json() if choice is not None else None)
+
+
+def _choose_animation(path: Path, cache: ClothCache, fps: float):
+    """choose_clip on the character's clips; a broken file is left to load_character to name."""
+    from crowdbake.ingest.clip_choice import character_clips, choose_clip
+
+    try:
+        clips = character_clips(path)
+    except (ValueError, FormatError, OSError, KeyError, TypeError, AttributeError):
+        return None
+    return choose_clip(clips, cache.frames, fps) if len(clips) > 1 else None
 
 
 def _copy_inputs(work: WorkDir, inputs: BakeInputs, sources: dict[str, Path], gltf_files: list[str],
@@ -358,7 +376,7 @@ def stage_validate(inputs: BakeInputs, work: Path) -> StageOutcome[JobRecord]:
     created, created_from = _created(inputs.created, [*sources.values(), *texture_list])
     record = JobRecord(
         key=key, name=inputs.name, version=inputs.version, created=created, created_from=created_from,
-        params=params.to_dict(), inputs=names, hashes=hashes, garment_part=garment_part_name(sources.get("cloth_mesh", sources["cloth"])),
+        params={**params.to_dict(), "animation": parsed.animation}, animation_choice=parsed.animation_choice, inputs=names, hashes=hashes, garment_part=garment_part_name(sources.get("cloth_mesh", sources["cloth"])),
         textures=texture_info, producer=f"crowdbake {__version__}", **parsed.counts,
         fps=parsed.fps, cloth_format=parsed.cloth.source,
     )
