@@ -88,6 +88,9 @@ class CycleRecord(Record):
     velocity_jump_ratio: float | None
     fps: float
     root_motion_removed: bool
+    # Where the cycle came from: "search" (the cloth's, paper section 3), "given" (a cycle.json), or
+    # crowdbake.stages.body_only.ANIMATION_LOOP (no cloth: the animation's own loop).
+    source: str = "search"
 
 
 @dataclass
