@@ -105,6 +105,7 @@ Sample measure(Renderer& renderer, const Bundle& bundle, uint64_t seed, uint32_t
     CrowdDesc desc;
     desc.count = n;
     desc.seed = seed;
+    desc.spacing = crowd_spacing(model.radius);
     const Camera cam = benchmark_camera();
     const LodRule rule = lod_rule_for(model, cam, float(renderer.height()));
     // From half the switch distance on: no character is over twice its 1:1 size on screen,

@@ -43,6 +43,16 @@ Crowd make_crowd(const CrowdDesc& desc, uint32_t variation_count, uint32_t outfi
     return crowd;
 }
 
+// The impostor bounding sphere of a 1.8 m walker: about half its height plus the swing of arms and
+// cloth (the sample and CesiumMan bake to 0.9 to 1.0 m). Up to it, the human spacing of CrowdDesc.
+constexpr float kHumanRadius = 1.0f;
+constexpr float kHumanSpacing = 1.6f;
+
+float crowd_spacing(float radius) {
+    if (!(radius > kHumanRadius)) return kHumanSpacing;
+    return kHumanSpacing * radius / kHumanRadius;
+}
+
 glm::vec3 character_position(const Crowd& crowd, const Character& c, float time_s) {
     if (crowd.layout == Layout::on_the_spot || crowd.half_extent <= 0) return c.start;
     const float size = 2.0f * crowd.half_extent;

@@ -83,6 +83,11 @@ struct Crowd {
 // phase, diffuse variation and outfit; identical for identical arguments.
 Crowd make_crowd(const CrowdDesc& desc, uint32_t variation_count, uint32_t outfit_count, float cycle_seconds);
 
+// Metres between grid neighbours for a character whose impostor bounding sphere has `radius`
+// metres (the manifest's impostor bounds): 1.6 up to a human's radius, in proportion above it, so
+// a crowd of 4 m robots does not stand at human spacing and overlap. radius <= 0 gives 1.6.
+float crowd_spacing(float radius);
+
 // Where a character's feet are at time t: its start on the spot, or walked along its heading
 // and wrapped around the crowd's square (a torus, so density stays even).
 glm::vec3 character_position(const Crowd& crowd, const Character& character, float time_s);

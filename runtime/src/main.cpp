@@ -316,6 +316,7 @@ int run_view(GlContext& context, Renderer& renderer, const Bundle& bundle, const
     desc.count = o.count;
     desc.seed = o.seed;
     desc.layout = o.layout;
+    desc.spacing = crowd_spacing(model.radius);  // room for the character's own size
     uint32_t variations = 1;
     for (const MaterialInfo& m : bundle.manifest.materials) variations = std::max(variations, m.variations);
     Crowd crowd = make_crowd(desc, variations, bundle.manifest.outfit_count, float(model.frame_count) / model.frames_per_second);

@@ -173,6 +173,17 @@ void test_crowd_and_frames() {
     for (size_t i = 0; i < 100; ++i)
         for (size_t j = i + 1; j < 100; ++j) nearest = std::min(nearest, glm::distance(a.characters[i].start, a.characters[j].start));
     CHECK(nearest >= 0.5f * 1.6f - 1e-4f);
+    // Spacing from the character's size: human-sized and smaller keep 1.6 m; a robot whose impostor
+    // sphere has a 2.2 m radius gets 2.2 times it, and its neighbours stand as far apart in proportion.
+    CHECK(crowd_spacing(0) == 1.6f && crowd_spacing(0.95f) == 1.6f);
+    CHECK_NEAR(crowd_spacing(2.2f), 1.6 * 2.2, 1e-5);
+    CrowdDesc robots = desc;
+    robots.spacing = crowd_spacing(2.2f);
+    const Crowd big = make_crowd(robots, 3, 4, 1.0f);
+    float nearest_big = INFINITY;
+    for (size_t i = 0; i < 100; ++i)
+        for (size_t j = i + 1; j < 100; ++j) nearest_big = std::min(nearest_big, glm::distance(big.characters[i].start, big.characters[j].start));
+    CHECK(nearest_big >= 0.5f * crowd_spacing(2.2f) - 1e-4f && nearest_big > 1.6f);
 
     // Paths: walk along the heading, wrapped into the square.
     desc.layout = Layout::paths;

@@ -229,8 +229,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("fit", "bool", True,
               "refuse a garment that does not follow the character over the cache (simulated on another character)",
               ("--no-fit",), off_help="do not check the garment's fit on the character over the cache: bake one made for another character anyway"),
-    ParamSpec("animation", "name_or_index", 0, "the character's walk: a glTF animation name or index",
-              ("--animation",), "NAME|INDEX"),
+    ParamSpec("animation", "name_or_index", None, "the character's walk: a glTF animation name or index",
+              ("--animation",), "NAME|INDEX", optional=True,
+              derived="the only animation, else the one the cloth cache repeats after (crowdbake.ingest.clip_choice)"),
     ParamSpec("candidates", "int", 5, "cycle candidates kept by pass 1 and compared by the pass-2 edge metric (paper section 3)",
               ("--candidates",), "K", minimum=1, maximum=MAX_CANDIDATES),
     ParamSpec("cycle_views", "int", 5, "views of the pass-2 edge metric (paper: 5)",
@@ -301,7 +302,7 @@ class BakeParams:
     up: str | None = None
     units: str | None = None
     fit: bool = True
-    animation: int | str = 0
+    animation: int | str | None = None
     candidates: int = 5
     cycle_views: int = 5
     impostor_frames: int = 10

@@ -143,7 +143,8 @@ class BakeCreate(BaseModel):
     name: str = Field(pattern=NAME_PATTERN, examples=["sample-walker"])
     version: str = Field(pattern=VERSION_PATTERN, examples=["1.0.0"])
     character: str = Field(description="Id of a character asset.")
-    cloth: str = Field(description="Id of a cloth asset.")
+    cloth: str | None = Field(None, description="Id of a cloth asset. None: the body alone, its animation's own loop "
+                                                "sampled at params.fps (default 30), as `crowdbake bake` without --cloth.")
     textures: dict[str, str] = Field(default_factory=dict, description="File name (diffuse_*.png or diffuse_*.jpg, outfits.png) -> texture asset id.")
     cycle: str | None = Field(
         None, description="Id of a cycle asset (POST /v1/assets/cycles): bake this cycle instead of searching, as "

@@ -32,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("character", metavar="CHAR.glb", help="the skinned, animated character (glTF 2.0, .glb or .gltf)")
-    parser.add_argument("--cloth", required=True, metavar="CLOTH", help="the garment's simulated cache, many walk cycles: .pc2 or .mdd (with --cloth-mesh), .abc, or a .zip of OBJ frames")
+    parser.add_argument("--cloth", metavar="CLOTH", help="the garment's simulated cache, many walk cycles: .pc2 or .mdd (with --cloth-mesh), .abc, or a .zip of OBJ frames (none: the body alone, its animation's own loop sampled at --fps, default 30)")
     parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the garment's rest mesh (OBJ, cache point order); .pc2 and .mdd need it")
     parser.add_argument("--cycle", metavar="cycle.json", help="use this cycle (from `crowdbake cycle`) instead of searching")
     parser.add_argument("--textures", metavar="DIR", help="diffuse_*.png or diffuse_*.jpg variations (region codes in alpha: PNG only) and outfits.png (default: the glTF texture)")
@@ -180,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(_option_message(error)) from None
     inputs = BakeInputs(
         character=Path(args.character),
-        cloth=Path(args.cloth),
+        cloth=Path(args.cloth) if args.cloth else None,
         cloth_mesh=Path(args.cloth_mesh) if args.cloth_mesh else None,
         textures=Path(args.textures) if args.textures else None,
         cycle=Path(args.cycle) if args.cycle else None,
@@ -214,6 +214,9 @@ def run(args: argparse.Namespace) -> int:
         print(format_summary(summary))
         if summary.texture_note:
             print(f"textures {summary.texture_note}")
+        if summary.animation_choice:
+            choice = summary.animation_choice
+            print(f"animation {choice['name']!r} ({choice['frames']} frames) picked: {choice['reason']}")
         if args.figure4:
             print(f"figure 4 plot: {args.figure4}")
     return 0

@@ -19,6 +19,8 @@ def chosen_animation(character_info: dict[str, Any], animation: int | str = 0) -
     summaries = character_info.get("animations")
     if not isinstance(summaries, list):
         return None
+    if animation is None:  # not told: the validate stage picks (crowdbake.ingest.clip_choice); one is that one
+        return summaries[0] if len(summaries) == 1 else None
     names = [entry.get("name") for entry in summaries]
     if isinstance(animation, str):
         if animation in names:
@@ -50,6 +52,9 @@ def cycle_frames_for(character_info: dict[str, Any], cloth_info: dict[str, Any],
     rate = request_fps(cloth_info, fps)
     if cycle_frames is not None:
         return int(cycle_frames)
+    summaries = character_info.get("animations")
+    if animation is None and isinstance(summaries, list) and len(summaries) > 1:
+        return _shortest_fitting(summaries, int(cloth_info.get("frame_count", 0)), rate)
     summary = chosen_animation(character_info, animation)
     seconds = summary.get("seconds") if summary is not None else character_info.get("animation_seconds")
     frames = cycle_frames_from_animation(float(seconds or 0.0), rate)
@@ -86,3 +91,17 @@ def check_request_placement(character_info: dict[str, Any], cloth_info: dict[str
     except InputError as error:
         field = f"params.{error.field}" if error.field in ("up", "units") else "cloth"
         raise InputError(rest_wording(error.message), field) from None
+
+
+def _shortest_fitting(summaries: list[dict[str, Any]], cache_frames: int, fps: float) -> int:
+    """Several clips and none named: the validate stage picks among those the cache holds twice
+    (crowdbake.ingest.clip_choice); the request passes when one does (the shortest's length is returned).
+    InputError("params.animation") listing the clips when none does."""
+    from crowdbake.ingest.clip_choice import Clip, fitting_clips, no_fit_error
+
+    clips = [Clip(str(entry.get("name")), float(entry.get("seconds") or 0.0)) for entry in summaries]
+    fitting = fitting_clips(clips, cache_frames, fps)
+    if not fitting:
+        error = no_fit_error(clips, cache_frames, fps)
+        raise InputError(error.message, "params.animation")
+    return min(clips[k].frames(fps) for k in fitting)

@@ -28,16 +28,18 @@ def materialize_inputs(blobs: BlobStore, work: Path, bake: Bake, session: Sessio
     if inputs_dir.exists():
         shutil.rmtree(inputs_dir)
     character = session.get(Asset, bake.inputs["character"])
-    cloth = session.get(Asset, bake.inputs["cloth"])
-    if character is None or cloth is None:
+    cloth = session.get(Asset, bake.inputs["cloth"]) if bake.inputs.get("cloth") else None  # none: the body alone
+    if character is None or (cloth is None and bake.inputs.get("cloth")):
         raise InputError("an input asset no longer exists", "character" if character is None else "cloth")
     character_path = blobs.materialize(character.files["file"]["sha256"], inputs_dir / f"character.{character.info.get('format', 'glb')}")
-    # The cache keeps its format's extension (.pc2, .mdd, .abc): the validate stage reads it by extension.
-    cache_suffix = PurePosixPath(cloth.files["cache"].get("filename") or "cloth.pc2").suffix.lower() or ".pc2"
-    cloth_path = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / f"cloth{cache_suffix}")
-    mesh_path = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "cloth.obj") if "mesh" in cloth.files else None
+    cloth_path = mesh_path = None
+    if cloth is not None:
+        # The cache keeps its format's extension (.pc2, .mdd, .abc): the validate stage reads it by extension.
+        cache_suffix = PurePosixPath(cloth.files["cache"].get("filename") or "cloth.pc2").suffix.lower() or ".pc2"
+        cloth_path = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / f"cloth{cache_suffix}")
+        mesh_path = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "cloth.obj") if "mesh" in cloth.files else None
     textures_dir = None
-    assets = [character, cloth]
+    assets = [character] + ([cloth] if cloth is not None else [])
     if bake.inputs.get("textures"):
         textures_dir = inputs_dir / "textures"
         for name, asset_id in sorted(bake.inputs["textures"].items()):

@@ -28,6 +28,7 @@ from crowdbake.errors import InputError
 from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2, write_pc2
 from crowdbake.params import BASE_FPS, min_cloth_frames
+from crowdbake.stages.body_only import animation_loop_cycle
 from crowdbake.stages.cycle_report import report_html, write_cycle_plots, write_edge_images
 from crowdbake.stages.records import CycleRecord, JobRecord
 from crowdbake.stages.validate import load_job
@@ -108,7 +109,7 @@ def load_cycle_inputs(
     fps: float | None = None,
     up: str | None = None,
     units: str | None = None,
-    animation: int | str = 0,
+    animation: int | str | None = None,
 ) -> CycleInputs:
     """Read and cross-check the cycle search's input files. Raises ValueError with a one-line reason.
 
@@ -142,6 +143,11 @@ def load_cycle_inputs(
     if character is not None:
         from crowdbake.formats.gltf import load_character
 
+        if animation is None:  # not told: the clip the cloth repeats after (crowdbake.ingest.clip_choice)
+            from crowdbake.ingest.clip_choice import character_clips, choose_clip
+
+            clips = character_clips(character)
+            animation = choose_clip(clips, cache.frames, frame_rate).index if len(clips) > 1 and cycle_frames is None else 0
         loaded_character = load_character(character, animation=animation)
         # The garment must sit on the character before a minute of search is spent on it.
         from crowdbake.ingest.garment import body_at_rest
@@ -201,7 +207,7 @@ def run_cycle_job(
     params: CycleParams = CycleParams(),
     up: str | None = None,
     units: str | None = None,
-    animation: int | str = 0,
+    animation: int | str | None = None,
     progress: Progress | None = None,
     edge_pass: bool = True,
     plots: bool = True,
@@ -359,11 +365,16 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
     key = stage_key("cycle", folder.key_of("validate"))
     out = folder.root / "cycle"
     cycle_json, looped = out / "cycle.json", out / "looped.pc2"
-    cached = folder.cached("cycle", key, CycleRecord, [cycle_json, looped])
+    body_only = "cloth" not in job.inputs  # crowdbake.stages.body_only: the animation's own loop, no looped cloth
+    cached = folder.cached("cycle", key, CycleRecord, [cycle_json] if body_only else [cycle_json, looped])
     if cached is not None:
         return StageOutcome(cached, True, 0.0)
     out.mkdir(parents=True, exist_ok=True)
-    if "cycle" in job.inputs:
+    if body_only:
+        document = animation_loop_cycle(job.cycle_frames, job.fps)
+        write_json_atomic(cycle_json, document)
+        report(progress, "cycle", 1, 1)
+    elif "cycle" in job.inputs:
         document = _given_cycle(job, folder.inputs, cycle_json, looped, progress)
     else:
         document = _searched_cycle(job, folder.inputs, out, progress, plots)
@@ -378,6 +389,7 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
         velocity_jump_ratio=seam.get("velocity_jump_ratio"),
         fps=float((document.get("input") or {}).get("fps") or BASE_FPS),
         root_motion_removed=bool((document.get("root_motion") or {}).get("removed", False)),
+        source=document.get("source") or ("given" if "cycle" in job.inputs else "search"),
     )
     seconds = time.perf_counter() - started
     folder.save("cycle", key, record, seconds)

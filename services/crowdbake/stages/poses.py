@@ -101,6 +101,8 @@ def materials_of(job: JobRecord, inputs: Path, character, first_layer_only: bool
     else:
         body = np.full((4, 4, 4), 200, dtype=np.uint8)
         body[..., 3] = 0
+    if "cloth" not in names:  # no garment (crowdbake.stages.body_only): no garment material
+        return [{"name": "body", "layers": body[None]}], default_outfits()
     # The garment's UVs address no texture we were given: a plain white one in region 1 takes the outfit colour.
     garment = np.full((4, 4, 4), 255, dtype=np.uint8)
     garment[..., 3] = 17
@@ -127,6 +129,14 @@ def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> 
         offsets = estimate_root_offsets(everything)[start : start + frames]
         body_positions = (body_positions - offsets[:, None, :]).astype(np.float32)
 
+    body = poses.PartPoses(
+        faces=np.asarray(character.faces, dtype=np.uint32),
+        uvs=np.asarray(character.uvs, dtype=np.float32),
+        positions=np.asarray(body_positions, dtype=np.float32),
+        normals=poses.unit_normals(body_normals),
+    )
+    if "cloth" not in names:  # crowdbake.stages.body_only: the body is the whole character
+        return {"body": body}, {"body": "body"}, {"body": 0}
     mesh = read_obj(inputs / names["cloth_mesh"])
     looped = read_pc2(work.root / "cycle" / "looped.pc2")
     if looped.points.shape[0] != frames:
@@ -138,12 +148,7 @@ def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> 
     garment_uvs = mesh.uvs if mesh.uvs is not None else np.zeros((mesh.vertex_count, 2), np.float32)
     garment = job.garment_part
     high = {
-        "body": poses.PartPoses(
-            faces=np.asarray(character.faces, dtype=np.uint32),
-            uvs=np.asarray(character.uvs, dtype=np.float32),
-            positions=np.asarray(body_positions, dtype=np.float32),
-            normals=poses.unit_normals(body_normals),
-        ),
+        "body": body,
         garment: poses.PartPoses(
             faces=np.asarray(mesh.faces, dtype=np.uint32),
             uvs=np.asarray(garment_uvs, dtype=np.float32),

@@ -66,6 +66,9 @@ class JobRecord(Record):
     # records written before they were recorded.
     fps: float | None = None
     cloth_format: str = "pc2"
+    # The animation the bake picked when not told (crowdbake.ingest.clip_choice.ClipChoice: index, name,
+    # frames, reason); None when `animation` was given or the character has one.
+    animation_choice: dict[str, Any] | None = None
 
     @property
     def bake_params(self) -> BakeParams:
@@ -85,6 +88,9 @@ class CycleRecord(Record):
     velocity_jump_ratio: float | None
     fps: float
     root_motion_removed: bool
+    # Where the cycle came from: "search" (the cloth's, paper section 3), "given" (a cycle.json), or
+    # crowdbake.stages.body_only.ANIMATION_LOOP (no cloth: the animation's own loop).
+    source: str = "search"
 
 
 @dataclass

@@ -166,6 +166,8 @@ class BakeSummary:
     texture_memory: dict[str, Any]
     # Set when a texture variation is a JPEG (no alpha, so no colour-region codes): what that means.
     texture_note: str | None = None
+    # Set when the bake picked the animation itself (JobRecord.animation_choice): which and why.
+    animation_choice: dict[str, Any] | None = None
     timings: dict[str, Any] = field(default_factory=dict)
     # The plan's nodes as they ran, with their keys (crowdbake.stages.plan.Trace).
     nodes: list[dict[str, Any]] = field(default_factory=list)
@@ -266,6 +268,7 @@ def run_bake(inputs, out_root: Path, work: Path | None = None, progress: Progres
         compression=pack.compression,
         texture_memory=pack.texture_memory,
         texture_note=(job.textures or {}).get("note"),
+        animation_choice=job.animation_choice,
         timings=timings,
         nodes=trace.entries,
     )

@@ -41,13 +41,13 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class BakeInputs:
-    """The files and identity of one bake. cloth: .pc2 or .mdd (with cloth_mesh, an .obj), .abc or an
+    """The files and identity of one bake. cloth: None bakes the body alone (crowdbake.stages.body_only), or .pc2 or .mdd (with cloth_mesh, an .obj), .abc or an
     OBJ-sequence .zip (cloth_mesh None); textures: folder with diffuse_*.png or .jpg and outfits.png
     (optional: else the glTF's texture, one variation, default outfits); cycle: an existing cycle.json (skips the
     search); created: the manifest's RFC 3339 UTC time (see the module docstring when None)."""
 
     character: Path
-    cloth: Path
+    cloth: Path | None
     cloth_mesh: Path | None
     textures: Path | None
     cycle: Path | None
@@ -59,7 +59,7 @@ class BakeInputs:
     def to_dict(self) -> dict[str, Any]:
         return {
             "character": str(self.character),
-            "cloth": str(self.cloth),
+            "cloth": None if self.cloth is None else str(self.cloth),
             "cloth_mesh": None if self.cloth_mesh is None else str(self.cloth_mesh),
             "textures": None if self.textures is None else str(self.textures),
             "cycle": None if self.cycle is None else str(self.cycle),
@@ -78,7 +78,7 @@ class BakeInputs:
         try:
             return cls(
                 character=Path(data["character"]),
-                cloth=Path(data["cloth"]),
+                cloth=optional_path("cloth"),
                 cloth_mesh=optional_path("cloth_mesh"),
                 textures=optional_path("textures"),
                 cycle=optional_path("cycle"),
@@ -187,8 +187,12 @@ def _check_identity(inputs: BakeInputs) -> BakeParams:
 
 def _source_files(inputs: BakeInputs) -> dict[str, Path]:
     sources: dict[str, Path] = {}
-    wanted = [("character", (".glb", ".gltf")), ("cloth", CACHE_SUFFIXES)]
-    if inputs.cloth_mesh is not None or needs_mesh(inputs.cloth):
+    wanted = [("character", (".glb", ".gltf"))]
+    if inputs.cloth is not None:
+        wanted.append(("cloth", CACHE_SUFFIXES))
+    elif inputs.cloth_mesh is not None:
+        raise InputError("a cloth mesh was given without its cloth cache", "cloth")
+    if inputs.cloth is not None and (inputs.cloth_mesh is not None or needs_mesh(inputs.cloth)):
         wanted.append(("cloth_mesh", (".obj",)))
     for field_name, suffixes in wanted:
         value = getattr(inputs, field_name)
@@ -201,6 +205,8 @@ def _source_files(inputs: BakeInputs) -> dict[str, Path]:
             raise InputError(f"{path.name}: expected a {' or '.join(suffixes)} file", field_name)
         sources[field_name] = path
     if inputs.cycle is not None:
+        if inputs.cloth is None:
+            raise InputError("a cycle.json chooses a cycle of a cloth cache: give the cloth too", "cycle")
         if not Path(inputs.cycle).is_file():
             raise InputError(f"{inputs.cycle} does not exist or is not a file", "cycle")
         sources["cycle"] = Path(inputs.cycle)
@@ -213,20 +219,29 @@ class _Parsed:
     converted: the cloth's frame was changed (up axis or units)."""
 
     counts: dict[str, int]
-    cloth: ClothCache
+    cloth: ClothCache | None
     fps: float
     converted: bool
+    animation: int | str = 0
+    animation_choice: dict | None = None
 
 
 def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeParams) -> _Parsed:
     """Parse each input file once and cross-check them."""
+    if "cloth" not in sources:
+        return _parse_body_only(sources, params)
+    cache = read_cloth(sources["cloth"], sources.get("cloth_mesh"))
+    # Not told which animation: the one the cloth repeats after (crowdbake.ingest.clip_choice).
+    choice = None
+    if params.animation is None and params.cycle_frames is None:
+        choice = _choose_animation(sources["character"], cache, cache_fps(params.fps, cache.fps, cache.frame_step))
+    animation = choice.index if choice is not None else (params.animation if params.animation is not None else 0)
     try:
-        character = load_character(sources["character"], animation=params.animation)
+        character = load_character(sources["character"], animation=animation)
     except (ValueError, FormatError, OSError, KeyError) as error:
         text = str(error).splitlines()[0] if str(error) else type(error).__name__
-        field = "animation" if "animation" in text and params.animation != 0 else "character"
+        field = "animation" if "animation" in text and params.animation not in (0, None) else "character"
         raise InputError(f"{sources['character'].name}: {text}", field) from None
-    cache = read_cloth(sources["cloth"], sources.get("cloth_mesh"))
     if len(character.faces) == 0:
         raise InputError(f"{sources['character'].name} has no triangles", "character")
     # The garment must sit on the character: a Z-up or centimetre cache is refused (naming up / units) or
@@ -260,7 +275,34 @@ def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeP
         "cache_frames": int(cache.frame_count),
         "cycle_frames": int(cycle_frames),
     }
-    return _Parsed(counts, placed, fps, placed is not cache)
+    return _Parsed(counts, placed, fps, placed is not cache, animation, choice.to_json() if choice is not None else None)
+
+
+def _parse_body_only(sources: dict[str, Path], params: BakeParams) -> _Parsed:
+    from crowdbake.stages.body_only import body_only_counts
+
+    try:
+        character = load_character(sources["character"], animation=params.animation if params.animation is not None else 0)
+    except (ValueError, FormatError, OSError, KeyError) as error:
+        text = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise InputError(f"{sources['character'].name}: {text}", "animation" if "animation" in text else "character") from None
+    if len(character.faces) == 0:
+        raise InputError(f"{sources['character'].name} has no triangles", "character")
+    counts, fps, choice = body_only_counts(character, params, sources["character"].name)
+    if choice is not None:
+        logger.info("animation %r picked: %s", choice["name"], choice["reason"])
+    return _Parsed(counts, None, fps, False, params.animation if params.animation is not None else 0, choice)
+
+
+def _choose_animation(path: Path, cache: ClothCache, fps: float):
+    """choose_clip on the character's clips; a broken file is left to load_character to name."""
+    from crowdbake.ingest.clip_choice import character_clips, choose_clip
+
+    try:
+        clips = character_clips(path)
+    except (ValueError, FormatError, OSError, KeyError, TypeError, AttributeError):
+        return None
+    return choose_clip(clips, cache.frames, fps) if len(clips) > 1 else None
 
 
 def _copy_inputs(work: WorkDir, inputs: BakeInputs, sources: dict[str, Path], gltf_files: list[str],
@@ -285,7 +327,9 @@ def _copy_inputs(work: WorkDir, inputs: BakeInputs, sources: dict[str, Path], gl
         names["character"] = f"gltf/{character.name}"
     else:
         shutil.copy2(character, inputs_dir / names["character"])
-    if sources["cloth"].suffix.lower() == ".pc2" and not parsed.converted:
+    if parsed.cloth is None:
+        del names["cloth"], names["cloth_mesh"]
+    elif sources["cloth"].suffix.lower() == ".pc2" and not parsed.converted:
         shutil.copy2(sources["cloth"], inputs_dir / names["cloth"])
         shutil.copy2(sources["cloth_mesh"], inputs_dir / names["cloth_mesh"])
     else:
@@ -360,9 +404,9 @@ def stage_validate(inputs: BakeInputs, work: Path) -> StageOutcome[JobRecord]:
     created, created_from = _created(inputs.created, [*sources.values(), *texture_list])
     record = JobRecord(
         key=key, name=inputs.name, version=inputs.version, created=created, created_from=created_from,
-        params=params.to_dict(), inputs=names, hashes=hashes, garment_part=garment_part_name(sources.get("cloth_mesh", sources["cloth"])),
+        params={**params.to_dict(), "animation": parsed.animation}, animation_choice=parsed.animation_choice, inputs=names, hashes=hashes, garment_part=garment_part_name(sources.get("cloth_mesh", sources.get("cloth", Path("garment")))),
         textures=texture_info, producer=f"crowdbake {__version__}", **parsed.counts,
-        fps=parsed.fps, cloth_format=parsed.cloth.source,
+        fps=parsed.fps, cloth_format=parsed.cloth.source if parsed.cloth is not None else "none",
     )
     seconds = time.perf_counter() - started
     folder.save("validate", key, record, seconds)

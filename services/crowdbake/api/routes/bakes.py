@@ -127,6 +127,16 @@ def _check_cycle(character: Asset, cloth: Asset, cycle: Asset | None, params: di
                       [{"field": error.field, "message": error.message}]) from None
 
 
+def _check_body_only(character: Asset, cycle: Asset | None, params: dict[str, Any]) -> None:
+    """A bake without cloth (crowdbake.stages.body_only): no cycle to give or length to set, and the
+    character must have an animation to loop."""
+    if cycle is not None or params.get("cycle_frames") is not None:
+        field = "cycle" if cycle is not None else "params.cycle_frames"
+        raise Problem("validation-error", "a cycle applies to a cloth cache", [{"field": field, "message": "without cloth the cycle is the animation's own loop"}])
+    if not float((character.info or {}).get("animation_seconds") or 0.0) > 0 and not (character.info or {}).get("animations"):
+        raise Problem("validation-error", "the character has no animation to loop", [{"field": "character", "message": "a body without cloth needs its walk animation"}])
+
+
 def _check_texture_formats(textures: dict[str, Asset | None]) -> None:
     """A texture's name must say its format (the validate stage reads diffuse_*.jpg as JPEG)."""
     errors = []
@@ -165,19 +175,23 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
         raise Problem("forbidden", "publishing a bundle (publish or public true) needs the publish scope")
     errors: list[dict[str, Any]] = []
     character = _asset(session, body.character, "character", "character", errors, key)
-    cloth = _asset(session, body.cloth, "cloth", "cloth", errors, key)
+    cloth = _asset(session, body.cloth, "cloth", "cloth", errors, key) if body.cloth is not None else None
     textures = {name: _asset(session, asset_id, "texture", f"textures.{name}", errors, key) for name, asset_id in sorted(body.textures.items())}
     cycle = _asset(session, body.cycle, "cycle", "cycle", errors, key) if body.cycle is not None else None
     if errors:
         raise Problem("validation-error", "the bake names assets that do not exist", errors)
     params = body.params.model_dump()
     _check_params(params)
-    _check_cycle(character, cloth, cycle, params)
+    if cloth is not None:
+        _check_cycle(character, cloth, cycle, params)
+    else:
+        _check_body_only(character, cycle, params)
     _check_texture_formats(textures)
 
     digests = {
         "character": character.digest,
-        "cloth": {role: entry["sha256"] for role, entry in cloth.files.items()},
+        # Only when given, so the keys of bakes with cloth are what they were.
+        **({"cloth": {role: entry["sha256"] for role, entry in cloth.files.items()}} if cloth is not None else {}),
         "textures": {name: texture.digest for name, texture in textures.items()},
         # Only when given, so the keys of bakes that search their cycle are what they were.
         **({"cycle": {role: entry["sha256"] for role, entry in cycle.files.items()}} if cycle is not None else {}),
@@ -197,7 +211,7 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
 
     bake = bake_requests.create_bake(
         session, name=body.name, version=body.version, params=params,
-        inputs={"character": character.id, "cloth": cloth.id, "textures": {name: texture.id for name, texture in textures.items()},
+        inputs={"character": character.id, **({"cloth": cloth.id} if cloth is not None else {}), "textures": {name: texture.id for name, texture in textures.items()},
                 **({"cycle": cycle.id} if cycle is not None else {}), **({"created": body.created} if body.created is not None else {})},
         key=key_digest, publish=body.publish, public=body.public, created_by=key.key_id,
     )

@@ -1,0 +1,160 @@
+"""Which of a character's animations drove the cloth, when the bake was not told (`animation` not given).
+
+A character exported with several clips (Idle, Walk, Run...) and a cloth simulated on one of them: the
+first clip is not necessarily the walk. The rule, in two steps:
+
+1. A clip *fits* when its length in cache frames, round(duration x fps), is at least MIN_CYCLE_FRAMES and
+   the cache holds two repetitions of it (the cycle search compares frames one cycle apart:
+   crowdbake.params.min_cloth_frames).
+2. Among the clips that fit, the one the cloth repeats best after: the cloth's shape (each frame's
+   vertices minus their mean, so that walking forward does not count) is compared with itself one clip
+   length later, `repeat_gap`; the smallest RMS gap wins, the shorter clip on a tie. A cloth driven by a
+   24-frame walk comes back after 24 frames; after a 12-frame clip it is half a stride off. A clip that
+   loops (every channel ends where it starts: a walk, not a fall) goes before one that does not, since the
+   bake tiles the body's clip. Clips of one length that loop alike tie (the cloth cannot tell a 23-frame
+   walk from a 23-frame run): the first in the file is taken and the reason names the others.
+
+One animation, or `animation` given by name or index: that one, no search. No clip that fits: an
+InputError listing every clip with its length in frames.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from crowdbake.errors import InputError
+from crowdbake.params import MIN_CYCLE_FRAMES, min_cloth_frames
+
+logger = logging.getLogger(__name__)
+
+# A channel loops when its last key is this close to its first (metres, quaternion or scale components):
+# exported cycles repeat their first key exactly or to a few 1e-4; a fall or a sit ends 0.5 away.
+LOOP_TOLERANCE = 1e-2
+
+
+@dataclass(frozen=True)
+class Clip:
+    """One animation of the character: its name and length in seconds."""
+
+    name: str
+    seconds: float
+    loops: bool = True
+
+    def frames(self, fps: float) -> int:
+        """Its length in cache frames at `fps` (rounded: a clip of 0.958 s at 24 fps is 23 frames)."""
+        return int(round(self.seconds * fps))
+
+
+@dataclass(frozen=True)
+class ClipChoice:
+    """The animation a bake uses and why: index into the file's animations, name, length in cache
+    frames, and a one-line reason (logged, and kept in the JobRecord as `animation_choice`)."""
+
+    index: int
+    name: str
+    frames: int
+    reason: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {"index": self.index, "name": self.name, "frames": self.frames, "reason": self.reason}
+
+
+def character_clips(path: str | Path) -> list[Clip]:
+    """Every animation of a .glb/.gltf, in file order, with its duration (the last keyframe time of any
+    of its samplers). Reads the document only, no mesh. ValueError for a broken file (as load_character)."""
+    from crowdbake.formats.gltf.document import open_document
+
+    doc = open_document(Path(path))
+    clips = []
+    for index, animation in enumerate(doc.gltf.animations or []):
+        seconds, loops = 0.0, True
+        for sampler in animation.samplers or []:
+            times = doc.accessor(sampler.input)
+            if len(times):
+                seconds = max(seconds, float(np.max(times)))
+                loops = loops and _channel_loops(doc.accessor(sampler.output), len(times), sampler.interpolation)
+        clips.append(Clip(animation.name or f"animation{index}", seconds, loops))
+    return clips
+
+
+def _channel_loops(values: np.ndarray, keys: int, interpolation: str | None) -> bool:
+    """Whether a sampler's last value is its first (LOOP_TOLERANCE); q and -q are one rotation."""
+    if interpolation == "CUBICSPLINE" and len(values) == 3 * keys:
+        values = values.reshape(keys, 3, -1)[:, 1]  # (in-tangent, value, out-tangent) per key
+    if len(values) < 2:
+        return True
+    first, last = np.asarray(values[0], np.float64), np.asarray(values[-1], np.float64)
+    gap = np.abs(first - last)
+    if gap.size == 4:
+        gap = np.minimum(gap, np.abs(first + last))
+    return bool(gap.max() <= LOOP_TOLERANCE)
+
+
+def fitting_clips(clips: list[Clip], cache_frames: int, fps: float) -> list[int]:
+    """Indices of the clips the cycle search can use on a cache of `cache_frames` frames at `fps`."""
+    return [k for k, clip in enumerate(clips)
+            if clip.frames(fps) >= MIN_CYCLE_FRAMES and cache_frames >= min_cloth_frames(clip.frames(fps))]
+
+
+def clips_text(clips: list[Clip], fps: float) -> str:
+    return ", ".join(f"{clip.name!r} ({clip.frames(fps)} frames)" for clip in clips)
+
+
+def no_fit_error(clips: list[Clip], cache_frames: int, fps: float) -> InputError:
+    return InputError(
+        f"no animation of the character fits the cloth cache: its {cache_frames} frames at {fps:g} fps hold two "
+        f"repetitions of none of {clips_text(clips, fps)}; name the walk with `animation` (and give cycle_frames)",
+        "animation",
+    )
+
+
+def repeat_gap(cloth: np.ndarray, lag: int) -> float:
+    """RMS distance (metres) between the cloth's shape at frame t and at t + lag, over every t.
+
+    cloth: (F, V, 3) float, F > lag >= 1. The shape is each frame's vertices minus their mean."""
+    frames = np.asarray(cloth, dtype=np.float64)
+    if frames.ndim != 3 or frames.shape[2] != 3:
+        raise ValueError(f"cloth must be (F, V, 3), got {frames.shape}")
+    if not 1 <= lag < frames.shape[0]:
+        raise ValueError(f"lag {lag} must lie in 1..{frames.shape[0] - 1}")
+    shape = frames - frames.mean(axis=1, keepdims=True)
+    return float(np.sqrt(np.mean(np.sum((shape[lag:] - shape[:-lag]) ** 2, axis=2))))
+
+
+def choose_clip(clips: list[Clip], cloth: np.ndarray, fps: float) -> ClipChoice:
+    """The clip the cloth was simulated on (see the module docstring). cloth: (F, V, 3) frames at `fps`.
+    InputError("animation") listing the clips when none fits."""
+    if not clips:
+        raise InputError("the character has no animation: give cycle_frames", "animation")
+    if len(clips) == 1:
+        return ClipChoice(0, clips[0].name, clips[0].frames(fps), "the character's only animation")
+    cache_frames = int(np.asarray(cloth).shape[0])
+    fitting = fitting_clips(clips, cache_frames, fps)
+    if not fitting:
+        raise no_fit_error(clips, cache_frames, fps)
+    if len(fitting) == 1:
+        index = fitting[0]
+        reason = (f"the only one of {len(clips)} animations ({clips_text(clips, fps)}) whose two repetitions the "
+                  f"{cache_frames}-frame cloth cache holds")
+    else:
+        gaps = {k: round(repeat_gap(cloth, clips[k].frames(fps)), 6) for k in fitting}
+
+        def rank(k: int) -> tuple:
+            return (not clips[k].loops, gaps[k], clips[k].frames(fps))
+
+        index = min(fitting, key=lambda k: (rank(k), k))
+        listed = ", ".join(f"{clips[k].name!r} {clips[k].frames(fps)} frames {1000 * gaps[k]:.1f} mm"
+                           + ("" if clips[k].loops else " (does not loop)") for k in fitting)
+        reason = (f"of {len(fitting)} animations the cloth cache could hold twice, the one after whose length the cloth "
+                  f"repeats best (RMS shape gap: {listed})")
+        tied = [clips[k].name for k in fitting if k != index and rank(k) == rank(index)]
+        if tied:
+            reason += f"; {', '.join(repr(name) for name in tied)} tie with it: name the walk with `animation`"
+    clip = clips[index]
+    choice = ClipChoice(index, clip.name, clip.frames(fps), reason)
+    logger.info("animation %r (%d frames) picked: %s", choice.name, choice.frames, choice.reason)
+    return choice
