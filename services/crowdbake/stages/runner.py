@@ -109,7 +109,7 @@ def _execute(work: Path, inputs, destination: LocalDestination, pool: ProcessPoo
         for future in futures:
             it, own = pending.pop(future)
             if own is not None:
-                own.shutdown(wait=False)
+                own.shutdown(wait=True)  # its one process has exited: wait, or its manager thread races the shutdown
             finished(it, future.result(), in_worker=True)
 
     try:

@@ -54,7 +54,10 @@ const authHeaders = key ? { Authorization: `Bearer ${key}` } : {};
 const LIGHT_DIR = new THREE.Vector3(0.4, 0.8, 0.45).normalize();
 const SKY = [0.62, 0.70, 0.78];
 const FOV_Y_DEG = 45;
-const SPACING_M = 1.6;
+// crowdview's crowd_spacing (crowd.cpp): 1.6 m up to an impostor radius of 1 m, in proportion above it.
+const HUMAN_SPACING_M = 1.6;
+const HUMAN_RADIUS_M = 1.0;
+const crowdSpacing = (radius) => (radius > HUMAN_RADIUS_M ? HUMAN_SPACING_M * radius / HUMAN_RADIUS_M : HUMAN_SPACING_M);
 const OVERVIEW_PITCH = 0.35;
 
 // crowdview's Rng (splitmix64), so a seed gives the same headings, phases, variations and outfits.
@@ -72,16 +75,16 @@ class Rng {
 }
 
 // crowdview's make_crowd (on the spot): a jittered grid, random heading, phase, variation, outfit.
-function makeCrowd(n, variations, outfits, cycleSeconds) {
+function makeCrowd(n, variations, outfits, cycleSeconds, spacing) {
   const rng = new Rng(seed);
   const side = Math.ceil(Math.sqrt(n));
-  const half = 0.5 * SPACING_M * Math.max(side, 1);
+  const half = 0.5 * spacing * Math.max(side, 1);
   const characters = [];
   for (let i = 0; i < n; i++) {
     const row = Math.floor(i / side), column = i % side;
     // crowdview's compiler evaluates the glm::vec3 arguments right to left: z's jitter comes first.
-    const z = (row + 0.5) * SPACING_M - half + rng.uniform(-0.25, 0.25) * SPACING_M;
-    const x = (column + 0.5) * SPACING_M - half + rng.uniform(-0.25, 0.25) * SPACING_M;
+    const z = (row + 0.5) * spacing - half + rng.uniform(-0.25, 0.25) * spacing;
+    const x = (column + 0.5) * spacing - half + rng.uniform(-0.25, 0.25) * spacing;
     characters.push({
       position: new THREE.Vector3(x, 0, z),
       heading: rng.uniform(0, 2 * Math.PI),
@@ -251,7 +254,7 @@ async function main() {
   document.body.appendChild(renderer.domElement);
 
   const characterHeight = impostor.bounds.center[1] + impostor.bounds.radius;
-  const crowd = makeCrowd(count, Math.max(...variations), sidecar.outfits.count, frameCount / fps);
+  const crowd = makeCrowd(count, Math.max(...variations), sidecar.outfits.count, frameCount / fps, crowdSpacing(impostor.bounds.radius));
   const camera = overviewCamera(crowd.half, characterHeight, width / height);
   const rule = lodBoundaries(impostor, height);
   const forward = camera.getWorldDirection(new THREE.Vector3());
