@@ -1,0 +1,193 @@
+"""Several clips in one cloth simulation: the timeline, and a loop per clip (paper section 3, per clip).
+
+A cloth cache simulated while the character plays clip after clip (Idle, then Walking, then Running...)
+holds, for each clip, stretches of frames driven by that clip alone (the *pure* frames: between the blends
+where one clip fades into the next). The timeline says which clip, at which clip frame, plays at each
+cache frame (crowdbake.ingest.timeline reads and checks it).
+
+    find_clip_loops(cloth, cloth_faces, timeline, params, ...) -> list[ClipLoop]
+
+runs the single-clip cycle search (crowdbake.bake.cycle.find_cycle: pass 1, pass 2, closing, quality) on
+each pure stretch of a clip, with the cycle length = that clip's period, and keeps the best loop of each
+clip. A clip met twice (Walking before and after Running) competes over both stretches; the loop never
+spans a blend, so its frames are the clip's motion only. The transitions between the loops are
+crowdbake.bake.transitions.
+
+Pure numpy; no I/O.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from crowdbake.bake.cycle import CycleParams, CycleResult, RenderViews, find_cycle
+
+Progress = Callable[[str, int, int], None]
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One strip of the timeline: `clip` plays over cache frames first_frame..last_frame (inclusive), alone
+    over pure_first_frame..pure_last_frame (the rest blends with the strip before or after); clip_frames:
+    the clip's period in cache frames."""
+
+    clip: str
+    first_frame: int
+    last_frame: int
+    pure_first_frame: int
+    pure_last_frame: int
+    clip_frames: int
+
+    @property
+    def pure_frames(self) -> int:
+        return self.pure_last_frame - self.pure_first_frame + 1
+
+
+@dataclass(frozen=True)
+class Timeline:
+    """Which clip plays at each cache frame.
+
+    fps: the cache's frame rate; total_frames: F; segments: in playing order, pure stretches disjoint;
+    clip_frame: (F,) int64, the playing clip's frame at each cache frame (the newest clip during a blend).
+    """
+
+    fps: float
+    total_frames: int
+    segments: tuple[Segment, ...]
+    clip_frame: np.ndarray = field(repr=False)
+
+    def clips(self) -> list[str]:
+        """Clip names in order of first appearance."""
+        return list(dict.fromkeys(s.clip for s in self.segments))
+
+    def period(self, clip: str) -> int:
+        return next(s.clip_frames for s in self.segments if s.clip == clip)
+
+    def changes(self) -> list[tuple[int, int]]:
+        """(segment index A, segment index B = A + 1) for every change of clip the simulation made."""
+        return [(k, k + 1) for k in range(len(self.segments) - 1) if self.segments[k].clip != self.segments[k + 1].clip]
+
+
+@dataclass
+class ClipLoop:
+    """The loop of one clip: the cycle search's result on one pure stretch of it.
+
+    segment: index of the timeline segment the loop was cut from; offset: that stretch's first cache frame
+    (result's frames count from it); start_frame/end_frame: Fs and Fe in cache frames; clip_phase: the
+    clip frame at Fs (loop frame k shows clip frame (clip_phase + k) mod period).
+    """
+
+    clip: str
+    period: int
+    segment: int
+    offset: int
+    result: CycleResult
+    clip_phase: int
+
+    @property
+    def start_frame(self) -> int:
+        return self.offset + self.result.start_frame
+
+    @property
+    def end_frame(self) -> int:
+        return self.offset + self.result.end_frame
+
+    @property
+    def looped(self) -> np.ndarray:
+        """(L, V, 3) float32: the closed loop."""
+        return self.result.looped
+
+    def to_dict(self) -> dict:
+        """This clip's entry of cycle.json's `clips`: the single-clip document with cache frame numbers."""
+        document = self.result.to_dict()
+        shift = self.offset
+        for key in ("start_frame", "end_frame"):
+            document[key] += shift
+        for candidate in document["candidates"]:
+            candidate["start_frame"] += shift
+            candidate["end_frame"] += shift
+        for curve in document["vertex_distance_curves"]:
+            curve["first_start_frame"] += shift
+        document.pop("schema_version", None)
+        document.pop("parameters", None)  # the same for every clip: the top level's
+        return {"clip": self.clip, "period": self.period, "segment": self.segment, "clip_phase": self.clip_phase,
+                "searched_frames": [shift, shift + self.result.frame_count - 1], **document}
+
+
+def clip_stretches(timeline: Timeline, clip: str) -> list[tuple[int, int, int]]:
+    """(segment index, first, last) pure cache frames (inclusive) of every segment of `clip`, in order."""
+    return [(k, s.pure_first_frame, s.pure_last_frame) for k, s in enumerate(timeline.segments) if s.clip == clip]
+
+
+def _loop_rank(result: CycleResult) -> tuple:
+    """Order of loops cut from different stretches: within the quality bounds first, then by the score
+    the search itself ranks by (pass-2 edge distance when it ran, else the pass-1 distance)."""
+    winner = result.candidates[result.chosen]
+    quality = result.closing.quality
+    score = winner.edge_distance if winner.edge_distance is not None else winner.vertex_distance
+    return (quality is not None and not quality.within_bounds, score)
+
+
+def find_clip_loop(
+    cloth: np.ndarray,
+    cloth_faces: np.ndarray,
+    timeline: Timeline,
+    clip: str,
+    params: CycleParams = CycleParams(),
+    render_views: RenderViews | None = None,
+    body: np.ndarray | None = None,
+    body_faces: np.ndarray | None = None,
+) -> ClipLoop:
+    """The best closed loop of `clip` over its pure stretches.
+
+    cloth: (F, V, 3) float cache (F = timeline.total_frames); cloth_faces: (T, 3) int; body: (F, Vb, 3)
+    posed at the timeline's clip frames (only the clip's pure frames are read) or None. Stretch ratios use
+    the cache's first frame as the rest shape, as for one clip. Raises ValueError naming the clip when
+    none of its stretches holds two periods plus the search's window.
+    """
+    period = timeline.period(clip)
+    rest = np.asarray(cloth[0], dtype=np.float64)
+    found: list[tuple[int, int, CycleResult]] = []
+    reasons: list[str] = []
+    for segment, first, last in clip_stretches(timeline, clip):
+        rows = slice(first, last + 1)
+        try:
+            result = find_cycle(
+                cloth[rows], cloth_faces, None if body is None else body[rows], body_faces, period, params,
+                render_views, rest_positions=rest,
+            )
+        except ValueError as error:
+            reasons.append(f"frames {first}..{last}: {error}")
+            continue
+        found.append((segment, first, result))
+    if not found:
+        raise ValueError(f"clip {clip!r} ({period} frames): no pure stretch holds a loop ({'; '.join(reasons)})")
+    segment, first, result = min(found, key=lambda item: _loop_rank(item[2]))
+    phase = int(timeline.clip_frame[first + result.start_frame]) % period
+    return ClipLoop(clip, period, segment, first, result, phase)
+
+
+def find_clip_loops(
+    cloth: np.ndarray,
+    cloth_faces: np.ndarray,
+    timeline: Timeline,
+    params: CycleParams = CycleParams(),
+    render_views: RenderViews | None = None,
+    body: np.ndarray | None = None,
+    body_faces: np.ndarray | None = None,
+    progress: Progress | None = None,
+) -> list[ClipLoop]:
+    """find_clip_loop for every clip of the timeline, in order of first appearance."""
+    cloth = np.asarray(cloth)
+    if cloth.ndim != 3 or cloth.shape[0] != timeline.total_frames:
+        raise ValueError(f"the timeline covers {timeline.total_frames} frames, the cloth cache has shape {cloth.shape}")
+    report = progress or (lambda stage, done, total: None)
+    clips = timeline.clips()
+    loops = []
+    for done, clip in enumerate(clips):
+        report("clip loops", done, len(clips))
+        loops.append(find_clip_loop(cloth, cloth_faces, timeline, clip, params, render_views, body, body_faces))
+    report("clip loops", len(clips), len(clips))
+    return loops
