@@ -17,7 +17,7 @@ Pure numpy; no I/O.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -99,21 +99,32 @@ class ClipLoop:
         """(L, V, 3) float32: the closed loop."""
         return self.result.looped
 
-    def to_dict(self) -> dict:
-        """This clip's entry of cycle.json's `clips`: the single-clip document with cache frame numbers."""
-        document = self.result.to_dict()
+    def cache_result(self, cache_frames: int) -> CycleResult:
+        """The search's result with cache frame numbers (its own count from the stretch's first frame);
+        cache_frames: the whole cache's length, recorded as input.frame_count."""
         shift = self.offset
-        for key in ("start_frame", "end_frame"):
-            document[key] += shift
-        for candidate in document["candidates"]:
-            candidate["start_frame"] += shift
-            candidate["end_frame"] += shift
-        for curve in document["vertex_distance_curves"]:
-            curve["first_start_frame"] += shift
+        result = self.result
+        return replace(
+            result,
+            start_frame=result.start_frame + shift,
+            end_frame=result.end_frame + shift,
+            candidates=[replace(c, start_frame=c.start_frame + shift, end_frame=c.end_frame + shift) for c in result.candidates],
+            curves=[replace(curve, start_frames=curve.start_frames + shift) for curve in result.curves],
+            settle_frames=result.settle_frames + shift,
+            frame_count=cache_frames,
+            # Root positions are indexed by frame: the stretch's own, after `shift` unused rows.
+            root_offsets=None if result.root_offsets is None else np.concatenate([np.zeros((shift, 3)), result.root_offsets]),
+        )
+
+    def to_dict(self, cache_frames: int) -> dict:
+        """This clip's entry of cycle.json's `clips`: the single-clip document in cache frame numbers,
+        without what every clip shares (schema_version, parameters: the top level's)."""
+        document = self.cache_result(cache_frames).to_dict()
         document.pop("schema_version", None)
-        document.pop("parameters", None)  # the same for every clip: the top level's
+        document.pop("parameters", None)
+        first, last = self.offset, self.offset + self.result.frame_count - 1
         return {"clip": self.clip, "period": self.period, "segment": self.segment, "clip_phase": self.clip_phase,
-                "searched_frames": [shift, shift + self.result.frame_count - 1], **document}
+                "searched_frames": [first, last], **document}
 
 
 def clip_stretches(timeline: Timeline, clip: str) -> list[tuple[int, int, int]]:

@@ -241,6 +241,8 @@ def report_html(result: CycleResult, document: dict) -> str:
         )
         if name in files
     )
+    from crowdbake.stages.clip_loops import clips_report_html
+
     root = ""
     if document.get("root_motion"):
         root = f"<p>The character travels: the search and the loop are in the root's frame (root offset per loop {document['root_motion']['offset_per_loop']}).</p>"
@@ -261,6 +263,7 @@ It was chosen by {document['selected_by'].replace('_', ' ')} among {len(result.c
 <b>{html.escape(closing.method)}</b>{f' over {closing.blend_frames} frames' if closing.blend_frames else ''}.
 The push-out moved {closing.pushed_vertices} vertex-frames.</p>
 {root}
+{clips_report_html(document)}
 <h2>Candidates</h2>{candidates}
 {quality}
 <h2>Seam</h2>
