@@ -312,6 +312,9 @@ def bundle_cycle_document(document: dict) -> dict:
     cleaned.pop("files", None)
     if isinstance(cleaned.get("input"), dict):
         cleaned["input"].pop("sources", None)
+    for entry in [*cleaned.get("clips", []), *cleaned.get("transitions", [])]:  # several clips: work files, not the bundle's
+        entry.pop("file", None)
+        entry.pop("timings_s", None)
     return cleaned
 
 
@@ -368,6 +371,7 @@ def _searched_cycle(job: JobRecord, inputs: Path, out: Path, progress: Progress 
             animation=params.animation,
             progress=forward,
             plots=plots is None,
+            timeline=inputs / names["timeline"] if "timeline" in names else None,
         )
     except ValueError as error:
         raise InputError(f"cycle search: {error}", "cloth") from None
@@ -412,6 +416,7 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
         fps=float((document.get("input") or {}).get("fps") or BASE_FPS),
         root_motion_removed=bool((document.get("root_motion") or {}).get("removed", False)),
         source=document.get("source") or ("given" if "cycle" in job.inputs else "search"),
+        clip_phase=document.get("clip_phase"),
     )
     seconds = time.perf_counter() - started
     folder.save("cycle", key, record, seconds)

@@ -122,7 +122,8 @@ def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> 
     stages run side by side from the cycle's output and agree to the bit."""
     inputs, names = work.inputs, job.inputs
     fps, start, frames = cycle.fps, cycle.start_frame, cycle.cycle_frames
-    body_positions, body_normals = pose_body_cycle(character, fps, start, frames)
+    # With several clips the loop's first frame is at its clip frame, not at start_frame / fps.
+    body_positions, body_normals = pose_body_cycle(character, fps, start if cycle.clip_phase is None else cycle.clip_phase, frames)
     if cycle.root_motion_removed:
         # The cycle search worked in the root's frame (the character travels): follow it for the body.
         everything, _ = pose_body_cycle(character, fps, 0, job.cache_frames)

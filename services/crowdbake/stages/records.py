@@ -91,6 +91,9 @@ class CycleRecord(Record):
     # Where the cycle came from: "search" (the cloth's, paper section 3), "given" (a cycle.json), or
     # crowdbake.stages.body_only.ANIMATION_LOOP (no cloth: the animation's own loop).
     source: str = "search"
+    # Several clips (crowdbake.stages.clip_loops): the clip frame at start_frame, where the body's pose
+    # starts (the cache frame number is not the clip's time); None: frame f is at time f / fps.
+    clip_phase: int | None = None
 
 
 @dataclass
