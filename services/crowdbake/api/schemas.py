@@ -57,7 +57,7 @@ class StoredFile(BaseModel):
     media_type: str
 
 
-AssetKind = Literal["character", "cloth", "texture", "cycle"]
+AssetKind = Literal["character", "cloth", "texture", "cycle", "timeline"]
 
 
 class AssetPublic(BaseModel):
@@ -149,6 +149,10 @@ class BakeCreate(BaseModel):
     cycle: str | None = Field(
         None, description="Id of a cycle asset (POST /v1/assets/cycles): bake this cycle instead of searching, as "
                           "`crowdbake bake --cycle`. Its frames must lie within the cloth's.")
+    timeline: str | None = Field(
+        None, description="Id of a timeline asset (POST /v1/assets/timelines): the cloth plays several clips, as "
+                          "`crowdbake bake --timeline`; cycle.json gains a loop per clip and a transition per change of clip, "
+                          "and the bundle carries params.animation's loop (default: the timeline's first clip).")
     params: BakeParamsIn = Field(default_factory=BakeParamsIn)
     # `created` stands beside name and version, not among BakeParams: like them it is what the manifest
     # says about the bundle, not how it is baked (no stage but pack reads it, and it is passed to

@@ -170,3 +170,44 @@ def check_timeline_fits(timeline: Timeline, frame_count: int, fps: float | None,
         if frames != s.clip_frames:
             raise _refuse(name, f"/segments/{k}/clip_frames",
                           f"is {s.clip_frames}, but {s.clip!r} lasts {clips[s.clip]:.4g} s = {frames} frames at {timeline.fps:g} fps")
+
+
+def check_timeline_upload(path: Path, filename: str) -> dict[str, Any]:
+    """Validate an uploaded timeline.json (POST /v1/assets/timelines); UploadRejected with the JSON pointer
+    as `where`. Returns what the bake request's check needs: {fps, total_frames, clips: {name: frames}}."""
+    from crowdbake.ingest.uploads import INVALID_FILE, FieldError, UploadRejected, expect_format
+
+    expect_format(path, filename, "timeline", {".json": "gltf"})  # sniff_format calls any JSON object "gltf"
+    try:
+        timeline = read_timeline(path, filename)
+    except InputError as error:
+        where = getattr(error, "pointer", None)
+        raise UploadRejected(INVALID_FILE, "the timeline cannot be used", [FieldError("timeline", error.message, filename, where or None)]) from None
+    return {"fps": timeline.fps, "total_frames": timeline.total_frames, "clips": {clip: timeline.period(clip) for clip in timeline.clips()},
+            "segments": len(timeline.segments)}
+
+
+def check_timeline_request(timeline_info: dict[str, Any], character_info: dict[str, Any], cloth_info: dict[str, Any],
+                           fps: float, animation: int | str | None) -> None:
+    """A bake request's timeline against its cloth and character, from what the uploads recorded (as the
+    validate stage checks the files): TimelineFieldError for the frame count, the rate or a clip the
+    character lacks; InputError("params.animation") for an animation the timeline does not play."""
+    from crowdbake.ingest.studio_inputs import MAX_ANIMATION_SUMMARIES
+
+    total, rate, periods = timeline_info["total_frames"], float(timeline_info["fps"]), timeline_info["clips"]
+    if total != cloth_info.get("frame_count"):
+        raise _refuse("timeline", "/total_frames", f"is {total}, but the cloth cache has {cloth_info.get('frame_count')} frames")
+    if not math.isclose(rate, fps, rel_tol=FPS_TOLERANCE):
+        raise _refuse("timeline", "/fps", f"is {rate:g}, but the cloth cache plays at {fps:g} frames per second")
+    summaries = character_info.get("animations")
+    if isinstance(summaries, list) and len(summaries) < MAX_ANIMATION_SUMMARIES:  # every clip is known
+        seconds = {entry.get("name"): float(entry.get("seconds") or 0.0) for entry in summaries}
+        for clip, frames in periods.items():
+            if clip not in seconds:
+                listed = ", ".join(repr(name) for name in seconds) or "none"
+                raise _refuse("timeline", "/segments", f"names {clip!r}, which the character lacks (it has {listed})")
+            if int(round(seconds[clip] * rate)) != frames:
+                raise _refuse("timeline", "/segments", f"gives {clip!r} {frames} frames, but it lasts {seconds[clip]:.4g} s = "
+                                                       f"{int(round(seconds[clip] * rate))} frames at {rate:g} fps")
+    if animation is not None and animation not in periods:
+        raise InputError(f"animation {animation!r} is not a clip of the timeline (it plays {', '.join(periods)}): name one of them", "params.animation")
