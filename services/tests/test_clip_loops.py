@@ -212,3 +212,23 @@ def test_robot_clips_loops_and_transitions_keep_the_bounds(shared_asset):
     renamed = replace(timeline, segments=(replace(timeline.segments[0], clip="Sleeping"), *timeline.segments[1:]))
     with pytest.raises(TimelineFieldError, match="'Sleeping', which the character lacks \\(it has .*'Idle'.*'Running'"):
         check_timeline_fits(renamed, cache.sample_count, 24.0, clips)
+
+
+def test_bake_refuses_a_timeline_that_does_not_fit_in_one_line(shared_asset, tmp_path, capsys):
+    """`crowdbake bake --timeline` checks the timeline against the character before any stage runs."""
+    robot, cache, mesh = (shared_asset(f"robot_clips/{name}") for name in ("robot.glb", "garment.pc2", "garment.obj"))
+    document = json.loads(shared_asset("robot_clips/timeline.json").read_text())
+    document.pop("frames")
+    document["segments"][2]["clip"] = "Sleeping"
+    (tmp_path / "sleepy.json").write_text(json.dumps(document))
+    base = ["bake", str(robot), "--cloth", str(cache), "--cloth-mesh", str(mesh), "--name", "robot", "--version", "1", "--out", str(tmp_path / "out")]
+    assert main([*base, "--timeline", str(tmp_path / "sleepy.json")]) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(
+        "crowdbake bake: error: --timeline: sleepy.json: /segments/2/clip names 'Sleeping', which the character lacks (it has "), lines
+    assert "'Running'" in lines[0]
+    document["segments"][2]["clip"] = "Running"
+    document["total_frames"] = 800
+    (tmp_path / "short.json").write_text(json.dumps(document))
+    assert main([*base, "--timeline", str(tmp_path / "short.json")]) == 2
+    assert "--timeline: short.json: /total_frames is 800, but the cloth cache has 717 frames" in capsys.readouterr().err
