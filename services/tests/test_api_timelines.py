@@ -124,3 +124,37 @@ def test_a_timeline_needs_cloth_and_no_cycle(api, assets):
     assert response.status_code == 422 and response.json()["errors"][0]["field"] == "cloth"
     wrong_kind = api.client.post("/v1/bakes", json=bake_body(assets, timeline=assets["cloth"]), headers=api.auth("ci"))
     assert wrong_kind.status_code == 422 and wrong_kind.json()["errors"][0]["field"] == "timeline"
+
+
+def test_submit_uploads_the_timeline_and_names_it_in_the_bake(api, assets, tmp_path, capsys):
+    """`crowdbake submit --timeline`: checked locally (a missing file, or with --cycle, is exit 2), then uploaded
+    to /v1/assets/timelines and named in the bake request, which the server takes (202)."""
+    from crowdbake.client.http import Server
+    from crowdbake.client.submit import bake_body as client_body
+    from crowdbake.client.submit import build_parser, check_locally, run, upload
+
+    points, faces = tiny_cloth(frames=CLOTH_FRAMES)
+    (tmp_path / "walker.glb").write_bytes(tiny_character_glb())
+    (tmp_path / "c.pc2").write_bytes(pc2_bytes(points))
+    (tmp_path / "c.obj").write_bytes(obj_bytes(points[0], faces, tmp_path))
+    (tmp_path / "timeline.json").write_bytes(timeline_json(assets["clip"]))
+    base = [str(tmp_path / "walker.glb"), "--server", "http://127.0.0.1:9", "--cloth", str(tmp_path / "c.pc2"),
+            "--cloth-mesh", str(tmp_path / "c.obj"), "--name", "clips", "--version", "3.0.0"]
+    assert run(build_parser().parse_args([*base, "--timeline", str(tmp_path / "none.json")])) == 2
+    assert "--timeline" in (error := capsys.readouterr().err) and "no such file" in error
+    (tmp_path / "cycle.json").write_text("{}")
+    assert run(build_parser().parse_args([*base, "--timeline", str(tmp_path / "timeline.json"), "--cycle", str(tmp_path / "cycle.json")])) == 2
+    assert "give one of them" in capsys.readouterr().err
+
+    args = build_parser().parse_args([*base, "--timeline", str(tmp_path / "timeline.json")])
+    checked = check_locally(args)
+    api.client.headers.update(api.auth("all"))
+    server = Server(api.client, retry_for=1.0)
+    quiet = lambda line: None  # noqa: E731
+    character = upload(server, "/v1/assets/characters", {"file": checked.character}, "character", quiet)
+    cloth = upload(server, "/v1/assets/cloth", checked.cloth_files, "cloth", quiet)
+    timeline = upload(server, "/v1/assets/timelines", {"timeline": checked.timeline}, "timeline", quiet)
+    response = server.request("POST", "/v1/bakes", "starting the bake",
+                              json=client_body(args, checked, character["id"], cloth["id"], {}, None, timeline["id"]))
+    assert response.status_code == 202, response.text
+    assert response.json()["inputs"]["timeline"] == timeline["id"]

@@ -48,7 +48,7 @@ def published_difference(server: Server, name: str, version: str, local: dict[st
                          created: str | None) -> str | None:
     """What differs between this submit and the bake that published name/version, or None when the version
     is not published or the submit would reuse that bake. `local`: input role ("character", "cloth",
-    "cycle", "textures.NAME") -> its local files."""
+    "cycle", "timeline", "textures.NAME") -> its local files."""
     bundle = server.request("GET", f"/v1/bundles/{name}/{version}", f"checking whether {name}/{version} is published",
                             accept=frozenset({403, 404}))
     if bundle.status_code in (403, 404):
@@ -61,7 +61,7 @@ def published_difference(server: Server, name: str, version: str, local: dict[st
         return f"bake {bake_id} published it, from inputs this key cannot reuse"
     record = bake.json()
     inputs = record.get("inputs", {})
-    published = {"character": inputs.get("character"), "cloth": inputs.get("cloth"), "cycle": inputs.get("cycle"),
+    published = {"character": inputs.get("character"), "cloth": inputs.get("cloth"), "cycle": inputs.get("cycle"), "timeline": inputs.get("timeline"),
                  **{f"textures.{texture}": asset_id for texture, asset_id in (inputs.get("textures") or {}).items()}}
     roles = {role for role, asset_id in published.items() if asset_id} | set(local)
     for role in sorted(roles):

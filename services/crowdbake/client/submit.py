@@ -26,8 +26,8 @@ from crowdbake.params import add_cli_options, option_for, params_from_args
 DESCRIPTION = """\
 Uploads CHAR.glb, the cloth (a .pc2 or .mdd cache with --cloth-mesh, or an Alembic .abc or a .zip of
 OBJ frames alone), the textures (--textures DIR: diffuse_*.png or diffuse_*.jpg, and outfits.png) and a
-chosen cycle (--cycle cycle.json from `crowdbake cycle`, with looped.pc2 when it lies beside it), starts a
-bake of NAME/VERSION and prints its id.
+chosen cycle (--cycle cycle.json from `crowdbake cycle`, with looped.pc2 when it lies beside it) or a clip
+timeline (--timeline timeline.json: a cache of several clips), starts a bake of NAME/VERSION and prints its id.
 With --wait, follows it until it ends; with --download DIR, also fetches the published bundle to
 DIR/NAME/VERSION and checks every file's size and sha256 (and, with the full crowdbake package,
 the bundle's formats).
@@ -55,7 +55,7 @@ exit codes:
 # An asset id that never exists: the preflight bake request names it so that the server validates
 # everything else and then refuses the request for want of assets, creating nothing.
 PREFLIGHT_ASSET = "preflight-no-such-asset"
-ASSET_FIELDS = ("character", "cloth", "cycle")
+ASSET_FIELDS = ("character", "cloth", "cycle", "timeline")
 # The cloth forms POST /v1/assets/cloth takes (crowdbake.api.routes.assets): cache suffix -> whether it
 # needs its OBJ rest mesh beside it, and the multipart field the file goes in.
 CLOTH_FORMS = {".pc2": (True, "cache"), ".mdd": (True, "cache"), ".abc": (False, "cache"), ".zip": (False, "sequence")}
@@ -73,6 +73,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the cloth's rest mesh (OBJ, in the cache's point order); only with a .pc2 or .mdd cache")
     parser.add_argument("--textures", metavar="DIR", help="folder with diffuse_*.png (or diffuse_*.jpg: no colour-region codes) and outfits.png")
     parser.add_argument("--cycle", metavar="cycle.json", help="bake this cycle (from `crowdbake cycle`; looped.pc2 beside it goes too) instead of searching")
+    parser.add_argument("--timeline", metavar="timeline.json", help="the cloth plays several clips (docs/inputs.md, clip timeline): a loop per clip and the transitions between them")
     parser.add_argument("--name", required=True, help="bundle name ([a-z0-9._-], checked by the server before uploading)")
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VERSION", help="bundle version; a published version never changes")
     parser.add_argument("--wait", action="store_true", help="follow the bake until it ends")
@@ -148,6 +149,7 @@ class Inputs:
     textures: dict[str, Path]      # texture name -> file
     params: dict[str, Any]
     cycle_files: dict[str, Path]   # multipart field -> file: cycle (and looped), or none
+    timeline: Path | None = None   # a clip timeline (POST /v1/assets/timelines), or none
 
 
 def usage(message: str) -> ClientError:
@@ -226,15 +228,21 @@ def check_locally(args: argparse.Namespace) -> Inputs:
     if not_glb:
         raise usage(not_glb)
     cloth_data = {"cycle_frames": str(args.cycle_frames)} if args.cycle_frames else {}
-    return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args), cycle_files(args.cycle))
+    timeline = Path(args.timeline) if getattr(args, "timeline", None) else None
+    if timeline is not None and not timeline.is_file():
+        raise usage(f"--timeline {timeline}: no such file")
+    if timeline is not None and args.cycle:
+        raise usage("--cycle chooses one loop; --timeline asks for a loop per clip: give one of them")
+    return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args), cycle_files(args.cycle), timeline)
 
 
 # --------------------------------------------------------------------------------- the server's part
 
 
-def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str, textures: dict[str, str], cycle: str | None = None) -> dict[str, Any]:
+def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str, textures: dict[str, str], cycle: str | None = None,
+              timeline: str | None = None) -> dict[str, Any]:
     return {"name": args.name, "version": args.bundle_version, "character": character, "cloth": cloth, "textures": textures,
-            **({"cycle": cycle} if cycle is not None else {}),
+            **({"cycle": cycle} if cycle is not None else {}), **({"timeline": timeline} if timeline is not None else {}),
             "params": inputs.params, "publish": not args.no_publish, "public": args.public,
             **({"created": args.created} if args.created else {})}
 
@@ -251,7 +259,8 @@ def preflight(server: Server, args: argparse.Namespace, inputs: Inputs) -> None:
     else first and then refuses it for want of the assets, starting nothing. Any other refusal is the
     one the real request would get after the uploads."""
     placeholders = {name: PREFLIGHT_ASSET for name in inputs.textures}
-    body = bake_body(args, inputs, PREFLIGHT_ASSET, PREFLIGHT_ASSET, placeholders, PREFLIGHT_ASSET if inputs.cycle_files else None)
+    body = bake_body(args, inputs, PREFLIGHT_ASSET, PREFLIGHT_ASSET, placeholders, PREFLIGHT_ASSET if inputs.cycle_files else None,
+                     PREFLIGHT_ASSET if inputs.timeline is not None else None)
     response = server.request("POST", "/v1/bakes", "checking the bake request", json=body, accept=frozenset({422}))
     if response.status_code == 422:
         problem = response.json()
@@ -266,6 +275,7 @@ def local_inputs(inputs: Inputs) -> dict[str, list[Path]]:
     """Input role (as the bake record names it) -> its local files, for the published-version check."""
     return {"character": [inputs.character], "cloth": list(inputs.cloth_files.values()),
             **({"cycle": list(inputs.cycle_files.values())} if inputs.cycle_files else {}),
+            **({"timeline": [inputs.timeline]} if inputs.timeline is not None else {}),
             **{f"textures.{name}": [path] for name, path in inputs.textures.items()}}
 
 
@@ -334,7 +344,9 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
             textures = {name: upload(server, "/v1/assets/textures", {"file": path}, f"texture {name}", say)["id"] for name, path in inputs.textures.items()}
             cycle = upload(server, "/v1/assets/cycles", inputs.cycle_files, f"cycle {inputs.cycle_files['cycle'].name}", say)["id"] if inputs.cycle_files else None
 
-            body = bake_body(args, inputs, character["id"], cloth["id"], textures, cycle)
+            timeline = (upload(server, "/v1/assets/timelines", {"timeline": inputs.timeline}, f"timeline {inputs.timeline.name}", say)["id"]
+                        if inputs.timeline is not None else None)
+            body = bake_body(args, inputs, character["id"], cloth["id"], textures, cycle, timeline)
             response = server.request("POST", "/v1/bakes", "starting the bake", json=body)
             bake = response.json()
             outcome.bake_id, outcome.state, outcome.progress = bake["id"], bake["state"], bake["progress"]
