@@ -27,7 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crowdbake.bake.clips import ClipLoop, Timeline
+from crowdbake.bake.clips import ClipLoop
+from crowdbake.bake.timeline import Timeline
 from crowdbake.bake.cycle_search import DEFAULT_MAX_CANDIDATES, DEFAULT_VELOCITY_WEIGHT, binomial_weights, pick_candidates
 from crowdbake.bake.loop_closing import crossfade_blend, crossfade_weights, default_crossfade_frames
 from crowdbake.bake.loop_quality import MIN_REFERENCE_STRAIN, QUALITY_BOUNDS, LoopQuality, _ratio, _rms, mean_edge_strain

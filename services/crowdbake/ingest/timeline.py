@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.bake.clips import Segment, Timeline
+from crowdbake.bake.timeline import Segment, Timeline
 from crowdbake.errors import InputError
 from crowdbake.params import MIN_CYCLE_FRAMES, fps_problem
 

@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from crowdbake.bake.clips import ClipLoop, Timeline, find_clip_loops
+from crowdbake.bake.clips import ClipLoop, find_clip_loops
+from crowdbake.bake.timeline import Timeline
 from crowdbake.bake.cycle import CycleParams, CycleResult, _float, _quality_dict
 from crowdbake.bake.transitions import Join, Transition, find_transitions
 

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from crowdbake.bake.cycle import CycleResult
+from crowdbake.stages.clip_loops import clips_report_html
 
 
 def write_cycle_plots(result: CycleResult, out_dir: str | os.PathLike) -> None:
@@ -241,8 +242,6 @@ def report_html(result: CycleResult, document: dict) -> str:
         )
         if name in files
     )
-    from crowdbake.stages.clip_loops import clips_report_html
-
     root = ""
     if document.get("root_motion"):
         root = f"<p>The character travels: the search and the loop are in the root's frame (root offset per loop {document['root_motion']['offset_per_loop']}).</p>"
