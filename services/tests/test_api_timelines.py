@@ -158,3 +158,9 @@ def test_submit_uploads_the_timeline_and_names_it_in_the_bake(api, assets, tmp_p
                               json=client_body(args, checked, character["id"], cloth["id"], {}, None, timeline["id"]))
     assert response.status_code == 202, response.text
     assert response.json()["inputs"]["timeline"] == timeline["id"]
+
+
+def test_cycle_frames_with_a_timeline_is_a_422(api, assets):
+    timeline = upload_timeline(api, timeline_json(assets["clip"])).json()
+    response = api.client.post("/v1/bakes", json=bake_body(assets, timeline=timeline["id"], params={"cycle_frames": 6}), headers=api.auth("ci"))
+    assert response.status_code == 422 and response.json()["errors"][0]["field"] == "params.cycle_frames"

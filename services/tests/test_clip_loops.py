@@ -232,3 +232,23 @@ def test_bake_refuses_a_timeline_that_does_not_fit_in_one_line(shared_asset, tmp
     (tmp_path / "short.json").write_text(json.dumps(document))
     assert main([*base, "--timeline", str(tmp_path / "short.json")]) == 2
     assert "--timeline: short.json: /total_frames is 800, but the cloth cache has 717 frames" in capsys.readouterr().err
+
+
+def test_the_bundles_cycle_json_keeps_the_figures_but_not_the_work_files(clip_files, tmp_path):
+    from crowdbake.stages.cycle import bundle_cycle_document
+
+    assert main(cycle_args(clip_files, tmp_path, clip_files / "timeline.json")) == 0
+    published = bundle_cycle_document(json.loads((tmp_path / "cycle.json").read_text()))
+    assert [entry["clip"] for entry in published["clips"]] == ["Walk", "Run"]
+    assert all("file" not in entry and "timings_s" not in entry for entry in [*published["clips"], *published["transitions"]])
+    assert published["transitions"][0]["leave"]["quality"]["bounds"] == {"stretch_ratio": 1.1, "deviation_ratio": 1.5, "seam_acceleration_ratio": 1.5}
+
+
+def test_bake_takes_the_periods_from_the_timeline(shared_asset, tmp_path, capsys):
+    robot, cache, mesh, timeline = (shared_asset(f"robot_clips/{name}") for name in ("robot.glb", "garment.pc2", "garment.obj", "timeline.json"))
+    args = ["bake", str(robot), "--cloth", str(cache), "--cloth-mesh", str(mesh), "--timeline", str(timeline), "--cycle-frames", "23",
+            "--name", "robot", "--version", "1", "--out", str(tmp_path / "out")]
+    assert main(args) == 2
+    assert capsys.readouterr().err.strip() == "crowdbake bake: error: --cycle-frames: the timeline gives each clip's period: drop cycle_frames"
+    assert main([*args[:-8], "--animation", "Dance", *args[-6:]]) == 2
+    assert "--animation: animation 'Dance' is not a clip of the timeline (it plays Idle, Walking, Running)" in capsys.readouterr().err

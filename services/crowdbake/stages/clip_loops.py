@@ -113,11 +113,12 @@ def pose_clips_body(character_path, timeline: Timeline) -> tuple[np.ndarray, np.
 
 def run_clips_job(cloth: np.ndarray, cloth_faces: np.ndarray, timeline: Timeline, out_dir: Path,
                   params: CycleParams = CycleParams(), animation: int | str | None = None, render_views=None,
-                  body: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, progress=None,
+                  body: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, progress=None, sample_rate: float = 1.0,
                   ) -> tuple[CycleResult, list[ClipLoop], list[Transition], dict]:
     """Every clip's loop and every transition, their files under out_dir; returns (the primary clip's
     result in cache frames, the loops, the transitions, cycle.json's multi-clip sections).
-    body: pose_clips_body's output or None (then no penetration figures). ValueError on a clip without
+    body: pose_clips_body's output or None (then no penetration figures); sample_rate: the PC2 files'
+    sample interval (the cache's). ValueError on a clip without
     a loop or a segment too short for a join."""
     from crowdbake.formats.pc2 import write_pc2
 
@@ -131,7 +132,7 @@ def run_clips_job(cloth: np.ndarray, cloth_faces: np.ndarray, timeline: Timeline
     clip_entries = []
     for loop in loops:
         name = f"clips/{file_stem(loop.clip)}.pc2"
-        write_pc2(out / name, loop.looped, start_frame=0.0, sample_rate=1.0)
+        write_pc2(out / name, loop.looped, start_frame=0.0, sample_rate=sample_rate)
         clip_entries.append({**loop.to_dict(timeline.total_frames), "file": name})
         quality = loop.result.closing.quality
         if quality is not None and quality.exceeded:
@@ -139,7 +140,7 @@ def run_clips_job(cloth: np.ndarray, cloth_faces: np.ndarray, timeline: Timeline
     transition_entries = []
     for k, transition in enumerate(transitions):
         name = f"transitions/{k}_{file_stem(transition.from_clip)}_{file_stem(transition.to_clip)}.pc2"
-        write_pc2(out / name, transition.frames, start_frame=0.0, sample_rate=1.0)
+        write_pc2(out / name, transition.frames, start_frame=0.0, sample_rate=sample_rate)
         transition_entries.append(transition_dict(transition, name))
         if not transition.within_bounds:
             logger.warning("the transition %s -> %s breaks its quality bounds", transition.from_clip, transition.to_clip)
@@ -208,6 +209,6 @@ def run_timeline(inputs, timeline: Timeline, timeline_path: Path, character, out
     elif inputs.body is not None:
         body = (inputs.body, inputs.body_normals, inputs.body_faces)
     result, _, _, sections = run_clips_job(inputs.cloth, inputs.cloth_faces, timeline, out_dir, params, animation,
-                                           render_views, body, progress)
+                                           render_views, body, progress, inputs.sample_rate)
     sections["sources"] = {"timeline": str(timeline_path)}
     return result, sections

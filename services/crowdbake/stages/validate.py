@@ -305,6 +305,8 @@ def _check_timeline(sources: dict[str, Path], cache: ClothCache, params: BakePar
     from crowdbake.ingest.timeline import check_timeline_fits, read_timeline
     from crowdbake.stages.clip_loops import primary_clip
 
+    if params.cycle_frames is not None:
+        raise InputError("the timeline gives each clip's period: drop cycle_frames", "cycle_frames")
     timeline = read_timeline(sources["timeline"])
     try:
         known = {clip.name: clip.seconds for clip in character_clips(sources["character"])}

@@ -136,6 +136,9 @@ def _check_timeline(character: Asset, cloth: Asset | None, cycle: Asset | None, 
         field = "cloth" if cloth is None else "cycle"
         message = "a timeline says which clip plays at each frame of a cloth cache" if cloth is None else "a cycle chooses one loop; a timeline asks for a loop per clip"
         raise Problem("validation-error", "the timeline does not go with these inputs", [{"field": field, "message": message}])
+    if params.get("cycle_frames") is not None:
+        raise Problem("validation-error", "the timeline gives each clip's period",
+                      [{"field": "params.cycle_frames", "message": "the timeline gives each clip's period: drop cycle_frames"}])
     try:
         fps = request_fps(cloth.info, params.get("fps"))
         check_timeline_request(timeline.info, character.info, cloth.info, fps, params.get("animation"))
