@@ -244,6 +244,9 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--elevations",), "DEG,...", minimum=-90.0, maximum=90.0, min_items=1, max_items=MAX_ELEVATIONS, distinct=True),
     ParamSpec("tile_size", "int", 128, "texels per impostor view side (a multiple of 4: BC1/BC2 blocks are 4x4 texels)",
               ("--tile", "--tile-size"), "PX", minimum=4, maximum=MAX_TILE_SIZE, multiple_of=4),
+    ParamSpec("crop", "bool", True, "store each impostor view cropped to the box the character covers over every view and frame "
+              "(SPEC.md: about half the maps' memory, the same pictures)",
+              ("--no-crop",), off_help="store whole square impostor tiles, uncropped"),
     ParamSpec("lod_ratio", "float", None, "low LOD as a fraction of the high one",
               ("--lod-ratio",), "R", derived="the paper's 1899/13056", optional=True, maximum=1.0, above_zero=True, exclusive_group="lod"),
     ParamSpec("lod_triangles", "int", None, "low LOD triangles for the whole character (instead of lod_ratio)",
@@ -309,6 +312,7 @@ class BakeParams:
     azimuths: int = 32
     elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0)
     tile_size: int = 128
+    crop: bool = True
     lod_ratio: float | None = None
     lod_triangles: int | None = None
     compress: bool = True

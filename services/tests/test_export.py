@@ -392,7 +392,7 @@ def test_the_bake_converts_the_export_layers_while_it_packs(sample_bundle):
     assert (normal.pixel_format, uv.pixel_format) == ("bc5", "uvblock")
     assert sorted(prepared.model_normal_bc1) == sorted(layer_digest(layer) for layer in normal.layers)
     assert sorted(prepared.uv32) == sorted(layer_digest(layer) for layer in uv.layers)
-    layout = AtlasLayout(impostor["tile_size"], tuple(impostor["azimuths_deg"]), tuple(impostor["elevations_deg"]))
+    layout = AtlasLayout.from_manifest(impostor)
     for layer in normal.layers:
         decoded = compression.decode(layer, "bc5", normal.width, normal.height)
         assert prepared.model_normal_bc1[layer_digest(layer)] == model_space_normal_bc1(decoded, layout)

@@ -121,6 +121,8 @@ def encode_frame(layout: AtlasLayout, frame_parts: list[dict[str, np.ndarray]], 
                 tiles[(a, e)] = tile
         atlases[kind] = assemble(layout, tiles)
     covered = atlases["uv"][..., 3] > 0
+    if layout.crop is not None and int(covered.sum()) != sum(int((tile[..., 3] > 0).sum()) for data in frame_parts for tile in data["uv"]):
+        raise RuntimeError(f"the impostor crop {layout.crop} cuts off covered texels: the silhouette box missed part of the character")
     # The tiles carry 16-bit UV maps; what the bundle stores (and fidelity measures) is `stored`.
     stored = dict(atlases, uv16=atlases["uv"])
     export_layers = {}
@@ -188,7 +190,7 @@ def stage_pack_frame(work: Path, frame: int) -> Path:
         except (OSError, ValueError):
             pass
     parts = Parts(work, tasks)
-    layout = AtlasLayout(int(plan.layout["tile_size"]), tuple(plan.layout["azimuths_deg"]), tuple(plan.layout["elevations_deg"]))
+    layout = AtlasLayout.from_manifest(plan.layout)
     layers, errors, fidelity_atlases, export_layers = encode_frame(layout, [parts[task.id] for task in tasks], formats, frame == plan.fidelity_frame,
                                                                    for_export=params.export)
     arrays = {f"layer_{kind}": np.frombuffer(data, dtype=np.uint8) for kind, data in layers.items()}

@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-from crowdbake.bake import compression, lod, poses
-from crowdbake.bake.atlas import AtlasLayout
+from crowdbake.bake import compression, impostor_views, lod, poses
+from crowdbake.bake.atlas import AtlasLayout, silhouette_crop
 from crowdbake.bake.cycle import estimate_root_offsets
 from crowdbake.bake.skinning import pose_character
 from crowdbake.errors import StageOrderError
@@ -170,6 +171,10 @@ def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, Atla
     centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
     layout = AtlasLayout.rings(params.tile_size, params.azimuths, tuple(params.elevations_deg))
     frame_indices = poses.impostor_frame_indices(cycle.cycle_frames, params.impostor_frames)
+    if params.crop:
+        baked = [np.asarray(part.positions)[frame_indices].reshape(-1, 3) for part in high.values()]
+        xy_min, xy_max = impostor_views.silhouette_box(layout, centre, radius, np.concatenate(baked))
+        layout = replace(layout, crop=silhouette_crop(xy_min, xy_max, layout.tile_size))
     return {"center": [float(c) for c in centre], "radius": float(radius)}, layout, frame_indices
 
 

@@ -148,7 +148,7 @@ class PosesRecord(Record):
 
     def atlas_layout(self) -> AtlasLayout:
         """The impostor atlas layout (crowdbake.bake.atlas.AtlasLayout) these poses were framed for."""
-        return AtlasLayout(int(self.layout["tile_size"]), tuple(self.layout["azimuths_deg"]), tuple(self.layout["elevations_deg"]))
+        return AtlasLayout.from_manifest(self.layout)
 
     @property
     def center(self) -> list[float]:

@@ -533,7 +533,8 @@ async function loadAtlas() {
     applyZoom();
     const impostor = state.manifest.impostor;
     $("atlas-status").textContent = `${kind} map, layer ${query.get("frame")} of ${impostor.frame_indices.length}: `
-      + `${image.naturalWidth}×${image.naturalHeight} texels (tiles of ${impostor.tile_size}², `
+      + `${image.naturalWidth}×${image.naturalHeight} texels (tiles of ${impostor.tile_size}²`
+      + `${impostor.crop ? `, stored cropped to ${impostor.crop.width}×${impostor.crop.height}` : ""}, `
       + `${impostor.azimuths_deg.length} azimuths × ${impostor.elevations_deg.length} elevations), ${bytes(blob.size)} PNG`;
   };
   image.src = state.atlasUrl;
