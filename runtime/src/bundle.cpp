@@ -693,7 +693,7 @@ Status parse_manifest(const std::string& text, Manifest* out) {
         if (const json* maps = check.object(*impostor, "impostor", "maps")) {
             info.normal_map = check.path(*maps, "impostor/maps", "normal");
             info.uv_map = check.path(*maps, "impostor/maps", "uv");
-            info.detail_map = check.path(*maps, "impostor/maps", "detail");
+            if (maps->contains("detail")) info.detail_map = check.path(*maps, "impostor/maps", "detail");
             if (maps->contains("surface")) info.surface_map = check.path(*maps, "impostor/maps", "surface");
         }
     }
@@ -825,7 +825,7 @@ Status cross_check(const Manifest& m, const std::map<std::string, PoseCache>& po
         {"uv", {&imp.uv_map, &bundle->impostor_uv}},
     };
     for (const auto& [kind, target] : maps) {
-        if (target.first->empty()) continue;  // the optional surface map, absent
+        if (target.first->empty()) continue;  // an optional map (detail, surface), absent
         const TextureArray* atlas = nullptr;
         if (Status s = texture(*target.first, &atlas); !s) return s;
         if (atlas->width != width || atlas->height != height || atlas->layer_count != imp.frame_indices.size())

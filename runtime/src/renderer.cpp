@@ -501,7 +501,8 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
     }
     g.normal_map = upload_texture_array(bundle.impostor_normal, false, "impostor:normal", &upload);
     g.uv_map = upload_texture_array(bundle.impostor_uv, false, "impostor:uv", &upload);
-    g.detail_map = upload_texture_array(bundle.impostor_detail, false, "impostor:detail", &upload);
+    if (bundle.impostor_detail.layer_count > 0)  // stored only by bakes asked for it (--detail-map)
+        g.detail_map = upload_texture_array(bundle.impostor_detail, false, "impostor:detail", &upload);
     if (bundle.impostor_surface.layer_count > 0 && m.impostor.azimuths_deg.size() <= CV_MAX_AZIMUTHS &&
         m.impostor.elevations_deg.size() <= CV_MAX_ELEVATIONS) {
         // Depth and motion are smooth and dilated past the silhouette: read bilinearly, within a level.

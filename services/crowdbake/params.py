@@ -247,6 +247,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("crop", "bool", True, "store each impostor view cropped to the box the character covers over every view and frame "
               "(SPEC.md: about half the maps' memory, the same pictures)",
               ("--no-crop",), off_help="store whole square impostor tiles, uncropped"),
+    ParamSpec("detail_map", "bool", False, "also store detail-mapped impostors (the paper's figure 3 comparison: 1 byte a texel "
+              "more; crowdview --lod detail)",
+              ("--detail-map",), off_help="also store detail maps (the diffuse texture baked into each view: figure 3's "
+              "detail-mapped impostor, crowdview --lod detail), 1 byte a texel more"),
     ParamSpec("lod_ratio", "float", None, "low LOD as a fraction of the high one",
               ("--lod-ratio",), "R", derived="the paper's 1899/13056", optional=True, maximum=1.0, above_zero=True, exclusive_group="lod"),
     ParamSpec("lod_triangles", "int", None, "low LOD triangles for the whole character (instead of lod_ratio)",
@@ -313,6 +317,7 @@ class BakeParams:
     elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0)
     tile_size: int = 128
     crop: bool = True
+    detail_map: bool = False
     lod_ratio: float | None = None
     lod_triangles: int | None = None
     compress: bool = True

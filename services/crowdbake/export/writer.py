@@ -128,10 +128,9 @@ def _export_textures(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
 def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLayers) -> dict[str, Any]:
     impostor = dict(bundle.manifest["impostor"])
     maps = {}
-    kinds = [
-        ("normal", False, "model-space unit normal n as rgb = (n + 1) / 2"),
-        ("detail", True, "diffuse variation 0 unlit, alpha = 17 * region code"),
-    ]
+    kinds = [("normal", False, "model-space unit normal n as rgb = (n + 1) / 2")]
+    if "detail" in impostor["maps"]:  # stored only when the bake was asked for it (--detail-map)
+        kinds.append(("detail", True, "diffuse variation 0 unlit, alpha = 17 * region code"))
     if "surface" in impostor["maps"]:  # SPEC.md "Impostor maps": for reprojecting samples between views and frames
         kinds.append(("surface", False, "per texel, metres = (c / 255 * 2 - 1) * range: r = depth along the view's back axis "
                       "(range bounds.radius), g, b = motion to the next baked frame along the view's right and up axes "

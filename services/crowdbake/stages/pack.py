@@ -175,7 +175,7 @@ def stage_pack_frame(work: Path, frame: int) -> Path:
     folder = WorkDir(work)
     plan = load_plan(work)
     params = load_job(work).bake_params
-    formats = map_formats(params.compress, params.uv_format)
+    formats = map_formats(params.compress, params.uv_format, params.detail_map)
     tasks = [task for task in impostor_tasks(work) if task.frame == frame]
     if not tasks:
         raise ValueError(f"pack frame {frame} is not one of the baked frames {plan.frame_indices}")
@@ -249,7 +249,8 @@ def stage_pack_scores(work: Path) -> Path:
     folder = WorkDir(work)
     poses = load_poses(work)
     layout = poses.atlas_layout()
-    formats = map_formats(load_job(work).bake_params.compress, load_job(work).bake_params.uv_format)
+    params = load_job(work).bake_params
+    formats = map_formats(params.compress, params.uv_format, params.detail_map)
     tasks = impostor_tasks(work)
     frame_paths = {frame: stage_pack_frame(work, frame) for frame in score_frames(poses)}
     scored = [task for task in tasks if task.references]
@@ -300,6 +301,8 @@ def _impostor_files(work: Path, poses: PosesRecord, layout: AtlasLayout, formats
         report(progress, "pack", step, steps)
     maps = {}
     for kind, role in (("normal", "impostor-normal"), ("uv", "impostor-uv"), ("detail", "impostor-detail"), ("surface", "impostor-surface")):
+        if kind not in formats:
+            continue
         path = f"impostor/{kind}.cbtx"
         files.append(BundleFile(path, encode_texture_array(layout.width, layout.height, formats[kind], layers[kind]), role))
         layers[kind] = []  # the CBTX holds them now
@@ -314,6 +317,8 @@ def _impostor_files(work: Path, poses: PosesRecord, layout: AtlasLayout, formats
 def _texture_memory(poses: PosesRecord, layout: AtlasLayout, formats: dict[str, str]) -> dict:
     """Figure 4 from this bundle's bytes (layer payloads: what a GPU holds)."""
     frames = len(poses.frame_indices)
+    # A bundle without detail maps still draws figure 4: what they would hold, in the format they would have.
+    formats = {"detail": DETAIL_FORMATS[formats["normal"] != "rgba8"], **formats}
     layer_bytes = {kind: layer_size(formats[kind], layout.width, layout.height) * frames for kind in formats}
     diffuse_per_variation = sum(layer_size(m.pixel_format, m.width, m.height) for m in poses.materials)
     bundle_bytes = texture_memory.MapBytes(layer_bytes["normal"], layer_bytes["uv"], layer_bytes["detail"], diffuse_per_variation,
@@ -333,12 +338,19 @@ def _cycle_section(cycle: CycleRecord) -> dict:
     }
 
 
-def map_formats(compress: bool, uv_format: str) -> dict[str, str]:
-    """Pixel formats of the impostor maps when compressing: DXT3 detail (paper section 5); BC5 normals, two
-    components in each tile's view at 1 byte a texel, where the paper's DXT1 (0.5 byte) costs the impostor
-    0.016 SSIM against the mesh (docs/bake.md); DXT1 for the surface map (smooth depth and motion)."""
-    return {"normal": "bc5" if compress else "rgba8", "uv": uv_format, "detail": "bc2" if compress else "rgba8",
-            "surface": "bc1" if compress else "rgba8"}
+DETAIL_FORMATS = {True: "bc2", False: "rgba8"}  # compressed or not
+
+
+def map_formats(compress: bool, uv_format: str, detail_map: bool = True) -> dict[str, str]:
+    """Pixel formats of the impostor maps the bundle stores, when compressing: DXT3 detail (paper section 5),
+    only with `detail_map`; BC5 normals, two components in each tile's view at 1 byte a texel, where the
+    paper's DXT1 (0.5 byte) costs the impostor 0.016 SSIM against the mesh (docs/bake.md); DXT1 for the
+    surface map (smooth depth and motion)."""
+    formats = {"normal": "bc5" if compress else "rgba8", "uv": uv_format, "detail": DETAIL_FORMATS[compress],
+               "surface": "bc1" if compress else "rgba8"}
+    if not detail_map:
+        del formats["detail"]
+    return formats
 
 
 def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[PackRecord]:
@@ -368,7 +380,7 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
     with texture_arrays:
         compression_report: dict[str, Any] = {}
         material_entries = _texture_files(folder.root, poses, texture_arrays, files, compression_report)
-        formats = map_formats(params.compress, params.uv_format)
+        formats = map_formats(params.compress, params.uv_format, params.detail_map)
         maps = _impostor_files(work, poses, layout, formats, files, compression_report, progress, steps)
         outfit_count = int(len(texture_arrays["outfits"]))
     # Fidelity at 1:1 texel-to-pixel, per view, between views, and as crowdview draws (already scored when the

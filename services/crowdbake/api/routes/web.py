@@ -246,6 +246,8 @@ def get_atlas_preview(
     if errors:
         raise Problem("validation-error", "the bundle has no such view", errors)
     maps = impostor["maps"]
+    if kind not in maps:
+        raise Problem("not-found", f"bundle {name} {version} has no {kind} map (baked without --detail-map)")
     sha256 = published.files[maps[kind]]["sha256"]
     etag = hashlib.sha256(f"{sha256}/{published.files[maps['uv']]['sha256']}/{frame}/{azimuth}/{elevation}".encode()).hexdigest()
     headers = {"ETag": f'"{etag}"', "X-Content-Type-Options": "nosniff"}

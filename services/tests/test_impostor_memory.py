@@ -1,10 +1,15 @@
-"""The impostor crop (SPEC.md "Impostor maps", crowdbake.bake.atlas): the atlas stores of every tile only the
-box the character covers over every view and frame. A small bake with and without it: the crop must save
-memory and change nothing crowdview draws, through crowdview's own shader (crowdbake.render.runtime_shader)."""
+"""What one character's impostor costs in memory.
+
+The crop (SPEC.md "Impostor maps", crowdbake.bake.atlas): the atlas stores of every tile only the box the
+character covers over every view and frame. A small bake with and without it: the crop must save memory
+and change nothing crowdview draws, through crowdview's own shader (crowdbake.render.runtime_shader).
+Detail maps are stored only when asked for (`detail_map`); crowdview says so where it would need them."""
 from __future__ import annotations
 
 import json
+import subprocess
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,19 +25,23 @@ from crowdbake.stages.runtime_fidelity import halfway_frame, picture_at, runtime
 from crowdbake.stages.validate import BakeInputs  # noqa: E402
 from crowdbake.bake.reference import impostor_blend  # noqa: E402
 
+REPO_ROOT = Path(__file__).resolve().parents[2]
+CROWDVIEW = REPO_ROOT / "build" / "runtime" / "crowdview"
 PARAMS = BakeParams(impostor_frames=2, azimuths=8, elevations_deg=(0.0, 30.0), tile_size=64, lod_triangles=1200,
                     cycle_views=3, candidates=3, export=False)
 
 
 @pytest.fixture(scope="module")
 def bakes(small_sample, tmp_path_factory):
-    """{crop: (bundle folder, poses, maps, textures)} of the small sample baked with and without the crop."""
+    """{crop: (bundle folder, poses, maps, textures)} of the small sample baked with the defaults (cropped, no
+    detail maps) and without the crop, with detail maps."""
     out = {}
     for crop in (True, False):
         root = tmp_path_factory.mktemp(f"crop_{crop}")
+        params = replace(PARAMS, crop=crop, detail_map=not crop)
         summary = run_bake(BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
                                       cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures", cycle=None,
-                                      name="sample", version="1.0", params=replace(PARAMS, crop=crop)), root / "bundles", work=root / "work")
+                                      name="sample", version="1.0", params=params), root / "bundles", work=root / "work")
         baked = verify_bundle(summary.bundle)
         maps = {kind: baked.textures[path] for kind, path in baked.manifest["impostor"]["maps"].items()}
         out[crop] = summary.bundle, load_poses(root / "work"), maps, runtime_textures(root / "work")
@@ -44,7 +53,7 @@ def test_the_crop_stores_less_and_says_where(bakes):
     assert "crop" not in whole
     crop = cropped["crop"]
     assert all(crop[k] % 4 == 0 for k in crop) and crop["x"] + crop["width"] <= 64 and crop["y"] + crop["height"] <= 64
-    for kind in ("normal", "uv", "detail", "surface"):
+    for kind in ("normal", "uv", "surface"):
         small = (bakes[True][0] / cropped["maps"][kind]).stat().st_size
         large = (bakes[False][0] / whole["maps"][kind]).stat().st_size
         assert small < 0.75 * large, f"{kind}: {small} bytes cropped against {large}"
@@ -74,3 +83,30 @@ def test_fidelity_scores_agree_with_and_without_the_crop(bakes):
     scores = [json.loads((bakes[crop][0] / "fidelity.json").read_text())["runtime"] for crop in (True, False)]
     for section in ("at_views", "between_views", "between_azimuths"):
         assert scores[0][section]["ssim_mean"] == pytest.approx(scores[1][section]["ssim_mean"], abs=0.002), section
+
+
+def test_detail_maps_are_stored_only_when_asked_and_figure_4_still_counts_them(bakes):
+    cropped, whole = (json.loads((bakes[crop][0] / "manifest.json").read_text()) for crop in (True, False))
+    assert set(cropped["impostor"]["maps"]) == {"normal", "uv", "surface"}
+    assert set(whole["impostor"]["maps"]) == {"normal", "uv", "surface", "detail"}
+    assert not (bakes[True][0] / "impostor" / "detail.cbtx").exists()
+    memory = json.loads((bakes[True][0] / "texture_memory.json").read_text())["bundle"]["map_bytes"]
+    # What the detail maps would hold: BC2, a byte a texel, like the normal map's BC5.
+    assert memory["detail"] == memory["normal"] > 0
+
+
+def test_crowdview_says_a_bundle_has_no_detail_maps(bakes, tmp_path):
+    if not CROWDVIEW.is_file():
+        pytest.skip(f"crowdview is not built at {CROWDVIEW} (scripts/setup.sh builds it)")
+    bundle = str(bakes[True][0])
+    refused = subprocess.run([str(CROWDVIEW), "--bundle", bundle, "--headless", "--lod", "detail"], capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and "no detail maps" in refused.stderr and "--detail-map" in refused.stderr, refused.stderr
+    report = tmp_path / "report.json"
+    run = subprocess.run([str(CROWDVIEW), "--bundle", bundle, "--benchmark", "--max-seconds", "3", "--modes", "uv_impostor,detail_impostor",
+                          "--width", "160", "--height", "120", "--report", str(report)], capture_output=True, text=True, timeout=120)
+    if run.returncode == 3:
+        pytest.skip(f"crowdview could not open a GL context here: {run.stderr.strip()[-200:]}")
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "detail_impostor left out" in run.stderr
+    results = json.loads(report.read_text())["results"]
+    assert "uv_impostor" in results and "detail_impostor" not in results
