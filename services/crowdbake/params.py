@@ -246,7 +246,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--tile", "--tile-size"), "PX", minimum=4, maximum=MAX_TILE_SIZE, multiple_of=4),
     ParamSpec("crop", "bool", True, "store each impostor view cropped to the box the character covers over every view and frame "
               "(SPEC.md: about half the maps' memory, the same pictures)",
-              ("--no-crop",), off_help="store whole square impostor tiles, uncropped"),
+              ("--no-crop",), off_help="do not crop the impostor tiles: store them whole (square)"),
     ParamSpec("detail_map", "bool", False, "also store detail-mapped impostors (the paper's figure 3 comparison: 1 byte a texel "
               "more; crowdview --lod detail)",
               ("--detail-map",), off_help="also store detail maps (the diffuse texture baked into each view: figure 3's "
