@@ -90,9 +90,16 @@ def test_detail_maps_are_stored_only_when_asked_and_figure_4_still_counts_them(b
     assert set(cropped["impostor"]["maps"]) == {"normal", "uv", "surface"}
     assert set(whole["impostor"]["maps"]) == {"normal", "uv", "surface", "detail"}
     assert not (bakes[True][0] / "impostor" / "detail.cbtx").exists()
-    memory = json.loads((bakes[True][0] / "texture_memory.json").read_text())["bundle"]["map_bytes"]
+    document = json.loads((bakes[True][0] / "texture_memory.json").read_text())
+    memory = document["bundle"]["map_bytes"]
     # What the detail maps would hold: BC2, a byte a texel, like the normal map's BC5.
     assert memory["detail"] == memory["normal"] > 0
+    # The impostor one clip holds: the stored maps' layers, without their CBTX headers.
+    held = document["impostor"]
+    assert set(held["stored_bytes"]) == {"normal", "uv", "surface"}
+    on_disk = sum((bakes[True][0] / path).stat().st_size for path in cropped["impostor"]["maps"].values())
+    assert 0 < on_disk - sum(held["stored_bytes"].values()) < 3 * 64
+    assert held["crop"] == cropped["impostor"]["crop"] and held["views"] == 16 and held["frames"] == 2
 
 
 def test_crowdview_says_a_bundle_has_no_detail_maps(bakes, tmp_path):

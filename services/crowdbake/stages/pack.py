@@ -317,6 +317,7 @@ def _impostor_files(work: Path, poses: PosesRecord, layout: AtlasLayout, formats
 def _texture_memory(poses: PosesRecord, layout: AtlasLayout, formats: dict[str, str]) -> dict:
     """Figure 4 from this bundle's bytes (layer payloads: what a GPU holds)."""
     frames = len(poses.frame_indices)
+    stored_kinds = list(formats)
     # A bundle without detail maps still draws figure 4: what they would hold, in the format they would have.
     formats = {"detail": DETAIL_FORMATS[formats["normal"] != "rgba8"], **formats}
     layer_bytes = {kind: layer_size(formats[kind], layout.width, layout.height) * frames for kind in formats}
@@ -324,7 +325,12 @@ def _texture_memory(poses: PosesRecord, layout: AtlasLayout, formats: dict[str, 
     bundle_bytes = texture_memory.MapBytes(layer_bytes["normal"], layer_bytes["uv"], layer_bytes["detail"], diffuse_per_variation,
                                            layer_bytes["surface"])
     variations = max(m.variations for m in poses.materials)
-    return texture_memory.texture_memory_report(bundle_bytes, max(FIGURE4_MIN_VARIATIONS, variations), variations)
+    report = texture_memory.texture_memory_report(bundle_bytes, max(FIGURE4_MIN_VARIATIONS, variations), variations)
+    stored = {kind: layer_bytes[kind] for kind in stored_kinds}
+    # What one clip's impostor holds on a GPU (no mipmaps): the maps the bundle stores.
+    report["impostor"] = {"stored_bytes": stored, "stored_mib": sum(stored.values()) / texture_memory.MIB, "frames": frames,
+                          "views": len(layout.views), "tile_size": layout.tile_size, "crop": layout.crop_box_manifest()}
+    return report
 
 
 def _cycle_section(cycle: CycleRecord) -> dict:
@@ -419,6 +425,7 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
                           "uv_8": memory_doc["paper"]["uv_mapped_mib"][7]},
             "bundle_break_even_variations": memory_doc["bundle"]["break_even_variations"],
             "break_even_variations": memory_doc["break_even_variations"],
+            "impostor": memory_doc["impostor"],
         },
     )
     seconds = time.perf_counter() - started
