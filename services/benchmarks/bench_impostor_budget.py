@@ -4,7 +4,8 @@
         [--configs default ...] [--out out/bench/impostor_budget.json] [--plot docs/img/impostor_budget.png]
 
 Bakes each case once per impostor setting (crowdbake.stages.runner.run_bake, the bake's defaults
-otherwise: cropped tiles, no detail maps) and reads what the bundle itself records:
+otherwise: cropped tiles, no detail maps; `budget16` is the defaults, the 16 MiB budget choosing the
+counts; the others ask for their counts with no budget) and reads what the bundle itself records:
 
 - memory: the impostor maps the bundle stores for its one clip (normal, UV and surface map layers,
   texture_memory.json `map_bytes`: what a GPU holds, no mipmaps), in MiB;
@@ -31,9 +32,10 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
 MIB = 1024 * 1024
-# name: (azimuths, elevations, impostor frames, tile)
+# name: (azimuths, elevations, impostor frames, tile, memory budget in MiB or None: the counts as given)
 CONFIGS = {
-    "default": (32, (0.0, 20.0, 40.0), 10, 128),
+    "budget16": (32, (0.0, 20.0, 40.0), 10, 128, 16.0),  # the bake's defaults
+    "a32": (32, (0.0, 20.0, 40.0), 10, 128),
     "a24": (24, (0.0, 20.0, 40.0), 10, 128),
     "a16f16": (16, (0.0, 20.0, 40.0), 16, 128),
     "a24f16": (24, (0.0, 20.0, 40.0), 16, 128),
@@ -82,8 +84,9 @@ def bake_once(case: str, config: str, scratch: Path) -> dict | None:
     if found is None:
         return None
     character, cloth, mesh, textures, changes = found
-    azimuths, elevations, frames, tile = CONFIGS[config]
-    params = replace(BakeParams(), azimuths=azimuths, elevations_deg=elevations, impostor_frames=frames, tile_size=tile, export=False, **changes)
+    azimuths, elevations, frames, tile, *budget = CONFIGS[config]
+    params = replace(BakeParams(), azimuths=azimuths, elevations_deg=elevations, impostor_frames=frames, tile_size=tile, export=False,
+                     impostor_budget_mib=budget[0] if budget else None, **changes)
     folder = Path(tempfile.mkdtemp(prefix=f"{case}-{config}-", dir=scratch))
     started = time.perf_counter()
     summary = run_bake(BakeInputs(character, cloth, mesh, textures, None, case.replace("_", "-"), "1", params), folder / "bundles", folder / "work")
@@ -93,7 +96,8 @@ def bake_once(case: str, config: str, scratch: Path) -> dict | None:
     manifest = json.loads((summary.bundle / "manifest.json").read_text())
     stored = sum(memory[kind] for kind in manifest["impostor"]["maps"] if kind in memory)
     return {
-        "case": case, "config": config, "azimuths": azimuths, "elevations_deg": list(elevations), "frames": frames, "tile": tile,
+        "case": case, "config": config, "azimuths": len(manifest["impostor"]["azimuths_deg"]), "elevations_deg": list(elevations),
+        "frames": len(manifest["impostor"]["frame_indices"]), "tile": tile, "budget_mib": params.impostor_budget_mib,
         "crop": manifest["impostor"].get("crop"), "cycle_frames": manifest["cycle"]["frames"],
         "impostor_mib": stored / MIB, "maps_mib": {kind: memory[kind] / MIB for kind in manifest["impostor"]["maps"]},
         "at_views": {k: runtime["at_views"][k] for k in ("ssim_mean", "ssim_worst")},

@@ -244,6 +244,9 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--elevations",), "DEG,...", minimum=-90.0, maximum=90.0, min_items=1, max_items=MAX_ELEVATIONS, distinct=True),
     ParamSpec("tile_size", "int", 128, "texels per impostor view side (a multiple of 4: BC1/BC2 blocks are 4x4 texels)",
               ("--tile", "--tile-size"), "PX", minimum=4, maximum=MAX_TILE_SIZE, multiple_of=4),
+    ParamSpec("impostor_budget_mib", "float", 16.0, "memory for one clip's impostor maps in MiB (the paper's 15): fewer azimuths, "
+              "then fewer frames, until they fit (docs/bake.md 'Memory')",
+              ("--impostor-budget",), "MIB", optional=True, above_zero=True),
     ParamSpec("crop", "bool", True, "store each impostor view cropped to the box the character covers over every view and frame "
               "(SPEC.md: about half the maps' memory, the same pictures)",
               ("--no-crop",), off_help="do not crop the impostor tiles: store them whole (square)"),
@@ -316,6 +319,7 @@ class BakeParams:
     azimuths: int = 32
     elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0)
     tile_size: int = 128
+    impostor_budget_mib: float | None = 16.0
     crop: bool = True
     detail_map: bool = False
     lod_ratio: float | None = None

@@ -14,6 +14,7 @@ import numpy as np
 
 from crowdbake.bake import compression, map_codecs, texture_memory
 from crowdbake.bake.atlas import AtlasLayout, assemble
+from crowdbake.bake.impostor_budget import DETAIL_FORMATS, map_formats
 from crowdbake.errors import StageOrderError
 from crowdbake.export import textures as export_textures
 from crowdbake.formats.binary import TextureArray, encode_texture_array, layer_size
@@ -343,20 +344,6 @@ def _cycle_section(cycle: CycleRecord) -> dict:
         "velocity_jump_ratio": _nonnegative(cycle.velocity_jump_ratio),
     }
 
-
-DETAIL_FORMATS = {True: "bc2", False: "rgba8"}  # compressed or not
-
-
-def map_formats(compress: bool, uv_format: str, detail_map: bool = True) -> dict[str, str]:
-    """Pixel formats of the impostor maps the bundle stores, when compressing: DXT3 detail (paper section 5),
-    only with `detail_map`; BC5 normals, two components in each tile's view at 1 byte a texel, where the
-    paper's DXT1 (0.5 byte) costs the impostor 0.016 SSIM against the mesh (docs/bake.md); DXT1 for the
-    surface map (smooth depth and motion)."""
-    formats = {"normal": "bc5" if compress else "rgba8", "uv": uv_format, "detail": DETAIL_FORMATS[compress],
-               "surface": "bc1" if compress else "rgba8"}
-    if not detail_map:
-        del formats["detail"]
-    return formats
 
 
 def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[PackRecord]:

@@ -144,6 +144,8 @@ class PosesRecord(Record):
     layout: dict[str, Any]  # AtlasLayout.to_manifest()
     frame_indices: list[int]
     fidelity_frame: int
+    # The memory budget's choice (crowdbake.bake.impostor_budget.BudgetChoice as budget_document gives it).
+    budget: dict[str, Any] | None = None
     _nested: ClassVar[dict[str, type]] = {"parts": PosePart, "materials": MaterialInfo}
 
     def atlas_layout(self) -> AtlasLayout:
