@@ -100,6 +100,26 @@ def test_detail_maps_are_stored_only_when_asked_and_figure_4_still_counts_them(b
     on_disk = sum((bakes[True][0] / path).stat().st_size for path in cropped["impostor"]["maps"].values())
     assert 0 < on_disk - sum(held["stored_bytes"].values()) < 3 * 64
     assert held["crop"] == cropped["impostor"]["crop"] and held["views"] == 16 and held["frames"] == 2
+    # Far under the default budget: the counts asked for.
+    assert held["budget"]["budget_mib"] == 16.0 and held["budget"]["fits"]
+    assert held["budget"]["chosen"] == held["budget"]["asked"] == {"azimuths": 8, "frames": 2}
+
+
+def test_a_budget_fits_the_maps_by_fewer_azimuths(small_sample, bakes, tmp_path):
+    """32 azimuths asked for, room for 20 (the crop is the same whatever the azimuths): azimuths fall, by 4,
+    until the maps fit."""
+    whole = json.loads((bakes[True][0] / "texture_memory.json").read_text())["impostor"]
+    budget = whole["stored_mib"] * 20 / 8 + 1e-9
+    summary = run_bake(BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
+                                  cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures", cycle=None,
+                                  name="sample", version="1.0", params=replace(PARAMS, azimuths=32, impostor_budget_mib=budget)),
+                       tmp_path / "bundles", work=tmp_path / "work")
+    held = json.loads((summary.bundle / "texture_memory.json").read_text())["impostor"]
+    assert held["stored_mib"] <= budget and held["budget"]["fits"] and held["crop"] == whole["crop"]
+    assert held["budget"]["chosen"] == {"azimuths": 20, "frames": 2}
+    assert [step["azimuths"] for step in held["budget"]["steps"]] == [32, 28, 24, 20]
+    manifest = json.loads((summary.bundle / "manifest.json").read_text())["impostor"]
+    assert len(manifest["azimuths_deg"]) == 20 and manifest["azimuths_deg"][1] == 18.0
 
 
 def test_crowdview_says_a_bundle_has_no_detail_maps(bakes, tmp_path):

@@ -140,19 +140,6 @@ def project_views(views: list[OrthoView], points: np.ndarray) -> tuple[np.ndarra
     return np.stack([x, y], axis=-1), depth
 
 
-def silhouette_box(layout, center, radius: float, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(xy_min (2,), xy_max (2,)) in tile texels of (P, 3) model-space points seen from every view of `layout`
-    (crowdbake.bake.atlas.AtlasLayout) framed on the sphere (center, radius): the box every tile's silhouette
-    lies in, since a triangle covers only texels inside its corners' box."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    low, high = np.full(2, np.inf), np.full(2, -np.inf)
-    for elevation in layout.elevations_deg:
-        for azimuth in layout.azimuths_deg:
-            xy, _ = project(ortho_view(center, radius, azimuth, elevation, layout.tile_size), points)
-            low, high = np.minimum(low, xy.min(axis=0)), np.maximum(high, xy.max(axis=0))
-    return low, high
-
-
 def triangle_id_colours(triangle_count: int) -> np.ndarray:
     """(T, 3) uint8 colours encoding triangle index + 1 in 24 bits, little end in red."""
     if not 0 < triangle_count <= MAX_TRIANGLES:

@@ -138,6 +138,11 @@ def format_summary(summary) -> str:
             + f") for {held['frames']} frames x {held['views']} views of {crop['width']}x{crop['height']} texels"
             + (f" (the character's crop of {held['tile_size']}²)" if (crop["width"], crop["height"]) != (held["tile_size"],) * 2 else "")
         )
+        budget = held.get("budget")
+        if budget and budget["chosen"] != budget["asked"]:
+            lines.append(f"memory   the {budget['budget_mib']:g} MiB budget chose {budget['chosen']['azimuths']} azimuths and "
+                         f"{budget['chosen']['frames']} frames (asked {budget['asked']['azimuths']} and {budget['asked']['frames']})"
+                         + ("" if budget["fits"] else "; still over it at the floors"))
     lines.append(
         f"figure 4 paper model: 1 variation {memory['paper_mib']['1']:.0f} MiB both; 8 variations detail-mapped "
         f"{memory['paper_mib']['detail_8']:.0f} MiB vs UV-mapped {memory['paper_mib']['uv_8']:.0f} MiB; "

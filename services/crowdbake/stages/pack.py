@@ -330,7 +330,8 @@ def _texture_memory(poses: PosesRecord, layout: AtlasLayout, formats: dict[str, 
     stored = {kind: layer_bytes[kind] for kind in stored_kinds}
     # What one clip's impostor holds on a GPU (no mipmaps): the maps the bundle stores.
     report["impostor"] = {"stored_bytes": stored, "stored_mib": sum(stored.values()) / texture_memory.MIB, "frames": frames,
-                          "views": len(layout.views), "tile_size": layout.tile_size, "crop": layout.crop_box_manifest()}
+                          "views": len(layout.views), "tile_size": layout.tile_size, "crop": layout.crop_box_manifest(),
+                          "budget": poses.budget}
     return report
 
 
