@@ -261,6 +261,14 @@ int run_benchmark_mode(const GlContext& context, Renderer& renderer, const Bundl
     desc.seed = o.seed;
     desc.max_seconds = o.max_seconds;
     desc.modes = o.modes;
+    if (bundle.manifest.impostor.detail_map.empty()) {
+        const auto detail = std::find(desc.modes.begin(), desc.modes.end(), BenchmarkMode::detail_impostor);
+        if (detail != desc.modes.end()) {
+            desc.modes.erase(detail);
+            std::fprintf(stderr, "crowdview: benchmark: detail_impostor left out: the bundle has no detail maps (bake it with --detail-map)\n");
+            if (desc.modes.empty()) return kExitUsage;
+        }
+    }
     desc.blend = o.blend;
     desc.device = context.describe();
     desc.log = [](const std::string& line) { std::fprintf(stderr, "%s\n", line.c_str()); };
@@ -411,6 +419,15 @@ int main(int argc, char** argv) {
     if (!status) {
         std::fprintf(stderr, "crowdview: bundle refused: %s\n", status.message.c_str());
         return kExitRefused;
+    }
+
+    // Detail-mapped impostors need the detail maps, which a bake stores only when asked (--detail-map).
+    const bool has_detail = !bundle.manifest.impostor.detail_map.empty();
+    if (!has_detail && !o.benchmark && (o.lod == LodChoice::detail || (o.lod == LodChoice::automatic && o.impostors == ImpostorKind::detail))) {
+        std::fprintf(stderr, "crowdview: %s %s has no detail maps (bake it with --detail-map); --lod detail and --impostors "
+                             "detail need them, --lod impostor draws the UV-mapped impostor\n",
+                     bundle.manifest.name.c_str(), bundle.manifest.version.c_str());
+        return kExitUsage;
     }
 
     // 2. GL context and the uploaded bundle.

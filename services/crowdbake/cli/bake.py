@@ -131,6 +131,20 @@ def format_summary(summary) -> str:
             f"worst PSNR {errors['rgb_psnr_db_worst']:.1f} dB, alpha max error {errors['alpha_max']:.0f}"
         )
     memory = summary.texture_memory
+    if "impostor" in memory:
+        held = memory["impostor"]
+        crop = held["crop"]
+        lines.append(
+            f"memory   impostor maps {held['stored_mib']:.1f} MiB ("
+            + ", ".join(f"{kind} {size / 1048576:.1f}" for kind, size in held["stored_bytes"].items())
+            + f") for {held['frames']} frames x {held['views']} views of {crop['width']}x{crop['height']} texels"
+            + (f" (the character's crop of {held['tile_size']}²)" if (crop["width"], crop["height"]) != (held["tile_size"],) * 2 else "")
+        )
+        budget = held.get("budget")
+        if budget and budget["chosen"] != budget["asked"]:
+            lines.append(f"memory   the {budget['budget_mib']:g} MiB budget chose {budget['chosen']['azimuths']} azimuths and "
+                         f"{budget['chosen']['frames']} frames (asked {budget['asked']['azimuths']} and {budget['asked']['frames']})"
+                         + ("" if budget["fits"] else "; still over it at the floors"))
     lines.append(
         f"figure 4 paper model: 1 variation {memory['paper_mib']['1']:.0f} MiB both; 8 variations detail-mapped "
         f"{memory['paper_mib']['detail_8']:.0f} MiB vs UV-mapped {memory['paper_mib']['uv_8']:.0f} MiB; "
