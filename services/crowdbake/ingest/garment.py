@@ -146,12 +146,12 @@ def check_garment_fit(character, cache: ClothCache, fps: float) -> GarmentFit:
     character posed at each frame's time (animation time = frame / fps, looped over the animation):
     a garment simulated on another character. The message says how far off it is and how to bake anyway
     (`--no-fit`, params.fit = false)."""
-    from crowdbake.bake.skinning import joint_matrices, skin
+    from crowdbake.bake.skinning import pose_at_times
 
     frames = checked_frames(cache.frame_count)
     duration = float(getattr(character, "animation_duration", 0) or 0)
     times = (frames / float(fps)) % duration if duration > 0 else np.zeros(len(frames))
-    body, _ = skin(character.positions, character.normals, character.joints, character.weights, joint_matrices(character, times))
+    body, _ = pose_at_times(character, times)
     fit = measure_garment_fit(cache.frames[frames], body, character.faces, frames)
     if not fit.ok:
         raise InputError(
