@@ -25,7 +25,7 @@ from crowdbake.params import add_cli_options, option_for, params_from_args
 
 DESCRIPTION = """\
 Uploads CHAR.glb, the cloth (a .pc2 or .mdd cache with --cloth-mesh, or an Alembic .abc or a .zip of
-OBJ frames alone), the textures (--textures DIR: diffuse_*.png or diffuse_*.jpg, and outfits.png) and a
+OBJ frames alone; without --cloth the body alone is baked, its animation's own loop), the textures (--textures DIR: diffuse_*.png or diffuse_*.jpg, and outfits.png) and a
 chosen cycle (--cycle cycle.json from `crowdbake cycle`, with looped.pc2 when it lies beside it), starts a
 bake of NAME/VERSION and prints its id.
 With --wait, follows it until it ends; with --download DIR, also fetches the published bundle to
@@ -68,8 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("character", metavar="CHAR.glb", help="the skinned, animated character (.glb or .gltf)")
     parser.add_argument("--server", required=True, metavar="URL", help="the crowdbake server, e.g. http://127.0.0.1:8000")
     parser.add_argument("--key", metavar="KEY", default=os.environ.get("CROWDBAKE_API_KEY"), help="API key (default CROWDBAKE_API_KEY)")
-    parser.add_argument("--cloth", required=True, metavar="CLOTH.pc2",
-                        help="the cloth cache: .pc2 or .mdd with --cloth-mesh, or an Alembic .abc or a .zip of OBJ frames alone")
+    parser.add_argument("--cloth", metavar="CLOTH.pc2",
+                        help="the cloth cache: .pc2 or .mdd with --cloth-mesh, or an Alembic .abc or a .zip of OBJ frames alone "
+                             "(none: the body alone, its animation's own loop sampled at --fps, default 30)")
     parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the cloth's rest mesh (OBJ, in the cache's point order); only with a .pc2 or .mdd cache")
     parser.add_argument("--textures", metavar="DIR", help="folder with diffuse_*.png (or diffuse_*.jpg: no colour-region codes) and outfits.png")
     parser.add_argument("--cycle", metavar="cycle.json", help="bake this cycle (from `crowdbake cycle`; looped.pc2 beside it goes too) instead of searching")
@@ -143,7 +144,7 @@ def local_problem(message: str, title: str = "Usage error") -> dict[str, Any]:
 @dataclass
 class Inputs:
     character: Path
-    cloth_files: dict[str, Path]   # multipart field -> file: cache + mesh, cache alone (.abc), or sequence (.zip)
+    cloth_files: dict[str, Path]   # multipart field -> file: cache + mesh, cache alone (.abc), sequence (.zip), or none (body only)
     cloth_data: dict[str, str]
     textures: dict[str, Path]      # texture name -> file
     params: dict[str, Any]
@@ -215,7 +216,9 @@ def check_locally(args: argparse.Namespace) -> Inputs:
         if getattr(args, option) <= 0:
             raise usage(f"--{option.replace('_', '-')} must be positive, got {getattr(args, option)}")
     character = Path(args.character)
-    cloth = cloth_form(Path(args.cloth), Path(args.cloth_mesh) if args.cloth_mesh else None)
+    if args.cloth_mesh and not args.cloth:
+        raise usage("--cloth-mesh goes with --cloth (a .pc2 or .mdd cache); without --cloth the body alone is baked")
+    cloth = cloth_form(Path(args.cloth), Path(args.cloth_mesh) if args.cloth_mesh else None) if args.cloth else {}
     for path in (character, *cloth.values()):
         if not path.is_file():
             raise usage(f"{path}: no such file")
@@ -225,14 +228,14 @@ def check_locally(args: argparse.Namespace) -> Inputs:
     not_glb = check_glb_magic(character)
     if not_glb:
         raise usage(not_glb)
-    cloth_data = {"cycle_frames": str(args.cycle_frames)} if args.cycle_frames else {}
+    cloth_data = {"cycle_frames": str(args.cycle_frames)} if args.cycle_frames and cloth else {}
     return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args), cycle_files(args.cycle))
 
 
 # --------------------------------------------------------------------------------- the server's part
 
 
-def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str, textures: dict[str, str], cycle: str | None = None) -> dict[str, Any]:
+def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str | None, textures: dict[str, str], cycle: str | None = None) -> dict[str, Any]:
     return {"name": args.name, "version": args.bundle_version, "character": character, "cloth": cloth, "textures": textures,
             **({"cycle": cycle} if cycle is not None else {}),
             "params": inputs.params, "publish": not args.no_publish, "public": args.public,
@@ -251,7 +254,7 @@ def preflight(server: Server, args: argparse.Namespace, inputs: Inputs) -> None:
     else first and then refuses it for want of the assets, starting nothing. Any other refusal is the
     one the real request would get after the uploads."""
     placeholders = {name: PREFLIGHT_ASSET for name in inputs.textures}
-    body = bake_body(args, inputs, PREFLIGHT_ASSET, PREFLIGHT_ASSET, placeholders, PREFLIGHT_ASSET if inputs.cycle_files else None)
+    body = bake_body(args, inputs, PREFLIGHT_ASSET, PREFLIGHT_ASSET if inputs.cloth_files else None, placeholders, PREFLIGHT_ASSET if inputs.cycle_files else None)
     response = server.request("POST", "/v1/bakes", "checking the bake request", json=body, accept=frozenset({422}))
     if response.status_code == 422:
         problem = response.json()
@@ -264,7 +267,7 @@ def preflight(server: Server, args: argparse.Namespace, inputs: Inputs) -> None:
 
 def local_inputs(inputs: Inputs) -> dict[str, list[Path]]:
     """Input role (as the bake record names it) -> its local files, for the published-version check."""
-    return {"character": [inputs.character], "cloth": list(inputs.cloth_files.values()),
+    return {"character": [inputs.character], **({"cloth": list(inputs.cloth_files.values())} if inputs.cloth_files else {}),
             **({"cycle": list(inputs.cycle_files.values())} if inputs.cycle_files else {}),
             **{f"textures.{name}": [path] for name, path in inputs.textures.items()}}
 
@@ -329,12 +332,14 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
             preflight(server, args, inputs)
             check_not_published_otherwise(server, args.name, args.bundle_version, local_inputs(inputs), inputs.params, args.created)
             character = upload(server, "/v1/assets/characters", {"file": inputs.character}, f"character {inputs.character.name}", say)
-            cloth_name = next(iter(inputs.cloth_files.values())).name
-            cloth = upload(server, "/v1/assets/cloth", inputs.cloth_files, f"cloth {cloth_name}", say, inputs.cloth_data)
+            cloth = None
+            if inputs.cloth_files:
+                cloth_name = next(iter(inputs.cloth_files.values())).name
+                cloth = upload(server, "/v1/assets/cloth", inputs.cloth_files, f"cloth {cloth_name}", say, inputs.cloth_data)["id"]
             textures = {name: upload(server, "/v1/assets/textures", {"file": path}, f"texture {name}", say)["id"] for name, path in inputs.textures.items()}
             cycle = upload(server, "/v1/assets/cycles", inputs.cycle_files, f"cycle {inputs.cycle_files['cycle'].name}", say)["id"] if inputs.cycle_files else None
 
-            body = bake_body(args, inputs, character["id"], cloth["id"], textures, cycle)
+            body = bake_body(args, inputs, character["id"], cloth, textures, cycle)
             response = server.request("POST", "/v1/bakes", "starting the bake", json=body)
             bake = response.json()
             outcome.bake_id, outcome.state, outcome.progress = bake["id"], bake["state"], bake["progress"]
