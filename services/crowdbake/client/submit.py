@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from crowdbake.client.http import ClientError, Exit, Server, problem_line
-from crowdbake.client.preflight import check_glb_magic, check_not_published_otherwise
+from crowdbake.client.preflight import check_glb_magic, check_name_and_version
 from crowdbake.client.progress import FINAL_STATES, Reporter
 from crowdbake.errors import InputError
 from crowdbake.params import add_cli_options, option_for, params_from_args
@@ -36,8 +36,8 @@ With --export-out DIR, also fetches the engine export (glTF, KTX2, VATs: docs/ex
 DIR/NAME/VERSION.
 
 Before uploading anything, the server checks the key, its scopes, NAME, VERSION and the bake
-parameters (a bake request naming no real assets, which starts nothing), and the client checks that
-NAME/VERSION is not already published from other inputs (bundles never change).
+parameters (a bake request naming no real assets, which starts nothing), and that NAME/VERSION is not
+already published from other inputs (bundles never change; from the files' sha256, nothing uploaded).
 
 The key comes from --key or CROWDBAKE_API_KEY (better in CI: it stays out of the process list)."""
 
@@ -330,7 +330,7 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
         server = Server(client, retry_for=args.retry_for, say=say)
         try:
             preflight(server, args, inputs)
-            check_not_published_otherwise(server, args.name, args.bundle_version, local_inputs(inputs), inputs.params, args.created)
+            check_name_and_version(server, args.name, args.bundle_version, local_inputs(inputs), inputs.params, args.created, not args.no_publish)
             character = upload(server, "/v1/assets/characters", {"file": inputs.character}, f"character {inputs.character.name}", say)
             cloth = None
             if inputs.cloth_files:
