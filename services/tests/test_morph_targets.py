@@ -105,6 +105,8 @@ def test_linear_weights_move_the_bind_pose_before_skinning(tmp_path, caplog):
     assert [t.name for t in character.morph_targets] == ["Lift", "Spread"]
     assert any("Lift, Spread" in r.getMessage() for r in caplog.records)
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    with pytest.raises(ValueError, match=r"2 morph targets \(Lift, Spread\), which encode_character does not write"):
+        encode_character(character)
     times = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
     posed, normals = pose_character(character, 2.0, 5)
     weights = np.array([[0, 1], [0.5, 0.5], [1, 0], [0.75, 0.25], [0.5, 0.5]])

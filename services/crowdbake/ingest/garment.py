@@ -107,8 +107,11 @@ def body_at_rest(character) -> np.ndarray:
 
     if getattr(character, "animation_duration", 0) and character.animation_duration > 0:
         body = pose_character(character, 1.0, 1)[0][0]
-    else:
-        body = np.asarray(character.positions, np.float32)
+    else:  # the bind pose, with its morph targets at their default weights
+        from crowdbake.bake.skinning import apply_morph_targets, morph_weights
+
+        targets = getattr(character, "morph_targets", None) or []
+        body = apply_morph_targets(character.positions, character.normals, targets, morph_weights(character, np.zeros(1))[0])[0]
     check_character_height(character, body)
     return body
 
