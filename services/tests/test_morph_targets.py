@@ -51,28 +51,45 @@ def _quad_character() -> Character:
     )
 
 
-def _accessor(gltf: pygltflib.GLTF2, array: np.ndarray, kind: str) -> int:
-    """Append `array` (float32) to the GLB's BIN chunk as a new bufferView + accessor; returns its index."""
-    data = np.ascontiguousarray(array, np.float32).tobytes()
+def _view(gltf: pygltflib.GLTF2, data: bytes) -> int:
+    """Append `data` to the GLB's BIN chunk (4-byte aligned) as a new bufferView; returns its index."""
     blob = gltf.binary_blob() or b""
     blob += b"\0" * (-len(blob) % 4)
     gltf.bufferViews.append(pygltflib.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(data)))
     gltf.set_binary_blob(blob + data)
     gltf.buffers[0].byteLength = len(blob) + len(data)
+    return len(gltf.bufferViews) - 1
+
+
+def _accessor(gltf: pygltflib.GLTF2, array: np.ndarray, kind: str) -> int:
+    """`array` (float32) as a new accessor of type `kind`; returns its index."""
+    array = np.ascontiguousarray(array, np.float32)
     count = len(array) if kind != "SCALAR" else array.size
-    gltf.accessors.append(pygltflib.Accessor(bufferView=len(gltf.bufferViews) - 1, componentType=pygltflib.FLOAT, count=count, type=kind,
-                                             min=np.asarray(array).reshape(count, -1).min(0).tolist(), max=np.asarray(array).reshape(count, -1).max(0).tolist()))
+    rows = array.reshape(count, -1)
+    gltf.accessors.append(pygltflib.Accessor(bufferView=_view(gltf, array.tobytes()), componentType=pygltflib.FLOAT, count=count, type=kind,
+                                             min=rows.min(0).tolist(), max=rows.max(0).tolist()))
+    return len(gltf.accessors) - 1
+
+
+def _sparse_accessor(gltf: pygltflib.GLTF2, count: int, indices: np.ndarray, values: np.ndarray) -> int:
+    """A VEC3 accessor of `count` zeros but `values` (k, 3) at `indices` (k,): a sparse block, no bufferView."""
+    sparse = pygltflib.Sparse(
+        count=len(indices),
+        indices=pygltflib.AccessorSparseIndices(bufferView=_view(gltf, np.asarray(indices, "<u4").tobytes()), componentType=pygltflib.UNSIGNED_INT),
+        values=pygltflib.AccessorSparseValues(bufferView=_view(gltf, np.asarray(values, "<f4").tobytes())))
+    gltf.accessors.append(pygltflib.Accessor(componentType=pygltflib.FLOAT, count=count, type="VEC3", sparse=sparse,
+                                             min=[0.0, 0.0, 0.0], max=np.asarray(values).max(0).tolist()))
     return len(gltf.accessors) - 1
 
 
 def _write_quad(tmp_path: Path, interpolation: str | None = "LINEAR", default=(0.0, 0.0), weights_output=None,
-                spread_count: int = 4) -> Path:
+                spread_count: int = 4, sparse_lift: bool = False) -> Path:
     """The quad as a .glb with the two targets (names in extras.targetNames), the mesh's default
     weights, and (unless interpolation is None) a weights channel keyed at KEY_TIMES."""
     gltf = pygltflib.GLTF2.load_from_bytes(encode_character(_quad_character()))
     mesh_node = next(k for k, node in enumerate(gltf.nodes) if node.mesh is not None)
     mesh = gltf.meshes[gltf.nodes[mesh_node].mesh]
-    lift = _accessor(gltf, LIFT, "VEC3")
+    lift = _sparse_accessor(gltf, 4, np.array([2, 3]), LIFT[2:]) if sparse_lift else _accessor(gltf, LIFT, "VEC3")
     spread = _accessor(gltf, SPREAD[:spread_count], "VEC3")
     spread_normals = _accessor(gltf, SPREAD_NORMALS, "VEC3")
     mesh.primitives[0].targets = [{"POSITION": lift}, {"POSITION": spread, "NORMAL": spread_normals}]
@@ -140,6 +157,13 @@ def test_default_weights_apply_without_a_channel(tmp_path):
     np.testing.assert_allclose(character.morph_weights, [0.25, 1.0])
     posed, _ = pose_character(character, 1.0, 2)
     np.testing.assert_allclose(posed, _expected(np.array([0.0, 1.0]), np.array([[0.25, 1.0]] * 2)), atol=1e-5)
+
+
+def test_a_sparse_target_moves_only_its_vertices(tmp_path):
+    character = load_character(_write_quad(tmp_path, None, default=(1.0, 0.0), sparse_lift=True))
+    np.testing.assert_array_equal(character.morph_targets[0].positions, np.where(np.arange(4)[:, None] >= 2, LIFT, 0))
+    posed, _ = pose_character(character, 1.0, 1)
+    np.testing.assert_allclose(posed[0], QUAD + np.where(np.arange(4)[:, None] >= 2, LIFT, 0), atol=1e-6)
 
 
 def test_targets_that_cannot_be_applied_are_refused_by_name(tmp_path):
