@@ -70,7 +70,7 @@ def taken(name: str, version: str, why: str | None = None) -> Problem:
     return Problem("conflict", f"{name}/{version} is already published from other inputs{reason}; bundles never change, choose a new version")
 
 
-@router.post("/check", status_code=204, response_class=Response, responses=problem_responses(409),
+@router.post("/check", status_code=204, response_class=Response, responses=problem_responses(400, 409),
              summary="Check, before uploading, that a bake may publish its name and version")
 def check_bake(body: BakeCheck, key: BakeKey, session: SessionDep) -> Response:
     published = find_bundle(session, body.name, body.version)
