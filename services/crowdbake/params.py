@@ -246,7 +246,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--tile", "--tile-size"), "PX", minimum=4, maximum=MAX_TILE_SIZE, multiple_of=4),
     ParamSpec("impostor_budget_mib", "float", 16.0, "memory for one clip's impostor maps in MiB (the paper's 15): fewer azimuths, "
               "then fewer frames, until they fit (docs/bake.md 'Memory')",
-              ("--impostor-budget",), "MIB", optional=True, above_zero=True),
+              ("--impostor-budget",), "MIB", optional=True, above_zero=True, maximum=4096.0),
     ParamSpec("crop", "bool", True, "store each impostor view cropped to the box the character covers over every view and frame "
               "(SPEC.md: about half the maps' memory, the same pictures)",
               ("--no-crop",), off_help="do not crop the impostor tiles: store them whole (square)"),
