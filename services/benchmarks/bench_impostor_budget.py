@@ -117,7 +117,7 @@ def plot(rows: list[dict], path: Path) -> None:
     for case in dict.fromkeys(row["case"] for row in rows):
         mine = sorted((row for row in rows if row["case"] == case), key=lambda row: row["impostor_mib"])
         for axis, section in zip(axes, ("at_views", "between_views")):
-            axis.plot([r["impostor_mib"] for r in mine], [r[section]["ssim_mean"] for r in mine], "o-", label=case)
+            axis.plot([r["impostor_mib"] for r in mine], [r[section]["ssim_mean"] for r in mine], "o", label=case)  # settings, not a curve
             for r in mine:
                 axis.annotate(r["config"], (r["impostor_mib"], r[section]["ssim_mean"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
     for axis, section, target in zip(axes, ("at baked views", "between views and frames"), (0.95, 0.90)):
@@ -140,7 +140,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("out/bench/impostor_budget.json"))
     parser.add_argument("--plot", type=Path, default=None)
     parser.add_argument("--scratch", type=Path, default=None, help="keep the bakes here (default: a temporary folder)")
+    parser.add_argument("--replot", type=Path, nargs="+", default=None,
+                        help="bake nothing: table and --plot of the rows of these earlier --out files (later rows of a case and config win)")
     args = parser.parse_args(argv)
+    if args.replot:
+        merged = {}
+        for path in args.replot:
+            for row in json.loads(path.read_text())["rows"]:
+                merged[(row["case"], "a32" if row["config"] == "default" else row["config"])] = {**row, "config": "a32" if row["config"] == "default" else row["config"]}
+        rows = list(merged.values())
+        for row in rows:
+            a, b = row["at_views"], row["between_views"]
+            print(f"{row['case']:<11} {row['config']:<8} {row['azimuths']:>3} {len(row['elevations_deg']):>5} {row['frames']:>3} {row['tile']:>4} "
+                  f"{row['impostor_mib']:>6.1f}  {a['ssim_mean']:.3f} / {a['ssim_worst']:.3f}  {b['ssim_mean']:.3f} / {b['ssim_worst']:.3f}")
+        if args.plot:
+            plot(rows, args.plot)
+        return 0
     scratch = args.scratch or Path(tempfile.mkdtemp(prefix="impostor-budget-"))
     scratch.mkdir(parents=True, exist_ok=True)
     rows = []

@@ -14,9 +14,10 @@ DESCRIPTION = """\
 Bake a skinned character (glTF) and its simulated garment (a PC2 or MDD cache with its OBJ rest mesh, an
 Alembic .abc, or a .zip of OBJ frames) into a bundle:
 the cloth cycle (searched, or given with --cycle), poses of the body and the garment for every cycle frame
-at two LODs (meshoptimizer), UV-mapped impostors (normal, UV and detail maps for --frames frames x
---azimuths x elevations views, rendered with pyrender under OSMesa, or EGL with PYOPENGL_PLATFORM=egl),
-DXT1/DXT3 block compression, the impostor's fidelity against the mesh and the texture memory of figure 4.
+at two LODs (meshoptimizer), UV-mapped impostors (normal, UV and surface maps, detail maps with
+--detail-map, for --frames frames x --azimuths x elevations views, as many as fit --impostor-budget,
+cropped to the character, rendered with pyrender under OSMesa, or EGL with PYOPENGL_PLATFORM=egl),
+block compression, the impostor's fidelity against the mesh and the texture memory of figure 4.
 
 Writes OUT/NAME/VERSION (shared_formats bundle v1), verifies it, and prints sizes, timings and fidelity.
 A published NAME/VERSION never changes: baking it again with other results is an error.
