@@ -450,3 +450,44 @@ def test_cesiumman_export_validates_and_round_trips(tmp_path_factory):
     bundle = root / "bundles" / "cesiumman" / "1.0"
     assert cli_main(["export", str(bundle), "--out", str(root / "export")]) == 0
     check_export(bundle, root / "export")
+
+
+def test_looks_are_gltf_variants_with_the_outfit_colours_baked_in(sample_bundle, sample_export):
+    """KHR_materials_variants: one variant per diffuse variation, each primitive mapped to a material per
+    variant whose base colour is that variation in that outfit (what crowdview draws unlit), variant 0
+    also the default; export.json lists them."""
+    import io
+
+    from PIL import Image
+
+    from crowdbake.export.writer import outfit_look
+
+    bundle = verify_bundle(sample_bundle)
+    manifest = bundle.manifest
+    sidecar = json.loads((sample_export / "export.json").read_text())
+    variations = manifest["materials"][0]["variations"]
+    assert [v["variation"] for v in sidecar["variants"]] == list(range(variations))
+    assert [v["outfit"] for v in sidecar["variants"]] == [k % manifest["outfits"]["count"] for k in range(variations)]
+    diffuse = rgba8_layers(bundle.textures[manifest["materials"][0]["diffuse"]])
+    outfit_rows = rgba8_layers(bundle.textures[manifest["outfits"]["file"]])[0]
+    for lod in sidecar["lods"]:
+        gltf = pygltflib.GLTF2.load(sample_export / lod["glb"])
+        assert "KHR_materials_variants" in gltf.extensionsUsed
+        names = [v["name"] for v in gltf.extensions["KHR_materials_variants"]["variants"]]
+        assert names == [v["name"] for v in sidecar["variants"]]
+        blob = gltf.binary_blob()
+        for mesh in gltf.meshes:
+            primitive = mesh.primitives[0]
+            mappings = primitive.extensions["KHR_materials_variants"]["mappings"]
+            assert sorted(v for m in mappings for v in m["variants"]) == list(range(variations))
+            assert next(m["material"] for m in mappings if m["variants"] == [0]) == primitive.material
+            for mapping in mappings[:3]:
+                (k,) = mapping["variants"]
+                texture = gltf.textures[gltf.materials[mapping["material"]].pbrMetallicRoughness.baseColorTexture.index]
+                image = gltf.images[texture.source]
+                view = gltf.bufferViews[image.bufferView]
+                look = np.asarray(Image.open(io.BytesIO(blob[view.byteOffset:view.byteOffset + view.byteLength])).convert("RGB"), dtype=np.float64)
+                want = outfit_look(diffuse[k], outfit_rows[k % len(outfit_rows)]).astype(np.float64)
+                assert image.mimeType == "image/jpeg" and np.abs(look - want).mean() < 4.0, (k, np.abs(look - want).mean())
+    # The looks differ: another variation and another outfit.
+    assert not np.array_equal(outfit_look(diffuse[0], outfit_rows[0]), outfit_look(diffuse[1], outfit_rows[1 % len(outfit_rows)]))

@@ -10,8 +10,11 @@ VAT texel (TEXCOORD_1, see crowdbake.export.vat). The cycle plays two ways:
 - vertex-animation textures, named in the mesh's `extras.crowdbake.vat` (docs/export.md), for
   engines that would rather not hold F morph targets.
 
-Materials are metallic-roughness, roughness 1, with diffuse variation 0 as the base colour (PNG,
-RGB: the alpha of the bundle's diffuse holds region codes, not opacity). Garments are double-sided
+Materials are metallic-roughness, roughness 1. Their looks are glTF variants (KHR_materials_variants,
+read by three.js, Babylon.js and Blender): variant k is a diffuse variation with an outfit's colours
+baked into its base-colour image (RGB: the bundle's diffuse alpha holds region codes, not opacity, so
+the colours a shader would apply are multiplied in here), and variant 0 is also each primitive's
+default material, so a viewer without the extension shows the first look. Garments are double-sided
 because a skirt shows its inside.
 """
 from __future__ import annotations
@@ -23,6 +26,8 @@ import numpy as np
 import pygltflib as g
 
 from crowdbake import __version__
+
+VARIANTS_EXTENSION = "KHR_materials_variants"
 
 
 @dataclass(frozen=True)
@@ -42,8 +47,20 @@ class GlbPart:
 
 @dataclass(frozen=True)
 class GlbMaterial:
+    """One bundle material: per variant (GlbVariant, in order) its base-colour image, encoded."""
+
     name: str
-    base_colour_png: bytes
+    looks: list[bytes]
+    mime_type: str = "image/jpeg"
+
+
+@dataclass(frozen=True)
+class GlbVariant:
+    """One KHR_materials_variants variant: its name and what it shows (diffuse variation, outfit)."""
+
+    name: str
+    variation: int
+    outfit: int
 
 
 class _Blob:
@@ -78,8 +95,10 @@ def _unit(vectors: np.ndarray) -> np.ndarray:
     return (vectors / np.maximum(np.linalg.norm(vectors, axis=-1, keepdims=True), 1e-12)).astype(np.float32)
 
 
-def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], frames_per_second: float, root_extras: dict[str, Any]) -> bytes:
-    """The .glb bytes of one LOD: a root node holding one node per part, and the `cycle` animation."""
+def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list[GlbVariant], frames_per_second: float,
+              root_extras: dict[str, Any]) -> bytes:
+    """The .glb bytes of one LOD: a root node holding one node per part, the `cycle` animation, and a glTF
+    material per (bundle material, sidedness, variant), the variants mapped on every primitive."""
     if not parts:
         raise ValueError("a character LOD needs at least one part")
     frame_counts = {part.positions.shape[0] for part in parts}
@@ -90,24 +109,32 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], frames_per_sec
     blob = _Blob(gltf)
 
     gltf.samplers.append(g.Sampler(magFilter=g.LINEAR, minFilter=g.LINEAR_MIPMAP_LINEAR, wrapS=g.REPEAT, wrapT=g.REPEAT))
-    material_index: dict[tuple[int, bool], int] = {}
+    if not variants or any(len(m.looks) != len(variants) for m in materials):
+        raise ValueError(f"every material needs one look per variant ({len(variants)})")
+    texture_of: dict[tuple[int, int], int] = {}  # (bundle material, variant) -> texture, one image each
+    material_index: dict[tuple[int, bool, int], int] = {}  # (bundle material, double-sided, variant) -> glTF material
     for part in parts:
-        key = (part.material, part.kind == "garment")
-        if key in material_index:
-            continue
-        source = materials[part.material]
-        gltf.images.append(g.Image(bufferView=blob.view(source.base_colour_png), mimeType="image/png", name=source.name))
-        gltf.textures.append(g.Texture(sampler=0, source=len(gltf.images) - 1))
-        gltf.materials.append(
-            g.Material(
-                name=source.name + ("_double_sided" if key[1] else ""),
-                pbrMetallicRoughness=g.PbrMetallicRoughness(
-                    baseColorTexture=g.TextureInfo(index=len(gltf.textures) - 1), metallicFactor=0.0, roughnessFactor=1.0
-                ),
-                doubleSided=key[1],
+        for v, variant in enumerate(variants):
+            key = (part.material, part.kind == "garment", v)
+            if key in material_index:
+                continue
+            source = materials[part.material]
+            if (part.material, v) not in texture_of:
+                gltf.images.append(g.Image(bufferView=blob.view(source.looks[v]), mimeType=source.mime_type, name=f"{source.name}_{variant.name}"))
+                gltf.textures.append(g.Texture(sampler=0, source=len(gltf.images) - 1))
+                texture_of[(part.material, v)] = len(gltf.textures) - 1
+            gltf.materials.append(
+                g.Material(
+                    name=f"{source.name}{'_double_sided' if key[1] else ''}_{variant.name}",
+                    pbrMetallicRoughness=g.PbrMetallicRoughness(
+                        baseColorTexture=g.TextureInfo(index=texture_of[(part.material, v)]), metallicFactor=0.0, roughnessFactor=1.0
+                    ),
+                    doubleSided=key[1],
+                )
             )
-        )
-        material_index[key] = len(gltf.materials) - 1
+            material_index[key] = len(gltf.materials) - 1
+    gltf.extensionsUsed = [VARIANTS_EXTENSION]
+    gltf.extensions = {VARIANTS_EXTENSION: {"variants": [{"name": variant.name} for variant in variants]}}
 
     root = g.Node(name="character", children=[], extras=root_extras)
     gltf.nodes.append(root)
@@ -136,9 +163,12 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], frames_per_sec
         primitive = g.Primitive(
             attributes=attributes,
             indices=blob.accessor(indices.astype(index_type), g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER),
-            material=material_index[(part.material, part.kind == "garment")],
+            material=material_index[(part.material, part.kind == "garment", 0)],
             mode=g.TRIANGLES,
             targets=targets or None,
+            extensions={VARIANTS_EXTENSION: {"mappings": [
+                {"material": material_index[(part.material, part.kind == "garment", v)], "variants": [v]} for v in range(len(variants))
+            ]}},
         )
         extras = {"targetNames": [f"frame_{frame}" for frame in range(1, frame_count)], "crowdbake": part.extras}
         gltf.meshes.append(

@@ -30,7 +30,8 @@ from PIL import Image
 from crowdbake import __version__
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.export import ktx2
-from crowdbake.export.glb import GlbMaterial, GlbPart, build_glb
+from crowdbake.bake.shading import apply_outfit
+from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb
 from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, region_codes_used, rgba8_layers, uv_map_layers
 from crowdbake.export.vat import encode_vat, vat_texcoords
 from crowdbake.formats.bundle import Bundle, verify_bundle
@@ -46,6 +47,10 @@ REFERENCE_VIEWPORT_HEIGHT_PX = 720
 REFERENCE_FOV_Y_DEG = 45.0
 LOW_MESH_FRACTION = 0.5
 LOD_HYSTERESIS = 0.05
+# glTF variants (KHR_materials_variants): at most this many looks, each a JPEG base-colour image per
+# material in every LOD's .glb (about 0.2 MB for a 1024² look at this quality).
+MAX_VARIANTS = 16
+LOOK_JPEG_QUALITY = 90
 
 
 @dataclass(frozen=True)
@@ -67,12 +72,6 @@ def png16(image: np.ndarray) -> bytes:
     if not ok:
         raise RuntimeError("OpenCV could not encode a 16-bit PNG")
     return encoded.tobytes()
-
-
-def png_rgb(rgba: np.ndarray) -> bytes:
-    buffer = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(rgba[..., :3])).save(buffer, format="PNG", optimize=False)
-    return buffer.getvalue()
 
 
 class _Out:
@@ -179,10 +178,32 @@ def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
     }
 
 
-def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray]) -> list[dict]:
+def look_variants(variation_counts: list[int], outfit_count: int) -> list[GlbVariant]:
+    """The export's glTF variants: as many as the most varied material has variations (at most
+    MAX_VARIANTS), variant k showing variation k (of each material, wrapping) in outfit k (wrapping)."""
+    count = min(max(variation_counts), MAX_VARIANTS)
+    return [GlbVariant(f"look_{k}", k, k % outfit_count) for k in range(count)]
+
+
+def outfit_look(rgba: np.ndarray, outfit_row: np.ndarray) -> np.ndarray:
+    """(H, W, 4) uint8 diffuse texels (alpha = 17 · region) with the outfit's colours multiplied in:
+    (H, W, 3) uint8, what crowdview's shader draws unlit (crowdbake.bake.shading.apply_outfit)."""
+    rgb = apply_outfit(rgba.reshape(-1, 4), outfit_row)
+    return np.rint(rgb * 255.0).astype(np.uint8).reshape(rgba.shape[:2] + (3,))
+
+
+def jpeg_rgb(rgb: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    # 4:4:4: outfit regions change colour at a texel; halved chroma would smear them.
+    Image.fromarray(np.ascontiguousarray(rgb)).save(buffer, format="JPEG", quality=LOOK_JPEG_QUALITY, subsampling=0)
+    return buffer.getvalue()
+
+
+def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], variants: list[GlbVariant], outfit_rows: np.ndarray) -> list[dict]:
     manifest = bundle.manifest
     fps = manifest["frames_per_second"]
-    glb_materials = [GlbMaterial(m["name"], png_rgb(layers[0])) for m, layers in zip(manifest["materials"], diffuse_arrays)]
+    glb_materials = [GlbMaterial(m["name"], [jpeg_rgb(outfit_look(layers[v.variation % len(layers)], outfit_rows[v.outfit])) for v in variants])
+                     for m, layers in zip(manifest["materials"], diffuse_arrays)]
     lods = []
     for lod in sorted({mesh["lod"] for mesh in manifest["meshes"]}):
         parts, part_entries = [], []
@@ -218,7 +239,7 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray]) ->
             )
             part_entries.append({k: extras[k] for k in ("part", "kind", "material")} | {"vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat})
         root_extras = {"crowdbake": {"export": "export.json", "lod": lod, "frames_per_second": fps, "frame_count": manifest["cycle"]["frames"]}}
-        path = out.write(f"character_lod{lod}.glb", build_glb(parts, glb_materials, fps, root_extras))
+        path = out.write(f"character_lod{lod}.glb", build_glb(parts, glb_materials, variants, fps, root_extras))
         lods.append({"lod": lod, "glb": path, "parts": part_entries})
     return lods
 
@@ -255,7 +276,9 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
         manifest = bundle.manifest
         materials, outfits, diffuse_arrays = _export_textures(bundle, out, ktx2_mode, prepared)
         impostor = _export_impostor(bundle, out, ktx2_mode, prepared)
-        lods = _export_lods(bundle, out, diffuse_arrays)
+        outfit_rows = rgba8_layers(bundle.textures[manifest["outfits"]["file"]])[0]
+        variants = look_variants([m["variations"] for m in manifest["materials"]], manifest["outfits"]["count"])
+        lods = _export_lods(bundle, out, diffuse_arrays, variants, outfit_rows)
         shaders = _copy_shaders(out)
         sidecar = {
             "format": EXPORT_FORMAT,
@@ -268,6 +291,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
             "lods": lods,
             "materials": materials,
             "outfits": outfits,
+            "variants": [{"name": v.name, "variation": v.variation, "outfit": v.outfit} for v in variants],
             "regions": {"count": manifest["outfits"]["regions"], "alpha_scale": 17, "decode": "r = round(alpha * 255 / 17); 0 keeps the texture colour",
                         "used": region_codes_used(diffuse_arrays)},
             "impostor": impostor,
