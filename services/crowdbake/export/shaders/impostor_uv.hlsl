@@ -12,15 +12,19 @@ SamplerState CbLinearSampler;
 cbuffer CbImpostor {
     float3 CbLightDir;  // unit, towards the light, world space
     int CbTileSize;
+    int4 CbCrop;  // export.json impostor.crop: x, y, width, height of the stored part of every tile
 };
 
 static const float CB_AMBIENT = 0.35;
 
-// Returns false where the impostor does not cover the pixel (clip it).
-bool CbImpostorColour(float2 tileUV, int2 tileOrigin, int layer, float heading, int variation, int outfit, out float3 colour) {
-    int2 texel = tileOrigin + clamp(int2(tileUV * CbTileSize), int2(0, 0), int2(CbTileSize - 1, CbTileSize - 1));
-    uint word = CbUvMap.Load(int4(texel, layer, 0));
+// Returns false where the impostor does not cover the pixel (clip it). cellOrigin: the top-left texel
+// of the view's cell, (a * crop.width, e * crop.height).
+bool CbImpostorColour(float2 tileUV, int2 cellOrigin, int layer, float heading, int variation, int outfit, out float3 colour) {
+    int2 t = clamp(int2(tileUV * CbTileSize), int2(0, 0), int2(CbTileSize - 1, CbTileSize - 1)) - CbCrop.xy;
     colour = float3(0, 0, 0);
+    if (any(t < int2(0, 0)) || any(t >= CbCrop.zw)) return false;
+    int2 texel = cellOrigin + t;
+    uint word = CbUvMap.Load(int4(texel, layer, 0));
     if ((word >> 31) == 0) return false;
     float2 uv = float2(word & 0x3FFF, (word >> 14) & 0x3FFF) / 16383.0;
     float4 diffuse = CbDiffuse.SampleLevel(CbLinearSampler, float3(uv, variation), 0);

@@ -1,0 +1,90 @@
+"""An export's .glb as Blender sees it: imported with Blender's own glTF importer, its cloth loop played.
+
+    python -m crowdbake.export.blender_round_trip GLB OUT.npz
+
+Run in a child process (Blender's `bpy` module, the `crowdbake[alembic]` extra, is large and keeps
+global state). Writes OUT.npz:
+
+- `mesh_<name>`: (F, V, 3) float32 world positions of each mesh at each frame of the `cycle` animation,
+  in glTF's axes (+Y up; Blender's importer turns glTF (x, y, z) into (x, -z, y) and back is applied
+  here), evaluated by Blender at the time the animation keys frame k (shape keys driven by its action);
+- `info`: JSON with the scene's frame rate, the actions, the material names, the
+  KHR_materials_variants variant names and per mesh the variants its materials are mapped for.
+
+crowdbake.export.writer's tests compare these with the bundle's pose caches.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def _key_frames(mesh) -> list[float]:
+    """Blender frame at which shape key frame_k peaks, k = 1..F-1 (the one-hot keys of `cycle`)."""
+    action = mesh.shape_keys.animation_data.action
+    peaks = []
+    for k in range(1, len(mesh.shape_keys.key_blocks)):
+        path = f'key_blocks["frame_{k}"].value'
+        curve = next(c for c in _fcurves(action) if c.data_path == path)
+        peaks.append(max(curve.keyframe_points, key=lambda p: p.co[1]).co[0])
+    return peaks
+
+
+def _fcurves(action):
+    """Every F-curve of an action (Blender 5 keeps them in layers, strips and channel bags)."""
+    if hasattr(action, "fcurves") and len(action.fcurves):
+        return list(action.fcurves)
+    curves = []
+    for layer in action.layers:
+        for strip in layer.strips:
+            for bag in strip.channelbags:
+                curves.extend(bag.fcurves)
+    return curves
+
+
+def main(glb: Path, out: Path) -> None:
+    import bpy
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.import_scene.gltf(filepath=str(glb))
+    scene = bpy.context.scene
+    meshes = [ob for ob in bpy.data.objects if ob.type == "MESH"]
+    if not meshes:
+        raise SystemExit(f"{glb}: Blender imported no mesh")
+    first = meshes[0].data
+    frames = [None] + (_key_frames(first) if first.shape_keys and first.shape_keys.animation_data else [])
+    start = frames[1] - (frames[2] - frames[1]) if len(frames) > 2 else float(scene.frame_start)
+    frames[0] = start  # frame 0: every weight 0, one frame step before frame_1 peaks
+    arrays = {}
+    for ob in meshes:
+        positions = []
+        for frame in frames:
+            scene.frame_set(int(np.floor(frame)), subframe=float(frame - np.floor(frame)))
+            evaluated = ob.evaluated_get(bpy.context.evaluated_depsgraph_get())
+            data = evaluated.to_mesh()
+            local = np.array([v.co[:] for v in data.vertices], dtype=np.float64)
+            world = local @ np.array(ob.matrix_world)[:3, :3].T + np.array(ob.matrix_world)[:3, 3]
+            evaluated.to_mesh_clear()
+            positions.append(np.stack([world[:, 0], world[:, 2], -world[:, 1]], axis=1))
+        arrays[f"mesh_{ob.name}"] = np.asarray(positions, dtype=np.float32)
+    info = {
+        "fps": scene.render.fps / scene.render.fps_base,
+        "frames": frames,
+        "actions": [action.name for action in bpy.data.actions],
+        "materials": sorted(m.name for m in bpy.data.materials),
+        "variants": [v.name for v in getattr(scene, "gltf2_KHR_materials_variants_variants", [])],
+        "mesh_variants": {
+            ob.name: sorted({variant.variant.variant_idx for mapping in ob.data.gltf2_variant_mesh_data for variant in mapping.variants})
+            for ob in meshes if hasattr(ob.data, "gltf2_variant_mesh_data")
+        },
+    }
+    np.savez(out, info=np.array(json.dumps(info)), **arrays)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        raise SystemExit("usage: python -m crowdbake.export.blender_round_trip GLB OUT.npz")
+    main(Path(sys.argv[1]), Path(sys.argv[2]))
