@@ -288,7 +288,7 @@ void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& 
         Instance inst;
         inst.position[0] = feet.x, inst.position[1] = feet.y, inst.position[2] = feet.z;
         inst.heading = c.heading;
-        inst.frame = cycle_frame(time_s, c.phase_s, model.frames_per_second, model.frame_count);
+        inst.frame = cycle_frame(time_s * c.rate, c.phase_s, model.frames_per_second, model.frame_count);
         inst.variation = c.variation;
         inst.outfit = c.outfit;
         inst.tile = 0;

@@ -70,6 +70,7 @@ struct Character {
     float phase_s;         // offset into the animation cycle, seconds
     uint32_t variation;    // in [0, variation_count)
     uint32_t outfit;       // in [0, outfit_count)
+    float rate = 1;        // play rate of its clip: the cycle advances rate seconds per second
 };
 
 struct Crowd {
