@@ -398,7 +398,7 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
     std::vector<LodRule> rules(archetype_count);
     for (size_t a = 0; a < archetype_count; ++a) rules[a] = lod_rule_for(renderer.model(a), camera, float(renderer.height()));
     const glm::vec3 light = scene_light_dir();
-    std::vector<std::vector<Lod>> state(archetype_count);
+    std::vector<FrameState> state(archetype_count);
     std::vector<FrameInstances> frame(archetype_count);
     std::vector<ArchetypeCounts> counts(archetype_count);
     FlyControls controls;
