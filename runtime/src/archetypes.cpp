@@ -60,4 +60,65 @@ std::string lod_summary(const ArchetypeCounts& c) {
            " | culled " + std::to_string(c.last_culled);
 }
 
+// Counts per archetype and LOD, GPU memory per archetype, and the CPU cost of a frame: the
+// --report of a headless run.
+nlohmann::json view_report(const std::string& device, const Renderer& renderer, const CrowdScene& scene,
+                           const std::vector<ArchetypeCounts>& counts, const std::vector<LodRule>& rules, int frames,
+                           double build_ms, const DrawStats& stats) {
+    nlohmann::json archetypes = nlohmann::json::array();
+    const char* lods[] = {"high", "low", "impostor"};
+    for (size_t a = 0; a < renderer.archetype_count(); ++a) {
+        const CharacterModel& m = renderer.model(a);
+        const ArchetypeMemory mem = renderer.memory(a);
+        nlohmann::json counts_json, frames_with;
+        for (int l = 0; l < 3; ++l) counts_json[lods[l]] = counts[a].last[l], frames_with[lods[l]] = counts[a].frames_with[l];
+        counts_json["culled"] = counts[a].last_culled;
+        archetypes.push_back({{"name", scene.names[a]},
+                              {"characters", scene.traits[a].count},
+                              {"radius_m", m.radius},
+                              {"tile_size", m.tile_size},
+                              {"spacing_m", scene.traits[a].spacing},
+                              {"low_switch_m", rules[a].has_low ? rules[a].impostor_distance * rules[a].low_fraction : 0.0f},
+                              {"impostor_switch_m", rules[a].impostor_distance},
+                              {"lod_counts", counts_json},
+                              {"frames_with_lod", frames_with},
+                              {"gpu_memory_bytes", {{"meshes", mem.meshes}, {"textures", mem.textures}, {"impostors", mem.impostors},
+                                                    {"total", mem.total()}}}});
+    }
+    nlohmann::json refused = nlohmann::json::array();
+    for (const RefusedArchetype& r : scene.refused) refused.push_back({{"name", r.name}, {"error", r.error}});
+    return {{"device", device},
+            {"width", renderer.width()},
+            {"height", renderer.height()},
+            {"frames", frames},
+            {"archetypes", archetypes},
+            {"refused", refused},
+            {"draw_calls", stats.draw_calls},
+            {"triangles", stats.triangles},
+            {"cpu_build_ms_per_frame", build_ms}};
+}
+
+
+bool upload_archetypes(Renderer* renderer, const std::vector<LoadedArchetype>& loaded, CrowdScene* scene,
+                       const std::function<void(const std::string&)>& log, std::string* error) {
+    const std::vector<uint64_t> counts = archetype_counts(scene->file);
+    for (const LoadedArchetype& a : loaded) {
+        std::string refusal;
+        if (!renderer->add_archetype(a.bundle, &refusal)) {
+            if (!log) {
+                *error = refusal;
+                return false;
+            }
+            log("archetype '" + a.name + "': " + refusal);
+            scene->refused.push_back({a.name, refusal});
+            continue;
+        }
+        scene->desc_index.push_back(a.desc_index);
+        scene->names.push_back(a.name);
+        scene->traits.push_back(archetype_traits(scene->file.archetypes[a.desc_index], counts[a.desc_index], a.bundle,
+                                                 renderer->model(renderer->archetype_count() - 1)));
+    }
+    return true;
+}
+
 }  // namespace crowdview

@@ -14,6 +14,7 @@
 #include "crowd_file.h"
 #include "crowd_layout.h"
 #include "fetch.h"
+#include "renderer.h"
 
 namespace crowdview {
 
@@ -48,5 +49,26 @@ struct ArchetypeCounts {
 
 // "high 12 | low 3 | impostor 40 | culled 2" for the title and the log.
 std::string lod_summary(const ArchetypeCounts& counts);
+
+// The crowd as loaded: the description, and per renderer archetype its description index and name.
+struct CrowdScene {
+    CrowdFile file;
+    std::vector<size_t> desc_index;  // renderer archetype -> CrowdFile::archetypes
+    std::vector<std::string> names;
+    std::vector<ArchetypeTraits> traits;
+    std::vector<RefusedArchetype> refused;
+};
+
+// Counts per archetype and LOD, GPU memory per archetype, and the CPU cost of a frame: the
+// --report of a headless run.
+nlohmann::json view_report(const std::string& device, const Renderer& renderer, const CrowdScene& scene,
+                           const std::vector<ArchetypeCounts>& counts, const std::vector<LodRule>& rules, int frames,
+                           double build_ms, const DrawStats& stats);
+
+// Uploads each loaded archetype as the renderer's next one and fills scene's per-archetype
+// lists (desc_index, names, traits). A bundle the renderer refuses is logged and left out;
+// without `log` (a lone --bundle) the first refusal is returned as false and `error` instead.
+bool upload_archetypes(Renderer* renderer, const std::vector<LoadedArchetype>& loaded, CrowdScene* scene,
+                       const std::function<void(const std::string&)>& log, std::string* error);
 
 }  // namespace crowdview

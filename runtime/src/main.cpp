@@ -28,6 +28,7 @@
 #include "bundle.h"
 #include "crowd.h"
 #include "fetch.h"
+#include "fly_controls.h"
 #include "gl_context.h"
 #include "renderer.h"
 
@@ -293,81 +294,6 @@ int run_benchmark_mode(const GlContext& context, Renderer& renderer, const Bundl
     return 0;
 }
 
-// ---------------------------------------------------------------------------------------
-// Window controls: a fly camera.
-
-struct FlyControls {
-    double last_x = 0, last_y = 0;
-    bool dragging = false;
-    float speed = 8.0f;  // metres per second
-
-    void update(GLFWwindow* w, Camera* camera, float dt) {
-        double x, y;
-        glfwGetCursorPos(w, &x, &y);
-        const bool down = glfwGetMouseButton(w, GLFW_MOUSE_BUTTON_LEFT) == GLFW_PRESS;
-        if (down && dragging) {
-            camera->yaw -= float(x - last_x) * 0.004f;
-            camera->pitch = glm::clamp(camera->pitch - float(y - last_y) * 0.004f, -1.5f, 1.5f);
-        }
-        dragging = down;
-        last_x = x, last_y = y;
-        const glm::vec3 forward = camera->forward();
-        const glm::vec3 right = glm::normalize(glm::cross(forward, glm::vec3(0, 1, 0)));
-        const float step = speed * dt * (glfwGetKey(w, GLFW_KEY_LEFT_SHIFT) == GLFW_PRESS ? 4.0f : 1.0f);
-        auto key = [&](int k) { return glfwGetKey(w, k) == GLFW_PRESS ? 1.0f : 0.0f; };
-        camera->position += forward * step * (key(GLFW_KEY_W) - key(GLFW_KEY_S));
-        camera->position += right * step * (key(GLFW_KEY_D) - key(GLFW_KEY_A));
-        camera->position.y += step * (key(GLFW_KEY_E) - key(GLFW_KEY_Q));
-    }
-};
-
-// The crowd as loaded: the description, and per renderer archetype its description index and name.
-struct CrowdScene {
-    CrowdFile file;
-    std::vector<size_t> desc_index;  // renderer archetype -> CrowdFile::archetypes
-    std::vector<std::string> names;
-    std::vector<ArchetypeTraits> traits;
-    std::vector<RefusedArchetype> refused;
-};
-
-// Counts per archetype and LOD, GPU memory per archetype, and the CPU cost of a frame: the
-// --report of a headless run.
-nlohmann::json view_report(const GlContext& context, const Renderer& renderer, const CrowdScene& scene,
-                           const std::vector<ArchetypeCounts>& counts, const std::vector<LodRule>& rules, int frames,
-                           double build_ms, const DrawStats& stats) {
-    nlohmann::json archetypes = nlohmann::json::array();
-    const char* lods[] = {"high", "low", "impostor"};
-    for (size_t a = 0; a < renderer.archetype_count(); ++a) {
-        const CharacterModel& m = renderer.model(a);
-        const ArchetypeMemory mem = renderer.memory(a);
-        nlohmann::json counts_json, frames_with;
-        for (int l = 0; l < 3; ++l) counts_json[lods[l]] = counts[a].last[l], frames_with[lods[l]] = counts[a].frames_with[l];
-        counts_json["culled"] = counts[a].last_culled;
-        archetypes.push_back({{"name", scene.names[a]},
-                              {"characters", scene.traits[a].count},
-                              {"radius_m", m.radius},
-                              {"tile_size", m.tile_size},
-                              {"spacing_m", scene.traits[a].spacing},
-                              {"low_switch_m", rules[a].has_low ? rules[a].impostor_distance * rules[a].low_fraction : 0.0f},
-                              {"impostor_switch_m", rules[a].impostor_distance},
-                              {"lod_counts", counts_json},
-                              {"frames_with_lod", frames_with},
-                              {"gpu_memory_bytes", {{"meshes", mem.meshes}, {"textures", mem.textures}, {"impostors", mem.impostors},
-                                                    {"total", mem.total()}}}});
-    }
-    nlohmann::json refused = nlohmann::json::array();
-    for (const RefusedArchetype& r : scene.refused) refused.push_back({{"name", r.name}, {"error", r.error}});
-    return {{"device", context.describe()},
-            {"width", renderer.width()},
-            {"height", renderer.height()},
-            {"frames", frames},
-            {"archetypes", archetypes},
-            {"refused", refused},
-            {"draw_calls", stats.draw_calls},
-            {"triangles", stats.triangles},
-            {"cpu_build_ms_per_frame", build_ms}};
-}
-
 int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, const Options& o) {
     const size_t archetype_count = renderer.archetype_count();
     std::string note;
@@ -463,7 +389,7 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
                  context.describe().c_str(), (unsigned long long)lod_total[0], (unsigned long long)lod_total[1],
                  (unsigned long long)lod_total[2], (unsigned long long)culled, stats.draw_calls, (unsigned long long)stats.triangles);
     if (!o.report.empty()) {
-        const nlohmann::json report = view_report(context, renderer, scene, counts, rules, drawn, drawn ? 1e3 * build_seconds / drawn : 0, stats);
+        const nlohmann::json report = view_report(context.describe(), renderer, scene, counts, rules, drawn, drawn ? 1e3 * build_seconds / drawn : 0, stats);
         std::ofstream out(o.report);
         if (!(out << report.dump(2) << "\n")) {
             std::fprintf(stderr, "crowdview: cannot write %s\n", o.report.c_str());
@@ -548,21 +474,9 @@ int main(int argc, char** argv) {
         std::fprintf(stderr, "crowdview: %s\n", error.c_str());
         return kExitRefused;
     }
-    const std::vector<uint64_t> counts = archetype_counts(scene.file);
-    for (LoadedArchetype& a : loaded) {
-        if (!renderer->add_archetype(a.bundle, &error)) {
-            if (one_bundle) {
-                std::fprintf(stderr, "crowdview: %s\n", error.c_str());
-                return kExitRefused;
-            }
-            log_line("archetype '" + a.name + "': " + error);
-            scene.refused.push_back({a.name, error});
-            continue;
-        }
-        scene.desc_index.push_back(a.desc_index);
-        scene.names.push_back(a.name);
-        scene.traits.push_back(archetype_traits(scene.file.archetypes[a.desc_index], counts[a.desc_index], a.bundle,
-                                                renderer->model(renderer->archetype_count() - 1)));
+    if (!upload_archetypes(renderer.get(), loaded, &scene, one_bundle ? std::function<void(const std::string&)>() : log_line, &error)) {
+        std::fprintf(stderr, "crowdview: %s\n", error.c_str());
+        return kExitRefused;
     }
     if (renderer->archetype_count() == 0) {
         log_line("no archetype of " + o.crowd_file + " could be drawn");
