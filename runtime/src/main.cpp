@@ -25,6 +25,7 @@
 
 #include "archetypes.h"
 #include "benchmark.h"
+#include "cli_parse.h"
 #include "bundle.h"
 #include "crowd.h"
 #include "fetch.h"
@@ -117,28 +118,6 @@ const char* kUsage =
 [[noreturn]] void usage_error(const std::string& message) {
     std::fprintf(stderr, "crowdview: %s (see --help)\n", message.c_str());
     std::exit(kExitUsage);
-}
-
-template <typename T>
-T parse_number(const std::string& flag, const char* text, T lo, T hi) {
-    char* end = nullptr;
-    errno = 0;
-    const double v = std::strtod(text, &end);
-    if (errno || end == text || *end || !(v >= double(lo) && v <= double(hi)))
-        usage_error(flag + " needs a number in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got '" + text + "'");
-    if (std::is_integral<T>::value && std::floor(v) != v) usage_error(flag + " needs a whole number, got '" + text + "'");
-    return T(v);
-}
-
-// `text` as one of `choices` (name, value), or a usage error listing them.
-template <typename E>
-E parse_choice(const std::string& flag, const std::string& text, std::initializer_list<std::pair<const char*, E>> choices) {
-    std::string names;
-    for (const auto& [name, value] : choices) {
-        if (text == name) return value;
-        names += std::string(names.empty() ? "" : ", ") + name;
-    }
-    usage_error(flag + " is one of " + names + "; got '" + text + "'");
 }
 
 bool is_url(const std::string& s) { return s.find("://") != std::string::npos; }
@@ -333,6 +312,7 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
     const auto start = std::chrono::steady_clock::now();
     auto last = start, last_progress = start;
     double fps_smoothed = 0, build_seconds = 0;
+    std::vector<double> frame_ms;
     float time_s = 0;
     int drawn = 0;
     DrawStats stats;
@@ -361,6 +341,10 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
         for (size_t a = 0; a < archetype_count; ++a) counts[a].add(frame[a]);
         ++drawn;
         stats = renderer.draw(frame, camera, choice.kind, light);
+        if (!o.report.empty() && !windowed) {  // the report times whole frames: wait for the GPU (or llvmpipe)
+            renderer.finish();
+            frame_ms.push_back(1e3 * std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count());
+        }
         if (windowed) {
             int w = 0, h = 0;
             glfwGetFramebufferSize(context.window(), &w, &h);
@@ -389,7 +373,11 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
                  context.describe().c_str(), (unsigned long long)lod_total[0], (unsigned long long)lod_total[1],
                  (unsigned long long)lod_total[2], (unsigned long long)culled, stats.draw_calls, (unsigned long long)stats.triangles);
     if (!o.report.empty()) {
-        const nlohmann::json report = view_report(context.describe(), renderer, scene, counts, rules, drawn, drawn ? 1e3 * build_seconds / drawn : 0, stats);
+        nlohmann::json report = view_report(context.describe(), renderer, scene, counts, rules, drawn, drawn ? 1e3 * build_seconds / drawn : 0, stats);
+        // Whole frames, cull to glFinish; the first two warm up (uploads, shader compilation on first use).
+        std::vector<double> timed(frame_ms.begin() + std::min<size_t>(2, frame_ms.size() > 2 ? 2 : 0), frame_ms.end());
+        std::sort(timed.begin(), timed.end());
+        report["frame_ms_median"] = timed.empty() ? 0.0 : timed[timed.size() / 2];
         std::ofstream out(o.report);
         if (!(out << report.dump(2) << "\n")) {
             std::fprintf(stderr, "crowdview: cannot write %s\n", o.report.c_str());
