@@ -4,6 +4,11 @@
 // its own radius and tile size.
 #include <cmath>
 #include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include <nlohmann/json.hpp>
 
 #include "check.h"
 #include "crowd.h"
@@ -27,6 +32,13 @@ const char* kValid = R"({
   "layout": {"kind": "paths", "walk_speed": 1.1},
   "camera": {"kind": "look_at", "eye": [0, 2, 30], "target": [0, 1, 0], "fov_deg": 50}
 })";
+
+std::string synthetic_read(const std::string& path) {
+    std::ifstream in(path, std::ios::binary);
+    std::stringstream ss;
+    ss << in.rdbuf();
+    return ss.str();
+}
 
 std::string parse(const std::string& text, CrowdFile* out = nullptr) {
     CrowdFile scratch;
@@ -241,9 +253,33 @@ void test_lod_per_archetype() {
     CHECK(cycle_frame(2.0f * 0.5f, 0, 8, 8) == 8 % 8 && cycle_frame(1.0f * 0.5f, 0, 8, 8) == 4);
 }
 
+// The shared vectors (shared_formats/vectors/crowd-v1), which the schema test reads too: good
+// files parse, each bad one is refused at the pointer expect.json names.
+void test_shared_vectors() {
+    const std::string dir = CROWDVIEW_VECTORS_DIR "/crowd-v1";
+    int good = 0;
+    for (const auto& entry : std::filesystem::directory_iterator(dir + "/good")) {
+        CrowdFile f;
+        const std::string error = load_crowd_description(entry.path().string(), &f);
+        CHECK_MSG(error.empty(), error);
+        ++good;
+    }
+    CHECK(good >= 3);
+    const nlohmann::json expect = nlohmann::json::parse(synthetic_read(dir + "/bad/expect.json"), nullptr, false);
+    CHECK(expect.is_object() && expect.size() >= 8);
+    if (!expect.is_object()) return;
+    for (auto it = expect.begin(); it != expect.end(); ++it) {
+        CrowdFile f;
+        const std::string path = dir + "/bad/" + it.key() + ".json";
+        const std::string error = load_crowd_description(path, &f);
+        CHECK_MSG(error.rfind(path + ": " + it.value().get<std::string>() + ": ", 0) == 0, it.key() + ": " + error);
+    }
+}
+
 }  // namespace
 
 int main() {
+    test_shared_vectors();
     test_valid();
     test_errors();
     test_layouts();
