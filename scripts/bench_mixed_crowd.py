@@ -25,12 +25,16 @@ from pathlib import Path
 def probe(crowdview: str, description: dict, folder: Path, count: int, args: argparse.Namespace) -> dict:
     """One headless run of `count` characters; its report (frame_ms_median, archetypes, ...)."""
     crowd = dict(description, count=count)
-    path = folder / f"crowd-{count}.json"
+    # Beside the description: its bundle folders are relative to its folder.
+    path = args.crowd.parent / f".bench-crowd-{count}.json"
     path.write_text(json.dumps(crowd))
     report = folder / f"report-{count}.json"
     command = [crowdview, "--crowd", str(path), "--headless", "--frames", str(args.frames), "--width", str(args.width),
                "--height", str(args.height), "--report", str(report)] + (["--impostor-blend", args.blend] if args.blend else [])
-    run = subprocess.run(command, capture_output=True, text=True)
+    try:
+        run = subprocess.run(command, capture_output=True, text=True)
+    finally:
+        path.unlink(missing_ok=True)
     if run.returncode != 0:
         raise SystemExit(f"bench_mixed_crowd: crowdview failed at N = {count}: {run.stderr.strip().splitlines()[-1:]}")
     return json.loads(report.read_text())
@@ -51,11 +55,10 @@ def main() -> int:
     if any("share" not in a for a in description.get("archetypes", [])):
         print("bench_mixed_crowd: every archetype needs a share (the count is what the benchmark varies)", file=sys.stderr)
         return 2
-    # Bundle folders are relative to the description: probes are written beside it.
     started = time.monotonic()
     probes: list[dict] = []
     results = {}
-    with tempfile.TemporaryDirectory(dir=args.crowd.parent, prefix=".bench-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="bench-mixed-") as tmp:
         folder = Path(tmp)
         for fps in (30, 60):
             budget_ms = 1000.0 / fps
@@ -76,7 +79,8 @@ def main() -> int:
                 else:
                     n = (good + bad) // 2
             results[f"n_at_{fps}fps"] = good
-        last = probes[-1] if probes else {"archetypes": []}
+        # Memory per archetype from the probe that loaded the most of them (a small N rounds some shares to none).
+        last = max(probes, key=lambda p: len(p["archetypes"]), default={"archetypes": []})
     out = {"crowd": str(args.crowd), "width": args.width, "height": args.height, "frames": args.frames,
            "impostor_blend": args.blend or "warp (crowdview's default)", "seconds": round(time.monotonic() - started, 1),
            "results": results, "gpu_memory_bytes": {a["name"]: a["gpu_memory_bytes"] for a in last["archetypes"]},

@@ -100,64 +100,45 @@ void build_tables(const Crowd& crowd, const CharacterModel& model, FrameState* s
         s->even_azimuths = std::fabs(model.azimuths_deg[k] - (s->azimuth0_deg + float(k) * s->azimuth_step_deg)) < 1e-3f;
 }
 
-// Bilinear view weights (blend_view_weights' rule) on evenly spaced azimuths.
-ViewWeights even_blend_view_weights(const glm::vec2& angles, const FrameState& s, const std::vector<float>& elevations_deg,
-                                    uint32_t columns) {
-    float t = (angles.x - s.azimuth0_deg) / s.azimuth_step_deg;
-    t -= float(columns) * fast_floor(t / float(columns));
-    uint32_t a0 = std::min(uint32_t(t), columns - 1);
-    const float wa = columns < 2 ? 0.0f : t - float(a0);
-    const uint32_t a1 = columns < 2 ? a0 : (a0 + 1) % columns;
-    // Elevation: clamped to the baked range, then the rows either side.
-    const float elevation = glm::clamp(angles.y, elevations_deg[s.lowest_elevation], elevations_deg[s.highest_elevation]);
-    uint32_t e0 = s.lowest_elevation, e1 = s.highest_elevation;
-    for (uint32_t e = 0; e < elevations_deg.size(); ++e) {
-        const float v = elevations_deg[e];
-        if (v <= elevation && v > elevations_deg[e0]) e0 = e;
-        if (v >= elevation && v < elevations_deg[e1]) e1 = e;
-    }
-    const float span = elevations_deg[e1] - elevations_deg[e0];
-    const float we = span > 0 ? (elevation - elevations_deg[e0]) / span : 0.0f;
-    ViewWeights v;
-    v.tiles[0] = a0 + e0 * columns, v.weights[0] = (1 - wa) * (1 - we);
-    v.tiles[1] = a1 + e0 * columns, v.weights[1] = wa * (1 - we);
-    v.tiles[2] = a0 + e1 * columns, v.weights[2] = (1 - wa) * we;
-    v.tiles[3] = a1 + e1 * columns, v.weights[3] = wa * we;
-    return v;
-}
-
 // Within this fraction of a view step of a tie between two nearest views, the fast angles are
 // not trusted to pick the side view_angles_deg picks: 0.01 of a 10-30 degree step is 0.1-0.3
 // degrees, hundreds of times atan_unit's error.
 constexpr float kTieMargin = 0.01f;
 
-// Whether `angles` lie near a tie of the nearest-view choice (azimuth half way between two
-// baked ones, or elevation half way between two rows).
-bool near_view_tie(const glm::vec2& angles, const FrameState& s, const std::vector<float>& elevations_deg, uint32_t columns) {
+// On evenly spaced azimuths, in one pass: the nearest tile (nearest_view_weights' rule, ties to
+// the lower index) and, with `blend`, the bilinear weights (blend_view_weights' rule). Returns
+// whether `angles` lie near a tie of the nearest choice (azimuth or elevation half way between
+// two baked ones), where the caller recomputes them exactly.
+bool even_view_choice(const glm::vec2& angles, const FrameState& s, const std::vector<float>& elevations_deg, uint32_t columns,
+                      bool blend, uint32_t* nearest_tile, ViewWeights* views) {
     float t = (angles.x - s.azimuth0_deg) / s.azimuth_step_deg;
     t -= float(columns) * fast_floor(t / float(columns));
-    if (std::fabs(t - fast_floor(t) - 0.5f) < kTieMargin) return true;
+    const uint32_t a0 = std::min(uint32_t(t), columns - 1), a1 = columns < 2 ? a0 : (a0 + 1) % columns;
+    const float frac = t - float(a0);
+    const uint32_t azimuth = frac < 0.5f ? a0 : frac > 0.5f ? a1 : std::min(a0, a1);
+    // Elevation: the nearest row (and how near the runner-up is), and for blending the rows
+    // either side of the elevation clamped to the baked range.
+    const float clamped = glm::clamp(angles.y, elevations_deg[s.lowest_elevation], elevations_deg[s.highest_elevation]);
+    uint32_t elevation = 0, e0 = s.lowest_elevation, e1 = s.highest_elevation;
     float best = INFINITY, second = INFINITY;
-    for (float e : elevations_deg) {
-        const float gap = std::fabs(angles.y - e);
-        if (gap < best) second = best, best = gap;
+    for (uint32_t e = 0; e < elevations_deg.size(); ++e) {
+        const float v = elevations_deg[e], gap = std::fabs(angles.y - v);
+        if (gap < best) second = best, best = gap, elevation = e;
         else if (gap < second) second = gap;
+        if (v <= clamped && v > elevations_deg[e0]) e0 = e;
+        if (v >= clamped && v < elevations_deg[e1]) e1 = e;
     }
-    return second - best < kTieMargin * s.azimuth_step_deg;
-}
-
-// The nearest tile (nearest_view_weights' rule: ties to the lower index) on evenly spaced azimuths.
-uint32_t even_nearest_tile(const glm::vec2& angles, const FrameState& s, const std::vector<float>& elevations_deg, uint32_t columns) {
-    float t = (angles.x - s.azimuth0_deg) / s.azimuth_step_deg;
-    t -= float(columns) * fast_floor(t / float(columns));
-    const uint32_t below = std::min(uint32_t(t), columns - 1), above = (below + 1) % columns;
-    const float frac = t - float(below);
-    const uint32_t azimuth = frac < 0.5f ? below : frac > 0.5f ? above : std::min(below, above);
-    uint32_t elevation = 0;
-    float best = INFINITY;
-    for (uint32_t e = 0; e < elevations_deg.size(); ++e)
-        if (const float gap = std::fabs(angles.y - elevations_deg[e]); gap < best) best = gap, elevation = e;
-    return azimuth + elevation * columns;
+    *nearest_tile = azimuth + elevation * columns;
+    if (blend) {
+        const float wa = columns < 2 ? 0.0f : frac;
+        const float span = elevations_deg[e1] - elevations_deg[e0];
+        const float we = span > 0 ? (clamped - elevations_deg[e0]) / span : 0.0f;
+        views->tiles[0] = a0 + e0 * columns, views->weights[0] = (1 - wa) * (1 - we);
+        views->tiles[1] = a1 + e0 * columns, views->weights[1] = wa * (1 - we);
+        views->tiles[2] = a0 + e1 * columns, views->weights[2] = (1 - wa) * we;
+        views->tiles[3] = a1 + e1 * columns, views->weights[3] = wa * we;
+    }
+    return std::fabs(frac - 0.5f) < kTieMargin || second - best < kTieMargin * s.azimuth_step_deg;
 }
 
 }  // namespace
@@ -210,16 +191,16 @@ void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& 
         inst.outfit = c.outfit;
         inst.tile = 0;
         if (lod == Lod::impostor && has_views) {
-            glm::vec2 angles = fast_view_angles_deg(camera.position - center, c.heading);
-            // Near a tie, and off the even grid, the exact angles (view_blend.h), so the choice is the one it makes.
-            if (!s.even_azimuths || near_view_tie(angles, s, model.elevations_deg, columns))
-                angles = view_angles_deg(camera.position - center, c.heading);
             ViewWeights views;
             uint32_t nearest_tile;
             if (s.even_azimuths) {
-                nearest_tile = even_nearest_tile(angles, s, model.elevations_deg, columns);
-                if (blend_views) views = even_blend_view_weights(angles, s, model.elevations_deg, columns);
+                const glm::vec2 angles = fast_view_angles_deg(camera.position - center, c.heading);
+                // Near a tie, the exact angles (view_blend.h), so the choice is the one it makes.
+                if (even_view_choice(angles, s, model.elevations_deg, columns, blend_views, &nearest_tile, &views))
+                    even_view_choice(view_angles_deg(camera.position - center, c.heading), s, model.elevations_deg, columns, blend_views,
+                                     &nearest_tile, &views);
             } else {
+                const glm::vec2 angles = view_angles_deg(camera.position - center, c.heading);
                 nearest_tile = nearest_view_weights(angles, model.azimuths_deg, model.elevations_deg).tiles[0];
                 if (blend_views) views = blend_view_weights(angles, model.azimuths_deg, model.elevations_deg);
             }
