@@ -659,6 +659,16 @@ Status parse_manifest(const std::string& text, Manifest* out) {
         ImpostorInfo& info = m.impostor;
         info.tile_size = check.integer(*impostor, "impostor", "tile_size", 4, 4096);
         if (info.tile_size % 4) check.fail("impostor/tile_size", "is not a multiple of 4");
+        info.crop = {0, 0, info.tile_size, info.tile_size};
+        if (impostor->contains("crop"))
+            if (const json* crop = check.object(*impostor, "impostor", "crop")) {
+                info.crop.x = check.integer(*crop, "impostor/crop", "x", 0, 4092);
+                info.crop.y = check.integer(*crop, "impostor/crop", "y", 0, 4092);
+                info.crop.width = check.integer(*crop, "impostor/crop", "width", 4, 4096);
+                info.crop.height = check.integer(*crop, "impostor/crop", "height", 4, 4096);
+                if ((info.crop.x | info.crop.y | info.crop.width | info.crop.height) % 4)
+                    check.fail("impostor/crop", "must lie on 4-texel blocks (x, y, width and height multiples of 4)");
+            }
         if (const json* az = check.array(*impostor, "impostor", "azimuths_deg", 1))
             for (size_t i = 0; i < az->size(); ++i)
                 info.azimuths_deg.push_back(float(check.number_value((*az)[i], "impostor/azimuths_deg/" + std::to_string(i), 0,
@@ -683,7 +693,7 @@ Status parse_manifest(const std::string& text, Manifest* out) {
         if (const json* maps = check.object(*impostor, "impostor", "maps")) {
             info.normal_map = check.path(*maps, "impostor/maps", "normal");
             info.uv_map = check.path(*maps, "impostor/maps", "uv");
-            info.detail_map = check.path(*maps, "impostor/maps", "detail");
+            if (maps->contains("detail")) info.detail_map = check.path(*maps, "impostor/maps", "detail");
             if (maps->contains("surface")) info.surface_map = check.path(*maps, "impostor/maps", "surface");
         }
     }
@@ -803,8 +813,10 @@ Status cross_check(const Manifest& m, const std::map<std::string, PoseCache>& po
         if (imp.frame_indices[k] >= m.cycle.frames) return bad("manifest.json", "frame_indices outside the cycle");
         if (k > 0 && imp.frame_indices[k] <= imp.frame_indices[k - 1]) return bad("manifest.json", "frame_indices must ascend");
     }
-    const uint64_t width = uint64_t(imp.tile_size) * imp.azimuths_deg.size();
-    const uint64_t height = uint64_t(imp.tile_size) * imp.elevations_deg.size();
+    if (uint64_t(imp.crop.x) + imp.crop.width > imp.tile_size || uint64_t(imp.crop.y) + imp.crop.height > imp.tile_size)
+        return bad("manifest.json", "impostor/crop reaches outside the " + std::to_string(imp.tile_size) + "-texel tile");
+    const uint64_t width = uint64_t(imp.crop.width) * imp.azimuths_deg.size();
+    const uint64_t height = uint64_t(imp.crop.height) * imp.elevations_deg.size();
     // Sorted by kind, as the canonical manifest (sorted keys) lists them.
     const std::pair<const char*, std::pair<const std::string*, TextureArray*>> maps[] = {
         {"detail", {&imp.detail_map, &bundle->impostor_detail}},
@@ -813,7 +825,7 @@ Status cross_check(const Manifest& m, const std::map<std::string, PoseCache>& po
         {"uv", {&imp.uv_map, &bundle->impostor_uv}},
     };
     for (const auto& [kind, target] : maps) {
-        if (target.first->empty()) continue;  // the optional surface map, absent
+        if (target.first->empty()) continue;  // an optional map (detail, surface), absent
         const TextureArray* atlas = nullptr;
         if (Status s = texture(*target.first, &atlas); !s) return s;
         if (atlas->width != width || atlas->height != height || atlas->layer_count != imp.frame_indices.size())

@@ -173,8 +173,15 @@ struct CycleInfo {
     double position_jump_ratio = 0, velocity_jump_ratio = 0;
 };
 
+// The part of every impostor tile the atlas stores (SPEC.md "Impostor maps"), in tile texels: an atlas
+// cell is width x height and holds tile texels [x, x + width) x [y, y + height).
+struct ImpostorCrop {
+    uint32_t x = 0, y = 0, width = 0, height = 0;
+};
+
 struct ImpostorInfo {
     uint32_t tile_size = 0;
+    ImpostorCrop crop;  // the whole tile where the manifest has no crop
     std::vector<float> azimuths_deg, elevations_deg;
     std::vector<uint32_t> frame_indices;
     float center[3] = {0, 0, 0};

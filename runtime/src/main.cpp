@@ -252,6 +252,14 @@ int run_benchmark_mode(const GlContext& context, Renderer& renderer, const Bundl
     desc.seed = o.seed;
     desc.max_seconds = o.max_seconds;
     desc.modes = o.modes;
+    if (bundle.manifest.impostor.detail_map.empty()) {
+        const auto detail = std::find(desc.modes.begin(), desc.modes.end(), BenchmarkMode::detail_impostor);
+        if (detail != desc.modes.end()) {
+            desc.modes.erase(detail);
+            std::fprintf(stderr, "crowdview: benchmark: detail_impostor left out: the bundle has no detail maps (bake it with --detail-map)\n");
+            if (desc.modes.empty()) return kExitUsage;
+        }
+    }
     desc.blend = o.blend;
     desc.device = context.describe();
     desc.log = [](const std::string& line) { std::fprintf(stderr, "%s\n", line.c_str()); };
@@ -432,6 +440,13 @@ int main(int argc, char** argv) {
         log_line("no archetype of " + o.crowd_file + " could be loaded");
         return kExitRefused;
     }
+
+    // Detail-mapped impostors need the detail maps, which a bake stores only when asked (--detail-map).
+    const bool wants_detail = o.lod == LodChoice::detail || (o.lod == LodChoice::automatic && o.impostors == ImpostorKind::detail);
+    for (const LoadedArchetype& a : loaded)
+        if (wants_detail && !o.benchmark && a.bundle.manifest.impostor.detail_map.empty())
+            return log_line(a.bundle.manifest.name + " " + a.bundle.manifest.version + " has no detail maps (bake it with --detail-map); "
+                            "--lod detail and --impostors detail need them, --lod impostor draws the UV-mapped impostor"), kExitUsage;
 
     // 2. GL context and the uploaded bundles, one renderer archetype each.
     GlContextDesc context_desc;

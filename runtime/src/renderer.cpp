@@ -226,7 +226,7 @@ struct MeshUniforms {
 
 struct ImpostorUniforms {
     GLint view_projection = -1, light_dir = -1, camera_position = -1, center = -1, radius = -1, tile_size = -1,
-          azimuth_count = -1, material_count = -1;
+          azimuth_count = -1, crop = -1, material_count = -1;
     GLint variations[CV_MAX_MATERIALS], has_regions[CV_MAX_MATERIALS];
 };
 
@@ -249,6 +249,7 @@ ImpostorUniforms impostor_uniforms(GLuint program) {
     u.radius = uniform(program, "u_radius");
     u.tile_size = uniform(program, "u_tile_size");
     u.azimuth_count = uniform(program, "u_azimuth_count");
+    u.crop = uniform(program, "u_crop");
     u.material_count = uniform(program, "u_material_count");
     for (int k = 0; k < CV_MAX_MATERIALS; ++k) {
         const std::string index = "[" + std::to_string(k) + "]";
@@ -279,6 +280,7 @@ struct Renderer::Archetype {
     GLuint outfits = 0, normal_map = 0, uv_map = 0, detail_map = 0;
     GLuint surface_map = 0;  // 0: the bundle has none (or more views than the warp shader holds), warp draws as full
     uint32_t tile_size = 0, azimuth_count = 0;
+    ImpostorCrop crop;
 
     ~Archetype() {
         for (Part& p : parts) {
@@ -572,7 +574,8 @@ bool Renderer::add_archetype(const Bundle& bundle, std::string* error) {
     g.memory.textures = upload.bytes;
     g.normal_map = upload_texture_array(bundle.impostor_normal, false, "impostor:normal", &upload);
     g.uv_map = upload_texture_array(bundle.impostor_uv, false, "impostor:uv", &upload);
-    g.detail_map = upload_texture_array(bundle.impostor_detail, false, "impostor:detail", &upload);
+    if (bundle.impostor_detail.layer_count > 0)  // stored only by bakes asked for it (--detail-map)
+        g.detail_map = upload_texture_array(bundle.impostor_detail, false, "impostor:detail", &upload);
     if (bundle.impostor_surface.layer_count > 0 && m.impostor.azimuths_deg.size() <= CV_MAX_AZIMUTHS &&
         m.impostor.elevations_deg.size() <= CV_MAX_ELEVATIONS) {
         // Depth and motion are smooth and dilated past the silhouette: read bilinearly, within a level.
@@ -592,6 +595,7 @@ bool Renderer::add_archetype(const Bundle& bundle, std::string* error) {
     g.memory.textures += uint64_t(bundle.outfits.width) * bundle.outfits.height * 4;
     g.tile_size = m.impostor.tile_size;
     g.azimuth_count = uint32_t(m.impostor.azimuths_deg.size());
+    g.crop = m.impostor.crop;
     if (GLenum e = glGetError(); e != GL_NO_ERROR) {
         *error = fn + "OpenGL error 0x" + [](GLenum v) {
             char buf[16];
@@ -721,6 +725,7 @@ DrawStats Renderer::draw_archetype(Archetype& g, const FrameInstances& frame, co
         glUniform1f(iu.radius, model_.radius);
         glUniform1i(iu.tile_size, GLint(g.tile_size));
         glUniform1i(iu.azimuth_count, GLint(g.azimuth_count));
+        glUniform4i(iu.crop, GLint(g.crop.x), GLint(g.crop.y), GLint(g.crop.width), GLint(g.crop.height));
         glUniform1i(iu.material_count, GLint(g.diffuse.size()));
         glActiveTexture(GL_TEXTURE0 + CV_UNIT_IMPOSTOR_NORMAL);
         glBindTexture(GL_TEXTURE_2D_ARRAY, g.normal_map);

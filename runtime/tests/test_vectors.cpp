@@ -1,4 +1,4 @@
-// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock and v1-hostile), which the Python tests read
+// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-crop and v1-hostile), which the Python tests read
 // too: the good bundle decodes to expected.json's values (v1-uv32, v1-uvblock: its UV map's texels too), every
 // bad bundle fails with its expect.json code and file, and every strict prefix of every binary
 // file of the good bundle is `truncated`.
@@ -204,6 +204,27 @@ int main() {
         test_uvblock_texels(uvblock / "good");
         test_bad(uvblock / "bad", 3);
         test_prefixes(uvblock / "good" / "bundle");
+    }
+    // The crop (generate_vectors_v1_crop.py): v1's maps read as the 4x4 crop at (4, 0) of 8-texel tiles.
+    const fs::path crop = fs::path(CROWDVIEW_VECTORS_DIR) / "v1-crop";
+    CHECK_MSG(fs::is_directory(crop / "good"), "no crop vectors at " + crop.string());
+    if (fs::is_directory(crop / "good")) {
+        test_good(crop / "good");
+        Bundle bundle;
+        CHECK(load_bundle_dir((crop / "good" / "bundle").string(), &bundle).ok());
+        const json want = json::parse(synthetic::read_text((crop / "good" / "expected.json").string()))["crop"];
+        const ImpostorInfo& imp = bundle.manifest.impostor;
+        CHECK(imp.tile_size == want["tile_size"].get<uint32_t>() && imp.crop.x == want["x"].get<uint32_t>() &&
+              imp.crop.y == want["y"].get<uint32_t>() && imp.crop.width == want["width"].get<uint32_t>() &&
+              imp.crop.height == want["height"].get<uint32_t>());
+        test_bad(crop / "bad", 3);
+    }
+    // v1 has no crop: the whole tile.
+    {
+        Bundle bundle;
+        CHECK(load_bundle_dir((v1 / "good" / "bundle").string(), &bundle).ok());
+        const ImpostorInfo& imp = bundle.manifest.impostor;
+        CHECK(imp.crop.x == 0 && imp.crop.y == 0 && imp.crop.width == imp.tile_size && imp.crop.height == imp.tile_size);
     }
     // Manifests a hostile server could send (generate_vectors_v1_hostile.py): sizes past 2^53 - 1,
     // paths holding control characters.

@@ -143,10 +143,10 @@ class SurfaceFields:
         self.mask_mismatch = 0
 
     def _scene(self, frame: int):
-        from crowdbake.stages.impostors import load_scene
+        from crowdbake.stages.impostors import load_pose_scene
 
         if frame not in self._scenes:
-            self._scenes[frame] = load_scene(self.bench.work, self.bench.poses, frame)
+            self._scenes[frame] = load_pose_scene(self.bench.work, self.bench.poses, frame)
         return self._scenes[frame]
 
     def view(self, tile: int) -> impostor_views.OrthoView:

@@ -244,6 +244,16 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--elevations",), "DEG,...", minimum=-90.0, maximum=90.0, min_items=1, max_items=MAX_ELEVATIONS, distinct=True),
     ParamSpec("tile_size", "int", 128, "texels per impostor view side (a multiple of 4: BC1/BC2 blocks are 4x4 texels)",
               ("--tile", "--tile-size"), "PX", minimum=4, maximum=MAX_TILE_SIZE, multiple_of=4),
+    ParamSpec("impostor_budget_mib", "float", 16.0, "memory for one clip's impostor maps in MiB (the paper's 15): fewer azimuths, "
+              "then fewer frames, until they fit (docs/bake.md 'Memory')",
+              ("--impostor-budget",), "MIB", optional=True, above_zero=True, maximum=4096.0),
+    ParamSpec("crop", "bool", True, "store each impostor view cropped to the box the character covers over every view and frame "
+              "(SPEC.md: about half the maps' memory, the same pictures)",
+              ("--no-crop",), off_help="do not crop the impostor tiles: store them whole (square)"),
+    ParamSpec("detail_map", "bool", False, "also store detail-mapped impostors (the paper's figure 3 comparison: 1 byte a texel "
+              "more; crowdview --lod detail)",
+              ("--detail-map",), off_help="also store detail maps (the diffuse texture baked into each view: figure 3's "
+              "detail-mapped impostor, crowdview --lod detail), 1 byte a texel more"),
     ParamSpec("lod_ratio", "float", None, "low LOD as a fraction of the high one",
               ("--lod-ratio",), "R", derived="the paper's 1899/13056", optional=True, maximum=1.0, above_zero=True, exclusive_group="lod"),
     ParamSpec("lod_triangles", "int", None, "low LOD triangles for the whole character (instead of lod_ratio)",
@@ -309,6 +319,9 @@ class BakeParams:
     azimuths: int = 32
     elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0)
     tile_size: int = 128
+    impostor_budget_mib: float | None = 16.0
+    crop: bool = True
+    detail_map: bool = False
     lod_ratio: float | None = None
     lod_triangles: int | None = None
     compress: bool = True

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from crowdbake.bake.atlas import AtlasLayout, assemble, nearest_view, tile_of
+from crowdbake.bake.atlas import AtlasLayout, assemble, nearest_view, silhouette_crop, tile_of, view_tile
 
 
 def test_rings_of_views_and_sizes():
@@ -46,3 +46,39 @@ def test_nearest_view_by_angle():
     assert nearest_view(layout, 350.0, 30.0) == (0, 1)  # wraps around 360
     assert nearest_view(layout, 22.5, 0.0) == (0, 0)  # a tie goes to the lower index
     assert nearest_view(layout, 180.0, 90.0)[1] == 1  # straight down: the highest ring
+
+
+def test_a_cropped_layout_stores_cells_and_gives_whole_tiles_back():
+    layout = AtlasLayout.rings(16, 3, (0, 30))
+    cropped = AtlasLayout(layout.tile_size, layout.azimuths_deg, layout.elevations_deg, crop=(4, 0, 8, 12))
+    assert (cropped.width, cropped.height) == (24, 24) and (cropped.cell_width, cropped.cell_height) == (8, 12)
+    assert AtlasLayout.from_manifest(cropped.to_manifest()) == cropped
+    assert AtlasLayout.from_manifest(layout.to_manifest()) == layout and "crop" not in layout.to_manifest()
+    rng = np.random.default_rng(3)
+    tiles = {}
+    for view in layout.views:
+        tile = np.zeros((16, 16, 2), np.uint8)
+        tile[0:12, 4:12] = rng.integers(1, 255, (12, 8, 2))  # the character lies inside the crop
+        tiles[view] = tile
+    atlas = assemble(cropped, tiles)
+    assert atlas.shape == (24, 24, 2)
+    for view, tile in tiles.items():
+        np.testing.assert_array_equal(view_tile(cropped, atlas, *view), tile)
+        np.testing.assert_array_equal(tile_of(cropped, atlas, *view), tile[0:12, 4:12])
+    # Clamped reads (the surface map): outside the crop the border repeats.
+    edge = view_tile(cropped, atlas, 1, 1, edge=True)
+    np.testing.assert_array_equal(edge[13, 2], tiles[(1, 1)][11, 4])
+
+
+def test_crops_off_blocks_or_outside_the_tile_are_refused():
+    for crop in [(2, 0, 8, 8), (0, 0, 6, 8), (8, 0, 12, 8), (0, 0, 0, 8)]:
+        with pytest.raises(ValueError, match="crop"):
+            AtlasLayout(16, (0.0,), (0.0,), crop=crop)
+
+
+@pytest.mark.parametrize("box, expected", [
+    (((30.2, 3.0), (97.9, 120.5)), (24, 0, 80, 128)),   # margin 4, out to 4-texel blocks, clamped to the tile
+    (((60.0, 60.0), (61.0, 61.0)), (56, 56, 12, 12)),
+])
+def test_silhouette_crop_holds_the_box_with_its_margin_on_blocks(box, expected):
+    assert silhouette_crop(np.array(box[0]), np.array(box[1]), 128) == expected

@@ -39,6 +39,8 @@ BAD_CASES_UV32 = sorted(p.name for p in (V1_UV32 / "bad").iterdir())
 V1_UVBLOCK = VECTORS / "v1-uvblock"
 GOOD_UVBLOCK = V1_UVBLOCK / "good" / "bundle"
 BAD_CASES_UVBLOCK = sorted(p.name for p in (V1_UVBLOCK / "bad").iterdir())
+V1_CROP = VECTORS / "v1-crop"
+BAD_CASES_CROP = sorted(p.name for p in (V1_CROP / "bad").iterdir())
 V1_HOSTILE = VECTORS / "v1-hostile"
 BAD_CASES_HOSTILE = sorted(p.name for p in (V1_HOSTILE / "bad").iterdir())
 
@@ -378,3 +380,37 @@ def test_a_path_with_a_trailing_newline_breaks_the_path_rule():
     with pytest.raises(FormatError) as raised:
         check_path("poses/a.cbpc\n")
     assert raised.value.file == "poses/a.cbpc\\x0a"
+
+
+# --- the impostor crop (vectors/v1-crop) ------------------------------------------------------------
+
+
+def test_crop_good_vector_reads_as_its_crop():
+    from crowdbake.bake.atlas import AtlasLayout
+
+    expected = json.loads((V1_CROP / "good" / "expected.json").read_text())
+    bundle = verify_bundle(V1_CROP / "good" / "bundle")
+    layout = AtlasLayout.from_manifest(bundle.manifest["impostor"])
+    want = expected["crop"]
+    assert (layout.tile_size, layout.crop) == (want["tile_size"], (want["x"], want["y"], want["width"], want["height"]))
+    uv = bundle.textures[bundle.manifest["impostor"]["maps"]["uv"]]
+    assert (uv.width, uv.height) == (layout.width, layout.height)
+
+
+@pytest.mark.parametrize("case", BAD_CASES_CROP)
+def test_crop_bad_vector_is_refused_with_its_code_and_file(case):
+    expect = json.loads((V1_CROP / "bad" / case / "expect.json").read_text())
+    with pytest.raises(FormatError) as raised:
+        verify_bundle(V1_CROP / "bad" / case / "bundle")
+    assert (raised.value.code, raised.value.file) == (expect["error"], expect["file"])
+
+
+def test_writer_still_produces_the_committed_crop_vectors(tmp_path):
+    spec = importlib.util.spec_from_file_location("gen_crop", REPO_ROOT / "shared_formats" / "generate_vectors_v1_crop.py")
+    generator = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(generator)
+    generator.generate(tmp_path / "v1-crop")
+    committed_files = [p for p in sorted(V1_CROP.rglob("*")) if p.is_file()]
+    assert committed_files
+    for committed in committed_files:
+        assert (tmp_path / "v1-crop" / committed.relative_to(V1_CROP)).read_bytes() == committed.read_bytes(), committed

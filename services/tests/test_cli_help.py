@@ -76,7 +76,9 @@ def test_every_valued_parameter_shows_its_default_once(entries):
         assert expected in text, f"{spec.flag}: {text!r} lacks the default {expected!r}"
 
 
-def test_bool_parameters_have_help_for_their_off_flag():
+def test_bool_parameters_have_help_for_their_flag():
+    """A default-on parameter has a --no-X flag, a default-off one an --x flag; either says what giving it does."""
     for spec in PARAMS:
         if spec.kind == "bool":
-            assert spec.default is True and spec.flag == f"--no-{spec.name}" and spec.off_help, spec.name
+            flag = f"--no-{spec.name}" if spec.default else f"--{spec.name.replace('_', '-')}"
+            assert spec.flag == flag and spec.off_help, spec.name

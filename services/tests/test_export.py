@@ -180,7 +180,8 @@ def sample_bundle(tmp_path_factory) -> Path:
 
     root = tmp_path_factory.mktemp("export_sample")
     generate_sample(root / "sample", garment="loose", cycles=3, seed=1, cycle_frames=24, texture_size=64)
-    params = BakeParams(impostor_frames=2, azimuths=4, elevations_deg=(0.0, 30.0), tile_size=32, lod_triangles=1200, cycle_views=3, candidates=3)
+    params = BakeParams(impostor_frames=2, azimuths=4, elevations_deg=(0.0, 30.0), tile_size=32, lod_triangles=1200, cycle_views=3, candidates=3,
+                        detail_map=True)
     inputs = BakeInputs(
         character=root / "sample" / "character.glb", cloth=root / "sample" / "cloth.pc2", cloth_mesh=root / "sample" / "cloth.obj",
         textures=root / "sample" / "textures", cycle=None, name="sample", version="1.0", params=params,
@@ -392,7 +393,7 @@ def test_the_bake_converts_the_export_layers_while_it_packs(sample_bundle):
     assert (normal.pixel_format, uv.pixel_format) == ("bc5", "uvblock")
     assert sorted(prepared.model_normal_bc1) == sorted(layer_digest(layer) for layer in normal.layers)
     assert sorted(prepared.uv32) == sorted(layer_digest(layer) for layer in uv.layers)
-    layout = AtlasLayout(impostor["tile_size"], tuple(impostor["azimuths_deg"]), tuple(impostor["elevations_deg"]))
+    layout = AtlasLayout.from_manifest(impostor)
     for layer in normal.layers:
         decoded = compression.decode(layer, "bc5", normal.width, normal.height)
         assert prepared.model_normal_bc1[layer_digest(layer)] == model_space_normal_bc1(decoded, layout)

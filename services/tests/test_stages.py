@@ -27,7 +27,8 @@ from crowdbake.stages.validate import BakeInputs, gltf_dependencies, load_job, s
 pytest.importorskip("pyrender")
 
 # Small enough to bake in seconds: 2 frames x 4 azimuths x 2 elevations of 32² texels.
-SMALL = BakeParams(impostor_frames=2, azimuths=4, elevations_deg=(0.0, 30.0), tile_size=32, lod_triangles=1200, cycle_views=3, candidates=3)
+SMALL = BakeParams(impostor_frames=2, azimuths=4, elevations_deg=(0.0, 30.0), tile_size=32, lod_triangles=1200, cycle_views=3, candidates=3,
+                   detail_map=True)
 CYCLE_FRAMES = 24
 # The sample's 64² diffuse texture 0 through DXT3 (measured 38.7 dB; 30.4 to 38.7 over all 8): colour bound.
 DIFFUSE_PSNR_DB = 30.0

@@ -194,3 +194,37 @@ def stage_percents(stderr: str) -> dict[str, list[int]]:
         for stage, percent in re.findall(r"(\w+) (\d+)%", inside):
             found.setdefault(stage, []).append(int(percent))
     return found
+
+
+def test_exit_0_a_character_without_cloth_bakes_and_exports(service, tmp_path):
+    """`crowdbake submit CHAR.glb` with no --cloth bakes the body alone (its animation's loop) through the
+    real server and worker, and its engine export passes the glTF-Validator like a clothed one's.
+    Regression: --cloth was required, though the server takes `cloth: null`."""
+    from test_export import check_export
+
+    sample = service.sample
+    args = [sys.executable, str(CLIENT_ONLY), "--server", service.url, str(sample / "character.glb"), "--textures", str(sample / "textures"),
+            "--name", "plain", "--version", "1.0.0", "--json", "--poll", "0.3", "--timeout", str(BAKE_TIMEOUT_S),
+            "--impostor-frames", "2", "--azimuths", "4", "--elevations", "0,30", "--tile-size", "32",
+            "--download", str(tmp_path / "bundles"), "--export-out", str(tmp_path / "exports")]
+    code, outcome, stderr = run_submit(service, args)
+    assert_outcome(code, outcome, stderr, 0)
+    assert "cloth" not in stderr, stderr  # nothing uploaded as cloth
+    with service.client() as client:
+        bake = client.get(f"/v1/bakes/{outcome['bake_id']}").json()
+    assert bake["state"] == "succeeded" and "cloth" not in bake["inputs"]
+    bundle = Path(outcome["bundle"])
+    from crowdbake.formats.bundle import verify_bundle
+
+    manifest = verify_bundle(bundle).manifest
+    assert {mesh["kind"] for mesh in manifest["meshes"]} == {"body"}
+    check_export(bundle, tmp_path / "exports" / "plain" / "1.0.0")
+
+
+def test_exit_2_cloth_mesh_without_cloth(service):
+    sample = service.sample
+    args = [sys.executable, str(CLIENT_ONLY), "--server", service.url, str(sample / "character.glb"), "--cloth-mesh", str(sample / "cloth.obj"),
+            "--name", "plain", "--version", "2.0.0", "--json"]
+    code, outcome, stderr = run_submit(service, args)
+    assert_outcome(code, outcome, stderr, 2)
+    assert "--cloth-mesh goes with --cloth" in stderr.splitlines()[-1]

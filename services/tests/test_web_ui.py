@@ -189,10 +189,14 @@ def test_page_in_headless_chromium_shows_the_bake_its_report_bundles_and_atlas(s
     with service.client() as client:
         record = client.get(f"/v1/bundles/{NAME}/1.0.0").json()
     assert re.search(rf'data-bundle="{NAME}/1.0.0".*?data-bytes="{record["size"]}"', dom)
-    # The atlas viewer decoded layer 0 of the UV map: the whole atlas, azimuths x elevations tiles.
+    # The atlas viewer decoded layer 0 of the UV map: the whole atlas, azimuths x elevations cells (the
+    # tiles as stored, cropped: SPEC.md "Impostor maps").
     image = re.search(r'<img id="atlas-image"[^>]*>', dom).group(0)
     assert 'data-loaded="true"' in image and 'data-kind="uv"' in image
-    assert f'data-width="{4 * 32}"' in image and f'data-height="{2 * 32}"' in image
+    with service.client() as client:
+        crop = client.get(f"/v1/bundles/{NAME}/1.0.0/manifest.json").json()["impostor"]["crop"]
+    assert crop["width"] < 32 or crop["height"] < 32
+    assert f'data-width="{4 * crop["width"]}"' in image and f'data-height="{2 * crop["height"]}"' in image
     # The key left the address bar and no error was shown.
     assert service.key not in dom.replace(f'value="{service.key}"', "")
     assert "Could not load" not in dom and "Enter a key" not in dom

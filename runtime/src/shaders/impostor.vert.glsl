@@ -17,9 +17,10 @@ uniform vec3 u_center;  // bounds centre in the character's frame
 uniform float u_radius;
 uniform int u_tile_size;
 uniform int u_azimuth_count;
+uniform ivec4 u_crop;  // the stored part of every tile: x, y, width, height (impostor_warp.glsl)
 
 out vec2 v_tile_uv;          // 0..1 across the tile, (0, 0) top-left like the atlas rows
-flat out ivec4 v_tile_x;     // the four tiles' origin texels, x
+flat out ivec4 v_tile_x;     // the four tiles' origin texels, x (see below)
 flat out ivec4 v_tile_y;     // and y
 flat out vec4 v_view_weights;
 flat out ivec2 v_layers;
@@ -43,8 +44,9 @@ void main() {
     gl_Position = u_view_projection * vec4(center + (corner.x * right + corner.y * up) * u_radius, 1.0);
     v_tile_uv = vec2(0.5 + 0.5 * corner.x, 0.5 - 0.5 * corner.y);
     ivec4 tiles = ivec4(i_tiles);
-    v_tile_x = (tiles % u_azimuth_count) * u_tile_size;
-    v_tile_y = (tiles / u_azimuth_count) * u_tile_size;
+    // Where tile texel (0, 0) would lie: the cell's origin less the crop's corner (may be negative).
+    v_tile_x = (tiles % u_azimuth_count) * u_crop.z - u_crop.x;
+    v_tile_y = (tiles / u_azimuth_count) * u_crop.w - u_crop.y;
     v_view_weights = i_view_weights;
     v_layers = ivec2(i_layers);
     v_frame_weight = i_frame_weight;

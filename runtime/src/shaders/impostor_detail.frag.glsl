@@ -33,7 +33,9 @@ out vec4 o_color;
 // Blending off: the paper's single lookup, leaving at once outside the silhouette (on a
 // software rasterizer the accumulating loop below costs half as much again).
 void main() {
-    ivec3 texel = ivec3(ivec2(v_tile_x[0], v_tile_y[0]) + clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1)), v_layers[0]);
+    ivec2 t = clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1));
+    if (!in_crop(t)) discard;
+    ivec3 texel = ivec3(ivec2(v_tile_x[0], v_tile_y[0]) + t, v_layers[0]);
     if (!fetch_uv_map(texel).covered) discard;
     vec4 detail = texelFetch(u_detail_map, texel, 0);
     vec3 albedo = detail.rgb;

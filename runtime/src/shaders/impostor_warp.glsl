@@ -35,11 +35,19 @@ ViewBasis view_basis(vec3 back) {
 uniform float u_azimuths_deg[CV_MAX_AZIMUTHS];
 uniform float u_elevations_deg[CV_MAX_ELEVATIONS];
 uniform float u_radius;
+// The part of every tile the atlas stores (SPEC.md "Impostor maps"): x, y, width, height in tile
+// texels; an atlas cell is width x height. A sample's `origin` is where tile texel (0, 0) would lie
+// in the atlas, so tile texel t is atlas texel origin + t inside the crop.
+uniform ivec4 u_crop;
 
-// The baked view of the tile holding atlas texel `texel` (any texel of it, its origin included).
+bool in_crop(ivec2 t) {
+    return all(greaterThanEqual(t, u_crop.xy)) && all(lessThan(t, u_crop.xy + u_crop.zw));
+}
+
+// The baked view of the cell holding atlas texel `texel` (any texel of the cell).
 ViewBasis tile_basis(ivec2 texel) {
-    float a = radians(u_azimuths_deg[(texel.x / u_tile_size) % CV_MAX_AZIMUTHS]);
-    float e = radians(u_elevations_deg[(texel.y / u_tile_size) % CV_MAX_ELEVATIONS]);
+    float a = radians(u_azimuths_deg[(texel.x / u_crop.z) % CV_MAX_AZIMUTHS]);
+    float e = radians(u_elevations_deg[(texel.y / u_crop.w) % CV_MAX_ELEVATIONS]);
     return view_basis(vec3(sin(a) * cos(e), sin(e), cos(a) * cos(e)));
 }
 
@@ -61,9 +69,9 @@ vec3 sample_normal(ivec3 texel) {
 uniform sampler2DArray u_surface_map;  // bilinear, no mipmaps
 
 // (depth along back, motion along right, motion along up) in metres at tile texel coordinate xy,
-// filtered within the tile (texel centres at +0.5, clamped so no neighbouring tile is read).
+// filtered within the cell (texel centres at +0.5, clamped so no neighbouring cell is read).
 vec3 surface_at(ivec2 origin, vec2 xy, int layer) {
-    vec2 p = clamp(xy, vec2(0.5), vec2(float(u_tile_size) - 0.5)) + vec2(origin);
+    vec2 p = clamp(xy, vec2(u_crop.xy) + 0.5, vec2(u_crop.xy + u_crop.zw) - 0.5) + vec2(origin);
     vec3 c = texture(u_surface_map, vec3(p / vec2(textureSize(u_surface_map, 0).xy), float(layer))).rgb * 2.0 - 1.0;
     return vec3(c.r * CV_SURFACE_DEPTH_RANGE, c.g * CV_SURFACE_MOTION_RANGE, c.b * CV_SURFACE_MOTION_RANGE) * u_radius;
 }
@@ -87,14 +95,13 @@ vec2 reproject(ViewBasis s, ViewBasis t, vec2 pixel, ivec2 origin, int layer, fl
 #endif
 
 // The atlas texel of the sample with tile origin `origin` and layer `layer` for the fragment at
-// `pixel` (tile texels); x < 0 where a reprojected sample falls outside its tile (not covered).
+// `pixel` (tile texels); x < 0 where the sample falls outside the stored crop (not covered).
 // `target`: the camera's view in model space; `fraction`: see reproject.
 ivec3 sample_texel(ivec2 origin, int layer, vec2 pixel, ViewBasis target, float fraction) {
 #if CV_WARP
-    ivec2 t = ivec2(floor(reproject(tile_basis(origin), target, pixel, origin, layer, fraction)));
-    if (any(lessThan(t, ivec2(0))) || any(greaterThanEqual(t, ivec2(u_tile_size)))) return ivec3(-1);
-    return ivec3(origin + t, layer);
+    ivec2 t = ivec2(floor(reproject(tile_basis(origin + u_crop.xy), target, pixel, origin, layer, fraction)));
 #else
-    return ivec3(origin + clamp(ivec2(pixel), ivec2(0), ivec2(u_tile_size - 1)), layer);
+    ivec2 t = clamp(ivec2(pixel), ivec2(0), ivec2(u_tile_size - 1));
 #endif
+    return in_crop(t) ? ivec3(origin + t, layer) : ivec3(-1);
 }

@@ -25,7 +25,7 @@ from crowdbake.api.deps import AppServices
 from crowdbake.api.problems import PROBLEM_TYPES, Problem, problem_type_uri
 from crowdbake.api.slow_clients import MinimumBodyRate
 from crowdbake.api.schemas import Problem as ProblemDocument
-from crowdbake.api.routes import assets, bakes, bundles, exports, health, metrics, params, web
+from crowdbake.api.routes import assets, bake_check, bakes, bundles, exports, health, metrics, params, web
 from crowdbake.jobs.celery_app import make_celery
 from crowdbake.jobs.sweeper import Dispatcher, Sweeper
 from crowdbake.metrics import HttpMetrics, MetricsMiddleware
@@ -125,7 +125,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.dispatcher = Dispatcher(app.state.services.sessions, app.state.services.celery, settings)
     problems.install(app)
     add_docs_routes(app)
-    for module in (assets, bakes, bundles, exports, health, metrics, params):
+    for module in (assets, bake_check, bakes, bundles, exports, health, metrics, params):
         app.include_router(module.router)
     for router in web.routers:  # the web page, the cycle report and atlas previews it shows
         app.include_router(router)

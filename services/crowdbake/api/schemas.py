@@ -57,7 +57,7 @@ class StoredFile(BaseModel):
     media_type: str
 
 
-AssetKind = Literal["character", "cloth", "texture", "cycle"]
+AssetKind = Literal["character", "cloth", "texture", "cycle", "timeline"]
 
 
 class AssetPublic(BaseModel):
@@ -135,6 +135,41 @@ class ParamPublic(BaseModel):
     flag: str = Field(description="The `crowdbake bake` command-line flag.")
 
 
+SHA256_PATTERN = re.compile(r"^[0-9a-f]{64}$")
+INPUT_ROLE_PATTERN = re.compile(r"^(character|cloth|cycle|textures\.[A-Za-z0-9._-]{1,64})$")
+MAX_CHECK_ROLES = 64  # a character, cloth, cycle and textures: far fewer than this
+MAX_FILES_PER_ROLE = 4  # a cloth cache and its mesh, a cycle and its looped cache
+
+
+class BakeCheck(BaseModel):
+    """Before any upload: may a bake of these inputs publish <name>/<version>? 204 when it may (the
+    version is free, or this key's own bake of the same inputs published it: the submit reuses that
+    bake), 409 as POST /v1/bakes would answer after the uploads when it is taken from other inputs."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(pattern=NAME_PATTERN, examples=["sample-walker"])
+    version: str = Field(pattern=VERSION_PATTERN, examples=["1.0.0"])
+    inputs: dict[str, list[str]] = Field(
+        description="Input role (character, cloth, cycle, textures.FILE) -> the sha256 (hex) of each local file of it.",
+        examples=[{"character": ["9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08"]}])
+    params: BakeParamsIn = Field(default_factory=BakeParamsIn)
+    created: str | None = Field(None, pattern=CREATED_RULE.pattern, description="As POST /v1/bakes `created`.")
+    publish: bool = Field(True, description="As POST /v1/bakes `publish`: a bake that will not publish may share a version being baked.")
+
+    @field_validator("inputs")
+    @classmethod
+    def _roles_and_digests(cls, value: dict[str, list[str]]) -> dict[str, list[str]]:
+        if "character" not in value or len(value) > MAX_CHECK_ROLES:
+            raise ValueError(f"inputs must name the character and at most {MAX_CHECK_ROLES} roles")
+        for role, digests in value.items():
+            if not INPUT_ROLE_PATTERN.match(role):
+                raise ValueError(f"{role!r} is not an input role (character, cloth, cycle, textures.FILE)")
+            if not 1 <= len(digests) <= MAX_FILES_PER_ROLE or not all(SHA256_PATTERN.match(d) for d in digests):
+                raise ValueError(f"inputs[{role!r}] must list 1 to {MAX_FILES_PER_ROLE} sha256 digests in lowercase hex")
+        return value
+
+
 class BakeCreate(BaseModel):
     """Start a bake from uploaded assets; it publishes <name>/<version> when `publish` is true."""
 
@@ -149,6 +184,10 @@ class BakeCreate(BaseModel):
     cycle: str | None = Field(
         None, description="Id of a cycle asset (POST /v1/assets/cycles): bake this cycle instead of searching, as "
                           "`crowdbake bake --cycle`. Its frames must lie within the cloth's.")
+    timeline: str | None = Field(
+        None, description="Id of a timeline asset (POST /v1/assets/timelines): the cloth plays several clips, as "
+                          "`crowdbake bake --timeline`; cycle.json gains a loop per clip and a transition per change of clip, "
+                          "and the bundle carries params.animation's loop (default: the timeline's first clip).")
     params: BakeParamsIn = Field(default_factory=BakeParamsIn)
     # `created` stands beside name and version, not among BakeParams: like them it is what the manifest
     # says about the bundle, not how it is baked (no stage but pack reads it, and it is passed to

@@ -319,6 +319,7 @@ def find_cycle(
     render_views: RenderViews | None = None,
     body_normals: np.ndarray | None = None,
     progress: Progress | None = None,
+    rest_positions: np.ndarray | None = None,
 ) -> CycleResult:
     """Search a long cloth cache for its best cycle and close it.
 
@@ -329,6 +330,8 @@ def find_cycle(
     render_views: pictures for pass 2 (see RenderViews); None skips pass 2 and the winner is the best
         pass-1 candidate.
     body_normals: (F, Vb, 3) unit outward normals; computed from body_faces when None.
+    rest_positions: (V, 3) rest shape for the stretch ratio, default the cache's first frame (a part of a
+        longer cache passes the whole cache's first frame).
     Raises ValueError on bad shapes, NaN, too few frames, or when no candidate passes the threshold.
     """
     params.validate()
@@ -420,6 +423,7 @@ def find_cycle(
     closing = loop_closing.close_cycle(
         cloth, winner.start_frame, gap, params.close, body=body, body_normals=body_normals, body_faces=body_faces,
         blend_frames=params.blend_frames, push_out_mode=params.push_out, cloth_faces=cloth_faces,
+        rest_positions=rest_positions,
     )
     timings["closing"] = time.perf_counter() - started
     report("closing", 1, 1)

@@ -80,6 +80,7 @@ __all__ = [
     "ClosedLoop",
     "close_cycle",
     "close_loop",
+    "crossfade_blend",
     "crossfade_weights",
     "default_blend_frames",
     "default_crossfade_frames",
@@ -298,20 +299,32 @@ def _crossfade(
     offsets, weight = crossfade_weights(half)
     end_side = points[end + offsets].astype(np.float64)  # A(t) = x(Fe + t)
     start_side = points[start + offsets].astype(np.float64)  # B(t) = x(Fs + t)
-    w = weight[:, None, None]
-    blended = (1.0 - w) * end_side + w * start_side
-    if edges is not None and len(edges):
-        edges = np.asarray(edges, dtype=np.int64)
-        target = (1.0 - weight[:, None]) * edge_lengths(end_side, edges) + weight[:, None] * edge_lengths(start_side, edges)
-        gap = np.sqrt(np.sum(np.square(start_side - end_side), axis=-1))  # (2h, V)
-        movable = gap > PINNED_GAP_FRACTION * max(float(np.sqrt(np.mean(np.square(gap)))), STILL_STEP)
-        blended = restore_edge_lengths(blended, edges, target, movable)
+    blended = crossfade_blend(end_side, start_side, weight, edges)
     loop = points[start:end].astype(np.float64)
     before_seam = offsets < 0
     loop[cycle_frames + offsets[before_seam]] = blended[before_seam]  # frames Fe - h .. Fe - 1
     loop[offsets[~before_seam]] = blended[~before_seam]  # frames Fs .. Fs + h - 1
     # The loop is now periodic: the frame before Fs is the last looped frame, Fe is Fs, Fe + 1 is Fs + 1.
     return np.concatenate([loop[-1:], loop, loop[:2]])
+
+
+def crossfade_blend(leaving: np.ndarray, arriving: np.ndarray, weight: np.ndarray, edges: np.ndarray | None) -> np.ndarray:
+    """(1 - s) A + s B frame by frame, then edge lengths restored to the blend of A's and B's: (N, V, 3) float64.
+
+    leaving: A, (N, V, 3) float64, the trajectory faded out; arriving: B, the same shape, faded in;
+    weight: s, (N,) in [0, 1]; edges: (E, 2) cloth edges, or None to skip the restoration. Vertices
+    where A and B agree (pins) stay put. The loop's crossfade and a transition's joins
+    (crowdbake.bake.transitions) blend alike.
+    """
+    w = weight[:, None, None]
+    blended = (1.0 - w) * leaving + w * arriving
+    if edges is not None and len(edges):
+        edges = np.asarray(edges, dtype=np.int64)
+        target = (1.0 - weight[:, None]) * edge_lengths(leaving, edges) + weight[:, None] * edge_lengths(arriving, edges)
+        gap = np.sqrt(np.sum(np.square(arriving - leaving), axis=-1))  # (N, V)
+        movable = gap > PINNED_GAP_FRACTION * max(float(np.sqrt(np.mean(np.square(gap)))), STILL_STEP)
+        blended = restore_edge_lengths(blended, edges, target, movable)
+    return blended
 
 
 def looped_frames(trajectory: np.ndarray) -> np.ndarray:

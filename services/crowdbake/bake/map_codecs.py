@@ -86,14 +86,15 @@ def _tile_bases(layout) -> np.ndarray:
 
 
 def _tile_planes(atlas: np.ndarray, layout, channels: int) -> list[np.ndarray]:
-    """The first `channels` channels of an (H, W, C) atlas as float32 planes viewed (E, S, A, S): tile (e, a)
-    is plane[e, :, a, :]."""
-    size, rings, columns = layout.tile_size, len(layout.elevations_deg), len(layout.azimuths_deg)
-    return [np.asarray(atlas)[..., c].astype(np.float32).reshape(rings, size, columns, size) for c in range(channels)]
+    """The first `channels` channels of an (H, W, C) atlas as float32 planes viewed (E, h, A, w): the cell of
+    view (a, e) is plane[e, :, a, :]."""
+    rings, columns = len(layout.elevations_deg), len(layout.azimuths_deg)
+    shape = (rings, layout.cell_height, columns, layout.cell_width)
+    return [np.asarray(atlas)[..., c].astype(np.float32).reshape(shape) for c in range(channels)]
 
 
 def _rotate_planes(planes: list[np.ndarray], matrices: np.ndarray, outputs: int = 3) -> list[np.ndarray]:
-    """Vectors held as three (E, S, A, S) planes, each tile's times its (3, 3) matrix from `matrices`
+    """Vectors held as three (E, h, A, w) planes, each cell's times its (3, 3) matrix from `matrices`
     (E, A, 3, 3), as `outputs` planes: out_j = Σ_i plane_i · M[i, j], broadcast per tile. Working on planes
     (not (..., 3) vectors) keeps every product a plain contiguous array operation."""
     m = matrices.astype(np.float32)[:, None, :, None]  # (E, 1, A, 1, 3, 3)

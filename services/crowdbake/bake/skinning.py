@@ -44,6 +44,10 @@ class SkinnedCharacter(Protocol):
     rest_rotations: np.ndarray
     rest_scales: np.ndarray
     channels: Sequence[KeyframeChannel]
+    # Optional (read with getattr, empty when absent): morph_targets, each with start (int), positions
+    # (n, 3) and normals (n, 3) or None, bind-space displacements of vertices start..start+n-1;
+    # morph_weights (N,) default weights; weight_channels, keyframes of targets first..first+count-1
+    # (see crowdbake.formats.gltf.MorphTarget and WeightsChannel).
 
 # Below this angle between keys (radians), slerp's sin(theta) in the denominator loses precision
 # and normalised lerp is indistinguishable from it.
@@ -228,15 +232,75 @@ def skin(
     return out_positions, out_normals
 
 
+def morph_weights(character: SkinnedCharacter, times: np.ndarray) -> np.ndarray:
+    """Each morph target's weight at times (F,) seconds -> (F, N) float64: the default weights, and the
+    animated ones where a weights channel drives them (sampled like any channel, clamped to its keys)."""
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    targets = getattr(character, "morph_targets", None) or []
+    defaults = np.asarray(getattr(character, "morph_weights", None) if len(targets) else np.zeros(0), dtype=np.float64)
+    if defaults.shape != (len(targets),):
+        raise ValueError(f"morph_weights must be ({len(targets)},), got {defaults.shape}")
+    weights = np.repeat(defaults[None], len(times), axis=0)
+    for channel in getattr(character, "weight_channels", None) or []:
+        weights[:, channel.first : channel.first + channel.count] = sample_channel(channel, times)
+    return weights
+
+
+def apply_morph_targets(positions: np.ndarray, normals: np.ndarray, targets: Sequence, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bind-pose mesh plus weighted morph target displacements (glTF 2.0 section 3.7.2.2).
+
+    positions, normals (V, 3); targets: N objects with start, positions (n, 3), normals (n, 3) or None
+    (see SkinnedCharacter); weights (N,) -> positions (V, 3) float32 = positions + sum_i w_i * delta_i,
+    normals (V, 3) float32, renormalised where a normal displacement moved them.
+    """
+    weights = np.asarray(weights, dtype=np.float64).reshape(-1)
+    if len(weights) != len(targets):
+        raise ValueError(f"{len(targets)} morph targets but {len(weights)} weights")
+    out_positions = np.asarray(positions, dtype=np.float64).copy()
+    out_normals = np.asarray(normals, dtype=np.float64).copy()
+    moved = np.zeros(len(out_normals), dtype=bool)
+    for target, weight in zip(targets, weights):
+        if weight == 0.0:
+            continue
+        rows = slice(target.start, target.start + len(target.positions))
+        out_positions[rows] += weight * np.asarray(target.positions, dtype=np.float64)
+        if target.normals is not None:
+            out_normals[rows] += weight * np.asarray(target.normals, dtype=np.float64)
+            moved[rows] = True
+    if moved.any():
+        length = np.linalg.norm(out_normals[moved], axis=1, keepdims=True)
+        out_normals[moved] = np.divide(out_normals[moved], length, out=np.zeros_like(out_normals[moved]), where=length > 0)
+    return out_positions.astype(np.float32), out_normals.astype(np.float32)
+
+
+def pose_at_times(character: SkinnedCharacter, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The skinned mesh at times (F,) seconds -> positions, normals (F, V, 3) float32: morph targets
+    applied to the bind pose at each time's weights, then linear blend skinning."""
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    matrices = joint_matrices(character, times)
+    targets = getattr(character, "morph_targets", None) or []
+    if not targets:
+        return skin(character.positions, character.normals, character.joints, character.weights, matrices)
+    weights = morph_weights(character, times)
+    out_positions = np.empty((len(times), len(character.positions), 3), dtype=np.float32)
+    out_normals = np.empty_like(out_positions)
+    # Frames that share their weights (a constant or STEP channel) are morphed once and skinned together.
+    rows, which = np.unique(weights, axis=0, return_inverse=True)
+    for row_index, row in enumerate(rows):
+        frames = np.flatnonzero(which.reshape(-1) == row_index)
+        positions, normals = apply_morph_targets(character.positions, character.normals, targets, row)
+        out_positions[frames], out_normals[frames] = skin(positions, normals, character.joints, character.weights, matrices[frames])
+    return out_positions, out_normals
+
+
 def pose_character(
     character: SkinnedCharacter, fps: float, frame_count: int, start_time: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Skinned mesh at times start_time + k / fps, k = 0..frame_count-1 -> positions, normals (F, V, 3) float32.
 
-    Times past the animation's last key clamp to it; wrap them yourself for a looping walk.
+    Times past the animation's last key clamp to it; wrap them yourself for a looping walk. Morph
+    targets are applied before skinning (see pose_at_times).
     """
     if fps <= 0 or frame_count < 1:
         raise ValueError(f"fps {fps} must be positive and frame_count {frame_count} at least 1")
-    times = start_time + np.arange(frame_count, dtype=np.float64) / fps
-    matrices = joint_matrices(character, times)
-    return skin(character.positions, character.normals, character.joints, character.weights, matrices)
+    return pose_at_times(character, start_time + np.arange(frame_count, dtype=np.float64) / fps)

@@ -35,6 +35,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--cloth", metavar="CLOTH", help="the garment's simulated cache, many walk cycles: .pc2 or .mdd (with --cloth-mesh), .abc, or a .zip of OBJ frames (none: the body alone, its animation's own loop sampled at --fps, default 30)")
     parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the garment's rest mesh (OBJ, cache point order); .pc2 and .mdd need it")
     parser.add_argument("--cycle", metavar="cycle.json", help="use this cycle (from `crowdbake cycle`) instead of searching")
+    parser.add_argument("--timeline", metavar="timeline.json", help="the cloth cache plays several clips (docs/inputs.md, clip timeline): "
+                        "a loop per clip and the transitions between them in cycle.json; the bundle carries --animation's loop (default: the timeline's first clip)")
     parser.add_argument("--textures", metavar="DIR", help="diffuse_*.png or diffuse_*.jpg variations (region codes in alpha: PNG only) and outfits.png (default: the glTF texture)")
     parser.add_argument("--name", required=True, help="bundle name ([a-z0-9][a-z0-9._-]*)")
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VER", help="bundle version")
@@ -129,6 +131,20 @@ def format_summary(summary) -> str:
             f"worst PSNR {errors['rgb_psnr_db_worst']:.1f} dB, alpha max error {errors['alpha_max']:.0f}"
         )
     memory = summary.texture_memory
+    if "impostor" in memory:
+        held = memory["impostor"]
+        crop = held["crop"]
+        lines.append(
+            f"memory   impostor maps {held['stored_mib']:.1f} MiB ("
+            + ", ".join(f"{kind} {size / 1048576:.1f}" for kind, size in held["stored_bytes"].items())
+            + f") for {held['frames']} frames x {held['views']} views of {crop['width']}x{crop['height']} texels"
+            + (f" (the character's crop of {held['tile_size']}²)" if (crop["width"], crop["height"]) != (held["tile_size"],) * 2 else "")
+        )
+        budget = held.get("budget")
+        if budget and budget["chosen"] != budget["asked"]:
+            lines.append(f"memory   the {budget['budget_mib']:g} MiB budget chose {budget['chosen']['azimuths']} azimuths and "
+                         f"{budget['chosen']['frames']} frames (asked {budget['asked']['azimuths']} and {budget['asked']['frames']})"
+                         + ("" if budget["fits"] else "; still over it at the floors"))
     lines.append(
         f"figure 4 paper model: 1 variation {memory['paper_mib']['1']:.0f} MiB both; 8 variations detail-mapped "
         f"{memory['paper_mib']['detail_8']:.0f} MiB vs UV-mapped {memory['paper_mib']['uv_8']:.0f} MiB; "
@@ -188,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
         version=args.bundle_version,
         params=params,
         created=args.created,
+        timeline=Path(args.timeline) if args.timeline else None,
     )
     with ExitStack() as stack:
         bars = _Bars(stack)
@@ -229,6 +246,7 @@ _OPTIONS = {
     "character": "CHAR.glb",
     "textures": "--textures",
     "cycle": "--cycle",
+    "timeline": "--timeline",
     "name": "--name",
     "version": "--version",
     "created": "--created",

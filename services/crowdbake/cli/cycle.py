@@ -47,6 +47,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--max-cycles", type=int, default=1, metavar="N", help="also try loops of 2..N walk cycles (default 1)")
     parser.add_argument("--image-size", type=int, default=256, metavar="PX", help="pass-2 picture size (default 256)")
     parser.add_argument("--truncation", type=float, default=10.0, metavar="PX", help="edge distance cap in pixels (default 10)")
+    parser.add_argument("--timeline", metavar="timeline.json",
+                        help="the cache plays several clips (docs/inputs.md, clip timeline): a loop per clip and a transition per change of clip")
     parser.add_argument("--no-edge-pass", action="store_true", help="skip pass 2 (no rendering); the best pass-1 candidate wins")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.set_defaults(func=run)
@@ -94,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
                 character=args.character, body_pc2=args.body, body_obj=args.body_mesh,
                 cycle_frames=args.cycle_frames, fps=args.fps, params=params,
                 up=args.up, units=args.units, animation=args.animation,
-                progress=on_progress, edge_pass=not args.no_edge_pass,
+                progress=on_progress, edge_pass=not args.no_edge_pass, timeline=args.timeline,
             )
         except (ValueError, OSError) as error:
             # One line: the readers and the search name the file and the problem.

@@ -2,6 +2,11 @@
 NAME/VERSION is not already published from other inputs (bundles never change, so the server would
 refuse the bake with a 409, but only after every upload).
 
+The server answers the second itself (POST /v1/bakes/check: the sha256 of each local file, the
+parameters and the manifest time in, 204 or the 409 out), whoever published the version. Against a
+server without that endpoint the client reads what its key can (below), which cannot see a version
+another workspace published.
+
 A published version is baked again only as a reuse: the same key's bake of the same bytes, parameters
 and manifest time (crowdbake.api.routes.bakes.create_bake). So the check reads the bundle
 (GET /v1/bundles/{name}/{version}), the bake that published it (GET /v1/bakes/{id}) and its input
@@ -48,7 +53,7 @@ def published_difference(server: Server, name: str, version: str, local: dict[st
                          created: str | None) -> str | None:
     """What differs between this submit and the bake that published name/version, or None when the version
     is not published or the submit would reuse that bake. `local`: input role ("character", "cloth",
-    "cycle", "textures.NAME") -> its local files."""
+    "cycle", "timeline", "textures.NAME") -> its local files."""
     bundle = server.request("GET", f"/v1/bundles/{name}/{version}", f"checking whether {name}/{version} is published",
                             accept=frozenset({403, 404}))
     if bundle.status_code in (403, 404):
@@ -61,7 +66,7 @@ def published_difference(server: Server, name: str, version: str, local: dict[st
         return f"bake {bake_id} published it, from inputs this key cannot reuse"
     record = bake.json()
     inputs = record.get("inputs", {})
-    published = {"character": inputs.get("character"), "cloth": inputs.get("cloth"), "cycle": inputs.get("cycle"),
+    published = {"character": inputs.get("character"), "cloth": inputs.get("cloth"), "cycle": inputs.get("cycle"), "timeline": inputs.get("timeline"),
                  **{f"textures.{texture}": asset_id for texture, asset_id in (inputs.get("textures") or {}).items()}}
     roles = {role for role, asset_id in published.items() if asset_id} | set(local)
     for role in sorted(roles):
@@ -88,6 +93,18 @@ def _server_defaults(server: Server) -> dict[str, Any]:
     """The server's parameter defaults (GET /v1/params); none from a server without that endpoint."""
     response = server.request("GET", "/v1/params", "reading the server's parameter defaults", accept=frozenset({404}))
     return {} if response.status_code == 404 else {item["name"]: item["default"] for item in response.json()}
+
+
+def check_name_and_version(server: Server, name: str, version: str, local: dict[str, list[Path]], params: dict[str, Any],
+                           created: str | None, publish: bool = True) -> None:
+    """Raise the server's 409 (Exit.REJECTED) when name/version is already published (or being baked)
+    from other inputs, before anything is uploaded. `local`: input role -> its local files."""
+    body = {"name": name, "version": version, "inputs": {role: [sha256_of(path) for path in paths] for role, paths in local.items()},
+            "params": params, "publish": publish, **({"created": created} if created else {})}
+    response = server.request("POST", "/v1/bakes/check", f"checking whether {name}/{version} is free", json=body,
+                              accept=frozenset({404, 405}))
+    if response.status_code in (404, 405):  # a server that predates the check: read what this key can
+        check_not_published_otherwise(server, name, version, local, params, created)
 
 
 def check_not_published_otherwise(server: Server, name: str, version: str, local: dict[str, list[Path]], params: dict[str, Any],

@@ -18,16 +18,17 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from crowdbake.client.http import ClientError, Exit, Server, problem_line
-from crowdbake.client.preflight import check_glb_magic, check_not_published_otherwise
+from crowdbake.client.preflight import check_glb_magic, check_name_and_version
 from crowdbake.client.progress import FINAL_STATES, Reporter
 from crowdbake.errors import InputError
 from crowdbake.params import add_cli_options, option_for, params_from_args
 
 DESCRIPTION = """\
 Uploads CHAR.glb, the cloth (a .pc2 or .mdd cache with --cloth-mesh, or an Alembic .abc or a .zip of
-OBJ frames alone), the textures (--textures DIR: diffuse_*.png or diffuse_*.jpg, and outfits.png) and a
-chosen cycle (--cycle cycle.json from `crowdbake cycle`, with looped.pc2 when it lies beside it), starts a
-bake of NAME/VERSION and prints its id.
+OBJ frames alone; without --cloth the body alone is baked, its animation's own loop), the textures
+(--textures DIR: diffuse_*.png or diffuse_*.jpg, and outfits.png) and a chosen cycle (--cycle cycle.json
+from `crowdbake cycle`, with looped.pc2 when it lies beside it) or a clip timeline (--timeline
+timeline.json: a cache of several clips), starts a bake of NAME/VERSION and prints its id.
 With --wait, follows it until it ends; with --download DIR, also fetches the published bundle to
 DIR/NAME/VERSION and checks every file's size and sha256 (and, with the full crowdbake package,
 the bundle's formats).
@@ -36,8 +37,8 @@ With --export-out DIR, also fetches the engine export (glTF, KTX2, VATs: docs/ex
 DIR/NAME/VERSION.
 
 Before uploading anything, the server checks the key, its scopes, NAME, VERSION and the bake
-parameters (a bake request naming no real assets, which starts nothing), and the client checks that
-NAME/VERSION is not already published from other inputs (bundles never change).
+parameters (a bake request naming no real assets, which starts nothing), and that NAME/VERSION is not
+already published from other inputs (bundles never change; from the files' sha256, nothing uploaded).
 
 The key comes from --key or CROWDBAKE_API_KEY (better in CI: it stays out of the process list)."""
 
@@ -55,7 +56,7 @@ exit codes:
 # An asset id that never exists: the preflight bake request names it so that the server validates
 # everything else and then refuses the request for want of assets, creating nothing.
 PREFLIGHT_ASSET = "preflight-no-such-asset"
-ASSET_FIELDS = ("character", "cloth", "cycle")
+ASSET_FIELDS = ("character", "cloth", "cycle", "timeline")
 # The cloth forms POST /v1/assets/cloth takes (crowdbake.api.routes.assets): cache suffix -> whether it
 # needs its OBJ rest mesh beside it, and the multipart field the file goes in.
 CLOTH_FORMS = {".pc2": (True, "cache"), ".mdd": (True, "cache"), ".abc": (False, "cache"), ".zip": (False, "sequence")}
@@ -68,11 +69,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("character", metavar="CHAR.glb", help="the skinned, animated character (.glb or .gltf)")
     parser.add_argument("--server", required=True, metavar="URL", help="the crowdbake server, e.g. http://127.0.0.1:8000")
     parser.add_argument("--key", metavar="KEY", default=os.environ.get("CROWDBAKE_API_KEY"), help="API key (default CROWDBAKE_API_KEY)")
-    parser.add_argument("--cloth", required=True, metavar="CLOTH.pc2",
-                        help="the cloth cache: .pc2 or .mdd with --cloth-mesh, or an Alembic .abc or a .zip of OBJ frames alone")
+    parser.add_argument("--cloth", metavar="CLOTH.pc2",
+                        help="the cloth cache: .pc2 or .mdd with --cloth-mesh, or an Alembic .abc or a .zip of OBJ frames alone "
+                             "(none: the body alone, its animation's own loop sampled at --fps, default 30)")
     parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the cloth's rest mesh (OBJ, in the cache's point order); only with a .pc2 or .mdd cache")
     parser.add_argument("--textures", metavar="DIR", help="folder with diffuse_*.png (or diffuse_*.jpg: no colour-region codes) and outfits.png")
     parser.add_argument("--cycle", metavar="cycle.json", help="bake this cycle (from `crowdbake cycle`; looped.pc2 beside it goes too) instead of searching")
+    parser.add_argument("--timeline", metavar="timeline.json", help="the cloth plays several clips (docs/inputs.md, clip timeline): a loop per clip and the transitions between them")
     parser.add_argument("--name", required=True, help="bundle name ([a-z0-9._-], checked by the server before uploading)")
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VERSION", help="bundle version; a published version never changes")
     parser.add_argument("--wait", action="store_true", help="follow the bake until it ends")
@@ -143,11 +146,12 @@ def local_problem(message: str, title: str = "Usage error") -> dict[str, Any]:
 @dataclass
 class Inputs:
     character: Path
-    cloth_files: dict[str, Path]   # multipart field -> file: cache + mesh, cache alone (.abc), or sequence (.zip)
+    cloth_files: dict[str, Path]   # multipart field -> file: cache + mesh, cache alone (.abc), sequence (.zip), or none (body only)
     cloth_data: dict[str, str]
     textures: dict[str, Path]      # texture name -> file
     params: dict[str, Any]
     cycle_files: dict[str, Path]   # multipart field -> file: cycle (and looped), or none
+    timeline: Path | None = None   # a clip timeline (POST /v1/assets/timelines), or none
 
 
 def usage(message: str) -> ClientError:
@@ -215,7 +219,9 @@ def check_locally(args: argparse.Namespace) -> Inputs:
         if getattr(args, option) <= 0:
             raise usage(f"--{option.replace('_', '-')} must be positive, got {getattr(args, option)}")
     character = Path(args.character)
-    cloth = cloth_form(Path(args.cloth), Path(args.cloth_mesh) if args.cloth_mesh else None)
+    if args.cloth_mesh and not args.cloth:
+        raise usage("--cloth-mesh goes with --cloth (a .pc2 or .mdd cache); without --cloth the body alone is baked")
+    cloth = cloth_form(Path(args.cloth), Path(args.cloth_mesh) if args.cloth_mesh else None) if args.cloth else {}
     for path in (character, *cloth.values()):
         if not path.is_file():
             raise usage(f"{path}: no such file")
@@ -225,16 +231,22 @@ def check_locally(args: argparse.Namespace) -> Inputs:
     not_glb = check_glb_magic(character)
     if not_glb:
         raise usage(not_glb)
-    cloth_data = {"cycle_frames": str(args.cycle_frames)} if args.cycle_frames else {}
-    return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args), cycle_files(args.cycle))
+    cloth_data = {"cycle_frames": str(args.cycle_frames)} if args.cycle_frames and cloth else {}
+    timeline = Path(args.timeline) if getattr(args, "timeline", None) else None
+    if timeline is not None and not timeline.is_file():
+        raise usage(f"--timeline {timeline}: no such file")
+    if timeline is not None and args.cycle:
+        raise usage("--cycle chooses one loop; --timeline asks for a loop per clip: give one of them")
+    return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args), cycle_files(args.cycle), timeline)
 
 
 # --------------------------------------------------------------------------------- the server's part
 
 
-def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str, textures: dict[str, str], cycle: str | None = None) -> dict[str, Any]:
+def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str | None, textures: dict[str, str], cycle: str | None = None,
+              timeline: str | None = None) -> dict[str, Any]:
     return {"name": args.name, "version": args.bundle_version, "character": character, "cloth": cloth, "textures": textures,
-            **({"cycle": cycle} if cycle is not None else {}),
+            **({"cycle": cycle} if cycle is not None else {}), **({"timeline": timeline} if timeline is not None else {}),
             "params": inputs.params, "publish": not args.no_publish, "public": args.public,
             **({"created": args.created} if args.created else {})}
 
@@ -251,7 +263,8 @@ def preflight(server: Server, args: argparse.Namespace, inputs: Inputs) -> None:
     else first and then refuses it for want of the assets, starting nothing. Any other refusal is the
     one the real request would get after the uploads."""
     placeholders = {name: PREFLIGHT_ASSET for name in inputs.textures}
-    body = bake_body(args, inputs, PREFLIGHT_ASSET, PREFLIGHT_ASSET, placeholders, PREFLIGHT_ASSET if inputs.cycle_files else None)
+    body = bake_body(args, inputs, PREFLIGHT_ASSET, PREFLIGHT_ASSET if inputs.cloth_files else None, placeholders,
+                     PREFLIGHT_ASSET if inputs.cycle_files else None, PREFLIGHT_ASSET if inputs.timeline is not None else None)
     response = server.request("POST", "/v1/bakes", "checking the bake request", json=body, accept=frozenset({422}))
     if response.status_code == 422:
         problem = response.json()
@@ -264,8 +277,9 @@ def preflight(server: Server, args: argparse.Namespace, inputs: Inputs) -> None:
 
 def local_inputs(inputs: Inputs) -> dict[str, list[Path]]:
     """Input role (as the bake record names it) -> its local files, for the published-version check."""
-    return {"character": [inputs.character], "cloth": list(inputs.cloth_files.values()),
+    return {"character": [inputs.character], **({"cloth": list(inputs.cloth_files.values())} if inputs.cloth_files else {}),
             **({"cycle": list(inputs.cycle_files.values())} if inputs.cycle_files else {}),
+            **({"timeline": [inputs.timeline]} if inputs.timeline is not None else {}),
             **{f"textures.{name}": [path] for name, path in inputs.textures.items()}}
 
 
@@ -327,14 +341,18 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
         server = Server(client, retry_for=args.retry_for, say=say)
         try:
             preflight(server, args, inputs)
-            check_not_published_otherwise(server, args.name, args.bundle_version, local_inputs(inputs), inputs.params, args.created)
+            check_name_and_version(server, args.name, args.bundle_version, local_inputs(inputs), inputs.params, args.created, not args.no_publish)
             character = upload(server, "/v1/assets/characters", {"file": inputs.character}, f"character {inputs.character.name}", say)
-            cloth_name = next(iter(inputs.cloth_files.values())).name
-            cloth = upload(server, "/v1/assets/cloth", inputs.cloth_files, f"cloth {cloth_name}", say, inputs.cloth_data)
+            cloth = None
+            if inputs.cloth_files:
+                cloth_name = next(iter(inputs.cloth_files.values())).name
+                cloth = upload(server, "/v1/assets/cloth", inputs.cloth_files, f"cloth {cloth_name}", say, inputs.cloth_data)["id"]
             textures = {name: upload(server, "/v1/assets/textures", {"file": path}, f"texture {name}", say)["id"] for name, path in inputs.textures.items()}
             cycle = upload(server, "/v1/assets/cycles", inputs.cycle_files, f"cycle {inputs.cycle_files['cycle'].name}", say)["id"] if inputs.cycle_files else None
 
-            body = bake_body(args, inputs, character["id"], cloth["id"], textures, cycle)
+            timeline = (upload(server, "/v1/assets/timelines", {"timeline": inputs.timeline}, f"timeline {inputs.timeline.name}", say)["id"]
+                        if inputs.timeline is not None else None)
+            body = bake_body(args, inputs, character["id"], cloth, textures, cycle, timeline)
             response = server.request("POST", "/v1/bakes", "starting the bake", json=body)
             bake = response.json()
             outcome.bake_id, outcome.state, outcome.progress = bake["id"], bake["state"], bake["progress"]

@@ -94,7 +94,7 @@ def layer_digest(layer: bytes) -> str:
 def _layout(impostor: dict):
     from crowdbake.bake.atlas import AtlasLayout
 
-    return AtlasLayout(int(impostor["tile_size"]), tuple(impostor["azimuths_deg"]), tuple(impostor["elevations_deg"]))
+    return AtlasLayout.from_manifest(impostor)
 
 
 def model_space_codes(decoded_bc5: np.ndarray, layout) -> np.ndarray:

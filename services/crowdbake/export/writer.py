@@ -28,6 +28,7 @@ import numpy as np
 from PIL import Image
 
 from crowdbake import __version__
+from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.export import ktx2
 from crowdbake.export.glb import GlbMaterial, GlbPart, build_glb
 from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, region_codes_used, rgba8_layers, uv_map_layers
@@ -127,10 +128,9 @@ def _export_textures(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
 def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLayers) -> dict[str, Any]:
     impostor = dict(bundle.manifest["impostor"])
     maps = {}
-    kinds = [
-        ("normal", False, "model-space unit normal n as rgb = (n + 1) / 2"),
-        ("detail", True, "diffuse variation 0 unlit, alpha = 17 * region code"),
-    ]
+    kinds = [("normal", False, "model-space unit normal n as rgb = (n + 1) / 2")]
+    if "detail" in impostor["maps"]:  # stored only when the bake was asked for it (--detail-map)
+        kinds.append(("detail", True, "diffuse variation 0 unlit, alpha = 17 * region code"))
     if "surface" in impostor["maps"]:  # SPEC.md "Impostor maps": for reprojecting samples between views and frames
         kinds.append(("surface", False, "per texel, metres = (c / 255 * 2 - 1) * range: r = depth along the view's back axis "
                       "(range bounds.radius), g, b = motion to the next baked frame along the view's right and up axes "
@@ -152,12 +152,16 @@ def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
     )
     maps["uv"] = _texture_entry(path, vk_format, uv.shape[0], uv.shape[2], uv.shape[1], encoding)
     tile = impostor["tile_size"]
+    layout = AtlasLayout.from_manifest(impostor)
     radius = impostor["bounds"]["radius"]
     return {
         "tile_size": tile,
         "azimuths_deg": impostor["azimuths_deg"],
         "elevations_deg": impostor["elevations_deg"],
-        "tile_of_view": "tile (a, e) covers texels [a*tile_size, (a+1)*tile_size) x [e*tile_size, (e+1)*tile_size); "
+        "crop": layout.crop_box_manifest(),
+        "tile_of_view": "the view (a, e) is a tile_size² square framing bounds; the maps store of it only the crop: "
+        "cell (a, e) covers texels [a*crop.width, (a+1)*crop.width) x [e*crop.height, (e+1)*crop.height) and holds "
+        "tile texels [crop.x, crop.x+crop.width) x [crop.y, crop.y+crop.height); tile texels outside it are not covered; "
         "camera for azimuth t, elevation p sits in direction (sin t cos p, sin p, cos t cos p) from bounds.center",
         "frame_indices": impostor["frame_indices"],
         "layer_of_frame": "layer k shows cycle frame frame_indices[k]; draw the nearest one around the cycle",

@@ -265,8 +265,13 @@ def _cross_check(bundle: Bundle) -> None:
         outfits["file"],
     )
     impostor = manifest["impostor"]
-    width = impostor["tile_size"] * len(impostor["azimuths_deg"])
-    height = impostor["tile_size"] * len(impostor["elevations_deg"])
+    tile, crop = impostor["tile_size"], impostor.get("crop")
+    if crop is not None:
+        _require(crop["x"] + crop["width"] <= tile and crop["y"] + crop["height"] <= tile,
+                 f"impostor/crop reaches outside the {tile}-texel tile", "manifest.json")
+    cell_width, cell_height = (tile, tile) if crop is None else (crop["width"], crop["height"])
+    width = cell_width * len(impostor["azimuths_deg"])
+    height = cell_height * len(impostor["elevations_deg"])
     _require(all(0 <= f < frames for f in impostor["frame_indices"]), "frame_indices outside the cycle", "manifest.json")
     _require(impostor["frame_indices"] == sorted(set(impostor["frame_indices"])), "frame_indices must ascend", "manifest.json")
     for kind, path in impostor["maps"].items():

@@ -107,8 +107,11 @@ def body_at_rest(character) -> np.ndarray:
 
     if getattr(character, "animation_duration", 0) and character.animation_duration > 0:
         body = pose_character(character, 1.0, 1)[0][0]
-    else:
-        body = np.asarray(character.positions, np.float32)
+    else:  # the bind pose, with its morph targets at their default weights
+        from crowdbake.bake.skinning import apply_morph_targets, morph_weights
+
+        targets = getattr(character, "morph_targets", None) or []
+        body = apply_morph_targets(character.positions, character.normals, targets, morph_weights(character, np.zeros(1))[0])[0]
     check_character_height(character, body)
     return body
 
@@ -146,12 +149,12 @@ def check_garment_fit(character, cache: ClothCache, fps: float) -> GarmentFit:
     character posed at each frame's time (animation time = frame / fps, looped over the animation):
     a garment simulated on another character. The message says how far off it is and how to bake anyway
     (`--no-fit`, params.fit = false)."""
-    from crowdbake.bake.skinning import joint_matrices, skin
+    from crowdbake.bake.skinning import pose_at_times
 
     frames = checked_frames(cache.frame_count)
     duration = float(getattr(character, "animation_duration", 0) or 0)
     times = (frames / float(fps)) % duration if duration > 0 else np.zeros(len(frames))
-    body, _ = skin(character.positions, character.normals, character.joints, character.weights, joint_matrices(character, times))
+    body, _ = pose_at_times(character, times)
     fit = measure_garment_fit(cache.frames[frames], body, character.faces, frames)
     if not fit.ok:
         raise InputError(

@@ -58,10 +58,17 @@ def materialize_inputs(blobs: BlobStore, work: Path, bake: Bake, session: Sessio
         if "looped" in cycle.files:
             blobs.materialize(cycle.files["looped"]["sha256"], inputs_dir / "cycle" / "looped.pc2")
         assets.append(cycle)
+    timeline_path = None
+    if bake.inputs.get("timeline"):
+        timeline = session.get(Asset, bake.inputs["timeline"])
+        if timeline is None:
+            raise InputError("the timeline asset no longer exists", "timeline")
+        timeline_path = blobs.materialize(timeline.files["file"]["sha256"], inputs_dir / "timeline.json")
+        assets.append(timeline)
     return BakeInputs(
         character=character_path, cloth=cloth_path, cloth_mesh=mesh_path, textures=textures_dir, cycle=cycle_path,
         name=bake.name, version=bake.version, params=BakeParams.from_dict(bake.params),
-        created=bake.inputs.get("created") or inputs_created(assets),
+        created=bake.inputs.get("created") or inputs_created(assets), timeline=timeline_path,
     )
 
 

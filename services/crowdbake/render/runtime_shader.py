@@ -56,7 +56,7 @@ class RuntimeAtlas:
     impostor's bounds; uv_map, normal_map, surface_map (or None): the bundle's CBTX arrays (only the layers
     the pictures read need bytes); diffuse: per material, variation 0 as decoded, (h, w, 4) uint8;
     has_regions: per material, whether its alpha holds region codes (crowdview: not bc1); outfit_row:
-    (16, 4) uint8, the outfit drawn.
+    (16, 4) uint8, the outfit drawn; crop: (x, y, width, height) of every tile the maps store.
     """
 
     tile_size: int
@@ -70,6 +70,7 @@ class RuntimeAtlas:
     diffuse: list[np.ndarray]
     has_regions: list[bool]
     outfit_row: np.ndarray
+    crop: tuple[int, int, int, int] | None = None  # the stored part of every tile (crowdbake.bake.atlas); None: all of it
 
 
 @dataclass(frozen=True)
@@ -356,6 +357,7 @@ class RuntimeImpostorShader:
         GL.glUniform1i(at("u_material_count"), len(atlas.diffuse))
         GL.glUniform1i(at("u_tile_size"), atlas.tile_size)
         GL.glUniform1i(at("u_azimuth_count"), len(atlas.azimuths_deg))
+        GL.glUniform4i(at("u_crop"), *(atlas.crop or (0, 0, atlas.tile_size, atlas.tile_size)))
         GL.glUniform1f(at("u_radius"), float(atlas.radius))
         GL.glUniform3f(at("u_center"), *np.asarray(atlas.center, dtype=np.float64).tolist())
         GL.glUniform1fv(at("u_azimuths_deg"), len(atlas.azimuths_deg), np.asarray(atlas.azimuths_deg, dtype=np.float32))

@@ -211,15 +211,26 @@ def run_cycle_job(
     progress: Progress | None = None,
     edge_pass: bool = True,
     plots: bool = True,
+    timeline: str | os.PathLike | None = None,
 ) -> CycleResult:
     """The whole `crowdbake cycle` job: files in, cycle.json + looped.pc2 + report.html out.
 
     edge_pass: run pass 2 (rendering under OSMesa/EGL); False picks the best pass-1 candidate.
     plots: draw the report's plots now; False leaves them to write_cycle_plots(result, out_dir).
+    timeline: a clip timeline (crowdbake.ingest.timeline): a loop per clip and the transitions between
+        them (crowdbake.stages.clip_loops); the primary clip's loop is the one written as looped.pc2.
     Raises ValueError on bad input (with a one-line reason).
     """
     report = progress or (lambda stage, done, total: None)
     report("load", 0, 1)
+    clips = None
+    if timeline is not None:
+        from crowdbake.ingest.timeline import read_timeline
+        from crowdbake.stages.clip_loops import primary_clip
+
+        clips = read_timeline(Path(timeline))
+        animation = primary_clip(clips, animation)
+        cycle_frames = clips.period(animation)
     inputs = load_cycle_inputs(cloth_pc2, cloth_obj, character, body_pc2, body_obj, cycle_frames, fps, up, units, animation)
     report("load", 1, 1)
     render_views = None
@@ -229,18 +240,24 @@ def run_cycle_job(
         render_views = ClothViewRenderer(
             inputs.cloth_faces, inputs.body_faces, params.views, params.image_size, params.elevation_deg
         )
-    result = find_cycle(
-        inputs.cloth, inputs.cloth_faces, inputs.body, inputs.body_faces, inputs.cycle_frames,
-        params, render_views, body_normals=inputs.body_normals, progress=progress,
-    )
+    sections = None
+    if clips is not None:
+        from crowdbake.stages.clip_loops import run_timeline
+
+        result, sections = run_timeline(inputs, clips, Path(timeline), character, out_dir, params, animation, render_views, progress)
+    else:
+        result = find_cycle(
+            inputs.cloth, inputs.cloth_faces, inputs.body, inputs.body_faces, inputs.cycle_frames,
+            params, render_views, body_normals=inputs.body_normals, progress=progress,
+        )
     report("report", 0, 1)
-    write_cycle_outputs(result, out_dir, inputs, plots=plots)
+    write_cycle_outputs(result, out_dir, inputs, plots=plots, sections=sections)
     report("report", 1, 1)
     return result
 
 
 def write_cycle_outputs(result: CycleResult, out_dir: str | os.PathLike, inputs: CycleInputs | None = None,
-                        plots: bool = True) -> dict[str, Path]:
+                        plots: bool = True, sections: dict | None = None) -> dict[str, Path]:
     """Write cycle.json, looped.pc2, the PNG plots, the edge images and report.html; returns the paths.
 
     plots: False skips the matplotlib plots (a second or more), for write_cycle_plots to draw later (the bake
@@ -276,6 +293,11 @@ def write_cycle_outputs(result: CycleResult, out_dir: str | os.PathLike, inputs:
             cycle_frames_source=inputs.cycle_frames_source,
             sources=inputs.sources,
         )
+    if sections is not None:  # several clips (crowdbake.stages.clip_loops): every loop and transition
+        sources = sections.pop("sources", {})
+        document.update(sections)
+        if inputs is not None:
+            document["input"]["sources"].update(sources)
     paths["cycle_json"].write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
     paths["report"].write_text(report_html(result, document), encoding="utf-8")
     logger.info("cycle outputs written to %s", out)
@@ -290,6 +312,9 @@ def bundle_cycle_document(document: dict) -> dict:
     cleaned.pop("files", None)
     if isinstance(cleaned.get("input"), dict):
         cleaned["input"].pop("sources", None)
+    for entry in [*cleaned.get("clips", []), *cleaned.get("transitions", [])]:  # several clips: work files, not the bundle's
+        entry.pop("file", None)
+        entry.pop("timings_s", None)
     return cleaned
 
 
@@ -346,6 +371,7 @@ def _searched_cycle(job: JobRecord, inputs: Path, out: Path, progress: Progress 
             animation=params.animation,
             progress=forward,
             plots=plots is None,
+            timeline=inputs / names["timeline"] if "timeline" in names else None,
         )
     except ValueError as error:
         raise InputError(f"cycle search: {error}", "cloth") from None
@@ -390,6 +416,7 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
         fps=float((document.get("input") or {}).get("fps") or BASE_FPS),
         root_motion_removed=bool((document.get("root_motion") or {}).get("removed", False)),
         source=document.get("source") or ("given" if "cycle" in job.inputs else "search"),
+        clip_phase=document.get("clip_phase"),
     )
     seconds = time.perf_counter() - started
     folder.save("cycle", key, record, seconds)

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from crowdbake.bake.cycle import CycleResult
+from crowdbake.stages.clip_loops import clips_report_html
 
 
 def write_cycle_plots(result: CycleResult, out_dir: str | os.PathLike) -> None:
@@ -261,6 +262,7 @@ It was chosen by {document['selected_by'].replace('_', ' ')} among {len(result.c
 <b>{html.escape(closing.method)}</b>{f' over {closing.blend_frames} frames' if closing.blend_frames else ''}.
 The push-out moved {closing.pushed_vertices} vertex-frames.</p>
 {root}
+{clips_report_html(document)}
 <h2>Candidates</h2>{candidates}
 {quality}
 <h2>Seam</h2>

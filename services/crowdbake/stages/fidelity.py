@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from crowdbake.bake import fidelity, impostor_views, shading
-from crowdbake.bake.atlas import AtlasLayout, nearest_view, tile_of
+from crowdbake.bake.atlas import AtlasLayout, nearest_view, view_tile
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE
 from crowdbake.stages.records import ImpostorTask, PosesRecord
 
@@ -38,8 +38,8 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
         for index, (a, e) in enumerate(data["views"].tolist()):
             view = impostor_views.ortho_view(centre, radius, layout.azimuths_deg[a], layout.elevations_deg[e], layout.tile_size)
             light = shading.camera_light(view)
-            image, exact = fidelity.impostor_images(tile_of(layout, atlases["uv"], a, e),
-                                                    [tile_of(layout, normals_drawn, a, e), tile_of(layout, atlases["normal"], a, e)],
+            image, exact = fidelity.impostor_images(view_tile(layout, atlases["uv"], a, e),
+                                                    [view_tile(layout, normals_drawn, a, e), view_tile(layout, atlases["normal"], a, e)],
                                                     runtime_diffuse, outfit_row, light)
             score = fidelity.compare(data["reference"][index], image)
             per_view.append({"azimuth_deg": layout.azimuths_deg[a], "elevation_deg": layout.elevations_deg[e], **score})
@@ -48,7 +48,7 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
             mid_view = impostor_views.ortho_view(centre, radius, azimuth, layout.elevations_deg[e], layout.tile_size)
             na, ne = nearest_view(layout, azimuth, layout.elevations_deg[e])
             near_image = fidelity.impostor_image(
-                tile_of(layout, atlases["uv"], na, ne), tile_of(layout, normals_drawn, na, ne),
+                view_tile(layout, atlases["uv"], na, ne), view_tile(layout, normals_drawn, na, ne),
                 runtime_diffuse, outfit_row, shading.camera_light(mid_view),
             )
             between.append(

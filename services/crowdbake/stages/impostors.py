@@ -93,7 +93,7 @@ def stage_impostor_plan(work: Path, progress: Progress | None = None) -> StageOu
     character = load_character(folder.inputs / job.inputs["character"], animation=params.animation)
     materials, outfits = materials_of(job, folder.inputs, character, first_layer_only=True)
     high, _, part_material = high_parts(job, cycle, folder, character)
-    bounds, layout, frame_indices = impostor_framing(params, cycle, high)
+    bounds, layout, frame_indices, _ = impostor_framing(params, cycle, high)
     arrays = scene_arrays(high, part_materials(part_material, materials), frame_indices)
     for index, material in enumerate(materials):
         layers = material["layers"]

@@ -14,6 +14,7 @@ import numpy as np
 
 from crowdbake.bake import compression, map_codecs, texture_memory
 from crowdbake.bake.atlas import AtlasLayout, assemble
+from crowdbake.bake.impostor_budget import DETAIL_FORMATS, map_formats
 from crowdbake.errors import StageOrderError
 from crowdbake.export import textures as export_textures
 from crowdbake.formats.binary import TextureArray, encode_texture_array, layer_size
@@ -121,6 +122,8 @@ def encode_frame(layout: AtlasLayout, frame_parts: list[dict[str, np.ndarray]], 
                 tiles[(a, e)] = tile
         atlases[kind] = assemble(layout, tiles)
     covered = atlases["uv"][..., 3] > 0
+    if layout.crop is not None and int(covered.sum()) != sum(int((tile[..., 3] > 0).sum()) for data in frame_parts for tile in data["uv"]):
+        raise RuntimeError(f"the impostor crop {layout.crop} cuts off covered texels: the silhouette box missed part of the character")
     # The tiles carry 16-bit UV maps; what the bundle stores (and fidelity measures) is `stored`.
     stored = dict(atlases, uv16=atlases["uv"])
     export_layers = {}
@@ -173,7 +176,7 @@ def stage_pack_frame(work: Path, frame: int) -> Path:
     folder = WorkDir(work)
     plan = load_plan(work)
     params = load_job(work).bake_params
-    formats = map_formats(params.compress, params.uv_format)
+    formats = map_formats(params.compress, params.uv_format, params.detail_map)
     tasks = [task for task in impostor_tasks(work) if task.frame == frame]
     if not tasks:
         raise ValueError(f"pack frame {frame} is not one of the baked frames {plan.frame_indices}")
@@ -188,7 +191,7 @@ def stage_pack_frame(work: Path, frame: int) -> Path:
         except (OSError, ValueError):
             pass
     parts = Parts(work, tasks)
-    layout = AtlasLayout(int(plan.layout["tile_size"]), tuple(plan.layout["azimuths_deg"]), tuple(plan.layout["elevations_deg"]))
+    layout = AtlasLayout.from_manifest(plan.layout)
     layers, errors, fidelity_atlases, export_layers = encode_frame(layout, [parts[task.id] for task in tasks], formats, frame == plan.fidelity_frame,
                                                                    for_export=params.export)
     arrays = {f"layer_{kind}": np.frombuffer(data, dtype=np.uint8) for kind, data in layers.items()}
@@ -247,7 +250,8 @@ def stage_pack_scores(work: Path) -> Path:
     folder = WorkDir(work)
     poses = load_poses(work)
     layout = poses.atlas_layout()
-    formats = map_formats(load_job(work).bake_params.compress, load_job(work).bake_params.uv_format)
+    params = load_job(work).bake_params
+    formats = map_formats(params.compress, params.uv_format, params.detail_map)
     tasks = impostor_tasks(work)
     frame_paths = {frame: stage_pack_frame(work, frame) for frame in score_frames(poses)}
     scored = [task for task in tasks if task.references]
@@ -298,6 +302,8 @@ def _impostor_files(work: Path, poses: PosesRecord, layout: AtlasLayout, formats
         report(progress, "pack", step, steps)
     maps = {}
     for kind, role in (("normal", "impostor-normal"), ("uv", "impostor-uv"), ("detail", "impostor-detail"), ("surface", "impostor-surface")):
+        if kind not in formats:
+            continue
         path = f"impostor/{kind}.cbtx"
         files.append(BundleFile(path, encode_texture_array(layout.width, layout.height, formats[kind], layers[kind]), role))
         layers[kind] = []  # the CBTX holds them now
@@ -312,12 +318,21 @@ def _impostor_files(work: Path, poses: PosesRecord, layout: AtlasLayout, formats
 def _texture_memory(poses: PosesRecord, layout: AtlasLayout, formats: dict[str, str]) -> dict:
     """Figure 4 from this bundle's bytes (layer payloads: what a GPU holds)."""
     frames = len(poses.frame_indices)
+    stored_kinds = list(formats)
+    # A bundle without detail maps still draws figure 4: what they would hold, in the format they would have.
+    formats = {"detail": DETAIL_FORMATS[formats["normal"] != "rgba8"], **formats}
     layer_bytes = {kind: layer_size(formats[kind], layout.width, layout.height) * frames for kind in formats}
     diffuse_per_variation = sum(layer_size(m.pixel_format, m.width, m.height) for m in poses.materials)
     bundle_bytes = texture_memory.MapBytes(layer_bytes["normal"], layer_bytes["uv"], layer_bytes["detail"], diffuse_per_variation,
                                            layer_bytes["surface"])
     variations = max(m.variations for m in poses.materials)
-    return texture_memory.texture_memory_report(bundle_bytes, max(FIGURE4_MIN_VARIATIONS, variations), variations)
+    report = texture_memory.texture_memory_report(bundle_bytes, max(FIGURE4_MIN_VARIATIONS, variations), variations)
+    stored = {kind: layer_bytes[kind] for kind in stored_kinds}
+    # What one clip's impostor holds on a GPU (no mipmaps): the maps the bundle stores.
+    report["impostor"] = {"stored_bytes": stored, "stored_mib": sum(stored.values()) / texture_memory.MIB, "frames": frames,
+                          "views": len(layout.views), "tile_size": layout.tile_size, "crop": layout.crop_box_manifest(),
+                          "budget": poses.budget}
+    return report
 
 
 def _cycle_section(cycle: CycleRecord) -> dict:
@@ -330,13 +345,6 @@ def _cycle_section(cycle: CycleRecord) -> dict:
         "velocity_jump_ratio": _nonnegative(cycle.velocity_jump_ratio),
     }
 
-
-def map_formats(compress: bool, uv_format: str) -> dict[str, str]:
-    """Pixel formats of the impostor maps when compressing: DXT3 detail (paper section 5); BC5 normals, two
-    components in each tile's view at 1 byte a texel, where the paper's DXT1 (0.5 byte) costs the impostor
-    0.016 SSIM against the mesh (docs/bake.md); DXT1 for the surface map (smooth depth and motion)."""
-    return {"normal": "bc5" if compress else "rgba8", "uv": uv_format, "detail": "bc2" if compress else "rgba8",
-            "surface": "bc1" if compress else "rgba8"}
 
 
 def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[PackRecord]:
@@ -366,7 +374,7 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
     with texture_arrays:
         compression_report: dict[str, Any] = {}
         material_entries = _texture_files(folder.root, poses, texture_arrays, files, compression_report)
-        formats = map_formats(params.compress, params.uv_format)
+        formats = map_formats(params.compress, params.uv_format, params.detail_map)
         maps = _impostor_files(work, poses, layout, formats, files, compression_report, progress, steps)
         outfit_count = int(len(texture_arrays["outfits"]))
     # Fidelity at 1:1 texel-to-pixel, per view, between views, and as crowdview draws (already scored when the
@@ -405,6 +413,7 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
                           "uv_8": memory_doc["paper"]["uv_mapped_mib"][7]},
             "bundle_break_even_variations": memory_doc["bundle"]["break_even_variations"],
             "break_even_variations": memory_doc["break_even_variations"],
+            "impostor": memory_doc["impostor"],
         },
     )
     seconds = time.perf_counter() - started

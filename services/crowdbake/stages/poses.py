@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,8 @@ from PIL import Image
 
 from crowdbake.bake import compression, lod, poses
 from crowdbake.bake.atlas import AtlasLayout
+from crowdbake.bake.impostor_budget import BudgetChoice, budget_document, bytes_per_texel, fit_budget, frame_extents, map_formats
+from crowdbake.bake.texture_memory import MIB
 from crowdbake.bake.cycle import estimate_root_offsets
 from crowdbake.bake.skinning import pose_character
 from crowdbake.errors import StageOrderError
@@ -122,7 +125,8 @@ def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> 
     stages run side by side from the cycle's output and agree to the bit."""
     inputs, names = work.inputs, job.inputs
     fps, start, frames = cycle.fps, cycle.start_frame, cycle.cycle_frames
-    body_positions, body_normals = pose_body_cycle(character, fps, start, frames)
+    # With several clips the loop's first frame is at its clip frame, not at start_frame / fps.
+    body_positions, body_normals = pose_body_cycle(character, fps, start if cycle.clip_phase is None else cycle.clip_phase, frames)
     if cycle.root_motion_removed:
         # The cycle search worked in the root's frame (the character travels): follow it for the body.
         everything, _ = pose_body_cycle(character, fps, 0, job.cache_frames)
@@ -164,13 +168,22 @@ def part_materials(part_material: dict, materials: list) -> dict:
     return dict.fromkeys(part_material, 0) if len(materials) == 1 else part_material
 
 
-def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, AtlasLayout, list[int]]:
-    """The impostors' framing: bounds {"center", "radius"} over every frame and part, the atlas layout,
-    and the baked cycle frames. Shared by the poses stage and the impostor plan."""
+def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, AtlasLayout, list[int], BudgetChoice]:
+    """The impostors' framing: bounds {"center", "radius"} over every frame and part, the atlas layout
+    (its crop, and the azimuth and frame counts within params.impostor_budget_mib: crowdbake.bake.
+    impostor_budget), the baked cycle frames and the budget's choice. Shared by the poses stage and the
+    impostor plan."""
     centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
-    layout = AtlasLayout.rings(params.tile_size, params.azimuths, tuple(params.elevations_deg))
-    frame_indices = poses.impostor_frame_indices(cycle.cycle_frames, params.impostor_frames)
-    return {"center": [float(c) for c in centre], "radius": float(radius)}, layout, frame_indices
+    elevations = tuple(params.elevations_deg)
+    extents = frame_extents(np.concatenate([np.asarray(part.positions) for part in high.values()], axis=1), centre, elevations)
+    budget = None if params.impostor_budget_mib is None else params.impostor_budget_mib * MIB
+    choice = fit_budget(extents, radius, params.tile_size, params.azimuths, len(elevations), params.impostor_frames, cycle.cycle_frames,
+                        bytes_per_texel(map_formats(params.compress, params.uv_format, params.detail_map)), budget)
+    layout = AtlasLayout.rings(params.tile_size, choice.azimuths, elevations)
+    if params.crop:
+        layout = replace(layout, crop=choice.crop)
+    frame_indices = poses.impostor_frame_indices(cycle.cycle_frames, choice.frames)
+    return {"center": [float(c) for c in centre], "radius": float(radius)}, layout, frame_indices, choice
 
 
 def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float, out: Path) -> list[PosePart]:
@@ -272,7 +285,7 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     parts = _write_lods(high, kinds, part_material, params, cycle.fps, out)
     report(progress, "poses", 5, steps)
 
-    bounds, layout, frame_indices = impostor_framing(params, cycle, high)
+    bounds, layout, frame_indices, choice = impostor_framing(params, cycle, high)
     record = PosesRecord(
         frames_per_second=cycle.fps,
         cycle_frames=cycle.cycle_frames,
@@ -283,6 +296,7 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
         layout=layout.to_manifest(),
         frame_indices=frame_indices,
         fidelity_frame=frame_indices[0],
+        budget=budget_document(choice, params),
     )
     report(progress, "poses", steps, steps)
     seconds = time.perf_counter() - started

@@ -91,6 +91,9 @@ class CycleRecord(Record):
     # Where the cycle came from: "search" (the cloth's, paper section 3), "given" (a cycle.json), or
     # crowdbake.stages.body_only.ANIMATION_LOOP (no cloth: the animation's own loop).
     source: str = "search"
+    # Several clips (crowdbake.stages.clip_loops): the clip frame at start_frame, where the body's pose
+    # starts (the cache frame number is not the clip's time); None: frame f is at time f / fps.
+    clip_phase: int | None = None
 
 
 @dataclass
@@ -144,11 +147,13 @@ class PosesRecord(Record):
     layout: dict[str, Any]  # AtlasLayout.to_manifest()
     frame_indices: list[int]
     fidelity_frame: int
+    # The memory budget's choice (crowdbake.bake.impostor_budget.BudgetChoice as budget_document gives it).
+    budget: dict[str, Any] | None = None
     _nested: ClassVar[dict[str, type]] = {"parts": PosePart, "materials": MaterialInfo}
 
     def atlas_layout(self) -> AtlasLayout:
         """The impostor atlas layout (crowdbake.bake.atlas.AtlasLayout) these poses were framed for."""
-        return AtlasLayout(int(self.layout["tile_size"]), tuple(self.layout["azimuths_deg"]), tuple(self.layout["elevations_deg"]))
+        return AtlasLayout.from_manifest(self.layout)
 
     @property
     def center(self) -> list[float]:

@@ -25,7 +25,7 @@ import numpy as np
 
 from crowdbake.bake import compression, fidelity, impostor_views, map_codecs, shading, surface_maps
 from crowdbake.bake.reference import impostor_blend, impostor_warp
-from crowdbake.bake.atlas import AtlasLayout
+from crowdbake.bake.atlas import AtlasLayout, view_tile
 from crowdbake.bake.reference.impostor_blend import DecodedTile
 from crowdbake.formats.binary import TextureArray, decode_texture_array
 from crowdbake.formats.texel_codecs import unpack_uv32, unpack_uvblock
@@ -89,10 +89,11 @@ class AtlasTiles:
         self._layers: dict[int, tuple] = {}
         self._surfaces: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
-    def _window(self, tile: int) -> tuple[slice, slice]:
-        size, columns = self.layout.tile_size, len(self.layout.azimuths_deg)
-        return (slice((tile // columns) * size, (tile // columns + 1) * size),
-                slice((tile % columns) * size, (tile % columns + 1) * size))
+    def _view(self, plane: np.ndarray, tile: int, edge: bool = False) -> np.ndarray:
+        """The whole tile `tile` of a decoded layer (crowdbake.bake.atlas.view_tile): outside the crop not
+        covered, or with `edge` clamped to the crop as crowdview's surface reads are."""
+        columns = len(self.layout.azimuths_deg)
+        return view_tile(self.layout, plane, tile % columns, tile // columns, edge)
 
     def surface(self, tile: int, layer: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(depth (S, S), motion (S, S, 2)) metres of a tile (crowdbake.bake.surface_maps); None without a surface map."""
@@ -100,16 +101,13 @@ class AtlasTiles:
             return None
         if layer not in self._surfaces:
             self._surfaces[layer] = surface_maps.decode_surface(decode_surface_layer(self.surface_map, layer), self.radius)
-        rows, cols = self._window(tile)
         depth, motion = self._surfaces[layer]
-        return depth[rows, cols], motion[rows, cols]
+        return self._view(depth, tile, edge=True), self._view(motion, tile, edge=True)
 
     def tile(self, tile: int, layer: int) -> DecodedTile:
         if layer not in self._layers:
             self._layers[layer] = decode_atlas_layer(self.uv_map, self.normal_map, layer, self.layout)
-        rows, cols = self._window(tile)
-        uv, material, covered, normal = self._layers[layer]
-        return DecodedTile(uv[rows, cols], material[rows, cols], covered[rows, cols], normal[rows, cols])
+        return DecodedTile(*(self._view(plane, tile) for plane in self._layers[layer]))
 
 
 def sample_tile(tiles: AtlasTiles, tile: int, layer: int, target: impostor_views.OrthoView,
@@ -204,7 +202,8 @@ def runtime_atlas(poses: PosesRecord, layout: AtlasLayout, uv_map: TextureArray,
     return RuntimeAtlas(layout.tile_size, tuple(layout.azimuths_deg), tuple(layout.elevations_deg),
                         np.asarray(poses.center, dtype=np.float64), float(poses.radius), uv_map, normal_map, surface_map,
                         [texture_arrays[f"material_{m}_decoded"][0] for m in range(len(poses.materials))],
-                        [material.pixel_format != "bc1" for material in poses.materials], texture_arrays["outfits"][0])
+                        [material.pixel_format != "bc1" for material in poses.materials], texture_arrays["outfits"][0],
+                        layout.crop_box)
 
 
 def numpy_picture(atlas: RuntimeAtlas, tiles: AtlasTiles, picture: RuntimePicture, chains: list[list[np.ndarray]] | None = None) -> np.ndarray:

@@ -16,7 +16,7 @@ import os
 import re
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 from urllib.parse import unquote
@@ -44,7 +44,9 @@ class BakeInputs:
     """The files and identity of one bake. cloth: None bakes the body alone (crowdbake.stages.body_only), or .pc2 or .mdd (with cloth_mesh, an .obj), .abc or an
     OBJ-sequence .zip (cloth_mesh None); textures: folder with diffuse_*.png or .jpg and outfits.png
     (optional: else the glTF's texture, one variation, default outfits); cycle: an existing cycle.json (skips the
-    search); created: the manifest's RFC 3339 UTC time (see the module docstring when None)."""
+    search); created: the manifest's RFC 3339 UTC time (see the module docstring when None); timeline: a clip
+    timeline (crowdbake.ingest.timeline) when the cache plays several clips: a loop per clip and the
+    transitions between them (crowdbake.stages.clip_loops), the bundle carrying the `animation` clip's loop."""
 
     character: Path
     cloth: Path | None
@@ -55,6 +57,7 @@ class BakeInputs:
     version: str
     params: BakeParams = BakeParams()
     created: str | None = None
+    timeline: Path | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -67,6 +70,8 @@ class BakeInputs:
             "version": self.version,
             "params": self.params.to_dict(),
             "created": self.created,
+            # Only when given, so the records of one-clip bakes are what they were.
+            **({"timeline": str(self.timeline)} if self.timeline is not None else {}),
         }
 
     @classmethod
@@ -86,6 +91,7 @@ class BakeInputs:
                 version=data["version"],
                 params=BakeParams.from_dict(data.get("params", {})),
                 created=data.get("created"),
+                timeline=optional_path("timeline"),
             )
         except KeyError as missing:
             raise InputError(f"missing input {missing.args[0]!r}", str(missing.args[0])) from None
@@ -210,6 +216,14 @@ def _source_files(inputs: BakeInputs) -> dict[str, Path]:
         if not Path(inputs.cycle).is_file():
             raise InputError(f"{inputs.cycle} does not exist or is not a file", "cycle")
         sources["cycle"] = Path(inputs.cycle)
+    if inputs.timeline is not None:
+        if inputs.cloth is None:
+            raise InputError("a timeline says which clip plays at each frame of a cloth cache: give the cloth too", "timeline")
+        if inputs.cycle is not None:
+            raise InputError("a cycle.json chooses one cycle; a timeline asks for a loop per clip: give one of them", "timeline")
+        if not Path(inputs.timeline).is_file():
+            raise InputError(f"{inputs.timeline} does not exist or is not a file", "timeline")
+        sources["timeline"] = Path(inputs.timeline)
     return sources
 
 
@@ -231,6 +245,10 @@ def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeP
     if "cloth" not in sources:
         return _parse_body_only(sources, params)
     cache = read_cloth(sources["cloth"], sources.get("cloth_mesh"))
+    timeline = None
+    if "timeline" in sources:  # several clips: the timeline names them and the bundle's (crowdbake.stages.clip_loops)
+        timeline = _check_timeline(sources, cache, params)
+        params = replace(params, animation=timeline[0], cycle_frames=timeline[1])
     # Not told which animation: the one the cloth repeats after (crowdbake.ingest.clip_choice).
     choice = None
     if params.animation is None and params.cycle_frames is None:
@@ -248,7 +266,9 @@ def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeP
     # converted as declared, before any stage spends minutes on it.
     placed = place_cloth(cache, body_at_rest(character), params.up, params.units)
     fps = cache_fps(params.fps, cache.fps, cache.frame_step)
-    if params.fit:  # ...and follow this body over the whole cache (not a garment made for another)
+    # ...and follow this body over the whole cache (not a garment made for another). The check poses one
+    # clip over every frame: a cache of several clips is checked by the timeline's clips instead.
+    if params.fit and timeline is None:
         check_garment_fit(character, placed, fps)
     if params.cycle_frames is not None:
         cycle_frames = params.cycle_frames
@@ -276,6 +296,28 @@ def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeP
         "cycle_frames": int(cycle_frames),
     }
     return _Parsed(counts, placed, fps, placed is not cache, animation, choice.to_json() if choice is not None else None)
+
+
+def _check_timeline(sources: dict[str, Path], cache: ClothCache, params: BakeParams) -> tuple[str, int]:
+    """The timeline against the cache and the character's clips: (the clip the bundle carries, its period).
+    InputError("timeline") naming the field by its JSON pointer, or ("animation") for a clip it does not play."""
+    from crowdbake.ingest.clip_choice import character_clips
+    from crowdbake.ingest.timeline import check_timeline_fits, read_timeline
+    from crowdbake.stages.clip_loops import primary_clip
+
+    if params.cycle_frames is not None:
+        raise InputError("the timeline gives each clip's period: drop cycle_frames", "cycle_frames")
+    timeline = read_timeline(sources["timeline"])
+    try:
+        known = {clip.name: clip.seconds for clip in character_clips(sources["character"])}
+    except (ValueError, FormatError, OSError, KeyError, TypeError, AttributeError) as error:
+        raise InputError(f"{sources['character'].name}: {str(error).splitlines()[0] if str(error) else type(error).__name__}", "character") from None
+    check_timeline_fits(timeline, cache.frame_count, cache_fps(params.fps, cache.fps, cache.frame_step), known, sources["timeline"].name)
+    try:
+        clip = primary_clip(timeline, params.animation)
+    except ValueError as error:
+        raise InputError(str(error), "animation") from None
+    return clip, timeline.period(clip)
 
 
 def _parse_body_only(sources: dict[str, Path], params: BakeParams) -> _Parsed:
@@ -334,6 +376,9 @@ def _copy_inputs(work: WorkDir, inputs: BakeInputs, sources: dict[str, Path], gl
         shutil.copy2(sources["cloth_mesh"], inputs_dir / names["cloth_mesh"])
     else:
         write_pc2_obj(parsed.cloth, inputs_dir / names["cloth"], inputs_dir / names["cloth_mesh"])
+    if inputs.timeline is not None:
+        names["timeline"] = "timeline.json"
+        shutil.copy2(sources["timeline"], inputs_dir / "timeline.json")
     if inputs.cycle is not None:
         names["cycle"] = "cycle.json"
         shutil.copy2(sources["cycle"], inputs_dir / "cycle.json")

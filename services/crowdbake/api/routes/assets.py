@@ -1,4 +1,4 @@
-"""Assets: upload a character, a cloth cache, a texture or a chosen cycle; read their records.
+"""Assets: upload a character, a cloth cache, a texture, a chosen cycle or a clip timeline; read their records.
 
 An upload is streamed to a staging file while it is hashed, validated (crowdbake.ingest.uploads), and only
 then committed to the blob store and recorded. The same content uploaded again returns the existing
@@ -18,6 +18,7 @@ from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import MAX_LIST_OFFSET, AssetKind, AssetPublic, AssetsPublic, problem_responses
 from crowdbake.api.uploads import MultipartUpload, UploadedFile, read_multipart
 from crowdbake.ingest.cycle_document import check_cycle_upload
+from crowdbake.ingest.timeline import check_timeline_upload
 from crowdbake.ingest.studio_inputs import MEDIA_TYPES as STUDIO_MEDIA_TYPES
 from crowdbake.ingest.studio_inputs import check_jpeg_texture, check_point_cache, pc2_first_frame, placement_sample
 from crowdbake.ingest.obj_sequence import ZipLimits, convert_obj_sequence
@@ -186,6 +187,21 @@ async def upload_cycle(request: Request, response: Response, key: UploadKey, ser
         if looped is not None:
             staged["looped"] = (looped.blob, looped.filename, MEDIA_TYPES["pc2"])
         return _store_asset(session, services.blobs, response, "cycle", staged, info, key.key_id)
+    finally:
+        upload.discard()
+
+
+@router.post(
+    "/timelines", response_model=AssetPublic, status_code=201, responses=UPLOAD_RESPONSES,
+    summary="Upload a clip timeline: which clip, at which clip frame, plays at each frame of a cloth cache of several clips (docs/inputs.md)",
+    openapi_extra=_multipart_body({"timeline": _FILE}, ["timeline"]),
+)
+async def upload_timeline(request: Request, response: Response, key: UploadKey, services: ServicesDep, session: SessionDep) -> Asset:
+    upload = await read_multipart(request, services.blobs, services.settings.max_upload_bytes, {"timeline"})
+    try:
+        document = _require_file(upload, "timeline")
+        info = await run_in_threadpool(check_timeline_upload, document.blob.path, document.filename)
+        return _store_asset(session, services.blobs, response, "timeline", {"file": (document.blob, document.filename, MEDIA_TYPES["json"])}, info, key.key_id)
     finally:
         upload.discard()
 

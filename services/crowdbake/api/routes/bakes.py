@@ -28,8 +28,9 @@ from crowdbake.api.deps import BakeKey, Principal, PublishKey, ServicesDep, Sess
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import MAX_LIST_OFFSET, BakeCreate, BakePublic, BakesPublic, LogLine, StagePublic, problem_responses
 from crowdbake.errors import InputError
-from crowdbake.ingest.bake_request import check_request_placement, check_two_cycles, cycle_frames_for
+from crowdbake.ingest.bake_request import check_request_placement, check_two_cycles, cycle_frames_for, request_fps
 from crowdbake.ingest.cycle_document import check_cycle_fits_cloth
+from crowdbake.ingest.timeline import check_timeline_request
 from crowdbake.jobs.sweeper import ENQUEUE_WAIT_S, Dispatcher
 from crowdbake.params import NAME_PATTERN, BakeParams, FrameRateError
 from crowdbake.redact import path_replacements, redact_text, redact_value
@@ -127,6 +128,36 @@ def _check_cycle(character: Asset, cloth: Asset, cycle: Asset | None, params: di
                       [{"field": error.field, "message": error.message}]) from None
 
 
+def _check_timeline(character: Asset, cloth: Asset | None, cycle: Asset | None, timeline: Asset, params: dict[str, Any]) -> None:
+    """A timeline (crowdbake.ingest.timeline) against the cloth and the character, as the validate stage
+    checks the files, and the garment on the clip the bundle carries (the timeline's first clip when
+    params.animation is not given). Problems name the field and, for the timeline, the JSON pointer (`where`)."""
+    if cloth is None or cycle is not None:
+        field = "cloth" if cloth is None else "cycle"
+        message = "a timeline says which clip plays at each frame of a cloth cache" if cloth is None else "a cycle chooses one loop; a timeline asks for a loop per clip"
+        raise Problem("validation-error", "the timeline does not go with these inputs", [{"field": field, "message": message}])
+    if params.get("cycle_frames") is not None:
+        raise Problem("validation-error", "the timeline gives each clip's period",
+                      [{"field": "params.cycle_frames", "message": "the timeline gives each clip's period: drop cycle_frames"}])
+    try:
+        fps = request_fps(cloth.info, params.get("fps"))
+        check_timeline_request(timeline.info, character.info, cloth.info, fps, params.get("animation"))
+    except InputError as error:
+        if isinstance(error, FrameRateError):
+            raise Problem("validation-error", "the frame rate is out of range", [{"field": error.field, "message": error.message}]) from None
+        if error.field == "params.animation":
+            raise Problem("validation-error", "the timeline does not play that animation", [{"field": error.field, "message": error.message}]) from None
+        pointer = getattr(error, "pointer", None)
+        raise Problem("invalid-file", "the timeline does not fit the cloth and the character",
+                      [{"field": "timeline", "message": error.message, **({"where": pointer} if pointer else {})}]) from None
+    animation = params.get("animation") if params.get("animation") is not None else next(iter(timeline.info["clips"]))
+    try:
+        check_request_placement(character.info, cloth.info, animation, params.get("up"), params.get("units"))
+    except InputError as error:
+        status = "validation-error" if error.field in ("params.up", "params.units") else "invalid-file"
+        raise Problem(status, "the garment does not sit on the character", [{"field": error.field, "message": error.message}]) from None
+
+
 def _check_body_only(character: Asset, cycle: Asset | None, params: dict[str, Any]) -> None:
     """A bake without cloth (crowdbake.stages.body_only): no cycle to give or length to set, and the
     character must have an animation to loop."""
@@ -178,11 +209,14 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
     cloth = _asset(session, body.cloth, "cloth", "cloth", errors, key) if body.cloth is not None else None
     textures = {name: _asset(session, asset_id, "texture", f"textures.{name}", errors, key) for name, asset_id in sorted(body.textures.items())}
     cycle = _asset(session, body.cycle, "cycle", "cycle", errors, key) if body.cycle is not None else None
+    timeline = _asset(session, body.timeline, "timeline", "timeline", errors, key) if body.timeline is not None else None
     if errors:
         raise Problem("validation-error", "the bake names assets that do not exist", errors)
     params = body.params.model_dump()
     _check_params(params)
-    if cloth is not None:
+    if timeline is not None:  # several clips: the timeline sets the clip and its length
+        _check_timeline(character, cloth, cycle, timeline, params)
+    elif cloth is not None:
         _check_cycle(character, cloth, cycle, params)
     else:
         _check_body_only(character, cycle, params)
@@ -195,6 +229,7 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
         "textures": {name: texture.digest for name, texture in textures.items()},
         # Only when given, so the keys of bakes that search their cycle are what they were.
         **({"cycle": {role: entry["sha256"] for role, entry in cycle.files.items()}} if cycle is not None else {}),
+        **({"timeline": timeline.digest} if timeline is not None else {}),
     }
     key_digest = bake_requests.input_key(digests, body.name, body.version, params, created=body.created)
     existing = bake_requests.reusable_bake(session, key_digest)
@@ -212,7 +247,8 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
     bake = bake_requests.create_bake(
         session, name=body.name, version=body.version, params=params,
         inputs={"character": character.id, **({"cloth": cloth.id} if cloth is not None else {}), "textures": {name: texture.id for name, texture in textures.items()},
-                **({"cycle": cycle.id} if cycle is not None else {}), **({"created": body.created} if body.created is not None else {})},
+                **({"cycle": cycle.id} if cycle is not None else {}), **({"timeline": timeline.id} if timeline is not None else {}),
+                **({"created": body.created} if body.created is not None else {})},
         key=key_digest, publish=body.publish, public=body.public, created_by=key.key_id,
     )
     try:

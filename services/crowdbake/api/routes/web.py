@@ -33,6 +33,7 @@ from fastapi.responses import FileResponse, RedirectResponse, Response, Streamin
 from starlette.background import BackgroundTask
 
 from crowdbake.api.bundle_files import stream_chunks
+from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.api.deps import BakeKey, PrincipalDep, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
 from crowdbake.api.routes.bundles import IMMUTABLE_SECONDS, NameParam, VersionParam, _bundle_or_problem, _manifest
@@ -184,11 +185,12 @@ def colour_preview(texels: np.ndarray, covered: np.ndarray) -> np.ndarray:
     return picture
 
 
-def select_tiles(atlas: np.ndarray, tile_size: int, azimuth: int | None, elevation: int | None) -> np.ndarray:
-    """The part of an atlas (rows = elevations, columns = azimuths, SPEC.md) to show: one tile, one
-    elevation row, one azimuth column, or all of it when both are None."""
-    rows = slice(None) if elevation is None else slice(elevation * tile_size, (elevation + 1) * tile_size)
-    columns = slice(None) if azimuth is None else slice(azimuth * tile_size, (azimuth + 1) * tile_size)
+def select_tiles(atlas: np.ndarray, cell: tuple[int, int], azimuth: int | None, elevation: int | None) -> np.ndarray:
+    """The part of an atlas (rows = elevations, columns = azimuths of cells (width, height) texels, SPEC.md)
+    to show: one view, one elevation row, one azimuth column, or all of it when both are None."""
+    width, height = cell
+    rows = slice(None) if elevation is None else slice(elevation * height, (elevation + 1) * height)
+    columns = slice(None) if azimuth is None else slice(azimuth * width, (azimuth + 1) * width)
     return atlas[rows, columns]
 
 
@@ -200,7 +202,7 @@ def png_bytes(picture: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-def render_preview(local_file: Callable[[str], Path], maps: dict[str, str], kind: str, layer: int, tile_size: int,
+def render_preview(local_file: Callable[[str], Path], maps: dict[str, str], kind: str, layer: int, cell: tuple[int, int],
                    azimuth: int | None, elevation: int | None) -> bytes:
     """PNG of layer `layer` of the bundle's `kind` map, cut to the selected tiles.
 
@@ -219,7 +221,7 @@ def render_preview(local_file: Callable[[str], Path], maps: dict[str, str], kind
             texels = texels.copy()
             texels[..., 2] = np.rint((np.sqrt(np.maximum(0.0, 1.0 - (xy ** 2).sum(axis=-1))) + 1.0) * 127.5).astype(np.uint8)
         picture = colour_preview(texels, uv[..., 3] > 0)
-    return png_bytes(select_tiles(picture, tile_size, azimuth, elevation))
+    return png_bytes(select_tiles(picture, cell, azimuth, elevation))
 
 
 @previews_router.get(
@@ -244,6 +246,8 @@ def get_atlas_preview(
     if errors:
         raise Problem("validation-error", "the bundle has no such view", errors)
     maps = impostor["maps"]
+    if kind not in maps:
+        raise Problem("not-found", f"bundle {name} {version} has no {kind} map (baked without --detail-map)")
     sha256 = published.files[maps[kind]]["sha256"]
     etag = hashlib.sha256(f"{sha256}/{published.files[maps['uv']]['sha256']}/{frame}/{azimuth}/{elevation}".encode()).hexdigest()
     headers = {"ETag": f'"{etag}"', "X-Content-Type-Options": "nosniff"}
@@ -253,9 +257,10 @@ def get_atlas_preview(
         headers["Cache-Control"] = f"{'public' if bundle.public else 'private'}, max-age={IMMUTABLE_SECONDS}, immutable"
     if request.headers.get("if-none-match", "").strip() == headers["ETag"]:
         return Response(status_code=304, headers=headers)
+    layout = AtlasLayout.from_manifest(impostor)
     try:
         png = render_preview(lambda path: services.bundles.materialize(bundle.name, bundle.version, path), maps, kind, frame,
-                             int(impostor["tile_size"]), azimuth, elevation)
+                             (layout.cell_width, layout.cell_height), azimuth, elevation)
     except FileNotFoundError:
         raise Problem("internal-error", "a published file is missing from the bundle store", status=500) from None
     return Response(png, media_type="image/png", headers=headers)

@@ -499,6 +499,9 @@ async function selectBundle(name, version) {
     return;
   }
   const impostor = state.manifest.impostor;
+  // The maps this bundle stores (detail maps only when baked with --detail-map).
+  const mapLabels = { uv: "UV map (u red, v green)", normal: "normal map", detail: "detail map" };
+  options($("atlas-map"), Object.entries(mapLabels).filter(([kind]) => kind in impostor.maps));
   options($("atlas-frame"), impostor.frame_indices.map((frame, k) => [String(k), `${k}: cycle frame ${frame}`]));
   options($("atlas-azimuth"), [["", "all"], ...impostor.azimuths_deg.map((deg, a) => [String(a), `${a}: ${deg}°`])]);
   options($("atlas-elevation"), [["", "all"], ...impostor.elevations_deg.map((deg, e) => [String(e), `${e}: ${deg}°`])]);
@@ -533,7 +536,8 @@ async function loadAtlas() {
     applyZoom();
     const impostor = state.manifest.impostor;
     $("atlas-status").textContent = `${kind} map, layer ${query.get("frame")} of ${impostor.frame_indices.length}: `
-      + `${image.naturalWidth}×${image.naturalHeight} texels (tiles of ${impostor.tile_size}², `
+      + `${image.naturalWidth}×${image.naturalHeight} texels (tiles of ${impostor.tile_size}²`
+      + `${impostor.crop ? `, stored cropped to ${impostor.crop.width}×${impostor.crop.height}` : ""}, `
       + `${impostor.azimuths_deg.length} azimuths × ${impostor.elevations_deg.length} elevations), ${bytes(blob.size)} PNG`;
   };
   image.src = state.atlasUrl;

@@ -13,6 +13,7 @@ uniform sampler2DArray cb_normal_map;     // impostor/normal.ktx2
 uniform sampler2DArray cb_diffuse;        // textures/<material>_diffuse.ktx2 (one material shown here)
 uniform sampler2D cb_outfits;             // textures/outfits.ktx2: x = region, y = outfit
 uniform int cb_tile_size;
+uniform ivec4 cb_crop;                    // export.json impostor.crop: x, y, width, height of each stored tile part
 uniform vec3 cb_light_dir;                // unit, towards the light, world space
 
 const float CB_AMBIENT = 0.35;  // crowdview's ambient term (runtime/src/config.h)
@@ -29,11 +30,14 @@ CbUvTexel cb_fetch_uv(ivec3 texel) {
 }
 
 // Returns false where the impostor does not cover the pixel (discard it).
-// tile_origin: the tile's top-left texel; heading: the character's rotation about +Y (radians).
-bool cb_impostor_colour(vec2 tile_uv, ivec2 tile_origin, int layer, float heading, int variation, int outfit, out vec3 colour) {
-    ivec2 texel = tile_origin + clamp(ivec2(tile_uv * float(cb_tile_size)), ivec2(0), ivec2(cb_tile_size - 1));
-    CbUvTexel uv = cb_fetch_uv(ivec3(texel, layer));
+// cell_origin: the top-left texel of the view's cell (a * crop.width, e * crop.height); heading: the
+// character's rotation about +Y (radians).
+bool cb_impostor_colour(vec2 tile_uv, ivec2 cell_origin, int layer, float heading, int variation, int outfit, out vec3 colour) {
+    ivec2 t = clamp(ivec2(tile_uv * float(cb_tile_size)), ivec2(0), ivec2(cb_tile_size - 1)) - cb_crop.xy;
     colour = vec3(0.0);
+    if (any(lessThan(t, ivec2(0))) || any(greaterThanEqual(t, cb_crop.zw))) return false;
+    ivec2 texel = cell_origin + t;
+    CbUvTexel uv = cb_fetch_uv(ivec3(texel, layer));
     if (!uv.covered) return false;
     vec4 diffuse = texture(cb_diffuse, vec3(uv.uv, float(variation)));
     int region = int(diffuse.a * 255.0 / 17.0 + 0.5);

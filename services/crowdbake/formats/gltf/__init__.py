@@ -16,6 +16,9 @@ What is read (`load_character`):
     rest TRS and inverse bind matrices;
   * one animation, chosen by index or name (`animation=`), its channels that target joints
     (translation / rotation / scale, LINEAR, STEP or CUBICSPLINE samplers);
+  * each mesh's morph targets (POSITION and NORMAL displacements, named by extras.targetNames), the
+    mesh's default weights and the animation's "weights" channels (crowdbake.formats.gltf.morphs);
+    posing adds them to the bind pose before skinning (crowdbake.bake.skinning.pose_at_times);
   * every material the merged mesh uses: `Character.materials` (name, baseColorFactor, base colour
     texture) and `Character.vertex_materials` (index per vertex). `Character.texture` is what the bake
     samples: the one base colour texture times its factor when one material (or one texture and factor)
@@ -43,8 +46,8 @@ walked once (linear in the node count: a 16,000-node chain loads in milliseconds
 
 The package, by job: document (GLB/JSON container, buffers, limits), accessors (typed accessor reads),
 compression (Draco, meshopt), scene (node hierarchy, TRS matrices), meshes (primitives merged into one
-mesh), materials (base colour, atlas), animation (channels), model (the dataclasses), reader
-(load_character and the skin), writer (encode_character, write_character).
+mesh), morphs (morph targets and their weights), materials (base colour, atlas), animation (channels),
+model (the dataclasses), reader (load_character and the skin), writer (encode_character, write_character).
 """
 from crowdbake.formats.gltf.accessors import COMPONENT_TYPES, TYPE_WIDTHS
 from crowdbake.formats.gltf.animation import INTERPOLATIONS, PATH_WIDTHS
@@ -68,7 +71,7 @@ from crowdbake.formats.gltf.meshes import (
     NORMAL_LENGTH_TOLERANCE,
     WEIGHT_SUM_TOLERANCE,
 )
-from crowdbake.formats.gltf.model import AnimationChannel, Character, Material
+from crowdbake.formats.gltf.model import AnimationChannel, Character, Material, MorphTarget, WeightsChannel
 from crowdbake.formats.gltf.reader import load_character
 from crowdbake.formats.gltf.scene import decompose_matrix, matrix_to_quaternion, trs_matrix
 from crowdbake.formats.gltf.writer import encode_character, write_character
@@ -98,6 +101,8 @@ __all__ = [
     "AnimationChannel",
     "Character",
     "Material",
+    "MorphTarget",
+    "WeightsChannel",
     "_Document",
     "decompose_matrix",
     "encode_character",

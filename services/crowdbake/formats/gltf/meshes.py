@@ -3,7 +3,8 @@
 Primitives may be Draco-compressed (decoded by crowdbake.formats.gltf.compression), strips or fans;
 up to eight skin influences per vertex are cut to the four strongest; weights and normals that are off
 are renormalised (only those, so valid files round-trip bit for bit). A primitive without NORMAL gets
-area-weighted vertex normals.
+area-weighted vertex normals. Morph targets are kept per mesh (crowdbake.formats.gltf.morphs) on the
+vertices the mesh became.
 """
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ from crowdbake.formats.gltf.accessors import COMPONENT_TYPES, accessor_values
 from crowdbake.formats.gltf.compression import DRACO, decode_draco_mesh
 from crowdbake.formats.gltf.document import _Document, extension
 from crowdbake.formats.gltf.materials import read_material
-from crowdbake.formats.gltf.model import Material
+from crowdbake.formats.gltf.model import Material, MorphTarget
+from crowdbake.formats.gltf.morphs import default_weights, mesh_targets, primitive_targets
 
 logger = logging.getLogger(__name__)
 
@@ -69,8 +71,10 @@ def _draco_attributes(doc: _Document, primitive, where: str) -> tuple[dict[str, 
     return decoded, faces
 
 
-def _read_primitive(doc: _Document, primitive, where: str, joint_count: int, uv_set: int, rigid_joint: int | None) -> dict[str, np.ndarray]:
-    """One triangle primitive -> positions, normals, uvs, faces (local), joints, weights."""
+def _read_primitive(doc: _Document, primitive, mesh_index: int, where: str, joint_count: int, uv_set: int,
+                    rigid_joint: int | None) -> dict:
+    """One triangle primitive -> positions, normals, uvs, faces (local), joints, weights, and its morph
+    targets as [(position deltas, normal deltas or None)] (crowdbake.formats.gltf.morphs)."""
     attributes = primitive.attributes or {}
     decoded, draco_indices = _draco_attributes(doc, primitive, where) if extension(primitive, DRACO) is not None else ({}, None)
 
@@ -139,7 +143,9 @@ def _read_primitive(doc: _Document, primitive, where: str, joint_count: int, uv_
         weights[:, 0] = 1.0
     normals = sized("NORMAL", 3)
     uvs = sized(f"TEXCOORD_{uv_set}", 2)
+    targets = primitive_targets(doc, primitive, mesh_index, where, count, draco_indices is not None)
     return {
+        "targets": targets,
         "positions": positions,
         "normals": normals.astype(np.float32) if normals is not None else vertex_normals(positions, faces).astype(np.float32),
         "uvs": uvs.astype(np.float32) if uvs is not None else np.zeros((count, 2), np.float32),
@@ -158,8 +164,6 @@ def _mesh_primitives(doc: _Document, mesh_index: int, rigid_joint: int | None):
         if mode not in (MODE_TRIANGLES, MODE_TRIANGLE_STRIP, MODE_TRIANGLE_FAN):
             logger.warning("%s: skipping a primitive of mode %s (not triangles)", where, mode)
             continue
-        if primitive.targets:
-            logger.warning("%s: morph targets are ignored", where)
         out.append((primitive, where, rigid_joint))
     return out
 
@@ -195,11 +199,13 @@ def _other_skin(doc: _Document, other: int, node_to_joint: dict[int, int], inver
 
 def read_meshes(doc: _Document, skin_index: int, joint_count: int, anchor: np.ndarray, between: np.ndarray,
                  local: np.ndarray, inverse_bind: np.ndarray,
-                 node_to_joint: dict[int, int] | None = None) -> tuple[dict[str, np.ndarray], list[Material]]:
+                 node_to_joint: dict[int, int] | None = None) -> tuple[dict[str, np.ndarray], list[Material], dict]:
     """Merge every primitive of the skinned meshes (those of other skins over the same joints too, see
-    _other_skin) and of rigid meshes under a joint into one mesh."""
+    _other_skin) and of rigid meshes under a joint into one mesh -> (arrays, materials, morphs), morphs
+    holding "targets" (list of MorphTarget), "weights" ((N,) defaults) and "node_targets" (node ->
+    (first target, count), what the weights channels are resolved by)."""
     nodes = doc.gltf.nodes
-    wanted: list[tuple[int, int | None, np.ndarray | None]] = []  # (mesh, rigid joint, bind matrix)
+    wanted: list[tuple[int, int, int | None, np.ndarray | None]] = []  # (node, mesh, rigid joint, bind matrix)
     remaps: dict[int, np.ndarray] = {}  # mesh of another skin -> its joint indices in the chosen skin
     seen_skinned: set[int] = set()
     for index, node in enumerate(nodes):
@@ -208,7 +214,7 @@ def read_meshes(doc: _Document, skin_index: int, joint_count: int, anchor: np.nd
         if node.skin == skin_index:
             if node.mesh not in seen_skinned:
                 seen_skinned.add(node.mesh)
-                wanted.append((node.mesh, None, None))
+                wanted.append((index, node.mesh, None, None))
         elif node.skin is not None:
             shared = _other_skin(doc, node.skin, node_to_joint or {}, inverse_bind)
             if shared is None:
@@ -217,13 +223,13 @@ def read_meshes(doc: _Document, skin_index: int, joint_count: int, anchor: np.nd
             elif node.mesh not in seen_skinned:
                 seen_skinned.add(node.mesh)
                 remaps[node.mesh] = shared[0]
-                wanted.append((node.mesh, None, None if np.allclose(shared[1], np.eye(4)) else shared[1]))
+                wanted.append((index, node.mesh, None, None if np.allclose(shared[1], np.eye(4)) else shared[1]))
         elif anchor[index] >= 0:
             joint = int(anchor[index])
             # A rigid mesh under joint j sits at world(j) @ between @ local(node) @ p; in bind space that is
             # inverse(inverseBind(j)) @ between @ local(node) @ p, which skinning by j alone maps back.
             bind = np.linalg.inv(inverse_bind[joint].astype(np.float64)) @ between[index] @ local[index]
-            wanted.append((node.mesh, joint, bind))
+            wanted.append((index, node.mesh, joint, bind))
         else:
             logger.warning("%s: nodes[%d] holds a mesh with no skin and no joint above it; left out", doc.where, index)
     parts: dict[str, list[np.ndarray]] = {key: [] for key in ("positions", "normals", "uvs", "faces", "joints", "weights", "materials")}
@@ -232,7 +238,12 @@ def read_meshes(doc: _Document, skin_index: int, joint_count: int, anchor: np.nd
     material_slots: dict[int | None, int] = {}
     images: dict[int, np.ndarray] = {}
     base = 0
-    for mesh_index, rigid_joint, bind in wanted:
+    morph_targets: list[MorphTarget] = []
+    morph_weights: list[np.ndarray] = []
+    node_targets: dict[int, tuple[int, int]] = {}  # node -> (its mesh's first target, count)
+    for node_index, mesh_index, rigid_joint, bind in wanted:
+        mesh_start = base
+        primitive_deltas = []
         for primitive, where, joint in _mesh_primitives(doc, mesh_index, rigid_joint):
             if primitive.material not in material_slots:
                 material, uv_set = read_material(doc, primitive.material, images)
@@ -241,18 +252,32 @@ def read_meshes(doc: _Document, skin_index: int, joint_count: int, anchor: np.nd
                 uv_sets.append(uv_set)
             slot = material_slots[primitive.material]
             remap = remaps.get(mesh_index)
-            part = _read_primitive(doc, primitive, where, joint_count if remap is None else len(remap), uv_sets[slot], joint)
+            part = _read_primitive(doc, primitive, mesh_index, where, joint_count if remap is None else len(remap), uv_sets[slot], joint)
             if remap is not None:
                 part["joints"] = remap[part["joints"]]
             if bind is not None:
                 part["positions"] = (part["positions"].astype(np.float64) @ bind[:3, :3].T + bind[:3, 3]).astype(np.float32)
                 normal_matrix = np.linalg.inv(bind[:3, :3]).T
                 part["normals"] = (part["normals"].astype(np.float64) @ normal_matrix.T).astype(np.float32)
+                # Displacements are directions: the bind matrix's linear part moves them, not its translation.
+                part["targets"] = [
+                    ((p.astype(np.float64) @ bind[:3, :3].T).astype(np.float32),
+                     None if n is None else (n.astype(np.float64) @ normal_matrix.T).astype(np.float32))
+                    for p, n in part["targets"]
+                ]
+            primitive_deltas.append(part["targets"])
             for key in ("positions", "normals", "uvs", "joints", "weights"):
                 parts[key].append(part[key])
             parts["faces"].append(part["faces"] + base)
             parts["materials"].append(np.full(len(part["positions"]), slot, np.uint16))
             base += len(part["positions"])
+        targets = mesh_targets(doc, mesh_index, mesh_start, primitive_deltas, f"{doc.where}: nodes[{node_index}]")
+        if targets:
+            node_targets[node_index] = (len(morph_targets), len(targets))
+            morph_targets.extend(targets)
+            morph_weights.append(default_weights(doc, mesh_index, len(targets), f"{doc.where}: nodes[{node_index}]"))
+            logger.info("%s: meshes[%d] has %d morph targets (%s), applied when posed", doc.where, mesh_index, len(targets),
+                        ", ".join(t.name for t in targets))
     if not parts["positions"]:
         raise ValueError(f"{doc.where}: no triangle mesh uses skins[{skin_index}]")
     merged = {key: np.concatenate(values) for key, values in parts.items()}
@@ -260,4 +285,9 @@ def read_meshes(doc: _Document, skin_index: int, joint_count: int, anchor: np.nd
     lengths = np.linalg.norm(merged["normals"].astype(np.float64), axis=1, keepdims=True)
     off = (np.abs(lengths - 1.0) > NORMAL_LENGTH_TOLERANCE) & (lengths > 0)
     merged["normals"] = np.where(off, merged["normals"] / np.where(lengths > 0, lengths, 1.0), merged["normals"])
-    return merged, materials
+    morphs = {
+        "targets": morph_targets,
+        "weights": np.concatenate(morph_weights) if morph_weights else np.zeros(0, np.float32),
+        "node_targets": node_targets,
+    }
+    return merged, materials, morphs

@@ -28,6 +28,40 @@ class AnimationChannel:
 
 
 @dataclass
+class MorphTarget:
+    """One glTF morph target of one mesh, on the vertices that mesh became in the merged Character.
+
+    name: mesh.extras.targetNames[k] where the file names it, else "target<k>"; mesh: the glTF mesh
+    index; start: the first of its vertices in Character.positions (a mesh's primitives are merged
+    consecutively); positions: (n, 3) float32 metres, bind-space displacements of vertices
+    start..start+n-1; normals: (n, 3) float32 displacements of their normals, or None.
+    """
+
+    name: str
+    mesh: int
+    start: int
+    positions: np.ndarray
+    normals: np.ndarray | None = None
+
+
+@dataclass
+class WeightsChannel:
+    """Keyframes of one mesh's morph target weights (a glTF channel whose path is "weights").
+
+    first: index into Character.morph_targets of the mesh's first target; its `count` targets follow;
+    times: (K,) float32 seconds; values: (K, count) float32, or (K, 3, count) for CUBICSPLINE
+    (in-tangent, value, out-tangent per key). `path` is always "weights" (what the samplers read).
+    """
+
+    first: int
+    count: int
+    times: np.ndarray
+    values: np.ndarray
+    interpolation: str = "LINEAR"
+    path: str = "weights"
+
+
+@dataclass
 class Material:
     """One glTF material as the bake sees it: base_color_factor (4,) float32 linear RGBA; texture
     (H, W, 4) uint8 sRGB base colour image (not yet multiplied by the factor) or None."""
@@ -51,6 +85,10 @@ class Character:
     name; animation_names: every animation in the file, in order.
     texture: (H, W, 4) uint8 base colour or None. materials: the materials used, vertex_materials (V,)
     uint16 index into them (None for a character built in code).
+    morph_targets: every mesh's morph targets (see MorphTarget); morph_weights: (N,) float32, the
+    weight of each when no channel animates it (the node's or mesh's `weights`, else 0);
+    weight_channels: the animation's channels on them. Posing adds sum_i w_i(t) * delta_i to the
+    bind-space positions (and normals, renormalised) before skinning (crowdbake.bake.skinning).
     """
 
     positions: np.ndarray
@@ -74,6 +112,9 @@ class Character:
     vertex_materials: np.ndarray | None = None
     animation_name: str = ""
     animation_names: list[str] = field(default_factory=list)
+    morph_targets: list[MorphTarget] = field(default_factory=list)
+    morph_weights: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    weight_channels: list[WeightsChannel] = field(default_factory=list)
 
     @property
     def vertex_count(self) -> int:

@@ -18,6 +18,7 @@ from crowdbake.formats.gltf.document import _Document, open_document
 from crowdbake.formats.gltf.materials import merge_material_textures
 from crowdbake.formats.gltf.meshes import NORMAL_LENGTH_TOLERANCE, read_meshes
 from crowdbake.formats.gltf.model import Character
+from crowdbake.formats.gltf.morphs import read_weight_channels
 from crowdbake.formats.gltf.scene import decompose_matrix, joint_anchors, local_matrices, node_parents
 
 logger = logging.getLogger(__name__)
@@ -104,9 +105,10 @@ def _load_character(path: Path, skin: int, animation: int | str) -> Character:
     else:
         inverse_bind = np.tile(np.eye(4, dtype=np.float32), (joint_count, 1, 1))
 
-    mesh, materials = read_meshes(doc, skin, joint_count, anchor, between, local, inverse_bind, node_to_joint)
+    mesh, materials, morphs = read_meshes(doc, skin, joint_count, anchor, between, local, inverse_bind, node_to_joint)
     animation_index = choose_animation(doc, animation)
     channels, duration = read_animation(doc, animation_index, node_to_joint, joint_ancestors)
+    weight_channels = read_weight_channels(doc, animation_index, morphs["node_targets"])
     animation_names = [a.name or f"animation{k}" for k, a in enumerate(doc.gltf.animations or [])]
     texture, uvs = merge_material_textures(materials, mesh["materials"], mesh["uvs"])
     names = [str(nodes[n].name or f"joint{k}") for k, n in enumerate(joint_nodes)]
@@ -134,4 +136,7 @@ def _load_character(path: Path, skin: int, animation: int | str) -> Character:
         vertex_materials=mesh["materials"],
         animation_name=animation_names[animation_index] if animation_index is not None else "",
         animation_names=animation_names,
+        morph_targets=morphs["targets"],
+        morph_weights=morphs["weights"],
+        weight_channels=weight_channels,
     )

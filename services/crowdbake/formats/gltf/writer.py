@@ -1,4 +1,5 @@
 """encode_character / write_character: a Character as a deterministic .glb (one mesh, one skin, one animation).
+A Character with morph targets is refused (they are not written).
 
 The texture is embedded as PNG (Pillow); accessors are 4-byte aligned in one buffer.
 """
@@ -92,6 +93,10 @@ def encode_character(character: Character) -> bytes:
         raise ValueError("faces must be (T, 3) indices into the vertices")
     if np.asarray(c.joints).max() >= joint_count:
         raise ValueError("a joint index exceeds the joint count")
+    if c.morph_targets:
+        # Not silently dropped: the writer has one mesh and one animation of joint channels only.
+        raise ValueError(f"the character has {len(c.morph_targets)} morph targets ({', '.join(t.name for t in c.morph_targets)}), "
+                         "which encode_character does not write")
 
     builder = _BinaryBuilder()
     nodes: list[dict] = []

@@ -211,8 +211,8 @@ uniform mat4 viewMatrix;
 uniform vec3 cameraPosition;
 uniform vec3 uCenter;   // bounds centre in the character's frame
 uniform float uRadius;
-uniform int uTileSize;
 uniform int uAzimuthCount;
+uniform ivec4 uCrop;    // export.json impostor.crop: the stored part of every tile
 in vec3 position;       // quad corner, x and y in {-1, 1}
 in vec4 iPose;
 in vec4 iIds;
@@ -236,7 +236,8 @@ void main() {
   gl_Position = projectionMatrix * viewMatrix * vec4(center + (position.x * right + position.y * up) * uRadius, 1.0);
   vTileUv = vec2(0.5 + 0.5 * position.x, 0.5 - 0.5 * position.y);
   int tile = int(iIds.w + 0.5);
-  vTile = ivec3((tile % uAzimuthCount) * uTileSize, (tile / uAzimuthCount) * uTileSize, int(iIds.x + 0.5));
+  // Where tile texel (0, 0) would lie: the cell's origin less the crop's corner.
+  vTile = ivec3((tile % uAzimuthCount) * uCrop.z - uCrop.x, (tile / uAzimuthCount) * uCrop.w - uCrop.y, int(iIds.x + 0.5));
   vHeading = iPose.w;
   vVariationOutfit = iIds.yz;
 }
@@ -253,6 +254,7 @@ uniform sampler2DArray uDiffuse0, uDiffuse1, uDiffuse2, uDiffuse3;
 uniform int uVariations[${MAX_MATERIALS}];
 uniform int uMaterialCount;
 uniform int uTileSize;
+uniform ivec4 uCrop;
 ${SHADING}
 in vec2 vTileUv;
 flat in ivec3 vTile;
@@ -268,7 +270,9 @@ out vec4 fragColor;
     alpha = texelFetch(sampler, ivec3(t, int(layer)), 0).a;                           \\
   }
 void main() {
-  ivec2 texel = vTile.xy + clamp(ivec2(vTileUv * float(uTileSize)), ivec2(0), ivec2(uTileSize - 1));
+  ivec2 inTile = clamp(ivec2(vTileUv * float(uTileSize)), ivec2(0), ivec2(uTileSize - 1));
+  if (any(lessThan(inTile, uCrop.xy)) || any(greaterThanEqual(inTile, uCrop.xy + uCrop.zw))) discard;  // outside the crop
+  ivec2 texel = vTile.xy + inTile;
   uint word = texelFetch(uUvMap, ivec3(texel, vTile.z), 0).r;
   if ((word >> 31u) == 0u) discard;  // coverage: outside the character
   vec2 uv = vec2(float(word & 0x3FFFu), float((word >> 14u) & 0x3FFFu)) / 16383.0;
@@ -285,6 +289,12 @@ void main() {
 }
 `;
 
+// export.json impostor.crop as GLSL ivec4 components (the whole tile where an export has none).
+function impostorCrop(impostor) {
+  const crop = impostor.crop ?? { x: 0, y: 0, width: impostor.tile_size, height: impostor.tile_size };
+  return [crop.x, crop.y, crop.width, crop.height];
+}
+
 // impostor: export.json `impostor`; textures: {uv, normal, outfits, diffuse: [per material]}.
 export function createImpostorMaterial({ impostor, textures, variations, lightDir }) {
   if (textures.uv.userData.vkFormat !== VK_R32_UINT) throw new Error('this material reads uv32 UV maps (R32_UINT)');
@@ -298,6 +308,7 @@ export function createImpostorMaterial({ impostor, textures, variations, lightDi
       uCenter: { value: new THREE.Vector3(...impostor.bounds.center) },
       uRadius: { value: impostor.bounds.radius },
       uTileSize: { value: impostor.tile_size },
+      uCrop: { value: impostorCrop(impostor) },
       uAzimuthCount: { value: impostor.azimuths_deg.length },
       uUvMap: { value: textures.uv },
       uNormalMap: { value: textures.normal },

@@ -1,0 +1,168 @@
+"""Impostor fidelity against memory on real characters: which views, frames and tile sizes a clip needs.
+
+    PYTHONPATH=services python services/benchmarks/bench_impostor_budget.py [--cases sample cesium robot_walk]
+        [--configs default ...] [--out out/bench/impostor_budget.json] [--plot docs/img/impostor_budget.png]
+
+Bakes each case once per impostor setting (crowdbake.stages.runner.run_bake, the bake's defaults
+otherwise: cropped tiles, no detail maps; `budget16` is the defaults, the 16 MiB budget choosing the
+counts; the others ask for their counts with no budget) and reads what the bundle itself records:
+
+- memory: the impostor maps the bundle stores for its one clip (normal, UV and surface map layers,
+  texture_memory.json `map_bytes`: what a GPU holds, no mipmaps), in MiB;
+- fidelity: fidelity.json's `runtime` section, crowdview's blended and reprojected impostor against the
+  mesh at 1:1: SSIM at the baked views, and halfway between views and frames (mean and worst).
+
+Cases: the procedural sample (generated into a scratch folder); CesiumMan in the shared long skirt;
+the robot of ../shared/assets/robot_clips in its first Walking segment (cache frames 320..492, where
+the timeline plays Walking alone), baked with its Walking clip. Cases whose assets are absent are
+skipped. Prints a table and writes JSON; with --plot draws SSIM between views and frames against MiB.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
+MIB = 1024 * 1024
+# name: (azimuths, elevations, impostor frames, tile, memory budget in MiB or None: the counts as given)
+CONFIGS = {
+    "budget16": (32, (0.0, 20.0, 40.0), 10, 128, 16.0),  # the bake's defaults
+    "a32": (32, (0.0, 20.0, 40.0), 10, 128),
+    "a24": (24, (0.0, 20.0, 40.0), 10, 128),
+    "a16f16": (16, (0.0, 20.0, 40.0), 16, 128),
+    "a24f16": (24, (0.0, 20.0, 40.0), 16, 128),
+    "a16f24": (16, (0.0, 20.0, 40.0), 24, 128),
+    "rings2": (32, (0.0, 30.0), 10, 128),
+    "t96": (32, (0.0, 20.0, 40.0), 10, 96),
+}
+ROBOT_WALK_FRAMES = (320, 493)  # robot_clips/timeline.json: the first Walking segment without blends
+
+
+def case_inputs(case: str, scratch: Path):
+    """(character, cloth cache, cloth mesh, textures, params changes) of a case, or None when its assets are missing."""
+    if case == "sample":
+        from crowdbake.sample.generate import generate_sample
+
+        folder = scratch / "sample"
+        if not (folder / "sample.json").is_file():
+            generate_sample(folder)
+        return folder / "character.glb", folder / "cloth.pc2", folder / "cloth.obj", folder / "textures", {}
+    if case == "cesium":
+        skirt = ASSETS / "long_skirt"
+        if not (ASSETS / "CesiumMan.glb").is_file() or not (skirt / "long_skirt.pc2").is_file():
+            return None
+        return ASSETS / "CesiumMan.glb", skirt / "long_skirt.pc2", skirt / "long_skirt.obj", None, {}
+    if case == "robot_walk":
+        from crowdbake.formats.pc2 import read_pc2, write_pc2
+
+        robot = ASSETS / "robot_clips"
+        if not (robot / "robot.glb").is_file() or not (robot / "garment.pc2").is_file():
+            return None
+        walk = scratch / "robot_walk.pc2"
+        if not walk.is_file():
+            cache = read_pc2(robot / "garment.pc2")
+            first, end = ROBOT_WALK_FRAMES
+            write_pc2(walk, cache.points[first:end])
+        return robot / "robot.glb", walk, robot / "garment.obj", None, {"animation": "Walking", "fps": 24.0}
+    raise ValueError(f"unknown case {case!r}")
+
+
+def bake_once(case: str, config: str, scratch: Path) -> dict | None:
+    from crowdbake.params import BakeParams
+    from crowdbake.stages.runner import run_bake
+    from crowdbake.stages.validate import BakeInputs
+
+    found = case_inputs(case, scratch)
+    if found is None:
+        return None
+    character, cloth, mesh, textures, changes = found
+    azimuths, elevations, frames, tile, *budget = CONFIGS[config]
+    params = replace(BakeParams(), azimuths=azimuths, elevations_deg=elevations, impostor_frames=frames, tile_size=tile, export=False,
+                     impostor_budget_mib=budget[0] if budget else None, **changes)
+    folder = Path(tempfile.mkdtemp(prefix=f"{case}-{config}-", dir=scratch))
+    started = time.perf_counter()
+    summary = run_bake(BakeInputs(character, cloth, mesh, textures, None, case.replace("_", "-"), "1", params), folder / "bundles", folder / "work")
+    seconds = time.perf_counter() - started
+    runtime = json.loads((summary.bundle / "fidelity.json").read_text())["runtime"]
+    memory = json.loads((summary.bundle / "texture_memory.json").read_text())["bundle"]["map_bytes"]
+    manifest = json.loads((summary.bundle / "manifest.json").read_text())
+    stored = sum(memory[kind] for kind in manifest["impostor"]["maps"] if kind in memory)
+    return {
+        "case": case, "config": config, "azimuths": len(manifest["impostor"]["azimuths_deg"]), "elevations_deg": list(elevations),
+        "frames": len(manifest["impostor"]["frame_indices"]), "tile": tile, "budget_mib": params.impostor_budget_mib,
+        "crop": manifest["impostor"].get("crop"), "cycle_frames": manifest["cycle"]["frames"],
+        "impostor_mib": stored / MIB, "maps_mib": {kind: memory[kind] / MIB for kind in manifest["impostor"]["maps"]},
+        "at_views": {k: runtime["at_views"][k] for k in ("ssim_mean", "ssim_worst")},
+        "between_views": {k: runtime["between_views"][k] for k in ("ssim_mean", "ssim_worst")},
+        "between_azimuths": {k: runtime["between_azimuths"][k] for k in ("ssim_mean", "ssim_worst")},
+        "bake_seconds": seconds,
+    }
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharex=True)
+    for case in dict.fromkeys(row["case"] for row in rows):
+        mine = sorted((row for row in rows if row["case"] == case), key=lambda row: row["impostor_mib"])
+        for axis, section in zip(axes, ("at_views", "between_views")):
+            axis.plot([r["impostor_mib"] for r in mine], [r[section]["ssim_mean"] for r in mine], "o-", label=case)
+            for r in mine:
+                axis.annotate(r["config"], (r["impostor_mib"], r[section]["ssim_mean"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    for axis, section, target in zip(axes, ("at baked views", "between views and frames"), (0.95, 0.90)):
+        axis.axhline(target, color="grey", linestyle="--", linewidth=0.8)
+        axis.axvline(16, color="grey", linestyle=":", linewidth=0.8)
+        axis.set_title(f"SSIM {section} (mean)")
+        axis.set_xlabel("impostor maps of one clip, MiB")
+        axis.grid(alpha=0.3)
+    axes[0].set_ylabel("SSIM against the mesh")
+    axes[0].legend()
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cases", nargs="+", default=["sample", "cesium", "robot_walk"], choices=["sample", "cesium", "robot_walk"])
+    parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    parser.add_argument("--out", type=Path, default=Path("out/bench/impostor_budget.json"))
+    parser.add_argument("--plot", type=Path, default=None)
+    parser.add_argument("--scratch", type=Path, default=None, help="keep the bakes here (default: a temporary folder)")
+    args = parser.parse_args(argv)
+    scratch = args.scratch or Path(tempfile.mkdtemp(prefix="impostor-budget-"))
+    scratch.mkdir(parents=True, exist_ok=True)
+    rows = []
+    print(f"{'case':<11} {'config':<8} {'az':>3} {'rings':>5} {'fr':>3} {'tile':>4} {'MiB':>6}  {'at views':>13}  {'between':>13}", flush=True)
+    for case in args.cases:
+        for config in args.configs:
+            row = bake_once(case, config, scratch)
+            if row is None:
+                print(f"{case:<11} skipped: its assets are not in {ASSETS}", flush=True)
+                break
+            rows.append(row)
+            a, b = row["at_views"], row["between_views"]
+            print(f"{case:<11} {config:<8} {row['azimuths']:>3} {len(row['elevations_deg']):>5} {row['frames']:>3} {row['tile']:>4} "
+                  f"{row['impostor_mib']:>6.1f}  {a['ssim_mean']:.3f} / {a['ssim_worst']:.3f}  {b['ssim_mean']:.3f} / {b['ssim_worst']:.3f}", flush=True)
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(json.dumps({"machine": os.uname().machine, "cpus": os.cpu_count(), "rows": rows}, indent=1) + "\n")
+    if args.plot and rows:
+        plot(rows, args.plot)
+        print(f"wrote {args.plot}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,138 @@
+"""How much of a character's impostor a clip can hold: the crop every view needs, and the view and frame
+counts that fit a memory budget.
+
+A bake's impostor holds, per baked frame and view, one cell of the crop's width × height texels in every
+stored map (SPEC.md "Impostor maps"). The crop depends on where the character's vertices go, not on
+which azimuths are baked: a point at distance ρ from the vertical axis through the bounds centre is seen
+at every sideways offset in [-ρ, ρ] as the camera circles it, and at elevation e its height on the view
+is (y - y_centre)·cos e ± ρ·sin e. `frame_extents` measures those per frame once; any choice of azimuths
+and frames then has its crop, and so its bytes, without projecting again.
+
+`fit_budget` picks the counts: azimuths first fall (in steps of 4, to AZIMUTH_FLOOR), then frames (to
+FRAME_FLOOR), until the maps fit. Halving the azimuths cost the sample 0.006 SSIM between views and
+frames, where fewer frames cost CesiumMan's long skirt most of its fidelity: its cloth moves further
+between baked frames than any view step reveals (services/benchmarks/bench_impostor_budget.py, docs/
+bake.md "Memory"). Pure numpy.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from crowdbake.bake.atlas import silhouette_crop
+from crowdbake.bake.poses import impostor_frame_indices
+from crowdbake.formats.binary import layer_size
+
+AZIMUTH_STEP = 4
+AZIMUTH_FLOOR = 16
+FRAME_FLOOR = 6
+
+
+DETAIL_FORMATS = {True: "bc2", False: "rgba8"}  # compressed or not
+
+
+def map_formats(compress: bool, uv_format: str, detail_map: bool = True) -> dict[str, str]:
+    """Pixel formats of the impostor maps the bundle stores, when compressing: DXT3 detail (paper section 5),
+    only with `detail_map`; BC5 normals, two components in each tile's view at 1 byte a texel, where the
+    paper's DXT1 (0.5 byte) costs the impostor 0.016 SSIM against the mesh (docs/bake.md); DXT1 for the
+    surface map (smooth depth and motion)."""
+    formats = {"normal": "bc5" if compress else "rgba8", "uv": uv_format, "detail": DETAIL_FORMATS[compress],
+               "surface": "bc1" if compress else "rgba8"}
+    if not detail_map:
+        del formats["detail"]
+    return formats
+
+
+def bytes_per_texel(formats: dict[str, str]) -> float:
+    """Bytes a texel of every stored map together (a block-compressed format's block over its 16 texels)."""
+    return sum(layer_size(pixel_format, 4, 4) / 16 for pixel_format in formats.values())
+
+
+@dataclass(frozen=True)
+class FrameExtents:
+    """Per cycle frame, metres from the bounds centre: `reach` (F,) the largest distance of a vertex from
+    the vertical axis; `low`, `high` (F, E) the lowest and highest a vertex can appear on a view of each
+    elevation ring, over every azimuth."""
+
+    reach: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+
+
+def frame_extents(positions: np.ndarray, center, elevations_deg) -> FrameExtents:
+    """FrameExtents of (F, V, 3) model-space vertex positions (metres) for views framed on `center` (3,)."""
+    offset = np.asarray(positions, dtype=np.float64) - np.asarray(center, dtype=np.float64)
+    rho = np.hypot(offset[..., 0], offset[..., 2])  # (F, V)
+    e = np.radians(np.asarray(elevations_deg, dtype=np.float64))
+    height = offset[..., 1, None] * np.cos(e) # (F, V, E)
+    swing = rho[..., None] * np.abs(np.sin(e))
+    return FrameExtents(rho.max(axis=1), (height - swing).min(axis=1), (height + swing).max(axis=1))
+
+
+def crop_for(extents: FrameExtents, frames: list[int], radius: float, tile_size: int) -> tuple[int, int, int, int]:
+    """The crop (x, y, width, height) in tile texels holding the character in every view of `frames` (cycle
+    frame indices), for tiles of `tile_size` texels framing the sphere of `radius` metres."""
+    scale = tile_size / (2.0 * radius)
+    reach = float(extents.reach[frames].max())
+    top, bottom = float(extents.high[frames].max()), float(extents.low[frames].min())
+    # Tile texels: x = (right + r)·scale, y = (r - up)·scale (crowdbake.bake.impostor_views.project).
+    xy_min = np.array([(radius - reach) * scale, (radius - top) * scale])
+    xy_max = np.array([(radius + reach) * scale, (radius - bottom) * scale])
+    return silhouette_crop(xy_min, xy_max, tile_size)
+
+
+@dataclass(frozen=True)
+class BudgetChoice:
+    """What `fit_budget` chose: the counts, the crop, the bytes of one clip's maps, and the steps it took
+    from the counts asked for (each (azimuths, frames, bytes)), the first being what was asked."""
+
+    azimuths: int
+    frames: int
+    crop: tuple[int, int, int, int]
+    bytes: int
+    fits: bool
+    steps: list[tuple[int, int, int]]
+
+
+def clip_bytes(azimuths: int, rings: int, frame_count: int, crop: tuple[int, int, int, int], bytes_per_texel: float) -> int:
+    """Bytes of one clip's stored impostor maps: a crop-sized cell per view and baked frame."""
+    return int(round(azimuths * rings * frame_count * crop[2] * crop[3] * bytes_per_texel))
+
+
+def fit_budget(extents: FrameExtents, radius: float, tile_size: int, azimuths: int, rings: int, frames: int, cycle_frames: int,
+               bytes_per_texel: float, budget_bytes: float | None) -> BudgetChoice:
+    """The azimuth and frame counts within `budget_bytes` (None: as asked): azimuths fall by AZIMUTH_STEP to
+    AZIMUTH_FLOOR, then frames by one to FRAME_FLOOR, never below what was asked for either floor. `fits`
+    is False where even the floors are over the budget (the floors are kept)."""
+    def measure(a: int, f: int) -> tuple[tuple[int, int, int, int], int]:
+        crop = crop_for(extents, impostor_frame_indices(cycle_frames, f), radius, tile_size)
+        return crop, clip_bytes(a, rings, len(impostor_frame_indices(cycle_frames, f)), crop, bytes_per_texel)
+
+    a, f = azimuths, frames
+    crop, size = measure(a, f)
+    steps = [(a, f, size)]
+    if budget_bytes is not None:
+        while size > budget_bytes and a - AZIMUTH_STEP >= min(AZIMUTH_FLOOR, azimuths):
+            a -= AZIMUTH_STEP
+            crop, size = measure(a, f)
+            steps.append((a, f, size))
+        while size > budget_bytes and f - 1 >= min(FRAME_FLOOR, frames):
+            f -= 1
+            crop, size = measure(a, f)
+            steps.append((a, f, size))
+    return BudgetChoice(a, f, crop, size, budget_bytes is None or size <= budget_bytes, steps)
+
+
+def budget_document(choice: BudgetChoice, params) -> dict:
+    """texture_memory.json's account of the budget (params: BakeParams): what was asked, what was chosen,
+    and the bytes of every step between, in MiB."""
+    mib = 1024.0 * 1024.0
+    return {
+        "budget_mib": params.impostor_budget_mib,
+        "asked": {"azimuths": params.azimuths, "frames": params.impostor_frames},
+        "chosen": {"azimuths": choice.azimuths, "frames": choice.frames},
+        "fits": choice.fits,
+        "steps": [{"azimuths": a, "frames": f, "mib": size / mib} for a, f, size in choice.steps],
+        "rule": f"azimuths fall by {AZIMUTH_STEP} to {AZIMUTH_FLOOR}, then frames by 1 to {FRAME_FLOOR}, until the maps fit",
+    }

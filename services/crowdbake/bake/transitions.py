@@ -1,0 +1,309 @@
+"""Transitions between clip loops, taken from the simulation that played the clips one after another.
+
+When the simulation changed from clip A to clip B (segments k and k + 1 of the timeline), the cloth's
+frames from a point of A's segment to a point of B's segment are a move between the two that the solver
+made. Playback goes loop A -> the transition -> loop B:
+
+- it leaves loop A at a cache frame `a` of A's pure frames whose clip frame is the clip frame of a loop
+  frame `i` (so the body's pose matches), and arrives in loop B at a cache frame `b` of B's pure frames
+  whose clip frame is that of loop B's frame `j`;
+- each join is judged like pass 1 of the cycle search (crowdbake.bake.cycle_search): a binomially weighted
+  position + velocity distance over all vertices between the loop played on and the simulation, over
+  the join's crossfade window; candidates are the local minima, best first;
+- each join is closed the way a loop's seam is (crowdbake.bake.loop_closing, "crossfade"): over the h
+  frames either side of it the played cloth fades from the loop into the simulation (or back) with the
+  quintic weight, then edge lengths are restored. So the transition's frames are
+      blend(loop A[i - h_A .. i + h_A), x[a - h_A .. a + h_A)) + x[a + h_A .. b - h_B) + blend(x[b - h_B .. b + h_B), loop B[j - h_B .. j + h_B)),
+  b - a + h_A + h_B frames, played after loop A's frame i - h_A - 1 and followed by loop B's frame j + h_B;
+- each join is measured with the loop's quality figures (crowdbake.bake.loop_quality.LoopQuality:
+  stretch, deviation in join jumps, acceleration at the join) against the same QUALITY_BOUNDS. The
+  first candidate (best distance first) whose join keeps the bounds is taken, else the best.
+
+Pure numpy; no I/O. Penetration into the body is not measured here (no push-out on transitions).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from crowdbake.bake.clips import ClipLoop
+from crowdbake.bake.timeline import Timeline
+from crowdbake.bake.cycle_search import DEFAULT_MAX_CANDIDATES, DEFAULT_VELOCITY_WEIGHT, binomial_weights, pick_candidates
+from crowdbake.bake.loop_closing import crossfade_blend, crossfade_weights, default_crossfade_frames
+from crowdbake.bake.loop_quality import MIN_REFERENCE_STRAIN, QUALITY_BOUNDS, LoopQuality, _ratio, _rms, mean_edge_strain
+from crowdbake.bake.mesh import edge_lengths, unique_edges
+
+
+def join_errors(
+    loop: np.ndarray,
+    loop_phase: int,
+    period: int,
+    cloth: np.ndarray,
+    frames: np.ndarray,
+    clip_frame: np.ndarray,
+    half_width: int,
+    velocity_weight: float = DEFAULT_VELOCITY_WEIGHT,
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each cache frame a in `frames`, the loop frame of the same clip phase and the join distance.
+
+    loop: (L, V, 3) a closed loop, L a multiple of `period`; loop frame k shows clip frame
+    (loop_phase + k) mod period. cloth: (F, V, 3); frames: (N,) cache frames, each with h + 1 frames
+    either side in the cache; clip_frame: (F,) int, the clip frame at each cache frame; half_width: h.
+    D(a)^2 = sum_t w_t [P(t) + lambda^2 V(t)], t = -h .. h, w binomial (2h + 1 points), with
+    P(t) = mean_v |loop(i + t) - x(a + t)|^2 and V(t) the same for central-difference velocities, the
+    loop indexed cyclically: an RMS length in cache units, as pass 1's.
+    Returns (loop_frames (N,) int64, distances (N,) float64); with several loop frames of one phase
+    (L = n periods) the nearer is kept.
+    """
+    loop = np.asarray(loop, dtype=np.float64)
+    frames = np.asarray(frames, dtype=np.int64)
+    length = loop.shape[0]
+    if length % period:
+        raise ValueError(f"join_errors: a loop of {length} frames is no whole number of {period}-frame periods")
+    if len(frames) and (frames.min() - half_width - 1 < 0 or frames.max() + half_width + 1 >= len(cloth)):
+        raise ValueError(f"join_errors: frames {frames.min()}..{frames.max()} with {half_width + 1} either side leave the cache")
+    offsets = np.arange(-half_width - 1, half_width + 2)  # one more each side for the velocities
+    weights = binomial_weights(2 * half_width + 1)
+    loop_frames = np.zeros(len(frames), dtype=np.int64)
+    distances = np.full(len(frames), np.inf)
+    for row, a in enumerate(frames):
+        simulated = np.asarray(cloth[a + offsets], dtype=np.float64)
+        for i in range((int(clip_frame[a]) - loop_phase) % period, length, period):
+            error = loop[(i + offsets) % length] - simulated  # (2h + 3, V, 3)
+            position = np.mean(np.sum(np.square(error[1:-1]), axis=-1), axis=-1)
+            velocity = np.mean(np.sum(np.square(0.5 * (error[2:] - error[:-2])), axis=-1), axis=-1)
+            distance = float(np.sqrt(max(np.dot(weights, position + velocity_weight**2 * velocity), 0.0)))
+            if distance < distances[row]:
+                loop_frames[row], distances[row] = i, distance
+    return loop_frames, distances
+
+
+def _accelerations(played: np.ndarray) -> np.ndarray:
+    """(n,) RMS second difference of (n, V, 3) frames; the end frames (no neighbour) are NaN."""
+    out = np.full(played.shape[0], np.nan)
+    out[1:-1] = _rms(played[2:] - 2.0 * played[1:-1] + played[:-2])
+    return out
+
+
+def join_quality(
+    played: np.ndarray,
+    centre: int,
+    half_width: int,
+    leaving: np.ndarray,
+    arriving: np.ndarray,
+    edges: np.ndarray | None,
+    rest_lengths: np.ndarray | None,
+    period: int,
+) -> LoopQuality:
+    """The loop-quality figures (crowdbake.bake.loop_quality.LoopQuality) of one join of a transition.
+
+    played: (n, V, 3) what playback shows: loop, transition, loop; centre: index of the join's t = 0 in
+    `played` (the blend covers centre - h .. centre + h - 1, h = half_width); leaving, arriving: (2h + 2,
+    V, 3) the two trajectories the join fades between, unblended, over t = -h - 1 .. h (what would play
+    without the blend is `leaving` for t < 0 and `arriving` for t >= 0). The figures, as for a loop's seam:
+    stretch_ratio: mean edge strain over one `period` of playback centred on the join (the loop's
+    length, as a loop's stretch covers its whole period) over that of the same frames unblended (at
+    least MIN_REFERENCE_STRAIN); deviation_ratio: the largest RMS distance blended - unblended over the join's
+    raw jump |leaving(0) - arriving(0)|; seam_acceleration_ratio: the played acceleration at t = -1 and
+    0 over the larger of the played sequence's median acceleration and the simulator's own there (the
+    leaving trajectory's at t = -1, the arriving one's at t = 0); max_acceleration_ratio: the largest
+    played acceleration over the blend window over that median.
+    """
+    played = np.asarray(played, dtype=np.float64)
+    h = int(half_width)
+    if leaving.shape != arriving.shape or leaving.shape[0] != 2 * h + 2:
+        raise ValueError(f"join_quality: leaving {leaving.shape} and arriving {arriving.shape} must both be ({2 * h + 2}, V, 3)")
+    if centre - h < 1 or centre + h + 1 > len(played):
+        raise ValueError(f"join_quality: a {h}-frame join at {centre} needs a frame either side in the {len(played)} played frames")
+    zero = h + 1  # row of t = 0 in leaving / arriving
+    unblended = np.concatenate([leaving[1:zero], arriving[zero:-1]])  # t = -h .. h - 1
+    blended = played[centre - h : centre + h]
+    acceleration = _accelerations(played)
+    median = float(np.nanmedian(acceleration))
+    jump = float(_rms(leaving[zero] - arriving[zero]))
+    simulated = max(float(_rms(leaving[zero] - 2.0 * leaving[zero - 1] + leaving[zero - 2])),
+                    float(_rms(arriving[zero + 1] - 2.0 * arriving[zero] + arriving[zero - 1])))
+    seam = float(max(acceleration[centre - 1], acceleration[centre]))
+    stretch = None
+    if edges is not None and rest_lengths is not None and len(edges):
+        # Over one period of playback centred on the join, as a loop's stretch is over its period with
+        # the seam's blend inside: the unblended side is the same frames with the blend undone.
+        first = max(centre - max(period // 2, h), 0)
+        last = min(first + max(period, 2 * h), len(played))
+        shown = played[first:last]
+        undone = shown.copy()
+        undone[centre - h - first : centre + h - first] = unblended
+        stretch = _ratio(mean_edge_strain(shown, edges, rest_lengths), max(mean_edge_strain(undone, edges, rest_lengths), MIN_REFERENCE_STRAIN))
+    ratios = {
+        "stretch_ratio": stretch,
+        "deviation_ratio": _ratio(float(_rms(blended - unblended).max()), jump),
+        "seam_acceleration_ratio": _ratio(seam, max(median, simulated)),
+    }
+    exceeded = tuple(name for name, bound in QUALITY_BOUNDS.items() if ratios[name] is not None and not ratios[name] <= bound)
+    return LoopQuality(
+        stretch_ratio=stretch,
+        deviation_ratio=ratios["deviation_ratio"],
+        seam_acceleration_ratio=ratios["seam_acceleration_ratio"],
+        max_acceleration_ratio=_ratio(float(np.nanmax(acceleration[centre - h : centre + h])), median),
+        seam_jump=jump,
+        seam_acceleration=seam,
+        median_acceleration=median,
+        simulated_seam_acceleration=simulated,
+        exceeded=exceeded,
+    )
+
+
+@dataclass(frozen=True)
+class Join:
+    """One end of a transition: cache frame `cache_frame` (a or b) meets loop frame `loop_frame` (i or j)
+    of the same clip phase; distance: join_errors' D (cache units); half_width: h of its crossfade;
+    quality: its figures (join_quality); candidates: (cache frame, loop frame, distance) of every
+    candidate the search weighed, best first."""
+
+    cache_frame: int
+    loop_frame: int
+    distance: float
+    half_width: int
+    quality: LoopQuality
+    candidates: tuple[tuple[int, int, float], ...]
+
+
+@dataclass
+class Transition:
+    """The move from loop A to loop B the simulation made at one change of clip.
+
+    from_clip/to_clip, from_segment/to_segment: the timeline's segments of the change.
+    leave_loop_frame: loop A's frame the transition replaces first (playback: loop A up to the frame
+    before it, then the transition); arrive_loop_frame: loop B's frame played right after it.
+    frames: (n, V, 3) float32, n = b - a + h_A + h_B; source_frames: the cache frames it spans, [a - h_A, b + h_B).
+    leave, arrive: the two joins.
+    """
+
+    from_clip: str
+    to_clip: str
+    from_segment: int
+    to_segment: int
+    leave_loop_frame: int
+    arrive_loop_frame: int
+    frames: np.ndarray
+    source_frames: tuple[int, int]
+    leave: Join
+    arrive: Join
+
+    @property
+    def within_bounds(self) -> bool:
+        return self.leave.quality.within_bounds and self.arrive.quality.within_bounds
+
+
+def transition_frames(loop_a: np.ndarray, i: int, a: int, loop_b: np.ndarray, j: int, b: int, cloth: np.ndarray,
+                      h_a: int, h_b: int, edges: np.ndarray | None) -> np.ndarray:
+    """The transition's (b - a + h_a + h_b, V, 3) float64 frames (see the module docstring).
+
+    loop_a: (La, V, 3), left at loop frame i ~ cache frame a; loop_b: (Lb, V, 3), reached at loop frame
+    j ~ cache frame b > a; cloth: (F, V, 3); h_a, h_b: the joins' crossfade half-widths; edges: (E, 2) or None."""
+    if not a + h_a <= b - h_b:
+        raise ValueError(f"transition_frames: the joins at {a} (h {h_a}) and {b} (h {h_b}) overlap")
+    offsets, weight = crossfade_weights(h_a)
+    leave = crossfade_blend(np.asarray(loop_a[(i + offsets) % len(loop_a)], np.float64),
+                            np.asarray(cloth[a + offsets], np.float64), weight, edges)
+    offsets, weight = crossfade_weights(h_b)
+    arrive = crossfade_blend(np.asarray(cloth[b + offsets], np.float64),
+                             np.asarray(loop_b[(j + offsets) % len(loop_b)], np.float64), weight, edges)
+    return np.concatenate([leave, np.asarray(cloth[a + h_a : b - h_b], np.float64), arrive])
+
+
+def _played(loop_a, leave_frame, frames, loop_b, arrive_frame) -> np.ndarray:
+    """One period of loop A up to the transition, the transition, one period of loop B after it."""
+    la, lb = len(loop_a), len(loop_b)
+    return np.concatenate([np.asarray(loop_a[np.arange(leave_frame - la, leave_frame) % la], np.float64), frames,
+                           np.asarray(loop_b[np.arange(arrive_frame, arrive_frame + lb) % lb], np.float64)])
+
+
+def _candidates(loop: ClipLoop, cloth, timeline: Timeline, segment: int, h: int, max_candidates: int, velocity_weight: float):
+    """(cache frames, loop frames, distances) of a join's candidates in a segment's pure frames, best first."""
+    seg = timeline.segments[segment]
+    frames = np.arange(seg.pure_first_frame + h + 1, seg.pure_last_frame - h)
+    if len(frames) == 0:
+        raise ValueError(f"segment {segment} ({seg.clip}, pure frames {seg.pure_first_frame}..{seg.pure_last_frame}) "
+                         f"is too short for a {h}-frame join either side")
+    loop_frames, distances = join_errors(loop.looped, loop.clip_phase, loop.period, cloth, frames, timeline.clip_frame, h, velocity_weight)
+    picked = pick_candidates(frames, distances, (loop.period + 1) // 2, max_candidates)
+    return frames[picked], loop_frames[picked], distances[picked]
+
+
+def find_transition(
+    cloth: np.ndarray,
+    cloth_faces: np.ndarray | None,
+    timeline: Timeline,
+    from_segment: int,
+    loop_a: ClipLoop,
+    loop_b: ClipLoop,
+    max_candidates: int = DEFAULT_MAX_CANDIDATES,
+    velocity_weight: float = DEFAULT_VELOCITY_WEIGHT,
+    rest_positions: np.ndarray | None = None,
+) -> Transition:
+    """The transition from loop_a (the clip of segment from_segment) to loop_b (that of the next segment).
+
+    cloth: (F, V, 3) the whole cache; cloth_faces: (T, 3) for edge restoration and the stretch ratio (None
+    skips both); rest_positions: (V, 3), default the cache's first frame. The joins' half-widths are the
+    loops' own crossfade defaults (loop_closing.default_crossfade_frames). Each join takes the first of its
+    candidates (smallest distance first) that keeps QUALITY_BOUNDS, else its best.
+    """
+    to_segment = from_segment + 1
+    edges = None if cloth_faces is None else unique_edges(cloth_faces)
+    rest_lengths = None if edges is None else edge_lengths(np.asarray(cloth[0] if rest_positions is None else rest_positions, np.float64), edges)
+    h_a, h_b = default_crossfade_frames(len(loop_a.looped)), default_crossfade_frames(len(loop_b.looped))
+    leaving = _candidates(loop_a, cloth, timeline, from_segment, h_a, max_candidates, velocity_weight)
+    arriving = _candidates(loop_b, cloth, timeline, to_segment, h_b, max_candidates, velocity_weight)
+    la, lb = len(loop_a.looped), len(loop_b.looped)
+
+    def build(pick_a: int, pick_b: int):
+        a, i = int(leaving[0][pick_a]), int(leaving[1][pick_a])
+        b, j = int(arriving[0][pick_b]), int(arriving[1][pick_b])
+        frames = transition_frames(loop_a.looped, i, a, loop_b.looped, j, b, cloth, h_a, h_b, edges)
+        leave_frame, arrive_frame = (i - h_a) % la, (j + h_b) % lb
+        played = _played(loop_a.looped, leave_frame, frames, loop_b.looped, arrive_frame)
+        span = np.arange(-h_a - 1, h_a + 1)
+        quality_leave = join_quality(played, la + h_a, h_a, np.asarray(loop_a.looped[(i + span) % la], np.float64),
+                                     np.asarray(cloth[a + span], np.float64), edges, rest_lengths, la)
+        span = np.arange(-h_b - 1, h_b + 1)
+        quality_arrive = join_quality(played, la + len(frames) - h_b, h_b, np.asarray(cloth[b + span], np.float64),
+                                      np.asarray(loop_b.looped[(j + span) % lb], np.float64), edges, rest_lengths, lb)
+        return frames, leave_frame, arrive_frame, quality_leave, quality_arrive
+
+    # Each join's figures depend on the other only through the played median: choose them one after the other.
+    pick_a = pick_b = 0
+    for candidate in range(len(leaving[0])):
+        if build(candidate, 0)[3].within_bounds:
+            pick_a = candidate
+            break
+    for candidate in range(len(arriving[0])):
+        if build(pick_a, candidate)[4].within_bounds:
+            pick_b = candidate
+            break
+    frames, leave_frame, arrive_frame, quality_leave, quality_arrive = build(pick_a, pick_b)
+
+    def listed(found):
+        return tuple((int(f), int(k), float(d)) for f, k, d in zip(*found))
+
+    a, b = int(leaving[0][pick_a]), int(arriving[0][pick_b])
+    return Transition(
+        from_clip=loop_a.clip, to_clip=loop_b.clip, from_segment=from_segment, to_segment=to_segment,
+        leave_loop_frame=int(leave_frame), arrive_loop_frame=int(arrive_frame), frames=frames.astype(np.float32),
+        source_frames=(a - h_a, b + h_b),
+        leave=Join(a, int(leaving[1][pick_a]), float(leaving[2][pick_a]), h_a, quality_leave, listed(leaving)),
+        arrive=Join(b, int(arriving[1][pick_b]), float(arriving[2][pick_b]), h_b, quality_arrive, listed(arriving)),
+    )
+
+
+def find_transitions(cloth: np.ndarray, cloth_faces: np.ndarray | None, timeline: Timeline, loops: list[ClipLoop],
+                     max_candidates: int = DEFAULT_MAX_CANDIDATES, velocity_weight: float = DEFAULT_VELOCITY_WEIGHT,
+                     rest_positions: np.ndarray | None = None) -> list[Transition]:
+    """find_transition for every change of clip in the timeline (timeline.changes()), in playing order."""
+    by_clip = {loop.clip: loop for loop in loops}
+    return [
+        find_transition(cloth, cloth_faces, timeline, k, by_clip[timeline.segments[k].clip], by_clip[timeline.segments[k + 1].clip],
+                        max_candidates, velocity_weight, rest_positions)
+        for k, _ in timeline.changes()
+    ]

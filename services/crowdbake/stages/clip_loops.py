@@ -1,0 +1,214 @@
+"""The cycle stage for a cache simulated across several clips (a timeline): a loop per clip and the
+transitions between them (crowdbake.bake.clips, crowdbake.bake.transitions), written beside the usual
+cycle outputs.
+
+    run_clips_job(inputs, timeline, out_dir, params, animation, render_views, plots) -> CycleResult
+
+cycle.json is the single-clip document of the *primary* clip (the one `animation` names, else the
+timeline's first), the loop a bundle carries, in cache frame numbers, plus
+  timeline      fps, total_frames and the segments;
+  clips         every clip's loop: the single-clip document's fields (candidates, closing, quality...)
+                with clip, period, segment, clip_phase and searched_frames;
+  transitions   every simulated change of clip: from/to clip and segment, the loop frames where it
+                leaves and arrives, its frames, the cache frames it spans, and each join's candidates and
+                quality figures.
+Files: looped.pc2 (the primary loop), clips/<clip>.pc2 (every loop), transitions/<k>_<from>_<to>.pc2.
+"""
+from __future__ import annotations
+
+import html
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+
+from crowdbake.bake.clips import ClipLoop, find_clip_loops
+from crowdbake.bake.timeline import Timeline
+from crowdbake.bake.cycle import CycleParams, CycleResult, _float, _quality_dict
+from crowdbake.bake.transitions import Join, Transition, find_transitions
+
+logger = logging.getLogger(__name__)
+
+
+def file_stem(name: str) -> str:
+    """A clip name as a file name: lower case, [a-z0-9_-] only (glTF names are free text)."""
+    return re.sub(r"[^a-z0-9_-]+", "_", name.lower()).strip("_")[:48] or "clip"
+
+
+def primary_clip(timeline: Timeline, animation: int | str | None) -> str:
+    """The clip a bundle carries: `animation` when it names a clip of the timeline, else the first clip.
+    ValueError when `animation` names a clip the timeline does not play."""
+    clips = timeline.clips()
+    if animation is None:
+        return clips[0]
+    if isinstance(animation, str) and animation in clips:
+        return animation
+    raise ValueError(f"animation {animation!r} is not a clip of the timeline (it plays {', '.join(clips)}): name one of them")
+
+
+def _join_dict(join: Join) -> dict:
+    return {
+        "cache_frame": join.cache_frame,
+        "loop_frame": join.loop_frame,
+        "distance": _float(join.distance),
+        "crossfade_frames": join.half_width,
+        "quality": _quality_dict(join.quality),
+        "candidates": [{"cache_frame": f, "loop_frame": k, "distance": _float(d)} for f, k, d in join.candidates],
+    }
+
+
+def transition_dict(transition: Transition, file: str | None = None) -> dict:
+    """One entry of cycle.json's `transitions`."""
+    return {
+        "from_clip": transition.from_clip,
+        "to_clip": transition.to_clip,
+        "from_segment": transition.from_segment,
+        "to_segment": transition.to_segment,
+        "leave_loop_frame": transition.leave_loop_frame,
+        "arrive_loop_frame": transition.arrive_loop_frame,
+        "frames": int(len(transition.frames)),
+        "source_frames": list(transition.source_frames),
+        "within_bounds": transition.within_bounds,
+        "leave": _join_dict(transition.leave),
+        "arrive": _join_dict(transition.arrive),
+        **({"file": file} if file else {}),
+    }
+
+
+def timeline_dict(timeline: Timeline) -> dict:
+    return {
+        "fps": timeline.fps,
+        "total_frames": timeline.total_frames,
+        "segments": [
+            {"clip": s.clip, "first_frame": s.first_frame, "last_frame": s.last_frame, "pure_first_frame": s.pure_first_frame,
+             "pure_last_frame": s.pure_last_frame, "clip_frames": s.clip_frames}
+            for s in timeline.segments
+        ],
+    }
+
+
+def pose_clips_body(character_path, timeline: Timeline) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The body at every pure frame of the timeline, posed at that frame's clip frame: ((F, Vb, 3)
+    positions, (F, Vb, 3) normals, (Tb, 3) faces); frames in blends stay zero (no search reads them)."""
+    from crowdbake.bake.skinning import pose_character
+    from crowdbake.formats.gltf import load_character
+
+    positions = normals = faces = None
+    for clip in timeline.clips():
+        character = load_character(character_path, animation=clip)
+        period = timeline.period(clip)
+        posed, posed_normals = pose_character(character, timeline.fps, period)
+        if positions is None:
+            positions = np.zeros((timeline.total_frames, *posed.shape[1:]), dtype=np.float32)
+            normals = np.zeros_like(positions)
+            faces = np.asarray(character.faces, dtype=np.int64)
+        for s in timeline.segments:
+            if s.clip == clip:
+                rows = np.arange(s.pure_first_frame, s.pure_last_frame + 1)
+                phase = timeline.clip_frame[rows] % period
+                positions[rows], normals[rows] = posed[phase], posed_normals[phase]
+    return positions, normals, faces
+
+
+def run_clips_job(cloth: np.ndarray, cloth_faces: np.ndarray, timeline: Timeline, out_dir: Path,
+                  params: CycleParams = CycleParams(), animation: int | str | None = None, render_views=None,
+                  body: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, progress=None, sample_rate: float = 1.0,
+                  ) -> tuple[CycleResult, list[ClipLoop], list[Transition], dict]:
+    """Every clip's loop and every transition, their files under out_dir; returns (the primary clip's
+    result in cache frames, the loops, the transitions, cycle.json's multi-clip sections).
+    body: pose_clips_body's output or None (then no penetration figures); sample_rate: the PC2 files'
+    sample interval (the cache's). ValueError on a clip without
+    a loop or a segment too short for a join."""
+    from crowdbake.formats.pc2 import write_pc2
+
+    primary = primary_clip(timeline, animation)
+    positions, faces = (None, None) if body is None else (body[0], body[2])
+    loops = find_clip_loops(cloth, cloth_faces, timeline, params, render_views, positions, faces, progress)
+    transitions = find_transitions(cloth, cloth_faces, timeline, loops, params.max_candidates, params.velocity_weight)
+    out = Path(out_dir)
+    (out / "clips").mkdir(parents=True, exist_ok=True)
+    (out / "transitions").mkdir(parents=True, exist_ok=True)
+    clip_entries = []
+    for loop in loops:
+        name = f"clips/{file_stem(loop.clip)}.pc2"
+        write_pc2(out / name, loop.looped, start_frame=0.0, sample_rate=sample_rate)
+        clip_entries.append({**loop.to_dict(timeline.total_frames), "file": name})
+        quality = loop.result.closing.quality
+        if quality is not None and quality.exceeded:
+            logger.warning("the loop of clip %r breaks its quality bounds: %s", loop.clip, ", ".join(quality.exceeded))
+    transition_entries = []
+    for k, transition in enumerate(transitions):
+        name = f"transitions/{k}_{file_stem(transition.from_clip)}_{file_stem(transition.to_clip)}.pc2"
+        write_pc2(out / name, transition.frames, start_frame=0.0, sample_rate=sample_rate)
+        transition_entries.append(transition_dict(transition, name))
+        if not transition.within_bounds:
+            logger.warning("the transition %s -> %s breaks its quality bounds", transition.from_clip, transition.to_clip)
+    main = next(loop for loop in loops if loop.clip == primary)
+    sections = {"primary_clip": primary, "clip_phase": main.clip_phase, "timeline": timeline_dict(timeline),
+                "clips": clip_entries, "transitions": transition_entries}
+    return main.cache_result(timeline.total_frames), loops, transitions, sections
+
+
+def clips_report_html(document: dict) -> str:
+    """The report's section on every clip loop and transition, with their quality figures (empty for one clip)."""
+    if not document.get("clips"):
+        return ""
+
+    def figures(quality: dict | None) -> str:
+        if quality is None:
+            return "<td>–</td><td>–</td><td>–</td><td>–</td>"
+        cells = "".join(f"<td>{_shown(quality.get(name))}</td>" for name in ("stretch_ratio", "deviation_ratio", "seam_acceleration_ratio"))
+        verdict = "ok" if quality["within_bounds"] else "OVER: " + ", ".join(quality["exceeded"])
+        return cells + f"<td>{html.escape(verdict)}</td>"
+
+    head = "<th>stretch</th><th>deviation</th><th>seam acc.</th><th>bounds</th>"
+    loops = "".join(
+        f"<tr><td>{html.escape(c['clip'])}</td><td>{c['period']}</td><td>{c['start_frame']}–{c['end_frame']}</td>"
+        f"<td>{c['segment']}</td>{figures(c['closing'].get('quality'))}</tr>"
+        for c in document["clips"]
+    )
+    moves = "".join(
+        f"<tr><td>{html.escape(t['from_clip'])} → {html.escape(t['to_clip'])}</td><td>{t['leave_loop_frame']}</td>"
+        f"<td>{t['arrive_loop_frame']}</td><td>{t['frames']}</td><td>{t['source_frames'][0]}–{t['source_frames'][1]}</td>"
+        f"<td>leave</td>{figures(t['leave']['quality'])}</tr>"
+        f"<tr><td></td><td></td><td></td><td></td><td></td><td>arrive</td>{figures(t['arrive']['quality'])}</tr>"
+        for t in document["transitions"]
+    )
+    bounds = document["clips"][0]["closing"].get("quality") or {}
+    limits = ", ".join(f"{name.replace('_', ' ')} ≤ {value:g}" for name, value in (bounds.get("bounds") or {}).items())
+    return (
+        f"<h2>Clips: a loop each</h2><p>The bundle carries {html.escape(document.get('primary_clip', ''))}. Bounds: {html.escape(limits)}.</p>"
+        f"<table><thead><tr><th>clip</th><th>period</th><th>cache frames</th><th>segment</th>{head}</tr></thead><tbody>{loops}</tbody></table>"
+        "<h2>Transitions taken from the simulation</h2><p>Playback leaves loop A before its frame <i>leave</i>, plays the "
+        "transition's frames, and goes on with loop B's frame <i>arrive</i>; each join is crossfaded like a loop's seam.</p>"
+        f"<table><thead><tr><th>change</th><th>leave</th><th>arrive</th><th>frames</th><th>cache frames</th><th>join</th>{head}</tr></thead>"
+        f"<tbody>{moves}</tbody></table>"
+    )
+
+
+def _shown(value) -> str:
+    return "–" if value is None else f"{value:.3g}"
+
+
+def run_timeline(inputs, timeline: Timeline, timeline_path: Path, character, out_dir, params: CycleParams,
+                 animation: str, render_views, progress) -> tuple[CycleResult, dict]:
+    """run_cycle_job's several-clip path: the timeline against the loaded inputs (crowdbake.stages.cycle.
+    CycleInputs) and the character's clips, the body posed per clip, then run_clips_job."""
+    from crowdbake.ingest.timeline import check_timeline_fits
+
+    known = None
+    if character is not None:
+        from crowdbake.ingest.clip_choice import character_clips
+
+        known = {clip.name: clip.seconds for clip in character_clips(character)}
+    check_timeline_fits(timeline, inputs.cloth.shape[0], inputs.fps, known, timeline_path.name)
+    body = None
+    if character is not None:
+        body = pose_clips_body(character, timeline)
+    elif inputs.body is not None:
+        body = (inputs.body, inputs.body_normals, inputs.body_faces)
+    result, _, _, sections = run_clips_job(inputs.cloth, inputs.cloth_faces, timeline, out_dir, params, animation,
+                                           render_views, body, progress, inputs.sample_rate)
+    sections["sources"] = {"timeline": str(timeline_path)}
+    return result, sections

@@ -1,0 +1,72 @@
+"""crowdbake.bake.impostor_budget: the crop any azimuths need, and the counts that fit a memory budget."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from crowdbake.bake.impostor_budget import (
+    AZIMUTH_FLOOR, FRAME_FLOOR, bytes_per_texel, clip_bytes, crop_for, fit_budget, frame_extents, map_formats,
+)
+from crowdbake.bake.impostor_views import ortho_view, project
+from crowdbake.bake.poses import impostor_frame_indices
+
+ELEVATIONS = (0.0, 20.0, 40.0)
+
+
+def walker(frames: int = 12) -> tuple[np.ndarray, np.ndarray, float]:
+    """(F, V, 3) a tall, thin figure whose arm swings out over the cycle; its bounds centre and radius."""
+    rng = np.random.default_rng(5)
+    body = rng.uniform([-0.2, 0.0, -0.12], [0.2, 1.8, 0.12], (400, 3))
+    positions = np.repeat(body[None], frames, axis=0)
+    swing = 0.5 * np.sin(np.linspace(0, 2 * np.pi, frames, endpoint=False))
+    positions[:, :20, 2] += swing[:, None]  # an arm forwards and back
+    low, high = positions.reshape(-1, 3).min(axis=0), positions.reshape(-1, 3).max(axis=0)
+    return positions, 0.5 * (low + high), 0.5 * float(np.linalg.norm(high - low))
+
+
+@pytest.mark.parametrize("azimuths", [7, 16, 32])
+def test_the_crop_holds_every_vertex_of_every_view_whatever_the_azimuths(azimuths):
+    positions, center, radius = walker()
+    extents = frame_extents(positions, center, ELEVATIONS)
+    frames = impostor_frame_indices(len(positions), 5)
+    x, y, width, height = crop_for(extents, frames, radius, 64)
+    for k in frames:
+        for elevation in ELEVATIONS:
+            for a in range(azimuths):
+                xy, _ = project(ortho_view(center, radius, 360.0 * a / azimuths + 3.0, elevation, 64), positions[k])
+                assert xy[:, 0].min() >= x and xy[:, 0].max() <= x + width and xy[:, 1].min() >= y and xy[:, 1].max() <= y + height
+    assert width < 64  # a tall, thin figure leaves the sides of its square tile empty
+
+
+def test_the_crop_follows_the_frames_baked():
+    positions, center, radius = walker()
+    extents = frame_extents(positions, center, ELEVATIONS)
+    # Frames 0 and 6: the arm at the body (sin 0 = 0, sin pi = 0); frame 3: swung a full 0.5 m out.
+    still, swung = crop_for(extents, [0, 6], radius, 128), crop_for(extents, [0, 3, 6], radius, 128)
+    assert still[2] < swung[2]
+
+
+def test_the_budget_takes_azimuths_first_then_frames_and_keeps_the_floors():
+    positions, center, radius = walker()
+    extents = frame_extents(positions, center, ELEVATIONS)
+    per_texel = bytes_per_texel(map_formats(True, "uvblock", False))
+    assert per_texel == 3.0  # BC5 1 + uvblock 1.5 + BC1 0.5
+    asked = fit_budget(extents, radius, 128, 32, 3, 10, len(positions), per_texel, None)
+    assert (asked.azimuths, asked.frames, asked.fits) == (32, 10, True) and len(asked.steps) == 1
+    assert asked.bytes == clip_bytes(32, 3, 10, asked.crop, per_texel)
+    # Room for 20 azimuths at 10 frames: azimuths alone fall.
+    room = clip_bytes(20, 3, 10, asked.crop, per_texel)
+    chosen = fit_budget(extents, radius, 128, 32, 3, 10, len(positions), per_texel, room)
+    assert (chosen.azimuths, chosen.frames, chosen.fits) == (20, 10, True) and chosen.bytes <= room
+    assert [step[0] for step in chosen.steps] == [32, 28, 24, 20]
+    # Less than 16 azimuths at 10 frames: frames fall too, to the floor, and then it does not fit.
+    tight = fit_budget(extents, radius, 128, 32, 3, 10, len(positions), per_texel, 1000)
+    assert (tight.azimuths, tight.frames, tight.fits) == (AZIMUTH_FLOOR, FRAME_FLOOR, False)
+    # Counts asked below the floors are kept.
+    few = fit_budget(extents, radius, 128, 8, 3, 4, len(positions), per_texel, 1000)
+    assert (few.azimuths, few.frames) == (8, 4)
+
+
+def test_detail_maps_and_formats_count_in_the_bytes():
+    assert bytes_per_texel(map_formats(True, "uvblock", True)) == 4.0
+    assert bytes_per_texel(map_formats(False, "uv32", False)) == 4 + 4 + 4

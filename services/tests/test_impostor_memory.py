@@ -1,0 +1,139 @@
+"""What one character's impostor costs in memory.
+
+The crop (SPEC.md "Impostor maps", crowdbake.bake.atlas): the atlas stores of every tile only the box the
+character covers over every view and frame. A small bake with and without it: the crop must save memory
+and change nothing crowdview draws, through crowdview's own shader (crowdbake.render.runtime_shader).
+Detail maps are stored only when asked for (`detail_map`); crowdview says so where it would need them."""
+from __future__ import annotations
+
+import json
+import subprocess
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from crowdbake.formats.bundle import verify_bundle
+from crowdbake.params import BakeParams
+
+pytest.importorskip("pyrender")
+from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
+from crowdbake.stages.impostors import load_poses  # noqa: E402
+from crowdbake.stages.runner import run_bake  # noqa: E402
+from crowdbake.stages.runtime_fidelity import halfway_frame, picture_at, runtime_atlas, runtime_textures  # noqa: E402
+from crowdbake.stages.validate import BakeInputs  # noqa: E402
+from crowdbake.bake.reference import impostor_blend  # noqa: E402
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+CROWDVIEW = REPO_ROOT / "build" / "runtime" / "crowdview"
+PARAMS = BakeParams(impostor_frames=2, azimuths=8, elevations_deg=(0.0, 30.0), tile_size=64, lod_triangles=1200,
+                    cycle_views=3, candidates=3, export=False)
+
+
+@pytest.fixture(scope="module")
+def bakes(small_sample, tmp_path_factory):
+    """{crop: (bundle folder, poses, maps, textures)} of the small sample baked with the defaults (cropped, no
+    detail maps) and without the crop, with detail maps."""
+    out = {}
+    for crop in (True, False):
+        root = tmp_path_factory.mktemp(f"crop_{crop}")
+        params = replace(PARAMS, crop=crop, detail_map=not crop)
+        summary = run_bake(BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
+                                      cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures", cycle=None,
+                                      name="sample", version="1.0", params=params), root / "bundles", work=root / "work")
+        baked = verify_bundle(summary.bundle)
+        maps = {kind: baked.textures[path] for kind, path in baked.manifest["impostor"]["maps"].items()}
+        out[crop] = summary.bundle, load_poses(root / "work"), maps, runtime_textures(root / "work")
+    return out
+
+
+def test_the_crop_stores_less_and_says_where(bakes):
+    cropped, whole = (json.loads((bakes[crop][0] / "manifest.json").read_text())["impostor"] for crop in (True, False))
+    assert "crop" not in whole
+    crop = cropped["crop"]
+    assert all(crop[k] % 4 == 0 for k in crop) and crop["x"] + crop["width"] <= 64 and crop["y"] + crop["height"] <= 64
+    for kind in ("normal", "uv", "surface"):
+        small = (bakes[True][0] / cropped["maps"][kind]).stat().st_size
+        large = (bakes[False][0] / whole["maps"][kind]).stat().st_size
+        assert small < 0.75 * large, f"{kind}: {small} bytes cropped against {large}"
+
+
+def test_crowdviews_shader_draws_the_same_pictures_from_cropped_maps(bakes):
+    pictures = {}
+    for crop, (_, poses, maps, textures) in bakes.items():
+        layout = poses.atlas_layout()
+        layer = list(poses.frame_indices).index(poses.fidelity_frame)
+        baked = impostor_blend.FrameWeights((layer, layer), 0.0)
+        _, between = halfway_frame(poses)
+        cameras = [(a, e, baked) for a in layout.azimuths_deg for e in layout.elevations_deg]
+        cameras += [(22.5, 0.0, baked), (157.5, 30.0, between), (292.5, 15.0, between), (0.0, 30.0, between)]
+        atlas = runtime_atlas(poses, layout, maps["uv"], maps["normal"], maps.get("surface"), textures)
+        with VisibilityRenderer(layout.tile_size) as renderer:
+            pictures[crop] = renderer.runtime_impostors(atlas, [picture_at(layout, a, e, f) for a, e, f in cameras])
+    drawn = (pictures[True] > 0).any(axis=-1)
+    assert drawn.mean() > 0.1, "the pictures show the character"
+    # The same texels, the same weights: equal but for a reprojection that, outside the silhouette,
+    # reads the crop's border where the whole tile held the dilation's value further out.
+    differs = np.abs(pictures[True] - pictures[False]).max(axis=-1) > 1.5 / 255
+    assert differs.mean() < 0.002, f"{differs.sum()} of {differs.size} pixels differ"
+
+
+def test_fidelity_scores_agree_with_and_without_the_crop(bakes):
+    scores = [json.loads((bakes[crop][0] / "fidelity.json").read_text())["runtime"] for crop in (True, False)]
+    for section in ("at_views", "between_views", "between_azimuths"):
+        assert scores[0][section]["ssim_mean"] == pytest.approx(scores[1][section]["ssim_mean"], abs=0.002), section
+
+
+def test_detail_maps_are_stored_only_when_asked_and_figure_4_still_counts_them(bakes):
+    cropped, whole = (json.loads((bakes[crop][0] / "manifest.json").read_text()) for crop in (True, False))
+    assert set(cropped["impostor"]["maps"]) == {"normal", "uv", "surface"}
+    assert set(whole["impostor"]["maps"]) == {"normal", "uv", "surface", "detail"}
+    assert not (bakes[True][0] / "impostor" / "detail.cbtx").exists()
+    document = json.loads((bakes[True][0] / "texture_memory.json").read_text())
+    memory = document["bundle"]["map_bytes"]
+    # What the detail maps would hold: BC2, a byte a texel, like the normal map's BC5.
+    assert memory["detail"] == memory["normal"] > 0
+    # The impostor one clip holds: the stored maps' layers, without their CBTX headers.
+    held = document["impostor"]
+    assert set(held["stored_bytes"]) == {"normal", "uv", "surface"}
+    on_disk = sum((bakes[True][0] / path).stat().st_size for path in cropped["impostor"]["maps"].values())
+    assert 0 < on_disk - sum(held["stored_bytes"].values()) < 3 * 64
+    assert held["crop"] == cropped["impostor"]["crop"] and held["views"] == 16 and held["frames"] == 2
+    # Far under the default budget: the counts asked for.
+    assert held["budget"]["budget_mib"] == 16.0 and held["budget"]["fits"]
+    assert held["budget"]["chosen"] == held["budget"]["asked"] == {"azimuths": 8, "frames": 2}
+
+
+def test_a_budget_fits_the_maps_by_fewer_azimuths(small_sample, bakes, tmp_path):
+    """32 azimuths asked for, room for 20 (the crop is the same whatever the azimuths): azimuths fall, by 4,
+    until the maps fit."""
+    whole = json.loads((bakes[True][0] / "texture_memory.json").read_text())["impostor"]
+    budget = whole["stored_mib"] * 20 / 8 + 1e-9
+    summary = run_bake(BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
+                                  cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures", cycle=None,
+                                  name="sample", version="1.0", params=replace(PARAMS, azimuths=32, impostor_budget_mib=budget)),
+                       tmp_path / "bundles", work=tmp_path / "work")
+    held = json.loads((summary.bundle / "texture_memory.json").read_text())["impostor"]
+    assert held["stored_mib"] <= budget and held["budget"]["fits"] and held["crop"] == whole["crop"]
+    assert held["budget"]["chosen"] == {"azimuths": 20, "frames": 2}
+    assert [step["azimuths"] for step in held["budget"]["steps"]] == [32, 28, 24, 20]
+    manifest = json.loads((summary.bundle / "manifest.json").read_text())["impostor"]
+    assert len(manifest["azimuths_deg"]) == 20 and manifest["azimuths_deg"][1] == 18.0
+
+
+def test_crowdview_says_a_bundle_has_no_detail_maps(bakes, tmp_path):
+    if not CROWDVIEW.is_file():
+        pytest.skip(f"crowdview is not built at {CROWDVIEW} (scripts/setup.sh builds it)")
+    bundle = str(bakes[True][0])
+    refused = subprocess.run([str(CROWDVIEW), "--bundle", bundle, "--headless", "--lod", "detail"], capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and "no detail maps" in refused.stderr and "--detail-map" in refused.stderr, refused.stderr
+    report = tmp_path / "report.json"
+    run = subprocess.run([str(CROWDVIEW), "--bundle", bundle, "--benchmark", "--max-seconds", "3", "--modes", "uv_impostor,detail_impostor",
+                          "--width", "160", "--height", "120", "--report", str(report)], capture_output=True, text=True, timeout=120)
+    if run.returncode == 3:
+        pytest.skip(f"crowdview could not open a GL context here: {run.stderr.strip()[-200:]}")
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "detail_impostor left out" in run.stderr
+    results = json.loads(report.read_text())["results"]
+    assert "uv_impostor" in results and "detail_impostor" not in results
