@@ -31,16 +31,16 @@ namespace {
 struct Shape {
     const char* name;
     float radius, center_y;
-    uint32_t tile, frames, baked;
+    uint32_t tile, frames, baked, azimuths;
     float fps;
 };
 
-// Impostor radius and centre height (m), tile (texels), cycle frames, baked frames and frame rate
-// of the demo's four bundles (scripts/demo.sh, the bake's defaults: 32 azimuths, elevations 0, 20, 40).
-const Shape kShapes[] = {{"sample-loose", 1.054f, 0.876f, 128, 40, 10, 24},
-                         {"sample-tight", 1.053f, 0.876f, 128, 40, 10, 24},
-                         {"cesiumman", 1.119f, 0.747f, 128, 48, 10, 24},
-                         {"robot", 3.227f, 2.174f, 128, 23, 10, 24}};
+// Impostor radius and centre height (m), tile (texels), cycle frames, baked frames, azimuths and
+// frame rate of the demo's four bundles (scripts/demo.sh, the bake's defaults; elevations 0, 20, 40).
+const Shape kShapes[] = {{"sample-loose", 1.054f, 0.876f, 128, 40, 10, 20, 24},
+                         {"sample-tight", 1.053f, 0.876f, 128, 40, 10, 20, 24},
+                         {"cesiumman", 1.119f, 0.747f, 128, 48, 10, 16, 24},
+                         {"robot", 3.227f, 2.174f, 128, 23, 10, 16, 24}};
 
 CharacterModel model_of(const Shape& s) {
     CharacterModel m;
@@ -49,7 +49,7 @@ CharacterModel model_of(const Shape& s) {
     m.frames_per_second = s.fps;
     m.frame_count = s.frames;
     m.tile_size = s.tile;
-    for (int a = 0; a < 32; ++a) m.azimuths_deg.push_back(11.25f * float(a));
+    for (uint32_t a = 0; a < s.azimuths; ++a) m.azimuths_deg.push_back(360.0f * float(a) / float(s.azimuths));
     m.elevations_deg = {0, 20, 40};
     for (uint32_t f = 0; f < s.baked; ++f) m.frame_indices.push_back(f * s.frames / s.baked);
     m.has_low = true;
