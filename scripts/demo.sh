@@ -5,6 +5,9 @@
 #   3. find its cloth cycle                          -> out/demo/cycle/ (report.html)
 #   4. bake it into a bundle                         -> out/demo/bundles/sample-walker/1.0.0/
 #   5. render a crowd from the bundle, headless      -> out/demo/crowd.png
+#   6. a mixed crowd (runtime/README.md "Crowds of several archetypes"): the sample in a second garment, and
+#      where ../shared/assets is present CesiumMan in the long skirt and the robot with its cape
+#                                                    -> out/demo/mixed/crowd.json, out/demo/mixed.png
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -15,16 +18,53 @@ rm -rf "$out"
 mkdir -p "$out"
 crowdbake=(.venv/bin/crowdbake)
 
-echo "== 1/4 sample content =="
+echo "== 1/6 sample content =="
 "${crowdbake[@]}" sample "$out/sample" --garment loose
-echo "== 2/4 cycle search =="
+echo "== 2/6 cycle search =="
 "${crowdbake[@]}" cycle "$out/sample/cloth.pc2" --mesh "$out/sample/cloth.obj" \
   --character "$out/sample/character.glb" --out "$out/cycle"
-echo "== 3/4 bake =="
+echo "== 3/6 bake =="
 "${crowdbake[@]}" bake "$out/sample/character.glb" --cloth "$out/sample/cloth.pc2" \
   --cloth-mesh "$out/sample/cloth.obj" --cycle "$out/cycle/cycle.json" --textures "$out/sample/textures" \
   --name sample-walker --version 1.0.0 --out "$out/bundles"
-echo "== 4/4 crowd render =="
+echo "== 4/6 crowd render =="
 build/runtime/crowdview --bundle "$out/bundles/sample-walker/1.0.0" --count 200 --seed 1 \
   --camera street --headless --frames 30 --screenshot "$out/crowd.png"
-echo "done: cycle report $out/cycle/report.html, bundle $out/bundles/sample-walker/1.0.0, crowd picture $out/crowd.png"
+
+echo "== 5/6 more archetypes =="
+"${crowdbake[@]}" sample "$out/sample-tight" --garment tight --seed 1
+"${crowdbake[@]}" bake "$out/sample-tight/character.glb" --cloth "$out/sample-tight/cloth.pc2" \
+  --cloth-mesh "$out/sample-tight/cloth.obj" --textures "$out/sample-tight/textures" \
+  --name sample-tight --version 1.0.0 --out "$out/bundles"
+archetypes='{"name": "sample-loose", "bundle": "../bundles/sample-walker/1.0.0", "share": 3, "play_rate": [0.9, 1.1]},
+    {"name": "sample-tight", "bundle": "../bundles/sample-tight/1.0.0", "share": 3, "play_rate": [0.9, 1.1]}'
+assets="${CROWDBAKE_SHARED_ASSETS:-$root/../shared/assets}"
+if [[ -f "$assets/CesiumMan.glb" && -f "$assets/long_skirt/long_skirt.pc2" && -f "$assets/robot_clips/robot.glb" ]]; then
+  "${crowdbake[@]}" bake "$assets/CesiumMan.glb" --cloth "$assets/long_skirt/long_skirt.pc2" \
+    --cloth-mesh "$assets/long_skirt/long_skirt.obj" --name cesiumman --version 1.0.0 --out "$out/bundles"
+  "${crowdbake[@]}" bake "$assets/robot_clips/robot.glb" --cloth "$assets/robot_clips/garment.pc2" \
+    --cloth-mesh "$assets/robot_clips/garment.obj" --animation Walking --name robot --version 1.0.0 --out "$out/bundles"
+  archetypes="$archetypes,
+    {\"name\": \"cesiumman\", \"bundle\": \"../bundles/cesiumman/1.0.0\", \"share\": 2},
+    {\"name\": \"robot\", \"bundle\": \"../bundles/robot/1.0.0\", \"share\": 1}"
+else
+  echo "shared assets not found in $assets (CesiumMan.glb, long_skirt/, robot_clips/): the mixed crowd has the two sample archetypes"
+fi
+mkdir -p "$out/mixed"
+cat > "$out/mixed/crowd.json" <<JSON
+{
+  "crowd_format_version": 1,
+  "seed": 1,
+  "count": 240,
+  "archetypes": [
+    $archetypes
+  ],
+  "layout": {"kind": "spot"},
+  "camera": {"kind": "street"}
+}
+JSON
+echo "== 6/6 mixed crowd render =="
+build/runtime/crowdview --crowd "$out/mixed/crowd.json" --headless --frames 10 --impostor-blend off \
+  --screenshot "$out/mixed.png" --report "$out/mixed/report.json"
+echo "done: cycle report $out/cycle/report.html, bundle $out/bundles/sample-walker/1.0.0, crowd picture $out/crowd.png," \
+  "mixed crowd $out/mixed.png (counts and memory per archetype: $out/mixed/report.json)"

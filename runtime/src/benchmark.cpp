@@ -115,7 +115,7 @@ Sample measure(Renderer& renderer, const Bundle& bundle, uint64_t seed, uint32_t
                                            max_variations(bundle), bundle.manifest.outfit_count,
                                            float(model.frame_count) / model.frames_per_second);
     const glm::vec3 light = scene_light_dir();
-    std::vector<Lod> state;
+    FrameState state;
     FrameInstances frame;
     std::vector<double> seconds, cpu_seconds;
     bool cut_short = false;

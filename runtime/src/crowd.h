@@ -70,6 +70,7 @@ struct Character {
     float phase_s;         // offset into the animation cycle, seconds
     uint32_t variation;    // in [0, variation_count)
     uint32_t outfit;       // in [0, outfit_count)
+    float rate = 1;        // play rate of its clip: the cycle advances rate seconds per second
 };
 
 struct Crowd {
@@ -212,11 +213,34 @@ struct FrameInstances {
     uint32_t culled = 0;
 };
 
-// Cull, pick a LOD (with hysteresis through `lod_state`, one entry per character, resized as
+// What build_frame keeps between frames for one archetype: the LOD history, and tables it would
+// otherwise recompute for every character every frame (the frame is the hot loop of a crowd of
+// 100,000: no trigonometry it can look up, no allocation once the vectors have grown).
+struct FrameState {
+    std::vector<Lod> lod;  // per character: the level shown last frame (Lod(255): none yet)
+
+    // Per character: the bounds centre's XZ offset from the feet, turned by the heading. Built
+    // for `crowd`, rebuilt when the crowd's address or size changes.
+    const Crowd* crowd = nullptr;
+    std::vector<glm::vec2> center_offset;
+    // Per cycle frame: the nearest baked layer and the blend of the two either side. Built for
+    // the model's views and frames (copied here), rebuilt when they change.
+    CharacterModel tables_for;
+    std::vector<uint32_t> nearest_layer;
+    std::vector<FrameWeights> frame_weights;
+    // Azimuths evenly spaced round the circle (as the bake writes them): the view is an index
+    // computation; otherwise view_blend.h's search.
+    bool even_azimuths = false;
+    float azimuth0_deg = 0, azimuth_step_deg = 0;
+    uint32_t lowest_elevation = 0, highest_elevation = 0;  // indices into the model's elevations
+};
+
+// Cull, pick a LOD (with hysteresis through `state`, one entry per character, resized as
 // needed) and fill the instance lists for one frame; impostors blend views and frames as
 // `blend` says (the cycle frame the mesh would show is the point between baked frames).
+// A character's clip plays at its own rate (Character::rate).
 void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,
-                 const LodRule& rule, float time_s, std::vector<Lod>* lod_state,
+                 const LodRule& rule, float time_s, FrameState* state,
                  FrameInstances* out, ImpostorBlend blend = ImpostorBlend::warp);
 
 }  // namespace crowdview

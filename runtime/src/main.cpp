@@ -1,6 +1,6 @@
 // crowdview: shows a crowdbake bundle as a crowd, in a window, headless, or as a benchmark.
 //
-//   crowdview (--bundle DIR | --url URL) [--cache DIR] [--count N] [--seed S] [--layout spot|paths]
+//   crowdview (--bundle DIR | --url URL | --crowd FILE) [--cache DIR] [--count N] [--seed S] [--layout spot|paths]
 //             [--headless --frames N --screenshot out.png] [--benchmark --report out.json]
 //             [--width W --height H] [--lod auto|high|low|impostor|detail] [--impostor-blend off|views|frames|full|warp]
 //             [--key KEY] [--cache-budget-mib N] [--min-rate B] [--timeout S]
@@ -23,10 +23,13 @@
 
 #include <nlohmann/json.hpp>
 
+#include "archetypes.h"
 #include "benchmark.h"
+#include "cli_parse.h"
 #include "bundle.h"
 #include "crowd.h"
 #include "fetch.h"
+#include "fly_controls.h"
 #include "gl_context.h"
 #include "renderer.h"
 
@@ -47,6 +50,8 @@ enum class CameraView { overview, street };
 // The command line, parsed and checked once.
 struct Options {
     std::string source;        // a bundle folder or URL (--bundle, --url or --verify)
+    std::string crowd_file;    // --crowd: a crowd description (crowd_file.h) instead of one bundle
+    bool crowd_flags = false;  // --count, --seed or --layout given: they belong in the description
     bool source_is_url = false;  // holds "://": fetched through the cache
     bool verify_only = false;  // --verify
     std::string cache_dir, files_prefix = "files/", shader_dir;
@@ -77,10 +82,11 @@ struct Options {
 };
 
 const char* kUsage =
-    "usage: crowdview (--bundle DIR | --url URL) [options]\n"
+    "usage: crowdview (--bundle DIR | --url URL | --crowd FILE) [options]\n"
     "       crowdview --verify DIR|URL [--cache DIR] [--files-prefix P]\n"
     "  --bundle DIR          a bundle folder (manifest.json and its files)\n"
     "  --url URL             a published bundle: URL/manifest.json and URL/<files-prefix><path>\n"
+    "  --crowd FILE          a crowd description (JSON, shared_formats/crowd.schema.json): several archetypes\n"
     "  --cache DIR           content-addressed download cache (default ~/.cache/crowdview)\n"
     "  --files-prefix P      where files sit below the bundle URL (default files/)\n"
     "  --key KEY             API key sent as a bearer token (default: $CROWDVIEW_API_KEY)\n"
@@ -103,7 +109,7 @@ const char* kUsage =
     "  --progress-every S    headless: print \"frame k of N\" every S seconds of wall time (default 2)\n"
     "  --screenshot PNG      write the last frame\n"
     "  --benchmark           largest crowd at 30 and 60 fps per representation (headless)\n"
-    "  --report JSON         benchmark figures\n"
+    "  --report JSON         benchmark figures; headless: counts per archetype and LOD, GPU memory per archetype\n"
     "  --max-seconds S       benchmark time budget in seconds, every phase included (default 300)\n"
     "  --modes LIST          benchmark these of high_mesh,low_mesh,uv_impostor,detail_impostor,hybrid\n"
     "  --shaders DIR         shader folder (default: the source tree's src/shaders)\n"
@@ -112,28 +118,6 @@ const char* kUsage =
 [[noreturn]] void usage_error(const std::string& message) {
     std::fprintf(stderr, "crowdview: %s (see --help)\n", message.c_str());
     std::exit(kExitUsage);
-}
-
-template <typename T>
-T parse_number(const std::string& flag, const char* text, T lo, T hi) {
-    char* end = nullptr;
-    errno = 0;
-    const double v = std::strtod(text, &end);
-    if (errno || end == text || *end || !(v >= double(lo) && v <= double(hi)))
-        usage_error(flag + " needs a number in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got '" + text + "'");
-    if (std::is_integral<T>::value && std::floor(v) != v) usage_error(flag + " needs a whole number, got '" + text + "'");
-    return T(v);
-}
-
-// `text` as one of `choices` (name, value), or a usage error listing them.
-template <typename E>
-E parse_choice(const std::string& flag, const std::string& text, std::initializer_list<std::pair<const char*, E>> choices) {
-    std::string names;
-    for (const auto& [name, value] : choices) {
-        if (text == name) return value;
-        names += std::string(names.empty() ? "" : ", ") + name;
-    }
-    usage_error(flag + " is one of " + names + "; got '" + text + "'");
 }
 
 bool is_url(const std::string& s) { return s.find("://") != std::string::npos; }
@@ -156,6 +140,9 @@ Options parse_args(int argc, char** argv) {
             o.source_is_url = is_url(o.source);
             o.verify_only = a == "--verify";
             ++sources;
+        } else if (a == "--crowd") {
+            o.crowd_file = value(i);
+            ++sources;
         } else if (a == "--cache") o.cache_dir = value(i);
         else if (a == "--key") o.api_key = value(i);
         else if (a == "--cache-budget-mib") o.cache_budget_mib = parse_number<uint64_t>(a, value(i), 1, 1ull << 30);
@@ -163,8 +150,8 @@ Options parse_args(int argc, char** argv) {
         else if (a == "--timeout") o.timeout_s = parse_number<double>(a, value(i), 0.1, 1e7);
         else if (a == "--files-prefix") o.files_prefix = value(i);
         else if (a == "--shaders") o.shader_dir = value(i);
-        else if (a == "--count") o.count = parse_number<uint32_t>(a, value(i), 1, 10000000);
-        else if (a == "--seed") o.seed = parse_number<uint64_t>(a, value(i), 0, 1ull << 53);
+        else if (a == "--count") o.count = parse_number<uint32_t>(a, value(i), 1, 10000000), o.crowd_flags = true;
+        else if (a == "--seed") o.seed = parse_number<uint64_t>(a, value(i), 0, 1ull << 53), o.crowd_flags = true;
         else if (a == "--frames") o.frames = parse_number<int>(a, value(i), 1, 100000000);
         else if (a == "--width") o.width = parse_number<int>(a, value(i), 16, 16384);
         else if (a == "--height") o.height = parse_number<int>(a, value(i), 16, 16384);
@@ -175,7 +162,8 @@ Options parse_args(int argc, char** argv) {
         else if (a == "--headless") o.headless = true;
         else if (a == "--benchmark") o.benchmark = true;
         else if (a == "--cpu-decode") o.cpu_decode = true;
-        else if (a == "--layout") o.layout = parse_choice<Layout>(a, value(i), {{"spot", Layout::on_the_spot}, {"paths", Layout::paths}});
+        else if (a == "--layout")
+            o.crowd_flags = true, o.layout = parse_choice<Layout>(a, value(i), {{"spot", Layout::on_the_spot}, {"paths", Layout::paths}});
         else if (a == "--camera")
             o.camera = parse_choice<CameraView>(a, value(i), {{"overview", CameraView::overview}, {"street", CameraView::street}});
         else if (a == "--lod")
@@ -197,10 +185,12 @@ Options parse_args(int argc, char** argv) {
             o.impostors = parse_choice<ImpostorKind>(a, value(i), {{"uv", ImpostorKind::uv}, {"detail", ImpostorKind::detail}});
         else usage_error("unknown argument '" + a + "'");
     }
-    if (sources == 0) usage_error("give --bundle DIR, --url URL or --verify DIR|URL");
-    if (sources > 1) usage_error("give only one of --bundle, --url and --verify");
+    if (sources == 0) usage_error("give --bundle DIR, --url URL, --crowd FILE or --verify DIR|URL");
+    if (sources > 1) usage_error("give only one of --bundle, --url, --crowd and --verify");
     if (o.benchmark && !o.screenshot.empty()) usage_error("--screenshot does not go with --benchmark");
-    if (!o.report.empty() && !o.benchmark) usage_error("--report needs --benchmark");
+    if (!o.report.empty() && !o.benchmark && !o.headless) usage_error("--report needs --benchmark or --headless");
+    if (!o.crowd_file.empty() && o.crowd_flags) usage_error("--count, --seed and --layout go in the --crowd description");
+    if (!o.crowd_file.empty() && (o.benchmark || o.switch_view)) usage_error("--benchmark and --switch-view take --bundle or --url");
     if (!modes.empty()) {
         o.modes.clear();
         for (size_t start = 0; start <= modes.size();) {
@@ -224,8 +214,7 @@ Options parse_args(int argc, char** argv) {
     return o;
 }
 
-Status load(const Options& o, Bundle* bundle) {
-    if (!o.source_is_url) return load_bundle_dir(o.source, bundle);
+FetchOptions fetch_options(const Options& o) {
     FetchOptions fetch;
     fetch.cache_dir = o.cache_dir;
     fetch.files_prefix = o.files_prefix;
@@ -234,8 +223,10 @@ Status load(const Options& o, Bundle* bundle) {
     if (o.min_rate > 0) fetch.min_rate_bytes_per_s = o.min_rate;
     fetch.total_timeout_s = o.timeout_s;
     fetch.log = [](const std::string& line) { std::fprintf(stderr, "%s\n", line.c_str()); };
-    return fetch_bundle(o.source, fetch, bundle);
+    return fetch;
 }
+
+void log_line(const std::string& line) { std::fprintf(stderr, "crowdview: %s\n", line.c_str()); }
 
 // How build_frame chooses LODs and which impostor maps draw, for a --lod choice.
 struct DrawChoice {
@@ -290,66 +281,48 @@ int run_benchmark_mode(const GlContext& context, Renderer& renderer, const Bundl
     return 0;
 }
 
-// ---------------------------------------------------------------------------------------
-// Window controls: a fly camera.
-
-struct FlyControls {
-    double last_x = 0, last_y = 0;
-    bool dragging = false;
-    float speed = 8.0f;  // metres per second
-
-    void update(GLFWwindow* w, Camera* camera, float dt) {
-        double x, y;
-        glfwGetCursorPos(w, &x, &y);
-        const bool down = glfwGetMouseButton(w, GLFW_MOUSE_BUTTON_LEFT) == GLFW_PRESS;
-        if (down && dragging) {
-            camera->yaw -= float(x - last_x) * 0.004f;
-            camera->pitch = glm::clamp(camera->pitch - float(y - last_y) * 0.004f, -1.5f, 1.5f);
-        }
-        dragging = down;
-        last_x = x, last_y = y;
-        const glm::vec3 forward = camera->forward();
-        const glm::vec3 right = glm::normalize(glm::cross(forward, glm::vec3(0, 1, 0)));
-        const float step = speed * dt * (glfwGetKey(w, GLFW_KEY_LEFT_SHIFT) == GLFW_PRESS ? 4.0f : 1.0f);
-        auto key = [&](int k) { return glfwGetKey(w, k) == GLFW_PRESS ? 1.0f : 0.0f; };
-        camera->position += forward * step * (key(GLFW_KEY_W) - key(GLFW_KEY_S));
-        camera->position += right * step * (key(GLFW_KEY_D) - key(GLFW_KEY_A));
-        camera->position.y += step * (key(GLFW_KEY_E) - key(GLFW_KEY_Q));
-    }
-};
-
-int run_view(GlContext& context, Renderer& renderer, const Bundle& bundle, const Options& o) {
-    const CharacterModel& model = renderer.model();
-    CrowdDesc desc;
-    desc.count = o.count;
-    desc.seed = o.seed;
-    desc.layout = o.layout;
-    desc.spacing = crowd_spacing(model.radius);  // room for the character's own size
-    uint32_t variations = 1;
-    for (const MaterialInfo& m : bundle.manifest.materials) variations = std::max(variations, m.variations);
-    Crowd crowd = make_crowd(desc, variations, bundle.manifest.outfit_count, float(model.frame_count) / model.frames_per_second);
-    Camera camera = o.camera == CameraView::street ? street_camera(crowd, character_height(model))
-                                                   : camera_for_crowd(crowd, character_height(model), renderer.aspect(), 0.35f);
+int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, const Options& o) {
+    const size_t archetype_count = renderer.archetype_count();
+    std::string note;
+    std::vector<Crowd> crowds = lay_out_crowd(scene.file, scene.traits, &note);
+    if (!note.empty()) log_line(note);
+    const CharacterModel& model = renderer.model(0);  // --switch-view: one archetype
+    float height = 0;
+    for (size_t a = 0; a < archetype_count; ++a) height = std::max(height, character_height(renderer.model(a)));
+    Crowd extent;  // the whole crowd's square, for the cameras
+    extent.half_extent = crowds_half_extent(crowds);
+    const CameraView view = scene.file.camera.kind == CrowdCameraKind::street ? CameraView::street : o.camera;
+    Camera camera = view == CameraView::street ? street_camera(extent, height) : camera_for_crowd(extent, height, renderer.aspect(), 0.35f);
     camera.near_m = 0.1f;
     camera.far_m = std::max(camera.far_m * 4.0f, 200.0f);
+    if (scene.file.camera.kind == CrowdCameraKind::look_at) {
+        camera = look_at(scene.file.camera.eye, scene.file.camera.target);
+        camera.far_m = std::max(camera.far_m, 4.0f * (extent.half_extent + glm::length(scene.file.camera.eye)));
+    }
+    camera.fov_y = glm::radians(scene.file.camera.fov_deg);
     if (o.switch_view) {  // the bake's view (SPEC.md "Impostor maps"): the camera in direction (sin A cos E, sin E, cos A cos E)
-        crowd.characters.assign(1, Character{glm::vec3(0), 0.0f, 0.0f, 0, 0});
+        crowds[0].characters.assign(1, Character{glm::vec3(0), 0.0f, 0.0f, 0, 0});
         const float a = glm::radians(o.switch_azimuth_deg), e = glm::radians(o.switch_elevation_deg);
         const float d = impostor_switch_distance(Camera().fov_y, float(renderer.height()), model.radius, model.tile_size);
         camera = look_at(model.center + glm::vec3(std::sin(a) * std::cos(e), std::sin(e), std::cos(a) * std::cos(e)) * d, model.center);
     }
     DrawChoice choice = draw_choice(o.lod, o.impostors);
-    const LodRule rule = lod_rule_for(model, camera, float(renderer.height()));
+    // Each archetype's own LOD distances: its impostor radius and tile size set the 1:1 distance.
+    std::vector<LodRule> rules(archetype_count);
+    for (size_t a = 0; a < archetype_count; ++a) rules[a] = lod_rule_for(renderer.model(a), camera, float(renderer.height()));
     const glm::vec3 light = scene_light_dir();
-    std::vector<Lod> state;
-    FrameInstances frame;
+    std::vector<FrameState> state(archetype_count);
+    std::vector<FrameInstances> frame(archetype_count);
+    std::vector<ArchetypeCounts> counts(archetype_count);
     FlyControls controls;
     const bool windowed = context.visible();
     const int frames = o.frames > 0 ? o.frames : (windowed ? -1 : 1);
     const auto start = std::chrono::steady_clock::now();
     auto last = start, last_progress = start;
-    double fps_smoothed = 0;
+    double fps_smoothed = 0, build_seconds = 0;
+    std::vector<double> frame_ms;
     float time_s = 0;
+    int drawn = 0;
     DrawStats stats;
     for (int i = 0; frames < 0 || i < frames; ++i) {
         if (context.should_close()) break;
@@ -367,18 +340,28 @@ int run_view(GlContext& context, Renderer& renderer, const Bundle& bundle, const
                 if (glfwGetKey(w, GLFW_KEY_1 + k) == GLFW_PRESS) choice = draw_choice(keys[k], ImpostorKind::uv);
             if (glfwGetKey(w, GLFW_KEY_ESCAPE) == GLFW_PRESS) break;
         }
-        // The frame: cull and choose LODs on the CPU, then a few instanced draws.
-        build_frame(crowd, model, camera, renderer.aspect(), choice.lod, rule, time_s, &state, &frame, o.blend);
+        // The frame: cull and choose LODs on the CPU for every archetype, then a few instanced
+        // draws per archetype.
+        const auto build_start = std::chrono::steady_clock::now();
+        for (size_t a = 0; a < archetype_count; ++a)
+            build_frame(crowds[a], renderer.model(a), camera, renderer.aspect(), choice.lod, rules[a], time_s, &state[a], &frame[a], o.blend);
+        build_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
+        for (size_t a = 0; a < archetype_count; ++a) counts[a].add(frame[a]);
+        ++drawn;
         stats = renderer.draw(frame, camera, choice.kind, light);
+        if (!o.report.empty() && !windowed) {  // the report times whole frames: wait for the GPU (or llvmpipe)
+            renderer.finish();
+            frame_ms.push_back(1e3 * std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count());
+        }
         if (windowed) {
             int w = 0, h = 0;
             glfwGetFramebufferSize(context.window(), &w, &h);
             renderer.present(w, h);
             fps_smoothed = fps_smoothed == 0 ? 1.0 / std::max(dt, 1e-4f) : 0.9 * fps_smoothed + 0.1 / std::max(dt, 1e-4f);
-            char title[256];
-            std::snprintf(title, sizeof title, "crowdview - %.1f fps - high %zu | low %zu | impostor %zu | culled %u",
-                          fps_smoothed, frame.by_lod[0].size(), frame.by_lod[1].size(), frame.by_lod[2].size(), frame.culled);
-            context.set_title(title);
+            std::string title = "crowdview - " + std::to_string(int(fps_smoothed + 0.5)) + " fps";
+            for (size_t a = 0; a < archetype_count; ++a)
+                title += (archetype_count > 1 ? " - " + scene.names[a] + ": " : " - ") + lod_summary(counts[a]);
+            context.set_title(title.c_str());
             context.swap_and_poll();
         } else if (std::chrono::duration<double>(std::chrono::steady_clock::now() - last_progress).count() >= o.progress_every_s) {
             // Headless runs can take minutes on a software rasteriser: say they are alive.
@@ -388,9 +371,27 @@ int run_view(GlContext& context, Renderer& renderer, const Bundle& bundle, const
                          std::chrono::duration<double>(last_progress - start).count());
         }
     }
-    std::fprintf(stderr, "crowdview: %s; %zu high, %zu low, %zu impostor, %u culled; %u draws, %llu triangles\n",
-                 context.describe().c_str(), frame.by_lod[0].size(), frame.by_lod[1].size(), frame.by_lod[2].size(), frame.culled,
-                 stats.draw_calls, (unsigned long long)stats.triangles);
+    uint64_t lod_total[3] = {0, 0, 0}, culled = 0;
+    for (size_t a = 0; a < archetype_count; ++a) {
+        for (int l = 0; l < 3; ++l) lod_total[l] += counts[a].last[l];
+        culled += counts[a].last_culled;
+        if (archetype_count > 1) log_line("archetype '" + scene.names[a] + "': " + lod_summary(counts[a]));
+    }
+    std::fprintf(stderr, "crowdview: %s; %llu high, %llu low, %llu impostor, %llu culled; %u draws, %llu triangles\n",
+                 context.describe().c_str(), (unsigned long long)lod_total[0], (unsigned long long)lod_total[1],
+                 (unsigned long long)lod_total[2], (unsigned long long)culled, stats.draw_calls, (unsigned long long)stats.triangles);
+    if (!o.report.empty()) {
+        nlohmann::json report = view_report(context.describe(), renderer, scene, counts, rules, drawn, drawn ? 1e3 * build_seconds / drawn : 0, stats);
+        // Whole frames, cull to glFinish; the first two warm up (uploads, shader compilation on first use).
+        std::vector<double> timed(frame_ms.begin() + std::min<size_t>(2, frame_ms.size() > 2 ? 2 : 0), frame_ms.end());
+        std::sort(timed.begin(), timed.end());
+        report["frame_ms_median"] = timed.empty() ? 0.0 : timed[timed.size() / 2];
+        std::ofstream out(o.report);
+        if (!(out << report.dump(2) << "\n")) {
+            std::fprintf(stderr, "crowdview: cannot write %s\n", o.report.c_str());
+            return kExitRefused;
+        }
+    }
     if (!o.screenshot.empty()) {
         if (!write_png(o.screenshot, renderer.width(), renderer.height(), renderer.read_rgba())) {
             std::fprintf(stderr, "crowdview: cannot write %s\n", o.screenshot.c_str());
@@ -406,31 +407,48 @@ int run_view(GlContext& context, Renderer& renderer, const Bundle& bundle, const
 int main(int argc, char** argv) {
     const Options o = parse_args(argc, argv);
 
-    // 1. Bundle: from a folder, or fetched through the cache; verified either way.
-    Bundle bundle;
-    const Status status = load(o, &bundle);
+    // 1. Bundles: from folders, or fetched through the one cache; verified either way.
     if (o.verify_only) {
+        Bundle bundle;
+        const Status status = o.source_is_url ? fetch_bundle(o.source, fetch_options(o), &bundle) : load_bundle_dir(o.source, &bundle);
         if (status) std::printf("OK %s %s (%zu files)\n", bundle.manifest.name.c_str(), bundle.manifest.version.c_str(),
                                 bundle.manifest.files.size());
         else std::printf("%s %s\n", error_code_name(status.code), status.file.c_str());
         if (!status) std::fprintf(stderr, "crowdview: %s\n", status.message.c_str());
         return status ? 0 : kExitRefused;
     }
-    if (!status) {
-        std::fprintf(stderr, "crowdview: bundle refused: %s\n", status.message.c_str());
+    CrowdScene scene;
+    if (!o.crowd_file.empty()) {
+        const std::string error = load_crowd_description(o.crowd_file, &scene.file);
+        if (!error.empty()) {
+            log_line(error);
+            return kExitRefused;
+        }
+    } else {
+        ArchetypeSource source;
+        (o.source_is_url ? source.url : source.folder) = o.source;
+        scene.file = single_archetype_crowd(source, o.count, o.seed, o.layout == Layout::paths);
+    }
+    const bool one_bundle = o.crowd_file.empty();
+    std::vector<LoadedArchetype> loaded =
+        load_archetypes(scene.file, fetch_options(o), one_bundle ? std::function<void(const std::string&)>() : log_line, &scene.refused);
+    if (one_bundle && !scene.refused.empty()) {
+        log_line("bundle refused: " + scene.refused[0].error);
+        return kExitRefused;
+    }
+    if (loaded.empty()) {
+        log_line("no archetype of " + o.crowd_file + " could be loaded");
         return kExitRefused;
     }
 
     // Detail-mapped impostors need the detail maps, which a bake stores only when asked (--detail-map).
-    const bool has_detail = !bundle.manifest.impostor.detail_map.empty();
-    if (!has_detail && !o.benchmark && (o.lod == LodChoice::detail || (o.lod == LodChoice::automatic && o.impostors == ImpostorKind::detail))) {
-        std::fprintf(stderr, "crowdview: %s %s has no detail maps (bake it with --detail-map); --lod detail and --impostors "
-                             "detail need them, --lod impostor draws the UV-mapped impostor\n",
-                     bundle.manifest.name.c_str(), bundle.manifest.version.c_str());
-        return kExitUsage;
-    }
+    const bool wants_detail = o.lod == LodChoice::detail || (o.lod == LodChoice::automatic && o.impostors == ImpostorKind::detail);
+    for (const LoadedArchetype& a : loaded)
+        if (wants_detail && !o.benchmark && a.bundle.manifest.impostor.detail_map.empty())
+            return log_line(a.bundle.manifest.name + " " + a.bundle.manifest.version + " has no detail maps (bake it with --detail-map); "
+                            "--lod detail and --impostors detail need them, --lod impostor draws the UV-mapped impostor"), kExitUsage;
 
-    // 2. GL context and the uploaded bundle.
+    // 2. GL context and the uploaded bundles, one renderer archetype each.
     GlContextDesc context_desc;
     context_desc.width = o.width;
     context_desc.height = o.height;
@@ -454,12 +472,29 @@ int main(int argc, char** argv) {
     renderer_desc.height = o.height;
     renderer_desc.shader_dir = o.shader_dir;
     renderer_desc.force_cpu_texture_decode = o.cpu_decode;
-    std::unique_ptr<Renderer> renderer = Renderer::create(bundle, renderer_desc, &error);
+    std::unique_ptr<Renderer> renderer = Renderer::create(renderer_desc, &error);
     if (!renderer) {
         std::fprintf(stderr, "crowdview: %s\n", error.c_str());
         return kExitRefused;
     }
+    if (!upload_archetypes(renderer.get(), loaded, &scene, one_bundle ? std::function<void(const std::string&)>() : log_line, &error)) {
+        std::fprintf(stderr, "crowdview: %s\n", error.c_str());
+        return kExitRefused;
+    }
+    if (renderer->archetype_count() == 0) {
+        log_line("no archetype of " + o.crowd_file + " could be drawn");
+        return kExitRefused;
+    }
+    // The layout indexes archetypes as the renderer does; a positions layout names description indices.
+    if (scene.file.layout.kind == CrowdLayoutKind::positions) {
+        for (PlacedCharacter& p : scene.file.layout.positions) {
+            const auto it = std::find(scene.desc_index.begin(), scene.desc_index.end(), size_t(p.archetype));
+            p.archetype = it == scene.desc_index.end() ? UINT32_MAX : uint32_t(it - scene.desc_index.begin());
+        }
+    }
 
     // 3. Run.
-    return o.benchmark ? run_benchmark_mode(*context, *renderer, bundle, o) : run_view(*context, *renderer, bundle, o);
+    if (o.benchmark) return run_benchmark_mode(*context, *renderer, loaded[0].bundle, o);
+    for (LoadedArchetype& a : loaded) a.bundle = Bundle();  // on the GPU now
+    return run_view(*context, *renderer, scene, o);
 }

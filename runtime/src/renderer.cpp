@@ -136,6 +136,7 @@ struct Upload {
     bool s3tc = false;           // driver takes S3TC blocks as they are
     bool force_cpu_decode = false;  // RendererDesc::force_cpu_texture_decode: every block format decoded here
     bool cpu_decode_used = false;
+    uint64_t bytes = 0;  // GPU bytes uploaded so far (ArchetypeMemory)
 };
 
 // A CBTX as a GL_TEXTURE_2D_ARRAY. BC blocks go up untouched where S3TC is available and
@@ -177,6 +178,9 @@ GLuint upload_texture_array(const TextureArray& t, bool filtered, const std::str
     } else {
         glTexImage3D(GL_TEXTURE_2D_ARRAY, 0, GL_RGBA8, w, h, layers, 0, GL_RGBA, GL_UNSIGNED_BYTE, t.data.data());
     }
+    // Bytes as stored on the GPU: blocks as they are, a CPU decode as RGBA8; a mip chain adds a third.
+    const uint64_t level0 = gpu_blocks || !(s3tc || t.format == PixelFormat::bc5) ? t.data.size() : uint64_t(w) * h * 4 * layers;
+    upload->bytes += filtered ? level0 * 4 / 3 : level0;
     glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_MAG_FILTER, filtered ? GL_LINEAR : GL_NEAREST);
     glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_WRAP_S, filtered ? GL_REPEAT : GL_CLAMP_TO_EDGE);
     glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_WRAP_T, filtered ? GL_REPEAT : GL_CLAMP_TO_EDGE);
@@ -257,29 +261,28 @@ ImpostorUniforms impostor_uniforms(GLuint program) {
 
 }  // namespace
 
-struct Renderer::Impl {
-    GLuint framebuffer = 0, color = 0, depth = 0;
-    GLuint mesh_program = 0;
+// One archetype's uploads: its mesh parts, instance buffers, textures and impostor programs
+// (their defines follow the bundle's map formats, their uniform arrays its baked views).
+struct Renderer::Archetype {
+    CharacterModel model;
+    ArchetypeMemory memory;
     // Impostor programs by ImpostorKind and ImpostorBlend: each blend mode is its own shader
     // variant with constant sample counts, so blending off costs what the paper's lookup does.
     GLuint impostor_programs[2][kBlendModes] = {};
     ImpostorUniforms impostor_uniforms[2][kBlendModes];
-    MeshUniforms mesh_uniforms;
     std::vector<Part> parts;
     GLuint impostor_vao = 0;
     GLuint instance_buffers[3] = {0, 0, 0};  // by Lod
     GLuint impostor_sample_buffer = 0;       // struct ImpostorSamples, one per impostor
-    std::vector<ImpostorSamples> nearest_samples;  // for frames built without samples
     std::vector<GLuint> diffuse;
     std::vector<int> variations;
     std::vector<bool> has_regions;
-    GLuint empty_array = 0;  // bound to unused material units so every sampler is complete
     GLuint outfits = 0, normal_map = 0, uv_map = 0, detail_map = 0;
     GLuint surface_map = 0;  // 0: the bundle has none (or more views than the warp shader holds), warp draws as full
     uint32_t tile_size = 0, azimuth_count = 0;
     ImpostorCrop crop;
 
-    ~Impl() {
+    ~Archetype() {
         for (Part& p : parts) {
             glDeleteVertexArrays(1, &p.vao);
             GLuint buffers[] = {p.uv_buffer, p.index_buffer, p.pose_buffer};
@@ -290,16 +293,32 @@ struct Renderer::Impl {
         glDeleteBuffers(3, instance_buffers);
         glDeleteBuffers(1, &impostor_sample_buffer);
         glDeleteTextures(GLsizei(diffuse.size()), diffuse.data());
-        GLuint textures[] = {empty_array, outfits, normal_map, uv_map, detail_map, surface_map};
-        glDeleteTextures(6, textures);
-        glDeleteProgram(mesh_program);
+        GLuint textures[] = {outfits, normal_map, uv_map, detail_map, surface_map};
+        glDeleteTextures(5, textures);
         for (auto& by_blend : impostor_programs)
             for (GLuint program : by_blend) glDeleteProgram(program);
+    }
+};
+
+// What every archetype shares: the framebuffer and the mesh program.
+struct Renderer::Impl {
+    GLuint framebuffer = 0, color = 0, depth = 0;
+    GLuint mesh_program = 0;
+    MeshUniforms mesh_uniforms;
+    GLuint empty_array = 0;  // bound to unused material units so every sampler is complete
+    std::vector<ImpostorSamples> nearest_samples;  // for frames built without samples
+    std::vector<std::unique_ptr<Archetype>> archetypes;
+
+    ~Impl() {
+        archetypes.clear();
+        glDeleteTextures(1, &empty_array);
+        glDeleteProgram(mesh_program);
         glDeleteFramebuffers(1, &framebuffer);
         GLuint renderbuffers[] = {color, depth};
         glDeleteRenderbuffers(2, renderbuffers);
     }
 };
+
 
 CharacterModel character_model(const Bundle& bundle) {
     const Manifest& m = bundle.manifest;
@@ -327,18 +346,8 @@ static void bind_instance_attributes(GLuint buffer) {
     glVertexAttribDivisor(CV_ATTR_INSTANCE_IDS, 1);
 }
 
-std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererDesc& desc, std::string* error) {
+std::unique_ptr<Renderer> Renderer::create(const RendererDesc& desc, std::string* error) {
     const std::string fn = "Renderer::create: ";
-    const Manifest& m = bundle.manifest;
-    if (m.materials.size() > CV_MAX_MATERIALS) {
-        *error = fn + "the bundle has " + std::to_string(m.materials.size()) + " materials, this build draws at most " +
-                 std::to_string(CV_MAX_MATERIALS) + " (CV_MAX_MATERIALS)";
-        return nullptr;
-    }
-    if (std::none_of(m.meshes.begin(), m.meshes.end(), [](const MeshInfo& mesh) { return mesh.lod == 0; })) {
-        *error = fn + "the bundle has no lod 0 mesh";
-        return nullptr;
-    }
     if (epoxy_gl_version() < 33) {
         *error = fn + "OpenGL 3.3 is needed, the context offers " + std::to_string(epoxy_gl_version());
         return nullptr;
@@ -350,9 +359,82 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
     Impl& g = *r->impl_;
     r->width_ = desc.width;
     r->height_ = desc.height;
-    r->model_ = character_model(bundle);
+    r->desc_ = desc;
+    r->compressed_ = !desc.force_cpu_texture_decode && epoxy_has_gl_extension("GL_EXT_texture_compression_s3tc");
 
-    // Programs: shader files by name (niagara style), config.h pasted in.
+    // The mesh program: shader files by name (niagara style), config.h pasted in.
+    std::string shader_error;
+    g.mesh_program = build_program(desc.shader_dir, "mesh", "mesh", &shader_error);
+    if (!g.mesh_program) {
+        *error = fn + shader_error;
+        return nullptr;
+    }
+    g.mesh_uniforms = mesh_uniforms(g.mesh_program);
+    // Sampler units are fixed (config.h), so they are set once.
+    glUseProgram(g.mesh_program);
+    glUniform1i(uniform(g.mesh_program, "u_poses"), CV_UNIT_POSES);
+    glUniform1i(uniform(g.mesh_program, "u_outfits"), CV_UNIT_OUTFITS);
+    glUniform1i(uniform(g.mesh_program, "u_diffuse"), CV_UNIT_DIFFUSE0);
+    Upload upload;
+    TextureArray empty;
+    empty.width = empty.height = empty.layer_count = 1;
+    empty.data.assign(4, 255);
+    g.empty_array = upload_texture_array(empty, false, "unused-material", &upload);
+
+    // The framebuffer every frame is drawn into.
+    glGenFramebuffers(1, &g.framebuffer);
+    glBindFramebuffer(GL_FRAMEBUFFER, g.framebuffer);
+    label(GL_FRAMEBUFFER, g.framebuffer, "frame");
+    glGenRenderbuffers(1, &g.color);
+    glBindRenderbuffer(GL_RENDERBUFFER, g.color);
+    glRenderbufferStorage(GL_RENDERBUFFER, GL_RGBA8, desc.width, desc.height);
+    label(GL_RENDERBUFFER, g.color, "frame:color");
+    glGenRenderbuffers(1, &g.depth);
+    glBindRenderbuffer(GL_RENDERBUFFER, g.depth);
+    glRenderbufferStorage(GL_RENDERBUFFER, GL_DEPTH_COMPONENT24, desc.width, desc.height);
+    label(GL_RENDERBUFFER, g.depth, "frame:depth");
+    glFramebufferRenderbuffer(GL_FRAMEBUFFER, GL_COLOR_ATTACHMENT0, GL_RENDERBUFFER, g.color);
+    glFramebufferRenderbuffer(GL_FRAMEBUFFER, GL_DEPTH_ATTACHMENT, GL_RENDERBUFFER, g.depth);
+    if (glCheckFramebufferStatus(GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE) {
+        *error = fn + "the " + std::to_string(desc.width) + "x" + std::to_string(desc.height) + " framebuffer is incomplete";
+        return nullptr;
+    }
+    if (GLenum e = glGetError(); e != GL_NO_ERROR) {
+        *error = fn + "OpenGL error 0x" + [](GLenum v) {
+            char buf[16];
+            std::snprintf(buf, sizeof buf, "%04x", v);
+            return std::string(buf);
+        }(e) + " while uploading the bundle";
+        return nullptr;
+    }
+    return r;
+}
+
+std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererDesc& desc, std::string* error) {
+    std::unique_ptr<Renderer> r = create(desc, error);
+    if (!r || !r->add_archetype(bundle, error)) return nullptr;
+    return r;
+}
+
+bool Renderer::add_archetype(const Bundle& bundle, std::string* error) {
+    const std::string fn = "Renderer::create: ";
+    const RendererDesc& desc = desc_;
+    const Manifest& m = bundle.manifest;
+    if (m.materials.size() > CV_MAX_MATERIALS) {
+        *error = fn + "the bundle has " + std::to_string(m.materials.size()) + " materials, this build draws at most " +
+                 std::to_string(CV_MAX_MATERIALS) + " (CV_MAX_MATERIALS)";
+        return false;
+    }
+    if (std::none_of(m.meshes.begin(), m.meshes.end(), [](const MeshInfo& mesh) { return mesh.lod == 0; })) {
+        *error = fn + "the bundle has no lod 0 mesh";
+        return false;
+    }
+
+    auto owned = std::make_unique<Archetype>();
+    Archetype& g = *owned;
+    g.model = character_model(bundle);
+
+    // Impostor programs: shader files by name (niagara style), config.h pasted in.
     // The impostor programs read the UV map in the bundle's format (impostor_uv_map.glsl).
     std::string shader_error;
     const std::string uv_defines =
@@ -365,19 +447,8 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
         *error = fn + "a bc5 normal map needs at most " + std::to_string(CV_MAX_AZIMUTHS) + " azimuths and " +
                  std::to_string(CV_MAX_ELEVATIONS) + " elevations, the bundle has " + std::to_string(m.impostor.azimuths_deg.size()) +
                  " and " + std::to_string(m.impostor.elevations_deg.size());
-        return nullptr;
+        return false;
     }
-    g.mesh_program = build_program(desc.shader_dir, "mesh", "mesh", &shader_error);
-    if (!g.mesh_program) {
-        *error = fn + shader_error;
-        return nullptr;
-    }
-    g.mesh_uniforms = mesh_uniforms(g.mesh_program);
-    // Sampler units are fixed (config.h), so they are set once.
-    glUseProgram(g.mesh_program);
-    glUniform1i(uniform(g.mesh_program, "u_poses"), CV_UNIT_POSES);
-    glUniform1i(uniform(g.mesh_program, "u_outfits"), CV_UNIT_OUTFITS);
-    glUniform1i(uniform(g.mesh_program, "u_diffuse"), CV_UNIT_DIFFUSE0);
     for (int kind = 0; kind < 2; ++kind)
         for (int blend = 0; blend < kBlendModes; ++blend) {
             const bool warp = ImpostorBlend(blend) == ImpostorBlend::warp;
@@ -390,7 +461,7 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
                                                  &shader_error, defines);
             if (!program) {
                 *error = fn + shader_error;
-                return nullptr;
+                return false;
             }
             g.impostor_programs[kind][blend] = program;
             g.impostor_uniforms[kind][blend] = impostor_uniforms(program);
@@ -429,7 +500,7 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
         if (texels > uint64_t(max_texels)) {
             *error = fn + info.file + " needs " + std::to_string(texels) + " buffer texels, the driver allows " +
                      std::to_string(max_texels);
-            return nullptr;
+            return false;
         }
         Part p;
         p.index_count = pose.index_count;
@@ -468,6 +539,7 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
         glBindTexture(GL_TEXTURE_BUFFER, p.pose_texture);
         glTexBuffer(GL_TEXTURE_BUFFER, GL_RGBA32F, p.pose_buffer);
         label(GL_TEXTURE, p.pose_texture, name + ":poses");
+        g.memory.meshes += uint64_t(pose.uvs.size() + pose.indices.size() + interleaved.size()) * 4;
         g.parts.push_back(p);
     }
     glGenVertexArrays(1, &g.impostor_vao);
@@ -499,6 +571,7 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
         g.variations.push_back(int(bundle.diffuse[k].layer_count));
         g.has_regions.push_back(bundle.diffuse[k].format != PixelFormat::bc1);
     }
+    g.memory.textures = upload.bytes;
     g.normal_map = upload_texture_array(bundle.impostor_normal, false, "impostor:normal", &upload);
     g.uv_map = upload_texture_array(bundle.impostor_uv, false, "impostor:uv", &upload);
     if (bundle.impostor_detail.layer_count > 0)  // stored only by bakes asked for it (--detail-map)
@@ -510,10 +583,7 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
         glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_MAG_FILTER, GL_LINEAR);
         glTexParameteri(GL_TEXTURE_2D_ARRAY, GL_TEXTURE_MIN_FILTER, GL_LINEAR);
     }
-    TextureArray empty;
-    empty.width = empty.height = empty.layer_count = 1;
-    empty.data.assign(4, 255);
-    g.empty_array = upload_texture_array(empty, false, "unused-material", &upload);
+    g.memory.impostors = upload.bytes - g.memory.textures;
     glGenTextures(1, &g.outfits);
     glBindTexture(GL_TEXTURE_2D, g.outfits);
     glTexImage2D(GL_TEXTURE_2D, 0, GL_RGBA8, GLsizei(bundle.outfits.width), GLsizei(bundle.outfits.height), 0, GL_RGBA,
@@ -522,61 +592,73 @@ std::unique_ptr<Renderer> Renderer::create(const Bundle& bundle, const RendererD
     glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
     glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAX_LEVEL, 0);
     label(GL_TEXTURE, g.outfits, "outfits");
-    r->compressed_ = upload.s3tc;
+    g.memory.textures += uint64_t(bundle.outfits.width) * bundle.outfits.height * 4;
     g.tile_size = m.impostor.tile_size;
     g.azimuth_count = uint32_t(m.impostor.azimuths_deg.size());
     g.crop = m.impostor.crop;
-
-    // The framebuffer every frame is drawn into.
-    glGenFramebuffers(1, &g.framebuffer);
-    glBindFramebuffer(GL_FRAMEBUFFER, g.framebuffer);
-    label(GL_FRAMEBUFFER, g.framebuffer, "frame");
-    glGenRenderbuffers(1, &g.color);
-    glBindRenderbuffer(GL_RENDERBUFFER, g.color);
-    glRenderbufferStorage(GL_RENDERBUFFER, GL_RGBA8, desc.width, desc.height);
-    label(GL_RENDERBUFFER, g.color, "frame:color");
-    glGenRenderbuffers(1, &g.depth);
-    glBindRenderbuffer(GL_RENDERBUFFER, g.depth);
-    glRenderbufferStorage(GL_RENDERBUFFER, GL_DEPTH_COMPONENT24, desc.width, desc.height);
-    label(GL_RENDERBUFFER, g.depth, "frame:depth");
-    glFramebufferRenderbuffer(GL_FRAMEBUFFER, GL_COLOR_ATTACHMENT0, GL_RENDERBUFFER, g.color);
-    glFramebufferRenderbuffer(GL_FRAMEBUFFER, GL_DEPTH_ATTACHMENT, GL_RENDERBUFFER, g.depth);
-    if (glCheckFramebufferStatus(GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE) {
-        *error = fn + "the " + std::to_string(desc.width) + "x" + std::to_string(desc.height) + " framebuffer is incomplete";
-        return nullptr;
-    }
     if (GLenum e = glGetError(); e != GL_NO_ERROR) {
         *error = fn + "OpenGL error 0x" + [](GLenum v) {
             char buf[16];
             std::snprintf(buf, sizeof buf, "%04x", v);
             return std::string(buf);
         }(e) + " while uploading the bundle";
-        return nullptr;
+        return false;
     }
-    return r;
+    impl_->archetypes.push_back(std::move(owned));
+    return true;
 }
 
 Renderer::~Renderer() = default;
 
-uint32_t Renderer::triangles_per_character(Lod lod) const {
+size_t Renderer::archetype_count() const { return impl_->archetypes.size(); }
+const CharacterModel& Renderer::model(size_t archetype) const { return impl_->archetypes.at(archetype)->model; }
+ArchetypeMemory Renderer::memory(size_t archetype) const { return impl_->archetypes.at(archetype)->memory; }
+
+uint32_t Renderer::triangles_per_character(Lod lod, size_t archetype) const {
     if (lod == Lod::impostor) return 2;
     uint32_t triangles = 0;
-    for (const Part& p : impl_->parts)
+    for (const Part& p : impl_->archetypes.at(archetype)->parts)
         if (p.lod == lod) triangles += p.index_count / 3;
     return triangles;
 }
 
 DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, ImpostorKind impostors,
                          const glm::vec3& light_dir) {
-    Impl& g = *impl_;
+    return draw_all(&frame, 1, camera, impostors, light_dir);
+}
+
+DrawStats Renderer::draw(const std::vector<FrameInstances>& frames, const Camera& camera, ImpostorKind impostors,
+                         const glm::vec3& light_dir) {
+    return draw_all(frames.data(), frames.size(), camera, impostors, light_dir);
+}
+
+DrawStats Renderer::draw_all(const FrameInstances* frames, size_t frame_count, const Camera& camera, ImpostorKind impostors,
+                             const glm::vec3& light_dir) {
+    Impl& shared = *impl_;
     DrawStats stats;
-    glBindFramebuffer(GL_FRAMEBUFFER, g.framebuffer);
+    glBindFramebuffer(GL_FRAMEBUFFER, shared.framebuffer);
     glViewport(0, 0, width_, height_);
     glClearColor(0.62f, 0.70f, 0.78f, 1.0f);  // overcast sky
     glClear(GL_COLOR_BUFFER_BIT | GL_DEPTH_BUFFER_BIT);
     glEnable(GL_DEPTH_TEST);
     glDisable(GL_BLEND);
+    const glm::mat4 view_projection = camera.projection(aspect()) * camera.view();
+    const glm::vec3 light = glm::normalize(light_dir);
+    // Each archetype in turn: its instances, then its meshes and its impostors.
+    for (size_t a = 0; a < frame_count && a < shared.archetypes.size(); ++a) {
+        const DrawStats s = draw_archetype(*shared.archetypes[a], frames[a], view_projection, camera, impostors, light);
+        stats.draw_calls += s.draw_calls;
+        stats.triangles += s.triangles;
+    }
+    glBindVertexArray(0);
+    return stats;
+}
 
+DrawStats Renderer::draw_archetype(Archetype& g, const FrameInstances& frame, const glm::mat4& view_projection, const Camera& camera,
+                                   ImpostorKind impostors, const glm::vec3& light) {
+    Impl& shared = *impl_;
+    const CharacterModel& model_ = g.model;
+    DrawStats stats;
     // 1. This frame's instances, one buffer per LOD (orphaned so the driver need not wait).
     for (int lod = 0; lod < 3; ++lod) {
         const std::vector<Instance>& list = frame.by_lod[lod];
@@ -589,27 +671,25 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
     const std::vector<Instance>& impostor_list = frame.by_lod[int(Lod::impostor)];
     const std::vector<ImpostorSamples>* samples = &frame.impostor_samples;
     if (samples->size() != impostor_list.size()) {
-        g.nearest_samples.resize(impostor_list.size());
+        shared.nearest_samples.resize(impostor_list.size());
         for (size_t i = 0; i < impostor_list.size(); ++i) {
-            ImpostorSamples& s = g.nearest_samples[i];
+            ImpostorSamples& s = shared.nearest_samples[i];
             s = ImpostorSamples{};
             for (uint32_t& t : s.tiles) t = impostor_list[i].tile;
             s.view_weights[0] = 1;
             s.layers[0] = s.layers[1] = impostor_list[i].frame;
         }
-        samples = &g.nearest_samples;
+        samples = &shared.nearest_samples;
     }
     glBindBuffer(GL_ARRAY_BUFFER, g.impostor_sample_buffer);
     glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(samples->size() * sizeof(ImpostorSamples)), samples->empty() ? nullptr : samples->data(),
                  GL_STREAM_DRAW);
-    const glm::mat4 view_projection = camera.projection(aspect()) * camera.view();
-    const glm::vec3 light = glm::normalize(light_dir);
     glActiveTexture(GL_TEXTURE0 + CV_UNIT_OUTFITS);
     glBindTexture(GL_TEXTURE_2D, g.outfits);
 
     // 2. Meshes: one instanced draw per part per mesh LOD.
-    const MeshUniforms& mu = g.mesh_uniforms;
-    glUseProgram(g.mesh_program);
+    const MeshUniforms& mu = shared.mesh_uniforms;
+    glUseProgram(shared.mesh_program);
     glUniformMatrix4fv(mu.view_projection, 1, GL_FALSE, glm::value_ptr(view_projection));
     glUniform3fv(mu.light_dir, 1, glm::value_ptr(light));
     for (const Part& p : g.parts) {
@@ -635,7 +715,7 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
     // 3. Impostors: one instanced draw of camera-facing quads.
     const std::vector<Instance>& quads = frame.by_lod[int(Lod::impostor)];
     if (!quads.empty()) {
-        const int kind = impostors == ImpostorKind::uv ? 0 : 1, blend = int(effective_blend(frame.blend));
+        const int kind = impostors == ImpostorKind::uv ? 0 : 1, blend = int(archetype_blend(g, frame.blend));
         const ImpostorUniforms& iu = g.impostor_uniforms[kind][blend];
         glUseProgram(g.impostor_programs[kind][blend]);
         glUniformMatrix4fv(iu.view_projection, 1, GL_FALSE, glm::value_ptr(view_projection));
@@ -654,11 +734,11 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
         glActiveTexture(GL_TEXTURE0 + CV_UNIT_IMPOSTOR_DETAIL);
         glBindTexture(GL_TEXTURE_2D_ARRAY, g.detail_map);
         glActiveTexture(GL_TEXTURE0 + CV_UNIT_IMPOSTOR_SURFACE);
-        glBindTexture(GL_TEXTURE_2D_ARRAY, g.surface_map ? g.surface_map : g.empty_array);
+        glBindTexture(GL_TEXTURE_2D_ARRAY, g.surface_map ? g.surface_map : shared.empty_array);
         for (int k = 0; k < CV_MAX_MATERIALS; ++k) {
             const bool used = size_t(k) < g.diffuse.size();
             glActiveTexture(GL_TEXTURE0 + CV_UNIT_DIFFUSE0 + k);
-            glBindTexture(GL_TEXTURE_2D_ARRAY, used ? g.diffuse[k] : g.empty_array);
+            glBindTexture(GL_TEXTURE_2D_ARRAY, used ? g.diffuse[k] : shared.empty_array);
             glUniform1i(iu.variations[k], used ? g.variations[k] : 1);
             glUniform1i(iu.has_regions[k], used && g.has_regions[k] ? 1 : 0);
         }
@@ -667,12 +747,15 @@ DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, Impo
         ++stats.draw_calls;
         stats.triangles += 2 * uint64_t(quads.size());
     }
-    glBindVertexArray(0);
     return stats;
 }
 
-ImpostorBlend Renderer::effective_blend(ImpostorBlend blend) const {
-    return blend == ImpostorBlend::warp && !impl_->surface_map ? ImpostorBlend::full : blend;
+ImpostorBlend Renderer::archetype_blend(const Archetype& archetype, ImpostorBlend blend) {
+    return blend == ImpostorBlend::warp && !archetype.surface_map ? ImpostorBlend::full : blend;
+}
+
+ImpostorBlend Renderer::effective_blend(ImpostorBlend blend, size_t archetype) const {
+    return archetype_blend(*impl_->archetypes.at(archetype), blend);
 }
 
 void Renderer::present(int window_width, int window_height) const {

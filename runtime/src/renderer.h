@@ -1,5 +1,6 @@
-// The crowd renderer (OpenGL 3.3 core): a bundle's pose caches and textures uploaded once,
-// then per frame a few instanced draws: one per mesh part per mesh LOD, one for impostors.
+// The crowd renderer (OpenGL 3.3 core): each archetype's pose caches and textures uploaded
+// once, then per frame a few instanced draws per archetype: one per mesh part per mesh LOD, one
+// for impostors.
 // Needs a current context (gl_context.h). Draws into its own framebuffer, so headless and
 // windowed runs render the same pixels.
 #pragma once
@@ -34,17 +35,39 @@ inline glm::vec3 scene_light_dir() { return glm::normalize(glm::vec3(0.4f, 0.8f,
 // What the crowd code needs from a bundle (centre, radius, frames, the impostor layout).
 CharacterModel character_model(const Bundle& bundle);
 
+// GPU memory one archetype's uploads take (bytes as uploaded: compressed blocks stay compressed;
+// mipmapped diffuse maps count their whole chain).
+struct ArchetypeMemory {
+    uint64_t meshes = 0;     // UVs, indices and pose buffers of both mesh LODs
+    uint64_t textures = 0;   // diffuse arrays and the outfit map
+    uint64_t impostors = 0;  // normal, UV, detail and surface maps
+    uint64_t total() const { return meshes + textures + impostors; }
+};
+
+// Draws a crowd of one or more archetypes (bundles) into one framebuffer. Each archetype owns
+// its uploads and impostor programs (a per-archetype resource struct inside); the framebuffer
+// and the mesh program are shared.
 class Renderer {
 public:
     ~Renderer();
     Renderer(const Renderer&) = delete;
     Renderer& operator=(const Renderer&) = delete;
 
-    // Uploads everything; nullptr and a one-line `error` (starting "Renderer::create:") when
-    // a shader does not build or the bundle needs more than this renderer supports.
+    // The framebuffer and shared programs, no archetype yet; nullptr and a one-line `error`
+    // (starting "Renderer::create:") when a shader does not build or GL is too old.
+    static std::unique_ptr<Renderer> create(const RendererDesc& desc, std::string* error);
+    // create() and add_archetype(bundle): a one-archetype renderer.
     static std::unique_ptr<Renderer> create(const Bundle& bundle, const RendererDesc& desc, std::string* error);
+    // Uploads a bundle as the next archetype (index archetype_count() - 1). False and a one-line
+    // `error` (starting "Renderer::create:") when the bundle needs more than this renderer
+    // supports; the renderer and its other archetypes stay usable.
+    bool add_archetype(const Bundle& bundle, std::string* error);
 
-    // One frame into the offscreen framebuffer. `light_dir` points towards the light.
+    // One frame into the offscreen framebuffer: frames[a] are archetype a's instances (at most
+    // archetype_count() entries). `light_dir` points towards the light.
+    DrawStats draw(const std::vector<FrameInstances>& frames, const Camera& camera, ImpostorKind impostors,
+                   const glm::vec3& light_dir);
+    // The same for a one-archetype renderer.
     DrawStats draw(const FrameInstances& frame, const Camera& camera, ImpostorKind impostors, const glm::vec3& light_dir);
 
     // Copies the frame to the default framebuffer of a window of this size.
@@ -57,20 +80,28 @@ public:
     int width() const { return width_; }
     int height() const { return height_; }
     float aspect() const { return float(width_) / float(height_); }
-    const CharacterModel& model() const { return model_; }
+    size_t archetype_count() const;
+    const CharacterModel& model(size_t archetype = 0) const;
+    ArchetypeMemory memory(size_t archetype) const;
     bool compressed_textures() const { return compressed_; }  // S3TC used, not the CPU decode
     // The blend a frame built for `blend` is drawn with: warp is full where the bundle has no
     // surface map (or more views than CV_MAX_AZIMUTHS x CV_MAX_ELEVATIONS).
-    ImpostorBlend effective_blend(ImpostorBlend blend) const;
-    uint32_t triangles_per_character(Lod lod) const;
+    ImpostorBlend effective_blend(ImpostorBlend blend, size_t archetype = 0) const;
+    uint32_t triangles_per_character(Lod lod, size_t archetype = 0) const;
 
 private:
     Renderer() = default;
     struct Part;
+    struct Archetype;
     struct Impl;
+    DrawStats draw_all(const FrameInstances* frames, size_t frame_count, const Camera& camera, ImpostorKind impostors,
+                       const glm::vec3& light_dir);
+    DrawStats draw_archetype(Archetype& archetype, const FrameInstances& frame, const glm::mat4& view_projection,
+                             const Camera& camera, ImpostorKind impostors, const glm::vec3& light);
+    static ImpostorBlend archetype_blend(const Archetype& archetype, ImpostorBlend blend);
     std::unique_ptr<Impl> impl_;
-    CharacterModel model_;
     int width_ = 0, height_ = 0;
+    RendererDesc desc_;
     bool compressed_ = false;
 };
 

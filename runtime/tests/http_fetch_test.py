@@ -1,8 +1,9 @@
 """crowdview fetching a bundle over real HTTP: dropped connections resume with Range requests,
 servers without Range support are downloaded again, tampered and missing files are refused, a
 dripping server meets the deadline, a manifest claiming a huge file meets the cache budget, a
-private bundle needs the bearer key (never printed), `latest` is resolved to one version, and a
-redirect loop ends after a few requests.
+private bundle needs the bearer key (never printed), `latest` is resolved to one version, a
+redirect loop ends after a few requests, and a crowd description's archetypes (a published bundle by
+name and `latest`, a URL, a missing one) share one cache and a refused one stops alone.
 
     python3 http_fetch_test.py CROWDVIEW MAKE_SYNTHETIC_BUNDLE
 
@@ -41,6 +42,8 @@ class Handler(http.server.BaseHTTPRequestHandler):
     def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
         path = self.path.lstrip("/")
         Handler.log.append((path, self.headers.get("Range")))
+        if path.startswith("v1/"):  # the service's API prefix: /v1/bundles/{name}/{version}/...
+            path = path[3:]
         if path.startswith("loop/"):  # redirects to itself, for ever
             self.redirect(path)
             return
@@ -210,6 +213,29 @@ def check_latest(run, check, crowdview, served: Path, base: str, work: Path) -> 
     shutil.rmtree(newer)
 
 
+def check_crowd(run, check, crowdview, base: str, work: Path) -> None:
+    # 11. A crowd of three archetypes: one published bundle by name (latest), the same bundle by URL,
+    # one missing. The two share the cache (each file fetched once); the missing one stops alone.
+    crowd = {"crowd_format_version": 1, "seed": 3, "archetypes": [
+        {"name": "published", "published": {"server": base, "name": "synthetic-walker"}, "count": 3},
+        {"name": "by-url", "url": f"{base}/{BUNDLE}", "count": 2},
+        {"name": "gone", "published": {"server": base, "name": "no-such-bundle", "version": "1.0.0"}, "count": 2}]}
+    (work / "crowd.json").write_text(json.dumps(crowd))
+    Handler.log.clear()
+    report = work / "crowd-report.json"
+    result = run(crowdview, "--crowd", str(work / "crowd.json"), "--cache", str(work / "cache-crowd"), "--headless",
+                 "--frames", "1", "--width", "64", "--height", "48", "--impostor-blend", "off", "--report", str(report))
+    check("archetype 'gone': bundle refused: " in result.stderr and "not_found" in result.stderr, "crowd: the missing archetype is named", result)
+    files = [p for p, _ in Handler.log if "/files/" in p]
+    check(files and len(files) == len(set(files)), f"crowd: each file fetched once for both archetypes: {len(files)} requests", result)
+    check(any(p.startswith("v1/bundles/synthetic-walker/latest/manifest.json") for p, _ in Handler.log), "crowd: latest asked for")
+    if result.returncode == 3:  # no OpenGL here: loading was still checked
+        return
+    check(result.returncode == 0, "crowd: drawn without the missing archetype", result)
+    names = [a["name"] for a in json.loads(report.read_text())["archetypes"]] if report.exists() else []
+    check(names == ["published", "by-url"], f"crowd: archetypes drawn: {names}", result)
+
+
 def main() -> int:
     crowdview, make_bundle = sys.argv[1], sys.argv[2]
     work = Path(tempfile.mkdtemp(prefix="crowdview-http-"))
@@ -283,6 +309,7 @@ def main() -> int:
         check_key(run, check, crowdview, base, work)
         check_latest(run, check, crowdview, served, base, work)
         check_redirects(run, check, crowdview, base, work)
+        check_crowd(run, check, crowdview, base, work)
         server.shutdown()
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -388,10 +388,13 @@ std::string write_bundle(const std::string& dir, const Options& o) {
     if (fs::exists(dir)) return "write_bundle: " + dir + " exists";
     const float fps = 8.0f;
     const uint32_t frames = o.frames;
-    const Mesh body_hi = build_part(body_primitives(), o.body_segments[0], o.body_rings[0], frames);
-    const Mesh body_lo = build_part(body_primitives(), o.body_segments[1], o.body_rings[1], frames);
-    const Mesh skirt_hi = build_part(skirt_primitives(), o.skirt_segments[0], o.skirt_rings[0], frames);
-    const Mesh skirt_lo = build_part(skirt_primitives(), o.skirt_segments[1], o.skirt_rings[1], frames);
+    Mesh body_hi = build_part(body_primitives(), o.body_segments[0], o.body_rings[0], frames);
+    Mesh body_lo = build_part(body_primitives(), o.body_segments[1], o.body_rings[1], frames);
+    Mesh skirt_hi = build_part(skirt_primitives(), o.skirt_segments[0], o.skirt_rings[0], frames);
+    Mesh skirt_lo = build_part(skirt_primitives(), o.skirt_segments[1], o.skirt_rings[1], frames);
+    if (o.scale != 1.0f)  // a uniform scale keeps the normals
+        for (Mesh* m : {&body_hi, &body_lo, &skirt_hi, &skirt_lo})
+            for (float& v : m->positions) v *= o.scale;
 
     // Bounds: the box over every frame of every part, and the sphere around its centre.
     glm::vec3 lo(INFINITY), hi(-INFINITY);
@@ -498,7 +501,7 @@ std::string write_bundle(const std::string& dir, const Options& o) {
     json manifest = {
         {"format", "crowdbake-bundle"},
         {"format_version", 1},
-        {"name", "synthetic-walker"},
+        {"name", o.name},
         {"version", "1.0.0"},
         {"created", "2026-01-01T00:00:00Z"},
         {"producer", "crowdview tests (synthetic_bundle.cpp)"},

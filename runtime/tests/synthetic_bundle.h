@@ -29,6 +29,8 @@ struct Options {
     std::vector<float> elevations_deg = {0, 30};
     std::vector<uint32_t> frame_indices = {0, 2, 4, 6};
     bool compressed = true;        // bc2 body diffuse, bc1 normal map, bc2 detail map; else rgba8
+    float scale = 1;               // the figure's size (1: about 1.8 m tall); the bounds follow
+    std::string name = "synthetic-walker";  // the manifest's name
     // Grid resolution (segments around x rings) of each body primitive and of the skirt, per
     // LOD. The defaults give 4,992 and 616 triangles; paper_counts() gives the paper's figure 3
     // characters: 13,056 (high) and 1,900 (low; the paper's has 1,899).

@@ -317,7 +317,7 @@ void test_build_frame() {
     camera.far_m = 500;
     LodRule rule;
     rule.impostor_distance = 20;
-    std::vector<Lod> state;
+    FrameState state;
     FrameInstances frame;
     build_frame(crowd, model, camera, 1.5f, LodMode::automatic, rule, 0.3f, &state, &frame);
     CHECK(frame.culled == 1);

@@ -94,7 +94,7 @@ Image render(Renderer& r, const Crowd& crowd, const Camera& camera, LodMode mode
     LodRule rule;
     rule.impostor_distance = impostor_switch_distance(camera.fov_y, float(r.height()), r.model().radius, r.model().tile_size);
     rule.has_low = r.model().has_low;
-    std::vector<Lod> state;
+    FrameState state;
     FrameInstances frame;
     build_frame(crowd, r.model(), camera, r.aspect(), mode, rule, time_s, &state, &frame, blend);
     r.draw(frame, camera, kind, scene_light_dir());

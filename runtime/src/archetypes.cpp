@@ -1,0 +1,124 @@
+// Loading a crowd description's archetypes (archetypes.h).
+#include "archetypes.h"
+
+#include <algorithm>
+
+namespace crowdview {
+
+std::vector<LoadedArchetype> load_archetypes(const CrowdFile& crowd, const FetchOptions& fetch,
+                                             const std::function<void(const std::string&)>& log,
+                                             std::vector<RefusedArchetype>* refused) {
+    std::vector<LoadedArchetype> loaded;
+    const std::vector<uint64_t> counts = archetype_counts(crowd);
+    for (size_t k = 0; k < crowd.archetypes.size(); ++k) {
+        const ArchetypeDesc& desc = crowd.archetypes[k];
+        if (counts[k] == 0) {  // a share too small to round to one character, or no positions
+            if (log) log("archetype '" + desc.name + "': no characters, not loaded");
+            continue;
+        }
+        LoadedArchetype a;
+        a.desc_index = k;
+        a.name = desc.name;
+        const Status status = desc.source.is_url() ? fetch_bundle(desc.source.url, fetch, &a.bundle)
+                                                   : load_bundle_dir(desc.source.folder, &a.bundle);
+        if (!status) {
+            refused->push_back({desc.name, status.message});
+            if (log) log("archetype '" + desc.name + "': bundle refused: " + status.message);
+            continue;
+        }
+        // Bundles hold one clip today (SPEC.md): the mix is reserved for bundles with several.
+        if (desc.clips.size() > 1 && log)
+            log("archetype '" + desc.name + "': the bundle has one clip; the clip mix of " + std::to_string(desc.clips.size()) +
+                " clips is ignored");
+        loaded.push_back(std::move(a));
+    }
+    return loaded;
+}
+
+ArchetypeTraits archetype_traits(const ArchetypeDesc& desc, uint64_t count, const Bundle& bundle, const CharacterModel& model) {
+    ArchetypeTraits t;
+    t.count = count;
+    t.spacing = crowd_spacing(model.radius);
+    t.cycle_seconds = model.frames_per_second > 0 ? float(model.frame_count) / model.frames_per_second : 1.0f;
+    t.variations = 1;
+    for (const MaterialInfo& m : bundle.manifest.materials) t.variations = std::max(t.variations, m.variations);
+    t.outfits = std::max(bundle.manifest.outfit_count, 1u);
+    t.play_rate[0] = desc.play_rate[0], t.play_rate[1] = desc.play_rate[1];
+    return t;
+}
+
+void ArchetypeCounts::add(const FrameInstances& frame) {
+    for (int lod = 0; lod < 3; ++lod) {
+        last[lod] = frame.by_lod[lod].size();
+        if (last[lod] > 0) ++frames_with[lod];
+    }
+    last_culled = frame.culled;
+}
+
+std::string lod_summary(const ArchetypeCounts& c) {
+    return "high " + std::to_string(c.last[0]) + " | low " + std::to_string(c.last[1]) + " | impostor " + std::to_string(c.last[2]) +
+           " | culled " + std::to_string(c.last_culled);
+}
+
+// Counts per archetype and LOD, GPU memory per archetype, and the CPU cost of a frame: the
+// --report of a headless run.
+nlohmann::json view_report(const std::string& device, const Renderer& renderer, const CrowdScene& scene,
+                           const std::vector<ArchetypeCounts>& counts, const std::vector<LodRule>& rules, int frames,
+                           double build_ms, const DrawStats& stats) {
+    nlohmann::json archetypes = nlohmann::json::array();
+    const char* lods[] = {"high", "low", "impostor"};
+    for (size_t a = 0; a < renderer.archetype_count(); ++a) {
+        const CharacterModel& m = renderer.model(a);
+        const ArchetypeMemory mem = renderer.memory(a);
+        nlohmann::json counts_json, frames_with;
+        for (int l = 0; l < 3; ++l) counts_json[lods[l]] = counts[a].last[l], frames_with[lods[l]] = counts[a].frames_with[l];
+        counts_json["culled"] = counts[a].last_culled;
+        archetypes.push_back({{"name", scene.names[a]},
+                              {"characters", scene.traits[a].count},
+                              {"radius_m", m.radius},
+                              {"tile_size", m.tile_size},
+                              {"spacing_m", scene.traits[a].spacing},
+                              {"low_switch_m", rules[a].has_low ? rules[a].impostor_distance * rules[a].low_fraction : 0.0f},
+                              {"impostor_switch_m", rules[a].impostor_distance},
+                              {"lod_counts", counts_json},
+                              {"frames_with_lod", frames_with},
+                              {"gpu_memory_bytes", {{"meshes", mem.meshes}, {"textures", mem.textures}, {"impostors", mem.impostors},
+                                                    {"total", mem.total()}}}});
+    }
+    nlohmann::json refused = nlohmann::json::array();
+    for (const RefusedArchetype& r : scene.refused) refused.push_back({{"name", r.name}, {"error", r.error}});
+    return {{"device", device},
+            {"width", renderer.width()},
+            {"height", renderer.height()},
+            {"frames", frames},
+            {"archetypes", archetypes},
+            {"refused", refused},
+            {"draw_calls", stats.draw_calls},
+            {"triangles", stats.triangles},
+            {"cpu_build_ms_per_frame", build_ms}};
+}
+
+
+bool upload_archetypes(Renderer* renderer, const std::vector<LoadedArchetype>& loaded, CrowdScene* scene,
+                       const std::function<void(const std::string&)>& log, std::string* error) {
+    const std::vector<uint64_t> counts = archetype_counts(scene->file);
+    for (const LoadedArchetype& a : loaded) {
+        std::string refusal;
+        if (!renderer->add_archetype(a.bundle, &refusal)) {
+            if (!log) {
+                *error = refusal;
+                return false;
+            }
+            log("archetype '" + a.name + "': " + refusal);
+            scene->refused.push_back({a.name, refusal});
+            continue;
+        }
+        scene->desc_index.push_back(a.desc_index);
+        scene->names.push_back(a.name);
+        scene->traits.push_back(archetype_traits(scene->file.archetypes[a.desc_index], counts[a.desc_index], a.bundle,
+                                                 renderer->model(renderer->archetype_count() - 1)));
+    }
+    return true;
+}
+
+}  // namespace crowdview

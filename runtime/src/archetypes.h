@@ -1,0 +1,74 @@
+// The archetypes of a crowd description, loaded: each bundle read from its folder or fetched
+// through the one download cache (fetch.h), verified, and later uploaded as one of the
+// renderer's archetypes. A bundle that is refused stops its archetype, not the crowd.
+#pragma once
+
+#include <functional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "bundle.h"
+#include "crowd.h"
+#include "crowd_file.h"
+#include "crowd_layout.h"
+#include "fetch.h"
+#include "renderer.h"
+
+namespace crowdview {
+
+struct LoadedArchetype {
+    size_t desc_index = 0;  // into CrowdFile::archetypes
+    std::string name;
+    Bundle bundle;          // released (cleared) once uploaded
+};
+
+struct RefusedArchetype {
+    std::string name, error;  // error: one line, the loader's or the renderer's message
+};
+
+// Loads every archetype of `crowd` in order; refusals go to `refused` and are logged as
+// "archetype '<name>': bundle refused: <message>". `fetch` serves every URL archetype, so the
+// cache (content-addressed) is shared: a file two bundles hold is downloaded once.
+std::vector<LoadedArchetype> load_archetypes(const CrowdFile& crowd, const FetchOptions& fetch,
+                                             const std::function<void(const std::string&)>& log,
+                                             std::vector<RefusedArchetype>* refused);
+
+// What the layout needs of a loaded archetype: its count, spacing from its impostor radius,
+// cycle, variations, outfits and play rate.
+ArchetypeTraits archetype_traits(const ArchetypeDesc& desc, uint64_t count, const Bundle& bundle, const CharacterModel& model);
+
+// Per-frame counts of one archetype (FrameInstances sizes), accumulated over a run.
+struct ArchetypeCounts {
+    uint64_t last[3] = {0, 0, 0};        // by Lod, in the last frame
+    uint32_t last_culled = 0;
+    uint64_t frames_with[3] = {0, 0, 0};  // frames in which at least one character drew at that Lod
+    void add(const FrameInstances& frame);
+};
+
+// "high 12 | low 3 | impostor 40 | culled 2" for the title and the log.
+std::string lod_summary(const ArchetypeCounts& counts);
+
+// The crowd as loaded: the description, and per renderer archetype its description index and name.
+struct CrowdScene {
+    CrowdFile file;
+    std::vector<size_t> desc_index;  // renderer archetype -> CrowdFile::archetypes
+    std::vector<std::string> names;
+    std::vector<ArchetypeTraits> traits;
+    std::vector<RefusedArchetype> refused;
+};
+
+// Counts per archetype and LOD, GPU memory per archetype, and the CPU cost of a frame: the
+// --report of a headless run.
+nlohmann::json view_report(const std::string& device, const Renderer& renderer, const CrowdScene& scene,
+                           const std::vector<ArchetypeCounts>& counts, const std::vector<LodRule>& rules, int frames,
+                           double build_ms, const DrawStats& stats);
+
+// Uploads each loaded archetype as the renderer's next one and fills scene's per-archetype
+// lists (desc_index, names, traits). A bundle the renderer refuses is logged and left out;
+// without `log` (a lone --bundle) the first refusal is returned as false and `error` instead.
+bool upload_archetypes(Renderer* renderer, const std::vector<LoadedArchetype>& loaded, CrowdScene* scene,
+                       const std::function<void(const std::string&)>& log, std::string* error);
+
+}  // namespace crowdview
