@@ -38,6 +38,21 @@ def choose_animation(doc: _Document, animation: int | str) -> int | None:
     return animation
 
 
+def sampler_keys(doc: _Document, sampler, where: str) -> tuple[str, np.ndarray]:
+    """(interpolation, (K,) keyframe times in seconds) of an animation sampler, checked: a known
+    interpolation, float scalar times, strictly increasing."""
+    interpolation = sampler.interpolation or "LINEAR"
+    if interpolation not in INTERPOLATIONS:
+        raise ValueError(f"{where}: unknown interpolation {interpolation!r}")
+    times = doc.accessor(sampler.input)
+    if times.shape[1] != 1 or times.dtype.kind != "f":
+        raise ValueError(f"{where}: sampler input must be float scalars")
+    times = times[:, 0]
+    if len(times) > 1 and not (np.diff(times) > 0).all():
+        raise ValueError(f"{where}: keyframe times must increase strictly")
+    return interpolation, times
+
+
 def read_animation(doc: _Document, animation_index: int | None, node_to_joint: dict[int, int], joint_ancestors: set[int]):
     if animation_index is None:
         return [], 0.0
@@ -53,15 +68,7 @@ def read_animation(doc: _Document, animation_index: int | None, node_to_joint: d
         if not isinstance(sampler_index, int) or not 0 <= sampler_index < len(samplers):
             raise ValueError(f"{where}: sampler {sampler_index} does not exist")
         sampler = samplers[sampler_index]
-        interpolation = sampler.interpolation or "LINEAR"
-        if interpolation not in INTERPOLATIONS:
-            raise ValueError(f"{where}: unknown interpolation {interpolation!r}")
-        times = doc.accessor(sampler.input)
-        if times.shape[1] != 1 or times.dtype.kind != "f":
-            raise ValueError(f"{where}: sampler input must be float scalars")
-        times = times[:, 0]
-        if len(times) > 1 and not (np.diff(times) > 0).all():
-            raise ValueError(f"{where}: keyframe times must increase strictly")
+        interpolation, times = sampler_keys(doc, sampler, where)
         duration = max(duration, float(times[-1]))
         if node not in node_to_joint:
             if node in joint_ancestors and path in PATH_WIDTHS:

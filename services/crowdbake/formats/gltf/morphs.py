@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 
-from crowdbake.formats.gltf.animation import INTERPOLATIONS
+from crowdbake.formats.gltf.animation import sampler_keys
 from crowdbake.formats.gltf.document import _Document
 from crowdbake.formats.gltf.model import MorphTarget, WeightsChannel
 
@@ -115,15 +115,7 @@ def read_weight_channels(doc: _Document, animation_index: int | None, node_targe
             continue
         first, count = node_targets[target.node]
         sampler = _sampler(samplers, channel.sampler, where)
-        interpolation = sampler.interpolation or "LINEAR"
-        if interpolation not in INTERPOLATIONS:
-            raise ValueError(f"{where}: unknown interpolation {interpolation!r}")
-        times = doc.accessor(sampler.input)
-        if times.shape[1] != 1 or times.dtype.kind != "f":
-            raise ValueError(f"{where}: sampler input must be float scalars")
-        times = times[:, 0]
-        if len(times) > 1 and not (np.diff(times) > 0).all():
-            raise ValueError(f"{where}: keyframe times must increase strictly")
+        interpolation, times = sampler_keys(doc, sampler, where)
         values = doc.accessor(sampler.output)
         keys = 3 * len(times) if interpolation == "CUBICSPLINE" else len(times)
         if values.shape[1] != 1 or values.size != keys * count or values.dtype.kind != "f":
