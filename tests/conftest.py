@@ -13,7 +13,7 @@ for folder in (REPO / "services", REPO / "services" / "tests"):
     if str(folder) not in sys.path:
         sys.path.insert(0, str(folder))
 
-from sample_fixtures import small_sample  # noqa: E402,F401  (generated once per session, shared with services/tests)
+from sample_fixtures import small_bake, small_sample  # noqa: E402,F401  (generated once per session, shared with services/tests)
 
 # Offscreen GL in every process these tests start (OSMesa unless the caller chose EGL).
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")

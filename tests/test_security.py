@@ -36,7 +36,7 @@ SECRET = b"crowdbake-security-test-secret-7d1f"
 # The scope each write operation needs (docs/service.md, "Endpoints").
 WRITE_SCOPES = {
     ("POST", "/v1/assets/characters"): "upload", ("POST", "/v1/assets/cloth"): "upload", ("POST", "/v1/assets/textures"): "upload",
-    ("POST", "/v1/assets/cycles"): "upload",
+    ("POST", "/v1/assets/cycles"): "upload", ("POST", "/v1/assets/timelines"): "upload",
     ("POST", "/v1/bakes"): "bake", ("POST", "/v1/bakes/check"): "bake", ("POST", "/v1/bakes/{bake_id}/cancel"): "bake", ("POST", "/v1/bakes/{bake_id}/retry"): "bake",
     ("POST", "/v1/bakes/{bake_id}/publish"): "publish", ("PATCH", "/v1/bundles/{name}/{version}"): "publish",
 }

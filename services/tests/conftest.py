@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from repo_paths import REPO_ROOT, SHARED_ASSETS, VECTORS  # noqa: F401  (tests import them from repo_paths)
-from sample_fixtures import small_sample  # noqa: F401  (a session fixture shared with tests/)
+from sample_fixtures import small_bake, small_sample  # noqa: F401  (a session fixture shared with tests/)
 
 
 def pytest_configure(config) -> None:

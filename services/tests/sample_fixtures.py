@@ -23,3 +23,25 @@ def small_sample(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("small_sample")
     generate_sample(folder, **SMALL_SAMPLE)
     return folder
+
+
+@pytest.fixture(scope="session")
+def small_bake(small_sample, tmp_path_factory) -> tuple[Path, Path]:
+    """(bundle folder, work folder) of the small sample baked with SMALL_BAKE_PARAMS (no export): shared
+    by the modules that read a bake's maps and pictures; read-only."""
+    from crowdbake.stages.runner import run_bake
+    from crowdbake.stages.validate import BakeInputs
+
+    root = tmp_path_factory.mktemp("small_bake")
+    summary = run_bake(BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
+                                  cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures", cycle=None,
+                                  name="sample", version="1.0", params=small_bake_params()), root / "bundles", work=root / "work")
+    return summary.bundle, root / "work"
+
+
+def small_bake_params():
+    """Eight azimuths, two rings, two baked frames of 64² texels: every kind of impostor blend, in seconds."""
+    from crowdbake.params import BakeParams
+
+    return BakeParams(impostor_frames=2, azimuths=8, elevations_deg=(0.0, 30.0), tile_size=64, lod_triangles=1200, cycle_views=3,
+                      candidates=3, export=False)

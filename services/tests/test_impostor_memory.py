@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from crowdbake.formats.bundle import verify_bundle
-from crowdbake.params import BakeParams
+from sample_fixtures import small_bake_params
 
 pytest.importorskip("pyrender")
 from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
@@ -27,24 +27,27 @@ from crowdbake.bake.reference import impostor_blend  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 CROWDVIEW = REPO_ROOT / "build" / "runtime" / "crowdview"
-PARAMS = BakeParams(impostor_frames=2, azimuths=8, elevations_deg=(0.0, 30.0), tile_size=64, lod_triangles=1200,
-                    cycle_views=3, candidates=3, export=False)
+PARAMS = small_bake_params()
 
 
 @pytest.fixture(scope="module")
-def bakes(small_sample, tmp_path_factory):
-    """{crop: (bundle folder, poses, maps, textures)} of the small sample baked with the defaults (cropped, no
-    detail maps) and without the crop, with detail maps."""
+def bakes(small_sample, small_bake, tmp_path_factory):
+    """{crop: (bundle folder, poses, maps, textures)} of the small sample baked with the defaults (the
+    session's small bake: cropped, no detail maps) and without the crop, with detail maps."""
     out = {}
     for crop in (True, False):
-        root = tmp_path_factory.mktemp(f"crop_{crop}")
-        params = replace(PARAMS, crop=crop, detail_map=not crop)
-        summary = run_bake(BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
-                                      cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures", cycle=None,
-                                      name="sample", version="1.0", params=params), root / "bundles", work=root / "work")
-        baked = verify_bundle(summary.bundle)
+        if crop:
+            bundle, work = small_bake
+        else:
+            root = tmp_path_factory.mktemp("whole_tiles")
+            summary = run_bake(BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
+                                          cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures", cycle=None,
+                                          name="sample", version="1.0", params=replace(PARAMS, crop=False, detail_map=True)),
+                               root / "bundles", work=root / "work")
+            bundle, work = summary.bundle, root / "work"
+        baked = verify_bundle(bundle)
         maps = {kind: baked.textures[path] for kind, path in baked.manifest["impostor"]["maps"].items()}
-        out[crop] = summary.bundle, load_poses(root / "work"), maps, runtime_textures(root / "work")
+        out[crop] = bundle, load_poses(work), maps, runtime_textures(work)
     return out
 
 
@@ -109,13 +112,14 @@ def test_a_budget_fits_the_maps_by_fewer_azimuths(small_sample, bakes, tmp_path)
     """32 azimuths asked for, room for 20 (the crop is the same whatever the azimuths): azimuths fall, by 4,
     until the maps fit."""
     whole = json.loads((bakes[True][0] / "texture_memory.json").read_text())["impostor"]
-    budget = whole["stored_mib"] * 20 / 8 + 1e-9
+    # One ring of the two: room for 20 azimuths at the small bake's crop and frames.
+    budget = whole["stored_mib"] / 2 * 20 / 8 + 1e-9
+    params = replace(PARAMS, azimuths=32, elevations_deg=(0.0,), impostor_budget_mib=budget)
     summary = run_bake(BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
                                   cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures", cycle=None,
-                                  name="sample", version="1.0", params=replace(PARAMS, azimuths=32, impostor_budget_mib=budget)),
-                       tmp_path / "bundles", work=tmp_path / "work")
+                                  name="sample", version="1.0", params=params), tmp_path / "bundles", work=tmp_path / "work")
     held = json.loads((summary.bundle / "texture_memory.json").read_text())["impostor"]
-    assert held["stored_mib"] <= budget and held["budget"]["fits"] and held["crop"] == whole["crop"]
+    assert held["stored_mib"] <= budget and held["budget"]["fits"]
     assert held["budget"]["chosen"] == {"azimuths": 20, "frames": 2}
     assert [step["azimuths"] for step in held["budget"]["steps"]] == [32, 28, 24, 20]
     manifest = json.loads((summary.bundle / "manifest.json").read_text())["impostor"]

@@ -12,7 +12,6 @@ from crowdbake.bake import fidelity, map_codecs
 from crowdbake.bake.reference import impostor_blend
 from crowdbake.formats.binary import TextureArray
 from crowdbake.formats.bundle import verify_bundle
-from crowdbake.params import BakeParams
 from crowdbake.render import runtime_shader
 from crowdbake.render.runtime_shader import RuntimePicture, samples_needed, shader_source
 
@@ -20,26 +19,17 @@ pytest.importorskip("pyrender")
 from crowdbake.render import offscreen  # noqa: E402
 from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
 from crowdbake.stages.impostors import load_poses  # noqa: E402
-from crowdbake.stages.runner import run_bake  # noqa: E402
 from crowdbake.stages.runtime_fidelity import (  # noqa: E402
     AtlasTiles, halfway_frame, numpy_picture, picture_at, runtime_atlas, runtime_textures,
 )
-from crowdbake.stages.validate import BakeInputs  # noqa: E402
-
-# Eight azimuths, two rings, two baked frames of 64² texels: every kind of blend, in seconds.
-PARAMS = BakeParams(impostor_frames=2, azimuths=8, elevations_deg=(0.0, 30.0), tile_size=64, lod_triangles=1200, cycle_views=3, candidates=3)
-
 
 @pytest.fixture(scope="module")
-def bundle(small_sample, tmp_path_factory):
-    """(poses, the bundle's maps as TextureArrays, the poses stage's textures) of a small bake."""
-    root = tmp_path_factory.mktemp("runtime_shader")
-    summary = run_bake(BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
-                                  cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures", cycle=None,
-                                  name="sample", version="1.0", params=PARAMS), root / "bundles", work=root / "work")
-    baked = verify_bundle(summary.bundle)
+def bundle(small_bake):
+    """(poses, the bundle's maps as TextureArrays, the poses stage's textures) of the session's small bake."""
+    folder, work = small_bake
+    baked = verify_bundle(folder)
     maps = {kind: baked.textures[path] for kind, path in baked.manifest["impostor"]["maps"].items()}
-    return load_poses(root / "work"), maps, runtime_textures(root / "work")
+    return load_poses(work), maps, runtime_textures(work)
 
 
 def pictures_of(poses) -> list[RuntimePicture]:
