@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <vector>
 
 #include <glm/glm.hpp>
@@ -242,5 +243,13 @@ struct FrameState {
 void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,
                  const LodRule& rule, float time_s, FrameState* state,
                  FrameInstances* out, ImpostorBlend blend = ImpostorBlend::warp);
+
+// Calls build_one(a) for every archetype a < count, spread over up to `threads` threads (archetype
+// a on thread a % threads, the calling thread among them). build_frame of one archetype touches
+// only that archetype's state and instances, so the frame is the same as one built in turn.
+void for_each_archetype(size_t count, unsigned threads, const std::function<void(size_t)>& build_one);
+
+// The threads for_each_archetype is worth: one per archetype, at most the hardware's.
+unsigned archetype_threads(size_t count);
 
 }  // namespace crowdview

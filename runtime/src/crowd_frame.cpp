@@ -4,6 +4,8 @@
 // everything that does not change between frames sits in FrameState.
 #include <algorithm>
 #include <cmath>
+#include <thread>
+#include <vector>
 
 #include "crowd.h"
 
@@ -237,6 +239,21 @@ void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& 
         }
         out->by_lod[int(lod)].push_back(inst);
     }
+}
+
+void for_each_archetype(size_t count, unsigned threads, const std::function<void(size_t)>& build_one) {
+    const size_t step = std::max<size_t>(1, std::min<size_t>(threads, count));
+    auto work = [&](size_t first) {
+        for (size_t a = first; a < count; a += step) build_one(a);
+    };
+    std::vector<std::thread> helpers;
+    for (size_t t = 1; t < step; ++t) helpers.emplace_back(work, t);
+    work(0);
+    for (std::thread& helper : helpers) helper.join();
+}
+
+unsigned archetype_threads(size_t count) {
+    return unsigned(std::max<size_t>(1, std::min<size_t>(count, std::max(1u, std::thread::hardware_concurrency()))));
 }
 
 }  // namespace crowdview

@@ -3,6 +3,7 @@
 // fill, for every character of every archetype, as crowdview's frame loop runs build_frame.
 //
 //   crowdview_frame_bench [--count N] [--archetypes K] [--frames F] [--threads T] [--report JSON]
+// (--threads: default crowdview's, one per archetype up to the hardware's)
 //
 // The archetypes are shaped like real bundles (impostor radius, tile size, views, baked frames of
 // the sample walker, CesiumMan and the 4 m robot); the crowd is laid out as a --crowd spot layout.
@@ -65,7 +66,7 @@ double median(std::vector<double> v) {
 
 int main(int argc, char** argv) {
     uint64_t count = 100000;
-    int archetypes = 4, frames = 60, threads = 1;
+    int archetypes = 4, frames = 60, threads = 0;  // 0: as crowdview (archetype_threads)
     std::string report_path;
     for (int i = 1; i < argc; ++i) {
         const std::string a = argv[i];
@@ -86,10 +87,11 @@ int main(int argc, char** argv) {
             return 2;
         }
     }
-    if (count < 1 || archetypes < 1 || archetypes > 4 || frames < 1 || threads < 1 || threads > 64) {
+    if (count < 1 || archetypes < 1 || archetypes > 4 || frames < 1 || threads < 0 || threads > 64) {
         std::fprintf(stderr, "crowdview_frame_bench: --count >= 1, --archetypes 1..4, --frames >= 1, --threads 1..64\n");
         return 2;
     }
+    if (threads == 0) threads = int(archetype_threads(size_t(archetypes)));
     const float aspect = 1280.0f / 720.0f, height_px = 720.0f;
     std::vector<CharacterModel> models;
     std::vector<ArchetypeTraits> traits;
@@ -136,17 +138,10 @@ int main(int argc, char** argv) {
                 const auto start = std::chrono::steady_clock::now();
                 timespec cpu_start, cpu_end;  // this process's CPU time: what the frame cost, without other programs' share of the cores
                 clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &cpu_start);
-                // Archetypes split over `threads` workers (1: the loop crowdview runs).
-                auto work = [&](size_t first, size_t step) {
-                    for (size_t a = first; a < models.size(); a += step)
-                        build_frame(crowds[a], models[a], camera, aspect, LodMode::automatic, rules[a], time_s, &state[a], &out[a], blend);
-                };
-                if (threads == 1) work(0, 1);
-                else {
-                    std::vector<std::thread> pool;
-                    for (int t = 0; t < threads; ++t) pool.emplace_back(work, size_t(t), size_t(threads));
-                    for (std::thread& t : pool) t.join();
-                }
+                // Archetypes split over `threads` threads, as crowdview's frame loop does (for_each_archetype).
+                for_each_archetype(models.size(), unsigned(threads), [&](size_t a) {
+                    build_frame(crowds[a], models[a], camera, aspect, LodMode::automatic, rules[a], time_s, &state[a], &out[a], blend);
+                });
                 const double elapsed = 1e3 * std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
                 clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &cpu_end);
                 const double cpu = 1e3 * double(cpu_end.tv_sec - cpu_start.tv_sec) + 1e-6 * double(cpu_end.tv_nsec - cpu_start.tv_nsec);

@@ -313,6 +313,7 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
     const glm::vec3 light = scene_light_dir();
     std::vector<FrameState> state(archetype_count);
     std::vector<FrameInstances> frame(archetype_count);
+    const unsigned build_threads = archetype_threads(archetype_count);  // archetypes build their frames side by side
     std::vector<ArchetypeCounts> counts(archetype_count);
     FlyControls controls;
     const bool windowed = context.visible();
@@ -343,8 +344,9 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
         // The frame: cull and choose LODs on the CPU for every archetype, then a few instanced
         // draws per archetype.
         const auto build_start = std::chrono::steady_clock::now();
-        for (size_t a = 0; a < archetype_count; ++a)
+        for_each_archetype(archetype_count, build_threads, [&](size_t a) {
             build_frame(crowds[a], renderer.model(a), camera, renderer.aspect(), choice.lod, rules[a], time_s, &state[a], &frame[a], o.blend);
+        });
         build_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
         for (size_t a = 0; a < archetype_count; ++a) counts[a].add(frame[a]);
         ++drawn;

@@ -2,6 +2,7 @@
 // selection in the character's frame, view and frame blending weights, culling, determinism
 // and frame selection.
 #include <cmath>
+#include <cstring>
 
 #include <glm/gtc/matrix_transform.hpp>
 
@@ -351,6 +352,52 @@ void test_build_frame() {
     CHECK(frame.by_lod[0].size() == 60);  // no low mesh in the bundle: the high one stands in
 }
 
+void test_archetypes_side_by_side() {
+    // Every archetype built once, whatever the threads; none when there are none.
+    for (unsigned threads : {1u, 2u, 3u, 8u})
+        for (size_t count : {size_t(0), size_t(1), size_t(5)}) {
+            std::vector<int> calls(count, 0);
+            for_each_archetype(count, threads, [&](size_t a) { ++calls[a]; });
+            for (int c : calls) CHECK(c == 1);
+        }
+    CHECK(archetype_threads(0) == 1 && archetype_threads(1) == 1 && archetype_threads(64) >= 1);
+    // Frames of three archetypes built side by side are the frames built in turn.
+    std::vector<Crowd> crowds(3);
+    std::vector<CharacterModel> models(3);
+    for (size_t a = 0; a < 3; ++a) {
+        for (int i = 0; i < 200; ++i)
+            crowds[a].characters.push_back({glm::vec3(float(i % 20) - 10.0f, 0, -2.0f - float(i / 20) * 3.0f), 0.3f * float(i), 0.1f * float(a), uint32_t(i % 8), 0});
+        models[a].center = glm::vec3(0, 0.9f * float(a + 1), 0);
+        models[a].radius = float(a + 1);
+        models[a].frame_count = 24, models[a].frames_per_second = 24;
+        models[a].azimuths_deg = kAzimuths, models[a].elevations_deg = kElevations;
+        models[a].frame_indices = {0, 6, 12, 18};
+        models[a].has_low = true;
+    }
+    Camera camera;
+    camera.position = glm::vec3(0, 3, 5);
+    camera.far_m = 500;
+    LodRule rule;
+    rule.impostor_distance = 12;
+    std::vector<FrameState> alone(3), together(3);
+    std::vector<FrameInstances> in_turn(3), side_by_side(3);
+    for (size_t a = 0; a < 3; ++a) build_frame(crowds[a], models[a], camera, 1.5f, LodMode::automatic, rule, 0.7f, &alone[a], &in_turn[a]);
+    for_each_archetype(3, 2, [&](size_t a) {
+        build_frame(crowds[a], models[a], camera, 1.5f, LodMode::automatic, rule, 0.7f, &together[a], &side_by_side[a]);
+    });
+    for (size_t a = 0; a < 3; ++a) {
+        CHECK(in_turn[a].culled == side_by_side[a].culled && in_turn[a].impostor_samples.size() == side_by_side[a].impostor_samples.size());
+        for (int l = 0; l < 3; ++l) {
+            CHECK(in_turn[a].by_lod[l].size() == side_by_side[a].by_lod[l].size());
+            for (size_t k = 0; k < std::min(in_turn[a].by_lod[l].size(), side_by_side[a].by_lod[l].size()); ++k)
+                CHECK(std::memcmp(&in_turn[a].by_lod[l][k], &side_by_side[a].by_lod[l][k], sizeof(Instance)) == 0);
+        }
+    }
+    size_t meshes = 0, impostors = 0;
+    for (const FrameInstances& f : in_turn) meshes += f.by_lod[0].size() + f.by_lod[1].size(), impostors += f.by_lod[2].size();
+    CHECK(meshes > 0 && impostors > 0);  // the frames hold meshes and impostors
+}
+
 }  // namespace
 
 int main() {
@@ -362,5 +409,6 @@ int main() {
     test_culling();
     test_crowd_and_frames();
     test_build_frame();
+    test_archetypes_side_by_side();
     return check::exit_code();
 }
