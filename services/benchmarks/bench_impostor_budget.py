@@ -107,6 +107,13 @@ def bake_once(case: str, config: str, scratch: Path) -> dict | None:
     }
 
 
+def row_line(row: dict) -> str:
+    """One row of the printed table."""
+    a, b = row["at_views"], row["between_views"]
+    return (f"{row['case']:<11} {row['config']:<8} {row['azimuths']:>3} {len(row['elevations_deg']):>5} {row['frames']:>3} {row['tile']:>4} "
+            f"{row['impostor_mib']:>6.1f}  {a['ssim_mean']:.3f} / {a['ssim_worst']:.3f}  {b['ssim_mean']:.3f} / {b['ssim_worst']:.3f}")
+
+
 def plot(rows: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -147,12 +154,10 @@ def main(argv: list[str] | None = None) -> int:
         merged = {}
         for path in args.replot:
             for row in json.loads(path.read_text())["rows"]:
-                merged[(row["case"], "a32" if row["config"] == "default" else row["config"])] = {**row, "config": "a32" if row["config"] == "default" else row["config"]}
+                merged[(row["case"], row["config"])] = row
         rows = list(merged.values())
         for row in rows:
-            a, b = row["at_views"], row["between_views"]
-            print(f"{row['case']:<11} {row['config']:<8} {row['azimuths']:>3} {len(row['elevations_deg']):>5} {row['frames']:>3} {row['tile']:>4} "
-                  f"{row['impostor_mib']:>6.1f}  {a['ssim_mean']:.3f} / {a['ssim_worst']:.3f}  {b['ssim_mean']:.3f} / {b['ssim_worst']:.3f}")
+            print(row_line(row))
         if args.plot:
             plot(rows, args.plot)
         return 0
@@ -167,9 +172,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{case:<11} skipped: its assets are not in {ASSETS}", flush=True)
                 break
             rows.append(row)
-            a, b = row["at_views"], row["between_views"]
-            print(f"{case:<11} {config:<8} {row['azimuths']:>3} {len(row['elevations_deg']):>5} {row['frames']:>3} {row['tile']:>4} "
-                  f"{row['impostor_mib']:>6.1f}  {a['ssim_mean']:.3f} / {a['ssim_worst']:.3f}  {b['ssim_mean']:.3f} / {b['ssim_worst']:.3f}", flush=True)
+            print(row_line(row), flush=True)
             args.out.parent.mkdir(parents=True, exist_ok=True)
             args.out.write_text(json.dumps({"machine": os.uname().machine, "cpus": os.cpu_count(), "rows": rows}, indent=1) + "\n")
     if args.plot and rows:
