@@ -214,26 +214,36 @@ def clips_report_html(document: dict) -> str:
         return cells + f"<td>{html.escape(verdict)}</td>"
 
     head = "<th>stretch</th><th>deviation</th><th>seam acc.</th><th>bounds</th>"
+
+    def pose_frames(entry: dict) -> str:  # the bundle's pose frames [first, end) of a range (several clips only)
+        span = entry.get("pose_frames")
+        return "<td>–</td>" if span is None else f"<td>{span[0]}–{span[1] - 1}</td>"
+
     loops = "".join(
         f"<tr><td>{html.escape(c['clip'])}</td><td>{c['period']}</td><td>{c['start_frame']}–{c['end_frame']}</td>"
-        f"<td>{c['segment']}</td>{figures(c['closing'].get('quality'))}</tr>"
+        f"{pose_frames(c)}<td>{c['segment']}</td>{figures(c['closing'].get('quality'))}</tr>"
         for c in document["clips"]
     )
     moves = "".join(
         f"<tr><td>{html.escape(t['from_clip'])} → {html.escape(t['to_clip'])}</td><td>{t['leave_loop_frame']}</td>"
         f"<td>{t['arrive_loop_frame']}</td><td>{t['frames']}</td><td>{t['source_frames'][0]}–{t['source_frames'][1]}</td>"
-        f"<td>leave</td>{figures(t['leave']['quality'])}</tr>"
-        f"<tr><td></td><td></td><td></td><td></td><td></td><td>arrive</td>{figures(t['arrive']['quality'])}</tr>"
+        f"{pose_frames(t)}<td>leave</td>{figures(t['leave']['quality'])}</tr>"
+        f"<tr><td></td><td></td><td></td><td></td><td></td><td></td><td>arrive</td>{figures(t['arrive']['quality'])}</tr>"
         for t in document["transitions"]
     )
     bounds = document["clips"][0]["closing"].get("quality") or {}
+    if "bundle_ranges" in document:
+        carried = (f"The bundle carries every loop and transition: {document['bundle_ranges']['pose_frames']} pose frames, "
+                   "each range's shown below (format v2).")
+    else:
+        carried = f"The bundle carries {html.escape(document.get('primary_clip', ''))}."
     limits = ", ".join(f"{name.replace('_', ' ')} ≤ {value:g}" for name, value in (bounds.get("bounds") or {}).items())
     return (
-        f"<h2>Clips: a loop each</h2><p>The bundle carries {html.escape(document.get('primary_clip', ''))}. Bounds: {html.escape(limits)}.</p>"
-        f"<table><thead><tr><th>clip</th><th>period</th><th>cache frames</th><th>segment</th>{head}</tr></thead><tbody>{loops}</tbody></table>"
+        f"<h2>Clips: a loop each</h2><p>{carried} Bounds: {html.escape(limits)}.</p>"
+        f"<table><thead><tr><th>clip</th><th>period</th><th>cache frames</th><th>pose frames</th><th>segment</th>{head}</tr></thead><tbody>{loops}</tbody></table>"
         "<h2>Transitions taken from the simulation</h2><p>Playback leaves loop A before its frame <i>leave</i>, plays the "
         "transition's frames, and goes on with loop B's frame <i>arrive</i>; each join is crossfaded like a loop's seam.</p>"
-        f"<table><thead><tr><th>change</th><th>leave</th><th>arrive</th><th>frames</th><th>cache frames</th><th>join</th>{head}</tr></thead>"
+        f"<table><thead><tr><th>change</th><th>leave</th><th>arrive</th><th>frames</th><th>cache frames</th><th>pose frames</th><th>join</th>{head}</tr></thead>"
         f"<tbody>{moves}</tbody></table>"
     )
 
