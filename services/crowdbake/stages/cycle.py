@@ -407,6 +407,8 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
     else:
         document = _searched_cycle(job, folder.inputs, out, progress, plots)
 
+    if document.get("bundle_refused"):
+        raise InputError(f"timeline: {document['bundle_refused']}", "timeline")
     seam = document.get("seam") or {}
     record = CycleRecord(
         start_frame=int(document["start_frame"]),
