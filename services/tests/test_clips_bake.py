@@ -100,7 +100,7 @@ def test_every_loop_keeps_the_bounds(robot_bake):
     assert not any(over.values()), over
 
 
-def test_a_travelling_clip_cannot_join_a_bundle_of_several(tmp_path):
+def test_a_travelling_clip_cannot_join_a_bundle_of_several_and_one_clip_lays_out_no_ranges(tmp_path):
     """A clip whose body travels is searched in the root's frame, its transitions and its body are not:
     the cycle stage refuses such a several-clip bake instead of writing a bundle whose cloth leaves the body."""
     from clip_caches import grid_faces, multi_clip_cache, timeline_document
@@ -119,3 +119,8 @@ def test_a_travelling_clip_cannot_join_a_bundle_of_several(tmp_path):
     _, _, _, in_place = run_clips_job(cloth, faces, timeline, tmp_path / "in_place")
     assert "bundle_refused" not in in_place and in_place["bundle_ranges"]["pose_frames"] == sum(
         entry["frames"] for entry in [*in_place["bundle_ranges"]["clips"], *in_place["bundle_ranges"]["transitions"]])
+    # A timeline of one clip lays out no ranges: its bundle stays format 1, the loop alone.
+    document = timeline_document()
+    document["segments"] = [dict(document["segments"][0], last_frame=len(cloth) - 1)]
+    _, _, _, one_clip = run_clips_job(cloth, faces, timeline_fields(document), tmp_path / "one_clip")
+    assert [entry["clip"] for entry in one_clip["clips"]] == ["Walk"] and "bundle_ranges" not in one_clip
