@@ -92,9 +92,9 @@ def test_every_transition_join_keeps_the_bounds(robot_bake):
     assert not any(over.values()), over
 
 
-@pytest.mark.xfail(strict=True, reason="with the body given, the closing pushes the cape out of the robot's torso and the loops "
-                                       "stretch: Idle 1.38, Walking 1.40, Running 1.12 > 1.10 (Idle's seam acceleration 1.51 > 1.5)")
 def test_every_loop_keeps_the_bounds(robot_bake):
+    """With the body given: the cape rests behind faces of the robot's open meshes in every frame, and
+    the push-out leaves that contact alone (crowdbake.bake.loop_closing.close_cycle, push_out 'new')."""
     cycle = json.loads((robot_bake[1] / "cycle" / "cycle.json").read_text())
     over = {c["clip"]: _over(c["closing"]["quality"]) for c in cycle["clips"]}
     assert not any(over.values()), over

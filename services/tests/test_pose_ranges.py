@@ -41,14 +41,23 @@ def test_a_transition_bakes_its_ends_and_frames_between_at_the_spacing():
     assert pose_ranges.transition_frames(RANGES.transitions[0], 5.0) == [30, 35, 40, 45, 50, 55, 60]
     assert pose_ranges.transition_frames(RANGES.transitions[0], 100.0) == [30, 60]  # the ends at least
     assert pose_ranges.transition_frames(RANGES.transitions[1], 5.0) == [61]
+    # At most max_frames in all, the ends kept: a long transition does not outweigh its clips.
+    assert pose_ranges.transition_frames(RANGES.transitions[0], 5.0, max_frames=4) == [30, 40, 50, 60]
+    assert pose_ranges.transition_frames(RANGES.transitions[0], 5.0, max_frames=2) == [30, 60]
+    with pytest.raises(ValueError, match="at least 2"):
+        pose_ranges.transition_frames(RANGES.transitions[0], 5.0, max_frames=1)
 
 
-def test_the_bundle_bakes_every_clip_and_each_transition_at_its_finer_clip():
-    """idle bakes 4 (spacing 5), walk 2 (spacing 5): the long transition every 5 frames."""
+def test_the_bundle_bakes_every_clip_and_each_transition_at_its_finer_clip_up_to_the_larger_count():
+    """idle bakes 4 (spacing 5), walk 2 (spacing 5): the 31-frame transition would take 7 frames at that
+    spacing, and takes 4, idle's count, evenly over its span."""
     frames = pose_ranges.baked_frames(RANGES, [4, 2])
-    assert frames == [0, 5, 10, 15, 20, 25, 30, 35, 40, 45, 50, 55, 60, 61]
-    # Coarser clips: idle 2 (spacing 10), walk 1 (spacing 10): every 10 frames.
-    assert pose_ranges.baked_frames(RANGES, [2, 1]) == [0, 10, 20, 30, 40, 50, 60, 61]
+    assert frames == [0, 5, 10, 15, 20, 25, 30, 40, 50, 60, 61]
+    # Coarser clips: idle 2, walk 1: the transition's two ends.
+    assert pose_ranges.baked_frames(RANGES, [2, 1]) == [0, 10, 20, 30, 60, 61]
+    # Every frame of idle (20) and walk (10): the 31-frame transition takes 20, the ends among them.
+    in_transition = [f for f in pose_ranges.baked_frames(RANGES, [20, 10]) if 30 <= f <= 60]
+    assert len(in_transition) == 20 and in_transition[0] == 30 and in_transition[-1] == 60
 
 
 def test_motion_leads_to_the_next_baked_frame_of_the_same_range():
@@ -56,7 +65,7 @@ def test_motion_leads_to_the_next_baked_frame_of_the_same_range():
     assert pose_ranges.next_baked_frame(RANGES, 5, frames) == 10
     assert pose_ranges.next_baked_frame(RANGES, 15, frames) == 0  # a clip wraps to its own first
     assert pose_ranges.next_baked_frame(RANGES, 25, frames) == 20  # not on to the transition at 30
-    assert pose_ranges.next_baked_frame(RANGES, 55, frames) == 60
+    assert pose_ranges.next_baked_frame(RANGES, 50, frames) == 60
     assert pose_ranges.next_baked_frame(RANGES, 60, frames) == 60  # a transition's last: zero motion
     assert pose_ranges.next_baked_frame(RANGES, 61, frames) == 61
     with pytest.raises(ValueError, match="not a baked frame"):
@@ -67,7 +76,7 @@ def test_frames_per_range_names_each_range_and_its_baked_frames():
     listed = pose_ranges.frames_per_range(RANGES, pose_ranges.baked_frames(RANGES, [2, 1]))
     assert [(r["kind"], r["name"], r["pose_frames"], r["baked_frames"]) for r in listed] == [
         ("clip", "idle", [0, 20], [0, 10]), ("clip", "walk", [20, 30], [20]),
-        ("transition", "idle -> walk", [30, 61], [30, 40, 50, 60]), ("transition", "walk -> idle", [61, 62], [61])]
+        ("transition", "idle -> walk", [30, 61], [30, 60]), ("transition", "walk -> idle", [61, 62], [61])]
 
 
 def _posed(offset: float, period: int) -> tuple[np.ndarray, np.ndarray]:

@@ -6,7 +6,10 @@ transitions: each a *range* of pose frames (crowdbake.formats.ranges.Ranges). Th
 clip, the frame count its memory budget allows (crowdbake.bake.impostor_budget), spread evenly over the
 clip's range as for one clip; per transition its first and last frame (so playback is exact where it
 leaves and rejoins the loops) and evenly spaced frames between, about as far apart as the baked frames
-of the finer of its two clips (so a transition does not look choppier than the clips it joins).
+of the finer of its two clips (so a transition does not look choppier than the clips it joins), but
+never more frames than the larger of its two clips bakes: a simulated transition can be ten times a
+walk cycle long (robot_clips' Idle -> Walking is 229 frames), and its maps would otherwise outweigh
+the clips' budget several times over.
 
 Pure functions; no I/O.
 """
@@ -33,16 +36,20 @@ def clip_frames(clip: Clip, count: int) -> list[int]:
     return [clip.first_frame + f for f in impostor_frame_indices(clip.frames, count)]
 
 
-def transition_frames(transition: Transition, spacing: float) -> list[int]:
+def transition_frames(transition: Transition, spacing: float, max_frames: int | None = None) -> list[int]:
     """A transition's baked pose frames: its first and last, and evenly spaced ones between, the
     round((frames - 1) / spacing) gaps (at least 1) each about `spacing` (> 0) frames, rounded to whole
-    frames. One frame for a 1-frame transition."""
+    frames, and at most `max_frames` (>= 2; None: no cap) frames in all. One frame for a 1-frame transition."""
     if spacing <= 0:
         raise ValueError(f"transition_frames: spacing must be > 0 frames, got {spacing}")
+    if max_frames is not None and max_frames < 2:
+        raise ValueError(f"transition_frames: max_frames must be at least 2 (its first and last frame), got {max_frames}")
     span = transition.frames - 1
     if span == 0:
         return [transition.first_frame]
     gaps = max(1, int(round(span / spacing)))
+    if max_frames is not None:
+        gaps = min(gaps, max_frames - 1)
     return sorted({transition.first_frame + int(np.floor(k * span / gaps + 0.5)) for k in range(gaps + 1)})
 
 
@@ -53,15 +60,17 @@ def clip_spacing(clip: Clip, count: int) -> float:
 
 def baked_frames(ranges: Ranges, clip_counts: list[int]) -> list[int]:
     """Every baked pose frame of the bundle, ascending: clip_frames per clip (clip_counts: frames each clip
-    bakes, one per clip), transition_frames per transition at the finer spacing of its two clips."""
+    bakes, one per clip), transition_frames per transition at the finer spacing of its two clips, at most
+    as many as the larger of the two bakes (and at least its two ends)."""
     if len(clip_counts) != len(ranges.clips):
         raise ValueError(f"baked_frames: {len(clip_counts)} frame counts for {len(ranges.clips)} clips")
     frames: set[int] = set()
     for clip, count in zip(ranges.clips, clip_counts):
         frames.update(clip_frames(clip, count))
     for transition in ranges.transitions:
-        spacing = min(clip_spacing(ranges.clips[c], clip_counts[c]) for c in (transition.from_clip, transition.to_clip))
-        frames.update(transition_frames(transition, spacing))
+        ends = (transition.from_clip, transition.to_clip)
+        spacing = min(clip_spacing(ranges.clips[c], clip_counts[c]) for c in ends)
+        frames.update(transition_frames(transition, spacing, max(2, *(clip_counts[c] for c in ends))))
     return sorted(frames)
 
 
