@@ -307,3 +307,33 @@ def find_transitions(cloth: np.ndarray, cloth_faces: np.ndarray | None, timeline
                         max_candidates, velocity_weight, rest_positions)
         for k, _ in timeline.changes()
     ]
+
+
+def join_jump_ratios(played: np.ndarray, at: int, reference: np.ndarray) -> tuple[float, float]:
+    """A join's seam figures as a loop's (crowdbake.bake.loop_quality.SeamFigures): how far playback at
+    frame `at` is from what the loop on the other side of the join shows there, in position and in
+    velocity, over the median RMS frame-to-frame step of `played`.
+
+    played: (n, V, 3) what playback shows (loop, transition, loop); at: 1 <= at < n - 1, the first frame
+    that differs from the loop (leaving: the transition's first frame; arriving: its last);
+    reference: (3, V, 3) that loop at at - 1, at, at + 1.
+    """
+    played = np.asarray(played, dtype=np.float64)
+    reference = np.asarray(reference, dtype=np.float64)
+    if not 1 <= at < len(played) - 1 or reference.shape != (3, *played.shape[1:]):
+        raise ValueError(f"join_jump_ratios: frame {at} of {len(played)} played, reference {reference.shape}")
+    median_step = float(np.median(_rms(np.diff(played, axis=0))))
+    position = float(_rms(played[at] - reference[1]))
+    velocity = float(_rms(0.5 * (played[at + 1] - played[at - 1]) - 0.5 * (reference[2] - reference[0])))
+    return _ratio(position, median_step), _ratio(velocity, median_step)
+
+
+def transition_jump_ratios(transition: Transition, loop_a: np.ndarray, loop_b: np.ndarray) -> tuple[float, float]:
+    """(position, velocity) jump ratios of a transition, each the worse of its two joins (join_jump_ratios):
+    leaving, its first frame against loop A going on; arriving, its last frame against loop B's frame before
+    arrive_loop_frame. loop_a, loop_b: (L, V, 3) the loops it joins."""
+    la, lb = len(loop_a), len(loop_b)
+    played = _played(loop_a, transition.leave_loop_frame, np.asarray(transition.frames, np.float64), loop_b, transition.arrive_loop_frame)
+    leave = join_jump_ratios(played, la, np.asarray(loop_a[(transition.leave_loop_frame + np.arange(-1, 2)) % la]))
+    arrive = join_jump_ratios(played, la + len(transition.frames) - 1, np.asarray(loop_b[(transition.arrive_loop_frame + np.arange(-2, 1)) % lb]))
+    return max(leave[0], arrive[0]), max(leave[1], arrive[1])

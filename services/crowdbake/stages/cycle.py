@@ -312,6 +312,7 @@ def bundle_cycle_document(document: dict) -> dict:
     cleaned.pop("files", None)
     if isinstance(cleaned.get("input"), dict):
         cleaned["input"].pop("sources", None)
+    cleaned.pop("bundle_ranges", None)  # several clips: the manifest's clips and transitions say it
     for entry in [*cleaned.get("clips", []), *cleaned.get("transitions", [])]:  # several clips: work files, not the bundle's
         entry.pop("file", None)
         entry.pop("timings_s", None)
@@ -417,6 +418,7 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
         root_motion_removed=bool((document.get("root_motion") or {}).get("removed", False)),
         source=document.get("source") or ("given" if "cycle" in job.inputs else "search"),
         clip_phase=document.get("clip_phase"),
+        ranges=document.get("bundle_ranges"),
     )
     seconds = time.perf_counter() - started
     folder.save("cycle", key, record, seconds)
