@@ -221,7 +221,7 @@ void parse_clips_v2(const json& doc, SchemaCheck& check, Manifest* m) {
             t.first_frame = check.integer(item, where, "first_frame", 0);
             t.frames = check.integer(item, where, "frames", 1);
             t.source_start_frame = check.integer(item, where, "source_start_frame", 0);
-            t.source_end_frame = check.integer(item, where, "source_end_frame", 0);
+            t.source_end_frame = check.integer(item, where, "source_end_frame", 1);
             t.position_jump_ratio = check.number(item, where, "position_jump_ratio", 0);
             t.velocity_jump_ratio = check.number(item, where, "velocity_jump_ratio", 0);
             m->transitions.push_back(t);
