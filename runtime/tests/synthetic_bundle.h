@@ -50,13 +50,13 @@ struct Options {
     };
     std::vector<Clip> clips;
     std::vector<Transition> transitions;
-    // An idle (stride 0.35) and a walk of 8 frames each, a 4-frame transition each way, every clip
-    // frame of an even index baked and each transition's ends: 24 pose frames, 12 layers.
+    // An idle (stride 0.5) and a walk of 8 frames each, a 6-frame transition each way, every clip
+    // frame of an even index baked and each transition's ends: 28 pose frames, 12 layers.
     static Options two_clips() {
         Options o;
-        o.clips = {{"idle", 8, 0.35f}, {"walk", 8, 1.0f}};
-        o.transitions = {{0, 1, 1, 6, 4}, {1, 0, 2, 7, 4}};
-        o.frame_indices = {0, 2, 4, 6, 8, 10, 12, 14, 16, 19, 20, 23};
+        o.clips = {{"idle", 8, 0.5f}, {"walk", 8, 1.0f}};
+        o.transitions = {{0, 1, 1, 0, 6}, {1, 0, 2, 1, 6}};
+        o.frame_indices = {0, 2, 4, 6, 8, 10, 12, 14, 16, 21, 22, 27};
         o.name = "synthetic-clips";
         return o;
     }
