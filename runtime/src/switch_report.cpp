@@ -174,24 +174,22 @@ void SwitchMeter::observe(const Crowd& crowd, const CharacterModel& model, const
             // The pose frames stepped along the character's way, and the clip(s) beside the switch.
             const uint32_t C = schedule.clip_count, r0 = t.clip.range, r1 = clip.range;
             const uint32_t local0 = t.pose_frame - schedule.ranges[r0].first_frame, local1 = pose_frame - schedule.ranges[r1].first_frame;
-            uint32_t steps = 0, sides[2] = {UINT32_MAX, UINT32_MAX};
+            uint32_t steps = 0;
+            const TransitionRange* tr = nullptr;  // the transition entered, left or passed
             if (r0 < C && r1 >= C) {  // entered a transition
-                const TransitionRange& tr = schedule.transitions[r1 - C];
-                steps = loop_steps(local0, tr.leave_frame, schedule.ranges[r0].frames) + 1 + local1;
-                sides[0] = r0;
+                tr = &schedule.transitions[r1 - C];
+                steps = loop_steps(local0, tr->leave_frame, schedule.ranges[r0].frames) + 1 + local1;
             } else if (r0 >= C && r1 < C) {  // left one
-                const TransitionRange& tr = schedule.transitions[r0 - C];
-                steps = (tr.frames - 1 - local0) + 1 + loop_steps(tr.arrive_frame, local1, schedule.ranges[r1].frames);
-                sides[0] = r1;
+                tr = &schedule.transitions[r0 - C];
+                steps = (tr->frames - 1 - local0) + 1 + loop_steps(tr->arrive_frame, local1, schedule.ranges[r1].frames);
             } else if (r0 < C && r1 < C && clip.transition < schedule.transitions.size() &&
                        schedule.transitions[clip.transition].from_clip == r0 && schedule.transitions[clip.transition].to_clip == r1) {
-                const TransitionRange& tr = schedule.transitions[clip.transition];  // a whole transition between two frames
-                steps = loop_steps(local0, tr.leave_frame, schedule.ranges[r0].frames) + 1 + tr.frames +
-                        loop_steps(tr.arrive_frame, local1, schedule.ranges[r1].frames);
-                sides[0] = r0, sides[1] = r1;
+                tr = &schedule.transitions[clip.transition];  // a whole transition between two frames
+                steps = loop_steps(local0, tr->leave_frame, schedule.ranges[r0].frames) + 1 + tr->frames +
+                        loop_steps(tr->arrive_frame, local1, schedule.ranges[r1].frames);
             }
             const int l = int(lod);
-            if (steps == 0) {
+            if (steps == 0 || !tr) {
                 ++unmeasured_[l];
             } else {
                 const glm::mat4 place = glm::rotate(glm::translate(glm::mat4(1), feet), c.heading, glm::vec3(0, 1, 0));
@@ -202,9 +200,8 @@ void SwitchMeter::observe(const Crowd& crowd, const CharacterModel& model, const
                 picture(mesh_lod, {p0.a, p0.b, p0.weight}, to_screen, width, height, &before);
                 picture(mesh_lod, {p1.a, p1.b, p1.weight}, to_screen, width, height, &after);
                 double reference = 0;
-                for (uint32_t side : sides)
-                    if (side != UINT32_MAX)
-                        reference = std::max(reference, clip_reference(model, state, side, steps, lod, blend_frames, to_screen, width, height));
+                for (uint32_t side : {tr->from_clip, tr->to_clip})
+                    reference = std::max(reference, clip_reference(model, state, side, steps, lod, blend_frames, to_screen, width, height));
                 if (reference > 0) events_[l].push_back({rms_motion(before, after), reference});
                 else ++unmeasured_[l];
             }

@@ -13,11 +13,11 @@
 //  - A switch is a displayed frame at which the character is in another range (clip or transition)
 //    than at the frame before, in the same representation and on screen at both. Its jump is
 //    motion(picture before, picture now).
-//  - Its reference is the median per-frame motion inside the clip on the switch's clip side (the clip
-//    it left when it enters a transition, the clip it arrived in when it leaves one; the larger of
-//    the two where a whole transition fell between two frames): the median over the clip's loop
-//    frames k of motion(picture at k, picture at k + n), where n is the number of pose frames the
-//    switch stepped, same character, place and representation, steps that change nothing left out.
+//  - Its reference is the median per-frame motion inside the clips the transition joins (the larger
+//    of its two clips, so a transition out of a nearly still idle is held to the motion it leads
+//    into): per clip, the median over its loop frames k of motion(picture at k, picture at k + n),
+//    where n is the number of pose frames the switch stepped (1 when every frame is shown); same
+//    character, place and representation; steps that change nothing left out.
 //  - ratio = jump / reference; reported: the largest ratio (with its jump and reference in pixels),
 //    the median ratio and the number of switches measured. A pop-free switch moves about as much as
 //    a frame inside its clip: ratio near 1. The target is <= 1.5.

@@ -402,7 +402,8 @@ std::vector<Motion> pose_motions(const Options& o) {
         for (uint32_t f = 0; f < c.frames; ++f) motions.push_back({turn * float(f) / float(c.frames), c.stride});
     for (const Options::Transition& t : o.transitions) {
         const Options::Clip &a = o.clips[t.from], &b = o.clips[t.to];
-        const float from = turn * float(t.leave) / float(a.frames), to = turn * float(t.arrive) / float(b.frames);
+        const float from = turn * float(t.leave) / float(a.frames);
+        const float to = turn * float(t.arrive) / float(b.frames) + (o.popping_transitions ? 0.375f * turn : 0.0f);
         const float step = 0.5f * (turn / float(a.frames) + turn / float(b.frames)), want = step * float(t.frames + 1);
         float gap = std::fmod(to - from + 2 * turn, turn);
         gap += turn * std::max(0.0f, std::round((want - gap) / turn));

@@ -50,6 +50,9 @@ struct Options {
     };
     std::vector<Clip> clips;
     std::vector<Transition> transitions;
+    // Transitions that end 3/8 of a stride away from their arrive frame: a switch that pops, for
+    // showing that the switch measure sees one.
+    bool popping_transitions = false;
     // An idle (stride 0.5) and a walk of 8 frames each, a 6-frame transition each way, every clip
     // frame of an even index baked and each transition's ends: 28 pose frames, 12 layers.
     static Options two_clips() {

@@ -106,6 +106,20 @@ int main(int argc, char** argv) {
         CHECK_MSG(r.err.find("switches, largest jump / median motion in the clip: high ") != std::string::npos, r.err);
     }
 
+    // Transitions that end 3/8 of a stride off their arrive frame pop, and the figure says so.
+    synthetic::Options popping = o;
+    popping.popping_transitions = true;
+    const std::string error_popping = synthetic::write_bundle(work + "/popping", popping);
+    CHECK_MSG(error_popping.empty(), error_popping);
+    const Run pop = run(argv[1], "--bundle '" + work + "/popping' --count 4 --headless --frames 60 --lod high --camera street "
+                                 "--switch-after 0.1,0.3 --report '" + work + "/pop.json'" + size);
+    CHECK_MSG(pop.status == 0, pop.err);
+    const json popped = read_json(work + "/pop.json");
+    if (!popped.is_discarded()) {
+        const json& s = popped["archetypes"][0]["switch_jumps"]["high"];
+        CHECK_MSG(s["switches_measured"].get<int>() > 0 && s["largest_ratio"].get<double>() > kMaxSwitchRatio, s.dump());
+    }
+
     // The mix is honoured: walk alone, and nothing leads from walk to a clip of weight > 0.
     const Run walk = run(argv[1], "--bundle '" + bundle + "' --count 6 --headless --frames 20 --lod low --clips walk=1 --switch-after 0,0.1 "
                                   "--report '" + work + "/walk.json'" + size);
