@@ -183,7 +183,13 @@ def run_clips_job(cloth: np.ndarray, cloth_faces: np.ndarray, timeline: Timeline
     main = next(loop for loop in loops if loop.clip == primary)
     sections = {"primary_clip": primary, "clip_phase": main.clip_phase, "timeline": timeline_dict(timeline),
                 "clips": clip_entries, "transitions": transition_entries}
-    if len(loops) > 1:  # a bundle of several clips (format v2): every loop and transition in one pose cache
+    travelling = [loop.clip for loop in loops if loop.result.root_offsets is not None]
+    if len(loops) > 1 and travelling:
+        # Its loop is in the root's frame, the transitions and the body are not: no bundle can hold both
+        # (crowdbake.stages.cycle.stage_cycle refuses the bake; `crowdbake cycle` still writes the loops).
+        sections["bundle_refused"] = (f"clip {travelling[0]!r} travels (its loop was searched in the root's frame): a bundle of "
+                                      "several clips needs clips that play in place")
+    elif len(loops) > 1:  # a bundle of several clips (format v2): every loop and transition in one pose cache
         ranges = bundle_ranges(loops, transitions)
         for entry, item in zip([*clip_entries, *transition_entries], ranges.all()):
             entry["pose_frames"] = [item.first_frame, item.first_frame + item.frames]

@@ -389,7 +389,8 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
     started = time.perf_counter()
     folder = WorkDir(work)
     job = load_job(work)
-    key = stage_key("cycle", folder.key_of("validate"))
+    # A timeline's cycle stage also lays out the bundle's ranges (CycleRecord.ranges): stamps without them are stale.
+    key = stage_key("cycle", folder.key_of("validate"), *(["bundle-ranges"] if "timeline" in job.inputs else []))
     out = folder.root / "cycle"
     cycle_json, looped = out / "cycle.json", out / "looped.pc2"
     body_only = "cloth" not in job.inputs  # crowdbake.stages.body_only: the animation's own loop, no looped cloth
@@ -406,6 +407,8 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
     else:
         document = _searched_cycle(job, folder.inputs, out, progress, plots)
 
+    if document.get("bundle_refused"):
+        raise InputError(f"timeline: {document['bundle_refused']}", "timeline")
     seam = document.get("seam") or {}
     record = CycleRecord(
         start_frame=int(document["start_frame"]),

@@ -221,7 +221,9 @@ def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, Atla
 def ranges_framing(params, ranges: Ranges, high: dict) -> tuple[dict, AtlasLayout, list[int], dict]:
     """impostor_framing for several clips (crowdbake.bake.pose_ranges): the budget per clip, one azimuth
     count for all (fit_budget_per_clip), each transition's ends and frames between at its clips' spacing,
-    the crop over every baked frame. The budget's account lists each clip's choice."""
+    the crop over every baked frame (one layout for all, so a clip's layers may be a little larger than
+    the crop of its own frames the budget measured: texture_memory.json's `impostor.ranges` has the
+    bytes as stored). The budget's account lists each clip's choice."""
     centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
     elevations = tuple(params.elevations_deg)
     extents = frame_extents(np.concatenate([np.asarray(part.positions) for part in high.values()], axis=1), centre, elevations)
