@@ -36,6 +36,19 @@ def test_each_clip_bakes_its_count_spread_over_its_own_range():
     assert pose_ranges.clip_frames(RANGES.clips[1], 50) == list(range(20, 30))  # never more than the loop has
 
 
+def test_a_clip_bakes_the_frames_where_characters_switch():
+    """idle (20 frames) is left at loop frame 7 and entered at 13; walk (10) entered at 3: those frames
+    are baked, the even spread starts at the first and the count stays what the budget gave."""
+    ranges = Ranges(62, RANGES.clips, (Transition(0, 1, 7, 3, 30, 31, 0, 31, 0.0, 0.0), Transition(1, 0, 3, 13, 61, 1, 0, 1, 0.0, 0.0)))
+    assert pose_ranges.switch_frames(ranges) == [(7, 13), (3,)]
+    assert pose_ranges.clip_frames(ranges.clips[0], 4, (7, 13)) == [0, 7, 13, 14]  # 7, 14, 0 evenly, and 13
+    assert pose_ranges.clip_frames(ranges.clips[1], 2, (3,)) == [23, 28]
+    frames = pose_ranges.baked_frames(ranges, [4, 2])
+    assert {7, 13, 23}.issubset(frames) and len([f for f in frames if f < 20]) == 4
+    # More switches than the budget's count: every switch is baked all the same.
+    assert pose_ranges.clip_frames(ranges.clips[0], 1, (1, 5, 9)) == [1, 5, 9]
+
+
 def test_a_transition_bakes_its_ends_and_frames_between_at_the_spacing():
     """31 frames at a spacing of 5: the 30 frames' span in 6 gaps of 5, both ends included."""
     assert pose_ranges.transition_frames(RANGES.transitions[0], 5.0) == [30, 35, 40, 45, 50, 55, 60]

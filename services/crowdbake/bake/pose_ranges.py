@@ -30,10 +30,29 @@ def first_frames(frame_counts: list[int]) -> list[int]:
     return [int(x) for x in np.concatenate([[0], np.cumsum(counts)[:-1]])] if counts else []
 
 
-def clip_frames(clip: Clip, count: int) -> list[int]:
-    """`count` baked pose frames of a clip, spread evenly over its loop from its first frame (as one clip's
-    crowdbake.bake.poses.impostor_frame_indices)."""
-    return [clip.first_frame + f for f in impostor_frame_indices(clip.frames, count)]
+def clip_frames(clip: Clip, count: int, switches: tuple[int, ...] = ()) -> list[int]:
+    """`count` baked pose frames of a clip (as one clip's crowdbake.bake.poses.impostor_frame_indices:
+    spread evenly over its loop), with every loop frame in `switches` among them: the frames where a
+    character enters or leaves a transition. The even spread starts at the first switch frame and the
+    others take the place of grid frames, so the count stays `count` while it exceeds the switches.
+    Why: at a switch crowdview shows the transition's first (or last) baked frame, exact; if the clip
+    side of the switch were only a blend of the baked frames either side, the impostor would jump there
+    by the blend's error, several times its motion from one frame to the next."""
+    loop_frames = sorted({int(k) % clip.frames for k in switches})
+    offset = loop_frames[0] if loop_frames else 0
+    even = max(1, count - max(0, len(loop_frames) - 1))
+    grid = {(offset + f) % clip.frames for f in impostor_frame_indices(clip.frames, even)}
+    return sorted(clip.first_frame + f for f in grid | set(loop_frames))
+
+
+def switch_frames(ranges: Ranges) -> list[tuple[int, ...]]:
+    """Per clip, its loop frames where a character enters or leaves a transition: the leave_frame of
+    each transition from it and the arrive_frame of each transition to it (SPEC.md "Version 2")."""
+    switches: list[set[int]] = [set() for _ in ranges.clips]
+    for transition in ranges.transitions:
+        switches[transition.from_clip].add(transition.leave_frame)
+        switches[transition.to_clip].add(transition.arrive_frame)
+    return [tuple(sorted(frames)) for frames in switches]
 
 
 def transition_frames(transition: Transition, spacing: float, max_frames: int | None = None) -> list[int]:
@@ -59,14 +78,14 @@ def clip_spacing(clip: Clip, count: int) -> float:
 
 
 def baked_frames(ranges: Ranges, clip_counts: list[int]) -> list[int]:
-    """Every baked pose frame of the bundle, ascending: clip_frames per clip (clip_counts: frames each clip
-    bakes, one per clip), transition_frames per transition at the finer spacing of its two clips, at most
+    """Every baked pose frame of the bundle, ascending: clip_frames per clip with its switch frames
+    (clip_counts: frames each clip bakes, one per clip), transition_frames per transition at the finer spacing of its two clips, at most
     as many as the larger of the two bakes (and at least its two ends)."""
     if len(clip_counts) != len(ranges.clips):
         raise ValueError(f"baked_frames: {len(clip_counts)} frame counts for {len(ranges.clips)} clips")
     frames: set[int] = set()
-    for clip, count in zip(ranges.clips, clip_counts):
-        frames.update(clip_frames(clip, count))
+    for clip, count, switches in zip(ranges.clips, clip_counts, switch_frames(ranges)):
+        frames.update(clip_frames(clip, count, switches))
     for transition in ranges.transitions:
         ends = (transition.from_clip, transition.to_clip)
         spacing = min(clip_spacing(ranges.clips[c], clip_counts[c]) for c in ends)
