@@ -254,6 +254,15 @@ struct FrameState {
     bool even_azimuths = false;
     float azimuth0_deg = 0, azimuth_step_deg = 0;
     uint32_t lowest_elevation = 0, highest_elevation = 0;  // indices into the model's elevations
+
+    // The frame's passes (structure of arrays, so the view maths vectorises; chunks of characters, so
+    // threads share one archetype): per character its heading (built with center_offset), and this
+    // frame's bounds centre, feet (walking layouts only) and level shown (a Lod, or 3: culled); per
+    // chunk the characters it has at each level (and culled) and where its instances go.
+    std::vector<float> heading, center_x, center_y, center_z;
+    std::vector<glm::vec3> feet;
+    std::vector<uint8_t> shown;
+    std::vector<uint32_t> chunk_counts, chunk_offsets;  // 4 and 3 per chunk
 };
 
 // Cull, pick a LOD (with hysteresis through `state`, one entry per character, resized as
@@ -265,12 +274,23 @@ void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& 
                  const LodRule& rule, float time_s, FrameState* state,
                  FrameInstances* out, ImpostorBlend blend = ImpostorBlend::warp);
 
-// Calls build_one(a) for every archetype a < count, spread over up to `threads` threads (archetype
-// a on thread a % threads, the calling thread among them). build_frame of one archetype touches
-// only that archetype's state and instances, so the frame is the same as one built in turn.
-void for_each_archetype(size_t count, unsigned threads, const std::function<void(size_t)>& build_one);
+// One archetype's part in build_frames: what build_frame takes for it.
+struct ArchetypeFrame {
+    const Crowd* crowd;
+    const CharacterModel* model;
+    const LodRule* rule;
+    FrameState* state;
+    FrameInstances* out;
+};
 
-// The threads for_each_archetype is worth: one per archetype, at most the hardware's.
-unsigned archetype_threads(size_t count);
+// build_frame for every archetype with one camera, spread over up to `threads` threads (the calling
+// thread among them) in chunks of characters, so two cores share even a one-archetype crowd. The
+// instances, their order and every state are those of build_frame called for each archetype in turn,
+// whatever `threads`.
+void build_frames(const std::vector<ArchetypeFrame>& archetypes, const Camera& camera, float aspect, LodMode mode, float time_s,
+                  ImpostorBlend blend, unsigned threads);
+
+// The threads build_frames is worth: the hardware's.
+unsigned frame_threads();
 
 }  // namespace crowdview

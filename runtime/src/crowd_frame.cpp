@@ -1,9 +1,14 @@
-// One frame's instances for one archetype (crowd.h build_frame): the hot loop of a crowd.
-// Per character it does a sphere-frustum test, a depth along the view (a dot product) for the
-// LOD, a compare and a table lookup for the clip state (clips.h) and, for impostors, two
-// arctangents for the view;
-// everything that does not change between frames sits in FrameState.
+// One frame's instances for one archetype or many (crowd.h build_frame, build_frames): the hot loop
+// of a crowd. Two passes over chunks of characters. The first steps the clip state (clips.h: a
+// compare until the next switch), places the bounds centre, tests it against the frustum and picks
+// the LOD (a dot product along the view, with hysteresis); counting what each chunk holds at each
+// level gives every chunk its place in the instance lists. The second fills those places: for
+// impostors the view (two arctangents, the view choice and weights, in a branch-free loop over
+// arrays the compiler vectorises) and the frame blend (a table lookup). Chunks touch only their own
+// characters and places, so any number of threads builds the frame one thread builds.
+// Everything that does not change between frames sits in FrameState.
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <thread>
 #include <vector>
@@ -92,8 +97,10 @@ bool build_tables(const Crowd& crowd, const CharacterModel& model, FrameState* s
     if (s->crowd != &crowd || s->center_offset.size() != crowd.characters.size() || !(s->tables_for.center == model.center)) {
         s->crowd = &crowd;
         s->center_offset.resize(crowd.characters.size());
+        s->heading.resize(crowd.characters.size());
         for (size_t i = 0; i < crowd.characters.size(); ++i) {
             const float h = crowd.characters[i].heading, ch = std::cos(h), sh = std::sin(h);
+            s->heading[i] = h;
             s->center_offset[i] = glm::vec2(ch * model.center.x + sh * model.center.z, -sh * model.center.x + ch * model.center.z);
         }
         s->tables_for.center = glm::vec3(NAN);  // the frame tables below are rebuilt with the centre
@@ -159,113 +166,303 @@ bool even_view_choice(const glm::vec2& angles, const FrameState& s, const std::v
 
 }  // namespace
 
-void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,
-                 const LodRule& rule, float time_s, FrameState* state, FrameInstances* out, ImpostorBlend blend) {
-    for (auto& list : out->by_lod) list.clear();
-    out->impostor_samples.clear();
-    out->blend = blend;
-    out->culled = 0;
-    const bool all = blend == ImpostorBlend::full || blend == ImpostorBlend::warp;
-    const bool blend_views = blend == ImpostorBlend::views || all;
-    const bool blend_frames = blend == ImpostorBlend::frames || all;
-    const size_t n = crowd.characters.size();
-    if (state->lod.size() != n) state->lod.assign(n, Lod(255));  // 255: no history yet
-    const bool rebuilt = build_tables(crowd, model, state);
-    prepare_clips(crowd, model, time_s, rebuilt, state);
-    const FrameState& s = *state;
-    const ClipSchedule& schedule = s.schedule;
-    ClipState* clip_states = state->clip.data();
-    const uint32_t columns = uint32_t(model.azimuths_deg.size());
-    const bool has_views = columns > 0 && !model.elevations_deg.empty();
-    const Frustum frustum = frustum_from(camera.projection(aspect) * camera.view());
-    const glm::vec3 forward = camera.forward();
-    for (size_t i = 0; i < n; ++i) {
-        const Character& c = crowd.characters[i];
+namespace {
+
+// Characters per chunk: the work a thread takes at a time, and the length of the view pass's arrays
+// (on the stack, a few tens of kilobytes).
+constexpr size_t kChunk = 2048;
+
+// fast_atan2 without branches, for the vectorised view pass: the same operations, so the same result
+// bit for bit (the branches become selects; 0 for (0, 0) as there).
+inline float select_atan2(float y, float x) {
+    const float ax = std::fabs(x), ay = std::fabs(y);
+    const float big = ax < ay ? ay : ax, small = ay < ax ? ay : ax;
+    const float ratio = big > 0 ? small / big : 0.0f;
+    float a = atan_unit(ratio);
+    a = ay > ax ? 0.5f * kPi - a : a;
+    a = x < 0 ? kPi - a : a;
+    return y < 0 ? -a : a;
+}
+
+// What every pass of one archetype's frame reads.
+struct Pass {
+    const Crowd* crowd;
+    const CharacterModel* model;
+    const LodRule* rule;
+    FrameState* state;
+    FrameInstances* out;
+    size_t chunks;
+    bool on_the_spot, has_views, fast_views;  // fast_views: even azimuths, at most 4 elevations
+    float elevations[4];                      // padded with +infinity, which no test below picks
+};
+
+struct FrameSetup {
+    Frustum frustum;
+    glm::vec3 eye, forward;
+    LodMode mode;
+    float time_s;
+    bool blend_views, blend_frames;
+};
+
+// Pass 1 over one chunk: clip state, centre, culling and LOD; counts per level (and culled).
+void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
+    FrameState& s = *p.state;
+    const CharacterModel& model = *p.model;
+    const size_t begin = chunk * kChunk, end = std::min(begin + kChunk, p.crowd->characters.size());
+    uint32_t counts[4] = {0, 0, 0, 0};
+    const Character* characters = p.crowd->characters.data();
+    for (size_t i = begin; i < end; ++i) {
+        const Character& c = characters[i];
         // Clip state: nothing to do until the character's next switch event (a few times a minute).
-        ClipState& clip = clip_states[i];
-        if (time_s >= clip.next_event_s) advance_clip_state(schedule, uint32_t(i), c.rate, time_s, &clip);
-        const glm::vec3 feet = crowd.layout == Layout::on_the_spot ? c.start : character_position(crowd, c, time_s);
+        ClipState& clip = s.clip[i];
+        if (f.time_s >= clip.next_event_s) advance_clip_state(s.schedule, uint32_t(i), c.rate, f.time_s, &clip);
+        glm::vec3 feet = c.start;
+        if (!p.on_the_spot) s.feet[i] = feet = character_position(*p.crowd, c, f.time_s);
         const glm::vec3 center(feet.x + s.center_offset[i].x, feet.y + model.center.y, feet.z + s.center_offset[i].y);
-        if (!sphere_visible(frustum, center, model.radius)) {
-            ++out->culled;
+        s.center_x[i] = center.x, s.center_y[i] = center.y, s.center_z[i] = center.z;
+        if (!sphere_visible(f.frustum, center, model.radius)) {
+            s.shown[i] = 3;
+            ++counts[3];
             continue;
         }
         Lod lod;
-        switch (mode) {
+        switch (f.mode) {
         case LodMode::high: lod = Lod::high; break;
         case LodMode::low: lod = model.has_low ? Lod::low : Lod::high; break;
         case LodMode::impostor: lod = Lod::impostor; break;
         default: {
-            const float depth = glm::dot(center - camera.position, forward);
-            const Lod previous = state->lod[i];
-            lod = uint8_t(previous) > 2 ? lod_without_history(depth, rule) : select_lod(depth, previous, rule);
+            const float depth = glm::dot(center - f.eye, f.forward);
+            const Lod previous = s.lod[i];
+            lod = uint8_t(previous) > 2 ? lod_without_history(depth, *p.rule) : select_lod(depth, previous, *p.rule);
         }
         }
-        state->lod[i] = lod;
+        s.lod[i] = lod;
+        s.shown[i] = uint8_t(lod);
+        ++counts[int(lod)];
+    }
+    std::copy(counts, counts + 4, s.chunk_counts.begin() + 4 * chunk);
+}
+
+// The view pass's results for a chunk, one array per field.
+struct ChunkViews {
+    float a0[kChunk], a1[kChunk], e0[kChunk], e1[kChunk], nearest[kChunk];  // whole numbers
+    float wa[kChunk], we[kChunk];
+    int32_t tie[kChunk];
+};
+
+// even_view_choice for characters [begin, end) from their centres and headings, with the fast angles,
+// written so the compiler vectorises it (-fopt-info-vec): fixed trip counts, selects, no calls.
+// Equal to even_view_choice(fast_view_angles_deg(...)) bit for bit; `tie` marks where the caller
+// must decide with the exact angles.
+void even_views(const Pass& p, const FrameSetup& f, size_t begin, size_t end, ChunkViews* v) {
+    const FrameState& s = *p.state;
+    const float* __restrict cx = s.center_x.data() + begin;
+    const float* __restrict cy = s.center_y.data() + begin;
+    const float* __restrict cz = s.center_z.data() + begin;
+    const float* __restrict heading = s.heading.data() + begin;
+    const int32_t columns = int32_t(p.model->azimuths_deg.size());
+    const float columns_f = float(columns), az0 = s.azimuth0_deg, step = s.azimuth_step_deg;
+    const float lowest = p.model->elevations_deg[s.lowest_elevation], highest = p.model->elevations_deg[s.highest_elevation];
+    const float lowest_i = float(s.lowest_elevation), highest_i = float(s.highest_elevation);
+    const float e[4] = {p.elevations[0], p.elevations[1], p.elevations[2], p.elevations[3]};
+    const float ex = f.eye.x, ey = f.eye.y, ez = f.eye.z, tie_gap = kTieMargin * step;
+    const int32_t n = int32_t(end - begin);
+    for (int32_t k = 0; k < n; ++k) {
+        const float x = ex - cx[k], y = ey - cy[k], z = ez - cz[k];
+        const float horizontal = std::sqrt(x * x + z * z);
+        const float azimuth = (select_atan2(x, z) - heading[k]) * kDegrees, elevation = select_atan2(y, horizontal) * kDegrees;
+        float t = (azimuth - az0) / step;
+        const float q = t / columns_f, qt = float(int32_t(q));
+        t -= columns_f * (qt > q ? qt - 1.0f : qt);
+        // t >= 0 up to rounding: truncating to int32 is the uint32 truncation there. The indices are
+        // small whole numbers held in floats, exact, since SSE2 has float min and no 32-bit integer one.
+        const float a0 = std::min(float(int32_t(t)), columns_f - 1), a1 = a0 + 1 == columns_f ? 0.0f : a0 + 1;  // one column: a0 = a1 = 0
+        const float frac = t - a0;
+        const float azimuth_i = frac < 0.5f ? a0 : frac > 0.5f ? a1 : std::min(a0, a1);
+        const float clamped = std::min(std::max(elevation, lowest), highest);
+        float nearest_e = 0, r0 = lowest_i, r1 = highest_i;
+        float v0 = lowest, v1 = highest, best = INFINITY, second = INFINITY;
+#pragma GCC unroll 4
+        for (int32_t j = 0; j < 4; ++j) {
+            const float ev = e[j], gap = std::fabs(elevation - ev);
+            const bool better = gap < best, runner_up = !better & (gap < second);
+            second = better ? best : runner_up ? gap : second;
+            nearest_e = better ? float(j) : nearest_e;
+            best = better ? gap : best;
+            const bool below = (ev <= clamped) & (ev > v0), above = (ev >= clamped) & (ev < v1);
+            r0 = below ? float(j) : r0, v0 = below ? ev : v0;
+            r1 = above ? float(j) : r1, v1 = above ? ev : v1;
+        }
+        const float span = v1 - v0;
+        v->a0[k] = a0, v->a1[k] = a1, v->e0[k] = r0, v->e1[k] = r1;
+        v->nearest[k] = azimuth_i + nearest_e * columns_f;
+        v->wa[k] = frac;
+        v->we[k] = span > 0 ? (clamped - v0) / span : 0.0f;
+        v->tie[k] = (std::fabs(frac - 0.5f) < kTieMargin) | (second - best < tie_gap);
+    }
+    if (columns < 2) std::fill(v->wa, v->wa + n, 0.0f);  // one azimuth: no azimuth weight
+}
+
+// The impostor's samples from its view weights and frame, as the shader reads them.
+inline ImpostorSamples impostor_samples(const ViewWeights& views, const FrameWeights& frames) {
+    // Heaviest first, weight-0 entries last (repeating the heaviest tile): an insertion sort of four,
+    // stable as std::stable_sort is.
+    int order[4] = {0, 1, 2, 3};
+    for (int k = 1; k < 4; ++k)
+        for (int j = k; j > 0 && views.weights[order[j]] > views.weights[order[j - 1]]; --j) std::swap(order[j], order[j - 1]);
+    ImpostorSamples samples;
+    for (int k = 0; k < 4; ++k) {
+        const bool used = views.weights[order[k]] > 0;
+        samples.tiles[k] = used ? views.tiles[order[k]] : views.tiles[order[0]];
+        samples.view_weights[k] = used ? views.weights[order[k]] : 0.0f;
+    }
+    samples.layers[0] = frames.layers[0], samples.layers[1] = frames.layers[1];
+    samples.frame_weight = frames.weight;
+    samples.unused = 0;
+    return samples;
+}
+
+// Pass 2 over one chunk: the instances (and impostor samples) of its shown characters, at the places
+// pass 1's counts gave it.
+void fill_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
+    const FrameState& s = *p.state;
+    const CharacterModel& model = *p.model;
+    const size_t begin = chunk * kChunk, end = std::min(begin + kChunk, p.crowd->characters.size());
+    uint32_t place[3];
+    std::copy(s.chunk_offsets.begin() + 3 * chunk, s.chunk_offsets.begin() + 3 * chunk + 3, place);
+    const bool impostors = s.chunk_counts[4 * chunk + 2] > 0 && p.has_views;
+    ChunkViews views_of;
+    if (impostors && p.fast_views) even_views(p, f, begin, end, &views_of);
+    const uint32_t columns = uint32_t(model.azimuths_deg.size());
+    const Character* characters = p.crowd->characters.data();
+    Instance* lists[3] = {p.out->by_lod[0].data(), p.out->by_lod[1].data(), p.out->by_lod[2].data()};
+    ImpostorSamples* samples = p.out->impostor_samples.data();
+    for (size_t i = begin; i < end; ++i) {
+        const uint8_t lod = s.shown[i];
+        if (lod > 2) continue;
+        const Character& c = characters[i];
+        const glm::vec3 feet = p.on_the_spot ? c.start : s.feet[i];
         Instance inst;
         inst.position[0] = feet.x, inst.position[1] = feet.y, inst.position[2] = feet.z;
         inst.heading = c.heading;
-        inst.frame = shown_pose_frame(schedule, clip, c.rate, time_s);
+        inst.frame = shown_pose_frame(s.schedule, s.clip[i], c.rate, f.time_s);
         inst.variation = c.variation;
         inst.outfit = c.outfit;
         inst.tile = 0;
-        if (lod == Lod::impostor && has_views) {
+        if (lod == uint8_t(Lod::impostor) && p.has_views) {
             ViewWeights views;
             uint32_t nearest_tile;
-            if (s.even_azimuths) {
-                const glm::vec2 angles = fast_view_angles_deg(camera.position - center, c.heading);
-                // Near a tie, the exact angles (view_blend.h), so the choice is the one it makes.
-                if (even_view_choice(angles, s, model.elevations_deg, columns, blend_views, &nearest_tile, &views))
-                    even_view_choice(view_angles_deg(camera.position - center, c.heading), s, model.elevations_deg, columns, blend_views,
-                                     &nearest_tile, &views);
+            const glm::vec3 to_camera = f.eye - glm::vec3(s.center_x[i], s.center_y[i], s.center_z[i]);
+            const size_t k = i - begin;
+            if (p.fast_views && !views_of.tie[k]) {
+                nearest_tile = uint32_t(views_of.nearest[k]);
+                const uint32_t a0 = uint32_t(views_of.a0[k]), a1 = uint32_t(views_of.a1[k]);
+                const uint32_t e0 = uint32_t(views_of.e0[k]), e1 = uint32_t(views_of.e1[k]);
+                const float wa = views_of.wa[k], we = views_of.we[k];
+                views.tiles[0] = a0 + e0 * columns, views.weights[0] = (1 - wa) * (1 - we);
+                views.tiles[1] = a1 + e0 * columns, views.weights[1] = wa * (1 - we);
+                views.tiles[2] = a0 + e1 * columns, views.weights[2] = (1 - wa) * we;
+                views.tiles[3] = a1 + e1 * columns, views.weights[3] = wa * we;
+            } else if (s.even_azimuths) {
+                // Near a tie (or many elevations), even_view_choice; near a tie with the exact angles
+                // (view_blend.h), so the choice is the one it makes.
+                const glm::vec2 angles = fast_view_angles_deg(to_camera, c.heading);
+                if (p.fast_views || even_view_choice(angles, s, model.elevations_deg, columns, f.blend_views, &nearest_tile, &views))
+                    even_view_choice(view_angles_deg(to_camera, c.heading), s, model.elevations_deg, columns, f.blend_views, &nearest_tile, &views);
             } else {
-                const glm::vec2 angles = view_angles_deg(camera.position - center, c.heading);
+                const glm::vec2 angles = view_angles_deg(to_camera, c.heading);
                 nearest_tile = nearest_view_weights(angles, model.azimuths_deg, model.elevations_deg).tiles[0];
-                if (blend_views) views = blend_view_weights(angles, model.azimuths_deg, model.elevations_deg);
+                if (f.blend_views) views = blend_view_weights(angles, model.azimuths_deg, model.elevations_deg);
             }
-            if (!blend_views) {
+            if (!f.blend_views) {
                 for (uint32_t& t : views.tiles) t = nearest_tile;
                 views.weights[0] = 1, views.weights[1] = views.weights[2] = views.weights[3] = 0;
             }
             const uint32_t pose = std::min(inst.frame, uint32_t(s.nearest_layer.size() - 1));
             FrameWeights frames;
             frames.layers[0] = frames.layers[1] = s.nearest_layer[pose];
-            if (blend_frames) frames = s.frame_weights[pose];
+            if (f.blend_frames) frames = s.frame_weights[pose];
             inst.tile = nearest_tile;
             inst.frame = frames.layers[frames.weight > 0.5f ? 1 : 0];
-            // Heaviest first, weight-0 entries last (repeating the heaviest tile): an insertion
-            // sort of four, stable as std::stable_sort is.
-            int order[4] = {0, 1, 2, 3};
-            for (int k = 1; k < 4; ++k)
-                for (int j = k; j > 0 && views.weights[order[j]] > views.weights[order[j - 1]]; --j) std::swap(order[j], order[j - 1]);
-            ImpostorSamples samples;
-            for (int k = 0; k < 4; ++k) {
-                const bool used = views.weights[order[k]] > 0;
-                samples.tiles[k] = used ? views.tiles[order[k]] : views.tiles[order[0]];
-                samples.view_weights[k] = used ? views.weights[order[k]] : 0.0f;
-            }
-            samples.layers[0] = frames.layers[0], samples.layers[1] = frames.layers[1];
-            samples.frame_weight = frames.weight;
-            samples.unused = 0;
-            out->impostor_samples.push_back(samples);
+            samples[place[2]] = impostor_samples(views, frames);
         }
-        out->by_lod[int(lod)].push_back(inst);
+        lists[lod][place[lod]++] = inst;
     }
 }
 
-void for_each_archetype(size_t count, unsigned threads, const std::function<void(size_t)>& build_one) {
-    const size_t step = std::max<size_t>(1, std::min<size_t>(threads, count));
-    auto work = [&](size_t first) {
-        for (size_t a = first; a < count; a += step) build_one(a);
+// Runs task(0) .. task(count - 1) on up to `threads` threads, the calling one among them, each taking
+// the next task as it finishes one (chunks of a crowd cost what their characters cost).
+void run_tasks(size_t count, unsigned threads, const std::function<void(size_t)>& task) {
+    std::atomic<size_t> next{0};
+    auto work = [&]() {
+        for (size_t t = next.fetch_add(1); t < count; t = next.fetch_add(1)) task(t);
     };
     std::vector<std::thread> helpers;
-    for (size_t t = 1; t < step; ++t) helpers.emplace_back(work, t);
-    work(0);
+    for (size_t h = 1; h < std::min<size_t>(std::max(threads, 1u), count); ++h) helpers.emplace_back(work);
+    work();
     for (std::thread& helper : helpers) helper.join();
 }
 
-unsigned archetype_threads(size_t count) {
-    return unsigned(std::max<size_t>(1, std::min<size_t>(count, std::max(1u, std::thread::hardware_concurrency()))));
+// Everything of one archetype's frame before the passes: tables, clip schedule, per-frame arrays.
+Pass prepare_pass(const ArchetypeFrame& a, float time_s) {
+    FrameState* state = a.state;
+    FrameInstances* out = a.out;
+    const Crowd& crowd = *a.crowd;
+    const CharacterModel& model = *a.model;
+    const size_t n = crowd.characters.size();
+    if (state->lod.size() != n) state->lod.assign(n, Lod(255));  // 255: no history yet
+    const bool rebuilt = build_tables(crowd, model, state);
+    prepare_clips(crowd, model, time_s, rebuilt, state);
+    Pass p{&crowd, &model, a.rule, state, out, (n + kChunk - 1) / kChunk, crowd.layout == Layout::on_the_spot, false, false, {}};
+    p.has_views = !model.azimuths_deg.empty() && !model.elevations_deg.empty();
+    p.fast_views = p.has_views && state->even_azimuths && model.elevations_deg.size() <= 4;
+    for (size_t e = 0; e < 4; ++e) p.elevations[e] = e < model.elevations_deg.size() ? model.elevations_deg[e] : INFINITY;
+    for (std::vector<float>* v : {&state->center_x, &state->center_y, &state->center_z}) v->resize(n);
+    state->shown.resize(n);
+    if (!p.on_the_spot) state->feet.resize(n);
+    state->chunk_counts.assign(4 * p.chunks, 0);
+    state->chunk_offsets.assign(3 * p.chunks, 0);
+    return p;
 }
+
+// Between the passes: each chunk's places, and the lists sized to hold them (growing only; no
+// element is written twice).
+void place_chunks(const Pass& p) {
+    FrameState& s = *p.state;
+    uint32_t total[4] = {0, 0, 0, 0};
+    for (size_t c = 0; c < p.chunks; ++c) {
+        for (int l = 0; l < 3; ++l) s.chunk_offsets[3 * c + l] = total[l];
+        for (int l = 0; l < 4; ++l) total[l] += s.chunk_counts[4 * c + l];
+    }
+    for (int l = 0; l < 3; ++l) p.out->by_lod[l].resize(total[l]);
+    p.out->impostor_samples.resize(p.has_views ? total[2] : 0);
+    p.out->culled = total[3];
+}
+
+}  // namespace
+
+void build_frames(const std::vector<ArchetypeFrame>& archetypes, const Camera& camera, float aspect, LodMode mode, float time_s,
+                  ImpostorBlend blend, unsigned threads) {
+    const bool all = blend == ImpostorBlend::full || blend == ImpostorBlend::warp;
+    const FrameSetup setup{frustum_from(camera.projection(aspect) * camera.view()), camera.position, camera.forward(), mode, time_s,
+                           blend == ImpostorBlend::views || all, blend == ImpostorBlend::frames || all};
+    std::vector<Pass> passes;
+    std::vector<std::pair<uint32_t, uint32_t>> tasks;  // (archetype, chunk)
+    for (const ArchetypeFrame& a : archetypes) {
+        a.out->blend = blend;
+        passes.push_back(prepare_pass(a, time_s));
+        for (size_t c = 0; c < passes.back().chunks; ++c) tasks.emplace_back(uint32_t(passes.size() - 1), uint32_t(c));
+    }
+    run_tasks(tasks.size(), threads, [&](size_t t) { cull_chunk(passes[tasks[t].first], setup, tasks[t].second); });
+    for (const Pass& p : passes) place_chunks(p);
+    run_tasks(tasks.size(), threads, [&](size_t t) { fill_chunk(passes[tasks[t].first], setup, tasks[t].second); });
+}
+
+void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,
+                 const LodRule& rule, float time_s, FrameState* state, FrameInstances* out, ImpostorBlend blend) {
+    build_frames({ArchetypeFrame{&crowd, &model, &rule, state, out}}, camera, aspect, mode, time_s, blend, 1);
+}
+
+unsigned frame_threads() { return std::max(1u, std::thread::hardware_concurrency()); }
 
 }  // namespace crowdview

@@ -3,7 +3,7 @@
 // fill, for every character of every archetype, as crowdview's frame loop runs build_frame.
 //
 //   crowdview_frame_bench [--count N] [--archetypes K] [--frames F] [--threads T] [--clips C] [--report JSON]
-// (--threads: default crowdview's, one per archetype up to the hardware's; --clips: clips per
+// (--threads: default crowdview's, the hardware's; --clips: clips per
 // archetype, default 3, joined in a ring by transitions both ways; 1 is a v1 bundle's one cycle)
 //
 // The archetypes are shaped like real bundles (impostor radius, tile size, views, baked frames of
@@ -85,7 +85,7 @@ double median(std::vector<double> v) {
 
 int main(int argc, char** argv) {
     uint64_t count = 100000;
-    int archetypes = 4, frames = 60, threads = 0, clips = 3;  // threads 0: as crowdview (archetype_threads)
+    int archetypes = 4, frames = 60, threads = 0, clips = 3;  // threads 0: as crowdview (frame_threads)
     std::string report_path;
     for (int i = 1; i < argc; ++i) {
         const std::string a = argv[i];
@@ -111,7 +111,7 @@ int main(int argc, char** argv) {
         std::fprintf(stderr, "crowdview_frame_bench: --count >= 1, --archetypes 1..4, --frames >= 1, --threads 1..64, --clips 1..64\n");
         return 2;
     }
-    if (threads == 0) threads = int(archetype_threads(size_t(archetypes)));
+    if (threads == 0) threads = int(frame_threads());
     const float aspect = 1280.0f / 720.0f, height_px = 720.0f;
     std::vector<CharacterModel> models;
     std::vector<ArchetypeTraits> traits;
@@ -152,6 +152,8 @@ int main(int argc, char** argv) {
             for (const CharacterModel& m : models) rules.push_back(lod_rule_for(m, camera, height_px));
             std::vector<FrameState> state(models.size());
             std::vector<FrameInstances> out(models.size());
+            std::vector<ArchetypeFrame> builds;
+            for (size_t a = 0; a < models.size(); ++a) builds.push_back({&crowds[a], &models[a], &rules[a], &state[a], &out[a]});
             std::vector<double> ms, cpu_ms;
             uint64_t lods[3] = {0, 0, 0}, culled = 0;
             for (int f = -2; f < frames; ++f) {  // two warm-up frames size the vectors
@@ -159,10 +161,8 @@ int main(int argc, char** argv) {
                 const auto start = std::chrono::steady_clock::now();
                 timespec cpu_start, cpu_end;  // this process's CPU time: what the frame cost, without other programs' share of the cores
                 clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &cpu_start);
-                // Archetypes split over `threads` threads, as crowdview's frame loop does (for_each_archetype).
-                for_each_archetype(models.size(), unsigned(threads), [&](size_t a) {
-                    build_frame(crowds[a], models[a], camera, aspect, LodMode::automatic, rules[a], time_s, &state[a], &out[a], blend);
-                });
+                // Chunks of every archetype over `threads` threads, as crowdview's frame loop does (build_frames).
+                build_frames(builds, camera, aspect, LodMode::automatic, time_s, blend, unsigned(threads));
                 const double elapsed = 1e3 * std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
                 clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &cpu_end);
                 const double cpu = 1e3 * double(cpu_end.tv_sec - cpu_start.tv_sec) + 1e-6 * double(cpu_end.tv_nsec - cpu_start.tv_nsec);

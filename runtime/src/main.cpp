@@ -337,7 +337,9 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
     const glm::vec3 light = scene_light_dir();
     std::vector<FrameState> state(archetype_count);
     std::vector<FrameInstances> frame(archetype_count);
-    const unsigned build_threads = archetype_threads(archetype_count);  // archetypes build their frames side by side
+    std::vector<ArchetypeFrame> builds(archetype_count);  // every archetype's frame in one build, on every core
+    for (size_t a = 0; a < archetype_count; ++a) builds[a] = {&crowds[a], &renderer.model(a), &rules[a], &state[a], &frame[a]};
+    const unsigned build_threads = frame_threads();
     std::vector<ArchetypeCounts> counts(archetype_count);
     FlyControls controls;
     const bool windowed = context.visible();
@@ -368,9 +370,7 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
         // The frame: cull and choose LODs on the CPU for every archetype, then a few instanced
         // draws per archetype.
         const auto build_start = std::chrono::steady_clock::now();
-        for_each_archetype(archetype_count, build_threads, [&](size_t a) {
-            build_frame(crowds[a], renderer.model(a), camera, renderer.aspect(), choice.lod, rules[a], time_s, &state[a], &frame[a], o.blend);
-        });
+        build_frames(builds, camera, renderer.aspect(), choice.lod, time_s, o.blend, build_threads);
         build_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
         // The switch measure (--report): a few sampled characters, after the timed part.
         const bool blend_frames = o.blend == ImpostorBlend::frames || o.blend == ImpostorBlend::full || o.blend == ImpostorBlend::warp;
