@@ -243,10 +243,10 @@ void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
     std::copy(counts, counts + 4, s.chunk_counts.begin() + 4 * chunk);
 }
 
-// The view pass's results for a chunk, one array per field.
+// The view pass's results for a chunk, one array per field: the nearest tile and the samples'
+// tiles (whole numbers held in floats) and weights, sorted as impostor_samples sorts them.
 struct ChunkViews {
-    float a0[kChunk], a1[kChunk], e0[kChunk], e1[kChunk], nearest[kChunk];  // whole numbers
-    float wa[kChunk], we[kChunk];
+    float nearest[kChunk], tiles[4][kChunk], weights[4][kChunk];
     int32_t tie[kChunk];
 };
 
@@ -266,6 +266,7 @@ void even_views(const Pass& p, const FrameSetup& f, size_t begin, size_t end, Ch
     const float lowest_i = float(s.lowest_elevation), highest_i = float(s.highest_elevation);
     const float e[4] = {p.elevations[0], p.elevations[1], p.elevations[2], p.elevations[3]};
     const float ex = f.eye.x, ey = f.eye.y, ez = f.eye.z, tie_gap = kTieMargin * step;
+    const float azimuth_weight = columns < 2 ? 0.0f : 1.0f;  // one azimuth: none blended (a 0 weight may be -0: unused alike)
     const int32_t n = int32_t(end - begin);
     for (int32_t k = 0; k < n; ++k) {
         const float x = ex - cx[k], y = ey - cy[k], z = ez - cz[k];
@@ -294,46 +295,76 @@ void even_views(const Pass& p, const FrameSetup& f, size_t begin, size_t end, Ch
             r1 = above ? float(j) : r1, v1 = above ? ev : v1;
         }
         const float span = v1 - v0;
-        v->a0[k] = a0, v->a1[k] = a1, v->e0[k] = r0, v->e1[k] = r1;
+        const float wa = frac * azimuth_weight, we = span > 0 ? (clamped - v0) / span : 0.0f;
         v->nearest[k] = azimuth_i + nearest_e * columns_f;
-        v->wa[k] = frac;
-        v->we[k] = span > 0 ? (clamped - v0) / span : 0.0f;
         v->tie[k] = (std::fabs(frac - 0.5f) < kTieMargin) | (second - best < tie_gap);
+        // Bilinear weights, then impostor_samples' order (heaviest first, ties by index: the
+        // stable sort) by a sorting network of five compare-exchanges, without branches.
+        float w[4] = {(1 - wa) * (1 - we), wa * (1 - we), (1 - wa) * we, wa * we};
+        float tile[4] = {a0 + r0 * columns_f, a1 + r0 * columns_f, a0 + r1 * columns_f, a1 + r1 * columns_f};
+        float index[4] = {0, 1, 2, 3};
+        auto order = [&](int i, int j) {  // entry i before entry j
+            const bool swap = (w[j] > w[i]) | ((w[j] == w[i]) & (index[j] < index[i]));
+            const float wi = w[i], ti = tile[i], ii = index[i];
+            w[i] = swap ? w[j] : wi, tile[i] = swap ? tile[j] : ti, index[i] = swap ? index[j] : ii;
+            w[j] = swap ? wi : w[j], tile[j] = swap ? ti : tile[j], index[j] = swap ? ii : index[j];
+        };
+        order(0, 1), order(2, 3), order(0, 2), order(1, 3), order(1, 2);
+        for (int m = 0; m < 4; ++m) {  // weight-0 entries repeat the heaviest tile
+            v->tiles[m][k] = w[m] > 0 ? tile[m] : tile[0];
+            v->weights[m][k] = w[m] > 0 ? w[m] : 0.0f;
+        }
     }
-    if (columns < 2) std::fill(v->wa, v->wa + n, 0.0f);  // one azimuth: no azimuth weight
 }
 
-// The impostor's samples from its view weights and frame, as the shader reads them.
-inline ImpostorSamples impostor_samples(const ViewWeights& views, const FrameWeights& frames) {
-    // Heaviest first, weight-0 entries last (repeating the heaviest tile): an insertion sort of four,
-    // stable as std::stable_sort is.
+// The samples' tiles and view weights as the shader reads them: heaviest first, weight-0 entries
+// last (repeating the heaviest tile); an insertion sort of four, stable as std::stable_sort is.
+inline void sort_views(const ViewWeights& views, ImpostorSamples* samples) {
     int order[4] = {0, 1, 2, 3};
     for (int k = 1; k < 4; ++k)
         for (int j = k; j > 0 && views.weights[order[j]] > views.weights[order[j - 1]]; --j) std::swap(order[j], order[j - 1]);
-    ImpostorSamples samples;
     for (int k = 0; k < 4; ++k) {
         const bool used = views.weights[order[k]] > 0;
-        samples.tiles[k] = used ? views.tiles[order[k]] : views.tiles[order[0]];
-        samples.view_weights[k] = used ? views.weights[order[k]] : 0.0f;
+        samples->tiles[k] = used ? views.tiles[order[k]] : views.tiles[order[0]];
+        samples->view_weights[k] = used ? views.weights[order[k]] : 0.0f;
     }
-    samples.layers[0] = frames.layers[0], samples.layers[1] = frames.layers[1];
-    samples.frame_weight = frames.weight;
-    samples.unused = 0;
-    return samples;
+}
+
+// The views of an impostor the view pass leaves out (near a tie, or a bundle it does not cover):
+// even_view_choice, near a tie with the exact angles (view_blend.h) so the choice is the one they
+// make, or view_blend.h's search for uneven azimuths. Without view blending, the nearest alone.
+ViewWeights exact_views(const Pass& p, const FrameSetup& f, const glm::vec3& center, float heading, uint32_t* nearest_tile) {
+    const FrameState& s = *p.state;
+    const CharacterModel& model = *p.model;
+    const uint32_t columns = uint32_t(model.azimuths_deg.size());
+    const glm::vec3 to_camera = f.eye - center;
+    ViewWeights views;
+    if (s.even_azimuths) {
+        if (p.fast_views || even_view_choice(fast_view_angles_deg(to_camera, heading), s, model.elevations_deg, columns, f.blend_views,
+                                             nearest_tile, &views))
+            even_view_choice(view_angles_deg(to_camera, heading), s, model.elevations_deg, columns, f.blend_views, nearest_tile, &views);
+    } else {
+        const glm::vec2 angles = view_angles_deg(to_camera, heading);
+        *nearest_tile = nearest_view_weights(angles, model.azimuths_deg, model.elevations_deg).tiles[0];
+        if (f.blend_views) views = blend_view_weights(angles, model.azimuths_deg, model.elevations_deg);
+    }
+    if (!f.blend_views) {
+        for (uint32_t& t : views.tiles) t = *nearest_tile;
+        views.weights[0] = 1, views.weights[1] = views.weights[2] = views.weights[3] = 0;
+    }
+    return views;
 }
 
 // Pass 2 over one chunk: the instances (and impostor samples) of its shown characters, at the places
 // pass 1's counts gave it.
 void fill_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
     const FrameState& s = *p.state;
-    const CharacterModel& model = *p.model;
     const size_t begin = chunk * kChunk, end = std::min(begin + kChunk, p.crowd->characters.size());
     uint32_t place[3];
     std::copy(s.chunk_offsets.begin() + 3 * chunk, s.chunk_offsets.begin() + 3 * chunk + 3, place);
     const bool impostors = s.chunk_counts[4 * chunk + 2] > 0 && p.has_views;
     ChunkViews views_of;
     if (impostors && p.fast_views) even_views(p, f, begin, end, &views_of);
-    const uint32_t columns = uint32_t(model.azimuths_deg.size());
     const Character* characters = p.crowd->characters.data();
     Instance* lists[3] = {p.out->by_lod[0].data(), p.out->by_lod[1].data(), p.out->by_lod[2].data()};
     ImpostorSamples* samples = p.out->impostor_samples.data();
@@ -350,41 +381,31 @@ void fill_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
         inst.outfit = c.outfit;
         inst.tile = 0;
         if (lod == uint8_t(Lod::impostor) && p.has_views) {
-            ViewWeights views;
-            uint32_t nearest_tile;
-            const glm::vec3 to_camera = f.eye - glm::vec3(s.center_x[i], s.center_y[i], s.center_z[i]);
             const size_t k = i - begin;
+            ImpostorSamples& out = samples[place[2]];
+            uint32_t nearest_tile;
             if (p.fast_views && !views_of.tie[k]) {
                 nearest_tile = uint32_t(views_of.nearest[k]);
-                const uint32_t a0 = uint32_t(views_of.a0[k]), a1 = uint32_t(views_of.a1[k]);
-                const uint32_t e0 = uint32_t(views_of.e0[k]), e1 = uint32_t(views_of.e1[k]);
-                const float wa = views_of.wa[k], we = views_of.we[k];
-                views.tiles[0] = a0 + e0 * columns, views.weights[0] = (1 - wa) * (1 - we);
-                views.tiles[1] = a1 + e0 * columns, views.weights[1] = wa * (1 - we);
-                views.tiles[2] = a0 + e1 * columns, views.weights[2] = (1 - wa) * we;
-                views.tiles[3] = a1 + e1 * columns, views.weights[3] = wa * we;
-            } else if (s.even_azimuths) {
-                // Near a tie (or many elevations), even_view_choice; near a tie with the exact angles
-                // (view_blend.h), so the choice is the one it makes.
-                const glm::vec2 angles = fast_view_angles_deg(to_camera, c.heading);
-                if (p.fast_views || even_view_choice(angles, s, model.elevations_deg, columns, f.blend_views, &nearest_tile, &views))
-                    even_view_choice(view_angles_deg(to_camera, c.heading), s, model.elevations_deg, columns, f.blend_views, &nearest_tile, &views);
+                for (int m = 0; m < 4; ++m) {
+                    out.tiles[m] = f.blend_views ? uint32_t(views_of.tiles[m][k]) : nearest_tile;
+                    out.view_weights[m] = f.blend_views ? views_of.weights[m][k] : m == 0 ? 1.0f : 0.0f;
+                }
             } else {
-                const glm::vec2 angles = view_angles_deg(to_camera, c.heading);
-                nearest_tile = nearest_view_weights(angles, model.azimuths_deg, model.elevations_deg).tiles[0];
-                if (f.blend_views) views = blend_view_weights(angles, model.azimuths_deg, model.elevations_deg);
-            }
-            if (!f.blend_views) {
-                for (uint32_t& t : views.tiles) t = nearest_tile;
-                views.weights[0] = 1, views.weights[1] = views.weights[2] = views.weights[3] = 0;
+                const ViewWeights views = exact_views(p, f, glm::vec3(s.center_x[i], s.center_y[i], s.center_z[i]), c.heading, &nearest_tile);
+                sort_views(views, &out);
             }
             const uint32_t pose = std::min(inst.frame, uint32_t(s.nearest_layer.size() - 1));
             FrameWeights frames;
             frames.layers[0] = frames.layers[1] = s.nearest_layer[pose];
             if (f.blend_frames) frames = s.frame_weights[pose];
+            out.layers[0] = frames.layers[0], out.layers[1] = frames.layers[1];
+            out.frame_weight = frames.weight;
+            out.unused = 0;
             inst.tile = nearest_tile;
             inst.frame = frames.layers[frames.weight > 0.5f ? 1 : 0];
-            samples[place[2]] = impostor_samples(views, frames);
+            ++place[2];
+            lists[2][place[2] - 1] = inst;
+            continue;
         }
         lists[lod][place[lod]++] = inst;
     }
