@@ -98,10 +98,13 @@ bool build_tables(const Crowd& crowd, const CharacterModel& model, FrameState* s
         s->crowd = &crowd;
         s->center_offset.resize(crowd.characters.size());
         s->heading.resize(crowd.characters.size());
+        for (std::vector<float>* v : {&s->center_x, &s->center_y, &s->center_z}) v->resize(crowd.characters.size());
         for (size_t i = 0; i < crowd.characters.size(); ++i) {
             const float h = crowd.characters[i].heading, ch = std::cos(h), sh = std::sin(h);
             s->heading[i] = h;
             s->center_offset[i] = glm::vec2(ch * model.center.x + sh * model.center.z, -sh * model.center.x + ch * model.center.z);
+            const glm::vec3& feet = crowd.characters[i].start;  // on the spot; walking crowds overwrite them every frame
+            s->center_x[i] = feet.x + s->center_offset[i].x, s->center_y[i] = feet.y + model.center.y, s->center_z[i] = feet.z + s->center_offset[i].y;
         }
         s->tables_for.center = glm::vec3(NAN);  // the frame tables below are rebuilt with the centre
     }
@@ -209,18 +212,34 @@ void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
     FrameState& s = *p.state;
     const CharacterModel& model = *p.model;
     const size_t begin = chunk * kChunk, end = std::min(begin + kChunk, p.crowd->characters.size());
-    uint32_t counts[4] = {0, 0, 0, 0};
     const Character* characters = p.crowd->characters.data();
+    // Clip state: nothing to do until the character's next switch event (a few times a minute).
+    for (size_t i = begin; i < end; ++i)
+        if (f.time_s >= s.clip[i].next_event_s) advance_clip_state(s.schedule, uint32_t(i), characters[i].rate, f.time_s, &s.clip[i]);
+    // Centres: fixed on the spot (build_tables placed them), moved along paths.
+    if (!p.on_the_spot)
+        for (size_t i = begin; i < end; ++i) {
+            const glm::vec3 feet = s.feet[i] = character_position(*p.crowd, characters[i], f.time_s);
+            s.center_x[i] = feet.x + s.center_offset[i].x, s.center_y[i] = feet.y + model.center.y, s.center_z[i] = feet.z + s.center_offset[i].y;
+        }
+    // sphere_visible and the depth along the view over arrays (vectorised), then the LOD.
+    const float* __restrict cx = s.center_x.data() + begin;
+    const float* __restrict cy = s.center_y.data() + begin;
+    const float* __restrict cz = s.center_z.data() + begin;
+    float depth[kChunk];
+    int32_t visible[kChunk];
+    const int32_t n = int32_t(end - begin);
+    const float reach = -model.radius, ex = f.eye.x, ey = f.eye.y, ez = f.eye.z, fx = f.forward.x, fy = f.forward.y, fz = f.forward.z;
+    for (int32_t k = 0; k < n; ++k) {
+        const float x = cx[k], y = cy[k], z = cz[k];
+        bool inside = true;
+        for (const glm::vec4& q : f.frustum.planes) inside &= q.x * x + q.y * y + q.z * z + q.w >= reach;
+        visible[k] = inside;
+        depth[k] = (x - ex) * fx + (y - ey) * fy + (z - ez) * fz;
+    }
+    uint32_t counts[4] = {0, 0, 0, 0};
     for (size_t i = begin; i < end; ++i) {
-        const Character& c = characters[i];
-        // Clip state: nothing to do until the character's next switch event (a few times a minute).
-        ClipState& clip = s.clip[i];
-        if (f.time_s >= clip.next_event_s) advance_clip_state(s.schedule, uint32_t(i), c.rate, f.time_s, &clip);
-        glm::vec3 feet = c.start;
-        if (!p.on_the_spot) s.feet[i] = feet = character_position(*p.crowd, c, f.time_s);
-        const glm::vec3 center(feet.x + s.center_offset[i].x, feet.y + model.center.y, feet.z + s.center_offset[i].y);
-        s.center_x[i] = center.x, s.center_y[i] = center.y, s.center_z[i] = center.z;
-        if (!sphere_visible(f.frustum, center, model.radius)) {
+        if (!visible[i - begin]) {
             s.shown[i] = 3;
             ++counts[3];
             continue;
@@ -231,9 +250,8 @@ void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
         case LodMode::low: lod = model.has_low ? Lod::low : Lod::high; break;
         case LodMode::impostor: lod = Lod::impostor; break;
         default: {
-            const float depth = glm::dot(center - f.eye, f.forward);
             const Lod previous = s.lod[i];
-            lod = uint8_t(previous) > 2 ? lod_without_history(depth, *p.rule) : select_lod(depth, previous, *p.rule);
+            lod = uint8_t(previous) > 2 ? lod_without_history(depth[i - begin], *p.rule) : select_lod(depth[i - begin], previous, *p.rule);
         }
         }
         s.lod[i] = lod;
@@ -432,13 +450,16 @@ Pass prepare_pass(const ArchetypeFrame& a, float time_s) {
     const CharacterModel& model = *a.model;
     const size_t n = crowd.characters.size();
     if (state->lod.size() != n) state->lod.assign(n, Lod(255));  // 255: no history yet
+    if (crowd.layout == Layout::on_the_spot && !state->feet.empty()) {  // it walked: its fixed centres are gone
+        state->feet.clear();
+        state->crowd = nullptr;
+    }
     const bool rebuilt = build_tables(crowd, model, state);
     prepare_clips(crowd, model, time_s, rebuilt, state);
     Pass p{&crowd, &model, a.rule, state, out, (n + kChunk - 1) / kChunk, crowd.layout == Layout::on_the_spot, false, false, {}};
     p.has_views = !model.azimuths_deg.empty() && !model.elevations_deg.empty();
     p.fast_views = p.has_views && state->even_azimuths && model.elevations_deg.size() <= 4;
     for (size_t e = 0; e < 4; ++e) p.elevations[e] = e < model.elevations_deg.size() ? model.elevations_deg[e] : INFINITY;
-    for (std::vector<float>* v : {&state->center_x, &state->center_y, &state->center_z}) v->resize(n);
     state->shown.resize(n);
     if (!p.on_the_spot) state->feet.resize(n);
     state->chunk_counts.assign(4 * p.chunks, 0);
