@@ -187,6 +187,40 @@ inline float select_atan2(float y, float x) {
     return y < 0 ? -a : a;
 }
 
+// select_lod and lod_without_history (crowd.cpp) with the rule's levels and boundaries worked out
+// once a frame instead of once a character: the same comparisons on the same values.
+struct LodSteps {
+    Lod levels[3];
+    float boundaries[2], coarser_beyond[2];
+    int count;
+};
+
+LodSteps lod_steps(const LodRule& rule) {
+    LodSteps r{};
+    if (rule.has_low && rule.low_fraction < 1.0f) {
+        r.levels[0] = Lod::high, r.levels[1] = Lod::low, r.levels[2] = Lod::impostor, r.count = 3;
+        r.boundaries[0] = rule.impostor_distance * rule.low_fraction, r.boundaries[1] = rule.impostor_distance;
+    } else {
+        r.levels[0] = Lod::high, r.levels[1] = Lod::impostor, r.count = 2;
+        r.boundaries[0] = rule.impostor_distance;
+    }
+    for (int i = 0; i + 1 < r.count; ++i) r.coarser_beyond[i] = r.boundaries[i] * (1.0f + rule.hysteresis);
+    return r;
+}
+
+inline Lod pick_lod(float distance, Lod previous, const LodSteps& r) {
+    int i = 0;
+    while (i < r.count - 1 && r.levels[i] != previous) ++i;
+    if (r.levels[i] != previous) {  // no history (or a level the rule lacks): by distance alone
+        i = 0;
+        while (i < r.count - 1 && distance >= r.boundaries[i]) ++i;
+        return r.levels[i];
+    }
+    while (i < r.count - 1 && distance > r.coarser_beyond[i]) ++i;
+    while (i > 0 && distance < r.boundaries[i - 1]) --i;
+    return r.levels[i];
+}
+
 // What every pass of one archetype's frame reads.
 struct Pass {
     const Crowd* crowd;
@@ -197,6 +231,7 @@ struct Pass {
     size_t chunks;
     bool on_the_spot, has_views, fast_views;  // fast_views: even azimuths, at most 4 elevations
     float elevations[4];                      // padded with +infinity, which no test below picks
+    LodSteps lod_steps;
 };
 
 struct FrameSetup {
@@ -249,10 +284,7 @@ void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
         case LodMode::high: lod = Lod::high; break;
         case LodMode::low: lod = model.has_low ? Lod::low : Lod::high; break;
         case LodMode::impostor: lod = Lod::impostor; break;
-        default: {
-            const Lod previous = s.lod[i];
-            lod = uint8_t(previous) > 2 ? lod_without_history(depth[i - begin], *p.rule) : select_lod(depth[i - begin], previous, *p.rule);
-        }
+        default: lod = pick_lod(depth[i - begin], s.lod[i], p.lod_steps);
         }
         s.lod[i] = lod;
         s.shown[i] = uint8_t(lod);
@@ -456,9 +488,10 @@ Pass prepare_pass(const ArchetypeFrame& a, float time_s) {
     }
     const bool rebuilt = build_tables(crowd, model, state);
     prepare_clips(crowd, model, time_s, rebuilt, state);
-    Pass p{&crowd, &model, a.rule, state, out, (n + kChunk - 1) / kChunk, crowd.layout == Layout::on_the_spot, false, false, {}};
+    Pass p{&crowd, &model, a.rule, state, out, (n + kChunk - 1) / kChunk, crowd.layout == Layout::on_the_spot, false, false, {}, {}};
     p.has_views = !model.azimuths_deg.empty() && !model.elevations_deg.empty();
     p.fast_views = p.has_views && state->even_azimuths && model.elevations_deg.size() <= 4;
+    p.lod_steps = lod_steps(*a.rule);
     for (size_t e = 0; e < 4; ++e) p.elevations[e] = e < model.elevations_deg.size() ? model.elevations_deg[e] : INFINITY;
     state->shown.resize(n);
     if (!p.on_the_spot) state->feet.resize(n);
