@@ -294,10 +294,10 @@ void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
 }
 
 // The view pass's results for a chunk, one array per field: the nearest tile and the samples'
-// tiles (whole numbers held in floats) and weights, sorted as impostor_samples sorts them.
+// tiles and weights, sorted as impostor_samples sorts them.
 struct ChunkViews {
-    float nearest[kChunk], tiles[4][kChunk], weights[4][kChunk];
-    int32_t tie[kChunk];
+    int32_t nearest[kChunk], tiles[4][kChunk], tie[kChunk];
+    float weights[4][kChunk];
 };
 
 // even_view_choice for characters [begin, end) from their centres and headings, with the fast angles,
@@ -346,7 +346,7 @@ void even_views(const Pass& p, const FrameSetup& f, size_t begin, size_t end, Ch
         }
         const float span = v1 - v0;
         const float wa = frac * azimuth_weight, we = span > 0 ? (clamped - v0) / span : 0.0f;
-        v->nearest[k] = azimuth_i + nearest_e * columns_f;
+        v->nearest[k] = int32_t(azimuth_i + nearest_e * columns_f);
         v->tie[k] = (std::fabs(frac - 0.5f) < kTieMargin) | (second - best < tie_gap);
         // Bilinear weights, then impostor_samples' order (heaviest first, ties by index: the
         // stable sort) by a sorting network of five compare-exchanges, without branches.
@@ -361,7 +361,7 @@ void even_views(const Pass& p, const FrameSetup& f, size_t begin, size_t end, Ch
         };
         order(0, 1), order(2, 3), order(0, 2), order(1, 3), order(1, 2);
         for (int m = 0; m < 4; ++m) {  // weight-0 entries repeat the heaviest tile
-            v->tiles[m][k] = w[m] > 0 ? tile[m] : tile[0];
+            v->tiles[m][k] = int32_t(w[m] > 0 ? tile[m] : tile[0]);
             v->weights[m][k] = w[m] > 0 ? w[m] : 0.0f;
         }
     }

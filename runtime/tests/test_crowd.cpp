@@ -409,6 +409,65 @@ void test_archetypes_side_by_side() {
     CHECK(frame_threads() >= 1);
 }
 
+void test_frame_views() {
+    // build_frame's views (a vectorised pass on fast angles, exact angles near a tie) against
+    // view_blend.h's reference on exact angles: the same nearest tile, the same blend within float
+    // rounding; on evenly spaced azimuths with 1, 3 and 5 elevations (5: the general path), one
+    // azimuth, and characters whose camera direction lies exactly half way between two views.
+    const std::vector<std::vector<float>> elevations = {{0, 20, 40}, {10}, {40, 0, 20, 60, 80}};
+    Rng rng(11);
+    Crowd crowd;
+    for (int i = 0; i < 3000; ++i) {
+        const float heading = i < 24 ? glm::radians(15.0f * float(i)) : rng.uniform(0.0f, 6.2831853f);
+        const glm::vec3 feet(i < 24 ? 0.0f : rng.uniform(-20.0f, 20.0f), i < 24 ? -0.9f : rng.uniform(-25.0f, 15.0f),
+                             i < 24 ? -10.0f : rng.uniform(-60.0f, -5.0f));
+        crowd.characters.push_back({feet, heading, 0.0f, 0, 0});
+    }
+    Camera camera;
+    camera.position = glm::vec3(0, 0, 0);
+    camera.pitch = -0.2f;
+    camera.fov_y = glm::radians(100.0f);
+    camera.far_m = 500;
+    for (size_t e = 0; e < elevations.size() * 2; ++e) {
+        CharacterModel model;
+        model.center = glm::vec3(0, 0.9f, 0);  // on the axis: the centre is the feet plus 0.9 m up
+        model.frame_count = 8, model.frames_per_second = 8, model.frame_indices = {0, 4};
+        model.azimuths_deg = e < elevations.size() ? std::vector<float>{0, 30, 60, 90, 120, 150, 180, 210, 240, 270, 300, 330} : std::vector<float>{0};
+        model.elevations_deg = elevations[e % elevations.size()];
+        for (ImpostorBlend blend : {ImpostorBlend::warp, ImpostorBlend::off}) {
+            FrameState state;
+            FrameInstances frame;
+            build_frame(crowd, model, camera, 1.5f, LodMode::impostor, LodRule(), 0.0f, &state, &frame, blend);
+            CHECK(frame.by_lod[2].size() > 1000 && frame.impostor_samples.size() == frame.by_lod[2].size());
+            for (size_t k = 0; k < frame.by_lod[2].size(); ++k) {
+                const Instance& inst = frame.by_lod[2][k];
+                const ImpostorSamples& got = frame.impostor_samples[k];
+                const glm::vec3 to_camera = camera.position - glm::vec3(inst.position[0], inst.position[1] + 0.9f, inst.position[2]);
+                const glm::vec2 angles = view_angles_deg(to_camera, inst.heading);
+                // The reference's choice; at an exact tie (the first 24 characters) float rounding of the
+                // angles may pick either side, so a millidegree either way is accepted too.
+                auto nearest = [&](glm::vec2 a) { return nearest_view_weights(a, model.azimuths_deg, model.elevations_deg).tiles[0]; };
+                const glm::vec2 nudge(1e-3f, 1e-3f);
+                CHECK(inst.tile == nearest(angles) || (k < 24 && (inst.tile == nearest(angles - nudge) || inst.tile == nearest(angles + nudge))));
+                if (blend == ImpostorBlend::off) {
+                    CHECK(got.tiles[0] == inst.tile && got.view_weights[0] == 1.0f && got.view_weights[1] == 0.0f);
+                    continue;
+                }
+                const ViewWeights want = blend_view_weights(angles, model.azimuths_deg, model.elevations_deg);
+                float sum = 0;
+                for (int m = 0; m < 4; ++m) {
+                    sum += got.view_weights[m];
+                    CHECK(m == 0 || got.view_weights[m] <= got.view_weights[m - 1]);  // heaviest first
+                    float expected = 0;  // the reference's weight for this sample's tile
+                    for (int r = 0; r < 4; ++r) expected += want.tiles[r] == got.tiles[m] ? want.weights[r] : 0.0f;
+                    if (got.view_weights[m] > 0) CHECK(std::fabs(got.view_weights[m] - expected) < 2e-4f);
+                }
+                CHECK(std::fabs(sum - 1.0f) < 1e-5f);
+            }
+        }
+    }
+}
+
 }  // namespace
 
 int main() {
@@ -421,5 +480,6 @@ int main() {
     test_crowd_and_frames();
     test_build_frame();
     test_archetypes_side_by_side();
+    test_frame_views();
     return check::exit_code();
 }
