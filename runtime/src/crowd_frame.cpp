@@ -175,6 +175,14 @@ namespace {
 // (on the stack, a few tens of kilobytes).
 constexpr size_t kChunk = 2048;
 
+// The vectorised loops are built twice, for SSE2 (x86-64's baseline) and AVX2 (twice as wide), and
+// the loader picks what the CPU has. Neither uses FMA, so both give the same bits.
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define VECTOR_CLONES __attribute__((target_clones("avx2", "default")))
+#else
+#define VECTOR_CLONES
+#endif
+
 // fast_atan2 without branches, for the vectorised view pass: the same operations, so the same result
 // bit for bit (the branches become selects; 0 for (0, 0) as there).
 inline float select_atan2(float y, float x) {
@@ -242,6 +250,22 @@ struct FrameSetup {
     bool blend_views, blend_frames;
 };
 
+// sphere_visible and the depth along the view for characters [begin, end), over arrays: vectorised.
+VECTOR_CLONES void visibility(const FrameState& s, float radius, const FrameSetup& f, size_t begin, size_t end, int32_t* visible, float* depth) {
+    const float* __restrict cx = s.center_x.data() + begin;
+    const float* __restrict cy = s.center_y.data() + begin;
+    const float* __restrict cz = s.center_z.data() + begin;
+    const int32_t n = int32_t(end - begin);
+    const float reach = -radius, ex = f.eye.x, ey = f.eye.y, ez = f.eye.z, fx = f.forward.x, fy = f.forward.y, fz = f.forward.z;
+    for (int32_t k = 0; k < n; ++k) {
+        const float x = cx[k], y = cy[k], z = cz[k];
+        bool inside = true;
+        for (const glm::vec4& q : f.frustum.planes) inside &= q.x * x + q.y * y + q.z * z + q.w >= reach;
+        visible[k] = inside;
+        depth[k] = (x - ex) * fx + (y - ey) * fy + (z - ez) * fz;
+    }
+}
+
 // Pass 1 over one chunk: clip state, centre, culling and LOD; counts per level (and culled).
 void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
     FrameState& s = *p.state;
@@ -258,20 +282,9 @@ void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
             s.center_x[i] = feet.x + s.center_offset[i].x, s.center_y[i] = feet.y + model.center.y, s.center_z[i] = feet.z + s.center_offset[i].y;
         }
     // sphere_visible and the depth along the view over arrays (vectorised), then the LOD.
-    const float* __restrict cx = s.center_x.data() + begin;
-    const float* __restrict cy = s.center_y.data() + begin;
-    const float* __restrict cz = s.center_z.data() + begin;
     float depth[kChunk];
     int32_t visible[kChunk];
-    const int32_t n = int32_t(end - begin);
-    const float reach = -model.radius, ex = f.eye.x, ey = f.eye.y, ez = f.eye.z, fx = f.forward.x, fy = f.forward.y, fz = f.forward.z;
-    for (int32_t k = 0; k < n; ++k) {
-        const float x = cx[k], y = cy[k], z = cz[k];
-        bool inside = true;
-        for (const glm::vec4& q : f.frustum.planes) inside &= q.x * x + q.y * y + q.z * z + q.w >= reach;
-        visible[k] = inside;
-        depth[k] = (x - ex) * fx + (y - ey) * fy + (z - ez) * fz;
-    }
+    visibility(s, model.radius, f, begin, end, visible, depth);
     uint32_t counts[4] = {0, 0, 0, 0};
     for (size_t i = begin; i < end; ++i) {
         if (!visible[i - begin]) {
@@ -304,7 +317,7 @@ struct ChunkViews {
 // written so the compiler vectorises it (-fopt-info-vec): fixed trip counts, selects, no calls.
 // Equal to even_view_choice(fast_view_angles_deg(...)) bit for bit; `tie` marks where the caller
 // must decide with the exact angles.
-void even_views(const Pass& p, const FrameSetup& f, size_t begin, size_t end, ChunkViews* v) {
+VECTOR_CLONES void even_views(const Pass& p, const FrameSetup& f, size_t begin, size_t end, ChunkViews* v) {
     const FrameState& s = *p.state;
     const float* __restrict cx = s.center_x.data() + begin;
     const float* __restrict cy = s.center_y.data() + begin;
