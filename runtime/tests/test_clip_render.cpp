@@ -102,6 +102,10 @@ int main(int argc, char** argv) {
             CHECK_MSG(!s["largest_ratio"].is_null() && s["largest_ratio"].get<double>() <= kMaxSwitchRatio &&
                           s["largest_ratio"].get<double>() > 0.3 && s["reference_px"].get<double>() > 0,
                       std::string(lod) + ": " + s.dump());
+            // Against the clip's own motion at that phase as well (never above the plain ratio).
+            CHECK_MSG(!s["largest_ratio_same_phase"].is_null() && s["largest_ratio_same_phase"].get<double>() <= kMaxSwitchRatio &&
+                          s["largest_ratio_same_phase"].get<double>() <= s["largest_ratio"].get<double>() + 1e-9,
+                      std::string(lod) + ": " + s.dump());
         }
         CHECK_MSG(r.err.find("switches, largest jump / median motion in the clip: high ") != std::string::npos, r.err);
     }
