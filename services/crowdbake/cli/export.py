@@ -31,6 +31,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="bc (default): colour and normal maps keep the bundle's BC1/BC2 blocks, copied as they are; "
         "rgba8: decoded to RGBA8 texels, for targets without BC (S3TC) support",
     )
+    parser.add_argument(
+        "--vat-png", action="store_true",
+        help="also write each vertex-animation texture as a PNG (16-bit positions, 8-bit normals) beside its KTX2, "
+        "for engines that import PNG but not KTX2 (Unity, Unreal)",
+    )
     parser.add_argument("--json", action="store_true", help="print the written files and sizes as JSON")
     parser.set_defaults(func=run)
 
@@ -41,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.bundle_dir.is_dir():
         raise CommandError(f"{args.bundle_dir} is not a folder")
     try:
-        summary = export_bundle(args.bundle_dir, args.out, args.ktx2)
+        summary = export_bundle(args.bundle_dir, args.out, args.ktx2, vat_png=args.vat_png)
     except FormatError as error:
         raise CommandError(f"the bundle does not verify: {error}") from None
     except FileExistsError as error:

@@ -28,6 +28,13 @@ import pygltflib as g
 from crowdbake import __version__
 
 VARIANTS_EXTENSION = "KHR_materials_variants"
+QUANTIZATION_EXTENSION = "KHR_mesh_quantization"
+_INT16_MAX = 32767
+_INT8_MAX = 127
+# Positions and their morph deltas lie on a 14-bit grid inside the int16s (every 4th value, as gltfpack's
+# default): a step of scale / 8191, 0.1 mm over a 1.8 m character, and two low bits that are always zero
+# deflate away in the zip.
+POSITION_GRID = 4
 
 
 @dataclass(frozen=True)
@@ -47,11 +54,12 @@ class GlbPart:
 
 @dataclass(frozen=True)
 class GlbMaterial:
-    """One bundle material: per variant (GlbVariant, in order) its base-colour image, encoded."""
+    """One bundle material: per variant (GlbVariant, in order) its base-colour image as (media type, where):
+    image/png or image/jpeg, the two every glTF reader takes; where: the encoded bytes, embedded in the
+    .glb, or a URI relative to it (a file the LODs share)."""
 
     name: str
-    looks: list[bytes]
-    mime_type: str = "image/jpeg"
+    looks: list[tuple[str, bytes | str]]
 
 
 @dataclass(frozen=True)
@@ -89,6 +97,107 @@ class _Blob:
         return len(self.gltf.accessors) - 1
 
 
+    def packed(self, array: np.ndarray, bounds: bool = False) -> int:
+        """A normalized VEC3 accessor over (N, 4) int16 or int8 rows whose fourth component is padding:
+        glTF wants every vertex element on a 4-byte boundary, so the view's stride is 8 or 4 bytes.
+        min/max (POSITION asks for them) are the stored integers, as glTF and its validator want them."""
+        component = {np.dtype(np.int16): g.SHORT, np.dtype(np.int8): g.BYTE}[array.dtype]
+        if array.ndim != 2 or array.shape[1] != 4:
+            raise ValueError(f"packed: expected (N, 4) rows, got {array.shape}")
+        view = self.view(np.ascontiguousarray(array).astype(array.dtype.newbyteorder("<")).tobytes(), g.ARRAY_BUFFER)
+        self.gltf.bufferViews[view].byteStride = array.dtype.itemsize * 4
+        accessor = g.Accessor(bufferView=view, componentType=component, normalized=True, count=int(array.shape[0]), type=g.VEC3)
+        if bounds:
+            values = array[:, :3]
+            accessor.min = [int(v) for v in values.min(axis=0)]
+            accessor.max = [int(v) for v in values.max(axis=0)]
+        self.gltf.accessors.append(accessor)
+        return len(self.gltf.accessors) - 1
+
+
+@dataclass(frozen=True)
+class QuantizedPart:
+    """One part's frames as KHR_mesh_quantization stores them: int16 positions and position deltas (on the
+    POSITION_GRID), int8 normals and normal deltas, each (…, V, 4) with a zero pad component. Dequantized
+    position of frame k: offset + scale · (positions[0] + position_deltas[k-1]) / 32767 (the node's
+    translation and scale)."""
+
+    positions: np.ndarray  # (1, V, 4) int16: frame 0
+    position_deltas: np.ndarray  # (F-1, V, 4) int16: frame k minus frame 0
+    normals: np.ndarray  # (1, V, 4) int8: frame 0's unit normals
+    normal_deltas: np.ndarray  # (F-1, V, 4) int8: normal_deltas(), frame k's normal (scaled) minus frame 0's
+    offset: np.ndarray  # (3,) float64 metres
+    scale: float  # metres per unit of the normalized int16
+
+    @property
+    def max_position_error_m(self) -> float:
+        """The largest error of a dequantized position per axis, metres: half a grid step for the base and
+        for the delta, rounded apart."""
+        return self.scale * POSITION_GRID / _INT16_MAX
+
+
+def quantize_part(positions: np.ndarray, normals: np.ndarray) -> QuantizedPart:
+    """positions, normals: (F, V, 3) float, metres and unit vectors -> QuantizedPart.
+
+    One scale for the base and the deltas (morph targets are added before the node's transform): the
+    larger of frame 0's half extent round the centre of its box and the largest delta. Normals: see
+    normal_deltas.
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64)
+    if positions.ndim != 3 or positions.shape[2] != 3 or normals.shape != positions.shape or positions.shape[1] == 0:
+        raise ValueError(f"positions and normals must be (F, V, 3) alike with V > 0, got {positions.shape} and {normals.shape}")
+    base = positions[0]
+    offset = (base.min(axis=0) + base.max(axis=0)) / 2
+    deltas = positions[1:] - base
+    scale = float(max(np.abs(base - offset).max(), np.abs(deltas).max() if deltas.size else 0.0, 1e-9))
+    unit = _unit(normals).astype(np.float64)
+
+    def pad(values: np.ndarray, limit: int, dtype, grid: int = 1) -> np.ndarray:
+        out = np.zeros(values.shape[:-1] + (4,), dtype)
+        out[..., :3] = np.clip(np.rint(values * limit / grid) * grid, -limit, limit)
+        return out
+
+    return QuantizedPart(
+        positions=pad((base - offset)[None] / scale, _INT16_MAX, np.int16, POSITION_GRID),
+        position_deltas=pad(deltas / scale, _INT16_MAX, np.int16, POSITION_GRID),
+        normals=pad(unit[:1], _INT8_MAX, np.int8),
+        normal_deltas=pad(normal_deltas(unit[0], unit[1:]), _INT8_MAX, np.int8),
+        offset=offset,
+        scale=scale,
+    )
+
+
+# Scales of frame k's normal tried by normal_deltas; 1 (the plain difference) first, so it wins ties.
+_NORMAL_SCALES = (1.0, 0.5, 2.0, 4.0, 8.0)
+
+
+def normal_deltas(base: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """base (V, 3), frames (F, V, 3) unit normals -> (F, V, 3) morph NORMAL deltas within [-1, 1], what a
+    normalized int8 holds. A reader normalises base + delta, so the delta may aim at frame k's normal scaled
+    by any a > 0: of delta = clip(a · n_k - n_0, -1, 1) for a in _NORMAL_SCALES, the one whose sum points
+    closest to n_k. Unclipped (a normal turned less than about 90 degrees) that is the plain difference; a
+    normal turned further (cloth folding over) can only be approached, the sum staying within one unit of
+    n_0 in each component: turned 143 degrees off an axis, it lands 37 degrees short."""
+    base = np.asarray(base, dtype=np.float64)[None]
+    frames = np.asarray(frames, dtype=np.float64)
+    best = np.clip(frames - base, -1.0, 1.0)
+    best_cos = _cosine(base + best, frames)
+    for scale in _NORMAL_SCALES[1:]:
+        delta = np.clip(scale * frames - base, -1.0, 1.0)
+        cos = _cosine(base + delta, frames)
+        better = cos > best_cos + 1e-9
+        best = np.where(better[..., None], delta, best)
+        best_cos = np.maximum(best_cos, cos)
+    return best
+
+
+def _cosine(vectors: np.ndarray, units: np.ndarray) -> np.ndarray:
+    """(..., 3) vectors against (..., 3) unit vectors -> (...) cosines; 0-length vectors give -1."""
+    lengths = np.linalg.norm(vectors, axis=-1)
+    return np.where(lengths > 1e-12, (vectors * units).sum(-1) / np.maximum(lengths, 1e-12), -1.0)
+
+
 def _unit(vectors: np.ndarray) -> np.ndarray:
     """(..., 3) float64 -> unit float32; glTF-Validator checks NORMAL lengths to 5e-4."""
     vectors = np.asarray(vectors, dtype=np.float64)
@@ -120,7 +229,9 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
                 continue
             source = materials[part.material]
             if (part.material, v) not in texture_of:
-                gltf.images.append(g.Image(bufferView=blob.view(source.looks[v]), mimeType=source.mime_type, name=f"{source.name}_{variant.name}"))
+                mime_type, where = source.looks[v]
+                name = f"{source.name}_{variant.name}"
+                gltf.images.append(g.Image(uri=where, name=name) if isinstance(where, str) else g.Image(bufferView=blob.view(where), mimeType=mime_type, name=name))
                 gltf.textures.append(g.Texture(sampler=0, source=len(gltf.images) - 1))
                 texture_of[(part.material, v)] = len(gltf.textures) - 1
             gltf.materials.append(
@@ -133,33 +244,27 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
                 )
             )
             material_index[key] = len(gltf.materials) - 1
-    gltf.extensionsUsed = [VARIANTS_EXTENSION]
+    gltf.extensionsUsed = [VARIANTS_EXTENSION, QUANTIZATION_EXTENSION]
+    gltf.extensionsRequired = [QUANTIZATION_EXTENSION]
     gltf.extensions = {VARIANTS_EXTENSION: {"variants": [{"name": variant.name} for variant in variants]}}
 
     root = g.Node(name="character", children=[], extras=root_extras)
     gltf.nodes.append(root)
     targets_per_mesh = frame_count - 1
     for part in parts:
-        base_positions = np.asarray(part.positions[0], dtype=np.float32)
-        base_normals = _unit(part.normals[0])
+        quantized = quantize_part(part.positions, part.normals)
         indices = np.asarray(part.indices).reshape(-1)
-        index_type = np.uint16 if base_positions.shape[0] <= 65535 else np.uint32
+        index_type = np.uint16 if quantized.positions.shape[1] <= 65535 else np.uint32
         attributes = g.Attributes(
-            POSITION=blob.accessor(base_positions, g.VEC3, bounds=True),
-            NORMAL=blob.accessor(base_normals, g.VEC3),
+            POSITION=blob.packed(quantized.positions[0], bounds=True),
+            NORMAL=blob.packed(quantized.normals[0]),
             TEXCOORD_0=blob.accessor(np.asarray(part.uvs, dtype=np.float32), g.VEC2),
             TEXCOORD_1=blob.accessor(np.asarray(part.vat_uvs, dtype=np.float32), g.VEC2),
         )
-        targets = []
-        for frame in range(1, frame_count):
-            position_delta = (np.asarray(part.positions[frame], dtype=np.float32) - base_positions).astype(np.float32)
-            normal_delta = (_unit(part.normals[frame]) - base_normals).astype(np.float32)
-            targets.append(
-                g.Attributes(
-                    POSITION=blob.accessor(position_delta, g.VEC3, bounds=True),
-                    NORMAL=blob.accessor(normal_delta, g.VEC3),
-                )
-            )
+        targets = [
+            g.Attributes(POSITION=blob.packed(quantized.position_deltas[k], bounds=True), NORMAL=blob.packed(quantized.normal_deltas[k]))
+            for k in range(targets_per_mesh)
+        ]
         primitive = g.Primitive(
             attributes=attributes,
             indices=blob.accessor(indices.astype(index_type), g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER),
@@ -174,7 +279,8 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
         gltf.meshes.append(
             g.Mesh(name=part.name, primitives=[primitive], weights=[0.0] * targets_per_mesh if targets else None, extras=extras)
         )
-        gltf.nodes.append(g.Node(name=part.name, mesh=len(gltf.meshes) - 1))
+        # The quantization's dequantization (KHR_mesh_quantization): node scale and translation.
+        gltf.nodes.append(g.Node(name=part.name, mesh=len(gltf.meshes) - 1, translation=quantized.offset.tolist(), scale=[quantized.scale] * 3))
         root.children.append(len(gltf.nodes) - 1)
 
     if targets_per_mesh:
