@@ -279,6 +279,7 @@ def check_export(bundle_dir: Path, out: Path) -> None:
             base = read_accessor(gltf, blob, primitive.attributes.POSITION)
             frame = cache.frame_count // 2
             delta = read_accessor(gltf, blob, primitive.targets[frame - 1]["POSITION"])  # pygltflib loads targets as dicts
+            assert part["node"]["translation"] == node.translation and part["node"]["scale"] == node.scale[0]
             played = np.array(node.translation) + node.scale[0] * (base + delta)
             assert np.abs(played - cache.positions[frame]).max() < MORPH_TOLERANCE_M
             normal = read_accessor(gltf, blob, primitive.attributes.NORMAL) + read_accessor(gltf, blob, primitive.targets[frame - 1]["NORMAL"])
@@ -389,6 +390,9 @@ def test_sample_export_validates_and_round_trips(sample_bundle, sample_export):
     assert sidecar["impostor"]["maps"]["normal"]["vk_format"] == "BC1_RGB_UNORM_BLOCK"  # the bundle's bc5, in model space
     assert sidecar["impostor"]["maps"]["detail"]["vk_format"] == "BC2_SRGB_BLOCK"
     assert sidecar["impostor"]["maps"]["uv"]["vk_format"] == "R32_UINT"  # words stay exact, never block-compressed
+    # The engine setups ship inside the export (docs/export.md "Using it in an engine").
+    assert {"shaders/crowdbake_vat.gdshader", "shaders/unity_vat_custom_function.hlsl", "shaders/unreal_vat_custom_node.hlsl"} <= set(sidecar["shaders"])
+    assert all((sample_export / path).is_file() for path in sidecar["shaders"])
     check_export(sample_bundle, sample_export)
 
 

@@ -17,6 +17,18 @@ GLSL = {
     "vat.glsl": ("vert", "vec3 p, n; cb_vat_sample(vec2(0.5), 1.5, p, n); gl_Position = vec4(p + n, 1.0);"),
     "impostor_uv.glsl": ("frag", "vec3 c; if (!cb_impostor_colour(vec2(0.5), ivec2(0), 0, 0.0, 0, 0, c)) discard; o_colour = vec4(c, 1.0);"),
 }
+# Engine setups (docs/export.md): Unity's Custom Function file (its plain-HLSL core; the UnityTexture2D
+# wrapper needs Unity's includes) and Unreal's Custom node code, wrapped in the function Unreal makes of it.
+ENGINE_HLSL = {
+    "unity_vat_custom_function.hlsl": "{source}\nTexture2D<float4> P; Texture2D<float4> N;\nfloat4 main(float2 uv : TEXCOORD1) : SV_Position "
+    "{{ float3 p, n; CrowdbakeVatSample(uv, 1.5, P, N, float3(0, 0, 0), float3(1, 1, 1), 1, 24, p, n); return float4(p + n, 1); }}",
+    "unreal_vat_custom_node.hlsl": "Texture2D<float4> PositionMap; Texture2D<float4> NormalMap;\n"
+    "float3 CustomExpression0(float2 VatUV, float Frame, float3 BoundsMin, float3 BoundsMax, float RowsPerFrame, float FrameCount, "
+    "float3 LocalPosition, inout float3 Normal) {{\n{source}\n}}\nfloat4 main(float2 uv : TEXCOORD1) : SV_Position "
+    "{{ float3 n = 0; float3 o = CustomExpression0(uv, 1.5, 0, 1, 1, 24, 0, n); return float4(o + n, 1); }}",
+}
+GODOT = SHADERS / "crowdbake_vat.gdshader"
+
 HLSL = {
     "vat.hlsl": ("vert", "float4 main(float2 uv : TEXCOORD1) : SV_Position { float3 p, n; CbVatSample(uv, 1.5, p, n); return float4(p + n, 1); }"),
     "impostor_uv.hlsl": ("frag", "float4 main(float2 uv : TEXCOORD0) : SV_Target { float3 c; if (!CbImpostorColour(uv, int2(0, 0), 0, 0, 0, 0, c)) discard; return float4(c, 1); }"),
@@ -58,3 +70,25 @@ def test_a_broken_shader_is_refused(tmp_path):
     """The check can fail: a call with the wrong arguments does not compile."""
     source = f"#version 330 core\n{(SHADERS / 'vat.glsl').read_text()}\nvoid main() {{ cb_vat_sample(1.0); }}\n"
     assert compile_shader(tmp_path, "broken", "vert", source).returncode != 0
+
+
+@pytest.mark.parametrize("name", sorted(ENGINE_HLSL))
+def test_engine_hlsl_compiles(tmp_path, name):
+    source = ENGINE_HLSL[name].format(source=(SHADERS / name).read_text())
+    result = compile_shader(tmp_path, name.replace(".", "_"), "vert", source, "-D", "-e", "main", "-V")
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_godot_shader_reads_what_the_export_writes():
+    """No Godot binary installs here, so the .gdshader is checked for form: a spatial shader with balanced
+    braces, and a uniform for every value of the export's `vat` block and `node` it needs."""
+    import re
+
+    source = GODOT.read_text()
+    assert source.count("{") == source.count("}") and "shader_type spatial;" in source and "void vertex()" in source
+    uniforms = set(re.findall(r"^uniform \w+ (\w+)", source, re.M))
+    assert {"vat_position", "vat_normal", "bounds_min", "bounds_max", "rows_per_frame", "frame_count", "frames_per_second",
+            "node_translation", "node_scale"} <= uniforms
+    # Each names the export.json key it is set from.
+    for key in ("vat.bounds_min", "vat.bounds_max", "vat.rows_per_frame", "vat.frame_count", "vat.frames_per_second", "parts[].node.translation"):
+        assert key in source, key

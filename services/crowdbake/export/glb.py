@@ -148,9 +148,8 @@ def quantize_part(positions: np.ndarray, normals: np.ndarray) -> QuantizedPart:
     if positions.ndim != 3 or positions.shape[2] != 3 or normals.shape != positions.shape or positions.shape[1] == 0:
         raise ValueError(f"positions and normals must be (F, V, 3) alike with V > 0, got {positions.shape} and {normals.shape}")
     base = positions[0]
-    offset = (base.min(axis=0) + base.max(axis=0)) / 2
+    offset, scale = node_transform(positions)
     deltas = positions[1:] - base
-    scale = float(max(np.abs(base - offset).max(), np.abs(deltas).max() if deltas.size else 0.0, 1e-9))
     unit = _unit(normals).astype(np.float64)
 
     def pad(values: np.ndarray, limit: int, dtype, grid: int = 1) -> np.ndarray:
@@ -170,6 +169,16 @@ def quantize_part(positions: np.ndarray, normals: np.ndarray) -> QuantizedPart:
 
 # Scales of frame k's normal tried by normal_deltas; 1 (the plain difference) first, so it wins ties.
 _NORMAL_SCALES = (1.0, 0.5, 2.0, 4.0, 8.0)
+
+
+def node_transform(positions: np.ndarray) -> tuple[np.ndarray, float]:
+    """(F, V, 3) metres -> the part node's (translation (3,), uniform scale) that dequantizes its mesh: the
+    centre of frame 0's box, and the larger of frame 0's half extent round it and the largest delta."""
+    positions = np.asarray(positions, dtype=np.float64)
+    base = positions[0]
+    offset = (base.min(axis=0) + base.max(axis=0)) / 2
+    deltas = positions[1:] - base
+    return offset, float(max(np.abs(base - offset).max(), np.abs(deltas).max() if deltas.size else 0.0, 1e-9))
 
 
 def normal_deltas(base: np.ndarray, frames: np.ndarray) -> np.ndarray:

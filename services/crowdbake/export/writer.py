@@ -32,7 +32,7 @@ from crowdbake import __version__
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.export import ktx2
 from crowdbake.bake.shading import apply_outfit
-from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb
+from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb, node_transform
 from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, region_codes_used, rgba8_layers, uv_map_layers
 from crowdbake.export.vat import encode_vat, vat_texcoords
 from crowdbake.formats.bundle import Bundle, verify_bundle
@@ -258,7 +258,11 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
             parts.append(
                 GlbPart(mesh["part"], mesh["kind"], mesh["material"], cache.positions, cache.normals, cache.uvs, vat_texcoords(layout), cache.indices, extras)
             )
-            part_entries.append({k: extras[k] for k in ("part", "kind", "material")} | {"vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat})
+            translation, scale = node_transform(cache.positions)
+            part_entries.append({k: extras[k] for k in ("part", "kind", "material")} | {
+                "vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat,
+                "node": {"translation": translation.tolist(), "scale": scale,
+                         "meaning": "the part's glTF node: position in metres = translation + scale * mesh position"}})
         root_extras = {"crowdbake": {"export": "export.json", "lod": lod, "frames_per_second": fps, "frame_count": manifest["cycle"]["frames"]}}
         path = out.write(f"character_lod{lod}.glb", build_glb(parts, glb_materials, variants, fps, root_extras))
         lods.append({"lod": lod, "glb": path, "parts": part_entries})
@@ -268,7 +272,7 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
 def _copy_shaders(out: _Out) -> list[str]:
     written = []
     for entry in sorted(resources.files("crowdbake.export").joinpath("shaders").iterdir(), key=lambda e: e.name):
-        if entry.name.endswith((".glsl", ".hlsl")):
+        if entry.name.endswith((".glsl", ".hlsl", ".gdshader")):
             written.append(out.write(f"shaders/{entry.name}", entry.read_bytes()))
     return written
 
