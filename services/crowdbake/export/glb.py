@@ -26,6 +26,7 @@ import numpy as np
 import pygltflib as g
 
 from crowdbake import __version__
+from crowdbake.export.cloth_bones import ClothBones
 
 VARIANTS_EXTENSION = "KHR_materials_variants"
 QUANTIZATION_EXTENSION = "KHR_mesh_quantization"
@@ -50,6 +51,7 @@ class GlbPart:
     vat_uvs: np.ndarray
     indices: np.ndarray
     extras: dict[str, Any] = field(default_factory=dict)
+    bones: ClothBones | None = None  # a garment played by bones (crowdbake.export.cloth_bones) instead of morph targets
 
 
 @dataclass(frozen=True)
@@ -259,52 +261,81 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
 
     root = g.Node(name="character", children=[], extras=root_extras)
     gltf.nodes.append(root)
+    scene_nodes = [0]
     targets_per_mesh = frame_count - 1
+    morph_nodes, bone_tracks = [], []  # nodes whose weights the cycle keys; (joint node, rotations, translations)
     for part in parts:
-        quantized = quantize_part(part.positions, part.normals)
         indices = np.asarray(part.indices).reshape(-1)
-        index_type = np.uint16 if quantized.positions.shape[1] <= 65535 else np.uint32
-        attributes = g.Attributes(
-            POSITION=blob.packed(quantized.positions[0], bounds=True),
-            NORMAL=blob.packed(quantized.normals[0]),
-            TEXCOORD_0=blob.accessor(np.asarray(part.uvs, dtype=np.float32), g.VEC2),
-            TEXCOORD_1=blob.accessor(np.asarray(part.vat_uvs, dtype=np.float32), g.VEC2),
-        )
-        targets = [
-            g.Attributes(POSITION=blob.packed(quantized.position_deltas[k], bounds=True), NORMAL=blob.packed(quantized.normal_deltas[k]))
-            for k in range(targets_per_mesh)
-        ]
+        index_type = np.uint16 if part.positions.shape[1] <= 65535 else np.uint32
+        mappings = [{"material": material_index[(part.material, part.kind == "garment", v)], "variants": [v]} for v in range(len(variants))]
+        if part.bones is None:
+            quantized = quantize_part(part.positions, part.normals)
+            attributes = g.Attributes(POSITION=blob.packed(quantized.positions[0], bounds=True), NORMAL=blob.packed(quantized.normals[0]))
+            targets = [
+                g.Attributes(POSITION=blob.packed(quantized.position_deltas[k], bounds=True), NORMAL=blob.packed(quantized.normal_deltas[k]))
+                for k in range(targets_per_mesh)
+            ]
+        else:
+            # Skinned (crowdbake.export.cloth_bones): frame 0 in metres, posed by its bones; no morph targets.
+            attributes = g.Attributes(
+                POSITION=blob.accessor(np.asarray(part.positions[0], dtype=np.float32), g.VEC3, bounds=True),
+                NORMAL=blob.accessor(_unit(part.normals[0]), g.VEC3),
+                JOINTS_0=blob.accessor(np.asarray(part.bones.joints, dtype=np.uint16), g.VEC4),
+                WEIGHTS_0=blob.accessor(np.asarray(part.bones.weights, dtype=np.float32), g.VEC4),
+            )
+            targets = []
+        attributes.TEXCOORD_0 = blob.accessor(np.asarray(part.uvs, dtype=np.float32), g.VEC2)
+        attributes.TEXCOORD_1 = blob.accessor(np.asarray(part.vat_uvs, dtype=np.float32), g.VEC2)
         primitive = g.Primitive(
             attributes=attributes,
             indices=blob.accessor(indices.astype(index_type), g.SCALAR, target=g.ELEMENT_ARRAY_BUFFER),
             material=material_index[(part.material, part.kind == "garment", 0)],
             mode=g.TRIANGLES,
             targets=targets or None,
-            extensions={VARIANTS_EXTENSION: {"mappings": [
-                {"material": material_index[(part.material, part.kind == "garment", v)], "variants": [v]} for v in range(len(variants))
-            ]}},
+            extensions={VARIANTS_EXTENSION: {"mappings": mappings}},
         )
-        extras = {"targetNames": [f"frame_{frame}" for frame in range(1, frame_count)], "crowdbake": part.extras}
-        gltf.meshes.append(
-            g.Mesh(name=part.name, primitives=[primitive], weights=[0.0] * targets_per_mesh if targets else None, extras=extras)
-        )
-        # The quantization's dequantization (KHR_mesh_quantization): node scale and translation.
-        gltf.nodes.append(g.Node(name=part.name, mesh=len(gltf.meshes) - 1, translation=quantized.offset.tolist(), scale=[quantized.scale] * 3))
-        root.children.append(len(gltf.nodes) - 1)
+        extras = {"crowdbake": part.extras} | ({"targetNames": [f"frame_{frame}" for frame in range(1, frame_count)]} if targets else {})
+        gltf.meshes.append(g.Mesh(name=part.name, primitives=[primitive], weights=[0.0] * targets_per_mesh if targets else None, extras=extras))
+        if part.bones is None:
+            # The quantization's dequantization (KHR_mesh_quantization): node scale and translation.
+            gltf.nodes.append(g.Node(name=part.name, mesh=len(gltf.meshes) - 1, translation=quantized.offset.tolist(), scale=[quantized.scale] * 3))
+            root.children.append(len(gltf.nodes) - 1)
+            if targets:
+                morph_nodes.append(len(gltf.nodes) - 1)
+            continue
+        # The bones are children of the character, so they move with it; the skinned mesh's node is a scene
+        # root, as glTF ignores a skinned mesh node's own transform. Bind pose: identity (frame 0).
+        joints = []
+        for bone in range(part.bones.bone_count):
+            gltf.nodes.append(g.Node(name=f"{part.name}_bone_{bone}", rotation=part.bones.rotations[0, bone].tolist(),
+                                     translation=part.bones.translations[0, bone].tolist()))
+            joints.append(len(gltf.nodes) - 1)
+            root.children.append(joints[-1])
+            bone_tracks.append((joints[-1], part.bones.rotations[:, bone], part.bones.translations[:, bone]))
+        gltf.skins.append(g.Skin(name=f"{part.name}_bones", joints=joints, skeleton=0))
+        gltf.nodes.append(g.Node(name=part.name, mesh=len(gltf.meshes) - 1, skin=len(gltf.skins) - 1))
+        scene_nodes.append(len(gltf.nodes) - 1)
 
-    if targets_per_mesh:
+    if morph_nodes or bone_tracks:
         # Keys at every frame and once more at the cycle's end (frame F = frame 0: all weights 0).
         times = (np.arange(frame_count + 1) / frames_per_second).astype(np.float32)
-        weights = np.zeros((frame_count + 1, targets_per_mesh), dtype=np.float32)
-        weights[np.arange(1, frame_count), np.arange(targets_per_mesh)] = 1.0
         time_accessor = blob.accessor(times, g.SCALAR, target=None, bounds=True)
-        weight_accessor = blob.accessor(weights.reshape(-1), g.SCALAR, target=None)
-        animation = g.Animation(name="cycle", samplers=[g.AnimationSampler(input=time_accessor, output=weight_accessor, interpolation="LINEAR")])
-        for node in root.children:
-            animation.channels.append(g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=node, path="weights")))
+        animation = g.Animation(name="cycle", samplers=[], channels=[])
+        if morph_nodes:
+            weights = np.zeros((frame_count + 1, targets_per_mesh), dtype=np.float32)
+            weights[np.arange(1, frame_count), np.arange(targets_per_mesh)] = 1.0
+            animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(weights.reshape(-1), g.SCALAR, target=None),
+                                                         interpolation="LINEAR"))
+            for node in morph_nodes:
+                animation.channels.append(g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=node, path="weights")))
+        for node, rotations, translations in bone_tracks:
+            for path, values, kind in (("rotation", rotations, g.VEC4), ("translation", translations, g.VEC3)):
+                looped = np.concatenate([values, values[:1]]).astype(np.float32)  # frame F is frame 0 again
+                animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(looped, kind, target=None), interpolation="LINEAR"))
+                animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1, target=g.AnimationChannelTarget(node=node, path=path)))
         gltf.animations.append(animation)
 
-    gltf.scenes.append(g.Scene(name="crowdbake", nodes=[0]))
+    gltf.scenes.append(g.Scene(name="crowdbake", nodes=scene_nodes))
     gltf.scene = 0
     blob.data += b"\0" * (-len(blob.data) % 4)
     gltf.buffers.append(g.Buffer(byteLength=len(blob.data)))

@@ -32,6 +32,7 @@ from crowdbake import __version__
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.export import ktx2
 from crowdbake.bake.shading import apply_outfit
+from crowdbake.export.cloth_bones import DEFAULT_ITERATIONS, ClothBones, choose_bone_count, decompose_cloth
 from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb, node_transform
 from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, region_codes_used, rgba8_layers, uv_map_layers
 from crowdbake.export.vat import encode_vat, vat_texcoords
@@ -55,6 +56,30 @@ MAX_VARIANTS = 16
 LOOKS_FOLDER = "looks"
 LOOK_JPEG_QUALITY = 90
 LOOK_PNG_LEVEL = 6  # zlib's default: level 9 saves about 1 % on the sample's looks, for twice the time
+
+
+@dataclass(frozen=True)
+class ClothBonesRequest:
+    """--cloth-bones: each garment as a skinned mesh of `count` bones, or (count None) of the fewest bones of
+    cloth_bones.AUTO_BONE_COUNTS whose RMS error against the loop is within budget_mm."""
+
+    count: int | None = None
+    budget_mm: float = 5.0
+    iterations: int = DEFAULT_ITERATIONS
+
+    def decompose(self, positions: np.ndarray, triangles: np.ndarray) -> ClothBones:
+        if self.count is None:
+            return choose_bone_count(positions, triangles, self.budget_mm, iterations=self.iterations)
+        return decompose_cloth(positions, triangles, min(self.count, positions.shape[1]), self.iterations)
+
+
+def bones_entry(bones: ClothBones, request: ClothBonesRequest, vertex_count: int, frame_count: int) -> dict[str, Any]:
+    """export.json's `bones` block of a garment: the count, its error against the loop and its bytes in the
+    .glb (JOINTS_0 and WEIGHTS_0, and per bone and key a rotation and a translation)."""
+    skin_bytes = vertex_count * (8 + 16) + bones.bone_count * (frame_count + 1) * (16 + 12)
+    return {"count": bones.bone_count, "asked": request.count if request.count is not None else "auto",
+            **({"budget_mm": request.budget_mm} if request.count is None else {}), "iterations": bones.iterations,
+            "rms_mm": round(bones.rms_m * 1000, 3), "max_mm": round(bones.max_m * 1000, 3), "bytes": skin_bytes}
 
 
 @dataclass(frozen=True)
@@ -213,7 +238,7 @@ def look_image(rgb: np.ndarray) -> tuple[str, bytes]:
 
 
 def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], variants: list[GlbVariant], outfit_rows: np.ndarray,
-                 vat_png: bool) -> list[dict]:
+                 vat_png: bool, cloth_bones: ClothBonesRequest | None) -> list[dict]:
     manifest = bundle.manifest
     fps = manifest["frames_per_second"]
     # The looks are files of their own, shared by every LOD's .glb (embedded, each LOD held its own copy).
@@ -255,14 +280,20 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
                 "texel_of_vertex": "(i % width, frame * rows_per_frame + i // width); TEXCOORD_1 is frame 0's texel centre",
             }
             extras = {"part": mesh["part"], "kind": mesh["kind"], "lod": lod, "material": mesh["material"], "vat": vat}
+            bones = cloth_bones.decompose(cache.positions, cache.indices) if cloth_bones is not None and mesh["kind"] == "garment" else None
             parts.append(
-                GlbPart(mesh["part"], mesh["kind"], mesh["material"], cache.positions, cache.normals, cache.uvs, vat_texcoords(layout), cache.indices, extras)
+                GlbPart(mesh["part"], mesh["kind"], mesh["material"], cache.positions, cache.normals, cache.uvs, vat_texcoords(layout), cache.indices, extras,
+                        bones)
             )
-            translation, scale = node_transform(cache.positions)
-            part_entries.append({k: extras[k] for k in ("part", "kind", "material")} | {
-                "vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat,
-                "node": {"translation": translation.tolist(), "scale": scale,
-                         "meaning": "the part's glTF node: position in metres = translation + scale * mesh position"}})
+            entry = {k: extras[k] for k in ("part", "kind", "material")} | {"vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat}
+            if bones is None:
+                translation, scale = node_transform(cache.positions)
+                entry["node"] = {"translation": translation.tolist(), "scale": scale,
+                                 "meaning": "the part's glTF node: position in metres = translation + scale * mesh position"}
+            else:
+                entry["bones"] = bones_entry(bones, cloth_bones, cache.vertex_count, cache.frame_count)
+                logger.info("%s lod %d: %d bones, %.2f mm RMS, %.1f mm max", mesh["part"], lod, bones.bone_count, bones.rms_m * 1000, bones.max_m * 1000)
+            part_entries.append(entry)
         root_extras = {"crowdbake": {"export": "export.json", "lod": lod, "frames_per_second": fps, "frame_count": manifest["cycle"]["frames"]}}
         path = out.write(f"character_lod{lod}.glb", build_glb(parts, glb_materials, variants, fps, root_extras))
         lods.append({"lod": lod, "glb": path, "parts": part_entries})
@@ -278,13 +309,15 @@ def _copy_shaders(out: _Out) -> list[str]:
 
 
 def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0], prepared: PreparedLayers = NOTHING_PREPARED,
-                  on_write: Callable[[str, bytes], None] | None = None, vat_png: bool = False) -> ExportSummary:
+                  on_write: Callable[[str, bytes], None] | None = None, vat_png: bool = False,
+                  cloth_bones: ClothBonesRequest | None = None) -> ExportSummary:
     """Verify the bundle at `bundle_dir` and write its export into `out_dir` (new or empty).
 
     ktx2_mode: "bc" keeps the bundle's BC1/BC2 blocks in the KTX2 files, "rgba8" decodes them.
     prepared: impostor layers the bake converted already (the same bytes either way).
     on_write: called with (path under out_dir, bytes) as each file is written, always in the same order.
     vat_png: also write each VAT as a PNG (16-bit positions, 8-bit normals) beside its KTX2.
+    cloth_bones: play each garment by bones instead of morph targets (ClothBonesRequest; needs py-dem-bones).
     Raises FormatError for a bundle that does not verify, FileExistsError for a non-empty `out_dir`
     (also when another writer renamed its export into place first), ValueError for an unknown mode.
     """
@@ -304,7 +337,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
         impostor = _export_impostor(bundle, out, ktx2_mode, prepared)
         outfit_rows = rgba8_layers(bundle.textures[manifest["outfits"]["file"]])[0]
         variants = look_variants([m["variations"] for m in manifest["materials"]], manifest["outfits"]["count"])
-        lods = _export_lods(bundle, out, diffuse_arrays, variants, outfit_rows, vat_png)
+        lods = _export_lods(bundle, out, diffuse_arrays, variants, outfit_rows, vat_png, cloth_bones)
         shaders = _copy_shaders(out)
         sidecar = {
             "format": EXPORT_FORMAT,
