@@ -21,11 +21,12 @@ GLSL = {
 # wrapper needs Unity's includes) and Unreal's Custom node code, wrapped in the function Unreal makes of it.
 ENGINE_HLSL = {
     "unity_vat_custom_function.hlsl": "{source}\nTexture2D<float4> P; Texture2D<float4> N;\nfloat4 main(float2 uv : TEXCOORD1) : SV_Position "
-    "{{ float3 p, n; CrowdbakeVatSample(uv, 1.5, P, N, float3(0, 0, 0), float3(1, 1, 1), 1, 24, p, n); return float4(p + n, 1); }}",
+    "{{ float3 p, n, q, m; CrowdbakeVatSample(uv, 1.5, P, N, float3(0, 0, 0), float3(1, 1, 1), 1, 24, p, n); "
+    "CrowdbakeToObject(p, n, float3(0, 1, 0), 0.9, q, m); return float4(q + m, 1); }}",
     "unreal_vat_custom_node.hlsl": "Texture2D<float4> PositionMap; Texture2D<float4> NormalMap;\n"
     "float3 CustomExpression0(float2 VatUV, float Frame, float3 BoundsMin, float3 BoundsMax, float RowsPerFrame, float FrameCount, "
-    "float3 LocalPosition, inout float3 Normal) {{\n{source}\n}}\nfloat4 main(float2 uv : TEXCOORD1) : SV_Position "
-    "{{ float3 n = 0; float3 o = CustomExpression0(uv, 1.5, 0, 1, 1, 24, 0, n); return float4(o + n, 1); }}",
+    "float3 NodeTranslation, float NodeScale, float3 LocalPosition, inout float3 Normal) {{\n{source}\n}}\nfloat4 main(float2 uv : TEXCOORD1) : SV_Position "
+    "{{ float3 n = 0; float3 o = CustomExpression0(uv, 1.5, 0, 1, 1, 24, 0, 1, 0, n); return float4(o + n, 1); }}",
 }
 GODOT = SHADERS / "crowdbake_vat.gdshader"
 

@@ -1,8 +1,10 @@
 // crowdbake export: a Shader Graph Custom Function (Unity URP/HDRP, docs/export.md "Unity") that plays a
 // vertex-animation texture (VAT). Custom Function node: Type File, this file, Name CrowdbakeVat, precision
 // Float. Inputs: VatUV (Vector 2, UV1 = glTF TEXCOORD_1), Frame (Float), PositionMap, NormalMap (Texture 2D),
-// BoundsMin, BoundsMax (Vector 3), RowsPerFrame, FrameCount (Float). Outputs: Position, Normal (Vector 3,
-// object space) into the Vertex stage's Position and Normal. Values from export.json (lods[].parts[].vat).
+// BoundsMin, BoundsMax (Vector 3), RowsPerFrame, FrameCount (Float), NodeTranslation (Vector 3), NodeScale
+// (Float). Outputs: Position, Normal (Vector 3, object space) into the Vertex stage's Position and Normal.
+// Values from export.json: lods[].parts[].vat and lods[].parts[].node (the quantized mesh's node transform).
+// glTFast turns glTF's right-handed axes into Unity's left-handed ones by negating x; so does this.
 
 // The sampling itself, on plain HLSL textures (what the test compiles).
 void CrowdbakeVatSample(float2 vatUV, float frame, Texture2D<float4> positionMap, Texture2D<float4> normalMap, float3 boundsMin,
@@ -20,10 +22,19 @@ void CrowdbakeVatSample(float2 vatUV, float frame, Texture2D<float4> positionMap
     normal = normalize(lerp(normalMap.Load(c0).rgb, normalMap.Load(c1).rgb, t) * 2.0 - 1.0);
 }
 
+// glTF metres round the character -> the imported mesh's object space in Unity's axes.
+void CrowdbakeToObject(float3 position, float3 normal, float3 nodeTranslation, float nodeScale, out float3 objectPosition, out float3 objectNormal) {
+    float3 local = (position - nodeTranslation) / nodeScale;
+    objectPosition = float3(-local.x, local.y, local.z);
+    objectNormal = float3(-normal.x, normal.y, normal.z);
+}
+
 #ifdef UNITY_COMMON_INCLUDED
 // Shader Graph hands textures over as UnityTexture2D; the texture itself is .tex.
 void CrowdbakeVat_float(float2 VatUV, float Frame, UnityTexture2D PositionMap, UnityTexture2D NormalMap, float3 BoundsMin, float3 BoundsMax,
-                        float RowsPerFrame, float FrameCount, out float3 Position, out float3 Normal) {
-    CrowdbakeVatSample(VatUV, Frame, PositionMap.tex, NormalMap.tex, BoundsMin, BoundsMax, RowsPerFrame, FrameCount, Position, Normal);
+                        float RowsPerFrame, float FrameCount, float3 NodeTranslation, float NodeScale, out float3 Position, out float3 Normal) {
+    float3 position, normal;
+    CrowdbakeVatSample(VatUV, Frame, PositionMap.tex, NormalMap.tex, BoundsMin, BoundsMax, RowsPerFrame, FrameCount, position, normal);
+    CrowdbakeToObject(position, normal, NodeTranslation, NodeScale, Position, Normal);
 }
 #endif
