@@ -80,30 +80,42 @@ def test_vat_decodes_within_half_a_step_of_the_bounds():
 
 
 def test_quantized_part_dequantizes_within_its_grid():
-    """KHR_mesh_quantization as glb.quantize_part writes it: offset + scale · (base + delta) / 32767 gives every
-    frame back within max_position_error_m; values lie on the 14-bit grid; a normal turning past 90 degrees
-    in one frame has its delta clipped to [-1, 1] (and is still turned the right way)."""
+    """KHR_mesh_quantization as glb.quantize_part writes it: offset + scale · (base + delta_k) / 32767 gives
+    every frame back within max_position_error_m; values lie on the 14-bit grid; the base is the mean pose
+    and its normals the mean direction, so a normal turning back and forth stays within reach."""
     from crowdbake.export.glb import POSITION_GRID, quantize_part
 
     rng = np.random.default_rng(3)
     positions = rng.uniform([-0.3, 0.0, -0.2], [0.3, 1.7, 0.2], size=(4, 50, 3))
-    normals = np.tile([0.0, 0.0, 1.0], (4, 50, 1))
-    normals[2, 0] = [0.8, 0.0, -0.6]  # turned 143 degrees: the plain delta (0.8, 0, -1.6) does not fit an int8
+    angles = np.radians([-60.0, -20.0, 20.0, 60.0])  # 120 degrees end to end, 60 from the mean
+    normals = np.stack([np.tile([np.sin(a), 0.0, np.cos(a)], (50, 1)) for a in angles])
     part = quantize_part(positions, normals)
-    assert part.positions.dtype == np.int16 and part.normals.dtype == np.int8 and part.position_deltas.shape == (3, 50, 4)
+    assert part.positions.dtype == np.int16 and part.normals.dtype == np.int8 and part.position_deltas.shape == (4, 50, 4)
     assert not (part.positions[..., :3] % POSITION_GRID).any() and not part.positions[..., 3].any()
-    played = part.offset + part.scale * (part.positions[0, :, :3] + np.concatenate([np.zeros((1, 50, 3)), part.position_deltas[..., :3]])) / 32767
+    played = part.offset + part.scale * (part.positions[0, :, :3].astype(float) + part.position_deltas[..., :3]) / 32767
     error = np.abs(played - positions).max()
     assert error <= part.max_position_error_m and error > part.max_position_error_m / 10
-    # The delta aims at a scaled frame normal instead; the sum stays within one unit of (0, 0, 1), so the
-    # closest it gets is (1, 0, 0), 37 degrees short, where the plain difference clipped would be (0.8, 0, 0).
-    turned = (part.normals[0, 0, :3].astype(float) + part.normal_deltas[1, 0, :3]) / 127
-    assert np.abs(part.normal_deltas[1, 0, :3]).max() == 127
-    assert abs(np.degrees(np.arccos(turned @ normals[2, 0] / np.linalg.norm(turned))) - 36.87) < 1.0
-    # Normals turned less than 90 degrees keep the plain difference.
-    assert (part.normal_deltas[0, :, :3] == 0).all()
+    assert part.normals[0, 0, :3].tolist() == [0, 0, 127]
+    turned = part.normals[0, :, :3].astype(float) + part.normal_deltas[..., :3]
+    cosines = (turned * normals).sum(-1) / np.linalg.norm(turned, axis=-1)
+    assert np.degrees(np.arccos(np.clip(cosines, -1, 1))).max() < 1.0
     with pytest.raises(ValueError, match=r"\(F, V, 3\)"):
         quantize_part(positions[..., :2], normals[..., :2])
+
+
+def test_a_normal_turned_past_reach_is_approached():
+    """A normalized int8 delta keeps base + delta within one unit of the base in each component: from (0, 0, 1)
+    a normal turned 143 degrees to (0.8, 0, -0.6) is out of reach. The delta aims at it scaled, so the sum
+    lands on (1, 0, 0), 37 degrees short, the closest reachable, and never on zero."""
+    from crowdbake.export.glb import normal_deltas
+
+    base = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    frames = np.array([[[0.8, 0.0, -0.6], [0.6, 0.0, 0.8]]])
+    deltas = normal_deltas(base, frames)
+    assert np.abs(deltas).max() <= 1.0
+    np.testing.assert_allclose(deltas[0, 1], frames[0, 1] - base[1])  # within reach: the plain difference
+    turned = base[0] + deltas[0, 0]
+    assert abs(np.degrees(np.arccos(turned @ frames[0, 0] / np.linalg.norm(turned))) - 36.87) < 0.5
 
 
 def test_vat_flat_axis_decodes_exactly():
@@ -277,15 +289,15 @@ def check_export(bundle_dir: Path, out: Path) -> None:
             node = next(n for n in gltf.nodes if n.mesh == mesh_index)
             primitive = meshes[part["part"]].primitives[0]
             base = read_accessor(gltf, blob, primitive.attributes.POSITION)
-            frame = cache.frame_count // 2
-            delta = read_accessor(gltf, blob, primitive.targets[frame - 1]["POSITION"])  # pygltflib loads targets as dicts
+            frame = cache.frame_count // 2  # target k is frame k (from the loop's mean pose)
+            delta = read_accessor(gltf, blob, primitive.targets[frame]["POSITION"])  # pygltflib loads targets as dicts
             assert part["node"]["translation"] == node.translation and part["node"]["scale"] == node.scale[0]
             played = np.array(node.translation) + node.scale[0] * (base + delta)
             assert np.abs(played - cache.positions[frame]).max() < MORPH_TOLERANCE_M
-            normal = read_accessor(gltf, blob, primitive.attributes.NORMAL) + read_accessor(gltf, blob, primitive.targets[frame - 1]["NORMAL"])
+            normal = read_accessor(gltf, blob, primitive.attributes.NORMAL) + read_accessor(gltf, blob, primitive.targets[frame]["NORMAL"])
             normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
             turned = np.degrees(np.arccos(np.clip((normal * cache.normals[frame]).sum(-1), -1, 1)))
-            # Normals turned past 90 degrees from frame 0 (cloth folding over) can only be approached (glb.normal_deltas).
+            # Normals turned past 90 degrees from the mean (cloth folding over) can only be approached (glb.normal_deltas).
             assert np.percentile(turned, 90) < MORPH_NORMAL_DEGREES and np.isfinite(turned).all(), np.percentile(turned, 90)
             np.testing.assert_array_equal(read_accessor(gltf, blob, primitive.attributes.TEXCOORD_0), cache.uvs)
             vat = part["vat"]
@@ -483,9 +495,10 @@ def test_morph_animation_keys_each_frame_once(sample_export):
     weights = read_accessor(gltf, blob, sampler.output).reshape(len(times), -1)
     frames = len(times) - 1
     np.testing.assert_allclose(times, np.arange(frames + 1) / 24.0, rtol=1e-6)
-    # Frame 0 and the cycle's end are the base mesh; frame k weighs target k-1 alone.
-    assert not weights[0].any() and not weights[-1].any()
-    np.testing.assert_array_equal(weights[1:-1], np.eye(frames - 1, dtype=np.float32))
+    # Frame k weighs target k alone; the cycle's end is frame 0 again; a still viewer shows frame 0.
+    np.testing.assert_array_equal(weights[:-1], np.eye(frames, dtype=np.float32))
+    np.testing.assert_array_equal(weights[-1], weights[0])
+    assert all(mesh.weights == [1.0] + [0.0] * (frames - 1) for mesh in gltf.meshes)
 
 
 def test_cli_refuses_a_non_empty_folder_and_a_broken_bundle(sample_bundle, sample_export, tmp_path, capsys):
