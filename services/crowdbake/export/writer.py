@@ -68,9 +68,12 @@ class ClothBonesRequest:
     iterations: int = DEFAULT_ITERATIONS
 
     def decompose(self, positions: np.ndarray, triangles: np.ndarray) -> ClothBones:
-        if self.count is None:
-            return choose_bone_count(positions, triangles, self.budget_mm, iterations=self.iterations)
-        return decompose_cloth(positions, triangles, min(self.count, positions.shape[1]), self.iterations)
+        if self.count is not None:
+            return decompose_cloth(positions, triangles, min(self.count, positions.shape[1]), self.iterations)
+        bones = choose_bone_count(positions, triangles, self.budget_mm, iterations=self.iterations)
+        if bones.rms_m * 1000 > self.budget_mm:  # written all the same: the most bones tried, said in export.json
+            logger.warning("--cloth-bones auto: %d bones leave %.1f mm RMS, over the %.1f mm budget", bones.bone_count, bones.rms_m * 1000, self.budget_mm)
+        return bones
 
 
 def bones_entry(bones: ClothBones, request: ClothBonesRequest, vertex_count: int, frame_count: int) -> dict[str, Any]:
