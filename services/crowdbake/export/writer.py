@@ -297,7 +297,7 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
                 entry["bones"] = bones_entry(bones, cloth_bones, cache.vertex_count, cache.frame_count)
                 logger.info("%s lod %d: %d bones, %.2f mm RMS, %.1f mm max", mesh["part"], lod, bones.bone_count, bones.rms_m * 1000, bones.max_m * 1000)
             part_entries.append(entry)
-        root_extras = {"crowdbake": {"export": "export.json", "lod": lod, "frames_per_second": fps, "frame_count": manifest["cycle"]["frames"]}}
+        root_extras = {"crowdbake": {"export": "export.json", "lod": lod, "frames_per_second": fps, "frame_count": bundle.ranges.pose_frames}}
         path = out.write(f"character_lod{lod}.glb", build_glb(parts, glb_materials, variants, fps, root_extras))
         lods.append({"lod": lod, "glb": path, "parts": part_entries})
     return lods
@@ -349,7 +349,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
             "ktx2": ktx2_mode,
             "bundle": {"name": manifest["name"], "version": manifest["version"]},
             "frames_per_second": manifest["frames_per_second"],
-            "frame_count": manifest["cycle"]["frames"],
+            "frame_count": bundle.ranges.pose_frames,
             "lods": lods,
             "materials": materials,
             "outfits": outfits,
