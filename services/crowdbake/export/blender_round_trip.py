@@ -22,14 +22,15 @@ from pathlib import Path
 import numpy as np
 
 
-def _key_frames(mesh) -> list[float]:
-    """Blender frame at which shape key frame_k peaks, k = 1..F-1 (the one-hot keys of `cycle`)."""
+def _key_frames(mesh) -> dict[int, float]:
+    """Blender frame at which shape key frame_k peaks, for every frame_k key (the one-hot keys of `cycle`)."""
     action = mesh.shape_keys.animation_data.action
-    peaks = []
-    for k in range(1, len(mesh.shape_keys.key_blocks)):
-        path = f'key_blocks["frame_{k}"].value'
-        curve = next(c for c in _fcurves(action) if c.data_path == path)
-        peaks.append(max(curve.keyframe_points, key=lambda p: p.co[1]).co[0])
+    curves = {c.data_path: c for c in _fcurves(action)}
+    peaks = {}
+    for block in mesh.shape_keys.key_blocks[1:]:
+        curve = curves.get(f'key_blocks["{block.name}"].value')
+        if block.name.startswith("frame_") and curve is not None:
+            peaks[int(block.name[len("frame_"):])] = max(curve.keyframe_points, key=lambda p: p.co[1]).co[0]
     return peaks
 
 
@@ -54,10 +55,13 @@ def main(glb: Path, out: Path) -> None:
     meshes = [ob for ob in bpy.data.objects if ob.type == "MESH"]
     if not meshes:
         raise SystemExit(f"{glb}: Blender imported no mesh")
-    first = meshes[0].data
-    frames = [None] + (_key_frames(first) if first.shape_keys and first.shape_keys.animation_data else [])
-    start = frames[1] - (frames[2] - frames[1]) if len(frames) > 2 else float(scene.frame_start)
-    frames[0] = start  # frame 0: every weight 0, one frame step before frame_1 peaks
+    # Each frame_k key peaks at frame k; an export whose base is frame 0 (no frame_0 key) shows frame 0 one
+    # frame step before frame_1 peaks, every weight 0.
+    keyed = next((ob.data for ob in meshes if ob.data.shape_keys and ob.data.shape_keys.animation_data), None)
+    peaks = _key_frames(keyed) if keyed is not None else {}
+    if peaks and 0 not in peaks and 1 in peaks and 2 in peaks:
+        peaks[0] = peaks[1] - (peaks[2] - peaks[1])
+    frames = [peaks[k] for k in sorted(peaks)] or [float(scene.frame_start)]
     arrays = {}
     for ob in meshes:
         positions = []

@@ -2,9 +2,10 @@
 // Include in a vertex shader; docs/export.md shows a whole program. Values come from export.json
 // (lods[].parts[].vat) or the glTF mesh's extras.crowdbake.vat.
 //
-// The VAT is 16-bit unsigned normalised RGBA. Bind it as a normalised texture (RGBA16, sampled with
-// texelFetch as floats 0..1) or, where 16-bit normalised textures are missing (WebGL2 without
-// EXT_texture_norm16), as RGBA16UI and define CB_VAT_INTEGER so the values are divided here.
+// The position VAT is 16-bit unsigned normalised RGBA. Bind it as a normalised texture (RGBA16, sampled
+// with texelFetch as floats 0..1) or, where 16-bit normalised textures are missing (WebGL2 without
+// EXT_texture_norm16), as RGBA16UI and define CB_VAT_INTEGER so the values are divided here. The normal
+// VAT is 8-bit RGBA, a normalised texture everywhere.
 
 #ifdef CB_VAT_INTEGER
 #define CB_VAT_SAMPLER highp usampler2D
@@ -15,7 +16,7 @@
 #endif
 
 uniform CB_VAT_SAMPLER cb_vat_position;
-uniform CB_VAT_SAMPLER cb_vat_normal;
+uniform highp sampler2D cb_vat_normal;
 uniform vec3 cb_vat_bounds_min;     // vat.bounds_min
 uniform vec3 cb_vat_bounds_max;     // vat.bounds_max
 uniform int cb_vat_rows_per_frame;  // vat.rows_per_frame
@@ -34,6 +35,6 @@ void cb_vat_sample(vec2 vat_uv, float frame, out vec3 position, out vec3 normal)
     ivec2 c1 = texel + ivec2(0, f1 * cb_vat_rows_per_frame);
     vec3 q = mix(CB_VAT_READ(cb_vat_position, c0).rgb, CB_VAT_READ(cb_vat_position, c1).rgb, t);
     position = cb_vat_bounds_min + q * (cb_vat_bounds_max - cb_vat_bounds_min);
-    vec3 n = mix(CB_VAT_READ(cb_vat_normal, c0).rgb, CB_VAT_READ(cb_vat_normal, c1).rgb, t);
+    vec3 n = mix(texelFetch(cb_vat_normal, c0, 0).rgb, texelFetch(cb_vat_normal, c1, 0).rgb, t);
     normal = normalize(n * 2.0 - 1.0);
 }

@@ -1,6 +1,7 @@
 // crowdbake export: play a vertex-animation texture (VAT) in an HLSL vertex shader (SM 4.0+).
 // Values come from export.json (lods[].parts[].vat) or the glTF mesh's extras.crowdbake.vat.
-// Bind the VAT as DXGI_FORMAT_R16G16B16A16_UNORM (the KTX2's R16G16B16A16_UNORM): Load returns 0..1.
+// Bind the position VAT as DXGI_FORMAT_R16G16B16A16_UNORM and the normal VAT as DXGI_FORMAT_R8G8B8A8_UNORM
+// (the KTX2s' vkFormats): Load returns 0..1.
 
 Texture2D<float4> CbVatPosition;
 Texture2D<float4> CbVatNormal;
