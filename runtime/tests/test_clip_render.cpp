@@ -22,20 +22,9 @@ using nlohmann::json;
 
 namespace {
 
-struct Run {
-    int status = -1;
-    std::string err;
-};
+using synthetic::Run;
 
-Run run(const std::string& crowdview, const std::string& args) {
-    const std::string err_file = fs::temp_directory_path().string() + "/crowdview-clips-stderr.txt";
-    Run r;
-    const int raw = std::system(("'" + crowdview + "' " + args + " >/dev/null 2>'" + err_file + "'").c_str());
-    r.status = WIFEXITED(raw) ? WEXITSTATUS(raw) : -1;
-    r.err = synthetic::read_text(err_file);
-    fs::remove(err_file);
-    return r;
-}
+Run run(const std::string& crowdview, const std::string& args) { return synthetic::run_crowdview(crowdview, args + " >/dev/null"); }
 
 json read_json(const std::string& path) { return json::parse(synthetic::read_text(path), nullptr, false); }
 
