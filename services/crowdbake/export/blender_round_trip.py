@@ -5,7 +5,7 @@
 Run in a child process (Blender's `bpy` module, the `crowdbake[alembic]` extra, is large and keeps
 global state). Writes OUT.npz:
 
-- `mesh_<name>`: (F, V, 3) float32 world positions of each mesh at each frame of the `cycle` animation,
+- `mesh_<name>`: (F, V, 3) float32 world positions of each mesh at each frame of the active action (a v1 export: `cycle`),
   in glTF's axes (+Y up; Blender's importer turns glTF (x, y, z) into (x, -z, y) and back is applied
   here), evaluated by Blender at the time the animation keys frame k (shape keys driven by its action);
 - `action_<k>_mesh_<name>`: (K, V, 3) the same at every key of action k (`info["actions"]`, one per glTF
