@@ -196,7 +196,8 @@ def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
         "tile texels [crop.x, crop.x+crop.width) x [crop.y, crop.y+crop.height); tile texels outside it are not covered; "
         "camera for azimuth t, elevation p sits in direction (sin t cos p, sin p, cos t cos p) from bounds.center",
         "frame_indices": impostor["frame_indices"],
-        "layer_of_frame": "layer k shows cycle frame frame_indices[k]; draw the nearest one around the cycle",
+        "layer_of_frame": "layer k shows pose frame frame_indices[k]; draw the nearest one in the animation's range "
+        "(animations[].vat): round a clip, clamped in a transition (shared_formats/SPEC.md, Playback)",
         "bounds": impostor["bounds"],
         "quad_size_m": 2 * radius,
         "maps": maps,
