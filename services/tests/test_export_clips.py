@@ -8,11 +8,14 @@ through the Khronos glTF-Validator and against the bundle's pose caches at the p
 """
 from __future__ import annotations
 
+import functools
 import importlib.util
 import json
 import os
 import subprocess
 import sys
+import threading
+from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +23,7 @@ import pygltflib
 import pytest
 
 from repo_paths import REPO_ROOT, VECTORS
-from test_export import MORPH_TOLERANCE_M, node_tool, read_accessor
+from test_export import MORPH_TOLERANCE_M, PREVIEW_DIR, node_tool, read_accessor
 from test_export_bones import read_accessor_vec4
 from crowdbake.export.animations import animation_plans, vat_range_uniforms, vat_shader_twin
 from crowdbake.export.cloth_bones import skin
@@ -160,10 +163,39 @@ def test_the_vector_bundle_exports_every_clip_and_transition(vector_export):
 
 def test_the_robot_exports_every_clip_and_transition(robot_bake, tmp_path):
     """Issue 31's "done when": the robot's export passes the glTF-Validator with every clip and transition as
-    an animation."""
+    an animation. The three.js preview draws it playing its first clip, Idle (its VAT range, its impostor
+    layers)."""
     out = tmp_path / "robot"
     export_bundle(robot_bake[0], out)
     assert check_clip_export(robot_bake[0], out) == ROBOT_NAMES
+    status = preview_status(out, tmp_path)
+    assert status["ready"] is True, status
+    assert status["clip"] == json.loads((out / "export.json").read_text())["animations"][0]["vat"]
+    assert sum(status["lod"].values()) == 16
+
+
+def preview_status(export: Path, tmp_path: Path) -> dict:
+    """The three.js preview page's status on `export` (16 characters, time 0), served from a local HTTP server."""
+    from test_export_preview import page_status
+
+    if not (PREVIEW_DIR / "node_modules" / "three").is_dir():
+        pytest.skip(f"npm packages missing: run `npm ci` in {PREVIEW_DIR} (scripts/setup.sh does)")
+    root = tmp_path / "www"
+    root.mkdir()
+    (root / "preview").symlink_to(PREVIEW_DIR, target_is_directory=True)
+    (root / "export").symlink_to(export, target_is_directory=True)
+
+    class Quiet(SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(root)))
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{httpd.server_address[1]}/preview/index.html?export=../export/&time=0&count=16"
+        return page_status(url, tmp_path / "profile")
+    finally:
+        httpd.shutdown()
 
 
 def test_cloth_bones_play_every_clip_and_transition(tmp_path):
