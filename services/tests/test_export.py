@@ -398,7 +398,7 @@ def read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int) -> np.ndarray:
 
 def test_sample_export_validates_and_round_trips(sample_bundle, sample_export):
     sidecar = json.loads((sample_export / "export.json").read_text())
-    assert sidecar["ktx2"] == "bc" and sidecar["format_version"] == 3
+    assert sidecar["ktx2"] == "bc" and sidecar["format_version"] == 4
     assert sidecar["impostor"]["maps"]["normal"]["vk_format"] == "BC1_RGB_UNORM_BLOCK"  # the bundle's bc5, in model space
     assert sidecar["impostor"]["maps"]["detail"]["vk_format"] == "BC2_SRGB_BLOCK"
     assert sidecar["impostor"]["maps"]["uv"]["vk_format"] == "R32_UINT"  # words stay exact, never block-compressed

@@ -22,12 +22,12 @@ GLSL = {
 # wrapper needs Unity's includes) and Unreal's Custom node code, wrapped in the function Unreal makes of it.
 ENGINE_HLSL = {
     "unity_vat_custom_function.hlsl": "{source}\nTexture2D<float4> P; Texture2D<float4> N;\nfloat4 main(float2 uv : TEXCOORD1) : SV_Position "
-    "{{ float3 p, n, q, m; CrowdbakeVatSample(uv, 1.5, P, N, float3(0, 0, 0), float3(1, 1, 1), 1, 24, p, n); "
+    "{{ float3 p, n, q, m; CrowdbakeVatSample(uv, 1.5, P, N, float3(0, 0, 0), float3(1, 1, 1), 1, float4(24, 24, 1, 0), 24, p, n); "
     "CrowdbakeToObject(p, n, float3(0, 1, 0), 0.9, q, m); return float4(q + m, 1); }}",
     "unreal_vat_custom_node.hlsl": "Texture2D<float4> PositionMap; Texture2D<float4> NormalMap;\n"
-    "float3 CustomExpression0(float2 VatUV, float Frame, float3 BoundsMin, float3 BoundsMax, float RowsPerFrame, float FrameCount, "
+    "float3 CustomExpression0(float2 VatUV, float Frame, float3 BoundsMin, float3 BoundsMax, float RowsPerFrame, float4 Range, float RangeAfter, "
     "float3 NodeTranslation, float NodeScale, float3 LocalPosition, inout float3 Normal) {{\n{source}\n}}\nfloat4 main(float2 uv : TEXCOORD1) : SV_Position "
-    "{{ float3 n = 0; float3 o = CustomExpression0(uv, 1.5, 0, 1, 1, 24, 0, 1, 0, n); return float4(o + n, 1); }}",
+    "{{ float3 n = 0; float3 o = CustomExpression0(uv, 1.5, 0, 1, 1, float4(24, 24, 1, 0), 24, 0, 1, 0, n); return float4(o + n, 1); }}",
 }
 GODOT = SHADERS / "crowdbake_vat.gdshader"
 
@@ -90,9 +90,11 @@ def test_godot_shader_reads_what_the_export_writes():
     source = GODOT.read_text()
     assert "shader_type spatial;" in source and "void vertex()" in source
     uniforms = set(re.findall(r"^uniform \w+ (\w+)", source, re.M))
-    assert {"vat_position", "vat_normal", "bounds_min", "bounds_max", "rows_per_frame", "frame_count", "frames_per_second",
-            "node_translation", "node_scale"} <= uniforms
-    for key in ("vat.bounds_min", "vat.bounds_max", "vat.rows_per_frame", "vat.frame_count", "vat.frames_per_second", "parts[].node.translation"):
+    assert {"vat_position", "vat_normal", "bounds_min", "bounds_max", "rows_per_frame", "frames_per_second", "range_first", "range_frames",
+            "range_loop", "range_before", "range_after", "node_translation", "node_scale"} <= uniforms
+    for key in ("vat.bounds_min", "vat.bounds_max", "vat.rows_per_frame", "vat.frames_per_second", "parts[].node.translation",
+                "animations[].vat.first_frame", "animations[].vat.frames", "animations[].vat.loop", "animations[].vat.before_frame",
+                "animations[].vat.after_frame"):
         assert key in source, key
 
 
@@ -109,5 +111,5 @@ def test_godot_shader_code_compiles_as_glsl(tmp_path):
     result = compile_shader(tmp_path, "godot_vat", "vert", godot_as_glsl(GODOT.read_text()))
     assert result.returncode == 0, result.stdout + result.stderr
     # The translation is not a rubber stamp: a type mistake Godot would refuse is refused here too.
-    broken = GODOT.read_text().replace("int f0 = int(floor(frame));", "int f0 = floor(frame);")
+    broken = GODOT.read_text().replace("int j0 = min(int(floor(x)),", "int j0 = min(floor(x),")
     assert compile_shader(tmp_path, "godot_broken", "vert", godot_as_glsl(broken)).returncode != 0

@@ -3,16 +3,17 @@
 Each mesh part (body, garments) is a node with one mesh and one primitive: frame 0's positions and
 normals, quantized (KHR_mesh_quantization: int16 positions on a 14-bit grid that the node's scale and
 translation dequantize, int8 normals; quantize_part), the texture coordinates (TEXCOORD_0, the bundle's
-convention is glTF's) and each vertex's VAT texel (TEXCOORD_1, see crowdbake.export.vat). The cycle plays
-three ways:
+convention is glTF's) and each vertex's VAT texel (TEXCOORD_1, see crowdbake.export.vat). Every pose
+frame of the bundle (all its clips and transitions) plays three ways:
 
-- morph targets: the base is the loop's mean pose and target k holds frame k minus it (positions and
+- morph targets: the base is the mean pose and target k holds frame k minus it (positions and
   normals, quantized alike; a normal turned past about 90 degrees from the mean only approached:
-  normal_deltas) for k = 0..F-1, and the animation `cycle` keys the weights one-hot, target k at
-  t = k / fps and target 0 again at t = F / fps, with LINEAR interpolation, so any glTF viewer plays the
-  cloth; the mesh's default weights show frame 0;
+  normal_deltas) for k = 0..F-1; one glTF animation per clip and per transition
+  (crowdbake.export.animations: a v1 bundle's one `cycle`) keys the weights one-hot, key j at
+  t = j / fps weighing the target of the pose frame it shows, with LINEAR interpolation, so any glTF
+  viewer plays the cloth; the mesh's default weights show frame 0;
 - bones, for a garment given GlbPart.bones (crowdbake.export.cloth_bones): a skinned mesh (float
-  positions, JOINTS_0, WEIGHTS_0) whose joints `cycle` keys at the same times;
+  positions, JOINTS_0, WEIGHTS_0) whose joints the same animations key at the same times;
 - vertex-animation textures, named in the mesh's `extras.crowdbake.vat` (docs/export.md), for
   engines that would rather not hold F morph targets.
 
@@ -32,7 +33,9 @@ import numpy as np
 import pygltflib as g
 
 from crowdbake import __version__
+from crowdbake.export.animations import AnimationPlan, animation_plans, gltf_extras
 from crowdbake.export.cloth_bones import ClothBones
+from crowdbake.formats.ranges import Clip, Ranges
 
 VARIANTS_EXTENSION = "KHR_materials_variants"
 QUANTIZATION_EXTENSION = "KHR_mesh_quantization"
@@ -229,15 +232,21 @@ def _unit(vectors: np.ndarray) -> np.ndarray:
 
 
 def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list[GlbVariant], frames_per_second: float,
-              root_extras: dict[str, Any]) -> bytes:
-    """The .glb bytes of one LOD: a root node holding one node per part, the `cycle` animation, and a glTF
-    material per (bundle material, sidedness, variant), the variants mapped on every primitive."""
+              root_extras: dict[str, Any], animations: list[AnimationPlan] | None = None) -> bytes:
+    """The .glb bytes of one LOD: a root node holding one node per part, one glTF animation per plan
+    (crowdbake.export.animations; None: one looping `cycle` over every frame), and a glTF material per
+    (bundle material, sidedness, variant), the variants mapped on every primitive."""
     if not parts:
         raise ValueError("a character LOD needs at least one part")
     frame_counts = {part.positions.shape[0] for part in parts}
     if len(frame_counts) != 1:
         raise ValueError(f"all parts must have the same frame count, got {sorted(frame_counts)}")
     (frame_count,) = frame_counts
+    if animations is None:
+        animations = [whole_loop(frame_count)]
+    for plan in animations:
+        if plan.keys.size and (plan.keys.min() < 0 or plan.keys.max() >= frame_count):
+            raise ValueError(f"animation {plan.name!r} keys pose frames outside 0..{frame_count - 1}")
     gltf = g.GLTF2(asset=g.Asset(version="2.0", generator=f"crowdbake {__version__}"))
     blob = _Blob(gltf)
 
@@ -276,7 +285,7 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
     gltf.nodes.append(root)
     scene_nodes = [0]
     targets_per_mesh = frame_count
-    morph_nodes, bone_tracks = [], []  # nodes whose weights the cycle keys; (joint node, rotations, translations)
+    morph_nodes, bone_tracks = [], []  # nodes whose weights the animations key; (joint node, rotations, translations)
     for part in parts:
         indices = np.asarray(part.indices).reshape(-1)
         index_type = np.uint16 if part.positions.shape[1] <= 65535 else np.uint32
@@ -332,24 +341,9 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
         scene_nodes.append(len(gltf.nodes) - 1)
 
     if morph_nodes or bone_tracks:
-        # Keys at every frame and once more at the cycle's end (frame F is frame 0 again).
-        times = (np.arange(frame_count + 1) / frames_per_second).astype(np.float32)
-        time_accessor = blob.accessor(times, g.SCALAR, target=None, bounds=True)
-        animation = g.Animation(name="cycle", samplers=[], channels=[])
-        if morph_nodes:
-            # Frame k at t = k / fps weighs target k alone; t = F / fps is frame 0 again.
-            weights = np.zeros((frame_count + 1, targets_per_mesh), dtype=np.float32)
-            weights[np.arange(frame_count + 1), np.arange(frame_count + 1) % frame_count] = 1.0
-            animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(weights.reshape(-1), g.SCALAR, target=None),
-                                                         interpolation="LINEAR"))
-            for node in morph_nodes:
-                animation.channels.append(g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=node, path="weights")))
-        for node, rotations, translations in bone_tracks:
-            for path, values, kind in (("rotation", rotations, g.VEC4), ("translation", translations, g.VEC3)):
-                looped = np.concatenate([values, values[:1]]).astype(np.float32)  # frame F is frame 0 again
-                animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(looped, kind, target=None), interpolation="LINEAR"))
-                animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1, target=g.AnimationChannelTarget(node=node, path=path)))
-        gltf.animations.append(animation)
+        times_of: dict[int, int] = {}  # key count -> the time accessor, shared by animations of one length
+        for plan in animations:
+            _add_animation(gltf, blob, plan, frame_count, frames_per_second, morph_nodes, bone_tracks, times_of)
 
     gltf.scenes.append(g.Scene(name="crowdbake", nodes=scene_nodes))
     gltf.scene = 0
@@ -357,3 +351,34 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
     gltf.buffers.append(g.Buffer(byteLength=len(blob.data)))
     gltf.set_binary_blob(bytes(blob.data))
     return b"".join(gltf.save_to_bytes())
+
+
+def whole_loop(frame_count: int) -> AnimationPlan:
+    """One looping clip `cycle` over pose frames 0..frame_count-1 (a v1 bundle's one animation)."""
+    return animation_plans(Ranges(frame_count, (Clip("cycle", 0, frame_count, 0, frame_count, "none", 0.0, 0.0),), ()))[0]
+
+
+def _add_animation(gltf: g.GLTF2, blob: _Blob, plan: AnimationPlan, target_count: int, frames_per_second: float, morph_nodes: list[int],
+                   bone_tracks: list[tuple[int, np.ndarray, np.ndarray]], times_of: dict[int, int]) -> None:
+    """One glTF animation playing `plan`: key j at t = j / fps shows pose frame plan.keys[j], LINEAR between.
+    Morph nodes: every morph target's weight (glTF keys them all together), target keys[j] alone at key j,
+    so each animation plays its own range of the targets every animation shares. Bones: each joint's
+    rotation and translation at those frames."""
+    if plan.key_count not in times_of:
+        times = (np.arange(plan.key_count) / frames_per_second).astype(np.float32)
+        times_of[plan.key_count] = blob.accessor(times, g.SCALAR, target=None, bounds=True)
+    time_accessor = times_of[plan.key_count]
+    animation = g.Animation(name=plan.name, samplers=[], channels=[], extras={"crowdbake": gltf_extras(plan)})
+    if morph_nodes:
+        weights = np.zeros((plan.key_count, target_count), dtype=np.float32)
+        weights[np.arange(plan.key_count), plan.keys] = 1.0
+        animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(weights.reshape(-1), g.SCALAR, target=None),
+                                                     interpolation="LINEAR"))
+        for node in morph_nodes:
+            animation.channels.append(g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=node, path="weights")))
+    for node, rotations, translations in bone_tracks:
+        for path, values, kind in (("rotation", rotations, g.VEC4), ("translation", translations, g.VEC3)):
+            keyed = np.asarray(values[plan.keys], dtype=np.float32)
+            animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(keyed, kind, target=None), interpolation="LINEAR"))
+            animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1, target=g.AnimationChannelTarget(node=node, path=path)))
+    gltf.animations.append(animation)

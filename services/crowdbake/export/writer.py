@@ -1,7 +1,7 @@
 """`export_bundle`: a verified bundle folder -> engine-ready files (layout in docs/export.md).
 
     OUT/export.json                     the sidecar: every file below and how to read it
-    OUT/character_lod<k>.glb            glTF 2.0 per LOD: parts, materials, morph-target cycle, VAT extras
+    OUT/character_lod<k>.glb            glTF 2.0 per LOD: parts, materials, an animation per clip and transition, VAT extras
     OUT/looks/<material>_look_<k>.<png|jpg>             the glTF variants' base colours, shared by the LODs
     OUT/vat/<part>_lod<k>.<position|normal>.<png|ktx2>   vertex-animation textures (16-bit)
     OUT/textures/<material>_diffuse.ktx2, outfits.ktx2   diffuse variations (array), outfit colours
@@ -31,6 +31,7 @@ from PIL import Image
 from crowdbake import __version__
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.export import ktx2
+from crowdbake.export.animations import AnimationPlan, animation_plans, sidecar_animations
 from crowdbake.bake.shading import apply_outfit
 from crowdbake.export.cloth_bones import DEFAULT_ITERATIONS, ClothBones, choose_bone_count, decompose_cloth
 from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb, node_transform
@@ -41,9 +42,9 @@ from crowdbake.formats.bundle import Bundle, verify_bundle
 logger = logging.getLogger(__name__)
 
 EXPORT_FORMAT = "crowdbake-export"
-# 3: KTX2 levels zstd-supercompressed, 8-bit VAT normals, VAT PNGs only when asked, quantized glTF meshes,
+# 4: one glTF animation per clip and per transition, listed in `animations`; 3: KTX2 levels zstd-supercompressed, 8-bit VAT normals, VAT PNGs only when asked, quantized glTF meshes,
 # the looks in looks/; 2: colour and normal maps keep the bundle's BC1/BC2 blocks; 1 decoded them to RGBA8.
-EXPORT_FORMAT_VERSION = 3
+EXPORT_FORMAT_VERSION = 4
 # crowdview's defaults (runtime/src/main.cpp, crowd.h LodRule), so the sidecar's switch distance is
 # the one crowdview uses for a window of this height.
 REFERENCE_VIEWPORT_HEIGHT_PX = 720
@@ -76,10 +77,10 @@ class ClothBonesRequest:
         return bones
 
 
-def bones_entry(bones: ClothBones, request: ClothBonesRequest, vertex_count: int, frame_count: int) -> dict[str, Any]:
-    """export.json's `bones` block of a garment: the count, its error against the loop and its bytes in the
-    .glb (JOINTS_0 and WEIGHTS_0, and per bone and key a rotation and a translation)."""
-    skin_bytes = vertex_count * (8 + 16) + bones.bone_count * (frame_count + 1) * (16 + 12)
+def bones_entry(bones: ClothBones, request: ClothBonesRequest, vertex_count: int, key_count: int) -> dict[str, Any]:
+    """export.json's `bones` block of a garment: the count, its error against the pose frames and its bytes in
+    the .glb (JOINTS_0 and WEIGHTS_0, and per bone and key of every animation a rotation and a translation)."""
+    skin_bytes = vertex_count * (8 + 16) + bones.bone_count * key_count * (16 + 12)
     return {"count": bones.bone_count, "asked": request.count if request.count is not None else "auto",
             **({"budget_mm": request.budget_mm} if request.count is None else {}), "iterations": bones.iterations,
             "rms_mm": round(bones.rms_m * 1000, 3), "max_mm": round(bones.max_m * 1000, 3), "bytes": skin_bytes}
@@ -195,7 +196,8 @@ def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
         "tile texels [crop.x, crop.x+crop.width) x [crop.y, crop.y+crop.height); tile texels outside it are not covered; "
         "camera for azimuth t, elevation p sits in direction (sin t cos p, sin p, cos t cos p) from bounds.center",
         "frame_indices": impostor["frame_indices"],
-        "layer_of_frame": "layer k shows cycle frame frame_indices[k]; draw the nearest one around the cycle",
+        "layer_of_frame": "layer k shows pose frame frame_indices[k]; draw the nearest one in the animation's range "
+        "(animations[].vat): round a clip, clamped in a transition (shared_formats/SPEC.md, Playback)",
         "bounds": impostor["bounds"],
         "quad_size_m": 2 * radius,
         "maps": maps,
@@ -241,7 +243,7 @@ def look_image(rgb: np.ndarray) -> tuple[str, bytes]:
 
 
 def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], variants: list[GlbVariant], outfit_rows: np.ndarray,
-                 vat_png: bool, cloth_bones: ClothBonesRequest | None) -> list[dict]:
+                 vat_png: bool, cloth_bones: ClothBonesRequest | None, plans: list[AnimationPlan]) -> list[dict]:
     manifest = bundle.manifest
     fps = manifest["frames_per_second"]
     # The looks are files of their own, shared by every LOD's .glb (embedded, each LOD held its own copy).
@@ -280,7 +282,7 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
                 "vertex_count": layout.vertex_count,
                 "frames_per_second": fps,
                 "texcoord": 1,
-                "texel_of_vertex": "(i % width, frame * rows_per_frame + i // width); TEXCOORD_1 is frame 0's texel centre",
+                "texel_of_vertex": "(i % width, frame * rows_per_frame + i // width) for pose frame `frame` (export.json animations[].vat: the frames of each clip and transition); TEXCOORD_1 is frame 0's texel centre",
             }
             extras = {"part": mesh["part"], "kind": mesh["kind"], "lod": lod, "material": mesh["material"], "vat": vat}
             bones = cloth_bones.decompose(cache.positions, cache.indices) if cloth_bones is not None and mesh["kind"] == "garment" else None
@@ -294,11 +296,11 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
                 entry["node"] = {"translation": translation.tolist(), "scale": scale,
                                  "meaning": "the part's glTF node: position in metres = translation + scale * mesh position"}
             else:
-                entry["bones"] = bones_entry(bones, cloth_bones, cache.vertex_count, cache.frame_count)
+                entry["bones"] = bones_entry(bones, cloth_bones, cache.vertex_count, sum(plan.key_count for plan in plans))
                 logger.info("%s lod %d: %d bones, %.2f mm RMS, %.1f mm max", mesh["part"], lod, bones.bone_count, bones.rms_m * 1000, bones.max_m * 1000)
             part_entries.append(entry)
         root_extras = {"crowdbake": {"export": "export.json", "lod": lod, "frames_per_second": fps, "frame_count": bundle.ranges.pose_frames}}
-        path = out.write(f"character_lod{lod}.glb", build_glb(parts, glb_materials, variants, fps, root_extras))
+        path = out.write(f"character_lod{lod}.glb", build_glb(parts, glb_materials, variants, fps, root_extras, plans))
         lods.append({"lod": lod, "glb": path, "parts": part_entries})
     return lods
 
@@ -340,7 +342,8 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
         impostor = _export_impostor(bundle, out, ktx2_mode, prepared)
         outfit_rows = rgba8_layers(bundle.textures[manifest["outfits"]["file"]])[0]
         variants = look_variants([m["variations"] for m in manifest["materials"]], manifest["outfits"]["count"])
-        lods = _export_lods(bundle, out, diffuse_arrays, variants, outfit_rows, vat_png, cloth_bones)
+        plans = animation_plans(bundle.ranges)
+        lods = _export_lods(bundle, out, diffuse_arrays, variants, outfit_rows, vat_png, cloth_bones, plans)
         shaders = _copy_shaders(out)
         sidecar = {
             "format": EXPORT_FORMAT,
@@ -350,6 +353,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
             "bundle": {"name": manifest["name"], "version": manifest["version"]},
             "frames_per_second": manifest["frames_per_second"],
             "frame_count": bundle.ranges.pose_frames,
+            "animations": sidecar_animations(plans, manifest["frames_per_second"]),
             "lods": lods,
             "materials": materials,
             "outfits": outfits,
