@@ -40,7 +40,9 @@ HLSL = {
 def compile_shader(tmp_path: Path, name: str, stage: str, source: str, *flags: str) -> subprocess.CompletedProcess:
     path = tmp_path / f"{name}.{stage}"
     path.write_text(source)
-    return subprocess.run([GLSLANG, *flags, str(path)], capture_output=True, text=True, timeout=60)
+    # -V writes SPIR-V: into tmp_path, not the working folder (its default).
+    output = ["-o", str(tmp_path / f"{name}.spv")] if "-V" in flags else []
+    return subprocess.run([GLSLANG, *flags, *output, str(path)], capture_output=True, text=True, timeout=60)
 
 
 @pytest.fixture(autouse=True)
