@@ -14,6 +14,7 @@ from crowdbake.cli.common import CommandError, progress
 from crowdbake.sample.clips import DEFAULT_BLEND_FRAMES, DEFAULT_SEQUENCE, clip_periods, parse_sequence, sequence_layout
 from crowdbake.sample.garments import GARMENT_NAMES
 from crowdbake.sample.generate import DEFAULT_CYCLES, DEFAULT_TEXTURE_SIZE, SETTLED_RMS, generate_sample
+from crowdbake.sample.humanoid import BUILD_NAMES
 from crowdbake.sample.walk import DEFAULT_CYCLE_FRAMES, MAX_CYCLE_FRAMES, MIN_CYCLE_FRAMES
 
 
@@ -30,6 +31,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("out_dir", metavar="OUT_DIR", type=Path, help="folder to write into (created if missing)")
     parser.add_argument("--garment", choices=GARMENT_NAMES, default="loose", help="which skirt to simulate (default: loose)")
+    parser.add_argument(
+        "--build", choices=BUILD_NAMES, default="standard",
+        help="the body's proportions: standard, heavy (shorter, wider shoulders and hips, more girth) or slim (default: standard)",
+    )
     parser.add_argument("--cycles", type=int, default=DEFAULT_CYCLES, help=f"walk cycles to simulate (default: {DEFAULT_CYCLES})")
     parser.add_argument("--seed", type=int, default=0, help="seed for textures, outfits and the cloth's starting jitter (default: 0)")
     parser.add_argument(
@@ -100,13 +105,15 @@ def run(args: argparse.Namespace) -> int:
                 blend_frames=args.blend_frames,
                 cloth_rows=args.cloth_rows,
                 cloth_columns=args.cloth_columns,
+                build=args.build,
             )
     except OSError as error:
         raise CommandError(f"cannot write the sample into {args.out_dir}: {error}") from None
     elapsed = time.perf_counter() - started
 
     played = f"{args.cycles} cycles of {args.cycle_frames} frames" if sequence is None else f"clips {args.clips}, {frames} frames"
-    print(f"wrote the sample ({args.garment} skirt, {played}, seed {args.seed}) to {args.out_dir} in {elapsed:.1f} s:")
+    body = "" if args.build == "standard" else f"{args.build} build, "
+    print(f"wrote the sample ({body}{args.garment} skirt, {played}, seed {args.seed}) to {args.out_dir} in {elapsed:.1f} s:")
     for name, path in result.files.items():
         print(f"  {name:<12} {path}")
     if sequence is not None:

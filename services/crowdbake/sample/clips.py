@@ -23,6 +23,7 @@ import numpy as np
 
 from crowdbake.bake.skinning import local_transforms, world_from_local
 from crowdbake.formats.gltf import AnimationChannel, Character
+from crowdbake.sample.humanoid import STANDARD, Build
 from crowdbake.sample.idle import idle_channels, idle_cycle_frames
 from crowdbake.sample.walk import FPS, run_channels, run_cycle_frames, walk_channels
 
@@ -55,11 +56,11 @@ def clip_periods(walk_cycle_frames: int) -> dict[str, int]:
     return {"Idle": idle_cycle_frames(walk_cycle_frames), "Walking": walk_cycle_frames, "Running": run_cycle_frames(walk_cycle_frames)}
 
 
-def clip_animations(walk_cycle_frames: int, fps: float = FPS) -> dict[str, list[AnimationChannel]]:
-    """Each clip's keyframe channels, in CLIP_NAMES order."""
+def clip_animations(walk_cycle_frames: int, fps: float = FPS, build: Build = STANDARD) -> dict[str, list[AnimationChannel]]:
+    """Each clip's keyframe channels for a build, in CLIP_NAMES order."""
     periods = clip_periods(walk_cycle_frames)
     makers = {"Idle": idle_channels, "Walking": walk_channels, "Running": run_channels}
-    return {name: makers[name](periods[name], fps)[0] for name in CLIP_NAMES}
+    return {name: makers[name](periods[name], fps, build)[0] for name in CLIP_NAMES}
 
 
 def parse_sequence(text: str) -> tuple[tuple[str, int], ...]:

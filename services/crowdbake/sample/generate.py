@@ -20,7 +20,7 @@ import io
 import json
 import logging
 import os
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -41,14 +41,17 @@ from crowdbake.sample.cloth_sim import (
     simulate,
     surface_distance,
 )
-from crowdbake.sample.garments import GARMENT_SPECS, Garment, GarmentSpec, build_garment
+from crowdbake.sample.garments import GARMENT_SPECS, Garment, GarmentSpec, build_garment, fitted_spec
 from crowdbake.sample.colliders import Capsules, capsule_track, fit_capsules
 from crowdbake.sample.humanoid import (
+    BUILDS,
     JOINT_INDEX,
-    JOINT_REST_POSITIONS,
+    STANDARD,
     BodyMesh,
+    Build,
     build_body,
     build_character,
+    joint_rest_positions,
     torso_skin_weights,
 )
 from crowdbake.sample.textures import OUTFIT_COUNT, VARIATION_COUNT, diffuse_textures, outfit_map
@@ -170,10 +173,10 @@ def settled_cycle(settling: np.ndarray, threshold: float = SETTLED_RMS) -> int |
     return int(below[0]) + 1 if len(below) else None
 
 
-def _hips_frame(world: np.ndarray) -> np.ndarray:
+def _hips_frame(world: np.ndarray, build: Build = STANDARD) -> np.ndarray:
     """(K, 4, 4) transforms taking the hips' current frame back to its rest frame."""
     hips_rest = np.eye(4)
-    hips_rest[:3, 3] = JOINT_REST_POSITIONS[JOINT_INDEX["hips"]]
+    hips_rest[:3, 3] = joint_rest_positions(build)[JOINT_INDEX["hips"]]
     return hips_rest @ np.linalg.inv(world[:, JOINT_INDEX["hips"]])
 
 
@@ -185,16 +188,17 @@ def simulate_sample(
     on_frame: Callable[[int], None] | None = None,
     cloth_rows: int | None = None,
     cloth_columns: int | None = None,
+    build: Build = STANDARD,
 ) -> SampleSimulation:
     """Build the humanoid and its walk, cut the garment, and simulate `cycles` walk cycles from rest.
 
     cloth_rows, cloth_columns: the garment's rings and vertices a ring (None: the garment's own; fewer
-    make a coarser, faster cloth for tests)."""
+    make a coarser, faster cloth for tests); build: the body's proportions (crowdbake.sample.humanoid.BUILDS)."""
     if cycles < 1:
         raise ValueError(f"cycles must be at least 1, got {cycles}")
-    spec = garment_spec(garment, cloth_rows, cloth_columns)
-    body = build_body()
-    channels, duration = walk_channels(cycle_frames, FPS)
+    spec = garment_spec(garment, cloth_rows, cloth_columns, build)
+    body = build_body(build)
+    channels, duration = walk_channels(cycle_frames, FPS, build)
     character = build_character(body, channels, duration, texture=None)
     # The body at every substep of one cycle; the simulation reuses it cycle after cycle.
     substeps = spec.params.substeps
@@ -228,15 +232,16 @@ def simulate_clips_sample(
     on_frame: Callable[[int], None] | None = None,
     cloth_rows: int | None = None,
     cloth_columns: int | None = None,
+    build: Build = STANDARD,
 ) -> ClipsSimulation:
     """Simulate the garment once through a sequence of clips ((clip, repeats) pairs, see
     crowdbake.sample.clips), the body blending from clip to clip over blend_frames. The cut makes room
     for every clip's range of motion; cycle_frames is the walk's period (the idle's and the run's follow)."""
-    spec = garment_spec(garment, cloth_rows, cloth_columns)
+    spec = garment_spec(garment, cloth_rows, cloth_columns, build)
     periods = clip_periods(cycle_frames)
     strips, total = sequence_layout(sequence, periods, blend_frames)
-    animations = clip_animations(cycle_frames, FPS)
-    body = build_body()
+    animations = clip_animations(cycle_frames, FPS, build)
+    body = build_body(build)
     character = build_character(body, animations["Walking"], cycle_frames / FPS, texture=None)
     substeps = spec.params.substeps
     world = sequence_world_matrices(character, animations, strips, blend_frames, FPS, substeps, total * substeps)
@@ -257,11 +262,11 @@ def simulate_clips_sample(
     return ClipsSimulation(simulation, animations, timeline)
 
 
-def garment_spec(garment: str, rows: int | None = None, columns: int | None = None) -> GarmentSpec:
-    """The named garment's cut, with its rings (rows) and vertices a ring (columns) replaced where given."""
+def garment_spec(garment: str, rows: int | None = None, columns: int | None = None, build: Build = STANDARD) -> GarmentSpec:
+    """The named garment's cut for a build, with its rings (rows) and vertices a ring (columns) replaced where given."""
     if garment not in GARMENT_SPECS:
         raise ValueError(f"unknown garment {garment!r}; choose one of {sorted(GARMENT_SPECS)}")
-    spec = GARMENT_SPECS[garment]
+    spec = fitted_spec(GARMENT_SPECS[garment], build)
     if rows is not None or columns is not None:
         spec = replace(spec, rows=spec.rows if rows is None else rows, columns=spec.columns if columns is None else columns)
     return spec
@@ -290,22 +295,22 @@ def dress(spec: GarmentSpec, body: BodyMesh, character: Character, world: np.nda
     track = capsule_track(capsules, world)
 
     # Cut the garment around the limbs' range of motion, seen from the pelvis.
-    to_hips = _hips_frame(shaping_world)
+    to_hips = _hips_frame(shaping_world, body.build)
     frames = capsule_track(capsules, shaping_world)
     local = np.einsum("kij,kcpj->kcpi", to_hips[:, :3, :3], frames) + to_hips[:, None, None, :3, 3]
     # Only the trunk and legs shape the cut: a skirt does not make room for swinging hands.
     shaping = np.array([name.startswith(("pelvis", "waist", "thigh", "shin")) for name in capsules.names])
-    cut = build_garment(spec, local[:, shaping], capsules.radii[shaping], params.thickness)
+    cut = build_garment(spec, local[:, shaping], capsules.radii[shaping], params.thickness, body.build)
 
     # Waistband targets: skinned with the torso's weights at the waistband height.
     model = build_cloth_model(cut.rest_positions, cut.faces, cut.pinned, params.tether_detour)
     pin_rest = cut.rest_positions[cut.pinned]
-    pin_joints, pin_weights = torso_skin_weights(pin_rest[:, 1])
+    pin_joints, pin_weights = torso_skin_weights(pin_rest[:, 1], body.build)
     skinning = (world @ character.inverse_bind_matrices.astype(np.float64)).astype(np.float32)
     pin_track, _ = skin(pin_rest, np.zeros_like(pin_rest), pin_joints, pin_weights, skinning)
 
     # Start from rest: the cut garment carried rigidly by the hips into the frame-0 pose.
-    start = np.linalg.inv(_hips_frame(world[:1])[0])
+    start = np.linalg.inv(_hips_frame(world[:1], body.build)[0])
     initial = cut.rest_positions @ start[:3, :3].T + start[:3, 3]
     rng = np.random.default_rng(seed)
     initial = initial + rng.normal(0.0, INITIAL_JITTER, size=initial.shape)
@@ -347,19 +352,23 @@ def generate_sample(
     blend_frames: int = DEFAULT_BLEND_FRAMES,
     cloth_rows: int | None = None,
     cloth_columns: int | None = None,
+    build: str = "standard",
 ) -> SampleResult:
     """Simulate and write the whole sample into out_dir (created if needed); see the module docstring.
 
     clips: a sequence of (clip, repeats) (crowdbake.sample.clips) to simulate instead of `cycles` walk
     cycles: character.glb then holds the animations Idle, Walking and Running, and timeline.json says which
-    plays at each cache frame."""
+    plays at each cache frame. build: a name of crowdbake.sample.humanoid.BUILDS."""
+    if build not in BUILDS:
+        raise ValueError(f"unknown build {build!r}; choose one of {', '.join(BUILDS)}")
+    body_build = BUILDS[build]
     out = Path(out_dir)
     (out / "textures").mkdir(parents=True, exist_ok=True)
     played = None
     if clips is None:
-        simulation = simulate_sample(garment, cycles, seed, cycle_frames, on_frame, cloth_rows, cloth_columns)
+        simulation = simulate_sample(garment, cycles, seed, cycle_frames, on_frame, cloth_rows, cloth_columns, body_build)
     else:
-        played = simulate_clips_sample(garment, clips, seed, cycle_frames, blend_frames, on_frame, cloth_rows, cloth_columns)
+        played = simulate_clips_sample(garment, clips, seed, cycle_frames, blend_frames, on_frame, cloth_rows, cloth_columns, body_build)
         simulation = played.simulation
     diffuse = diffuse_textures(texture_size, seed, VARIATION_COUNT)
     outfits = outfit_map(seed, OUTFIT_COUNT)
@@ -436,6 +445,7 @@ def generate_sample(
             "frame_count": simulation.frame_count,
             "animation_duration_s": cycle_frames / FPS,
             **({} if played is None else {"clips": _clips_entry(played)}),
+            **({} if body_build == STANDARD else {"build": asdict(body_build)}),
             "units": "metres, Y up, character faces +Z",
             "uv_convention": "glTF: (0, 0) is the top-left texel; cloth.obj stores v flipped as OBJ does",
             "texture_size": texture_size,

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from crowdbake.formats.gltf import AnimationChannel
-from crowdbake.sample.humanoid import ANKLE_HEIGHT, JOINT_INDEX, JOINT_REST_POSITIONS, SHIN_LENGTH, THIGH_LENGTH
+from crowdbake.sample.humanoid import ANKLE_HEIGHT, JOINT_INDEX, SHIN_LENGTH, STANDARD, THIGH_LENGTH, Build, joint_rest_positions
 from crowdbake.sample.walk import (
     FPS,
     HIP_HEIGHT_SMOOTHING,
@@ -45,8 +45,8 @@ def idle_cycle_frames(walk_cycle_frames: int) -> int:
     return int(min(MAX_CYCLE_FRAMES, max(MIN_CYCLE_FRAMES, round(walk_cycle_frames * IDLE_CADENCE))))
 
 
-def idle_channels(cycle_frames: int = idle_cycle_frames(40), fps: float = FPS) -> tuple[list[AnimationChannel], float]:
-    """Keyframe channels of one idle cycle in place and its duration (cycle_frames / fps seconds)."""
+def idle_channels(cycle_frames: int = idle_cycle_frames(40), fps: float = FPS, build: Build = STANDARD) -> tuple[list[AnimationChannel], float]:
+    """Keyframe channels of one idle cycle in place for a build's legs and its duration (cycle_frames / fps seconds)."""
     if not MIN_CYCLE_FRAMES <= cycle_frames <= MAX_CYCLE_FRAMES:
         raise ValueError(f"cycle_frames {cycle_frames} must lie in {MIN_CYCLE_FRAMES}..{MAX_CYCLE_FRAMES}")
     keys = np.arange(cycle_frames + 1)
@@ -59,12 +59,14 @@ def idle_channels(cycle_frames: int = idle_cycle_frames(40), fps: float = FPS) -
     hips_flexion = {side: 0.5 * knee for side, knee in knees.items()}
     roll = PELVIS_DROP * shift  # +Z lifts the left side: the right (relaxed) side drops
     # Tilt the legs under the moved hips so the ankles stay where they stood: sin(tilt) = -sway / leg.
-    tilt = -np.arcsin(sway / (THIGH_LENGTH + SHIN_LENGTH))
+    tilt = -np.arcsin(sway / ((THIGH_LENGTH + SHIN_LENGTH) * build.height))
 
-    stance = smooth_max(leg_height(hips_flexion["l"], knees["l"]), leg_height(hips_flexion["r"], knees["r"]), HIP_HEIGHT_SMOOTHING)
-    hips_rest = JOINT_REST_POSITIONS[JOINT_INDEX["hips"]]
-    thigh_drop = hips_rest[1] - JOINT_REST_POSITIONS[JOINT_INDEX["thigh_l"]][1]
-    hips_y = ANKLE_HEIGHT + stance * np.cos(tilt) + thigh_drop
+    stance = smooth_max(leg_height(hips_flexion["l"], knees["l"], build), leg_height(hips_flexion["r"], knees["r"], build),
+                        HIP_HEIGHT_SMOOTHING)
+    rest = joint_rest_positions(build)
+    hips_rest = rest[JOINT_INDEX["hips"]]
+    thigh_drop = hips_rest[1] - rest[JOINT_INDEX["thigh_l"]][1]
+    hips_y = ANKLE_HEIGHT * build.height + stance * np.cos(tilt) + thigh_drop
     hips_translation = np.stack([sway, hips_y, np.full_like(hips_y, hips_rest[2])], axis=1)
 
     breath = (1.0 - np.cos(phase)) / 2.0  # 0 at rest, 1 at full breath, smooth both ways

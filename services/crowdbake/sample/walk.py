@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from crowdbake.formats.gltf import AnimationChannel
-from crowdbake.sample.humanoid import ANKLE_HEIGHT, JOINT_INDEX, JOINT_REST_POSITIONS, SHIN_LENGTH, THIGH_LENGTH
+from crowdbake.sample.humanoid import ANKLE_HEIGHT, JOINT_INDEX, SHIN_LENGTH, STANDARD, THIGH_LENGTH, Build, joint_rest_positions
 
 FPS = 24.0
 DEFAULT_CYCLE_FRAMES = 40
@@ -127,9 +127,10 @@ def gait_angles(phase: np.ndarray, gait: Gait = WALK) -> dict[str, np.ndarray]:
     }
 
 
-def leg_height(hip: np.ndarray, knee: np.ndarray) -> np.ndarray:
+def leg_height(hip: np.ndarray, knee: np.ndarray, build: Build = STANDARD) -> np.ndarray:
     """Vertical hip-to-ankle extent of a leg with thigh angle `hip` and knee bend `knee` (radians)."""
-    return THIGH_LENGTH * np.cos(hip) + SHIN_LENGTH * np.cos(hip - knee)
+    thigh, shin = THIGH_LENGTH * build.height, SHIN_LENGTH * build.height
+    return thigh * np.cos(hip) + shin * np.cos(hip - knee)
 
 
 def smooth_max(a: np.ndarray, b: np.ndarray, width: float) -> np.ndarray:
@@ -138,18 +139,19 @@ def smooth_max(a: np.ndarray, b: np.ndarray, width: float) -> np.ndarray:
     return 0.5 * (np.asarray(a) + np.asarray(b)) + np.sqrt(half_difference**2 + width**2)
 
 
-def walk_channels(cycle_frames: int = DEFAULT_CYCLE_FRAMES, fps: float = FPS) -> tuple[list[AnimationChannel], float]:
+def walk_channels(cycle_frames: int = DEFAULT_CYCLE_FRAMES, fps: float = FPS, build: Build = STANDARD) -> tuple[list[AnimationChannel], float]:
     """Keyframe channels of one walk-in-place cycle and its duration (cycle_frames / fps seconds)."""
-    return gait_channels(WALK, cycle_frames, fps)
+    return gait_channels(WALK, cycle_frames, fps, build)
 
 
-def run_channels(cycle_frames: int = run_cycle_frames(DEFAULT_CYCLE_FRAMES), fps: float = FPS) -> tuple[list[AnimationChannel], float]:
+def run_channels(cycle_frames: int = run_cycle_frames(DEFAULT_CYCLE_FRAMES), fps: float = FPS,
+                 build: Build = STANDARD) -> tuple[list[AnimationChannel], float]:
     """Keyframe channels of one run-in-place cycle and its duration (cycle_frames / fps seconds)."""
-    return gait_channels(RUN, cycle_frames, fps)
+    return gait_channels(RUN, cycle_frames, fps, build)
 
 
-def gait_channels(gait: Gait, cycle_frames: int, fps: float = FPS) -> tuple[list[AnimationChannel], float]:
-    """Keyframe channels of one cycle of `gait` in place and its duration (cycle_frames / fps seconds)."""
+def gait_channels(gait: Gait, cycle_frames: int, fps: float = FPS, build: Build = STANDARD) -> tuple[list[AnimationChannel], float]:
+    """Keyframe channels of one cycle of `gait` in place for a build's legs, and its duration (cycle_frames / fps seconds)."""
     if not MIN_CYCLE_FRAMES <= cycle_frames <= MAX_CYCLE_FRAMES:
         raise ValueError(f"cycle_frames {cycle_frames} must lie in {MIN_CYCLE_FRAMES}..{MAX_CYCLE_FRAMES}")
     keys = np.arange(cycle_frames + 1)
@@ -159,11 +161,12 @@ def gait_channels(gait: Gait, cycle_frames: int, fps: float = FPS) -> tuple[list
 
     # Hips: low enough that the longer (stance) leg's ankle sits at ANKLE_HEIGHT.
     stance = smooth_max(
-        leg_height(angles["hip_l"], angles["knee_l"]), leg_height(angles["hip_r"], angles["knee_r"]), HIP_HEIGHT_SMOOTHING
+        leg_height(angles["hip_l"], angles["knee_l"], build), leg_height(angles["hip_r"], angles["knee_r"], build), HIP_HEIGHT_SMOOTHING
     )
-    hips_rest = JOINT_REST_POSITIONS[JOINT_INDEX["hips"]]
-    thigh_drop = hips_rest[1] - JOINT_REST_POSITIONS[JOINT_INDEX["thigh_l"]][1]
-    hips_y = ANKLE_HEIGHT + stance + thigh_drop
+    rest = joint_rest_positions(build)
+    hips_rest = rest[JOINT_INDEX["hips"]]
+    thigh_drop = hips_rest[1] - rest[JOINT_INDEX["thigh_l"]][1]
+    hips_y = ANKLE_HEIGHT * build.height + stance + thigh_drop
     # Weight over the stance leg: left stance when the left thigh moves back (cos(phase) < 0).
     hips_x = -gait.pelvis_sway * np.cos(phase)
     hips_translation = np.stack([hips_x, hips_y, np.full_like(hips_y, hips_rest[2])], axis=1)
