@@ -101,6 +101,17 @@ def _waist_belt(build: Build = STANDARD) -> list[_CapsuleSpec]:
     return specs
 
 
+def _pelvis_spread(build: Build) -> float:
+    """(a^2 - b^2) / (2 a) of the hips' section (a, b) at their widest (y = 0.96 in the standard build)."""
+    a, b, _ = torso_section(0.96 * build.height, build)
+    return (a * a - b * b) / (2.0 * a)
+
+
+def _pelvis_reach(build: Build) -> float:
+    """a - d: how far a pelvis capsule reaches out to the hips' side (a) from its axis (d = _pelvis_spread)."""
+    return torso_section(0.96 * build.height, build)[0] - _pelvis_spread(build)
+
+
 def _capsule_specs(build: Build = STANDARD) -> list[_CapsuleSpec]:
     """Every collision capsule of the body."""
     specs = []
@@ -108,9 +119,12 @@ def _capsule_specs(build: Build = STANDARD) -> list[_CapsuleSpec]:
     at = np.array([1.0, h, 1.0])  # rest heights below are the standard build's
     # Pairs of vertical capsules a distance 2d apart fit an elliptical cross-section (a, b) best when
     # d = (a^2 - b^2) / (2 a): hips (0.175, 0.12) -> d = 0.046. They end low enough (their caps reach
-    # ~1.08) that at WAIST_HEIGHT they stay inside the belt.
+    # ~1.08) that at WAIST_HEIGHT they stay inside the belt. Another build's hips (a, b) move them apart by d's
+    # ratio, and down by as much as their radius (a - d) grows, so their caps stay as far under the waist.
+    spread = _pelvis_spread(build) / _pelvis_spread(STANDARD)
+    drop = _pelvis_reach(build) - _pelvis_reach(STANDARD) * h
     for side, sign in (("l", 1.0), ("r", -1.0)):
-        ends = np.array([[0.046 * sign * build.hip_width, 0.84, -0.008], [0.046 * sign * build.hip_width, 0.94, -0.008]]) * at
+        ends = np.array([[0.046 * sign * spread, 0.84, -0.008], [0.046 * sign * spread, 0.94, -0.008]]) * at - [0.0, drop, 0.0]
         specs.append(_CapsuleSpec(f"pelvis_{side}", "hips", ends, ("torso",), (0.76 * h, 1.02 * h)))
     specs += _waist_belt(build)
     for side, sign in (("l", 1.0), ("r", -1.0)):
