@@ -178,6 +178,14 @@ def test_a_blend_as_long_as_a_clip_is_refused():
     assert strips == [Strip("Idle", 0, 2, 32), Strip("Running", 60, 3, 11)] and total == 60 + 33 + 1
 
 
+def test_walk_cycles_and_blends_each_say_what_they_need(tmp_path, capsys):
+    assert main(["sample", str(tmp_path / "s"), "--clips", "--cycles", "3"]) == 2
+    assert "--cycles counts walk cycles; with --clips the sequence says how often" in capsys.readouterr().err
+    assert main(["sample", str(tmp_path / "s"), "--blend-frames", "3"]) == 2
+    assert "--blend-frames blends one clip into the next: it needs --clips" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+
+
 # ---------------------------------------------------------------------------------------------- builds
 
 

@@ -35,7 +35,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--build", choices=BUILD_NAMES, default="standard",
         help="the body's proportions: standard, heavy (shorter, wider shoulders and hips, more girth) or slim (default: standard)",
     )
-    parser.add_argument("--cycles", type=int, default=DEFAULT_CYCLES, help=f"walk cycles to simulate (default: {DEFAULT_CYCLES})")
+    parser.add_argument("--cycles", type=int, help=f"walk cycles to simulate (default: {DEFAULT_CYCLES})")
     parser.add_argument("--seed", type=int, default=0, help="seed for textures, outfits and the cloth's starting jitter (default: 0)")
     parser.add_argument(
         "--cycle-frames",
@@ -57,7 +57,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "Running into character.glb and timeline.json for `crowdbake bake --timeline`",
     )
     parser.add_argument(
-        "--blend-frames", type=int, default=DEFAULT_BLEND_FRAMES,
+        "--blend-frames", type=int,
         help=f"with --clips: frames over which the body blends from one clip into the next (default: {DEFAULT_BLEND_FRAMES})",
     )
     parser.add_argument("--cloth-rows", type=int, help="rings of the garment's mesh (default: the garment's own; fewer is faster)")
@@ -66,6 +66,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.clips is not None and args.cycles is not None:
+        raise CommandError("--cycles counts walk cycles; with --clips the sequence says how often each clip plays (CLIP:REPEATS)")
+    if args.clips is None and args.blend_frames is not None:
+        raise CommandError("--blend-frames blends one clip into the next: it needs --clips")
+    args.cycles = DEFAULT_CYCLES if args.cycles is None else args.cycles
+    args.blend_frames = DEFAULT_BLEND_FRAMES if args.blend_frames is None else args.blend_frames
     if args.cycles < 1:
         raise CommandError(f"--cycles must be at least 1, got {args.cycles}")
     if not MIN_CYCLE_FRAMES <= args.cycle_frames <= MAX_CYCLE_FRAMES:

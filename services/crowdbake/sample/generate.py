@@ -9,10 +9,15 @@ output contract:
     textures/outfits.png     outfit colour map: 16 region columns, one row per outfit
     settling.json            per-cycle RMS distance between frames t and t - cycle_frames
     sample.json              what was generated, region names, file list, quality figures
+    timeline.json            with clips only: which clip plays at each cache frame (robot_clips' format)
+
+With clips (simulate_clips_sample) character.glb holds the animations Idle, Walking and Running and the cache
+covers the whole sequence; settling.json then gives each timeline segment's cycle gaps.
 
 Frame f of the cache is animation time (f % cycle_frames) / 24 s. Positions are in metres, Y up,
-in the same world space as the skinned character. Everything is a deterministic function of
-(garment, cycles, seed, cycle_frames, texture_size): the same arguments give the same bytes.
+in the same world space as the skinned character. Everything is a deterministic function of the
+arguments (garment, cycles or clips, seed, cycle_frames, texture_size, build...): the same arguments give
+the same bytes.
 """
 from __future__ import annotations
 
