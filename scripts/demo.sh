@@ -5,9 +5,10 @@
 #   3. find its cloth cycle                          -> out/demo/cycle/ (report.html)
 #   4. bake it into a bundle                         -> out/demo/bundles/sample-walker/1.0.0/
 #   5. render a crowd from the bundle, headless      -> out/demo/crowd.png
-#   6. a mixed crowd (runtime/README.md "Crowds of several archetypes"): the sample in a second garment, and
-#      where ../shared/assets is present CesiumMan in the long skirt and the robot with its cape
-#                                                    -> out/demo/mixed/crowd.json, out/demo/mixed.png
+#   6. a mixed crowd (runtime/README.md "Crowds of several archetypes"): the sample in a second garment on
+#      the heavy build, the sample playing Idle, Walking and Running (one cloth simulation through all three,
+#      baked with its timeline), and where ../shared/assets is present CesiumMan in the long skirt and the
+#      robot with its cape                          -> out/demo/mixed/crowd.json, out/demo/mixed.png
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -32,12 +33,21 @@ build/runtime/crowdview --bundle "$out/bundles/sample-walker/1.0.0" --count 200 
   --camera street --headless --frames 30 --screenshot "$out/crowd.png"
 
 echo "== 5/6 more archetypes =="
-"${crowdbake[@]}" sample "$out/sample-tight" --garment tight --seed 1
+"${crowdbake[@]}" sample "$out/sample-tight" --garment tight --build heavy --seed 1
 "${crowdbake[@]}" bake "$out/sample-tight/character.glb" --cloth "$out/sample-tight/cloth.pc2" \
   --cloth-mesh "$out/sample-tight/cloth.obj" --textures "$out/sample-tight/textures" \
   --name sample-tight --version 1.0.0 --out "$out/bundles"
+# Idle -> Walking -> Running -> Walking -> Idle in one simulation (a coarser cloth and 512² textures keep it
+# short); the bundle carries every clip's loop and the transitions where the bake publishes them, else the
+# Walking loop (crowdview then plays Walking whatever the clip mix says).
+"${crowdbake[@]}" sample "$out/sample-clips" --clips --garment loose --seed 2 --cloth-rows 20 --cloth-columns 48 --texture-size 512
+"${crowdbake[@]}" bake "$out/sample-clips/character.glb" --cloth "$out/sample-clips/cloth.pc2" \
+  --cloth-mesh "$out/sample-clips/cloth.obj" --textures "$out/sample-clips/textures" \
+  --timeline "$out/sample-clips/timeline.json" --animation Walking --name sample-clips --version 1.0.0 --out "$out/bundles"
 archetypes='{"name": "sample-loose", "bundle": "../bundles/sample-walker/1.0.0", "share": 3, "play_rate": [0.9, 1.1]},
-    {"name": "sample-tight", "bundle": "../bundles/sample-tight/1.0.0", "share": 3, "play_rate": [0.9, 1.1]}'
+    {"name": "sample-tight", "bundle": "../bundles/sample-tight/1.0.0", "share": 3, "play_rate": [0.9, 1.1]},
+    {"name": "sample-clips", "bundle": "../bundles/sample-clips/1.0.0", "share": 3, "play_rate": [0.9, 1.1],
+     "clips": [{"clip": "Idle", "weight": 1}, {"clip": "Walking", "weight": 2}, {"clip": "Running", "weight": 1}]}'
 assets="${CROWDBAKE_SHARED_ASSETS:-$root/../shared/assets}"
 if [[ -f "$assets/CesiumMan.glb" && -f "$assets/long_skirt/long_skirt.pc2" && -f "$assets/robot_clips/robot.glb" ]]; then
   "${crowdbake[@]}" bake "$assets/CesiumMan.glb" --cloth "$assets/long_skirt/long_skirt.pc2" \
