@@ -17,6 +17,7 @@ from crowdbake.stages.validate import BakeInputs
 from crowdbake.formats.binary import decode_texture_array
 from crowdbake.formats.bundle import verify_bundle
 from crowdbake.formats.errors import FormatError
+from repo_paths import vector_expectation
 
 ROOT = Path(__file__).resolve().parents[1]
 CROWDVIEW = ROOT / "build" / "runtime" / "crowdview"
@@ -52,7 +53,7 @@ def python_bundle(tmp_path_factory, small_sample) -> Path:
 
 @pytest.mark.parametrize("case", sorted(p.name for p in (VECTORS / "bad").iterdir()))
 def test_both_readers_name_the_same_error_for_each_broken_vector(case):
-    expect = json.loads((VECTORS / "bad" / case / "expect.json").read_text())
+    expect = vector_expectation(VECTORS / "bad" / case)
     with pytest.raises(FormatError) as raised:
         verify_bundle(VECTORS / "bad" / case / "bundle")
     result = crowdview("--verify", str(VECTORS / "bad" / case / "bundle"))

@@ -26,20 +26,37 @@ std::vector<LoadedArchetype> load_archetypes(const CrowdFile& crowd, const Fetch
             if (log) log("archetype '" + desc.name + "': bundle refused: " + status.message);
             continue;
         }
-        // Bundles hold one clip today (SPEC.md): the mix is reserved for bundles with several.
-        if (desc.clips.size() > 1 && log)
-            log("archetype '" + desc.name + "': the bundle has one clip; the clip mix of " + std::to_string(desc.clips.size()) +
-                " clips is ignored");
         loaded.push_back(std::move(a));
     }
     return loaded;
 }
 
-ArchetypeTraits archetype_traits(const ArchetypeDesc& desc, uint64_t count, const Bundle& bundle, const CharacterModel& model) {
+std::string resolve_clip_mix(const std::vector<ClipWeight>& mix, const std::vector<ClipInfo>& clips, std::vector<float>* weights) {
+    weights->assign(clips.size(), mix.empty() ? 1.0f : 0.0f);
+    for (const ClipWeight& w : mix) {
+        const auto it = std::find_if(clips.begin(), clips.end(), [&](const ClipInfo& c) { return c.name == w.clip; });
+        if (it == clips.end()) {
+            std::string names;
+            for (const ClipInfo& c : clips) names += (names.empty() ? "" : ", ") + printable(c.name);
+            return "clip '" + printable(w.clip) + "' is not in the bundle (its clips: " + names + ")";
+        }
+        (*weights)[size_t(it - clips.begin())] += w.weight;
+    }
+    return "";
+}
+
+ArchetypeTraits archetype_traits(const ArchetypeDesc& desc, uint64_t count, const Bundle& bundle, const CharacterModel& model,
+                                 const float switch_after_s[2]) {
     ArchetypeTraits t;
     t.count = count;
     t.spacing = crowd_spacing(model.radius);
-    t.cycle_seconds = model.frames_per_second > 0 ? float(model.frame_count) / model.frames_per_second : 1.0f;
+    const float fps = model.frames_per_second > 0 ? model.frames_per_second : 24.0f;
+    // Phases of a one-clip bundle as before clips: over the whole cycle.
+    t.cycle_seconds = bundle.manifest.clips.empty() ? float(model.frame_count) / fps : float(bundle.manifest.clips[0].frames) / fps;
+    for (const ClipInfo& c : bundle.manifest.clips) t.clip_seconds.push_back(float(c.frames) / fps);
+    resolve_clip_mix(desc.clips, bundle.manifest.clips, &t.clip_plan.weights);  // checked when loaded: no unknown names
+    const float* dwell = desc.has_switch_after ? desc.switch_after_s : switch_after_s;
+    t.clip_plan.switch_after_s[0] = dwell[0], t.clip_plan.switch_after_s[1] = dwell[1];
     t.variations = 1;
     for (const MaterialInfo& m : bundle.manifest.materials) t.variations = std::max(t.variations, m.variations);
     t.outfits = std::max(bundle.manifest.outfit_count, 1u);
@@ -116,7 +133,7 @@ bool upload_archetypes(Renderer* renderer, const std::vector<LoadedArchetype>& l
         scene->desc_index.push_back(a.desc_index);
         scene->names.push_back(a.name);
         scene->traits.push_back(archetype_traits(scene->file.archetypes[a.desc_index], counts[a.desc_index], a.bundle,
-                                                 renderer->model(renderer->archetype_count() - 1)));
+                                                 renderer->model(renderer->archetype_count() - 1), scene->switch_after_s));
     }
     return true;
 }

@@ -36,8 +36,14 @@ std::vector<LoadedArchetype> load_archetypes(const CrowdFile& crowd, const Fetch
                                              std::vector<RefusedArchetype>* refused);
 
 // What the layout needs of a loaded archetype: its count, spacing from its impostor radius,
-// cycle, variations, outfits and play rate.
-ArchetypeTraits archetype_traits(const ArchetypeDesc& desc, uint64_t count, const Bundle& bundle, const CharacterModel& model);
+// clips (their lengths, the mix, the dwell range: the description's switch_after_s, else
+// `switch_after_s`), variations, outfits and play rate.
+ArchetypeTraits archetype_traits(const ArchetypeDesc& desc, uint64_t count, const Bundle& bundle, const CharacterModel& model,
+                                 const float switch_after_s[2]);
+
+// The clip mix `mix` as a weight per clip of `clips` (empty mix: all 1); "" or one line naming
+// the first clip the bundle lacks and the clips it has.
+std::string resolve_clip_mix(const std::vector<ClipWeight>& mix, const std::vector<ClipInfo>& clips, std::vector<float>* weights);
 
 // Per-frame counts of one archetype (FrameInstances sizes), accumulated over a run.
 struct ArchetypeCounts {
@@ -53,6 +59,7 @@ std::string lod_summary(const ArchetypeCounts& counts);
 // The crowd as loaded: the description, and per renderer archetype its description index and name.
 struct CrowdScene {
     CrowdFile file;
+    float switch_after_s[2] = {kDefaultSwitchAfterS[0], kDefaultSwitchAfterS[1]};  // --switch-after
     std::vector<size_t> desc_index;  // renderer archetype -> CrowdFile::archetypes
     std::vector<std::string> names;
     std::vector<ArchetypeTraits> traits;

@@ -1,4 +1,4 @@
-// Bundle reader: shared_formats/SPEC.md (format version 1), without any GL.
+// Bundle reader: shared_formats/SPEC.md (format versions 1 and 2), without any GL.
 //
 // Every function returns a Status; none throws or aborts on bad input. A failing Status
 // carries one of the spec's error codes, the bundle path of the file concerned, and a
@@ -104,7 +104,7 @@ constexpr uint32_t kTextureHeaderSize = 32;
 constexpr float kNormalLengthTolerance = 1e-3f;
 constexpr float kBoundsTolerance = 1e-4f;
 
-// One mesh part at one LOD over every frame of the cycle (CBPC).
+// One mesh part at one LOD over every pose frame of the bundle (CBPC).
 struct PoseCache {
     uint32_t vertex_count = 0;
     uint32_t index_count = 0;
@@ -167,11 +167,28 @@ struct MeshInfo {
     uint32_t lod = 0, material = 0, vertex_count = 0, triangle_count = 0;
 };
 
-struct CycleInfo {
-    uint32_t source_start_frame = 0, source_end_frame = 0, frames = 0;
+// A looping clip: pose frames [first_frame, first_frame + frames), played as a loop. The figures
+// are its loop's (SPEC.md "Cycle"). A v1 manifest's `cycle` reads as one clip named "cycle".
+struct ClipInfo {
+    std::string name;
+    uint32_t first_frame = 0, frames = 0;
+    uint32_t source_start_frame = 0, source_end_frame = 0;  // the cache frames it was cut from
     std::string closing;
     double position_jump_ratio = 0, velocity_jump_ratio = 0;
 };
+
+// A transition, played once: from loop frame leave_frame of from_clip through pose frames
+// [first_frame, first_frame + frames) to loop frame arrive_frame of to_clip (format version 2).
+struct TransitionInfo {
+    uint32_t from_clip = 0, to_clip = 0;          // indices into Manifest::clips, different
+    uint32_t leave_frame = 0, arrive_frame = 0;  // loop frames of from_clip and to_clip
+    uint32_t first_frame = 0, frames = 0;
+    uint32_t source_start_frame = 0, source_end_frame = 0;
+    double position_jump_ratio = 0, velocity_jump_ratio = 0;  // the worse of its two joins
+};
+
+// Most clips and transitions a v2 manifest may hold (SPEC.md, manifest.schema.json).
+constexpr size_t kMaxClips = 64, kMaxTransitions = 256;
 
 // The part of every impostor tile the atlas stores (SPEC.md "Impostor maps"), in tile texels: an atlas
 // cell is width x height and holds tile texels [x, x + width) x [y, y + height).
@@ -194,7 +211,10 @@ struct Manifest {
     uint32_t format_version = 0;
     std::string name, version, created, producer;
     double frames_per_second = 0;
-    CycleInfo cycle;
+    // Every CBPC holds pose_frames frames, tiled exactly by the clips, then the transitions, in order.
+    uint32_t pose_frames = 0;
+    std::vector<ClipInfo> clips;              // >= 1
+    std::vector<TransitionInfo> transitions;  // none in a v1 bundle
     std::vector<MaterialInfo> materials;
     std::string outfits_file;
     uint32_t outfit_count = 0;
@@ -203,7 +223,8 @@ struct Manifest {
     std::vector<FileEntry> files;
 };
 
-constexpr uint32_t kFormatVersion = 1;
+// The newest manifest format_version read; every older one is read too (1 as one clip).
+constexpr uint32_t kFormatVersion = 2;
 
 // Largest file size a manifest may declare: 2^53 - 1, the largest integer a double (and so every
 // JSON reader, JavaScript's included) holds exactly; manifest.schema.json has the same maximum.
@@ -211,8 +232,10 @@ constexpr uint32_t kFormatVersion = 1;
 constexpr uint64_t kMaxFileSize = (uint64_t(1) << 53) - 1;
 
 // Parse manifest.json's text and check it against manifest.schema.json (the checks are
-// written out here; there is no schema engine). Returns manifest_invalid or
-// unsupported_format_version. File paths are checked later, by load_bundle.
+// written out in manifest.cpp; there is no schema engine), with the rules across fields of a v2
+// manifest (ranges tile the pose frames, indices and loop frames in range, clip names unique).
+// Returns manifest_invalid or unsupported_format_version. A v1 manifest comes out as one clip
+// named "cycle" and no transitions. File paths are checked later, by load_bundle.
 Status parse_manifest(const std::string& text, Manifest* out);
 
 // The spec's path rule: relative, '/'-separated, [A-Za-z0-9._-] components, no '.' or '..'

@@ -43,6 +43,28 @@ Crowd make_crowd(const CrowdDesc& desc, uint32_t variation_count, uint32_t outfi
     return crowd;
 }
 
+void assign_clips(Crowd* crowd, const std::vector<float>& weights, const std::vector<float>& clip_seconds, uint64_t seed) {
+    float total = 0;
+    size_t drawable = 0;
+    for (float w : weights) total += std::max(w, 0.0f), drawable += w > 0;
+    if (total <= 0 || (drawable == 1 && weights[0] > 0)) return;  // clip 0 for everyone, as before clips
+    // Its own stream, so positions, headings and outfits stay those of the same seed without clips.
+    Rng rng(seed ^ 0xC11D5EEDC11D5EEDull);
+    for (Character& c : crowd->characters) {
+        const float pick = rng.uniform(0.0f, total);
+        uint32_t clip = 0;
+        float sum = 0;
+        for (uint32_t k = 0; k < weights.size(); ++k) {
+            if (!(weights[k] > 0)) continue;
+            clip = k;
+            sum += weights[k];
+            if (pick < sum) break;
+        }
+        c.clip = clip;
+        c.phase_s = rng.uniform(0.0f, clip < clip_seconds.size() ? std::max(clip_seconds[clip], 0.0f) : 0.0f);
+    }
+}
+
 // The impostor bounding sphere of a 1.8 m walker: about half its height plus the swing of arms and
 // cloth (the sample and CesiumMan bake to 0.9 to 1.0 m). Up to it, the human spacing of CrowdDesc.
 constexpr float kHumanRadius = 1.0f;

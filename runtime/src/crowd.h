@@ -6,12 +6,14 @@
 // faces +Z, and heading h turns it by h radians about +Y, so it faces (sin h, 0, cos h).
 #pragma once
 
+#include <cmath>
 #include <cstdint>
 #include <functional>
 #include <vector>
 
 #include <glm/glm.hpp>
 
+#include "clips.h"
 #include "view_blend.h"
 
 namespace crowdview {
@@ -22,7 +24,7 @@ namespace crowdview {
 struct Instance {
     float position[3];   // metres, the character's feet
     float heading;       // radians about +Y
-    uint32_t frame;      // meshes: cycle frame; impostors: atlas layer
+    uint32_t frame;      // meshes: pose frame; impostors: atlas layer
     uint32_t variation;  // diffuse layer before the per-material modulo
     uint32_t outfit;     // row of the outfit map
     uint32_t tile;       // impostors: azimuth + elevation * azimuth_count; meshes: unused
@@ -68,10 +70,11 @@ struct CrowdDesc {
 struct Character {
     glm::vec3 start;       // feet at time 0
     float heading;         // radians
-    float phase_s;         // offset into the animation cycle, seconds
+    float phase_s;         // offset into its first clip, seconds
     uint32_t variation;    // in [0, variation_count)
     uint32_t outfit;       // in [0, outfit_count)
-    float rate = 1;        // play rate of its clip: the cycle advances rate seconds per second
+    float rate = 1;        // play rate of its clips: they advance rate seconds per second
+    uint32_t clip = 0;     // the clip it plays at time 0 (clips.h); later ones follow the schedule
 };
 
 struct Crowd {
@@ -79,7 +82,14 @@ struct Crowd {
     Layout layout = Layout::on_the_spot;
     float half_extent = 0;  // characters stay inside [-half_extent, half_extent]^2 on the XZ plane
     float walk_speed = 0;
+    ClipPlan clip_plan;      // the clip mix and how long characters dwell in a clip
+    uint64_t clip_seed = 0;  // the switch schedule's draws
 };
+
+// Gives each character of `crowd` a first clip drawn by `weights` (per clip, >= 0, one > 0) and a
+// phase drawn in that clip's `clip_seconds`, from `seed`. Where only clip 0 can be drawn it draws
+// nothing, so a one-clip crowd is the one it always was.
+void assign_clips(Crowd* crowd, const std::vector<float>& weights, const std::vector<float>& clip_seconds, uint64_t seed);
 
 // N characters on a jittered square grid centred on the origin, each with its own heading,
 // phase, diffuse variation and outfit; identical for identical arguments.
@@ -193,7 +203,9 @@ struct CharacterModel {
     glm::vec3 center{0, 1, 0};  // impostor bounds centre, in the character's frame
     float radius = 1;
     float frames_per_second = 24;
-    uint32_t frame_count = 1;
+    uint32_t frame_count = 1;  // pose frames, every clip and transition
+    std::vector<ClipRange> clips;  // none: one clip of frame_count frames
+    std::vector<TransitionRange> transitions;
     uint32_t tile_size = 64;
     std::vector<float> azimuths_deg, elevations_deg;
     std::vector<uint32_t> frame_indices;
@@ -224,11 +236,19 @@ struct FrameState {
     // for `crowd`, rebuilt when the crowd's address or size changes.
     const Crowd* crowd = nullptr;
     std::vector<glm::vec2> center_offset;
-    // Per cycle frame: the nearest baked layer and the blend of the two either side. Built for
-    // the model's views and frames (copied here), rebuilt when they change.
+    // Per pose frame: the nearest baked layer and the blend of the two either side, within the
+    // frame's clip or transition (clips.h impostor_frame_tables). Built for the model's views, frames
+    // and ranges (copied here), rebuilt when they change.
     CharacterModel tables_for;
     std::vector<uint32_t> nearest_layer;
     std::vector<FrameWeights> frame_weights;
+    // Clip playback: the schedule (built for the model and the crowd's plan) and one state per
+    // character, played up to clip_time_s; started again when time goes back.
+    ClipSchedule schedule;
+    ClipPlan schedule_plan;
+    uint64_t schedule_seed = 0;
+    std::vector<ClipState> clip;
+    float clip_time_s = -INFINITY;
     // Azimuths evenly spaced round the circle (as the bake writes them): the view is an index
     // computation; otherwise view_blend.h's search.
     bool even_azimuths = false;
@@ -238,8 +258,9 @@ struct FrameState {
 
 // Cull, pick a LOD (with hysteresis through `state`, one entry per character, resized as
 // needed) and fill the instance lists for one frame; impostors blend views and frames as
-// `blend` says (the cycle frame the mesh would show is the point between baked frames).
-// A character's clip plays at its own rate (Character::rate).
+// `blend` says (the pose frame the mesh would show is the point between baked frames).
+// Each character plays its clips at its own rate (Character::rate), switching as clips.h says;
+// every character's clip state is stepped to `time_s`, culled or not.
 void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,
                  const LodRule& rule, float time_s, FrameState* state,
                  FrameInstances* out, ImpostorBlend blend = ImpostorBlend::warp);

@@ -98,7 +98,7 @@ std::string folder_of(const std::string& path) {
 }
 
 bool parse_archetype(Checker& c, const json& v, const std::string& p, const std::string& base, ArchetypeDesc* a) {
-    if (!c.object(v, p) || !c.keys(v, p, {"name", "bundle", "url", "published", "count", "share", "clips", "play_rate"})) return false;
+    if (!c.object(v, p) || !c.keys(v, p, {"name", "bundle", "url", "published", "count", "share", "clips", "play_rate", "switch_after_s"})) return false;
     if (!v.contains("name")) return c.fail(p, "needs \"name\"");
     if (!c.string(v["name"], p + "/name", &a->name)) return false;
     if (a->name.size() > 64 || a->name.find_first_of(" \t\r\n\"\\") != std::string::npos)
@@ -149,6 +149,14 @@ bool parse_archetype(Checker& c, const json& v, const std::string& p, const std:
             if (!(a->play_rate[k] >= 0.25f && a->play_rate[k] <= 4.0f))
                 return c.fail(p + "/play_rate/" + std::to_string(k), "must lie in [0.25, 4]");
         if (a->play_rate[0] > a->play_rate[1]) return c.fail(p + "/play_rate", "must be [low, high] with low <= high");
+    }
+    if (v.contains("switch_after_s")) {
+        if (!c.numbers(v["switch_after_s"], p + "/switch_after_s", 2, a->switch_after_s)) return false;
+        for (int k = 0; k < 2; ++k)
+            if (!(a->switch_after_s[k] >= 0.0f && a->switch_after_s[k] <= 86400.0f))
+                return c.fail(p + "/switch_after_s/" + std::to_string(k), "must lie in [0, 86400] seconds");
+        if (a->switch_after_s[0] > a->switch_after_s[1]) return c.fail(p + "/switch_after_s", "must be [low, high] with low <= high");
+        a->has_switch_after = true;
     }
     return true;
 }

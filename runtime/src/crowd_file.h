@@ -38,10 +38,13 @@ struct ArchetypeDesc {
     ArchetypeSource source;
     uint64_t count = 0;  // characters, when given as a count
     double share = 0;    // or a share of CrowdFile::count (> 0); exactly one of the two
-    // Reserved for bundles with several clips: which clips the characters play, by weight.
-    // A bundle has one clip today; the mix is checked and then ignored with a note.
+    // Which clips of the bundle the characters play, by weight (empty: all alike); a name the
+    // bundle lacks is refused once the bundle is loaded.
     std::vector<ClipWeight> clips;
-    float play_rate[2] = {1, 1};  // each character plays its clip at a rate drawn in [lo, hi]
+    float play_rate[2] = {1, 1};  // each character plays its clips at a rate drawn in [lo, hi]
+    // Seconds a character dwells in a clip before it switches (clips.h); unset: crowdview's --switch-after.
+    bool has_switch_after = false;
+    float switch_after_s[2] = {0, 0};
 };
 
 enum class CrowdLayoutKind { spot, paths, positions, scatter };

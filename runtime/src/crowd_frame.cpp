@@ -1,6 +1,7 @@
 // One frame's instances for one archetype (crowd.h build_frame): the hot loop of a crowd.
 // Per character it does a sphere-frustum test, a depth along the view (a dot product) for the
-// LOD, a table lookup for the clip state and, for impostors, two arctangents for the view;
+// LOD, a compare and a table lookup for the clip state (clips.h) and, for impostors, two
+// arctangents for the view;
 // everything that does not change between frames sits in FrameState.
 #include <algorithm>
 #include <cmath>
@@ -20,22 +21,6 @@ constexpr float kDegrees = 180.0f / kPi;
 inline float fast_floor(float x) {
     const float t = float(int32_t(x));
     return t > x ? t - 1.0f : t;
-}
-inline double fast_floor(double x) {
-    const double t = double(int64_t(x));
-    return t > x ? t - 1.0 : t;
-}
-
-// cycle_frame (crowd.h), inlined with fast_floor: the same frame for times and phases below 2^31 frames.
-inline uint32_t fast_cycle_frame(float time_s, float phase_s, double frames_per_second, uint32_t frame_count) {
-    if (frame_count == 0) return 0;
-    const double f = fast_floor(double(time_s + phase_s) * frames_per_second);
-    if (std::fabs(f) < 2147483647.0) {  // a 32-bit remainder: a fraction of a 64-bit one's latency
-        const int32_t wrapped = int32_t(f) % int32_t(frame_count);
-        return uint32_t(wrapped < 0 ? wrapped + int32_t(frame_count) : wrapped);
-    }
-    const int64_t wrapped = int64_t(f) % int64_t(frame_count);
-    return uint32_t(wrapped < 0 ? wrapped + frame_count : wrapped);
 }
 
 // sphere_in_frustum (crowd.h), inlined.
@@ -71,12 +56,39 @@ inline glm::vec2 fast_view_angles_deg(const glm::vec3& to_camera, float heading)
     return glm::vec2((fast_atan2(to_camera.x, to_camera.z) - heading) * kDegrees, fast_atan2(to_camera.y, horizontal) * kDegrees);
 }
 
-bool same_views_and_frames(const CharacterModel& a, const CharacterModel& b) {
-    return a.frame_count == b.frame_count && a.center == b.center && a.azimuths_deg == b.azimuths_deg &&
-           a.elevations_deg == b.elevations_deg && a.frame_indices == b.frame_indices;
+bool same_ranges(const std::vector<ClipRange>& a, const std::vector<ClipRange>& b) {
+    return std::equal(a.begin(), a.end(), b.begin(), b.end(), [](const ClipRange& x, const ClipRange& y) {
+        return x.first_frame == y.first_frame && x.frames == y.frames;
+    });
 }
 
-void build_tables(const Crowd& crowd, const CharacterModel& model, FrameState* s) {
+bool same_views_and_frames(const CharacterModel& a, const CharacterModel& b) {
+    return a.frame_count == b.frame_count && a.frames_per_second == b.frames_per_second && a.center == b.center &&
+           a.azimuths_deg == b.azimuths_deg && a.elevations_deg == b.elevations_deg && a.frame_indices == b.frame_indices &&
+           same_ranges(a.clips, b.clips) && a.transitions == b.transitions;
+}
+
+// The clip schedule for the model's ranges and the crowd's plan, and every character's state at
+// time 0: rebuilt when either changes, the crowd is another, or time goes back.
+void prepare_clips(const Crowd& crowd, const CharacterModel& model, float time_s, bool tables_rebuilt, FrameState* s) {
+    const bool new_plan = !(s->schedule_plan == crowd.clip_plan) || s->schedule_seed != crowd.clip_seed;
+    if (tables_rebuilt || new_plan || s->schedule.ranges.empty()) {
+        s->schedule = make_clip_schedule(model.clips, model.transitions, model.frame_count, model.frames_per_second,
+                                         crowd.clip_plan, crowd.clip_seed);
+        s->schedule_plan = crowd.clip_plan;
+        s->schedule_seed = crowd.clip_seed;
+        s->clip.clear();
+    }
+    if (s->clip.size() != crowd.characters.size() || time_s < s->clip_time_s) {
+        s->clip.resize(crowd.characters.size());
+        for (size_t i = 0; i < crowd.characters.size(); ++i)
+            s->clip[i] = initial_clip_state(s->schedule, uint32_t(i), crowd.characters[i].clip, crowd.characters[i].phase_s);
+    }
+    s->clip_time_s = time_s;
+}
+
+// Returns whether the per-frame tables were rebuilt.
+bool build_tables(const Crowd& crowd, const CharacterModel& model, FrameState* s) {
     if (s->crowd != &crowd || s->center_offset.size() != crowd.characters.size() || !(s->tables_for.center == model.center)) {
         s->crowd = &crowd;
         s->center_offset.resize(crowd.characters.size());
@@ -86,15 +98,11 @@ void build_tables(const Crowd& crowd, const CharacterModel& model, FrameState* s
         }
         s->tables_for.center = glm::vec3(NAN);  // the frame tables below are rebuilt with the centre
     }
-    if (same_views_and_frames(s->tables_for, model) && !s->nearest_layer.empty()) return;
+    if (same_views_and_frames(s->tables_for, model) && !s->nearest_layer.empty()) return false;
     s->tables_for = model;
-    const uint32_t frames = std::max(model.frame_count, 1u);
-    s->nearest_layer.resize(frames);
-    s->frame_weights.resize(frames);
-    for (uint32_t f = 0; f < frames; ++f) {
-        s->nearest_layer[f] = model.frame_indices.empty() ? 0 : impostor_layer(f, model.frame_indices, model.frame_count);
-        s->frame_weights[f] = model.frame_indices.empty() ? FrameWeights() : blend_frame_weights(f, model.frame_indices, model.frame_count);
-    }
+    // Only the ranges matter to the impostor tables; the plan does not.
+    const ClipSchedule ranges = make_clip_schedule(model.clips, model.transitions, model.frame_count, model.frames_per_second, {}, 0);
+    impostor_frame_tables(model.frame_indices, ranges, model.frame_count, &s->nearest_layer, &s->frame_weights);
     const auto [lowest, highest] = std::minmax_element(model.elevations_deg.begin(), model.elevations_deg.end());
     s->lowest_elevation = uint32_t(lowest - model.elevations_deg.begin());
     s->highest_elevation = uint32_t(highest - model.elevations_deg.begin());
@@ -105,6 +113,7 @@ void build_tables(const Crowd& crowd, const CharacterModel& model, FrameState* s
     s->azimuth_step_deg = n ? 360.0f / float(n) : 0;
     for (size_t k = 0; k < n && s->even_azimuths; ++k)
         s->even_azimuths = std::fabs(model.azimuths_deg[k] - (s->azimuth0_deg + float(k) * s->azimuth_step_deg)) < 1e-3f;
+    return true;
 }
 
 // Within this fraction of a view step of a tie between two nearest views, the fast angles are
@@ -161,17 +170,20 @@ void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& 
     const bool blend_frames = blend == ImpostorBlend::frames || all;
     const size_t n = crowd.characters.size();
     if (state->lod.size() != n) state->lod.assign(n, Lod(255));  // 255: no history yet
-    build_tables(crowd, model, state);
+    const bool rebuilt = build_tables(crowd, model, state);
+    prepare_clips(crowd, model, time_s, rebuilt, state);
     const FrameState& s = *state;
+    const ClipSchedule& schedule = s.schedule;
+    ClipState* clip_states = state->clip.data();
     const uint32_t columns = uint32_t(model.azimuths_deg.size());
     const bool has_views = columns > 0 && !model.elevations_deg.empty();
     const Frustum frustum = frustum_from(camera.projection(aspect) * camera.view());
     const glm::vec3 forward = camera.forward();
-    // The cycle frame at time t: floor((t * rate + phase) * fps) wrapped (cycle_frame), in doubles as there.
-    const double fps = model.frames_per_second;
-    const uint32_t frame_count = model.frame_count;
     for (size_t i = 0; i < n; ++i) {
         const Character& c = crowd.characters[i];
+        // Clip state: nothing to do until the character's next switch event (a few times a minute).
+        ClipState& clip = clip_states[i];
+        if (time_s >= clip.next_event_s) advance_clip_state(schedule, uint32_t(i), c.rate, time_s, &clip);
         const glm::vec3 feet = crowd.layout == Layout::on_the_spot ? c.start : character_position(crowd, c, time_s);
         const glm::vec3 center(feet.x + s.center_offset[i].x, feet.y + model.center.y, feet.z + s.center_offset[i].y);
         if (!sphere_visible(frustum, center, model.radius)) {
@@ -193,7 +205,7 @@ void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& 
         Instance inst;
         inst.position[0] = feet.x, inst.position[1] = feet.y, inst.position[2] = feet.z;
         inst.heading = c.heading;
-        inst.frame = fast_cycle_frame(time_s * c.rate, c.phase_s, fps, frame_count);
+        inst.frame = shown_pose_frame(schedule, clip, c.rate, time_s);
         inst.variation = c.variation;
         inst.outfit = c.outfit;
         inst.tile = 0;
@@ -215,10 +227,10 @@ void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& 
                 for (uint32_t& t : views.tiles) t = nearest_tile;
                 views.weights[0] = 1, views.weights[1] = views.weights[2] = views.weights[3] = 0;
             }
-            const uint32_t cycle = std::min(inst.frame, uint32_t(s.nearest_layer.size() - 1));
+            const uint32_t pose = std::min(inst.frame, uint32_t(s.nearest_layer.size() - 1));
             FrameWeights frames;
-            frames.layers[0] = frames.layers[1] = s.nearest_layer[cycle];
-            if (blend_frames) frames = s.frame_weights[cycle];
+            frames.layers[0] = frames.layers[1] = s.nearest_layer[pose];
+            if (blend_frames) frames = s.frame_weights[pose];
             inst.tile = nearest_tile;
             inst.frame = frames.layers[frames.weight > 0.5f ? 1 : 0];
             // Heaviest first, weight-0 entries last (repeating the heaviest tile): an insertion

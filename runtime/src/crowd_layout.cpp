@@ -72,8 +72,9 @@ float crowds_half_extent(const std::vector<Crowd>& crowds) {
     return half;
 }
 
-std::vector<Crowd> lay_out_crowd(const CrowdFile& file, const std::vector<ArchetypeTraits>& traits, std::string* note) {
-    if (note) note->clear();
+namespace {
+
+std::vector<Crowd> place_characters(const CrowdFile& file, const std::vector<ArchetypeTraits>& traits, std::string* note) {
     const size_t n = traits.size();
     std::vector<Crowd> crowds(n);
     const CrowdLayoutDesc& layout = file.layout;
@@ -152,6 +153,23 @@ std::vector<Crowd> lay_out_crowd(const CrowdFile& file, const std::vector<Archet
                 " characters; " + std::to_string(left_out) + " did not fit and are left out";
     const float half = scatter ? crowds_half_extent(crowds) : hi.x;
     for (Crowd& c : crowds) c.half_extent = half;
+    return crowds;
+}
+
+}  // namespace
+
+std::vector<Crowd> lay_out_crowd(const CrowdFile& file, const std::vector<ArchetypeTraits>& traits, std::string* note) {
+    if (note) note->clear();
+    std::vector<Crowd> crowds = place_characters(file, traits, note);
+    for (size_t k = 0; k < crowds.size(); ++k) {
+        const ArchetypeTraits& t = traits[k];
+        crowds[k].clip_plan = t.clip_plan;
+        // One schedule stream per archetype of this seed (splitmix64's increment keeps them apart).
+        crowds[k].clip_seed = Rng(file.seed + 0x9E3779B97F4A7C15ull * (k + 1)).next();
+        std::vector<float> weights = t.clip_plan.weights;
+        if (weights.empty()) weights.assign(std::max<size_t>(t.clip_seconds.size(), 1), 1.0f);
+        assign_clips(&crowds[k], weights, t.clip_seconds, crowds[k].clip_seed);
+    }
     return crowds;
 }
 

@@ -18,6 +18,8 @@ struct ArchetypeTraits {
     float cycle_seconds = 1;   // for random phases
     uint32_t variations = 1, outfits = 1;
     float play_rate[2] = {1, 1};
+    ClipPlan clip_plan;                // the clip mix (per clip of the bundle) and the dwell range
+    std::vector<float> clip_seconds;   // per clip, its loop's length: first clips and phases are drawn from these
 };
 
 // Closest two characters of spacings `a` and `b` may stand (metres): 0.6 of their mean spacing,
@@ -32,6 +34,8 @@ inline float min_separation(float spacing_a, float spacing_b) { return 0.3f * (s
 //  scatter: the same in the description's area; characters that do not fit are left out and
 //    `note` says how many;
 //  positions: the description's list, with each archetype's random phase, variation and outfit.
+// Then each character gets its first clip by the archetype's clip mix (crowd.h assign_clips), and
+// each Crowd the archetype's clip plan and a schedule seed.
 // Deterministic for a seed. `note` (may be null) gets "" or one line for the log.
 std::vector<Crowd> lay_out_crowd(const CrowdFile& file, const std::vector<ArchetypeTraits>& traits, std::string* note);
 

@@ -2,11 +2,14 @@
 // LOD choice, clip state (cycle frame, impostor view and frame blend) and the instance-buffer
 // fill, for every character of every archetype, as crowdview's frame loop runs build_frame.
 //
-//   crowdview_frame_bench [--count N] [--archetypes K] [--frames F] [--threads T] [--report JSON]
-// (--threads: default crowdview's, one per archetype up to the hardware's)
+//   crowdview_frame_bench [--count N] [--archetypes K] [--frames F] [--threads T] [--clips C] [--report JSON]
+// (--threads: default crowdview's, one per archetype up to the hardware's; --clips: clips per
+// archetype, default 3, joined in a ring by transitions both ways; 1 is a v1 bundle's one cycle)
 //
 // The archetypes are shaped like real bundles (impostor radius, tile size, views, baked frames of
 // the sample walker, CesiumMan and the 4 m robot); the crowd is laid out as a --crowd spot layout.
+// Characters switch clips every 4 to 10 s (crowdview's default); the timed frames start 30 s in,
+// so the crowd is spread over clips and transitions as in a long run.
 // Prints one line per camera and writes the figures as JSON.
 #include <algorithm>
 #include <chrono>
@@ -43,17 +46,33 @@ const Shape kShapes[] = {{"sample-loose", 1.054f, 0.876f, 128, 40, 10, 20, 24},
                          {"cesiumman", 1.119f, 0.747f, 128, 48, 10, 16, 24},
                          {"robot", 3.227f, 2.174f, 128, 23, 10, 16, 24}};
 
-CharacterModel model_of(const Shape& s) {
+// Transition length in frames: about the half second a change of gait takes.
+constexpr uint32_t kTransitionFrames = 12;
+
+// `clips` clips of s.frames frames each (s.baked baked), and for clips > 1 a transition each way
+// between neighbours (baked at both ends and halfway), as a bake of a timeline writes them.
+CharacterModel model_of(const Shape& s, uint32_t clips) {
     CharacterModel m;
     m.center = glm::vec3(0, s.center_y, 0);
     m.radius = s.radius;
     m.frames_per_second = s.fps;
-    m.frame_count = s.frames;
     m.tile_size = s.tile;
     for (uint32_t a = 0; a < s.azimuths; ++a) m.azimuths_deg.push_back(360.0f * float(a) / float(s.azimuths));
     m.elevations_deg = {0, 20, 40};
-    for (uint32_t f = 0; f < s.baked; ++f) m.frame_indices.push_back(f * s.frames / s.baked);
     m.has_low = true;
+    uint32_t first = 0;
+    for (uint32_t c = 0; c < clips; ++c, first += s.frames) {
+        m.clips.push_back({"clip" + std::to_string(c), first, s.frames});
+        for (uint32_t f = 0; f < s.baked; ++f) m.frame_indices.push_back(first + f * s.frames / s.baked);
+    }
+    for (uint32_t c = 0; c + 1 < clips; ++c)
+        for (uint32_t to : {c + 1, c}) {
+            const uint32_t from = to == c ? c + 1 : c;
+            m.transitions.push_back({from, to, (3 * c + 1) % s.frames, (5 * c + 2) % s.frames, first, kTransitionFrames});
+            for (uint32_t f : {0u, kTransitionFrames / 2, kTransitionFrames - 1}) m.frame_indices.push_back(first + f);
+            first += kTransitionFrames;
+        }
+    m.frame_count = first;
     return m;
 }
 
@@ -66,7 +85,7 @@ double median(std::vector<double> v) {
 
 int main(int argc, char** argv) {
     uint64_t count = 100000;
-    int archetypes = 4, frames = 60, threads = 0;  // 0: as crowdview (archetype_threads)
+    int archetypes = 4, frames = 60, threads = 0, clips = 3;  // threads 0: as crowdview (archetype_threads)
     std::string report_path;
     for (int i = 1; i < argc; ++i) {
         const std::string a = argv[i];
@@ -81,14 +100,15 @@ int main(int argc, char** argv) {
         else if (a == "--archetypes") archetypes = std::atoi(next());
         else if (a == "--frames") frames = std::atoi(next());
         else if (a == "--threads") threads = std::atoi(next());
+        else if (a == "--clips") clips = std::atoi(next());
         else if (a == "--report") report_path = next();
         else {
             std::fprintf(stderr, "crowdview_frame_bench: unknown argument '%s'\n", a.c_str());
             return 2;
         }
     }
-    if (count < 1 || archetypes < 1 || archetypes > 4 || frames < 1 || threads < 0 || threads > 64) {
-        std::fprintf(stderr, "crowdview_frame_bench: --count >= 1, --archetypes 1..4, --frames >= 1, --threads 1..64\n");
+    if (count < 1 || archetypes < 1 || archetypes > 4 || frames < 1 || threads < 0 || threads > 64 || clips < 1 || clips > 64) {
+        std::fprintf(stderr, "crowdview_frame_bench: --count >= 1, --archetypes 1..4, --frames >= 1, --threads 1..64, --clips 1..64\n");
         return 2;
     }
     if (threads == 0) threads = int(archetype_threads(size_t(archetypes)));
@@ -98,11 +118,12 @@ int main(int argc, char** argv) {
     CrowdFile file;
     file.seed = 1;
     for (int k = 0; k < archetypes; ++k) {
-        models.push_back(model_of(kShapes[k]));
+        models.push_back(model_of(kShapes[k], uint32_t(clips)));
         ArchetypeTraits t;
         t.count = count / archetypes + (uint64_t(k) < count % archetypes ? 1 : 0);
         t.spacing = crowd_spacing(models[k].radius);
-        t.cycle_seconds = float(models[k].frame_count) / models[k].frames_per_second;
+        t.cycle_seconds = float(kShapes[k].frames) / models[k].frames_per_second;
+        for (const ClipRange& c : models[k].clips) t.clip_seconds.push_back(float(c.frames) / models[k].frames_per_second);
         t.variations = 8, t.outfits = 8;
         t.play_rate[0] = 0.9f, t.play_rate[1] = 1.1f;
         traits.push_back(t);
@@ -134,7 +155,7 @@ int main(int argc, char** argv) {
             std::vector<double> ms, cpu_ms;
             uint64_t lods[3] = {0, 0, 0}, culled = 0;
             for (int f = -2; f < frames; ++f) {  // two warm-up frames size the vectors
-                const float time_s = float(std::max(f, 0)) * kFixedTimeStep;
+                const float time_s = 30.0f + float(std::max(f, 0)) * kFixedTimeStep;
                 const auto start = std::chrono::steady_clock::now();
                 timespec cpu_start, cpu_end;  // this process's CPU time: what the frame cost, without other programs' share of the cores
                 clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &cpu_start);
@@ -170,6 +191,7 @@ int main(int argc, char** argv) {
     }
     const nlohmann::json report = {{"what", "CPU ms per frame: culling, LOD choice, clip state and instance-buffer fill (build_frame)"},
                                    {"characters", count},
+                                   {"clips_per_archetype", clips},
                                    {"archetypes", archetypes},
                                    {"threads", threads},
                                    {"frames", frames},

@@ -3,7 +3,7 @@
 //   crowdview (--bundle DIR | --url URL | --crowd FILE) [--cache DIR] [--count N] [--seed S] [--layout spot|paths]
 //             [--headless --frames N --screenshot out.png] [--benchmark --report out.json]
 //             [--width W --height H] [--lod auto|high|low|impostor|detail] [--impostor-blend off|views|frames|full|warp]
-//             [--key KEY] [--cache-budget-mib N] [--min-rate B] [--timeout S]
+//             [--key KEY] [--cache-budget-mib N] [--min-rate B] [--timeout S] [--clips NAME=W,...] [--switch-after LO,HI]
 //   crowdview --verify DIR|URL
 //
 // Exit status: 0 success, 1 a bundle or file was refused or a run failed, 2 bad arguments,
@@ -32,6 +32,7 @@
 #include "fly_controls.h"
 #include "gl_context.h"
 #include "renderer.h"
+#include "switch_report.h"
 
 #ifndef CROWDVIEW_SHADER_DIR
 #define CROWDVIEW_SHADER_DIR "shaders"
@@ -79,6 +80,8 @@ struct Options {
     bool switch_view = false;
     float switch_azimuth_deg = 0, switch_elevation_deg = 0;
     int switch_frame = 0;
+    std::vector<ClipWeight> clips;  // --clips: the clip mix of a lone bundle
+    float switch_after_s[2] = {kDefaultSwitchAfterS[0], kDefaultSwitchAfterS[1]};
 };
 
 const char* kUsage =
@@ -99,6 +102,8 @@ const char* kUsage =
     "  --lod MODE            auto (default) | high | low | impostor | detail\n"
     "  --camera VIEW         overview (default: the whole crowd) | street (eye level at the crowd's edge)\n"
     "  --impostors uv|detail impostor maps used by --lod auto (default uv)\n"
+    "  --clips NAME=W,...    clip mix: which clips characters play, by weight (default: every clip alike)\n"
+    "  --switch-after LO,HI  seconds a character dwells in a clip before switching (default 4,10)\n"
     "  --impostor-blend B    off (the paper: nearest view and frame) | views | frames | full |\n"
     "                        warp (default: full, reprojected by the bundle's surface map; full without one)\n"
     "  --width W --height H  framebuffer size (default 1280x720)\n"
@@ -181,6 +186,23 @@ Options parse_args(int argc, char** argv) {
                 o.switch_frame < 0 || std::fabs(o.switch_elevation_deg) > 90.0f)
                 usage_error("--switch-view takes AZIMUTH,ELEVATION,FRAME (degrees, elevation within +-90, frame >= 0); got '" + v + "'");
             o.switch_view = true;
+        } else if (a == "--clips") {
+            const std::string v = value(i);
+            for (size_t start = 0; start <= v.size();) {
+                const size_t end = std::min(v.find(',', start), v.size()), eq = v.find('=', start);
+                ClipWeight w;
+                w.clip = v.substr(start, std::min(eq, end) - start);
+                if (eq < end) w.weight = parse_number<float>("--clips weight of '" + w.clip + "'", v.substr(eq + 1, end - eq - 1).c_str(), 0, 1e6f);
+                if (w.clip.empty() || !(w.weight > 0)) usage_error("--clips takes NAME=WEIGHT,NAME=WEIGHT,...; got '" + v + "'");
+                o.clips.push_back(w);
+                start = end + 1;
+            }
+        } else if (a == "--switch-after") {
+            const std::string v = value(i);
+            char rest = 0;
+            float* s = o.switch_after_s;
+            if (std::sscanf(v.c_str(), "%f,%f%c", &s[0], &s[1], &rest) != 2 || !(s[0] >= 0 && s[0] <= s[1] && s[1] <= 86400))
+                usage_error("--switch-after takes LO,HI seconds (0 <= LO <= HI <= 86400); got '" + v + "'");
         } else if (a == "--impostors")
             o.impostors = parse_choice<ImpostorKind>(a, value(i), {{"uv", ImpostorKind::uv}, {"detail", ImpostorKind::detail}});
         else usage_error("unknown argument '" + a + "'");
@@ -190,6 +212,7 @@ Options parse_args(int argc, char** argv) {
     if (o.benchmark && !o.screenshot.empty()) usage_error("--screenshot does not go with --benchmark");
     if (!o.report.empty() && !o.benchmark && !o.headless) usage_error("--report needs --benchmark or --headless");
     if (!o.crowd_file.empty() && o.crowd_flags) usage_error("--count, --seed and --layout go in the --crowd description");
+    if (!o.crowd_file.empty() && !o.clips.empty()) usage_error("--clips goes in the --crowd description's archetypes (\"clips\")");
     if (!o.crowd_file.empty() && (o.benchmark || o.switch_view)) usage_error("--benchmark and --switch-view take --bundle or --url");
     if (!modes.empty()) {
         o.modes.clear();
@@ -281,7 +304,8 @@ int run_benchmark_mode(const GlContext& context, Renderer& renderer, const Bundl
     return 0;
 }
 
-int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, const Options& o) {
+// `meters`: one per archetype with --report (the switch measure, switch_report.h), else empty.
+int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, const Options& o, std::vector<SwitchMeter>& meters) {
     const size_t archetype_count = renderer.archetype_count();
     std::string note;
     std::vector<Crowd> crowds = lay_out_crowd(scene.file, scene.traits, &note);
@@ -348,6 +372,10 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
             build_frame(crowds[a], renderer.model(a), camera, renderer.aspect(), choice.lod, rules[a], time_s, &state[a], &frame[a], o.blend);
         });
         build_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
+        // The switch measure (--report): a few sampled characters, after the timed part.
+        const bool blend_frames = o.blend == ImpostorBlend::frames || o.blend == ImpostorBlend::full || o.blend == ImpostorBlend::warp;
+        for (size_t a = 0; a < meters.size() && a < archetype_count; ++a)
+            meters[a].observe(crowds[a], renderer.model(a), state[a], camera, renderer.width(), renderer.height(), time_s, blend_frames);
         for (size_t a = 0; a < archetype_count; ++a) counts[a].add(frame[a]);
         ++drawn;
         stats = renderer.draw(frame, camera, choice.kind, light);
@@ -388,6 +416,23 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
         std::vector<double> timed(frame_ms.begin() + std::min<size_t>(2, frame_ms.size() > 2 ? 2 : 0), frame_ms.end());
         std::sort(timed.begin(), timed.end());
         report["frame_ms_median"] = timed.empty() ? 0.0 : timed[timed.size() / 2];
+        // Per archetype: characters per clip (and transition) and LOD in the last frame, and the switches' jumps.
+        for (size_t a = 0; a < archetype_count; ++a) {
+            report["archetypes"][a]["clips"] = clip_counts(crowds[a], renderer.model(a), state[a], camera, renderer.aspect(), time_s);
+            if (a < meters.size()) {
+                report["archetypes"][a]["switch_jumps"] = meters[a].report();
+                std::string line = "archetype '" + scene.names[a] + "': switches, largest jump / median motion in the clip:";
+                for (Lod lod : {Lod::high, Lod::low, Lod::impostor}) {
+                    const nlohmann::json& r = report["archetypes"][a]["switch_jumps"][lod == Lod::high ? "high" : lod == Lod::low ? "low" : "impostor"];
+                    char figure[96];
+                    std::snprintf(figure, sizeof figure, " %s %s (%d measured)", lod == Lod::high ? "high" : lod == Lod::low ? "low" : "impostor",
+                                  r["largest_ratio"].is_null() ? "-" : std::to_string(r["largest_ratio"].get<double>()).substr(0, 4).c_str(),
+                                  r["switches_measured"].get<int>());
+                    line += figure;
+                }
+                log_line(line);
+            }
+        }
         std::ofstream out(o.report);
         if (!(out << report.dump(2) << "\n")) {
             std::fprintf(stderr, "crowdview: cannot write %s\n", o.report.c_str());
@@ -432,6 +477,8 @@ int main(int argc, char** argv) {
         scene.file = single_archetype_crowd(source, o.count, o.seed, o.layout == Layout::paths);
     }
     const bool one_bundle = o.crowd_file.empty();
+    if (one_bundle) scene.file.archetypes[0].clips = o.clips;
+    scene.switch_after_s[0] = o.switch_after_s[0], scene.switch_after_s[1] = o.switch_after_s[1];
     std::vector<LoadedArchetype> loaded =
         load_archetypes(scene.file, fetch_options(o), one_bundle ? std::function<void(const std::string&)>() : log_line, &scene.refused);
     if (one_bundle && !scene.refused.empty()) {
@@ -441,6 +488,12 @@ int main(int argc, char** argv) {
     if (loaded.empty()) {
         log_line("no archetype of " + o.crowd_file + " could be loaded");
         return kExitRefused;
+    }
+    // A clip mix naming a clip the bundle lacks is a mistake in the arguments or the description.
+    for (const LoadedArchetype& a : loaded) {
+        std::vector<float> weights;
+        const std::string error = resolve_clip_mix(scene.file.archetypes[a.desc_index].clips, a.bundle.manifest.clips, &weights);
+        if (!error.empty()) return log_line((one_bundle ? "--clips: " : "archetype '" + a.name + "': ") + error), kExitUsage;
     }
 
     // Detail-mapped impostors need the detail maps, which a bake stores only when asked (--detail-map).
@@ -497,6 +550,12 @@ int main(int argc, char** argv) {
 
     // 3. Run.
     if (o.benchmark) return run_benchmark_mode(*context, *renderer, loaded[0].bundle, o);
+    // The switch measure reads the pose caches on the CPU: kept only for --report.
+    std::vector<SwitchMeter> meters;
+    if (!o.report.empty())
+        for (size_t a = 0; a < renderer->archetype_count(); ++a)
+            for (LoadedArchetype& l : loaded)
+                if (l.desc_index == scene.desc_index[a]) meters.emplace_back(std::move(l.bundle.meshes), l.bundle.manifest.meshes);
     for (LoadedArchetype& a : loaded) a.bundle = Bundle();  // on the GPU now
-    return run_view(*context, *renderer, scene, o);
+    return run_view(*context, *renderer, scene, o, meters);
 }

@@ -326,7 +326,10 @@ CharacterModel character_model(const Bundle& bundle) {
     model.center = glm::vec3(m.impostor.center[0], m.impostor.center[1], m.impostor.center[2]);
     model.radius = m.impostor.radius;
     model.frames_per_second = float(m.frames_per_second);
-    model.frame_count = m.cycle.frames;
+    model.frame_count = m.pose_frames;
+    for (const ClipInfo& c : m.clips) model.clips.push_back({c.name, c.first_frame, c.frames});
+    for (const TransitionInfo& t : m.transitions)
+        model.transitions.push_back({t.from_clip, t.to_clip, t.leave_frame, t.arrive_frame, t.first_frame, t.frames});
     model.tile_size = m.impostor.tile_size;
     model.azimuths_deg = m.impostor.azimuths_deg;
     model.elevations_deg = m.impostor.elevations_deg;

@@ -1,7 +1,8 @@
 // Writes the synthetic test bundle (tests/synthetic_bundle.h):
-//   make_synthetic_bundle OUT_DIR [--uncompressed] [--paper-counts]
+//   make_synthetic_bundle OUT_DIR [--uncompressed] [--paper-counts] [--clips]
 // --paper-counts sizes the meshes like the paper's figure 3 characters (13,056 and 1,900
-// triangles) for benchmarks. ctest uses it as a fixture; handy for trying crowdview too.
+// triangles) for benchmarks; --clips writes format v2 with an idle and a walk clip and a
+// transition each way (Options::two_clips). ctest uses it as a fixture; handy for trying crowdview too.
 #include <cstdio>
 #include <cstring>
 
@@ -9,7 +10,7 @@
 
 int main(int argc, char** argv) {
     if (argc < 2) {
-        std::fprintf(stderr, "usage: make_synthetic_bundle OUT_DIR [--uncompressed] [--paper-counts]\n");
+        std::fprintf(stderr, "usage: make_synthetic_bundle OUT_DIR [--uncompressed] [--paper-counts] [--clips]\n");
         return 2;
     }
     synthetic::Options options;
@@ -17,6 +18,7 @@ int main(int argc, char** argv) {
     for (int i = 2; i < argc; ++i) {
         if (std::strcmp(argv[i], "--uncompressed") == 0) compressed = false;
         else if (std::strcmp(argv[i], "--paper-counts") == 0) options = synthetic::Options::paper_counts();
+        else if (std::strcmp(argv[i], "--clips") == 0) options = synthetic::Options::two_clips();
         else {
             std::fprintf(stderr, "make_synthetic_bundle: unknown argument '%s'\n", argv[i]);
             return 2;

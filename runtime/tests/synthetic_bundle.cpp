@@ -148,12 +148,17 @@ struct Primitive {
     glm::vec3 center;       // ellipsoid centre; cone: top centre
     glm::vec3 semi_axes;    // ellipsoid; cone uses x = top radius, y = height, z = bottom radius
     glm::vec4 uv_rect;      // u0, v0, u1, v1 in the material's texture
-    std::function<glm::mat4(float phase)> pose;  // model transform at walk phase (radians)
-    float sway = 0;         // cone: hem offset along +Z times sin(phase), the skirt's lag
+    std::function<glm::mat4(float phase, float amplitude)> pose;  // model transform at walk phase (radians) and stride
+    float sway = 0;         // cone: hem offset along +Z times amplitude * sin(phase), the skirt's lag
 };
 
 // Position and outward unit normal at (u around, v from top) in 0..1, before the pose.
-void surface(const Primitive& p, float u, float v, float phase, glm::vec3* position, glm::vec3* normal) {
+// One pose frame of the walk: its phase (radians) and stride (1: the full walk; smaller: an idle sway).
+struct Motion {
+    float phase = 0, amplitude = 1;
+};
+
+void surface(const Primitive& p, float u, float v, float phase, float amplitude, glm::vec3* position, glm::vec3* normal) {
     const float theta = 2.0f * glm::pi<float>() * u + glm::pi<float>();  // seam at the back, u = 0.5 faces +Z
     if (p.kind == Primitive::ellipsoid) {
         const float polar = glm::pi<float>() * glm::clamp(v, 1e-3f, 1.0f - 1e-3f);
@@ -164,14 +169,14 @@ void surface(const Primitive& p, float u, float v, float phase, glm::vec3* posit
         const float r_top = p.semi_axes.x, height = p.semi_axes.y, r_bottom = p.semi_axes.z;
         const float r = r_top + (r_bottom - r_top) * v;
         *position = p.center + glm::vec3(r * std::sin(theta), -height * v, r * std::cos(theta));
-        position->z += p.sway * v * std::sin(phase);
+        position->z += p.sway * v * std::sin(phase) * amplitude;
         const float slope = (r_bottom - r_top) / height;  // radius growth per metre down
         *normal = glm::normalize(glm::vec3(std::sin(theta), slope, std::cos(theta)));
     }
 }
 
 // Adds a (segments x rings) grid of `p` to `mesh` for every frame, counter-clockwise outside.
-void add_primitive(Mesh* mesh, const Primitive& p, uint32_t segments, uint32_t rings, uint32_t frames,
+void add_primitive(Mesh* mesh, const Primitive& p, uint32_t segments, uint32_t rings, const std::vector<Motion>& motions,
                    std::vector<std::vector<float>>* frame_positions, std::vector<std::vector<float>>* frame_normals) {
     const uint32_t base = mesh->vertex_count;
     for (uint32_t j = 0; j <= rings; ++j)
@@ -179,11 +184,10 @@ void add_primitive(Mesh* mesh, const Primitive& p, uint32_t segments, uint32_t r
             const float u = float(i) / segments, v = float(j) / rings;
             mesh->uvs.push_back(p.uv_rect.x + u * (p.uv_rect.z - p.uv_rect.x));
             mesh->uvs.push_back(p.uv_rect.y + v * (p.uv_rect.w - p.uv_rect.y));
-            for (uint32_t f = 0; f < frames; ++f) {
-                const float phase = 2.0f * glm::pi<float>() * float(f) / float(frames);
+            for (uint32_t f = 0; f < motions.size(); ++f) {
                 glm::vec3 position, normal;
-                surface(p, u, v, phase, &position, &normal);
-                const glm::mat4 m = p.pose(phase);
+                surface(p, u, v, motions[f].phase, motions[f].amplitude, &position, &normal);
+                const glm::mat4 m = p.pose(motions[f].phase, motions[f].amplitude);
                 const glm::vec3 world = glm::vec3(m * glm::vec4(position, 1.0f));
                 const glm::vec3 n = glm::normalize(glm::mat3(m) * normal);
                 for (int k = 0; k < 3; ++k) {
@@ -209,10 +213,11 @@ void add_primitive(Mesh* mesh, const Primitive& p, uint32_t segments, uint32_t r
         }
 }
 
-Mesh build_part(const std::vector<Primitive>& primitives, uint32_t segments, uint32_t rings, uint32_t frames) {
+Mesh build_part(const std::vector<Primitive>& primitives, uint32_t segments, uint32_t rings, const std::vector<Motion>& motions) {
     Mesh mesh;
+    const uint32_t frames = uint32_t(motions.size());
     std::vector<std::vector<float>> positions(frames), normals(frames);
-    for (const Primitive& p : primitives) add_primitive(&mesh, p, segments, rings, frames, &positions, &normals);
+    for (const Primitive& p : primitives) add_primitive(&mesh, p, segments, rings, motions, &positions, &normals);
     for (uint32_t f = 0; f < frames; ++f) {
         mesh.positions.insert(mesh.positions.end(), positions[f].begin(), positions[f].end());
         mesh.normals.insert(mesh.normals.end(), normals[f].begin(), normals[f].end());
@@ -226,7 +231,9 @@ glm::mat4 swing(glm::vec3 pivot, float angle) {
 }
 
 std::vector<Primitive> body_primitives() {
-    auto bob = [](float phase) { return glm::translate(glm::mat4(1), glm::vec3(0, 0.015f * std::cos(2 * phase), 0)); };
+    auto bob = [](float phase, float amplitude) {
+        return glm::translate(glm::mat4(1), glm::vec3(0, 0.015f * std::cos(2 * phase) * amplitude, 0));
+    };
     std::vector<Primitive> body = {
         {Primitive::ellipsoid, {0, 1.2f, 0}, {0.19f, 0.30f, 0.12f}, {0.02f, 0.02f, 0.48f, 0.48f}, bob},   // torso: shirt
         {Primitive::ellipsoid, {0, 1.63f, 0.01f}, {0.10f, 0.12f, 0.11f}, {0.52f, 0.02f, 0.98f, 0.48f}, bob},  // head: skin
@@ -234,16 +241,16 @@ std::vector<Primitive> body_primitives() {
     for (float side : {1.0f, -1.0f}) {
         // Legs swing 0.45 rad about the hips, arms 0.35 rad the other way: a walk on the spot.
         body.push_back({Primitive::ellipsoid, {0.09f * side, 0.47f, 0}, {0.075f, 0.46f, 0.08f}, {0.02f, 0.52f, 0.48f, 0.98f},
-                        [side](float phase) { return swing({0.09f * side, 0.93f, 0}, 0.45f * side * std::sin(phase)); }});
+                        [side](float phase, float amplitude) { return swing({0.09f * side, 0.93f, 0}, 0.45f * side * std::sin(phase) * amplitude); }});
         body.push_back({Primitive::ellipsoid, {0.24f * side, 1.14f, 0}, {0.05f, 0.29f, 0.055f}, {0.52f, 0.52f, 0.98f, 0.98f},
-                        [side](float phase) { return swing({0.24f * side, 1.42f, 0}, -0.35f * side * std::sin(phase)); }});
+                        [side](float phase, float amplitude) { return swing({0.24f * side, 1.42f, 0}, -0.35f * side * std::sin(phase) * amplitude); }});
     }
     return body;
 }
 
 std::vector<Primitive> skirt_primitives() {
     Primitive skirt{Primitive::cone, {0, 1.02f, 0}, {0.2f, 0.42f, 0.36f}, {0.0f, 0.0f, 1.0f, 1.0f},
-                    [](float) { return glm::mat4(1); }};
+                    [](float, float) { return glm::mat4(1); }};
     skirt.sway = 0.06f;  // the hem lags the walk: pre-simulated cloth in miniature
     return {skirt};
 }
@@ -381,17 +388,45 @@ void bake_view(const std::vector<BakePart>& parts, uint32_t frame, glm::vec3 cen
     }
 }
 
+// Every pose frame's phase and stride: one cycle (v1), or the clips then the transitions (v2). A
+// transition eases from the leave frame's (phase, stride) to the arrive frame's, the phase moving
+// forward about as fast as in the two clips, so it joins both without a jump.
+std::vector<Motion> pose_motions(const Options& o) {
+    const float turn = 2.0f * glm::pi<float>();
+    std::vector<Motion> motions;
+    if (o.clips.empty()) {
+        for (uint32_t f = 0; f < o.frames; ++f) motions.push_back({turn * float(f) / float(o.frames), 1.0f});
+        return motions;
+    }
+    for (const Options::Clip& c : o.clips)
+        for (uint32_t f = 0; f < c.frames; ++f) motions.push_back({turn * float(f) / float(c.frames), c.stride});
+    for (const Options::Transition& t : o.transitions) {
+        const Options::Clip &a = o.clips[t.from], &b = o.clips[t.to];
+        const float from = turn * float(t.leave) / float(a.frames);
+        const float to = turn * float(t.arrive) / float(b.frames) + (o.popping_transitions ? 0.375f * turn : 0.0f);
+        const float step = 0.5f * (turn / float(a.frames) + turn / float(b.frames)), want = step * float(t.frames + 1);
+        float gap = std::fmod(to - from + 2 * turn, turn);
+        gap += turn * std::max(0.0f, std::round((want - gap) / turn));
+        for (uint32_t j = 0; j < t.frames; ++j) {
+            const float s = float(j + 1) / float(t.frames + 1);
+            motions.push_back({from + s * gap, a.stride + s * (b.stride - a.stride)});
+        }
+    }
+    return motions;
+}
+
 }  // namespace
 
 std::string write_bundle(const std::string& dir, const Options& o) {
     using crowdview::sha256_hex;
     if (fs::exists(dir)) return "write_bundle: " + dir + " exists";
     const float fps = 8.0f;
-    const uint32_t frames = o.frames;
-    Mesh body_hi = build_part(body_primitives(), o.body_segments[0], o.body_rings[0], frames);
-    Mesh body_lo = build_part(body_primitives(), o.body_segments[1], o.body_rings[1], frames);
-    Mesh skirt_hi = build_part(skirt_primitives(), o.skirt_segments[0], o.skirt_rings[0], frames);
-    Mesh skirt_lo = build_part(skirt_primitives(), o.skirt_segments[1], o.skirt_rings[1], frames);
+    const std::vector<Motion> motions = pose_motions(o);
+    const uint32_t frames = uint32_t(motions.size());
+    Mesh body_hi = build_part(body_primitives(), o.body_segments[0], o.body_rings[0], motions);
+    Mesh body_lo = build_part(body_primitives(), o.body_segments[1], o.body_rings[1], motions);
+    Mesh skirt_hi = build_part(skirt_primitives(), o.skirt_segments[0], o.skirt_rings[0], motions);
+    Mesh skirt_lo = build_part(skirt_primitives(), o.skirt_segments[1], o.skirt_rings[1], motions);
     if (o.scale != 1.0f)  // a uniform scale keeps the normals
         for (Mesh* m : {&body_hi, &body_lo, &skirt_hi, &skirt_lo})
             for (float& v : m->positions) v *= o.scale;
@@ -535,6 +570,27 @@ std::string write_bundle(const std::string& dir, const Options& o) {
                           {"media_type", f.media_type},
                           {"role", f.role}});
         if (!write_bytes(dir + "/" + f.path, f.bytes)) return "write_bundle: cannot write " + dir + "/" + f.path;
+    }
+    if (!o.clips.empty()) {  // format v2: clips, then transitions, tiling the pose frames
+        manifest["format_version"] = 2;
+        manifest.erase("cycle");
+        manifest["pose_frames"] = frames;
+        json clips = json::array(), transitions = json::array();
+        uint32_t first = 0;
+        for (const Options::Clip& c : o.clips) {
+            clips.push_back({{"name", c.name}, {"first_frame", first}, {"frames", c.frames}, {"source_start_frame", first},
+                             {"source_end_frame", first + c.frames}, {"closing", "none"}, {"position_jump_ratio", 0.0},
+                             {"velocity_jump_ratio", 0.0}});
+            first += c.frames;
+        }
+        for (const Options::Transition& t : o.transitions) {
+            transitions.push_back({{"from_clip", t.from}, {"to_clip", t.to}, {"leave_frame", t.leave}, {"arrive_frame", t.arrive},
+                                   {"first_frame", first}, {"frames", t.frames}, {"source_start_frame", first},
+                                   {"source_end_frame", first + t.frames}, {"position_jump_ratio", 0.0}, {"velocity_jump_ratio", 0.0}});
+            first += t.frames;
+        }
+        manifest["clips"] = clips;
+        manifest["transitions"] = transitions;
     }
     manifest["files"] = listed;
     const std::string text = manifest.dump(2) + "\n";

@@ -36,6 +36,33 @@ struct Options {
     // characters: 13,056 (high) and 1,900 (low; the paper's has 1,899).
     uint32_t body_segments[2] = {24, 8}, body_rings[2] = {16, 6};
     uint32_t skirt_segments[2] = {32, 10}, skirt_rings[2] = {6, 2};
+    // Bundle format v2: several clips (each `frames` loop frames of the walk at `stride` times its
+    // swing: 1 walks, less idles) and transitions between them, which ease phase and stride from
+    // loop frame `leave` of clip `from` to loop frame `arrive` of clip `to` over `frames` frames.
+    // Empty: a v1 bundle of one cycle of `frames`. frame_indices then name pose frames.
+    struct Clip {
+        std::string name;
+        uint32_t frames = 8;
+        float stride = 1;
+    };
+    struct Transition {
+        uint32_t from = 0, to = 1, leave = 0, arrive = 0, frames = 4;
+    };
+    std::vector<Clip> clips;
+    std::vector<Transition> transitions;
+    // Transitions that end 3/8 of a stride away from their arrive frame: a switch that pops, for
+    // showing that the switch measure sees one.
+    bool popping_transitions = false;
+    // An idle (stride 0.5) and a walk of 8 frames each, a 6-frame transition each way, every clip
+    // frame of an even index baked and each transition's ends: 28 pose frames, 12 layers.
+    static Options two_clips() {
+        Options o;
+        o.clips = {{"idle", 8, 0.5f}, {"walk", 8, 1.0f}};
+        o.transitions = {{0, 1, 1, 0, 6}, {1, 0, 2, 1, 6}};
+        o.frame_indices = {0, 2, 4, 6, 8, 10, 12, 14, 16, 21, 22, 27};
+        o.name = "synthetic-clips";
+        return o;
+    }
     static Options paper_counts() {
         Options o;
         o.body_segments[0] = 40, o.body_rings[0] = 26, o.skirt_segments[0] = 48;

@@ -275,15 +275,15 @@ void test_whole_bundle() {
     CHECK_MSG(ok.ok(), ok.message);
     CHECK(bundle.meshes.size() == 1 && bundle.meshes[0].vertex_count == 4);
     CHECK(bundle.diffuse.size() == 1 && bundle.diffuse[0].layer_count == 2);
-    CHECK(bundle.impostor_uv.format == PixelFormat::rgba16 && bundle.manifest.cycle.closing == "linear");
+    CHECK(bundle.impostor_uv.format == PixelFormat::rgba16 && bundle.manifest.clips.size() == 1 && bundle.manifest.clips[0].closing == "linear" && bundle.manifest.clips[0].name == "cycle");
     CHECK(bundle.manifest.impostor.center[1] == 0.5f && bundle.manifest.version == "0.1.0+test");
 
     // Manifest: JSON, schema, version.
     {
         MemoryBundle b = tiny_bundle();
-        b.manifest["format_version"] = 2;
+        b.manifest["format_version"] = 3;
         b.manifest.erase("meshes");  // a newer format is named as such before the schema is applied
-        expect(b, ErrorCode::unsupported_format_version, "manifest.json", "format_version 2");
+        expect(b, ErrorCode::unsupported_format_version, "manifest.json", "format_version 3");
     }
     const std::vector<std::pair<std::string, json>> schema_breaks = {
         {"/format", "crowdbake"},

@@ -27,7 +27,7 @@ const char* kValid = R"({
     {"name": "walker", "bundle": "bundles/walker", "share": 2, "play_rate": [0.9, 1.1]},
     {"name": "robot", "published": {"server": "http://127.0.0.1:8000/", "name": "robot", "version": "latest"}, "count": 3},
     {"name": "dancer", "url": "https://cdn.example/bundles/dancer/1.0.0", "share": 1,
-     "clips": [{"clip": "walk", "weight": 3}, {"clip": "idle"}]}
+     "clips": [{"clip": "walk", "weight": 3}, {"clip": "idle"}], "switch_after_s": [2, 6.5]}
   ],
   "layout": {"kind": "paths", "walk_speed": 1.1},
   "camera": {"kind": "look_at", "eye": [0, 2, 30], "target": [0, 1, 0], "fov_deg": 50}
@@ -55,6 +55,9 @@ void test_valid() {
     CHECK(f.archetypes[1].source.url == "http://127.0.0.1:8000/v1/bundles/robot/latest" && f.archetypes[1].count == 3);
     CHECK(f.archetypes[2].source.is_url() && f.archetypes[2].clips.size() == 2 && f.archetypes[2].clips[0].weight == 3 &&
           f.archetypes[2].clips[1].weight == 1);
+    // switch_after_s is optional: unset, crowdview's --switch-after applies.
+    CHECK(!f.archetypes[0].has_switch_after && f.archetypes[2].has_switch_after && f.archetypes[2].switch_after_s[0] == 2 &&
+          f.archetypes[2].switch_after_s[1] == 6.5f);
     CHECK(f.layout.kind == CrowdLayoutKind::paths && f.layout.walk_speed == 1.1f);
     CHECK(f.camera.kind == CrowdCameraKind::look_at && f.camera.eye == glm::vec3(0, 2, 30) && f.camera.fov_deg == 50);
     // 3 fixed, 7 shared 2:1 -> 4.67 and 2.33 -> 5 and 2 by largest remainder.
@@ -120,6 +123,10 @@ void test_errors() {
          "/archetypes/0/play_rate/0", "[0.25, 4]"},
         {R"({"crowd_format_version": 1, "archetypes": [{"name": "a", "bundle": "a", "count": 1, "play_rate": 1}]})",
          "/archetypes/0/play_rate", "array of 2"},
+        {R"({"crowd_format_version": 1, "archetypes": [{"name": "a", "bundle": "a", "count": 1, "switch_after_s": [6, 2]}]})",
+         "/archetypes/0/switch_after_s", "low <= high"},
+        {R"({"crowd_format_version": 1, "archetypes": [{"name": "a", "bundle": "a", "count": 1, "switch_after_s": [-1, 2]}]})",
+         "/archetypes/0/switch_after_s/0", "[0, 86400]"},
         {R"({"crowd_format_version": 1, )" + one + R"(, "layout": {"kind": "spiral"}})", "/layout/kind", "spot, paths"},
         {R"({"crowd_format_version": 1, )" + one + R"(, "layout": {"kind": "spot", "walk_speed": 1}})", "/layout/walk_speed", "unknown key"},
         {R"({"crowd_format_version": 1, )" + one + R"(, "layout": {"kind": "paths", "walk_speed": 0}})", "/layout/walk_speed", "> 0"},

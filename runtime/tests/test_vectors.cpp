@@ -1,4 +1,4 @@
-// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-crop and v1-hostile), which the Python tests read
+// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-crop, v1-hostile and v2), which the Python tests read
 // too: the good bundle decodes to expected.json's values (v1-uv32, v1-uvblock: its UV map's texels too), every
 // bad bundle fails with its expect.json code and file, and every strict prefix of every binary
 // file of the good bundle is `truncated`.
@@ -137,11 +137,17 @@ void test_uvblock_texels(const fs::path& good) {
     CHECK(rgba[0] == uint8_t(first.qu >> 4) && rgba[3] == (first.covered ? 255 : 0));
 }
 
+// v1's future_format_version claims format_version 2, written when 2 was the future: a reader of
+// v2 reads it as a v2 manifest holding v1's cycle and no clips: manifest_invalid (vectors are never
+// edited; v2/bad/future_format_version is the future case now). services/tests/repo_paths.py alike.
+const char* kReadAsV2 = "future_format_version";
+
 void test_bad(const fs::path& bad_root, int min_cases) {
     int cases = 0;
     for (const auto& entry : fs::directory_iterator(bad_root)) {
         if (!entry.is_directory()) continue;
-        const json expect = json::parse(synthetic::read_text((entry.path() / "expect.json").string()));
+        json expect = json::parse(synthetic::read_text((entry.path() / "expect.json").string()));
+        if (bad_root.parent_path().filename() == "v1" && entry.path().filename() == kReadAsV2) expect["error"] = "manifest_invalid";
         Bundle bundle;
         const Status s = load_bundle_dir((entry.path() / "bundle").string(), &bundle);
         const std::string name = entry.path().filename().string();
@@ -150,6 +156,46 @@ void test_bad(const fs::path& bad_root, int min_cases) {
         ++cases;
     }
     CHECK_MSG(cases >= min_cases, "found " + std::to_string(cases) + " bad cases");
+}
+
+// v2 (generate_vectors_v2.py): two clips and two transitions, read as expected.json lists them.
+void test_good_v2(const fs::path& good) {
+    Bundle bundle;
+    const Status s = load_bundle_dir((good / "bundle").string(), &bundle);
+    CHECK_MSG(s.ok(), s.message);
+    if (!s.ok()) return;
+    const json expected = json::parse(synthetic::read_text((good / "expected.json").string()));
+    const Manifest& m = bundle.manifest;
+    CHECK(m.format_version == 2 && m.name == expected["name"] && m.version == expected["version"]);
+    CHECK(m.pose_frames == expected["pose_frames"].get<uint32_t>());
+    CHECK(m.frames_per_second == expected["frames_per_second"].get<double>());
+    CHECK_MSG(m.clips.size() == expected["clips"].size(), "clip count");
+    for (size_t i = 0; i < m.clips.size() && i < expected["clips"].size(); ++i) {
+        const json& e = expected["clips"][i];
+        const ClipInfo& c = m.clips[i];
+        CHECK_MSG(c.name == e["name"] && c.first_frame == e["first_frame"].get<uint32_t>() && c.frames == e["frames"].get<uint32_t>() &&
+                      c.source_start_frame == e["source_start_frame"].get<uint32_t>() &&
+                      c.source_end_frame == e["source_end_frame"].get<uint32_t>() && c.closing == e["closing"] &&
+                      c.position_jump_ratio == e["position_jump_ratio"].get<double>() &&
+                      c.velocity_jump_ratio == e["velocity_jump_ratio"].get<double>(),
+                  "clip " + std::to_string(i));
+    }
+    CHECK_MSG(m.transitions.size() == expected["transitions"].size(), "transition count");
+    for (size_t i = 0; i < m.transitions.size() && i < expected["transitions"].size(); ++i) {
+        const json& e = expected["transitions"][i];
+        const TransitionInfo& t = m.transitions[i];
+        CHECK_MSG(t.from_clip == e["from_clip"].get<uint32_t>() && t.to_clip == e["to_clip"].get<uint32_t>() &&
+                      t.leave_frame == e["leave_frame"].get<uint32_t>() && t.arrive_frame == e["arrive_frame"].get<uint32_t>() &&
+                      t.first_frame == e["first_frame"].get<uint32_t>() && t.frames == e["frames"].get<uint32_t>() &&
+                      t.source_start_frame == e["source_start_frame"].get<uint32_t>() &&
+                      t.source_end_frame == e["source_end_frame"].get<uint32_t>() &&
+                      t.position_jump_ratio == e["position_jump_ratio"].get<double>() &&
+                      t.velocity_jump_ratio == e["velocity_jump_ratio"].get<double>(),
+                  "transition " + std::to_string(i));
+    }
+    check_array(expected["frame_indices"], m.impostor.frame_indices, "frame_indices");
+    for (size_t i = 0; i < m.meshes.size(); ++i)
+        CHECK_MSG(bundle.meshes[i].frame_count == expected["pose_cache_frame_count"][m.meshes[i].file].get<uint32_t>(), m.meshes[i].file);
 }
 
 void test_prefixes(const fs::path& bundle_dir) {
@@ -225,6 +271,14 @@ int main() {
         CHECK(load_bundle_dir((v1 / "good" / "bundle").string(), &bundle).ok());
         const ImpostorInfo& imp = bundle.manifest.impostor;
         CHECK(imp.crop.x == 0 && imp.crop.y == 0 && imp.crop.width == imp.tile_size && imp.crop.height == imp.tile_size);
+    }
+    // Format v2: clips and transitions; every strict prefix of its binaries is truncated too.
+    const fs::path v2 = fs::path(CROWDVIEW_VECTORS_DIR) / "v2";
+    CHECK_MSG(fs::is_directory(v2 / "good"), "no v2 vectors at " + v2.string());
+    if (fs::is_directory(v2 / "good")) {
+        test_good_v2(v2 / "good");
+        test_bad(v2 / "bad", 14);
+        test_prefixes(v2 / "good" / "bundle");
     }
     // Manifests a hostile server could send (generate_vectors_v1_hostile.py): sizes past 2^53 - 1,
     // paths holding control characters.

@@ -68,6 +68,8 @@ def test_the_owners_check_passes_its_own_inputs_and_names_what_differs(published
     cases = {"its character has other bytes": _check(api, "all", other),
              "parameter azimuths was 4, this bake asks for 8": _check(api, "all", character, params=dict(PARAMS, azimuths=8)),
              "its bake had no cloth": _check(api, "all", character, inputs={"character": [hashlib.sha256(character.read_bytes()).hexdigest()], "cloth": ["0" * 64]}),
+             # Regression: the check refused a timeline role (422), and its digest was never compared.
+             "its bake had no timeline": _check(api, "all", character, inputs={"character": [hashlib.sha256(character.read_bytes()).hexdigest()], "timeline": ["1" * 64]}),
              "its manifest time was the default": _check(api, "all", character, created="2006-09-04T12:00:00Z")}
     for reason, response in cases.items():
         assert response.status_code == 409 and reason in response.json()["detail"], (reason, response.text)

@@ -26,6 +26,7 @@ from crowdbake.formats.texel_codecs import (
 )
 from crowdbake.formats.bundle import BundleFile, build_manifest, check_path, verify_bundle, write_bundle
 from crowdbake.formats.errors import FormatError
+from repo_paths import vector_expectation
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 VECTORS = REPO_ROOT / "shared_formats" / "vectors"
@@ -67,7 +68,7 @@ def test_good_vector_decodes_to_the_expected_values():
 
 @pytest.mark.parametrize("case", BAD_CASES)
 def test_bad_vector_is_refused_with_its_code_and_file(case):
-    expect = json.loads((V1 / "bad" / case / "expect.json").read_text())
+    expect = vector_expectation(V1 / "bad" / case)
     with pytest.raises(FormatError) as raised:
         verify_bundle(V1 / "bad" / case / "bundle")
     assert (raised.value.code, raised.value.file) == (expect["error"], expect["file"])

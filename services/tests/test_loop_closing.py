@@ -387,3 +387,43 @@ class TestSmoothPushOut:
         push = np.linalg.norm(pushed - loop, axis=-1).mean(axis=1)
         assert push[6] > 0.005 and np.abs(np.diff(push)).max() < push[6]
         assert ring_radius[6] > 0.1
+
+
+class TestPushOutKeepsTheSimulatorsContact:
+    def test_a_vertex_the_simulation_left_inside_is_not_pushed_by_new(self):
+        """push_out 'new' leaves alone a vertex that sits behind the body's surface in some raw frame of the
+        cycle (cloth resting behind an open shell), but pushes one the closing moved inside from outside."""
+        points, faces = cylinder()
+        frames, cycle, start = 40, 12, 10
+        angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+        radius = np.full((frames, 8), 0.12)
+        radius[start + 3, 0] = 0.08  # vertex 0: inside in one raw frame of the cycle...
+        radius[start - 3:start, 0] = 0.02  # ...and drawn inside by the blend in others
+        radius[start - 3:start, 1] = 0.02  # vertex 1: outside throughout the cycle, deep inside in the blend's lead-in
+        cloth = np.stack([radius * np.sin(angles), np.full((frames, 8), 0.5), radius * np.cos(angles)], -1)
+        body = np.repeat(points[None], frames, 0)
+        closed = lc.close_cycle(cloth, start, cycle, "linear", body=body, body_faces=faces, blend_frames=cycle // 2)
+        raw = lc.looped_frames(lc.close_loop(cloth, start, cycle, "none"))
+        blended = lc.looped_frames(lc.close_loop(cloth, start, cycle, "linear", cycle // 2))
+        looped = np.asarray(closed.looped, dtype=np.float64)
+        assert np.hypot(blended[:, 1, 0], blended[:, 1, 2]).min() < 0.1  # the blend drew vertex 1 inside...
+        assert np.hypot(looped[:, 1, 0], looped[:, 1, 2]).min() > 0.099  # ...and it was pushed back out
+        assert np.hypot(blended[:, 0, 0], blended[:, 0, 2]).min() < 0.1
+        np.testing.assert_allclose(looped[:, 0], blended[:, 0], atol=1e-6)  # vertex 0 stays where the blend put it
+        assert raw[3, 0, 2] < 0.1 * np.cos(angles[0])
+
+    def test_the_neighbours_of_a_pushed_vertex_keep_its_edges_lengths(self):
+        """A push lifts a patch: the pushed vertex stays put, its neighbours within the rings follow so the
+        edges round it get their lengths back; vertices beyond the rings do not move."""
+        row = np.stack([np.arange(10.0), np.zeros(10), np.zeros(10)], -1)[None]  # a line of 10 vertices, 1 apart
+        edges = np.stack([np.arange(9), np.arange(1, 10)], -1)
+        pushed = row.copy()
+        pushed[0, 0, 1] = 0.5  # vertex 0 pushed up by half an edge
+        moved = np.zeros((1, 10), dtype=bool)
+        moved[0, 0] = True
+        carried = lc.carry_push_to_neighbours(row, pushed, moved, edges)
+        lengths = np.linalg.norm(np.diff(carried[0], axis=0), axis=1)
+        np.testing.assert_allclose(carried[0, 0], pushed[0, 0])
+        assert abs(lengths[0] - 1.0) < 0.02 < abs(np.linalg.norm(pushed[0, 1] - pushed[0, 0]) - 1.0)
+        assert carried[0, 1, 1] > 0.05  # the neighbour rose with it
+        np.testing.assert_array_equal(carried[0, lc.PUSH_NEIGHBOUR_RINGS + 1:], row[0, lc.PUSH_NEIGHBOUR_RINGS + 1:])

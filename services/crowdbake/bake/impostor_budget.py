@@ -124,6 +124,29 @@ def fit_budget(extents: FrameExtents, radius: float, tile_size: int, azimuths: i
     return BudgetChoice(a, f, crop, size, budget_bytes is None or size <= budget_bytes, steps)
 
 
+def extents_of(extents: FrameExtents, first: int, frames: int) -> FrameExtents:
+    """The FrameExtents of frames first .. first + frames - 1 (one clip's range of a bundle's pose frames)."""
+    rows = slice(first, first + frames)
+    return FrameExtents(extents.reach[rows], extents.low[rows], extents.high[rows])
+
+
+def fit_budget_per_clip(extents: FrameExtents, radius: float, tile_size: int, azimuths: int, rings: int, frames: int,
+                        clips: list[tuple[int, int]], bytes_per_texel: float, budget_bytes: float | None) -> list[BudgetChoice]:
+    """fit_budget for each clip of a bundle of several (clips: (first pose frame, frames) each): the budget
+    holds per clip, as a runtime holds the maps of the clips its characters play. All clips share one atlas
+    layout, so one azimuth count: the fewest any clip needs; each clip then keeps the frames that fit at it.
+    extents: FrameExtents over every pose frame."""
+    if not clips:
+        raise ValueError("fit_budget_per_clip: no clips")
+    first_pass = [fit_budget(extents_of(extents, first, n), radius, tile_size, azimuths, rings, frames, n, bytes_per_texel, budget_bytes)
+                  for first, n in clips]
+    shared = min(choice.azimuths for choice in first_pass)
+    if shared == azimuths:
+        return first_pass
+    return [fit_budget(extents_of(extents, first, n), radius, tile_size, shared, rings, frames, n, bytes_per_texel, budget_bytes)
+            for first, n in clips]
+
+
 def budget_document(choice: BudgetChoice, params) -> dict:
     """texture_memory.json's account of the budget (params: BakeParams): what was asked, what was chosen,
     and the bytes of every step between, in MiB."""

@@ -211,6 +211,34 @@ def restore_edge_lengths(
     return x
 
 
+# The cloth round a pushed vertex follows the push this many edges out, so a push lifts a patch of cloth
+# instead of stretching the edges of one vertex; pins and the rest of the garment stay where they are.
+PUSH_NEIGHBOUR_RINGS = 3
+
+
+def edge_rings(seed: np.ndarray, edges: np.ndarray, rings: int) -> np.ndarray:
+    """(N, V) bool: vertices within `rings` edges of a True vertex of seed (N, V), frame by frame; edges (E, 2)."""
+    vertex_count = seed.shape[1]
+    adjacency = sparse.csr_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])),
+                                  shape=(vertex_count, vertex_count))
+    reached = np.asarray(seed, dtype=bool)
+    for _ in range(rings):
+        reached = reached | (adjacency @ reached.T.astype(np.float64)).T.astype(bool)
+    return reached
+
+
+def carry_push_to_neighbours(before: np.ndarray, pushed: np.ndarray, moved: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Restore the edge lengths a push-out changed by moving the pushed vertices' neighbours with them.
+
+    before, pushed: (N, V, 3) frames before and after the push; moved: (N, V) bool, the vertices pushed;
+    edges: (E, 2). The pushed vertices stay where the push put them (outside the body); vertices within
+    PUSH_NEIGHBOUR_RINGS edges of them move to give their edges back the lengths they had before the
+    push (restore_edge_lengths); every other vertex stays put. Returns (N, V, 3) float64.
+    """
+    movable = edge_rings(moved, edges, PUSH_NEIGHBOUR_RINGS) & ~moved
+    return restore_edge_lengths(pushed, edges, edge_lengths(before, edges), movable)
+
+
 def close_loop(
     points: np.ndarray,
     start: int,
@@ -387,8 +415,9 @@ def close_cycle(
 
     cloth: (F, V, 3); body: (F, Vb, 3) over the same frames, or None to skip penetration; body_normals:
     (F, Vb, 3) unit outward normals, or None to compute them from body_faces (T, 3) for the cycle's frames.
-    push_out_mode: "new" moves back out only the vertices that penetrate after closing but did not in the
-    raw frame (so an unclosed loop is exactly the simulator's output), "all" every penetrating vertex,
+    push_out_mode: "new" moves back out only the vertices that penetrate after closing and were outside the
+    body in every raw frame of the cycle (so an unclosed loop is exactly the simulator's output), "all"
+    every penetrating vertex,
     "none" nothing; pushes ease in and out over time (smooth_push_out). settings: penetration tolerances,
     default PenetrationSettings.for_body(body).
     cloth_faces: (T, 3) cloth triangles: the crossfade restores edge lengths along their edges, and the
@@ -425,9 +454,15 @@ def close_cycle(
         if push_out_mode == "none":
             pushed_loop, moved = closed[loop], np.zeros_like(mask_closed)
         else:
-            allowed = mask_closed & ~mask_before if push_out_mode == "new" else None
+            # A vertex the simulation itself left behind a body face in some frame of the cycle is where the
+            # solver accepts it: open, single-sided meshes (a robot's 14 shells) hold cloth behind a face
+            # all along, and blending such a vertex between two raw frames is no new penetration. Pushing
+            # it to the face's front would stretch the cloth (1.12-1.40 on robot_clips' loops).
+            allowed = mask_closed & ~mask_before.any(axis=0)[None, :] if push_out_mode == "new" else None
             reach = max(2, round(PUSH_OUT_REACH_FRACTION * cycle_frames))
             pushed_loop, moved = smooth_push_out(closed[loop], frames_of_body, settings, only=allowed, reach=reach)
+            if edges is not None and len(edges) and moved.any():
+                pushed_loop = carry_push_to_neighbours(closed[loop], pushed_loop, moved, edges)
         mask_after = penetration_mask(pushed_loop, frames_of_body, settings) if moved.any() else mask_closed
         final = closed.copy()
         final[loop] = pushed_loop

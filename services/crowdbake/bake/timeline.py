@@ -29,17 +29,37 @@ class Segment:
 
 
 @dataclass(frozen=True)
+class FrameBlends:
+    """What the timeline's per-frame rows say of every cache frame (F of them): `clip` (F,) the newest clip
+    playing, `weight` (F,) float64 its weight in 0..1, `blend_from` (F,) the clip fading out (None outside
+    blends) and `blend_from_frame` (F,) int64 that clip's frame (0 outside blends)."""
+
+    clip: tuple[str, ...]
+    weight: np.ndarray
+    blend_from: tuple[str | None, ...]
+    blend_from_frame: np.ndarray
+
+
+@dataclass(frozen=True)
 class Timeline:
     """Which clip plays at each cache frame.
 
     fps: the cache's frame rate; total_frames: F; segments: in playing order, pure stretches disjoint;
     clip_frame: (F,) int64, the playing clip's frame at each cache frame (the newest clip during a blend).
+    blends: the per-frame rows' NLA blends (FrameBlends) or None (no rows: the newest clip alone plays).
     """
 
     fps: float
     total_frames: int
     segments: tuple[Segment, ...]
     clip_frame: np.ndarray = field(repr=False)
+    blends: FrameBlends | None = field(default=None, repr=False)
+
+    def playing(self, frame: int) -> str:
+        """The clip the timeline plays at cache frame `frame` (the newest during a blend)."""
+        if self.blends is not None:
+            return self.blends.clip[frame]
+        return [s.clip for s in self.segments if s.first_frame <= frame][-1]
 
     def clips(self) -> list[str]:
         """Clip names in order of first appearance."""

@@ -9,7 +9,7 @@ made. Playback goes loop A -> the transition -> loop B:
   whose clip frame is that of loop B's frame `j`;
 - each join is judged like pass 1 of the cycle search (crowdbake.bake.cycle_search): a binomially weighted
   position + velocity distance over all vertices between the loop played on and the simulation, over
-  the join's crossfade window; candidates are the local minima, best first;
+  the join's crossfade window; candidates are the local minima, tried nearest the change of clip first;
 - each join is closed the way a loop's seam is (crowdbake.bake.loop_closing, "crossfade"): over the h
   frames either side of it the played cloth fades from the loop into the simulation (or back) with the
   quintic weight, then edge lengths are restored. So the transition's frames are
@@ -17,7 +17,8 @@ made. Playback goes loop A -> the transition -> loop B:
   b - a + h_A + h_B frames, played after loop A's frame i - h_A - 1 and followed by loop B's frame j + h_B;
 - each join is measured with the loop's quality figures (crowdbake.bake.loop_quality.LoopQuality:
   stretch, deviation in join jumps, acceleration at the join) against the same QUALITY_BOUNDS. The
-  first candidate (best distance first) whose join keeps the bounds is taken, else the best.
+  first candidate (nearest the change first, for the shortest transition) whose join keeps the bounds is
+  taken, else the first.
 
 Pure numpy; no I/O. Penetration into the body is not measured here (no push-out on transitions).
 """
@@ -220,15 +221,31 @@ def _played(loop_a, leave_frame, frames, loop_b, arrive_frame) -> np.ndarray:
                            np.asarray(loop_b[np.arange(arrive_frame, arrive_frame + lb) % lb], np.float64)])
 
 
-def _candidates(loop: ClipLoop, cloth, timeline: Timeline, segment: int, h: int, max_candidates: int, velocity_weight: float):
-    """(cache frames, loop frames, distances) of a join's candidates in a segment's pure frames, best first."""
+# Join candidates are looked for first within this many of the clip's periods of the change of clip.
+NEAR_CHANGE_PERIODS = 2
+
+
+def _candidates(loop: ClipLoop, cloth, timeline: Timeline, segment: int, h: int, max_candidates: int, velocity_weight: float,
+                latest_first: bool):
+    """(cache frames, loop frames, distances) of a join's candidates in a segment's pure frames, in the order
+    they are tried: first the best local minima within NEAR_CHANGE_PERIODS periods of the change of clip,
+    nearest it first (the latest where the transition leaves the segment, latest_first; the earliest where
+    it arrives), then the segment's best elsewhere, best first. The first within the bounds makes the
+    shortest transition: a crowd character asked to walk should not idle on for several Idle periods."""
     seg = timeline.segments[segment]
     frames = np.arange(seg.pure_first_frame + h + 1, seg.pure_last_frame - h)
     if len(frames) == 0:
         raise ValueError(f"segment {segment} ({seg.clip}, pure frames {seg.pure_first_frame}..{seg.pure_last_frame}) "
                          f"is too short for a {h}-frame join either side")
     loop_frames, distances = join_errors(loop.looped, loop.clip_phase, loop.period, cloth, frames, timeline.clip_frame, h, velocity_weight)
-    picked = pick_candidates(frames, distances, (loop.period + 1) // 2, max_candidates)
+    spacing = (loop.period + 1) // 2
+    reach = NEAR_CHANGE_PERIODS * loop.period
+    near = np.flatnonzero(frames >= frames[-1] - reach if latest_first else frames <= frames[0] + reach)
+    picked_near = near[np.asarray(pick_candidates(frames[near], distances[near], spacing, max_candidates), dtype=np.int64)]
+    picked_near = picked_near[np.argsort(-frames[picked_near] if latest_first else frames[picked_near], kind="stable")]
+    # The segment's best elsewhere, best first, where none near the change keeps the bounds.
+    picked_all = np.asarray(pick_candidates(frames, distances, spacing, max_candidates), dtype=np.int64)
+    picked = np.concatenate([picked_near, picked_all[~np.isin(picked_all, picked_near)]])
     return frames[picked], loop_frames[picked], distances[picked]
 
 
@@ -248,14 +265,14 @@ def find_transition(
     cloth: (F, V, 3) the whole cache; cloth_faces: (T, 3) for edge restoration and the stretch ratio (None
     skips both); rest_positions: (V, 3), default the cache's first frame. The joins' half-widths are the
     loops' own crossfade defaults (loop_closing.default_crossfade_frames). Each join takes the first of its
-    candidates (smallest distance first) that keeps QUALITY_BOUNDS, else its best.
+    candidates (nearest the change of clip first, see _candidates) that keeps QUALITY_BOUNDS, else the first.
     """
     to_segment = from_segment + 1
     edges = None if cloth_faces is None else unique_edges(cloth_faces)
     rest_lengths = None if edges is None else edge_lengths(np.asarray(cloth[0] if rest_positions is None else rest_positions, np.float64), edges)
     h_a, h_b = default_crossfade_frames(len(loop_a.looped)), default_crossfade_frames(len(loop_b.looped))
-    leaving = _candidates(loop_a, cloth, timeline, from_segment, h_a, max_candidates, velocity_weight)
-    arriving = _candidates(loop_b, cloth, timeline, to_segment, h_b, max_candidates, velocity_weight)
+    leaving = _candidates(loop_a, cloth, timeline, from_segment, h_a, max_candidates, velocity_weight, latest_first=True)
+    arriving = _candidates(loop_b, cloth, timeline, to_segment, h_b, max_candidates, velocity_weight, latest_first=False)
     la, lb = len(loop_a.looped), len(loop_b.looped)
 
     def build(pick_a: int, pick_b: int):
@@ -307,3 +324,33 @@ def find_transitions(cloth: np.ndarray, cloth_faces: np.ndarray | None, timeline
                         max_candidates, velocity_weight, rest_positions)
         for k, _ in timeline.changes()
     ]
+
+
+def join_jump_ratios(played: np.ndarray, at: int, reference: np.ndarray) -> tuple[float, float]:
+    """A join's seam figures as a loop's (crowdbake.bake.loop_quality.SeamFigures): how far playback at
+    frame `at` is from what the loop on the other side of the join shows there, in position and in
+    velocity, over the median RMS frame-to-frame step of `played`.
+
+    played: (n, V, 3) what playback shows (loop, transition, loop); at: 1 <= at < n - 1, the first frame
+    that differs from the loop (leaving: the transition's first frame; arriving: its last);
+    reference: (3, V, 3) that loop at at - 1, at, at + 1.
+    """
+    played = np.asarray(played, dtype=np.float64)
+    reference = np.asarray(reference, dtype=np.float64)
+    if not 1 <= at < len(played) - 1 or reference.shape != (3, *played.shape[1:]):
+        raise ValueError(f"join_jump_ratios: frame {at} of {len(played)} played, reference {reference.shape}")
+    median_step = float(np.median(_rms(np.diff(played, axis=0))))
+    position = float(_rms(played[at] - reference[1]))
+    velocity = float(_rms(0.5 * (played[at + 1] - played[at - 1]) - 0.5 * (reference[2] - reference[0])))
+    return _ratio(position, median_step), _ratio(velocity, median_step)
+
+
+def transition_jump_ratios(transition: Transition, loop_a: np.ndarray, loop_b: np.ndarray) -> tuple[float, float]:
+    """(position, velocity) jump ratios of a transition, each the worse of its two joins (join_jump_ratios):
+    leaving, its first frame against loop A going on; arriving, its last frame against loop B's frame before
+    arrive_loop_frame. loop_a, loop_b: (L, V, 3) the loops it joins."""
+    la, lb = len(loop_a), len(loop_b)
+    played = _played(loop_a, transition.leave_loop_frame, np.asarray(transition.frames, np.float64), loop_b, transition.arrive_loop_frame)
+    leave = join_jump_ratios(played, la, np.asarray(loop_a[(transition.leave_loop_frame + np.arange(-1, 2)) % la]))
+    arrive = join_jump_ratios(played, la + len(transition.frames) - 1, np.asarray(loop_b[(transition.arrive_loop_frame + np.arange(-2, 1)) % lb]))
+    return max(leave[0], arrive[0]), max(leave[1], arrive[1])

@@ -37,7 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the garment's rest mesh (OBJ, cache point order); .pc2 and .mdd need it")
     parser.add_argument("--cycle", metavar="cycle.json", help="use this cycle (from `crowdbake cycle`) instead of searching")
     parser.add_argument("--timeline", metavar="timeline.json", help="the cloth cache plays several clips (docs/inputs.md, clip timeline): "
-                        "a loop per clip and the transitions between them in cycle.json; the bundle carries --animation's loop (default: the timeline's first clip)")
+                        "a loop per clip and the transitions between them; with several clips the bundle (format 2) carries them all")
     parser.add_argument("--textures", metavar="DIR", help="diffuse_*.png or diffuse_*.jpg variations (region codes in alpha: PNG only) and outfits.png (default: the glTF texture)")
     parser.add_argument("--name", required=True, help="bundle name ([a-z0-9][a-z0-9._-]*)")
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VER", help="bundle version")
@@ -141,8 +141,16 @@ def format_summary(summary) -> str:
             + f") for {held['frames']} frames x {held['views']} views of {crop['width']}x{crop['height']} texels"
             + (f" (the character's crop of {held['tile_size']}²)" if (crop["width"], crop["height"]) != (held["tile_size"],) * 2 else "")
         )
+        for entry in held.get("ranges", []):  # several clips (format v2): each loop and transition
+            lines.append(f"{entry['kind']:<8} {entry['name']}: pose frames {entry['pose_frames'][0]}-{entry['pose_frames'][1] - 1}, "
+                         f"{len(entry['baked_frames'])} baked ({entry['stored_mib']:.2f} MiB)")
         budget = held.get("budget")
-        if budget and budget["chosen"] != budget["asked"]:
+        for clip, chosen in (budget or {}).get("per_clip", {}).items():
+            if chosen["chosen"] != chosen["asked"]:
+                lines.append(f"memory   the {chosen['budget_mib']:g} MiB budget chose {chosen['chosen']['azimuths']} azimuths and "
+                             f"{chosen['chosen']['frames']} frames for {clip} (asked {chosen['asked']['azimuths']} and {chosen['asked']['frames']})"
+                             + ("" if chosen["fits"] else "; still over it at the floors"))
+        if budget and "per_clip" not in budget and budget["chosen"] != budget["asked"]:
             lines.append(f"memory   the {budget['budget_mib']:g} MiB budget chose {budget['chosen']['azimuths']} azimuths and "
                          f"{budget['chosen']['frames']} frames (asked {budget['asked']['azimuths']} and {budget['asked']['frames']})"
                          + ("" if budget["fits"] else "; still over it at the floors"))

@@ -238,7 +238,7 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
                 GlbPart(mesh["part"], mesh["kind"], mesh["material"], cache.positions, cache.normals, cache.uvs, vat_texcoords(layout), cache.indices, extras)
             )
             part_entries.append({k: extras[k] for k in ("part", "kind", "material")} | {"vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat})
-        root_extras = {"crowdbake": {"export": "export.json", "lod": lod, "frames_per_second": fps, "frame_count": manifest["cycle"]["frames"]}}
+        root_extras = {"crowdbake": {"export": "export.json", "lod": lod, "frames_per_second": fps, "frame_count": bundle.ranges.pose_frames}}
         path = out.write(f"character_lod{lod}.glb", build_glb(parts, glb_materials, variants, fps, root_extras))
         lods.append({"lod": lod, "glb": path, "parts": part_entries})
     return lods
@@ -287,7 +287,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
             "ktx2": ktx2_mode,
             "bundle": {"name": manifest["name"], "version": manifest["version"]},
             "frames_per_second": manifest["frames_per_second"],
-            "frame_count": manifest["cycle"]["frames"],
+            "frame_count": bundle.ranges.pose_frames,
             "lods": lods,
             "materials": materials,
             "outfits": outfits,

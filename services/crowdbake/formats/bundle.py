@@ -27,9 +27,12 @@ from crowdbake.formats.binary import (
     decode_texture_array,
 )
 from crowdbake.formats.errors import FormatError, printable
+from crowdbake.formats.ranges import Ranges, check_impostor_frames, read_ranges
 
 FORMAT_NAME = "crowdbake-bundle"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 1  # what a bundle of one clip is written as (nothing changed for it)
+CLIPS_FORMAT_VERSION = 2  # several clips and the transitions between them
+READ_FORMAT_VERSIONS = (1, 2)
 SCHEMA_PATH = Path(__file__).resolve().parents[3] / "shared_formats" / "manifest.schema.json"
 _PATH_RULE = re.compile(r"^[A-Za-z0-9._-]+(/[A-Za-z0-9._-]+)*$")
 MAX_PATH_LENGTH = 200
@@ -87,8 +90,9 @@ def utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
-def build_manifest(name: str, version: str, sections: dict[str, Any], files: list[BundleFile], created: str | None = None) -> dict[str, Any]:
-    """The manifest dict: identity, the caller's sections (cycle, meshes, ...), and the files list."""
+def build_manifest(name: str, version: str, sections: dict[str, Any], files: list[BundleFile], created: str | None = None,
+                   format_version: int = FORMAT_VERSION) -> dict[str, Any]:
+    """The manifest dict: identity, the caller's sections (cycle or clips, meshes, ...), and the files list."""
     for bundle_file in files:
         check_path(bundle_file.path)
     paths = [bundle_file.path for bundle_file in files]
@@ -96,7 +100,7 @@ def build_manifest(name: str, version: str, sections: dict[str, Any], files: lis
         raise ValueError("a bundle lists each path once")
     manifest = {
         "format": FORMAT_NAME,
-        "format_version": FORMAT_VERSION,
+        "format_version": format_version,
         "name": name,
         "version": version,
         "created": created or utc_now(),
@@ -166,28 +170,35 @@ def _validator():
     return jsonschema.Draft202012Validator(schema)
 
 
-def validate_manifest(manifest: Any) -> None:
-    """Raise FormatError unless `manifest` is a format-1 manifest valid against the JSON Schema."""
+def validate_manifest(manifest: Any) -> Ranges:
+    """Raise FormatError unless `manifest` is a format-1 or format-2 manifest valid against the JSON Schema
+    whose clips and transitions tile its pose frames; return those ranges (v1: one clip `cycle`)."""
     if not isinstance(manifest, dict):
         raise FormatError("manifest_invalid", "the manifest is not a JSON object", "manifest.json")
     version = manifest.get("format_version")
-    if isinstance(version, int) and version > FORMAT_VERSION:
+    if isinstance(version, int) and not isinstance(version, bool) and version > READ_FORMAT_VERSIONS[-1]:
         raise FormatError(
-            "unsupported_format_version", f"format_version {version}, this reader supports {FORMAT_VERSION}", "manifest.json"
+            "unsupported_format_version", f"format_version {version}, this reader supports {READ_FORMAT_VERSIONS[0]} to "
+            f"{READ_FORMAT_VERSIONS[-1]}", "manifest.json"
         )
+    if version == 2 and "cycle" in manifest:  # the schema's `"cycle": false` would say only "False schema does not allow"
+        raise FormatError("manifest_invalid", "at cycle: a format_version 2 manifest holds clips and transitions, not v1's cycle",
+                          "manifest.json")
     errors = sorted(_validator().iter_errors(manifest), key=lambda e: list(e.absolute_path))
     if errors:
         first = errors[0]
         where = "/".join(str(part) for part in first.absolute_path) or "(top level)"
         raise FormatError("manifest_invalid", f"at {where}: {first.message}", "manifest.json")
+    return read_ranges(manifest)
 
 
 @dataclass
 class Bundle:
-    """A verified bundle: its manifest and decoded binaries by path."""
+    """A verified bundle: its manifest, its clips and transitions (v1: one clip `cycle`) and decoded binaries by path."""
 
     root: Path
     manifest: dict[str, Any]
+    ranges: Ranges
     pose_caches: dict[str, PoseCache] = field(default_factory=dict)
     textures: dict[str, TextureArray] = field(default_factory=dict)
 
@@ -201,7 +212,7 @@ def verify_bundle(root: Path) -> Bundle:
         raise FormatError("manifest_invalid", "no manifest.json in the bundle folder", "manifest.json") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise FormatError("manifest_invalid", f"not JSON: {error}", "manifest.json") from None
-    validate_manifest(manifest)
+    ranges = validate_manifest(manifest)
 
     contents: dict[str, bytes] = {}
     entries: dict[str, dict[str, Any]] = {}
@@ -222,7 +233,7 @@ def verify_bundle(root: Path) -> Bundle:
             raise FormatError("sha256_mismatch", "bytes differ from the manifest's sha256", path)
         contents[path] = data
 
-    bundle = Bundle(root, manifest)
+    bundle = Bundle(root, manifest, ranges)
     for path, entry in entries.items():
         if entry["role"] == "pose-cache":
             bundle.pose_caches[path] = decode_pose_cache(contents[path], path)
@@ -240,7 +251,7 @@ def _require(condition: bool, message: str, path: str) -> None:
 def _cross_check(bundle: Bundle) -> None:
     """SPEC.md's cross-checks: every reference resolves and every size agrees."""
     manifest = bundle.manifest
-    frames = manifest["cycle"]["frames"]
+    frames = bundle.ranges.pose_frames
 
     def texture(path: str) -> TextureArray:
         _require(path in bundle.textures, "referenced but not listed as a texture", path)
@@ -252,7 +263,7 @@ def _cross_check(bundle: Bundle) -> None:
         cache = bundle.pose_caches[path]
         _require(cache.vertex_count == mesh["vertex_count"], f"{cache.vertex_count} vertices, manifest says {mesh['vertex_count']}", path)
         _require(cache.triangle_count == mesh["triangle_count"], f"{cache.triangle_count} triangles, manifest says {mesh['triangle_count']}", path)
-        _require(cache.frame_count == frames, f"{cache.frame_count} frames, cycle has {frames}", path)
+        _require(cache.frame_count == frames, f"{cache.frame_count} frames, the bundle has {frames} pose frames", path)
         _require(mesh["material"] < len(manifest["materials"]), f"material {mesh['material']} does not exist", path)
     for material in manifest["materials"]:
         diffuse = texture(material["diffuse"])
@@ -274,6 +285,7 @@ def _cross_check(bundle: Bundle) -> None:
     height = cell_height * len(impostor["elevations_deg"])
     _require(all(0 <= f < frames for f in impostor["frame_indices"]), "frame_indices outside the cycle", "manifest.json")
     _require(impostor["frame_indices"] == sorted(set(impostor["frame_indices"])), "frame_indices must ascend", "manifest.json")
+    check_impostor_frames(bundle.ranges, impostor["frame_indices"])
     for kind, path in impostor["maps"].items():
         atlas = texture(path)
         _require(

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.bake.timeline import Segment, Timeline
+from crowdbake.bake.timeline import FrameBlends, Segment, Timeline
 from crowdbake.errors import InputError
 from crowdbake.params import MIN_CYCLE_FRAMES, fps_problem
 
@@ -74,6 +74,28 @@ def _segment(entry: Any, k: int, total: int, name: str) -> Segment:
     if not isinstance(period, int) or isinstance(period, bool) or period < MIN_CYCLE_FRAMES:
         raise _refuse(name, f"{pointer}/clip_frames", f"must be an integer of at least {MIN_CYCLE_FRAMES} (the clip's frames), got {_shown(period)}")
     return Segment(clip, first, last, pure_first, pure_last, period)
+
+
+def _blends_from_rows(rows: list, periods: dict[str, int], name: str) -> FrameBlends:
+    """The rows' blends (weight, blend_from, blend_from_frame), checked: a weight in 0..1 (default 1), a
+    clip fading out that the segments name, its frame within its period."""
+    weight = np.ones(len(rows))
+    blend_from: list[str | None] = [None] * len(rows)
+    blend_from_frame = np.zeros(len(rows), dtype=np.int64)
+    for f, row in enumerate(rows):
+        value = row.get("weight", 1.0)
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0.0 <= value <= 1.0:
+            raise _refuse(name, f"/frames/{f}/weight", f"must be a number in 0..1, got {_shown(value)}")
+        weight[f] = float(value)
+        if row.get("blend_from") is None:
+            if value < 1.0:
+                raise _refuse(name, f"/frames/{f}/blend_from", f"must name the clip fading out: the weight is {value:g}")
+            continue
+        if row["blend_from"] not in periods:
+            raise _refuse(name, f"/frames/{f}/blend_from", f"must be a clip of the segments ({', '.join(periods)}), got {_shown(row['blend_from'])}")
+        blend_from[f] = row["blend_from"]
+        blend_from_frame[f] = _integer(row, "blend_from_frame", f"/frames/{f}/blend_from_frame", name, 0, periods[row["blend_from"]] - 1)
+    return FrameBlends(tuple(row["clip"] for row in rows), weight, tuple(blend_from), blend_from_frame)
 
 
 def _clip_frames_from_rows(rows: Any, segments: list[Segment], total: int, name: str) -> np.ndarray:
@@ -130,14 +152,16 @@ def timeline_fields(document: Any, name: str = "timeline.json") -> Timeline:
                           f"{s.pure_first_frame} overlaps segment {k - 1}'s pure frames (to {segments[k - 1].pure_last_frame}): only blends may overlap")
         if periods.setdefault(s.clip, s.clip_frames) != s.clip_frames:
             raise _refuse(name, f"/segments/{k}/clip_frames", f"{s.clip!r} has {periods[s.clip]} frames in an earlier segment, here {s.clip_frames}")
+    blends = None
     if document.get("frames") is not None:
         clip_frame = _clip_frames_from_rows(document["frames"], segments, total, name)
+        blends = _blends_from_rows(document["frames"], periods, name)
     else:
         clip_frame = np.zeros(total, dtype=np.int64)
         for s in segments:
             span = np.arange(s.first_frame, s.last_frame + 1)
             clip_frame[span] = (span - s.first_frame) % s.clip_frames
-    return Timeline(float(fps), total, tuple(segments), clip_frame)
+    return Timeline(float(fps), total, tuple(segments), clip_frame, blends)
 
 
 def read_timeline(path: Path, name: str | None = None) -> Timeline:

@@ -26,7 +26,10 @@ import numpy as np
 from crowdbake.bake.clips import ClipLoop, find_clip_loops
 from crowdbake.bake.timeline import Timeline
 from crowdbake.bake.cycle import CycleParams, CycleResult, _float, _quality_dict
-from crowdbake.bake.transitions import Join, Transition, find_transitions
+from crowdbake.bake.pose_ranges import first_frames
+from crowdbake.bake.transitions import Join, Transition, find_transitions, transition_jump_ratios
+from crowdbake.formats.ranges import Clip, Ranges
+from crowdbake.formats.ranges import Transition as BundleTransition
 
 logger = logging.getLogger(__name__)
 
@@ -111,6 +114,39 @@ def pose_clips_body(character_path, timeline: Timeline) -> tuple[np.ndarray, np.
     return positions, normals, faces
 
 
+POSE_FRAMES_FILE = "pose_frames.pc2"
+
+
+def bundle_ranges(loops: list[ClipLoop], transitions: list[Transition]) -> Ranges:
+    """The bundle's clips and transitions (format v2) as pose-frame ranges: the loops in order, then the
+    transitions, each after the one before. A transition's leave_frame is the loop frame played before it
+    (its leave_loop_frame - 1), its arrive_frame the loop frame after it; its jump ratios the worse join's."""
+    index = {loop.clip: k for k, loop in enumerate(loops)}
+    counts = [len(loop.looped) for loop in loops] + [len(t.frames) for t in transitions]
+    firsts = first_frames(counts)
+    clips = []
+    for loop, first in zip(loops, firsts):
+        seam = loop.result.closing.seam_after
+        clips.append(Clip(name=loop.clip, first_frame=first, frames=len(loop.looped), source_start_frame=loop.start_frame,
+                          source_end_frame=loop.end_frame, closing=loop.result.closing.method,
+                          position_jump_ratio=_seam_number(seam.position_jump_ratio), velocity_jump_ratio=_seam_number(seam.velocity_jump_ratio)))
+    moves = []
+    for transition, first in zip(transitions, firsts[len(loops):]):
+        loop_a, loop_b = loops[index[transition.from_clip]].looped, loops[index[transition.to_clip]].looped
+        position, velocity = transition_jump_ratios(transition, loop_a, loop_b)
+        moves.append(BundleTransition(
+            from_clip=index[transition.from_clip], to_clip=index[transition.to_clip],
+            leave_frame=(transition.leave_loop_frame - 1) % len(loop_a), arrive_frame=transition.arrive_loop_frame,
+            first_frame=first, frames=len(transition.frames), source_start_frame=transition.source_frames[0],
+            source_end_frame=transition.source_frames[1], position_jump_ratio=_seam_number(position), velocity_jump_ratio=_seam_number(velocity)))
+    return Ranges(sum(counts), tuple(clips), tuple(moves))
+
+
+def _seam_number(value: float) -> float:
+    """A seam ratio for the manifest: >= 0 and finite (an undefined ratio, for still cloth, is 0)."""
+    return float(value) if np.isfinite(value) and value >= 0 else 0.0
+
+
 def run_clips_job(cloth: np.ndarray, cloth_faces: np.ndarray, timeline: Timeline, out_dir: Path,
                   params: CycleParams = CycleParams(), animation: int | str | None = None, render_views=None,
                   body: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, progress=None, sample_rate: float = 1.0,
@@ -147,6 +183,27 @@ def run_clips_job(cloth: np.ndarray, cloth_faces: np.ndarray, timeline: Timeline
     main = next(loop for loop in loops if loop.clip == primary)
     sections = {"primary_clip": primary, "clip_phase": main.clip_phase, "timeline": timeline_dict(timeline),
                 "clips": clip_entries, "transitions": transition_entries}
+    travelling = [loop.clip for loop in loops if loop.result.root_offsets is not None]
+    if len(loops) > 1 and travelling:
+        # Its loop is in the root's frame, the transitions and the body are not: no bundle can hold both
+        # (crowdbake.stages.cycle.stage_cycle refuses the bake; `crowdbake cycle` still writes the loops).
+        sections["bundle_refused"] = (f"clip {travelling[0]!r} travels (its loop was searched in the root's frame): a bundle of "
+                                      "several clips needs clips that play in place")
+    elif len(loops) > 1:  # a bundle of several clips (format v2): every loop and transition in one pose cache
+        ranges = bundle_ranges(loops, transitions)
+        for entry, item in zip([*clip_entries, *transition_entries], ranges.all()):
+            entry["pose_frames"] = [item.first_frame, item.first_frame + item.frames]
+        write_pc2(out / POSE_FRAMES_FILE, np.concatenate([loop.looped for loop in loops] + [t.frames for t in transitions]),
+                  start_frame=0.0, sample_rate=sample_rate)
+        sections["bundle_ranges"] = {
+            "pose_frames": ranges.pose_frames,
+            "clips": [clip.to_manifest() for clip in ranges.clips],
+            "transitions": [transition.to_manifest() for transition in ranges.transitions],
+            # What the poses stage poses the body with: loop frame k of clip c shows clip frame (phase + k) mod period;
+            # a transition's frames are the cache frames [source_start_frame, source_end_frame) of the timeline.
+            "clip_phases": [loop.clip_phase for loop in loops],
+            "file": POSE_FRAMES_FILE,
+        }
     return main.cache_result(timeline.total_frames), loops, transitions, sections
 
 
@@ -163,26 +220,36 @@ def clips_report_html(document: dict) -> str:
         return cells + f"<td>{html.escape(verdict)}</td>"
 
     head = "<th>stretch</th><th>deviation</th><th>seam acc.</th><th>bounds</th>"
+
+    def pose_frames(entry: dict) -> str:  # the bundle's pose frames [first, end) of a range (several clips only)
+        span = entry.get("pose_frames")
+        return "<td>–</td>" if span is None else f"<td>{span[0]}–{span[1] - 1}</td>"
+
     loops = "".join(
         f"<tr><td>{html.escape(c['clip'])}</td><td>{c['period']}</td><td>{c['start_frame']}–{c['end_frame']}</td>"
-        f"<td>{c['segment']}</td>{figures(c['closing'].get('quality'))}</tr>"
+        f"{pose_frames(c)}<td>{c['segment']}</td>{figures(c['closing'].get('quality'))}</tr>"
         for c in document["clips"]
     )
     moves = "".join(
         f"<tr><td>{html.escape(t['from_clip'])} → {html.escape(t['to_clip'])}</td><td>{t['leave_loop_frame']}</td>"
         f"<td>{t['arrive_loop_frame']}</td><td>{t['frames']}</td><td>{t['source_frames'][0]}–{t['source_frames'][1]}</td>"
-        f"<td>leave</td>{figures(t['leave']['quality'])}</tr>"
-        f"<tr><td></td><td></td><td></td><td></td><td></td><td>arrive</td>{figures(t['arrive']['quality'])}</tr>"
+        f"{pose_frames(t)}<td>leave</td>{figures(t['leave']['quality'])}</tr>"
+        f"<tr><td></td><td></td><td></td><td></td><td></td><td></td><td>arrive</td>{figures(t['arrive']['quality'])}</tr>"
         for t in document["transitions"]
     )
     bounds = document["clips"][0]["closing"].get("quality") or {}
+    if "bundle_ranges" in document:
+        carried = (f"The bundle carries every loop and transition: {document['bundle_ranges']['pose_frames']} pose frames, "
+                   "each range's shown below (format v2).")
+    else:
+        carried = f"The bundle carries {html.escape(document.get('primary_clip', ''))}."
     limits = ", ".join(f"{name.replace('_', ' ')} ≤ {value:g}" for name, value in (bounds.get("bounds") or {}).items())
     return (
-        f"<h2>Clips: a loop each</h2><p>The bundle carries {html.escape(document.get('primary_clip', ''))}. Bounds: {html.escape(limits)}.</p>"
-        f"<table><thead><tr><th>clip</th><th>period</th><th>cache frames</th><th>segment</th>{head}</tr></thead><tbody>{loops}</tbody></table>"
+        f"<h2>Clips: a loop each</h2><p>{carried} Bounds: {html.escape(limits)}.</p>"
+        f"<table><thead><tr><th>clip</th><th>period</th><th>cache frames</th><th>pose frames</th><th>segment</th>{head}</tr></thead><tbody>{loops}</tbody></table>"
         "<h2>Transitions taken from the simulation</h2><p>Playback leaves loop A before its frame <i>leave</i>, plays the "
         "transition's frames, and goes on with loop B's frame <i>arrive</i>; each join is crossfaded like a loop's seam.</p>"
-        f"<table><thead><tr><th>change</th><th>leave</th><th>arrive</th><th>frames</th><th>cache frames</th><th>join</th>{head}</tr></thead>"
+        f"<table><thead><tr><th>change</th><th>leave</th><th>arrive</th><th>frames</th><th>cache frames</th><th>pose frames</th><th>join</th>{head}</tr></thead>"
         f"<tbody>{moves}</tbody></table>"
     )
 

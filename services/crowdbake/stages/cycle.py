@@ -312,6 +312,7 @@ def bundle_cycle_document(document: dict) -> dict:
     cleaned.pop("files", None)
     if isinstance(cleaned.get("input"), dict):
         cleaned["input"].pop("sources", None)
+    cleaned.pop("bundle_ranges", None)  # several clips: the manifest's clips and transitions say it
     for entry in [*cleaned.get("clips", []), *cleaned.get("transitions", [])]:  # several clips: work files, not the bundle's
         entry.pop("file", None)
         entry.pop("timings_s", None)
@@ -388,7 +389,8 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
     started = time.perf_counter()
     folder = WorkDir(work)
     job = load_job(work)
-    key = stage_key("cycle", folder.key_of("validate"))
+    # A timeline's cycle stage also lays out the bundle's ranges (CycleRecord.ranges): stamps without them are stale.
+    key = stage_key("cycle", folder.key_of("validate"), *(["bundle-ranges"] if "timeline" in job.inputs else []))
     out = folder.root / "cycle"
     cycle_json, looped = out / "cycle.json", out / "looped.pc2"
     body_only = "cloth" not in job.inputs  # crowdbake.stages.body_only: the animation's own loop, no looped cloth
@@ -405,6 +407,8 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
     else:
         document = _searched_cycle(job, folder.inputs, out, progress, plots)
 
+    if document.get("bundle_refused"):
+        raise InputError(f"timeline: {document['bundle_refused']}", "timeline")
     seam = document.get("seam") or {}
     record = CycleRecord(
         start_frame=int(document["start_frame"]),
@@ -417,6 +421,7 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
         root_motion_removed=bool((document.get("root_motion") or {}).get("removed", False)),
         source=document.get("source") or ("given" if "cycle" in job.inputs else "search"),
         clip_phase=document.get("clip_phase"),
+        ranges=document.get("bundle_ranges"),
     )
     seconds = time.perf_counter() - started
     folder.save("cycle", key, record, seconds)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from crowdbake.bake import compression, impostor_views, surface_maps
+from crowdbake.bake import compression, impostor_views, pose_ranges, surface_maps
 from crowdbake.formats.binary import read_pose_frame
 from crowdbake.formats.gltf import load_character
 from crowdbake.render.impostor import shared_renderer
@@ -105,11 +105,21 @@ def stage_impostor_plan(work: Path, progress: Progress | None = None) -> StageOu
     arrays["outfit_row"] = outfits[0]
     write_bytes_atomic(scene_path, npz_bytes(arrays))
     record = ImpostorPlan(bounds=bounds, layout=layout.to_manifest(), frame_indices=frame_indices,
-                          fidelity_frame=frame_indices[0], material_count=len(materials))
+                          fidelity_frame=frame_indices[0], material_count=len(materials), ranges=cycle.ranges)
     seconds = time.perf_counter() - started
     folder.save("impostor", key, record, seconds)
     report(progress, "impostor-plan", 1, 1)
     return StageOutcome(record, False, seconds)
+
+
+def next_baked_frame(record: ImpostorPlan | PosesRecord, frame: int) -> int:
+    """The baked frame the surface map's motion at `frame` leads to: the next around the cycle, or with
+    several clips the next in the same range (crowdbake.bake.pose_ranges.next_baked_frame: a transition's
+    last leads to itself, zero motion)."""
+    ranges = record.bundle_ranges()
+    if ranges is None:
+        return surface_maps.next_baked_frame(frame, record.frame_indices)
+    return pose_ranges.next_baked_frame(ranges, frame, record.frame_indices)
 
 
 def impostor_tasks(work: Path) -> list[ImpostorTask]:
@@ -303,7 +313,7 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
         raise ValueError(f"impostor task frame {task.frame} is not one of the baked frames {plan.frame_indices}")
     scene = load_scene(work, plan, task.frame, runtime_textures=task.references)
     with np.load(work / "impostor" / SCENE_FILE) as data:
-        next_positions = data[f"positions_{surface_maps.next_baked_frame(task.frame, plan.frame_indices)}"].astype(np.float64)
+        next_positions = data[f"positions_{next_baked_frame(plan, task.frame)}"].astype(np.float64)
     timings = {"render": 0.0, "maps": 0.0, "references": 0.0}
     arrays = render_task(scene, plan, task, timings, next_positions)
     write_bytes_atomic(path, npz_bytes(arrays))

@@ -12,16 +12,16 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.bake import compression, map_codecs, texture_memory
+from crowdbake.bake import compression, map_codecs, pose_ranges, texture_memory
 from crowdbake.bake.atlas import AtlasLayout, assemble
 from crowdbake.bake.impostor_budget import DETAIL_FORMATS, map_formats
 from crowdbake.errors import StageOrderError
 from crowdbake.export import textures as export_textures
 from crowdbake.formats.binary import TextureArray, encode_texture_array, layer_size
-from crowdbake.formats.bundle import BundleFile, build_manifest, verify_bundle, write_bundle
+from crowdbake.formats.bundle import CLIPS_FORMAT_VERSION, FORMAT_VERSION, BundleFile, build_manifest, verify_bundle, write_bundle
 from crowdbake.stages.cycle import bundle_cycle_document
 from crowdbake.stages.fidelity import score_fidelity
-from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_plan, load_poses, part_path, part_record
+from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_plan, load_poses, next_baked_frame, part_path, part_record
 from crowdbake.stages.poses import DIFFUSE_ERRORS
 from crowdbake.stages.runtime_fidelity import RUNTIME_PICTURES, score_runtime
 from crowdbake.stages.records import CycleRecord, ImpostorPlan, ImpostorTask, MaterialInfo, PackRecord, PosesRecord
@@ -235,9 +235,7 @@ SCORES_FILE = "scores.json"
 
 def score_frames(record: PosesRecord | ImpostorPlan) -> list[int]:
     """The baked frames the scores read: the fidelity frame and the next one (runtime between_views is halfway to it)."""
-    from crowdbake.bake.surface_maps import next_baked_frame
-
-    return sorted({record.fidelity_frame, next_baked_frame(record.fidelity_frame, record.frame_indices)})
+    return sorted({record.fidelity_frame, next_baked_frame(record, record.fidelity_frame)})
 
 
 def stage_pack_scores(work: Path) -> Path:
@@ -332,6 +330,12 @@ def _texture_memory(poses: PosesRecord, layout: AtlasLayout, formats: dict[str, 
     report["impostor"] = {"stored_bytes": stored, "stored_mib": sum(stored.values()) / texture_memory.MIB, "frames": frames,
                           "views": len(layout.views), "tile_size": layout.tile_size, "crop": layout.crop_box_manifest(),
                           "budget": poses.budget}
+    ranges = poses.bundle_ranges()
+    if ranges is not None:
+        # Several clips: the budget holds per clip (a runtime holds the layers of the clips its characters play).
+        per_layer = sum(stored.values()) / frames
+        report["impostor"]["ranges"] = [{**entry, "stored_mib": per_layer * len(entry["baked_frames"]) / texture_memory.MIB}
+                                        for entry in pose_ranges.frames_per_range(ranges, poses.frame_indices)]
     return report
 
 
@@ -388,15 +392,20 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
     cycle_document = bundle_cycle_document(read_json(folder.root / "cycle" / "cycle.json"))
     files.append(BundleFile("cycle.json", json_bytes(cycle_document), "cycle"))
 
+    ranges = cycle.bundle_ranges()
+    timing = {"cycle": _cycle_section(cycle)} if ranges is None else {
+        "pose_frames": ranges.pose_frames, "clips": [clip.to_manifest() for clip in ranges.clips],
+        "transitions": [transition.to_manifest() for transition in ranges.transitions]}
     sections = {
         "frames_per_second": poses.frames_per_second,
-        "cycle": _cycle_section(cycle),
+        **timing,
         "materials": material_entries,
         "outfits": {"file": "textures/outfits.cbtx", "count": outfit_count, "regions": 16},
         "meshes": meshes,
         "impostor": {**layout.to_manifest(), "frame_indices": poses.frame_indices, "bounds": poses.bounds, "maps": maps},
     }
-    manifest = build_manifest(job.name, job.version, sections, files, created=job.created)
+    manifest = build_manifest(job.name, job.version, sections, files, created=job.created,
+                              format_version=FORMAT_VERSION if ranges is None else CLIPS_FORMAT_VERSION)
     if bundle_dir.exists():
         shutil.rmtree(bundle_dir)
     write_bundle(bundle_dir, manifest, files)

@@ -15,9 +15,11 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from crowdbake.bake import compression, lod, poses
+from crowdbake.bake import compression, lod, pose_ranges, poses
 from crowdbake.bake.atlas import AtlasLayout
-from crowdbake.bake.impostor_budget import BudgetChoice, budget_document, bytes_per_texel, fit_budget, frame_extents, map_formats
+from crowdbake.bake.impostor_budget import (
+    budget_document, bytes_per_texel, crop_for, fit_budget, fit_budget_per_clip, frame_extents, map_formats,
+)
 from crowdbake.bake.texture_memory import MIB
 from crowdbake.bake.cycle import estimate_root_offsets
 from crowdbake.bake.skinning import pose_character
@@ -27,6 +29,7 @@ from crowdbake.formats.gltf import load_character
 from crowdbake.formats.images import read_texture_variation
 from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2
+from crowdbake.formats.ranges import Ranges
 from crowdbake.stages.records import CycleRecord, JobRecord, MaterialInfo, PosePart, PosesRecord, TexturesRecord
 from crowdbake.stages.validate import load_job, texture_files
 from crowdbake.stages.workdir import (
@@ -124,10 +127,14 @@ def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> 
     The impostor plan (crowdbake.stages.impostors.stage_impostor_plan) draws the same arrays, so both
     stages run side by side from the cycle's output and agree to the bit."""
     inputs, names = work.inputs, job.inputs
-    fps, start, frames = cycle.fps, cycle.start_frame, cycle.cycle_frames
-    # With several clips the loop's first frame is at its clip frame, not at start_frame / fps.
-    body_positions, body_normals = pose_body_cycle(character, fps, start if cycle.clip_phase is None else cycle.clip_phase, frames)
-    if cycle.root_motion_removed:
+    fps, start, frames = cycle.fps, cycle.start_frame, cycle.pose_frames
+    looped_file = "looped.pc2" if cycle.ranges is None else cycle.ranges["file"]
+    if cycle.ranges is not None:  # several clips: every loop, then every transition
+        body_positions, body_normals = ranges_body(inputs / names["character"], inputs / names["timeline"], cycle)
+    else:
+        # With several clips the loop's first frame is at its clip frame, not at start_frame / fps.
+        body_positions, body_normals = pose_body_cycle(character, fps, start if cycle.clip_phase is None else cycle.clip_phase, frames)
+    if cycle.root_motion_removed and cycle.ranges is None:
         # The cycle search worked in the root's frame (the character travels): follow it for the body.
         everything, _ = pose_body_cycle(character, fps, 0, job.cache_frames)
         offsets = estimate_root_offsets(everything)[start : start + frames]
@@ -142,9 +149,9 @@ def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> 
     if "cloth" not in names:  # crowdbake.stages.body_only: the body is the whole character
         return {"body": body}, {"body": "body"}, {"body": 0}
     mesh = read_obj(inputs / names["cloth_mesh"])
-    looped = read_pc2(work.root / "cycle" / "looped.pc2")
+    looped = read_pc2(work.root / "cycle" / looped_file)
     if looped.points.shape[0] != frames:
-        raise StageOrderError(f"looped.pc2 has {looped.points.shape[0]} frames, the cycle {frames}")
+        raise StageOrderError(f"{looped_file} has {looped.points.shape[0]} frames, the cycle {frames}")
     garment_positions = poses.cloth_on_vertices(looped.points, mesh.source_index)
     garment_normals = poses.pose_normals(garment_positions, mesh.faces, weld=mesh.source_index)
     if mesh.uvs is None:
@@ -163,16 +170,41 @@ def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> 
     return high, {"body": "body", garment: "garment"}, {"body": 0, garment: 1}
 
 
+def ranges_body(character_path: Path, timeline_path: Path, cycle: CycleRecord) -> tuple[np.ndarray, np.ndarray]:
+    """The body over every pose frame of a several-clip bundle (cycle.ranges): each clip's loop posed by
+    that clip's animation at its loop's clip frames, each transition at its cache frames as the timeline
+    played them (blends included: crowdbake.bake.pose_ranges.body_at_cache_frames). (P, V, 3) each."""
+    from crowdbake.ingest.timeline import read_timeline
+
+    timeline = read_timeline(timeline_path)
+    ranges = cycle.bundle_ranges()
+    posed = {}
+    for clip in timeline.clips():
+        posed[clip] = pose_character(load_character(character_path, animation=clip), cycle.fps, timeline.period(clip))
+    positions, normals = [], []
+    for clip, phase in zip(ranges.clips, cycle.ranges["clip_phases"]):
+        body = pose_ranges.clip_body(posed[clip.name], phase, clip.frames)
+        positions.append(body[0])
+        normals.append(body[1])
+    for transition in ranges.transitions:
+        body = pose_ranges.body_at_cache_frames(posed, timeline, np.arange(transition.source_start_frame, transition.source_end_frame))
+        positions.append(body[0])
+        normals.append(body[1])
+    return np.concatenate(positions).astype(np.float32), np.concatenate(normals).astype(np.float32)
+
+
 def part_materials(part_material: dict, materials: list) -> dict:
     """Material index per part: one given texture set serves every part."""
     return dict.fromkeys(part_material, 0) if len(materials) == 1 else part_material
 
 
-def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, AtlasLayout, list[int], BudgetChoice]:
+def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, AtlasLayout, list[int], dict]:
     """The impostors' framing: bounds {"center", "radius"} over every frame and part, the atlas layout
     (its crop, and the azimuth and frame counts within params.impostor_budget_mib: crowdbake.bake.
-    impostor_budget), the baked cycle frames and the budget's choice. Shared by the poses stage and the
-    impostor plan."""
+    impostor_budget), the baked cycle frames and the budget's account (texture_memory.json's `budget`).
+    Shared by the poses stage and the impostor plan. Several clips: ranges_framing."""
+    if cycle.ranges is not None:
+        return ranges_framing(params, cycle.bundle_ranges(), high)
     centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
     elevations = tuple(params.elevations_deg)
     extents = frame_extents(np.concatenate([np.asarray(part.positions) for part in high.values()], axis=1), centre, elevations)
@@ -183,7 +215,31 @@ def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, Atla
     if params.crop:
         layout = replace(layout, crop=choice.crop)
     frame_indices = poses.impostor_frame_indices(cycle.cycle_frames, choice.frames)
-    return {"center": [float(c) for c in centre], "radius": float(radius)}, layout, frame_indices, choice
+    return {"center": [float(c) for c in centre], "radius": float(radius)}, layout, frame_indices, budget_document(choice, params)
+
+
+def ranges_framing(params, ranges: Ranges, high: dict) -> tuple[dict, AtlasLayout, list[int], dict]:
+    """impostor_framing for several clips (crowdbake.bake.pose_ranges): the budget per clip, one azimuth
+    count for all (fit_budget_per_clip), each transition's ends and frames between at its clips' spacing,
+    the crop over every baked frame (one layout for all, so a clip's layers may be a little larger than
+    the crop of its own frames the budget measured: texture_memory.json's `impostor.ranges` has the
+    bytes as stored). The budget's account lists each clip's choice."""
+    centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
+    elevations = tuple(params.elevations_deg)
+    extents = frame_extents(np.concatenate([np.asarray(part.positions) for part in high.values()], axis=1), centre, elevations)
+    budget = None if params.impostor_budget_mib is None else params.impostor_budget_mib * MIB
+    choices = fit_budget_per_clip(extents, radius, params.tile_size, params.azimuths, len(elevations), params.impostor_frames,
+                                  [(clip.first_frame, clip.frames) for clip in ranges.clips],
+                                  bytes_per_texel(map_formats(params.compress, params.uv_format, params.detail_map)), budget)
+    layout = AtlasLayout.rings(params.tile_size, choices[0].azimuths, elevations)
+    frame_indices = pose_ranges.baked_frames(ranges, [choice.frames for choice in choices])
+    if params.crop:
+        layout = replace(layout, crop=crop_for(extents, frame_indices, radius, params.tile_size))
+    document = {**budget_document(choices[0], params), "per_clip": {clip.name: budget_document(choice, params) for clip, choice in zip(ranges.clips, choices)},
+                "ranges": pose_ranges.frames_per_range(ranges, frame_indices)}
+    document["chosen"] = {"azimuths": choices[0].azimuths, "frames": [choice.frames for choice in choices]}
+    document["fits"] = all(choice.fits for choice in choices)
+    return {"center": [float(c) for c in centre], "radius": float(radius)}, layout, frame_indices, document
 
 
 def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float, out: Path) -> list[PosePart]:
@@ -285,10 +341,10 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     parts = _write_lods(high, kinds, part_material, params, cycle.fps, out)
     report(progress, "poses", 5, steps)
 
-    bounds, layout, frame_indices, choice = impostor_framing(params, cycle, high)
+    bounds, layout, frame_indices, budget = impostor_framing(params, cycle, high)
     record = PosesRecord(
         frames_per_second=cycle.fps,
-        cycle_frames=cycle.cycle_frames,
+        cycle_frames=cycle.pose_frames,
         parts=parts,
         materials=textures.materials,
         outfit_count=textures.outfit_count,
@@ -296,7 +352,8 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
         layout=layout.to_manifest(),
         frame_indices=frame_indices,
         fidelity_frame=frame_indices[0],
-        budget=budget_document(choice, params),
+        budget=budget,
+        ranges=cycle.ranges,
     )
     report(progress, "poses", steps, steps)
     seconds = time.perf_counter() - started

@@ -11,8 +11,14 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any, ClassVar
 
 from crowdbake.bake.atlas import AtlasLayout
+from crowdbake.formats.ranges import Ranges, read_ranges
 from crowdbake.errors import StageOrderError
 from crowdbake.params import BakeParams
+
+
+def ranges_of(sections: dict[str, Any]) -> Ranges:
+    """Ranges from a record's v2 sections (pose_frames, clips, transitions), checked as a reader checks them."""
+    return read_ranges({"format_version": 2, **sections})
 
 
 class Record:
@@ -94,6 +100,19 @@ class CycleRecord(Record):
     # Several clips (crowdbake.stages.clip_loops): the clip frame at start_frame, where the body's pose
     # starts (the cache frame number is not the clip's time); None: frame f is at time f / fps.
     clip_phase: int | None = None
+    # A bundle of several clips (format v2; crowdbake.stages.clip_loops.bundle_ranges): pose_frames, the
+    # manifest's clips and transitions, clip_phases (per clip) and the pose-frame cloth's file under
+    # work/cycle. None: one clip, the cycle above is the bundle's (v1).
+    ranges: dict[str, Any] | None = None
+
+    def bundle_ranges(self) -> Ranges | None:
+        """The clips and transitions of a several-clip bundle (crowdbake.formats.ranges), None for one clip."""
+        return None if self.ranges is None else ranges_of(self.ranges)
+
+    @property
+    def pose_frames(self) -> int:
+        """Frames of every pose cache: the cycle's, or every clip's and transition's together."""
+        return self.cycle_frames if self.ranges is None else int(self.ranges["pose_frames"])
 
 
 @dataclass
@@ -149,7 +168,12 @@ class PosesRecord(Record):
     fidelity_frame: int
     # The memory budget's choice (crowdbake.bake.impostor_budget.BudgetChoice as budget_document gives it).
     budget: dict[str, Any] | None = None
+    # Several clips: CycleRecord.ranges (cycle_frames is then every pose frame); None for one clip.
+    ranges: dict[str, Any] | None = None
     _nested: ClassVar[dict[str, type]] = {"parts": PosePart, "materials": MaterialInfo}
+
+    def bundle_ranges(self) -> Ranges | None:
+        return None if self.ranges is None else ranges_of(self.ranges)
 
     def atlas_layout(self) -> AtlasLayout:
         """The impostor atlas layout (crowdbake.bake.atlas.AtlasLayout) these poses were framed for."""
@@ -186,6 +210,10 @@ class ImpostorPlan(Record):
     frame_indices: list[int]
     fidelity_frame: int
     material_count: int
+    ranges: dict[str, Any] | None = None  # as PosesRecord.ranges
+
+    def bundle_ranges(self) -> Ranges | None:
+        return None if self.ranges is None else ranges_of(self.ranges)
 
     @property
     def center(self) -> list[float]:

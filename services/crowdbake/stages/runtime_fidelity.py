@@ -126,12 +126,18 @@ def sample_tile(tiles: AtlasTiles, tile: int, layer: int, target: impostor_views
 
 def halfway_frame(poses: PosesRecord) -> tuple[int, impostor_blend.FrameWeights]:
     """The cycle frame halfway (rounded down) from the fidelity frame to the next baked frame, and its weights."""
-    indices = list(poses.frame_indices)
+    indices, cycle_frames = list(poses.frame_indices), poses.cycle_frames
+    ranges = poses.bundle_ranges()
+    if ranges is not None:
+        # Several clips: the fidelity frame is the first clip's first, and its loop (pose frames 0 ..
+        # frames - 1, its baked frames the first layers) wraps on itself.
+        cycle_frames = ranges.clips[0].frames
+        indices = [f for f in indices if f < cycle_frames]
     k = indices.index(poses.fidelity_frame)
     following = indices[(k + 1) % len(indices)]
-    span = following - indices[k] if following > indices[k] else following + poses.cycle_frames - indices[k]
-    frame = (indices[k] + span // 2) % poses.cycle_frames if len(indices) > 1 else indices[k]
-    return frame, impostor_blend.blend_frame_weights(frame, indices, poses.cycle_frames)
+    span = following - indices[k] if following > indices[k] else following + cycle_frames - indices[k]
+    frame = (indices[k] + span // 2) % cycle_frames if len(indices) > 1 else indices[k]
+    return frame, impostor_blend.blend_frame_weights(frame, indices, cycle_frames)
 
 
 def between_cameras(layout: AtlasLayout, max_azimuths: int = BETWEEN_AZIMUTHS) -> list[tuple[float, float]]:

@@ -46,7 +46,7 @@ class BakeInputs:
     (optional: else the glTF's texture, one variation, default outfits); cycle: an existing cycle.json (skips the
     search); created: the manifest's RFC 3339 UTC time (see the module docstring when None); timeline: a clip
     timeline (crowdbake.ingest.timeline) when the cache plays several clips: a loop per clip and the
-    transitions between them (crowdbake.stages.clip_loops), the bundle carrying the `animation` clip's loop."""
+    transitions between them (crowdbake.stages.clip_loops), every one in the bundle (format v2) when there are several clips."""
 
     character: Path
     cloth: Path | None

@@ -38,7 +38,7 @@ def asset_digests(asset: Asset) -> set[str]:
 def _published_roles(bake: Bake) -> dict[str, str]:
     """Input role -> asset id of a bake's inputs."""
     inputs = bake.inputs or {}
-    return {**{role: inputs[role] for role in ("character", "cloth", "cycle") if inputs.get(role)},
+    return {**{role: inputs[role] for role in ("character", "cloth", "cycle", "timeline") if inputs.get(role)},
             **{f"textures.{name}": asset_id for name, asset_id in (inputs.get("textures") or {}).items()}}
 
 
