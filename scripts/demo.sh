@@ -45,9 +45,11 @@ echo "== 5/6 more archetypes =="
   --cloth-mesh "$out/sample-clips/cloth.obj" --textures "$out/sample-clips/textures" \
   --timeline "$out/sample-clips/timeline.json" --animation Walking --name sample-clips --version 1.0.0 --out "$out/bundles"
 # A clip mix names clips of the bundle: only a bundle that lists its clips (format 2) has them by name.
+# Its characters switch clip every 0.5 to 1.5 s, so the 3 s drawn below hold switches to measure.
 clip_mix=""
 if grep -q '"clips"' "$out/bundles/sample-clips/1.0.0/manifest.json"; then
-  clip_mix=', "clips": [{"clip": "Idle", "weight": 1}, {"clip": "Walking", "weight": 2}, {"clip": "Running", "weight": 1}]'
+  clip_mix=', "clips": [{"clip": "Idle", "weight": 1}, {"clip": "Walking", "weight": 2}, {"clip": "Running", "weight": 1}],
+     "switch_after_s": [0.5, 1.5]'
 fi
 archetypes='{"name": "sample-loose", "bundle": "../bundles/sample-walker/1.0.0", "share": 3, "play_rate": [0.9, 1.1]},
     {"name": "sample-tight", "bundle": "../bundles/sample-tight/1.0.0", "share": 3, "play_rate": [0.9, 1.1]},
@@ -78,7 +80,7 @@ cat > "$out/mixed/crowd.json" <<JSON
 }
 JSON
 echo "== 6/6 mixed crowd render =="
-build/runtime/crowdview --crowd "$out/mixed/crowd.json" --headless --frames 10 --impostor-blend off \
+build/runtime/crowdview --crowd "$out/mixed/crowd.json" --headless --frames 90 --impostor-blend off \
   --screenshot "$out/mixed.png" --report "$out/mixed/report.json"
 echo "done: cycle report $out/cycle/report.html, bundle $out/bundles/sample-walker/1.0.0, crowd picture $out/crowd.png," \
   "mixed crowd $out/mixed.png (counts and memory per archetype: $out/mixed/report.json)"
