@@ -58,11 +58,15 @@ assets="${CROWDBAKE_SHARED_ASSETS:-$root/../shared/assets}"
 if [[ -f "$assets/CesiumMan.glb" && -f "$assets/long_skirt/long_skirt.pc2" && -f "$assets/robot_clips/robot.glb" ]]; then
   "${crowdbake[@]}" bake "$assets/CesiumMan.glb" --cloth "$assets/long_skirt/long_skirt.pc2" \
     --cloth-mesh "$assets/long_skirt/long_skirt.obj" --name cesiumman --version 1.0.0 --out "$out/bundles"
+  # The robot's cape was simulated through Idle, Walking, Running and Walking: its timeline gives the bundle
+  # every clip and the transitions between them.
   "${crowdbake[@]}" bake "$assets/robot_clips/robot.glb" --cloth "$assets/robot_clips/garment.pc2" \
-    --cloth-mesh "$assets/robot_clips/garment.obj" --animation Walking --name robot --version 1.0.0 --out "$out/bundles"
+    --cloth-mesh "$assets/robot_clips/garment.obj" --timeline "$assets/robot_clips/timeline.json" \
+    --name robot --version 1.0.0 --out "$out/bundles"
   archetypes="$archetypes,
     {\"name\": \"cesiumman\", \"bundle\": \"../bundles/cesiumman/1.0.0\", \"share\": 2},
-    {\"name\": \"robot\", \"bundle\": \"../bundles/robot/1.0.0\", \"share\": 1}"
+    {\"name\": \"robot\", \"bundle\": \"../bundles/robot/1.0.0\", \"share\": 1,
+     \"clips\": [{\"clip\": \"Walking\", \"weight\": 2}, {\"clip\": \"Running\", \"weight\": 1}], \"switch_after_s\": [0.5, 1.5]}"
 else
   echo "shared assets not found in $assets (CesiumMan.glb, long_skirt/, robot_clips/): the mixed crowd has the two sample archetypes"
 fi
