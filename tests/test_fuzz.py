@@ -48,7 +48,7 @@ from service_fixtures import obj_bytes, obj_sequence_zip, pc2_bytes, tiny_charac
 READER_MEMORY_FACTOR = 64
 READER_MEMORY_FLOOR = 32 << 20
 READER_EXAMPLES = int(os.environ.get("CROWDBAKE_FUZZ_EXAMPLES", "300"))
-API_EXAMPLES = 40
+API_EXAMPLES = 25
 FUZZ = settings(max_examples=READER_EXAMPLES, derandomize=True, deadline=None, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much])
 

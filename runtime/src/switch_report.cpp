@@ -202,7 +202,18 @@ void SwitchMeter::observe(const Crowd& crowd, const CharacterModel& model, const
                 double reference = 0;
                 for (uint32_t side : {tr->from_clip, tr->to_clip})
                     reference = std::max(reference, clip_reference(model, state, side, steps, lod, blend_frames, to_screen, width, height));
-                if (reference > 0) events_[l].push_back({rms_motion(before, after), reference});
+                // What the clip beside the switch would have moved over the same steps had the character
+                // not switched: on from its frame before the switch, or up to its frame after it.
+                const bool entering = r1 >= C;
+                const uint32_t side = entering ? r0 : r1;
+                const ClipSchedule::Range& range = schedule.ranges[side];
+                const uint32_t from = entering ? local0 : (local1 + range.frames - steps % range.frames) % range.frames;
+                const ShownPose c0 = shown_pose(model, state, lod, range.first_frame + from, blend_frames);
+                const ShownPose c1 = shown_pose(model, state, lod, range.first_frame + (from + steps) % range.frames, blend_frames);
+                std::vector<glm::vec2> still, moved;
+                picture(mesh_lod, {c0.a, c0.b, c0.weight}, to_screen, width, height, &still);
+                picture(mesh_lod, {c1.a, c1.b, c1.weight}, to_screen, width, height, &moved);
+                if (reference > 0) events_[l].push_back({rms_motion(before, after), reference, rms_motion(still, moved)});
                 else ++unmeasured_[l];
             }
         }
@@ -214,7 +225,8 @@ nlohmann::json SwitchMeter::report() const {
     nlohmann::json out = nlohmann::json::object();
     for (int l = 0; l < 3; ++l) {
         nlohmann::json r = {{"sampled_characters", sampled_[l]}, {"switches_measured", events_[l].size()}, {"switches_unmeasured", unmeasured_[l]},
-                            {"largest_ratio", nullptr}, {"jump_px", nullptr}, {"reference_px", nullptr}, {"median_ratio", nullptr}};
+                            {"largest_ratio", nullptr}, {"jump_px", nullptr}, {"reference_px", nullptr}, {"median_ratio", nullptr},
+                            {"largest_ratio_same_phase", nullptr}};
         if (!events_[l].empty()) {
             std::vector<double> ratios;
             size_t worst = 0;
@@ -226,6 +238,9 @@ nlohmann::json SwitchMeter::report() const {
             r["jump_px"] = events_[l][worst].jump_px;
             r["reference_px"] = events_[l][worst].reference_px;
             r["median_ratio"] = median_of(ratios);
+            double same_phase = 0;
+            for (const Event& e : events_[l]) same_phase = std::max(same_phase, e.jump_px / std::max(e.continued_px, e.reference_px));
+            r["largest_ratio_same_phase"] = same_phase;
         }
         out[kLodNames[l]] = r;
     }

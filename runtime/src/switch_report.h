@@ -20,7 +20,12 @@
 //    character, place and representation; steps that change nothing left out.
 //  - ratio = jump / reference; reported: the largest ratio (with its jump and reference in pixels),
 //    the median ratio and the number of switches measured. A pop-free switch moves about as much as
-//    a frame inside its clip: ratio near 1. The target is <= 1.5.
+//    a frame inside its clip: ratio near 1. The target is <= 1.5.
+//  - A clip's own steps vary round its loop (a run's fastest frame moves twice its median), so a
+//    switch at a fast phase can pass 1.5 with no pop at all. largest_ratio_same_phase divides each jump
+//    by the larger of its reference and the motion the clip beside the switch makes over the same steps
+//    at that phase (on from the frame before entering a transition; up to the frame after leaving
+//    one): 1 is a switch indistinguishable from playing the clip on.
 #pragma once
 
 #include <cstdint>
@@ -73,6 +78,7 @@ private:
     };
     struct Event {
         double jump_px, reference_px;
+        double continued_px;  // the clip beside the switch over the same steps, had it not switched
     };
     // What a character shows: pose frames a and b mixed by weight (a mesh: a == b, weight 0).
     struct Shown {

@@ -19,6 +19,9 @@
 #define STB_DXT_IMPLEMENTATION
 #include <stb/stb_dxt.h>
 
+#include <sys/wait.h>
+#include <unistd.h>
+
 #include "bundle.h"
 
 namespace fs = std::filesystem;
@@ -105,6 +108,23 @@ std::string read_text(const std::string& path) {
     std::stringstream ss;
     ss << in.rdbuf();
     return ss.str();
+}
+
+Run run_crowdview(const std::string& crowdview, const std::string& args) {
+    // One stderr file per process: the render tests may run side by side (ctest -j).
+    const std::string err_file = (fs::temp_directory_path() / ("crowdview-stderr-" + std::to_string(getpid()) + ".txt")).string();
+    const std::string command = "'" + crowdview + "' " + args + " 2>'" + err_file + "'";
+    Run run;
+    FILE* pipe = popen(command.c_str(), "r");
+    if (!pipe) return run;
+    char buffer[4096];
+    size_t n;
+    while ((n = fread(buffer, 1, sizeof buffer, pipe)) > 0) run.out.append(buffer, n);
+    const int raw = pclose(pipe);
+    run.status = WIFEXITED(raw) ? WEXITSTATUS(raw) : -1;
+    run.err = read_text(err_file);
+    fs::remove(err_file);
+    return run;
 }
 
 bool write_bytes(const std::string& path, const std::vector<uint8_t>& bytes) {

@@ -80,6 +80,14 @@ std::string write_bundle(const std::string& dir, const Options& options = Option
 std::string read_text(const std::string& path);
 bool write_bytes(const std::string& path, const std::vector<uint8_t>& bytes);
 
+// What a crowdview run left: its exit status (-1 where it did not exit), standard output and error.
+struct Run {
+    int status = -1;
+    std::string out, err;
+};
+// Runs the `crowdview` binary with `args` (already shell-quoted where needed), capturing both streams.
+Run run_crowdview(const std::string& crowdview, const std::string& args);
+
 // A copy of the folder tree `from` at `to` (cp -r), for tampering tests.
 bool copy_tree(const std::string& from, const std::string& to);
 // A fresh empty temporary folder.

@@ -23,27 +23,10 @@ namespace {
 std::string g_crowdview;
 int g_skipped = 0;
 
-struct Run {
-    int status = -1;
-    std::string out, err;
-};
+using synthetic::Run;
 
 // Runs crowdview with `args` (already shell-quoted where needed).
-Run crowdview(const std::string& args) {
-    const std::string err_file = fs::temp_directory_path().string() + "/crowdview-cli-stderr.txt";
-    const std::string command = "'" + g_crowdview + "' " + args + " 2>'" + err_file + "'";
-    Run run;
-    FILE* pipe = popen(command.c_str(), "r");
-    if (!pipe) return run;
-    char buffer[4096];
-    size_t n;
-    while ((n = fread(buffer, 1, sizeof buffer, pipe)) > 0) run.out.append(buffer, n);
-    const int raw = pclose(pipe);
-    run.status = WIFEXITED(raw) ? WEXITSTATUS(raw) : -1;
-    run.err = synthetic::read_text(err_file);
-    fs::remove(err_file);
-    return run;
-}
+Run crowdview(const std::string& args) { return synthetic::run_crowdview(g_crowdview, args); }
 
 bool one_line(const std::string& s) {
     return !s.empty() && s.find('\n') == s.size() - 1;

@@ -22,20 +22,9 @@ using nlohmann::json;
 
 namespace {
 
-struct Run {
-    int status = -1;
-    std::string err;
-};
+using synthetic::Run;
 
-Run run(const std::string& crowdview, const std::string& args) {
-    const std::string err_file = fs::temp_directory_path().string() + "/crowdview-clips-stderr.txt";
-    Run r;
-    const int raw = std::system(("'" + crowdview + "' " + args + " >/dev/null 2>'" + err_file + "'").c_str());
-    r.status = WIFEXITED(raw) ? WEXITSTATUS(raw) : -1;
-    r.err = synthetic::read_text(err_file);
-    fs::remove(err_file);
-    return r;
-}
+Run run(const std::string& crowdview, const std::string& args) { return synthetic::run_crowdview(crowdview, args + " >/dev/null"); }
 
 json read_json(const std::string& path) { return json::parse(synthetic::read_text(path), nullptr, false); }
 
@@ -101,6 +90,10 @@ int main(int argc, char** argv) {
             // Transitions that ease phase and stride move about as much as a frame of their clips.
             CHECK_MSG(!s["largest_ratio"].is_null() && s["largest_ratio"].get<double>() <= kMaxSwitchRatio &&
                           s["largest_ratio"].get<double>() > 0.3 && s["reference_px"].get<double>() > 0,
+                      std::string(lod) + ": " + s.dump());
+            // Against the clip's own motion at that phase as well (never above the plain ratio).
+            CHECK_MSG(!s["largest_ratio_same_phase"].is_null() && s["largest_ratio_same_phase"].get<double>() <= kMaxSwitchRatio &&
+                          s["largest_ratio_same_phase"].get<double>() <= s["largest_ratio"].get<double>() + 1e-9,
                       std::string(lod) + ": " + s.dump());
         }
         CHECK_MSG(r.err.find("switches, largest jump / median motion in the clip: high ") != std::string::npos, r.err);

@@ -23,20 +23,9 @@ namespace fs = std::filesystem;
 
 namespace {
 
-struct Run {
-    int status = -1;
-    std::string err;
-};
+using synthetic::Run;
 
-Run run(const std::string& crowdview, const std::string& args) {
-    const std::string err_file = fs::temp_directory_path().string() + "/crowdview-crowd-stderr.txt";
-    Run r;
-    const int raw = std::system(("'" + crowdview + "' " + args + " >/dev/null 2>'" + err_file + "'").c_str());
-    r.status = WIFEXITED(raw) ? WEXITSTATUS(raw) : -1;
-    r.err = synthetic::read_text(err_file);
-    fs::remove(err_file);
-    return r;
-}
+Run run(const std::string& crowdview, const std::string& args) { return synthetic::run_crowdview(crowdview, args + " >/dev/null"); }
 
 struct Archetype {
     const char* name;

@@ -1,37 +1,15 @@
 """A real bake of several clips: robot_clips (Blender's cape across Idle -> Walking -> Running -> Walking)
 to a format-v2 bundle with every loop and transition, at small settings (one ring of 4 views, 32-texel
-tiles, 2 frames a clip, no detail map)."""
+tiles, 2 frames a clip, no detail map: the session fixture `robot_bake`, robot_fixtures.py)."""
 from __future__ import annotations
 
 import json
 
 import numpy as np
-import pytest
 
 from crowdbake.formats.bundle import verify_bundle
-from crowdbake.params import BakeParams
-from crowdbake.stages.runner import run_bake
-from crowdbake.stages.validate import BakeInputs
-from repo_paths import SHARED_ASSETS
 
-ROBOT = SHARED_ASSETS / "robot_clips"
 BOUNDS = {"stretch_ratio": 1.10, "deviation_ratio": 1.5, "seam_acceleration_ratio": 1.5}  # issue 31's, as QUALITY_BOUNDS
-
-
-@pytest.fixture(scope="module")
-def robot_bake(tmp_path_factory):
-    """(bundle folder, work folder) of the robot baked once for this module."""
-    names = ("robot.glb", "garment.pc2", "garment.obj", "timeline.json")
-    missing = [name for name in names if not (ROBOT / name).is_file()]
-    if missing:
-        pytest.skip(f"third-party asset robot_clips/{missing[0]} not found under {SHARED_ASSETS} (set CROWDBAKE_SHARED_ASSETS)")
-    root = tmp_path_factory.mktemp("robot_clips")
-    params = BakeParams(impostor_frames=2, azimuths=4, elevations_deg=(0.0,), tile_size=32, lod_triangles=1200, cycle_views=3,
-                        candidates=3, export=False)
-    inputs = BakeInputs(character=ROBOT / "robot.glb", cloth=ROBOT / "garment.pc2", cloth_mesh=ROBOT / "garment.obj", textures=None,
-                        cycle=None, name="robot", version="1", params=params, timeline=ROBOT / "timeline.json")
-    run_bake(inputs, root / "bundles", work=root / "work")
-    return root / "bundles" / "robot" / "1", root / "work"
 
 
 def rms(delta: np.ndarray) -> float:

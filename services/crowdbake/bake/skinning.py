@@ -171,7 +171,12 @@ def joint_order(joint_parents: np.ndarray) -> np.ndarray:
 
 def joint_world_matrices(character: SkinnedCharacter, times: np.ndarray) -> np.ndarray:
     """World transforms of every joint at times (F,) -> (F, J, 4, 4) float64."""
-    translations, rotations, scales = local_transforms(character, times)
+    return world_from_local(character, *local_transforms(character, times))
+
+
+def world_from_local(character: SkinnedCharacter, translations: np.ndarray, rotations: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """World transforms of every joint from local TRS (F, J, 3), (F, J, 4) (x, y, z, w), (F, J, 3) -> (F, J, 4, 4)
+    float64, down the character's hierarchy (what joint_world_matrices does with sampled channels)."""
     local = np.zeros(translations.shape[:2] + (4, 4))
     local[..., :3, :3] = quaternion_matrices(rotations) * scales[..., None, :]
     local[..., :3, 3] = translations

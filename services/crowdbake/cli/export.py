@@ -31,6 +31,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="bc (default): colour and normal maps keep the bundle's BC1/BC2 blocks, copied as they are; "
         "rgba8: decoded to RGBA8 texels, for targets without BC (S3TC) support",
     )
+    parser.add_argument(
+        "--vat-png", action="store_true",
+        help="also write each vertex-animation texture as a PNG (16-bit positions, 8-bit normals) beside its KTX2, "
+        "for engines that import PNG but not KTX2 (Unity, Unreal)",
+    )
+    parser.add_argument(
+        "--cloth-bones", metavar="N|auto",
+        help="play each garment as a skinned mesh of N extra bones (linear blend skinning fitted to the loop by Dem Bones) "
+        "instead of morph targets; auto: the fewest of 4, 8, ... 128 bones within --cloth-bones-budget",
+    )
+    parser.add_argument("--cloth-bones-budget", type=float, default=5.0, metavar="MM",
+                        help="RMS error in millimetres that --cloth-bones auto aims for (default 5)")
+    parser.add_argument("--cloth-bones-iterations", type=int, default=30, metavar="K", help="Dem Bones iterations (default 30)")
     parser.add_argument("--json", action="store_true", help="print the written files and sizes as JSON")
     parser.set_defaults(func=run)
 
@@ -40,8 +53,22 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.bundle_dir.is_dir():
         raise CommandError(f"{args.bundle_dir} is not a folder")
+    cloth_bones = None
+    if args.cloth_bones is not None:
+        from crowdbake.export.writer import ClothBonesRequest
+
+        count = None if args.cloth_bones == "auto" else (int(args.cloth_bones) if args.cloth_bones.isdigit() else 0)
+        if count == 0:
+            raise CommandError(f"--cloth-bones: expected a positive bone count or auto, got {args.cloth_bones!r}")
+        if args.cloth_bones_budget <= 0 or args.cloth_bones_iterations < 1:
+            raise CommandError("--cloth-bones-budget must be positive millimetres and --cloth-bones-iterations at least 1")
+        try:
+            import py_dem_bones  # noqa: F401
+        except ImportError:
+            raise CommandError("--cloth-bones needs py-dem-bones (pip install py-dem-bones; services/requirements.txt pins it)") from None
+        cloth_bones = ClothBonesRequest(count, args.cloth_bones_budget, args.cloth_bones_iterations)
     try:
-        summary = export_bundle(args.bundle_dir, args.out, args.ktx2)
+        summary = export_bundle(args.bundle_dir, args.out, args.ktx2, vat_png=args.vat_png, cloth_bones=cloth_bones)
     except FormatError as error:
         raise CommandError(f"the bundle does not verify: {error}") from None
     except FileExistsError as error:

@@ -4,7 +4,11 @@ No maintained KTX2 encoder installs here (the libktx binding `pyktx` builds only
 libktx, and Debian 12 packages neither libktx nor `toktx`), so this module writes the container
 itself, following the Khronos KTX 2.0 specification:
 
-- one mip level, no supercompression (`supercompressionScheme` 0), one face, `pixelDepth` 0;
+- one mip level, one face, `pixelDepth` 0;
+- Zstandard supercompression (`supercompressionScheme` 2) of the level at ZSTD_LEVEL, or none (0) when
+  asked (`zstd_level=None`): the level's byteLength is then the compressed size and
+  uncompressedByteLength the texels' (libktx, three.js's KTX2Loader with its ZSTDDecoder and Godot read
+  it; ktx-parse hands over the compressed level);
 - `layerCount` = the number of layers for an array texture, 0 for a single 2D image;
 - a Basic Data Format Descriptor whose samples describe `vkFormat` exactly (one sample a channel);
 - key/value data: `KTXorientation` = `rd` (rows top first, as the bundle stores them) and
@@ -26,6 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import zstandard
+
 from crowdbake import __version__
 
 IDENTIFIER = b"\xabKTX 20\xbb\r\n\x1a\n"
@@ -33,6 +39,11 @@ _HEADER = struct.Struct("<12s9I")  # identifier, vkFormat, typeSize, width, heig
 _INDEX = struct.Struct("<4I2Q")  # dfd offset/length, kvd offset/length, sgd offset/length
 _LEVEL = struct.Struct("<3Q")  # byteOffset, byteLength, uncompressedByteLength
 HEADER_BYTES = _HEADER.size + _INDEX.size  # 80
+SUPERCOMPRESSION_NONE = 0
+SUPERCOMPRESSION_ZSTD = 2
+# zstd level of the export's textures. On the sample's 21 MB of KTX2: 1.5 s for 6.7 MB at 12, 4.8 s for
+# 6.4 MB at 17, 17 s for 6.1 MB at 19 (services/benchmarks/bench_export_weight.py measures the export).
+ZSTD_LEVEL = 12
 
 # Vulkan format numbers (VkFormat) of the layouts this exporter writes.
 VK_FORMAT_R8G8B8A8_UNORM = 37
@@ -162,8 +173,9 @@ def _key_values(writer: str) -> bytes:
     return out
 
 
-def encode_ktx2(vk_format: int, layers: np.ndarray, array: bool = True, writer: str | None = None) -> bytes:
-    """A KTX2 file holding `layers`: (L, H, W, C) array of the format's texel type.
+def encode_ktx2(vk_format: int, layers: np.ndarray, array: bool = True, writer: str | None = None, zstd_level: int | None = ZSTD_LEVEL) -> bytes:
+    """A KTX2 file holding `layers`: (L, H, W, C) array of the format's texel type, zstd-supercompressed at
+    `zstd_level` (None: not supercompressed).
 
     C is the format's channel count (4, or 1 for R32_UINT, where (L, H, W) is also accepted);
     dtype uint8, uint16 or uint32 to match. `array` False writes L == 1 as a plain 2D texture
@@ -185,11 +197,13 @@ def encode_ktx2(vk_format: int, layers: np.ndarray, array: bool = True, writer: 
     # The texels' own buffer, not a copy: _container copies it once, into the file's bytes.
     level = memoryview(np.ascontiguousarray(layers, dtype=layout.dtype)).cast("B")
     return _container(vk_format, layout.bits // 8, width, height, layer_count if array else 0, _data_format_descriptor(layout),
-                      level, math.lcm(layout.texel_bytes, 4), writer)
+                      level, math.lcm(layout.texel_bytes, 4), writer, zstd_level)
 
 
-def encode_ktx2_blocks(vk_format: int, width: int, height: int, layers: list[bytes], array: bool = True, writer: str | None = None) -> bytes:
-    """A KTX2 file holding block-compressed `layers` (one bytes object a layer) copied as they are.
+def encode_ktx2_blocks(vk_format: int, width: int, height: int, layers: list[bytes], array: bool = True, writer: str | None = None,
+                       zstd_level: int | None = ZSTD_LEVEL) -> bytes:
+    """A KTX2 file holding block-compressed `layers` (one bytes object a layer) copied as they are, the level
+    zstd-supercompressed at `zstd_level` (None: not supercompressed).
 
     width, height: texels, multiples of the 4-texel block; each layer holds (height/4)·(width/4) blocks in
     row-major block order. `array` False writes one layer as a plain 2D texture. Raises ValueError on a
@@ -207,23 +221,28 @@ def encode_ktx2_blocks(vk_format: int, width: int, height: int, layers: list[byt
         raise ValueError(f"a non-array texture has one layer, got {len(layers)}")
     # typeSize is 1 for block-compressed formats (KTX 2.0 section 3.2).
     return _container(vk_format, 1, width, height, len(layers) if array else 0, _block_data_format_descriptor(layout),
-                      b"".join(bytes(layer) for layer in layers), math.lcm(layout.block_bytes, 4), writer)
+                      b"".join(bytes(layer) for layer in layers), math.lcm(layout.block_bytes, 4), writer, zstd_level)
 
 
 def _container(vk_format: int, type_size: int, width: int, height: int, layer_count: int, dfd: bytes, level: bytes | memoryview,
-               alignment: int, writer: str | None) -> bytes:
+               alignment: int, writer: str | None, zstd_level: int | None) -> bytes:
     """Header, level index, DFD, key/values and the one level, which starts on a multiple of `alignment`
-    (the spec's mip level alignment: lcm(texel block size, 4))."""
+    (the spec's mip level alignment: lcm(texel block size, 4); 1 for a supercompressed level)."""
     kvd = _key_values(writer or f"crowdbake {__version__}")
+    uncompressed_length = len(level)
+    scheme = SUPERCOMPRESSION_NONE
+    if zstd_level is not None:
+        level = zstandard.ZstdCompressor(level=zstd_level).compress(level)
+        scheme, alignment = SUPERCOMPRESSION_ZSTD, 1
     dfd_offset = HEADER_BYTES + _LEVEL.size
     kvd_offset = dfd_offset + len(dfd)
     level_offset = kvd_offset + len(kvd)
     level_offset += -level_offset % alignment
-    header = _HEADER.pack(IDENTIFIER, vk_format, type_size, width, height, 0, layer_count, 1, 1, 0) + _INDEX.pack(
+    # typeSize is 1 for a supercompressed file (KTX 2.0 section 3.2)
+    header = _HEADER.pack(IDENTIFIER, vk_format, 1 if scheme else type_size, width, height, 0, layer_count, 1, 1, scheme) + _INDEX.pack(
         dfd_offset, len(dfd), kvd_offset, len(kvd), 0, 0
     )
-    # No supercompression: uncompressedByteLength equals byteLength.
-    level_index = _LEVEL.pack(level_offset, len(level), len(level))
+    level_index = _LEVEL.pack(level_offset, len(level), uncompressed_length)
     padding = b"\0" * (level_offset - kvd_offset - len(kvd))
     return header + level_index + dfd + kvd + padding + level
 
@@ -231,7 +250,8 @@ def _container(vk_format: int, type_size: int, width: int, height: int, layer_co
 @dataclass(frozen=True)
 class Ktx2Image:
     """A decoded single-level KTX2 file and what the header said: texels (L, H, W, C) for an uncompressed
-    format, or for a block format blocks (L, H/4 · W/4 · block bytes) uint8 and texels None."""
+    format, or for a block format blocks (L, H/4 · W/4 · block bytes) uint8 and texels None; the level
+    as stored (supercompressed or not) and its scheme."""
 
     vk_format: int
     texels: np.ndarray | None
@@ -240,10 +260,12 @@ class Ktx2Image:
     width: int = 0
     height: int = 0
     blocks: np.ndarray | None = None
+    supercompression: int = SUPERCOMPRESSION_NONE
+    stored_level: bytes = b""
 
 
 def decode_ktx2(data: bytes) -> Ktx2Image:
-    """Read back a file `encode_ktx2` wrote (one level, no supercompression, a known vkFormat).
+    """Read back a file `encode_ktx2` wrote (one level, no supercompression or zstd, a known vkFormat).
 
     Raises ValueError naming what does not match; meant for round-trip checks and tools, not as a
     general KTX2 reader.
@@ -252,9 +274,20 @@ def decode_ktx2(data: bytes) -> Ktx2Image:
         raise ValueError("not a KTX2 file (identifier or size)")
     _, vk_format, _, width, height, depth, layers, faces, levels, scheme = _HEADER.unpack_from(data)
     dfd_offset, dfd_length, kvd_offset, kvd_length, _, _ = _INDEX.unpack_from(data, _HEADER.size)
-    if (vk_format not in LAYOUTS and vk_format not in BLOCK_LAYOUTS) or depth or faces != 1 or levels != 1 or scheme:
+    if (vk_format not in LAYOUTS and vk_format not in BLOCK_LAYOUTS) or depth or faces != 1 or levels != 1 or scheme not in (0, 2):
         raise ValueError(f"unsupported KTX2 layout: vkFormat {vk_format}, depth {depth}, faces {faces}, levels {levels}, scheme {scheme}")
-    offset, length, _ = _LEVEL.unpack_from(data, HEADER_BYTES)
+    offset, length, uncompressed_length = _LEVEL.unpack_from(data, HEADER_BYTES)
+    if offset + length > len(data):
+        raise ValueError("level size disagrees with the header")
+    container, stored = data, bytes(data[offset : offset + length])
+    if scheme == SUPERCOMPRESSION_ZSTD:
+        try:
+            data = zstandard.ZstdDecompressor().decompress(stored, max_output_size=uncompressed_length)
+        except zstandard.ZstdError as error:
+            raise ValueError(f"the zstd level does not decompress: {error}") from None
+        offset, length = 0, len(data)
+        if length != uncompressed_length:
+            raise ValueError("level size disagrees with the header")
     count = max(layers, 1)
     if vk_format in BLOCK_LAYOUTS:
         block = BLOCK_LAYOUTS[vk_format]
@@ -271,8 +304,8 @@ def decode_ktx2(data: bytes) -> Ktx2Image:
     key_values = {}
     position, end = kvd_offset, kvd_offset + kvd_length
     while position < end:
-        (size,) = struct.unpack_from("<I", data, position)
-        key, _, value = data[position + 4 : position + 4 + size].partition(b"\0")
+        (size,) = struct.unpack_from("<I", container, position)
+        key, _, value = container[position + 4 : position + 4 + size].partition(b"\0")
         key_values[key.decode()] = value.rstrip(b"\0").decode()
         position += 4 + size + (-size % 4)
-    return Ktx2Image(vk_format, texels, layers, key_values, width, height, blocks)
+    return Ktx2Image(vk_format, texels, layers, key_values, width, height, blocks, scheme, stored)

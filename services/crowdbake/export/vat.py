@@ -5,11 +5,12 @@ Layout (docs/export.md): one texel per vertex per frame. A frame takes `rows_per
 `width` is the vertex count, wrapped at MAX_WIDTH so the texture fits every WebGL2 device.
 Unused texels at the end of a frame's last row are 0.
 
-Encoding (16-bit unsigned normalised, RGBA, A = 65535 on used texels):
-  position: `q = round((p - bounds_min) / (bounds_max - bounds_min) * 65535)` per axis; decode
+Encoding (unsigned normalised RGBA, A = the format's maximum on used texels):
+  position: 16 bits, `q = round((p - bounds_min) / (bounds_max - bounds_min) * 65535)` per axis; decode
             `p = bounds_min + q / 65535 * (bounds_max - bounds_min)`. Error <= extent / 131070 per axis.
-  normal:   `q = round((n + 1) / 2 * 65535)`; decode `n = q / 65535 * 2 - 1`, then normalise.
-            Error <= 1 / 65535 per component before normalising.
+  normal:   8 bits, `q = round((n + 1) / 2 * 255)`; decode `n = q / 255 * 2 - 1`, then normalise.
+            Error <= 1 / 255 per component before normalising (under 0.5 degree): normals only shade,
+            and 8 bits take half the bytes of 16 and a third of them once compressed.
 Bounds are over every frame, so one pair serves the whole cycle. An axis with zero extent (a flat
 mesh) stores 0 and decodes to bounds_min exactly.
 
@@ -25,6 +26,7 @@ import numpy as np
 # WebGL2 guarantees 2048-texel textures (MAX_TEXTURE_SIZE >= 2048); every desktop GPU does 8192+.
 MAX_WIDTH = 2048
 UNORM16_MAX = 65535
+UNORM8_MAX = 255
 
 
 @dataclass(frozen=True)
@@ -58,9 +60,9 @@ def vat_texcoords(layout: VatLayout) -> np.ndarray:
 
 
 def _place(values: np.ndarray, layout: VatLayout) -> np.ndarray:
-    """(F, V, 4) uint16 -> (H, W, 4) image in the layout, unused texels 0."""
+    """(F, V, 4) uint16 or uint8 -> (H, W, 4) image in the layout, unused texels 0."""
     frames, vertices, _ = values.shape
-    padded = np.zeros((frames, layout.rows_per_frame * layout.width, 4), dtype=np.uint16)
+    padded = np.zeros((frames, layout.rows_per_frame * layout.width, 4), dtype=values.dtype)
     padded[:, :vertices] = values
     return padded.reshape(layout.height, layout.width, 4)
 
@@ -73,7 +75,8 @@ def _unplace(image: np.ndarray, layout: VatLayout) -> np.ndarray:
 
 @dataclass(frozen=True)
 class VertexAnimation:
-    """A pose cache as two VAT images (H, W, 4) uint16 and the bounds that decode positions (metres)."""
+    """A pose cache as two VAT images (H, W, 4), positions uint16 and normals uint8, and the bounds that
+    decode positions (metres)."""
 
     layout: VatLayout
     positions: np.ndarray
@@ -99,10 +102,9 @@ def encode_vat(positions: np.ndarray, normals: np.ndarray, max_width: int = MAX_
     extent = high - low
     scale = np.divide(UNORM16_MAX, extent, out=np.zeros(3), where=extent > 0)
     quantised = np.rint((positions - low) * scale)
-    quantised_normals = np.rint((np.clip(normals, -1.0, 1.0) + 1.0) * 0.5 * UNORM16_MAX)
-    opaque = np.full(positions.shape[:2] + (1,), UNORM16_MAX)
-    position_texels = np.concatenate([quantised, opaque], axis=2).astype(np.uint16)
-    normal_texels = np.concatenate([quantised_normals, opaque], axis=2).astype(np.uint16)
+    quantised_normals = np.rint((np.clip(normals, -1.0, 1.0) + 1.0) * 0.5 * UNORM8_MAX)
+    position_texels = np.concatenate([quantised, np.full(positions.shape[:2] + (1,), UNORM16_MAX)], axis=2).astype(np.uint16)
+    normal_texels = np.concatenate([quantised_normals, np.full(positions.shape[:2] + (1,), UNORM8_MAX)], axis=2).astype(np.uint8)
     return VertexAnimation(layout, _place(position_texels, layout), _place(normal_texels, layout), low, high)
 
 
@@ -112,6 +114,6 @@ def decode_vat(animation: VertexAnimation) -> tuple[np.ndarray, np.ndarray]:
     q_positions = _unplace(animation.positions, layout)[..., :3].astype(np.float64)
     q_normals = _unplace(animation.normals, layout)[..., :3].astype(np.float64)
     positions = animation.bounds_min + q_positions / UNORM16_MAX * (animation.bounds_max - animation.bounds_min)
-    normals = q_normals / UNORM16_MAX * 2.0 - 1.0
+    normals = q_normals / UNORM8_MAX * 2.0 - 1.0
     lengths = np.linalg.norm(normals, axis=-1, keepdims=True)
     return positions, normals / np.maximum(lengths, 1e-12)

@@ -1,7 +1,8 @@
 """`export_bundle`: a verified bundle folder -> engine-ready files (layout in docs/export.md).
 
     OUT/export.json                     the sidecar: every file below and how to read it
-    OUT/character_lod<k>.glb            glTF 2.0 per LOD: parts, materials, morph-target cycle, VAT extras
+    OUT/character_lod<k>.glb            glTF 2.0 per LOD: parts, materials, an animation per clip and transition, VAT extras
+    OUT/looks/<material>_look_<k>.<png|jpg>             the glTF variants' base colours, shared by the LODs
     OUT/vat/<part>_lod<k>.<position|normal>.<png|ktx2>   vertex-animation textures (16-bit)
     OUT/textures/<material>_diffuse.ktx2, outfits.ktx2   diffuse variations (array), outfit colours
     OUT/impostor/<normal|uv|detail|surface>.ktx2         impostor atlases, one layer per baked frame
@@ -30,8 +31,10 @@ from PIL import Image
 from crowdbake import __version__
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.export import ktx2
+from crowdbake.export.animations import AnimationPlan, animation_plans, sidecar_animations
 from crowdbake.bake.shading import apply_outfit
-from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb
+from crowdbake.export.cloth_bones import DEFAULT_ITERATIONS, ClothBones, choose_bone_count, decompose_cloth
+from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb, node_transform
 from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, region_codes_used, rgba8_layers, uv_map_layers
 from crowdbake.export.vat import encode_vat, vat_texcoords
 from crowdbake.formats.bundle import Bundle, verify_bundle
@@ -39,18 +42,48 @@ from crowdbake.formats.bundle import Bundle, verify_bundle
 logger = logging.getLogger(__name__)
 
 EXPORT_FORMAT = "crowdbake-export"
-# 2: colour and normal maps keep the bundle's BC1/BC2 blocks (KTX2 "bc" mode); 1 decoded them to RGBA8.
-EXPORT_FORMAT_VERSION = 2
+# 4: one glTF animation per clip and per transition, listed in `animations`; 3: KTX2 levels zstd-supercompressed, 8-bit VAT normals, VAT PNGs only when asked, quantized glTF meshes,
+# the looks in looks/; 2: colour and normal maps keep the bundle's BC1/BC2 blocks; 1 decoded them to RGBA8.
+EXPORT_FORMAT_VERSION = 4
 # crowdview's defaults (runtime/src/main.cpp, crowd.h LodRule), so the sidecar's switch distance is
 # the one crowdview uses for a window of this height.
 REFERENCE_VIEWPORT_HEIGHT_PX = 720
 REFERENCE_FOV_Y_DEG = 45.0
 LOW_MESH_FRACTION = 0.5
 LOD_HYSTERESIS = 0.05
-# glTF variants (KHR_materials_variants): at most this many looks, each a JPEG base-colour image per
-# material in every LOD's .glb (about 0.2 MB for a 1024² look at this quality).
+# glTF variants (KHR_materials_variants): at most this many looks, each a base-colour image per material,
+# PNG or JPEG whichever is smaller (0.1-0.2 MB for a 1024² look), in looks/ beside the .glb files.
 MAX_VARIANTS = 16
+LOOKS_FOLDER = "looks"
 LOOK_JPEG_QUALITY = 90
+LOOK_PNG_LEVEL = 6  # zlib's default: level 9 saves about 1 % on the sample's looks, for twice the time
+
+
+@dataclass(frozen=True)
+class ClothBonesRequest:
+    """--cloth-bones: each garment as a skinned mesh of `count` bones, or (count None) of the fewest bones of
+    cloth_bones.AUTO_BONE_COUNTS whose RMS error against the loop is within budget_mm."""
+
+    count: int | None = None
+    budget_mm: float = 5.0
+    iterations: int = DEFAULT_ITERATIONS
+
+    def decompose(self, positions: np.ndarray, triangles: np.ndarray) -> ClothBones:
+        if self.count is not None:
+            return decompose_cloth(positions, triangles, min(self.count, positions.shape[1]), self.iterations)
+        bones = choose_bone_count(positions, triangles, self.budget_mm, iterations=self.iterations)
+        if bones.rms_m * 1000 > self.budget_mm:  # written all the same: the most bones tried, said in export.json
+            logger.warning("--cloth-bones auto: %d bones leave %.1f mm RMS, over the %.1f mm budget", bones.bone_count, bones.rms_m * 1000, self.budget_mm)
+        return bones
+
+
+def bones_entry(bones: ClothBones, request: ClothBonesRequest, vertex_count: int, key_count: int) -> dict[str, Any]:
+    """export.json's `bones` block of a garment: the count, its error against the pose frames and its bytes in
+    the .glb (JOINTS_0 and WEIGHTS_0, and per bone and key of every animation a rotation and a translation)."""
+    skin_bytes = vertex_count * (8 + 16) + bones.bone_count * key_count * (16 + 12)
+    return {"count": bones.bone_count, "asked": request.count if request.count is not None else "auto",
+            **({"budget_mm": request.budget_mm} if request.count is None else {}), "iterations": bones.iterations,
+            "rms_mm": round(bones.rms_m * 1000, 3), "max_mm": round(bones.max_m * 1000, 3), "bytes": skin_bytes}
 
 
 @dataclass(frozen=True)
@@ -66,11 +99,11 @@ def switch_distance(radius_m: float, tile_size: int, viewport_height_px: float, 
     return radius_m * viewport_height_px / (tile_size * math.tan(math.radians(fov_y_deg) / 2))
 
 
-def png16(image: np.ndarray) -> bytes:
-    """(H, W, 4) uint16 RGBA -> 16-bit RGBA PNG bytes (OpenCV writes 16 bits; it wants BGRA)."""
+def png_rgba(image: np.ndarray) -> bytes:
+    """(H, W, 4) uint16 or uint8 RGBA -> a 16- or 8-bit RGBA PNG's bytes (OpenCV writes both; it wants BGRA)."""
     ok, encoded = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA))
     if not ok:
-        raise RuntimeError("OpenCV could not encode a 16-bit PNG")
+        raise RuntimeError(f"OpenCV could not encode a {image.dtype} PNG")
     return encoded.tobytes()
 
 
@@ -163,7 +196,8 @@ def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
         "tile texels [crop.x, crop.x+crop.width) x [crop.y, crop.y+crop.height); tile texels outside it are not covered; "
         "camera for azimuth t, elevation p sits in direction (sin t cos p, sin p, cos t cos p) from bounds.center",
         "frame_indices": impostor["frame_indices"],
-        "layer_of_frame": "layer k shows cycle frame frame_indices[k]; draw the nearest one around the cycle",
+        "layer_of_frame": "layer k shows pose frame frame_indices[k]; draw the nearest one in the animation's range "
+        "(animations[].vat): round a clip, clamped in a transition (shared_formats/SPEC.md, Playback)",
         "bounds": impostor["bounds"],
         "quad_size_m": 2 * radius,
         "maps": maps,
@@ -199,11 +233,28 @@ def jpeg_rgb(rgb: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], variants: list[GlbVariant], outfit_rows: np.ndarray) -> list[dict]:
+def look_image(rgb: np.ndarray) -> tuple[str, bytes]:
+    """(media type, bytes) of a look: lossless PNG where it is smaller than the JPEG (flat, painted colours
+    such as the sample's), else the JPEG (photographic textures)."""
+    buffer = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(rgb)).save(buffer, format="PNG", compress_level=LOOK_PNG_LEVEL)
+    png, jpeg = buffer.getvalue(), jpeg_rgb(rgb)
+    return ("image/png", png) if len(png) <= len(jpeg) else ("image/jpeg", jpeg)
+
+
+def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], variants: list[GlbVariant], outfit_rows: np.ndarray,
+                 vat_png: bool, cloth_bones: ClothBonesRequest | None, plans: list[AnimationPlan]) -> list[dict]:
     manifest = bundle.manifest
     fps = manifest["frames_per_second"]
-    glb_materials = [GlbMaterial(m["name"], [jpeg_rgb(outfit_look(layers[v.variation % len(layers)], outfit_rows[v.outfit])) for v in variants])
-                     for m, layers in zip(manifest["materials"], diffuse_arrays)]
+    # The looks are files of their own, shared by every LOD's .glb (embedded, each LOD held its own copy).
+    glb_materials = []
+    for material, layers in zip(manifest["materials"], diffuse_arrays):
+        looks = []
+        for variant in variants:
+            mime_type, data = look_image(outfit_look(layers[variant.variation % len(layers)], outfit_rows[variant.outfit]))
+            suffix = {"image/png": "png", "image/jpeg": "jpg"}[mime_type]
+            looks.append((mime_type, out.write(f"{LOOKS_FOLDER}/{_stem(material['name'])}_{variant.name}.{suffix}", data)))
+        glb_materials.append(GlbMaterial(material["name"], looks))
     lods = []
     for lod in sorted({mesh["lod"] for mesh in manifest["meshes"]}):
         parts, part_entries = [], []
@@ -212,15 +263,15 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
             animation = encode_vat(cache.positions, cache.normals)
             stem = f"vat/{_stem(mesh['part'])}_lod{lod}"
             files = {}
-            for kind, image in (("position", animation.positions), ("normal", animation.normals)):
-                files[kind] = {
-                    "png": out.write(f"{stem}.{kind}.png", png16(image)),
-                    "ktx2": out.write(f"{stem}.{kind}.ktx2", ktx2.encode_ktx2(ktx2.VK_FORMAT_R16G16B16A16_UNORM, image[None], array=False)),
-                }
+            for kind, image, vk_format in (("position", animation.positions, ktx2.VK_FORMAT_R16G16B16A16_UNORM),
+                                           ("normal", animation.normals, ktx2.VK_FORMAT_R8G8B8A8_UNORM)):
+                files[kind] = {"ktx2": out.write(f"{stem}.{kind}.ktx2", ktx2.encode_ktx2(vk_format, image[None], array=False))}
+                if vat_png:  # the same texels for importers that take PNG but not KTX2 (Unity, Unreal)
+                    files[kind]["png"] = out.write(f"{stem}.{kind}.png", png_rgba(image))
             layout = animation.layout
             vat = {
                 **files,
-                "encoding": "unorm16: position = bounds_min + rgb * (bounds_max - bounds_min); normal = normalize(rgb * 2 - 1)",
+                "encoding": "position unorm16, normal unorm8: position = bounds_min + rgb * (bounds_max - bounds_min); normal = normalize(rgb * 2 - 1)",
                 "bounds_min": animation.bounds_min.tolist(),
                 "bounds_max": animation.bounds_max.tolist(),
                 "max_position_error_m": animation.max_position_error.tolist(),
@@ -231,15 +282,25 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
                 "vertex_count": layout.vertex_count,
                 "frames_per_second": fps,
                 "texcoord": 1,
-                "texel_of_vertex": "(i % width, frame * rows_per_frame + i // width); TEXCOORD_1 is frame 0's texel centre",
+                "texel_of_vertex": "(i % width, frame * rows_per_frame + i // width) for pose frame `frame` (export.json animations[].vat: the frames of each clip and transition); TEXCOORD_1 is frame 0's texel centre",
             }
             extras = {"part": mesh["part"], "kind": mesh["kind"], "lod": lod, "material": mesh["material"], "vat": vat}
+            bones = cloth_bones.decompose(cache.positions, cache.indices) if cloth_bones is not None and mesh["kind"] == "garment" else None
             parts.append(
-                GlbPart(mesh["part"], mesh["kind"], mesh["material"], cache.positions, cache.normals, cache.uvs, vat_texcoords(layout), cache.indices, extras)
+                GlbPart(mesh["part"], mesh["kind"], mesh["material"], cache.positions, cache.normals, cache.uvs, vat_texcoords(layout), cache.indices, extras,
+                        bones)
             )
-            part_entries.append({k: extras[k] for k in ("part", "kind", "material")} | {"vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat})
+            entry = {k: extras[k] for k in ("part", "kind", "material")} | {"vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat}
+            if bones is None:
+                translation, scale = node_transform(cache.positions)
+                entry["node"] = {"translation": translation.tolist(), "scale": scale,
+                                 "meaning": "the part's glTF node: position in metres = translation + scale * mesh position"}
+            else:
+                entry["bones"] = bones_entry(bones, cloth_bones, cache.vertex_count, sum(plan.key_count for plan in plans))
+                logger.info("%s lod %d: %d bones, %.2f mm RMS, %.1f mm max", mesh["part"], lod, bones.bone_count, bones.rms_m * 1000, bones.max_m * 1000)
+            part_entries.append(entry)
         root_extras = {"crowdbake": {"export": "export.json", "lod": lod, "frames_per_second": fps, "frame_count": bundle.ranges.pose_frames}}
-        path = out.write(f"character_lod{lod}.glb", build_glb(parts, glb_materials, variants, fps, root_extras))
+        path = out.write(f"character_lod{lod}.glb", build_glb(parts, glb_materials, variants, fps, root_extras, plans))
         lods.append({"lod": lod, "glb": path, "parts": part_entries})
     return lods
 
@@ -247,18 +308,21 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
 def _copy_shaders(out: _Out) -> list[str]:
     written = []
     for entry in sorted(resources.files("crowdbake.export").joinpath("shaders").iterdir(), key=lambda e: e.name):
-        if entry.name.endswith((".glsl", ".hlsl")):
+        if entry.name.endswith((".glsl", ".hlsl", ".gdshader")):
             written.append(out.write(f"shaders/{entry.name}", entry.read_bytes()))
     return written
 
 
 def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0], prepared: PreparedLayers = NOTHING_PREPARED,
-                  on_write: Callable[[str, bytes], None] | None = None) -> ExportSummary:
+                  on_write: Callable[[str, bytes], None] | None = None, vat_png: bool = False,
+                  cloth_bones: ClothBonesRequest | None = None) -> ExportSummary:
     """Verify the bundle at `bundle_dir` and write its export into `out_dir` (new or empty).
 
     ktx2_mode: "bc" keeps the bundle's BC1/BC2 blocks in the KTX2 files, "rgba8" decodes them.
     prepared: impostor layers the bake converted already (the same bytes either way).
     on_write: called with (path under out_dir, bytes) as each file is written, always in the same order.
+    vat_png: also write each VAT as a PNG (16-bit positions, 8-bit normals) beside its KTX2.
+    cloth_bones: play each garment by bones instead of morph targets (ClothBonesRequest; needs py-dem-bones).
     Raises FormatError for a bundle that does not verify, FileExistsError for a non-empty `out_dir`
     (also when another writer renamed its export into place first), ValueError for an unknown mode.
     """
@@ -278,7 +342,8 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
         impostor = _export_impostor(bundle, out, ktx2_mode, prepared)
         outfit_rows = rgba8_layers(bundle.textures[manifest["outfits"]["file"]])[0]
         variants = look_variants([m["variations"] for m in manifest["materials"]], manifest["outfits"]["count"])
-        lods = _export_lods(bundle, out, diffuse_arrays, variants, outfit_rows)
+        plans = animation_plans(bundle.ranges)
+        lods = _export_lods(bundle, out, diffuse_arrays, variants, outfit_rows, vat_png, cloth_bones, plans)
         shaders = _copy_shaders(out)
         sidecar = {
             "format": EXPORT_FORMAT,
@@ -288,6 +353,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
             "bundle": {"name": manifest["name"], "version": manifest["version"]},
             "frames_per_second": manifest["frames_per_second"],
             "frame_count": bundle.ranges.pose_frames,
+            "animations": sidecar_animations(plans, manifest["frames_per_second"]),
             "lods": lods,
             "materials": materials,
             "outfits": outfits,

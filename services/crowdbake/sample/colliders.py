@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crowdbake.sample.humanoid import JOINT_INDEX, JOINT_NAMES, JOINT_REST_POSITIONS, PART_SPECS, BodyMesh
+from crowdbake.sample.humanoid import JOINT_INDEX, JOINT_NAMES, STANDARD, BodyMesh, Build, joint_rest_positions, part_specs
+
 
 @dataclass(frozen=True)
 class Capsules:
@@ -22,9 +23,11 @@ class Capsules:
     joints: np.ndarray
     endpoints: np.ndarray
     radii: np.ndarray
+    build: Build = STANDARD  # whose skeleton the rest endpoints are attached to
 
 
 # Where a skirt's waistband sits: between the hips (widest at y = 0.96) and the narrowest waist (1.10).
+# Heights here are the standard build's; another build's are these times Build.height.
 WAIST_HEIGHT = 1.06
 # The waist belt: capsules tangent to the torso from inside, spanning the torso's control rings at 1.03
 # and 1.10 (its profile is linear between them, so a capsule tangent at both ends stays tangent in
@@ -48,22 +51,22 @@ class _CapsuleSpec:
     radius: float | None = None
 
 
-def torso_section(height: float) -> tuple[float, float, float]:
+def torso_section(height: float, build: Build = STANDARD) -> tuple[float, float, float]:
     """The torso's elliptical cross-section at a rest height (metres): (side radius, front radius, z of its centre)."""
-    spec = PART_SPECS[0]
+    spec = part_specs(build)[0]
     heights = spec.controls[:, 1]  # the torso's axis rises monotonically, nearly straight up
     return (float(np.interp(height, heights, spec.radii[:, 0])), float(np.interp(height, heights, spec.radii[:, 1])),
             float(np.interp(height, heights, spec.controls[:, 2])))
 
 
-def torso_radius(height: float, angles: np.ndarray) -> np.ndarray:
+def torso_radius(height: float, angles: np.ndarray, build: Build = STANDARD) -> np.ndarray:
     """Distance from the vertical axis x = z = 0 to the torso's surface along horizontal rays at `height`.
 
     angles (A,) radians around y, 0 pointing to -z (the back), pi/2 to +x (garments.outer_radius's
     convention) -> (A,) metres, on the smooth ellipse the mesh's rings sample (the faceted mesh lies at
     most ~1 mm inside it).
     """
-    a, b, centre_z = torso_section(height)
+    a, b, centre_z = torso_section(height, build)
     dx, dz = np.sin(angles), -np.cos(angles)
     # (t dx / a)^2 + ((t dz - centre_z) / b)^2 = 1, the far root.
     qa = (dx / a) ** 2 + (dz / b) ** 2
@@ -72,7 +75,7 @@ def torso_radius(height: float, angles: np.ndarray) -> np.ndarray:
     return (-qb + np.sqrt(qb * qb - 4.0 * qa * qc)) / (2.0 * qa)
 
 
-def _waist_belt() -> list[_CapsuleSpec]:
+def _waist_belt(build: Build = STANDARD) -> list[_CapsuleSpec]:
     """Capsules inscribed in the torso at WAIST_HEIGHT, each tangent where it touches at every height of the span.
 
     The largest circle inside an ellipse that touches it at a point is centred where the point's normal
@@ -80,7 +83,7 @@ def _waist_belt() -> list[_CapsuleSpec]:
     capsule's end sits that radius inside the same (parametric) point of that height's section.
     """
     specs = []
-    a, b, _ = torso_section(WAIST_HEIGHT)
+    a, b, _ = torso_section(WAIST_HEIGHT * build.height, build)
     for k in range(_BELT_COUNT):
         phi = 2.0 * np.pi * k / _BELT_COUNT  # parametric angle: x = a cos(phi), z = b sin(phi)
         normal = np.array([np.cos(phi) / a, np.sin(phi) / b])
@@ -88,8 +91,8 @@ def _waist_belt() -> list[_CapsuleSpec]:
         # At the sides the normal runs along the major axis: the circle is the curvature circle there.
         radius = b * np.sin(phi) / normal[1] if abs(normal[1]) > 1e-9 else b * b / a
         ends = []
-        for height in _BELT_SPAN:
-            a_y, b_y, centre_z = torso_section(height)
+        for height in (y * build.height for y in _BELT_SPAN):
+            a_y, b_y, centre_z = torso_section(height, build)
             normal_y = np.array([np.cos(phi) / a_y, np.sin(phi) / b_y])
             normal_y /= np.linalg.norm(normal_y)
             centre = np.array([a_y * np.cos(phi), b_y * np.sin(phi)]) - radius * normal_y
@@ -98,31 +101,47 @@ def _waist_belt() -> list[_CapsuleSpec]:
     return specs
 
 
-def _capsule_specs() -> list[_CapsuleSpec]:
+def _pelvis_spread(build: Build) -> float:
+    """(a^2 - b^2) / (2 a) of the hips' section (a, b) at their widest (y = 0.96 in the standard build)."""
+    a, b, _ = torso_section(0.96 * build.height, build)
+    return (a * a - b * b) / (2.0 * a)
+
+
+def _pelvis_reach(build: Build) -> float:
+    """a - d: how far a pelvis capsule reaches out to the hips' side (a) from its axis (d = _pelvis_spread)."""
+    return torso_section(0.96 * build.height, build)[0] - _pelvis_spread(build)
+
+
+def _capsule_specs(build: Build = STANDARD) -> list[_CapsuleSpec]:
     """Every collision capsule of the body."""
     specs = []
+    h, joints = build.height, joint_rest_positions(build)
+    at = np.array([1.0, h, 1.0])  # rest heights below are the standard build's
     # Pairs of vertical capsules a distance 2d apart fit an elliptical cross-section (a, b) best when
     # d = (a^2 - b^2) / (2 a): hips (0.175, 0.12) -> d = 0.046. They end low enough (their caps reach
-    # ~1.08) that at WAIST_HEIGHT they stay inside the belt.
+    # ~1.08) that at WAIST_HEIGHT they stay inside the belt. Another build's hips (a, b) move them apart by d's
+    # ratio, and down by as much as their radius (a - d) grows, so their caps stay as far under the waist.
+    spread = _pelvis_spread(build) / _pelvis_spread(STANDARD)
+    drop = _pelvis_reach(build) - _pelvis_reach(STANDARD) * h
     for side, sign in (("l", 1.0), ("r", -1.0)):
-        ends = np.array([[0.046 * sign, 0.84, -0.008], [0.046 * sign, 0.94, -0.008]])
-        specs.append(_CapsuleSpec(f"pelvis_{side}", "hips", ends, ("torso",), (0.76, 1.02)))
-    specs += _waist_belt()
+        ends = np.array([[0.046 * sign * spread, 0.84, -0.008], [0.046 * sign * spread, 0.94, -0.008]]) * at - [0.0, drop, 0.0]
+        specs.append(_CapsuleSpec(f"pelvis_{side}", "hips", ends, ("torso",), (0.76 * h, 1.02 * h)))
+    specs += _waist_belt(build)
     for side, sign in (("l", 1.0), ("r", -1.0)):
-        x = 0.09 * sign
+        x = 0.09 * sign * build.hip_width
         leg, foot = (f"leg_{side}",), (f"foot_{side}",)
         specs += [
-            _CapsuleSpec(f"thigh_upper_{side}", f"thigh_{side}", np.array([[x, 0.90, 0.0], [x, 0.72, 0.0]]), leg, (0.70, 0.93)),
-            _CapsuleSpec(f"thigh_lower_{side}", f"thigh_{side}", np.array([[x, 0.72, 0.0], [x, 0.52, 0.0]]), leg, (0.50, 0.74)),
-            _CapsuleSpec(f"shin_upper_{side}", f"shin_{side}", np.array([[x, 0.50, 0.0], [x, 0.30, 0.0]]), leg, (0.28, 0.52)),
-            _CapsuleSpec(f"shin_lower_{side}", f"shin_{side}", np.array([[x, 0.30, 0.0], [x, 0.08, 0.0]]), leg, (0.04, 0.32)),
-            _CapsuleSpec(f"foot_{side}", f"foot_{side}", np.array([[x, 0.045, -0.03], [x, 0.035, 0.13]]), foot, (-1.0, 1.0)),
+            _CapsuleSpec(f"thigh_upper_{side}", f"thigh_{side}", np.array([[x, 0.90, 0.0], [x, 0.72, 0.0]]) * at, leg, (0.70 * h, 0.93 * h)),
+            _CapsuleSpec(f"thigh_lower_{side}", f"thigh_{side}", np.array([[x, 0.72, 0.0], [x, 0.52, 0.0]]) * at, leg, (0.50 * h, 0.74 * h)),
+            _CapsuleSpec(f"shin_upper_{side}", f"shin_{side}", np.array([[x, 0.50, 0.0], [x, 0.30, 0.0]]) * at, leg, (0.28 * h, 0.52 * h)),
+            _CapsuleSpec(f"shin_lower_{side}", f"shin_{side}", np.array([[x, 0.30, 0.0], [x, 0.08, 0.0]]) * at, leg, (0.04 * h, 0.32 * h)),
+            _CapsuleSpec(f"foot_{side}", f"foot_{side}", np.array([[x, 0.045, -0.03], [x, 0.035, 0.13]]) * at, foot, (-1.0, 1.0)),
         ]
     for side in ("l", "r"):
-        elbow = JOINT_REST_POSITIONS[JOINT_INDEX[f"forearm_{side}"]]
-        wrist = JOINT_REST_POSITIONS[JOINT_INDEX[f"hand_{side}"]]
+        elbow = joints[JOINT_INDEX[f"forearm_{side}"]]
+        wrist = joints[JOINT_INDEX[f"hand_{side}"]]
         direction = (wrist - elbow) / np.linalg.norm(wrist - elbow)
-        ends = np.array([elbow, wrist + 0.11 * direction])
+        ends = np.array([elbow, wrist + 0.11 * h * direction])
         specs.append(_CapsuleSpec(f"forearm_{side}", f"forearm_{side}", ends, (f"arm_{side}",), (0.0, elbow[1] + 0.01)))
     return specs
 
@@ -134,7 +153,7 @@ def fit_capsules(body: BodyMesh) -> Capsules:
     largest distance from the capsule's segment to a vertex it covers (the vertex's nearest capsule among
     those covering the same part, so paired capsules like the two pelvis ones share the work).
     """
-    specs = _capsule_specs()
+    specs = _capsule_specs(body.build)
     positions = body.positions.astype(np.float64)
     radii = np.zeros(len(specs))
     for index, spec in enumerate(specs):
@@ -157,6 +176,7 @@ def fit_capsules(body: BodyMesh) -> Capsules:
         joints=np.array([JOINT_INDEX[spec.joint] for spec in specs], dtype=np.int64),
         endpoints=np.stack([spec.endpoints for spec in specs]),
         radii=radii,
+        build=body.build,
     )
 
 
@@ -173,7 +193,7 @@ def capsule_track(capsules: Capsules, world_matrices: np.ndarray) -> np.ndarray:
     Each capsule moves rigidly with its joint: p(t) = world(t) @ world_rest^-1 @ p_rest.
     """
     rest_world = np.tile(np.eye(4), (len(JOINT_NAMES), 1, 1))
-    rest_world[:, :3, 3] = JOINT_REST_POSITIONS
+    rest_world[:, :3, 3] = joint_rest_positions(capsules.build)
     relative = world_matrices[:, capsules.joints] @ np.linalg.inv(rest_world[capsules.joints])  # (F, C, 4, 4)
     homogeneous = np.concatenate([capsules.endpoints, np.ones(capsules.endpoints.shape[:2] + (1,))], axis=-1)  # (C, 2, 4)
     moved = np.einsum("fcij,ckj->fcki", relative, homogeneous)

@@ -17,13 +17,13 @@ the seam.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from crowdbake.sample.cloth_sim import ClothParams
 from crowdbake.sample.colliders import WAIST_HEIGHT, torso_radius
-from crowdbake.sample.humanoid import GARMENT_UV_RECT, UV_INSET
+from crowdbake.sample.humanoid import GARMENT_UV_RECT, STANDARD, UV_INSET, Build
 
 # Metres between the torso's surface and the pinned waistband: the band's own thickness on the skin.
 WAISTBAND_GAP = 0.002
@@ -80,6 +80,16 @@ GARMENT_SPECS: dict[str, GarmentSpec] = {
     ),
 }
 GARMENT_NAMES = tuple(GARMENT_SPECS)
+
+
+def fitted_spec(spec: GarmentSpec, build: Build) -> GarmentSpec:
+    """The cut of a garment for a build: heights scale with its height, the flare's radii with its hips
+    (their width and girth). The rest (ease, rows, columns, cloth) is the garment's own."""
+    if build == STANDARD:
+        return spec
+    h, hips = build.height, build.hip_width * build.girth
+    return replace(spec, waist_y=spec.waist_y * h, hem_y=spec.hem_y * h, flare_top_y=spec.flare_top_y * h,
+                   flare_top_radius=spec.flare_top_radius * hips, hem_radius=spec.hem_radius * hips)
 
 
 @dataclass(frozen=True)
@@ -146,8 +156,8 @@ def grid_faces(rows: int, columns: int) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([first, second]).astype(np.int64), np.concatenate([first_uv, second_uv]).astype(np.int64)
 
 
-def build_garment(spec: GarmentSpec, capsules_local: np.ndarray, radii: np.ndarray, thickness: float) -> Garment:
-    """The garment's rest mesh around the body.
+def build_garment(spec: GarmentSpec, capsules_local: np.ndarray, radii: np.ndarray, thickness: float, build: Build = STANDARD) -> Garment:
+    """The garment's rest mesh around the body (of `build`; spec as fitted_spec gives for it).
 
     capsules_local (K, C, 2, 3): the body's capsules over the cycle, expressed in the hips' rest
     frame (so the pose of the pelvis does not count, only the limbs relative to it); radii (C,);
@@ -160,7 +170,7 @@ def build_garment(spec: GarmentSpec, capsules_local: np.ndarray, radii: np.ndarr
     radius = outer_radius(heights, angles, capsules_local, np.asarray(radii) + thickness) + spec.ease
     # The pinned waistband sits on the skin; the rows below hang clear of the capsules as cut above.
     for row in range(spec.pinned_rows):
-        on_skin = torso_radius(heights[row], angles) + WAISTBAND_GAP
+        on_skin = torso_radius(heights[row], angles, build) + WAISTBAND_GAP
         clear = outer_radius(heights[row : row + 1], angles, capsules_local, np.asarray(radii))[0] + WAISTBAND_CAPSULE_CLEARANCE
         radius[row] = np.maximum(on_skin, clear)
     if spec.hem_radius > 0:

@@ -16,10 +16,16 @@ Collision capsules are attached to joints. Most have radii fitted to the rest-po
 enclose the body surface they stand in for; at the waist, where a skirt's waistband sits on the
 skin, a belt of capsules follows the torso's surface within a few millimetres instead (test_sample
 checks both).
+
+Builds (BUILDS): the standard figure (what every module constant below describes) and others with other
+proportions: height scales every rest height and limb length, shoulder and hip width the shoulders' and
+hips' spacing and the torso's width there, girth every cross-section of trunk and limbs. A build is a
+pure function of its numbers: joint_rest_positions(build), part_specs(build), build_body(build).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -48,15 +54,42 @@ _ARM_DIRECTION = np.array([np.sin(np.radians(ARM_ABDUCTION_DEGREES)), -np.cos(np
 _UPPER_ARM, _FOREARM, _HAND = 0.27, 0.25, 0.17
 
 
-def _joint_table() -> list[tuple[str, str | None, np.ndarray]]:
+@dataclass(frozen=True)
+class Build:
+    """Body proportions as factors of the standard figure's (1.0: as built). See the module docstring."""
+
+    name: str
+    height: float = 1.0
+    shoulder_width: float = 1.0
+    hip_width: float = 1.0
+    girth: float = 1.0
+
+
+BUILDS: dict[str, Build] = {
+    "standard": Build("standard"),
+    # Stockier: 3 % shorter, shoulders 8 % and hips 12 % wider, 15 % more girth (trunk and limbs). More (hips
+    # 18 %, girth 22 %) pressed the thighs into the loose skirt's cut over the hips: 48 % edge stretch there.
+    "heavy": Build("heavy", height=0.97, shoulder_width=1.08, hip_width=1.12, girth=1.15),
+    # Lankier: 5 % taller, narrower shoulders and hips, 15 % less girth.
+    "slim": Build("slim", height=1.05, shoulder_width=0.93, hip_width=0.90, girth=0.85),
+}
+BUILD_NAMES = tuple(BUILDS)
+STANDARD = BUILDS["standard"]
+# The torso's width follows the hip width up to the hips' top and the shoulder width from the chest up
+# (heights in the standard figure, metres), blending linearly between.
+_HIPS_TOP_Y, _CHEST_Y = 1.0, 1.3
+
+
+def _joint_table(build: Build = STANDARD) -> list[tuple[str, str | None, np.ndarray]]:
     """(name, parent name, rest world position) for every joint, parents first."""
-    shoulder = np.array([0.175, 1.42, 0.0])
+    h = build.height
+    shoulder = np.array([0.175 * build.shoulder_width, 1.42 * h, 0.0])
     table: list[tuple[str, str | None, np.ndarray]] = [
-        ("hips", None, np.array([0.0, 0.95, 0.0])),
-        ("spine", "hips", np.array([0.0, 1.10, 0.0])),
-        ("chest", "spine", np.array([0.0, 1.28, 0.0])),
-        ("neck", "chest", np.array([0.0, 1.46, 0.0])),
-        ("head", "neck", np.array([0.0, 1.56, 0.0])),
+        ("hips", None, np.array([0.0, 0.95 * h, 0.0])),
+        ("spine", "hips", np.array([0.0, 1.10 * h, 0.0])),
+        ("chest", "spine", np.array([0.0, 1.28 * h, 0.0])),
+        ("neck", "chest", np.array([0.0, 1.46 * h, 0.0])),
+        ("head", "neck", np.array([0.0, 1.56 * h, 0.0])),
     ]
     for side, sign in (("l", 1.0), ("r", -1.0)):
         mirror = np.array([sign, 1.0, 1.0])
@@ -64,16 +97,29 @@ def _joint_table() -> list[tuple[str, str | None, np.ndarray]]:
         upper = shoulder * mirror
         table += [
             (f"upperarm_{side}", "chest", upper),
-            (f"forearm_{side}", f"upperarm_{side}", upper + _UPPER_ARM * direction),
-            (f"hand_{side}", f"forearm_{side}", upper + (_UPPER_ARM + _FOREARM) * direction),
+            (f"forearm_{side}", f"upperarm_{side}", upper + (_UPPER_ARM * h) * direction),
+            (f"hand_{side}", f"forearm_{side}", upper + (_UPPER_ARM * h + _FOREARM * h) * direction),
         ]
     for side, sign in (("l", 1.0), ("r", -1.0)):
+        x = 0.09 * sign * build.hip_width
         table += [
-            (f"thigh_{side}", "hips", np.array([0.09 * sign, 0.92, 0.0])),
-            (f"shin_{side}", f"thigh_{side}", np.array([0.09 * sign, 0.50, 0.0])),
-            (f"foot_{side}", f"shin_{side}", np.array([0.09 * sign, 0.085, 0.0])),
+            (f"thigh_{side}", "hips", np.array([x, 0.92 * h, 0.0])),
+            (f"shin_{side}", f"thigh_{side}", np.array([x, 0.50 * h, 0.0])),
+            (f"foot_{side}", f"shin_{side}", np.array([x, 0.085 * h, 0.0])),
         ]
     return table
+
+
+@lru_cache(maxsize=None)
+def _joint_rest_positions(build: Build) -> np.ndarray:
+    positions = np.array([position for _, _, position in _joint_table(build)], dtype=np.float64)
+    positions.flags.writeable = False
+    return positions
+
+
+def joint_rest_positions(build: Build = STANDARD) -> np.ndarray:
+    """(J, 3) float64 rest world positions of the joints of a build (read-only)."""
+    return _joint_rest_positions(build)
 
 
 JOINT_TABLE = _joint_table()
@@ -83,7 +129,7 @@ JOINT_PARENTS = np.array([-1 if parent is None else JOINT_INDEX[parent] for _, p
 JOINT_REST_POSITIONS = np.array([position for _, _, position in JOINT_TABLE], dtype=np.float64)
 THIGH_LENGTH = 0.42  # hip to knee
 SHIN_LENGTH = 0.415  # knee to ankle
-ANKLE_HEIGHT = 0.085
+ANKLE_HEIGHT = 0.085  # all three of the standard build: times Build.height for another
 
 
 @dataclass(frozen=True)
@@ -101,7 +147,9 @@ class PartSpec:
     stations: tuple[tuple[float, str], ...]
 
 
-def _part_specs() -> list[PartSpec]:
+def _part_specs(build: Build = STANDARD) -> list[PartSpec]:
+    h, g = build.height, build.girth
+    joints = joint_rest_positions(build)
     torso = [  # y, side radius, front radius, z offset
         (0.770, 0.000, 0.000, 0.000),
         (0.790, 0.090, 0.070, 0.000),
@@ -129,11 +177,12 @@ def _part_specs() -> list[PartSpec]:
         (1.748, 0.025, 0.030, 0.000),
         (1.755, 0.000, 0.000, 0.000),
     ]
+    width = lambda y: np.interp(y, [_HIPS_TOP_Y, _CHEST_Y], [build.hip_width, build.shoulder_width])  # noqa: E731
     specs = [
         PartSpec(
             "torso",
-            np.array([[0.0, y, z] for y, _, _, z in torso]),
-            np.array([[a, b] for _, a, b, _ in torso]),
+            np.array([[0.0, y * h, z] for y, _, _, z in torso]),
+            np.array([[a * width(y) * g, b * g] for y, a, b, _ in torso]),
             (0.0, 0.0, 1.0),
             rings=24,
             segments=28,
@@ -141,7 +190,7 @@ def _part_specs() -> list[PartSpec]:
         ),
         PartSpec(
             "head",
-            np.array([[0.0, y, z] for y, _, _, z in head]),
+            np.array([[0.0, y * h, z] for y, _, _, z in head]),
             np.array([[a, b] for _, a, b, _ in head]),
             (0.0, 0.0, 1.0),
             rings=20,
@@ -151,10 +200,10 @@ def _part_specs() -> list[PartSpec]:
     ]
     for side, sign in (("l", 1.0), ("r", -1.0)):
         mirror = np.array([sign, 1.0, 1.0])
-        shoulder = JOINT_REST_POSITIONS[JOINT_INDEX[f"upperarm_{side}"]]
-        elbow = JOINT_REST_POSITIONS[JOINT_INDEX[f"forearm_{side}"]]
-        wrist = JOINT_REST_POSITIONS[JOINT_INDEX[f"hand_{side}"]]
-        d = _ARM_DIRECTION * mirror
+        shoulder = joints[JOINT_INDEX[f"upperarm_{side}"]]
+        elbow = joints[JOINT_INDEX[f"forearm_{side}"]]
+        wrist = joints[JOINT_INDEX[f"hand_{side}"]]
+        d = _ARM_DIRECTION * mirror * h  # offsets along the arm scale with the height
         arm = [
             (shoulder + np.array([-0.045, 0.01, 0.0]) * mirror, 0.0, 0.0),
             (shoulder + np.array([-0.03, 0.005, 0.0]) * mirror, 0.045, 0.048),
@@ -171,7 +220,7 @@ def _part_specs() -> list[PartSpec]:
             PartSpec(
                 f"arm_{side}",
                 np.array([p for p, _, _ in arm]),
-                np.array([[a, b] for _, a, b in arm]),
+                np.array([[a * g, b * g] for _, a, b in arm]),
                 (0.0, 0.0, 1.0),
                 rings=20,
                 segments=14,
@@ -180,7 +229,7 @@ def _part_specs() -> list[PartSpec]:
             )
         )
     for side, sign in (("l", 1.0), ("r", -1.0)):
-        x = 0.09 * sign
+        x = 0.09 * sign * build.hip_width
         leg = [
             (1.000, 0.000, 0.000),
             (0.980, 0.070, 0.075),
@@ -197,8 +246,8 @@ def _part_specs() -> list[PartSpec]:
         specs.append(
             PartSpec(
                 f"leg_{side}",
-                np.array([[x, y, 0.0] for y, _, _ in leg]),
-                np.array([[a, b] for _, a, b in leg]),
+                np.array([[x, y * h, 0.0] for y, _, _ in leg]),
+                np.array([[a * g, b * g] for _, a, b in leg]),
                 (0.0, 0.0, 1.0),
                 rings=24,
                 segments=18,
@@ -217,7 +266,7 @@ def _part_specs() -> list[PartSpec]:
         specs.append(
             PartSpec(
                 f"foot_{side}",
-                np.array([p for p, _, _ in foot]),
+                np.array([(px, py * h, pz) for (px, py, pz), _, _ in foot]),
                 np.array([[a, b] for _, a, b in foot]),
                 (0.0, 1.0, 0.0),
                 rings=10,
@@ -229,6 +278,12 @@ def _part_specs() -> list[PartSpec]:
 
 
 PART_SPECS = _part_specs()
+
+
+@lru_cache(maxsize=None)
+def part_specs(build: Build = STANDARD) -> tuple[PartSpec, ...]:
+    """The closed tubes of a build's body (PART_SPECS for the standard one)."""
+    return tuple(_part_specs(build))
 
 
 @dataclass(frozen=True)
@@ -341,15 +396,16 @@ class BodyMesh:
     around: np.ndarray  # (V,) float32
     part_ranges: dict[str, tuple[int, int]]
     part_faces: dict[str, tuple[int, int]]
+    build: Build = STANDARD
 
 
-def build_body() -> BodyMesh:
-    """The whole body mesh in the rest pose (deterministic, no parameters)."""
+def build_body(build: Build = STANDARD) -> BodyMesh:
+    """The whole body mesh of a build in the rest pose (deterministic)."""
     arrays: dict[str, list[np.ndarray]] = {k: [] for k in ("positions", "uvs", "faces", "joints", "weights", "axis", "around")}
     part_ranges: dict[str, tuple[int, int]] = {}
     part_faces: dict[str, tuple[int, int]] = {}
     base = face_base = 0
-    for spec in PART_SPECS:
+    for spec in part_specs(build):
         tube = tube_mesh(spec.controls, spec.radii, spec.reference, spec.rings, spec.segments, BODY_UV_RECTS[spec.name])
         joints, weights = _station_weights(spec, tube.axis_param)
         arrays["positions"].append(tube.positions)
@@ -380,17 +436,19 @@ def build_body() -> BodyMesh:
         around=np.concatenate(arrays["around"]).astype(np.float32),
         part_ranges=part_ranges,
         part_faces=part_faces,
+        build=build,
     )
 
 
-def rest_skeleton() -> dict[str, np.ndarray]:
+def rest_skeleton(build: Build = STANDARD) -> dict[str, np.ndarray]:
     """Local rest TRS and inverse bind matrices of the skeleton (rest rotations are identity)."""
     joint_count = len(JOINT_NAMES)
-    translations = JOINT_REST_POSITIONS.copy()
+    rest = joint_rest_positions(build)
+    translations = rest.copy()
     has_parent = JOINT_PARENTS >= 0
-    translations[has_parent] -= JOINT_REST_POSITIONS[JOINT_PARENTS[has_parent]]
+    translations[has_parent] -= rest[JOINT_PARENTS[has_parent]]
     inverse_bind = np.tile(np.eye(4), (joint_count, 1, 1))
-    inverse_bind[:, :3, 3] = -JOINT_REST_POSITIONS
+    inverse_bind[:, :3, 3] = -rest
     return {
         "translations": translations,
         "rotations": np.tile([0.0, 0.0, 0.0, 1.0], (joint_count, 1)),
@@ -401,7 +459,7 @@ def rest_skeleton() -> dict[str, np.ndarray]:
 
 def build_character(body: BodyMesh, channels: list, duration: float, texture: np.ndarray | None) -> Character:
     """The sample humanoid as a Character (what write_character turns into character.glb)."""
-    skeleton = rest_skeleton()
+    skeleton = rest_skeleton(body.build)
     return Character(
         positions=body.positions,
         normals=body.normals,
@@ -441,13 +499,13 @@ def rect_to_part(uv_rect: tuple[float, float, float, float], u: np.ndarray, v: n
     return np.clip(around, 0.0, 1.0), np.clip(axis_param, 0.0, 1.0)
 
 
-def torso_skin_weights(heights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def torso_skin_weights(heights: np.ndarray, build: Build = STANDARD) -> tuple[np.ndarray, np.ndarray]:
     """Skin weights of the torso surface at rest heights (N,) metres -> joints (N, 4), weights (N, 4).
 
     A garment pinned at the waist follows the body with these, so its waistband moves exactly like the
     torso under it.
     """
-    spec = PART_SPECS[0]
+    spec = part_specs(build)[0]
     lengths = _arc_lengths(spec.controls)
     axis_param = np.interp(np.asarray(heights, dtype=np.float64), spec.controls[:, 1], lengths / lengths[-1])
     return _station_weights(spec, axis_param)

@@ -31,7 +31,8 @@ INDEX_FORMAT = "crowdbake-export-index"
 ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 ZIP_LEVEL = 1
 MEDIA_TYPES = {
-    ".json": "application/json", ".glb": "model/gltf-binary", ".ktx2": "image/ktx2", ".png": "image/png",
+    ".json": "application/json", ".glb": "model/gltf-binary", ".ktx2": "image/ktx2", ".png": "image/png", ".jpg": "image/jpeg",
+    ".gdshader": "text/plain; charset=utf-8", ".md": "text/markdown; charset=utf-8",
     ".glsl": "text/plain; charset=utf-8", ".hlsl": "text/plain; charset=utf-8", ".zip": "application/zip",
 }
 

@@ -44,6 +44,7 @@ PREVIEW_FILES = {
     "node_modules/three/examples/jsm/utils/BufferGeometryUtils.js": "text/javascript",
     "node_modules/three/examples/jsm/utils/SkeletonUtils.js": "text/javascript",
     "node_modules/ktx-parse/dist/index.mjs": "text/javascript",
+    "node_modules/three/examples/jsm/libs/zstddec.module.js": "text/javascript",
 }
 
 
@@ -56,8 +57,8 @@ def _import_map_hash() -> str:
 
 
 # The page runs its own modules and import map, talks only to this server, and the glTF loader decodes
-# the embedded PNGs through blob: URLs.
-PREVIEW_CSP = ("default-src 'self'; script-src 'self' {import_map}; style-src 'self' 'unsafe-inline'; img-src 'self' blob: data:; "
+# the embedded PNGs through blob: URLs; three.js's zstd decoder for the KTX2 levels is WebAssembly.
+PREVIEW_CSP = ("default-src 'self'; script-src 'self' 'wasm-unsafe-eval' {import_map}; style-src 'self' 'unsafe-inline'; img-src 'self' blob: data:; "
                "connect-src 'self' blob: data:; object-src 'none'; base-uri 'none'; frame-ancestors 'none'")
 
 

@@ -1,4 +1,5 @@
-"""encode_character / write_character: a Character as a deterministic .glb (one mesh, one skin, one animation).
+"""encode_character / write_character: a Character as a deterministic .glb (one mesh, one skin, its animation,
+or several named ones).
 A Character with morph targets is refused (they are not written).
 
 The texture is embedded as PNG (Pillow); accessors are 4-byte aligned in one buffer.
@@ -10,6 +11,7 @@ import json
 import os
 import struct
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -17,7 +19,9 @@ from crowdbake.formats.gltf.accessors import COMPONENT_TYPES
 from crowdbake.formats.gltf.animation import PATH_WIDTHS
 from crowdbake.formats.gltf.document import CHUNK_BIN, CHUNK_JSON, GLB_MAGIC, GLB_VERSION
 from crowdbake.formats.gltf.meshes import MODE_TRIANGLES
-from crowdbake.formats.gltf.model import Character
+from crowdbake.formats.gltf.model import AnimationChannel, Character
+
+NamedAnimation = tuple[str, Sequence[AnimationChannel]]
 
 
 class _BinaryBuilder:
@@ -70,8 +74,11 @@ def _png_bytes(texture: np.ndarray) -> bytes:
     return out.getvalue()
 
 
-def encode_character(character: Character) -> bytes:
-    """GLB bytes for a Character: one mesh, one skin, one animation, the texture embedded as PNG.
+def encode_character(character: Character, animations: Sequence[NamedAnimation] | None = None) -> bytes:
+    """GLB bytes for a Character: one mesh, one skin, the animations, the texture embedded as PNG.
+
+    animations: (name, channels) pairs written in order as named glTF animations; None writes the
+    character's own channels as one animation named "cycle".
 
     Joints become nodes 0..J-1 in joint order; a non-identity joint_parent_transforms[j] becomes a
     helper node with that matrix between joint j and its parent. The output is deterministic.
@@ -145,10 +152,13 @@ def encode_character(character: Character) -> bytes:
         primitive["material"] = 0
     inverse_bind = builder.accessor(np.asarray(c.inverse_bind_matrices).transpose(0, 2, 1).reshape(joint_count, 16), "MAT4", 5126)
 
-    if c.channels:
+    if animations is None:
+        animations = [("cycle", c.channels)] if c.channels else []
+    time_accessors: dict[bytes, int] = {}  # clips sampled at the same times share their input accessor
+    written = []
+    for name, clip_channels in animations:
         samplers, channels = [], []
-        time_accessors: dict[bytes, int] = {}
-        for channel in c.channels:
+        for channel in clip_channels:
             times = np.asarray(channel.times, dtype=np.float32)
             key = times.tobytes()
             if key not in time_accessors:
@@ -157,7 +167,9 @@ def encode_character(character: Character) -> bytes:
             output = builder.accessor(np.asarray(channel.values, dtype=np.float32).reshape(-1, width), "VEC4" if width == 4 else "VEC3", 5126)
             samplers.append({"input": time_accessors[key], "output": output, "interpolation": channel.interpolation})
             channels.append({"sampler": len(samplers) - 1, "target": {"node": int(channel.joint), "path": channel.path}})
-        gltf["animations"] = [{"name": "cycle", "samplers": samplers, "channels": channels}]
+        written.append({"name": name, "samplers": samplers, "channels": channels})
+    if written:
+        gltf["animations"] = written
 
     mesh_node = len(nodes)
     nodes.append({"name": c.name or "character", "mesh": 0, "skin": 0})
@@ -190,6 +202,6 @@ def encode_character(character: Character) -> bytes:
     )
 
 
-def write_character(path: str | os.PathLike, character: Character) -> None:
+def write_character(path: str | os.PathLike, character: Character, animations: Sequence[NamedAnimation] | None = None) -> None:
     """Write a Character as a .glb (see encode_character)."""
-    Path(path).write_bytes(encode_character(character))
+    Path(path).write_bytes(encode_character(character, animations))

@@ -9,6 +9,7 @@
 // no colour-space conversion (set renderer.outputColorSpace = LinearSRGBColorSpace to match it).
 import * as THREE from 'three';
 import { read } from 'ktx-parse';
+import { ZSTDDecoder } from 'three/addons/libs/zstddec.module.js';
 
 // Vulkan format numbers the export writes (crowdbake/export/ktx2.py).
 const VK_R8G8B8A8_UNORM = 37;
@@ -32,14 +33,27 @@ export const MAX_MATERIALS = 4;  // GLSL ES 3.00 indexes sampler arrays only wit
 // CompressedTexture / CompressedArrayTexture, their blocks uploaded as they are; that needs S3TC
 // (opts.renderer, when given, is asked first, so a missing extension is a clear error, not a black crowd).
 // opts.headers go with the request (an Authorization header for a private bundle).
+const KTX2_SUPERCOMPRESSION_ZSTD = 2;  // the export's levels are zstd-supercompressed (crowdbake/export/ktx2.py)
+// three.js's ZSTDDecoder (WebAssembly), started on first use: the promise of it, so that textures loading
+// at once all wait for the one init() (a second load decoding before it finished would fail).
+let zstdReady = null;
+
 export async function loadKtx2Texture(url, { filter = THREE.NearestFilter, headers = {}, renderer = null } = {}) {
   const response = await fetch(url, { headers });
   if (!response.ok) throw new Error(`${url}: HTTP ${response.status}`);
   const container = read(new Uint8Array(await response.arrayBuffer()));
-  if (container.supercompressionScheme !== 0 || container.levels.length !== 1) {
-    throw new Error(`${url}: expected one level without supercompression`);
+  if (![0, KTX2_SUPERCOMPRESSION_ZSTD].includes(container.supercompressionScheme) || container.levels.length !== 1) {
+    throw new Error(`${url}: expected one level, without supercompression or with zstd`);
   }
-  const level = container.levels[0].levelData;
+  let level = container.levels[0].levelData;
+  if (container.supercompressionScheme === KTX2_SUPERCOMPRESSION_ZSTD) {
+    zstdReady ??= (async () => {
+      const decoder = new ZSTDDecoder();
+      await decoder.init();
+      return decoder;
+    })();
+    level = (await zstdReady).decode(level, container.levels[0].uncompressedByteLength);
+  }
   const { pixelWidth: width, pixelHeight: height } = container;
   const layers = Math.max(container.layerCount, 1);
   if (container.vkFormat in BLOCK_FORMATS) {
@@ -123,10 +137,11 @@ precision highp usampler2D;
 uniform mat4 projectionMatrix;
 uniform mat4 viewMatrix;
 uniform highp usampler2D uVatPosition;
-uniform highp usampler2D uVatNormal;
+uniform highp sampler2D uVatNormal;  // 8-bit unsigned normalised: sampled as 0..1
 uniform vec3 uBoundsMin;
 uniform vec3 uBoundsMax;
 uniform int uRowsPerFrame;
+uniform int uFirstFrame;  // the clip played: its pose frames (export.json animations[].vat)
 uniform int uFrameCount;
 in vec2 uv;
 in vec2 vatUv;  // glTF TEXCOORD_1: the vertex's VAT texel at frame 0
@@ -146,10 +161,10 @@ void main() {
   int f0 = int(floor(frame));
   int f1 = (f0 + 1) % uFrameCount;
   float t = frame - float(f0);
-  ivec2 c0 = texel + ivec2(0, f0 * uRowsPerFrame), c1 = texel + ivec2(0, f1 * uRowsPerFrame);
+  ivec2 c0 = texel + ivec2(0, (uFirstFrame + f0) * uRowsPerFrame), c1 = texel + ivec2(0, (uFirstFrame + f1) * uRowsPerFrame);
   vec3 q = mix(vat(uVatPosition, c0).rgb, vat(uVatPosition, c1).rgb, t);
   vec3 position = uBoundsMin + q * (uBoundsMax - uBoundsMin);
-  vec3 normal = normalize(mix(vat(uVatNormal, c0).rgb, vat(uVatNormal, c1).rgb, t) * 2.0 - 1.0);
+  vec3 normal = normalize(mix(texelFetch(uVatNormal, c0, 0).rgb, texelFetch(uVatNormal, c1, 0).rgb, t) * 2.0 - 1.0);
   mat3 heading = headingMatrix(iPose.w);
   gl_Position = projectionMatrix * viewMatrix * vec4(heading * position + iPose.xyz, 1.0);
   vUv = uv;
@@ -181,8 +196,9 @@ void main() {
 }
 `;
 
-// vat: one part's export.json `vat` block; textures: {position, normal, diffuse, outfits} (loadKtx2Texture).
-export function createVatMaterial({ vat, textures, variations, lightDir, doubleSided }) {
+// vat: one part's export.json `vat` block; textures: {position, normal, diffuse, outfits} (loadKtx2Texture);
+// clip: the looping clip to play, {first_frame, frames} (animations[].vat), every frame when not given.
+export function createVatMaterial({ vat, textures, variations, lightDir, doubleSided, clip }) {
   return new THREE.RawShaderMaterial({
     glslVersion: THREE.GLSL3,
     vertexShader: VAT_VERTEX,
@@ -194,7 +210,8 @@ export function createVatMaterial({ vat, textures, variations, lightDir, doubleS
       uBoundsMin: { value: new THREE.Vector3(...vat.bounds_min) },
       uBoundsMax: { value: new THREE.Vector3(...vat.bounds_max) },
       uRowsPerFrame: { value: vat.rows_per_frame },
-      uFrameCount: { value: vat.frame_count },
+      uFirstFrame: { value: clip ? clip.first_frame : 0 },
+      uFrameCount: { value: clip ? clip.frames : vat.frame_count },
       uDiffuse: { value: textures.diffuse },
       uVariations: { value: variations },
       uOutfits: { value: textures.outfits },

@@ -148,11 +148,13 @@ function selectTile(toCamera, heading, impostor) {
   return a + e * impostor.azimuths_deg.length;
 }
 
-// The baked frame nearest `frame` around the cycle (crowd.cpp impostor_layer).
-function impostorLayer(frame, frameIndices, frameCount) {
+// The baked frame nearest `frame` (of the clip starting at pose frame `first`) around the clip (crowd.cpp
+// impostor_layer); layers of other clips and transitions are not candidates.
+function impostorLayer(frame, frameIndices, frameCount, first = 0) {
   let best = 0, bestDistance = Infinity;
   frameIndices.forEach((f, k) => {
-    const d = Math.abs(frame - f);
+    if (f < first || f >= first + frameCount) return;
+    const d = Math.abs(frame - (f - first));
     const around = Math.min(d, frameCount - d);
     if (around < bestDistance) { best = k; bestDistance = around; }
   });
@@ -194,7 +196,9 @@ async function main() {
   checkExport(sidecar);
   showStatus('false', `Loading textures and meshes of ${sidecar.bundle?.name ?? 'the export'} …`);
   const url = (path) => new URL(path, exportUrl).href;
-  const fps = sidecar.frames_per_second, frameCount = sidecar.frame_count;
+  // A bundle of several clips plays its first clip, looped (docs/export.md "Several clips").
+  const clip = sidecar.animations?.find((a) => a.playback === 'loop')?.vat ?? { first_frame: 0, frames: sidecar.frame_count };
+  const fps = sidecar.frames_per_second, frameCount = clip.frames;
   const impostor = sidecar.impostor;
 
   const renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
@@ -228,6 +232,7 @@ async function main() {
         variations: variations[part.material],
         lightDir: LIGHT_DIR,
         doubleSided: part.kind === 'garment',
+        clip,
       });
       const drawn = new THREE.Mesh(instanced(geometry, capacity), material);
       drawn.frustumCulled = false;
@@ -273,7 +278,7 @@ async function main() {
       const frame = (((time + c.phase) * fps) % frameCount + frameCount) % frameCount;
       if (lod === 'impostor') {
         const tile = selectTile(camera.position.clone().sub(worldCenter), h, impostor);
-        const layer = impostorLayer(Math.floor(frame), impostor.frame_indices, frameCount);
+        const layer = impostorLayer(Math.floor(frame), impostor.frame_indices, frameCount, clip.first_frame);
         lists.impostor.push([c, layer, tile]);
       } else {
         lists[lod].push([c, frame, 0]);
@@ -295,7 +300,7 @@ async function main() {
   }
 
   const report = () => {
-    status.textContent = JSON.stringify({ ready: true, characters: count, lod: counts, switch_distance_m: rule.impostor, bundle: sidecar.bundle,
+    status.textContent = JSON.stringify({ ready: true, characters: count, lod: counts, switch_distance_m: rule.impostor, bundle: sidecar.bundle, clip,
       texture_formats: [...new Set([...diffuse, outfits, uvMap, normalMap].map((t) => t.userData.vkFormat))].sort((a, b) => a - b) });
     status.dataset.ready = 'true';
   };

@@ -1,11 +1,15 @@
-// Validate glTF files with the Khronos glTF-Validator; prints one JSON report per file (a JSON array).
+// Validate glTF files with the Khronos glTF-Validator, their external files included; prints one JSON report
+// per file (a JSON array).
 // Usage: node tools/validate-gltf.mjs FILE.glb [...]; exits 1 when any file has an error.
 import { readFileSync } from 'node:fs';
+import { dirname, resolve } from 'node:path';
 import { validateBytes } from 'gltf-validator';
 
 const reports = [];
 for (const path of process.argv.slice(2)) {
-  const report = await validateBytes(new Uint8Array(readFileSync(path)), { maxIssues: 100 });
+  // External files (the looks an export's LODs share) are read beside the .glb, so they are validated too.
+  const externalResourceFunction = async (uri) => new Uint8Array(readFileSync(resolve(dirname(path), decodeURIComponent(uri))));
+  const report = await validateBytes(new Uint8Array(readFileSync(path)), { maxIssues: 100, externalResourceFunction });
   reports.push({
     path,
     validator: report.validatorVersion,
