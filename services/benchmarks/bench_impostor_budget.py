@@ -32,9 +32,11 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
 MIB = 1024 * 1024
-# name: (azimuths, elevations, impostor frames, tile, memory budget in MiB or None: the counts as given)
+# name: (azimuths, elevations, impostor frames, tile, memory budget in MiB or None: the counts as given);
+# "default" is the bake's defaults (BakeParams()), the others bake their counts (no frames from motion).
 CONFIGS = {
-    "budget16": (32, (0.0, 20.0, 40.0), 10, 128, 16.0),  # the bake's defaults
+    "default": None,
+    "f10t128": (32, (0.0, 20.0, 40.0), 10, 128, 16.0),  # 10 frames asked, 128² tiles, the budget's azimuths
     "a32": (32, (0.0, 20.0, 40.0), 10, 128),
     "a24": (24, (0.0, 20.0, 40.0), 10, 128),
     "a16f16": (16, (0.0, 20.0, 40.0), 16, 128),
@@ -42,6 +44,22 @@ CONFIGS = {
     "a16f24": (16, (0.0, 20.0, 40.0), 24, 128),
     "rings2": (32, (0.0, 30.0), 10, 128),
     "t96": (32, (0.0, 20.0, 40.0), 10, 96),
+    "a8f24": (8, (0.0, 20.0, 40.0), 24, 128),
+    "a8r2f36": (8, (0.0, 30.0), 36, 128),
+    "a12r2f24": (12, (0.0, 30.0), 24, 128),
+    "a16r2f18": (16, (0.0, 30.0), 18, 128),
+    "a12f16": (12, (0.0, 20.0, 40.0), 16, 128),
+    "a16f12": (16, (0.0, 20.0, 40.0), 12, 128),
+    "a16r2f16": (16, (0.0, 30.0), 16, 128),
+    "t112r2f24": (16, (0.0, 30.0), 24, 112),
+    "t96r2f32": (16, (0.0, 30.0), 32, 96),
+    "t112a12r2f32": (12, (0.0, 30.0), 32, 112),
+    "t112r2f20": (16, (0.0, 30.0), 20, 112),
+    "t112f16": (16, (0.0, 20.0, 40.0), 16, 112),
+    "t112f16b": (32, (0.0, 20.0, 40.0), 16, 112, 16.0),
+    "t112a20f12": (20, (0.0, 20.0, 40.0), 12, 112),
+    "t112a24f10": (24, (0.0, 20.0, 40.0), 10, 112),
+    "t112a12f20": (12, (0.0, 20.0, 40.0), 20, 112),
 }
 ROBOT_WALK_FRAMES = (320, 493)  # robot_clips/timeline.json: the first Walking segment without blends
 
@@ -84,9 +102,12 @@ def bake_once(case: str, config: str, scratch: Path) -> dict | None:
     if found is None:
         return None
     character, cloth, mesh, textures, changes = found
-    azimuths, elevations, frames, tile, *budget = CONFIGS[config]
-    params = replace(BakeParams(), azimuths=azimuths, elevations_deg=elevations, impostor_frames=frames, tile_size=tile, export=False,
-                     impostor_budget_mib=budget[0] if budget else None, **changes)
+    if CONFIGS[config] is None:
+        params = replace(BakeParams(), export=False, **changes)
+    else:
+        azimuths, elevations, frames, tile, *budget = CONFIGS[config]
+        params = replace(BakeParams(), azimuths=azimuths, elevations_deg=elevations, impostor_frames=frames, tile_size=tile, export=False,
+                         impostor_motion_texels=None, impostor_budget_mib=budget[0] if budget else None, **changes)
     folder = Path(tempfile.mkdtemp(prefix=f"{case}-{config}-", dir=scratch))
     started = time.perf_counter()
     summary = run_bake(BakeInputs(character, cloth, mesh, textures, None, case.replace("_", "-"), "1", params), folder / "bundles", folder / "work")
@@ -96,8 +117,8 @@ def bake_once(case: str, config: str, scratch: Path) -> dict | None:
     manifest = json.loads((summary.bundle / "manifest.json").read_text())
     stored = sum(memory[kind] for kind in manifest["impostor"]["maps"] if kind in memory)
     return {
-        "case": case, "config": config, "azimuths": len(manifest["impostor"]["azimuths_deg"]), "elevations_deg": list(elevations),
-        "frames": len(manifest["impostor"]["frame_indices"]), "tile": tile, "budget_mib": params.impostor_budget_mib,
+        "case": case, "config": config, "azimuths": len(manifest["impostor"]["azimuths_deg"]),
+        "elevations_deg": list(params.elevations_deg), "frames": len(manifest["impostor"]["frame_indices"]), "tile": params.tile_size, "budget_mib": params.impostor_budget_mib,
         "crop": manifest["impostor"].get("crop"), "cycle_frames": manifest["cycle"]["frames"],
         "impostor_mib": stored / MIB, "maps_mib": {kind: memory[kind] / MIB for kind in manifest["impostor"]["maps"]},
         "at_views": {k: runtime["at_views"][k] for k in ("ssim_mean", "ssim_worst")},
