@@ -33,9 +33,12 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
 MIB = 1024 * 1024
 # name: (azimuths, elevations, impostor frames, tile, memory budget in MiB or None: the counts as given);
-# "default" is the bake's defaults (BakeParams()), the others bake their counts (no frames from motion).
+# or a dict: the bake's defaults (BakeParams()) with these changes; tuples bake their counts (no frames from motion).
 CONFIGS = {
-    "default": None,
+    "default": {},
+    "m6": {"impostor_motion_texels": 6.0},
+    "m9": {"impostor_motion_texels": 9.0},
+    "m10": {"impostor_motion_texels": 10.0},
     "f10t128": (32, (0.0, 20.0, 40.0), 10, 128, 16.0),  # 10 frames asked, 128² tiles, the budget's azimuths
     "a32": (32, (0.0, 20.0, 40.0), 10, 128),
     "a24": (24, (0.0, 20.0, 40.0), 10, 128),
@@ -102,8 +105,8 @@ def bake_once(case: str, config: str, scratch: Path) -> dict | None:
     if found is None:
         return None
     character, cloth, mesh, textures, changes = found
-    if CONFIGS[config] is None:
-        params = replace(BakeParams(), export=False, **changes)
+    if isinstance(CONFIGS[config], dict):
+        params = replace(BakeParams(), export=False, **CONFIGS[config], **changes)
     else:
         azimuths, elevations, frames, tile, *budget = CONFIGS[config]
         params = replace(BakeParams(), azimuths=azimuths, elevations_deg=elevations, impostor_frames=frames, tile_size=tile, export=False,

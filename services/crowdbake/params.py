@@ -239,7 +239,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("impostor_frames", "int", 24, "the most cycle frames baked into impostors (paper: 10); fewer where the "
               "character moves little (impostor_motion_texels) or the memory budget says so",
               ("--frames", "--impostor-frames"), "N", minimum=1, maximum=MAX_IMPOSTOR_FRAMES),
-    ParamSpec("impostor_motion_texels", "float", 10.0, "bake the fewest frames between which the character (95 % of its vertices) "
+    ParamSpec("impostor_motion_texels", "float", 9.0, "bake the fewest frames between which the character (95 % of its vertices) "
               "moves at most this many tile texels, up to impostor_frames (docs/bake.md 'Memory')",
               ("--frame-motion",), "TEXELS", optional=True, above_zero=True, maximum=1024.0,
               derived="none: impostor_frames as given"),
@@ -321,7 +321,7 @@ class BakeParams:
     candidates: int = 5
     cycle_views: int = 5
     impostor_frames: int = 24
-    impostor_motion_texels: float | None = 10.0
+    impostor_motion_texels: float | None = 9.0
     azimuths: int = 32
     elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0)
     tile_size: int = 112
