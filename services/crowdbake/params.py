@@ -239,7 +239,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("impostor_frames", "int", 24, "the most cycle frames baked into impostors (paper: 10); fewer where the "
               "character moves little (impostor_motion_texels) or the memory budget says so",
               ("--frames", "--impostor-frames"), "N", minimum=1, maximum=MAX_IMPOSTOR_FRAMES),
-    ParamSpec("impostor_motion_texels", "float", 9.0, "bake the fewest frames between which the character (95 % of its vertices) "
+    ParamSpec("impostor_motion_texels", "float", 9.0, "bake the fewest frames between which the character (95 percent of its vertices) "
               "moves at most this many tile texels, up to impostor_frames (docs/bake.md 'Memory')",
               ("--frame-motion",), "TEXELS", optional=True, above_zero=True, maximum=1024.0,
               derived="none: impostor_frames as given"),
