@@ -1,11 +1,12 @@
 """Impostor fidelity against memory on real characters: which views, frames and tile sizes a clip needs.
 
     PYTHONPATH=services python services/benchmarks/bench_impostor_budget.py [--cases sample cesium robot_walk]
-        [--configs default ...] [--out out/bench/impostor_budget.json] [--plot docs/img/impostor_budget.png]
+        [--configs default f10t128 ...] [--out out/bench/impostor_budget.json] [--plot docs/img/impostor_budget.png]
 
-Bakes each case once per impostor setting (crowdbake.stages.runner.run_bake, the bake's defaults
-otherwise: cropped tiles, no detail maps; `budget16` is the defaults, the 16 MiB budget choosing the
-counts; the others ask for their counts with no budget) and reads what the bundle itself records:
+Bakes each case once per impostor setting of CONFIGS (crowdbake.stages.runner.run_bake, the bake's
+defaults otherwise: cropped tiles, no detail maps; `default` is the defaults, the character's motion
+and the 16 MiB budget choosing the counts; the tuples ask for their counts, with no budget unless they
+name one) and reads what the bundle itself records:
 
 - memory: the impostor maps the bundle stores for its one clip (normal, UV and surface map layers,
   texture_memory.json `map_bytes`: what a GPU holds, no mipmaps), in MiB;
@@ -32,9 +33,13 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 ASSETS = Path(__file__).resolve().parents[2].parent / "shared" / "assets"
 MIB = 1024 * 1024
-# name: (azimuths, elevations, impostor frames, tile, memory budget in MiB or None: the counts as given)
+# name: (azimuths, elevations, impostor frames, tile, memory budget in MiB or None: the counts as given);
+# or a dict: the bake's defaults (BakeParams()) with these changes; tuples bake their counts (no frames from motion).
 CONFIGS = {
-    "budget16": (32, (0.0, 20.0, 40.0), 10, 128, 16.0),  # the bake's defaults
+    "default": {},
+    "m9": {"impostor_motion_texels": 9.0},
+    "m10": {"impostor_motion_texels": 10.0},
+    "f10t128": (32, (0.0, 20.0, 40.0), 10, 128, 16.0),  # 10 frames asked, 128² tiles, the budget's azimuths
     "a32": (32, (0.0, 20.0, 40.0), 10, 128),
     "a24": (24, (0.0, 20.0, 40.0), 10, 128),
     "a16f16": (16, (0.0, 20.0, 40.0), 16, 128),
@@ -42,6 +47,20 @@ CONFIGS = {
     "a16f24": (16, (0.0, 20.0, 40.0), 24, 128),
     "rings2": (32, (0.0, 30.0), 10, 128),
     "t96": (32, (0.0, 20.0, 40.0), 10, 96),
+    "a8f24": (8, (0.0, 20.0, 40.0), 24, 128),
+    "a8r2f36": (8, (0.0, 30.0), 36, 128),
+    "a12r2f24": (12, (0.0, 30.0), 24, 128),
+    "a12f16": (12, (0.0, 20.0, 40.0), 16, 128),
+    "a16f12": (16, (0.0, 20.0, 40.0), 12, 128),
+    "a16r2f16": (16, (0.0, 30.0), 16, 128),
+    "t112r2f24": (16, (0.0, 30.0), 24, 112),
+    "t96r2f32": (16, (0.0, 30.0), 32, 96),
+    "t112a12r2f32": (12, (0.0, 30.0), 32, 112),
+    "t112f16": (16, (0.0, 20.0, 40.0), 16, 112),
+    "t112f16b": (32, (0.0, 20.0, 40.0), 16, 112, 16.0),
+    "t112a20f12": (20, (0.0, 20.0, 40.0), 12, 112),
+    "t112a24f10": (24, (0.0, 20.0, 40.0), 10, 112),
+    "t112a12f20": (12, (0.0, 20.0, 40.0), 20, 112),
 }
 ROBOT_WALK_FRAMES = (320, 493)  # robot_clips/timeline.json: the first Walking segment without blends
 
@@ -84,9 +103,12 @@ def bake_once(case: str, config: str, scratch: Path) -> dict | None:
     if found is None:
         return None
     character, cloth, mesh, textures, changes = found
-    azimuths, elevations, frames, tile, *budget = CONFIGS[config]
-    params = replace(BakeParams(), azimuths=azimuths, elevations_deg=elevations, impostor_frames=frames, tile_size=tile, export=False,
-                     impostor_budget_mib=budget[0] if budget else None, **changes)
+    if isinstance(CONFIGS[config], dict):
+        params = replace(BakeParams(), export=False, **CONFIGS[config], **changes)
+    else:
+        azimuths, elevations, frames, tile, *budget = CONFIGS[config]
+        params = replace(BakeParams(), azimuths=azimuths, elevations_deg=elevations, impostor_frames=frames, tile_size=tile, export=False,
+                         impostor_motion_texels=None, impostor_budget_mib=budget[0] if budget else None, **changes)
     folder = Path(tempfile.mkdtemp(prefix=f"{case}-{config}-", dir=scratch))
     started = time.perf_counter()
     summary = run_bake(BakeInputs(character, cloth, mesh, textures, None, case.replace("_", "-"), "1", params), folder / "bundles", folder / "work")
@@ -96,8 +118,8 @@ def bake_once(case: str, config: str, scratch: Path) -> dict | None:
     manifest = json.loads((summary.bundle / "manifest.json").read_text())
     stored = sum(memory[kind] for kind in manifest["impostor"]["maps"] if kind in memory)
     return {
-        "case": case, "config": config, "azimuths": len(manifest["impostor"]["azimuths_deg"]), "elevations_deg": list(elevations),
-        "frames": len(manifest["impostor"]["frame_indices"]), "tile": tile, "budget_mib": params.impostor_budget_mib,
+        "case": case, "config": config, "azimuths": len(manifest["impostor"]["azimuths_deg"]),
+        "elevations_deg": list(params.elevations_deg), "frames": len(manifest["impostor"]["frame_indices"]), "tile": params.tile_size, "budget_mib": params.impostor_budget_mib,
         "crop": manifest["impostor"].get("crop"), "cycle_frames": manifest["cycle"]["frames"],
         "impostor_mib": stored / MIB, "maps_mib": {kind: memory[kind] / MIB for kind in manifest["impostor"]["maps"]},
         "at_views": {k: runtime["at_views"][k] for k in ("ssim_mean", "ssim_worst")},
@@ -124,7 +146,9 @@ def plot(rows: list[dict], path: Path) -> None:
     for case in dict.fromkeys(row["case"] for row in rows):
         mine = sorted((row for row in rows if row["case"] == case), key=lambda row: row["impostor_mib"])
         for axis, section in zip(axes, ("at_views", "between_views")):
-            axis.plot([r["impostor_mib"] for r in mine], [r[section]["ssim_mean"] for r in mine], "o", label=case)  # settings, not a curve
+            line, = axis.plot([r["impostor_mib"] for r in mine], [r[section]["ssim_mean"] for r in mine], "o", label=case)  # settings, not a curve
+            for r in (r for r in mine if r["config"] == "default"):  # the bake's defaults stand out
+                axis.plot(r["impostor_mib"], r[section]["ssim_mean"], "*", markersize=15, color=line.get_color(), markeredgecolor="black")
             for r in mine:
                 axis.annotate(r["config"], (r["impostor_mib"], r[section]["ssim_mean"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
     for axis, section, target in zip(axes, ("at baked views", "between views and frames"), (0.95, 0.90)):
@@ -143,7 +167,7 @@ def plot(rows: list[dict], path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cases", nargs="+", default=["sample", "cesium", "robot_walk"], choices=["sample", "cesium", "robot_walk"])
-    parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    parser.add_argument("--configs", nargs="+", default=["default", "f10t128"], choices=list(CONFIGS))
     parser.add_argument("--out", type=Path, default=Path("out/bench/impostor_budget.json"))
     parser.add_argument("--plot", type=Path, default=None)
     parser.add_argument("--scratch", type=Path, default=None, help="keep the bakes here (default: a temporary folder)")

@@ -75,8 +75,8 @@ MAX_ELEVATIONS = 9
 MAX_IMPOSTOR_FRAMES = 256
 # Texels of one impostor map set: impostor_frames x views (azimuths x elevation rings) x tile_size².
 # Each texel is rendered as a normal, a detail and a UV map and held while packing (4 bytes each as
-# rgba8 before compression), so 2^27 texels is 1.5 GiB of maps: 8.5 times the default bake (10 frames x
-# 32 x 3 views x 128²), and the most a 4 GiB worker should be asked for. Each parameter alone is within its bound; together they may not be.
+# rgba8 before compression), so 2^27 texels is 1.5 GiB of maps: 4.6 times the most the defaults ask
+# for (24 frames x 32 x 3 views x 112², before the memory budget), and the most a 4 GiB worker should be asked for. Each parameter alone is within its bound; together they may not be.
 MAX_IMPOSTOR_TEXELS = 1 << 27
 # The cycle search's cost grows with candidates x views renders; these bound one request's work.
 MAX_CANDIDATES = 50
@@ -236,15 +236,20 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--candidates",), "K", minimum=1, maximum=MAX_CANDIDATES),
     ParamSpec("cycle_views", "int", 5, "views of the pass-2 edge metric (paper: 5)",
               ("--cycle-views",), "N", minimum=1, maximum=MAX_CYCLE_VIEWS),
-    ParamSpec("impostor_frames", "int", 10, "cycle frames baked into impostors (paper: 10)",
+    ParamSpec("impostor_frames", "int", 24, "the most cycle frames baked into impostors (paper: 10); fewer where the "
+              "character moves little (impostor_motion_texels) or the memory budget says so",
               ("--frames", "--impostor-frames"), "N", minimum=1, maximum=MAX_IMPOSTOR_FRAMES),
+    ParamSpec("impostor_motion_texels", "float", 9.0, "bake the fewest frames between which the character (95 percent of its vertices) "
+              "moves at most this many tile texels, up to impostor_frames (docs/bake.md 'Memory')",
+              ("--frame-motion",), "TEXELS", optional=True, above_zero=True, maximum=1024.0,
+              derived="none: impostor_frames as given"),
     ParamSpec("azimuths", "int", 32, "impostor views per elevation ring (32: docs/figures.md, impostor views against memory)",
               ("--azimuths",), "N", minimum=1, maximum=MAX_AZIMUTHS),
     ParamSpec("elevations_deg", "floats", (0.0, 20.0, 40.0), "impostor view elevations in degrees, one ring each",
               ("--elevations",), "DEG,...", minimum=-90.0, maximum=90.0, min_items=1, max_items=MAX_ELEVATIONS, distinct=True),
-    ParamSpec("tile_size", "int", 128, "texels per impostor view side (a multiple of 4: BC1/BC2 blocks are 4x4 texels)",
+    ParamSpec("tile_size", "int", 112, "texels per impostor view side (a multiple of 4: BC1/BC2 blocks are 4x4 texels)",
               ("--tile", "--tile-size"), "PX", minimum=4, maximum=MAX_TILE_SIZE, multiple_of=4),
-    ParamSpec("impostor_budget_mib", "float", 16.0, "memory for one clip's impostor maps in MiB (the paper's 15): fewer azimuths, "
+    ParamSpec("impostor_budget_mib", "float", 16.0, "memory for one clip's impostor maps in MiB (the paper's 15): fewer azimuths (to 16), "
               "then fewer frames, until they fit (docs/bake.md 'Memory')",
               ("--impostor-budget",), "MIB", optional=True, above_zero=True, maximum=4096.0),
     ParamSpec("crop", "bool", True, "store each impostor view cropped to the box the character covers over every view and frame "
@@ -315,10 +320,11 @@ class BakeParams:
     animation: int | str | None = None
     candidates: int = 5
     cycle_views: int = 5
-    impostor_frames: int = 10
+    impostor_frames: int = 24
+    impostor_motion_texels: float | None = 9.0
     azimuths: int = 32
     elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0)
-    tile_size: int = 128
+    tile_size: int = 112
     impostor_budget_mib: float | None = 16.0
     crop: bool = True
     detail_map: bool = False

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from crowdbake.cli.bake import format_summary
 from crowdbake.formats.bundle import verify_bundle
 from sample_fixtures import small_bake_params
 
@@ -124,6 +125,9 @@ def test_a_budget_fits_the_maps_by_fewer_azimuths(small_sample, bakes, tmp_path)
     assert [step["azimuths"] for step in held["budget"]["steps"]] == [32, 28, 24, 20]
     manifest = json.loads((summary.bundle / "manifest.json").read_text())["impostor"]
     assert len(manifest["azimuths_deg"]) == 20 and manifest["azimuths_deg"][1] == 18.0
+    # The frames the motion asks for come first (2 asked, under the floor: kept), and the summary says so.
+    assert held["budget"]["motion"] == {"max_texels": PARAMS.impostor_motion_texels, "frames": 2}
+    assert "budget chose 20 azimuths and 2 frames (asked 32 and 2; the motion needs 2 frames)" in format_summary(summary)
 
 
 def test_crowdview_says_a_bundle_has_no_detail_maps(bakes, tmp_path):

@@ -27,6 +27,7 @@ from crowdbake.formats.binary import layer_size
 AZIMUTH_STEP = 4
 AZIMUTH_FLOOR = 16
 FRAME_FLOOR = 6
+MOTION_PERCENTILE = 95.0
 
 
 DETAIL_FORMATS = {True: "bc2", False: "rgba8"}  # compressed or not
@@ -124,27 +125,61 @@ def fit_budget(extents: FrameExtents, radius: float, tile_size: int, azimuths: i
     return BudgetChoice(a, f, crop, size, budget_bytes is None or size <= budget_bytes, steps)
 
 
+def baked_motion(positions: np.ndarray, frames: list[int]) -> float:
+    """Metres the character moves between consecutive baked frames (the last to the first too: the cycle
+    loops): per pair of baked frames the MOTION_PERCENTILE of its vertices' displacements, the largest pair.
+    positions (F, V, 3) metres; frames ascending cycle frame indices. A percentile, not the maximum, so that
+    a few stray vertices (a seam, a fold that snaps) do not set the count. The displacement is in 3D, an
+    upper bound on what any view sees move."""
+    points = np.asarray(positions, dtype=np.float64)
+    if len(frames) < 2:
+        return 0.0
+    here, there = points[frames], points[list(frames[1:]) + [frames[0]]]
+    step = np.linalg.norm(there - here, axis=-1)  # (K, V)
+    return float(np.percentile(step, MOTION_PERCENTILE, axis=1).max())
+
+
+def frames_for_motion(positions: np.ndarray, texels_per_metre: float, max_texels: float | None, most: int) -> int:
+    """The fewest baked frames, from min(FRAME_FLOOR, most) to `most`, between which the character moves at
+    most `max_texels` tile texels (baked_motion × texels_per_metre); `most` where none does or `max_texels`
+    is None. positions (F, V, 3) metres over the cycle. Cloth that swings far needs more frames: halfway
+    between two baked frames the runtime blends two pictures that differ by that motion (docs/bake.md
+    "Memory")."""
+    cycle_frames = len(positions)
+    most = min(most, cycle_frames)
+    if max_texels is None:
+        return most
+    for count in range(min(FRAME_FLOOR, most), most + 1):
+        if baked_motion(positions, impostor_frame_indices(cycle_frames, count)) * texels_per_metre <= max_texels:
+            return count
+    return most
+
+
 def extents_of(extents: FrameExtents, first: int, frames: int) -> FrameExtents:
     """The FrameExtents of frames first .. first + frames - 1 (one clip's range of a bundle's pose frames)."""
     rows = slice(first, first + frames)
     return FrameExtents(extents.reach[rows], extents.low[rows], extents.high[rows])
 
 
-def fit_budget_per_clip(extents: FrameExtents, radius: float, tile_size: int, azimuths: int, rings: int, frames: int,
+def fit_budget_per_clip(extents: FrameExtents, radius: float, tile_size: int, azimuths: int, rings: int, frames: int | list[int],
                         clips: list[tuple[int, int]], bytes_per_texel: float, budget_bytes: float | None) -> list[BudgetChoice]:
-    """fit_budget for each clip of a bundle of several (clips: (first pose frame, frames) each): the budget
-    holds per clip, as a runtime holds the maps of the clips its characters play. All clips share one atlas
-    layout, so one azimuth count: the fewest any clip needs; each clip then keeps the frames that fit at it.
+    """fit_budget for each clip of a bundle of several (clips: (first pose frame, frames) each; frames: the
+    count asked for every clip, or one per clip, as frames_for_motion gives them): the budget holds per
+    clip, as a runtime holds the maps of the clips its characters play. All clips share one atlas layout,
+    so one azimuth count: the fewest any clip needs; each clip then keeps the frames that fit at it.
     extents: FrameExtents over every pose frame."""
     if not clips:
         raise ValueError("fit_budget_per_clip: no clips")
-    first_pass = [fit_budget(extents_of(extents, first, n), radius, tile_size, azimuths, rings, frames, n, bytes_per_texel, budget_bytes)
-                  for first, n in clips]
+    asked = [frames] * len(clips) if isinstance(frames, int) else list(frames)
+    if len(asked) != len(clips):
+        raise ValueError(f"fit_budget_per_clip: {len(asked)} frame counts for {len(clips)} clips")
+    first_pass = [fit_budget(extents_of(extents, first, n), radius, tile_size, azimuths, rings, f, n, bytes_per_texel, budget_bytes)
+                  for (first, n), f in zip(clips, asked)]
     shared = min(choice.azimuths for choice in first_pass)
     if shared == azimuths:
         return first_pass
-    return [fit_budget(extents_of(extents, first, n), radius, tile_size, shared, rings, frames, n, bytes_per_texel, budget_bytes)
-            for first, n in clips]
+    return [fit_budget(extents_of(extents, first, n), radius, tile_size, shared, rings, f, n, bytes_per_texel, budget_bytes)
+            for (first, n), f in zip(clips, asked)]
 
 
 def budget_document(choice: BudgetChoice, params) -> dict:
@@ -154,8 +189,12 @@ def budget_document(choice: BudgetChoice, params) -> dict:
     return {
         "budget_mib": params.impostor_budget_mib,
         "asked": {"azimuths": params.azimuths, "frames": params.impostor_frames},
+        # The frames the character's motion needs (frames_for_motion), before the budget: the first step.
+        "motion": {"max_texels": params.impostor_motion_texels, "frames": choice.steps[0][1]},
         "chosen": {"azimuths": choice.azimuths, "frames": choice.frames},
         "fits": choice.fits,
         "steps": [{"azimuths": a, "frames": f, "mib": size / mib} for a, f, size in choice.steps],
-        "rule": f"azimuths fall by {AZIMUTH_STEP} to {AZIMUTH_FLOOR}, then frames by 1 to {FRAME_FLOOR}, until the maps fit",
+        "rule": (f"frames: the fewest (at most the frames asked) between which {MOTION_PERCENTILE:g} % of the vertices move at most "
+                 f"motion.max_texels tile texels; then azimuths fall by {AZIMUTH_STEP} to {AZIMUTH_FLOOR}, then frames by 1 to "
+                 f"{FRAME_FLOOR}, until the maps fit"),
     }

@@ -151,8 +151,10 @@ def format_summary(summary) -> str:
                              f"{chosen['chosen']['frames']} frames for {clip} (asked {chosen['asked']['azimuths']} and {chosen['asked']['frames']})"
                              + ("" if chosen["fits"] else "; still over it at the floors"))
         if budget and "per_clip" not in budget and budget["chosen"] != budget["asked"]:
+            motion = budget.get("motion", {})
             lines.append(f"memory   the {budget['budget_mib']:g} MiB budget chose {budget['chosen']['azimuths']} azimuths and "
-                         f"{budget['chosen']['frames']} frames (asked {budget['asked']['azimuths']} and {budget['asked']['frames']})"
+                         f"{budget['chosen']['frames']} frames (asked {budget['asked']['azimuths']} and {budget['asked']['frames']}"
+                         + (f"; the motion needs {motion['frames']} frames" if motion.get("max_texels") is not None else "") + ")"
                          + ("" if budget["fits"] else "; still over it at the floors"))
     lines.append(
         f"figure 4 paper model: 1 variation {memory['paper_mib']['1']:.0f} MiB both; 8 variations detail-mapped "

@@ -18,7 +18,7 @@ from PIL import Image
 from crowdbake.bake import compression, lod, pose_ranges, poses
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.bake.impostor_budget import (
-    budget_document, bytes_per_texel, crop_for, fit_budget, fit_budget_per_clip, frame_extents, map_formats,
+    budget_document, bytes_per_texel, crop_for, fit_budget, fit_budget_per_clip, frame_extents, frames_for_motion, map_formats,
 )
 from crowdbake.bake.texture_memory import MIB
 from crowdbake.bake.cycle import estimate_root_offsets
@@ -207,9 +207,11 @@ def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, Atla
         return ranges_framing(params, cycle.bundle_ranges(), high)
     centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
     elevations = tuple(params.elevations_deg)
-    extents = frame_extents(np.concatenate([np.asarray(part.positions) for part in high.values()], axis=1), centre, elevations)
+    positions = np.concatenate([np.asarray(part.positions) for part in high.values()], axis=1)
+    extents = frame_extents(positions, centre, elevations)
     budget = None if params.impostor_budget_mib is None else params.impostor_budget_mib * MIB
-    choice = fit_budget(extents, radius, params.tile_size, params.azimuths, len(elevations), params.impostor_frames, cycle.cycle_frames,
+    frames = frames_for_motion(positions, params.tile_size / (2.0 * radius), params.impostor_motion_texels, params.impostor_frames)
+    choice = fit_budget(extents, radius, params.tile_size, params.azimuths, len(elevations), frames, cycle.cycle_frames,
                         bytes_per_texel(map_formats(params.compress, params.uv_format, params.detail_map)), budget)
     layout = AtlasLayout.rings(params.tile_size, choice.azimuths, elevations)
     if params.crop:
@@ -226,9 +228,12 @@ def ranges_framing(params, ranges: Ranges, high: dict) -> tuple[dict, AtlasLayou
     bytes as stored). The budget's account lists each clip's choice."""
     centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
     elevations = tuple(params.elevations_deg)
-    extents = frame_extents(np.concatenate([np.asarray(part.positions) for part in high.values()], axis=1), centre, elevations)
+    positions = np.concatenate([np.asarray(part.positions) for part in high.values()], axis=1)
+    extents = frame_extents(positions, centre, elevations)
     budget = None if params.impostor_budget_mib is None else params.impostor_budget_mib * MIB
-    choices = fit_budget_per_clip(extents, radius, params.tile_size, params.azimuths, len(elevations), params.impostor_frames,
+    frames = [frames_for_motion(positions[clip.first_frame:clip.first_frame + clip.frames], params.tile_size / (2.0 * radius),
+                                params.impostor_motion_texels, params.impostor_frames) for clip in ranges.clips]
+    choices = fit_budget_per_clip(extents, radius, params.tile_size, params.azimuths, len(elevations), frames,
                                   [(clip.first_frame, clip.frames) for clip in ranges.clips],
                                   bytes_per_texel(map_formats(params.compress, params.uv_format, params.detail_map)), budget)
     layout = AtlasLayout.rings(params.tile_size, choices[0].azimuths, elevations)
