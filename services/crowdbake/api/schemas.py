@@ -170,6 +170,15 @@ class BakeCheck(BaseModel):
         return value
 
 
+class ClipClothIn(BaseModel):
+    """One clip's cloth: a separate simulation of the character's animation `clip` from rest."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    clip: str = Field(min_length=1, max_length=128, description="Name of one of the character's animations.", examples=["Walking"])
+    cloth: str = Field(description="Id of a cloth asset simulating that clip alone, from its frame 0.")
+
+
 class BakeCreate(BaseModel):
     """Start a bake from uploaded assets; it publishes <name>/<version> when `publish` is true."""
 
@@ -188,6 +197,11 @@ class BakeCreate(BaseModel):
         None, description="Id of a timeline asset (POST /v1/assets/timelines): the cloth plays several clips, as "
                           "`crowdbake bake --timeline`; cycle.json gains a loop per clip and a transition per change of clip, "
                           "and the bundle (format 2 when the timeline plays several clips) carries every loop and transition.")
+    clip_cloth: list[ClipClothIn] = Field(
+        default_factory=list, max_length=64,
+        description="One cloth cache per clip, as `crowdbake bake --clip-cloth` (docs/inputs.md): each a separate simulation of "
+                    "one clip, instead of `cloth` and `timeline`. A loop per clip and no transitions (no simulation joined the "
+                    "clips); the bundle (format 2 with several clips) carries every loop.")
     params: BakeParamsIn = Field(default_factory=BakeParamsIn)
     # `created` stands beside name and version, not among BakeParams: like them it is what the manifest
     # says about the bundle, not how it is baked (no stage but pack reads it, and it is passed to

@@ -173,3 +173,45 @@ def write_joined_inputs(entries: list[ClipCloth], character: Path, fps: float | 
     for path in paths:
         os.utime(path, (newest, newest))
     return paths
+
+
+def check_clip_cloth_request(character_info: dict, clips: list[str], cloth_infos: list[dict], fps: float | None) -> None:
+    """A REST bake's clip_cloth from what the uploads recorded (as write_joined_inputs checks the files;
+    the rest meshes' triangles and UVs are compared by the worker). InputError naming the entry
+    (field "clip_cloth.K.clip" for the name, "clip_cloth.K" for its cloth) for a clip given twice, one the
+    character lacks (when its clips are all known), a cache of other point or triangle counts than the first,
+    another frame rate, or fewer frames than two of its clip's cycles."""
+    from crowdbake.ingest.bake_request import request_fps
+    from crowdbake.ingest.studio_inputs import MAX_ANIMATION_SUMMARIES
+
+    if not clips:
+        raise InputError("name at least one clip and its cloth cache", FIELD)
+    summaries = character_info.get("animations")
+    every_clip_known = isinstance(summaries, list) and len(summaries) < MAX_ANIMATION_SUMMARIES
+    seconds = {entry.get("name"): float(entry.get("seconds") or 0.0) for entry in summaries or []}
+    first_rate = None
+    for k, (clip, info) in enumerate(zip(clips, cloth_infos)):
+        if clip in clips[:k]:
+            raise InputError(f"clip {clip!r} is given two cloth caches (entries {clips.index(clip)} and {k}): give one cache per clip", f"{FIELD}.{k}.clip")
+        if clip not in seconds:
+            if every_clip_known:
+                listed = ", ".join(repr(name) for name in seconds) or "none"
+                raise InputError(f"clip {clip!r}: the character has no such animation (it has {listed})", f"{FIELD}.{k}.clip")
+            continue
+        try:
+            rate = request_fps(info, fps)
+        except InputError as error:
+            raise InputError(f"clip {clip!r}: {error.message}", f"{FIELD}.{k}") from None
+        first_rate = rate if first_rate is None else first_rate
+        if abs(rate - first_rate) > 1e-6 * first_rate:
+            raise InputError(f"clip {clip!r}: its cache plays at {rate:g} frames per second, clip {clips[0]!r}'s at {first_rate:g}: "
+                             "give them one rate", f"{FIELD}.{k}")
+        for count in ("vertex_count", "triangle_count"):
+            if k and info.get(count) != cloth_infos[0].get(count):
+                raise InputError(f"clip {clip!r}: its cache has {info.get(count)} {count.split('_')[0]}s, clip {clips[0]!r}'s "
+                                 f"{cloth_infos[0].get(count)}: the clips' caches must move the same garment", f"{FIELD}.{k}")
+        period = int(round(seconds[clip] * rate))
+        needed = CYCLES_NEEDED * period
+        if info.get("frame_count", 0) < needed:
+            raise InputError(f"clip {clip!r}: its cache has {info.get('frame_count', 0)} frames, fewer than two cycles of the clip "
+                             f"({period} frames each, {needed} in all)", f"{FIELD}.{k}")
