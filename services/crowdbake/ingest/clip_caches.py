@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from crowdbake.errors import InputError
-from crowdbake.params import BASE_FPS, CYCLES_NEEDED, cache_fps
+from crowdbake.params import BASE_FPS, CYCLES_NEEDED, MIN_CYCLE_FRAMES, cache_fps
 
 FIELD = "clip_cloth"
 
@@ -76,6 +76,8 @@ def check_clip_lengths(clips: list[str], frame_counts: list[int], periods: dict[
         if clip not in periods:
             listed = ", ".join(repr(name) for name in periods) or "none"
             raise InputError(f"clip {clip!r}: the character has no such animation (it has {listed})", FIELD)
+        if periods[clip] < MIN_CYCLE_FRAMES:
+            raise InputError(f"clip {clip!r} lasts {periods[clip]} frames at this rate: too short to loop", FIELD)
         needed = CYCLES_NEEDED * periods[clip]
         if count < needed:
             raise InputError(f"clip {clip!r}: its cache has {count} frames, fewer than two cycles of the clip "
@@ -211,6 +213,8 @@ def check_clip_cloth_request(character_info: dict, clips: list[str], cloth_infos
                 raise InputError(f"clip {clip!r}: its cache has {info.get(count)} {count.split('_')[0]}s, clip {clips[0]!r}'s "
                                  f"{cloth_infos[0].get(count)}: the clips' caches must move the same garment", f"{FIELD}.{k}")
         period = int(round(seconds[clip] * rate))
+        if period < MIN_CYCLE_FRAMES:
+            raise InputError(f"clip {clip!r} lasts {period} frames at {rate:g} fps: too short to loop", f"{FIELD}.{k}.clip")
         needed = CYCLES_NEEDED * period
         if info.get("frame_count", 0) < needed:
             raise InputError(f"clip {clip!r}: its cache has {info.get('frame_count', 0)} frames, fewer than two cycles of the clip "
