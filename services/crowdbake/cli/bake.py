@@ -197,11 +197,8 @@ def write_figure4(report: dict, png_path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from crowdbake.formats.errors import FormatError
-    from crowdbake.errors import InputError, VersionConflict
+    from crowdbake.errors import InputError
     from crowdbake.params import BakeParams
-    from crowdbake.stages.runner import run_bake
-    from crowdbake.stages.validate import BakeInputs
 
     try:
         params = BakeParams.from_dict(params_from_args(args))
