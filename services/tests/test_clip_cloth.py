@@ -197,3 +197,35 @@ def test_bad_clip_cloth_is_a_422_naming_the_field(api, assets, case, field, word
     error = response.json()["errors"][0]
     assert error["field"] == field and words in error["message"], error
     assert api.snapshot() == before
+
+
+def test_submit_uploads_a_cloth_per_clip_and_names_them_in_the_bake(api, caches, tmp_path, capsys):
+    """`crowdbake submit --clip-cloth`: checked locally (with --cloth, or a missing file, is exit 2), the
+    server's checks before uploading take it (preflight, published-version check), then each cache is
+    uploaded and the bake names them in order (202)."""
+    from crowdbake.client.http import Server
+    from crowdbake.client.preflight import check_name_and_version
+    from crowdbake.client.submit import bake_body as client_body
+    from crowdbake.client.submit import build_parser, check_locally, local_inputs, preflight, run, upload
+
+    base = [str(caches["Walking"] / "character.glb"), "--server", "http://127.0.0.1:9", "--name", "clips", "--version", "3.0.0",
+            "--frames", "2", "--azimuths", "4", "--tile", "32"]
+    walking = clip_args(caches, "Walking")
+    assert run(build_parser().parse_args([*base, *walking, "--cloth", str(caches["Walking"] / "cloth.pc2")])) == 2
+    assert "leave out --cloth" in capsys.readouterr().err
+    assert run(build_parser().parse_args([*base, *walking, "--clip-cloth", f"Running={tmp_path / 'none.pc2'},{caches['Running'] / 'cloth.obj'}"])) == 2
+    assert "--clip-cloth Running" in (error := capsys.readouterr().err) and "no such file" in error
+
+    args = build_parser().parse_args([*base, *clip_args(caches, "Walking", "Running")])
+    checked = check_locally(args)
+    assert [clip for clip, _ in checked.clip_cloth] == ["Walking", "Running"]
+    api.client.headers.update(api.auth("all"))
+    server = Server(api.client, retry_for=1.0)
+    preflight(server, args, checked)  # refused only for want of the assets
+    check_name_and_version(server, args.name, args.bundle_version, local_inputs(checked), checked.params, None, True)
+    quiet = lambda line: None  # noqa: E731
+    character = upload(server, "/v1/assets/characters", {"file": checked.character}, "character", quiet)
+    cloths = [upload(server, "/v1/assets/cloth", files, clip, quiet)["id"] for clip, files in checked.clip_cloth]
+    response = server.request("POST", "/v1/bakes", "starting the bake", json=client_body(args, checked, character["id"], None, {}, None, None, cloths))
+    assert response.status_code == 202, response.text
+    assert response.json()["inputs"]["clip_cloth"] == [["Walking", cloths[0]], ["Running", cloths[1]]]

@@ -136,7 +136,7 @@ class ParamPublic(BaseModel):
 
 
 SHA256_PATTERN = re.compile(r"^[0-9a-f]{64}$")
-INPUT_ROLE_PATTERN = re.compile(r"^(character|cloth|cycle|timeline|textures\.[A-Za-z0-9._-]{1,64})$")
+INPUT_ROLE_PATTERN = re.compile(r"^(character|cloth|cycle|timeline|textures\.[A-Za-z0-9._-]{1,64}|clip_cloth\.[0-9]{1,2})$")
 MAX_CHECK_ROLES = 64  # a character, cloth, cycle and textures: far fewer than this
 MAX_FILES_PER_ROLE = 4  # a cloth cache and its mesh, a cycle and its looped cache
 
@@ -151,7 +151,7 @@ class BakeCheck(BaseModel):
     name: str = Field(pattern=NAME_PATTERN, examples=["sample-walker"])
     version: str = Field(pattern=VERSION_PATTERN, examples=["1.0.0"])
     inputs: dict[str, list[str]] = Field(
-        description="Input role (character, cloth, cycle, timeline, textures.FILE) -> the sha256 (hex) of each local file of it.",
+        description="Input role (character, cloth, cycle, timeline, textures.FILE, clip_cloth.K: the K-th entry's cloth) -> the sha256 (hex) of each local file of it.",
         examples=[{"character": ["9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08"]}])
     params: BakeParamsIn = Field(default_factory=BakeParamsIn)
     created: str | None = Field(None, pattern=CREATED_RULE.pattern, description="As POST /v1/bakes `created`.")
@@ -164,7 +164,7 @@ class BakeCheck(BaseModel):
             raise ValueError(f"inputs must name the character and at most {MAX_CHECK_ROLES} roles")
         for role, digests in value.items():
             if not INPUT_ROLE_PATTERN.match(role):
-                raise ValueError(f"{role!r} is not an input role (character, cloth, cycle, timeline, textures.FILE)")
+                raise ValueError(f"{role!r} is not an input role (character, cloth, cycle, timeline, textures.FILE, clip_cloth.K)")
             if not 1 <= len(digests) <= MAX_FILES_PER_ROLE or not all(SHA256_PATTERN.match(d) for d in digests):
                 raise ValueError(f"inputs[{role!r}] must list 1 to {MAX_FILES_PER_ROLE} sha256 digests in lowercase hex")
         return value

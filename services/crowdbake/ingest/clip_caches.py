@@ -20,12 +20,16 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from crowdbake.errors import InputError
 from crowdbake.params import BASE_FPS, CYCLES_NEEDED, MIN_CYCLE_FRAMES, cache_fps
 
+if TYPE_CHECKING:
+    import numpy as np
+
+# numpy is imported where the caches are read: `crowdbake submit` parses --clip-cloth with this module
+# and runs without the bake stack (services/tests/test_client_package.py).
 FIELD = "clip_cloth"
 
 
@@ -91,6 +95,8 @@ def join_clip_frames(frames: list[np.ndarray], clips: list[str], periods: dict[s
     {clip: frames a cycle} at `fps` frames per second. Returns ((sum F_i, P, 3) float32, the timeline.json
     document: a segment per cache, all its frames pure, clip frame 0 at its first frame, `new_simulation`
     from the second on). InputError("clip_cloth") for differing point counts or a short cache."""
+    import numpy as np
+
     check_distinct(clips)
     counts = [int(np.shape(f)[0]) for f in frames]
     check_clip_lengths(clips, counts, periods)
@@ -111,6 +117,8 @@ def join_clip_frames(frames: list[np.ndarray], clips: list[str], periods: dict[s
 def _same_rest_mesh(a, b) -> bool:
     """Same garment: the rest meshes' triangles, UVs and point order agree (positions may differ: each
     simulation starts from rest on its own clip's first pose)."""
+    import numpy as np
+
     if a.position_count != b.position_count or a.faces.shape != b.faces.shape or not np.array_equal(a.faces, b.faces):
         return False
     if not np.array_equal(a.source_index, b.source_index):
