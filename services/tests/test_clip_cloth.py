@@ -104,6 +104,7 @@ def _variant(caches, tmp_path, kind: str) -> str:
     ("timeline", "leave out --timeline"),
     ("cloth", "leave out --cloth"),
     ("malformed", "must read NAME=CACHE or NAME=CACHE,MESH.obj"),
+    ("cycle_frames", "drop --cycle-frames"),
 ])
 def test_bad_clip_caches_are_one_line_and_exit_2(caches, tmp_path, capsys, case, words):
     walking = clip_args(caches, "Walking")
@@ -113,6 +114,7 @@ def test_bad_clip_caches_are_one_line_and_exit_2(caches, tmp_path, capsys, case,
         "timeline": [*walking, "--timeline", str(tmp_path / "timeline.json")],
         "cloth": [*walking, "--cloth", str(caches["Walking"] / "cloth.pc2")],
         "malformed": ["--clip-cloth", "Walking"],
+        "cycle_frames": [*walking, "--cycle-frames", "24"],
     }.get(case) or [*walking, "--clip-cloth", _variant(caches, tmp_path, case)]
     assert bake(caches, tmp_path, *extra) == 2
     error = capsys.readouterr().err.strip()

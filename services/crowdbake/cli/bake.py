@@ -226,6 +226,8 @@ def _clip_cloth_inputs(args: argparse.Namespace, params, stack: ExitStack) -> tu
     for given, option in ((args.timeline, "--timeline"), (args.cloth, "--cloth"), (args.cycle, "--cycle")):
         if given:
             raise InputError(f"gives every clip its own cache (separate simulations): leave out {option}", "clip_cloth")
+    if params.cycle_frames is not None:
+        raise InputError("each clip's period is its animation's: drop --cycle-frames", "clip_cloth")
     entries = parse_clip_cloth(args.clip_cloth, mesh)
     folder = Path(args.work) / "clip_cloth" if args.work else Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="crowdbake-clips-")))
     return write_joined_inputs(entries, Path(args.character), params.fps, folder)
