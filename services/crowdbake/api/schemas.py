@@ -136,7 +136,7 @@ class ParamPublic(BaseModel):
 
 
 SHA256_PATTERN = re.compile(r"^[0-9a-f]{64}$")
-INPUT_ROLE_PATTERN = re.compile(r"^(character|cloth|cycle|timeline|textures\.[A-Za-z0-9._-]{1,64})$")
+INPUT_ROLE_PATTERN = re.compile(r"^(character|cloth|cycle|timeline|textures\.[A-Za-z0-9._-]{1,64}|clip_cloth\.[0-9]{1,2})$")
 MAX_CHECK_ROLES = 64  # a character, cloth, cycle and textures: far fewer than this
 MAX_FILES_PER_ROLE = 4  # a cloth cache and its mesh, a cycle and its looped cache
 
@@ -151,7 +151,7 @@ class BakeCheck(BaseModel):
     name: str = Field(pattern=NAME_PATTERN, examples=["sample-walker"])
     version: str = Field(pattern=VERSION_PATTERN, examples=["1.0.0"])
     inputs: dict[str, list[str]] = Field(
-        description="Input role (character, cloth, cycle, timeline, textures.FILE) -> the sha256 (hex) of each local file of it.",
+        description="Input role (character, cloth, cycle, timeline, textures.FILE, clip_cloth.K: the K-th entry's cloth) -> the sha256 (hex) of each local file of it.",
         examples=[{"character": ["9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08"]}])
     params: BakeParamsIn = Field(default_factory=BakeParamsIn)
     created: str | None = Field(None, pattern=CREATED_RULE.pattern, description="As POST /v1/bakes `created`.")
@@ -164,10 +164,19 @@ class BakeCheck(BaseModel):
             raise ValueError(f"inputs must name the character and at most {MAX_CHECK_ROLES} roles")
         for role, digests in value.items():
             if not INPUT_ROLE_PATTERN.match(role):
-                raise ValueError(f"{role!r} is not an input role (character, cloth, cycle, timeline, textures.FILE)")
+                raise ValueError(f"{role!r} is not an input role (character, cloth, cycle, timeline, textures.FILE, clip_cloth.K)")
             if not 1 <= len(digests) <= MAX_FILES_PER_ROLE or not all(SHA256_PATTERN.match(d) for d in digests):
                 raise ValueError(f"inputs[{role!r}] must list 1 to {MAX_FILES_PER_ROLE} sha256 digests in lowercase hex")
         return value
+
+
+class ClipClothIn(BaseModel):
+    """One clip's cloth: a separate simulation of the character's animation `clip` from rest."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    clip: str = Field(min_length=1, max_length=128, description="Name of one of the character's animations.", examples=["Walking"])
+    cloth: str = Field(description="Id of a cloth asset simulating that clip alone, from its frame 0.")
 
 
 class BakeCreate(BaseModel):
@@ -188,6 +197,11 @@ class BakeCreate(BaseModel):
         None, description="Id of a timeline asset (POST /v1/assets/timelines): the cloth plays several clips, as "
                           "`crowdbake bake --timeline`; cycle.json gains a loop per clip and a transition per change of clip, "
                           "and the bundle (format 2 when the timeline plays several clips) carries every loop and transition.")
+    clip_cloth: list[ClipClothIn] = Field(
+        default_factory=list, max_length=64,
+        description="One cloth cache per clip, as `crowdbake bake --clip-cloth` (docs/inputs.md): each a separate simulation of "
+                    "one clip, instead of `cloth` and `timeline`. A loop per clip and no transitions (no simulation joined the "
+                    "clips); the bundle (format 2 with several clips) carries every loop.")
     params: BakeParamsIn = Field(default_factory=BakeParamsIn)
     # `created` stands beside name and version, not among BakeParams: like them it is what the manifest
     # says about the bundle, not how it is baked (no stage but pack reads it, and it is passed to

@@ -14,7 +14,8 @@ import numpy as np
 class Segment:
     """One strip of the timeline: `clip` plays over cache frames first_frame..last_frame (inclusive), alone
     over pure_first_frame..pure_last_frame (the rest blends with the strip before or after); clip_frames:
-    the clip's period in cache frames."""
+    the clip's period in cache frames; new_simulation: the cloth here was simulated apart from the segment
+    before (one cache per clip, crowdbake.ingest.clip_caches), so no transition joins the two."""
 
     clip: str
     first_frame: int
@@ -22,6 +23,7 @@ class Segment:
     pure_first_frame: int
     pure_last_frame: int
     clip_frames: int
+    new_simulation: bool = False
 
     @property
     def pure_frames(self) -> int:
@@ -69,5 +71,7 @@ class Timeline:
         return next(s.clip_frames for s in self.segments if s.clip == clip)
 
     def changes(self) -> list[tuple[int, int]]:
-        """(segment index A, segment index B = A + 1) for every change of clip the simulation made."""
-        return [(k, k + 1) for k in range(len(self.segments) - 1) if self.segments[k].clip != self.segments[k + 1].clip]
+        """(segment index A, segment index B = A + 1) for every change of clip the simulation made: not
+        between segments simulated apart (new_simulation), where no cloth carried over."""
+        return [(k, k + 1) for k in range(len(self.segments) - 1)
+                if self.segments[k].clip != self.segments[k + 1].clip and not self.segments[k + 1].new_simulation]

@@ -38,6 +38,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--cycle", metavar="cycle.json", help="use this cycle (from `crowdbake cycle`) instead of searching")
     parser.add_argument("--timeline", metavar="timeline.json", help="the cloth cache plays several clips (docs/inputs.md, clip timeline): "
                         "a loop per clip and the transitions between them; with several clips the bundle (format 2) carries them all")
+    parser.add_argument("--clip-cloth", metavar="NAME=CACHE[,MESH]", action="append", default=[],
+                        help="one cloth cache per clip, repeated per clip (docs/inputs.md, one cache per clip): each a separate "
+                        "simulation of the character's animation NAME from rest; MESH defaults to --cloth-mesh. A loop per clip, "
+                        "no transitions (no simulation joined the clips); instead of --cloth and --timeline")
     parser.add_argument("--textures", metavar="DIR", help="diffuse_*.png or diffuse_*.jpg variations (region codes in alpha: PNG only) and outfits.png (default: the glTF texture)")
     parser.add_argument("--name", required=True, help="bundle name ([a-z0-9][a-z0-9._-]*)")
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VER", help="bundle version")
@@ -195,27 +199,59 @@ def write_figure4(report: dict, png_path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from crowdbake.formats.errors import FormatError
-    from crowdbake.errors import InputError, VersionConflict
+    from crowdbake.errors import InputError
     from crowdbake.params import BakeParams
-    from crowdbake.stages.runner import run_bake
-    from crowdbake.stages.validate import BakeInputs
 
     try:
         params = BakeParams.from_dict(params_from_args(args))
     except InputError as error:
         raise CommandError(_option_message(error)) from None
+    with ExitStack() as stack:
+        try:
+            cloth = _clip_cloth_inputs(args, params, stack)
+        except InputError as error:
+            raise CommandError(_option_message(error)) from None
+        return _bake(args, params, cloth)
+
+
+def _clip_cloth_inputs(args: argparse.Namespace, params, stack: ExitStack) -> tuple[Path | None, Path | None, Path | None]:
+    """(cloth, cloth mesh, timeline) for the bake: as given, or with --clip-cloth the caches joined into
+    one cache and its timeline (crowdbake.ingest.clip_caches), written under --work or a temporary folder."""
+    import tempfile
+
+    from crowdbake.errors import InputError
+    from crowdbake.ingest.clip_caches import parse_clip_cloth, write_joined_inputs
+
+    mesh = Path(args.cloth_mesh) if args.cloth_mesh else None
+    if not args.clip_cloth:
+        return Path(args.cloth) if args.cloth else None, mesh, Path(args.timeline) if args.timeline else None
+    for given, option in ((args.timeline, "--timeline"), (args.cloth, "--cloth"), (args.cycle, "--cycle")):
+        if given:
+            raise InputError(f"gives every clip its own cache (separate simulations): leave out {option}", "clip_cloth")
+    if params.cycle_frames is not None:
+        raise InputError("each clip's period is its animation's: drop --cycle-frames", "clip_cloth")
+    entries = parse_clip_cloth(args.clip_cloth, mesh)
+    folder = Path(args.work) / "clip_cloth" if args.work else Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="crowdbake-clips-")))
+    return write_joined_inputs(entries, Path(args.character), params.fps, folder)
+
+
+def _bake(args: argparse.Namespace, params, cloth: tuple[Path | None, Path | None, Path | None]) -> int:
+    from crowdbake.formats.errors import FormatError
+    from crowdbake.errors import InputError, VersionConflict
+    from crowdbake.stages.runner import run_bake
+    from crowdbake.stages.validate import BakeInputs
+
     inputs = BakeInputs(
         character=Path(args.character),
-        cloth=Path(args.cloth) if args.cloth else None,
-        cloth_mesh=Path(args.cloth_mesh) if args.cloth_mesh else None,
+        cloth=cloth[0],
+        cloth_mesh=cloth[1],
         textures=Path(args.textures) if args.textures else None,
         cycle=Path(args.cycle) if args.cycle else None,
         name=args.name,
         version=args.bundle_version,
         params=params,
         created=args.created,
-        timeline=Path(args.timeline) if args.timeline else None,
+        timeline=cloth[2],
     )
     with ExitStack() as stack:
         bars = _Bars(stack)
@@ -240,6 +276,9 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write("\n")
     else:
         print(format_summary(summary))
+        if args.clip_cloth:
+            print(f"clips    {len(args.clip_cloth)} loops from separate simulations, no transitions (no simulation joined the clips): "
+                  "crowdview keeps each character in its first clip")
         if summary.texture_note:
             print(f"textures {summary.texture_note}")
         if summary.animation_choice:
@@ -258,6 +297,7 @@ _OPTIONS = {
     "textures": "--textures",
     "cycle": "--cycle",
     "timeline": "--timeline",
+    "clip_cloth": "--clip-cloth",
     "name": "--name",
     "version": "--version",
     "created": "--created",

@@ -53,7 +53,7 @@ def published_difference(server: Server, name: str, version: str, local: dict[st
                          created: str | None) -> str | None:
     """What differs between this submit and the bake that published name/version, or None when the version
     is not published or the submit would reuse that bake. `local`: input role ("character", "cloth",
-    "cycle", "timeline", "textures.NAME") -> its local files."""
+    "cycle", "timeline", "textures.NAME", "clip_cloth.K") -> its local files."""
     bundle = server.request("GET", f"/v1/bundles/{name}/{version}", f"checking whether {name}/{version} is published",
                             accept=frozenset({403, 404}))
     if bundle.status_code in (403, 404):
@@ -67,7 +67,8 @@ def published_difference(server: Server, name: str, version: str, local: dict[st
     record = bake.json()
     inputs = record.get("inputs", {})
     published = {"character": inputs.get("character"), "cloth": inputs.get("cloth"), "cycle": inputs.get("cycle"), "timeline": inputs.get("timeline"),
-                 **{f"textures.{texture}": asset_id for texture, asset_id in (inputs.get("textures") or {}).items()}}
+                 **{f"textures.{texture}": asset_id for texture, asset_id in (inputs.get("textures") or {}).items()},
+                 **{f"clip_cloth.{k}": asset_id for k, (_, asset_id) in enumerate(inputs.get("clip_cloth") or [])}}
     roles = {role for role, asset_id in published.items() if asset_id} | set(local)
     for role in sorted(roles):
         if role not in local or not published.get(role):

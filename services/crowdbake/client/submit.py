@@ -13,7 +13,7 @@ import json
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -28,7 +28,7 @@ Uploads CHAR.glb, the cloth (a .pc2 or .mdd cache with --cloth-mesh, or an Alemb
 OBJ frames alone; without --cloth the body alone is baked, its animation's own loop), the textures
 (--textures DIR: diffuse_*.png or diffuse_*.jpg, and outfits.png) and a chosen cycle (--cycle cycle.json
 from `crowdbake cycle`, with looped.pc2 when it lies beside it) or a clip timeline (--timeline
-timeline.json: a cache of several clips), starts a bake of NAME/VERSION and prints its id.
+timeline.json: a cache of several clips) or one cache per clip (--clip-cloth NAME=CACHE[,MESH], repeated), starts a bake of NAME/VERSION and prints its id.
 With --wait, follows it until it ends; with --download DIR, also fetches the published bundle to
 DIR/NAME/VERSION and checks every file's size and sha256 (and, with the full crowdbake package,
 the bundle's formats).
@@ -76,6 +76,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--textures", metavar="DIR", help="folder with diffuse_*.png (or diffuse_*.jpg: no colour-region codes) and outfits.png")
     parser.add_argument("--cycle", metavar="cycle.json", help="bake this cycle (from `crowdbake cycle`; looped.pc2 beside it goes too) instead of searching")
     parser.add_argument("--timeline", metavar="timeline.json", help="the cloth plays several clips (docs/inputs.md, clip timeline): a loop per clip and the transitions between them")
+    parser.add_argument("--clip-cloth", metavar="NAME=CACHE[,MESH]", action="append", default=[],
+                        help="one cloth cache per clip, repeated (docs/inputs.md, one cache per clip): a separate simulation of the "
+                             "animation NAME each, MESH defaulting to --cloth-mesh; a loop per clip, no transitions; instead of --cloth")
     parser.add_argument("--name", required=True, help="bundle name ([a-z0-9._-], checked by the server before uploading)")
     parser.add_argument("--version", required=True, dest="bundle_version", metavar="VERSION", help="bundle version; a published version never changes")
     parser.add_argument("--wait", action="store_true", help="follow the bake until it ends")
@@ -152,6 +155,7 @@ class Inputs:
     params: dict[str, Any]
     cycle_files: dict[str, Path]   # multipart field -> file: cycle (and looped), or none
     timeline: Path | None = None   # a clip timeline (POST /v1/assets/timelines), or none
+    clip_cloth: list[tuple[str, dict[str, Path]]] = field(default_factory=list)  # (clip, its cloth_form) per --clip-cloth
 
 
 def usage(message: str) -> ClientError:
@@ -219,7 +223,8 @@ def check_locally(args: argparse.Namespace) -> Inputs:
         if getattr(args, option) <= 0:
             raise usage(f"--{option.replace('_', '-')} must be positive, got {getattr(args, option)}")
     character = Path(args.character)
-    if args.cloth_mesh and not args.cloth:
+    clip_cloth = clip_cloth_forms(args)
+    if args.cloth_mesh and not args.cloth and not clip_cloth:
         raise usage("--cloth-mesh goes with --cloth (a .pc2 or .mdd cache); without --cloth the body alone is baked")
     cloth = cloth_form(Path(args.cloth), Path(args.cloth_mesh) if args.cloth_mesh else None) if args.cloth else {}
     for path in (character, *cloth.values()):
@@ -237,23 +242,51 @@ def check_locally(args: argparse.Namespace) -> Inputs:
         raise usage(f"--timeline {timeline}: no such file")
     if timeline is not None and args.cycle:
         raise usage("--cycle chooses one loop; --timeline asks for a loop per clip: give one of them")
-    return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args), cycle_files(args.cycle), timeline)
+    return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args), cycle_files(args.cycle), timeline, clip_cloth)
+
+
+def clip_cloth_forms(args: argparse.Namespace) -> list[tuple[str, dict[str, Path]]]:
+    """(clip, multipart field -> file) per --clip-cloth NAME=CACHE[,MESH] (crowdbake.ingest.clip_caches)."""
+    from crowdbake.ingest.clip_caches import parse_clip_cloth
+
+    if not getattr(args, "clip_cloth", None):
+        return []
+    for given, option in ((args.cloth, "--cloth"), (args.timeline, "--timeline"), (args.cycle, "--cycle")):
+        if given:
+            raise usage(f"--clip-cloth gives every clip its own cache (separate simulations): leave out {option}")
+    try:
+        entries = parse_clip_cloth(args.clip_cloth, Path(args.cloth_mesh) if args.cloth_mesh else None)
+    except InputError as error:
+        raise usage(f"--clip-cloth: {error.message}") from None
+    forms = []
+    for entry in entries:
+        try:
+            form = cloth_form(entry.cache, entry.mesh)
+        except ClientError as error:
+            raise usage(f"--clip-cloth {entry.clip}: {error}") from None
+        for path in form.values():
+            if not path.is_file():
+                raise usage(f"--clip-cloth {entry.clip}: {path}: no such file")
+        forms.append((entry.clip, form))
+    return forms
 
 
 # --------------------------------------------------------------------------------- the server's part
 
 
 def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str | None, textures: dict[str, str], cycle: str | None = None,
-              timeline: str | None = None) -> dict[str, Any]:
+              timeline: str | None = None, clip_cloth: list[str] | None = None) -> dict[str, Any]:
+    """The POST /v1/bakes body; clip_cloth: the cloth asset of each of inputs.clip_cloth, in order."""
     return {"name": args.name, "version": args.bundle_version, "character": character, "cloth": cloth, "textures": textures,
             **({"cycle": cycle} if cycle is not None else {}), **({"timeline": timeline} if timeline is not None else {}),
+            **({"clip_cloth": [{"clip": clip, "cloth": asset} for (clip, _), asset in zip(inputs.clip_cloth, clip_cloth)]} if clip_cloth else {}),
             "params": inputs.params, "publish": not args.no_publish, "public": args.public,
             **({"created": args.created} if args.created else {})}
 
 
 def is_missing_asset(error: dict[str, Any]) -> bool:
     field = str(error.get("field", ""))
-    return (field in ASSET_FIELDS or field.startswith("textures.")) and str(error.get("message", "")).startswith("no ")
+    return (field in ASSET_FIELDS or field.startswith("textures.") or (field.startswith("clip_cloth.") and field.endswith(".cloth"))) and str(error.get("message", "")).startswith("no ")
 
 
 def preflight(server: Server, args: argparse.Namespace, inputs: Inputs) -> None:
@@ -264,7 +297,8 @@ def preflight(server: Server, args: argparse.Namespace, inputs: Inputs) -> None:
     one the real request would get after the uploads."""
     placeholders = {name: PREFLIGHT_ASSET for name in inputs.textures}
     body = bake_body(args, inputs, PREFLIGHT_ASSET, PREFLIGHT_ASSET if inputs.cloth_files else None, placeholders,
-                     PREFLIGHT_ASSET if inputs.cycle_files else None, PREFLIGHT_ASSET if inputs.timeline is not None else None)
+                     PREFLIGHT_ASSET if inputs.cycle_files else None, PREFLIGHT_ASSET if inputs.timeline is not None else None,
+                     [PREFLIGHT_ASSET] * len(inputs.clip_cloth))
     response = server.request("POST", "/v1/bakes", "checking the bake request", json=body, accept=frozenset({422}))
     if response.status_code == 422:
         problem = response.json()
@@ -280,6 +314,7 @@ def local_inputs(inputs: Inputs) -> dict[str, list[Path]]:
     return {"character": [inputs.character], **({"cloth": list(inputs.cloth_files.values())} if inputs.cloth_files else {}),
             **({"cycle": list(inputs.cycle_files.values())} if inputs.cycle_files else {}),
             **({"timeline": [inputs.timeline]} if inputs.timeline is not None else {}),
+            **{f"clip_cloth.{k}": list(files.values()) for k, (_, files) in enumerate(inputs.clip_cloth)},
             **{f"textures.{name}": [path] for name, path in inputs.textures.items()}}
 
 
@@ -352,7 +387,8 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
 
             timeline = (upload(server, "/v1/assets/timelines", {"timeline": inputs.timeline}, f"timeline {inputs.timeline.name}", say)["id"]
                         if inputs.timeline is not None else None)
-            body = bake_body(args, inputs, character["id"], cloth, textures, cycle, timeline)
+            clip_cloth = [upload(server, "/v1/assets/cloth", files, f"cloth of {clip}", say)["id"] for clip, files in inputs.clip_cloth]
+            body = bake_body(args, inputs, character["id"], cloth, textures, cycle, timeline, clip_cloth)
             response = server.request("POST", "/v1/bakes", "starting the bake", json=body)
             bake = response.json()
             outcome.bake_id, outcome.state, outcome.progress = bake["id"], bake["state"], bake["progress"]

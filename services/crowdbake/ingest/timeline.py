@@ -10,7 +10,8 @@ The document (as ../shared/assets/robot_clips/timeline.json):
      "frames": [{"frame": 0, "clip": "Idle", "clip_frame": 0, ...}, ...]}      (optional)
 
 Frames are 0-based cache samples, ranges inclusive; a segment blends with its neighbours outside its
-pure frames. Without `frames`, clip frame f of a segment is (f - first_frame) mod clip_frames.
+pure frames. `"new_simulation": true` on a segment says its cloth was simulated apart from the segment
+before (one cache per clip, crowdbake.ingest.clip_caches): no transition is taken across it. Without `frames`, clip frame f of a segment is (f - first_frame) mod clip_frames.
 
 - timeline_fields: the document alone (TimelineFieldError naming the JSON pointer);
 - check_timeline_fits: against the cache (frame count, rate) and the character's clips.
@@ -73,7 +74,10 @@ def _segment(entry: Any, k: int, total: int, name: str) -> Segment:
     period = entry.get("clip_frames")
     if not isinstance(period, int) or isinstance(period, bool) or period < MIN_CYCLE_FRAMES:
         raise _refuse(name, f"{pointer}/clip_frames", f"must be an integer of at least {MIN_CYCLE_FRAMES} (the clip's frames), got {_shown(period)}")
-    return Segment(clip, first, last, pure_first, pure_last, period)
+    restart = entry.get("new_simulation", False)
+    if not isinstance(restart, bool):
+        raise _refuse(name, f"{pointer}/new_simulation", f"must be true or false, got {_shown(restart)}")
+    return Segment(clip, first, last, pure_first, pure_last, period, restart)
 
 
 def _blends_from_rows(rows: list, periods: dict[str, int], name: str) -> FrameBlends:

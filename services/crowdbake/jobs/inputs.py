@@ -65,11 +65,31 @@ def materialize_inputs(blobs: BlobStore, work: Path, bake: Bake, session: Sessio
             raise InputError("the timeline asset no longer exists", "timeline")
         timeline_path = blobs.materialize(timeline.files["file"]["sha256"], inputs_dir / "timeline.json")
         assets.append(timeline)
+    if bake.inputs.get("clip_cloth"):  # one cache per clip: joined into one cache and its timeline, as `crowdbake bake --clip-cloth`
+        cloth_path, mesh_path, timeline_path = _join_clip_cloth(blobs, session, bake, inputs_dir, character_path, assets)
     return BakeInputs(
         character=character_path, cloth=cloth_path, cloth_mesh=mesh_path, textures=textures_dir, cycle=cycle_path,
         name=bake.name, version=bake.version, params=BakeParams.from_dict(bake.params),
         created=bake.inputs.get("created") or inputs_created(assets), timeline=timeline_path,
     )
+
+
+def _join_clip_cloth(blobs: BlobStore, session: Session, bake: Bake, inputs_dir: Path, character_path: Path, assets: list[Asset]):
+    """Every clip's cloth asset linked under inputs_dir/clips/K, joined (crowdbake.ingest.clip_caches) into
+    inputs_dir/joined: (cloth.pc2, cloth.obj, timeline.json). InputError("clip_cloth") as the CLI's."""
+    from crowdbake.ingest.clip_caches import ClipCloth, write_joined_inputs
+
+    entries = []
+    for k, (clip, asset_id) in enumerate(bake.inputs["clip_cloth"]):
+        cloth = session.get(Asset, asset_id)
+        if cloth is None:
+            raise InputError(f"the cloth asset of clip {clip!r} no longer exists", "clip_cloth")
+        suffix = PurePosixPath(cloth.files["cache"].get("filename") or "cloth.pc2").suffix.lower() or ".pc2"
+        cache = blobs.materialize(cloth.files["cache"]["sha256"], inputs_dir / "clips" / str(k) / f"cloth{suffix}")
+        mesh = blobs.materialize(cloth.files["mesh"]["sha256"], inputs_dir / "clips" / str(k) / "cloth.obj") if "mesh" in cloth.files else None
+        entries.append(ClipCloth(clip, cache, mesh))
+        assets.append(cloth)
+    return write_joined_inputs(entries, character_path, (bake.params or {}).get("fps"), inputs_dir / "joined")
 
 
 def inputs_created(assets: list[Asset]) -> str:

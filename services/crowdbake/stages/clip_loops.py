@@ -85,7 +85,7 @@ def timeline_dict(timeline: Timeline) -> dict:
         "total_frames": timeline.total_frames,
         "segments": [
             {"clip": s.clip, "first_frame": s.first_frame, "last_frame": s.last_frame, "pure_first_frame": s.pure_first_frame,
-             "pure_last_frame": s.pure_last_frame, "clip_frames": s.clip_frames}
+             "pure_last_frame": s.pure_last_frame, "clip_frames": s.clip_frames, **({"new_simulation": True} if s.new_simulation else {})}
             for s in timeline.segments
         ],
     }
@@ -243,6 +243,8 @@ def clips_report_html(document: dict) -> str:
                    "each range's shown below (format v2).")
     else:
         carried = f"The bundle carries {html.escape(document.get('primary_clip', ''))}."
+    if not document["transitions"] and any(s.get("new_simulation") for s in document.get("timeline", {}).get("segments", [])):
+        carried += " The clips were simulated apart (one cache per clip): no transitions, as no simulation joined them."
     limits = ", ".join(f"{name.replace('_', ' ')} ≤ {value:g}" for name, value in (bounds.get("bounds") or {}).items())
     return (
         f"<h2>Clips: a loop each</h2><p>{carried} Bounds: {html.escape(limits)}.</p>"

@@ -39,7 +39,8 @@ def _published_roles(bake: Bake) -> dict[str, str]:
     """Input role -> asset id of a bake's inputs."""
     inputs = bake.inputs or {}
     return {**{role: inputs[role] for role in ("character", "cloth", "cycle", "timeline") if inputs.get(role)},
-            **{f"textures.{name}": asset_id for name, asset_id in (inputs.get("textures") or {}).items()}}
+            **{f"textures.{name}": asset_id for name, asset_id in (inputs.get("textures") or {}).items()},
+            **{f"clip_cloth.{k}": asset_id for k, (_, asset_id) in enumerate(inputs.get("clip_cloth") or [])}}
 
 
 def _canonical(value: Any) -> Any:

@@ -158,6 +158,32 @@ def _check_timeline(character: Asset, cloth: Asset | None, cycle: Asset | None, 
         raise Problem(status, "the garment does not sit on the character", [{"field": error.field, "message": error.message}]) from None
 
 
+def _check_clip_cloth(body: BakeCreate, character: Asset, cloths: list[Asset], params: dict[str, Any]) -> None:
+    """One cloth asset per clip (crowdbake.ingest.clip_caches): alone (no cloth, timeline or cycle), each
+    clip the character's and once, the caches alike and each two of its clip's cycles long; the garment
+    sits on the character at each clip's first pose."""
+    from crowdbake.ingest.clip_caches import check_clip_cloth_request
+
+    for given in ("cloth", "timeline", "cycle"):
+        if getattr(body, given) is not None:
+            raise Problem("validation-error", "one cache per clip stands alone",
+                          [{"field": given, "message": f"clip_cloth gives every clip its own cache (separate simulations): leave out {given}"}])
+    if params.get("cycle_frames") is not None:
+        raise Problem("validation-error", "each clip's animation gives its period",
+                      [{"field": "params.cycle_frames", "message": "with clip_cloth each clip's period is its animation's: drop cycle_frames"}])
+    clips = [entry.clip for entry in body.clip_cloth]
+    try:
+        check_clip_cloth_request(character.info or {}, clips, [cloth.info or {} for cloth in cloths], params.get("fps"))
+        for k, (clip, cloth) in enumerate(zip(clips, cloths)):
+            try:
+                check_request_placement(character.info, cloth.info, clip, params.get("up"), params.get("units"))
+            except InputError as error:
+                raise InputError(f"clip {clip!r}: {error.message}", error.field if error.field in ("params.up", "params.units") else f"clip_cloth.{k}") from None
+    except InputError as error:
+        status = "validation-error" if error.field.endswith(".clip") or error.field.startswith("params.") else "invalid-file"
+        raise Problem(status, "the clips' cloth caches do not fit the character or each other", [{"field": error.field, "message": error.message}]) from None
+
+
 def _check_body_only(character: Asset, cycle: Asset | None, params: dict[str, Any]) -> None:
     """A bake without cloth (crowdbake.stages.body_only): no cycle to give or length to set, and the
     character must have an animation to loop."""
@@ -210,11 +236,14 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
     textures = {name: _asset(session, asset_id, "texture", f"textures.{name}", errors, key) for name, asset_id in sorted(body.textures.items())}
     cycle = _asset(session, body.cycle, "cycle", "cycle", errors, key) if body.cycle is not None else None
     timeline = _asset(session, body.timeline, "timeline", "timeline", errors, key) if body.timeline is not None else None
+    clip_cloths = [_asset(session, entry.cloth, "cloth", f"clip_cloth.{k}.cloth", errors, key) for k, entry in enumerate(body.clip_cloth)]
     if errors:
         raise Problem("validation-error", "the bake names assets that do not exist", errors)
     params = body.params.model_dump()
     _check_params(params)
-    if timeline is not None:  # several clips: the timeline sets the clip and its length
+    if body.clip_cloth:  # several clips, a cache each: the worker joins them (crowdbake.ingest.clip_caches)
+        _check_clip_cloth(body, character, clip_cloths, params)
+    elif timeline is not None:  # several clips: the timeline sets the clip and its length
         _check_timeline(character, cloth, cycle, timeline, params)
     elif cloth is not None:
         _check_cycle(character, cloth, cycle, params)
@@ -230,6 +259,8 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
         # Only when given, so the keys of bakes that search their cycle are what they were.
         **({"cycle": {role: entry["sha256"] for role, entry in cycle.files.items()}} if cycle is not None else {}),
         **({"timeline": timeline.digest} if timeline is not None else {}),
+        **({"clip_cloth": [[entry.clip, {role: f["sha256"] for role, f in cloth.files.items()}] for entry, cloth in zip(body.clip_cloth, clip_cloths)]}
+           if clip_cloths else {}),
     }
     key_digest = bake_requests.input_key(digests, body.name, body.version, params, created=body.created)
     existing = bake_requests.reusable_bake(session, key_digest)
@@ -248,6 +279,7 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
         session, name=body.name, version=body.version, params=params,
         inputs={"character": character.id, **({"cloth": cloth.id} if cloth is not None else {}), "textures": {name: texture.id for name, texture in textures.items()},
                 **({"cycle": cycle.id} if cycle is not None else {}), **({"timeline": timeline.id} if timeline is not None else {}),
+                **({"clip_cloth": [[entry.clip, cloth.id] for entry, cloth in zip(body.clip_cloth, clip_cloths)]} if clip_cloths else {}),
                 **({"created": body.created} if body.created is not None else {})},
         key=key_digest, publish=body.publish, public=body.public, created_by=key.key_id,
     )
