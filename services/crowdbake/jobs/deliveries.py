@@ -41,7 +41,7 @@ from crowdbake.settings import Settings, get_settings
 from crowdbake.storage import records
 from crowdbake.storage.blobs import BlobStore
 from crowdbake.storage.bundle_store import BundleStore
-from crowdbake.storage.db import make_engine, make_sessionmaker, session_scope
+from crowdbake.storage.db import fork_guarded_scope, make_engine, make_sessionmaker, session_scope
 from crowdbake.storage.exports import ExportStore
 from crowdbake.storage.models import Bake, utcnow
 from crowdbake.storage.store import open_store
@@ -366,7 +366,7 @@ def _mark_received(sender=None, request=None, **_kwargs) -> None:
         return
     part = args[2] if stage == "impostors" and len(args) > 2 else None
     try:
-        with session_scope(services().sessions) as session:
+        with fork_guarded_scope(services().sessions) as session:
             records.mark_received(session, args[0], int(args[1]), stage, part, records.delivery_owner(request.id))
     except Exception as error:  # a busy database: the task's own claim still works without the mark
         logger.warning("could not mark %s of bake %s as received: %s", part or stage, args[0], error)
@@ -383,7 +383,7 @@ def _start_received_beat() -> None:
         while True:
             time.sleep(services().settings.heartbeat_interval)
             try:
-                with session_scope(services().sessions) as session:
+                with fork_guarded_scope(services().sessions) as session:  # this thread's beat vs the pool's forks
                     records.beat_received(session, prefix)
             except Exception as error:
                 logger.warning("heartbeat of received messages failed: %s", error)
