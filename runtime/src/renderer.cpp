@@ -1,5 +1,6 @@
 // OpenGL 3.3 core renderer: uploads once, then instanced draws per LOD (see renderer.h).
 #include "renderer.h"
+#include "instance_upload.h"
 
 #include <epoxy/gl.h>
 
@@ -662,31 +663,11 @@ DrawStats Renderer::draw_archetype(Archetype& g, const FrameInstances& frame, co
     Impl& shared = *impl_;
     const CharacterModel& model_ = g.model;
     DrawStats stats;
-    // 1. This frame's instances, one buffer per LOD (orphaned so the driver need not wait).
-    for (int lod = 0; lod < 3; ++lod) {
-        const std::vector<Instance>& list = frame.by_lod[lod];
-        glBindBuffer(GL_ARRAY_BUFFER, g.instance_buffers[lod]);
-        glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(list.size() * sizeof(Instance)), list.empty() ? nullptr : list.data(),
-                     GL_STREAM_DRAW);
-    }
-    // The impostors' blend samples; a frame built without them shows each impostor's nearest
-    // view and frame (its Instance's tile and layer).
-    const std::vector<Instance>& impostor_list = frame.by_lod[int(Lod::impostor)];
-    const std::vector<ImpostorSamples>* samples = &frame.impostor_samples;
-    if (samples->size() != impostor_list.size()) {
-        shared.nearest_samples.resize(impostor_list.size());
-        for (size_t i = 0; i < impostor_list.size(); ++i) {
-            ImpostorSamples& s = shared.nearest_samples[i];
-            s = ImpostorSamples{};
-            for (uint32_t& t : s.tiles) t = impostor_list[i].tile;
-            s.view_weights[0] = 1;
-            s.layers[0] = s.layers[1] = impostor_list[i].frame;
-        }
-        samples = &shared.nearest_samples;
-    }
-    glBindBuffer(GL_ARRAY_BUFFER, g.impostor_sample_buffer);
-    glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(samples->size() * sizeof(ImpostorSamples)), samples->empty() ? nullptr : samples->data(),
-                 GL_STREAM_DRAW);
+    // 1. This frame's instances, one buffer per LOD, and the impostors' blend samples.
+    InstanceBuffers buffers;
+    for (int lod = 0; lod < 3; ++lod) buffers.by_lod[lod] = g.instance_buffers[lod];
+    buffers.impostor_samples = g.impostor_sample_buffer;
+    upload_instances(frame, buffers, &shared.nearest_samples);
     glActiveTexture(GL_TEXTURE0 + CV_UNIT_OUTFITS);
     glBindTexture(GL_TEXTURE_2D, g.outfits);
 
