@@ -439,7 +439,8 @@ void fill_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
         Instance inst;
         inst.position[0] = feet.x, inst.position[1] = feet.y, inst.position[2] = feet.z;
         inst.heading = c.heading;
-        inst.frame = shown_pose_frame(s.schedule, s.clip[i], c.rate, f.time_s);
+        const uint32_t frame = shown_pose_frame(s.schedule, s.clip[i], c.rate, f.time_s);
+        inst.frame = uint16_t(frame);
         inst.variation = c.variation;
         inst.outfit = c.outfit;
         inst.tile = 0;
@@ -457,13 +458,12 @@ void fill_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
                 const ViewWeights views = exact_views(p, f, glm::vec3(s.center_x[i], s.center_y[i], s.center_z[i]), c.heading, &nearest_tile);
                 sort_views(views, &out);
             }
-            const uint32_t pose = std::min(inst.frame, uint32_t(s.nearest_layer.size() - 1));
+            const uint32_t pose = std::min(frame, uint32_t(s.nearest_layer.size() - 1));
             FrameWeights frames;
             frames.layers[0] = frames.layers[1] = s.nearest_layer[pose];
             if (f.blend_frames) frames = s.frame_weights[pose];
             out.layers[0] = frames.layers[0], out.layers[1] = frames.layers[1];
             out.frame_weight = frames.weight;
-            out.unused = 0;
             inst.tile = nearest_tile;
             inst.frame = frames.layers[frames.weight > 0.5f ? 1 : 0];
             ++place[2];

@@ -27,7 +27,7 @@ uint64_t upload_instances(const FrameInstances& frame, const InstanceBuffers& bu
         for (size_t i = 0; i < impostors.size(); ++i) {
             ImpostorSamples& s = (*nearest_samples)[i];
             s = ImpostorSamples{};
-            for (uint32_t& t : s.tiles) t = impostors[i].tile;
+            for (uint16_t& t : s.tiles) t = impostors[i].tile;
             s.view_weights[0] = 1;
             s.layers[0] = s.layers[1] = impostors[i].frame;
         }

@@ -346,7 +346,7 @@ static void bind_instance_attributes(GLuint buffer) {
     glVertexAttribPointer(CV_ATTR_INSTANCE_POSE, 4, GL_FLOAT, GL_FALSE, sizeof(Instance), (void*)offsetof(Instance, position));
     glVertexAttribDivisor(CV_ATTR_INSTANCE_POSE, 1);
     glEnableVertexAttribArray(CV_ATTR_INSTANCE_IDS);
-    glVertexAttribIPointer(CV_ATTR_INSTANCE_IDS, 4, GL_UNSIGNED_INT, sizeof(Instance), (void*)offsetof(Instance, frame));
+    glVertexAttribIPointer(CV_ATTR_INSTANCE_IDS, 4, GL_UNSIGNED_SHORT, sizeof(Instance), (void*)offsetof(Instance, frame));
     glVertexAttribDivisor(CV_ATTR_INSTANCE_IDS, 1);
 }
 
@@ -431,6 +431,11 @@ bool Renderer::add_archetype(const Bundle& bundle, std::string* error) {
     }
     if (std::none_of(m.meshes.begin(), m.meshes.end(), [](const MeshInfo& mesh) { return mesh.lod == 0; })) {
         *error = fn + "the bundle has no lod 0 mesh";
+        return false;
+    }
+    if (m.pose_frames > kMaxPoseFrames) {
+        *error = fn + "the bundle has " + std::to_string(m.pose_frames) + " pose frames, instances address at most " +
+                 std::to_string(kMaxPoseFrames) + " (16-bit frame numbers, crowd.h Instance)";
         return false;
     }
 
@@ -555,11 +560,11 @@ bool Renderer::add_archetype(const Bundle& bundle, std::string* error) {
     label(GL_BUFFER, g.impostor_sample_buffer, "instances:impostor-samples");
     const GLsizei stride = sizeof(ImpostorSamples);
     glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_TILES);
-    glVertexAttribIPointer(CV_ATTR_IMPOSTOR_TILES, 4, GL_UNSIGNED_INT, stride, (void*)offsetof(ImpostorSamples, tiles));
+    glVertexAttribIPointer(CV_ATTR_IMPOSTOR_TILES, 4, GL_UNSIGNED_SHORT, stride, (void*)offsetof(ImpostorSamples, tiles));
     glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_VIEW_WEIGHTS);
     glVertexAttribPointer(CV_ATTR_IMPOSTOR_VIEW_WEIGHTS, 4, GL_FLOAT, GL_FALSE, stride, (void*)offsetof(ImpostorSamples, view_weights));
     glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_LAYERS);
-    glVertexAttribIPointer(CV_ATTR_IMPOSTOR_LAYERS, 2, GL_UNSIGNED_INT, stride, (void*)offsetof(ImpostorSamples, layers));
+    glVertexAttribIPointer(CV_ATTR_IMPOSTOR_LAYERS, 2, GL_UNSIGNED_SHORT, stride, (void*)offsetof(ImpostorSamples, layers));
     glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_FRAME_WEIGHT);
     glVertexAttribPointer(CV_ATTR_IMPOSTOR_FRAME_WEIGHT, 1, GL_FLOAT, GL_FALSE, stride, (void*)offsetof(ImpostorSamples, frame_weight));
     for (GLuint a : {CV_ATTR_IMPOSTOR_TILES, CV_ATTR_IMPOSTOR_VIEW_WEIGHTS, CV_ATTR_IMPOSTOR_LAYERS, CV_ATTR_IMPOSTOR_FRAME_WEIGHT})
