@@ -255,6 +255,9 @@ struct FrameState {
     uint64_t schedule_seed = 0;
     std::vector<ClipState> clip;
     float clip_time_s = -INFINITY;
+    // Per character clip[i].next_event_s alone, so the frame's look for due switches reads 4 bytes
+    // a character instead of a 16-byte state.
+    std::vector<float> next_switch_s;
     // Azimuths evenly spaced round the circle (as the bake writes them): the view is an index
     // computation; otherwise view_blend.h's search.
     bool even_azimuths = false;

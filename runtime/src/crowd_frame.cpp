@@ -88,6 +88,8 @@ void prepare_clips(const Crowd& crowd, const CharacterModel& model, float time_s
         s->clip.resize(crowd.characters.size());
         for (size_t i = 0; i < crowd.characters.size(); ++i)
             s->clip[i] = initial_clip_state(s->schedule, uint32_t(i), crowd.characters[i].clip, crowd.characters[i].phase_s);
+        s->next_switch_s.resize(crowd.characters.size());
+        for (size_t i = 0; i < crowd.characters.size(); ++i) s->next_switch_s[i] = s->clip[i].next_event_s;
     }
     s->clip_time_s = time_s;
 }
@@ -273,8 +275,12 @@ void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
     const size_t begin = chunk * kChunk, end = std::min(begin + kChunk, p.crowd->characters.size());
     const Character* characters = p.crowd->characters.data();
     // Clip state: nothing to do until the character's next switch event (a few times a minute).
+    float* next_switch = s.next_switch_s.data();
     for (size_t i = begin; i < end; ++i)
-        if (f.time_s >= s.clip[i].next_event_s) advance_clip_state(s.schedule, uint32_t(i), characters[i].rate, f.time_s, &s.clip[i]);
+        if (f.time_s >= next_switch[i]) {
+            advance_clip_state(s.schedule, uint32_t(i), characters[i].rate, f.time_s, &s.clip[i]);
+            next_switch[i] = s.clip[i].next_event_s;
+        }
     // Centres: fixed on the spot (build_tables placed them), moved along paths.
     if (!p.on_the_spot)
         for (size_t i = begin; i < end; ++i) {
@@ -285,23 +291,21 @@ void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
     float depth[kChunk];
     int32_t visible[kChunk];
     visibility(s, model.radius, f, begin, end, visible, depth);
+    // The level, without a branch on visibility (half the characters of a street view are culled,
+    // in no order a predictor learns): a culled character keeps its history and shows 3.
+    const bool automatic = f.mode == LodMode::automatic;
+    const Lod fixed = f.mode == LodMode::high  ? Lod::high
+                      : f.mode == LodMode::low ? (model.has_low ? Lod::low : Lod::high)
+                                               : Lod::impostor;
+    Lod* history = s.lod.data();
+    uint8_t* shown = s.shown.data();
     uint32_t counts[4] = {0, 0, 0, 0};
     for (size_t i = begin; i < end; ++i) {
-        if (!visible[i - begin]) {
-            s.shown[i] = 3;
-            ++counts[3];
-            continue;
-        }
-        Lod lod;
-        switch (f.mode) {
-        case LodMode::high: lod = Lod::high; break;
-        case LodMode::low: lod = model.has_low ? Lod::low : Lod::high; break;
-        case LodMode::impostor: lod = Lod::impostor; break;
-        default: lod = pick_lod(depth[i - begin], s.lod[i], p.lod_steps);
-        }
-        s.lod[i] = lod;
-        s.shown[i] = uint8_t(lod);
-        ++counts[int(lod)];
+        const Lod lod = automatic ? pick_lod(depth[i - begin], history[i], p.lod_steps) : fixed;
+        const bool seen = visible[i - begin] != 0;
+        history[i] = seen ? lod : history[i];
+        shown[i] = seen ? uint8_t(lod) : uint8_t(3);
+        ++counts[shown[i]];
     }
     std::copy(counts, counts + 4, s.chunk_counts.begin() + 4 * chunk);
 }
@@ -423,6 +427,7 @@ ViewWeights exact_views(const Pass& p, const FrameSetup& f, const glm::vec3& cen
 void fill_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
     const FrameState& s = *p.state;
     const size_t begin = chunk * kChunk, end = std::min(begin + kChunk, p.crowd->characters.size());
+    if (s.chunk_counts[4 * chunk + 3] == end - begin) return;  // all culled
     uint32_t place[3];
     std::copy(s.chunk_offsets.begin() + 3 * chunk, s.chunk_offsets.begin() + 3 * chunk + 3, place);
     const bool impostors = s.chunk_counts[4 * chunk + 2] > 0 && p.has_views;
