@@ -256,9 +256,10 @@ int main(int argc, char** argv) {
                 for (double v : ms) s += v;
                 return s / double(ms.size());
             }();
-            std::printf("%s camera, impostor blend %s: %.2f ms CPU a frame (build %.2f + upload %.2f; wall %.2f + %.2f; medians of %d, "
+            std::printf("%s camera, impostor blend %s: %.2f ms CPU a frame (build %.2f + upload %.2f [%s]; wall %.2f + %.2f; medians of %d, "
                         "build mean %.2f) for %llu characters of %d archetypes: %llu high, %llu low, %llu impostor, %llu culled; %.1f MB uploaded\n",
                         view.name, blend == ImpostorBlend::off ? "off" : "warp", median(total_cpu_ms), median(cpu_ms), median(upload_cpu_ms),
+                        uploader.kind == Upload::gl ? "gl" : uploader.kind == Upload::copy ? "copy" : "none",
                         med, median(upload_ms), frames, mean, (unsigned long long)count, archetypes, (unsigned long long)lods[0],
                         (unsigned long long)lods[1], (unsigned long long)lods[2], (unsigned long long)culled, 1e-6 * double(upload_bytes));
             results.push_back({{"camera", view.name},
