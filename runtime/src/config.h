@@ -16,11 +16,11 @@
 // normals come from a buffer texture indexed by gl_VertexID). Per-instance: struct Instance.
 #define CV_ATTR_UV 0
 #define CV_ATTR_INSTANCE_POSE 1   // vec4: position.xyz (metres), heading (radians about +Y)
-#define CV_ATTR_INSTANCE_IDS 2    // uvec4: frame or impostor layer, variation, outfit, impostor tile
+#define CV_ATTR_INSTANCE_IDS 2    // uvec4 (16-bit): frame or impostor layer, variation, outfit, impostor tile
 // Per-impostor blend samples: struct ImpostorSamples (crowd.h), a second instance buffer.
-#define CV_ATTR_IMPOSTOR_TILES 3         // uvec4: four atlas tiles
+#define CV_ATTR_IMPOSTOR_TILES 3         // uvec4 (16-bit): four atlas tiles
 #define CV_ATTR_IMPOSTOR_VIEW_WEIGHTS 4  // vec4: their weights, summing to 1
-#define CV_ATTR_IMPOSTOR_LAYERS 5        // uvec2: two atlas layers (baked frames)
+#define CV_ATTR_IMPOSTOR_LAYERS 5        // uvec2 (16-bit): two atlas layers (baked frames)
 #define CV_ATTR_IMPOSTOR_FRAME_WEIGHT 6  // float: weight of the second layer
 
 // Texture units. Mesh draws use POSES, OUTFITS and DIFFUSE0; impostor draws all but POSES.
