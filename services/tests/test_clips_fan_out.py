@@ -48,6 +48,28 @@ def test_a_timeline_bake_lists_one_loop_item_per_clip(clips_sample, tmp_path):
     assert plan.runs_in_parallel("loops") and plan.unit_reads("cycle") == ("validate", "loops")
 
 
+def test_a_stored_loop_reads_back_exactly_and_a_tree_naming_other_code_is_refused():
+    """result_files keeps every bit (NaN, float32 scalars, tuples, dict order) and rebuilds crowdbake's
+    dataclasses only: a file from the object store runs no code."""
+    import numpy as np
+
+    from crowdbake.bake.cycle import Candidate, CycleParams
+    from crowdbake.stages.result_files import from_tree, to_tree
+
+    value = {"z": [Candidate(3, 19, 1, float("nan"), 0.1 + 0.2, (1.5, np.float32(2.25)))], "a": (CycleParams(), np.arange(6).reshape(2, 3))}
+    tree, arrays = to_tree(value)
+    back = from_tree(json.loads(json.dumps(tree)), arrays)
+    assert list(back) == ["z", "a"] and back["a"][0] == CycleParams()
+    candidate = back["z"][0]
+    assert np.isnan(candidate.vertex_distance) and candidate.edge_distance == 0.1 + 0.2
+    assert type(candidate.edge_distance_per_view[1]) is np.float32 and candidate.edge_distance_per_view == (1.5, 2.25)
+    np.testing.assert_array_equal(back["a"][1], np.arange(6).reshape(2, 3))
+    with pytest.raises(ValueError, match="not a crowdbake dataclass"):
+        from_tree({"__dataclass__": "os:system", "fields": {}}, {})
+    with pytest.raises(TypeError):
+        to_tree(object())
+
+
 def _ran_at_once(worker_log: str) -> bool:
     """True when two clip_loop tasks' spans (from the worker's "succeeded in" lines) overlap."""
     spans = []
