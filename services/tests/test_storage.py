@@ -228,6 +228,55 @@ def test_fan_in_enqueues_pack_exactly_once_per_attempt(sessions):
         assert records.claim_fan_in(session, bake_id, 1) is True  # the new attempt has its own barrier
 
 
+def test_two_fan_outs_in_one_attempt_each_queue_their_next_stage_once_and_their_outputs_travel(sessions, tmp_path):
+    """A bake of several clips fans out twice (the clips' loops, then the impostor views). Each fan-in
+    queues its own next stage exactly once; the impostors' fan-out keeps the loops' parts, whose output
+    listings bring every clip's loop to a cycle stage on another machine (private work folders)."""
+    from types import SimpleNamespace
+
+    from crowdbake.jobs.deliveries import StageContext
+    from crowdbake.jobs.exchange import pull_inputs, push_outputs
+    from crowdbake.storage.models import BakePart
+
+    with session_scope(sessions) as session:
+        bake_id = new_bake(session).id
+    items = [{"id": "0-idle", "clip": "Idle"}, {"id": "1-walking", "clip": "Walking"}]
+    services = SimpleNamespace(sessions=sessions, blobs=LocalBlobStore(tmp_path / "blobs"), exchanges_work=True)
+    validating = StageContext(services, bake_id, 0, "validate", tmp_path / "machine-validate")
+    (validating.work / "validate").mkdir(parents=True)
+    (validating.work / "validate" / "record.json").write_text("{}")
+    with session_scope(sessions) as session:
+        records.finish_stage(session, bake_id, "validate", 0.1, {"outputs": push_outputs(validating, ("validate",))})
+        assert records.record_fan_out(session, bake_id, items, "loops") == ["loops/0-idle", "loops/1-walking"]
+    for item in items:  # each part on a machine of its own: it stores what it wrote
+        ctx = StageContext(services, bake_id, 0, "loops", tmp_path / f"machine-{item['id']}")
+        for name in (f"cycle/loops/{item['id']}.npz", f"cycle/loops/{item['id']}.json"):
+            (ctx.work / name).parent.mkdir(parents=True, exist_ok=True)
+            (ctx.work / name).write_text(item["clip"])
+        with session_scope(sessions) as session:
+            part = session.get(BakePart, (bake_id, f"loops/{item['id']}"))
+            part.spec = dict(part.spec, outputs=push_outputs(ctx, (f"cycle/loops/{item['id']}.npz", f"cycle/loops/{item['id']}.json")))
+    with session_scope(sessions) as session:
+        assert records.complete_part(session, bake_id, "loops/0-idle") == 1
+    with session_scope(sessions) as session:
+        assert records.complete_part(session, bake_id, "loops/1-walking") == 0
+        assert records.stage_row(session, bake_id, "loops").done == 2
+        assert records.claim_fan_in(session, bake_id, 0, "cycle") is True
+    with session_scope(sessions) as session:
+        assert records.claim_fan_in(session, bake_id, 0, "cycle") is False  # a redelivered last part queues nothing
+        assert records.stage_row(session, bake_id, "cycle").state == "queued"
+    joining = StageContext(services, bake_id, 0, "cycle", tmp_path / "machine-cycle")
+    pull_inputs(joining, "cycle")
+    assert sorted(path.name for path in (joining.work / "cycle" / "loops").iterdir()) == ["0-idle.json", "0-idle.npz", "1-walking.json", "1-walking.npz"]
+    with session_scope(sessions) as session:
+        records.record_fan_out(session, bake_id, [{"id": "f0000-e0"}])
+        assert records.parts_left(session, bake_id, "loops") == 0 and records.parts_left(session, bake_id, "impostors") == 1
+    with session_scope(sessions) as session:
+        assert records.complete_part(session, bake_id, "impostors/f0000-e0") == 0
+        assert records.claim_fan_in(session, bake_id, 0) is True  # pack, the impostors' own barrier
+        assert session.query(BakePart).filter(BakePart.bake_id == bake_id, BakePart.stage == "loops").count() == 2
+
+
 def test_progress_weights_cover_every_stage(sessions):
     assert set(records.STAGE_WEIGHTS) == set(STAGES)
     assert sum(records.STAGE_WEIGHTS.values()) == pytest.approx(1.0)
