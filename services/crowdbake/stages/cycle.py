@@ -2,6 +2,8 @@
 
 Reads the JobRecord; writes work/cycle/cycle.json, work/cycle/looped.pc2 (exactly cycle_frames frames,
 frame 0 = Fs), the report (crowdbake.stages.cycle_report) and the CycleRecord. The cloth cache is read once.
+A bake of several clips (a timeline) has each clip's loop searched by the loops stage first
+(crowdbake.stages.loops, side by side); this stage then joins them and finds the transitions.
 `crowdbake cycle` runs the same search outside a bake:
 
     run_cycle_job(cloth_pc2, cloth_obj, out_dir, character=... | body_pc2=..., body_obj=...) -> CycleResult
@@ -397,7 +399,8 @@ def _searched_cycle(job: JobRecord, work: Path, out: Path, progress: Progress | 
 
 
 def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None = None) -> StageOutcome[CycleRecord]:
-    """Find and close the cloth cycle (run_cycle_job), or take the given cycle.json.
+    """Find and close the cloth cycle (run_cycle_job), or take the given cycle.json; with a timeline, join
+    the loops the loops stage searched (crowdbake.stages.loops) and find the transitions.
 
     plots: a list to append the report's plotting to (a callable) instead of drawing it here: nothing
     later reads the plots, so a caller may draw them beside the next stages."""

@@ -2,9 +2,10 @@
 (crowdbake.stages.plan) run by this process and a pool of worker processes.
 
 Every node starts as soon as what it needs is done: the textures are encoded in a worker while the
-clips' loops are searched in the others (or, for one clip, this process searches the cycle); the poses stage and the impostor tasks run side by side; a frame's atlases
-are packed as soon as that frame's tasks are done, and the scores as soon as their frames are; the
-bundle is published while its engine export is built. Where fewer than two cores are usable every node
+clips' loops are searched in the others (for one clip, while this process searches the cycle); the poses
+stage and the impostor tasks run side by side; a frame's atlases are packed as soon as that frame's tasks
+are done, and the scores as soon as their frames are; the bundle is published while its engine export is
+built. Where fewer than two cores are usable every node
 runs here, in plan order. How the workers start and behave is crowdbake.stages.worker_pool's business.
 
 Timings (BakeSummary.timings): wall, CPU (this process and its workers) and seconds inside OpenGL, per
