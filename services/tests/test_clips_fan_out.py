@@ -12,6 +12,7 @@ import datetime as dt
 import json
 import re
 import shutil
+import signal
 import time
 from pathlib import Path
 
@@ -119,6 +120,8 @@ def test_the_service_searches_each_clip_in_its_own_task_and_publishes_the_runner
                 assert time.monotonic() < deadline and worker.popen.poll() is None, worker.tail(60)
                 time.sleep(0.5)
         assert bake["state"] == "succeeded", (bake["error"], worker.tail(60))
+        # Celery's cold shutdown (SIGQUIT): nothing is left to finish, and a warm one waits seconds for the pool.
+        worker.popen.send_signal(signal.SIGQUIT)
         worker.stop()
         stages = {stage["stage"]: stage for stage in bake["stages"]}
         assert (stages["loops"]["state"], stages["loops"]["done"], stages["loops"]["total"]) == ("succeeded", 3, 3)
