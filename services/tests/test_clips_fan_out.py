@@ -22,8 +22,6 @@ import pytest
 from clips_fixtures import CLIPS_BAKE_PARAMS, CLIPS_NAME, CLIPS_VERSION
 from crowdbake.stages import plan
 
-pytestmark = [pytest.mark.integration]
-
 BAKE_TIMEOUT_S = 240
 # A Celery worker's log line for a finished task: "[2026-01-01 10:00:00,123: INFO/ForkPoolWorker-1] Task
 # crowdbake.stage.clip_loop[<id>] succeeded in 2.5s: None".
@@ -83,6 +81,7 @@ def _ran_at_once(worker_log: str) -> bool:
     return any(later[0] < earlier[1] for earlier, later in zip(spans, spans[1:]))
 
 
+@pytest.mark.integration
 def test_the_service_searches_each_clip_in_its_own_task_and_publishes_the_runners_bytes(clips_sample, clips_bake, tmp_path):
     from crowdbake.settings import Settings
     from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
