@@ -49,7 +49,7 @@ def item_files(item: dict) -> tuple[str, str]:
     return f"{LOOPS_FOLDER}/{item['id']}.npz", f"{LOOPS_FOLDER}/{item['id']}.json"
 
 
-def item_key(work: Path, item: dict) -> str:
+def loop_key(work: Path, item: dict) -> str:
     """What decides an item's loop: the checked job (the validate stage's key) and the clip."""
     return stage_key("clip-loop", WorkDir(work).key_of("validate"), item["clip"])
 
@@ -67,7 +67,7 @@ def stage_clip_loop(work: Path, item: dict) -> Path:
 
     work = Path(work)
     arrays_path, json_path = (work / name for name in item_files(item))
-    key = item_key(work, item)
+    key = loop_key(work, item)
     if arrays_path.is_file() and json_path.is_file() and read_json(json_path).get("key") == key:
         return arrays_path
     started = time.perf_counter()
