@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from crowdbake.bake.clips import ClipLoop
-from crowdbake.errors import InputError
+from crowdbake.errors import InputError, StageOrderError
 from crowdbake.stages.result_files import from_tree, to_tree
 from crowdbake.stages.workdir import WorkDir, npz_bytes, read_json, stage_key, write_bytes_atomic, write_json_atomic
 
@@ -96,10 +96,13 @@ def stage_clip_loop(work: Path, item: dict) -> Path:
 
 
 def load_clip_loops(work: Path) -> list[ClipLoop]:
-    """Every item's loop, in the timeline's order (the loops stage must have run)."""
+    """Every item's loop, in the timeline's order; StageOrderError naming the clip whose loop the loops
+    stage has not stored."""
     loops = []
     for item in loop_items(work):
         arrays_path, json_path = (Path(work) / name for name in item_files(item))
+        if not (arrays_path.is_file() and json_path.is_file()):
+            raise StageOrderError(f"{work}: the loops stage has not stored the loop of clip {item['clip']!r} ({json_path.name})")
         document = json.loads(json_path.read_text(encoding="utf-8"))
         with np.load(arrays_path, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
