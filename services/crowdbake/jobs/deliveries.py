@@ -38,6 +38,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from crowdbake.jobs.celery_app import TASK_NAMES, app
 from crowdbake.jobs.failures import describe_error, is_transient
 from crowdbake.settings import Settings, get_settings
+from crowdbake.stages import STAGES, plan
 from crowdbake.storage import records
 from crowdbake.storage.blobs import BlobStore
 from crowdbake.storage.bundle_store import BundleStore
@@ -334,7 +335,8 @@ def send_queued(stage: str, bake_id: str, attempt: int, *parts: str) -> None:
     queue = services().settings.queue
     try:
         if parts:
-            group(app.signature(TASK_NAMES["impostor_views"], args=[bake_id, attempt, part], queue=queue, immutable=True) for part in parts) \
+            task = TASK_NAMES[plan.fan_out_of(stage).name]
+            group(app.signature(task, args=[bake_id, attempt, part], queue=queue, immutable=True) for part in parts) \
                 .apply_async(retry=True, retry_policy=BROKER_PUBLISH_RETRY)
         else:
             app.send_task(TASK_NAMES[stage], args=[bake_id, attempt], queue=queue, retry=True, retry_policy=BROKER_PUBLISH_RETRY)
@@ -345,14 +347,14 @@ def send_queued(stage: str, bake_id: str, attempt: int, *parts: str) -> None:
                                "it stays queued and is sent once the broker answers")
         return
     with session_scope(services().sessions) as session:
-        records.mark_sent(session, bake_id, attempt, "impostors" if parts else stage, parts)
+        records.mark_sent(session, bake_id, attempt, stage, parts)
 
 
 # ------------------------------------------------------------------- messages held by a worker
 
 
 # Which unit a task message is for: (stage, part) from the task name and its args.
-_STAGE_OF_TASK = {name: ("impostors" if stage == "impostor_views" else stage) for stage, name in TASK_NAMES.items()}
+_STAGE_OF_TASK = {TASK_NAMES[plan.fan_out_of(stage).name if plan.runs_in_parallel(stage) else stage]: stage for stage in STAGES}
 _received_beat: threading.Thread | None = None
 
 
@@ -364,7 +366,7 @@ def _mark_received(sender=None, request=None, **_kwargs) -> None:
     args = list(getattr(request, "args", None) or [])
     if stage is None or len(args) < 2:
         return
-    part = args[2] if stage == "impostors" and len(args) > 2 else None
+    part = args[2] if plan.runs_in_parallel(stage) and len(args) > 2 else None
     try:
         with fork_guarded_scope(services().sessions) as session:
             records.mark_received(session, args[0], int(args[1]), stage, part, records.delivery_owner(request.id))
