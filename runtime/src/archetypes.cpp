@@ -66,7 +66,7 @@ ArchetypeTraits archetype_traits(const ArchetypeDesc& desc, uint64_t count, cons
 
 void ArchetypeCounts::add(const FrameInstances& frame) {
     for (int lod = 0; lod < 3; ++lod) {
-        last[lod] = frame.by_lod[lod].size();
+        last[lod] = frame.shown[lod];
         if (last[lod] > 0) ++frames_with[lod];
     }
     last_culled = frame.culled;

@@ -148,7 +148,7 @@ Sample measure(Renderer& renderer, const Bundle& bundle, uint64_t seed, uint32_t
     sample.fps_median = 1.0 / std::max(seconds[seconds.size() / 2], 1e-6);
     sample.cpu_ms = 1000.0 * cpu_seconds[cpu_seconds.size() / 2];
     sample.cut_short = cut_short;
-    for (int l = 0; l < 3; ++l) sample.by_lod[l] = uint32_t(frame.by_lod[l].size());
+    for (int l = 0; l < 3; ++l) sample.by_lod[l] = frame.shown[l];
     return sample;
 }
 

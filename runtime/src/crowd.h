@@ -226,10 +226,38 @@ LodRule lod_rule_for(const CharacterModel& model, const Camera& camera, float vi
 constexpr float kFixedTimeStep = 1.0f / 30.0f;
 
 struct FrameInstances {
+    // The lists, where build_frames was given no InstanceStorage; else empty (the lists are in its memory).
     std::vector<Instance> by_lod[3];  // indexed by Lod; impostors carry their nearest view and frame
     std::vector<ImpostorSamples> impostor_samples;  // one per by_lod[Lod::impostor] entry
     ImpostorBlend blend = ImpostorBlend::warp;      // how they were chosen: the shader variant to draw them
     uint32_t culled = 0;
+    uint32_t shown[3] = {0, 0, 0};  // instances per list (by Lod), wherever they were written
+    bool in_storage = false;        // written by an InstanceStorage (instance_upload.h: in the GL buffers)
+};
+
+// Where one archetype's lists go, as InstanceStorage::open hands them out.
+struct InstancePlaces {
+    Instance* by_lod[3];
+    ImpostorSamples* impostor_samples;  // nullptr where the frame has no samples
+};
+
+// Where build_frames writes the lists when not into FrameInstances' vectors: once its first pass has
+// counted every list, it asks for room, its fill threads write there, and it closes the storage.
+// instance_upload.h's MappedInstanceStorage hands out mapped GL buffer memory, so a frame's
+// instances reach the GPU with no copy.
+class InstanceStorage {
+public:
+    virtual ~InstanceStorage() = default;
+    // Room for sizes[l] Instances in list l of archetype `archetype` (its index in build_frames'
+    // list) and, where `samples`, as many ImpostorSamples as impostors; valid until close(). Called
+    // on build_frames' calling thread, between its passes.
+    virtual InstancePlaces open(size_t archetype, const uint32_t sizes[3], bool samples) = 0;
+    // Every place is written: done with them (GL: unmapped), before anything draws.
+    virtual void close() = 0;
+    // Whether impostors need samples even where the model has no views to blend (then each gets its
+    // nearest view and frame, as upload_instances makes them): true for GL buffers, which the
+    // impostor shader reads.
+    virtual bool always_samples() const = 0;
 };
 
 // What build_frame keeps between frames for one archetype: the LOD history, and tables it would
@@ -296,8 +324,11 @@ struct ArchetypeFrame {
 // thread among them) in chunks of characters, so two cores share even a one-archetype crowd. The
 // instances, their order and every state are those of build_frame called for each archetype in turn,
 // whatever `threads`.
+// With `storage`, the lists go there instead of into FrameInstances' vectors, byte for byte the same
+// (where the model has no views and the storage always wants samples, the samples upload_instances
+// would make are written besides).
 void build_frames(const std::vector<ArchetypeFrame>& archetypes, const Camera& camera, float aspect, LodMode mode, float time_s,
-                  ImpostorBlend blend, unsigned threads);
+                  ImpostorBlend blend, unsigned threads, InstanceStorage* storage = nullptr);
 
 // The threads build_frames is worth: the hardware's.
 unsigned frame_threads();

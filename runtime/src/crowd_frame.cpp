@@ -238,8 +238,10 @@ struct Pass {
     const LodRule* rule;
     FrameState* state;
     FrameInstances* out;
+    InstancePlaces places;  // where the lists go (place_chunks)
     size_t chunks;
     bool on_the_spot, has_views, fast_views;  // fast_views: even azimuths, at most 4 elevations
+    bool nearest_samples;                     // no views, but the storage wants samples: the nearest alone
     float elevations[4];                      // padded with +infinity, which no test below picks
     LodSteps lod_steps;
 };
@@ -446,8 +448,9 @@ void fill_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
     const uint32_t last_pose = uint32_t(s.nearest_layer.size() - 1);
     const ClipSchedule& schedule = s.schedule;
     const float time_s = f.time_s;
-    Instance* lists[3] = {p.out->by_lod[0].data(), p.out->by_lod[1].data(), p.out->by_lod[2].data()};
-    ImpostorSamples* samples = p.out->impostor_samples.data();
+    Instance* const lists[3] = {p.places.by_lod[0], p.places.by_lod[1], p.places.by_lod[2]};
+    ImpostorSamples* const samples = p.places.impostor_samples;
+    const bool nearest_samples = p.nearest_samples;
     for (size_t i = begin; i < end; ++i) {
         const uint8_t lod = shown[i];
         if (lod > 2) continue;
@@ -486,6 +489,13 @@ void fill_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
             lists[2][place[2]++] = inst;
             continue;
         }
+        if (lod == uint8_t(Lod::impostor) && nearest_samples) {  // upload_instances' samples for a frame without them
+            ImpostorSamples& out = samples[place[2]];
+            out = ImpostorSamples{};
+            for (uint16_t& t : out.tiles) t = inst.tile;
+            out.view_weights[0] = 1;
+            out.layers[0] = out.layers[1] = inst.frame;
+        }
         lists[lod][place[lod]++] = inst;
     }
 }
@@ -517,7 +527,7 @@ Pass prepare_pass(const ArchetypeFrame& a, float time_s) {
     }
     const bool rebuilt = build_tables(crowd, model, state);
     prepare_clips(crowd, model, time_s, rebuilt, state);
-    Pass p{&crowd, &model, a.rule, state, out, (n + kChunk - 1) / kChunk, crowd.layout == Layout::on_the_spot, false, false, {}, {}};
+    Pass p{&crowd, &model, a.rule, state, out, {}, (n + kChunk - 1) / kChunk, crowd.layout == Layout::on_the_spot, false, false, false, {}, {}};
     p.has_views = !model.azimuths_deg.empty() && !model.elevations_deg.empty();
     p.fast_views = p.has_views && state->even_azimuths && model.elevations_deg.size() <= 4;
     p.lod_steps = lod_steps(*a.rule);
@@ -529,24 +539,35 @@ Pass prepare_pass(const ArchetypeFrame& a, float time_s) {
     return p;
 }
 
-// Between the passes: each chunk's places, and the lists sized to hold them (growing only; no
-// element is written twice).
-void place_chunks(const Pass& p) {
-    FrameState& s = *p.state;
+// Between the passes: each chunk's places, and room for the lists: FrameInstances' vectors, sized
+// to hold them (growing only; no element is written twice), or the storage's memory.
+void place_chunks(Pass* p, size_t archetype, InstanceStorage* storage) {
+    FrameState& s = *p->state;
+    FrameInstances& out = *p->out;
     uint32_t total[4] = {0, 0, 0, 0};
-    for (size_t c = 0; c < p.chunks; ++c) {
+    for (size_t c = 0; c < p->chunks; ++c) {
         for (int l = 0; l < 3; ++l) s.chunk_offsets[3 * c + l] = total[l];
         for (int l = 0; l < 4; ++l) total[l] += s.chunk_counts[4 * c + l];
     }
-    for (int l = 0; l < 3; ++l) p.out->by_lod[l].resize(total[l]);
-    p.out->impostor_samples.resize(p.has_views ? total[2] : 0);
-    p.out->culled = total[3];
+    std::copy(total, total + 3, out.shown);
+    out.culled = total[3];
+    out.in_storage = storage != nullptr;
+    if (storage) {
+        for (std::vector<Instance>& list : out.by_lod) list.clear();
+        out.impostor_samples.clear();
+        p->nearest_samples = !p->has_views && storage->always_samples();
+        p->places = storage->open(archetype, total, p->has_views || p->nearest_samples);
+        return;
+    }
+    for (int l = 0; l < 3; ++l) out.by_lod[l].resize(total[l]), p->places.by_lod[l] = out.by_lod[l].data();
+    out.impostor_samples.resize(p->has_views ? total[2] : 0);
+    p->places.impostor_samples = out.impostor_samples.data();
 }
 
 }  // namespace
 
 void build_frames(const std::vector<ArchetypeFrame>& archetypes, const Camera& camera, float aspect, LodMode mode, float time_s,
-                  ImpostorBlend blend, unsigned threads) {
+                  ImpostorBlend blend, unsigned threads, InstanceStorage* storage) {
     const bool all = blend == ImpostorBlend::full || blend == ImpostorBlend::warp;
     const FrameSetup setup{frustum_from(camera.projection(aspect) * camera.view()), camera.position, camera.forward(), mode, time_s,
                            blend == ImpostorBlend::views || all, blend == ImpostorBlend::frames || all};
@@ -558,10 +579,11 @@ void build_frames(const std::vector<ArchetypeFrame>& archetypes, const Camera& c
         for (size_t c = 0; c < passes.back().chunks; ++c) tasks.emplace_back(uint32_t(passes.size() - 1), uint32_t(c));
     }
     run_tasks(tasks.size(), threads, [&](size_t t) { cull_chunk(passes[tasks[t].first], setup, tasks[t].second); });
-    for (const Pass& p : passes) place_chunks(p);
+    for (size_t a = 0; a < passes.size(); ++a) place_chunks(&passes[a], a, storage);
     auto fill = setup.blend_views ? (setup.blend_frames ? fill_chunk<true, true> : fill_chunk<true, false>)
                                   : (setup.blend_frames ? fill_chunk<false, true> : fill_chunk<false, false>);
     run_tasks(tasks.size(), threads, [&](size_t t) { fill(passes[tasks[t].first], setup, tasks[t].second); });
+    if (storage) storage->close();
 }
 
 void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,

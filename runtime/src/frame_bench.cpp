@@ -1,15 +1,17 @@
 // crowdview_frame_bench: the CPU side of a frame for a large mixed crowd: culling, LOD choice,
 // clip state (cycle frame, impostor view and frame blend) and the instance-buffer fill, for every
-// character of every archetype, as crowdview's frame loop runs build_frames, then the upload of
-// every instance list with the renderer's own code (instance_upload.h), timed apart.
+// character of every archetype, as crowdview's frame loop runs build_frames, and getting the lists
+// into GL buffers with the renderer's own code (instance_upload.h), timed apart.
 //
 //   crowdview_frame_bench [--count N] [--archetypes K] [--frames F] [--threads T] [--clips C]
-//                         [--upload gl|copy|none] [--report JSON]
+//                         [--upload map|gl|copy|none] [--report JSON]
 // (--threads: default crowdview's, the hardware's; --clips: clips per
 // archetype, default 3, joined in a ring by transitions both ways; 1 is a v1 bundle's one cycle;
-// --upload: gl (default) into GL buffers of a headless context as crowdview --headless makes it,
-// falling back, with a message, to copy where none can be made; copy: memcpy of the same bytes
-// into a staging buffer; none: no upload)
+// --upload: map (default), as crowdview: the lists built straight into mapped GL buffers of a
+// headless context as crowdview --headless makes it (the upload figure is the mapping and unmapping);
+// gl: built into vectors, then copied into the buffers (glBufferData); either falls back, with a
+// message, to copy where no context can be made; copy: memcpy of the vectors into a staging
+// buffer; none: no upload)
 //
 // The archetypes are shaped like real bundles (impostor radius, tile size, views, baked frames of
 // the sample walker, CesiumMan and the 4 m robot); the crowd is laid out as a --crowd spot layout.
@@ -99,17 +101,22 @@ double cpu_now_ms() {
 
 double wall_now_ms() { return 1e3 * std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count(); }
 
-enum class Upload { gl, copy, none };
+enum class Upload { map, gl, copy, none };
 
 // Where the frame's instances go: GL buffers per archetype (instance_upload.h), or a staging copy.
 struct Uploader {
     Upload kind = Upload::none;
     std::vector<InstanceBuffers> buffers;
+    MappedInstanceStorage mapped;  // kind map: build_frames writes into the buffers
     std::vector<ImpostorSamples> nearest_samples;
     std::vector<uint8_t> staging;
 
     // The bytes of every list of every archetype, into the GL buffers or the staging buffer.
     uint64_t run(const std::vector<FrameInstances>& out) {
+        if (kind == Upload::map) {  // build_frames wrote the lists there
+            glFlush();
+            return mapped.bytes();
+        }
         uint64_t bytes = 0;
         for (size_t a = 0; a < out.size(); ++a) {
             if (kind == Upload::gl) {
@@ -135,7 +142,7 @@ struct Uploader {
 int main(int argc, char** argv) {
     uint64_t count = 100000;
     int archetypes = 4, frames = 60, threads = 0, clips = 3;  // threads 0: as crowdview (frame_threads)
-    std::string report_path, upload_name = "gl";
+    std::string report_path, upload_name = "map";
     for (int i = 1; i < argc; ++i) {
         const std::string a = argv[i];
         auto next = [&]() -> const char* {
@@ -161,17 +168,20 @@ int main(int argc, char** argv) {
         std::fprintf(stderr, "crowdview_frame_bench: --count >= 1, --archetypes 1..4, --frames >= 1, --threads 1..64, --clips 1..64\n");
         return 2;
     }
-    if (upload_name != "gl" && upload_name != "copy" && upload_name != "none") {
-        std::fprintf(stderr, "crowdview_frame_bench: --upload takes gl, copy or none, not '%s'\n", upload_name.c_str());
+    if (upload_name != "map" && upload_name != "gl" && upload_name != "copy" && upload_name != "none") {
+        std::fprintf(stderr, "crowdview_frame_bench: --upload takes map, gl, copy or none, not '%s'\n", upload_name.c_str());
         return 2;
     }
     if (threads == 0) threads = int(frame_threads());
     // The upload: GL buffers in a headless context as crowdview --headless makes one (gl_context.h).
     Uploader uploader;
-    uploader.kind = upload_name == "gl" ? Upload::gl : upload_name == "copy" ? Upload::copy : Upload::none;
+    uploader.kind = upload_name == "map"  ? Upload::map
+                    : upload_name == "gl" ? Upload::gl
+                    : upload_name == "copy" ? Upload::copy
+                                            : Upload::none;
     std::unique_ptr<GlContext> context;
     std::string upload_label = upload_name;
-    if (uploader.kind == Upload::gl) {
+    if (uploader.kind == Upload::map || uploader.kind == Upload::gl) {
         GlContextDesc desc;
         desc.width = 64, desc.height = 64;
         std::string error;
@@ -182,12 +192,13 @@ int main(int argc, char** argv) {
             uploader.kind = Upload::copy;
             upload_label = "copy (no OpenGL context: " + error + ")";
         } else {
-            upload_label = "gl: " + context->describe();
+            upload_label = upload_name + ": " + context->describe();
             uploader.buffers.resize(size_t(archetypes));
             for (InstanceBuffers& b : uploader.buffers) {
                 glGenBuffers(3, b.by_lod);
                 glGenBuffers(1, &b.impostor_samples);
             }
+            uploader.mapped.buffers = uploader.buffers;
         }
     }
     const float aspect = 1280.0f / 720.0f, height_px = 720.0f;
@@ -237,18 +248,22 @@ int main(int argc, char** argv) {
             for (int f = -2; f < frames; ++f) {  // two warm-up frames size the vectors and buffers
                 const float time_s = 30.0f + float(std::max(f, 0)) * kFixedTimeStep;
                 const double wall0 = wall_now_ms(), cpu0 = cpu_now_ms();
+                const double map_wall0 = uploader.mapped.wall_ms(), map_cpu0 = uploader.mapped.cpu_ms();
                 // Chunks of every archetype over `threads` threads, as crowdview's frame loop does (build_frames).
-                build_frames(builds, camera, aspect, LodMode::automatic, time_s, blend, unsigned(threads));
+                build_frames(builds, camera, aspect, LodMode::automatic, time_s, blend, unsigned(threads),
+                             uploader.kind == Upload::map ? &uploader.mapped : nullptr);
                 const double wall1 = wall_now_ms(), cpu1 = cpu_now_ms();
+                // Mapping: the map and unmap inside build_frames count as upload, not build.
+                const double map_wall = uploader.mapped.wall_ms() - map_wall0, map_cpu = uploader.mapped.cpu_ms() - map_cpu0;
                 upload_bytes = uploader.run(out);
                 const double wall2 = wall_now_ms(), cpu2 = cpu_now_ms();
                 if (f < 0) continue;
-                ms.push_back(wall1 - wall0), cpu_ms.push_back(cpu1 - cpu0);
-                upload_ms.push_back(wall2 - wall1), upload_cpu_ms.push_back(cpu2 - cpu1);
+                ms.push_back(wall1 - wall0 - map_wall), cpu_ms.push_back(cpu1 - cpu0 - map_cpu);
+                upload_ms.push_back(wall2 - wall1 + map_wall), upload_cpu_ms.push_back(cpu2 - cpu1 + map_cpu);
                 total_ms.push_back(wall2 - wall0), total_cpu_ms.push_back(cpu2 - cpu0);
             }
             for (const FrameInstances& o : out) {
-                for (int l = 0; l < 3; ++l) lods[l] += o.by_lod[l].size();
+                for (int l = 0; l < 3; ++l) lods[l] += o.shown[l];
                 culled += o.culled;
             }
             const double med = median(ms), mean = [&] {
@@ -259,7 +274,7 @@ int main(int argc, char** argv) {
             std::printf("%s camera, impostor blend %s: %.2f ms CPU a frame (build %.2f + upload %.2f [%s]; wall %.2f + %.2f; medians of %d, "
                         "build mean %.2f) for %llu characters of %d archetypes: %llu high, %llu low, %llu impostor, %llu culled; %.1f MB uploaded\n",
                         view.name, blend == ImpostorBlend::off ? "off" : "warp", median(total_cpu_ms), median(cpu_ms), median(upload_cpu_ms),
-                        uploader.kind == Upload::gl ? "gl" : uploader.kind == Upload::copy ? "copy" : "none",
+                        uploader.kind == Upload::map ? "map" : uploader.kind == Upload::gl ? "gl" : uploader.kind == Upload::copy ? "copy" : "none",
                         med, median(upload_ms), frames, mean, (unsigned long long)count, archetypes, (unsigned long long)lods[0],
                         (unsigned long long)lods[1], (unsigned long long)lods[2], (unsigned long long)culled, 1e-6 * double(upload_bytes));
             results.push_back({{"camera", view.name},
@@ -276,8 +291,11 @@ int main(int argc, char** argv) {
         }
     }
     const nlohmann::json report = {{"what", "ms per frame: culling, LOD choice, clip state and instance-buffer fill (build_frames), "
-                                            "then the instance upload (instance_upload.h); total = both"},
+                                            "and the instance upload (instance_upload.h: map, the mapping and unmapping of the "
+                                            "buffers the fill writes; gl, the copy after it); total = both"},
                                    {"upload", upload_label},
+                                   {"failed_maps", uploader.mapped.failed_maps()},  // map: lists built aside and copied
+                                   {"lost_unmaps", uploader.mapped.lost_frames()},
                                    {"characters", count},
                                    {"clips_per_archetype", clips},
                                    {"archetypes", archetypes},

@@ -308,6 +308,7 @@ struct Renderer::Impl {
     MeshUniforms mesh_uniforms;
     GLuint empty_array = 0;  // bound to unused material units so every sampler is complete
     std::vector<ImpostorSamples> nearest_samples;  // for frames built without samples
+    MappedInstanceStorage storage;                 // every archetype's instance buffers, by index
     std::vector<std::unique_ptr<Archetype>> archetypes;
 
     ~Impl() {
@@ -613,6 +614,10 @@ bool Renderer::add_archetype(const Bundle& bundle, std::string* error) {
         }(e) + " while uploading the bundle";
         return false;
     }
+    InstanceBuffers buffers;
+    std::copy(owned->instance_buffers, owned->instance_buffers + 3, buffers.by_lod);
+    buffers.impostor_samples = owned->impostor_sample_buffer;
+    impl_->storage.buffers.push_back(buffers);
     impl_->archetypes.push_back(std::move(owned));
     return true;
 }
@@ -630,6 +635,8 @@ uint32_t Renderer::triangles_per_character(Lod lod, size_t archetype) const {
         if (p.lod == lod) triangles += p.index_count / 3;
     return triangles;
 }
+
+InstanceStorage* Renderer::instance_storage() { return &impl_->storage; }
 
 DrawStats Renderer::draw(const FrameInstances& frame, const Camera& camera, ImpostorKind impostors,
                          const glm::vec3& light_dir) {
@@ -672,7 +679,7 @@ DrawStats Renderer::draw_archetype(Archetype& g, const FrameInstances& frame, co
     InstanceBuffers buffers;
     for (int lod = 0; lod < 3; ++lod) buffers.by_lod[lod] = g.instance_buffers[lod];
     buffers.impostor_samples = g.impostor_sample_buffer;
-    upload_instances(frame, buffers, &shared.nearest_samples);
+    if (!frame.in_storage) upload_instances(frame, buffers, &shared.nearest_samples);  // else built there
     glActiveTexture(GL_TEXTURE0 + CV_UNIT_OUTFITS);
     glBindTexture(GL_TEXTURE_2D, g.outfits);
 
@@ -682,7 +689,7 @@ DrawStats Renderer::draw_archetype(Archetype& g, const FrameInstances& frame, co
     glUniformMatrix4fv(mu.view_projection, 1, GL_FALSE, glm::value_ptr(view_projection));
     glUniform3fv(mu.light_dir, 1, glm::value_ptr(light));
     for (const Part& p : g.parts) {
-        const GLsizei count = GLsizei(frame.by_lod[int(p.lod)].size());
+        const GLsizei count = GLsizei(frame.shown[int(p.lod)]);
         if (count == 0) continue;
         // Bodies are closed: skip their back faces. Garments are open cloth, seen from inside too.
         if (p.garment) glDisable(GL_CULL_FACE);
@@ -702,8 +709,8 @@ DrawStats Renderer::draw_archetype(Archetype& g, const FrameInstances& frame, co
     glDisable(GL_CULL_FACE);
 
     // 3. Impostors: one instanced draw of camera-facing quads.
-    const std::vector<Instance>& quads = frame.by_lod[int(Lod::impostor)];
-    if (!quads.empty()) {
+    const uint32_t quads = frame.shown[int(Lod::impostor)];
+    if (quads > 0) {
         const int kind = impostors == ImpostorKind::uv ? 0 : 1, blend = int(archetype_blend(g, frame.blend));
         const ImpostorUniforms& iu = g.impostor_uniforms[kind][blend];
         glUseProgram(g.impostor_programs[kind][blend]);
@@ -732,9 +739,9 @@ DrawStats Renderer::draw_archetype(Archetype& g, const FrameInstances& frame, co
             glUniform1i(iu.has_regions[k], used && g.has_regions[k] ? 1 : 0);
         }
         glBindVertexArray(g.impostor_vao);
-        glDrawArraysInstanced(GL_TRIANGLE_STRIP, 0, 4, GLsizei(quads.size()));
+        glDrawArraysInstanced(GL_TRIANGLE_STRIP, 0, 4, GLsizei(quads));
         ++stats.draw_calls;
-        stats.triangles += 2 * uint64_t(quads.size());
+        stats.triangles += 2 * uint64_t(quads);
     }
     return stats;
 }

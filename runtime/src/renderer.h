@@ -69,6 +69,10 @@ public:
                    const glm::vec3& light_dir);
     // The same for a one-archetype renderer.
     DrawStats draw(const FrameInstances& frame, const Camera& camera, ImpostorKind impostors, const glm::vec3& light_dir);
+    // Where build_frames may put the frames for draw(): straight into the archetypes' instance
+    // buffers (instance_upload.h), so draw() copies nothing. Draw each frame built there before
+    // building the next; frames built into their own vectors are uploaded by draw() as before.
+    InstanceStorage* instance_storage();
 
     // Copies the frame to the default framebuffer of a window of this size.
     void present(int window_width, int window_height) const;

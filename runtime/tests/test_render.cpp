@@ -4,7 +4,8 @@
 //   3. the UV impostor follows texture variations that a detail-mapped impostor cannot;
 //   4. the CPU block decoder renders what the S3TC upload renders;
 //   5. the same bundle with its rgba16 UV map packed as uv32 renders the same impostors;
-//   6. the instance upload puts every list's bytes in its buffer, samples made for a frame without.
+//   6. the instance upload puts every list's bytes in its buffer, samples made for a frame without;
+//   7. frames built straight into mapped buffers hold the bytes of frames built into vectors.
 // CROWDVIEW_UPDATE_REFERENCES=1 rewrites tests/data/crowd_reference.png (then inspect it).
 #include <algorithm>
 #include <cmath>
@@ -352,6 +353,17 @@ void test_uv32_renders_like_rgba16(const Scene& scene) {
     }
 }
 
+// A GL buffer's contents, checked to be `bytes` long.
+std::vector<uint8_t> read_buffer(GLuint buffer, size_t bytes) {
+    std::vector<uint8_t> data(bytes);
+    glBindBuffer(GL_ARRAY_BUFFER, buffer);
+    GLint64 size = -1;
+    glGetBufferParameteri64v(GL_ARRAY_BUFFER, GL_BUFFER_SIZE, &size);
+    CHECK_MSG(size == GLint64(bytes), "buffer size " + std::to_string(size) + ", want " + std::to_string(bytes));
+    if (size == GLint64(bytes) && bytes) glGetBufferSubData(GL_ARRAY_BUFFER, 0, GLsizeiptr(bytes), data.data());
+    return data;
+}
+
 // upload_instances: each buffer holds its list's bytes; a frame built without samples (sizes differ)
 // gets one per impostor from its Instance, the nearest view and frame alone.
 void test_instance_upload() {
@@ -364,15 +376,7 @@ void test_instance_upload() {
     glGenBuffers(3, buffers.by_lod);
     glGenBuffers(1, &buffers.impostor_samples);
     std::vector<ImpostorSamples> scratch;
-    auto read = [](GLuint buffer, size_t bytes) {
-        std::vector<uint8_t> data(bytes);
-        glBindBuffer(GL_ARRAY_BUFFER, buffer);
-        GLint64 size = -1;
-        glGetBufferParameteri64v(GL_ARRAY_BUFFER, GL_BUFFER_SIZE, &size);
-        CHECK_MSG(size == GLint64(bytes), "buffer size " + std::to_string(size) + ", want " + std::to_string(bytes));
-        if (size == GLint64(bytes) && bytes) glGetBufferSubData(GL_ARRAY_BUFFER, 0, GLsizeiptr(bytes), data.data());
-        return data;
-    };
+    const auto read = read_buffer;
     const uint64_t bytes = upload_instances(frame, buffers, &scratch);
     CHECK(bytes == 5 * sizeof(Instance) + frame.by_lod[2].size() * sizeof(ImpostorSamples));
     for (int lod = 0; lod < 3; ++lod) {
@@ -397,6 +401,75 @@ void test_instance_upload() {
     glDeleteBuffers(1, &buffers.impostor_samples);
 }
 
+// MappedInstanceStorage: two archetypes (one several chunks long, one without views, whose samples
+// the storage asks for all the same) built on 2 threads into mapped buffers, frame after frame, and
+// into vectors: each buffer reads back as the vector path's list, or as upload_instances' samples
+// made from it; the frames built into the buffers keep no lists of their own.
+void test_mapped_instances() {
+    std::vector<Crowd> crowds(2);
+    std::vector<CharacterModel> models(2);
+    for (size_t a = 0; a < 2; ++a) {
+        const int count = a == 0 ? 5000 : 300;
+        for (int i = 0; i < count; ++i)
+            crowds[a].characters.push_back({glm::vec3(float(i % 20) - 10.0f, 0, -2.0f - float(i / 20) * 3.0f), 0.3f * float(i), 0.1f * float(a), uint32_t(i % 8), 0});
+        models[a].center = glm::vec3(0, 0.9f, 0);
+        models[a].radius = 1;
+        models[a].frame_count = 24, models[a].frames_per_second = 24;
+        models[a].frame_indices = {0, 6, 12, 18};
+        models[a].has_low = true;
+    }
+    models[0].azimuths_deg = {0, 45, 90, 135, 180, 225, 270, 315}, models[0].elevations_deg = {0, 20, 40};
+    LodRule rule;
+    rule.impostor_distance = 12;
+    std::vector<FrameState> state_vectors(2), state_mapped(2);
+    std::vector<FrameInstances> in_vectors(2), in_buffers(2);
+    std::vector<ArchetypeFrame> vector_builds, mapped_builds;
+    for (size_t a = 0; a < 2; ++a) {
+        vector_builds.push_back({&crowds[a], &models[a], &rule, &state_vectors[a], &in_vectors[a]});
+        mapped_builds.push_back({&crowds[a], &models[a], &rule, &state_mapped[a], &in_buffers[a]});
+    }
+    MappedInstanceStorage storage;
+    storage.buffers.resize(2);
+    for (InstanceBuffers& b : storage.buffers) glGenBuffers(3, b.by_lod), glGenBuffers(1, &b.impostor_samples);
+    InstanceBuffers copied;  // upload_instances' samples for the archetype without views
+    glGenBuffers(3, copied.by_lod), glGenBuffers(1, &copied.impostor_samples);
+    std::vector<ImpostorSamples> scratch;
+    uint64_t impostors = 0, meshes = 0;
+    for (int frame = 0; frame < 3; ++frame) {
+        Camera camera;
+        camera.position = glm::vec3(2.0f * float(frame), 3, 5 - 4.0f * float(frame));
+        camera.far_m = 500;
+        const float time_s = 0.7f + float(frame) * kFixedTimeStep;
+        build_frames(vector_builds, camera, 1.5f, LodMode::automatic, time_s, ImpostorBlend::warp, 2);
+        build_frames(mapped_builds, camera, 1.5f, LodMode::automatic, time_s, ImpostorBlend::warp, 2, &storage);
+        for (size_t a = 0; a < 2; ++a) {
+            const FrameInstances& want = in_vectors[a];
+            const FrameInstances& got = in_buffers[a];
+            CHECK(got.in_storage && !want.in_storage && got.culled == want.culled);
+            for (int l = 0; l < 3; ++l) {
+                CHECK(got.by_lod[l].empty() && got.shown[l] == want.by_lod[l].size() && want.shown[l] == want.by_lod[l].size());
+                const std::vector<uint8_t> bytes = read_buffer(storage.buffers[a].by_lod[l], want.by_lod[l].size() * sizeof(Instance));
+                CHECK_MSG(std::memcmp(bytes.data(), want.by_lod[l].data(), bytes.size()) == 0,
+                          "archetype " + std::to_string(a) + " list " + std::to_string(l) + " frame " + std::to_string(frame));
+            }
+            const size_t quads = want.by_lod[int(Lod::impostor)].size();
+            const std::vector<uint8_t> samples = read_buffer(storage.buffers[a].impostor_samples, quads * sizeof(ImpostorSamples));
+            if (a == 0) {
+                CHECK(want.impostor_samples.size() == quads);
+                CHECK(std::memcmp(samples.data(), want.impostor_samples.data(), samples.size()) == 0);
+            } else {
+                CHECK(want.impostor_samples.empty());  // no views: the vector path leaves them to the upload
+                upload_instances(want, copied, &scratch);
+                CHECK(std::memcmp(samples.data(), read_buffer(copied.impostor_samples, samples.size()).data(), samples.size()) == 0);
+            }
+            impostors += quads, meshes += want.by_lod[0].size() + want.by_lod[1].size();
+        }
+    }
+    CHECK(impostors > 100 && meshes > 100);  // the frames hold every kind
+    CHECK(storage.failed_maps() == 0 && storage.lost_frames() == 0 && glGetError() == GL_NO_ERROR);
+    for (InstanceBuffers* b : {&storage.buffers[0], &storage.buffers[1], &copied}) glDeleteBuffers(3, b->by_lod), glDeleteBuffers(1, &b->impostor_samples);
+}
+
 }  // namespace
 
 int main() {
@@ -410,6 +483,7 @@ int main() {
     }
     std::fprintf(stderr, "%s\n", context->describe().c_str());
     test_instance_upload();
+    test_mapped_instances();
     const std::string work = synthetic::temp_dir("render");
     error = synthetic::write_bundle(work + "/bundle");
     CHECK_MSG(error.empty(), error);
