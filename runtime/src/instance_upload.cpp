@@ -54,14 +54,18 @@ double steady_ms() { return 1e3 * std::chrono::duration<double>(std::chrono::ste
 }  // namespace
 
 void* MappedInstanceStorage::map(uint32_t buffer, uint64_t bytes) {
-    glBindBuffer(GL_ARRAY_BUFFER, buffer);
-    // Orphan at the new size (the draws of last frame keep the old storage), then map it all
-    // write-only: nothing is read back, and no wait, as the storage is fresh.
-    glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(bytes), nullptr, GL_STREAM_DRAW);
     bytes_ += bytes;
     if (bytes == 0) return nullptr;  // a 0-byte range is not mappable; nothing is written there
-    void* place = glMapBufferRange(GL_ARRAY_BUFFER, 0, GLsizeiptr(bytes),
-                                   GL_MAP_WRITE_BIT | GL_MAP_INVALIDATE_BUFFER_BIT | GL_MAP_UNSYNCHRONIZED_BIT);
+    glBindBuffer(GL_ARRAY_BUFFER, buffer);
+    // Reallocated only to grow (with a quarter to spare, as the counts change with the camera):
+    // a new store costs the driver an allocation, and llvmpipe zeroes it, 0.3-0.7 ms a frame for
+    // 5.6 MB (services/benchmarks/LOG.md). Draws read only the frame's count.
+    GLint64 capacity = 0;
+    glGetBufferParameteri64v(GL_ARRAY_BUFFER, GL_BUFFER_SIZE, &capacity);
+    if (uint64_t(capacity) < bytes) glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(bytes + bytes / 4), nullptr, GL_STREAM_DRAW);
+    // Write-only, the old contents invalidated: a driver whose draws still read last frame's
+    // instances gives a fresh store (or waits for them); none is read back.
+    void* place = glMapBufferRange(GL_ARRAY_BUFFER, 0, GLsizeiptr(bytes), GL_MAP_WRITE_BIT | GL_MAP_INVALIDATE_BUFFER_BIT);
     mapped_.push_back({buffer, bytes, {}});
     if (!place) {  // the driver would not map it (out of address space, say): build in memory, copy at close
         ++failed_maps_;

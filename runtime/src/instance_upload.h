@@ -25,9 +25,10 @@ struct InstanceBuffers {
 uint64_t upload_instances(const FrameInstances& frame, const InstanceBuffers& buffers, std::vector<ImpostorSamples>* nearest_samples);
 
 // build_frames' lists (crowd.h InstanceStorage) written straight into the archetypes' GL buffers:
-// open() orphans each buffer at its list's size and maps it (glMapBufferRange, write-only,
-// invalidating, so the driver need not wait for draws still reading last frame's); close() unmaps
-// them all. GL 3.3 core. Leaves GL_ARRAY_BUFFER bound to the last buffer it touched.
+// open() maps the start of each buffer, list-sized (glMapBufferRange, write-only, the whole buffer
+// invalidated), growing a buffer first where the list outgrew it; close() unmaps them all. A
+// buffer may so be larger than its list: draw the frame's counts (FrameInstances::shown). GL 3.3
+// core. Leaves GL_ARRAY_BUFFER bound to the last buffer it touched.
 class MappedInstanceStorage : public InstanceStorage {
 public:
     std::vector<InstanceBuffers> buffers;  // one per archetype, by build_frames' index
