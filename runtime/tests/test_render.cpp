@@ -5,7 +5,8 @@
 //   4. the CPU block decoder renders what the S3TC upload renders;
 //   5. the same bundle with its rgba16 UV map packed as uv32 renders the same impostors;
 //   6. the instance upload puts every list's bytes in its buffer, samples made for a frame without;
-//   7. frames built straight into mapped buffers hold the bytes of frames built into vectors.
+//   7. frames built straight into mapped buffers hold the bytes of frames built into vectors, and
+//      draw the same pixels.
 // CROWDVIEW_UPDATE_REFERENCES=1 rewrites tests/data/crowd_reference.png (then inspect it).
 #include <algorithm>
 #include <cmath>
@@ -353,6 +354,39 @@ void test_uv32_renders_like_rgba16(const Scene& scene) {
     }
 }
 
+// The renderer draws frames built into its own buffers (Renderer::instance_storage, as crowdview's
+// loop does) exactly as frames built into vectors and uploaded: the same pixels, frame after frame,
+// the meshes' counts and the impostors' samples from the buffers.
+void test_drawn_from_mapped_buffers(const Scene& scene) {
+    std::unique_ptr<Renderer> r = make_renderer(scene, 320, 240);
+    if (!r) return;
+    CrowdDesc desc;
+    desc.count = 30;
+    desc.seed = 5;
+    const Crowd crowd = make_crowd(desc, 2, 4, 1.0f);
+    LodRule rule;
+    rule.has_low = r->model().has_low;
+    FrameState state_vectors, state_mapped;
+    FrameInstances in_vectors, in_buffers;
+    for (int frame = 0; frame < 2; ++frame) {
+        Camera camera;
+        camera.position = glm::vec3(0.3f, 2.0f, 6.5f + 3.0f * float(frame));  // then back: lists shrink and grow
+        camera.pitch = -0.17f;
+        camera.far_m = 100;
+        rule.impostor_distance = impostor_switch_distance(camera.fov_y, float(r->height()), r->model().radius, r->model().tile_size);
+        const float time_s = 0.3f + float(frame) * kFixedTimeStep;
+        build_frame(crowd, r->model(), camera, r->aspect(), LodMode::automatic, rule, time_s, &state_vectors, &in_vectors, ImpostorBlend::full);
+        r->draw(in_vectors, camera, ImpostorKind::uv, scene_light_dir());
+        const std::vector<uint8_t> uploaded = r->read_rgba();
+        build_frames({ArchetypeFrame{&crowd, &r->model(), &rule, &state_mapped, &in_buffers}}, camera, r->aspect(), LodMode::automatic,
+                     time_s, ImpostorBlend::full, 2, r->instance_storage());
+        r->draw(in_buffers, camera, ImpostorKind::uv, scene_light_dir());
+        CHECK(in_buffers.in_storage && in_buffers.by_lod[2].empty() && in_buffers.shown[2] == in_vectors.by_lod[2].size());
+        CHECK(in_vectors.by_lod[0].size() + in_vectors.by_lod[1].size() > 0 && !in_vectors.by_lod[2].empty());
+        CHECK_MSG(r->read_rgba() == uploaded, "frame " + std::to_string(frame) + ": mapped and uploaded instances draw alike");
+    }
+}
+
 // A GL buffer's first `bytes`, checked to be all it holds (`exact`) or at most.
 std::vector<uint8_t> read_buffer(GLuint buffer, size_t bytes, bool exact = true) {
     std::vector<uint8_t> data(bytes);
@@ -495,6 +529,7 @@ int main() {
     if (status.ok()) {
         const Scene scene{&bundle, CROWDVIEW_SHADER_DIR};
         test_reference_crowd(scene, CROWDVIEW_TEST_DATA_DIR);
+        test_drawn_from_mapped_buffers(scene);
         test_switch_distance_fidelity(scene);
         test_blending_between_views(scene);
         test_cpu_decode(scene);
