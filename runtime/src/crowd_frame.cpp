@@ -2,7 +2,8 @@
 // of a crowd. Two passes over chunks of characters. The first steps the clip state (clips.h: a
 // compare until the next switch), places the bounds centre, tests it against the frustum and picks
 // the LOD (a dot product along the view, with hysteresis); counting what each chunk holds at each
-// level gives every chunk its place in the instance lists. The second fills those places: for
+// level gives every chunk its place in the instance lists (FrameInstances' vectors, or memory an
+// InstanceStorage hands out: mapped GL buffers). The second fills those places: for
 // impostors the view (two arctangents, the view choice and weights, in a branch-free loop over
 // arrays the compiler vectorises) and the frame blend (a table lookup). Chunks touch only their own
 // characters and places, so any number of threads builds the frame one thread builds.

@@ -295,7 +295,7 @@ int main(int argc, char** argv) {
                                             "buffers the fill writes; gl, the copy after it); total = both"},
                                    {"upload", upload_label},
                                    {"failed_maps", uploader.mapped.failed_maps()},  // map: lists built aside and copied
-                                   {"lost_unmaps", uploader.mapped.lost_frames()},
+                                   {"lost_unmaps", uploader.mapped.lost_unmaps()},
                                    {"characters", count},
                                    {"clips_per_archetype", clips},
                                    {"archetypes", archetypes},

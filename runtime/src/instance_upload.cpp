@@ -4,7 +4,6 @@
 #include <time.h>
 
 #include <chrono>
-#include <cstring>
 
 #include <epoxy/gl.h>
 
@@ -58,7 +57,7 @@ void* MappedInstanceStorage::map(uint32_t buffer, uint64_t bytes) {
     if (bytes == 0) return nullptr;  // a 0-byte range is not mappable; nothing is written there
     glBindBuffer(GL_ARRAY_BUFFER, buffer);
     // Reallocated only to grow (with a quarter to spare, as the counts change with the camera):
-    // a new store costs the driver an allocation, and llvmpipe zeroes it, 0.3-0.7 ms a frame for
+    // a new store costs the driver an allocation, and llvmpipe zeroes it: 0.4-0.8 ms a frame for
     // 5.6 MB (services/benchmarks/LOG.md). Draws read only the frame's count.
     GLint64 capacity = 0;
     glGetBufferParameteri64v(GL_ARRAY_BUFFER, GL_BUFFER_SIZE, &capacity);
@@ -94,7 +93,7 @@ void MappedInstanceStorage::close() {
         if (!m.scratch.empty()) {
             glBufferSubData(GL_ARRAY_BUFFER, 0, GLsizeiptr(m.bytes), m.scratch.data());
         } else if (glUnmapBuffer(GL_ARRAY_BUFFER) == GL_FALSE) {
-            ++lost_frames_;  // the contents are undefined (a display mode change, say): this frame draws them as they are
+            ++lost_unmaps_;  // the contents are undefined (a display mode change, say): this frame draws them as they are
         }
     }
     mapped_.clear();

@@ -37,11 +37,11 @@ public:
     void close() override;
     bool always_samples() const override { return true; }
 
-    uint64_t bytes() const { return bytes_; }           // mapped since the last close (for figures)
-    double cpu_ms() const { return cpu_ms_; }            // the calling thread's CPU time in open and close, all frames
-    double wall_ms() const { return wall_ms_; }          // and the wall-clock time
+    uint64_t bytes() const { return bytes_; }              // the last frame's lists (for figures)
+    double cpu_ms() const { return cpu_ms_; }              // the calling thread's CPU time in open and close, all frames
+    double wall_ms() const { return wall_ms_; }            // and the wall-clock time
     uint64_t failed_maps() const { return failed_maps_; }  // lists the driver would not map (copied instead)
-    uint64_t lost_frames() const { return lost_frames_; }  // unmaps that reported the contents lost
+    uint64_t lost_unmaps() const { return lost_unmaps_; }  // unmaps that reported the contents lost
 
 private:
     struct Mapped {
@@ -52,7 +52,7 @@ private:
     void* map(uint32_t buffer, uint64_t bytes);
     std::vector<Mapped> mapped_;
     bool frame_open_ = false;  // open() was called since the last close()
-    uint64_t bytes_ = 0, failed_maps_ = 0, lost_frames_ = 0;
+    uint64_t bytes_ = 0, failed_maps_ = 0, lost_unmaps_ = 0;
     double cpu_ms_ = 0, wall_ms_ = 0;
 };
 

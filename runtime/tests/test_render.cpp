@@ -502,7 +502,7 @@ void test_mapped_instances() {
         }
     }
     CHECK(impostors > 100 && meshes > 100);  // the frames hold every kind
-    CHECK(storage.failed_maps() == 0 && storage.lost_frames() == 0 && glGetError() == GL_NO_ERROR);
+    CHECK(storage.failed_maps() == 0 && storage.lost_unmaps() == 0 && glGetError() == GL_NO_ERROR);
     for (InstanceBuffers* b : {&storage.buffers[0], &storage.buffers[1], &copied}) glDeleteBuffers(3, b->by_lod), glDeleteBuffers(1, &b->impostor_samples);
 }
 
