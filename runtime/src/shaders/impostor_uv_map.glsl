@@ -69,3 +69,10 @@ UvTexel fetch_uv_map(ivec3 texel) {
     return t;
 }
 #endif
+
+// Opacity of a pixel whose blended samples cover `coverage` (0..1) of their weight (config.h
+// CV_EDGE_LOW): 1 where all cover, 0 at or under CV_EDGE_LOW, 0.5 at a tie. At a baked view and
+// frame coverage is 0 or 1, so the paper's hard silhouette.
+float edge_alpha(float coverage) {
+    return smoothstep(CV_EDGE_LOW, 1.0 - CV_EDGE_LOW, coverage);
+}
