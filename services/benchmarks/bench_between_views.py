@@ -111,7 +111,8 @@ class Bench:
 
     def blend(self, samples: list[Sample], azimuth: float, elevation: float) -> np.ndarray:
         decoded = [(w, self.tiles.tile(tile, layer)) for w, tile, layer in samples]
-        return impostor_blend.blend_image(decoded, self.diffuse, self.outfit_row, self.light(azimuth, elevation), self.size, self.chains)
+        return impostor_blend.blend_image(decoded, self.diffuse, self.outfit_row, self.light(azimuth, elevation), self.size, self.chains,
+                                          reprojected=False)
 
 
 def _key(azimuth: float, elevation: float, frame: int) -> str:

@@ -54,9 +54,9 @@ def _tile(size: int, covered: np.ndarray, u: float, normal=(0.0, 0.0, 1.0)) -> D
 
 
 def test_blend_averages_colours_and_fades_edges_where_the_samples_disagree():
-    """Two samples of a two-colour texture: their colours mix by weight where both cover (opaque); where
-    only the heavier one covers (coverage 0.75) its colour is drawn at edge_alpha(0.75); where only the
-    lighter one covers (0.25) more faintly; where none covers, nothing."""
+    """Two reprojected samples of a two-colour texture: their colours mix by weight where both cover
+    (opaque); where only the heavier one covers (coverage 0.75) its colour is drawn at edge_alpha(0.75);
+    where only the lighter one covers (0.25) more faintly; where none covers, nothing."""
     size = 8
     texture = np.zeros((4, 4, 4), np.uint8)
     texture[:, :2, :3] = (200, 0, 0)  # u < 0.5 red
@@ -77,6 +77,9 @@ def test_blend_averages_colours_and_fades_edges_where_the_samples_disagree():
     assert np.allclose(image[:, 7], [0, 0, light_only * blue])  # only the lighter one
     none = [(1.0, _tile(size, np.zeros((size, size), bool), 0.125))]
     assert not impostor_blend.blend_image(none, [texture], outfit, light, tile_size=size).any()
+    # Unmoved samples (no surface map): cut at one half, the heavier sample's edge opaque, the lighter's gone.
+    cut = impostor_blend.blend_image(samples, [texture], outfit, light, tile_size=size, reprojected=False)
+    assert np.allclose(cut[:, 0], [red, 0, 0]) and np.allclose(cut[:, 7], 0) and np.allclose(cut[:, 3], image[:, 3])
 
 
 def test_edge_alpha_is_configs_smoothstep():
@@ -87,6 +90,7 @@ def test_edge_alpha_is_configs_smoothstep():
     assert alpha[0] == 0 and alpha[-1] == 1 and abs(impostor_blend.edge_alpha(0.5) - 0.5) < 1e-12
     assert np.all(np.diff(alpha) >= 0) and np.all(alpha[coverage <= impostor_blend.EDGE_LOW] == 0)
     assert np.all(alpha[coverage >= 1 - impostor_blend.EDGE_LOW] == 1)
+    assert np.array_equal(impostor_blend.edge_alpha(coverage, reprojected=False), (coverage > 0.5).astype(float))
     config = (VECTORS.parents[2] / "src" / "config.h").read_text()
     assert f"#define CV_EDGE_LOW {impostor_blend.EDGE_LOW}\n" in config
 

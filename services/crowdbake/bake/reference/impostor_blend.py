@@ -31,12 +31,16 @@ GRADIENT_LIMIT_TEXELS = 4.0
 EDGE_LOW = 0.1
 
 
-def edge_alpha(coverage: np.ndarray) -> np.ndarray:
+def edge_alpha(coverage: np.ndarray, reprojected: bool = True) -> np.ndarray:
     """Opacity (same shape, float64 0..1) of pixels whose blended samples cover `coverage` (0..1) of their
-    weight: GLSL's smoothstep(EDGE_LOW, 1 - EDGE_LOW, coverage), as impostor_uv_map.glsl edge_alpha. Between
-    baked views and frames the samples' silhouettes disagree by a texel or two; a half-transparent edge
-    there stays nearer the mesh than cutting at one half, which keeps only where they agree."""
-    t = np.clip((np.asarray(coverage, dtype=np.float64) - EDGE_LOW) / (1.0 - 2.0 * EDGE_LOW), 0.0, 1.0)
+    weight, as impostor_uv_map.glsl edge_alpha. Reprojected samples' silhouettes disagree by a texel or
+    two: GLSL's smoothstep(EDGE_LOW, 1 - EDGE_LOW, coverage), a half-transparent edge that stays nearer the
+    mesh than cutting at one half, which keeps only where they agree. Unmoved samples disagree by a whole
+    limb: 1 where coverage is over one half, else 0."""
+    coverage = np.asarray(coverage, dtype=np.float64)
+    if not reprojected:
+        return (coverage > 0.5).astype(np.float64)
+    t = np.clip((coverage - EDGE_LOW) / (1.0 - 2.0 * EDGE_LOW), 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
 
 
@@ -245,9 +249,9 @@ def albedo(tile: DecodedTile, diffuse: list[np.ndarray], chains: list[list[np.nd
 
 
 def blend_image(samples: list[tuple[float, DecodedTile]], diffuse: list[np.ndarray], outfit_row: np.ndarray,
-                light: np.ndarray, tile_size: int, chains: list[list[np.ndarray]] | None = None) -> np.ndarray:
+                light: np.ndarray, tile_size: int, chains: list[list[np.ndarray]] | None = None, reprojected: bool = True) -> np.ndarray:
     """The runtime's blended impostor over black: (S, S, 3) float64 0..1, the lit colour times edge_alpha
-    of the blended coverage (black where that is 0).
+    of the blended coverage (black where that is 0); `reprojected`: the samples were moved (CV_WARP).
 
     samples: (weight, tile) per (view, frame) pair with weight > 0 (weights sum to 1); diffuse: per material
     (h, w, 4) uint8 as decoded (variation 0); outfit_row: (16, 4) uint8; light: (3,) model-space unit
@@ -266,7 +270,7 @@ def blend_image(samples: list[tuple[float, DecodedTile]], diffuse: list[np.ndarr
         coverage += w
         colour += w[..., None] * albedo(tile, diffuse, chains, outfit_row, tile_size)
         normal += w[..., None] * np.where(tile.covered[..., None], tile.normal, 0.0)
-    alpha = edge_alpha(coverage)
+    alpha = edge_alpha(coverage, reprojected)
     drawn = alpha > 0
     image = np.zeros(shape + (3,))
     if drawn.any():
