@@ -42,7 +42,7 @@
 #define CV_MAX_AZIMUTHS 64
 #define CV_MAX_ELEVATIONS 9
 
-// Impostor silhouettes (impostor_uv_map.glsl edge_alpha): a pixel whose blended samples cover a
+// Impostor silhouettes (impostor_uv_map.glsl edge_alpha): a pixel whose reprojected samples cover a
 // share c of their weight is drawn with opacity smoothstep(LOW, 1 - LOW, c), blended over what is
 // behind it. Between baked views and frames the samples' silhouettes disagree by a texel or two; a
 // hard cut at c > 0.5 kept only where they agree and thinned the figure (CesiumMan's SSIM between
