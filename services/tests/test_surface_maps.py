@@ -95,6 +95,14 @@ def test_motion_is_the_velocity_at_the_frame_central_where_both_neighbours_are_b
     np.testing.assert_allclose(surface_maps.motion_positions(at(0), None, None), at(0))
 
 
+def test_motion_is_taken_between_the_neighbours_a_frame_has():
+    assert surface_maps.motion_sides(8, 0, 16) == (0, 16)
+    assert surface_maps.motion_sides(30, 30, 40) == (None, 40)  # a transition's first
+    assert surface_maps.motion_sides(60, 50, 60) == (50, None)  # its last
+    assert surface_maps.motion_sides(5, 5, 5) == (None, None)  # one baked frame
+    assert surface_maps.motion_sides(0, 8, 8) == (None, 8)  # two: the move to the other, not a zero difference
+
+
 def test_motion_fraction_moves_the_earlier_frame_forward_and_the_later_back():
     frames = FrameWeights((2, 3), 0.25)
     assert impostor_warp.motion_fraction(2, frames) == 0.25

@@ -49,6 +49,16 @@ def motion_positions(positions: np.ndarray, previous: np.ndarray | None, followi
     return positions
 
 
+def motion_sides(frame: int, previous: int, following: int) -> tuple[int | None, int | None]:
+    """The baked frames (previous, following) the motion at baked frame `frame` is taken between, for
+    motion_positions: None for a side whose neighbour is `frame` itself (a range's end, or one baked frame).
+    With two baked frames in a loop both neighbours are the other frame, where a central difference would
+    be zero: the move to it alone."""
+    if previous == following != frame:
+        return None, following
+    return (None if previous == frame else previous), (None if following == frame else following)
+
+
 def surface_fields(view: impostor_views.OrthoView, coverage: impostor_views.Coverage, positions: np.ndarray,
                    next_positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(depth (S, S) metres along view.back from view.center, motion (S, S, 2) metres along view.right and

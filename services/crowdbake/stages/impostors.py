@@ -323,14 +323,9 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
         raise ValueError(f"impostor task frame {task.frame} is not one of the baked frames {plan.frame_indices}")
     scene = load_scene(work, plan, task.frame, runtime_textures=task.references)
     with np.load(work / "impostor" / SCENE_FILE) as data:
-        previous, following = previous_baked_frame(plan, task.frame), next_baked_frame(plan, task.frame)
-        if previous == following:  # two baked frames: the central difference would be 0; the move to the other
-            previous = task.frame
-
-        def neighbour(frame: int) -> np.ndarray | None:  # None: no baked frame on that side
-            return None if frame == task.frame else data[f"positions_{frame}"].astype(np.float64)
-
-        next_positions = surface_maps.motion_positions(data[f"positions_{task.frame}"], neighbour(previous), neighbour(following))
+        sides = surface_maps.motion_sides(task.frame, previous_baked_frame(plan, task.frame), next_baked_frame(plan, task.frame))
+        previous, following = (None if side is None else data[f"positions_{side}"].astype(np.float64) for side in sides)
+        next_positions = surface_maps.motion_positions(data[f"positions_{task.frame}"], previous, following)
     timings = {"render": 0.0, "maps": 0.0, "references": 0.0}
     arrays = render_task(scene, plan, task, timings, next_positions)
     write_bytes_atomic(path, npz_bytes(arrays))
