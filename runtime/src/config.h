@@ -42,6 +42,13 @@
 #define CV_MAX_AZIMUTHS 64
 #define CV_MAX_ELEVATIONS 9
 
+// Impostor silhouettes (impostor_uv_map.glsl edge_alpha): a pixel whose reprojected samples cover a
+// share c of their weight is drawn with opacity smoothstep(LOW, 1 - LOW, c), blended over what is
+// behind it. Between baked views and frames the samples' silhouettes disagree by a texel or two; a
+// hard cut at c > 0.5 kept only where they agree and thinned the figure (CesiumMan's SSIM between
+// views 0.815 with the cut; services/benchmarks/LOG.md "Soft impostor edges").
+#define CV_EDGE_LOW 0.1
+
 // Ambient term of the Lambert lighting shared by mesh and impostor shaders, so a mesh and
 // its impostor are lit alike at the LOD switch.
 #define CV_AMBIENT 0.35

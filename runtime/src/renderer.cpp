@@ -739,7 +739,12 @@ DrawStats Renderer::draw_archetype(Archetype& g, const FrameInstances& frame, co
             glUniform1i(iu.has_regions[k], used && g.has_regions[k] ? 1 : 0);
         }
         glBindVertexArray(g.impostor_vao);
+        // Soft silhouettes (config.h CV_EDGE_LOW) mix over what is already drawn. Edge pixels still
+        // write depth, so an impostor behind one, drawn later, shows the background there instead.
+        glEnable(GL_BLEND);
+        glBlendFuncSeparate(GL_SRC_ALPHA, GL_ONE_MINUS_SRC_ALPHA, GL_ONE, GL_ONE_MINUS_SRC_ALPHA);
         glDrawArraysInstanced(GL_TRIANGLE_STRIP, 0, 4, GLsizei(quads));
+        glDisable(GL_BLEND);
         ++stats.draw_calls;
         stats.triangles += 2 * uint64_t(quads);
     }
