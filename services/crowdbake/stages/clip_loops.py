@@ -161,7 +161,7 @@ def run_clips_job(cloth: np.ndarray, cloth_faces: np.ndarray, timeline: Timeline
     primary = primary_clip(timeline, animation)
     positions, faces = (None, None) if body is None else (body[0], body[2])
     loops = find_clip_loops(cloth, cloth_faces, timeline, params, render_views, positions, faces, progress)
-    transitions = find_transitions(cloth, cloth_faces, timeline, loops, params.max_candidates, params.velocity_weight)
+    transitions = find_transitions(cloth, cloth_faces, timeline, loops, params.max_candidates, params.velocity_weight, body=positions)
     out = Path(out_dir)
     (out / "clips").mkdir(parents=True, exist_ok=True)
     (out / "transitions").mkdir(parents=True, exist_ok=True)
