@@ -322,13 +322,15 @@ def find_transition(
     velocity_weight: float = DEFAULT_VELOCITY_WEIGHT,
     rest_positions: np.ndarray | None = None,
     body: np.ndarray | None = None,
+    slow_switch_ratio: float | None = SLOW_SWITCH_RATIO,
 ) -> Transition:
     """The transition from loop_a (the clip of segment from_segment) to loop_b (that of the next segment).
 
     cloth: (F, V, 3) the whole cache; cloth_faces: (T, 3) for edge restoration and the stretch ratio (None
     skips both); rest_positions: (V, 3), default the cache's first frame; body: (F, Vb, 3) the body posed
     at each cache frame (crowdbake.stages.clip_loops.pose_clips_body), or None: the switch phases are
-    then judged by the cloth alone. The joins' half-widths are the loops' own crossfade defaults
+    then judged by the cloth alone; slow_switch_ratio: switch_is_slow's ratio (None: no phase is preferred).
+    The joins' half-widths are the loops' own crossfade defaults
     (loop_closing.default_crossfade_frames). Each join takes the first of its candidates (switches at
     a slow phase first, nearest the change of clip first, see _candidates) that keeps QUALITY_BOUNDS, else the first.
     """
@@ -342,10 +344,11 @@ def find_transition(
     reference = reference_step(steps_a, steps_b)
     # Leaving, loop frame i - h_a - 1 (the manifest's leave_frame) steps to the transition's first frame,
     # about loop frame i - h_a; arriving, its last frame, about loop frame j + h_b - 1, steps to j + h_b.
+    slow = slow_switch_ratio is not None
     leaving = _candidates(loop_a, cloth, timeline, from_segment, h_a, max_candidates, velocity_weight, latest_first=True,
-                          slow_at=lambda i: switch_is_slow(steps_a, i - h_a - 1, reference))
+                          slow_at=(lambda i: switch_is_slow(steps_a, i - h_a - 1, reference, slow_switch_ratio)) if slow else None)
     arriving = _candidates(loop_b, cloth, timeline, to_segment, h_b, max_candidates, velocity_weight, latest_first=False,
-                           slow_at=lambda j: switch_is_slow(steps_b, j + h_b - 1, reference))
+                           slow_at=(lambda j: switch_is_slow(steps_b, j + h_b - 1, reference, slow_switch_ratio)) if slow else None)
 
     def build(pick_a: int, pick_b: int):
         a, i = int(leaving[0][pick_a]), int(leaving[1][pick_a])
@@ -388,12 +391,13 @@ def find_transition(
 
 def find_transitions(cloth: np.ndarray, cloth_faces: np.ndarray | None, timeline: Timeline, loops: list[ClipLoop],
                      max_candidates: int = DEFAULT_MAX_CANDIDATES, velocity_weight: float = DEFAULT_VELOCITY_WEIGHT,
-                     rest_positions: np.ndarray | None = None, body: np.ndarray | None = None) -> list[Transition]:
+                     rest_positions: np.ndarray | None = None, body: np.ndarray | None = None,
+                     slow_switch_ratio: float | None = SLOW_SWITCH_RATIO) -> list[Transition]:
     """find_transition for every change of clip in the timeline (timeline.changes()), in playing order."""
     by_clip = {loop.clip: loop for loop in loops}
     return [
         find_transition(cloth, cloth_faces, timeline, k, by_clip[timeline.segments[k].clip], by_clip[timeline.segments[k + 1].clip],
-                        max_candidates, velocity_weight, rest_positions, body)
+                        max_candidates, velocity_weight, rest_positions, body, slow_switch_ratio)
         for k, _ in timeline.changes()
     ]
 
