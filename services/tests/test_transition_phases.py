@@ -63,6 +63,7 @@ def skirt():
 
 
 def test_joins_whose_switch_is_slow_are_tried_first(skirt):
+    """Slow ones nearest the change first, for the shortest transition, then the plain search's fast ones."""
     cloth, _, timeline, loops = skirt
     run = loops[1]
     steps = loop_steps(run.looped)
@@ -72,6 +73,7 @@ def test_joins_whose_switch_is_slow_are_tried_first(skirt):
     assert flags[0] and not flags.all(), flags  # both kinds among the candidates
     first_fast = int(np.argmin(flags))
     assert flags[:first_fast].all() and not flags[first_fast:].any(), flags  # every slow one before any fast one
+    assert np.all(np.diff(frames[:first_fast]) > 0), frames  # nearest the change (arriving: the earliest) first
     plain = _candidates(run, cloth, timeline, 1, 2, 5, DEFAULT_VELOCITY_WEIGHT, latest_first=False)[0]
     assert set(plain) <= set(frames)  # the plain order's candidates all stay, after the slow ones
 

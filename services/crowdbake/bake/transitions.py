@@ -282,8 +282,9 @@ def _candidates(loop: ClipLoop, cloth, timeline: Timeline, segment: int, h: int,
     it arrives), then the segment's best elsewhere, best first. The first within the bounds makes the
     shortest transition: a crowd character asked to walk should not idle on for several Idle periods.
     slow_at: None, or a function of the (N,) loop frames of the segment's frames giving (N,) bool, whether
-    a switch through that join is at a slow phase (switch_is_slow); the candidates among those come
-    first, in the same order, then all the others."""
+    a switch through that join is at a slow phase (switch_is_slow). Then the candidates whose switch is
+    slow, with those of the same search over the slow frames alone, come first, nearest the change
+    first; then the fast candidates in the order above."""
     seg = timeline.segments[segment]
     frames = np.arange(seg.pure_first_frame + h + 1, seg.pure_last_frame - h)
     if len(frames) == 0:
@@ -305,9 +306,13 @@ def _candidates(loop: ClipLoop, cloth, timeline: Timeline, segment: int, h: int,
 
     picked = ordered(distances)
     if slow_at is not None:
-        # A frame at a fast phase is no candidate of the first round: the minima of the slow frames alone.
-        first = ordered(np.where(slow_at(loop_frames), distances, np.inf))
-        picked = np.concatenate([first, picked[~np.isin(picked, first)]])
+        slow = np.asarray(slow_at(loop_frames), dtype=bool)
+        # With the minima over the slow frames alone (a valley whose bottom is at a fast phase offers its
+        # best slow frame), every slow candidate nearest the change first: the shortest slow transition.
+        extra = ordered(np.where(slow, distances, np.inf))
+        first = np.union1d(picked[slow[picked]], extra)
+        first = first[np.argsort(-frames[first] if latest_first else frames[first], kind="stable")]
+        picked = np.concatenate([first, picked[~slow[picked]]])
     return frames[picked], loop_frames[picked], distances[picked]
 
 
