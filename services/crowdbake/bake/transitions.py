@@ -230,9 +230,10 @@ NEAR_CHANGE_PERIODS = 2
 
 # A switch is at a slow phase when the loop's step there is at most this times the reference step (the
 # larger of the two loops' median steps, as crowdview's switch figure). The figure's target is 1.5 on
-# screen, where a step can read 1.2 times its 3D share (the view hides depth motion; robot_clips'
-# Walking) against a reference up to a quarter lower for impostors (blending sparse baked frames moves
-# along chords): 0.8 x 1.2 / 0.75 = 1.28 keeps the target; a walk or run still has a third of its phases this slow.
+# screen, where a step read up to 1.33 times its 3D share against the median (the view hides depth
+# motion; the clips sample's Running), against a reference up to 22 % lower for impostors (blending sparse
+# baked frames moves along chords; robot_clips' Running): 0.8 x 1.33 / 0.78 = 1.36 keeps the target, and
+# a walk or run still has about a third of its phases this slow.
 SLOW_SWITCH_RATIO = 0.8
 
 
