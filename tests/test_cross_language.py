@@ -251,7 +251,9 @@ def test_crowdview_draws_the_reprojected_silhouette_the_bake_scores(views16_bund
 
         def drawn(tiles: AtlasTiles) -> np.ndarray:
             coverage = sum(w * sample_tile(tiles, tile, k, view, frames).covered for w, tile, k in impostor_blend.samples_for(weights, frames))
-            return coverage > 0.5
+            # Reprojected edges are soft: opacity over 2 %, which shows at least 2 levels off the sky below
+            # (the character's colours differ from the sky's by more than a third).
+            return impostor_blend.edge_alpha(coverage, reprojected=tiles.surface_map is not None) > 0.02
 
         warped = drawn(AtlasTiles(layout, maps["uv"], maps["normal"], maps["surface"], poses.radius))
         plain = drawn(AtlasTiles(layout, maps["uv"], maps["normal"]))
@@ -260,8 +262,9 @@ def test_crowdview_draws_the_reprojected_silhouette_the_bake_scores(views16_bund
                            "--height", "256", "--switch-view", f"{azimuth},{elevation},{frame}", "--screenshot", str(out))
         assert result.returncode == 0, result.stderr
         picture = np.asarray(Image.open(out).convert("RGB"), dtype=np.int16)
-        gpu = (picture != picture[0, 0]).any(axis=-1)[128 - size // 2:128 + size // 2, 128 - size // 2:128 + size // 2]
-        assert gpu.sum() == (picture != picture[0, 0]).any(axis=-1).sum(), "the impostor reaches outside its 1:1 quad"
+        shown = (np.abs(picture - picture[0, 0]) >= 2).any(axis=-1)
+        gpu = shown[128 - size // 2:128 + size // 2, 128 - size // 2:128 + size // 2]
+        assert gpu.sum() == shown.sum(), "the impostor reaches outside its 1:1 quad"
 
         def iou(mask: np.ndarray) -> float:
             return float((gpu & mask).sum() / (gpu | mask).sum())

@@ -16,11 +16,11 @@
 // normals come from a buffer texture indexed by gl_VertexID). Per-instance: struct Instance.
 #define CV_ATTR_UV 0
 #define CV_ATTR_INSTANCE_POSE 1   // vec4: position.xyz (metres), heading (radians about +Y)
-#define CV_ATTR_INSTANCE_IDS 2    // uvec4: frame or impostor layer, variation, outfit, impostor tile
+#define CV_ATTR_INSTANCE_IDS 2    // uvec4 (16-bit): frame or impostor layer, variation, outfit, impostor tile
 // Per-impostor blend samples: struct ImpostorSamples (crowd.h), a second instance buffer.
-#define CV_ATTR_IMPOSTOR_TILES 3         // uvec4: four atlas tiles
+#define CV_ATTR_IMPOSTOR_TILES 3         // uvec4 (16-bit): four atlas tiles
 #define CV_ATTR_IMPOSTOR_VIEW_WEIGHTS 4  // vec4: their weights, summing to 1
-#define CV_ATTR_IMPOSTOR_LAYERS 5        // uvec2: two atlas layers (baked frames)
+#define CV_ATTR_IMPOSTOR_LAYERS 5        // uvec2 (16-bit): two atlas layers (baked frames)
 #define CV_ATTR_IMPOSTOR_FRAME_WEIGHT 6  // float: weight of the second layer
 
 // Texture units. Mesh draws use POSES, OUTFITS and DIFFUSE0; impostor draws all but POSES.
@@ -41,6 +41,13 @@
 #define CV_WARP_ITERATIONS 4
 #define CV_MAX_AZIMUTHS 64
 #define CV_MAX_ELEVATIONS 9
+
+// Impostor silhouettes (impostor_uv_map.glsl edge_alpha): a pixel whose reprojected samples cover a
+// share c of their weight is drawn with opacity smoothstep(LOW, 1 - LOW, c), blended over what is
+// behind it. Between baked views and frames the samples' silhouettes disagree by a texel or two; a
+// hard cut at c > 0.5 kept only where they agree and thinned the figure (CesiumMan's SSIM between
+// views 0.815 with the cut; services/benchmarks/LOG.md "Soft impostor edges").
+#define CV_EDGE_LOW 0.1
 
 // Ambient term of the Lambert lighting shared by mesh and impostor shaders, so a mesh and
 // its impostor are lit alike at the LOD switch.

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cmath>
+#include <cstddef>
 #include <cstdint>
 #include <functional>
 #include <vector>
@@ -20,30 +21,35 @@ namespace crowdview {
 
 // ---------------------------------------------------------------------------------------
 // Per-instance data as the shaders read it (CV_ATTR_INSTANCE_POSE, CV_ATTR_INSTANCE_IDS in
-// config.h). Mirrored in the vertex shaders on purpose: keep the asserts below in step.
+// config.h). Mirrored in the vertex shaders on purpose: keep the asserts below in step. The ids
+// are 16-bit (the shaders read them as a uvec4 all the same): every frame fills and uploads one per
+// shown character, so its size is the frame's memory traffic. Renderer refuses bundles with more
+// than kMaxPoseFrames pose frames; views, layers, variations and outfits stay far below 65,536
+// (the bake's 64 x 9 views, GL's 2,048 array layers).
 struct Instance {
     float position[3];   // metres, the character's feet
     float heading;       // radians about +Y
-    uint32_t frame;      // meshes: pose frame; impostors: atlas layer
-    uint32_t variation;  // diffuse layer before the per-material modulo
-    uint32_t outfit;     // row of the outfit map
-    uint32_t tile;       // impostors: azimuth + elevation * azimuth_count; meshes: unused
+    uint16_t frame;      // meshes: pose frame; impostors: atlas layer
+    uint16_t variation;  // diffuse layer before the per-material modulo
+    uint16_t outfit;     // row of the outfit map
+    uint16_t tile;       // impostors: azimuth + elevation * azimuth_count; meshes: unused
 };
-static_assert(sizeof(Instance) == 32, "Instance is two vec4-sized attributes in the shaders");
+static_assert(sizeof(Instance) == 24, "Instance is a vec4 and a 16-bit uvec4 attribute in the shaders");
 static_assert(offsetof(Instance, heading) == 12 && offsetof(Instance, frame) == 16, "shader attribute offsets");
+constexpr uint32_t kMaxPoseFrames = 65536;  // Instance::frame's range
 
 // Per impostor, beside its Instance: the (view, frame) samples it blends (view_blend.h), as
-// impostor.vert.glsl reads them (CV_ATTR_IMPOSTOR_* in config.h). Mirrored on purpose.
+// impostor.vert.glsl reads them (CV_ATTR_IMPOSTOR_* in config.h; tiles and layers 16-bit as in
+// Instance). Mirrored on purpose.
 struct ImpostorSamples {
-    uint32_t tiles[4];        // atlas tiles, azimuth + elevation * azimuth_count
+    uint16_t tiles[4];        // atlas tiles, azimuth + elevation * azimuth_count
     float view_weights[4];    // summing to 1, heaviest first; weight-0 entries last
-    uint32_t layers[2];       // atlas layers (baked frames)
+    uint16_t layers[2];       // atlas layers (baked frames)
     float frame_weight;       // of layers[1]; layers[0] has 1 - frame_weight
-    float unused;
 };
-static_assert(sizeof(ImpostorSamples) == 48, "four attributes, 16-byte aligned");
-static_assert(offsetof(ImpostorSamples, view_weights) == 16 && offsetof(ImpostorSamples, layers) == 32 &&
-                  offsetof(ImpostorSamples, frame_weight) == 40,
+static_assert(sizeof(ImpostorSamples) == 32, "four attributes, 4-byte aligned");
+static_assert(offsetof(ImpostorSamples, view_weights) == 8 && offsetof(ImpostorSamples, layers) == 24 &&
+                  offsetof(ImpostorSamples, frame_weight) == 28,
               "shader attribute offsets");
 
 // ---------------------------------------------------------------------------------------
@@ -249,6 +255,9 @@ struct FrameState {
     uint64_t schedule_seed = 0;
     std::vector<ClipState> clip;
     float clip_time_s = -INFINITY;
+    // Per character clip[i].next_event_s alone, so the frame's look for due switches reads 4 bytes
+    // a character instead of a 16-byte state.
+    std::vector<float> next_switch_s;
     // Azimuths evenly spaced round the circle (as the bake writes them): the view is an index
     // computation; otherwise view_blend.h's search.
     bool even_azimuths = false;

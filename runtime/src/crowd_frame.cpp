@@ -88,6 +88,8 @@ void prepare_clips(const Crowd& crowd, const CharacterModel& model, float time_s
         s->clip.resize(crowd.characters.size());
         for (size_t i = 0; i < crowd.characters.size(); ++i)
             s->clip[i] = initial_clip_state(s->schedule, uint32_t(i), crowd.characters[i].clip, crowd.characters[i].phase_s);
+        s->next_switch_s.resize(crowd.characters.size());
+        for (size_t i = 0; i < crowd.characters.size(); ++i) s->next_switch_s[i] = s->clip[i].next_event_s;
     }
     s->clip_time_s = time_s;
 }
@@ -273,8 +275,12 @@ void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
     const size_t begin = chunk * kChunk, end = std::min(begin + kChunk, p.crowd->characters.size());
     const Character* characters = p.crowd->characters.data();
     // Clip state: nothing to do until the character's next switch event (a few times a minute).
+    float* next_switch = s.next_switch_s.data();
     for (size_t i = begin; i < end; ++i)
-        if (f.time_s >= s.clip[i].next_event_s) advance_clip_state(s.schedule, uint32_t(i), characters[i].rate, f.time_s, &s.clip[i]);
+        if (f.time_s >= next_switch[i]) {
+            advance_clip_state(s.schedule, uint32_t(i), characters[i].rate, f.time_s, &s.clip[i]);
+            next_switch[i] = s.clip[i].next_event_s;
+        }
     // Centres: fixed on the spot (build_tables placed them), moved along paths.
     if (!p.on_the_spot)
         for (size_t i = begin; i < end; ++i) {
@@ -285,23 +291,21 @@ void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
     float depth[kChunk];
     int32_t visible[kChunk];
     visibility(s, model.radius, f, begin, end, visible, depth);
+    // The level, without a branch on visibility (half the characters of a street view are culled,
+    // in no order a predictor learns): a culled character keeps its history and shows 3.
+    const bool automatic = f.mode == LodMode::automatic;
+    const Lod fixed = f.mode == LodMode::high  ? Lod::high
+                      : f.mode == LodMode::low ? (model.has_low ? Lod::low : Lod::high)
+                                               : Lod::impostor;
+    Lod* history = s.lod.data();
+    uint8_t* shown = s.shown.data();
     uint32_t counts[4] = {0, 0, 0, 0};
     for (size_t i = begin; i < end; ++i) {
-        if (!visible[i - begin]) {
-            s.shown[i] = 3;
-            ++counts[3];
-            continue;
-        }
-        Lod lod;
-        switch (f.mode) {
-        case LodMode::high: lod = Lod::high; break;
-        case LodMode::low: lod = model.has_low ? Lod::low : Lod::high; break;
-        case LodMode::impostor: lod = Lod::impostor; break;
-        default: lod = pick_lod(depth[i - begin], s.lod[i], p.lod_steps);
-        }
-        s.lod[i] = lod;
-        s.shown[i] = uint8_t(lod);
-        ++counts[int(lod)];
+        const Lod lod = automatic ? pick_lod(depth[i - begin], history[i], p.lod_steps) : fixed;
+        const bool seen = visible[i - begin] != 0;
+        history[i] = seen ? lod : history[i];
+        shown[i] = seen ? uint8_t(lod) : uint8_t(3);
+        ++counts[shown[i]];
     }
     std::copy(counts, counts + 4, s.chunk_counts.begin() + 4 * chunk);
 }
@@ -419,55 +423,67 @@ ViewWeights exact_views(const Pass& p, const FrameSetup& f, const glm::vec3& cen
 }
 
 // Pass 2 over one chunk: the instances (and impostor samples) of its shown characters, at the places
-// pass 1's counts gave it.
+// pass 1's counts gave it. Built once per blend choice, so the loop tests no flag per character, and
+// with every array read through a local pointer, as the stores through Instance* might otherwise alias
+// them and reload them each time.
+template <bool kBlendViews, bool kBlendFrames>
 void fill_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
     const FrameState& s = *p.state;
     const size_t begin = chunk * kChunk, end = std::min(begin + kChunk, p.crowd->characters.size());
+    if (s.chunk_counts[4 * chunk + 3] == end - begin) return;  // all culled
     uint32_t place[3];
     std::copy(s.chunk_offsets.begin() + 3 * chunk, s.chunk_offsets.begin() + 3 * chunk + 3, place);
-    const bool impostors = s.chunk_counts[4 * chunk + 2] > 0 && p.has_views;
+    const bool has_views = p.has_views, fast_views = p.fast_views, on_the_spot = p.on_the_spot;
+    const bool impostors = s.chunk_counts[4 * chunk + 2] > 0 && has_views;
     ChunkViews views_of;
-    if (impostors && p.fast_views) even_views(p, f, begin, end, &views_of);
+    if (impostors && fast_views) even_views(p, f, begin, end, &views_of);
     const Character* characters = p.crowd->characters.data();
+    const uint8_t* shown = s.shown.data();
+    const ClipState* clip = s.clip.data();
+    const glm::vec3* walked = s.feet.data();
+    const uint32_t* nearest_layer = s.nearest_layer.data();
+    const FrameWeights* frame_weights = s.frame_weights.data();
+    const uint32_t last_pose = uint32_t(s.nearest_layer.size() - 1);
+    const ClipSchedule& schedule = s.schedule;
+    const float time_s = f.time_s;
     Instance* lists[3] = {p.out->by_lod[0].data(), p.out->by_lod[1].data(), p.out->by_lod[2].data()};
     ImpostorSamples* samples = p.out->impostor_samples.data();
     for (size_t i = begin; i < end; ++i) {
-        const uint8_t lod = s.shown[i];
+        const uint8_t lod = shown[i];
         if (lod > 2) continue;
         const Character& c = characters[i];
-        const glm::vec3 feet = p.on_the_spot ? c.start : s.feet[i];
+        const glm::vec3 feet = on_the_spot ? c.start : walked[i];
         Instance inst;
         inst.position[0] = feet.x, inst.position[1] = feet.y, inst.position[2] = feet.z;
         inst.heading = c.heading;
-        inst.frame = shown_pose_frame(s.schedule, s.clip[i], c.rate, f.time_s);
-        inst.variation = c.variation;
-        inst.outfit = c.outfit;
+        const uint32_t frame = shown_pose_frame(schedule, clip[i], c.rate, time_s);
+        inst.frame = uint16_t(frame);
+        inst.variation = uint16_t(c.variation);
+        inst.outfit = uint16_t(c.outfit);
         inst.tile = 0;
-        if (lod == uint8_t(Lod::impostor) && p.has_views) {
+        if (lod == uint8_t(Lod::impostor) && has_views) {
             const size_t k = i - begin;
             ImpostorSamples& out = samples[place[2]];
             uint32_t nearest_tile;
-            if (p.fast_views && !views_of.tie[k]) {
+            if (fast_views && !views_of.tie[k]) {
                 nearest_tile = uint32_t(views_of.nearest[k]);
                 for (int m = 0; m < 4; ++m) {
-                    out.tiles[m] = f.blend_views ? uint32_t(views_of.tiles[m][k]) : nearest_tile;
-                    out.view_weights[m] = f.blend_views ? views_of.weights[m][k] : m == 0 ? 1.0f : 0.0f;
+                    out.tiles[m] = uint16_t(kBlendViews ? uint32_t(views_of.tiles[m][k]) : nearest_tile);
+                    out.view_weights[m] = kBlendViews ? views_of.weights[m][k] : m == 0 ? 1.0f : 0.0f;
                 }
             } else {
                 const ViewWeights views = exact_views(p, f, glm::vec3(s.center_x[i], s.center_y[i], s.center_z[i]), c.heading, &nearest_tile);
                 sort_views(views, &out);
             }
-            const uint32_t pose = std::min(inst.frame, uint32_t(s.nearest_layer.size() - 1));
+            const uint32_t pose = std::min(frame, last_pose);
             FrameWeights frames;
-            frames.layers[0] = frames.layers[1] = s.nearest_layer[pose];
-            if (f.blend_frames) frames = s.frame_weights[pose];
-            out.layers[0] = frames.layers[0], out.layers[1] = frames.layers[1];
+            if (kBlendFrames) frames = frame_weights[pose];
+            else frames.layers[0] = frames.layers[1] = nearest_layer[pose];
+            out.layers[0] = uint16_t(frames.layers[0]), out.layers[1] = uint16_t(frames.layers[1]);
             out.frame_weight = frames.weight;
-            out.unused = 0;
-            inst.tile = nearest_tile;
-            inst.frame = frames.layers[frames.weight > 0.5f ? 1 : 0];
-            ++place[2];
-            lists[2][place[2] - 1] = inst;
+            inst.tile = uint16_t(nearest_tile);
+            inst.frame = uint16_t(frames.layers[frames.weight > 0.5f ? 1 : 0]);
+            lists[2][place[2]++] = inst;
             continue;
         }
         lists[lod][place[lod]++] = inst;
@@ -543,7 +559,9 @@ void build_frames(const std::vector<ArchetypeFrame>& archetypes, const Camera& c
     }
     run_tasks(tasks.size(), threads, [&](size_t t) { cull_chunk(passes[tasks[t].first], setup, tasks[t].second); });
     for (const Pass& p : passes) place_chunks(p);
-    run_tasks(tasks.size(), threads, [&](size_t t) { fill_chunk(passes[tasks[t].first], setup, tasks[t].second); });
+    auto fill = setup.blend_views ? (setup.blend_frames ? fill_chunk<true, true> : fill_chunk<true, false>)
+                                  : (setup.blend_frames ? fill_chunk<false, true> : fill_chunk<false, false>);
+    run_tasks(tasks.size(), threads, [&](size_t t) { fill(passes[tasks[t].first], setup, tasks[t].second); });
 }
 
 void build_frame(const Crowd& crowd, const CharacterModel& model, const Camera& camera, float aspect, LodMode mode,

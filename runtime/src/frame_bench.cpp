@@ -1,10 +1,15 @@
-// crowdview_frame_bench: the CPU side of a frame for a large mixed crowd, without GL: culling,
-// LOD choice, clip state (cycle frame, impostor view and frame blend) and the instance-buffer
-// fill, for every character of every archetype, as crowdview's frame loop runs build_frame.
+// crowdview_frame_bench: the CPU side of a frame for a large mixed crowd: culling, LOD choice,
+// clip state (cycle frame, impostor view and frame blend) and the instance-buffer fill, for every
+// character of every archetype, as crowdview's frame loop runs build_frames, then the upload of
+// every instance list with the renderer's own code (instance_upload.h), timed apart.
 //
-//   crowdview_frame_bench [--count N] [--archetypes K] [--frames F] [--threads T] [--clips C] [--report JSON]
+//   crowdview_frame_bench [--count N] [--archetypes K] [--frames F] [--threads T] [--clips C]
+//                         [--upload gl|copy|none] [--report JSON]
 // (--threads: default crowdview's, the hardware's; --clips: clips per
-// archetype, default 3, joined in a ring by transitions both ways; 1 is a v1 bundle's one cycle)
+// archetype, default 3, joined in a ring by transitions both ways; 1 is a v1 bundle's one cycle;
+// --upload: gl (default) into GL buffers of a headless context as crowdview --headless makes it,
+// falling back, with a message, to copy where none can be made; copy: memcpy of the same bytes
+// into a staging buffer; none: no upload)
 //
 // The archetypes are shaped like real bundles (impostor radius, tile size, views, baked frames of
 // the sample walker, CesiumMan and the 4 m robot); the crowd is laid out as a --crowd spot layout.
@@ -17,16 +22,20 @@
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
+#include <memory>
 #include <string>
 #include <thread>
 
 #include <time.h>
 #include <vector>
 
+#include <epoxy/gl.h>
 #include <nlohmann/json.hpp>
 
 #include "crowd.h"
 #include "crowd_layout.h"
+#include "gl_context.h"
+#include "instance_upload.h"
 
 using namespace crowdview;
 
@@ -81,12 +90,52 @@ double median(std::vector<double> v) {
     return v.empty() ? 0 : v[v.size() / 2];
 }
 
+// This process's CPU time in ms: what a step cost, without other programs' share of the cores.
+double cpu_now_ms() {
+    timespec t;
+    clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &t);
+    return 1e3 * double(t.tv_sec) + 1e-6 * double(t.tv_nsec);
+}
+
+double wall_now_ms() { return 1e3 * std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count(); }
+
+enum class Upload { gl, copy, none };
+
+// Where the frame's instances go: GL buffers per archetype (instance_upload.h), or a staging copy.
+struct Uploader {
+    Upload kind = Upload::none;
+    std::vector<InstanceBuffers> buffers;
+    std::vector<ImpostorSamples> nearest_samples;
+    std::vector<uint8_t> staging;
+
+    // The bytes of every list of every archetype, into the GL buffers or the staging buffer.
+    uint64_t run(const std::vector<FrameInstances>& out) {
+        uint64_t bytes = 0;
+        for (size_t a = 0; a < out.size(); ++a) {
+            if (kind == Upload::gl) {
+                bytes += upload_instances(out[a], buffers[a], &nearest_samples);
+                continue;
+            }
+            if (kind != Upload::copy) continue;
+            auto copy = [&](const void* data, size_t n) {
+                if (staging.size() < bytes + n) staging.resize(bytes + n);
+                if (n) std::memcpy(staging.data() + bytes, data, n);
+                bytes += n;
+            };
+            for (const std::vector<Instance>& list : out[a].by_lod) copy(list.data(), list.size() * sizeof(Instance));
+            copy(out[a].impostor_samples.data(), out[a].impostor_samples.size() * sizeof(ImpostorSamples));
+        }
+        if (kind == Upload::gl) glFlush();  // hands the copies to the driver, as a frame's draws would
+        return bytes;
+    }
+};
+
 }  // namespace
 
 int main(int argc, char** argv) {
     uint64_t count = 100000;
     int archetypes = 4, frames = 60, threads = 0, clips = 3;  // threads 0: as crowdview (frame_threads)
-    std::string report_path;
+    std::string report_path, upload_name = "gl";
     for (int i = 1; i < argc; ++i) {
         const std::string a = argv[i];
         auto next = [&]() -> const char* {
@@ -102,6 +151,7 @@ int main(int argc, char** argv) {
         else if (a == "--threads") threads = std::atoi(next());
         else if (a == "--clips") clips = std::atoi(next());
         else if (a == "--report") report_path = next();
+        else if (a == "--upload") upload_name = next();
         else {
             std::fprintf(stderr, "crowdview_frame_bench: unknown argument '%s'\n", a.c_str());
             return 2;
@@ -111,7 +161,35 @@ int main(int argc, char** argv) {
         std::fprintf(stderr, "crowdview_frame_bench: --count >= 1, --archetypes 1..4, --frames >= 1, --threads 1..64, --clips 1..64\n");
         return 2;
     }
+    if (upload_name != "gl" && upload_name != "copy" && upload_name != "none") {
+        std::fprintf(stderr, "crowdview_frame_bench: --upload takes gl, copy or none, not '%s'\n", upload_name.c_str());
+        return 2;
+    }
     if (threads == 0) threads = int(frame_threads());
+    // The upload: GL buffers in a headless context as crowdview --headless makes one (gl_context.h).
+    Uploader uploader;
+    uploader.kind = upload_name == "gl" ? Upload::gl : upload_name == "copy" ? Upload::copy : Upload::none;
+    std::unique_ptr<GlContext> context;
+    std::string upload_label = upload_name;
+    if (uploader.kind == Upload::gl) {
+        GlContextDesc desc;
+        desc.width = 64, desc.height = 64;
+        std::string error;
+        context = GlContext::create(desc, &error);
+        if (!context) {
+            std::printf("crowdview_frame_bench: no OpenGL context (%s): timing a copy of the same bytes into a staging buffer instead\n",
+                        error.c_str());
+            uploader.kind = Upload::copy;
+            upload_label = "copy (no OpenGL context: " + error + ")";
+        } else {
+            upload_label = "gl: " + context->describe();
+            uploader.buffers.resize(size_t(archetypes));
+            for (InstanceBuffers& b : uploader.buffers) {
+                glGenBuffers(3, b.by_lod);
+                glGenBuffers(1, &b.impostor_samples);
+            }
+        }
+    }
     const float aspect = 1280.0f / 720.0f, height_px = 720.0f;
     std::vector<CharacterModel> models;
     std::vector<ArchetypeTraits> traits;
@@ -154,19 +232,20 @@ int main(int argc, char** argv) {
             std::vector<FrameInstances> out(models.size());
             std::vector<ArchetypeFrame> builds;
             for (size_t a = 0; a < models.size(); ++a) builds.push_back({&crowds[a], &models[a], &rules[a], &state[a], &out[a]});
-            std::vector<double> ms, cpu_ms;
-            uint64_t lods[3] = {0, 0, 0}, culled = 0;
-            for (int f = -2; f < frames; ++f) {  // two warm-up frames size the vectors
+            std::vector<double> ms, cpu_ms, upload_ms, upload_cpu_ms, total_ms, total_cpu_ms;
+            uint64_t lods[3] = {0, 0, 0}, culled = 0, upload_bytes = 0;
+            for (int f = -2; f < frames; ++f) {  // two warm-up frames size the vectors and buffers
                 const float time_s = 30.0f + float(std::max(f, 0)) * kFixedTimeStep;
-                const auto start = std::chrono::steady_clock::now();
-                timespec cpu_start, cpu_end;  // this process's CPU time: what the frame cost, without other programs' share of the cores
-                clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &cpu_start);
+                const double wall0 = wall_now_ms(), cpu0 = cpu_now_ms();
                 // Chunks of every archetype over `threads` threads, as crowdview's frame loop does (build_frames).
                 build_frames(builds, camera, aspect, LodMode::automatic, time_s, blend, unsigned(threads));
-                const double elapsed = 1e3 * std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-                clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &cpu_end);
-                const double cpu = 1e3 * double(cpu_end.tv_sec - cpu_start.tv_sec) + 1e-6 * double(cpu_end.tv_nsec - cpu_start.tv_nsec);
-                if (f >= 0) ms.push_back(elapsed), cpu_ms.push_back(cpu);
+                const double wall1 = wall_now_ms(), cpu1 = cpu_now_ms();
+                upload_bytes = uploader.run(out);
+                const double wall2 = wall_now_ms(), cpu2 = cpu_now_ms();
+                if (f < 0) continue;
+                ms.push_back(wall1 - wall0), cpu_ms.push_back(cpu1 - cpu0);
+                upload_ms.push_back(wall2 - wall1), upload_cpu_ms.push_back(cpu2 - cpu1);
+                total_ms.push_back(wall2 - wall0), total_cpu_ms.push_back(cpu2 - cpu0);
             }
             for (const FrameInstances& o : out) {
                 for (int l = 0; l < 3; ++l) lods[l] += o.by_lod[l].size();
@@ -177,19 +256,28 @@ int main(int argc, char** argv) {
                 for (double v : ms) s += v;
                 return s / double(ms.size());
             }();
-            std::printf("%s camera, impostor blend %s: %.2f ms a frame (median of %d; mean %.2f; CPU time %.2f ms) for %llu characters of %d archetypes: "
-                        "%llu high, %llu low, %llu impostor, %llu culled\n",
-                        view.name, blend == ImpostorBlend::off ? "off" : "warp", med, frames, mean, median(cpu_ms), (unsigned long long)count, archetypes,
-                        (unsigned long long)lods[0], (unsigned long long)lods[1], (unsigned long long)lods[2], (unsigned long long)culled);
+            std::printf("%s camera, impostor blend %s: %.2f ms CPU a frame (build %.2f + upload %.2f [%s]; wall %.2f + %.2f; medians of %d, "
+                        "build mean %.2f) for %llu characters of %d archetypes: %llu high, %llu low, %llu impostor, %llu culled; %.1f MB uploaded\n",
+                        view.name, blend == ImpostorBlend::off ? "off" : "warp", median(total_cpu_ms), median(cpu_ms), median(upload_cpu_ms),
+                        uploader.kind == Upload::gl ? "gl" : uploader.kind == Upload::copy ? "copy" : "none",
+                        med, median(upload_ms), frames, mean, (unsigned long long)count, archetypes, (unsigned long long)lods[0],
+                        (unsigned long long)lods[1], (unsigned long long)lods[2], (unsigned long long)culled, 1e-6 * double(upload_bytes));
             results.push_back({{"camera", view.name},
                                {"impostor_blend", blend == ImpostorBlend::off ? "off" : "warp"},
                                {"median_ms", med},
                                {"mean_ms", mean},
                                {"median_cpu_ms", median(cpu_ms)},
+                               {"upload_median_ms", median(upload_ms)},
+                               {"upload_median_cpu_ms", median(upload_cpu_ms)},
+                               {"upload_bytes", upload_bytes},
+                               {"total_median_ms", median(total_ms)},
+                               {"total_median_cpu_ms", median(total_cpu_ms)},
                                {"lod_counts", {{"high", lods[0]}, {"low", lods[1]}, {"impostor", lods[2]}, {"culled", culled}}}});
         }
     }
-    const nlohmann::json report = {{"what", "CPU ms per frame: culling, LOD choice, clip state and instance-buffer fill (build_frame)"},
+    const nlohmann::json report = {{"what", "ms per frame: culling, LOD choice, clip state and instance-buffer fill (build_frames), "
+                                            "then the instance upload (instance_upload.h); total = both"},
+                                   {"upload", upload_label},
                                    {"characters", count},
                                    {"clips_per_archetype", clips},
                                    {"archetypes", archetypes},

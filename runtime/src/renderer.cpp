@@ -1,5 +1,6 @@
 // OpenGL 3.3 core renderer: uploads once, then instanced draws per LOD (see renderer.h).
 #include "renderer.h"
+#include "instance_upload.h"
 
 #include <epoxy/gl.h>
 
@@ -345,7 +346,7 @@ static void bind_instance_attributes(GLuint buffer) {
     glVertexAttribPointer(CV_ATTR_INSTANCE_POSE, 4, GL_FLOAT, GL_FALSE, sizeof(Instance), (void*)offsetof(Instance, position));
     glVertexAttribDivisor(CV_ATTR_INSTANCE_POSE, 1);
     glEnableVertexAttribArray(CV_ATTR_INSTANCE_IDS);
-    glVertexAttribIPointer(CV_ATTR_INSTANCE_IDS, 4, GL_UNSIGNED_INT, sizeof(Instance), (void*)offsetof(Instance, frame));
+    glVertexAttribIPointer(CV_ATTR_INSTANCE_IDS, 4, GL_UNSIGNED_SHORT, sizeof(Instance), (void*)offsetof(Instance, frame));
     glVertexAttribDivisor(CV_ATTR_INSTANCE_IDS, 1);
 }
 
@@ -430,6 +431,11 @@ bool Renderer::add_archetype(const Bundle& bundle, std::string* error) {
     }
     if (std::none_of(m.meshes.begin(), m.meshes.end(), [](const MeshInfo& mesh) { return mesh.lod == 0; })) {
         *error = fn + "the bundle has no lod 0 mesh";
+        return false;
+    }
+    if (m.pose_frames > kMaxPoseFrames) {
+        *error = fn + "the bundle has " + std::to_string(m.pose_frames) + " pose frames, instances address at most " +
+                 std::to_string(kMaxPoseFrames) + " (16-bit frame numbers, crowd.h Instance)";
         return false;
     }
 
@@ -554,11 +560,11 @@ bool Renderer::add_archetype(const Bundle& bundle, std::string* error) {
     label(GL_BUFFER, g.impostor_sample_buffer, "instances:impostor-samples");
     const GLsizei stride = sizeof(ImpostorSamples);
     glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_TILES);
-    glVertexAttribIPointer(CV_ATTR_IMPOSTOR_TILES, 4, GL_UNSIGNED_INT, stride, (void*)offsetof(ImpostorSamples, tiles));
+    glVertexAttribIPointer(CV_ATTR_IMPOSTOR_TILES, 4, GL_UNSIGNED_SHORT, stride, (void*)offsetof(ImpostorSamples, tiles));
     glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_VIEW_WEIGHTS);
     glVertexAttribPointer(CV_ATTR_IMPOSTOR_VIEW_WEIGHTS, 4, GL_FLOAT, GL_FALSE, stride, (void*)offsetof(ImpostorSamples, view_weights));
     glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_LAYERS);
-    glVertexAttribIPointer(CV_ATTR_IMPOSTOR_LAYERS, 2, GL_UNSIGNED_INT, stride, (void*)offsetof(ImpostorSamples, layers));
+    glVertexAttribIPointer(CV_ATTR_IMPOSTOR_LAYERS, 2, GL_UNSIGNED_SHORT, stride, (void*)offsetof(ImpostorSamples, layers));
     glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_FRAME_WEIGHT);
     glVertexAttribPointer(CV_ATTR_IMPOSTOR_FRAME_WEIGHT, 1, GL_FLOAT, GL_FALSE, stride, (void*)offsetof(ImpostorSamples, frame_weight));
     for (GLuint a : {CV_ATTR_IMPOSTOR_TILES, CV_ATTR_IMPOSTOR_VIEW_WEIGHTS, CV_ATTR_IMPOSTOR_LAYERS, CV_ATTR_IMPOSTOR_FRAME_WEIGHT})
@@ -662,31 +668,11 @@ DrawStats Renderer::draw_archetype(Archetype& g, const FrameInstances& frame, co
     Impl& shared = *impl_;
     const CharacterModel& model_ = g.model;
     DrawStats stats;
-    // 1. This frame's instances, one buffer per LOD (orphaned so the driver need not wait).
-    for (int lod = 0; lod < 3; ++lod) {
-        const std::vector<Instance>& list = frame.by_lod[lod];
-        glBindBuffer(GL_ARRAY_BUFFER, g.instance_buffers[lod]);
-        glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(list.size() * sizeof(Instance)), list.empty() ? nullptr : list.data(),
-                     GL_STREAM_DRAW);
-    }
-    // The impostors' blend samples; a frame built without them shows each impostor's nearest
-    // view and frame (its Instance's tile and layer).
-    const std::vector<Instance>& impostor_list = frame.by_lod[int(Lod::impostor)];
-    const std::vector<ImpostorSamples>* samples = &frame.impostor_samples;
-    if (samples->size() != impostor_list.size()) {
-        shared.nearest_samples.resize(impostor_list.size());
-        for (size_t i = 0; i < impostor_list.size(); ++i) {
-            ImpostorSamples& s = shared.nearest_samples[i];
-            s = ImpostorSamples{};
-            for (uint32_t& t : s.tiles) t = impostor_list[i].tile;
-            s.view_weights[0] = 1;
-            s.layers[0] = s.layers[1] = impostor_list[i].frame;
-        }
-        samples = &shared.nearest_samples;
-    }
-    glBindBuffer(GL_ARRAY_BUFFER, g.impostor_sample_buffer);
-    glBufferData(GL_ARRAY_BUFFER, GLsizeiptr(samples->size() * sizeof(ImpostorSamples)), samples->empty() ? nullptr : samples->data(),
-                 GL_STREAM_DRAW);
+    // 1. This frame's instances, one buffer per LOD, and the impostors' blend samples.
+    InstanceBuffers buffers;
+    for (int lod = 0; lod < 3; ++lod) buffers.by_lod[lod] = g.instance_buffers[lod];
+    buffers.impostor_samples = g.impostor_sample_buffer;
+    upload_instances(frame, buffers, &shared.nearest_samples);
     glActiveTexture(GL_TEXTURE0 + CV_UNIT_OUTFITS);
     glBindTexture(GL_TEXTURE_2D, g.outfits);
 
@@ -746,7 +732,12 @@ DrawStats Renderer::draw_archetype(Archetype& g, const FrameInstances& frame, co
             glUniform1i(iu.has_regions[k], used && g.has_regions[k] ? 1 : 0);
         }
         glBindVertexArray(g.impostor_vao);
+        // Soft silhouettes (config.h CV_EDGE_LOW) mix over what is already drawn. Edge pixels still
+        // write depth, so an impostor behind one, drawn later, shows the background there instead.
+        glEnable(GL_BLEND);
+        glBlendFuncSeparate(GL_SRC_ALPHA, GL_ONE_MINUS_SRC_ALPHA, GL_ONE, GL_ONE_MINUS_SRC_ALPHA);
         glDrawArraysInstanced(GL_TRIANGLE_STRIP, 0, 4, GLsizei(quads.size()));
+        glDisable(GL_BLEND);
         ++stats.draw_calls;
         stats.triangles += 2 * uint64_t(quads.size());
     }

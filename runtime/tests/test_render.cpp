@@ -3,7 +3,8 @@
 //   2. a mesh and its UV impostor at the 1:1 switch distance agree (SSIM);
 //   3. the UV impostor follows texture variations that a detail-mapped impostor cannot;
 //   4. the CPU block decoder renders what the S3TC upload renders;
-//   5. the same bundle with its rgba16 UV map packed as uv32 renders the same impostors.
+//   5. the same bundle with its rgba16 UV map packed as uv32 renders the same impostors;
+//   6. the instance upload puts every list's bytes in its buffer, samples made for a frame without.
 // CROWDVIEW_UPDATE_REFERENCES=1 rewrites tests/data/crowd_reference.png (then inspect it).
 #include <algorithm>
 #include <cmath>
@@ -14,7 +15,10 @@
 #include "check.h"
 #include "crowd.h"
 #include "gl_context.h"
+#include "instance_upload.h"
 #include "renderer.h"
+
+#include <epoxy/gl.h>
 #include "synthetic_bundle.h"
 
 using namespace crowdview;
@@ -348,6 +352,51 @@ void test_uv32_renders_like_rgba16(const Scene& scene) {
     }
 }
 
+// upload_instances: each buffer holds its list's bytes; a frame built without samples (sizes differ)
+// gets one per impostor from its Instance, the nearest view and frame alone.
+void test_instance_upload() {
+    FrameInstances frame;
+    for (uint16_t k = 0; k < 5; ++k) {
+        const Instance inst{{float(k), 0.5f, -float(k)}, 0.25f * k, uint16_t(10 + k), k, uint16_t(2 * k), uint16_t(40 + k)};
+        frame.by_lod[k % 3].push_back(inst);
+    }
+    InstanceBuffers buffers;
+    glGenBuffers(3, buffers.by_lod);
+    glGenBuffers(1, &buffers.impostor_samples);
+    std::vector<ImpostorSamples> scratch;
+    auto read = [](GLuint buffer, size_t bytes) {
+        std::vector<uint8_t> data(bytes);
+        glBindBuffer(GL_ARRAY_BUFFER, buffer);
+        GLint64 size = -1;
+        glGetBufferParameteri64v(GL_ARRAY_BUFFER, GL_BUFFER_SIZE, &size);
+        CHECK_MSG(size == GLint64(bytes), "buffer size " + std::to_string(size) + ", want " + std::to_string(bytes));
+        if (size == GLint64(bytes) && bytes) glGetBufferSubData(GL_ARRAY_BUFFER, 0, GLsizeiptr(bytes), data.data());
+        return data;
+    };
+    const uint64_t bytes = upload_instances(frame, buffers, &scratch);
+    CHECK(bytes == 5 * sizeof(Instance) + frame.by_lod[2].size() * sizeof(ImpostorSamples));
+    for (int lod = 0; lod < 3; ++lod) {
+        const std::vector<uint8_t> got = read(buffers.by_lod[lod], frame.by_lod[lod].size() * sizeof(Instance));
+        CHECK(std::memcmp(got.data(), frame.by_lod[lod].data(), got.size()) == 0);
+    }
+    const std::vector<uint8_t> samples = read(buffers.impostor_samples, frame.by_lod[2].size() * sizeof(ImpostorSamples));
+    for (size_t i = 0; i < frame.by_lod[2].size(); ++i) {
+        ImpostorSamples s;
+        std::memcpy(&s, samples.data() + i * sizeof s, sizeof s);
+        const Instance& inst = frame.by_lod[2][i];
+        CHECK(s.tiles[0] == inst.tile && s.tiles[3] == inst.tile && s.layers[0] == inst.frame && s.layers[1] == inst.frame);
+        CHECK(s.view_weights[0] == 1.0f && s.view_weights[1] == 0.0f && s.frame_weight == 0.0f);
+    }
+    // With samples: uploaded as they are.
+    frame.impostor_samples.assign(frame.by_lod[2].size(), ImpostorSamples{{7, 8, 9, 10}, {0.4f, 0.3f, 0.2f, 0.1f}, {3, 4}, 0.75f});
+    upload_instances(frame, buffers, &scratch);
+    const std::vector<uint8_t> given = read(buffers.impostor_samples, frame.impostor_samples.size() * sizeof(ImpostorSamples));
+    CHECK(std::memcmp(given.data(), frame.impostor_samples.data(), given.size()) == 0);
+    CHECK(glGetError() == GL_NO_ERROR);
+    glDeleteBuffers(3, buffers.by_lod);
+    glDeleteBuffers(1, &buffers.impostor_samples);
+}
+
 }  // namespace
 
 int main() {
@@ -360,6 +409,7 @@ int main() {
         return 77;
     }
     std::fprintf(stderr, "%s\n", context->describe().c_str());
+    test_instance_upload();
     const std::string work = synthetic::temp_dir("render");
     error = synthetic::write_bundle(work + "/bundle");
     CHECK_MSG(error.empty(), error);

@@ -111,7 +111,8 @@ class Bench:
 
     def blend(self, samples: list[Sample], azimuth: float, elevation: float) -> np.ndarray:
         decoded = [(w, self.tiles.tile(tile, layer)) for w, tile, layer in samples]
-        return impostor_blend.blend_image(decoded, self.diffuse, self.outfit_row, self.light(azimuth, elevation), self.size, self.chains)
+        return impostor_blend.blend_image(decoded, self.diffuse, self.outfit_row, self.light(azimuth, elevation), self.size, self.chains,
+                                          reprojected=False)
 
 
 def _key(azimuth: float, elevation: float, frame: int) -> str:
@@ -257,6 +258,9 @@ def warped_image(bench: Bench, azimuth: float, elevation: float, frame: int, mot
         view = surface.view(tile)
         if backward == "negated_next":  # constant velocity: one motion field a layer
             to_previous = -to_next
+        elif backward == "central":  # one field a layer: the mean of the motion to the next and from the previous
+            to_next = (to_next - to_previous) / 2.0
+            to_previous = -to_next
         if planar:  # motion in the tile's plane only: two channels
             to_previous = to_previous - (to_previous @ view.back)[..., None] * view.back
             to_next = to_next - (to_next @ view.back)[..., None] * view.back
@@ -294,6 +298,8 @@ METHODS: dict[str, Callable[[Bench, float, float, int], np.ndarray]] = {
     "warp_motion_it8": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, iterations=8),
     "warp_motion_miss1": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, max_miss=1.0),
     "warp_velocity": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, backward="negated_next"),
+    "warp_central": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, backward="central"),
+    "warp_central_planar8": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, backward="central", planar=True, bits=8),
     "warp_planar": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, planar=True),
     "warp_velocity_bc1": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, backward="negated_next", bc1=True),
     "warp_planar8": lambda b, a, e, f: warped_image(b, a, e, f, motion=True, planar=True, bits=8),

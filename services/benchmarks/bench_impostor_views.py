@@ -75,7 +75,7 @@ def score_setting(work: Path, poses, tiles: AtlasTiles, diffuse, chains, outfit_
             e = dense.elevations_deg.index(elevations[tile // len(azimuths)])
             samples.append((w, tiles.tile(a + e * len(dense.azimuths_deg), dense_frames.index(frames[layer]))))
         view = impostor_views.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
-        image = impostor_blend.blend_image(samples, diffuse, outfit_row, shading.camera_light(view), size, chains)
+        image = impostor_blend.blend_image(samples, diffuse, outfit_row, shading.camera_light(view), size, chains, reprojected=False)
         scores.append(fidelity.compare(reference, image)["ssim"])
     return {"between_frame_weight": frame_weights.weight, "ssim_mean": float(np.mean(scores)), "ssim_worst": float(np.min(scores))}
 

@@ -64,7 +64,8 @@ def main() -> int:
         """The samples blended; with `frames`, each reprojected to the camera and that cycle position first."""
         view = impostor_views.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
         samples = [(w, tiles.tile(tile, k) if frames is None else sample_tile(tiles, tile, k, view, frames)) for w, tile, k in weights]
-        return impostor_blend.blend_image(samples, diffuse, textures["outfits"][0], shading.camera_light(view), size, chains)
+        return impostor_blend.blend_image(samples, diffuse, textures["outfits"][0], shading.camera_light(view), size, chains,
+                                          reprojected=frames is not None)
 
     rows = []
     for label, azimuth, elevation, frame, frames in cases:

@@ -141,7 +141,7 @@ def read_bake_figures(session: Session) -> BakeFigures:
 
     pending_parts = session.scalar(
         select(func.count()).select_from(BakePart).join(Bake, Bake.id == BakePart.bake_id)
-        .where(BakePart.done.is_(False), Bake.state.in_(("queued", "running")))
+        .where(BakePart.stage == "impostors", BakePart.done.is_(False), Bake.state.in_(("queued", "running")))
     )
     asset_bytes, asset_count = {}, {}
     for kind, size, count in session.execute(select(Asset.kind, func.coalesce(func.sum(Asset.size), 0), func.count()).group_by(Asset.kind)):

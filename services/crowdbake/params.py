@@ -249,7 +249,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--elevations",), "DEG,...", minimum=-90.0, maximum=90.0, min_items=1, max_items=MAX_ELEVATIONS, distinct=True),
     ParamSpec("tile_size", "int", 112, "texels per impostor view side (a multiple of 4: BC1/BC2 blocks are 4x4 texels)",
               ("--tile", "--tile-size"), "PX", minimum=4, maximum=MAX_TILE_SIZE, multiple_of=4),
-    ParamSpec("impostor_budget_mib", "float", 16.0, "memory for one clip's impostor maps in MiB (the paper's 15): fewer azimuths (to 16), "
+    ParamSpec("impostor_budget_mib", "float", 16.0, "memory for one clip's impostor maps in MiB (the paper's 15): fewer azimuths (to 12), "
               "then fewer frames, until they fit (docs/bake.md 'Memory')",
               ("--impostor-budget",), "MIB", optional=True, above_zero=True, maximum=4096.0),
     ParamSpec("crop", "bool", True, "store each impostor view cropped to the box the character covers over every view and frame "

@@ -461,3 +461,48 @@ def test_a_stage_let_go_of_for_a_celery_retry_waits_for_the_retry_countdown(api,
     with session_scope(api.sessions) as session:
         assert records.stage_row(session, bake_id, "validate").state == "queued"
     assert claim(api, bake_id, "validate", "host-b:1:task-b").won
+
+
+def test_a_fork_waits_for_a_guarded_transaction_of_another_thread(tmp_path):
+    """Regression: a Celery worker's main process forked a pool process while its received-heartbeat
+    thread was inside a SQLite write; the child inherited SQLite's record of that lock with nobody to
+    release it, and every claim it tried failed with "database is locked" after the busy timeout, so a
+    bake waited for ever. A fork now waits for a transaction opened with fork_guarded_scope."""
+    import os
+    import sqlite3
+
+    from sqlalchemy import text
+
+    from crowdbake.storage.db import fork_guarded_scope, make_engine, make_sessionmaker
+
+    path = tmp_path / "fork.sqlite"
+    engine = make_engine(f"sqlite:///{path}")
+    with engine.begin() as connection:
+        connection.exec_driver_sql("CREATE TABLE marks (x INTEGER)")
+    inside = threading.Event()
+
+    def write_slowly() -> None:
+        with fork_guarded_scope(make_sessionmaker(engine)) as session:
+            session.execute(text("INSERT INTO marks VALUES (1)"))  # holds the write lock until commit
+            inside.set()
+            time.sleep(0.5)
+
+    writer = threading.Thread(target=write_slowly)
+    writer.start()
+    assert inside.wait(10)
+    pid = os.fork()
+    if pid == 0:  # the pool process: a fresh connection of its own writes
+        code = 1
+        try:
+            child = sqlite3.connect(path, timeout=2)
+            child.execute("INSERT INTO marks VALUES (2)")
+            child.commit()
+            code = 0
+        finally:
+            os._exit(code)
+    writer.join()
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0, "the forked process could not write: database is locked"
+    with engine.connect() as connection:
+        assert sorted(row[0] for row in connection.exec_driver_sql("SELECT x FROM marks")) == [1, 2]
+    engine.dispose()

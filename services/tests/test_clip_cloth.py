@@ -122,6 +122,26 @@ def test_bad_clip_caches_are_one_line_and_exit_2(caches, tmp_path, capsys, case,
     assert not (tmp_path / "bundles").exists()
 
 
+def test_the_cycle_command_takes_a_cache_per_clip(caches, tmp_path, capsys):
+    """`crowdbake cycle --clip-cloth`: the same joined inputs as the bake, a closed loop per clip."""
+    from crowdbake.cli import main
+
+    out = tmp_path / "cycle"
+    assert main(["cycle", *clip_args(caches, "Walking", "Running"), "--character", str(caches["Walking"] / "character.glb"),
+                 "--views", "3", "--candidates", "3", "--out", str(out)]) == 0
+    cycle = json.loads((out / "cycle.json").read_text())
+    assert [entry["clip"] for entry in cycle["clips"]] == ["Walking", "Running"] and cycle["transitions"] == []
+    assert all(entry["closing"]["quality"]["within_bounds"] for entry in cycle["clips"])
+    for extra, words in ((["--timeline", str(tmp_path / "t.json")], "leave out --timeline"),
+                         ([str(caches["Walking"] / "cloth.pc2")], "leave out CLOTH"),
+                         (["--clip-cloth", f"Flying={caches['Running'] / 'cloth.pc2'},{caches['Running'] / 'cloth.obj'}"], "Flying")):
+        capsys.readouterr()
+        assert main(["cycle", *clip_args(caches, "Walking"), *extra, "--character", str(caches["Walking"] / "character.glb"),
+                     "--out", str(tmp_path / "bad")]) == 2
+        error = capsys.readouterr().err.strip()
+        assert len(error.splitlines()) == 1 and words in error, error
+
+
 # REST: the real app, no worker (the worker's part, materializing the inputs, is called in process).
 
 @pytest.fixture(scope="module")

@@ -53,9 +53,10 @@ def _tile(size: int, covered: np.ndarray, u: float, normal=(0.0, 0.0, 1.0)) -> D
     return DecodedTile(uv, np.zeros((size, size), np.int64), covered, np.broadcast_to(np.array(normal, float), (size, size, 3)).copy())
 
 
-def test_blend_draws_where_coverage_is_over_half_and_averages_colours():
-    """Two samples of a two-colour texture: their colours mix by weight where both cover; where only the
-    heavier one covers it is drawn alone, where only the lighter one covers nothing is drawn."""
+def test_blend_averages_colours_and_fades_edges_where_the_samples_disagree():
+    """Two reprojected samples of a two-colour texture: their colours mix by weight where both cover
+    (opaque); where only the heavier one covers (coverage 0.75) its colour is drawn at edge_alpha(0.75);
+    where only the lighter one covers (0.25) more faintly; where none covers, nothing."""
     size = 8
     texture = np.zeros((4, 4, 4), np.uint8)
     texture[:, :2, :3] = (200, 0, 0)  # u < 0.5 red
@@ -69,9 +70,29 @@ def test_blend_draws_where_coverage_is_over_half_and_averages_colours():
     outfit = np.zeros((16, 4), np.uint8)
     image = impostor_blend.blend_image(samples, [texture], outfit, light, tile_size=size)
     red, blue = 200 / 255.0, 200 / 255.0
-    assert np.allclose(image[:, 3], [0.75 * red, 0, 0.25 * blue])  # both cover: 3:1 mix
-    assert np.allclose(image[:, 0], [red, 0, 0])  # only the heavier sample (0.75 > 0.5)
-    assert np.allclose(image[:, 7], 0)  # only the lighter one (0.25): background
+    heavy, light_only = impostor_blend.edge_alpha(0.75), impostor_blend.edge_alpha(0.25)
+    assert 0.5 < heavy < 1 and 0 < light_only < 0.5
+    assert np.allclose(image[:, 3], [0.75 * red, 0, 0.25 * blue])  # both cover: 3:1 mix, opaque
+    assert np.allclose(image[:, 0], [heavy * red, 0, 0])  # only the heavier sample
+    assert np.allclose(image[:, 7], [0, 0, light_only * blue])  # only the lighter one
+    none = [(1.0, _tile(size, np.zeros((size, size), bool), 0.125))]
+    assert not impostor_blend.blend_image(none, [texture], outfit, light, tile_size=size).any()
+    # Unmoved samples (no surface map): cut at one half, the heavier sample's edge opaque, the lighter's gone.
+    cut = impostor_blend.blend_image(samples, [texture], outfit, light, tile_size=size, reprojected=False)
+    assert np.allclose(cut[:, 0], [red, 0, 0]) and np.allclose(cut[:, 7], 0) and np.allclose(cut[:, 3], image[:, 3])
+
+
+def test_edge_alpha_is_configs_smoothstep():
+    """Opaque where every sample covers, transparent at or under the threshold, one half at a tie, rising
+    in between; the threshold is crowdview's config.h CV_EDGE_LOW, which its shaders read."""
+    coverage = np.linspace(0.0, 1.0, 101)
+    alpha = impostor_blend.edge_alpha(coverage)
+    assert alpha[0] == 0 and alpha[-1] == 1 and abs(impostor_blend.edge_alpha(0.5) - 0.5) < 1e-12
+    assert np.all(np.diff(alpha) >= 0) and np.all(alpha[coverage <= impostor_blend.EDGE_LOW] == 0)
+    assert np.all(alpha[coverage >= 1 - impostor_blend.EDGE_LOW] == 1)
+    assert np.array_equal(impostor_blend.edge_alpha(coverage, reprojected=False), (coverage > 0.5).astype(float))
+    config = (VECTORS.parents[2] / "src" / "config.h").read_text()
+    assert f"#define CV_EDGE_LOW {impostor_blend.EDGE_LOW}\n" in config
 
 
 def test_trilinear_lookup_averages_at_coarse_levels():

@@ -1,8 +1,8 @@
 """The procedural sample's clips (Idle, Walking, Running simulated in one run, with its timeline) and its builds.
 
-One small clips sample (tight skirt on the heavy build, a walk of 16 frames, a coarse 8 x 36 cloth) is
-simulated once and baked once with `--timeline`: that bake is both the check that a clips sample bakes and
-that another build does; its cycle.json holds every loop's and transition's quality figures.
+One small clips sample (clips_fixtures: tight skirt on the heavy build, a walk of 16 frames, a coarse 8 x 36
+cloth) is simulated once and baked once with `--timeline`: that bake is both the check that a clips sample
+bakes and that another build does; its cycle.json holds every loop's and transition's quality figures.
 """
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import json
 import numpy as np
 import pytest
 
+from clips_fixtures import WALK_FRAMES
 from crowdbake.bake.skinning import joint_world_matrices
 from crowdbake.cli import main
 from crowdbake.formats.gltf import load_character
@@ -30,34 +31,6 @@ from crowdbake.sample.clips import (
 from crowdbake.sample.colliders import WAIST_HEIGHT, fit_capsules, segment_distance
 from crowdbake.sample.humanoid import BUILDS, JOINT_INDEX, STANDARD, build_body, build_character
 from crowdbake.sample.walk import FPS
-
-WALK_FRAMES = 16
-SMALL_CLIPS = dict(garment="tight", seed=1, cycle_frames=WALK_FRAMES, texture_size=64, clips=DEFAULT_SEQUENCE, cloth_rows=8,
-                   cloth_columns=36, build="heavy")
-# What a small bake needs (as sample_fixtures.small_bake_params): seconds, not minutes.
-SMALL_BAKE = ["--impostor-frames", "2", "--azimuths", "8", "--elevations", "0,30", "--tile-size", "64", "--lod-triangles", "1200",
-              "--cycle-views", "3", "--candidates", "3", "--no-export"]
-
-
-@pytest.fixture(scope="module")
-def clips_sample(tmp_path_factory):
-    from crowdbake.sample.generate import generate_sample
-
-    folder = tmp_path_factory.mktemp("clips_sample")
-    generate_sample(folder, **SMALL_CLIPS)
-    return folder
-
-
-@pytest.fixture(scope="module")
-def clips_bake(clips_sample, tmp_path_factory):
-    """(exit code, bundle folder) of `crowdbake bake --timeline` on the clips sample."""
-    out = tmp_path_factory.mktemp("clips_bake")
-    s = clips_sample
-    code = main(["bake", str(s / "character.glb"), "--cloth", str(s / "cloth.pc2"), "--cloth-mesh", str(s / "cloth.obj"),
-                 "--textures", str(s / "textures"), "--timeline", str(s / "timeline.json"), "--name", "sample-clips", "--version", "1",
-                 "--out", str(out), *SMALL_BAKE])
-    return code, out / "sample-clips" / "1"
-
 
 # ---------------------------------------------------------------------------------------------- clips
 

@@ -95,11 +95,41 @@ def test_migrations_match_the_models(tmp_path):
     assert not is_migrated(engine)
     migrate(engine)
     migrate(engine)  # idempotent
-    assert is_migrated(engine) and head_revision() == "0003"
+    assert is_migrated(engine) and head_revision() == "0004"
     with engine.connect() as connection:
         differences = compare_metadata(MigrationContext.configure(connection), Base.metadata)
     assert differences == [], "the models changed without a migration"
     assert set(inspect(engine).get_table_names()) >= {table.name for table in Base.metadata.sorted_tables}
+
+
+def test_bakes_made_before_the_loops_stage_get_its_row(tmp_path):
+    """Migration 0004: a bake whose rows predate the loops stage gets one after validate, pending where its
+    cycle stage has not run (a queued bake, or one retried later, then goes on), skipped where it has."""
+    from alembic import command
+    from sqlalchemy import text
+
+    from crowdbake.storage.db import _alembic_config
+
+    engine = make_engine(database_url(tmp_path))
+    old_stages = ("validate", "cycle", "poses", "impostors", "pack", "publish")
+    with engine.begin() as connection:
+        config = _alembic_config(engine.url.render_as_string(hide_password=False))
+        config.attributes["connection"] = connection
+        command.upgrade(config, "0003")
+        for bake_id, cycle_state in (("bk_queued", "pending"), ("bk_done", "succeeded")):
+            connection.execute(text("INSERT INTO bakes (id, name, version, state, input_key, params, inputs, publish, public, attempt, "
+                                    "created_at, updated_at) VALUES (:id, 'walker', :id, 'queued', :id, '{}', '{}', true, false, 0, "
+                                    "CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"), {"id": bake_id})
+            for position, stage in enumerate(old_stages):
+                connection.execute(text("INSERT INTO bake_stages (bake_id, stage, position, state, done, total, retries) "
+                                        "VALUES (:id, :stage, :position, :state, 0, 0, 0)"),
+                                   {"id": bake_id, "stage": stage, "position": position, "state": cycle_state if stage == "cycle" else "pending"})
+    migrate(engine)
+    with session_scope(make_sessionmaker(engine)) as session:
+        for bake_id, loops_state in (("bk_queued", "pending"), ("bk_done", "skipped")):
+            bake = session.get(Bake, bake_id)
+            assert [(row.stage, row.position) for row in bake.stages] == list(zip(STAGES, range(len(STAGES))))
+            assert records.stage_row(session, bake_id, "loops").state == loops_state
 
 
 # ------------------------------------------------------------------------------------------- keys
@@ -226,6 +256,55 @@ def test_fan_in_enqueues_pack_exactly_once_per_attempt(sessions):
         assert bake.attempt == 1 and bake.state == "queued" and bake.error is None
     with session_scope(sessions) as session:
         assert records.claim_fan_in(session, bake_id, 1) is True  # the new attempt has its own barrier
+
+
+def test_two_fan_outs_in_one_attempt_each_queue_their_next_stage_once_and_their_outputs_travel(sessions, tmp_path):
+    """A bake of several clips fans out twice (the clips' loops, then the impostor views). Each fan-in
+    queues its own next stage exactly once; the impostors' fan-out keeps the loops' parts, whose output
+    listings bring every clip's loop to a cycle stage on another machine (private work folders)."""
+    from types import SimpleNamespace
+
+    from crowdbake.jobs.deliveries import StageContext
+    from crowdbake.jobs.exchange import pull_inputs, push_outputs
+    from crowdbake.storage.models import BakePart
+
+    with session_scope(sessions) as session:
+        bake_id = new_bake(session).id
+    items = [{"id": "0-idle", "clip": "Idle"}, {"id": "1-walking", "clip": "Walking"}]
+    services = SimpleNamespace(sessions=sessions, blobs=LocalBlobStore(tmp_path / "blobs"), exchanges_work=True)
+    validating = StageContext(services, bake_id, 0, "validate", tmp_path / "machine-validate")
+    (validating.work / "validate").mkdir(parents=True)
+    (validating.work / "validate" / "record.json").write_text("{}")
+    with session_scope(sessions) as session:
+        records.finish_stage(session, bake_id, "validate", 0.1, {"outputs": push_outputs(validating, ("validate",))})
+        assert records.record_fan_out(session, bake_id, items, "loops") == ["loops/0-idle", "loops/1-walking"]
+    for item in items:  # each part on a machine of its own: it stores what it wrote
+        ctx = StageContext(services, bake_id, 0, "loops", tmp_path / f"machine-{item['id']}")
+        for name in (f"cycle/loops/{item['id']}.npz", f"cycle/loops/{item['id']}.json"):
+            (ctx.work / name).parent.mkdir(parents=True, exist_ok=True)
+            (ctx.work / name).write_text(item["clip"])
+        with session_scope(sessions) as session:
+            part = session.get(BakePart, (bake_id, f"loops/{item['id']}"))
+            part.spec = dict(part.spec, outputs=push_outputs(ctx, (f"cycle/loops/{item['id']}.npz", f"cycle/loops/{item['id']}.json")))
+    with session_scope(sessions) as session:
+        assert records.complete_part(session, bake_id, "loops/0-idle") == 1
+    with session_scope(sessions) as session:
+        assert records.complete_part(session, bake_id, "loops/1-walking") == 0
+        assert records.stage_row(session, bake_id, "loops").done == 2
+        assert records.claim_fan_in(session, bake_id, 0, "cycle") is True
+    with session_scope(sessions) as session:
+        assert records.claim_fan_in(session, bake_id, 0, "cycle") is False  # a redelivered last part queues nothing
+        assert records.stage_row(session, bake_id, "cycle").state == "queued"
+    joining = StageContext(services, bake_id, 0, "cycle", tmp_path / "machine-cycle")
+    pull_inputs(joining, "cycle")
+    assert sorted(path.name for path in (joining.work / "cycle" / "loops").iterdir()) == ["0-idle.json", "0-idle.npz", "1-walking.json", "1-walking.npz"]
+    with session_scope(sessions) as session:
+        records.record_fan_out(session, bake_id, [{"id": "f0000-e0"}])
+        assert records.parts_left(session, bake_id, "loops") == 0 and records.parts_left(session, bake_id, "impostors") == 1
+    with session_scope(sessions) as session:
+        assert records.complete_part(session, bake_id, "impostors/f0000-e0") == 0
+        assert records.claim_fan_in(session, bake_id, 0) is True  # pack, the impostors' own barrier
+        assert session.query(BakePart).filter(BakePart.bake_id == bake_id, BakePart.stage == "loops").count() == 2
 
 
 def test_progress_weights_cover_every_stage(sessions):

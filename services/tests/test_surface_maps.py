@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from crowdbake.bake import impostor_views, surface_maps
 from crowdbake.bake.reference import impostor_warp
 from crowdbake.bake.reference.impostor_blend import DecodedTile, FrameWeights
+from crowdbake.formats.ranges import Clip, Ranges, Transition
 
 SIZE = 16
 CENTER = np.array([0.0, 1.0, 0.0])
@@ -64,6 +66,41 @@ def test_the_next_baked_frame_wraps_round_the_cycle():
     assert surface_maps.next_baked_frame(8, [0, 8, 16]) == 16
     assert surface_maps.next_baked_frame(16, [0, 8, 16]) == 0
     assert surface_maps.next_baked_frame(5, [5]) == 5
+
+
+def test_the_previous_baked_frame_wraps_round_the_cycle_or_its_own_range():
+    assert surface_maps.previous_baked_frame(8, [0, 8, 16]) == 0
+    assert surface_maps.previous_baked_frame(0, [0, 8, 16]) == 16
+    assert surface_maps.previous_baked_frame(5, [5]) == 5
+    # Clips of 20 and 10 pose frames, then transitions of 31 and 1 (as test_pose_ranges).
+    ranges = Ranges(62, (Clip("idle", 0, 20, 0, 20, "crossfade", 0.0, 0.0), Clip("walk", 20, 10, 0, 10, "crossfade", 0.0, 0.0)),
+                    (Transition(0, 1, 0, 0, 30, 31, 0, 31, 0.0, 0.0), Transition(1, 0, 0, 0, 61, 1, 0, 1, 0.0, 0.0)))
+    frames = [0, 5, 10, 15, 20, 25, 30, 40, 50, 60, 61]
+    assert surface_maps.previous_baked_frame_in_range(ranges, 5, frames) == 0
+    assert surface_maps.previous_baked_frame_in_range(ranges, 0, frames) == 15  # a clip wraps to its own last
+    assert surface_maps.previous_baked_frame_in_range(ranges, 20, frames) == 25  # not back into idle
+    assert surface_maps.previous_baked_frame_in_range(ranges, 30, frames) == 30  # a transition's first: itself
+    assert surface_maps.previous_baked_frame_in_range(ranges, 60, frames) == 50
+    with pytest.raises(ValueError, match="not a baked frame"):
+        surface_maps.previous_baked_frame_in_range(ranges, 7, frames)
+
+
+def test_motion_is_the_velocity_at_the_frame_central_where_both_neighbours_are_baked():
+    """A vertex on a parabola p(t) = t² at t = -1, 0, 1: the central difference is its velocity at 0 (zero
+    here), where the move to the next frame (1) would be off by the acceleration's half step."""
+    at = lambda t: np.array([[t * t, 2.0 * t, 0.0]])  # noqa: E731
+    np.testing.assert_allclose(surface_maps.motion_positions(at(0), at(-1), at(1)) - at(0), [[0.0, 2.0, 0.0]])
+    np.testing.assert_allclose(surface_maps.motion_positions(at(0), None, at(1)), at(1))  # a range's first: the move on
+    np.testing.assert_allclose(surface_maps.motion_positions(at(0), at(-1), None) - at(0), [[-1.0, 2.0, 0.0]])  # its last
+    np.testing.assert_allclose(surface_maps.motion_positions(at(0), None, None), at(0))
+
+
+def test_motion_is_taken_between_the_neighbours_a_frame_has():
+    assert surface_maps.motion_sides(8, 0, 16) == (0, 16)
+    assert surface_maps.motion_sides(30, 30, 40) == (None, 40)  # a transition's first
+    assert surface_maps.motion_sides(60, 50, 60) == (50, None)  # its last
+    assert surface_maps.motion_sides(5, 5, 5) == (None, None)  # one baked frame
+    assert surface_maps.motion_sides(0, 8, 8) == (None, 8)  # two: the move to the other, not a zero difference
 
 
 def test_motion_fraction_moves_the_earlier_frame_forward_and_the_later_back():

@@ -42,6 +42,7 @@ void main() {
     int region = int(detail.a * 255.0 / CV_REGION_SCALE + 0.5);
     if (region != 0) albedo *= texelFetch(u_outfits, ivec2(region, int(v_outfit)), 0).rgb;
     vec3 model_normal = sample_normal(texel);
+    float alpha = 1.0;
 #else
 void main() {
     vec2 pixel = v_tile_uv * float(u_tile_size);
@@ -66,11 +67,12 @@ void main() {
             model_normal += w * sample_normal(texel);
         }
     }
-    if (coverage <= 0.5) discard;  // see impostor_uv.frag.glsl
+    float alpha = edge_alpha(coverage);  // see impostor_uv.frag.glsl
+    if (alpha <= 0.0) discard;
     albedo /= coverage;
 #endif
     float c = cos(v_heading), s = sin(v_heading);
     vec3 normal = normalize(mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c) * model_normal);
     float light = CV_AMBIENT + (1.0 - CV_AMBIENT) * max(dot(normal, u_light_dir), 0.0);
-    o_color = vec4(albedo * light, 1.0);
+    o_color = vec4(albedo * light, alpha);
 }

@@ -99,12 +99,13 @@ void main() {
             }
         }
     }
-    // Coverage over one half: where one sample holds most of the weight, its own silhouette; at
-    // an exact tie, where both agree. (At a tie, the union would show both poses' limbs.)
-    if (coverage <= 0.5) discard;
+    // Where the samples' silhouettes disagree the pixel is partly transparent (edge_alpha), blended
+    // over what is behind it (renderer.cpp); where none covers enough, nothing is drawn.
+    float alpha = edge_alpha(coverage);
+    if (alpha <= 0.0) discard;
     albedo /= coverage;
     float c = cos(v_heading), s = sin(v_heading);
     vec3 normal = normalize(mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c) * model_normal);
     float light = CV_AMBIENT + (1.0 - CV_AMBIENT) * max(dot(normal, u_light_dir), 0.0);
-    o_color = vec4(albedo * light, 1.0);
+    o_color = vec4(albedo * light, alpha);
 }

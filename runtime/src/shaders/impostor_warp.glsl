@@ -3,8 +3,8 @@
 // CV_WARP 0: the texel under the fragment, at the same offset in every sample's tile (plain blending).
 // CV_WARP 1: the sample reprojected with the bundle's surface map (SPEC.md "Impostor maps"; the bake's
 // numpy copy is crowdbake.bake.impostor_warp, scored in fidelity.json's `runtime` section). A tile texel
-// holds the surface point its view saw: its depth along the view axis and its motion to the next baked
-// frame in the tile's plane. A camera between baked views, or a cycle frame between baked frames, sees
+// holds the surface point its view saw: its depth along the view axis and its motion in the tile's plane
+// over one baked step (its velocity at that baked frame). A camera between baked views, or a cycle frame between baked frames, sees
 // that point elsewhere; a fragment can only gather, so the reprojection is inverted by a fixed-point
 // iteration, as parallax occlusion mapping does: start where the fragment's ray crosses the plane through
 // the bounds centre, read depth and motion there (bilinear: the map is dilated into the background),

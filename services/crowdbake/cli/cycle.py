@@ -3,6 +3,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
+from contextlib import ExitStack
+from pathlib import Path
 
 from crowdbake.cli.common import CommandError, progress
 from crowdbake.params import CYCLE_SHARED, add_cli_options
@@ -29,8 +32,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("cloth", metavar="CLOTH", help="the cloth cache, many walk cycles long: .pc2 or .mdd (with --mesh), .abc, or a .zip of OBJ frames")
+    parser.add_argument("cloth", metavar="CLOTH", nargs="?",
+                        help="the cloth cache, many walk cycles long: .pc2 or .mdd (with --mesh), .abc, or a .zip of OBJ frames")
     parser.add_argument("--mesh", metavar="CLOTH.obj", help="the garment's rest mesh (OBJ, cache point order); .pc2 and .mdd need it")
+    parser.add_argument("--clip-cloth", metavar="NAME=CACHE[,MESH]", action="append", default=[],
+                        help="instead of CLOTH: one cache per clip of --character, each a simulation of its own (repeat per "
+                             "clip; MESH defaults to --mesh): a loop per clip, as `crowdbake bake --clip-cloth`")
     body = parser.add_mutually_exclusive_group(required=True)
     body.add_argument("--character", metavar="CHAR.glb", help="the skinned character whose animation drove the cloth")
     body.add_argument("--body", metavar="BODY.pc2", help="the body as a cache over the same frames (needs --body-mesh)")
@@ -56,12 +63,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from crowdbake.bake.cycle import CycleParams
+    from crowdbake.errors import InputError
     from crowdbake.stages.cycle import run_cycle_job
 
     if args.body is not None and args.body_mesh is None:
         raise CommandError("--body needs --body-mesh")
     if args.body_mesh is not None and args.body is None:
         raise CommandError("--body-mesh needs --body")
+    if args.clip_cloth:
+        for given, option in ((args.cloth, "CLOTH"), (args.timeline, "--timeline"), (args.body, "--body"), (args.cycle_frames, "--cycle-frames")):
+            if given is not None:
+                raise CommandError(f"--clip-cloth gives every clip its own cache and its period from --character's animation: leave out {option}")
+    elif args.cloth is None:
+        raise CommandError("give the cloth cache CLOTH, or --clip-cloth NAME=CACHE[,MESH] for each clip")
     try:
         params = CycleParams(
             settle_frames=args.settle_frames,
@@ -84,20 +98,23 @@ def run(args: argparse.Namespace) -> int:
     stages = ["load", "pass 1", "pass 2", "closing", "report"]
     if args.no_edge_pass:
         stages.remove("pass 2")
-    with progress(len(stages), "cycle") as bar:
+    with ExitStack() as stack, progress(len(stages), "cycle") as bar:
         def on_progress(stage: str, done: int, total: int) -> None:
             bar.set_description(f"cycle: {stage}")
             if done == total:
                 bar.update(1)
 
         try:
+            cloth, mesh, timeline = _cloth_inputs(args, stack)
             result = run_cycle_job(
-                args.cloth, args.mesh, args.out,
+                cloth, mesh, args.out,
                 character=args.character, body_pc2=args.body, body_obj=args.body_mesh,
                 cycle_frames=args.cycle_frames, fps=args.fps, params=params,
                 up=args.up, units=args.units, animation=args.animation,
-                progress=on_progress, edge_pass=not args.no_edge_pass, timeline=args.timeline,
+                progress=on_progress, edge_pass=not args.no_edge_pass, timeline=timeline,
             )
+        except InputError as error:
+            raise CommandError(f"--clip-cloth: {error.message}" if error.field == "clip_cloth" else error.message) from None
         except (ValueError, OSError) as error:
             # One line: the readers and the search name the file and the problem.
             raise CommandError(str(error).splitlines()[0] if str(error) else type(error).__name__) from None
@@ -110,3 +127,16 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stdout,
     )
     return 0
+
+
+def _cloth_inputs(args: argparse.Namespace, stack: ExitStack) -> tuple[str, str | None, str | None]:
+    """(cloth, mesh, timeline) to search: as given, or the --clip-cloth caches joined end to end with a
+    timeline whose later segments are new simulations (crowdbake.ingest.clip_caches), in a temporary folder."""
+    if not args.clip_cloth:
+        return args.cloth, args.mesh, args.timeline
+    from crowdbake.ingest.clip_caches import parse_clip_cloth, write_joined_inputs
+
+    entries = parse_clip_cloth(args.clip_cloth, Path(args.mesh) if args.mesh else None)
+    folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="crowdbake-clips-")))
+    cloth, mesh, timeline = write_joined_inputs(entries, Path(args.character), args.fps, folder)
+    return str(cloth), str(mesh), str(timeline)

@@ -165,7 +165,7 @@ def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
         kinds.append(("detail", True, "diffuse variation 0 unlit, alpha = 17 * region code"))
     if "surface" in impostor["maps"]:  # SPEC.md "Impostor maps": for reprojecting samples between views and frames
         kinds.append(("surface", False, "per texel, metres = (c / 255 * 2 - 1) * range: r = depth along the view's back axis "
-                      "(range bounds.radius), g, b = motion to the next baked frame along the view's right and up axes "
+                      "(range bounds.radius), g, b = velocity over one baked step along the view's right and up axes "
                       "(range bounds.radius / 2); dilated past the silhouette"))
     for kind, colour, encoding in kinds:
         texture = bundle.textures[impostor["maps"][kind]]

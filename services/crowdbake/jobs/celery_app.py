@@ -10,8 +10,8 @@ Choices, and why:
     every stage is idempotent (outputs keyed by the hash of inputs, parameters and code version).
   * `worker_prefetch_multiplier = 1`: stages run for seconds to minutes; a worker holding several
     queued messages would starve its idle neighbours.
-  * No result backend: the database records every stage's state and progress, and the fan-in of the
-    impostor tasks is a barrier in the database (crowdbake.storage.records), not a Celery chord.
+  * No result backend: the database records every stage's state and progress, and the fan-in of a
+    fan-out's tasks is a barrier in the database (crowdbake.storage.records), not a Celery chord.
   * Redis in production (`visibility_timeout` above the longest stage: a long stage redelivered while
     it runs would be dropped anyway, its unit being claimed by a live delivery, but need not be). The
     filesystem transport for the one-command demo needs no server; each message is written under a
@@ -32,9 +32,11 @@ from crowdbake.settings import Settings, get_settings
 
 logger = logging.getLogger(__name__)
 
-# Task names, one per stage (the impostor stage fans out into many "impostor_views" tasks).
+# Task names, one per stage; a fan-out stage's under its node's name (crowdbake.stages.plan.fan_out_of):
+# the loops stage runs a "clip_loop" task per clip, the impostors stage many "impostor_views" tasks.
 TASK_NAMES = {
     "validate": "crowdbake.stage.validate",
+    "clip_loop": "crowdbake.stage.clip_loop",
     "cycle": "crowdbake.stage.cycle",
     "poses": "crowdbake.stage.poses",
     "impostor_views": "crowdbake.stage.impostor_views",

@@ -38,10 +38,11 @@ from sqlalchemy.orm import Session, sessionmaker
 from crowdbake.jobs.celery_app import TASK_NAMES, app
 from crowdbake.jobs.failures import describe_error, is_transient
 from crowdbake.settings import Settings, get_settings
+from crowdbake.stages import STAGES, plan
 from crowdbake.storage import records
 from crowdbake.storage.blobs import BlobStore
 from crowdbake.storage.bundle_store import BundleStore
-from crowdbake.storage.db import make_engine, make_sessionmaker, session_scope
+from crowdbake.storage.db import fork_guarded_scope, make_engine, make_sessionmaker, session_scope
 from crowdbake.storage.exports import ExportStore
 from crowdbake.storage.models import Bake, utcnow
 from crowdbake.storage.store import open_store
@@ -334,7 +335,8 @@ def send_queued(stage: str, bake_id: str, attempt: int, *parts: str) -> None:
     queue = services().settings.queue
     try:
         if parts:
-            group(app.signature(TASK_NAMES["impostor_views"], args=[bake_id, attempt, part], queue=queue, immutable=True) for part in parts) \
+            task = TASK_NAMES[plan.fan_out_of(stage).name]
+            group(app.signature(task, args=[bake_id, attempt, part], queue=queue, immutable=True) for part in parts) \
                 .apply_async(retry=True, retry_policy=BROKER_PUBLISH_RETRY)
         else:
             app.send_task(TASK_NAMES[stage], args=[bake_id, attempt], queue=queue, retry=True, retry_policy=BROKER_PUBLISH_RETRY)
@@ -345,14 +347,14 @@ def send_queued(stage: str, bake_id: str, attempt: int, *parts: str) -> None:
                                "it stays queued and is sent once the broker answers")
         return
     with session_scope(services().sessions) as session:
-        records.mark_sent(session, bake_id, attempt, "impostors" if parts else stage, parts)
+        records.mark_sent(session, bake_id, attempt, stage, parts)
 
 
 # ------------------------------------------------------------------- messages held by a worker
 
 
 # Which unit a task message is for: (stage, part) from the task name and its args.
-_STAGE_OF_TASK = {name: ("impostors" if stage == "impostor_views" else stage) for stage, name in TASK_NAMES.items()}
+_STAGE_OF_TASK = {TASK_NAMES[plan.fan_out_of(stage).name if plan.runs_in_parallel(stage) else stage]: stage for stage in STAGES}
 _received_beat: threading.Thread | None = None
 
 
@@ -364,9 +366,9 @@ def _mark_received(sender=None, request=None, **_kwargs) -> None:
     args = list(getattr(request, "args", None) or [])
     if stage is None or len(args) < 2:
         return
-    part = args[2] if stage == "impostors" and len(args) > 2 else None
+    part = args[2] if plan.runs_in_parallel(stage) and len(args) > 2 else None
     try:
-        with session_scope(services().sessions) as session:
+        with fork_guarded_scope(services().sessions) as session:
             records.mark_received(session, args[0], int(args[1]), stage, part, records.delivery_owner(request.id))
     except Exception as error:  # a busy database: the task's own claim still works without the mark
         logger.warning("could not mark %s of bake %s as received: %s", part or stage, args[0], error)
@@ -383,7 +385,7 @@ def _start_received_beat() -> None:
         while True:
             time.sleep(services().settings.heartbeat_interval)
             try:
-                with session_scope(services().sessions) as session:
+                with fork_guarded_scope(services().sessions) as session:  # this thread's beat vs the pool's forks
                     records.beat_received(session, prefix)
             except Exception as error:
                 logger.warning("heartbeat of received messages failed: %s", error)

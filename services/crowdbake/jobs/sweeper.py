@@ -2,7 +2,7 @@
 
 One pass (`sweep_once`) does four things, each safe to run in several processes at once:
 
-1. **Lost workers.** A running stage (or impostor part) whose heartbeat is older than
+1. **Lost workers.** A running stage (or fan-out part) whose heartbeat is older than
    CROWDBAKE_HEARTBEAT_TIMEOUT lost its worker (the machine died, the process group was killed, the
    host was partitioned away). It is re-queued with a new message, one retry counted against
    CROWDBAKE_TASK_MAX_RETRIES, and the bake's log says so; past the budget the bake fails with type
@@ -46,6 +46,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from crowdbake.jobs.celery_app import send_stage
 from crowdbake.settings import Settings
+from crowdbake.stages import plan
 from crowdbake.storage import records, sweeps
 from crowdbake.storage.db import session_scope
 from crowdbake.storage.models import Bake, utcnow
@@ -75,9 +76,9 @@ class SweepReport:
 
 
 def send_delivery(celery: Celery, settings: Settings, delivery: sweeps.Delivery) -> None:
-    """Send the message of a stage or of one impostor part."""
+    """Send the message of a stage or of one part of a fan-out stage."""
     if delivery.part:
-        send_stage(celery, settings, "impostor_views", delivery.bake_id, delivery.attempt, delivery.part)
+        send_stage(celery, settings, plan.fan_out_of(delivery.stage).name, delivery.bake_id, delivery.attempt, delivery.part)
     else:
         send_stage(celery, settings, delivery.stage, delivery.bake_id, delivery.attempt)
 

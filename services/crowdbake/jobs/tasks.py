@@ -3,11 +3,12 @@
 A task takes the bake's id and attempt (and, for a fan-out part, its part id), runs the nodes of its
 unit in plan order on the bake's work folder, records the outcome and queues the next unit:
 
-    validate -> cycle -> poses -> impostor_views x N (in parallel) -> pack -> publish
+    validate -> clip_loop x clips (in parallel) -> cycle -> poses -> impostor_views x N (in parallel) -> pack -> publish
 
-A unit that is one fan-out node alone (the impostor views) runs as one task per item, its parts
-registered by the unit before it; the last part to finish queues the next unit (a barrier in the
-database: records.complete_part and claim_fan_in). Claims, heartbeats, retries and cancellation are
+A unit that is one fan-out node alone (a timeline's clip loops, the impostor views) runs as one task
+per item, its parts registered by the unit before it; the last part to finish queues the next unit (a
+barrier in the database: records.complete_part and claim_fan_in). A fan-out without items (a bake of
+one clip has no clip loops to search apart) is skipped. Claims, heartbeats, retries and cancellation are
 crowdbake.jobs.deliveries's.
 
 The work folder is named by the bake's input key (hash of inputs, parameters and code version), and the
@@ -90,16 +91,31 @@ def run_unit(ctx: StageContext, unit: str) -> dict[str, Any]:
     return dict(own if isinstance(own, dict) else {}, nodes=trace.entries, outputs=outputs)
 
 
+def _next_unit(unit: str) -> str | None:
+    return STAGES[STAGES.index(unit) + 1] if unit != STAGES[-1] else None
+
+
 def _queue_after(unit: str):
     """The `after` of a unit's task: record its success, then queue the next unit (or its fan-out parts,
     or finish the bake)."""
 
     def after(ctx: StageContext, result, seconds: float) -> None:
-        following = STAGES[STAGES.index(unit) + 1] if unit != STAGES[-1] else None
+        following = _next_unit(unit)
         part_ids: list[str] = []
         with ctx.session() as session:
             bake = finish(ctx, session, result, seconds)
-            if following is None:
+            while following is not None and plan.runs_in_parallel(following):
+                fan_out = plan.nodes_of(following)[0]
+                part_ids = records.record_fan_out(session, ctx.bake_id, fan_out.items(ctx.work), following)
+                if part_ids:
+                    records.append_log(session, ctx.bake_id, "INFO", following, f"fanning out {len(part_ids)} {fan_out.name} tasks")
+                    break
+                records.stage_row(session, ctx.bake_id, following).state = "skipped"
+                records.append_log(session, ctx.bake_id, "INFO", following, f"no {fan_out.name} tasks: {following} skipped")
+                following = _next_unit(following)
+            if part_ids:
+                pass  # the parts are queued; the last to finish queues the unit after them
+            elif following is None:
                 # The record, the stage's success and the bake's in one transaction; a cancel cannot come
                 # between folder and record (records.cancel_bake refuses once publish has started).
                 register_bundle(session, ctx.services.bundles, bake.name, bake.version, bake.public, bake.id)
@@ -108,22 +124,13 @@ def _queue_after(unit: str):
                 records.stage_row(session, ctx.bake_id, "publish").state = "skipped"
                 records.succeed_bake(session, bake)
                 following = None
-            elif plan.runs_in_parallel(following):
-                fan_out = plan.nodes_of(following)[0]
-                part_ids = records.record_fan_out(session, ctx.bake_id, fan_out.items(ctx.work))
-                records.append_log(session, ctx.bake_id, "INFO", following, f"fanning out {len(part_ids)} {fan_out.name} tasks")
             else:
                 records.queue_stage(session, ctx.bake_id, following)
         if unit == STAGES[-1]:
             # Published: the work folder has served its purpose (an identical submit returns this bake).
             shutil.rmtree(ctx.work, ignore_errors=True)
-        elif following is not None and plan.runs_in_parallel(following):
-            if part_ids:
-                send_queued(following, ctx.bake_id, ctx.attempt, *part_ids)
-            else:
-                _maybe_enqueue_fan_in(ctx, 0)
         elif following is not None:
-            send_queued(following, ctx.bake_id, ctx.attempt)
+            send_queued(following, ctx.bake_id, ctx.attempt, *part_ids)
 
     return after
 
@@ -141,53 +148,61 @@ def _unit_task(unit: str):
 validate, cycle, poses, pack, publish = (_unit_task(unit) for unit in ("validate", "cycle", "poses", "pack", "publish"))
 
 
-def _maybe_enqueue_fan_in(ctx: StageContext, parts_left: int) -> None:
-    """The last part to finish queues pack (the claim queues it in the same transaction; its message is
-    sent after the commit, or by the sweeper if the broker is away)."""
+def _maybe_enqueue_fan_in(ctx: StageContext, parts_left: int, unit: str) -> None:
+    """The last part of fan-out `unit` to finish queues the unit after it (the claim queues it in the same
+    transaction; its message is sent after the commit, or by the sweeper if the broker is away)."""
     if parts_left:
         return
+    following = _next_unit(unit)
     with ctx.session() as session:
         ctx.check_live(session)
-        claimed = records.claim_fan_in(session, ctx.bake_id, ctx.attempt)
+        claimed = records.claim_fan_in(session, ctx.bake_id, ctx.attempt, following)
     if claimed:
-        send_queued("pack", ctx.bake_id, ctx.attempt)
+        send_queued(following, ctx.bake_id, ctx.attempt)
 
 
 # What a part's spec holds besides the node's item: the listing of its outputs and its trace entry.
 PART_RECORD_KEYS = ("outputs", "ran")
 
 
-@app.task(name=TASK_NAMES["impostor_views"], **TASK_OPTIONS)
-def impostor_views(self, bake_id: str, attempt: int, part_id: str) -> None:
-    unit = "impostors"
-    node = plan.nodes_of(unit)[0]
+def _part_task(unit: str):
+    """The Celery task that runs one item (a part) of fan-out `unit`: its node on the item the part's spec holds."""
+    node = plan.fan_out_of(unit)
 
-    def body(ctx: StageContext):
-        with ctx.session() as session:
-            part = session.get(BakePart, (bake_id, part_id))
-            if part is None:
-                raise BakeStopped(f"bake {bake_id} has no part {part_id} (superseded)")
-            item = {key: value for key, value in part.spec.items() if key not in PART_RECORD_KEYS}
-        pull_inputs(ctx, unit)
-        node.run(plan.Call(ctx.work, item=item))
-        ran = plan.Trace().add(node, ctx.work, item)
-        return ran, push_outputs(ctx, node.item_writes(item))
+    @app.task(name=TASK_NAMES[node.name], **TASK_OPTIONS)
+    def task(self, bake_id: str, attempt: int, part_id: str) -> None:
+        def body(ctx: StageContext):
+            with ctx.session() as session:
+                part = session.get(BakePart, (bake_id, part_id))
+                if part is None:
+                    raise BakeStopped(f"bake {bake_id} has no part {part_id} (superseded)")
+                item = {key: value for key, value in part.spec.items() if key not in PART_RECORD_KEYS}
+            pull_inputs(ctx, unit)
+            node.run(plan.Call(ctx.work, item=item))
+            ran = plan.Trace().add(node, ctx.work, item)
+            return ran, push_outputs(ctx, node.item_writes(item))
 
-    def after(ctx: StageContext, outcome, seconds: float) -> None:
-        ran, outputs = outcome
-        with ctx.session() as session:
-            if records.still_owner(session, ctx.bake_id, ctx.attempt, unit, part_id, ctx.owner) is None:
-                raise BakeStopped(f"bake {ctx.bake_id} attempt {ctx.attempt}: {part_id} is no longer this delivery's")
-            part = session.get(BakePart, (ctx.bake_id, part_id))
-            if part is not None:  # what pack fetches from this part (see pull_inputs), and what ran
-                part.spec = dict(part.spec, ran=ran, **({"outputs": outputs} if outputs is not None else {}))
-            parts_left = records.complete_part(session, ctx.bake_id, part_id)
-            row = records.stage_row(session, ctx.bake_id, unit)
-            row.seconds = round((row.seconds or 0.0) + seconds, 3)  # summed render seconds over parts
-            if records.impostor_parts_left(session, ctx.bake_id) == 0:
-                row.state, row.finished_at = "succeeded", records.utcnow()
-                row.done = row.total
-                records.append_log(session, ctx.bake_id, "INFO", unit, f"all {row.total} impostor-view tasks finished ({row.seconds:.2f} s of rendering)")
-        _maybe_enqueue_fan_in(ctx, parts_left)
+        def after(ctx: StageContext, outcome, seconds: float) -> None:
+            ran, outputs = outcome
+            with ctx.session() as session:
+                if records.still_owner(session, ctx.bake_id, ctx.attempt, unit, part_id, ctx.owner) is None:
+                    raise BakeStopped(f"bake {ctx.bake_id} attempt {ctx.attempt}: {part_id} is no longer this delivery's")
+                part = session.get(BakePart, (ctx.bake_id, part_id))
+                if part is not None:  # what the next unit fetches from this part (see pull_inputs), and what ran
+                    part.spec = dict(part.spec, ran=ran, **({"outputs": outputs} if outputs is not None else {}))
+                parts_left = records.complete_part(session, ctx.bake_id, part_id)
+                row = records.stage_row(session, ctx.bake_id, unit)
+                row.seconds = round((row.seconds or 0.0) + seconds, 3)  # summed over parts
+                if parts_left == 0:
+                    row.state, row.finished_at = "succeeded", records.utcnow()
+                    row.done = row.total
+                    records.append_log(session, ctx.bake_id, "INFO", unit, f"all {row.total} {node.name} tasks finished ({row.seconds:.2f} s of work)")
+            _maybe_enqueue_fan_in(ctx, parts_left, unit)
 
-    run_stage(self, bake_id, attempt, unit, body, after, log_start=False, part=part_id)
+        run_stage(self, bake_id, attempt, unit, body, after, log_start=False, part=part_id)
+
+    return task
+
+
+# One task per clip of a timeline; one per impostor task (a frame's views of some elevations).
+clip_loop, impostor_views = _part_task("loops"), _part_task("impostors")

@@ -4,7 +4,8 @@ section scores against the mesh (crowdbake.stages.runtime_fidelity).
 The shader is crowdview's own files (runtime/src/shaders/impostor.vert.glsl, impostor_uv.frag.glsl and
 what they include), pasted together as crowdview's loader does (runtime/src/renderer.cpp,
 load_shader_source and compile_shader: each `#include "x"` line replaced by the file x beside it, one
-level; the program's defines right after the #version line), in the blending crowdview draws by default:
+level; the program's defines right after the #version line), blended over black as crowdview blends
+impostors over its scene, in the blending of samples crowdview draws by default:
 four views times two frames, reprojected by the surface map where the bundle has one (CV_WARP). So the
 scores measure the runtime's code, not a copy of it. Two things differ from a crowd frame, both so that
 the picture can be compared with the fidelity references (crowdbake.render.map_shader's REFERENCE pass):
@@ -205,7 +206,9 @@ class RuntimeImpostorShader:
         GL.glClearBufferfv(GL.GL_COLOR, 0, np.zeros(4, dtype=np.float32))
         GL.glDisable(GL.GL_DEPTH_TEST)
         GL.glDisable(GL.GL_CULL_FACE)
-        GL.glDisable(GL.GL_BLEND)
+        # crowdview's impostor blending (renderer.cpp): soft silhouettes mix over the black clear.
+        GL.glEnable(GL.GL_BLEND)
+        GL.glBlendFuncSeparate(GL.GL_SRC_ALPHA, GL.GL_ONE_MINUS_SRC_ALPHA, GL.GL_ONE, GL.GL_ONE_MINUS_SRC_ALPHA)
         # The character stands at the origin with heading 0: its model frame is the world's.
         GL.glVertexAttrib4f(ATTR_INSTANCE_POSE, 0.0, 0.0, 0.0, 0.0)
         order = sorted(range(len(pictures)), key=lambda k: samples_needed(pictures[k]))
@@ -238,6 +241,7 @@ class RuntimeImpostorShader:
         image = np.empty((rows * size, columns * size, 3), dtype=np.float32)
         GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 4)
         GL.glReadPixels(0, 0, columns * size, rows * size, GL.GL_RGB, GL.GL_FLOAT, image.ctypes.data_as(ctypes.c_void_p))
+        GL.glDisable(GL.GL_BLEND)
         GL.glBindVertexArray(0)
         GL.glUseProgram(0)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)

@@ -91,14 +91,15 @@ def timeline_dict(timeline: Timeline) -> dict:
     }
 
 
-def pose_clips_body(character_path, timeline: Timeline) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def pose_clips_body(character_path, timeline: Timeline, only: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The body at every pure frame of the timeline, posed at that frame's clip frame: ((F, Vb, 3)
-    positions, (F, Vb, 3) normals, (Tb, 3) faces); frames in blends stay zero (no search reads them)."""
+    positions, (F, Vb, 3) normals, (Tb, 3) faces); frames in blends stay zero (no search reads them).
+    only: a clip's name to pose that clip's frames alone (the rest stay zero: one clip's search reads no other)."""
     from crowdbake.bake.skinning import pose_character
     from crowdbake.formats.gltf import load_character
 
     positions = normals = faces = None
-    for clip in timeline.clips():
+    for clip in timeline.clips() if only is None else [only]:
         character = load_character(character_path, animation=clip)
         period = timeline.period(clip)
         posed, posed_normals = pose_character(character, timeline.fps, period)
@@ -150,17 +151,21 @@ def _seam_number(value: float) -> float:
 def run_clips_job(cloth: np.ndarray, cloth_faces: np.ndarray, timeline: Timeline, out_dir: Path,
                   params: CycleParams = CycleParams(), animation: int | str | None = None, render_views=None,
                   body: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, progress=None, sample_rate: float = 1.0,
-                  ) -> tuple[CycleResult, list[ClipLoop], list[Transition], dict]:
+                  loops: list[ClipLoop] | None = None) -> tuple[CycleResult, list[ClipLoop], list[Transition], dict]:
     """Every clip's loop and every transition, their files under out_dir; returns (the primary clip's
     result in cache frames, the loops, the transitions, cycle.json's multi-clip sections).
     body: pose_clips_body's output or None (then no penetration figures); sample_rate: the PC2 files'
-    sample interval (the cache's). ValueError on a clip without
+    sample interval (the cache's); loops: every clip's loop, in the timeline's order, searched already
+    (crowdbake.stages.loops), or None to search them here. ValueError on a clip without
     a loop or a segment too short for a join."""
     from crowdbake.formats.pc2 import write_pc2
 
     primary = primary_clip(timeline, animation)
     positions, faces = (None, None) if body is None else (body[0], body[2])
-    loops = find_clip_loops(cloth, cloth_faces, timeline, params, render_views, positions, faces, progress)
+    if loops is None:
+        loops = find_clip_loops(cloth, cloth_faces, timeline, params, render_views, positions, faces, progress)
+    elif [loop.clip for loop in loops] != timeline.clips():
+        raise ValueError(f"the loops searched are of {[loop.clip for loop in loops]}, the timeline plays {timeline.clips()}")
     transitions = find_transitions(cloth, cloth_faces, timeline, loops, params.max_candidates, params.velocity_weight, body=positions)
     out = Path(out_dir)
     (out / "clips").mkdir(parents=True, exist_ok=True)
@@ -260,10 +265,9 @@ def _shown(value) -> str:
     return "–" if value is None else f"{value:.3g}"
 
 
-def run_timeline(inputs, timeline: Timeline, timeline_path: Path, character, out_dir, params: CycleParams,
-                 animation: str, render_views, progress) -> tuple[CycleResult, dict]:
-    """run_cycle_job's several-clip path: the timeline against the loaded inputs (crowdbake.stages.cycle.
-    CycleInputs) and the character's clips, the body posed per clip, then run_clips_job."""
+def check_timeline(inputs, timeline: Timeline, timeline_path: Path, character) -> None:
+    """The timeline against the loaded inputs (crowdbake.stages.cycle.CycleInputs) and the character's
+    clips (crowdbake.ingest.timeline.check_timeline_fits)."""
     from crowdbake.ingest.timeline import check_timeline_fits
 
     known = None
@@ -272,12 +276,20 @@ def run_timeline(inputs, timeline: Timeline, timeline_path: Path, character, out
 
         known = {clip.name: clip.seconds for clip in character_clips(character)}
     check_timeline_fits(timeline, inputs.cloth.shape[0], inputs.fps, known, timeline_path.name)
+
+
+def run_timeline(inputs, timeline: Timeline, timeline_path: Path, character, out_dir, params: CycleParams,
+                 animation: str, render_views, progress, loops: list[ClipLoop] | None = None) -> tuple[CycleResult, dict]:
+    """run_cycle_job's several-clip path: the timeline checked, the body posed per clip, then run_clips_job
+    (loops: searched already, see run_clips_job). The body is posed even then: the transitions' search
+    reads it (crowdbake.bake.transitions.switch_is_slow), as the one over every clip does."""
+    check_timeline(inputs, timeline, timeline_path, character)
     body = None
     if character is not None:
         body = pose_clips_body(character, timeline)
     elif inputs.body is not None:
         body = (inputs.body, inputs.body_normals, inputs.body_faces)
     result, _, _, sections = run_clips_job(inputs.cloth, inputs.cloth_faces, timeline, out_dir, params, animation,
-                                           render_views, body, progress, inputs.sample_rate)
+                                           render_views, body, progress, inputs.sample_rate, loops)
     sections["sources"] = {"timeline": str(timeline_path)}
     return result, sections

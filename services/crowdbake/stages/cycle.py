@@ -2,6 +2,8 @@
 
 Reads the JobRecord; writes work/cycle/cycle.json, work/cycle/looped.pc2 (exactly cycle_frames frames,
 frame 0 = Fs), the report (crowdbake.stages.cycle_report) and the CycleRecord. The cloth cache is read once.
+A bake of several clips (a timeline) has each clip's loop searched by the loops stage first
+(crowdbake.stages.loops, side by side); this stage then joins them and finds the transitions.
 `crowdbake cycle` runs the same search outside a bake:
 
     run_cycle_job(cloth_pc2, cloth_obj, out_dir, character=... | body_pc2=..., body_obj=...) -> CycleResult
@@ -110,13 +112,16 @@ def load_cycle_inputs(
     up: str | None = None,
     units: str | None = None,
     animation: int | str | None = None,
+    pose_body: bool = True,
 ) -> CycleInputs:
     """Read and cross-check the cycle search's input files. Raises ValueError with a one-line reason.
 
     cloth_pc2: any cloth cache crowdbake reads (.pc2 or .mdd with `cloth_obj`, .abc or an OBJ-sequence
     .zip alone; crowdbake.ingest.garment.read_cloth). fps: None takes the cache's own rate
     (crowdbake.params.cache_fps). The cloth's first frame is checked against the body's
-    (crowdbake.ingest.garment.place_cloth) and converted to Y-up metres when up/units say so."""
+    (crowdbake.ingest.garment.place_cloth) and converted to Y-up metres when up/units say so.
+    pose_body: False leaves a character's body unposed (body None, its faces set): a timeline's search
+    poses it per clip (crowdbake.stages.clip_loops.pose_clips_body)."""
     from crowdbake.formats.obj import read_obj
     from crowdbake.formats.pc2 import read_pc2
     from crowdbake.ingest.garment import place_cloth, read_cloth
@@ -153,7 +158,8 @@ def load_cycle_inputs(
         from crowdbake.ingest.garment import body_at_rest
 
         cache = place_cloth(cache, body_at_rest(loaded_character), up, units)
-        body, body_normals = _pose_body(loaded_character, frame_rate, frame_count)
+        if pose_body:
+            body, body_normals = _pose_body(loaded_character, frame_rate, frame_count)
         body_faces = np.asarray(loaded_character.faces, dtype=np.int64)
         sources["character"] = str(character)
     elif body_pc2 is not None:
@@ -212,6 +218,7 @@ def run_cycle_job(
     edge_pass: bool = True,
     plots: bool = True,
     timeline: str | os.PathLike | None = None,
+    loops: list | None = None,
 ) -> CycleResult:
     """The whole `crowdbake cycle` job: files in, cycle.json + looped.pc2 + report.html out.
 
@@ -219,6 +226,8 @@ def run_cycle_job(
     plots: draw the report's plots now; False leaves them to write_cycle_plots(result, out_dir).
     timeline: a clip timeline (crowdbake.ingest.timeline): a loop per clip and the transitions between
         them (crowdbake.stages.clip_loops); the primary clip's loop is the one written as looped.pc2.
+    loops: with a timeline, every clip's loop searched already (crowdbake.stages.loops, in the timeline's
+        order): only the transitions are searched here.
     Raises ValueError on bad input (with a one-line reason).
     """
     report = progress or (lambda stage, done, total: None)
@@ -231,10 +240,12 @@ def run_cycle_job(
         clips = read_timeline(Path(timeline))
         animation = primary_clip(clips, animation)
         cycle_frames = clips.period(animation)
-    inputs = load_cycle_inputs(cloth_pc2, cloth_obj, character, body_pc2, body_obj, cycle_frames, fps, up, units, animation)
+    # A timeline with a character poses the body per clip (clip_loops.pose_clips_body), not with one clip's animation.
+    inputs = load_cycle_inputs(cloth_pc2, cloth_obj, character, body_pc2, body_obj, cycle_frames, fps, up, units, animation,
+                               pose_body=clips is None or character is None)
     report("load", 1, 1)
     render_views = None
-    if edge_pass:
+    if edge_pass and loops is None:
         from crowdbake.render.cloth_views import ClothViewRenderer
 
         render_views = ClothViewRenderer(
@@ -244,7 +255,8 @@ def run_cycle_job(
     if clips is not None:
         from crowdbake.stages.clip_loops import run_timeline
 
-        result, sections = run_timeline(inputs, clips, Path(timeline), character, out_dir, params, animation, render_views, progress)
+        result, sections = run_timeline(inputs, clips, Path(timeline), character, out_dir, params, animation, render_views, progress,
+                                        loops)
     else:
         result = find_cycle(
             inputs.cloth, inputs.cloth_faces, inputs.body, inputs.body_faces, inputs.cycle_frames,
@@ -351,7 +363,10 @@ def _given_cycle(job: JobRecord, inputs: Path, cycle_json: Path, looped: Path, p
     return document
 
 
-def _searched_cycle(job: JobRecord, inputs: Path, out: Path, progress: Progress | None, plots: list | None = None) -> dict:
+def _searched_cycle(job: JobRecord, work: Path, out: Path, progress: Progress | None, plots: list | None = None) -> dict:
+    from crowdbake.stages.loops import load_clip_loops
+
+    inputs = WorkDir(work).inputs
     params = job.bake_params
     names = job.inputs
     cycle_params = CycleParams(max_candidates=params.candidates, views=params.cycle_views, close=params.close)
@@ -373,6 +388,8 @@ def _searched_cycle(job: JobRecord, inputs: Path, out: Path, progress: Progress 
             progress=forward,
             plots=plots is None,
             timeline=inputs / names["timeline"] if "timeline" in names else None,
+            # Every clip's loop, searched side by side by the loops stage: only the transitions are left.
+            loops=load_clip_loops(work) if "timeline" in names else None,
         )
     except ValueError as error:
         raise InputError(f"cycle search: {error}", "cloth") from None
@@ -382,7 +399,8 @@ def _searched_cycle(job: JobRecord, inputs: Path, out: Path, progress: Progress 
 
 
 def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None = None) -> StageOutcome[CycleRecord]:
-    """Find and close the cloth cycle (run_cycle_job), or take the given cycle.json.
+    """Find and close the cloth cycle (run_cycle_job), or take the given cycle.json; with a timeline, join
+    the loops the loops stage searched (crowdbake.stages.loops) and find the transitions.
 
     plots: a list to append the report's plotting to (a callable) instead of drawing it here: nothing
     later reads the plots, so a caller may draw them beside the next stages."""
@@ -405,7 +423,7 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
     elif "cycle" in job.inputs:
         document = _given_cycle(job, folder.inputs, cycle_json, looped, progress)
     else:
-        document = _searched_cycle(job, folder.inputs, out, progress, plots)
+        document = _searched_cycle(job, folder.root, out, progress, plots)
 
     if document.get("bundle_refused"):
         raise InputError(f"timeline: {document['bundle_refused']}", "timeline")

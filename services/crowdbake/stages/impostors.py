@@ -48,6 +48,8 @@ MAP_MAKER = "map_shader-1"
 # azimuths scores this many gaps spread evenly round the ring (spread_gaps), 16 x 3 cameras of a 32-azimuth
 # bake instead of 96. Part of a part's key, with the sampling it implies.
 BETWEEN_AZIMUTHS = 16
+# What the surface maps' motion is (crowdbake.bake.surface_maps.motion_positions), in the parts' key.
+SURFACE_MOTION = "central-velocity"
 _TASK_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
@@ -110,6 +112,14 @@ def stage_impostor_plan(work: Path, progress: Progress | None = None) -> StageOu
     folder.save("impostor", key, record, seconds)
     report(progress, "impostor-plan", 1, 1)
     return StageOutcome(record, False, seconds)
+
+
+def previous_baked_frame(record: ImpostorPlan | PosesRecord, frame: int) -> int:
+    """The baked frame before `frame`, as next_baked_frame the other way (crowdbake.bake.surface_maps)."""
+    ranges = record.bundle_ranges()
+    if ranges is None:
+        return surface_maps.previous_baked_frame(frame, record.frame_indices)
+    return surface_maps.previous_baked_frame_in_range(ranges, frame, record.frame_indices)
 
 
 def next_baked_frame(record: ImpostorPlan | PosesRecord, frame: int) -> int:
@@ -226,8 +236,8 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
                 next_positions: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """A task's maps (and, for the fidelity frame, references): the arrays of its part.
 
-    next_positions: (V, 3) the scene's vertices at the next baked frame, for the surface maps' motion
-    (crowdbake.bake.surface_maps); None: no motion.
+    next_positions: (V, 3) the scene's vertices moved by their velocity at this baked frame, for the
+    surface maps' motion (crowdbake.bake.surface_maps.motion_positions); None: no motion.
 
     The maps of every view are drawn, encoded, in one pass of crowdbake.render.map_shader; their
     backgrounds are filled for the whole ring at once (impostor_views.fill_background). With references,
@@ -300,7 +310,7 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
     work = Path(work)
     task = as_task(task)
     path = part_path(work, task)
-    key = stage_key("impostor-part", PART_MAPS, MAP_MAKER, BETWEEN_AZIMUTHS, WorkDir(work).key_of("impostor"), task.to_json())
+    key = stage_key("impostor-part", PART_MAPS, MAP_MAKER, SURFACE_MOTION, BETWEEN_AZIMUTHS, WorkDir(work).key_of("impostor"), task.to_json())
     stats_path = path.with_suffix(".json")
     if path.is_file() and stats_path.is_file():
         try:
@@ -313,7 +323,9 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
         raise ValueError(f"impostor task frame {task.frame} is not one of the baked frames {plan.frame_indices}")
     scene = load_scene(work, plan, task.frame, runtime_textures=task.references)
     with np.load(work / "impostor" / SCENE_FILE) as data:
-        next_positions = data[f"positions_{next_baked_frame(plan, task.frame)}"].astype(np.float64)
+        sides = surface_maps.motion_sides(task.frame, previous_baked_frame(plan, task.frame), next_baked_frame(plan, task.frame))
+        previous, following = (None if side is None else data[f"positions_{side}"].astype(np.float64) for side in sides)
+        next_positions = surface_maps.motion_positions(data[f"positions_{task.frame}"], previous, following)
     timings = {"render": 0.0, "maps": 0.0, "references": 0.0}
     arrays = render_task(scene, plan, task, timings, next_positions)
     write_bytes_atomic(path, npz_bytes(arrays))

@@ -1,9 +1,9 @@
 """The bake as one plan: its nodes (stage functions), what each needs and writes, and its fan-outs.
 
-    validate ─┬─ textures ───────────────┐
-              └─ cycle ─┬─ impostor_plan ┼─ impostor_views × tasks ─ pack_frame × frames ─┐
-                        └─ poses ────────┴─ references ─────────────── scores ─────────────┴─ pack ─┬─ publish ─┬─ commit_export
-                                                                                                    └─ export ──┘
+    validate ─┬─ textures ───────────────────────────────┐
+              └─ clip_loop × clips ─ cycle ─┬─ impostor_plan ┼─ impostor_views × tasks ─ pack_frame × frames ─┐
+                                            └─ poses ────────┴─ references ─────────────── scores ─────────────┴─ pack ─┬─ publish ─┬─ commit_export
+                                                                                                                        └─ export ──┘
 
 Two executors run this plan and neither writes an order of its own:
 - crowdbake.stages.runner (`crowdbake bake`, one machine) starts every node as soon as what it needs is
@@ -168,6 +168,30 @@ def _textures(call: Call) -> dict:
     return stage_textures(call.work).to_json()
 
 
+def _clip_loop(call: Call) -> str:
+    from crowdbake.stages.loops import stage_clip_loop
+
+    return str(stage_clip_loop(call.work, call.item))
+
+
+def _loop_items(work: Path) -> list[dict]:
+    from crowdbake.stages.loops import loop_items
+
+    return loop_items(work)
+
+
+def _loop_key(work: Path, item: dict) -> str | None:
+    from crowdbake.stages.loops import item_files
+
+    return _json_key(Path(work) / item_files(item)[1])
+
+
+def _loop_writes(item: dict) -> tuple[str, ...]:
+    from crowdbake.stages.loops import item_files
+
+    return item_files(item)
+
+
 def _cycle(call: Call) -> dict:
     from crowdbake.stages.cycle import stage_cycle
 
@@ -278,7 +302,11 @@ IMPOSTOR_PLAN_FILES = ("impostor/record.json", "impostor/stage.json", "impostor/
 
 BAKE_PLAN: tuple[Node, ...] = (
     Node("validate", "validate", _validate, _stamp_key("validate"), writes=("validate", "inputs"), placement=HERE),
-    Node("cycle", "cycle", _cycle, _stamp_key("cycle"), needs=("validate",), writes=("cycle",), placement=HERE),
+    # A loop per clip of a timeline, side by side (none for one clip: the cycle node searches it); the
+    # cycle node joins them (the transitions need both loops of a change) and writes the report.
+    Node("clip_loop", "loops", _clip_loop, _loop_key, needs=("validate",), items=_loop_items, item_key=lambda item: str(item["id"]),
+         item_writes=_loop_writes),
+    Node("cycle", "cycle", _cycle, _stamp_key("cycle"), needs=("validate", "clip_loop"), writes=("cycle",), placement=HERE),
     Node("textures", "poses", _textures, _stamp_key("textures"), needs=("validate",), writes=("textures", "poses")),
     Node("impostor_plan", "poses", _impostor_plan, _stamp_key("impostor"), needs=("cycle",), writes=IMPOSTOR_PLAN_FILES,
          placement=HERE),
@@ -305,7 +333,7 @@ NODES: dict[str, Node] = {node.name: node for node in BAKE_PLAN}
 # The modules the nodes run (imported when a node first runs, so that this module stays light): what a
 # process that runs nodes may import ahead (crowdbake.stages.worker_pool preloads them in its fork server).
 STAGE_MODULES = (
-    "crowdbake.stages.validate", "crowdbake.stages.cycle", "crowdbake.stages.poses", "crowdbake.stages.impostors",
+    "crowdbake.stages.validate", "crowdbake.stages.loops", "crowdbake.stages.cycle", "crowdbake.stages.poses", "crowdbake.stages.impostors",
     "crowdbake.stages.runtime_fidelity", "crowdbake.stages.pack", "crowdbake.stages.publish", "crowdbake.storage.exports",
 )
 

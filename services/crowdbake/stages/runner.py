@@ -1,10 +1,11 @@
 """A whole bake on one machine (`crowdbake bake`, the tests, the benchmarks): the bake plan
 (crowdbake.stages.plan) run by this process and a pool of worker processes.
 
-Every node starts as soon as what it needs is done: the textures are encoded in a worker while this
-process searches the cycle; the poses stage and the impostor tasks run side by side; a frame's atlases
-are packed as soon as that frame's tasks are done, and the scores as soon as their frames are; the
-bundle is published while its engine export is built. Where fewer than two cores are usable every node
+Every node starts as soon as what it needs is done: the textures are encoded in a worker while the
+clips' loops are searched in the others (for one clip, while this process searches the cycle); the poses
+stage and the impostor tasks run side by side; a frame's atlases are packed as soon as that frame's tasks
+are done, and the scores as soon as their frames are; the bundle is published while its engine export is
+built. Where fewer than two cores are usable every node
 runs here, in plan order. How the workers start and behave is crowdbake.stages.worker_pool's business.
 
 Timings (BakeSummary.timings): wall, CPU (this process and its workers) and seconds inside OpenGL, per
@@ -127,8 +128,8 @@ def _execute(work: Path, inputs, destination: LocalDestination, pool: ProcessPoo
                 it = entry[1]
                 own = one_shot_pool() if it.node.placement == ALONE else None
                 pending[submit_in_background(own or pool, run_node, it.node.name, str(work), it.item, destination)] = (it, own)
-                if it.node.fans_out:
-                    plotter.start()  # the report's plots wait for the first fan-out: its plan took the GIL first
+                if it.node.fans_out and schedule.node_done("cycle"):
+                    plotter.start()  # the report's plots wait for the first fan-out after them: its plan took the GIL first
             here = next((entry for entry in ready if pool is None or entry[1].node.placement == HERE), None)
             if here is not None:
                 ready.remove(here)

@@ -224,7 +224,8 @@ def numpy_picture(atlas: RuntimeAtlas, tiles: AtlasTiles, picture: RuntimePictur
     frames = impostor_blend.FrameWeights(picture.layers, picture.frame_weight)
     weights = impostor_blend.ViewWeights(picture.tiles, picture.view_weights)
     samples = [(w, sample_tile(tiles, tile, k, view, frames)) for w, tile, k in impostor_blend.samples_for(weights, frames)]
-    return impostor_blend.blend_image(samples, diffuse, atlas.outfit_row, shading.camera_light(view), atlas.tile_size, chains)
+    return impostor_blend.blend_image(samples, diffuse, atlas.outfit_row, shading.camera_light(view), atlas.tile_size, chains,
+                                      reprojected=tiles.surface_map is not None)
 
 
 def scored_cameras(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],

@@ -7,6 +7,8 @@ turns "database is locked" into a short wait. PostgreSQL needs nothing special.
 from __future__ import annotations
 
 import logging
+import os
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -39,6 +41,17 @@ def make_engine(url: str) -> Engine:
 
         return engine
     return create_engine(url, pool_pre_ping=True)
+
+
+# A fork taken while another thread of this process is inside a SQLite transaction gives the child
+# SQLite's in-process record of that lock with no thread left to release it: every write the child makes
+# then waits out the busy timeout and fails ("database is locked") for the rest of its life. A Celery
+# worker's main process writes from a background thread (the heartbeat of received messages) and forks
+# pool processes from its main thread, so its sessions come from `fork_guarded_scope`, and a fork of
+# this process waits until the guarded transaction has ended.
+_fork_guard = threading.Lock()
+os.register_at_fork(before=_fork_guard.acquire, after_in_parent=_fork_guard.release,
+                    after_in_child=_fork_guard.release)
 
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
@@ -96,3 +109,12 @@ def head_revision() -> str:
 
 def is_migrated(engine: Engine) -> bool:
     return inspect(engine).has_table("alembic_version") and current_revision(engine) == head_revision()
+
+
+@contextmanager
+def fork_guarded_scope(factory: sessionmaker[Session]) -> Iterator[Session]:
+    """`session_scope` for a process that forks while other threads use the database: no fork of this
+    process happens until the transaction has committed or rolled back. Never fork inside it."""
+    with _fork_guard:
+        with session_scope(factory) as session:
+            yield session

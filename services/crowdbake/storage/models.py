@@ -77,8 +77,8 @@ class Bake(Base):
 
     `input_key` is the sha256 of the inputs' digests, the parameters, the name/version and the code
     version: the work folder is named by it, so a rerun finds its finished stages. `attempt` grows on
-    each retry; task messages of an older attempt are dropped. `fan_in_attempt` is the attempt whose
-    pack stage has been enqueued (set once by whichever fan-out task finished last).
+    each retry; task messages of an older attempt are dropped. `fan_in_attempt` is not read: the fan-in
+    barrier is the state of the stage row after a fan-out (crowdbake.storage.records.claim_fan_in).
 
     Two unique columns reserve what a bake must not share while it is queued or running (both NULL
     once it ended; NULLs never collide): `live_key`, its input key (identical submits get the same bake
@@ -146,10 +146,11 @@ class BakeStage(Base):
 
 
 class BakePart(Base):
-    """One fanned-out task of a bake (the poses stage, or one impostor-views task): the fan-in barrier.
+    """One fanned-out task of a bake (one clip's loop, or one impostor-views task): the fan-in barrier.
 
-    Rows are inserted (done = false) when the poses stage fans out; each task marks its own row done;
-    the task that leaves no row undone enqueues the pack stage. Delivery bookkeeping as in BakeStage.
+    Rows are inserted (done = false) when the stage before a fan-out stage finishes; each task marks its
+    own row done; the task that leaves no row of its stage undone enqueues the next stage. Delivery
+    bookkeeping as in BakeStage.
     """
 
     __tablename__ = "bake_parts"

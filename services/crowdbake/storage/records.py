@@ -26,14 +26,15 @@ from typing import Any, Iterable
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
+from crowdbake.stages.plan import runs_in_parallel
 from crowdbake.storage.models import FINAL_BAKE_STATES, Bake, BakeLog, BakePart, BakeStage, utcnow
 
 LIVE_BAKE_STATES = ("queued", "running")
 
 # Share of a bake's time each stage takes, for one overall progress figure (measured on the sample
-# character: the cycle search and the impostor renders dominate).
-STAGE_WEIGHTS = {"validate": 0.02, "cycle": 0.28, "poses": 0.12, "impostors": 0.43, "pack": 0.12, "publish": 0.03}
-IMPOSTOR_PART_PREFIX = "impostors/"
+# character: the cycle search and the impostor renders dominate; the loops stage searches a timeline's
+# clips, the cycle stage then joins them or, for one clip, searches it).
+STAGE_WEIGHTS = {"validate": 0.02, "loops": 0.14, "cycle": 0.14, "poses": 0.12, "impostors": 0.43, "pack": 0.12, "publish": 0.03}
 
 
 def new_id(prefix: str) -> str:
@@ -119,7 +120,7 @@ def finish_stage(session: Session, bake_id: str, stage: str, seconds: float, res
     row.state = "succeeded"
     row.finished_at = utcnow()
     row.owner = row.heartbeat_at = None
-    row.seconds = round((row.seconds or 0.0) + seconds, 3) if stage == "impostors" else round(seconds, 3)
+    row.seconds = round((row.seconds or 0.0) + seconds, 3) if runs_in_parallel(stage) else round(seconds, 3)
     if row.total == 0:
         row.done = row.total = 1
     else:
@@ -306,7 +307,7 @@ def claim_delivery(session: Session, bake_id: str, attempt: int, stage: str, par
     now = utcnow()
     unit.owner, unit.heartbeat_at = owner, now
     if part:
-        # The impostors stage row shows the fan-out as a whole.
+        # The fan-out stage's row shows its parts as a whole.
         mark_running(session, bake, stage)
     else:
         if bake.state == "queued":
@@ -350,25 +351,27 @@ def heartbeat(session: Session, bake_id: str, attempt: int, stage: str, part: st
 # ------------------------------------------------------------------------------------- fan-out/in
 
 
-def record_fan_out(session: Session, bake_id: str, impostor_tasks: list[dict[str, Any]]) -> list[str]:
-    """Register the parts the pack stage waits for: one per impostor-views task (crowdbake.stages.impostors.impostor_tasks,
-    which needs the poses stage's output). Returns the part ids in task order."""
-    session.execute(delete(BakePart).where(BakePart.bake_id == bake_id))
+def record_fan_out(session: Session, bake_id: str, items: list[dict[str, Any]], stage: str = "impostors") -> list[str]:
+    """Register the parts of a fan-out stage (crowdbake.stages.plan.runs_in_parallel), one per item of its
+    node (a JSON object; its "id", else its position, names the part "<stage>/<id>"), which the next
+    stage waits for. Returns the part ids in item order. Parts of other stages stay (their listings
+    tell later stages what to fetch)."""
+    session.execute(delete(BakePart).where(BakePart.bake_id == bake_id, BakePart.stage == stage))
     part_ids = []
     now = utcnow()
-    for index, spec in enumerate(impostor_tasks):
-        part_id = f"{IMPOSTOR_PART_PREFIX}{spec.get('id', index)}"
+    for index, spec in enumerate(items):
+        part_id = f"{stage}/{spec.get('id', index)}"
         part_ids.append(part_id)
-        session.add(BakePart(bake_id=bake_id, part=part_id, stage="impostors", spec=spec, done=False, retries=0, queued_at=now))
-    impostors = stage_row(session, bake_id, "impostors")
-    impostors.total, impostors.done = len(impostor_tasks), 0
-    if impostors.state == "pending":
-        impostors.state, impostors.queued_at = "queued", now
+        session.add(BakePart(bake_id=bake_id, part=part_id, stage=stage, spec=spec, done=False, retries=0, queued_at=now))
+    row = stage_row(session, bake_id, stage)
+    row.total, row.done = len(items), 0
+    if row.state == "pending":
+        row.state, row.queued_at = "queued", now
     return part_ids
 
 
 def complete_part(session: Session, bake_id: str, part: str) -> int:
-    """Mark one part done; returns how many parts are still undone.
+    """Mark one part done; returns how many parts of its stage are still undone.
 
     Call it first thing in a fresh transaction: it starts by writing the bake's row, which serialises
     finishing parts (a row lock in PostgreSQL, the write lock in SQLite), so the last of two parts
@@ -376,34 +379,33 @@ def complete_part(session: Session, bake_id: str, part: str) -> int:
     """
     session.execute(update(Bake).where(Bake.id == bake_id).values(updated_at=utcnow()))
     session.execute(update(BakePart).where(BakePart.bake_id == bake_id, BakePart.part == part).values(done=True, owner=None, heartbeat_at=None))
-    if part.startswith(IMPOSTOR_PART_PREFIX):
-        done = session.scalar(
-            select(func.count()).select_from(BakePart)
-            .where(BakePart.bake_id == bake_id, BakePart.stage == "impostors", BakePart.done.is_(True))
-        )
-        session.execute(update(BakeStage).where(BakeStage.bake_id == bake_id, BakeStage.stage == "impostors").values(done=done))
-    return int(session.scalar(select(func.count()).select_from(BakePart).where(BakePart.bake_id == bake_id, BakePart.done.is_(False))))
+    stage = part.partition("/")[0]
+    done = session.scalar(
+        select(func.count()).select_from(BakePart).where(BakePart.bake_id == bake_id, BakePart.stage == stage, BakePart.done.is_(True))
+    )
+    session.execute(update(BakeStage).where(BakeStage.bake_id == bake_id, BakeStage.stage == stage).values(done=done))
+    return parts_left(session, bake_id, stage)
 
 
-def impostor_parts_left(session: Session, bake_id: str) -> int:
+def parts_left(session: Session, bake_id: str, stage: str) -> int:
+    """How many parts of a fan-out stage are not done."""
     return int(session.scalar(
         select(func.count()).select_from(BakePart)
-        .where(BakePart.bake_id == bake_id, BakePart.stage == "impostors", BakePart.done.is_(False))
+        .where(BakePart.bake_id == bake_id, BakePart.stage == stage, BakePart.done.is_(False))
     ))
 
 
-def claim_fan_in(session: Session, bake_id: str, attempt: int) -> bool:
-    """True for exactly one caller per attempt: the one that may enqueue the pack stage. A conditional
-    UPDATE is atomic in SQLite and PostgreSQL alike, so two parts finishing together cannot both win."""
+def claim_fan_in(session: Session, bake_id: str, attempt: int, stage: str = "pack") -> bool:
+    """True for exactly one caller per attempt: the one that may enqueue `stage`, the stage after a
+    fan-out, which queues it here. A conditional UPDATE of its row (pending, in this attempt) is atomic
+    in SQLite and PostgreSQL alike, so two parts finishing together cannot both win; a retry sets the
+    row pending again, so each attempt has its own barrier."""
+    live = select(Bake.id).where(Bake.id == bake_id, Bake.attempt == attempt).scalar_subquery()
     result = session.execute(
-        update(Bake)
-        .where(Bake.id == bake_id, Bake.attempt == attempt, (Bake.fan_in_attempt.is_(None)) | (Bake.fan_in_attempt < attempt))
-        .values(fan_in_attempt=attempt)
+        update(BakeStage).where(BakeStage.bake_id == live, BakeStage.stage == stage, BakeStage.state == "pending")
+        .values(state="queued", queued_at=utcnow(), sent_at=None, owner=None, heartbeat_at=None)
     )
-    if result.rowcount != 1:
-        return False
-    queue_stage(session, bake_id, "pack")
-    return True
+    return result.rowcount == 1
 
 
 def to_utc(value: dt.datetime | None) -> dt.datetime | None:

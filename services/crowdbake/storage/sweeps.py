@@ -9,8 +9,13 @@ from dataclasses import dataclass
 from sqlalchemy import or_, select
 from sqlalchemy.orm import Session
 
+from crowdbake.stages import STAGES
+from crowdbake.stages.plan import runs_in_parallel
 from crowdbake.storage import records
 from crowdbake.storage.models import Bake, BakePart, BakeStage, utcnow
+
+# Stages whose messages are their parts': their own rows are never sent.
+FAN_OUT_STAGES = tuple(stage for stage in STAGES if runs_in_parallel(stage))
 
 
 @dataclass(frozen=True)
@@ -108,7 +113,7 @@ def silent_deliveries(session: Session, now: dt.datetime, timeout_s: float, retr
     stages = session.execute(
         select(Bake.id, Bake.attempt, BakeStage.stage, BakeStage.queued_at, BakeStage.sent_at, BakeStage.heartbeat_at)
         .join(BakeStage, BakeStage.bake_id == Bake.id)
-        .where(live, BakeStage.state.in_(_WAITING_STAGE_STATES), BakeStage.stage != "impostors", BakeStage.owner.is_(None),
+        .where(live, BakeStage.state.in_(_WAITING_STAGE_STATES), BakeStage.stage.not_in(FAN_OUT_STAGES), BakeStage.owner.is_(None),
                BakeStage.sent_at < quiet_before, or_(BakeStage.heartbeat_at.is_(None), BakeStage.heartbeat_at < quiet_before))
     ).all()
     parts = session.execute(
@@ -154,7 +159,7 @@ def unsent_deliveries(session: Session, queued_before: dt.datetime) -> list[Deli
     stages = session.execute(
         select(Bake.id, Bake.attempt, BakeStage.stage).join(BakeStage, BakeStage.bake_id == Bake.id)
         .where(live, BakeStage.state == "queued", BakeStage.sent_at.is_(None), BakeStage.owner.is_(None),
-               BakeStage.queued_at < queued_before, BakeStage.stage != "impostors")
+               BakeStage.queued_at < queued_before, BakeStage.stage.not_in(FAN_OUT_STAGES))
     ).all()
     parts = session.execute(
         select(Bake.id, Bake.attempt, BakePart.stage, BakePart.part).join(BakePart, BakePart.bake_id == Bake.id)
@@ -166,6 +171,6 @@ def unsent_deliveries(session: Session, queued_before: dt.datetime) -> list[Deli
 def current_delivery(session: Session, bake: Bake) -> Delivery | None:
     """The bake's stage that is queued and unsent, if any (a resubmit sends it at once)."""
     for row in bake.stages:
-        if row.state == "queued" and row.sent_at is None and row.owner is None and row.stage != "impostors":
+        if row.state == "queued" and row.sent_at is None and row.owner is None and row.stage not in FAN_OUT_STAGES:
             return Delivery(bake.id, bake.attempt, row.stage)
     return None

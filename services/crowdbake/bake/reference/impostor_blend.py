@@ -5,8 +5,8 @@ shaders/impostor_uv.frag.glsl) goes beyond the paper's nearest view and nearest 
 the four baked views around the camera (bilinear over azimuth × elevation, azimuth wrapping, elevation
 clamped) and the two baked frames either side of the cycle frame (linear). Each (view, frame) sample
 reads its own UV-map texel at the same offset inside its tile, looks the diffuse texture up with that
-exact coordinate, and only colours, normals and coverage are blended; the pixel is drawn where the
-blended coverage is over one half. This module repeats those rules so the bake can score what the
+exact coordinate, and only colours, normals and coverage are blended; the pixel's opacity is a smooth
+step of the blended coverage (edge_alpha), drawn over black here, as crowdview blends it over the scene. This module repeats those rules so the bake can score what the
 runtime draws (crowdbake.stages.fidelity), and shares test vectors with crowdview
 (runtime/tests/data/view_blend_vectors.json, read by test_impostor_blend.py and the view_blend ctest).
 
@@ -26,6 +26,22 @@ from crowdbake.bake import impostor_views, shading
 # impostor_uv.frag.glsl: texture-coordinate gradients are clamped to this many tile texels' worth of
 # tile UV, so neighbours across the silhouette or a UV seam do not pick a far too coarse mip level.
 GRADIENT_LIMIT_TEXELS = 4.0
+# runtime/src/config.h CV_EDGE_LOW: blended coverage at or under this is transparent, at or over one minus
+# it opaque (edge_alpha).
+EDGE_LOW = 0.1
+
+
+def edge_alpha(coverage: np.ndarray, reprojected: bool = True) -> np.ndarray:
+    """Opacity (same shape, float64 0..1) of pixels whose blended samples cover `coverage` (0..1) of their
+    weight, as impostor_uv_map.glsl edge_alpha. Reprojected samples' silhouettes disagree by a texel or
+    two: GLSL's smoothstep(EDGE_LOW, 1 - EDGE_LOW, coverage), a half-transparent edge that stays nearer the
+    mesh than cutting at one half, which keeps only where they agree. Unmoved samples disagree by a whole
+    limb: 1 where coverage is over one half, else 0."""
+    coverage = np.asarray(coverage, dtype=np.float64)
+    if not reprojected:
+        return (coverage > 0.5).astype(np.float64)
+    t = np.clip((coverage - EDGE_LOW) / (1.0 - 2.0 * EDGE_LOW), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
 
 
 @dataclass(frozen=True)
@@ -233,8 +249,9 @@ def albedo(tile: DecodedTile, diffuse: list[np.ndarray], chains: list[list[np.nd
 
 
 def blend_image(samples: list[tuple[float, DecodedTile]], diffuse: list[np.ndarray], outfit_row: np.ndarray,
-                light: np.ndarray, tile_size: int, chains: list[list[np.ndarray]] | None = None) -> np.ndarray:
-    """The runtime's blended impostor: (S, S, 3) float64 0..1, black where blended coverage <= 0.5.
+                light: np.ndarray, tile_size: int, chains: list[list[np.ndarray]] | None = None, reprojected: bool = True) -> np.ndarray:
+    """The runtime's blended impostor over black: (S, S, 3) float64 0..1, the lit colour times edge_alpha
+    of the blended coverage (black where that is 0); `reprojected`: the samples were moved (CV_WARP).
 
     samples: (weight, tile) per (view, frame) pair with weight > 0 (weights sum to 1); diffuse: per material
     (h, w, 4) uint8 as decoded (variation 0); outfit_row: (16, 4) uint8; light: (3,) model-space unit
@@ -253,13 +270,14 @@ def blend_image(samples: list[tuple[float, DecodedTile]], diffuse: list[np.ndarr
         coverage += w
         colour += w[..., None] * albedo(tile, diffuse, chains, outfit_row, tile_size)
         normal += w[..., None] * np.where(tile.covered[..., None], tile.normal, 0.0)
-    drawn = coverage > 0.5
+    alpha = edge_alpha(coverage, reprojected)
+    drawn = alpha > 0
     image = np.zeros(shape + (3,))
     if drawn.any():
         base = colour[drawn] / coverage[drawn][:, None]
         length = np.linalg.norm(normal[drawn], axis=-1, keepdims=True)
         unit = np.divide(normal[drawn], length, out=np.zeros_like(normal[drawn]), where=length > 1e-12)
-        image[drawn] = shading.lambert(base, unit, light)
+        image[drawn] = shading.lambert(base, unit, light) * alpha[drawn][:, None]
     return image
 
 

@@ -150,7 +150,7 @@ def gather(tile: DecodedTile, xy: np.ndarray, valid: np.ndarray | None = None) -
 
 
 def motion_fraction(layer: int, frames: FrameWeights) -> float:
-    """How far a sample of atlas layer `layer` moves along its layer's motion to the next baked frame:
+    """How far a sample of atlas layer `layer` moves along its layer's motion (one baked step of velocity):
     the earlier of the two blended frames forward by the frame weight, the later one back by the rest
     (shaders/impostor_warp.glsl: +w for frame sample 0, -(1 - w) for sample 1); 0 when both are one."""
     if frames.layers[0] == frames.layers[1]:
