@@ -41,19 +41,24 @@ double median_of(std::vector<double> v) {
 // Forward steps from loop frame `from` to loop frame `to` of a clip of `frames` frames.
 uint32_t loop_steps(uint32_t from, uint32_t to, uint32_t frames) { return (to + frames - from % frames) % frames; }
 
+// The schedule's ranges by name: clips, then transitions "FROM->TO".
+std::vector<std::string> range_names(const CharacterModel& model, const ClipSchedule& schedule) {
+    std::vector<std::string> names;
+    for (uint32_t c = 0; c < schedule.clip_count; ++c) names.push_back(c < model.clips.size() ? model.clips[c].name : "cycle");
+    for (const TransitionRange& t : schedule.transitions) {
+        std::string name = transition_name(model.clips, t);
+        while (std::find(names.begin(), names.end(), name) != names.end()) name += "'";  // two transitions between one pair
+        names.push_back(name);
+    }
+    return names;
+}
+
 }  // namespace
 
 nlohmann::json clip_counts(const Crowd& crowd, const CharacterModel& model, const FrameState& state, const Camera& camera,
                            float aspect, float time_s) {
     const ClipSchedule& schedule = state.schedule;
-    std::vector<std::string> names;
-    for (uint32_t c = 0; c < schedule.clip_count; ++c) names.push_back(c < model.clips.size() ? model.clips[c].name : "cycle");
-    std::vector<ClipRange> clips = model.clips;
-    for (const TransitionRange& t : schedule.transitions) {
-        std::string name = transition_name(clips, t);
-        while (std::find(names.begin(), names.end(), name) != names.end()) name += "'";  // two transitions between one pair
-        names.push_back(name);
-    }
+    const std::vector<std::string> names = range_names(model, schedule);
     std::vector<uint64_t> counts(names.size() * 3, 0);
     uint64_t switched = 0, switches = 0;
     const Frustum frustum = frustum_from(camera.projection(aspect) * camera.view());
@@ -146,6 +151,7 @@ void SwitchMeter::observe(const Crowd& crowd, const CharacterModel& model, const
     const size_t n = std::min({crowd.characters.size(), state.lod.size(), state.clip.size()});
     if (!picked_) {  // up to kMeterCharacters on screen per representation, spread over the crowd
         picked_ = true;
+        range_names_ = range_names(model, state.schedule);
         for (int lod = 0; lod < 3; ++lod) {
             std::vector<uint32_t> candidates;
             for (uint32_t i = 0; i < n; ++i)
@@ -213,7 +219,7 @@ void SwitchMeter::observe(const Crowd& crowd, const CharacterModel& model, const
                 std::vector<glm::vec2> still, moved;
                 picture(mesh_lod, {c0.a, c0.b, c0.weight}, to_screen, width, height, &still);
                 picture(mesh_lod, {c1.a, c1.b, c1.weight}, to_screen, width, height, &moved);
-                if (reference > 0) events_[l].push_back({rms_motion(before, after), reference, rms_motion(still, moved)});
+                if (reference > 0) events_[l].push_back({rms_motion(before, after), reference, rms_motion(still, moved), r0, r1, local0, local1});
                 else ++unmeasured_[l];
             }
         }
@@ -226,7 +232,7 @@ nlohmann::json SwitchMeter::report() const {
     for (int l = 0; l < 3; ++l) {
         nlohmann::json r = {{"sampled_characters", sampled_[l]}, {"switches_measured", events_[l].size()}, {"switches_unmeasured", unmeasured_[l]},
                             {"largest_ratio", nullptr}, {"jump_px", nullptr}, {"reference_px", nullptr}, {"median_ratio", nullptr},
-                            {"largest_ratio_same_phase", nullptr}};
+                            {"largest_ratio_same_phase", nullptr}, {"worst", nullptr}};
         if (!events_[l].empty()) {
             std::vector<double> ratios;
             size_t worst = 0;
@@ -241,6 +247,9 @@ nlohmann::json SwitchMeter::report() const {
             double same_phase = 0;
             for (const Event& e : events_[l]) same_phase = std::max(same_phase, e.jump_px / std::max(e.continued_px, e.reference_px));
             r["largest_ratio_same_phase"] = same_phase;
+            const Event& e = events_[l][worst];
+            auto name = [&](uint32_t r) { return r < range_names_.size() ? range_names_[r] : std::to_string(r); };
+            r["worst"] = {{"from", name(e.range_before)}, {"from_frame", e.frame_before}, {"to", name(e.range_after)}, {"to_frame", e.frame_after}};
         }
         out[kLodNames[l]] = r;
     }

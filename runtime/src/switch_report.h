@@ -61,7 +61,9 @@ public:
                  int height, float time_s, bool blend_frames);
 
     // {"high": {...}, "low": {...}, "impostor": {...}}: per representation switches_measured,
-    // largest_ratio, jump_px, reference_px, median_ratio (null figures where none was measured).
+    // largest_ratio, jump_px, reference_px, median_ratio, largest_ratio_same_phase and `worst`, the
+    // switch of the largest ratio: its ranges and their frames before and after it (null figures
+    // where none was measured).
     nlohmann::json report() const;
 
     // The largest ratio of `lod` (0 where no switch was measured), for the log line.
@@ -79,7 +81,10 @@ private:
     struct Event {
         double jump_px, reference_px;
         double continued_px;  // the clip beside the switch over the same steps, had it not switched
+        uint32_t range_before, range_after;        // clips 0..C-1, then transitions
+        uint32_t frame_before, frame_after;        // frames within those ranges
     };
+    std::vector<std::string> range_names_;  // for the report's worst switch
     // What a character shows: pose frames a and b mixed by weight (a mesh: a == b, weight 0).
     struct Shown {
         uint32_t a = 0, b = 0;

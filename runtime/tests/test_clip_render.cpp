@@ -111,6 +111,10 @@ int main(int argc, char** argv) {
     if (!popped.is_discarded()) {
         const json& s = popped["archetypes"][0]["switch_jumps"]["high"];
         CHECK_MSG(s["switches_measured"].get<int>() > 0 && s["largest_ratio"].get<double>() > kMaxSwitchRatio, s.dump());
+        // The report points at the join that pops: out of a transition into the clip it arrives in.
+        CHECK_MSG(s["worst"].is_object() && s["worst"]["from"].get<std::string>().find("->") != std::string::npos &&
+                      s["worst"]["to"].get<std::string>().find("->") == std::string::npos,
+                  s.dump());
     }
 
     // The mix is honoured: walk alone, and nothing leads from walk to a clip of weight > 0.

@@ -7,7 +7,7 @@ Runs crowdview headless on a format-2 bundle once per representation (`--lod hig
 and impostor blend, every character switching clip every 0.5-1.5 s, and reads `--report`'s
 `switch_jumps`: the largest screen-space jump of a character at a switch against the median per-frame
 motion inside the clips it joins (runtime/README.md "Clips and switches"; the target is <= 1.5), and the
-same against what the clip itself moves at that phase ("same phase").
+same against what the clip itself moves at that phase ("same phase"), and where the worst switch was.
 Without --bundle it bakes ../shared/assets/robot_clips first (the bake's defaults, or the bake options
 after --bake-robot). Prints a table and writes out/bench/clip_switches.json.
 """
@@ -83,12 +83,16 @@ def main() -> int:
     print(f"{bundle}: {len(manifest.get('clips', []))} clips, {len(manifest.get('transitions', []))} transitions, "
           f"{len(manifest['impostor']['frame_indices'])} impostor frames; {args.count} characters, {args.frames} frames, "
           f"switching every {args.switch_after} s")
-    print(f"{'representation':<24}{'largest ratio':>14}{'jump px':>10}{'ref px':>9}{'median':>8}{'same phase':>11}{'switches':>10}  target <= {TARGET}")
+    print(f"{'representation':<24}{'largest ratio':>14}{'jump px':>10}{'ref px':>9}{'median':>8}{'same phase':>11}{'switches':>10}  "
+          f"<= {TARGET}  worst switch (range frame -> range frame)")
     for row in rows:
         name = row["representation"] + (f" ({row['impostor_blend']})" if row["impostor_blend"] else "")
         ratio = row["largest_ratio"]
+        worst = row.get("worst") or {}
+        where = f"{worst['from']} {worst['from_frame']} -> {worst['to']} {worst['to_frame']}" if worst else "-"
         print(f"{name:<24}{ratio if ratio is None else round(ratio, 2)!s:>14}{row['jump_px'] or 0:>10.2f}{row['reference_px'] or 0:>9.2f}"
-              f"{row['median_ratio'] or 0:>8.2f}{row.get('largest_ratio_same_phase') or 0:>11.2f}{row['switches_measured']:>10}  {'ok' if ratio is not None and ratio <= TARGET else 'OVER'}")
+              f"{row['median_ratio'] or 0:>8.2f}{row.get('largest_ratio_same_phase') or 0:>11.2f}{row['switches_measured']:>10}  "
+              f"{'ok' if ratio is not None and ratio <= TARGET else 'OVER':<6}{where}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"bundle": str(bundle), "count": args.count, "frames": args.frames, "switch_after_s": args.switch_after,
                                     "target": TARGET, "rows": rows, "seconds": time.perf_counter() - started}, indent=2) + "\n")

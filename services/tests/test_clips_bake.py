@@ -60,6 +60,24 @@ def test_the_switches_are_as_smooth_as_the_motion_around_them(robot_bake):
             assert join <= 1.5 * max(rms(p[last] - p[last - 1]), rms(p[after] - p[arrive])), (mesh["part"], t)
 
 
+def test_every_switch_is_at_a_slow_phase_of_its_loops(robot_bake):
+    """Body and cape together jump at a switch no more than SLOW_SWITCH_RATIO times the larger of the two
+    loops' median steps (crowdbake.bake.transitions.switch_is_slow). Regression: Idle -> Walking arrived
+    where Walking steps 1.46 times its median, and crowdview's switch figure read 1.70 against 1.5."""
+    from crowdbake.bake.transitions import SLOW_SWITCH_RATIO, loop_steps, reference_step
+
+    bundle = verify_bundle(robot_bake[0])
+    ranges = bundle.ranges
+    p = np.concatenate([bundle.pose_caches[m["file"]].positions for m in bundle.manifest["meshes"] if m["lod"] == 0], axis=1)
+    for t in ranges.transitions:
+        a, b = ranges.clips[t.from_clip], ranges.clips[t.to_clip]
+        reference = reference_step(loop_steps(p[a.first_frame : a.first_frame + a.frames]), loop_steps(p[b.first_frame : b.first_frame + b.frames]))
+        leave = rms(p[t.first_frame] - p[a.first_frame + t.leave_frame])
+        arrive = rms(p[b.first_frame + t.arrive_frame] - p[t.first_frame + t.frames - 1])
+        # 2 %: the transition's end frames are the loops' up to the crossfade's edge-length restoration.
+        assert max(leave, arrive) <= 1.02 * SLOW_SWITCH_RATIO * reference, (a.name, b.name, leave / reference, arrive / reference)
+
+
 def _over(quality: dict) -> list[str]:
     return [f"{name} {quality[name]:.3g}" for name, bound in BOUNDS.items() if quality[name] is not None and not quality[name] <= bound]
 

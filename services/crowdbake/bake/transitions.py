@@ -18,7 +18,11 @@ made. Playback goes loop A -> the transition -> loop B:
 - each join is measured with the loop's quality figures (crowdbake.bake.loop_quality.LoopQuality:
   stretch, deviation in join jumps, acceleration at the join) against the same QUALITY_BOUNDS. The
   first candidate (nearest the change first, for the shortest transition) whose join keeps the bounds is
-  taken, else the first.
+  taken, else the first;
+- candidates whose switch falls at a slow phase of the loop come first (switch_is_slow): at a switch a
+  character steps from the loop to the transition (or back) as the loop itself steps at that phase, and
+  a robot's walk steps up to twice its median round the loop, so a switch at a fast phase reads as a pop
+  (crowdview's switch figure, runtime/README.md "Clips and switches").
 
 Pure numpy; no I/O. Penetration into the body is not measured here (no push-out on transitions).
 """
@@ -224,14 +228,64 @@ def _played(loop_a, leave_frame, frames, loop_b, arrive_frame) -> np.ndarray:
 # Join candidates are looked for first within this many of the clip's periods of the change of clip.
 NEAR_CHANGE_PERIODS = 2
 
+# A switch is at a slow phase when the loop's step there is at most this times the reference step (the
+# larger of the two loops' median steps, as crowdview's switch figure). The figure's target is 1.5 on
+# screen, where a step read up to 1.33 times its 3D share against the median (the view hides depth
+# motion; the clips sample's Running), against a reference up to 22 % lower for impostors (blending sparse
+# baked frames moves along chords; robot_clips' Running): 0.8 x 1.33 / 0.78 = 1.36 keeps the target, and
+# a walk or run still has about a third of its phases this slow.
+SLOW_SWITCH_RATIO = 0.8
+
+
+def loop_steps(cloth_loop: np.ndarray, body_loop: np.ndarray | None = None) -> np.ndarray:
+    """(L,) float64: per loop frame k, the RMS over every vertex (cloth and body together) of the step from
+    loop frame k to k + 1 (the last to the first), metres: what the character moves on screen in a frame.
+
+    cloth_loop: (L, V, 3); body_loop: (L, Vb, 3) the body posed at each loop frame, or None (cloth alone)."""
+    parts = [np.asarray(cloth_loop, dtype=np.float64)]
+    if body_loop is not None:
+        parts.append(np.asarray(body_loop, dtype=np.float64))
+        if parts[1].shape[0] != parts[0].shape[0]:
+            raise ValueError(f"loop_steps: a {parts[0].shape[0]}-frame cloth loop with a {parts[1].shape[0]}-frame body")
+    frames = np.concatenate(parts, axis=1)
+    return _rms(np.roll(frames, -1, axis=0) - frames)
+
+
+def reference_step(steps_a: np.ndarray, steps_b: np.ndarray) -> float:
+    """The larger of two loops' median steps (loop_steps), steps that move nothing left out; 0 when both are still.
+    A switch out of a nearly still idle is held to the motion it leads into, as crowdview's switch figure holds it."""
+    medians = [float(np.median(s[s > 0])) for s in (np.asarray(steps_a), np.asarray(steps_b)) if np.any(np.asarray(s) > 0)]
+    return max(medians, default=0.0)
+
+
+def switch_is_slow(steps: np.ndarray, switch_steps: np.ndarray, reference: float, ratio: float = SLOW_SWITCH_RATIO) -> np.ndarray:
+    """(N,) bool: whether each switch, at loop step switch_steps (N,) int (index into steps, taken modulo
+    its length), moves at most `ratio` times `reference` (metres; reference_step). All True when reference
+    is 0 (still loops: no switch can pop)."""
+    steps = np.asarray(steps, dtype=np.float64)
+    index = np.asarray(switch_steps, dtype=np.int64) % len(steps)
+    if reference <= 0:
+        return np.ones(len(index), dtype=bool)
+    return steps[index] <= ratio * reference
+
+
+def body_loop(body: np.ndarray, loop: ClipLoop) -> np.ndarray:
+    """(L, Vb, 3): the body at each of a loop's L frames, from `body` (F, Vb, 3), posed per cache frame:
+    loop frame k shows clip frame (clip_phase + k) mod period, which cache frame start_frame + (k mod period) shows."""
+    return np.asarray(body[loop.start_frame + np.arange(len(loop.looped)) % loop.period])
+
 
 def _candidates(loop: ClipLoop, cloth, timeline: Timeline, segment: int, h: int, max_candidates: int, velocity_weight: float,
-                latest_first: bool):
+                latest_first: bool, slow_at=None):
     """(cache frames, loop frames, distances) of a join's candidates in a segment's pure frames, in the order
     they are tried: first the best local minima within NEAR_CHANGE_PERIODS periods of the change of clip,
     nearest it first (the latest where the transition leaves the segment, latest_first; the earliest where
     it arrives), then the segment's best elsewhere, best first. The first within the bounds makes the
-    shortest transition: a crowd character asked to walk should not idle on for several Idle periods."""
+    shortest transition: a crowd character asked to walk should not idle on for several Idle periods.
+    slow_at: None, or a function of the (N,) loop frames of the segment's frames giving (N,) bool, whether
+    a switch through that join is at a slow phase (switch_is_slow). Then the candidates whose switch is
+    slow, with those of the same search over the slow frames alone, come first, nearest the change
+    first; then the fast candidates in the order above."""
     seg = timeline.segments[segment]
     frames = np.arange(seg.pure_first_frame + h + 1, seg.pure_last_frame - h)
     if len(frames) == 0:
@@ -241,11 +295,25 @@ def _candidates(loop: ClipLoop, cloth, timeline: Timeline, segment: int, h: int,
     spacing = (loop.period + 1) // 2
     reach = NEAR_CHANGE_PERIODS * loop.period
     near = np.flatnonzero(frames >= frames[-1] - reach if latest_first else frames <= frames[0] + reach)
-    picked_near = near[np.asarray(pick_candidates(frames[near], distances[near], spacing, max_candidates), dtype=np.int64)]
-    picked_near = picked_near[np.argsort(-frames[picked_near] if latest_first else frames[picked_near], kind="stable")]
-    # The segment's best elsewhere, best first, where none near the change keeps the bounds.
-    picked_all = np.asarray(pick_candidates(frames, distances, spacing, max_candidates), dtype=np.int64)
-    picked = np.concatenate([picked_near, picked_all[~np.isin(picked_all, picked_near)]])
+
+    def ordered(curve: np.ndarray) -> np.ndarray:
+        """Indices of the candidates on `curve` (inf: not a candidate): near the change, nearest first, then
+        the best elsewhere."""
+        picked_near = near[np.asarray(pick_candidates(frames[near], curve[near], spacing, max_candidates), dtype=np.int64)]
+        picked_near = picked_near[np.argsort(-frames[picked_near] if latest_first else frames[picked_near], kind="stable")]
+        # The segment's best elsewhere, best first, where none near the change keeps the bounds.
+        picked_all = np.asarray(pick_candidates(frames, curve, spacing, max_candidates), dtype=np.int64)
+        return np.concatenate([picked_near, picked_all[~np.isin(picked_all, picked_near)]])
+
+    picked = ordered(distances)
+    if slow_at is not None:
+        slow = np.asarray(slow_at(loop_frames), dtype=bool)
+        # With the minima over the slow frames alone (a valley whose bottom is at a fast phase offers its
+        # best slow frame), every slow candidate nearest the change first: the shortest slow transition.
+        extra = ordered(np.where(slow, distances, np.inf))
+        first = np.union1d(picked[slow[picked]], extra)
+        first = first[np.argsort(-frames[first] if latest_first else frames[first], kind="stable")]
+        picked = np.concatenate([first, picked[~slow[picked]]])
     return frames[picked], loop_frames[picked], distances[picked]
 
 
@@ -259,21 +327,34 @@ def find_transition(
     max_candidates: int = DEFAULT_MAX_CANDIDATES,
     velocity_weight: float = DEFAULT_VELOCITY_WEIGHT,
     rest_positions: np.ndarray | None = None,
+    body: np.ndarray | None = None,
+    slow_switch_ratio: float | None = SLOW_SWITCH_RATIO,
 ) -> Transition:
     """The transition from loop_a (the clip of segment from_segment) to loop_b (that of the next segment).
 
     cloth: (F, V, 3) the whole cache; cloth_faces: (T, 3) for edge restoration and the stretch ratio (None
-    skips both); rest_positions: (V, 3), default the cache's first frame. The joins' half-widths are the
-    loops' own crossfade defaults (loop_closing.default_crossfade_frames). Each join takes the first of its
-    candidates (nearest the change of clip first, see _candidates) that keeps QUALITY_BOUNDS, else the first.
+    skips both); rest_positions: (V, 3), default the cache's first frame; body: (F, Vb, 3) the body posed
+    at each cache frame (crowdbake.stages.clip_loops.pose_clips_body), or None: the switch phases are
+    then judged by the cloth alone; slow_switch_ratio: switch_is_slow's ratio (None: no phase is preferred).
+    The joins' half-widths are the loops' own crossfade defaults
+    (loop_closing.default_crossfade_frames). Each join takes the first of its candidates (switches at
+    a slow phase first, nearest the change of clip first, see _candidates) that keeps QUALITY_BOUNDS, else the first.
     """
     to_segment = from_segment + 1
     edges = None if cloth_faces is None else unique_edges(cloth_faces)
     rest_lengths = None if edges is None else edge_lengths(np.asarray(cloth[0] if rest_positions is None else rest_positions, np.float64), edges)
     h_a, h_b = default_crossfade_frames(len(loop_a.looped)), default_crossfade_frames(len(loop_b.looped))
-    leaving = _candidates(loop_a, cloth, timeline, from_segment, h_a, max_candidates, velocity_weight, latest_first=True)
-    arriving = _candidates(loop_b, cloth, timeline, to_segment, h_b, max_candidates, velocity_weight, latest_first=False)
     la, lb = len(loop_a.looped), len(loop_b.looped)
+    steps_a = loop_steps(loop_a.looped, None if body is None else body_loop(body, loop_a))
+    steps_b = loop_steps(loop_b.looped, None if body is None else body_loop(body, loop_b))
+    reference = reference_step(steps_a, steps_b)
+    # Leaving, loop frame i - h_a - 1 (the manifest's leave_frame) steps to the transition's first frame,
+    # about loop frame i - h_a; arriving, its last frame, about loop frame j + h_b - 1, steps to j + h_b.
+    slow = slow_switch_ratio is not None
+    leaving = _candidates(loop_a, cloth, timeline, from_segment, h_a, max_candidates, velocity_weight, latest_first=True,
+                          slow_at=(lambda i: switch_is_slow(steps_a, i - h_a - 1, reference, slow_switch_ratio)) if slow else None)
+    arriving = _candidates(loop_b, cloth, timeline, to_segment, h_b, max_candidates, velocity_weight, latest_first=False,
+                           slow_at=(lambda j: switch_is_slow(steps_b, j + h_b - 1, reference, slow_switch_ratio)) if slow else None)
 
     def build(pick_a: int, pick_b: int):
         a, i = int(leaving[0][pick_a]), int(leaving[1][pick_a])
@@ -316,12 +397,13 @@ def find_transition(
 
 def find_transitions(cloth: np.ndarray, cloth_faces: np.ndarray | None, timeline: Timeline, loops: list[ClipLoop],
                      max_candidates: int = DEFAULT_MAX_CANDIDATES, velocity_weight: float = DEFAULT_VELOCITY_WEIGHT,
-                     rest_positions: np.ndarray | None = None) -> list[Transition]:
+                     rest_positions: np.ndarray | None = None, body: np.ndarray | None = None,
+                     slow_switch_ratio: float | None = SLOW_SWITCH_RATIO) -> list[Transition]:
     """find_transition for every change of clip in the timeline (timeline.changes()), in playing order."""
     by_clip = {loop.clip: loop for loop in loops}
     return [
         find_transition(cloth, cloth_faces, timeline, k, by_clip[timeline.segments[k].clip], by_clip[timeline.segments[k + 1].clip],
-                        max_candidates, velocity_weight, rest_positions)
+                        max_candidates, velocity_weight, rest_positions, body, slow_switch_ratio)
         for k, _ in timeline.changes()
     ]
 

@@ -166,7 +166,7 @@ def run_clips_job(cloth: np.ndarray, cloth_faces: np.ndarray, timeline: Timeline
         loops = find_clip_loops(cloth, cloth_faces, timeline, params, render_views, positions, faces, progress)
     elif [loop.clip for loop in loops] != timeline.clips():
         raise ValueError(f"the loops searched are of {[loop.clip for loop in loops]}, the timeline plays {timeline.clips()}")
-    transitions = find_transitions(cloth, cloth_faces, timeline, loops, params.max_candidates, params.velocity_weight)
+    transitions = find_transitions(cloth, cloth_faces, timeline, loops, params.max_candidates, params.velocity_weight, body=positions)
     out = Path(out_dir)
     (out / "clips").mkdir(parents=True, exist_ok=True)
     (out / "transitions").mkdir(parents=True, exist_ok=True)
@@ -281,12 +281,13 @@ def check_timeline(inputs, timeline: Timeline, timeline_path: Path, character) -
 def run_timeline(inputs, timeline: Timeline, timeline_path: Path, character, out_dir, params: CycleParams,
                  animation: str, render_views, progress, loops: list[ClipLoop] | None = None) -> tuple[CycleResult, dict]:
     """run_cycle_job's several-clip path: the timeline checked, the body posed per clip, then run_clips_job
-    (loops: searched already, see run_clips_job; then no body is posed, only the searches read it)."""
+    (loops: searched already, see run_clips_job). The body is posed even then: the transitions' search
+    reads it (crowdbake.bake.transitions.switch_is_slow), as the one over every clip does."""
     check_timeline(inputs, timeline, timeline_path, character)
     body = None
-    if loops is None and character is not None:
+    if character is not None:
         body = pose_clips_body(character, timeline)
-    elif loops is None and inputs.body is not None:
+    elif inputs.body is not None:
         body = (inputs.body, inputs.body_normals, inputs.body_faces)
     result, _, _, sections = run_clips_job(inputs.cloth, inputs.cloth_faces, timeline, out_dir, params, animation,
                                            render_views, body, progress, inputs.sample_rate, loops)
