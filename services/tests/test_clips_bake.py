@@ -76,6 +76,9 @@ def test_every_switch_is_at_a_slow_phase_of_its_loops(robot_bake):
         arrive = rms(p[b.first_frame + t.arrive_frame] - p[t.first_frame + t.frames - 1])
         # 2 %: the transition's end frames are the loops' up to the crossfade's edge-length restoration.
         assert max(leave, arrive) <= 1.02 * SLOW_SWITCH_RATIO * reference, (a.name, b.name, leave / reference, arrive / reference)
+    cycle = json.loads((robot_bake[1] / "cycle" / "cycle.json").read_text())
+    reported = [t[side]["switch_step_ratio"] for t in cycle["transitions"] for side in ("leave", "arrive")]
+    assert len(reported) == 2 * len(ranges.transitions) and all(0 <= r <= SLOW_SWITCH_RATIO for r in reported), reported
 
 
 def _over(quality: dict) -> list[str]:

@@ -99,6 +99,8 @@ def test_every_switch_is_at_a_slow_phase_within_the_bounds(skirt):
     assert switch_steps(plain).max() > 1.3  # what the rule is for
     transitions = find_transitions(cloth, faces, timeline, loops)
     assert switch_steps(transitions).max() <= SLOW_SWITCH_RATIO, switch_steps(transitions)
+    # Each join reports its switch's step (cycle.json's switch_step_ratio), as measured here.
+    np.testing.assert_allclose([(t.leave.switch_step_ratio, t.arrive.switch_step_ratio) for t in transitions], switch_steps(transitions))
     for t in transitions:
         assert t.within_bounds, (t.leave.quality, t.arrive.quality)
         # The switch itself is the loop's step: the transition's first frame is the loop frame it replaces.

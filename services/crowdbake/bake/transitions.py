@@ -164,7 +164,8 @@ class Join:
     """One end of a transition: cache frame `cache_frame` (a or b) meets loop frame `loop_frame` (i or j)
     of the same clip phase; distance: join_errors' D (cache units); half_width: h of its crossfade;
     quality: its figures (join_quality); candidates: (cache frame, loop frame, distance) of every
-    candidate the search weighed, best first."""
+    candidate the search weighed, best first; switch_step_ratio: what body and cloth move at the switch
+    against the reference step (switch_step_ratio below; at most SLOW_SWITCH_RATIO is a slow phase)."""
 
     cache_frame: int
     loop_frame: int
@@ -172,6 +173,7 @@ class Join:
     half_width: int
     quality: LoopQuality
     candidates: tuple[tuple[int, int, float], ...]
+    switch_step_ratio: float = 0.0
 
 
 @dataclass
@@ -267,6 +269,12 @@ def switch_is_slow(steps: np.ndarray, switch_steps: np.ndarray, reference: float
     if reference <= 0:
         return np.ones(len(index), dtype=bool)
     return steps[index] <= ratio * reference
+
+
+def switch_step_ratio(steps: np.ndarray, switch_step: int, reference: float) -> float:
+    """The loop's step at `switch_step` (index into steps (L,), metres, taken modulo L) over `reference`
+    (metres; reference_step); 0 when reference is 0 (still loops: no switch can pop)."""
+    return 0.0 if reference <= 0 else float(np.asarray(steps, np.float64)[int(switch_step) % len(steps)] / reference)
 
 
 def body_loop(body: np.ndarray, loop: ClipLoop) -> np.ndarray:
@@ -390,8 +398,10 @@ def find_transition(
         from_clip=loop_a.clip, to_clip=loop_b.clip, from_segment=from_segment, to_segment=to_segment,
         leave_loop_frame=int(leave_frame), arrive_loop_frame=int(arrive_frame), frames=frames.astype(np.float32),
         source_frames=(a - h_a, b + h_b),
-        leave=Join(a, int(leaving[1][pick_a]), float(leaving[2][pick_a]), h_a, quality_leave, listed(leaving)),
-        arrive=Join(b, int(arriving[1][pick_b]), float(arriving[2][pick_b]), h_b, quality_arrive, listed(arriving)),
+        leave=Join(a, int(leaving[1][pick_a]), float(leaving[2][pick_a]), h_a, quality_leave, listed(leaving),
+                   switch_step_ratio(steps_a, int(leaving[1][pick_a]) - h_a - 1, reference)),
+        arrive=Join(b, int(arriving[1][pick_b]), float(arriving[2][pick_b]), h_b, quality_arrive, listed(arriving),
+                    switch_step_ratio(steps_b, int(arriving[1][pick_b]) + h_b - 1, reference)),
     )
 
 

@@ -27,7 +27,7 @@ from crowdbake.bake.clips import ClipLoop, find_clip_loops
 from crowdbake.bake.timeline import Timeline
 from crowdbake.bake.cycle import CycleParams, CycleResult, _float, _quality_dict
 from crowdbake.bake.pose_ranges import first_frames
-from crowdbake.bake.transitions import Join, Transition, find_transitions, transition_jump_ratios
+from crowdbake.bake.transitions import SLOW_SWITCH_RATIO, Join, Transition, find_transitions, transition_jump_ratios
 from crowdbake.formats.ranges import Clip, Ranges
 from crowdbake.formats.ranges import Transition as BundleTransition
 
@@ -58,6 +58,7 @@ def _join_dict(join: Join) -> dict:
         "crossfade_frames": join.half_width,
         "quality": _quality_dict(join.quality),
         "candidates": [{"cache_frame": f, "loop_frame": k, "distance": _float(d)} for f, k, d in join.candidates],
+        "switch_step_ratio": _float(join.switch_step_ratio),
     }
 
 
@@ -185,6 +186,10 @@ def run_clips_job(cloth: np.ndarray, cloth_faces: np.ndarray, timeline: Timeline
         transition_entries.append(transition_dict(transition, name))
         if not transition.within_bounds:
             logger.warning("the transition %s -> %s breaks its quality bounds", transition.from_clip, transition.to_clip)
+        for end, join in (("leaves", transition.leave), ("arrives", transition.arrive)):
+            if join.switch_step_ratio > SLOW_SWITCH_RATIO:  # no slow candidate kept the bounds: a switch may read as a jump
+                logger.warning("the transition %s -> %s %s at a fast phase: %.2f x the clips' median step (slow: at most %.2f)",
+                               transition.from_clip, transition.to_clip, end, join.switch_step_ratio, SLOW_SWITCH_RATIO)
     main = next(loop for loop in loops if loop.clip == primary)
     sections = {"primary_clip": primary, "clip_phase": main.clip_phase, "timeline": timeline_dict(timeline),
                 "clips": clip_entries, "transitions": transition_entries}
