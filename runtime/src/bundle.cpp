@@ -419,8 +419,8 @@ Status cross_check(const Manifest& m, const std::map<std::string, PoseCache>& po
         bundle->impostor_uv.format != PixelFormat::uvblock)
         return bad(imp.uv_map, "the UV map must be rgba16, uv32 or uvblock (8 bits cannot address a 1024-texel texture)");
     if (!imp.surface_map.empty() && bundle->impostor_surface.format != PixelFormat::bc1 &&
-        bundle->impostor_surface.format != PixelFormat::rgba8)
-        return bad(imp.surface_map, "the surface map must be bc1 or rgba8");
+        bundle->impostor_surface.format != PixelFormat::bc2 && bundle->impostor_surface.format != PixelFormat::rgba8)
+        return bad(imp.surface_map, "the surface map must be bc1, bc2 or rgba8");
     return {};
 }
 

@@ -49,6 +49,16 @@
 // views 0.815 with the cut; services/benchmarks/LOG.md "Soft impostor edges").
 #define CV_EDGE_LOW 0.1
 
+// Impostor colours between baked views (impostor_uv.frag.glsl): a reprojected sample whose last
+// fixed-point step still misses its pixel by more than CV_MISS_LOW target texels found a surface
+// its view does not show there (an occluded part); its colour's weight falls to 0 at CV_MISS_HIGH.
+// The pixel takes the converged samples' colour where they hold over CV_TRUSTED_SHARE of the
+// blended coverage; the silhouette (coverage) counts every sample (services/benchmarks/LOG.md
+// "Anti-aliased impostor silhouettes").
+#define CV_MISS_LOW 0.5
+#define CV_MISS_HIGH 2.0
+#define CV_TRUSTED_SHARE 0.05
+
 // Ambient term of the Lambert lighting shared by mesh and impostor shaders, so a mesh and
 // its impostor are lit alike at the LOD switch.
 #define CV_AMBIENT 0.35

@@ -39,6 +39,12 @@ CONFIGS = {
     "default": {},
     "m9": {"impostor_motion_texels": 9.0},
     "m10": {"impostor_motion_texels": 10.0},
+    "b10": {"impostor_budget_mib": 10.0},  # the defaults at other budgets: the trade-off curve
+    "b24": {"impostor_budget_mib": 24.0},
+    # The defaults at 112² tiles, the frames' motion the same in metres (9 texels).
+    "t112": {"tile_size": 112, "impostor_motion_texels": 9.0},
+    "a20f12": (20, (0.0, 20.0, 40.0), 12, 96),
+    "a16f14": (16, (0.0, 20.0, 40.0), 14, 96),
     "f10t128": (32, (0.0, 20.0, 40.0), 10, 128, 16.0),  # 10 frames asked, 128² tiles, the budget's azimuths
     "a32": (32, (0.0, 20.0, 40.0), 10, 128),
     "a24": (24, (0.0, 20.0, 40.0), 10, 128),
@@ -51,6 +57,7 @@ CONFIGS = {
     "a8r2f36": (8, (0.0, 30.0), 36, 128),
     "a12r2f24": (12, (0.0, 30.0), 24, 128),
     "a12f16": (12, (0.0, 20.0, 40.0), 16, 128),
+    "t112a12f20": (12, (0.0, 20.0, 40.0), 20, 112),
     "a16f12": (16, (0.0, 20.0, 40.0), 12, 128),
     "a16r2f16": (16, (0.0, 30.0), 16, 128),
     "t112r2f24": (16, (0.0, 30.0), 24, 112),
@@ -60,7 +67,6 @@ CONFIGS = {
     "t112f16b": (32, (0.0, 20.0, 40.0), 16, 112, 16.0),
     "t112a20f12": (20, (0.0, 20.0, 40.0), 12, 112),
     "t112a24f10": (24, (0.0, 20.0, 40.0), 10, 112),
-    "t112a12f20": (12, (0.0, 20.0, 40.0), 20, 112),
 }
 ROBOT_WALK_FRAMES = (320, 493)  # robot_clips/timeline.json: the first Walking segment without blends
 

@@ -239,7 +239,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("impostor_frames", "int", 24, "the most cycle frames baked into impostors (paper: 10); fewer where the "
               "character moves little (impostor_motion_texels) or the memory budget says so",
               ("--frames", "--impostor-frames"), "N", minimum=1, maximum=MAX_IMPOSTOR_FRAMES),
-    ParamSpec("impostor_motion_texels", "float", 9.0, "bake the fewest frames between which the character (95 percent of its vertices) "
+    ParamSpec("impostor_motion_texels", "float", 7.1, "bake the fewest frames between which the character (95 percent of its vertices) "
               "moves at most this many tile texels, up to impostor_frames (docs/bake.md 'Memory')",
               ("--frame-motion",), "TEXELS", optional=True, above_zero=True, maximum=1024.0,
               derived="none: impostor_frames as given"),
@@ -247,7 +247,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--azimuths",), "N", minimum=1, maximum=MAX_AZIMUTHS),
     ParamSpec("elevations_deg", "floats", (0.0, 20.0, 40.0), "impostor view elevations in degrees, one ring each",
               ("--elevations",), "DEG,...", minimum=-90.0, maximum=90.0, min_items=1, max_items=MAX_ELEVATIONS, distinct=True),
-    ParamSpec("tile_size", "int", 112, "texels per impostor view side (a multiple of 4: BC1/BC2 blocks are 4x4 texels)",
+    ParamSpec("tile_size", "int", 88, "texels per impostor view side (a multiple of 4: BC1/BC2 blocks are 4x4 texels)",
               ("--tile", "--tile-size"), "PX", minimum=4, maximum=MAX_TILE_SIZE, multiple_of=4),
     ParamSpec("impostor_budget_mib", "float", 16.0, "memory for one clip's impostor maps in MiB (the paper's 15): fewer azimuths (to 12), "
               "then fewer frames, until they fit (docs/bake.md 'Memory')",
@@ -264,7 +264,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("lod_triangles", "int", None, "low LOD triangles for the whole character (instead of lod_ratio)",
               ("--lod-triangles",), "N", derived="from lod_ratio", optional=True, minimum=2, exclusive_group="lod"),
     ParamSpec("compress", "bool", True,
-              "block-compress normal maps (BC5), surface maps (DXT1), detail maps and diffuse textures (DXT3); false: rgba8",
+              "block-compress normal maps (BC5), surface maps, detail maps and diffuse textures (DXT3); false: rgba8",
               ("--no-compress",), off_help="do not block-compress the maps: store normal, surface, detail maps and diffuse textures as rgba8"),
     ParamSpec("uv_format", "str", "uvblock", "impostor UV map format: uvblock (1.5 bytes a texel, block-coded 12-bit coordinates), "
               "uv32 (4 bytes, 14-bit coordinates) or rgba16 (8 bytes)",
@@ -321,10 +321,10 @@ class BakeParams:
     candidates: int = 5
     cycle_views: int = 5
     impostor_frames: int = 24
-    impostor_motion_texels: float | None = 9.0
+    impostor_motion_texels: float | None = 7.1
     azimuths: int = 32
     elevations_deg: tuple[float, ...] = (0.0, 20.0, 40.0)
-    tile_size: int = 112
+    tile_size: int = 88
     impostor_budget_mib: float | None = 16.0
     crop: bool = True
     detail_map: bool = False

@@ -52,7 +52,7 @@ def test_the_budget_takes_azimuths_first_then_frames_and_keeps_the_floors():
     positions, center, radius = walker()
     extents = frame_extents(positions, center, ELEVATIONS)
     per_texel = bytes_per_texel(map_formats(True, "uvblock", False))
-    assert per_texel == 3.0  # BC5 1 + uvblock 1.5 + BC1 0.5
+    assert per_texel == 3.5  # BC5 1 + uvblock 1.5 + BC2 1 (depth, motion and coverage)
     asked = fit_budget(extents, radius, 128, 32, 3, 10, len(positions), per_texel, None)
     assert (asked.azimuths, asked.frames, asked.fits) == (32, 10, True) and len(asked.steps) == 1
     assert asked.bytes == clip_bytes(32, 3, 10, asked.crop, per_texel)
@@ -70,7 +70,7 @@ def test_the_budget_takes_azimuths_first_then_frames_and_keeps_the_floors():
 
 
 def test_detail_maps_and_formats_count_in_the_bytes():
-    assert bytes_per_texel(map_formats(True, "uvblock", True)) == 4.0
+    assert bytes_per_texel(map_formats(True, "uvblock", True)) == 4.5
     assert bytes_per_texel(map_formats(False, "uv32", False)) == 4 + 4 + 4
 
 

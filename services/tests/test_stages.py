@@ -79,7 +79,7 @@ def test_bake_writes_a_bundle_that_verifies(sample, baked):
     assert abs(low - SMALL.lod_triangles) <= 0.05 * SMALL.lod_triangles
     formats = {path: bundle.textures[path].pixel_format for path in manifest["impostor"]["maps"].values()}
     assert formats == {"impostor/normal.cbtx": "bc5", "impostor/uv.cbtx": "uvblock", "impostor/detail.cbtx": "bc2",
-                       "impostor/surface.cbtx": "bc1"}
+                       "impostor/surface.cbtx": "bc2"}
     assert manifest["materials"] == [{"name": "character", "diffuse": "textures/character_diffuse.cbtx", "variations": 8}]
     # Every frame of the low LOD is the high LOD's vertices (a subset carried over).
     for part in ("body", "cloth"):

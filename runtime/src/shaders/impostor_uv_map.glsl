@@ -75,7 +75,8 @@ UvTexel fetch_uv_map(ivec3 texel) {
 // CV_EDGE_LOW), 0.5 at a tie. Unmoved, they can disagree by a whole limb: the pixel is drawn where
 // coverage is over one half (at a tie, where both agree); on the synthetic bundle of tests/test_render
 // soft edges there drew a faint second limb (SSIM 0.787 against 0.830 for `full` blending).
-// At a baked view and frame coverage is 0 or 1, so the paper's hard silhouette either way.
+// Each sample counts with the share of the pixel its silhouette covers where the surface map holds
+// it (SPEC.md "Impostor maps"), so at a baked view the edge is anti-aliased as the mesh's.
 float edge_alpha(float coverage) {
 #if CV_WARP
     return smoothstep(CV_EDGE_LOW, 1.0 - CV_EDGE_LOW, coverage);

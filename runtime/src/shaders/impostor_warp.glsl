@@ -78,7 +78,7 @@ vec3 surface_at(ivec2 origin, vec2 xy, int layer) {
 
 // Where `pixel` (target tile texels, x right, y down) finds its surface point in the source tile;
 // `fraction` of the stored motion is applied (+: towards the next baked frame).
-vec2 reproject(ViewBasis s, ViewBasis t, vec2 pixel, ivec2 origin, int layer, float fraction) {
+vec2 reproject(ViewBasis s, ViewBasis t, vec2 pixel, ivec2 origin, int layer, float fraction, out float miss) {
     float k = float(u_tile_size) / (2.0 * u_radius);  // texels a metre
     vec3 o = (pixel.x / k - u_radius) * t.right + (u_radius - pixel.y / k) * t.up;
     vec2 xy = vec2((dot(o, s.right) + u_radius) * k, (u_radius - dot(o, s.up)) * k);
@@ -89,6 +89,7 @@ vec2 reproject(ViewBasis s, ViewBasis t, vec2 pixel, ivec2 origin, int layer, fl
         vec3 p = (xy.x / k - u_radius + fraction * f.y) * s.right + (u_radius - xy.y / k + fraction * f.z) * s.up + f.x * s.back;
         vec2 seen = vec2((dot(p, t.right) + u_radius) * k, (u_radius - dot(p, t.up)) * k);
         xy += step * (pixel - seen);
+        miss = length(pixel - seen);
     }
     return xy;
 }
@@ -97,10 +98,18 @@ vec2 reproject(ViewBasis s, ViewBasis t, vec2 pixel, ivec2 origin, int layer, fl
 // The atlas texel of the sample with tile origin `origin` and layer `layer` for the fragment at
 // `pixel` (tile texels); x < 0 where the sample falls outside the stored crop (not covered).
 // `target`: the camera's view in model space; `fraction`: see reproject.
-ivec3 sample_texel(ivec2 origin, int layer, vec2 pixel, ViewBasis target, float fraction) {
+// `share`: the part of the fragment the sample's silhouette covers (SPEC.md "Impostor maps": the
+// surface map's alpha, filtered at the reprojected point; 1 in a bc1 surface map or without one, whose
+// silhouette is the UV map's alone). `miss`: target texels the reprojection's last step missed by.
+ivec3 sample_texel(ivec2 origin, int layer, vec2 pixel, ViewBasis target, float fraction, out float share, out float miss) {
 #if CV_WARP
-    ivec2 t = ivec2(floor(reproject(tile_basis(origin + u_crop.xy), target, pixel, origin, layer, fraction)));
+    vec2 xy = reproject(tile_basis(origin + u_crop.xy), target, pixel, origin, layer, fraction, miss);
+    vec2 p = clamp(xy, vec2(u_crop.xy) + 0.5, vec2(u_crop.xy + u_crop.zw) - 0.5) + vec2(origin);
+    share = texture(u_surface_map, vec3(p / vec2(textureSize(u_surface_map, 0).xy), float(layer))).a;
+    ivec2 t = ivec2(floor(xy));
 #else
+    share = 1.0;
+    miss = 0.0;
     ivec2 t = clamp(ivec2(pixel), ivec2(0), ivec2(u_tile_size - 1));
 #endif
     return in_crop(t) ? ivec3(origin + t, layer) : ivec3(-1);

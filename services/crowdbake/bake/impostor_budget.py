@@ -9,11 +9,9 @@ is (y - y_centre)·cos e ± ρ·sin e. `frame_extents` measures those per frame 
 and frames then has its crop, and so its bytes, without projecting again.
 
 `fit_budget` picks the counts: azimuths first fall (in steps of 4, to AZIMUTH_FLOOR), then frames (to
-FRAME_FLOOR), until the maps fit. Halving the azimuths cost the sample 0.006 SSIM between views and
-frames, where fewer frames cost CesiumMan's long skirt most of its fidelity: its cloth moves further
-between baked frames than any view step reveals. At 15.8 MiB, 12 × 3 views × 20 frames score 0.884 /
-0.854 (mean / worst) between views and frames on it against 0.874 / 0.828 for 16 × 3 × 15; 8 azimuths
-lose (services/benchmarks/bench_impostor_budget.py, docs/bake.md "Memory"). Pure numpy.
+FRAME_FLOOR), until the maps fit. Fewer frames cost CesiumMan's long skirt most of its fidelity between
+views and frames, its cloth moving further between baked frames than any view step reveals; the robot
+loses more to fewer views (services/benchmarks/bench_impostor_budget.py, docs/bake.md "Memory"). Pure numpy.
 """
 from __future__ import annotations
 
@@ -37,10 +35,11 @@ DETAIL_FORMATS = {True: "bc2", False: "rgba8"}  # compressed or not
 def map_formats(compress: bool, uv_format: str, detail_map: bool = True) -> dict[str, str]:
     """Pixel formats of the impostor maps the bundle stores, when compressing: DXT3 detail (paper section 5),
     only with `detail_map`; BC5 normals, two components in each tile's view at 1 byte a texel, where the
-    paper's DXT1 (0.5 byte) costs the impostor 0.016 SSIM against the mesh (docs/bake.md); DXT1 for the
-    surface map (smooth depth and motion)."""
+    paper's DXT1 (0.5 byte) costs the impostor 0.016 SSIM against the mesh (docs/bake.md); DXT3 for the
+    surface map: smooth depth and motion, and the 4-bit alpha of the character's share of each texel
+    (SPEC.md "Impostor maps"), which draws anti-aliased silhouettes."""
     formats = {"normal": "bc5" if compress else "rgba8", "uv": uv_format, "detail": DETAIL_FORMATS[compress],
-               "surface": "bc1" if compress else "rgba8"}
+               "surface": "bc2" if compress else "rgba8"}
     if not detail_map:
         del formats["detail"]
     return formats

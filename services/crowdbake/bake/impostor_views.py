@@ -453,6 +453,29 @@ def nearest_inside_views(masks: np.ndarray) -> np.ndarray:
     return index
 
 
+# Coverage below this share of a texel stores as alpha 0 (SPEC.md: 4-bit alpha rounds it away).
+MIN_COVERAGE = 1.0 / 30.0
+
+
+def extend_to_partial_texels(mask: np.ndarray, coverage: np.ndarray, maps: list[np.ndarray]) -> np.ndarray:
+    """Give the texels the mesh covers only in part (their centre outside `mask`) the values of their
+    view's nearest covered texel, in place, and return the extended mask.
+
+    mask: (V, S, S) bool, texel centres the mesh covers; coverage: (V, S, S) float 0..1, the share of each
+    texel the mesh covers (supersampled); maps: (V, S, S, C) images of those views. A soft silhouette is
+    drawn from these texels too (SPEC.md "Impostor maps", the surface map's alpha): they need a surface
+    point to colour, light and reproject, and the nearest covered one is the surface beside them."""
+    partial = (np.asarray(coverage) >= MIN_COVERAGE) & ~mask
+    if not partial.any():
+        return mask
+    nearest = nearest_inside_views(mask).reshape(-1)
+    chosen = partial.reshape(-1)
+    for image in maps:
+        flat = image.reshape(-1, image.shape[-1])
+        flat[chosen] = flat[nearest[chosen]]
+    return mask | partial
+
+
 def fill_background(mask: np.ndarray, maps: list[np.ndarray], unflattened: list[np.ndarray] = ()) -> np.ndarray:
     """Give the texels outside `mask` the RGB of their view's nearest covered texel, in place.
 

@@ -296,4 +296,4 @@ def _cross_check(bundle: Bundle) -> None:
     _require(bundle.textures[impostor["maps"]["uv"]].pixel_format in ("rgba16", "uv32", "uvblock"), "the UV map must be rgba16, uv32 or uvblock (12+ bits per coordinate)", impostor["maps"]["uv"])
     if "surface" in impostor["maps"]:
         surface = impostor["maps"]["surface"]
-        _require(bundle.textures[surface].pixel_format in ("bc1", "rgba8"), "the surface map must be bc1 or rgba8", surface)
+        _require(bundle.textures[surface].pixel_format in ("bc1", "bc2", "rgba8"), "the surface map must be bc1, bc2 or rgba8", surface)

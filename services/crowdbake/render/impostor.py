@@ -145,14 +145,15 @@ class VisibilityRenderer:
 
     def shader_references(self, views: list[OrthoView], positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray,
                           faces: np.ndarray, triangle_material: np.ndarray, diffuse: list[np.ndarray], outfit_row: np.ndarray,
-                          supersample: int) -> np.ndarray:
-        """The fidelity stage's mesh references of `views` (size S · supersample), (V, S, S, 3) float32:
-        crowdbake.render.map_shader.draw_references in this renderer's context."""
+                          supersample: int, with_coverage: bool = False) -> np.ndarray:
+        """The fidelity stage's mesh references of `views` (size S · supersample), (V, S, S, 3) float32
+        ((V, S, S, 4) with_coverage): crowdbake.render.map_shader.draw_references in this renderer's context."""
         if not self._open:
             raise RuntimeError("VisibilityRenderer.shader_references called outside its `with` block")
         with self._offscreen.current():
             shader = self._shader(views[0].size if views else self.size, map_shader.REFERENCE)
-            return map_shader.draw_references(shader, views, positions, normals, uvs, faces, triangle_material, diffuse, outfit_row, supersample)
+            return map_shader.draw_references(shader, views, positions, normals, uvs, faces, triangle_material, diffuse, outfit_row,
+                                              supersample, with_coverage)
 
     def runtime_impostors(self, atlas: RuntimeAtlas, pictures: list[RuntimePicture]) -> np.ndarray:
         """crowdview's impostor shader's pictures of `atlas` (crowdbake.render.runtime_shader), drawn in this

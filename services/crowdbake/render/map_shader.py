@@ -370,10 +370,11 @@ def draw_maps(shader: MapShader, views: list[OrthoView], positions: np.ndarray, 
 
 def draw_references(shader: MapShader, views: list[OrthoView], positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray,
                     faces: np.ndarray, triangle_material: np.ndarray, diffuse: list[np.ndarray], outfit_row: np.ndarray,
-                    supersample: int) -> np.ndarray:
+                    supersample: int, with_coverage: bool = False) -> np.ndarray:
     """The fidelity stage's mesh references (crowdbake.bake.reference.mesh_reference) of views of size
     S · supersample: each sample shaded by the REFERENCE pass, box-filtered down to (V, S, S, 3) float32
-    in 0..1, black background. diffuse: per material, the texture as the runtime holds it; outfit_row:
+    in 0..1, black background; with_coverage: (V, S, S, 4), alpha the share of the texel's samples the
+    mesh covers. diffuse: per material, the texture as the runtime holds it; outfit_row:
     (16, 4) uint8, one row of the outfit map. Views are drawn MAX_PASS_TEXELS at a time; the box filter
     runs on the GPU (BOX_FRAGMENT_SHADER)."""
     if shader.shader_pass is not REFERENCE:
@@ -389,7 +390,7 @@ def draw_references(shader: MapShader, views: list[OrthoView], positions: np.nda
     for first in range(0, len(views), batch):
         (colour,) = shader.draw(views[first:first + batch], positions, normals, uvs, positions, faces, triangle_material, diffuse,
                                 uniforms, box=supersample)
-        images.append(colour[..., :3])
+        images.append(colour if with_coverage else colour[..., :3])
     return np.concatenate(images)
 
 

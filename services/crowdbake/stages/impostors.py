@@ -256,36 +256,46 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
                                 scene.positions if next_positions is None else next_positions,
                                 scene.faces, scene.triangle_material, scene.diffuse)
     timings["render"] += time.perf_counter() - clock
+    references = None
     clock = time.perf_counter()
-    # The surface map's background is filled as the others' but keeps its blocks as filled: its values
-    # beside the silhouette are read back by the runtime's reprojection.
-    impostor_views.fill_background(maps.mask, [maps.normal, maps.detail], unflattened=[maps.surface])
-    maps.surface[..., 3] = 255
-    timings["maps"] += time.perf_counter() - clock
-    arrays = {"views": np.asarray(views, dtype=np.int64).reshape(-1, 2), "normal": maps.normal, "uv": maps.uv, "detail": maps.detail,
-              "surface": maps.surface}
     if task.references:
-        clock = time.perf_counter()
         between = _between_cameras(plan, views)
         # One pass for the baked views and the cameras between them: the mesh and textures go up once.
         references = mesh_references(scene, plan, angles + [(azimuth, plan.layout["elevations_deg"][e])
-                                                           for (_, e), azimuth in zip(between["between_views"].tolist(), between["between_azimuths"])])
-        arrays.update(reference=references[:len(angles)], reference_between=references[len(angles):], **between)
+                                                           for (_, e), azimuth in zip(between["between_views"].tolist(), between["between_azimuths"])],
+                                     with_coverage=True)
+        coverage = references[:len(angles), ..., 3]
         timings["references"] += time.perf_counter() - clock
+    else:
+        # The mesh's share of each texel, sampled as the references are: the surface map's alpha.
+        coverage = mesh_references(scene, plan, angles, with_coverage=True)[..., 3]
+        timings["render"] += time.perf_counter() - clock
+    clock = time.perf_counter()
+    mask = impostor_views.extend_to_partial_texels(maps.mask, coverage, [maps.normal, maps.uv, maps.detail, maps.surface])
+    # The surface map's background is filled as the others' but keeps its blocks as filled: its values
+    # beside the silhouette are read back by the runtime's reprojection.
+    impostor_views.fill_background(mask, [maps.normal, maps.detail], unflattened=[maps.surface])
+    maps.surface[..., 3] = np.where(mask, np.rint(np.clip(coverage, 0.0, 1.0) * 255.0), 0).astype(np.uint8)
+    timings["maps"] += time.perf_counter() - clock
+    arrays = {"views": np.asarray(views, dtype=np.int64).reshape(-1, 2), "normal": maps.normal, "uv": maps.uv, "detail": maps.detail,
+              "surface": maps.surface}
+    if references is not None:
+        arrays.update(reference=references[:len(angles), ..., :3], reference_between=references[len(angles):, ..., :3], **between)
     return arrays
 
 
-def mesh_references(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]]) -> np.ndarray:
+def mesh_references(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]], with_coverage: bool = False) -> np.ndarray:
     """The mesh from each (azimuth, elevation) in degrees, lit as the runtime lights the impostor, at
     FIDELITY_SUPERSAMPLE² samples a texel (crowdbake.render.map_shader.draw_references, which
     crowdbake.bake.reference.mesh_reference is the float64 reference of): (V, S, S, 3) float32."""
     size = int(plan.layout["tile_size"]) * FIDELITY_SUPERSAMPLE
     views = [impostor_views.ortho_view(plan.center, plan.radius, azimuth, elevation, size) for azimuth, elevation in angles]
     if not views:
-        return np.zeros((0, size // FIDELITY_SUPERSAMPLE, size // FIDELITY_SUPERSAMPLE, 3), np.float32)
+        return np.zeros((0, size // FIDELITY_SUPERSAMPLE, size // FIDELITY_SUPERSAMPLE, 4 if with_coverage else 3), np.float32)
     return shared_renderer(int(plan.layout["tile_size"])).shader_references(
-        views, scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material, scene.diffuse_runtime,
-        scene.outfit_row, FIDELITY_SUPERSAMPLE)
+        views, scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material,
+        scene.diffuse_runtime or scene.diffuse,  # (without runtime textures only the coverage is wanted)
+        scene.outfit_row, FIDELITY_SUPERSAMPLE, with_coverage)
 
 
 def _between_cameras(plan: ImpostorPlan, views: list[tuple[int, int]]) -> dict[str, np.ndarray]:

@@ -87,7 +87,7 @@ class AtlasTiles:
         self.uv_map, self.normal_map = parsed_map(uv_file, "uv map"), parsed_map(normal_file, "normal map")
         self.surface_map = parsed_map(surface_file, "surface map")
         self._layers: dict[int, tuple] = {}
-        self._surfaces: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._surfaces: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def _view(self, plane: np.ndarray, tile: int, edge: bool = False) -> np.ndarray:
         """The whole tile `tile` of a decoded layer (crowdbake.bake.atlas.view_tile): outside the crop not
@@ -95,14 +95,15 @@ class AtlasTiles:
         columns = len(self.layout.azimuths_deg)
         return view_tile(self.layout, plane, tile % columns, tile // columns, edge)
 
-    def surface(self, tile: int, layer: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """(depth (S, S), motion (S, S, 2)) metres of a tile (crowdbake.bake.surface_maps); None without a surface map."""
+    def surface(self, tile: int, layer: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(depth (S, S), motion (S, S, 2)) metres of a tile (crowdbake.bake.surface_maps) and its coverage
+        (S, S) 0..1 (the alpha; 1 in a bc1 map); None without a surface map."""
         if self.surface_map is None:
             return None
         if layer not in self._surfaces:
-            self._surfaces[layer] = surface_maps.decode_surface(decode_surface_layer(self.surface_map, layer), self.radius)
-        depth, motion = self._surfaces[layer]
-        return self._view(depth, tile, edge=True), self._view(motion, tile, edge=True)
+            texels = decode_surface_layer(self.surface_map, layer)
+            self._surfaces[layer] = (*surface_maps.decode_surface(texels, self.radius), texels[..., 3] / 255.0)
+        return tuple(self._view(plane, tile, edge=True) for plane in self._surfaces[layer])
 
     def tile(self, tile: int, layer: int) -> DecodedTile:
         if layer not in self._layers:
@@ -121,7 +122,8 @@ def sample_tile(tiles: AtlasTiles, tile: int, layer: int, target: impostor_views
     columns = len(tiles.layout.azimuths_deg)
     source = impostor_views.ortho_view(target.center, target.radius, tiles.layout.azimuths_deg[tile % columns],
                                       tiles.layout.elevations_deg[tile // columns], target.size)
-    return impostor_warp.warp_tile(decoded, source, surface, target, impostor_warp.motion_fraction(layer, frames))
+    *fields, coverage = surface
+    return impostor_warp.warp_tile(decoded, source, tuple(fields), target, impostor_warp.motion_fraction(layer, frames), coverage=coverage)
 
 
 def halfway_frame(poses: PosesRecord) -> tuple[int, impostor_blend.FrameWeights]:

@@ -5,8 +5,8 @@ shaders/impostor_uv.frag.glsl) goes beyond the paper's nearest view and nearest 
 the four baked views around the camera (bilinear over azimuth × elevation, azimuth wrapping, elevation
 clamped) and the two baked frames either side of the cycle frame (linear). Each (view, frame) sample
 reads its own UV-map texel at the same offset inside its tile, looks the diffuse texture up with that
-exact coordinate, and only colours, normals and coverage are blended; the pixel's opacity is a smooth
-step of the blended coverage (edge_alpha), drawn over black here, as crowdview blends it over the scene. This module repeats those rules so the bake can score what the
+exact coordinate, and only colours, normals and coverage are blended, each sample weighted by the part
+of the pixel its silhouette covers; the pixel's opacity is a smooth step of the blended coverage (edge_alpha), drawn over black here, as crowdview blends it over the scene. This module repeats those rules so the bake can score what the
 runtime draws (crowdbake.stages.fidelity), and shares test vectors with crowdview
 (runtime/tests/data/view_blend_vectors.json, read by test_impostor_blend.py and the view_blend ctest).
 
@@ -29,6 +29,10 @@ GRADIENT_LIMIT_TEXELS = 4.0
 # runtime/src/config.h CV_EDGE_LOW: blended coverage at or under this is transparent, at or over one minus
 # it opaque (edge_alpha).
 EDGE_LOW = 0.1
+# config.h CV_MISS_LOW, CV_MISS_HIGH: target texels of a reprojection's last miss where trust starts and
+# ends falling (trust); TRUSTED_SHARE: the part of the blended coverage trusted samples must hold for the
+# colour to be theirs alone.
+MISS_LOW, MISS_HIGH, TRUSTED_SHARE = 0.5, 2.0, 0.05
 
 
 def edge_alpha(coverage: np.ndarray, reprojected: bool = True) -> np.ndarray:
@@ -142,13 +146,28 @@ class DecodedTile:
     """One (view, frame) tile as the runtime samples it.
 
     uv: (S, S, 2) float64 texture coordinates; material: (S, S) int64; covered: (S, S) bool;
-    normal: (S, S, 3) float64 model-space unit normals (the decoded normal map).
+    normal: (S, S, 3) float64 model-space unit normals (the decoded normal map); share: (S, S) float64
+    0..1, the part of each pixel the sample's silhouette covers (the surface map's alpha, SPEC.md
+    "Impostor maps"), or None: all of every covered pixel; miss: (S, S) target texels the reprojection
+    still missed by at its last step (impostor_warp.reproject), or None: not reprojected.
     """
 
     uv: np.ndarray
     material: np.ndarray
     covered: np.ndarray
     normal: np.ndarray
+    share: np.ndarray | None = None
+    miss: np.ndarray | None = None
+
+
+def trust(miss: np.ndarray | None) -> np.ndarray | float:
+    """How far a reprojected sample's colour is trusted, 0..1, from its last step's miss in target texels
+    (impostor_uv.frag.glsl, config.h CV_MISS_LOW and CV_MISS_HIGH): 1 where the fixed-point iteration
+    converged, falling to 0 where it did not (the surface the pixel needs is hidden in that view)."""
+    if miss is None:
+        return 1.0
+    t = np.clip((np.asarray(miss, np.float64) - MISS_LOW) / (MISS_HIGH - MISS_LOW), 0.0, 1.0)
+    return 1.0 - t * t * (3.0 - 2.0 * t)
 
 
 def mip_chain(texture: np.ndarray) -> list[np.ndarray]:
@@ -260,21 +279,32 @@ def blend_image(samples: list[tuple[float, DecodedTile]], diffuse: list[np.ndarr
     if chains is None:
         chains = [mip_chain(texture) for texture in diffuse]
     shape = samples[0][1].uv.shape[:2]
-    coverage = np.zeros(shape)
-    colour = np.zeros(shape + (3,))
-    normal = np.zeros(shape + (3,))
+    coverage, trusted = np.zeros(shape), np.zeros(shape)
+    colour, normal = np.zeros(shape + (3,)), np.zeros(shape + (3,))
+    trusted_colour, trusted_normal = np.zeros(shape + (3,)), np.zeros(shape + (3,))
     for weight, tile in samples:
         if weight <= 0:
             continue
-        w = weight * tile.covered
+        w = weight * tile.covered * (1.0 if tile.share is None else tile.share)
+        sure = w * trust(tile.miss)
         coverage += w
-        colour += w[..., None] * albedo(tile, diffuse, chains, outfit_row, tile_size)
-        normal += w[..., None] * np.where(tile.covered[..., None], tile.normal, 0.0)
+        trusted += sure
+        sample_colour = albedo(tile, diffuse, chains, outfit_row, tile_size)
+        sample_normal = np.where(tile.covered[..., None], tile.normal, 0.0)
+        colour += w[..., None] * sample_colour
+        normal += w[..., None] * sample_normal
+        trusted_colour += sure[..., None] * sample_colour
+        trusted_normal += sure[..., None] * sample_normal
+    # Where the samples whose reprojection converged hold enough of the coverage, the colour is theirs.
+    use_trusted = trusted > TRUSTED_SHARE * coverage
+    colour = np.where(use_trusted[..., None], trusted_colour, colour)
+    normal = np.where(use_trusted[..., None], trusted_normal, normal)
+    coverage_of_colour = np.where(use_trusted, trusted, coverage)
     alpha = edge_alpha(coverage, reprojected)
     drawn = alpha > 0
     image = np.zeros(shape + (3,))
     if drawn.any():
-        base = colour[drawn] / coverage[drawn][:, None]
+        base = colour[drawn] / coverage_of_colour[drawn][:, None]
         length = np.linalg.norm(normal[drawn], axis=-1, keepdims=True)
         unit = np.divide(normal[drawn], length, out=np.zeros_like(normal[drawn]), where=length > 1e-12)
         image[drawn] = shading.lambert(base, unit, light) * alpha[drawn][:, None]

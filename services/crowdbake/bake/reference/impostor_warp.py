@@ -14,6 +14,8 @@ crowdview reads them. Pure numpy; positions in model-space metres, coordinates i
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from crowdbake.bake.reference.impostor_blend import DecodedTile, FrameWeights
@@ -159,18 +161,20 @@ def motion_fraction(layer: int, frames: FrameWeights) -> float:
 
 
 def warp_tile(tile: DecodedTile, source: OrthoView, surface: tuple[np.ndarray, np.ndarray], target: OrthoView,
-              fraction: float, iterations: int = DEFAULT_ITERATIONS) -> DecodedTile:
+              fraction: float, iterations: int = DEFAULT_ITERATIONS, coverage: np.ndarray | None = None) -> DecodedTile:
     """A (view, frame) sample as crowdview draws it with reprojection: `tile` gathered where each pixel of
     the `target` view finds its surface point. surface: the tile's (depth (S, S), motion (S, S, 2)) metres,
-    decoded from the bundle's surface map (crowdbake.bake.surface_maps.decode_surface). At the sample's own
-    view and frame the reprojection is the identity, and the tile is returned as it is."""
+    decoded from the bundle's surface map (crowdbake.bake.surface_maps.decode_surface); coverage: its
+    (S, S) alpha, 0..1, read bilinearly at the same points as the sample's share. At the sample's own view
+    and frame the reprojection is the identity, and the tile is returned as it is."""
     same_view = source.azimuth_deg == target.azimuth_deg and source.elevation_deg == target.elevation_deg
     if same_view and fraction == 0.0:
-        return tile
+        return tile if coverage is None else replace(tile, share=np.asarray(coverage, np.float64))
     depth, motion = surface
     if fraction:  # the surface map's motion is along the source's right and up already
         planes = np.stack([depth.ravel(), fraction * motion[..., 0].ravel(), fraction * motion[..., 1].ravel()])
     else:
         planes = depth.reshape(1, -1)
-    xy, _ = reproject_planes(source, planes, depth.shape[1], target, iterations)
-    return gather(tile, xy)
+    xy, miss = reproject_planes(source, planes, depth.shape[1], target, iterations)
+    gathered = replace(gather(tile, xy), miss=miss)
+    return gathered if coverage is None else replace(gathered, share=bilinear(coverage, xy))
