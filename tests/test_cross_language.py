@@ -250,7 +250,9 @@ def test_crowdview_draws_the_reprojected_silhouette_the_bake_scores(views16_bund
         weights = impostor_blend.blend_view_weights(azimuth, elevation, layout.azimuths_deg, layout.elevations_deg)
 
         def drawn(tiles: AtlasTiles) -> np.ndarray:
-            coverage = sum(w * sample_tile(tiles, tile, k, view, frames).covered for w, tile, k in impostor_blend.samples_for(weights, frames))
+            samples = [(w, sample_tile(tiles, tile, k, view, frames)) for w, tile, k in impostor_blend.samples_for(weights, frames)]
+            # Each sample counts with the part of the pixel its silhouette covers (the surface map's alpha).
+            coverage = sum(w * sample.covered * (1.0 if sample.share is None else sample.share) for w, sample in samples)
             # Reprojected edges are soft: opacity over 2 %, which shows at least 2 levels off the sky below
             # (the character's colours differ from the sky's by more than a third).
             return impostor_blend.edge_alpha(coverage, reprojected=tiles.surface_map is not None) > 0.02
