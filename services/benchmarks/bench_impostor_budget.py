@@ -41,6 +41,7 @@ CONFIGS = {
     "m10": {"impostor_motion_texels": 10.0},
     "b10": {"impostor_budget_mib": 10.0},  # the defaults at other budgets: the trade-off curve
     "b24": {"impostor_budget_mib": 24.0},
+    "r2": {"elevations_deg": (0.0, 30.0)},  # two rings
     # The defaults at 112² tiles, the frames' motion the same in metres (9 texels).
     "t112": {"tile_size": 112, "impostor_motion_texels": 9.0},
     "a20f12": (20, (0.0, 20.0, 40.0), 12, 96),

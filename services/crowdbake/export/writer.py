@@ -166,7 +166,8 @@ def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
     if "surface" in impostor["maps"]:  # SPEC.md "Impostor maps": for reprojecting samples between views and frames
         kinds.append(("surface", False, "per texel, metres = (c / 255 * 2 - 1) * range: r = depth along the view's back axis "
                       "(range bounds.radius), g, b = velocity over one baked step along the view's right and up axes "
-                      "(range bounds.radius / 2); dilated past the silhouette"))
+                      "(range bounds.radius / 2); dilated past the silhouette; a = the share of the texel the character covers "
+                      "(an anti-aliased silhouette; 1 in bc1 bundles)"))
     for kind, colour, encoding in kinds:
         texture = bundle.textures[impostor["maps"][kind]]
         if texture.pixel_format == "bc5":  # two components in each tile's view: handed to engines in model space

@@ -41,8 +41,8 @@ SCENE_FILE = "scene.npz"
 # The maps a part holds; part of its key, so parts written before a map was added are rendered again.
 PART_MAPS = ("normal", "uv", "detail", "surface")
 # What draws the maps and the references, part of a part's key too: parts that numpy resolved from
-# triangle-id renders are drawn again.
-MAP_MAKER = "map_shader-1"
+# triangle-id renders, or drawn before the surface map held coverage, are drawn again.
+MAP_MAKER = "map_shader-2-coverage"
 # Azimuth gaps the fidelity scores render the mesh in, halfway between two baked azimuths (each at every
 # elevation): each is a render at FIDELITY_SUPERSAMPLE x the tile and its shading, so a bake with more
 # azimuths scores this many gaps spread evenly round the ring (spread_gaps), 16 x 3 cameras of a 32-azimuth
@@ -239,8 +239,11 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
     next_positions: (V, 3) the scene's vertices moved by their velocity at this baked frame, for the
     surface maps' motion (crowdbake.bake.surface_maps.motion_positions); None: no motion.
 
-    The maps of every view are drawn, encoded, in one pass of crowdbake.render.map_shader; their
-    backgrounds are filled for the whole ring at once (impostor_views.fill_background). With references,
+    The maps of every view are drawn, encoded, in one pass of crowdbake.render.map_shader; the mesh's
+    share of each texel (the surface map's alpha) as the references are, FIDELITY_SUPERSAMPLE² samples
+    a texel; texels it covers only in part take their nearest covered texel's values
+    (impostor_views.extend_to_partial_texels); backgrounds are filled for the whole ring at once
+    (impostor_views.fill_background). With references,
     the mesh is also drawn shaded at FIDELITY_SUPERSAMPLE x the tile from every baked view and halfway
     to the next azimuth (_between_cameras), box-filtered on the GPU, in one pass. timings: adds "render" (the
     maps' pass), "maps" (the background fill) and "references" seconds.
