@@ -227,7 +227,7 @@ struct MeshUniforms {
 
 struct ImpostorUniforms {
     GLint view_projection = -1, light_dir = -1, camera_position = -1, center = -1, radius = -1, tile_size = -1,
-          azimuth_count = -1, crop = -1, material_count = -1;
+          azimuth_count = -1, crop = -1, material_count = -1, has_surface = -1;
     GLint variations[CV_MAX_MATERIALS], has_regions[CV_MAX_MATERIALS];
 };
 
@@ -252,6 +252,7 @@ ImpostorUniforms impostor_uniforms(GLuint program) {
     u.azimuth_count = uniform(program, "u_azimuth_count");
     u.crop = uniform(program, "u_crop");
     u.material_count = uniform(program, "u_material_count");
+    u.has_surface = uniform(program, "u_has_surface");
     for (int k = 0; k < CV_MAX_MATERIALS; ++k) {
         const std::string index = "[" + std::to_string(k) + "]";
         u.variations[k] = uniform(program, ("u_variations" + index).c_str());
@@ -723,6 +724,7 @@ DrawStats Renderer::draw_archetype(Archetype& g, const FrameInstances& frame, co
         glUniform1i(iu.azimuth_count, GLint(g.azimuth_count));
         glUniform4i(iu.crop, GLint(g.crop.x), GLint(g.crop.y), GLint(g.crop.width), GLint(g.crop.height));
         glUniform1i(iu.material_count, GLint(g.diffuse.size()));
+        glUniform1i(iu.has_surface, g.surface_map ? 1 : 0);  // its alpha: the silhouette's coverage, in every blend
         glActiveTexture(GL_TEXTURE0 + CV_UNIT_IMPOSTOR_NORMAL);
         glBindTexture(GL_TEXTURE_2D_ARRAY, g.normal_map);
         glActiveTexture(GL_TEXTURE0 + CV_UNIT_IMPOSTOR_UV);

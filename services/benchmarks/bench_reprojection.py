@@ -1,6 +1,6 @@
 """What reprojection buys: fidelity.json's `runtime` scores of one bake, drawn as crowdview draws with
-`--impostor-blend full` (no surface map) and with `warp` (the default: every sample reprojected by the
-bundle's surface map, crowdbake.bake.reference.impostor_warp).
+`--impostor-blend full` (samples unmoved, weighed by the surface map's coverage) and with `warp` (the
+default: every sample reprojected by the bundle's surface map, crowdbake.bake.reference.impostor_warp).
 
     PYTHONPATH=services python services/benchmarks/bench_reprojection.py --work WORK [--out out/bench/reprojection.json]
 
@@ -43,10 +43,10 @@ def main() -> int:
     result: dict = {"work": str(args.work), "normal_map": json.loads((bundle / "fidelity.json").read_text())["normal_map_format"], "modes": {}}
     print(f"{'blend':<6} " + " ".join(f"{case + ' mean/worst':>28}" for case in CASES))
     with np.load(args.work / "poses" / "textures.npz") as textures:
-        for mode, surface in (("full", None), ("warp", files["surface"])):
+        for mode in ("full", "warp"):
             clock = time.perf_counter()
             runtime = score_runtime(args.work, poses, poses.atlas_layout(), tasks, Parts(args.work, tasks), files["uv"], files["normal"],
-                                    textures, FIDELITY_SUPERSAMPLE, surface)
+                                    textures, FIDELITY_SUPERSAMPLE, files["surface"], warp=mode == "warp")
             result["modes"][mode] = {case: {k: runtime[case][k] for k in ("ssim_mean", "ssim_worst")} for case in CASES}
             result["modes"][mode]["seconds"] = time.perf_counter() - clock
             print(f"{mode:<6} " + " ".join(f"{runtime[c]['ssim_mean']:>19.4f} / {runtime[c]['ssim_worst']:.4f}" for c in CASES), flush=True)

@@ -343,9 +343,15 @@ def check_export(bundle_dir: Path, out: Path) -> None:
     if uv.pixel_format == "uvblock":  # exported as the uv32 words of its decoded texels
         from crowdbake.bake.map_codecs import uvblock_to_uv32
 
-        expected[sidecar["impostor"]["maps"]["uv"]["ktx2"]] = np.stack([uvblock_to_uv32(layer, uv.width, uv.height) for layer in uv.layers])
+        words = np.stack([uvblock_to_uv32(layer, uv.width, uv.height) for layer in uv.layers])
     else:
-        expected[sidecar["impostor"]["maps"]["uv"]["ktx2"]] = np.stack([uv.texels(k) for k in range(len(uv.layers))])
+        words = np.stack([uv.texels(k) for k in range(len(uv.layers))])
+    surface = bundle.textures.get(manifest["impostor"]["maps"].get("surface", ""))
+    if surface is not None and surface.pixel_format == "bc2":  # covered where the character covers over half the texel
+        alpha = np.stack([compression.decode(layer, "bc2", surface.width, surface.height)[..., 3] for layer in surface.layers])
+        assert ((alpha > 0) & (alpha < 255)).any()  # the bake's silhouette is soft
+        words = np.where(alpha / 255.0 > 0.5, words, 0)
+    expected[sidecar["impostor"]["maps"]["uv"]["ktx2"]] = words
     ktx_files = sorted(out.rglob("*.ktx2"))
     reports = {Path(r["path"]).relative_to(out).as_posix(): r for r in node_tool("read-ktx2.mjs", *ktx_files)}
     assert len(reports) == len(ktx_files)

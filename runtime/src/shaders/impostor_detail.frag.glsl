@@ -36,7 +36,8 @@ void main() {
     ivec2 t = clamp(ivec2(v_tile_uv * float(u_tile_size)), ivec2(0), ivec2(u_tile_size - 1));
     if (!in_crop(t)) discard;
     ivec3 texel = ivec3(ivec2(v_tile_x[0], v_tile_y[0]) + t, v_layers[0]);
-    if (!fetch_uv_map(texel).covered) discard;
+    // Drawn where the character covers over half the texel (edge_alpha unmoved; the surface map's alpha).
+    if (!fetch_uv_map(texel).covered || (u_has_surface && texelFetch(u_surface_map, texel, 0).a <= 0.5)) discard;
     vec4 detail = texelFetch(u_detail_map, texel, 0);
     vec3 albedo = detail.rgb;
     int region = int(detail.a * 255.0 / CV_REGION_SCALE + 0.5);

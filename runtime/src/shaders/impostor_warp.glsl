@@ -65,8 +65,10 @@ vec3 sample_normal(ivec3 texel) {
 #endif
 }
 
-#if CV_WARP
 uniform sampler2DArray u_surface_map;  // bilinear, no mipmaps
+uniform bool u_has_surface;            // false: the bundle has none (u_surface_map is a stand-in)
+
+#if CV_WARP
 
 // (depth along back, motion along right, motion along up) in metres at tile texel coordinate xy,
 // filtered within the cell (texel centres at +0.5, clamped so no neighbouring cell is read).
@@ -99,8 +101,8 @@ vec2 reproject(ViewBasis s, ViewBasis t, vec2 pixel, ivec2 origin, int layer, fl
 // `pixel` (tile texels); x < 0 where the sample falls outside the stored crop (not covered).
 // `target`: the camera's view in model space; `fraction`: see reproject.
 // `share`: the part of the fragment the sample's silhouette covers (SPEC.md "Impostor maps": the
-// surface map's alpha, filtered at the reprojected point; 1 in a bc1 surface map or without one, whose
-// silhouette is the UV map's alone). `miss`: target texels the reprojection's last step missed by.
+// surface map's alpha, filtered at the reprojected point, the texel's own unmoved; 1 in a bc1 surface
+// map or without one, whose silhouette is the UV map's alone). `miss`: target texels the reprojection's last step missed by.
 ivec3 sample_texel(ivec2 origin, int layer, vec2 pixel, ViewBasis target, float fraction, out float share, out float miss) {
 #if CV_WARP
     vec2 xy = reproject(tile_basis(origin + u_crop.xy), target, pixel, origin, layer, fraction, miss);
@@ -108,9 +110,9 @@ ivec3 sample_texel(ivec2 origin, int layer, vec2 pixel, ViewBasis target, float 
     share = texture(u_surface_map, vec3(p / vec2(textureSize(u_surface_map, 0).xy), float(layer))).a;
     ivec2 t = ivec2(floor(xy));
 #else
-    share = 1.0;
     miss = 0.0;
     ivec2 t = clamp(ivec2(pixel), ivec2(0), ivec2(u_tile_size - 1));
+    share = u_has_surface && in_crop(t) ? texelFetch(u_surface_map, ivec3(origin + t, layer), 0).a : 1.0;
 #endif
     return in_crop(t) ? ivec3(origin + t, layer) : ivec3(-1);
 }

@@ -156,6 +156,16 @@ def uv_map_layers(texture: TextureArray, prepared: PreparedLayers = NOTHING_PREP
     raise ValueError(f"uv_map_layers: a UV map is uv32 or rgba16, got {texture.pixel_format}")
 
 
+def over_half_covered(uv: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    """An exported UV map (uv_map_layers: uv32 words (L, H, W) or rgba16 (L, H, W, 4)) with the texels the
+    character covers half or less of, by the surface map's decoded alpha `coverage` (L, H, W) uint8 (SPEC.md
+    "Impostor maps"), made background (0). The bundle's UV map covers every texel the character touches, for
+    runtimes that weigh each by that alpha; an engine that draws a texel or not then draws the silhouette of
+    the character's area, as crowdview's unmoved blends do, not one a texel fatter."""
+    kept = np.asarray(coverage) > 127  # decoded 4-bit alpha: 7 · 17 = 119 is under one half, 8 · 17 = 136 over
+    return np.where(kept[..., None] if uv.ndim == 4 else kept, uv, 0).astype(uv.dtype)
+
+
 def region_codes_used(diffuse_layers: list[np.ndarray]) -> list[int]:
     """Region codes (SPEC.md: alpha = 17·r) that appear in any of the (L, H, W, 4) uint8 arrays."""
     codes: set[int] = set()

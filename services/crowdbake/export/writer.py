@@ -35,7 +35,7 @@ from crowdbake.export.animations import AnimationPlan, animation_plans, sidecar_
 from crowdbake.bake.shading import apply_outfit
 from crowdbake.export.cloth_bones import DEFAULT_ITERATIONS, ClothBones, choose_bone_count, decompose_cloth
 from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb, node_transform
-from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, region_codes_used, rgba8_layers, uv_map_layers
+from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, over_half_covered, region_codes_used, rgba8_layers, uv_map_layers
 from crowdbake.export.vat import encode_vat, vat_texcoords
 from crowdbake.formats.bundle import Bundle, verify_bundle
 
@@ -177,12 +177,15 @@ def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
         path = out.write(f"impostor/{kind}.ktx2", data)
         maps[kind] = _texture_entry(path, vk_format, len(texture.layers), texture.width, texture.height, encoding)
     vk_format, uv = uv_map_layers(bundle.textures[impostor["maps"]["uv"]], prepared)
+    surface = bundle.textures.get(impostor["maps"].get("surface", ""))
+    if surface is not None and surface.pixel_format in ("bc2", "rgba8"):  # its alpha: each texel's coverage
+        uv = over_half_covered(uv, rgba8_layers(surface, prepared)[..., 3])
     path = out.write("impostor/uv.ktx2", ktx2.encode_ktx2(vk_format, uv))
     encoding = (
         "uv32: u = (w & 0x3FFF) / 16383, v = ((w >> 14) & 0x3FFF) / 16383, material = (w >> 28) & 7, covered = w >> 31"
         if vk_format == ktx2.VK_FORMAT_R32_UINT
         else "rgba16: u = R, v = G, material = B * 65535, covered = A > 0.5"
-    )
+    ) + "; covered: the character covers over half the texel"
     maps["uv"] = _texture_entry(path, vk_format, uv.shape[0], uv.shape[2], uv.shape[1], encoding)
     tile = impostor["tile_size"]
     layout = AtlasLayout.from_manifest(impostor)

@@ -72,6 +72,7 @@ class RuntimeAtlas:
     has_regions: list[bool]
     outfit_row: np.ndarray
     crop: tuple[int, int, int, int] | None = None  # the stored part of every tile (crowdbake.bake.atlas); None: all of it
+    warp: bool = True  # reproject with the surface map (crowdview's `warp`); False: its alpha only (`full`)
 
 
 @dataclass(frozen=True)
@@ -109,11 +110,11 @@ def shader_source(file: str, defines: dict[str, int], replace: dict[str, str], d
 
 def program_defines(atlas: RuntimeAtlas, view_samples: int = 4, frame_samples: int = 2) -> dict[str, int]:
     """The defines crowdview builds an impostor program with (renderer.cpp): the UV map's format, bc5
-    normals in the tile's view, reprojection where there is a surface map, and the blend's samples: four
+    normals in the tile's view, reprojection where there is a surface map (and atlas.warp), and the blend's samples: four
     views or one, two frames or one (its blend modes; four and two by default)."""
     return {"CV_UV_MAP_UV32": int(atlas.uv_map.pixel_format == "uv32"), "CV_UV_MAP_UVBLOCK": int(atlas.uv_map.pixel_format == "uvblock"),
             "CV_NORMAL_VIEW_XY": int(atlas.normal_map.pixel_format == "bc5"), "CV_VIEW_SAMPLES": view_samples,
-            "CV_FRAME_SAMPLES": frame_samples, "CV_WARP": int(atlas.surface_map is not None)}
+            "CV_FRAME_SAMPLES": frame_samples, "CV_WARP": int(atlas.surface_map is not None and atlas.warp)}
 
 
 def samples_needed(picture: RuntimePicture) -> tuple[int, int]:
@@ -359,6 +360,7 @@ class RuntimeImpostorShader:
             GL.glUniform1i(at(f"u_variations[{material}]"), 1)
             GL.glUniform1i(at(f"u_has_regions[{material}]"), int(present and atlas.has_regions[material]))
         GL.glUniform1i(at("u_material_count"), len(atlas.diffuse))
+        GL.glUniform1i(at("u_has_surface"), int(atlas.surface_map is not None))
         GL.glUniform1i(at("u_tile_size"), atlas.tile_size)
         GL.glUniform1i(at("u_azimuth_count"), len(atlas.azimuths_deg))
         GL.glUniform4i(at("u_crop"), *(atlas.crop or (0, 0, atlas.tile_size, atlas.tile_size)))

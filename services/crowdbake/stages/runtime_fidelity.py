@@ -18,6 +18,7 @@ the shader is tested against. Three sets of cameras:
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -77,13 +78,14 @@ def runtime_textures(work: Path) -> dict[str, np.ndarray]:
 
 
 class AtlasTiles:
-    """Tiles of decoded atlas layers, decoded once per layer; the surface map's too when given.
+    """Tiles of decoded atlas layers, decoded once per layer; the surface map's too when given (warp False:
+    its alpha only, crowdview's `full` blend).
 
     uv_file, normal_file, surface_file: the bundle's CBTX files (bytes) or already parsed TextureArrays."""
 
     def __init__(self, layout: AtlasLayout, uv_file: bytes | TextureArray, normal_file: bytes | TextureArray,
-                 surface_file: bytes | TextureArray | None = None, radius: float = 1.0):
-        self.layout, self.radius = layout, radius
+                 surface_file: bytes | TextureArray | None = None, radius: float = 1.0, warp: bool = True):
+        self.layout, self.radius, self.warp = layout, radius, warp
         self.uv_map, self.normal_map = parsed_map(uv_file, "uv map"), parsed_map(normal_file, "normal map")
         self.surface_map = parsed_map(surface_file, "surface map")
         self._layers: dict[int, tuple] = {}
@@ -119,6 +121,8 @@ def sample_tile(tiles: AtlasTiles, tile: int, layer: int, target: impostor_views
     surface = tiles.surface(tile, layer)
     if surface is None:
         return decoded
+    if not tiles.warp:  # unmoved: each texel weighs its own coverage
+        return replace(decoded, share=surface[-1])
     columns = len(tiles.layout.azimuths_deg)
     source = impostor_views.ortho_view(target.center, target.radius, tiles.layout.azimuths_deg[tile % columns],
                                       tiles.layout.elevations_deg[tile // columns], target.size)
@@ -227,7 +231,7 @@ def numpy_picture(atlas: RuntimeAtlas, tiles: AtlasTiles, picture: RuntimePictur
     weights = impostor_blend.ViewWeights(picture.tiles, picture.view_weights)
     samples = [(w, sample_tile(tiles, tile, k, view, frames)) for w, tile, k in impostor_blend.samples_for(weights, frames)]
     return impostor_blend.blend_image(samples, diffuse, atlas.outfit_row, shading.camera_light(view), atlas.tile_size, chains,
-                                      reprojected=tiles.surface_map is not None)
+                                      reprojected=tiles.surface_map is not None and tiles.warp)
 
 
 def scored_cameras(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
@@ -258,14 +262,15 @@ def scored_cameras(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: l
 
 def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
                   uv_file: bytes | TextureArray, normal_file: bytes | TextureArray, texture_arrays: dict[str, np.ndarray],
-                  supersample: int, surface_file: bytes | TextureArray | None = None) -> dict[str, Any]:
+                  supersample: int, surface_file: bytes | TextureArray | None = None, warp: bool = True) -> dict[str, Any]:
     """fidelity.json's `runtime` section (module docstring): SSIM and PSNR of crowdview's blended impostor,
-    each sample reprojected with the surface map when the bundle has one (crowdview's default), drawn by
-    crowdview's own shader in this process's GL context (crowdbake.render.runtime_shader)."""
+    each sample reprojected with the surface map when the bundle has one (crowdview's default; warp False:
+    its `full` blend, unmoved samples weighed by the surface map's alpha), drawn by crowdview's own shader
+    in this process's GL context (crowdbake.render.runtime_shader)."""
     from crowdbake.render.impostor import shared_renderer
 
-    atlas = runtime_atlas(poses, layout, parsed_map(uv_file, "uv map"), parsed_map(normal_file, "normal map"),
-                          parsed_map(surface_file, "surface map"), texture_arrays)
+    atlas = replace(runtime_atlas(poses, layout, parsed_map(uv_file, "uv map"), parsed_map(normal_file, "normal map"),
+                                  parsed_map(surface_file, "surface map"), texture_arrays), warp=warp)
     scored = scored_cameras(work, poses, layout, tasks, parts, supersample)
     frame, frame_weights = halfway_frame(poses)
     pictures = shared_renderer(layout.tile_size).runtime_impostors(atlas, [picture for *_, picture in scored])
