@@ -33,23 +33,29 @@ MIN_MEASURE_SIZE = 7
 
 
 def impostor_image(
-    uv_map: np.ndarray, normal_map: np.ndarray, diffuse: list[np.ndarray], outfit_row: np.ndarray, light: np.ndarray
+    uv_map: np.ndarray, normal_map: np.ndarray, diffuse: list[np.ndarray], outfit_row: np.ndarray, light: np.ndarray,
+    coverage: np.ndarray | None = None,
 ) -> np.ndarray:
     """What the runtime draws from one tile: (S, S, 3) float64 0..1, black where the UV map has no coverage.
 
     uv_map: (S, S, 4) uint16 (rgba16) or (S, S) uint32 (uv32), as stored; normal_map: (S, S, 4) uint8
-    as decoded from its (compressed) layer.
+    as decoded from its (compressed) layer; coverage: the surface map's alpha (S, S) uint8, or None: a
+    texel is drawn where the character covers over half of it (SPEC.md "Impostor maps"), as crowdview's
+    unblended impostor draws it.
     """
-    return impostor_images(uv_map, [normal_map], diffuse, outfit_row, light)[0]
+    return impostor_images(uv_map, [normal_map], diffuse, outfit_row, light, coverage)[0]
 
 
 def impostor_images(
-    uv_map: np.ndarray, normal_maps: list[np.ndarray], diffuse: list[np.ndarray], outfit_row: np.ndarray, light: np.ndarray
+    uv_map: np.ndarray, normal_maps: list[np.ndarray], diffuse: list[np.ndarray], outfit_row: np.ndarray, light: np.ndarray,
+    coverage: np.ndarray | None = None,
 ) -> list[np.ndarray]:
     """impostor_image of one UV tile with each of several normal maps (the stored and the uncompressed
     normals of a view): the UV map is decoded and the diffuse sampled once, and only the covered texels'
     normals are decoded (a character covers a fraction of its tile). The same pictures, to the bit."""
     uv, material, covered = map_codecs.decode_uv_map(uv_map)
+    if coverage is not None:
+        covered = covered & (np.asarray(coverage) > 127)
     images = [np.zeros(uv.shape[:2] + (3,), dtype=np.float64) for _ in normal_maps]
     if covered.any():
         material = np.clip(material[covered], 0, len(diffuse) - 1)

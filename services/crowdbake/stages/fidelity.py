@@ -21,7 +21,8 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
     """fidelity.json: SSIM and PSNR per view of the fidelity frame, with and without normal-map compression,
     and the mesh halfway between two azimuths (the scored gaps) against the nearest baked view.
 
-    atlases: the fidelity frame's "uv" (as stored), "uv16", "normal" and, when compressed, "normal_decoded";
+    atlases: the fidelity frame's "uv" (as stored), "uv16", "normal", "surface" (when the bundle has one)
+    and, when compressed, "normal_decoded";
     parts: task id -> the task's arrays ("views", "reference", and for the scored azimuth gaps
     (crowdbake.stages.impostors.spread_gaps) "between_views", "between_azimuths", "reference_between").
     """
@@ -30,6 +31,11 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
     runtime_diffuse = [texture_arrays[f"material_{m}_decoded"][0] for m in range(count)]
     outfit_row = texture_arrays["outfits"][0]
     normals_drawn = atlases["normal_decoded"] if "normal_decoded" in atlases else atlases["normal"]
+
+    def coverage_of(a: int, e: int) -> np.ndarray | None:
+        """The surface map's alpha of view (a, e): each texel's coverage (None without a surface map)."""
+        return view_tile(layout, atlases["surface"], a, e)[..., 3] if "surface" in atlases else None
+
     per_view, between, uncompressed = [], [], []
     for task in tasks:
         if not task.references:
@@ -40,7 +46,7 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
             light = shading.camera_light(view)
             image, exact = fidelity.impostor_images(view_tile(layout, atlases["uv"], a, e),
                                                     [view_tile(layout, normals_drawn, a, e), view_tile(layout, atlases["normal"], a, e)],
-                                                    runtime_diffuse, outfit_row, light)
+                                                    runtime_diffuse, outfit_row, light, coverage_of(a, e))
             score = fidelity.compare(data["reference"][index], image)
             per_view.append({"azimuth_deg": layout.azimuths_deg[a], "elevation_deg": layout.elevations_deg[e], **score})
             uncompressed.append(fidelity.compare(data["reference"][index], exact))
@@ -49,7 +55,7 @@ def score_fidelity(poses: PosesRecord, layout: AtlasLayout, tasks: list[Impostor
             na, ne = nearest_view(layout, azimuth, layout.elevations_deg[e])
             near_image = fidelity.impostor_image(
                 view_tile(layout, atlases["uv"], na, ne), view_tile(layout, normals_drawn, na, ne),
-                runtime_diffuse, outfit_row, shading.camera_light(mid_view),
+                runtime_diffuse, outfit_row, shading.camera_light(mid_view), coverage_of(na, ne),
             )
             between.append(
                 {"azimuth_deg": azimuth, "elevation_deg": layout.elevations_deg[e], "nearest_azimuth_deg": layout.azimuths_deg[na],
