@@ -1,7 +1,7 @@
-// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-crop, v1-hostile and v2), which the Python tests read
-// too: the good bundle decodes to expected.json's values (v1-uv32, v1-uvblock: its UV map's texels too), every
-// bad bundle fails with its expect.json code and file, and every strict prefix of every binary
-// file of the good bundle is `truncated`.
+// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-crop, v1-surface, v1-hostile and v2), which
+// the Python tests read too: the good bundle decodes to expected.json's values (v1-uv32, v1-uvblock: its UV map's
+// texels too; v1-surface: its bc2 surface map's texels, alpha included), every bad bundle fails with its
+// expect.json code and file, and every strict prefix of every binary file of the good bundle is `truncated`.
 #include <algorithm>
 #include <cmath>
 #include <cstring>
@@ -137,6 +137,38 @@ void test_uvblock_texels(const fs::path& good) {
     CHECK(rgba[0] == uint8_t(first.qu >> 4) && rgba[3] == (first.covered ? 255 : 0));
 }
 
+// v1-surface: every texel of the bc2 surface map, as the renderer's CPU path decodes it (decode_layer_rgba8),
+// equals expected.json's r, g, b (depth and motion codes) and a (the share of the texel the character covers).
+void test_surface_texels(const fs::path& good) {
+    Bundle bundle;
+    const Status s = load_bundle_dir((good / "bundle").string(), &bundle);
+    CHECK_MSG(s.ok(), s.message);
+    if (!s.ok()) return;
+    const json expected = json::parse(synthetic::read_text((good / "expected.json").string()))["surface_texels"];
+    const TextureArray& t = bundle.impostor_surface;
+    CHECK(bundle.manifest.impostor.surface_map == expected["file"].get<std::string>());
+    CHECK(pixel_format_name(t.format) == expected["pixel_format"].get<std::string>() && t.format == PixelFormat::bc2);
+    CHECK(t.width == bundle.impostor_uv.width && t.height == bundle.impostor_uv.height && t.layer_count == bundle.impostor_uv.layer_count);
+    std::vector<std::vector<uint8_t>> layers;
+    for (uint32_t k = 0; k < t.layer_count; ++k) layers.push_back(decode_layer_rgba8(t, k));
+    int checked = 0, partial = 0;
+    for (const json& want : expected["texels"]) {
+        const uint32_t layer = want["layer"], x = want["x"], y = want["y"];
+        CHECK_MSG(layer < t.layer_count && x < t.width && y < t.height, "surface texel " + want.dump() + " outside the map");
+        if (layer >= t.layer_count || x >= t.width || y >= t.height) continue;
+        const uint8_t* texel = &layers[layer][(size_t(y) * t.width + x) * 4];
+        const std::string got = std::to_string(texel[0]) + "," + std::to_string(texel[1]) + "," + std::to_string(texel[2]) + "," +
+                                std::to_string(texel[3]);
+        CHECK_MSG(texel[0] == want["r"].get<int>() && texel[1] == want["g"].get<int>() && texel[2] == want["b"].get<int>() &&
+                      texel[3] == want["a"].get<int>(),
+                  "surface texel " + want.dump() + ": decoded " + got);
+        partial += texel[3] > 0 && texel[3] < 255;
+        ++checked;
+    }
+    CHECK(checked == int(t.width * t.height * t.layer_count));
+    CHECK(partial > 0);  // the anti-aliased silhouette: texels the character covers in part
+}
+
 // v1's future_format_version claims format_version 2, written when 2 was the future: a reader of
 // v2 reads it as a v2 manifest holding v1's cycle and no clips: manifest_invalid (vectors are never
 // edited; v2/bad/future_format_version is the future case now). services/tests/repo_paths.py alike.
@@ -264,6 +296,15 @@ int main() {
               imp.crop.y == want["y"].get<uint32_t>() && imp.crop.width == want["width"].get<uint32_t>() &&
               imp.crop.height == want["height"].get<uint32_t>());
         test_bad(crop / "bad", 3);
+    }
+    // The surface map (generate_vectors_v1_surface.py): v1's maps plus a bc2 surface map of chosen texels.
+    const fs::path surface = fs::path(CROWDVIEW_VECTORS_DIR) / "v1-surface";
+    CHECK_MSG(fs::is_directory(surface / "good"), "no surface vectors at " + surface.string());
+    if (fs::is_directory(surface / "good")) {
+        test_good(surface / "good");
+        test_surface_texels(surface / "good");
+        test_bad(surface / "bad", 6);
+        test_prefixes(surface / "good" / "bundle");
     }
     // v1 has no crop: the whole tile.
     {

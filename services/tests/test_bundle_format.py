@@ -1,4 +1,5 @@
-"""The Python reader against shared_formats/vectors/v1, v1-uv32 and v1-uvblock, which the C++ tests read too."""
+"""The Python reader against shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-hostile, v1-crop and v1-surface,
+which the C++ tests read too."""
 from __future__ import annotations
 
 import importlib.util
@@ -42,6 +43,8 @@ GOOD_UVBLOCK = V1_UVBLOCK / "good" / "bundle"
 BAD_CASES_UVBLOCK = sorted(p.name for p in (V1_UVBLOCK / "bad").iterdir())
 V1_CROP = VECTORS / "v1-crop"
 BAD_CASES_CROP = sorted(p.name for p in (V1_CROP / "bad").iterdir())
+V1_SURFACE = VECTORS / "v1-surface"
+BAD_CASES_SURFACE = sorted(p.name for p in (V1_SURFACE / "bad").iterdir())
 V1_HOSTILE = VECTORS / "v1-hostile"
 BAD_CASES_HOSTILE = sorted(p.name for p in (V1_HOSTILE / "bad").iterdir())
 
@@ -415,3 +418,54 @@ def test_writer_still_produces_the_committed_crop_vectors(tmp_path):
     assert committed_files
     for committed in committed_files:
         assert (tmp_path / "v1-crop" / committed.relative_to(V1_CROP)).read_bytes() == committed.read_bytes(), committed
+
+
+# --- the surface map, bc2 with coverage in alpha (vectors/v1-surface) ------------------------------
+
+
+def test_surface_good_vector_decodes_to_the_expected_texels():
+    """Every texel of the bc2 surface map after BC2 decoding: depth and motion codes from all four palette
+    entries, alpha 255 (covered), 17..136 (a share of the texel) and 0 (outside)."""
+    from crowdbake.bake.compression import decode
+
+    expected = json.loads((V1_SURFACE / "good" / "expected.json").read_text())
+    bundle = verify_bundle(V1_SURFACE / "good" / "bundle")
+    want = expected["surface_texels"]
+    assert bundle.manifest["impostor"]["maps"]["surface"] == want["file"]
+    assert {f["path"]: f["role"] for f in bundle.manifest["files"]}[want["file"]] == "impostor-surface"
+    surface = bundle.textures[want["file"]]
+    assert surface.pixel_format == want["pixel_format"] == "bc2"
+    decoded = np.stack([decode(layer, surface.pixel_format, surface.width, surface.height) for layer in surface.layers])
+    assert len(want["texels"]) == decoded.shape[0] * decoded.shape[1] * decoded.shape[2]
+    for texel in want["texels"]:
+        assert decoded[texel["layer"], texel["y"], texel["x"]].tolist() == [texel[c] for c in "rgba"], texel
+    assert {0, 17, 68, 136, 255} == set(decoded[..., 3].reshape(-1).tolist())
+
+
+@pytest.mark.parametrize("case", BAD_CASES_SURFACE)
+def test_surface_bad_vector_is_refused_with_its_code_and_file(case):
+    expect = json.loads((V1_SURFACE / "bad" / case / "expect.json").read_text())
+    with pytest.raises(FormatError) as raised:
+        verify_bundle(V1_SURFACE / "bad" / case / "bundle")
+    assert (raised.value.code, raised.value.file) == (expect["error"], expect["file"])
+
+
+def test_every_strict_prefix_of_the_surface_map_is_truncated():
+    path = "impostor/surface.cbtx"
+    data = (V1_SURFACE / "good" / "bundle" / path).read_bytes()
+    for length in range(len(data)):
+        with pytest.raises(FormatError) as raised:
+            decode_texture_array(data[:length], path)
+        assert raised.value.code == "truncated", length
+
+
+def test_writer_still_produces_the_committed_surface_vectors(tmp_path):
+    spec = importlib.util.spec_from_file_location("gen_surface", REPO_ROOT / "shared_formats" / "generate_vectors_v1_surface.py")
+    generator = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(generator)
+    generator.generate(tmp_path / "v1-surface")
+    committed_files = [p for p in sorted(V1_SURFACE.rglob("*")) if p.is_file()]
+    written_files = [p for p in sorted((tmp_path / "v1-surface").rglob("*")) if p.is_file()]
+    assert [p.relative_to(V1_SURFACE) for p in committed_files] == [p.relative_to(tmp_path / "v1-surface") for p in written_files]
+    for committed in committed_files:
+        assert (tmp_path / "v1-surface" / committed.relative_to(V1_SURFACE)).read_bytes() == committed.read_bytes(), committed
