@@ -9,7 +9,6 @@ the Python writer still produces these exact bytes.
 from __future__ import annotations
 
 import json
-import shutil
 import struct
 import sys
 from pathlib import Path
@@ -176,16 +175,23 @@ def bad_cases(manifest: dict, files: list[BundleFile]):
     yield ("vertex_count_disagrees", manifest_bytes(lying_count), files, None, "invalid_data", body)
 
 
-def generate(out_dir: Path) -> None:
+def write_folder(out_dir: Path, manifest: dict, files: list[BundleFile], expected: dict, bad) -> None:
+    """One vectors folder, as every v1 generator writes it: good/bundle and good/expected.json, then per
+    bad case (name, manifest bytes, files, file to leave out or None, expected code, file named by the
+    error) bad/NAME/bundle and bad/NAME/expect.json. Refuses a folder that exists."""
     if out_dir.exists():
-        raise SystemExit(f"{out_dir} exists: vectors are never edited; a new format version gets a new folder")
-    manifest, files = good_files()
+        raise SystemExit(f"{out_dir} exists: vectors are never edited; a new format gets a new folder")
     write_bundle(out_dir / "good" / "bundle", manifest, files)
-    (out_dir / "good" / "expected.json").write_text(json.dumps(expected_values(manifest, files), indent=1) + "\n")
-    for name, manifest_data, case_files, skip, code, file in bad_cases(manifest, files):
+    (out_dir / "good" / "expected.json").write_text(json.dumps(expected, indent=1) + "\n")
+    for name, manifest_data, case_files, skip, code, file in bad:
         case = out_dir / "bad" / name
         _write_raw(case / "bundle", manifest_data, case_files, skip)
         (case / "expect.json").write_text(json.dumps({"error": code, "file": file}) + "\n")
+
+
+def generate(out_dir: Path) -> None:
+    manifest, files = good_files()
+    write_folder(out_dir, manifest, files, expected_values(manifest, files), bad_cases(manifest, files))
 
 
 if __name__ == "__main__":
