@@ -48,15 +48,13 @@ void main() {
 void main() {
     vec2 pixel = v_tile_uv * float(u_tile_size);
     ViewBasis target = view_basis(v_to_camera);
-    float coverage = 0.0, trusted = 0.0;
-    vec3 albedo = vec3(0.0), model_normal = vec3(0.0), trusted_albedo = vec3(0.0), trusted_normal = vec3(0.0);
+    SampleBlend blend = no_samples();
     // Constant bounds (the renderer's CV_VIEW_SAMPLES, CV_FRAME_SAMPLES: 1 or 4, 1 or 2), so
     // the loops unroll.
     for (int j = 0; j < CV_FRAME_SAMPLES; ++j) {
         float frame_weight = j == 0 ? 1.0 - v_frame_weight : v_frame_weight;
         float fraction = v_layers[0] == v_layers[1] ? 0.0 : (j == 0 ? v_frame_weight : v_frame_weight - 1.0);  // see impostor_uv
         for (int i = 0; i < CV_VIEW_SAMPLES; ++i) {
-            float w = v_view_weights[i] * frame_weight;
             float share, miss;
             ivec3 texel = sample_texel(ivec2(v_tile_x[i], v_tile_y[i]), v_layers[j], pixel, target, fraction, share, miss);
             if (texel.x < 0 || !fetch_uv_map(texel).covered) continue;
@@ -64,22 +62,13 @@ void main() {
             vec3 colour = detail.rgb;
             int region = int(detail.a * 255.0 / CV_REGION_SCALE + 0.5);
             if (region != 0) colour *= texelFetch(u_outfits, ivec2(region, int(v_outfit)), 0).rgb;
-            w *= share;  // see impostor_uv.frag.glsl
-            float sure = w * (1.0 - smoothstep(CV_MISS_LOW, CV_MISS_HIGH, miss));
-            vec3 n = sample_normal(texel);
-            coverage += w;
-            albedo += w * colour;
-            model_normal += w * n;
-            trusted += sure;
-            trusted_albedo += sure * colour;
-            trusted_normal += sure * n;
+            add_sample(blend, v_view_weights[i] * frame_weight * share, miss, colour, sample_normal(texel));
         }
     }
-    float alpha = edge_alpha(coverage);  // see impostor_uv.frag.glsl
-    if (alpha <= 0.0 || coverage <= 0.0) discard;
-    bool sure = trusted > CV_TRUSTED_SHARE * coverage;
-    albedo = sure ? trusted_albedo / trusted : albedo / coverage;
-    model_normal = sure ? trusted_normal : model_normal;
+    float alpha = edge_alpha(blend.coverage);  // see impostor_uv.frag.glsl
+    if (alpha <= 0.0 || blend.coverage <= 0.0) discard;
+    vec3 albedo, model_normal;
+    blend_colour(blend, albedo, model_normal);
 #endif
     float c = cos(v_heading), s = sin(v_heading);
     vec3 normal = normalize(mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c) * model_normal);

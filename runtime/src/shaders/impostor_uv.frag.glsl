@@ -76,8 +76,7 @@ void main() {
     // Neighbours across the silhouette or a UV seam would ask for a far too coarse mip level;
     // clamp the gradients to a few tile texels' worth of footprint.
     float limit = 4.0 * max(length(dFdx(v_tile_uv)), length(dFdy(v_tile_uv))) + 1e-6;
-    float coverage = 0.0, trusted = 0.0;
-    vec3 albedo = vec3(0.0), model_normal = vec3(0.0), trusted_albedo = vec3(0.0), trusted_normal = vec3(0.0);
+    SampleBlend blend = no_samples();
     // Constant bounds (the renderer's CV_VIEW_SAMPLES, CV_FRAME_SAMPLES: 1 or 4, 1 or 2), so
     // the loops unroll; with blending off this is the paper's single lookup.
     for (int j = 0; j < CV_FRAME_SAMPLES; ++j) {
@@ -92,30 +91,15 @@ void main() {
             vec2 dx = dFdx(t.uv), dy = dFdy(t.uv);
             dx *= min(1.0, limit / max(length(dx), 1e-9));
             dy *= min(1.0, limit / max(length(dy), 1e-9));
-            if (t.covered) {
-                // The sample's weight times the part of the pixel its silhouette covers; where its
-                // reprojection did not converge (the surface the pixel needs is hidden in that view,
-                // config.h CV_MISS_LOW) its colour is not trusted.
-                share *= v_view_weights[i] * frame_weight;
-                float sure = share * (1.0 - smoothstep(CV_MISS_LOW, CV_MISS_HIGH, miss));
-                vec3 a = albedo_at(t, dx, dy), n = sample_normal(texel);
-                coverage += share;
-                albedo += share * a;
-                model_normal += share * n;
-                trusted += sure;
-                trusted_albedo += sure * a;
-                trusted_normal += sure * n;
-            }
+            if (t.covered) add_sample(blend, v_view_weights[i] * frame_weight * share, miss, albedo_at(t, dx, dy), sample_normal(texel));
         }
     }
     // Where the samples' silhouettes disagree the pixel is partly transparent (edge_alpha), blended
     // over what is behind it (renderer.cpp); where none covers enough, nothing is drawn.
-    float alpha = edge_alpha(coverage);
-    if (alpha <= 0.0 || coverage <= 0.0) discard;
-    // The trusted samples' colour where they hold enough of the coverage, else every sample's.
-    bool sure = trusted > CV_TRUSTED_SHARE * coverage;
-    albedo = sure ? trusted_albedo / trusted : albedo / coverage;
-    model_normal = sure ? trusted_normal : model_normal;
+    float alpha = edge_alpha(blend.coverage);
+    if (alpha <= 0.0 || blend.coverage <= 0.0) discard;
+    vec3 albedo, model_normal;
+    blend_colour(blend, albedo, model_normal);
     float c = cos(v_heading), s = sin(v_heading);
     vec3 normal = normalize(mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c) * model_normal);
     float light = CV_AMBIENT + (1.0 - CV_AMBIENT) * max(dot(normal, u_light_dir), 0.0);

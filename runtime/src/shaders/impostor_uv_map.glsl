@@ -70,6 +70,37 @@ UvTexel fetch_uv_map(ivec3 texel) {
 }
 #endif
 
+// The blend of a pixel's (view, frame) samples, shared by both impostor shaders. Each sample counts
+// with its weight times the part of the pixel its silhouette covers; where its reprojection did not
+// converge (its last step still misses the pixel: the surface the pixel needs is hidden in that view,
+// config.h CV_MISS_LOW) its colour is not trusted. The colour is the trusted samples' where they hold
+// over CV_TRUSTED_SHARE of the coverage, else every sample's; the silhouette counts every sample.
+struct SampleBlend {
+    float coverage, trusted;
+    vec3 albedo, normal, trusted_albedo, trusted_normal;
+};
+
+SampleBlend no_samples() {
+    return SampleBlend(0.0, 0.0, vec3(0.0), vec3(0.0), vec3(0.0), vec3(0.0));
+}
+
+void add_sample(inout SampleBlend b, float weight, float miss, vec3 albedo, vec3 normal) {
+    float sure = weight * (1.0 - smoothstep(CV_MISS_LOW, CV_MISS_HIGH, miss));
+    b.coverage += weight;
+    b.albedo += weight * albedo;
+    b.normal += weight * normal;
+    b.trusted += sure;
+    b.trusted_albedo += sure * albedo;
+    b.trusted_normal += sure * normal;
+}
+
+// The blend's albedo and (unnormalised) model-space normal; needs b.coverage > 0.
+void blend_colour(SampleBlend b, out vec3 albedo, out vec3 normal) {
+    bool sure = b.trusted > CV_TRUSTED_SHARE * b.coverage;
+    albedo = sure ? b.trusted_albedo / b.trusted : b.albedo / b.coverage;
+    normal = sure ? b.trusted_normal : b.normal;
+}
+
 // Opacity of a pixel whose blended samples cover `coverage` (0..1) of their weight. Reprojected
 // (CV_WARP), the samples' silhouettes disagree by a texel or two: a smooth step (config.h
 // CV_EDGE_LOW), 0.5 at a tie. Unmoved, they can disagree by a whole limb: the pixel is drawn where
