@@ -108,13 +108,18 @@ Image render(Renderer& r, const Crowd& crowd, const Camera& camera, LodMode mode
     return Image{r.width(), r.height(), r.read_rgba()};
 }
 
-void test_reference_crowd(const Scene& scene, const std::string& data_dir) {
-    std::unique_ptr<Renderer> r = make_renderer(scene, 320, 240);
-    if (!r) return;
+// The 30 characters (seed 5) of the reference crowd image.
+Crowd reference_crowd() {
     CrowdDesc desc;
     desc.count = 30;
     desc.seed = 5;
-    const Crowd crowd = make_crowd(desc, 2, 4, 1.0f);
+    return make_crowd(desc, 2, 4, 1.0f);
+}
+
+void test_reference_crowd(const Scene& scene, const std::string& data_dir) {
+    std::unique_ptr<Renderer> r = make_renderer(scene, 320, 240);
+    if (!r) return;
+    const Crowd crowd = reference_crowd();
     Camera camera;
     camera.position = glm::vec3(0.3f, 2.0f, 6.5f);
     camera.pitch = -0.17f;
@@ -360,10 +365,7 @@ void test_uv32_renders_like_rgba16(const Scene& scene) {
 void test_drawn_from_mapped_buffers(const Scene& scene) {
     std::unique_ptr<Renderer> r = make_renderer(scene, 320, 240);
     if (!r) return;
-    CrowdDesc desc;
-    desc.count = 30;
-    desc.seed = 5;
-    const Crowd crowd = make_crowd(desc, 2, 4, 1.0f);
+    const Crowd crowd = reference_crowd();
     LodRule rule;
     rule.has_low = r->model().has_low;
     FrameState state_vectors, state_mapped;
