@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from repo_paths import SHARED_ASSETS
-from service_fixtures import free_port, service_env, start_api
+from service_fixtures import free_port, local_api_key, service_env, start_api
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "services" / "tests"))
 from test_alembic_hostile import _descendants, _wait_for, slow_alembic  # noqa: E402
@@ -31,18 +31,11 @@ GONE_WITHIN_S = 3.0
 def server(tmp_path):
     from crowdbake.formats.alembic import alembic_available
     from crowdbake.settings import Settings
-    from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
-    from crowdbake.storage.keys import create_api_key
 
     if not alembic_available():
         pytest.skip("the crowdbake[alembic] extra (Blender's bpy) is not installed: pip install -r services/requirements-alembic.txt")
+    key = local_api_key(tmp_path / "data", "upload", "leaver")
     settings = Settings(data_dir=tmp_path / "data")
-    settings.ensure_dirs()
-    engine = make_engine(settings.database_url)
-    migrate(engine)
-    with session_scope(make_sessionmaker(engine)) as session:
-        key, _ = create_api_key(session, "upload", "leaver")
-    engine.dispose()
     server_tmp = tmp_path / "server-tmp"  # the API's temp folders, to see that none stays
     server_tmp.mkdir()
     env = service_env(tmp_path / "data", "filesystem://", TMPDIR=str(server_tmp))

@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from service_fixtures import free_port, service_env, start_api
+from service_fixtures import free_port, local_api_key, service_env, start_api
 
 HEADER_TIMEOUT_S = 2.0
 
@@ -16,17 +16,10 @@ HEADER_TIMEOUT_S = 2.0
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     from crowdbake.settings import Settings
-    from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
-    from crowdbake.storage.keys import create_api_key
 
     root = tmp_path_factory.mktemp("slow")
+    key = local_api_key(root / "data", "upload", "slow")
     settings = Settings(data_dir=root / "data")
-    settings.ensure_dirs()
-    engine = make_engine(settings.database_url)
-    migrate(engine)
-    with session_scope(make_sessionmaker(engine)) as session:
-        key, _ = create_api_key(session, "upload", "slow")
-    engine.dispose()
     env = service_env(root / "data", "filesystem://", CROWDBAKE_HEADER_TIMEOUT_S=str(HEADER_TIMEOUT_S),
                       CROWDBAKE_BODY_MIN_BYTES_PER_S="1024", CROWDBAKE_BODY_GRACE_S="1")
     port = free_port()

@@ -86,22 +86,13 @@ def main() -> int:
     args = parser.parse_args()
 
     from corpus import hostile_inputs
-    from crowdbake.settings import Settings
-    from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
-    from crowdbake.storage.keys import create_api_key
-    from service_fixtures import free_port, service_env, start_api
+    from service_fixtures import free_port, local_api_key, service_env, start_api
 
     print("building the inputs...", file=sys.stderr)
     inputs = hostile_inputs()
     with tempfile.TemporaryDirectory(prefix="bench-hostile-") as folder:
         root = Path(folder)
-        settings = Settings(data_dir=root / "data")
-        settings.ensure_dirs()
-        engine = make_engine(settings.database_url)
-        migrate(engine)
-        with session_scope(make_sessionmaker(engine)) as session:
-            key, _ = create_api_key(session, "upload", "bench")
-        engine.dispose()
+        key = local_api_key(root / "data", "upload", "bench")
         port = free_port()
         api = start_api(service_env(root / "data", "filesystem://"), port, root / "api.log")
         results = []

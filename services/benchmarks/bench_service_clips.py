@@ -19,8 +19,6 @@ import os
 import platform
 import re
 import shutil
-import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -29,6 +27,10 @@ from pathlib import Path
 import httpx
 
 from service_bench import FINAL_STATES, free_port
+
+REPO = Path(__file__).resolve().parents[2]
+if str(REPO / "services" / "tests") not in sys.path:  # service_fixtures: the tests' way of starting the service
+    sys.path.insert(0, str(REPO / "services" / "tests"))
 
 SERVICES_DIR = Path(__file__).resolve().parents[1]
 # As services/tests/clips_fixtures.py: seconds to simulate and to bake.
@@ -63,53 +65,30 @@ def main() -> int:
 
     from crowdbake.sample.clips import DEFAULT_SEQUENCE
     from crowdbake.sample.generate import generate_sample
-    from crowdbake.settings import Settings
-    from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
-    from crowdbake.storage.keys import create_api_key
+    from service_fixtures import local_api_key, service_env, start_api, start_process, start_worker
 
     root = Path(tempfile.mkdtemp(prefix="bench-service-clips-"))
-    processes: list[subprocess.Popen] = []
-
-    def spawn(command: list[str], env: dict[str, str], log: str) -> None:
-        with open(root / log, "wb") as handle:
-            processes.append(subprocess.Popen(command, env=env, stdout=handle, stderr=subprocess.STDOUT, cwd=str(root)))
-
+    processes = []
     try:
         sample = root / "sample"
         generate_sample(sample, clips=DEFAULT_SEQUENCE, **CLIPS_SAMPLE)
-        env = {key: value for key, value in os.environ.items() if not key.startswith("CROWDBAKE_")}
         redis = shutil.which("redis-server")
         broker = "filesystem://"
         if redis:
             redis_port = free_port()
-            spawn([redis, "--port", str(redis_port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no", "--dir", str(root)], env, "redis.log")
+            processes.append(start_process([redis, "--port", str(redis_port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
+                                            "--dir", str(root)], os.environ.copy(), root / "redis.log"))
             broker = f"redis://127.0.0.1:{redis_port}/0"
-        data = root / "data"
-        env.update({"CROWDBAKE_DATA_DIR": str(data), "CROWDBAKE_BROKER_URL": broker,
-                    "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "osmesa"),
-                    "PYTHONPATH": os.pathsep.join(filter(None, [str(SERVICES_DIR), os.environ.get("PYTHONPATH", "")]))})
-        settings = Settings(data_dir=data, broker_url=broker)
-        settings.ensure_dirs()
-        engine = make_engine(settings.database_url)
-        migrate(engine)
-        with session_scope(make_sessionmaker(engine)) as session:
-            key, _ = create_api_key(session, "upload,bake,publish,read", "clips benchmark")
-        engine.dispose()
+        env = service_env(root / "data", broker)
+        key = local_api_key(root / "data", "upload,bake,publish,read", "clips benchmark")
         port = free_port()
-        spawn([sys.executable, "-m", "uvicorn", "--factory", "crowdbake.api.app:create_app", "--host", "127.0.0.1", "--port", str(port),
-               "--log-level", "warning"], env, "api.log")
-        spawn([sys.executable, "-m", "celery", "-A", "crowdbake.jobs.celery_app", "worker", "--pool", "prefork", "--concurrency",
-               str(args.workers), "--queues", "crowdbake", "--loglevel", "INFO", "--without-gossip", "--without-mingle"], env, "worker.log")
+        processes.append(start_api(env, port, root / "api.log", timeout=START_TIMEOUT_S))
+        processes.append(start_worker(env, root / "worker.log", concurrency=args.workers))
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {key}"}, timeout=60) as client:
             deadline = time.monotonic() + START_TIMEOUT_S
-            while True:
-                try:
-                    if client.get("/ready").status_code == 200:
-                        break
-                except httpx.HTTPError:
-                    pass
+            while client.get("/ready").status_code != 200:  # the worker answers the broker
                 if time.monotonic() > deadline:
-                    raise RuntimeError(f"the API did not become ready; see {root}/api.log")
+                    raise RuntimeError(f"the service did not become ready; see {root}/api.log and worker.log")
                 time.sleep(0.2)
 
             def upload(url: str, **files: Path) -> str:
@@ -153,13 +132,7 @@ def main() -> int:
         return 0
     finally:
         for process in reversed(processes):
-            if process.poll() is None:
-                process.send_signal(signal.SIGTERM)
-        for process in processes:
-            try:
-                process.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                process.kill()
+            process.stop(timeout=30)
         shutil.rmtree(root, ignore_errors=True)
 
 

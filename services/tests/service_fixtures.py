@@ -273,6 +273,25 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
+def local_api_key(data_dir: Path, scopes: str, name: str) -> str:
+    """An API key with `scopes` in data_dir's SQLite database, made (folders, migrations) as a service
+    started on data_dir (service_env) reads it."""
+    from crowdbake.settings import Settings
+    from crowdbake.storage.db import make_engine, make_sessionmaker, migrate, session_scope
+    from crowdbake.storage.keys import create_api_key
+
+    settings = Settings(data_dir=data_dir)
+    settings.ensure_dirs()
+    engine = make_engine(settings.database_url)
+    try:
+        migrate(engine)
+        with session_scope(make_sessionmaker(engine)) as session:
+            key, _ = create_api_key(session, scopes, name)
+    finally:
+        engine.dispose()
+    return key
+
+
 def service_env(data_dir: Path, broker_url: str, **extra: str) -> dict[str, str]:
     env = {key: value for key, value in os.environ.items() if not key.startswith("CROWDBAKE_") or key == "CROWDBAKE_SHARED_ASSETS"}
     env.update({
