@@ -9,11 +9,8 @@ to out/export/.
 from __future__ import annotations
 
 import functools
-import html
 import json
 import os
-import re
-import shutil
 import subprocess
 import threading
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
@@ -22,21 +19,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
+from websockets.exceptions import ConnectionClosed
 
 from repo_paths import REPO_ROOT
 from crowdbake.export import ktx2
+from browser import CHROMIUM, Browser
 from test_export import PREVIEW_DIR, sample_bundle, sample_export, sample_export_rgba8  # noqa: F401 (module fixtures)
 
 # slow: a real server and worker (or browser) for tens of seconds; scripts/test.sh runs it with CROWDBAKE_SLOW_TESTS=1, as CI does
 pytestmark = pytest.mark.slow
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CROWDVIEW = Path(os.environ.get("CROWDVIEW", REPO_ROOT / "build" / "runtime" / "crowdview"))
 SCREENSHOTS = REPO_ROOT / "out" / "export"
-# Virtual time the page may use; Chromium pauses it while requests are in flight, and an idle page
-# spends it at once, so a generous budget costs no wall-clock time once the crowd is drawn.
-VIRTUAL_TIME_BUDGET_MS = 300_000
-CHROMIUM_TIMEOUT_S = 240
+WINDOW = (1280, 720)
+CROWDVIEW_TIMEOUT_S = 240
 # Loose agreement with crowdview: the same characters stand in the same places (measured on the
 # sample: coverage IoU 0.97, histogram intersection 0.98), but filtering and rasterisers differ.
 MIN_COVERAGE_IOU = 0.85
@@ -64,38 +60,68 @@ def server(sample_export, sample_export_rgba8, tmp_path_factory):  # noqa: F811
     httpd.shutdown()
 
 
-def run_chromium(*arguments: str, profile: Path) -> subprocess.CompletedProcess:
+# The page's own ready state (#status data-ready), never a fixed wait: software WebGL on a busy machine can
+# take minutes to compile shaders and upload textures, and a picture taken before "true" shows "Loading".
+READY_TIMEOUT_S = 240
+SETTLED = "document.getElementById('status').dataset.ready !== 'false' && document.getElementById('status').dataset.ready"
+TWO_FRAMES = "new Promise(done => requestAnimationFrame(() => requestAnimationFrame(() => done(true))))"
+
+
+@pytest.fixture(scope="module")
+def chromium(tmp_path_factory):
     if CHROMIUM is None:
         pytest.skip("chromium is not installed (scripts/apt-packages.txt lists it)")
-    command = [
-        CHROMIUM, "--headless", "--no-sandbox", "--no-first-run", "--disable-dev-shm-usage",
-        "--use-angle=swiftshader", "--enable-unsafe-swiftshader",  # WebGL2 on the CPU
-        f"--user-data-dir={profile}", f"--virtual-time-budget={VIRTUAL_TIME_BUDGET_MS}", *arguments,
-    ]
-    return subprocess.run(command, capture_output=True, text=True, timeout=CHROMIUM_TIMEOUT_S)
+    arguments = ("--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--hide-scrollbars")  # WebGL2 on the CPU
+    with Browser(tmp_path_factory.mktemp("profile"), window=WINDOW, arguments=arguments) as browser:
+        yield browser
 
 
-def page_status(url: str, profile: Path, attempts: int = 3) -> dict:
-    """The page's status JSON once it has loaded. Work that holds no request open (shader compiles, texture
-    uploads) does not pause Chromium's virtual time, so on a busy machine the DOM can be dumped while the
-    page still says "loading": then it is asked again, with a fresh profile."""
-    for attempt in range(attempts):
-        result = run_chromium("--dump-dom", url, profile=profile.with_name(f"{profile.name}-{attempt}"))
-        match = re.search(r'<pre id="status" data-ready="(\w+)"[^>]*>(.*?)</pre>', result.stdout, re.S)
-        assert match, result.stderr[-2000:]
-        state, text = match.group(1), html.unescape(match.group(2))
-        if state in ("error", "empty"):
-            return {"ready": False, "error": text}
-        if state == "true":
-            return json.loads(text)
-    pytest.fail(f"the preview still said 'loading' after {attempts} tries: {url}")
+def settled_page(browser: Browser, url: str):
+    """The page once its status says it is ready (or failed); fails naming the status it was stuck at."""
+    page = browser.open(url)
+    try:
+        page.wait_for(SETTLED, timeout=READY_TIMEOUT_S)
+    except AssertionError:
+        stuck = page.evaluate("document.getElementById('status').textContent")
+        close_tab(page)
+        pytest.fail(f"the preview was not ready within {READY_TIMEOUT_S} s; its status said: {stuck!r} ({url})")
+    return page
 
 
-def screenshot(url: str, path: Path, profile: Path) -> np.ndarray:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.unlink(missing_ok=True)
-    result = run_chromium(f"--screenshot={path}", "--window-size=1280,720", "--hide-scrollbars", url, profile=profile)
-    assert result.returncode == 0 and path.is_file(), result.stderr[-2000:]
+def close_tab(page) -> None:
+    """Closes the tab, not only its socket: an open WebGL tab keeps drawing on the CPU."""
+    try:
+        page.call("Page.close", timeout=10)
+    except (ConnectionClosed, TimeoutError):
+        pass  # the tab may close its socket before it answers
+    finally:
+        page.close()
+
+
+def page_status(browser: Browser, url: str) -> dict:
+    """The page's status JSON once it has settled: {"ready": True, ...}, or {"ready": False, "error": text}."""
+    page = settled_page(browser, url)
+    try:
+        state = page.evaluate("document.getElementById('status').dataset.ready")
+        text = page.evaluate("document.getElementById('status').textContent")
+    finally:
+        close_tab(page)
+    return json.loads(text) if state == "true" else {"ready": False, "error": text}
+
+
+def screenshot(browser: Browser, url: str, path: Path) -> np.ndarray:
+    """A WINDOW-sized picture of the page, taken after it is ready and has drawn two more frames."""
+    page = settled_page(browser, url)
+    try:
+        assert page.evaluate("document.getElementById('status').dataset.ready") == "true", page.evaluate(
+            "document.getElementById('status').textContent")
+        # The capture's viewport first, then two frames drawn at that size.
+        page.call("Emulation.setDeviceMetricsOverride", width=WINDOW[0], height=WINDOW[1], deviceScaleFactor=1, mobile=False)
+        page.evaluate(TWO_FRAMES)
+        path.unlink(missing_ok=True)
+        page.screenshot(path, width=WINDOW[0], height=WINDOW[1])
+    finally:
+        close_tab(page)
     return np.asarray(Image.open(path).convert("RGB")).astype(np.int32)
 
 
@@ -105,7 +131,7 @@ def crowdview_picture(bundle: Path, path: Path, *extra: str) -> np.ndarray:
     result = subprocess.run(
         [str(CROWDVIEW), "--bundle", str(bundle), "--headless", "--count", "100", "--seed", "1", "--screenshot", str(path),
          "--shaders", str(REPO_ROOT / "runtime" / "src" / "shaders"), *extra],
-        capture_output=True, text=True, timeout=CHROMIUM_TIMEOUT_S,
+        capture_output=True, text=True, timeout=CROWDVIEW_TIMEOUT_S,
     )
     if result.returncode != 0:
         pytest.skip(f"crowdview could not draw here: {result.stderr.strip()[-300:]}")
@@ -131,26 +157,26 @@ def compare(preview: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
     return iou, intersection
 
 
-def test_preview_draws_the_crowd_with_crowdviews_lod_rule(server, sample_export, tmp_path):  # noqa: F811
-    status = page_status(f"{server}&time=0&count=100", tmp_path / "profile")
+def test_preview_draws_the_crowd_with_crowdviews_lod_rule(server, chromium, sample_export):  # noqa: F811
+    status = page_status(chromium, f"{server}&time=0&count=100")
     assert status["ready"] is True, status
     assert sum(status["lod"].values()) == 100 and status["bundle"]["name"] == "sample"
     # The page's switch distance is the sidecar's for the same 720-pixel-high view.
     sidecar = json.loads((sample_export / "export.json").read_text())
     assert status["switch_distance_m"] == pytest.approx(sidecar["impostor"]["switch_distance"]["distance_m"], rel=1e-6)
-    forced = page_status(f"{server}&time=0&count=100&lod=impostor", tmp_path / "profile2")
+    forced = page_status(chromium, f"{server}&time=0&count=100&lod=impostor")
     assert forced["lod"] == {"high": 0, "low": 0, "impostor": 100}
     # The BC1/BC2 KTX2 files went up as S3TC blocks (SwiftShader has WEBGL_compressed_texture_s3tc).
     assert {ktx2.VK_FORMAT_BC1_RGB_UNORM_BLOCK, ktx2.VK_FORMAT_BC2_SRGB_BLOCK} <= set(status["texture_formats"]), status
 
 
-def test_bc_and_rgba8_exports_draw_the_same_picture(server, tmp_path):
+def test_bc_and_rgba8_exports_draw_the_same_picture(server, chromium):
     """The blocks the GPU decodes and the texels the exporter decoded are the same texels, so the two
     KTX2 modes give the same screenshot (a few pixels may differ where filtering rounds differently)."""
     rgba8_url = server.replace("export=../export/", "export=../export_rgba8/")
-    assert page_status(f"{rgba8_url}&time=0&count=16", tmp_path / "profile")["texture_formats"][0] == ktx2.VK_FORMAT_R8G8B8A8_UNORM
-    bc = screenshot(f"{server}&time=0&count=100", SCREENSHOTS / "preview_bc.png", tmp_path / "profile_bc")
-    rgba8 = screenshot(f"{rgba8_url}&time=0&count=100", SCREENSHOTS / "preview_rgba8.png", tmp_path / "profile_rgba8")
+    assert page_status(chromium, f"{rgba8_url}&time=0&count=16")["texture_formats"][0] == ktx2.VK_FORMAT_R8G8B8A8_UNORM
+    bc = screenshot(chromium, f"{server}&time=0&count=100", SCREENSHOTS / "preview_bc.png")
+    rgba8 = screenshot(chromium, f"{rgba8_url}&time=0&count=100", SCREENSHOTS / "preview_rgba8.png")
     differing = (np.abs(bc - rgba8).sum(axis=-1) > 3).mean()
     (SCREENSHOTS / "compare_bc_rgba8.json").write_text(json.dumps({"differing_pixel_fraction": float(differing), "max_difference": int(np.abs(bc - rgba8).max())}) + "\n")
     assert differing < 0.001, differing
@@ -158,8 +184,8 @@ def test_bc_and_rgba8_exports_draw_the_same_picture(server, tmp_path):
 
 # The preview draws impostors as the paper does, nearest view and frame: crowdview with blending off.
 @pytest.mark.parametrize("mode, crowdview_args", [("auto", ()), ("impostor", ("--lod", "impostor", "--impostor-blend", "off"))])
-def test_preview_screenshot_matches_crowdview(server, sample_bundle, tmp_path, mode, crowdview_args):  # noqa: F811
-    preview = screenshot(f"{server}&time=0&count=100&lod={mode}", SCREENSHOTS / f"preview_{mode}.png", tmp_path / "profile")
+def test_preview_screenshot_matches_crowdview(server, chromium, sample_bundle, mode, crowdview_args):  # noqa: F811
+    preview = screenshot(chromium, f"{server}&time=0&count=100&lod={mode}", SCREENSHOTS / f"preview_{mode}.png")
     covered = characters(preview)
     assert 0.02 < covered.mean() < 0.6, "the crowd should cover part of the picture, not none or all of it"
     reference = crowdview_picture(sample_bundle, SCREENSHOTS / f"crowdview_{mode}.png", *crowdview_args)
