@@ -118,3 +118,40 @@ def test_robot_clips_cape_picks_a_looping_23_frame_clip(shared_asset):
 def test_one_clip_is_that_clip():
     cloth = np.zeros((10, 3, 3))
     assert choose_clip([Clip("only", 100.0)], cloth, 24.0).reason == "the character's only animation"
+
+
+def _sampled_walk(keys: int, last_key_step_short: bool) -> np.ndarray:
+    """(keys, 4) quaternions of a hip swinging +-20 degrees once over the clip: the last key equals the
+    first, or (as many exports end) stops one key's step before the first pose comes round again."""
+    period = keys if last_key_step_short else keys - 1
+    angles = np.radians(20.0) * np.sin(2 * np.pi * np.arange(keys) / period)
+    return np.stack([np.sin(angles / 2), np.zeros(keys), np.zeros(keys), np.cos(angles / 2)], axis=1)
+
+
+def test_a_walk_that_ends_one_key_short_of_its_first_pose_loops():
+    """Regression: a Mixamo-like Walk (24 keys) whose last key is one step from the first was judged
+    "does not loop" by the absolute 1 cm rule, so an Idle that loops was baked under a walking cape."""
+    from crowdbake.ingest.clip_choice import LOOP_TOLERANCE, _channel_loops
+
+    short = _sampled_walk(24, last_key_step_short=True)
+    assert np.abs(short[0] - short[-1]).max() > LOOP_TOLERANCE  # the old rule's "does not loop"
+    assert _channel_loops(short, 24, "LINEAR")
+    assert _channel_loops(_sampled_walk(24, last_key_step_short=False), 24, "LINEAR")
+    # A fall: the hip turns 90 degrees in even steps and stays turned; its end is many steps from its start.
+    fall = np.radians(np.linspace(0.0, 90.0, 24))
+    falling = np.stack([np.sin(fall / 2), np.zeros(24), np.zeros(24), np.cos(fall / 2)], axis=1)
+    assert not _channel_loops(falling, 24, "LINEAR")
+    # A still channel with a jump at the end is not a loop either (its median step is zero).
+    still = np.zeros((24, 3))
+    still[-1] = 0.5
+    assert not _channel_loops(still, 24, "LINEAR")
+
+
+def test_the_walk_the_cloth_repeats_after_wins_over_a_looping_idle():
+    """Both loop now (the walk by its own motion), so the smaller repeat gap decides: the cloth was
+    driven by a 24-frame walk and comes back after 24 frames, not after the 47-frame idle."""
+    t = np.arange(140)[:, None]
+    rest = np.random.default_rng(1).normal(size=(1, 40, 3))
+    swing = np.stack([np.sin(2 * np.pi * t / 24) * np.linspace(0, 0.3, 40)] * 3, axis=2)
+    choice = choose_clip([Clip("Idle", 47 / 24, loops=True), Clip("Walk", 1.0, loops=True)], rest + swing, 24.0)
+    assert choice.name == "Walk" and "(does not loop)" not in choice.reason

@@ -10,8 +10,8 @@ first clip is not necessarily the walk. The rule, in two steps:
    vertices minus their mean, so that walking forward does not count) is compared with itself one clip
    length later, `repeat_gap`; the smallest RMS gap wins, the shorter clip on a tie. A cloth driven by a
    24-frame walk comes back after 24 frames; after a 12-frame clip it is half a stride off. A clip that
-   loops (every channel ends where it starts: a walk, not a fall) goes before one that does not, since the
-   bake tiles the body's clip. Clips of one length that loop alike tie (the cloth cannot tell a 23-frame
+   loops (every channel ends where it starts, or one key's step short of it: a walk, not a fall) goes
+   before one that does not, since the bake tiles the body's clip. Clips of one length that loop alike tie (the cloth cannot tell a 23-frame
    walk from a 23-frame run): the first in the file is taken and the reason names the others.
 
 One animation, or `animation` given by name or index: that one, no search. No clip that fits: an
@@ -34,6 +34,12 @@ logger = logging.getLogger(__name__)
 # A channel loops when its last key is this close to its first (metres, quaternion or scale components):
 # exported cycles repeat their first key exactly or to a few 1e-4; a fall or a sit ends 0.5 away.
 LOOP_TOLERANCE = 1e-2
+# ...or when its last key is at most LOOP_STEPS of its own fast key steps (the STEP_PERCENTILE of its
+# steps) from its first: many exports (Mixamo's walks and runs among them) end one key before the first
+# pose comes round again, so a fast channel's last key sits one step away, far beyond LOOP_TOLERANCE.
+# A fall ends many steps away. A percentile, not the largest step, so one jump at the end is no loop.
+LOOP_STEPS = 1.5
+STEP_PERCENTILE = 90
 
 
 @dataclass(frozen=True)
@@ -82,16 +88,24 @@ def character_clips(path: str | Path) -> list[Clip]:
 
 
 def _channel_loops(values: np.ndarray, keys: int, interpolation: str | None) -> bool:
-    """Whether a sampler's last value is its first (LOOP_TOLERANCE); q and -q are one rotation."""
+    """Whether a sampler's last value is its first, judged against the channel's own motion: within
+    LOOP_TOLERANCE, or within LOOP_STEPS of its fast key steps. q and -q are one rotation."""
     if interpolation == "CUBICSPLINE" and len(values) == 3 * keys:
         values = values.reshape(keys, 3, -1)[:, 1]  # (in-tangent, value, out-tangent) per key
     if len(values) < 2:
         return True
-    first, last = np.asarray(values[0], np.float64), np.asarray(values[-1], np.float64)
-    gap = np.abs(first - last)
+    values = np.asarray(values, np.float64).reshape(len(values), -1)
+    gap = _component_gap(values[0], values[-1])
+    steps = [_component_gap(a, b) for a, b in zip(values[:-1], values[1:])]
+    return bool(gap <= LOOP_TOLERANCE or gap <= LOOP_STEPS * float(np.percentile(steps, STEP_PERCENTILE)))
+
+
+def _component_gap(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest component difference of two keys; for 4 components (a quaternion) q and -q count as one."""
+    gap = np.abs(a - b)
     if gap.size == 4:
-        gap = np.minimum(gap, np.abs(first + last))
-    return bool(gap.max() <= LOOP_TOLERANCE)
+        gap = np.minimum(gap, np.abs(a + b))
+    return float(gap.max())
 
 
 def fitting_clips(clips: list[Clip], cache_frames: int, fps: float) -> list[int]:
