@@ -145,9 +145,19 @@ def test_bones_export_validates_reports_its_error_and_plays_in_blender(small_bak
     np.testing.assert_allclose(seen[f"mesh_{garment}"], played_by_bones(gltf, gltf.binary_blob(), garment), atol=1e-3)
 
 
-@pytest.mark.parametrize("value", ["0", "many"])
+@pytest.mark.parametrize("value", ["0", "many", "257", "1000000"])
 def test_cli_refuses_a_bone_count_it_cannot_use(small_bake, tmp_path, capsys, value):
     assert cli_main(["export", str(small_bake[0]), "--out", str(tmp_path / "out"), "--cloth-bones", value]) == 2
     error = capsys.readouterr().err.strip()
     assert error.count("\n") == 0 and "--cloth-bones" in error and repr(value) in error
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("iterations", ["0", "101", "1000000000"])
+def test_cli_refuses_iterations_beyond_the_stated_budget(small_bake, tmp_path, capsys, iterations):
+    """A billion Dem Bones iterations ran for over ten minutes; the bound is in --help and one line says it."""
+    arguments = ["export", str(small_bake[0]), "--out", str(tmp_path / "out"), "--cloth-bones", "4", "--cloth-bones-iterations", iterations]
+    assert cli_main(arguments) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.count("\n") == 0 and "--cloth-bones-iterations from 1 to 100" in error
     assert not (tmp_path / "out").exists()

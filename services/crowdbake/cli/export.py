@@ -11,6 +11,12 @@ from pathlib import Path
 from crowdbake.cli.common import CommandError
 from crowdbake.formats.errors import FormatError
 
+# Dem Bones holds a (frames x vertices x bones) problem and iterates over it: these bounds keep one garment's
+# fit to minutes and a few GB. auto tops out at 128 (cloth_bones.AUTO_BONE_COUNTS), which already fits a
+# long skirt's loop to about a centimetre; more bones or iterations than this buy nothing measurable.
+MAX_CLOTH_BONES = 256
+MAX_CLOTH_BONE_ITERATIONS = 100
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -39,11 +45,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--cloth-bones", metavar="N|auto",
         help="play each garment as a skinned mesh of N extra bones (linear blend skinning fitted to the loop by Dem Bones) "
-        "instead of morph targets; auto: the fewest of 4, 8, ... 128 bones within --cloth-bones-budget",
+        f"instead of morph targets; N at most {MAX_CLOTH_BONES}; auto: the fewest of 4, 8, ... 128 bones within "
+        "--cloth-bones-budget",
     )
     parser.add_argument("--cloth-bones-budget", type=float, default=5.0, metavar="MM",
                         help="RMS error in millimetres that --cloth-bones auto aims for (default 5)")
-    parser.add_argument("--cloth-bones-iterations", type=int, default=30, metavar="K", help="Dem Bones iterations (default 30)")
+    parser.add_argument("--cloth-bones-iterations", type=int, default=30, metavar="K", help=f"Dem Bones iterations (default 30, at most {MAX_CLOTH_BONE_ITERATIONS})")
     parser.add_argument("--json", action="store_true", help="print the written files and sizes as JSON")
     parser.set_defaults(func=run)
 
@@ -58,10 +65,11 @@ def run(args: argparse.Namespace) -> int:
         from crowdbake.export.writer import ClothBonesRequest
 
         count = None if args.cloth_bones == "auto" else (int(args.cloth_bones) if args.cloth_bones.isdigit() else 0)
-        if count == 0:
-            raise CommandError(f"--cloth-bones: expected a positive bone count or auto, got {args.cloth_bones!r}")
-        if args.cloth_bones_budget <= 0 or args.cloth_bones_iterations < 1:
-            raise CommandError("--cloth-bones-budget must be positive millimetres and --cloth-bones-iterations at least 1")
+        if count == 0 or (count is not None and count > MAX_CLOTH_BONES):
+            raise CommandError(f"--cloth-bones: expected a bone count from 1 to {MAX_CLOTH_BONES} or auto, got {args.cloth_bones!r}")
+        if not 0 < args.cloth_bones_budget < float("inf") or not 1 <= args.cloth_bones_iterations <= MAX_CLOTH_BONE_ITERATIONS:
+            raise CommandError(f"--cloth-bones-budget must be positive millimetres and --cloth-bones-iterations from 1 "
+                               f"to {MAX_CLOTH_BONE_ITERATIONS}")
         try:
             import py_dem_bones  # noqa: F401
         except ImportError:
@@ -73,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"the bundle does not verify: {error}") from None
     except FileExistsError as error:
         raise CommandError(str(error)) from None
+    except MemoryError:
+        raise CommandError("the export ran out of memory; with --cloth-bones, try fewer bones or iterations", exit_code=1) from None
     if args.json:
         print(json.dumps({"out": str(summary.out_dir), "files": summary.files}, indent=2))
     else:
