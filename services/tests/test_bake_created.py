@@ -26,7 +26,7 @@ BAKE_TIMEOUT_S = 240
 pytestmark = pytest.mark.slow  # two bakes of the sample, about a minute on 2 cores
 
 
-def test_a_rest_bake_with_created_gives_the_manifest_time_the_cli_gives(small_sample, tmp_path):
+def test_a_rest_bake_with_created_gives_the_manifest_time_the_cli_gives(small_sample, tmp_path, capsys):
     files = small_sample
     api = make_api(tmp_path / "service")
     upload = api.auth("upload")
@@ -62,6 +62,10 @@ def test_a_rest_bake_with_created_gives_the_manifest_time_the_cli_gives(small_sa
                      "--textures", str(files / "textures"), "--name", "walker", "--version", "1.0.0", "--out", str(out),
                      "--json", "--created", CREATED, *CLI_PARAMS]) == 0
     cli_manifest = json.loads((out / "walker" / "1.0.0" / "manifest.json").read_bytes())
+    # stderr is no terminal here (as in a CI job): each stage still says when it starts and ends.
+    log = capsys.readouterr().err
+    for stage in ("validate", "cycle", "poses", "impostors", "pack", "publish"):
+        assert f"bake: {stage} started" in log and f"bake: {stage} done in" in log, log[-2000:]
 
     assert rest_manifest["created"] == cli_manifest["created"] == CREATED
     assert rest_manifest == cli_manifest

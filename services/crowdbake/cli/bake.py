@@ -7,7 +7,7 @@ import sys
 from contextlib import ExitStack
 from pathlib import Path
 
-from crowdbake.cli.common import CommandError, progress
+from crowdbake.cli.common import CommandError, StageLines, bars_enabled, progress
 from crowdbake.params import add_cli_options, option_for, params_from_args
 
 DESCRIPTION = """\
@@ -254,7 +254,7 @@ def _bake(args: argparse.Namespace, params, cloth: tuple[Path | None, Path | Non
         timeline=cloth[2],
     )
     with ExitStack() as stack:
-        bars = _Bars(stack)
+        bars = _Bars(stack) if bars_enabled() else StageLines("bake")
         stack.callback(bars.close)
         try:
             summary = run_bake(inputs, Path(args.out), Path(args.work) if args.work else None, progress=bars)
