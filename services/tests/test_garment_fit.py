@@ -75,3 +75,25 @@ def test_cesium_mans_skirt_on_rigged_figure_is_refused_naming_how_far_off_and_th
     # The override bakes it anyway: validation goes past the check.
     record = stage_validate(BakeInputs(**inputs, params=BakeParams(fit=False)), tmp_path / "work2").record
     assert record.garment_vertices == 4032 and record.params["fit"] is False
+
+
+
+@needs_assets
+def test_a_misfit_on_a_character_of_several_clips_names_the_timeline_first():
+    """A cache simulated across several clips and baked without its timeline poses the body with one clip
+    over all of it, and the cloth does not follow: the refusal said only "does not fit", which sent users
+    to re-simulate. On a character of several animations it now names the timeline first. (RiggedFigure
+    under CesiumMan's skirt is a known misfit; its one walk is given two names, as a clip file has.)"""
+    import dataclasses
+
+    figure = dataclasses.replace(load_character(SHARED_ASSETS / "RiggedFigure.glb"), animation_names=["Idle", "Walk"])
+    cache = read_cloth(SKIRT / "long_skirt.pc2", SKIRT / "long_skirt.obj")
+    with pytest.raises(InputError) as caught:
+        check_garment_fit(figure, cache, cache.fps or 24.0)
+    message = caught.value.message
+    assert "does not fit the character" in message and "2 animations ('Idle', 'Walk')" in message
+    assert message.index("give its timeline (--timeline") < message.index("--no-fit")
+    # One animation: no timeline to give, so none is named.
+    with pytest.raises(InputError) as single:
+        _fit(SHARED_ASSETS / "RiggedFigure.glb", cache)
+    assert "timeline" not in single.value.message

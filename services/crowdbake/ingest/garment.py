@@ -161,9 +161,21 @@ def check_garment_fit(character, cache: ClothCache, fps: float) -> GarmentFit:
             f"the garment does not fit the character: over the cache {fit.far_fraction:.0%} of the cloth hangs more than "
             f"{FAR_FROM_BODY * fit.height:.2f} m ({FAR_FROM_BODY:.0%} of its {fit.height:.2f} m height) from its body "
             f"(frame {fit.worst_frame}: {fit.worst_far_fraction:.0%}), above the {MAX_FAR_FRACTION:.0%} a garment simulated on "
-            "this character and animation shows: simulate the garment on this character (or pick the animation it was "
-            "simulated with), or pass --no-fit (params.fit = false) to bake it anyway", "cloth")
+            f"this character and animation shows: {_misfit_remedies(character)}", "cloth")
     return fit
+
+
+def _misfit_remedies(character) -> str:
+    """What to do about a misfit. A character of several clips most often means a cache simulated across
+    them with no timeline given, so the body was posed with one clip over all of it: the timeline first."""
+    names = list(getattr(character, "animation_names", None) or [])
+    anyway = "or pass --no-fit (params.fit = false) to bake it anyway"
+    if len(names) > 1:
+        return (f"if the cache was simulated across several of the character's {len(names)} animations "
+                f"({', '.join(repr(name) for name in names[:6])}{', ...' if len(names) > 6 else ''}), give its timeline "
+                "(--timeline, or the bake's timeline input); else name the animation it was simulated with, "
+                f"simulate the garment on this character, {anyway}")
+    return f"simulate the garment on this character (or pick the animation it was simulated with), {anyway}"
 
 
 _FLAG = re.compile(r"--(up|units) (\w+)")
