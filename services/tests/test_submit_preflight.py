@@ -93,7 +93,7 @@ def test_a_busy_server_is_retried_beyond_the_first_contact_tries(status):
 def test_a_glb_that_is_not_a_gltf_binary_is_named_so_before_any_request(files):
     files["character"].write_text('{"asset": {"version": "2.0"}}')  # a .gltf's JSON, named .glb
     code, stderr, _ = submit(f"http://127.0.0.1:{free_port()}", files)
-    assert code == Exit.USAGE, stderr
+    assert code == Exit.REJECTED, stderr  # a rejected input, as the server would have said, not a usage error
     last = stderr.strip().splitlines()[-1]
     assert "not a glTF binary" in last and "walker.glb" in last and "JSON" not in last, last
 
@@ -124,6 +124,17 @@ def test_a_version_published_from_other_inputs_is_refused_before_any_upload(publ
     assert f"{name}/{version} is already published from other inputs" in last and "choose a new version" in last, last
     assert "uploading" not in stderr and "stored" not in stderr, stderr
     assert api.client.get("/v1/assets", headers=api.auth()).json()["count"] == before == 0
+
+
+def test_a_server_url_with_a_path_the_service_lacks_is_a_url_problem(published, files):
+    """`--server http://host:port/v1` answered 404 to every request, and submit exited 3 "Not found" as if
+    the input were rejected. The URL is checked first: exit 2, one line naming the URL and the fix."""
+    api, url, _, _ = published
+    code, stderr, _ = submit(f"{url}/v1", files, key=api.keys["all"])
+    assert code == Exit.USAGE, stderr
+    last = stderr.strip().splitlines()[-1]
+    assert f"{url}/v1" in last and "no crowdbake service answers there" in last and "without /v1" in last, last
+    assert "uploading" not in stderr, stderr
 
 
 def test_an_unpublished_version_passes_the_check(published, files):

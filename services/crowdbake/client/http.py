@@ -166,3 +166,14 @@ def _close(file_value: Any) -> None:
     handle = file_value[1] if isinstance(file_value, tuple) else file_value
     if hasattr(handle, "close"):
         handle.close()
+
+
+def check_service_root(server: Server) -> None:
+    """Raise ClientError (USAGE) when no crowdbake service answers at the server URL itself: a URL with a
+    path the service does not have (`.../v1`, a proxy's other app) answers 404 to everything, which would
+    otherwise read as the service rejecting the input."""
+    answer = server.request("GET", "/health", "checking the server URL", accept=frozenset({404}))
+    if answer.status_code == 404:
+        raise ClientError(f"--server {server.url}: no crowdbake service answers there (GET {server.url.rstrip('/')}/health: 404); "
+                          "give the service's root URL, such as http://HOST:8000, without /v1", Exit.USAGE)
+

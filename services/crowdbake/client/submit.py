@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from crowdbake.client.http import ClientError, Exit, Server, problem_line
+from crowdbake.client.http import ClientError, Exit, Server, check_service_root, problem_line
 from crowdbake.client.preflight import check_glb_magic, check_name_and_version
 from crowdbake.client.progress import FINAL_STATES, Reporter
 from crowdbake.errors import InputError
@@ -46,8 +46,8 @@ EPILOG = """\
 exit codes:
   0  done: the bake succeeded (and, with --download, the bundle downloaded and verified)
   1  the bake failed or was cancelled, or the downloaded bundle did not verify
-  2  usage: options, missing files, flag combinations
-  3  the server rejected the input: name, version, parameters, files
+  2  usage: options, missing files, flag combinations, a --server URL where no crowdbake service answers
+  3  the input is rejected: name, version, parameters, files (by the server, or by the same check made here first)
   4  authentication or permission: no key, unknown key, missing scope
   5  server unreachable or failing, after retrying for --retry-for seconds
   6  timed out: the bake did not end within --timeout (it goes on on the server)
@@ -234,8 +234,8 @@ def check_locally(args: argparse.Namespace) -> Inputs:
         if value and Path(value).exists() and not Path(value).is_dir():
             raise usage(f"{option} {value}: not a folder")
     not_glb = check_glb_magic(character)
-    if not_glb:
-        raise usage(not_glb)
+    if not_glb:  # the input itself is wrong, as the server would say: exit 3, told before uploading
+        raise ClientError(not_glb, Exit.REJECTED, local_problem(not_glb, "Rejected input"))
     cloth_data = {"cycle_frames": str(args.cycle_frames)} if args.cycle_frames and cloth else {}
     timeline = Path(args.timeline) if getattr(args, "timeline", None) else None
     if timeline is not None and not timeline.is_file():
@@ -375,6 +375,7 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
     with httpx.Client(base_url=args.server.rstrip("/"), headers=headers, timeout=httpx.Timeout(60.0, read=600.0)) as client:
         server = Server(client, retry_for=args.retry_for, say=say)
         try:
+            check_service_root(server)
             preflight(server, args, inputs)
             check_name_and_version(server, args.name, args.bundle_version, local_inputs(inputs), inputs.params, args.created, not args.no_publish)
             character = upload(server, "/v1/assets/characters", {"file": inputs.character}, f"character {inputs.character.name}", say)
