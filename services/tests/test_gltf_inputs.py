@@ -540,3 +540,43 @@ def test_sixteen_thousand_node_chain_loads_fast(shared_asset, tmp_path):
     with pytest.raises(ValueError, match="cycle|two parents"):
         load_character(cyclic)
     assert time.perf_counter() - started < 1.0
+
+
+def _zero_accessor(gltf: pygltflib.GLTF2, count: int, type_: str = "VEC3") -> int:
+    """An accessor with no bufferView: `count` zeros, claimed by a few bytes of JSON."""
+    gltf.accessors.append(pygltflib.Accessor(componentType=pygltflib.FLOAT, count=count, type=type_, min=[0.0] * 3 if type_ == "VEC3" else None,
+                                             max=[0.0] * 3 if type_ == "VEC3" else None))
+    return len(gltf.accessors) - 1
+
+
+def test_morph_targets_naming_one_big_accessor_are_budgeted_per_read(shared_asset, tmp_path):
+    """Regression: CesiumMan plus a rigid mesh of 999,999 zero vertices whose 200 morph targets all name one
+    zero-filled accessor, 0.5 MB of file, took +3.6 GB in the API before a 201: every target expanded the
+    same accessor again. Every read is now counted before any accessor is read, and this is refused."""
+    from crowdbake.formats.gltf.document import MAX_READ_DOCUMENT_BYTES
+
+    gltf = _load(shared_asset("CesiumMan.glb"))
+    zeros = _zero_accessor(gltf, 999_999)
+    primitive = pygltflib.Primitive(attributes=pygltflib.Attributes(POSITION=zeros), targets=[{"POSITION": zeros}] * 200)
+    gltf.meshes.append(pygltflib.Mesh(primitives=[primitive], weights=[0.0] * 200))
+    gltf.nodes.append(pygltflib.Node(mesh=len(gltf.meshes) - 1))
+    gltf.scenes[gltf.scene or 0].nodes.append(len(gltf.nodes) - 1)
+    path = _save(gltf, tmp_path / "targets.glb")
+    assert path.stat().st_size < 1 << 20 and 201 * 999_999 * 12 > MAX_READ_DOCUMENT_BYTES
+    start = time.perf_counter()
+    with pytest.raises(ValueError, match=r"reading its accessors would take \d+ bytes .* more than the \d+ one document may take "
+                                         r"\(largest: meshes\[1\] morph targets 2399997600"):
+        load_character(path)
+    assert time.perf_counter() - start < 2.0  # refused from the JSON
+
+
+def test_weights_channels_sharing_one_long_sampler_count_each_time(shared_asset, tmp_path):
+    """200 "weights" channels sharing one sampler of a million keys (8.5 MB of file) took +1.5 GB: each
+    channel reads the sampler again, so each counts."""
+    gltf = _load(shared_asset("CesiumMan.glb"))
+    times, values = _zero_accessor(gltf, 1_000_000, "SCALAR"), _zero_accessor(gltf, 1_000_000, "SCALAR")
+    sampler = pygltflib.AnimationSampler(input=times, output=values)
+    channels = [pygltflib.AnimationChannel(sampler=0, target=pygltflib.AnimationChannelTarget(node=0, path="weights"))] * 200
+    gltf.animations.append(pygltflib.Animation(name="many", samplers=[sampler], channels=channels))
+    with pytest.raises(ValueError, match=r"largest: animations\[1\] 1600000000"):
+        load_character(_save(gltf, tmp_path / "channels.glb"))

@@ -180,6 +180,7 @@ class _Document:
         self.base = base
         self._decoded_views: dict[int, bytes] = {}
         check_decode_budget(self.gltf, where)
+        check_read_budget(self.gltf, where)
 
     def item(self, kind: str, index):
         items = getattr(self.gltf, kind) or []
@@ -274,6 +275,71 @@ def check_decode_budget(gltf: pygltflib.GLTF2, where: str) -> None:
             f"{where}: the compressed geometry claims {total} decoded bytes in {len(claims)} parts, more than the "
             f"{MAX_DECODED_DOCUMENT_BYTES} one document may decode (largest: {largest})"
         )
+
+
+# What reading a document may expand to in memory, every accessor counted each time something reads it:
+# several morph targets, primitives or animation channels may all name one accessor (or one sampler), and
+# an accessor with no bufferView is zeros of any count, so a 0.5 MB file could claim gigabytes (200 targets
+# naming one million-vertex accessor: 3.6 GB). A million-vertex character with skin, UVs, normals and a
+# dozen full-body targets reads about 200 MB; 256 MiB keeps an upload's check within the +300 MB target.
+MAX_READ_DOCUMENT_BYTES = 1 << 28
+
+
+def check_read_budget(gltf: pygltflib.GLTF2, where: str) -> None:
+    """Refuse, before any accessor is read, a document whose reads would expand to more than
+    MAX_READ_DOCUMENT_BYTES: every primitive attribute, index and morph-target accessor, every animation
+    channel's sampler input and output, and every skin's inverse bind matrices, each counted each time it
+    is named (as the readers read it), at the bytes they expand to (4 a float component, 8 an integer)."""
+    accessors = gltf.accessors or []
+    claims: dict[str, int] = {}
+
+    def claim(label: str, index) -> None:
+        if isinstance(index, int) and not isinstance(index, bool) and 0 <= index < len(accessors):
+            claims[label] = claims.get(label, 0) + _read_bytes(accessors[index])
+
+    for mesh_index, mesh in enumerate(gltf.meshes or []):
+        label = f"meshes[{mesh_index}]"
+        for primitive in mesh.primitives or []:
+            for index in _attribute_indices(primitive.attributes):
+                claim(label, index)
+            claim(label, primitive.indices)
+            for target in primitive.targets or []:
+                for index in _attribute_indices(target):
+                    claim(f"{label} morph targets", index)
+    for animation_index, animation in enumerate(gltf.animations or []):
+        samplers = animation.samplers or []
+        for channel in animation.channels or []:
+            sampler_index = getattr(channel, "sampler", None)
+            if isinstance(sampler_index, int) and 0 <= sampler_index < len(samplers):
+                claim(f"animations[{animation_index}]", samplers[sampler_index].input)
+                claim(f"animations[{animation_index}]", samplers[sampler_index].output)
+    for skin_index, skin in enumerate(gltf.skins or []):
+        claim(f"skins[{skin_index}]", skin.inverseBindMatrices)
+    total = sum(claims.values())
+    if total > MAX_READ_DOCUMENT_BYTES:
+        largest = ", ".join(f"{label} {size}" for label, size in sorted(claims.items(), key=lambda claim: -claim[1])[:3])
+        raise ValueError(
+            f"{where}: reading its accessors would take {total} bytes (each counted each time a primitive, morph target, "
+            f"animation channel or skin names it), more than the {MAX_READ_DOCUMENT_BYTES} one document may take "
+            f"(largest: {largest})"
+        )
+
+
+def _attribute_indices(attributes) -> list:
+    """The accessor indices of a primitive's or morph target's attributes (a pygltflib object or a dict)."""
+    if attributes is None:
+        return []
+    if isinstance(attributes, dict):
+        return list(attributes.values())
+    return [value for value in vars(attributes).values() if value is not None]
+
+
+def _read_bytes(accessor) -> int:
+    """Bytes an accessor expands to when read: count x width, 4 bytes a float component, 8 an integer one."""
+    count, width = accessor.count, TYPE_WIDTHS.get(accessor.type, 16)
+    if not isinstance(count, int) or count <= 0:
+        return 0
+    return count * width * (4 if accessor.componentType == pygltflib.FLOAT else 8)
 
 
 def _draco_claim(accessors: list, index) -> int:
