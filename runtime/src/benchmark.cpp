@@ -267,6 +267,7 @@ nlohmann::json run_benchmark(Renderer& renderer, const Bundle& bundle, const Ben
     const auto start = std::chrono::steady_clock::now();
     nlohmann::json report;
     report["device"] = desc.device;
+    report["gl"] = desc.gl;
     report["width"] = renderer.width();
     report["height"] = renderer.height();
     report["bundle"] = bundle.manifest.name + "/" + bundle.manifest.version;

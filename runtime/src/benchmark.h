@@ -35,6 +35,7 @@ struct BenchmarkDesc {
     // report also times UV impostors with blending off and on at one crowd size.
     ImpostorBlend blend = ImpostorBlend::warp;
     std::string device;        // GlContext::describe(), for the report
+    nlohmann::json gl;         // gl_report(GlContext::info()), for the report
     std::function<void(const std::string&)> log;  // one progress line per measurement; may be empty
     // Called with the report so far after each phase (the caller writes it, so a run stopped from
     // outside still leaves one); may be empty.

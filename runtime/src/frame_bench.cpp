@@ -4,14 +4,15 @@
 // into GL buffers with the renderer's own code (instance_upload.h), timed apart.
 //
 //   crowdview_frame_bench [--count N] [--archetypes K] [--frames F] [--threads T] [--clips C]
-//                         [--upload map|gl|copy|none] [--report JSON]
+//                         [--upload map|gl|copy|none] [--gl-device auto|software|N] [--require-gpu] [--report JSON]
 // (--threads: default crowdview's, the hardware's; --clips: clips per
 // archetype, default 3, joined in a ring by transitions both ways; 1 is a v1 bundle's one cycle;
 // --upload: map (default), as crowdview: the lists built straight into mapped GL buffers of a
 // headless context as crowdview --headless makes it (the upload figure is the mapping and unmapping);
 // gl: built into vectors, then copied into the buffers (glBufferData); either falls back, with a
 // message, to copy where no context can be made; copy: memcpy of the vectors into a staging
-// buffer; none: no upload)
+// buffer; none: no upload; --gl-device and --require-gpu: the context, as crowdview's, and with
+// either no fallback to copy: no such context exits 3)
 //
 // The archetypes are shaped like real bundles (impostor radius, tile size, views, baked frames of
 // the sample walker, CesiumMan and the 4 m robot); the crowd is laid out as a --crowd spot layout.
@@ -143,6 +144,8 @@ int main(int argc, char** argv) {
     uint64_t count = 100000;
     int archetypes = 4, frames = 60, threads = 0, clips = 3;  // threads 0: as crowdview (frame_threads)
     std::string report_path, upload_name = "map";
+    GlDeviceChoice gl_device;
+    bool require_gpu = false;
     for (int i = 1; i < argc; ++i) {
         const std::string a = argv[i];
         auto next = [&]() -> const char* {
@@ -159,7 +162,14 @@ int main(int argc, char** argv) {
         else if (a == "--clips") clips = std::atoi(next());
         else if (a == "--report") report_path = next();
         else if (a == "--upload") upload_name = next();
-        else {
+        else if (a == "--require-gpu") require_gpu = true;
+        else if (a == "--gl-device") {
+            const std::string v = next();
+            if (!parse_gl_device(v, &gl_device)) {
+                std::fprintf(stderr, "crowdview_frame_bench: --gl-device is auto, software or an EGL device number, not '%s'\n", v.c_str());
+                return 2;
+            }
+        } else {
             std::fprintf(stderr, "crowdview_frame_bench: unknown argument '%s'\n", a.c_str());
             return 2;
         }
@@ -181,11 +191,22 @@ int main(int argc, char** argv) {
                                             : Upload::none;
     std::unique_ptr<GlContext> context;
     std::string upload_label = upload_name;
+    const bool context_chosen = require_gpu || gl_device.kind != GlDeviceChoice::automatic;
+    if (context_chosen && (uploader.kind == Upload::copy || uploader.kind == Upload::none)) {
+        std::fprintf(stderr, "crowdview_frame_bench: --gl-device and --require-gpu need --upload map or gl\n");
+        return 2;
+    }
     if (uploader.kind == Upload::map || uploader.kind == Upload::gl) {
         GlContextDesc desc;
         desc.width = 64, desc.height = 64;
+        desc.device = gl_device;
+        desc.require_gpu = require_gpu;
         std::string error;
         context = GlContext::create(desc, &error);
+        if (!context && context_chosen) {
+            std::fprintf(stderr, "crowdview_frame_bench: %s\n", error.c_str());
+            return 3;
+        }
         if (!context) {
             std::printf("crowdview_frame_bench: no OpenGL context (%s): timing a copy of the same bytes into a staging buffer instead\n",
                         error.c_str());
@@ -193,6 +214,7 @@ int main(int argc, char** argv) {
             upload_label = "copy (no OpenGL context: " + error + ")";
         } else {
             upload_label = upload_name + ": " + context->describe();
+            std::printf("crowdview_frame_bench: %s\n", gl_context_line(context->info()).c_str());
             uploader.buffers.resize(size_t(archetypes));
             for (InstanceBuffers& b : uploader.buffers) {
                 glGenBuffers(3, b.by_lod);
@@ -294,6 +316,7 @@ int main(int argc, char** argv) {
                                             "and the instance upload (instance_upload.h: map, the mapping and unmapping of the "
                                             "buffers the fill writes; gl, the copy after it); total = both"},
                                    {"upload", upload_label},
+                                   {"gl", context ? gl_report(context->info()) : nlohmann::json(nullptr)},
                                    {"failed_maps", uploader.mapped.failed_maps()},  // map: lists built aside and copied
                                    {"lost_unmaps", uploader.mapped.lost_unmaps()},
                                    {"characters", count},

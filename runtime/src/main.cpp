@@ -1,13 +1,13 @@
 // crowdview: shows a crowdbake bundle as a crowd, in a window, headless, or as a benchmark.
 //
 //   crowdview (--bundle DIR | --url URL | --crowd FILE) [--cache DIR] [--count N] [--seed S] [--layout spot|paths]
-//             [--headless --frames N --screenshot out.png] [--benchmark --report out.json]
+//             [--headless --frames N --screenshot out.png] [--benchmark --report out.json] [--gl-device auto|software|N] [--require-gpu]
 //             [--width W --height H] [--lod auto|high|low|impostor|detail] [--impostor-blend off|views|frames|full|warp]
 //             [--key KEY] [--cache-budget-mib N] [--min-rate B] [--timeout S] [--clips NAME=W,...] [--switch-after LO,HI]
 //   crowdview --verify DIR|URL
 //
 // Exit status: 0 success, 1 a bundle or file was refused or a run failed, 2 bad arguments,
-// 3 no OpenGL context could be created here.
+// 3 no OpenGL context could be created here (--require-gpu: none on a GPU).
 #define GLFW_INCLUDE_NONE
 #include <GLFW/glfw3.h>
 
@@ -63,6 +63,8 @@ struct Options {
     uint64_t seed = 1;
     Layout layout = Layout::on_the_spot;
     bool headless = false, benchmark = false;
+    GlDeviceChoice gl_device;  // --gl-device: headless only
+    bool require_gpu = false;
     int frames = -1;  // -1: until the window closes (headless: 1)
     std::string screenshot, report;
     int width = 1280, height = 720;
@@ -109,7 +111,9 @@ const char* kUsage =
     "  --width W --height H  framebuffer size (default 1280x720)\n"
     "  --switch-view A,E,F   one character (heading 0, variation 0, outfit 0) seen from azimuth A, elevation E\n"
     "                        (degrees) at the impostor switch distance, at cycle frame F\n"
-    "  --headless            no window: EGL surfaceless, else a hidden GLFW window\n"
+    "  --headless            no window: a GPU's EGL device, else EGL surfaceless, else a hidden GLFW window\n"
+    "  --gl-device D         headless: auto (default, as above) | software (Mesa's software EGL device) | N (EGL device N)\n"
+    "  --require-gpu         exit 3 where the context renders on a software rasteriser (llvmpipe, softpipe, swrast)\n"
     "  --frames N            frames to draw, then exit (headless default 1)\n"
     "  --progress-every S    headless: print \"frame k of N\" every S seconds of wall time (default 2)\n"
     "  --screenshot PNG      write the last frame\n"
@@ -167,6 +171,11 @@ Options parse_args(int argc, char** argv) {
         else if (a == "--headless") o.headless = true;
         else if (a == "--benchmark") o.benchmark = true;
         else if (a == "--cpu-decode") o.cpu_decode = true;
+        else if (a == "--require-gpu") o.require_gpu = true;
+        else if (a == "--gl-device") {
+            const std::string v = value(i);
+            if (!parse_gl_device(v, &o.gl_device)) usage_error("--gl-device is auto, software or an EGL device number; got '" + v + "'");
+        }
         else if (a == "--layout")
             o.crowd_flags = true, o.layout = parse_choice<Layout>(a, value(i), {{"spot", Layout::on_the_spot}, {"paths", Layout::paths}});
         else if (a == "--camera")
@@ -211,6 +220,7 @@ Options parse_args(int argc, char** argv) {
     if (sources > 1) usage_error("give only one of --bundle, --url, --crowd and --verify");
     if (o.benchmark && !o.screenshot.empty()) usage_error("--screenshot does not go with --benchmark");
     if (!o.report.empty() && !o.benchmark && !o.headless) usage_error("--report needs --benchmark or --headless");
+    if (o.gl_device.kind != GlDeviceChoice::automatic && !o.benchmark && !o.headless) usage_error("--gl-device needs --benchmark or --headless");
     if (!o.crowd_file.empty() && o.crowd_flags) usage_error("--count, --seed and --layout go in the --crowd description");
     if (!o.crowd_file.empty() && !o.clips.empty()) usage_error("--clips goes in the --crowd description's archetypes (\"clips\")");
     if (!o.crowd_file.empty() && (o.benchmark || o.switch_view)) usage_error("--benchmark and --switch-view take --bundle or --url");
@@ -285,6 +295,7 @@ int run_benchmark_mode(const GlContext& context, Renderer& renderer, const Bundl
     }
     desc.blend = o.blend;
     desc.device = context.describe();
+    desc.gl = gl_report(context.info());
     desc.log = [](const std::string& line) { std::fprintf(stderr, "%s\n", line.c_str()); };
     // The report so far after every phase, so a run stopped from outside still leaves one.
     if (!o.report.empty())
@@ -413,6 +424,7 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
                  (unsigned long long)lod_total[2], (unsigned long long)culled, stats.draw_calls, (unsigned long long)stats.triangles);
     if (!o.report.empty()) {
         nlohmann::json report = view_report(context.describe(), renderer, scene, counts, rules, drawn, drawn ? 1e3 * build_seconds / drawn : 0, stats);
+        report["gl"] = gl_report(context.info());
         // Whole frames, cull to glFinish; the first two warm up (uploads, shader compilation on first use).
         std::vector<double> timed(frame_ms.begin() + std::min<size_t>(2, frame_ms.size() > 2 ? 2 : 0), frame_ms.end());
         std::sort(timed.begin(), timed.end());
@@ -509,6 +521,8 @@ int main(int argc, char** argv) {
     context_desc.width = o.width;
     context_desc.height = o.height;
     context_desc.window = !(o.headless || o.benchmark);
+    context_desc.device = o.gl_device;
+    context_desc.require_gpu = o.require_gpu;
     std::string error;
     std::unique_ptr<GlContext> context = GlContext::create(context_desc, &error);
     if (!context) {
@@ -516,8 +530,7 @@ int main(int argc, char** argv) {
         return kExitNoGl;
     }
     const std::string gl_renderer = context->renderer_name();
-    std::fprintf(stderr, "crowdview: GL_RENDERER %s; GL_VERSION %s (%s)\n", gl_renderer.c_str(), context->version().c_str(),
-                 context_desc.window ? "window" : "headless");
+    std::fprintf(stderr, "crowdview: %s (%s)\n", gl_context_line(context->info()).c_str(), context_desc.window ? "window" : "headless");
     const bool draws_impostors = o.benchmark || !(o.lod == LodChoice::high || o.lod == LodChoice::low);
     if (is_software_renderer(gl_renderer) && !o.blend_chosen && draws_impostors)
         std::fprintf(stderr, "crowdview: note: %s is a software rasteriser, where the default --impostor-blend warp costs about 6x "

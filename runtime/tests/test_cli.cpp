@@ -1,5 +1,5 @@
 // The crowdview command line: one-line errors and exit codes for bad arguments and bad
-// bundles, --verify, a headless screenshot and a (tiny) benchmark report.
+// bundles, --verify, a headless screenshot, a (tiny) benchmark report and the GL device's choice.
 //   test_cli CROWDVIEW VECTORS_DIR
 // Runs that need OpenGL are skipped when crowdview exits 3 (no context); if any were skipped
 // and nothing failed, the test exits 77.
@@ -38,7 +38,9 @@ void test_arguments() {
     const std::vector<std::string> bad = {"", "--count", "--count abc", "--count 0", "--width 10", "--lod hires --bundle x",
                                           "--bundle a --url b", "--frobnicate", "--layout zigzag --bundle x", "--camera drone --bundle x",
                                           "--report r.json --bundle x", "--impostor-blend smooth --bundle x",
-                                          "--timeout 0 --url http://h/x", "--cache-budget-mib -1 --url http://h/x"};
+                                          "--timeout 0 --url http://h/x", "--cache-budget-mib -1 --url http://h/x",
+                                          "--gl-device gpu --bundle x --headless", "--gl-device -1 --bundle x --headless",
+                                          "--gl-device 0 --bundle x"};
     for (const std::string& args : bad) {
         const Run r = crowdview(args);
         CHECK_MSG(r.status == 2 && one_line(r.err) && r.err.rfind("crowdview: ", 0) == 0, "'" + args + "': " + describe(r));
@@ -102,6 +104,7 @@ void test_headless(const std::string& bundle, const std::string& work) {
     }
     CHECK(j["triangles_per_character"]["high"].get<int>() > j["triangles_per_character"]["low"].get<int>());
     CHECK(j["seconds"].get<double>() < 30);
+    CHECK_MSG(j["gl"]["renderer"].is_string() && j["gl"]["context"].is_string(), j["gl"].dump());  // what ran the figures
     // The cost of blending: UV impostors timed with it off and on at one crowd size.
     CHECK(j["impostor_blend"] == "full");
     CHECK_MSG(j["impostor_blend_cost"]["fps_off"].get<double>() > 0 && j["impostor_blend_cost"]["fps_blended"].get<double>() > 0,
@@ -178,6 +181,53 @@ void test_messages(const std::string& bundle) {
     CHECK(!crowdview::is_software_renderer("NVIDIA H100 80GB HBM3/PCIe/SSE2"));
 }
 
+// --gl-device software: Mesa's software EGL device (EGL_MESA_device_software) runs the device
+// platform's code path, the one a GPU server's driver takes, on a machine with no GPU. The log line
+// and --report name the device, vendor and renderer; --require-gpu refuses llvmpipe with one line;
+// a device that does not exist is one line naming those that do.
+void test_gl_device(const std::string& bundle, const std::string& work) {
+    crowdview::GlDeviceChoice choice;
+    CHECK(crowdview::parse_gl_device("3", &choice) && choice.kind == crowdview::GlDeviceChoice::numbered && choice.index == 3);
+    CHECK(crowdview::parse_gl_device("software", &choice) && choice.kind == crowdview::GlDeviceChoice::software);
+    CHECK(crowdview::parse_gl_device("auto", &choice) && choice.kind == crowdview::GlDeviceChoice::automatic);
+    for (const char* bad : {"", "-1", "1.5", "gpu", "0x1", "99999"}) CHECK_MSG(!crowdview::parse_gl_device(bad, &choice), bad);
+
+    const std::string common = "--bundle '" + bundle + "' --headless --frames 1 --count 4 --width 64 --height 48 --impostor-blend off";
+    const std::string report = work + "/gl_device.json";
+    Run r = crowdview(common + " --gl-device software --report '" + report + "'");
+    if (r.status == 3) {
+        ++g_skipped;
+        std::fprintf(stderr, "SKIP gl device: %s", r.err.c_str());
+        return;
+    }
+    CHECK_MSG(r.status == 0, describe(r));
+    CHECK_MSG(r.err.find("; GL_VENDOR ") != std::string::npos && r.err.find("; EGL device ") != std::string::npos &&
+                  r.err.find(" (Mesa software) (headless)\n") != std::string::npos,
+              r.err);
+    const nlohmann::json j = nlohmann::json::parse(synthetic::read_text(report), nullptr, false);
+    CHECK_MSG(!j.is_discarded() && j.contains("gl"), "the report has its gl section");
+    if (j.is_discarded() || !j.contains("gl")) return;
+    const nlohmann::json& gl = j["gl"];
+    CHECK_MSG(gl["context"] == "EGL device" && gl["device"].is_object(), gl.dump());
+    CHECK_MSG(gl["device"]["name"] == "Mesa software" &&
+                  gl["device"]["extensions"].get<std::string>().find("EGL_MESA_device_software") != std::string::npos &&
+                  gl["device"]["index"].get<int>() < gl["device"]["count"].get<int>(),
+              gl.dump());
+    const std::string renderer = gl["renderer"].get<std::string>();
+    CHECK_MSG(crowdview::is_software_renderer(renderer) && gl["software_rasteriser"] == true, gl.dump());
+    CHECK_MSG(gl["vendor"].get<std::string>() != "?" && !gl["vendor"].get<std::string>().empty(), gl.dump());
+    CHECK_MSG(j["device"].get<std::string>().rfind("EGL device ", 0) == 0, j["device"].dump());
+
+    r = crowdview(common + " --gl-device software --require-gpu");
+    CHECK_MSG(r.status == 3 && one_line(r.err) && r.err.find("a GPU is required") != std::string::npos &&
+                  r.err.find(renderer) != std::string::npos,
+              describe(r));
+    r = crowdview(common + " --gl-device 99");
+    CHECK_MSG(r.status == 3 && one_line(r.err) && r.err.find("there is no EGL device 99") != std::string::npos &&
+                  r.err.find("Mesa software") != std::string::npos,
+              describe(r));
+
+}
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -195,6 +245,7 @@ int main(int argc, char** argv) {
     test_verify(work + "/bundle", argv[2], work);
     test_headless(work + "/bundle", work);
     test_messages(work + "/bundle");
+    test_gl_device(work + "/bundle", work);
     test_benchmark_budget(work + "/bundle", work);
     fs::remove_all(work);
     const int code = check::exit_code();
