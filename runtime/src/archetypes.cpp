@@ -51,7 +51,7 @@ ArchetypeTraits archetype_traits(const ArchetypeDesc& desc, uint64_t count, cons
     t.count = count;
     t.spacing = crowd_spacing(model.radius);
     const float fps = model.frames_per_second > 0 ? model.frames_per_second : 24.0f;
-    // Phases of a one-clip bundle as before clips: over the whole cycle.
+    // Phases span the first clip, or the whole cycle of a bundle without clips.
     t.cycle_seconds = bundle.manifest.clips.empty() ? float(model.frame_count) / fps : float(bundle.manifest.clips[0].frames) / fps;
     for (const ClipInfo& c : bundle.manifest.clips) t.clip_seconds.push_back(float(c.frames) / fps);
     resolve_clip_mix(desc.clips, bundle.manifest.clips, &t.clip_plan.weights);  // checked when loaded: no unknown names

@@ -104,8 +104,8 @@ inline double fast_floor(double x) {
 }
 
 // The loop frame floor((t * rate + phase) * fps) mod frames, as crowd.h cycle_frame, computed
-// the way the hot loop always has (float time and phase, double product): a v1 bundle shows the
-// frames it showed before clips existed.
+// in the same precision (float time and phase, double product), so a v1 bundle shows the same
+// frames on either path.
 inline uint32_t loop_frame(float scaled_time_s, float phase_s, double frames_per_second, uint32_t frame_count) {
     if (frame_count == 0) return 0;
     const double f = fast_floor(double(scaled_time_s + phase_s) * frames_per_second);

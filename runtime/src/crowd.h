@@ -94,7 +94,7 @@ struct Crowd {
 
 // Gives each character of `crowd` a first clip drawn by `weights` (per clip, >= 0, one > 0) and a
 // phase drawn in that clip's `clip_seconds`, from `seed`. Where only clip 0 can be drawn it draws
-// nothing, so a one-clip crowd is the one it always was.
+// nothing, so a one-clip crowd is the crowd its seed gives without clips.
 void assign_clips(Crowd* crowd, const std::vector<float>& weights, const std::vector<float>& clip_seconds, uint64_t seed);
 
 // N characters on a jittered square grid centred on the origin, each with its own heading,

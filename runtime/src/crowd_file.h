@@ -90,7 +90,7 @@ std::string load_crowd_description(const std::string& path, CrowdFile* out);
 // their entries. Assumes a CrowdFile that parsed.
 std::vector<uint64_t> archetype_counts(const CrowdFile& crowd);
 
-// A one-archetype description for `--bundle DIR` / `--url URL` and the old flags.
+// A one-archetype description for `--bundle DIR` / `--url URL` and the flags that go with them (--count, --seed, --layout).
 CrowdFile single_archetype_crowd(const ArchetypeSource& source, uint64_t count, uint64_t seed, bool paths);
 
 // The published bundle URL for a crowdbake server: "<server>/v1/bundles/<name>/<version>".

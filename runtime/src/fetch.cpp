@@ -17,8 +17,8 @@ namespace crowdview {
 
 // Redirects one request may follow. The service answers with at most two in a row (`latest` to the
 // concrete version, then a file to its presigned object-store URL); 5 leaves room for a proxy or
-// CDN hop. Without a limit (libcurl before 8.3 follows any number) a redirect loop made 2,008
-// requests in 0.4 s and was stopped only by libcurl's cap on header bytes, with a confusing message.
+// CDN hop. Without a limit (libcurl before 8.3 follows any number) a redirect loop makes about 2,000
+// requests in 0.4 s and stops only at libcurl's cap on header bytes, with a confusing message.
 constexpr long kMaxRedirects = 5;
 
 BundleUrls bundle_urls(const std::string& url, const std::string& files_prefix) {

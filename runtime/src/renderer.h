@@ -71,7 +71,7 @@ public:
     DrawStats draw(const FrameInstances& frame, const Camera& camera, ImpostorKind impostors, const glm::vec3& light_dir);
     // Where build_frames may put the frames for draw(): straight into the archetypes' instance
     // buffers (instance_upload.h), so draw() copies nothing. Draw each frame built there before
-    // building the next; frames built into their own vectors are uploaded by draw() as before.
+    // building the next; frames built into their own vectors are copied in by draw().
     InstanceStorage* instance_storage();
 
     // Copies the frame to the default framebuffer of a window of this size.

@@ -1,8 +1,8 @@
 """Readiness checks that cannot take the API down with them.
 
 A dependency that accepts connections but never answers (a stopped Redis, a stalled fsync, a network
-partition) used to block each `/ready` call in a thread of the request pool until that pool was empty;
-then `/health` and every other route stopped answering too. Here each dependency is checked by at most
+partition) would block each `/ready` call in a thread of the request pool until that pool is empty;
+then `/health` and every other route would stop answering too. Here each dependency is checked by at most
 one thread at a time (single flight) from a small executor of its own, every caller waits at most
 `deadline_s`, and a fresh answer is shared for `fresh_s` seconds, so any number of probes costs at most
 one blocked thread per dependency and never a thread of the request pool.

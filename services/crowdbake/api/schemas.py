@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator
 
 from crowdbake.params import CREATED_RULE, NAME_PATTERN, PARAMS, SPECS, VERSION_PATTERN, cross_field_problem, pydantic_fields
 
-# List offsets go to SQL as 64-bit integers; a larger one used to raise OverflowError (a 500).
+# List offsets go to SQL as 64-bit integers; a larger one would raise OverflowError in the driver (a 500).
 MAX_LIST_OFFSET = 2**62
 
 # Texture files the validate stage reads from its textures folder.

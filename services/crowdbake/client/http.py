@@ -42,7 +42,7 @@ BACKOFF_MAX_S = 8.0
 # A server that refuses the connection before it has ever answered is not restarting: most likely the URL
 # is wrong or nothing runs there. So the first contact is tried this many times (0.5 s, then 1 s apart)
 # and then reported in one line, instead of waiting out --retry-for; once the server has answered, a
-# refused connection is a restart and is retried for --retry-for as before. 429/503 are always retried.
+# refused connection is a restart and is retried for --retry-for like any other. 429/503 are always retried.
 FIRST_CONTACT_TRIES = 3
 
 

@@ -50,8 +50,8 @@ ACYCLIC_TIME_PER_CYCLE = sys.float_info.max / 32.0
 # Points x samples one cache may hold, checked before Blender starts (the samples the archive claims)
 # and by the child as soon as it knows the points (before it writes a frame): 2^24 is 192 MiB of
 # float32 frames, far more than a garment needs (long_skirt: 385 samples of a few thousand points) and
-# within the API's +300 MB target. A 2.4 MB .abc of 10,201 points claiming 2,000 samples (20 million)
-# ran 123 s and took 1.85 GB; one claiming 2^32 - 1 samples ran to the old 1,800 s limit.
+# within the API's +300 MB target. Unchecked, a 2.4 MB .abc of 10,201 points claiming 2,000 samples (20
+# million) runs 123 s and takes 1.85 GB; one claiming 2^32 - 1 samples runs until the child's deadline.
 MAX_POINT_SAMPLES = 1 << 24
 # The Blender child's deadline and address space: a cache within MAX_POINT_SAMPLES reads in well under
 # a minute; bpy itself maps about 2 GB of address space before reading anything.

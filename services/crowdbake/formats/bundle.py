@@ -30,7 +30,7 @@ from crowdbake.formats.errors import FormatError, printable
 from crowdbake.formats.ranges import Ranges, check_impostor_frames, read_ranges
 
 FORMAT_NAME = "crowdbake-bundle"
-FORMAT_VERSION = 1  # what a bundle of one clip is written as (nothing changed for it)
+FORMAT_VERSION = 1  # what a bundle of one clip is written as, so version-1 readers still read it
 CLIPS_FORMAT_VERSION = 2  # several clips and the transitions between them
 READ_FORMAT_VERSIONS = (1, 2)
 SCHEMA_PATH = Path(__file__).resolve().parents[3] / "shared_formats" / "manifest.schema.json"

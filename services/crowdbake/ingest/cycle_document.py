@@ -108,7 +108,7 @@ def read_cycle_document(path: Path, name: str | None = None) -> Any:
     """The parsed JSON of a cycle file; InputError("cycle") when it does not parse."""
     try:
         return json.loads(Path(path).read_text(encoding="utf-8"))
-    # ValueError covers json's refusal of an integer over 4,300 digits (not a JSONDecodeError: it was a 500).
+    # ValueError covers json's refusal of an integer over 4,300 digits, which is not a JSONDecodeError.
     except (OSError, ValueError, RecursionError) as error:
         raise InputError(f"{name or Path(path).name} is not JSON: {error}", "cycle") from None
 

@@ -138,7 +138,7 @@ def convert_obj_sequence(
             if info.flag_bits & 0x1:
                 raise UploadRejected(INVALID_FILE, "encrypted archive entries cannot be read", [FieldError(field, "entry is encrypted", zip_name, f"entry {info.filename}")])
             if info.compress_type not in READABLE_ZIP_METHODS:
-                # zipfile raises NotImplementedError for these when the entry is opened (a 500 before).
+                # zipfile raises NotImplementedError for these only when the entry is opened: refuse them by name here.
                 raise UploadRejected(INVALID_FILE, "an archive entry uses a compression method that cannot be read",
                                      [FieldError(field, f"entry uses compression method {info.compress_type}; use deflate or store", zip_name, f"entry {info.filename}")])
         # After the per-entry checks (they name the entry): the whole archive's ratio, from the central

@@ -29,7 +29,7 @@ from crowdbake.sample.walk import FPS, run_channels, run_cycle_frames, walk_chan
 
 CLIP_NAMES = ("Idle", "Walking", "Running")
 # The last Idle plays longer than the first: its loop is then often cut there, and the way back into Idle
-# arrives on the frames it was cut from. With Idle x3 at the end the demo's sample came back into Idle
+# arrives on the frames it was cut from. With Idle x3 at the end the demo's sample comes back into Idle
 # with 2.0 times the seam acceleration of the loop's own frames (the bound is 1.5).
 DEFAULT_SEQUENCE: tuple[tuple[str, int], ...] = (("Idle", 3), ("Walking", 4), ("Running", 5), ("Walking", 3), ("Idle", 4))
 # Frames over which one clip fades into the next: a quarter second, as the robot's NLA strips.

@@ -68,8 +68,8 @@ class JobRecord(Record):
     garment_triangles: int
     cache_frames: int
     cycle_frames: int
-    # The cloth cache's frame rate (crowdbake.params.cache_fps) and the format it came in; None/"pc2" in
-    # records written before they were recorded.
+    # The cloth cache's frame rate (crowdbake.params.cache_fps) and the format it came in; a record
+    # without them reads as None/"pc2".
     fps: float | None = None
     cloth_format: str = "pc2"
     # The animation the bake picked when not told (crowdbake.ingest.clip_choice.ClipChoice: index, name,

@@ -70,7 +70,7 @@ class BakeInputs:
             "version": self.version,
             "params": self.params.to_dict(),
             "created": self.created,
-            # Only when given, so the records of one-clip bakes are what they were.
+            # Only when given: a bake without a timeline records (and keys) no timeline entry at all.
             **({"timeline": str(self.timeline)} if self.timeline is not None else {}),
         }
 

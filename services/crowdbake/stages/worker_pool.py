@@ -34,7 +34,7 @@ WORKER_ITEMS = 16
 # every page glibc hands back to the kernel (a freed array over the dynamic mmap threshold, the heap's top
 # above the trim threshold) is zeroed again on its next use, llvmpipe's buffers included. Arrays up to
 # 32 MiB (glibc's largest fixed threshold) come from the heap and the heap is never trimmed, so a worker
-# reuses its own pages; the high-water mark that bounds a worker's memory stays as it was (each is
+# reuses its own pages; the high-water mark that bounds a worker's memory does not grow from it (each is
 # replaced after WORKER_ITEMS items). services/benchmarks/bench_bake.py measures the page faults.
 WORKER_MALLOC = {"MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(1 << 40)}
 

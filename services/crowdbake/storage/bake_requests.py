@@ -31,7 +31,7 @@ def code_version() -> str:
 
 def input_key(digests: dict[str, Any], name: str, version: str, params: dict[str, Any], created: str | None = None) -> str:
     """sha256 of everything that decides a bake's output; names the bake's work folder. `created` (the
-    manifest time) counts only when given, so the keys of bakes without one are what they were."""
+    manifest time) counts only when given, so leaving it out adds nothing to the key."""
     identity = {"inputs": digests, "name": name, "version": version, "params": params, "code": code_version()}
     if created is not None:
         identity["created"] = created

@@ -15,7 +15,7 @@ MESHOPT = "EXT_meshopt_compression"
 # million vertices) is 12 MB, so 256 MiB refuses a lying count before it becomes an allocation.
 MAX_DECODED_VIEW_BYTES = 1 << 28
 # What one document may decode in all (meshopt views and Draco primitives together), checked from the
-# sizes the file claims before anything decodes: a per-view cap alone let eight views of one 4 MB stream
+# sizes the file claims before anything decodes: a per-view cap alone lets eight views of one 4 MB stream
 # each claim 256 MiB (2 GB decoded in 18 s, inside the API). A million-vertex character with normals,
 # UVs, skin and 2 million triangles decodes to about 100 MB; 128 MiB keeps an upload's check within
 # the service's +300 MB memory target.
