@@ -1,6 +1,6 @@
 """The docs say what the code does: the REST reference is the app's OpenAPI document as
-scripts/gen_rest_docs.py renders it, every `crowdbake` command in the quickstart parses with the real
-command line, and every link and figure in docs/ points at a file that exists."""
+scripts/gen_rest_docs.py renders it, every `crowdbake` command in a page's `sh` blocks parses with the
+real command line, and every link and figure in docs/ points at a file that exists."""
 from __future__ import annotations
 
 import importlib.util
@@ -50,26 +50,54 @@ def test_rest_reference_lists_every_operation():
                 assert f"### `{method.upper()} {path}`" in text
 
 
+def crowdbake_arguments(page: Path) -> list[list[str]]:
+    """The arguments of every `crowdbake` command (the command's first word) in the page's `sh` blocks."""
+    found = []
+    for block in code_blocks(page.read_text(encoding="utf-8")):
+        for command in commands(block):
+            words = shlex.split(command.split("|")[0].split(" > ")[0].split(" &")[0])
+            if words and Path(words[0]).name == "crowdbake" and words[1:2] not in (["--version"], ["--help"]):
+                found.append(words[1:])
+    return found
+
+
 def test_quickstart_crowdbake_commands_parse_with_the_real_command_line():
     from crowdbake.cli import build_parser
 
     parser = build_parser()
-    text = (DOCS / "quickstart.md").read_text(encoding="utf-8")
     checked = 0
-    for block in code_blocks(text):
-        for command in commands(block):
-            words = shlex.split(command.split("|")[0].split(" > ")[0].split(" &")[0])
-            program = next((i for i, word in enumerate(words) if Path(word).name == "crowdbake"), None)
-            if program is None or words[program + 1:program + 2] in (["--version"], ["--help"]):
-                continue
-            words = words[program + 1:]
-            try:
-                args = parser.parse_args(words)
-            except SystemExit:
-                pytest.fail(f"quickstart command does not parse: crowdbake {' '.join(words)}")
-            assert getattr(args, "func", None), command
-            checked += 1
+    for words in crowdbake_arguments(DOCS / "quickstart.md"):
+        try:
+            args = parser.parse_args(words)
+        except SystemExit:
+            pytest.fail(f"quickstart command does not parse: crowdbake {' '.join(words)}")
+        assert getattr(args, "func", None), words
+        checked += 1
     assert checked >= 5  # sample, cycle, bake, keys, serve, submit at least
+
+
+@pytest.mark.parametrize("page", sorted(DOCS.glob("*.md")) + [REPO_ROOT / "runtime" / "README.md"], ids=lambda page: page.name)
+def test_every_crowdbake_command_in_the_docs_parses(page):
+    """bake.md's several-clips example once lacked --name/--version/--out and stopped with a usage error:
+    every command a reader may paste from an `sh` block must parse with the real command line."""
+    from crowdbake.cli import build_parser
+
+    parser = build_parser()
+    for words in crowdbake_arguments(page):
+        try:
+            parser.parse_args(words)
+        except SystemExit:
+            pytest.fail(f"{page.name}: command does not parse: crowdbake {' '.join(words)}")
+
+
+def test_the_command_check_sees_a_command_that_does_not_parse(tmp_path):
+    from crowdbake.cli import build_parser
+
+    page = tmp_path / "page.md"
+    page.write_text("```sh\ncrowdbake bake robot.glb --cloth g.pc2 --cloth-mesh g.obj \\\n    --frames 2\n```\n", encoding="utf-8")
+    assert crowdbake_arguments(page) == [["bake", "robot.glb", "--cloth", "g.pc2", "--cloth-mesh", "g.obj", "--frames", "2"]]
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(crowdbake_arguments(page)[0])
 
 
 def test_quickstart_scripts_and_programs_exist():

@@ -1,5 +1,5 @@
 """The user docs stay short and read as docs, not a development diary: docs/*.md and runtime/README.md
-together hold at most 28,000 words, and none names a commit (a 7-40 character hex token with a digit and
+together hold at most 25,000 words, and none names a commit (a 7-40 character hex token with a digit and
 a letter, outside fenced code blocks) or says "this round" / "the commit before". The history of the
 figures lives in services/benchmarks/LOG.md, which is not checked here."""
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted((REPO_ROOT / "docs").glob("*.md")) + [REPO_ROOT / "runtime" / "README.md"]
-MAX_WORDS = 28_000
+MAX_WORDS = 25_000
 COMMIT_LIKE = re.compile(r"\b(?=[0-9a-f]*[0-9])(?=[0-9a-f]*[a-f])[0-9a-f]{7,40}\b")
 DIARY_PHRASES = ("this round", "the commit before")
 
@@ -25,7 +25,7 @@ def test_the_pages_exist():
     assert len(PAGES) >= 10 and all(page.is_file() for page in PAGES)
 
 
-def test_docs_hold_at_most_28000_words():
+def test_docs_hold_at_most_25000_words():
     words = {page.name: len(page.read_text(encoding="utf-8").split()) for page in PAGES}
     assert sum(words.values()) <= MAX_WORDS, f"{sum(words.values())} words: {words}"
 
