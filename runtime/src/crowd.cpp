@@ -47,7 +47,7 @@ void assign_clips(Crowd* crowd, const std::vector<float>& weights, const std::ve
     float total = 0;
     size_t drawable = 0;
     for (float w : weights) total += std::max(w, 0.0f), drawable += w > 0;
-    if (total <= 0 || (drawable == 1 && weights[0] > 0)) return;  // clip 0 for everyone, no draws: the crowd of the same seed
+    if (total <= 0 || (drawable == 1 && weights[0] > 0)) return;  // clip 0 for everyone, drawing nothing: the crowd its seed gives without clips
     // Its own stream, so positions, headings and outfits stay those of the same seed without clips.
     Rng rng(seed ^ 0xC11D5EEDC11D5EEDull);
     for (Character& c : crowd->characters) {
