@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from crowdbake.client.http import ClientError, Exit, Server
+from crowdbake.ingest.input_modes import BakeInputSet
 
 GLB_MAGIC = b"glTF"  # the first 4 bytes of every glTF binary (glTF 2.0 spec, "GLB File Format Specification")
 
@@ -66,12 +67,9 @@ def published_difference(server: Server, name: str, version: str, local: dict[st
         return f"bake {bake_id} published it, from inputs this key cannot reuse"
     record = bake.json()
     inputs = record.get("inputs", {})
-    published = {"character": inputs.get("character"), "cloth": inputs.get("cloth"), "cycle": inputs.get("cycle"), "timeline": inputs.get("timeline"),
-                 **{f"textures.{texture}": asset_id for texture, asset_id in (inputs.get("textures") or {}).items()},
-                 **{f"clip_cloth.{k}": asset_id for k, (_, asset_id) in enumerate(inputs.get("clip_cloth") or [])}}
-    roles = {role for role, asset_id in published.items() if asset_id} | set(local)
-    for role in sorted(roles):
-        if role not in local or not published.get(role):
+    published = BakeInputSet.from_record(inputs).roles()
+    for role in sorted(set(published) | set(local)):
+        if role not in local or role not in published:
             return f"{role} is {'not ' if role not in local else ''}among its inputs"
         asset = server.request("GET", f"/v1/assets/{published[role]}", f"reading asset {published[role]}", accept=frozenset({403, 404}))
         if asset.status_code != 200:
