@@ -14,11 +14,11 @@ assets (GET /v1/assets/{id}), and compares their sha256 and parameters with the 
 Any difference, or a publisher this key cannot read, is the 409 the server would give, told now."""
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 from typing import Any
 
 from crowdbake.client.http import ClientError, Exit, Server
+from crowdbake.files import sha256_file
 from crowdbake.ingest.input_modes import BakeInputSet
 
 GLB_MAGIC = b"glTF"  # the first 4 bytes of every glTF binary (glTF 2.0 spec, "GLB File Format Specification")
@@ -33,14 +33,6 @@ def check_glb_magic(path: Path) -> str | None:
     if head == GLB_MAGIC:
         return None
     return f"{path}: not a glTF binary (a .glb starts with the bytes 'glTF'; this file starts with {head!r})"
-
-
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for chunk in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def _asset_digests(asset: dict[str, Any]) -> set[str]:
@@ -76,7 +68,7 @@ def published_difference(server: Server, name: str, version: str, local: dict[st
             return f"its {role} is an asset this key cannot read"
         known = _asset_digests(asset.json())
         for path in local[role]:
-            if sha256_of(path) not in known:
+            if sha256_file(path) not in known:
                 return f"{path.name} differs from its {role}"
     defaults = _server_defaults(server)
     for parameter, value in sorted(record.get("params", {}).items()):
@@ -98,7 +90,7 @@ def check_name_and_version(server: Server, name: str, version: str, local: dict[
                            created: str | None, publish: bool = True) -> None:
     """Raise the server's 409 (Exit.REJECTED) when name/version is already published (or being baked)
     from other inputs, before anything is uploaded. `local`: input role -> its local files."""
-    body = {"name": name, "version": version, "inputs": {role: [sha256_of(path) for path in paths] for role, paths in local.items()},
+    body = {"name": name, "version": version, "inputs": {role: [sha256_file(path) for path in paths] for role, paths in local.items()},
             "params": params, "publish": publish, **({"created": created} if created else {})}
     response = server.request("POST", "/v1/bakes/check", f"checking whether {name}/{version} is free", json=body,
                               accept=frozenset({404, 405}))
