@@ -18,7 +18,7 @@ Standard library only: `crowdbake submit` runs without the bake stack (services/
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import Enum
 from typing import Any, Callable, Generic, Iterable, Mapping, TypeVar
 
@@ -105,8 +105,8 @@ class BakeInputSet(Generic[Ref]):
     cloth: Ref | None = None
     cycle: Ref | None = None
     timeline: Ref | None = None
-    textures: tuple[tuple[str, Ref], ...] = field(default=())
-    clip_cloth: tuple[tuple[str, Ref], ...] = field(default=())
+    textures: tuple[tuple[str, Ref], ...] = ()
+    clip_cloth: tuple[tuple[str, Ref], ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "textures", tuple(sorted(_pairs(self.textures), key=lambda pair: pair[0])))
