@@ -132,6 +132,7 @@ def test_submit_uploads_the_timeline_and_names_it_in_the_bake(api, assets, tmp_p
     from crowdbake.client.http import Server
     from crowdbake.client.submit import bake_body as client_body
     from crowdbake.client.submit import build_parser, check_locally, run, upload
+    from crowdbake.ingest.input_modes import BakeInputSet
 
     points, faces = tiny_cloth(frames=CLOTH_FRAMES)
     (tmp_path / "walker.glb").write_bytes(tiny_character_glb())
@@ -155,7 +156,7 @@ def test_submit_uploads_the_timeline_and_names_it_in_the_bake(api, assets, tmp_p
     cloth = upload(server, "/v1/assets/cloth", checked.cloth_files, "cloth", quiet)
     timeline = upload(server, "/v1/assets/timelines", {"timeline": checked.timeline}, "timeline", quiet)
     response = server.request("POST", "/v1/bakes", "starting the bake",
-                              json=client_body(args, checked, character["id"], cloth["id"], {}, None, timeline["id"]))
+                              json=client_body(args, checked, BakeInputSet(character["id"], cloth["id"], timeline=timeline["id"])))
     assert response.status_code == 202, response.text
     assert response.json()["inputs"]["timeline"] == timeline["id"]
 

@@ -113,7 +113,7 @@ def _json_key(path: Path) -> str | None:
 
 def _file_digest(relative: str) -> Callable[[Path, Any], str | None]:
     def key(work: Path, _item: Any) -> str | None:
-        from crowdbake.stages.workdir import sha256_file
+        from crowdbake.files import sha256_file
 
         path = Path(work) / relative
         return sha256_file(path) if path.is_file() else None

@@ -27,6 +27,7 @@ import logging
 
 from crowdbake import __version__
 from crowdbake.errors import InputError
+from crowdbake.files import sha256_file
 from crowdbake.formats.errors import FormatError
 from crowdbake.formats.gltf import load_character
 from crowdbake.formats.cloth_cache import ClothCache, write_pc2_obj
@@ -34,7 +35,7 @@ from crowdbake.ingest.cycle_document import check_cycle_document
 from crowdbake.ingest.garment import CACHE_SUFFIXES, body_at_rest, check_garment_fit, needs_mesh, place_cloth, read_cloth
 from crowdbake.params import CREATED_RULE, NAME_RULE, PART_RULE, VERSION_RULE, BakeParams, cache_fps, min_cloth_frames
 from crowdbake.stages.records import JobRecord
-from crowdbake.stages.workdir import StageOutcome, WorkDir, read_json, sha256_file, stage_key
+from crowdbake.stages.workdir import StageOutcome, WorkDir, read_json, stage_key
 
 logger = logging.getLogger(__name__)
 

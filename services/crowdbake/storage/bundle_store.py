@@ -21,6 +21,7 @@ from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from crowdbake.files import fsync_path
 from crowdbake.formats.bundle import check_path, verify_bundle
 from crowdbake.storage.bundles import LATEST, BundleConflict, PublishedManifest, bundle_dir, read_manifest
 
@@ -173,14 +174,6 @@ def open_range(path: Path, byte_range: tuple[int, int] | None) -> BinaryIO:
     return io.BufferedReader(_Slice(handle, max(0, end - start)))
 
 
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 class LocalBundleStore(BundleStore):
     """Bundles as folders `<root>/<name>/<version>/`: staged in a hidden folder beside, then renamed."""
 
@@ -202,7 +195,7 @@ class LocalBundleStore(BundleStore):
         destination = staging[0] / entry["path"]
         destination.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(source, destination)
-        _fsync(destination)
+        fsync_path(destination)
 
     def _commit(self, staging: tuple[Path, Path], manifest_data: bytes) -> bool:
         folder, target = staging
@@ -211,7 +204,7 @@ class LocalBundleStore(BundleStore):
             handle.flush()
             os.fsync(handle.fileno())
         for sub in sorted({path.parent for path in folder.rglob("*")}, key=lambda path: len(path.parts), reverse=True):
-            _fsync(sub)
+            fsync_path(sub)
         try:
             os.rename(folder, target)  # fails if target exists (non-empty): published folders are never replaced
         except OSError:
@@ -219,7 +212,7 @@ class LocalBundleStore(BundleStore):
                 raise
             shutil.rmtree(folder, ignore_errors=True)
             return False
-        _fsync(target.parent)
+        fsync_path(target.parent)
         return True
 
     def _abort(self, staging: tuple[Path, Path]) -> None:
