@@ -64,9 +64,10 @@ def resolve_coverage(
 ) -> Coverage:
     """Exact per-texel coverage from a rendered id image.
 
-    ids: (H, W) int64 from decode_triangle_ids (H = W = view.size); positions: (V, 3) model space;
-    faces: (T, 3) int; depth: optional (H, W) float eye-space depth in metres (0 = nothing drawn) to reject
-    an id whose triangle lies elsewhere along the ray. One view of resolve_coverage_views.
+    ids: (H, W) int64 triangle ids (crowdbake.render.reference.triangle_ids, -1 = background; H = W =
+    view.size); positions: (V, 3) model space; faces: (T, 3) int; depth: optional (H, W) float eye-space
+    depth in metres (0 = nothing drawn) to reject an id whose triangle lies elsewhere along the ray. One
+    view of resolve_coverage_views.
     """
     ids = np.asarray(ids)
     if ids.shape != (view.size, view.size):
@@ -85,7 +86,7 @@ def resolve_coverage_views(
     every view, instead of a pass per view (at 128² a view holds a few thousand texels, too few for numpy
     to amortise its per-call cost).
 
-    ids: (V, S, S) int64 from decode_triangle_ids, S = every view's size; depth: optional (V, S, S) eye
+    ids: (V, S, S) int64 from triangle-id renders, S = every view's size; depth: optional (V, S, S) eye
     depth. Returns one Coverage per view, in order.
     """
     views = list(views)
