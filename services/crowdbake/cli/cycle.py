@@ -64,7 +64,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from crowdbake.bake.cycle import CycleParams
     from crowdbake.errors import InputError
-    from crowdbake.stages.cycle import run_cycle_job
+    from crowdbake.stages.cycle_job import run_cycle_job
 
     if args.body is not None and args.body_mesh is None:
         raise CommandError("--body needs --body-mesh")
