@@ -17,8 +17,9 @@ class CommandError(Exception):
 
 
 @contextmanager
-def progress(total: int, description: str) -> Iterator[tqdm]:
-    """A progress bar on stderr; silent when stderr is not a terminal unless CROWDBAKE_PROGRESS=1."""
+def progress(total: int | None, description: str) -> Iterator[tqdm]:
+    """A progress bar on stderr (total None: a count without one); silent when stderr is not a terminal
+    unless CROWDBAKE_PROGRESS=1."""
     import os
 
     enabled = sys.stderr.isatty() or os.environ.get("CROWDBAKE_PROGRESS") == "1"
