@@ -104,8 +104,6 @@ def write_cycle_outputs(result: CycleResult, out_dir: str | os.PathLike, inputs:
 
     plots: False skips the matplotlib plots (a second or more), for write_cycle_plots to draw later (the bake
     runner draws them beside the next stages); every other file, the report's links included, is written."""
-    from crowdbake.formats.pc2 import write_pc2
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {
@@ -141,7 +139,6 @@ def write_cycle_outputs(result: CycleResult, out_dir: str | os.PathLike, inputs:
     paths["report"].write_text(report_html(result, document), encoding="utf-8")
     logger.info("cycle outputs written to %s", out)
     return paths
-
 
 
 def write_clip_files(out_dir: str | os.PathLike, timeline: Timeline, primary: ClipLoop, loops: list[ClipLoop],
