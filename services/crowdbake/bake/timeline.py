@@ -1,7 +1,9 @@
 """The clip timeline as the bake reads it: which clip, at which clip frame, plays at each cache frame.
 
 crowdbake.ingest.timeline reads and checks timeline.json into these; crowdbake.bake.clips and
-crowdbake.bake.transitions use them. Plain data (numpy only), light enough for the API to import.
+crowdbake.bake.transitions use them. A cache of one clip is a timeline too (one_clip_timeline): one
+segment, pure over every frame, so the search of one clip is the search of several.
+Plain data (numpy only), light enough for the API to import.
 """
 from __future__ import annotations
 
@@ -75,3 +77,21 @@ class Timeline:
         between segments simulated apart (new_simulation), where no cloth carried over."""
         return [(k, k + 1) for k in range(len(self.segments) - 1)
                 if self.segments[k].clip != self.segments[k + 1].clip and not self.segments[k + 1].new_simulation]
+
+
+def one_clip_timeline(clip: str, fps: float, total_frames: int, clip_frames: int) -> Timeline:
+    """A cache that plays `clip` alone from its first frame to its last: one segment, every frame pure,
+    cache frame f at clip frame f mod clip_frames."""
+    segment = Segment(clip, 0, total_frames - 1, 0, total_frames - 1, clip_frames)
+    return Timeline(fps, total_frames, (segment,), np.arange(total_frames, dtype=np.int64) % clip_frames)
+
+
+def primary_clip(timeline: Timeline, animation: int | str | None) -> str:
+    """The clip a bundle carries: `animation` when it names a clip of the timeline, else the first clip.
+    ValueError when `animation` names a clip the timeline does not play."""
+    clips = timeline.clips()
+    if animation is None:
+        return clips[0]
+    if isinstance(animation, str) and animation in clips:
+        return animation
+    raise ValueError(f"animation {animation!r} is not a clip of the timeline (it plays {', '.join(clips)}): name one of them")
