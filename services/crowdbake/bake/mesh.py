@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.geometry import vertex_normals  # noqa: F401 (crowdbake.render.cloth_views imports it from here)
-
 
 def unique_edges(faces: np.ndarray) -> np.ndarray:
     """Undirected edges of (T, 3) triangles -> (E, 2) int64, each once, sorted."""
