@@ -176,3 +176,57 @@ def test_a_small_body_with_a_valid_key_still_reaches_the_route(server):
                "Connection": "close"}
     answer, _, _ = send_until_answered(server["port"], _head("POST", "/v1/bakes/check", headers) + body, [])
     assert answer.startswith(b"HTTP/1.1 204"), answer[:300]
+
+
+# ---------------------------------------------------------------------------------------- timelines
+
+
+def _claiming_frames(total: int) -> bytes:
+    """No rows, one segment over `total` frames: a few hundred bytes claiming every frame."""
+    return json.dumps({"fps": 24, "total_frames": total, "segments": [
+        {"clip": "Walk", "first_frame": 0, "last_frame": total - 1, "pure_first_frame": 0, "pure_last_frame": total - 1, "clip_frames": 24}]}).encode()
+
+
+def _overlapping_segments(count: int, total: int) -> bytes:
+    """`count` segments, segment k starting at frame k and running to the last frame: segments x frames of
+    work for a reader that fills each segment's frames."""
+    segments = [{"clip": f"c{k}", "first_frame": k, "last_frame": total - 1, "pure_first_frame": k, "pure_last_frame": k, "clip_frames": 24}
+                for k in range(count)]
+    segments[-1]["pure_last_frame"] = total - 1
+    return json.dumps({"fps": 24, "total_frames": total, "segments": segments}).encode()
+
+
+def _back_to_back_segments(count: int, total: int) -> bytes:
+    """A valid timeline at the frame limit: `count` clips, each playing total / count frames once."""
+    step = total // count
+    segments = [{"clip": f"clip {k}", "first_frame": k * step, "last_frame": (k + 1) * step - 1, "pure_first_frame": k * step,
+                 "pure_last_frame": (k + 1) * step - 1, "clip_frames": 24} for k in range(count)]
+    return json.dumps({"fps": 24, "total_frames": count * step, "segments": segments}).encode()
+
+
+TIMELINES = {
+    # Was 201 with +1.2-1.5 GB of the API's memory (a clip frame and two temporaries per claimed frame).
+    "total_frames 2^26, no rows": (_claiming_frames(1 << 26), 422, "/total_frames"),
+    "total_frames 2^31 - 1, no rows": (_claiming_frames((1 << 31) - 1), 422, "/total_frames"),
+    # Was 97 s of the API's CPU: every segment's frames filled, 10,000 x 10^6.
+    "10,000 segments each to frame 10^6": (_overlapping_segments(10_000, 10**6 + 1), 422, "/total_frames"),
+    "10,000 segments each to the last of 100,000 frames": (_overlapping_segments(10_000, 100_000), 422, "/segments/2/first_frame"),
+    "10,000 clips over 100,000 frames (valid)": (_back_to_back_segments(10_000, 100_000), 201, None),
+}
+
+
+@pytest.mark.parametrize("case", list(TIMELINES))
+def test_a_timeline_claiming_frames_costs_seconds_and_bounded_memory(server, case):
+    import httpx
+
+    document, status, pointer = TIMELINES[case]
+    with PeakMemory(server["pid"]) as memory, httpx.Client(base_url=f"http://127.0.0.1:{server['port']}", timeout=60) as client:
+        started = time.monotonic()
+        response = client.post("/v1/assets/timelines", files={"timeline": ("timeline.json", document)},
+                               headers={"Authorization": f"Bearer {server['keys']['upload']}"})
+        seconds = time.monotonic() - started
+    assert response.status_code == status, response.text[:500]
+    if pointer is not None:
+        assert response.json()["errors"][0]["where"] == pointer, response.text[:500]
+    assert seconds < ANSWER_SECONDS, seconds
+    assert memory.growth_kib < MEMORY_BUDGET_KIB, memory.growth_kib
