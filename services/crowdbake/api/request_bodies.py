@@ -48,6 +48,11 @@ def declared_length(headers: Headers) -> int | None:
     return int(declared)
 
 
+def carries_body(headers: Headers) -> bool:
+    """Whether the request announces a body: a Content-Length other than 0, or a Transfer-Encoding (chunked)."""
+    return "transfer-encoding" in headers or headers.get("content-length", "0").strip() != "0"
+
+
 def sent_key(headers: Headers) -> str | None:
     """The API key of the request, as crowdbake.api.deps reads it (X-API-Key, or a bearer token)."""
     if headers.get("x-api-key"):
@@ -80,7 +85,7 @@ class BodyGate:
         finally:
             session.close()
 
-    async def refusal(self, scope, headers: Headers, limit: int) -> Problem | None:
+    async def refusal(self, headers: Headers, limit: int) -> Problem | None:
         """Why the body must not be read at all, or None."""
         length = declared_length(headers)
         if length is not None and length > limit:
@@ -93,12 +98,11 @@ class BodyGate:
         return None
 
     async def __call__(self, scope, receive, send):
-        headers = Headers(scope=scope) if scope["type"] == "http" else None
-        if headers is None or ("content-length" not in headers and "transfer-encoding" not in headers) or headers.get("content-length") == "0":
+        if scope["type"] != "http" or not carries_body(headers := Headers(scope=scope)):
             return await self.app(scope, receive, send)
         limit = self.limit(scope)
         try:
-            problem = await self.refusal(scope, headers, limit)
+            problem = await self.refusal(headers, limit)
         except Problem as malformed:
             problem = malformed
         if problem is not None:
