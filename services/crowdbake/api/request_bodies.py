@@ -11,8 +11,8 @@ decides before the first byte of a body is read:
 * a Content-Length over the limit is a 413 at once;
 * a body without a key, or with a key that does not verify, is a 401 at once (every operation that
   takes a body needs a key: tests/test_security.py checks each write operation of the OpenAPI document);
-* a body that arrives without a Content-Length (chunked), or longer than it said, is cut off with a 413
-  when the bytes received pass the limit.
+* a body that arrives without a Content-Length (chunked) is cut off with a 413 when the bytes received
+  pass the limit.
 
 A refusal before the body is read closes the connection, so the unread bytes are never waited for.
 The route still checks the key's scopes (403) once the bounded body is in.
