@@ -78,7 +78,7 @@ def good_files() -> tuple[dict, list[BundleFile]]:
                      "bounds": {"center": [0.0, 0.5, 0.0], "radius": 1.0},
                      "maps": {"normal": "impostor/normal.cbtx", "uv": "impostor/uv.cbtx", "detail": "impostor/detail.cbtx"}},
     }
-    return build_manifest("vector-good", "1.0.0", sections, files, created=CREATED), files
+    return build_manifest("vector-good", "1.0.0", sections, files, created=CREATED, format_version=1), files
 
 
 def expected_values(manifest: dict, files: list[BundleFile]) -> dict:

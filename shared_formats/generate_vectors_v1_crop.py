@@ -33,7 +33,7 @@ def _manifest(impostor_changes: dict, name: str = "vector-good-crop") -> tuple[d
     manifest, files = v1.good_files()
     sections = {key: manifest[key] for key in ("frames_per_second", "cycle", "materials", "outfits", "meshes", "impostor")}
     sections["impostor"] = {**sections["impostor"], **impostor_changes}
-    return build_manifest(name, "1.0.0", sections, files, created=v1.CREATED), files
+    return build_manifest(name, "1.0.0", sections, files, created=v1.CREATED, format_version=1), files
 
 
 def good_files() -> tuple[dict, list[BundleFile]]:

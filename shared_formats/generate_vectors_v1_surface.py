@@ -120,7 +120,7 @@ def good_files() -> tuple[dict, list[BundleFile]]:
     files = [*files, BundleFile(SURFACE, encode_texture_array(WIDTH, HEIGHT, "bc2", surface_layers()), "impostor-surface")]
     sections = {key: manifest[key] for key in ("frames_per_second", "cycle", "materials", "outfits", "meshes", "impostor")}
     sections["impostor"] = {**sections["impostor"], "maps": {**sections["impostor"]["maps"], "surface": SURFACE}}
-    return build_manifest("vector-good-surface", "1.0.0", sections, files, created=v1.CREATED), files
+    return build_manifest("vector-good-surface", "1.0.0", sections, files, created=v1.CREATED, format_version=1), files
 
 
 def expected_values(manifest: dict, files: list[BundleFile]) -> dict:

@@ -54,7 +54,7 @@ def good_files() -> tuple[dict, list[BundleFile]]:
     uv_bytes = encode_texture_array(WIDTH, HEIGHT, "uv32", uv32_layers())
     files = [BundleFile(f.path, uv_bytes if f.path == UV else f.data, f.role) for f in files]
     sections = {key: manifest[key] for key in ("frames_per_second", "cycle", "materials", "outfits", "meshes", "impostor")}
-    return build_manifest("vector-good-uv32", "1.0.0", sections, files, created=v1.CREATED), files
+    return build_manifest("vector-good-uv32", "1.0.0", sections, files, created=v1.CREATED, format_version=1), files
 
 
 def expected_values(manifest: dict, files: list[BundleFile]) -> dict:

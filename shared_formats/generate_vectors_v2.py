@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from crowdbake.formats.binary import encode_pose_cache, encode_texture_array
-from crowdbake.formats.bundle import CLIPS_FORMAT_VERSION, BundleFile, build_manifest, manifest_bytes, write_bundle
+from crowdbake.formats.bundle import BundleFile, build_manifest, manifest_bytes, write_bundle
 
 CREATED = "2026-01-01T00:00:00Z"
 POSE_FRAMES = 11
@@ -92,7 +92,7 @@ def good_files() -> tuple[dict, list[BundleFile]]:
                      "bounds": {"center": [0.0, 0.5, 0.0], "radius": 1.0},
                      "maps": {"normal": "impostor/normal.cbtx", "uv": "impostor/uv.cbtx"}},
     }
-    manifest = build_manifest("vector-clips", "2.0.0", sections, files, created=CREATED, format_version=CLIPS_FORMAT_VERSION)
+    manifest = build_manifest("vector-clips", "2.0.0", sections, files, created=CREATED, format_version=2)
     return manifest, files
 
 

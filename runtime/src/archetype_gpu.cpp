@@ -57,23 +57,45 @@ void bind_instance_attributes(GLuint buffer) {
     glVertexAttribDivisor(CV_ATTR_INSTANCE_IDS, 1);
 }
 
-// Every frame's positions and normals as two RGBA32F texels per vertex (w 1 and 0), frame-major:
-// the layout mesh.vert.glsl reads from its buffer texture.
-std::vector<float> interleave_poses(const PoseCache& pose) {
-    const uint64_t vertices = uint64_t(pose.frame_count) * pose.vertex_count;
-    std::vector<float> interleaved(vertices * 8);
-    for (uint64_t v = 0; v < vertices; ++v) {
-        std::memcpy(&interleaved[v * 8], &pose.positions[v * 3], 12);
-        interleaved[v * 8 + 3] = 1.0f;
-        std::memcpy(&interleaved[v * 8 + 4], &pose.normals[v * 3], 12);
-        interleaved[v * 8 + 7] = 0.0f;
+// Each frame's bounds as two RGBA32F texels, minimum then maximum (w unused: GL 3.3 buffer textures
+// have no RGB32F).
+std::vector<float> frame_bounds_texels(const PoseCache& pose) {
+    std::vector<float> texels(size_t(pose.frame_count) * 8, 0.0f);
+    for (size_t f = 0; f < pose.frame_count; ++f) {
+        std::memcpy(&texels[f * 8], &pose.frame_bounds[f * 6], 12);
+        std::memcpy(&texels[f * 8 + 4], &pose.frame_bounds[f * 6 + 3], 12);
     }
-    return interleaved;
+    return texels;
 }
 
-// The part's VAO (UVs, indices, the instance attributes of its LOD's buffer) and pose texture.
-// Adds its bytes to `meshes`.
-MeshPart upload_mesh_part(const MeshInfo& info, const PoseCache& pose, const GLuint instance_buffers[3], uint64_t* meshes) {
+// A buffer holding `bytes` of `data` and a buffer texture reading it as `format`; returns the bytes.
+uint64_t upload_buffer_texture(const void* data, size_t bytes, GLenum format, const std::string& name, GLuint* buffer, GLuint* texture) {
+    glGenBuffers(1, buffer);
+    glBindBuffer(GL_TEXTURE_BUFFER, *buffer);
+    glBufferData(GL_TEXTURE_BUFFER, GLsizeiptr(bytes), data, GL_STATIC_DRAW);
+    label(GL_BUFFER, *buffer, name);
+    glGenTextures(1, texture);
+    glBindTexture(GL_TEXTURE_BUFFER, *texture);
+    glTexBuffer(GL_TEXTURE_BUFFER, format, *buffer);
+    label(GL_TEXTURE, *texture, name);
+    return bytes;
+}
+
+// The pose cache's codes as stored, decoded by mesh.vert.glsl: 10 bytes a vertex a frame, where float
+// positions and normals would take 32 (two RGBA32F texels). Returns the bytes uploaded.
+uint64_t upload_pose_streams(const PoseCache& pose, const std::string& name, MeshPart* p) {
+    const std::vector<float> bounds = frame_bounds_texels(pose);
+    return upload_buffer_texture(pose.position_codes.data(), pose.position_codes.size() * 2, GL_R16UI, name + ":positions",
+                                 &p->pose_buffers[kPosePositions], &p->pose_textures[kPosePositions]) +
+           upload_buffer_texture(pose.normal_codes.data(), pose.normal_codes.size() * 2, GL_RG16UI, name + ":normals",
+                                 &p->pose_buffers[kPoseNormals], &p->pose_textures[kPoseNormals]) +
+           upload_buffer_texture(bounds.data(), bounds.size() * 4, GL_RGBA32F, name + ":frame-bounds", &p->pose_buffers[kPoseFrameBounds],
+                                 &p->pose_textures[kPoseFrameBounds]);
+}
+
+// The part's VAO (UVs, indices, the instance attributes of its LOD's buffer) and pose textures.
+// Adds its bytes to `bytes`.
+MeshPart upload_mesh_part(const MeshInfo& info, const PoseCache& pose, const GLuint instance_buffers[3], uint64_t* bytes) {
     MeshPart p;
     p.index_count = pose.index_count;
     p.vertex_count = pose.vertex_count;
@@ -81,7 +103,6 @@ MeshPart upload_mesh_part(const MeshInfo& info, const PoseCache& pose, const GLu
     p.lod = info.lod == 0 ? Lod::high : Lod::low;
     p.garment = info.kind == "garment";
     const std::string name = info.part + ":lod" + std::to_string(info.lod);
-    const std::vector<float> interleaved = interleave_poses(pose);
     glGenVertexArrays(1, &p.vao);
     glBindVertexArray(p.vao);
     label(GL_VERTEX_ARRAY, p.vao, name);
@@ -97,20 +118,12 @@ MeshPart upload_mesh_part(const MeshInfo& info, const PoseCache& pose, const GLu
     label(GL_BUFFER, p.index_buffer, name + ":indices");
     bind_instance_attributes(instance_buffers[int(p.lod)]);
     glBindVertexArray(0);
-    glGenBuffers(1, &p.pose_buffer);
-    glBindBuffer(GL_TEXTURE_BUFFER, p.pose_buffer);
-    glBufferData(GL_TEXTURE_BUFFER, GLsizeiptr(interleaved.size() * 4), interleaved.data(), GL_STATIC_DRAW);
-    label(GL_BUFFER, p.pose_buffer, name + ":poses");
-    glGenTextures(1, &p.pose_texture);
-    glBindTexture(GL_TEXTURE_BUFFER, p.pose_texture);
-    glTexBuffer(GL_TEXTURE_BUFFER, GL_RGBA32F, p.pose_buffer);
-    label(GL_TEXTURE, p.pose_texture, name + ":poses");
-    *meshes += uint64_t(pose.uvs.size() + pose.indices.size() + interleaved.size()) * 4;
+    *bytes += uint64_t(pose.uvs.size() + pose.indices.size()) * 4 + upload_pose_streams(pose, name, &p);
     return p;
 }
 
-// The parts of mesh LODs 0 and 1; false and `error` where a pose cache outgrows the driver's
-// buffer textures.
+// The parts of mesh LODs 0 and 1, counted in the body or garment share of g->memory; false and `error`
+// where a pose cache outgrows the driver's buffer textures.
 bool upload_mesh_parts(const Bundle& bundle, ArchetypeGpu* g, std::string* error) {
     GLint max_texels = 0;
     glGetIntegerv(GL_MAX_TEXTURE_BUFFER_SIZE, &max_texels);
@@ -119,12 +132,13 @@ bool upload_mesh_parts(const Bundle& bundle, ArchetypeGpu* g, std::string* error
         const MeshInfo& info = m.meshes[i];
         if (info.lod > 1) continue;  // the runtime draws two mesh levels, as the paper's figure 3
         const PoseCache& pose = bundle.meshes[i];
-        const uint64_t texels = uint64_t(pose.frame_count) * pose.vertex_count * 2;
+        const uint64_t texels = uint64_t(pose.frame_count) * pose.vertex_count * 3;  // the positions', the largest
         if (texels > uint64_t(max_texels)) {
             *error = info.file + " needs " + std::to_string(texels) + " buffer texels, the driver allows " + std::to_string(max_texels);
             return false;
         }
-        g->parts.push_back(upload_mesh_part(info, pose, g->instance_buffers, &g->memory.meshes));
+        uint64_t* share = info.kind == "garment" ? &g->memory.garments : &g->memory.bodies;
+        g->parts.push_back(upload_mesh_part(info, pose, g->instance_buffers, share));
     }
     return true;
 }
@@ -192,9 +206,10 @@ void upload_textures(const Bundle& bundle, const RendererDesc& desc, ArchetypeGp
 ArchetypeGpu::~ArchetypeGpu() {
     for (MeshPart& p : parts) {
         glDeleteVertexArrays(1, &p.vao);
-        GLuint buffers[] = {p.uv_buffer, p.index_buffer, p.pose_buffer};
-        glDeleteBuffers(3, buffers);
-        glDeleteTextures(1, &p.pose_texture);
+        GLuint buffers[] = {p.uv_buffer, p.index_buffer};
+        glDeleteBuffers(2, buffers);
+        glDeleteBuffers(kPoseStreams, p.pose_buffers);
+        glDeleteTextures(kPoseStreams, p.pose_textures);
     }
     glDeleteVertexArrays(1, &impostor_vao);
     glDeleteBuffers(3, instance_buffers);

@@ -20,9 +20,14 @@
 
 namespace crowdview {
 
+// What a part's pose buffer textures hold, as stored in a version-2 pose cache (pose_codec.h).
+enum PoseStream { kPosePositions = 0, kPoseNormals = 1, kPoseFrameBounds = 2, kPoseStreams = 3 };
+
 // One mesh part at one mesh LOD: drawn instanced from the instance buffer of its LOD.
 struct MeshPart {
-    GLuint vao = 0, uv_buffer = 0, index_buffer = 0, pose_buffer = 0, pose_texture = 0;
+    GLuint vao = 0, uv_buffer = 0, index_buffer = 0;
+    // The pose cache's codes and frame bounds as stored (pose_codec.h), each a buffer and its buffer texture.
+    GLuint pose_buffers[kPoseStreams] = {}, pose_textures[kPoseStreams] = {};  // by PoseStream
     uint32_t index_count = 0, vertex_count = 0, material = 0;
     Lod lod = Lod::high;
     bool garment = false;  // open cloth: drawn without back-face culling

@@ -99,7 +99,8 @@ nlohmann::json view_report(const std::string& device, const Renderer& renderer, 
                               {"impostor_switch_m", rules[a].impostor_distance},
                               {"lod_counts", counts_json},
                               {"frames_with_lod", frames_with},
-                              {"gpu_memory_bytes", {{"meshes", mem.meshes}, {"textures", mem.textures}, {"impostors", mem.impostors},
+                              {"gpu_memory_bytes", {{"meshes", mem.meshes()}, {"bodies", mem.bodies}, {"garments", mem.garments},
+                                                    {"textures", mem.textures}, {"impostors", mem.impostors},
                                                     {"total", mem.total()}}}});
     }
     nlohmann::json refused = nlohmann::json::array();

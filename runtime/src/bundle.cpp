@@ -1,5 +1,6 @@
 // Bundle reader: SPEC.md's binary files, manifest and verification, in the spec's order.
 #include "bundle.h"
+#include "pose_codec.h"
 
 #include <nlohmann/json.hpp>
 #include <openssl/evp.h>
@@ -119,7 +120,7 @@ unsigned __int128 layer_bytes_wide(uint32_t format, uint32_t width, uint32_t hei
 
 // The common header, in SPEC.md's order: length, magic, version, header_size, file_size.
 Status check_common_header(const uint8_t* data, size_t size, const std::string& file, const char* function,
-                           const char* magic, uint32_t header_size) {
+                           const char* magic, uint32_t header_size, uint32_t max_version) {
     if (size < 16)
         return make_error(ErrorCode::truncated, function, file,
                           std::to_string(size) + " bytes is shorter than the 16-byte common header");
@@ -129,9 +130,9 @@ Status check_common_header(const uint8_t* data, size_t size, const std::string& 
         return make_error(ErrorCode::bad_magic, function, file, "magic is '" + got + "', expected '" + magic + "'");
     }
     const uint32_t version = read_u32(data + 4);
-    if (version != 1)
+    if (version == 0 || version > max_version)
         return make_error(ErrorCode::unsupported_version, function, file,
-                          "version " + std::to_string(version) + ", this reader supports 1");
+                          "version " + std::to_string(version) + ", this reader supports 1 to " + std::to_string(max_version));
     const uint32_t declared_header = read_u32(data + 8);
     if (declared_header != header_size)
         return make_error(ErrorCode::invalid_header, function, file,
@@ -184,8 +185,9 @@ uint32_t pack_uv32(float u, float v, uint32_t material, bool covered) {
 
 Status parse_pose_cache(const uint8_t* data, size_t size, const std::string& file, PoseCache* out) {
     static const char* fn = "parse_pose_cache";
-    if (Status s = check_common_header(data, size, file, fn, "CBPC", kPoseCacheHeaderSize); !s) return s;
+    if (Status s = check_common_header(data, size, file, fn, "CBPC", kPoseCacheHeaderSize, kQuantizedPoseCacheVersion); !s) return s;
 
+    const uint32_t version = read_u32(data + 4);
     const uint32_t vertex_count = read_u32(data + 16), index_count = read_u32(data + 20);
     const uint32_t frame_count = read_u32(data + 24), flags = read_u32(data + 28);
     const float fps = read_f32(data + 32);
@@ -197,26 +199,24 @@ Status parse_pose_cache(const uint8_t* data, size_t size, const std::string& fil
                           "vertex_count " + std::to_string(vertex_count) + ", index_count " + std::to_string(index_count) +
                               ", frame_count " + std::to_string(frame_count) +
                               ": all must be positive and index_count a multiple of 3");
-    if (flags != 0 || reserved != 0)
-        return make_error(ErrorCode::invalid_header, fn, file, "flags and reserved must be 0 in version 1");
+    if (flags != 0 || reserved != 0) return make_error(ErrorCode::invalid_header, fn, file, "flags and reserved must be 0");
     if (!(std::isfinite(fps) && fps > 0))
         return make_error(ErrorCode::invalid_header, fn, file, "frames_per_second " + std::to_string(fps) + " must be positive");
-    const unsigned __int128 expected = kPoseCacheHeaderSize + (unsigned __int128)4 * index_count +
-                                       (unsigned __int128)8 * vertex_count +
-                                       (unsigned __int128)24 * vertex_count * frame_count;
+    // Counts below 2^32 keep this under 2^64.
+    const uint64_t expected = pose_cache_file_size(version, index_count, vertex_count, frame_count);
     if (expected != size)
         return make_error(ErrorCode::size_mismatch, fn, file,
-                          "counts imply " + std::to_string(uint64_t(expected)) + " bytes, file has " + std::to_string(size));
+                          "counts imply " + std::to_string(expected) + " bytes, file has " + std::to_string(size));
 
     // Sizes agree, so every section below lies inside the buffer.
     PoseCache cache;
+    cache.version = version;
     cache.vertex_count = vertex_count;
     cache.index_count = index_count;
     cache.frame_count = frame_count;
     cache.frames_per_second = fps;
     std::memcpy(cache.bounds_min, bounds, 12);
     std::memcpy(cache.bounds_max, bounds + 3, 12);
-    const size_t value_count = size_t(frame_count) * vertex_count * 3;
     const uint8_t* p = data + kPoseCacheHeaderSize;
     cache.indices.resize(index_count);
     std::memcpy(cache.indices.data(), p, 4 * size_t(index_count));
@@ -224,43 +224,23 @@ Status parse_pose_cache(const uint8_t* data, size_t size, const std::string& fil
     cache.uvs.resize(size_t(vertex_count) * 2);
     std::memcpy(cache.uvs.data(), p, 8 * size_t(vertex_count));
     p += 8 * size_t(vertex_count);
-    cache.positions.resize(value_count);
-    std::memcpy(cache.positions.data(), p, 4 * value_count);
-    p += 4 * value_count;
-    cache.normals.resize(value_count);
-    std::memcpy(cache.normals.data(), p, 4 * value_count);
 
     const uint32_t max_index = *std::max_element(cache.indices.begin(), cache.indices.end());
     if (max_index >= vertex_count)
         return make_error(ErrorCode::invalid_data, fn, file,
                           "index " + std::to_string(max_index) + " >= vertex_count " + std::to_string(vertex_count));
-    auto all_finite = [](const std::vector<float>& v) {
-        return std::all_of(v.begin(), v.end(), [](float x) { return std::isfinite(x); });
-    };
-    if (!all_finite(cache.uvs)) return make_error(ErrorCode::invalid_data, fn, file, "uvs contain NaN or infinity");
-    if (!all_finite(cache.positions)) return make_error(ErrorCode::invalid_data, fn, file, "positions contain NaN or infinity");
-    if (!all_finite(cache.normals)) return make_error(ErrorCode::invalid_data, fn, file, "normals contain NaN or infinity");
-    if (!std::all_of(bounds, bounds + 6, [](float x) { return std::isfinite(x); }))
-        return make_error(ErrorCode::invalid_data, fn, file, "bounds contain NaN or infinity");
-    for (size_t i = 0; i < value_count; i += 3) {
-        const double x = cache.normals[i], y = cache.normals[i + 1], z = cache.normals[i + 2];
-        if (std::fabs(std::sqrt(x * x + y * y + z * z) - 1.0) > kNormalLengthTolerance)
-            return make_error(ErrorCode::invalid_data, fn, file,
-                              "normal " + std::to_string(i / 3) + " (frame-major) is not unit length");
-        for (int axis = 0; axis < 3; ++axis) {
-            const double v = cache.positions[i + axis];
-            if (v < double(bounds[axis]) - kBoundsTolerance || v > double(bounds[3 + axis]) + kBoundsTolerance)
-                return make_error(ErrorCode::invalid_data, fn, file,
-                                  "position " + std::to_string(i / 3) + " (frame-major) lies outside the header's bounds");
-        }
-    }
+    auto finite = [](float x) { return std::isfinite(x); };
+    if (!std::all_of(cache.uvs.begin(), cache.uvs.end(), finite))
+        return make_error(ErrorCode::invalid_data, fn, file, "uvs contain NaN or infinity");
+    if (!std::all_of(bounds, bounds + 6, finite)) return make_error(ErrorCode::invalid_data, fn, file, "bounds contain NaN or infinity");
+    if (Status s = read_pose_frames(version, p, bounds, file, fn, &cache); !s) return s;
     *out = std::move(cache);
     return {};
 }
 
 Status parse_texture_array(const uint8_t* data, size_t size, const std::string& file, TextureArray* out) {
     static const char* fn = "parse_texture_array";
-    if (Status s = check_common_header(data, size, file, fn, "CBTX", kTextureHeaderSize); !s) return s;
+    if (Status s = check_common_header(data, size, file, fn, "CBTX", kTextureHeaderSize, 1); !s) return s;
 
     const uint32_t width = read_u32(data + 16), height = read_u32(data + 20);
     const uint32_t layer_count = read_u32(data + 24), format = read_u32(data + 28);
@@ -358,6 +338,11 @@ Status check_meshes(const Manifest& m, const std::map<std::string, PoseCache>& p
                                           " pose frames");
         if (mesh.material >= m.materials.size())
             return invalid(mesh.file, "material " + std::to_string(mesh.material) + " does not exist");
+        // SPEC.md "Version 3": a format_version 3 bundle holds quantized caches, older ones float caches.
+        const uint32_t cache_version = m.format_version >= 3 ? kQuantizedPoseCacheVersion : 1;
+        if (cache.version != cache_version)
+            return invalid(mesh.file, "pose cache version " + std::to_string(cache.version) + ", a format_version " +
+                                          std::to_string(m.format_version) + " bundle holds version " + std::to_string(cache_version));
         bundle->meshes.push_back(cache);
     }
     return {};

@@ -1,4 +1,4 @@
-// Bundle reader: shared_formats/SPEC.md (format versions 1 and 2), without any GL.
+// Bundle reader: shared_formats/SPEC.md (format versions 1, 2 and 3), without any GL.
 //
 // Every function returns a Status; none throws or aborts on bad input. A failing Status
 // carries one of the spec's error codes, the bundle path of the file concerned, and a
@@ -98,14 +98,19 @@ struct UvBlockTexel {
 UvBlockTexel unpack_uvblock_texel(const uint8_t* block, uint32_t i);
 
 constexpr uint32_t kPoseCacheHeaderSize = 64;
+// CBPC versions: 1 stores float32 frames, 2 quantized ones (SPEC.md "Pose cache version 2").
+constexpr uint32_t kQuantizedPoseCacheVersion = 2;
 constexpr uint32_t kTextureHeaderSize = 32;
 // SPEC.md: normals are unit length within 1e-3 and bounds enclose positions within 1e-4 m,
 // allowances for float32 rounding in the bake.
 constexpr float kNormalLengthTolerance = 1e-3f;
 constexpr float kBoundsTolerance = 1e-4f;
 
-// One mesh part at one LOD over every pose frame of the bundle (CBPC).
+// One mesh part at one LOD over every pose frame of the bundle (CBPC). Frames are held as version 2
+// stores them, the layout mesh.vert.glsl reads; a version-1 file's float frames are quantized on parse
+// (pose_codec.h decodes one vertex).
 struct PoseCache {
+    uint32_t version = 0;  // of the file it was parsed from
     uint32_t vertex_count = 0;
     uint32_t index_count = 0;
     uint32_t frame_count = 0;
@@ -114,8 +119,9 @@ struct PoseCache {
     float bounds_max[3] = {0, 0, 0};
     std::vector<uint32_t> indices;  // index_count, counter-clockwise triangles
     std::vector<float> uvs;         // vertex_count * 2
-    std::vector<float> positions;   // frame_count * vertex_count * 3, frame-major, metres
-    std::vector<float> normals;     // same layout as positions, unit length
+    std::vector<float> frame_bounds;        // frame_count * 6: each frame's position minimum xyz, then maximum xyz
+    std::vector<uint16_t> normal_codes;    // frame_count * vertex_count * 2, frame-major, octahedral
+    std::vector<uint16_t> position_codes;  // frame_count * vertex_count * 3, frame-major, within the frame's bounds
 };
 
 // A stack of equally sized layers (CBTX); `data` holds layer 0, layer 1, ... as stored.
@@ -224,7 +230,7 @@ struct Manifest {
 };
 
 // The newest manifest format_version read; every older one is read too (1 as one clip).
-constexpr uint32_t kFormatVersion = 2;
+constexpr uint32_t kFormatVersion = 3;
 
 // Largest file size a manifest may declare: 2^53 - 1, the largest integer a double (and so every
 // JSON reader, JavaScript's included) holds exactly; manifest.schema.json has the same maximum.

@@ -24,13 +24,15 @@
 #define CV_ATTR_IMPOSTOR_FRAME_WEIGHT 6  // float: weight of the second layer
 
 // Texture units. Mesh draws use POSES, OUTFITS and DIFFUSE0; impostor draws all but POSES.
-#define CV_UNIT_POSES 0           // samplerBuffer: per frame per vertex, two RGBA32F texels (position, normal)
+#define CV_UNIT_POSES 0           // usamplerBuffer R16UI: per frame per vertex, three position codes
 #define CV_UNIT_OUTFITS 1         // outfit colour map, 16 x outfit_count
 #define CV_UNIT_IMPOSTOR_NORMAL 2
 #define CV_UNIT_IMPOSTOR_UV 3
 #define CV_UNIT_IMPOSTOR_DETAIL 4
 #define CV_UNIT_DIFFUSE0 5        // CV_MAX_MATERIALS consecutive units: units 5..8, under GL 3.3's 16
 #define CV_UNIT_IMPOSTOR_SURFACE 9
+#define CV_UNIT_POSE_NORMALS 10       // usamplerBuffer RG16UI: per frame per vertex, one octahedral normal code
+#define CV_UNIT_POSE_FRAME_BOUNDS 11  // samplerBuffer RGBA32F: per frame, its positions' minimum, then maximum
 
 // Impostor reprojection (shaders/impostor_warp.glsl). The surface map's codes span +-range * radius
 // metres (SPEC.md "Impostor maps"; crowdbake.bake.surface_maps DEPTH_RANGE, MOTION_RANGE); the

@@ -86,6 +86,8 @@ GLuint build_mesh_program(const std::string& shader_dir, MeshUniforms* uniforms,
     *uniforms = mesh_uniforms(program);
     glUseProgram(program);
     glUniform1i(uniform(program, "u_poses"), CV_UNIT_POSES);
+    glUniform1i(uniform(program, "u_pose_normals"), CV_UNIT_POSE_NORMALS);
+    glUniform1i(uniform(program, "u_pose_frame_bounds"), CV_UNIT_POSE_FRAME_BOUNDS);
     glUniform1i(uniform(program, "u_outfits"), CV_UNIT_OUTFITS);
     glUniform1i(uniform(program, "u_diffuse"), CV_UNIT_DIFFUSE0);
     return program;

@@ -259,7 +259,7 @@ void check_tiling(const Manifest& m, SchemaCheck& check) {
 // frames in range, clip names unique, and the ranges tiling [0, pose_frames) exactly: clips in
 // order, then transitions in order (SPEC.md "Clips and transitions").
 void parse_clips_v2(const json& doc, SchemaCheck& check, Manifest* m) {
-    if (doc.contains("cycle")) check.fail("cycle", "is a format_version 1 key; a v2 manifest has clips and transitions");
+    if (doc.contains("cycle")) check.fail("cycle", "is a format_version 1 key; a manifest of format_version 2 or later has clips and transitions");
     m->pose_frames = check.integer(doc, "", "pose_frames", 1);
     if (const json* clips = check.array(doc, "", "clips", 1)) {
         if (clips->size() > kMaxClips) check.fail("clips", "has more than " + std::to_string(kMaxClips) + " items");

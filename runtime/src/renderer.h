@@ -42,10 +42,12 @@ CharacterModel character_model(const Bundle& bundle);
 // GPU memory one archetype's uploads take (bytes as uploaded: compressed blocks stay compressed;
 // mipmapped diffuse maps count their whole chain).
 struct ArchetypeMemory {
-    uint64_t meshes = 0;     // UVs, indices and pose buffers of both mesh LODs
+    uint64_t bodies = 0;     // UVs, indices and pose buffers of the body parts' two mesh LODs
+    uint64_t garments = 0;   // the same of the garments'
     uint64_t textures = 0;   // diffuse arrays and the outfit map
     uint64_t impostors = 0;  // normal, UV, detail and surface maps
-    uint64_t total() const { return meshes + textures + impostors; }
+    uint64_t meshes() const { return bodies + garments; }
+    uint64_t total() const { return meshes() + textures + impostors; }
 };
 
 struct RendererState;  // renderer_state.h

@@ -38,8 +38,11 @@ DrawStats draw_meshes(const RendererState& shared, const ArchetypeGpu& g, const 
         // Bodies are closed: skip their back faces. Garments are open cloth, seen from inside too.
         if (p.garment) glDisable(GL_CULL_FACE);
         else glEnable(GL_CULL_FACE);
-        glActiveTexture(GL_TEXTURE0 + CV_UNIT_POSES);
-        glBindTexture(GL_TEXTURE_BUFFER, p.pose_texture);
+        const GLenum pose_units[kPoseStreams] = {CV_UNIT_POSES, CV_UNIT_POSE_NORMALS, CV_UNIT_POSE_FRAME_BOUNDS};
+        for (int k = 0; k < kPoseStreams; ++k) {
+            glActiveTexture(GL_TEXTURE0 + pose_units[k]);
+            glBindTexture(GL_TEXTURE_BUFFER, p.pose_textures[k]);
+        }
         glActiveTexture(GL_TEXTURE0 + CV_UNIT_DIFFUSE0);
         glBindTexture(GL_TEXTURE_2D_ARRAY, g.diffuse[p.material]);
         glUniform1i(mu.vertex_count, GLint(p.vertex_count));

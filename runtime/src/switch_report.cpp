@@ -6,6 +6,8 @@
 
 #include <glm/gtc/matrix_transform.hpp>
 
+#include "pose_codec.h"
+
 namespace crowdview {
 
 namespace {
@@ -119,8 +121,9 @@ void SwitchMeter::picture(int mesh_lod, const Shown& shown, const glm::mat4& to_
     for (size_t k = 0; k + 1 < list.size(); k += 2) {
         const PoseCache& cache = meshes_[list[k]];
         const uint32_t a = std::min(shown.a, cache.frame_count - 1), b = std::min(shown.b, cache.frame_count - 1);
-        const float* pa = &cache.positions[(size_t(a) * cache.vertex_count + list[k + 1]) * 3];
-        const float* pb = &cache.positions[(size_t(b) * cache.vertex_count + list[k + 1]) * 3];
+        float pa[3], pb[3];
+        decode_pose_position(cache, a, list[k + 1], pa);
+        decode_pose_position(cache, b, list[k + 1], pb);
         const float w = shown.weight;
         const glm::vec4 clip = to_screen * glm::vec4((1 - w) * pa[0] + w * pb[0], (1 - w) * pa[1] + w * pb[1], (1 - w) * pa[2] + w * pb[2], 1.0f);
         const float iw = clip.w > 1e-6f ? 1.0f / clip.w : 0.0f;

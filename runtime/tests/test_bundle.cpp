@@ -9,6 +9,7 @@
 #include "bundle.h"
 #include "check.h"
 #include "crowd.h"
+#include "pose_codec.h"
 #include "synthetic_bundle.h"
 
 using namespace crowdview;
@@ -57,7 +58,11 @@ void test_pose_cache() {
     CHECK(cache.vertex_count == 4 && cache.index_count == 6 && cache.frame_count == 2);
     CHECK(cache.frames_per_second == 24.0f);
     CHECK(cache.indices == std::vector<uint32_t>({0, 1, 2, 0, 2, 3}));
-    CHECK(cache.positions.size() == 24 && cache.positions[3 * 4 + 1] == 0.25f);  // frame 1, vertex 0, y
+    // A version-1 file's float frames come back quantized: within half a 16-bit step of the frame's extent.
+    float position[3];
+    decode_pose_position(cache, 1, 0, position);
+    CHECK(cache.version == 1 && cache.position_codes.size() == 24 && cache.normal_codes.size() == 16);
+    CHECK(std::fabs(position[1] - 0.25f) <= 1.25f / 65535.0f);  // frame 1, vertex 0, y
     CHECK(cache.bounds_min[1] == 0.0f && cache.bounds_max[1] == 1.25f);
 
     // Every strict prefix is `truncated`, never a crash or another code (meshoptimizer's habit).
@@ -80,7 +85,7 @@ void test_pose_cache() {
     magic[0] = 'X';
     CHECK(pose_code(magic) == ErrorCode::bad_magic);
     CHECK(pose_code(small_texture()) == ErrorCode::bad_magic);  // a CBTX where a CBPC belongs
-    CHECK(pose_code(edited(4, 2)) == ErrorCode::unsupported_version);
+    CHECK(pose_code(edited(4, 3)) == ErrorCode::unsupported_version);
     CHECK(pose_code(edited(4, 0)) == ErrorCode::unsupported_version);
     CHECK(pose_code(edited(8, 60)) == ErrorCode::invalid_header);
     std::vector<uint8_t> longer = good;
@@ -281,9 +286,9 @@ void test_whole_bundle() {
     // Manifest: JSON, schema, version.
     {
         MemoryBundle b = tiny_bundle();
-        b.manifest["format_version"] = 3;
+        b.manifest["format_version"] = 4;
         b.manifest.erase("meshes");  // a newer format is named as such before the schema is applied
-        expect(b, ErrorCode::unsupported_format_version, "manifest.json", "format_version 3");
+        expect(b, ErrorCode::unsupported_format_version, "manifest.json", "format_version 4");
     }
     const std::vector<std::pair<std::string, json>> schema_breaks = {
         {"/format", "crowdbake"},

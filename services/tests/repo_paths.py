@@ -13,7 +13,10 @@ VECTORS = REPO_ROOT / "shared_formats" / "vectors"
 # Vectors are never edited, so an expectation a newer reader no longer meets is restated here (SPEC.md,
 # "Vectors"): vectors/v1/bad/future_format_version says format_version 2, the future when it was written; a
 # reader of v2 reads it as a v2 manifest holding v1's `cycle` and no clips, which is manifest_invalid.
-SUPERSEDED_EXPECTATIONS = {"v1/bad/future_format_version": {"error": "manifest_invalid", "file": "manifest.json"}}
+# vectors/v2/bad/future_format_version says 3: a reader of v3 reads it as a v3 bundle holding version-1
+# pose caches, invalid_data at the first (SPEC.md "Version 3").
+SUPERSEDED_EXPECTATIONS = {"v1/bad/future_format_version": {"error": "manifest_invalid", "file": "manifest.json"},
+                           "v2/bad/future_format_version": {"error": "invalid_data", "file": "poses/body_lod0.cbpc"}}
 
 
 def vector_expectation(case: Path) -> dict:

@@ -145,9 +145,9 @@ def test_encoder_rejects_nan_and_bad_indices():
 
 def test_build_manifest_refuses_duplicate_and_unsafe_paths():
     with pytest.raises(ValueError):
-        build_manifest("n", "1", {}, [BundleFile("a.json", b"", "cycle"), BundleFile("a.json", b"", "cycle")])
+        build_manifest("n", "1", {}, [BundleFile("a.json", b"", "cycle"), BundleFile("a.json", b"", "cycle")], format_version=1)
     with pytest.raises(FormatError):
-        build_manifest("n", "1", {}, [BundleFile("../a.json", b"", "cycle")])
+        build_manifest("n", "1", {}, [BundleFile("../a.json", b"", "cycle")], format_version=1)
 
 
 # --- pixel format 5, uv32 (vectors/v1-uv32) ---------------------------------------------------------

@@ -12,6 +12,7 @@ from crowdbake.formats.binary import (
     decode_pose_cache,
     decode_texture_array,
     encode_pose_cache,
+    encode_quantized_pose_cache,
     encode_texture_array,
     read_pose_frame,
     read_texture_layer,
@@ -19,17 +20,18 @@ from crowdbake.formats.binary import (
 from crowdbake.formats.errors import FormatError
 
 
-def pose_cache_bytes(frames: int = 3) -> bytes:
+def pose_cache_bytes(frames: int = 3, encode=encode_pose_cache) -> bytes:
     rng = np.random.default_rng(4)
     positions = rng.normal(size=(frames, 4, 3)).astype(np.float32)
     normals = rng.normal(size=(frames, 4, 3))
     normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
     uvs = rng.random((4, 2)).astype(np.float32)
-    return encode_pose_cache(np.array([[0, 1, 2], [0, 2, 3]]), uvs, positions, normals.astype(np.float32), 24.0)
+    return encode(np.array([[0, 1, 2], [0, 2, 3]]), uvs, positions, normals.astype(np.float32), 24.0)
 
 
-def test_one_frame_equals_that_frame_of_the_whole_cache(tmp_path):
-    data = pose_cache_bytes()
+@pytest.mark.parametrize("encode", [encode_pose_cache, encode_quantized_pose_cache])
+def test_one_frame_equals_that_frame_of_the_whole_cache(tmp_path, encode):
+    data = pose_cache_bytes(encode=encode)
     path = tmp_path / "part.cbpc"
     path.write_bytes(data)
     whole = decode_pose_cache(data)
@@ -43,7 +45,7 @@ def test_one_frame_equals_that_frame_of_the_whole_cache(tmp_path):
 
 @pytest.mark.parametrize("change,code", [
     (lambda d: b"XBPC" + d[4:], "bad_magic"),
-    (lambda d: d[:4] + struct.pack("<I", 2) + d[8:], "unsupported_version"),
+    (lambda d: d[:4] + struct.pack("<I", 3) + d[8:], "unsupported_version"),
     (lambda d: d[:-1], "truncated"),
     (lambda d: d[:20], "truncated"),
 ])

@@ -13,12 +13,14 @@ from pathlib import Path
 
 import numpy as np
 
+from crowdbake.formats import pose_codec
 from crowdbake.formats.errors import FormatError
 from crowdbake.formats.texel_codecs import check_uvblock
 
 POSE_CACHE_MAGIC = b"CBPC"
 TEXTURE_MAGIC = b"CBTX"
-POSE_CACHE_VERSION = 1
+POSE_CACHE_VERSION = 1  # float32 positions and normals
+QUANTIZED_POSE_CACHE_VERSION = 2  # 16-bit positions within per-frame bounds, 2 x 16-bit octahedral normals
 TEXTURE_VERSION = 1
 
 _COMMON = struct.Struct("<4sIII")  # magic, version, header_size, file_size
@@ -77,7 +79,8 @@ def _check_common(data: bytes, magic: bytes, supported_version: int, header_size
 class PoseCache:
     """One mesh part at one LOD over every frame of the cycle.
 
-    indices: (T, 3) uint32; uvs: (V, 2) float32; positions, normals: (F, V, 3) float32, metres.
+    indices: (T, 3) uint32; uvs: (V, 2) float32; positions, normals: (F, V, 3) float32, metres (a
+    version-2 file's decoded: within pose_codec's bounds of what the bake stored).
     """
 
     indices: np.ndarray
@@ -85,6 +88,7 @@ class PoseCache:
     positions: np.ndarray
     normals: np.ndarray
     frames_per_second: float
+    version: int = POSE_CACHE_VERSION
 
     @property
     def vertex_count(self) -> int:
@@ -99,10 +103,8 @@ class PoseCache:
         return int(self.indices.shape[0])
 
 
-def encode_pose_cache(
-    indices: np.ndarray, uvs: np.ndarray, positions: np.ndarray, normals: np.ndarray, frames_per_second: float
-) -> bytes:
-    """Serialise a pose cache. indices (T, 3) or (3T,) int; uvs (V, 2); positions, normals (F, V, 3)."""
+def _pose_arrays(indices, uvs, positions, normals, frames_per_second) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Little-endian copies of a pose cache's arrays; ValueError naming what breaks the spec's rules."""
     indices = np.ascontiguousarray(indices, dtype="<u4").reshape(-1)
     uvs = np.ascontiguousarray(uvs, dtype="<f4")
     positions = np.ascontiguousarray(positions, dtype="<f4")
@@ -121,20 +123,52 @@ def encode_pose_cache(
             raise ValueError(f"{name} contain NaN or infinity")
     if not frames_per_second > 0:
         raise ValueError("frames_per_second must be positive")
+    return indices, uvs, positions, normals
+
+
+def _pose_payload_size(version: int, index_count: int, vertex_count: int, frame_count: int) -> int:
+    """Bytes of a CBPC file of these counts (SPEC.md: version 1's float frames, version 2's quantized ones)."""
+    frames = 24 * vertex_count * frame_count if version == POSE_CACHE_VERSION else 24 * frame_count + 10 * vertex_count * frame_count
+    return POSE_CACHE_HEADER_SIZE + 4 * index_count + 8 * vertex_count + frames
+
+
+def _pose_header(version: int, indices: np.ndarray, vertex_count: int, frame_count: int, fps: float,
+                 bounds_min: np.ndarray, bounds_max: np.ndarray) -> bytes:
+    file_size = _pose_payload_size(version, indices.size, vertex_count, frame_count)
+    return _COMMON.pack(POSE_CACHE_MAGIC, version, POSE_CACHE_HEADER_SIZE, file_size) + _POSE_FIELDS.pack(
+        vertex_count, indices.size, frame_count, 0, float(fps), *bounds_min, *bounds_max, 0)
+
+
+def encode_pose_cache(
+    indices: np.ndarray, uvs: np.ndarray, positions: np.ndarray, normals: np.ndarray, frames_per_second: float
+) -> bytes:
+    """Serialise a version-1 pose cache (float32 frames). indices (T, 3) or (3T,) int; uvs (V, 2);
+    positions, normals (F, V, 3)."""
+    indices, uvs, positions, normals = _pose_arrays(indices, uvs, positions, normals, frames_per_second)
     flat = positions.reshape(-1, 3)
-    file_size = POSE_CACHE_HEADER_SIZE + 4 * indices.size + 8 * vertex_count + 24 * vertex_count * frame_count
-    header = _COMMON.pack(POSE_CACHE_MAGIC, POSE_CACHE_VERSION, POSE_CACHE_HEADER_SIZE, file_size) + _POSE_FIELDS.pack(
-        vertex_count, indices.size, frame_count, 0, float(frames_per_second), *flat.min(axis=0), *flat.max(axis=0), 0
-    )
+    header = _pose_header(POSE_CACHE_VERSION, indices, positions.shape[1], positions.shape[0], frames_per_second,
+                          flat.min(axis=0), flat.max(axis=0))
     return b"".join([header, indices.tobytes(), uvs.tobytes(), positions.tobytes(), normals.tobytes()])
 
 
-def decode_pose_cache(data: bytes, where: str = "pose cache") -> PoseCache:
-    """Parse and validate a CBPC file; raises FormatError with the spec's error code."""
-    _check_common(data, POSE_CACHE_MAGIC, POSE_CACHE_VERSION, POSE_CACHE_HEADER_SIZE, where)
-    fields = _POSE_FIELDS.unpack_from(data, _COMMON.size)
+def encode_quantized_pose_cache(
+    indices: np.ndarray, uvs: np.ndarray, positions: np.ndarray, normals: np.ndarray, frames_per_second: float
+) -> bytes:
+    """Serialise a version-2 pose cache: each frame's positions as 16-bit codes within that frame's bounds,
+    normals as 2 x 16-bit octahedral codes (pose_codec). Arguments as encode_pose_cache."""
+    indices, uvs, positions, normals = _pose_arrays(indices, uvs, positions, normals, frames_per_second)
+    bounds = pose_codec.frame_bounds(positions)
+    header = _pose_header(QUANTIZED_POSE_CACHE_VERSION, indices, positions.shape[1], positions.shape[0], frames_per_second,
+                          bounds[:, 0].min(axis=0), bounds[:, 1].max(axis=0))
+    position_codes = pose_codec.quantize_positions(positions, bounds).astype("<u2")
+    normal_codes = pose_codec.encode_octahedral(normals).astype("<u2")
+    return b"".join([header, indices.tobytes(), uvs.tobytes(), bounds.astype("<f4").tobytes(), normal_codes.tobytes(),
+                     position_codes.tobytes()])
+
+
+def _check_pose_fields(fields: tuple, where: str) -> None:
+    """The header fields' own rules (SPEC.md "Pose cache"), `invalid_header` on the first broken one."""
     vertex_count, index_count, frame_count, flags, fps = fields[:5]
-    bounds_min, bounds_max = np.array(fields[5:8]), np.array(fields[8:11])
     if vertex_count == 0 or frame_count == 0 or index_count == 0 or index_count % 3:
         raise FormatError(
             "invalid_header",
@@ -143,25 +177,30 @@ def decode_pose_cache(data: bytes, where: str = "pose cache") -> PoseCache:
             where,
         )
     if flags != 0 or fields[11] != 0:
-        raise FormatError("invalid_header", "flags and reserved must be 0 in version 1", where)
+        raise FormatError("invalid_header", "flags and reserved must be 0", where)
     if not (np.isfinite(fps) and fps > 0):
         raise FormatError("invalid_header", f"frames_per_second {fps} must be positive", where)
-    expected = POSE_CACHE_HEADER_SIZE + 4 * index_count + 8 * vertex_count + 24 * vertex_count * frame_count
-    if expected != len(data):
-        raise FormatError("size_mismatch", f"counts imply {expected} bytes, file has {len(data)}", where)
 
-    offset = POSE_CACHE_HEADER_SIZE
-    indices = np.frombuffer(data, "<u4", index_count, offset).reshape(-1, 3)
-    offset += 4 * index_count
-    uvs = np.frombuffer(data, "<f4", 2 * vertex_count, offset).reshape(vertex_count, 2)
-    offset += 8 * vertex_count
-    positions = np.frombuffer(data, "<f4", 3 * vertex_count * frame_count, offset).reshape(frame_count, vertex_count, 3)
-    offset += 12 * vertex_count * frame_count
-    normals = np.frombuffer(data, "<f4", 3 * vertex_count * frame_count, offset).reshape(frame_count, vertex_count, 3)
 
-    if int(indices.max()) >= vertex_count:
-        raise FormatError("invalid_data", f"index {int(indices.max())} >= vertex_count {vertex_count}", where)
-    for name, array in (("uvs", uvs), ("positions", positions), ("normals", normals), ("bounds", fields[5:11])):
+def _check_frame_bounds(frame_bounds: np.ndarray, bounds_min: np.ndarray, bounds_max: np.ndarray, where: str) -> None:
+    """A version-2 file's (F, 2, 3) per-frame bounds: finite, min <= max, inside the header's bounds."""
+    if not np.isfinite(frame_bounds).all():
+        raise FormatError("invalid_data", "frame bounds contain NaN or infinity", where)
+    inverted = np.argwhere(frame_bounds[:, 0] > frame_bounds[:, 1])
+    if inverted.size:
+        raise FormatError("invalid_data", f"frame {int(inverted[0][0])}'s bounds have a minimum above the maximum", where)
+    outside = (frame_bounds[:, 0] < bounds_min - BOUNDS_TOLERANCE).any(axis=1) | (frame_bounds[:, 1] > bounds_max + BOUNDS_TOLERANCE).any(axis=1)
+    if outside.any():
+        raise FormatError("invalid_data", f"frame {int(np.argmax(outside))}'s bounds reach outside the header's bounds", where)
+
+
+def _decode_float_frames(data: bytes, offset: int, vertex_count: int, frame_count: int, bounds_min: np.ndarray,
+                         bounds_max: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """Version 1's positions and normals, checked: finite, unit normals, positions inside the bounds."""
+    values = 3 * vertex_count * frame_count
+    positions = np.frombuffer(data, "<f4", values, offset).reshape(frame_count, vertex_count, 3)
+    normals = np.frombuffer(data, "<f4", values, offset + 4 * values).reshape(frame_count, vertex_count, 3)
+    for name, array in (("positions", positions), ("normals", normals)):
         if not np.isfinite(array).all():
             raise FormatError("invalid_data", f"{name} contain NaN or infinity", where)
     lengths = np.linalg.norm(normals, axis=-1)
@@ -170,7 +209,47 @@ def decode_pose_cache(data: bytes, where: str = "pose cache") -> PoseCache:
     flat = positions.reshape(-1, 3)
     if (flat.min(axis=0) < bounds_min - BOUNDS_TOLERANCE).any() or (flat.max(axis=0) > bounds_max + BOUNDS_TOLERANCE).any():
         raise FormatError("invalid_data", "positions lie outside the header's bounds", where)
-    return PoseCache(indices, uvs, positions, normals, float(fps))
+    return positions, normals
+
+
+def _decode_quantized_frames(data: bytes, offset: int, vertex_count: int, frame_count: int, bounds_min: np.ndarray,
+                             bounds_max: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """Version 2's frame bounds, checked, then its codes decoded to float32 (every code decodes inside them)."""
+    frame_bounds = np.frombuffer(data, "<f4", 6 * frame_count, offset).reshape(frame_count, 2, 3)
+    _check_frame_bounds(frame_bounds, bounds_min, bounds_max, where)
+    offset += 24 * frame_count
+    normal_codes = np.frombuffer(data, "<u2", 2 * vertex_count * frame_count, offset).reshape(frame_count, vertex_count, 2)
+    offset += 4 * vertex_count * frame_count
+    position_codes = np.frombuffer(data, "<u2", 3 * vertex_count * frame_count, offset).reshape(frame_count, vertex_count, 3)
+    return pose_codec.dequantize_positions(position_codes, frame_bounds), pose_codec.decode_octahedral(normal_codes)
+
+
+def decode_pose_cache(data: bytes, where: str = "pose cache") -> PoseCache:
+    """Parse and validate a CBPC file of version 1 or 2; raises FormatError with the spec's error code.
+    A version-2 file's frames come back decoded to float32."""
+    _check_common(data, POSE_CACHE_MAGIC, QUANTIZED_POSE_CACHE_VERSION, POSE_CACHE_HEADER_SIZE, where)
+    version = _COMMON.unpack_from(data)[1]
+    fields = _POSE_FIELDS.unpack_from(data, _COMMON.size)
+    _check_pose_fields(fields, where)
+    vertex_count, index_count, frame_count, _, fps = fields[:5]
+    bounds_min, bounds_max = np.array(fields[5:8]), np.array(fields[8:11])
+    expected = _pose_payload_size(version, index_count, vertex_count, frame_count)
+    if expected != len(data):
+        raise FormatError("size_mismatch", f"counts imply {expected} bytes, file has {len(data)}", where)
+
+    offset = POSE_CACHE_HEADER_SIZE
+    indices = np.frombuffer(data, "<u4", index_count, offset).reshape(-1, 3)
+    offset += 4 * index_count
+    uvs = np.frombuffer(data, "<f4", 2 * vertex_count, offset).reshape(vertex_count, 2)
+    offset += 8 * vertex_count
+    if int(indices.max()) >= vertex_count:
+        raise FormatError("invalid_data", f"index {int(indices.max())} >= vertex_count {vertex_count}", where)
+    for name, array in (("uvs", uvs), ("bounds", fields[5:11])):
+        if not np.isfinite(array).all():
+            raise FormatError("invalid_data", f"{name} contain NaN or infinity", where)
+    decode_frames = _decode_float_frames if version == POSE_CACHE_VERSION else _decode_quantized_frames
+    positions, normals = decode_frames(data, offset, vertex_count, frame_count, bounds_min, bounds_max, where)
+    return PoseCache(indices, uvs, positions, normals, float(fps), version)
 
 
 def read_pose_frame(path: str | os.PathLike, frame: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -184,11 +263,12 @@ def read_pose_frame(path: str | os.PathLike, frame: int) -> tuple[np.ndarray, np
     total = path.stat().st_size
     with open(path, "rb") as handle:
         header = handle.read(POSE_CACHE_HEADER_SIZE)
-    _check_common(header, POSE_CACHE_MAGIC, POSE_CACHE_VERSION, POSE_CACHE_HEADER_SIZE, where, total_size=total)
+    _check_common(header, POSE_CACHE_MAGIC, QUANTIZED_POSE_CACHE_VERSION, POSE_CACHE_HEADER_SIZE, where, total_size=total)
     if len(header) < POSE_CACHE_HEADER_SIZE:
         raise FormatError("truncated", f"{len(header)} bytes is shorter than the pose cache header", where)
+    version = _COMMON.unpack_from(header)[1]
     vertex_count, index_count, frame_count = _POSE_FIELDS.unpack_from(header, _COMMON.size)[:3]
-    expected = POSE_CACHE_HEADER_SIZE + 4 * index_count + 8 * vertex_count + 24 * vertex_count * frame_count
+    expected = _pose_payload_size(version, index_count, vertex_count, frame_count)
     if expected != total or vertex_count == 0 or index_count == 0 or index_count % 3:
         raise FormatError("size_mismatch", f"counts imply {expected} bytes, file has {total}", where)
     if not 0 <= frame < frame_count:
@@ -196,18 +276,25 @@ def read_pose_frame(path: str | os.PathLike, frame: int) -> tuple[np.ndarray, np
     data = np.memmap(path, dtype=np.uint8, mode="r")
 
     def take(dtype: str, count: int, start: int) -> np.ndarray:
-        return np.frombuffer(data[start : start + 4 * count], dtype=dtype).copy()
+        return np.frombuffer(data[start : start + np.dtype(dtype).itemsize * count], dtype=dtype).copy()
 
     offset = POSE_CACHE_HEADER_SIZE
     indices = take("<u4", index_count, offset).reshape(-1, 3)
     offset += 4 * index_count
     uvs = take("<f4", 2 * vertex_count, offset).reshape(-1, 2)
     offset += 8 * vertex_count
-    frame_floats = 3 * vertex_count
-    positions = take("<f4", frame_floats, offset + 4 * frame_floats * frame).reshape(-1, 3)
-    offset += 4 * frame_floats * frame_count
-    normals = take("<f4", frame_floats, offset + 4 * frame_floats * frame).reshape(-1, 3)
-    return indices, uvs, positions, normals
+    if version == POSE_CACHE_VERSION:
+        frame_floats = 3 * vertex_count
+        positions = take("<f4", frame_floats, offset + 4 * frame_floats * frame).reshape(-1, 3)
+        offset += 4 * frame_floats * frame_count
+        normals = take("<f4", frame_floats, offset + 4 * frame_floats * frame).reshape(-1, 3)
+        return indices, uvs, positions, normals
+    bounds = take("<f4", 6, offset + 24 * frame).reshape(1, 2, 3)
+    offset += 24 * frame_count
+    normal_codes = take("<u2", 2 * vertex_count, offset + 4 * vertex_count * frame).reshape(1, -1, 2)
+    offset += 4 * vertex_count * frame_count
+    position_codes = take("<u2", 3 * vertex_count, offset + 6 * vertex_count * frame).reshape(1, -1, 3)
+    return indices, uvs, pose_codec.dequantize_positions(position_codes, bounds)[0], pose_codec.decode_octahedral(normal_codes)[0]
 
 
 @dataclass(frozen=True)

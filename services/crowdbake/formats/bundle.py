@@ -22,6 +22,8 @@ from typing import Any
 from crowdbake import __version__
 from crowdbake.files import fsync_path
 from crowdbake.formats.binary import (
+    POSE_CACHE_VERSION,
+    QUANTIZED_POSE_CACHE_VERSION,
     PoseCache,
     TextureArray,
     decode_pose_cache,
@@ -31,9 +33,10 @@ from crowdbake.formats.errors import FormatError, printable
 from crowdbake.formats.ranges import Ranges, check_impostor_frames, read_ranges
 
 FORMAT_NAME = "crowdbake-bundle"
-FORMAT_VERSION = 1  # what a bundle of one clip is written as, so version-1 readers still read it
-CLIPS_FORMAT_VERSION = 2  # several clips and the transitions between them
-READ_FORMAT_VERSIONS = (1, 2)
+# What the bake writes: clips and transitions (a bundle of one clip holds one, named `cycle`) and
+# quantized pose caches (SPEC.md "Version 3").
+FORMAT_VERSION = 3
+READ_FORMAT_VERSIONS = (1, 2, 3)
 SCHEMA_PATH = Path(__file__).resolve().parents[3] / "shared_formats" / "manifest.schema.json"
 _PATH_RULE = re.compile(r"^[A-Za-z0-9._-]+(/[A-Za-z0-9._-]+)*$")
 MAX_PATH_LENGTH = 200
@@ -91,8 +94,8 @@ def utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
-def build_manifest(name: str, version: str, sections: dict[str, Any], files: list[BundleFile], created: str | None = None,
-                   format_version: int = FORMAT_VERSION) -> dict[str, Any]:
+def build_manifest(name: str, version: str, sections: dict[str, Any], files: list[BundleFile], created: str | None = None, *,
+                   format_version: int) -> dict[str, Any]:
     """The manifest dict: identity, the caller's sections (cycle or clips, meshes, ...), and the files list."""
     for bundle_file in files:
         check_path(bundle_file.path)
@@ -164,7 +167,7 @@ def _validator():
 
 
 def validate_manifest(manifest: Any) -> Ranges:
-    """Raise FormatError unless `manifest` is a format-1 or format-2 manifest valid against the JSON Schema
+    """Raise FormatError unless `manifest` is a manifest of format 1, 2 or 3 valid against the JSON Schema
     whose clips and transitions tile its pose frames; return those ranges (v1: one clip `cycle`)."""
     if not isinstance(manifest, dict):
         raise FormatError("manifest_invalid", "the manifest is not a JSON object", "manifest.json")
@@ -174,8 +177,9 @@ def validate_manifest(manifest: Any) -> Ranges:
             "unsupported_format_version", f"format_version {version}, this reader supports {READ_FORMAT_VERSIONS[0]} to "
             f"{READ_FORMAT_VERSIONS[-1]}", "manifest.json"
         )
-    if version == 2 and "cycle" in manifest:  # the schema's `"cycle": false` would say only "False schema does not allow"
-        raise FormatError("manifest_invalid", "at cycle: a format_version 2 manifest holds clips and transitions, not v1's cycle",
+    if isinstance(version, int) and version >= 2 and "cycle" in manifest:  # the schema's `"cycle": false` would say only
+        # "False schema does not allow"
+        raise FormatError("manifest_invalid", f"at cycle: a format_version {version} manifest holds clips and transitions, not v1's cycle",
                           "manifest.json")
     errors = sorted(_validator().iter_errors(manifest), key=lambda e: list(e.absolute_path))
     if errors:
@@ -241,10 +245,16 @@ def _require(condition: bool, message: str, path: str) -> None:
         raise FormatError("invalid_data", message, path)
 
 
+def pose_cache_version(format_version: int) -> int:
+    """The CBPC version a bundle of `format_version` holds (SPEC.md "Version 3")."""
+    return QUANTIZED_POSE_CACHE_VERSION if format_version >= 3 else POSE_CACHE_VERSION
+
+
 def _cross_check(bundle: Bundle) -> None:
     """SPEC.md's cross-checks: every reference resolves and every size agrees."""
     manifest = bundle.manifest
     frames = bundle.ranges.pose_frames
+    cache_version = pose_cache_version(manifest["format_version"])
 
     def texture(path: str) -> TextureArray:
         _require(path in bundle.textures, "referenced but not listed as a texture", path)
@@ -257,6 +267,8 @@ def _cross_check(bundle: Bundle) -> None:
         _require(cache.vertex_count == mesh["vertex_count"], f"{cache.vertex_count} vertices, manifest says {mesh['vertex_count']}", path)
         _require(cache.triangle_count == mesh["triangle_count"], f"{cache.triangle_count} triangles, manifest says {mesh['triangle_count']}", path)
         _require(cache.frame_count == frames, f"{cache.frame_count} frames, the bundle has {frames} pose frames", path)
+        _require(cache.version == cache_version, f"pose cache version {cache.version}, a format_version "
+                 f"{manifest['format_version']} bundle holds version {cache_version}", path)
         _require(mesh["material"] < len(manifest["materials"]), f"material {mesh['material']} does not exist", path)
     for material in manifest["materials"]:
         diffuse = texture(material["diffuse"])

@@ -18,7 +18,8 @@ from crowdbake.bake.impostor_budget import DETAIL_FORMATS, map_formats
 from crowdbake.errors import StageOrderError
 from crowdbake.export import textures as export_textures
 from crowdbake.formats.binary import TextureArray, encode_texture_array, layer_size
-from crowdbake.formats.bundle import CLIPS_FORMAT_VERSION, FORMAT_VERSION, BundleFile, build_manifest, verify_bundle, write_bundle
+from crowdbake.formats.bundle import FORMAT_VERSION, BundleFile, build_manifest, verify_bundle, write_bundle
+from crowdbake.formats.ranges import read_ranges
 from crowdbake.stages.cycle import bundle_cycle_document
 from crowdbake.stages.fidelity import score_fidelity
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_plan, load_poses, next_baked_frame, part_path, part_record
@@ -392,10 +393,10 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
     cycle_document = bundle_cycle_document(read_json(folder.root / "cycle" / "cycle.json"))
     files.append(BundleFile("cycle.json", json_bytes(cycle_document), "cycle"))
 
-    ranges = cycle.bundle_ranges()
-    timing = {"cycle": _cycle_section(cycle)} if ranges is None else {
-        "pose_frames": ranges.pose_frames, "clips": [clip.to_manifest() for clip in ranges.clips],
-        "transitions": [transition.to_manifest() for transition in ranges.transitions]}
+    # One cycle is one clip named `cycle`, as a reader sees a version-1 bundle.
+    ranges = cycle.bundle_ranges() or read_ranges({"format_version": 1, "cycle": _cycle_section(cycle)})
+    timing = {"pose_frames": ranges.pose_frames, "clips": [clip.to_manifest() for clip in ranges.clips],
+              "transitions": [transition.to_manifest() for transition in ranges.transitions]}
     sections = {
         "frames_per_second": poses.frames_per_second,
         **timing,
@@ -404,8 +405,7 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
         "meshes": meshes,
         "impostor": {**layout.to_manifest(), "frame_indices": poses.frame_indices, "bounds": poses.bounds, "maps": maps},
     }
-    manifest = build_manifest(job.name, job.version, sections, files, created=job.created,
-                              format_version=FORMAT_VERSION if ranges is None else CLIPS_FORMAT_VERSION)
+    manifest = build_manifest(job.name, job.version, sections, files, created=job.created, format_version=FORMAT_VERSION)
     if bundle_dir.exists():
         shutil.rmtree(bundle_dir)
     write_bundle(bundle_dir, manifest, files)

@@ -24,7 +24,7 @@ from crowdbake.bake.texture_memory import MIB
 from crowdbake.bake.cycle import estimate_root_offsets
 from crowdbake.bake.skinning import pose_character
 from crowdbake.errors import StageOrderError
-from crowdbake.formats.binary import encode_pose_cache
+from crowdbake.formats.binary import encode_quantized_pose_cache
 from crowdbake.formats.gltf import load_character
 from crowdbake.formats.images import read_texture_variation
 from crowdbake.formats.obj import read_obj
@@ -262,7 +262,7 @@ def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float
         low = poses.low_lod(part, simplified)
         for level, version in ((0, part), (1, low)):
             path = out / f"{name}_lod{level}.cbpc"
-            write_bytes_atomic(path, encode_pose_cache(version.faces, version.uvs, version.positions, version.normals, fps))
+            write_bytes_atomic(path, encode_quantized_pose_cache(version.faces, version.uvs, version.positions, version.normals, fps))
             parts.append(PosePart(part=name, kind=kinds[name], lod=level, file=path.name, material=part_material[name],
                                   vertex_count=version.vertex_count, triangle_count=version.triangle_count))
         parts[-1].target_triangles = int(target)
