@@ -1,4 +1,4 @@
-// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-crop, v1-surface, v1-hostile and v2), which
+// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-crop, v1-surface, v1-hostile, v2 and v3), which
 // the Python tests read too: the good bundle decodes to expected.json's values (v1-uv32, v1-uvblock: its UV map's
 // texels too; v1-surface: its bc2 surface map's texels, alpha included), every bad bundle fails with its
 // expect.json code and file, and every strict prefix of every binary file of the good bundle is `truncated`.
@@ -267,6 +267,41 @@ void test_good_v2(const fs::path& good) {
         CHECK_MSG(bundle.meshes[i].frame_count == expected["pose_cache_frame_count"][m.meshes[i].file].get<uint32_t>(), m.meshes[i].file);
 }
 
+// v3 (generate_vectors_v3.py): v2's ranges with quantized pose caches. The stored codes and frame bounds
+// come back exactly, and decode to expected.json's floats (the Python reader's) up to float32 rounding.
+void test_good_v3(const fs::path& good) {
+    Bundle bundle;
+    const Status s = load_bundle_dir((good / "bundle").string(), &bundle);
+    CHECK_MSG(s.ok(), s.message);
+    if (!s.ok()) return;
+    const json expected = json::parse(synthetic::read_text((good / "expected.json").string()));
+    CHECK(bundle.manifest.format_version == 3 && bundle.manifest.clips.size() == expected["clips"].size());
+    CHECK(bundle.manifest.pose_frames == expected["pose_frames"].get<uint32_t>());
+    for (size_t i = 0; i < bundle.manifest.meshes.size(); ++i) {
+        const std::string& path = bundle.manifest.meshes[i].file;
+        const json& values = expected["pose_caches"][path];
+        const PoseCache& cache = bundle.meshes[i];
+        CHECK_MSG(cache.version == 2 && cache.vertex_count == values["vertex_count"].get<uint32_t>(), path);
+        check_array(values["frame_bounds"], cache.frame_bounds, path + " frame_bounds");
+        check_array(values["position_codes"], cache.position_codes, path + " position_codes");
+        check_array(values["normal_codes"], cache.normal_codes, path + " normal_codes");
+        double worst_position = 0, worst_normal = 0;
+        for (uint32_t f = 0; f < cache.frame_count; ++f)
+            for (uint32_t v = 0; v < cache.vertex_count; ++v) {
+                float p[3], n[3];
+                decode_pose_position(cache, f, v, p);
+                decode_pose_normal(cache, f, v, n);
+                const size_t at = (size_t(f) * cache.vertex_count + v) * 3;
+                for (int axis = 0; axis < 3; ++axis) {
+                    worst_position = std::max(worst_position, std::fabs(p[axis] - values["positions"][at + axis].get<double>()));
+                    worst_normal = std::max(worst_normal, std::fabs(n[axis] - values["normals"][at + axis].get<double>()));
+                }
+            }
+        CHECK_MSG(worst_position <= 1e-6 && worst_normal <= 1e-6,
+                  path + ": decoded differs by " + std::to_string(worst_position) + " m, normals by " + std::to_string(worst_normal));
+    }
+}
+
 void test_prefixes(const fs::path& bundle_dir) {
     int files = 0;
     for (const auto& entry : fs::recursive_directory_iterator(bundle_dir)) {
@@ -357,6 +392,14 @@ int main() {
         test_good_v2(v2 / "good");
         test_bad(v2 / "bad", 14);
         test_prefixes(v2 / "good" / "bundle");
+    }
+    // Format v3: quantized pose caches; bad bounds, versions and every strict prefix of the quantized caches.
+    const fs::path v3 = fs::path(CROWDVIEW_VECTORS_DIR) / "v3";
+    CHECK_MSG(fs::is_directory(v3 / "good"), "no v3 vectors at " + v3.string());
+    if (fs::is_directory(v3 / "good")) {
+        test_good_v3(v3 / "good");
+        test_bad(v3 / "bad", 10);
+        test_prefixes(v3 / "good" / "bundle");
     }
     // Manifests a hostile server could send (generate_vectors_v1_hostile.py): sizes past 2^53 - 1,
     // paths holding control characters.

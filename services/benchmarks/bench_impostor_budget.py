@@ -127,7 +127,7 @@ def bake_once(case: str, config: str, scratch: Path) -> dict | None:
     return {
         "case": case, "config": config, "azimuths": len(manifest["impostor"]["azimuths_deg"]),
         "elevations_deg": list(params.elevations_deg), "frames": len(manifest["impostor"]["frame_indices"]), "tile": params.tile_size, "budget_mib": params.impostor_budget_mib,
-        "crop": manifest["impostor"].get("crop"), "cycle_frames": manifest["cycle"]["frames"],
+        "crop": manifest["impostor"].get("crop"), "cycle_frames": manifest["clips"][0]["frames"],
         "impostor_mib": stored / MIB, "maps_mib": {kind: memory[kind] / MIB for kind in manifest["impostor"]["maps"]},
         "at_views": {k: runtime["at_views"][k] for k in ("ssim_mean", "ssim_worst")},
         "between_views": {k: runtime["between_views"][k] for k in ("ssim_mean", "ssim_worst")},

@@ -50,5 +50,5 @@ def test_a_rest_bake_with_a_cycle_gives_the_bundle_the_cli_gives(small_sample, t
                      "--out", str(out), "--json", "--created", CREATED, *BAKE_OPTIONS]) == 0
     cli_manifest = json.loads((out / "walker" / "1.0.0" / "manifest.json").read_bytes())
 
-    assert rest_manifest["cycle"]["source_start_frame"] == cli_manifest["cycle"]["source_start_frame"] == cycle["start_frame"]
+    assert rest_manifest["clips"][0]["source_start_frame"] == cli_manifest["clips"][0]["source_start_frame"] == cycle["start_frame"]
     assert rest_manifest == cli_manifest

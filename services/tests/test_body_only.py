@@ -48,8 +48,9 @@ def test_body_without_cloth_bakes_the_animation_loop(body_bundle):
     bundle_path, work = body_bundle
     manifest = verify_bundle(bundle_path).manifest
     frames = int(round(SAMPLE_WALK_SECONDS * BODY_FPS))
-    assert manifest["frames_per_second"] == BODY_FPS and manifest["cycle"]["frames"] == frames
-    assert manifest["cycle"]["closing"] == "none" and manifest["cycle"]["source_start_frame"] == 0
+    (loop,) = manifest["clips"]
+    assert manifest["frames_per_second"] == BODY_FPS and loop["frames"] == frames and loop["name"] == "cycle"
+    assert loop["closing"] == "none" and loop["source_start_frame"] == 0
     assert {(mesh["part"], mesh["kind"], mesh["lod"]) for mesh in manifest["meshes"]} == {("body", "body", 0), ("body", "body", 1)}
     assert [material["name"] for material in manifest["materials"]] == ["body"]
     cycle = WorkDir(work).load("cycle", CycleRecord)

@@ -71,7 +71,10 @@ def test_bake_writes_a_bundle_that_verifies(sample, baked):
     assert summary.bundle == root / "bundles" / "sample" / "1.0"
     bundle = verify_bundle(summary.bundle)
     manifest = bundle.manifest
-    assert manifest["cycle"]["frames"] == CYCLE_FRAMES and manifest["frames_per_second"] == 24.0
+    # Format 3: the one cycle is the one clip, named as a reader names a v1 bundle's; pose caches quantized.
+    assert manifest["format_version"] == 3 and [clip.name for clip in bundle.ranges.clips] == ["cycle"]
+    assert bundle.ranges.pose_frames == CYCLE_FRAMES and manifest["frames_per_second"] == 24.0
+    assert {cache.version for cache in bundle.pose_caches.values()} == {2}
     assert manifest["impostor"]["frame_indices"] == [0, 12]
     assert manifest["impostor"]["azimuths_deg"] == [0.0, 90.0, 180.0, 270.0]
     assert {(m["part"], m["lod"]) for m in manifest["meshes"]} == {("body", 0), ("body", 1), ("cloth", 0), ("cloth", 1)}
@@ -81,12 +84,16 @@ def test_bake_writes_a_bundle_that_verifies(sample, baked):
     assert formats == {"impostor/normal.cbtx": "bc5", "impostor/uv.cbtx": "uvblock", "impostor/detail.cbtx": "bc2",
                        "impostor/surface.cbtx": "bc2"}
     assert manifest["materials"] == [{"name": "character", "diffuse": "textures/character_diffuse.cbtx", "variations": 8}]
-    # Every frame of the low LOD is the high LOD's vertices (a subset carried over).
+    # Every frame of the low LOD is the high LOD's vertices (a subset carried over), each LOD's positions
+    # within half a 16-bit step of its own frame bounds (pose_codec): together, a step of the wider LOD's.
+    from scipy.spatial import cKDTree
+
     for part in ("body", "cloth"):
-        high = bundle.pose_caches[f"meshes/{part}_lod0.cbpc"]
-        low_cache = bundle.pose_caches[f"meshes/{part}_lod1.cbpc"]
-        flat = {tuple(p) for p in np.round(high.positions[5], 6)}
-        assert all(tuple(p) in flat for p in np.round(low_cache.positions[5], 6))
+        high = bundle.pose_caches[f"meshes/{part}_lod0.cbpc"].positions[5]
+        low_positions = bundle.pose_caches[f"meshes/{part}_lod1.cbpc"].positions[5]
+        step = (high.max(axis=0) - high.min(axis=0)).max() / 65535
+        distances, _ = cKDTree(high).query(low_positions, p=np.inf)
+        assert distances.max() <= step + 1e-6
     # The compressed files decode to what went in: the diffuse texture within the stated error with its
     # region codes exact, the detail map's alpha whole region codes and zero outside the UV map's coverage.
     from PIL import Image
@@ -378,7 +385,7 @@ def test_command_line_bake_with_a_given_cycle(sample, baked, tmp_path, capsys):
     uv_map = bundle.textures["impostor/uv.cbtx"]
     assert uv_map.pixel_format == "rgba16" and len(uv_map.layers[0]) == 8 * uv_map.width * uv_map.height
     assert json.loads((tmp_path / "bundles" / "sample" / "2" / "fidelity.json").read_text())["uv_map_format"] == "rgba16"
-    assert bundle.manifest["cycle"]["source_start_frame"] == json.loads(cycle.read_text())["start_frame"]
+    assert bundle.ranges.clips[0].source_start_frame == json.loads(cycle.read_text())["start_frame"]
     assert (tmp_path / "figure4.png").stat().st_size > 0 and (tmp_path / "figure4.json").is_file()
 
     assert main(arguments[:-2] + ["--tile", "30"]) == 2

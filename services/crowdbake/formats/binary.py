@@ -64,7 +64,7 @@ def _check_common(data: bytes, magic: bytes, supported_version: int, header_size
     if got_magic != magic:
         raise FormatError("bad_magic", f"magic is {got_magic!r}, expected {magic!r}", where)
     if version > supported_version or version == 0:
-        raise FormatError("unsupported_version", f"version {version}, this reader supports {supported_version}", where)
+        raise FormatError("unsupported_version", f"version {version}, this reader supports up to {supported_version}", where)
     if declared_header != header_size:
         raise FormatError("invalid_header", f"header_size is {declared_header}, expected {header_size}", where)
     if size < file_size:
@@ -155,12 +155,14 @@ def encode_quantized_pose_cache(
     indices: np.ndarray, uvs: np.ndarray, positions: np.ndarray, normals: np.ndarray, frames_per_second: float
 ) -> bytes:
     """Serialise a version-2 pose cache: each frame's positions as 16-bit codes within that frame's bounds,
-    normals as 2 x 16-bit octahedral codes (pose_codec). Arguments as encode_pose_cache."""
+    normals as 2 x 16-bit octahedral codes (pose_codec). Arguments as encode_pose_cache; ValueError where a
+    decoded position would pass pose_codec.MAX_POSITION_ERROR_M."""
     indices, uvs, positions, normals = _pose_arrays(indices, uvs, positions, normals, frames_per_second)
     bounds = pose_codec.frame_bounds(positions)
     header = _pose_header(QUANTIZED_POSE_CACHE_VERSION, indices, positions.shape[1], positions.shape[0], frames_per_second,
                           bounds[:, 0].min(axis=0), bounds[:, 1].max(axis=0))
     position_codes = pose_codec.quantize_positions(positions, bounds).astype("<u2")
+    pose_codec.check_position_error(positions, pose_codec.dequantize_positions(position_codes, bounds))
     normal_codes = pose_codec.encode_octahedral(normals).astype("<u2")
     return b"".join([header, indices.tobytes(), uvs.tobytes(), bounds.astype("<f4").tobytes(), normal_codes.tobytes(),
                      position_codes.tobytes()])

@@ -12,6 +12,10 @@ from __future__ import annotations
 import numpy as np
 
 QUANT_MAX = 65535  # 16 bits per stored coordinate
+# The most a decoded position may differ from the baked one, per axis (SPEC.md "Pose cache version 2"):
+# a fifth of a millimetre-scale cloth wrinkle. Half a 16-bit step reaches it only for a frame 65 m across;
+# a 2 m character's step is 0.03 mm.
+MAX_POSITION_ERROR_M = 0.0005
 # The largest angle (degrees) between a unit normal and its 2 x 16-bit octahedral code, decoded: measured
 # by services/tests/test_pose_codec.py over a dense sphere and stated in SPEC.md.
 OCTAHEDRAL_MAX_ERROR_DEG = 0.005
@@ -41,6 +45,17 @@ def quantize_positions(positions: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(relative * QUANT_MAX), 0, QUANT_MAX).astype(np.uint16)
 
 
+def check_position_error(positions: np.ndarray, decoded: np.ndarray) -> float:
+    """The largest per-axis distance (metres) between (F, V, 3) `positions` and their `decoded` codes;
+    ValueError naming the frame where it passes MAX_POSITION_ERROR_M."""
+    error = np.abs(np.asarray(decoded, dtype=np.float64) - np.asarray(positions, dtype=np.float64)).max(axis=(1, 2))
+    worst = int(np.argmax(error))
+    if error[worst] > MAX_POSITION_ERROR_M:
+        raise ValueError(f"frame {worst} spans too far for 16-bit positions: error {error[worst] * 1000:.3f} mm, "
+                         f"the bound is {MAX_POSITION_ERROR_M * 1000:.1f} mm")
+    return float(error[worst])
+
+
 def dequantize_positions(codes: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     """(F, V, 3) uint16 codes and (F, 2, 3) bounds → (F, V, 3) float32 positions (the shader's expression)."""
     bounds = np.asarray(bounds, dtype=np.float32)
@@ -54,6 +69,15 @@ def position_error_bound(bounds: np.ndarray) -> np.ndarray:
     half_step = (bounds[:, 1] - bounds[:, 0]).max(axis=1) / (2 * QUANT_MAX)
     magnitude = np.abs(bounds).max(axis=(1, 2))
     return half_step + 4 * np.finfo(np.float32).eps * magnitude
+
+
+def stored_frames(positions: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(F, V, 3) positions and unit normals as a reader of a version-2 pose cache gets them back, float32:
+    for whatever must match the pose caches to the bit without reading them."""
+    positions = np.asarray(positions, dtype=np.float32)
+    bounds = frame_bounds(positions)
+    normals = np.asarray(normals, dtype=np.float32)  # the writer codes float32 normals
+    return dequantize_positions(quantize_positions(positions, bounds), bounds), decode_octahedral(encode_octahedral(normals))
 
 
 def _sign_not_zero(values: np.ndarray) -> np.ndarray:

@@ -29,7 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from crowdbake.bake import compression, impostor_views, pose_ranges, surface_maps
-from crowdbake.formats.binary import read_pose_frame
+from crowdbake.formats import pose_codec
+from crowdbake.formats.binary import QUANTIZED_POSE_CACHE_VERSION, read_pose_frame
 from crowdbake.formats.gltf import load_character
 from crowdbake.render.impostor import shared_renderer
 from crowdbake.stages.poses import diffuse_format, high_parts, impostor_framing, materials_of, part_materials
@@ -71,7 +72,8 @@ def load_plan(work: Path) -> ImpostorPlan:
 
 def scene_arrays(high: dict, part_material: dict[str, int], frame_indices: list[int]) -> dict[str, np.ndarray]:
     """The high LOD of every part concatenated (as load_scene reads it): faces (T, 3) int64, uvs (V, 2)
-    float32, triangle_material (T,) int64, and per baked frame f positions_f, normals_f (V, 3) float32."""
+    float32, triangle_material (T,) int64, and per baked frame f positions_f, normals_f (V, 3) float32, as
+    the pose caches store them (quantized: the impostors show what the meshes show)."""
     faces, uvs, materials, offset = [], [], [], 0
     for name, part in high.items():
         faces.append(np.asarray(part.faces, dtype=np.int64) + offset)
@@ -80,8 +82,9 @@ def scene_arrays(high: dict, part_material: dict[str, int], frame_indices: list[
         offset += len(part.uvs)
     arrays = {"faces": np.concatenate(faces), "uvs": np.concatenate(uvs), "triangle_material": np.concatenate(materials)}
     for frame in frame_indices:
-        arrays[f"positions_{frame}"] = np.concatenate([np.asarray(part.positions[frame], dtype=np.float32) for part in high.values()])
-        arrays[f"normals_{frame}"] = np.concatenate([np.asarray(part.normals[frame], dtype=np.float32) for part in high.values()])
+        stored = [pose_codec.stored_frames(part.positions[frame:frame + 1], part.normals[frame:frame + 1]) for part in high.values()]
+        arrays[f"positions_{frame}"] = np.concatenate([positions[0] for positions, _ in stored])
+        arrays[f"normals_{frame}"] = np.concatenate([normals[0] for _, normals in stored])
     return arrays
 
 
@@ -92,7 +95,7 @@ def stage_impostor_plan(work: Path, progress: Progress | None = None) -> StageOu
     and texture compression: what the impostor tasks need, so they can start beside the poses stage."""
     started = time.perf_counter()
     folder = WorkDir(work)
-    key = stage_key("impostor-plan", folder.key_of("cycle"))
+    key = stage_key("impostor-plan", folder.key_of("cycle"), QUANTIZED_POSE_CACHE_VERSION)  # its scene is the caches' geometry
     scene_path = folder.root / "impostor" / SCENE_FILE
     cached = folder.cached("impostor", key, ImpostorPlan, [scene_path])
     if cached is not None:

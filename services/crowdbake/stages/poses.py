@@ -24,7 +24,7 @@ from crowdbake.bake.texture_memory import MIB
 from crowdbake.bake.cycle import estimate_root_offsets
 from crowdbake.bake.skinning import pose_character
 from crowdbake.errors import StageOrderError
-from crowdbake.formats.binary import encode_quantized_pose_cache
+from crowdbake.formats.binary import QUANTIZED_POSE_CACHE_VERSION, encode_quantized_pose_cache
 from crowdbake.formats.gltf import load_character
 from crowdbake.formats.images import read_texture_variation
 from crowdbake.formats.obj import read_obj
@@ -328,7 +328,7 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     started = time.perf_counter()
     folder = WorkDir(work)
     job = load_job(work)
-    key = stage_key("poses", folder.key_of("cycle"))
+    key = stage_key("poses", folder.key_of("cycle"), QUANTIZED_POSE_CACHE_VERSION)  # a cache of another version is stale
     out = folder.root / "poses"
     cached = folder.cached("poses", key, PosesRecord, [out / TEXTURES_FILE, out / DIFFUSE_ERRORS])
     if cached is not None:
