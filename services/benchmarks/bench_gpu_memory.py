@@ -25,7 +25,8 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[2]
 SHARED_ASSETS = Path(os.environ.get("CROWDBAKE_SHARED_ASSETS", REPO_ROOT.parent / "shared" / "assets"))
 MIB = 1024 * 1024
-PARTS = ("bodies", "garments", "impostors", "textures", "total")
+# crowdview's report: meshes = bodies + garments (builds before the split report meshes only).
+PARTS = ("meshes", "bodies", "garments", "impostors", "textures", "total")
 
 
 def crowdbake(*args: str) -> None:
@@ -78,8 +79,8 @@ def pose_cache_files(bundle: Path) -> dict:
 
 
 def row(label: str, memory: dict) -> str:
-    cells = [f"{memory[part] / MIB:9.2f}" if part in memory else f"{'-':>9}" for part in PARTS]
-    return f"{label:<28}" + "".join(cells)
+    cells = [f"{memory[part] / MIB:11.2f}" if part in memory else f"{'-':>11}" for part in PARTS]
+    return f"{label:<34}" + "".join(cells)
 
 
 def main() -> int:
@@ -97,7 +98,7 @@ def main() -> int:
     if not cases:
         parser.error("nothing to measure: give --bake, --bundle or --case")
     results = []
-    print(f"{'MiB':<28}" + "".join(f"{part:>9}" for part in PARTS))
+    print(f"{'MiB':<34}" + "".join(f"{part:>11}" for part in PARTS))
     for label, bundle, crowdview in cases:
         memory = measure(crowdview, bundle)
         results.append({"label": label, "bundle": str(bundle), "crowdview": crowdview, "gpu_memory_bytes": memory, **pose_cache_files(bundle)})
