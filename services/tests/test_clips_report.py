@@ -151,3 +151,8 @@ def test_the_bundles_cycle_json_drops_the_report_pictures(clips_sample, tmp_path
     assert all("figures" in entry for entry in [*document["clips"], *document["transitions"]])
     published = bundle_cycle_document(document)
     assert not any("figures" in entry for entry in [*published["clips"], *published["transitions"]])
+
+
+def test_the_robots_bake_reports_every_loop_and_transition(robot_bake):
+    """A bake draws the report's pictures after the stage, beside the next ones: they are there when it ends."""
+    assert_every_loop_and_transition_is_shown(robot_bake[1] / "cycle")

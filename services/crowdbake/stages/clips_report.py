@@ -100,7 +100,7 @@ def join_steps(transition: Transition, loop_a: np.ndarray, loop_b: np.ndarray, c
 
 def _plot_join(steps: JoinSteps, title: str, loop_label: str, path: Path) -> None:
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(5.2, 3.0), dpi=100)
+    fig, ax = plt.subplots(figsize=(7.0, 3.0), dpi=100)
     h = steps.half_width
     ax.axvspan(-h - 0.5, h - 0.5, color="0.92", label=f"crossfade ({2 * h} frames)")
     ax.plot(steps.offsets, steps.simulation, color="0.55", lw=1.2, label="simulation")
@@ -113,7 +113,7 @@ def _plot_join(steps: JoinSteps, title: str, loop_label: str, path: Path) -> Non
     ax.set_ylabel("step per frame (cache units)")
     ax.set_ylim(bottom=0)  # from zero, so that a jump reads against the motion itself
     ax.set_title(title, fontsize=10)
-    ax.legend(fontsize=7, loc="lower left", framealpha=0.8)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))  # beside the curves, never over them
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
