@@ -255,16 +255,8 @@ nlohmann::json blend_cost(Renderer& renderer, const Bundle& bundle, const Benchm
     return cost;
 }
 
-}  // namespace
-
-nlohmann::json run_benchmark(Renderer& renderer, const Bundle& bundle, const BenchmarkDesc& desc) {
-    auto log = [&](const char* format, auto... args) {
-        if (!desc.log) return;
-        char line[512];
-        std::snprintf(line, sizeof line, format, args...);
-        desc.log(line);
-    };
-    const auto start = std::chrono::steady_clock::now();
+// What the report says before any figure: the machine, the bundle, the budget and the method.
+nlohmann::json report_header(const Renderer& renderer, const Bundle& bundle, const BenchmarkDesc& desc) {
     nlohmann::json report;
     report["device"] = desc.device;
     report["gl"] = desc.gl;
@@ -286,18 +278,75 @@ nlohmann::json run_benchmark(Renderer& renderer, const Bundle& bundle, const Ben
                        "all on screen; hybrid = --lod auto (high, low, UV impostor by distance); 2 warm-up frames, "
                        "then 15 frames, each timed from build_frame (cull, LOD, views) to glFinish; fps from the "
                        "fastest frame (fps_median from the median one); N doubles from 8, then bisects to 5 %";
+    return report;
+}
+
+// One mode's largest crowds at 30 and 60 fps, searched until `deadline`, every sample logged:
+// the report's results entry, "cut_short" where the search did not converge in time.
+template <typename Log>
+nlohmann::json measure_mode(Renderer& renderer, const Bundle& bundle, const BenchmarkDesc& desc, const char* name, const ModeDraw& draw,
+                            Clock::time_point deadline, const Log& log) {
+    std::map<uint32_t, Sample> samples;
+    bool sample_cut = false;
+    auto measure_n = [&](uint32_t n) {
+        const Sample s = measure(renderer, bundle, desc.seed, n, draw, deadline);
+        sample_cut |= s.cut_short;
+        log("benchmark: %-15s N=%-7u %7.1f fps (median frame %6.1f fps, CPU %7.1f ms/frame)  high %u, low %u, impostor %u%s", name, n,
+            s.fps, s.fps_median, s.cpu_ms, s.by_lod[0], s.by_lod[1], s.by_lod[2], s.cut_short ? " (cut short)" : "");
+        return s;
+    };
+    bool converged30 = false, converged60 = false;
+    const uint32_t n30 = search(measure_n, &samples, 30.0, deadline, &converged30);
+    const uint32_t n60 = search(measure_n, &samples, 60.0, deadline, &converged60);
+    nlohmann::json entry;
+    entry["n_at_30fps"] = n30;
+    entry["n_at_60fps"] = n60;
+    entry["converged_30"] = converged30;
+    entry["converged_60"] = converged60;
+    if (samples.count(n30)) {
+        const Sample& s = samples[n30];
+        entry["lod_split_at_30fps"] = {{"high", s.by_lod[0]}, {"low", s.by_lod[1]}, {"impostor", s.by_lod[2]}};
+    }
+    nlohmann::json list = nlohmann::json::array();
+    for (const auto& [n, s] : samples)
+        list.push_back({{"n", n},
+                        {"fps", std::round(s.fps * 10) / 10},
+                        {"fps_median", std::round(s.fps_median * 10) / 10},
+                        {"cpu_ms_per_frame", std::round(s.cpu_ms * 100) / 100}});
+    entry["samples"] = list;
+    entry["cut_short"] = !(converged30 && converged60) || sample_cut;
+    return entry;
+}
+
+// Each mode's crowd at 30 fps against high_mesh's; null without a high_mesh answer.
+nlohmann::json ratios_to_high_mesh(const nlohmann::json& results) {
+    const double high = results.contains("high_mesh") ? results["high_mesh"].value("n_at_30fps", 0u) : 0.0;
+    if (high <= 0) return nullptr;
+    nlohmann::json ratios;
+    for (const auto& [name, entry] : results.items())
+        if (entry.contains("n_at_30fps")) ratios[name] = std::round(entry["n_at_30fps"].get<double>() / high * 100) / 100;
+    return ratios;
+}
+
+double seconds_since(Clock::time_point start) { return std::chrono::duration<double>(Clock::now() - start).count(); }
+
+}  // namespace
+
+nlohmann::json run_benchmark(Renderer& renderer, const Bundle& bundle, const BenchmarkDesc& desc) {
+    auto log = [&](const char* format, auto... args) {
+        if (!desc.log) return;
+        char line[512];
+        std::snprintf(line, sizeof line, format, args...);
+        desc.log(line);
+    };
+    const auto start = Clock::now();
+    nlohmann::json report = report_header(renderer, bundle, desc);
     nlohmann::json results = nlohmann::json::object();
     nlohmann::json phases = nlohmann::json::array();  // every phase: name, seconds, cut_short
     // --max-seconds bounds the whole run: the modes and the blend-cost phase each get an even share,
     // and none runs past the run's end (measure() stops at its deadline after one timed frame).
     const auto end = start + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(desc.max_seconds));
     const double share = desc.max_seconds / double(desc.modes.size() + 1);
-    auto checkpoint = [&] {
-        report["results"] = results;
-        report["phases"] = phases;
-        report["seconds"] = std::chrono::duration<double>(Clock::now() - start).count();
-        if (desc.checkpoint) desc.checkpoint(report);
-    };
     for (size_t m = 0; m < desc.modes.size(); ++m) {
         const char* name = benchmark_mode_name(desc.modes[m]);
         ModeDraw draw = mode_draw(desc.modes[m]);
@@ -310,61 +359,30 @@ nlohmann::json run_benchmark(Renderer& renderer, const Bundle& bundle, const Ben
         const auto phase_start = Clock::now();
         const auto deadline = std::min(end, start + std::chrono::duration_cast<Clock::duration>(
                                                         std::chrono::duration<double>(share * double(m + 1))));
-        std::map<uint32_t, Sample> samples;
-        bool sample_cut = false;
-        auto measure_n = [&](uint32_t n) {
-            const Sample s = measure(renderer, bundle, desc.seed, n, draw, deadline);
-            sample_cut |= s.cut_short;
-            log("benchmark: %-15s N=%-7u %7.1f fps (median frame %6.1f fps, CPU %7.1f ms/frame)  high %u, low %u, impostor %u%s", name, n,
-                s.fps, s.fps_median, s.cpu_ms, s.by_lod[0], s.by_lod[1], s.by_lod[2], s.cut_short ? " (cut short)" : "");
-            return s;
-        };
-        bool converged30 = false, converged60 = false;
-        const uint32_t n30 = search(measure_n, &samples, 30.0, deadline, &converged30);
-        const uint32_t n60 = search(measure_n, &samples, 60.0, deadline, &converged60);
-        nlohmann::json entry;
-        entry["n_at_30fps"] = n30;
-        entry["n_at_60fps"] = n60;
-        entry["converged_30"] = converged30;
-        entry["converged_60"] = converged60;
-        if (samples.count(n30)) {
-            const Sample& s = samples[n30];
-            entry["lod_split_at_30fps"] = {{"high", s.by_lod[0]}, {"low", s.by_lod[1]}, {"impostor", s.by_lod[2]}};
-        }
-        nlohmann::json list = nlohmann::json::array();
-        for (const auto& [n, s] : samples)
-            list.push_back({{"n", n},
-                            {"fps", std::round(s.fps * 10) / 10},
-                            {"fps_median", std::round(s.fps_median * 10) / 10},
-                            {"cpu_ms_per_frame", std::round(s.cpu_ms * 100) / 100}});
-        entry["samples"] = list;
-        const bool cut_short = !(converged30 && converged60) || sample_cut;
-        entry["cut_short"] = cut_short;
-        results[name] = entry;
-        const double phase_s = std::chrono::duration<double>(Clock::now() - phase_start).count();
+        const nlohmann::json entry = results[name] = measure_mode(renderer, bundle, desc, name, draw, deadline, log);
+        const double phase_s = seconds_since(phase_start);
+        const bool cut_short = entry["cut_short"];
         phases.push_back({{"name", name}, {"seconds", std::round(phase_s * 100) / 100}, {"cut_short", cut_short}});
-        log("benchmark: %-15s %u at 30 fps, %u at 60 fps, %.1f s%s", name, n30, n60, phase_s,
-            cut_short ? " (cut short by --max-seconds: lower bounds)" : "");
-        checkpoint();
+        log("benchmark: %-15s %u at 30 fps, %u at 60 fps, %.1f s%s", name, entry["n_at_30fps"].get<uint32_t>(),
+            entry["n_at_60fps"].get<uint32_t>(), phase_s, cut_short ? " (cut short by --max-seconds: lower bounds)" : "");
+        // The report so far, so a run stopped from outside still leaves one.
+        report["results"] = results;
+        report["phases"] = phases;
+        report["seconds"] = seconds_since(start);
+        if (desc.checkpoint) desc.checkpoint(report);
     }
     report["impostor_blend"] = impostor_blend_name(renderer.effective_blend(desc.blend));
     const auto blend_start = Clock::now();
     report["impostor_blend_cost"] = blend_cost(renderer, bundle, desc, results, end, log);
-    const double blend_s = std::chrono::duration<double>(Clock::now() - blend_start).count();
+    const double blend_s = seconds_since(blend_start);
     phases.push_back({{"name", "impostor_blend_cost"}, {"seconds", std::round(blend_s * 100) / 100},
                       {"cut_short", report["impostor_blend_cost"]["cut_short"]}});
     log("benchmark: impostor_blend_cost %.1f s", blend_s);
     report["results"] = results;
     report["phases"] = phases;
-    const double high = results.contains("high_mesh") ? results["high_mesh"].value("n_at_30fps", 0u) : 0.0;
-    if (high > 0) {
-        nlohmann::json ratios;
-        for (const auto& [name, entry] : results.items())
-            if (entry.contains("n_at_30fps")) ratios[name] = std::round(entry["n_at_30fps"].get<double>() / high * 100) / 100;
-        report["ratio_to_high_mesh_at_30fps"] = ratios;
-    }
+    if (nlohmann::json ratios = ratios_to_high_mesh(results); !ratios.is_null()) report["ratio_to_high_mesh_at_30fps"] = ratios;
     report["load_average_1min_end"] = load_average_1min();
-    report["seconds"] = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    report["seconds"] = seconds_since(start);
     return report;
 }
 
