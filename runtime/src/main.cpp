@@ -43,6 +43,8 @@ using namespace crowdview;
 namespace {
 
 constexpr int kExitRefused = 1, kExitUsage = 2, kExitNoGl = 3;
+// Set before main runs: --max-seconds counts from here, loading and context creation included.
+const std::chrono::steady_clock::time_point kProcessStart = std::chrono::steady_clock::now();
 
 // --lod: a LOD rule for everyone, or one representation for everyone.
 enum class LodChoice { automatic, high, low, impostor, detail };
@@ -284,6 +286,7 @@ int run_benchmark_mode(const GlContext& context, Renderer& renderer, const Bundl
     BenchmarkDesc desc;
     desc.seed = o.seed;
     desc.max_seconds = o.max_seconds;
+    desc.started = kProcessStart;
     desc.modes = o.modes;
     if (bundle.manifest.impostor.detail_map.empty()) {
         const auto detail = std::find(desc.modes.begin(), desc.modes.end(), BenchmarkMode::detail_impostor);
@@ -432,6 +435,7 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
         // Per archetype: characters per clip (and transition) and LOD in the last frame, and the switches' jumps.
         for (size_t a = 0; a < archetype_count; ++a) {
             report["archetypes"][a]["clips"] = clip_counts(crowds[a], renderer.model(a), state[a], camera, renderer.aspect(), time_s);
+            report["archetypes"][a]["impostor_blend"] = impostor_blend_name(renderer.effective_blend(o.blend, a));  // warp needs a surface map
             if (a < meters.size()) {
                 report["archetypes"][a]["switch_jumps"] = meters[a].report();
                 std::string line = "archetype '" + scene.names[a] + "': switches, largest jump / median motion in the clip:";
