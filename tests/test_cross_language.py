@@ -232,12 +232,14 @@ def test_crowdview_decodes_bc5_normal_maps_on_the_cpu_as_the_gpu_does(python_bun
 def test_crowdview_draws_the_reprojected_silhouette_the_bake_scores(views16_bundle, tmp_path):
     """One character at the impostor switch distance, halfway between baked azimuths, rings and frames
     (`crowdview --switch-view`): the impostor's silhouette on the GPU is the one crowdbake's numpy copy of
-    the shader draws for the same camera and frame (crowdbake.stages.runtime_fidelity.sample_tile, what
-    fidelity.json's `runtime` scores), and plainly not the unreprojected blend's."""
-    from crowdbake.bake import impostor_views
+    the shader draws for the same camera and frame (crowdbake.bake.reference.runtime_picture.sample_tile, the
+    twin of the shader whose pictures fidelity.json's `runtime` scores), and plainly not the unreprojected
+    blend's."""
+    from crowdbake.bake import impostor_views, view_blend
     from crowdbake.bake.reference import impostor_blend
+    from crowdbake.bake.reference.runtime_picture import AtlasTiles, sample_tile
     from crowdbake.stages.impostors import load_poses
-    from crowdbake.stages.runtime_fidelity import AtlasTiles, halfway_frame, sample_tile
+    from crowdbake.stages.runtime_fidelity import halfway_frame
 
     poses = load_poses(views16_bundle.parents[2] / "work")
     layout = poses.atlas_layout()
@@ -247,7 +249,7 @@ def test_crowdview_draws_the_reprojected_silhouette_the_bake_scores(views16_bund
     results = []
     for azimuth, elevation in ((11.25, 10.0), (191.25, 30.0), (303.75, 10.0)):
         view = impostor_views.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
-        weights = impostor_blend.blend_view_weights(azimuth, elevation, layout.azimuths_deg, layout.elevations_deg)
+        weights = view_blend.blend_view_weights(azimuth, elevation, layout.azimuths_deg, layout.elevations_deg)
 
         def drawn(tiles: AtlasTiles) -> np.ndarray:
             samples = [(w, sample_tile(tiles, tile, k, view, frames)) for w, tile, k in impostor_blend.samples_for(weights, frames)]

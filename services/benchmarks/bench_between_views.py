@@ -39,10 +39,13 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from crowdbake.bake import fidelity, impostor_views, shading  # noqa: E402
+from crowdbake.bake import fidelity, impostor_views, shading, view_blend  # noqa: E402
 from crowdbake.bake.reference import impostor_blend, impostor_warp  # noqa: E402
-from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_poses, part_path  # noqa: E402
-from crowdbake.stages.runtime_fidelity import AtlasTiles, halfway_frame, render_mesh_references  # noqa: E402
+from crowdbake.bake.reference.coverage import Coverage, interpolate  # noqa: E402
+from crowdbake.bake.reference.runtime_picture import AtlasTiles  # noqa: E402
+from crowdbake.render.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
+from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_poses, nearest_inside, part_path  # noqa: E402
+from crowdbake.stages.runtime_fidelity import halfway_frame, render_mesh_references  # noqa: E402
 
 Camera = tuple[float, float, int]  # azimuth, elevation (degrees), cycle frame
 Sample = tuple[float, int, int]  # weight, atlas tile, atlas layer
@@ -98,12 +101,12 @@ class Bench:
             np.savez(path, **fresh)
         return [self._references[_key(*camera)] for camera in cameras]
 
-    def frame_weights(self, frame: int) -> impostor_blend.FrameWeights:
-        return impostor_blend.blend_frame_weights(frame, self.frames, self.poses.cycle_frames)
+    def frame_weights(self, frame: int) -> view_blend.FrameWeights:
+        return view_blend.blend_frame_weights(frame, self.frames, self.poses.cycle_frames)
 
     def samples(self, azimuth: float, elevation: float, frame: int) -> list[Sample]:
         """crowdview's (weight, tile, layer) samples for a camera (impostor_blend.samples_for)."""
-        views = impostor_blend.blend_view_weights(azimuth, elevation, self.layout.azimuths_deg, self.layout.elevations_deg)
+        views = view_blend.blend_view_weights(azimuth, elevation, self.layout.azimuths_deg, self.layout.elevations_deg)
         return impostor_blend.samples_for(views, self.frame_weights(frame))
 
     def light(self, azimuth: float, elevation: float) -> np.ndarray:
@@ -133,6 +136,19 @@ def method_nearest(bench: Bench, azimuth: float, elevation: float, frame: int) -
     return bench.blend(nearest_sample(bench.samples(azimuth, elevation, frame)), azimuth, elevation)
 
 
+_ID_RENDERERS: dict[int, TriangleIdRenderer] = {}
+
+
+def id_coverage(view: impostor_views.OrthoView, positions: np.ndarray, faces: np.ndarray) -> Coverage:
+    """Exact coverage of `view` from the test oracle's triangle-id render (crowdbake.render.reference), one
+    renderer a view size kept open for the run: a GL context costs more than a render."""
+    if view.size not in _ID_RENDERERS:
+        _ID_RENDERERS[view.size] = TriangleIdRenderer(view.size).__enter__()
+    renderer = _ID_RENDERERS[view.size]
+    renderer.set_mesh(positions, faces)
+    return renderer.coverage(view, positions, faces)
+
+
 class SurfaceFields:
     """Per baked (tile, layer): the surface point's depth along the view axis and its motion to the previous
     and next baked frames, from the mesh (what a bake could store beside the maps), dilated into the background."""
@@ -159,23 +175,19 @@ class SurfaceFields:
     def fields(self, tile: int, layer: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(depth (S, S), motion to the previous baked frame (S, S, 3), motion to the next (S, S, 3))."""
         if (tile, layer) not in self._fields:
-            from crowdbake.render.impostor import shared_renderer
-
             frames = self.bench.frames
             scene = self._scene(frames[layer])
             view = self.view(tile)
-            renderer = shared_renderer(view.size)
-            renderer.set_mesh(scene.positions, scene.faces)
-            coverage = renderer.coverage(view, scene.positions, scene.faces)
+            coverage = id_coverage(view, scene.positions, scene.faces)
             mask = coverage.mask
             self.mask_mismatch += int((mask != self.bench.tiles.tile(tile, layer).covered).sum())
-            points = impostor_views.interpolate(scene.positions, scene.faces, coverage)
+            points = interpolate(scene.positions, scene.faces, coverage)
             depth = np.where(mask, (points - view.center) @ view.back, 0.0)
             motions = []
             for other in (frames[layer - 1], frames[(layer + 1) % len(frames)]):
-                moved = impostor_views.interpolate(self._scene(other).positions, scene.faces, coverage)
+                moved = interpolate(self._scene(other).positions, scene.faces, coverage)
                 motions.append(np.where(mask[..., None], moved - points, 0.0))
-            nearest = impostor_views.nearest_inside(mask)
+            nearest = nearest_inside(mask)
             if nearest is not None:
                 depth = depth[nearest[0], nearest[1]]
                 motions = [m[nearest[0], nearest[1]] for m in motions]
@@ -185,16 +197,12 @@ class SurfaceFields:
 
     def motion_to(self, tile: int, layer: int, frame: int) -> np.ndarray:
         """(S, S, 3) motion of each texel's surface point to cycle frame `frame` (any, baked or not), dilated."""
-        from crowdbake.render.impostor import shared_renderer
-
         scene = self._scene(self.bench.frames[layer])
         view = self.view(tile)
-        renderer = shared_renderer(view.size)
-        renderer.set_mesh(scene.positions, scene.faces)
-        coverage = renderer.coverage(view, scene.positions, scene.faces)
-        points = impostor_views.interpolate(scene.positions, scene.faces, coverage)
-        moved = impostor_views.interpolate(self._scene(frame).positions, scene.faces, coverage)
-        nearest = impostor_views.nearest_inside(coverage.mask)
+        coverage = id_coverage(view, scene.positions, scene.faces)
+        points = interpolate(scene.positions, scene.faces, coverage)
+        moved = interpolate(self._scene(frame).positions, scene.faces, coverage)
+        nearest = nearest_inside(coverage.mask)
         motion = np.where(coverage.mask[..., None], moved - points, 0.0)
         return motion if nearest is None else motion[nearest[0], nearest[1]]
 

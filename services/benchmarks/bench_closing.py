@@ -118,7 +118,7 @@ def measure(name: str, cloth, faces, body, body_faces, body_normals, cycle_frame
 
 
 def long_skirt(assets: Path):
-    from crowdbake.stages.cycle import load_cycle_inputs
+    from crowdbake.stages.cycle_inputs import load_cycle_inputs
 
     folder = assets / "long_skirt"
     inputs = load_cycle_inputs(folder / "long_skirt.pc2", folder / "long_skirt.obj", character=assets / "CesiumMan.glb")

@@ -30,11 +30,12 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from crowdbake.bake import fidelity, impostor_views, shading  # noqa: E402
+from crowdbake.bake import fidelity, impostor_views, shading, view_blend  # noqa: E402
 from crowdbake.bake.reference import impostor_blend  # noqa: E402
 from crowdbake.formats.binary import layer_size  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, load_poses  # noqa: E402
-from crowdbake.stages.runtime_fidelity import AtlasTiles, render_mesh_references  # noqa: E402
+from crowdbake.bake.reference.runtime_picture import AtlasTiles  # noqa: E402
+from crowdbake.stages.runtime_fidelity import render_mesh_references  # noqa: E402
 
 MIB = 1024 * 1024
 AZIMUTH_COUNTS = (8, 16, 32)
@@ -59,7 +60,7 @@ def score_setting(work: Path, poses, tiles: AtlasTiles, diffuse, chains, outfit_
     following = frames[(k + 1) % len(frames)]
     span = following - frames[k] if following > frames[k] else following + poses.cycle_frames - frames[k]
     frame = (frames[k] + span // 2) % poses.cycle_frames
-    frame_weights = impostor_blend.blend_frame_weights(frame, frames, poses.cycle_frames)
+    frame_weights = view_blend.blend_frame_weights(frame, frames, poses.cycle_frames)
     step = 360.0 / len(azimuths)
     mid_elevations = [(a + b) / 2.0 for a, b in zip(elevations, elevations[1:])] or list(elevations)
     spread = np.linspace(0, len(azimuths), cameras, endpoint=False).astype(int)
@@ -68,7 +69,7 @@ def score_setting(work: Path, poses, tiles: AtlasTiles, diffuse, chains, outfit_
     size = dense.tile_size
     scores = []
     for (azimuth, elevation), reference in zip(chosen, references):
-        weights = impostor_blend.blend_view_weights(azimuth, elevation, azimuths, elevations)
+        weights = view_blend.blend_view_weights(azimuth, elevation, azimuths, elevations)
         samples = []
         for w, tile, layer in impostor_blend.samples_for(weights, frame_weights):
             a = dense.azimuths_deg.index(azimuths[tile % len(azimuths)])

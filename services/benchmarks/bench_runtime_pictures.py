@@ -1,7 +1,6 @@
 """The pictures fidelity.json's `runtime` section scores, drawn by crowdview's own shader in the bake's GL
 context (crowdbake.render.runtime_shader, what the pack stage does) and by its numpy copy
-(crowdbake.bake.reference.impostor_blend and impostor_warp, what it did before): seconds, and how far apart the
-pictures and their scores are.
+(crowdbake.bake.reference.runtime_picture): seconds, and how far apart the pictures and their scores are.
 
     PYTHONPATH=services python services/benchmarks/bench_runtime_pictures.py --work WORK [--repeat 3]
         [--out out/bench/runtime_pictures.json]
@@ -27,10 +26,11 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 from crowdbake.bake import fidelity  # noqa: E402
 from crowdbake.bake.reference import impostor_blend  # noqa: E402
 from crowdbake.formats.bundle import verify_bundle  # noqa: E402
-from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
+from crowdbake.render.impostor import BakeRenderer  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_poses  # noqa: E402
 from crowdbake.stages.pack import Parts  # noqa: E402
-from crowdbake.stages.runtime_fidelity import AtlasTiles, numpy_picture, runtime_atlas, runtime_textures, scored_cameras  # noqa: E402
+from crowdbake.bake.reference.runtime_picture import AtlasTiles, numpy_picture  # noqa: E402
+from crowdbake.stages.runtime_fidelity import runtime_atlas, runtime_textures, scored_cameras  # noqa: E402
 
 
 def main() -> int:
@@ -49,7 +49,7 @@ def main() -> int:
     scored = scored_cameras(args.work, poses, layout, tasks, Parts(args.work, tasks), FIDELITY_SUPERSAMPLE)
     pictures = [picture for *_, picture in scored]
 
-    with VisibilityRenderer(layout.tile_size) as renderer:
+    with BakeRenderer(layout.tile_size) as renderer:
         renderer.runtime_impostors(atlas, pictures[:1] + pictures[-1:])  # compile (most of) the programs
         shader_wall = shader_cpu = float("inf")
         for _ in range(args.repeat):

@@ -23,10 +23,11 @@ import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from crowdbake.bake import fidelity, impostor_views, shading  # noqa: E402
+from crowdbake.bake import fidelity, impostor_views, shading, view_blend  # noqa: E402
 from crowdbake.bake.reference import impostor_blend  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, load_poses  # noqa: E402
-from crowdbake.stages.runtime_fidelity import AtlasTiles, halfway_frame, render_mesh_references, sample_tile  # noqa: E402
+from crowdbake.bake.reference.runtime_picture import AtlasTiles, sample_tile  # noqa: E402
+from crowdbake.stages.runtime_fidelity import halfway_frame, render_mesh_references  # noqa: E402
 
 
 def main() -> int:
@@ -55,12 +56,12 @@ def main() -> int:
     step = (azimuths[(a + 1) % len(azimuths)] - azimuths[a]) % 360.0 or 360.0
     between_frame, between_weights = halfway_frame(poses)
     cases = [
-        ("baked view", azimuths[a], elevations[0], poses.fidelity_frame, impostor_blend.FrameWeights((layer, layer), 0.0)),
+        ("baked view", azimuths[a], elevations[0], poses.fidelity_frame, view_blend.FrameWeights((layer, layer), 0.0)),
         ("halfway", azimuths[a] + step / 2.0, (elevations[0] + elevations[min(1, len(elevations) - 1)]) / 2.0, between_frame, between_weights),
     ]
 
     def draw(weights: list[tuple[float, int, int]], azimuth: float, elevation: float,
-             frames: impostor_blend.FrameWeights | None = None) -> np.ndarray:
+             frames: view_blend.FrameWeights | None = None) -> np.ndarray:
         """The samples blended; with `frames`, each reprojected to the camera and that cycle position first."""
         view = impostor_views.ortho_view(poses.center, poses.radius, azimuth, elevation, size)
         samples = [(w, tiles.tile(tile, k) if frames is None else sample_tile(tiles, tile, k, view, frames)) for w, tile, k in weights]
@@ -70,10 +71,10 @@ def main() -> int:
     rows = []
     for label, azimuth, elevation, frame, frames in cases:
         mesh = render_mesh_references(args.work, poses, frame, [(azimuth, elevation)], FIDELITY_SUPERSAMPLE)[0]
-        weights = impostor_blend.samples_for(impostor_blend.blend_view_weights(azimuth, elevation, azimuths, layout.elevations_deg), frames)
+        weights = impostor_blend.samples_for(view_blend.blend_view_weights(azimuth, elevation, azimuths, layout.elevations_deg), frames)
         reprojected = draw(weights, azimuth, elevation, frames)
         blended = draw(weights, azimuth, elevation)
-        nearest_tile = impostor_blend.blend_view_weights(azimuth, elevation, azimuths, layout.elevations_deg)
+        nearest_tile = view_blend.blend_view_weights(azimuth, elevation, azimuths, layout.elevations_deg)
         best = int(np.argmax(nearest_tile.weights))
         nearest_layer = frames.layers[1] if frames.weight > 0.5 else frames.layers[0]
         nearest = draw([(1.0, nearest_tile.tiles[best], nearest_layer)], azimuth, elevation)

@@ -29,7 +29,7 @@ GOOD_BUNDLE = REPO_ROOT / "shared_formats" / "vectors" / "v1" / "good" / "bundle
 def tiny_character(animated: bool = True):
     """A skinned tetrahedron on one joint that bobs up and down in a quarter second (a valid character;
     6 frames per cycle at crowdbake.params.BASE_FPS (24 fps), so a 12-frame cloth cache holds two cycles)."""
-    from crowdbake.bake.mesh import vertex_normals
+    from crowdbake.geometry import vertex_normals
     from crowdbake.formats.gltf import AnimationChannel, Character
 
     positions = np.array([[0, 0, 0], [0.5, 0, 0], [0, 1.7, 0], [0, 0, 0.5]], np.float32)

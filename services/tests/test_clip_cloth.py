@@ -229,6 +229,7 @@ def test_submit_uploads_a_cloth_per_clip_and_names_them_in_the_bake(api, caches,
     from crowdbake.client.preflight import check_name_and_version
     from crowdbake.client.submit import bake_body as client_body
     from crowdbake.client.submit import build_parser, check_locally, local_inputs, preflight, run, upload
+    from crowdbake.ingest.input_modes import BakeInputSet
 
     base = [str(caches["Walking"] / "character.glb"), "--server", "http://127.0.0.1:9", "--name", "clips", "--version", "3.0.0",
             "--frames", "2", "--azimuths", "4", "--tile", "32"]
@@ -248,6 +249,7 @@ def test_submit_uploads_a_cloth_per_clip_and_names_them_in_the_bake(api, caches,
     quiet = lambda line: None  # noqa: E731
     character = upload(server, "/v1/assets/characters", {"file": checked.character}, "character", quiet)
     cloths = [upload(server, "/v1/assets/cloth", files, clip, quiet)["id"] for clip, files in checked.clip_cloth]
-    response = server.request("POST", "/v1/bakes", "starting the bake", json=client_body(args, checked, character["id"], None, {}, None, None, cloths))
+    assets = BakeInputSet(character["id"], clip_cloth=zip(["Walking", "Running"], cloths))
+    response = server.request("POST", "/v1/bakes", "starting the bake", json=client_body(args, checked, assets))
     assert response.status_code == 202, response.text
     assert response.json()["inputs"]["clip_cloth"] == [["Walking", cloths[0]], ["Running", cloths[1]]]

@@ -103,8 +103,14 @@ def test_a_travelling_clip_cannot_join_a_bundle_of_several_and_one_clip_lays_out
     """A clip whose body travels is searched in the root's frame, its transitions and its body are not:
     the cycle stage refuses such a several-clip bake instead of writing a bundle whose cloth leaves the body."""
     from clip_caches import grid_faces, multi_clip_cache, timeline_document
+    from crowdbake.bake.clips import find_clip_loops
+    from crowdbake.bake.transitions import find_transitions
     from crowdbake.ingest.timeline import timeline_fields
-    from crowdbake.stages.clip_loops import run_clips_job
+    from crowdbake.stages.cycle_job import write_clip_files
+
+    def sections_of(timeline, out, body=None, body_faces=None) -> dict:
+        loops = find_clip_loops(cloth, faces, timeline, body=body, body_faces=body_faces)
+        return write_clip_files(out, timeline, loops[0], loops, find_transitions(cloth, faces, timeline, loops, body=body))
 
     cloth, faces = multi_clip_cache()
     timeline = timeline_fields(timeline_document(with_rows=True))
@@ -112,14 +118,13 @@ def test_a_travelling_clip_cannot_join_a_bundle_of_several_and_one_clip_lays_out
     angle = np.linspace(0, 2 * np.pi, 16, endpoint=False)[None, :] * np.ones((6, 1))
     ring = np.stack([0.1 * np.sin(angle), 1.2 * (1 - t), 0.1 * np.cos(angle)], -1).reshape(-1, 3)
     walking = np.stack([ring + [0.0, 0.0, 0.05 * f] for f in range(len(cloth))]).astype(np.float32)  # 1.2 m/s along +Z
-    normals = np.tile(np.float32([0.0, 1.0, 0.0]), (*walking.shape[:2], 1))
-    _, _, _, sections = run_clips_job(cloth, faces, timeline, tmp_path, body=(walking, normals, grid_faces(6, 16)))
+    sections = sections_of(timeline, tmp_path, walking, grid_faces(6, 16))
     assert "bundle_ranges" not in sections and "'Walk' travels" in sections["bundle_refused"]
-    _, _, _, in_place = run_clips_job(cloth, faces, timeline, tmp_path / "in_place")
+    in_place = sections_of(timeline, tmp_path / "in_place")
     assert "bundle_refused" not in in_place and in_place["bundle_ranges"]["pose_frames"] == sum(
         entry["frames"] for entry in [*in_place["bundle_ranges"]["clips"], *in_place["bundle_ranges"]["transitions"]])
     # A timeline of one clip lays out no ranges: its bundle stays format 1, the loop alone.
     document = timeline_document()
     document["segments"] = [dict(document["segments"][0], last_frame=len(cloth) - 1)]
-    _, _, _, one_clip = run_clips_job(cloth, faces, timeline_fields(document), tmp_path / "one_clip")
+    one_clip = sections_of(timeline_fields(document), tmp_path / "one_clip")
     assert [entry["clip"] for entry in one_clip["clips"]] == ["Walk"] and "bundle_ranges" not in one_clip

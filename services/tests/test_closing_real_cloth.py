@@ -15,7 +15,7 @@ from crowdbake.bake.cycle import CycleParams, find_cycle
 
 @pytest.fixture(scope="module")
 def long_skirt(shared_asset):
-    from crowdbake.stages.cycle import load_cycle_inputs
+    from crowdbake.stages.cycle_inputs import load_cycle_inputs
 
     return load_cycle_inputs(
         shared_asset("long_skirt/long_skirt.pc2"), shared_asset("long_skirt/long_skirt.obj"), character=shared_asset("CesiumMan.glb")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.bake.mesh import vertex_normals
+from crowdbake.geometry import vertex_normals
 from crowdbake.render.cloth_views import ClothViewRenderer, facing_normals
 
 

@@ -293,7 +293,7 @@ class TestClosingQualityReport:
 
     @pytest.mark.parametrize("close, loud", [("hermite", True), ("crossfade", False)])
     def test_quality_in_cycle_json_and_the_report(self, close, loud, tmp_path, caplog):
-        from crowdbake.stages.cycle import write_cycle_outputs
+        from crowdbake.stages.cycle_job import write_cycle_outputs
 
         cloth, faces = self.swinging_sheet()
         with caplog.at_level("WARNING", logger="crowdbake.bake.cycle"):

@@ -12,7 +12,7 @@ from crowdbake.bake.reference import impostor_maps as maps
 from crowdbake.formats.texel_codecs import region_alpha
 
 pytest.importorskip("pyrender")
-from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
+from crowdbake.render.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
 from shapes import uv_sphere  # noqa: E402
 
 # Thresholds for a textured sphere at 64² (measured: SSIM 0.979 / PSNR 33.5 dB with exact normals,
@@ -47,7 +47,7 @@ def sphere():
 def bake_view(scene, azimuth: float, elevation: float):
     positions, normals, uvs, faces, material, diffuse = scene
     view = impostor_views.ortho_view((0, 0, 0), 0.6, azimuth, elevation, SIZE)
-    with VisibilityRenderer(SIZE) as renderer:
+    with TriangleIdRenderer(SIZE) as renderer:
         renderer.set_mesh(positions, faces)
         coverage = renderer.coverage(view, positions, faces)
     return maps.view_maps(view, coverage, positions, normals, uvs, faces, material, diffuse)
@@ -56,7 +56,7 @@ def bake_view(scene, azimuth: float, elevation: float):
 def reference(scene, azimuth: float, elevation: float, supersample: int = mesh_reference.DEFAULT_SUPERSAMPLE):
     positions, normals, uvs, faces, material, diffuse = scene
     view = impostor_views.ortho_view((0, 0, 0), 0.6, azimuth, elevation, SIZE * supersample)
-    with VisibilityRenderer(view.size) as renderer:
+    with TriangleIdRenderer(view.size) as renderer:
         renderer.set_mesh(positions, faces)
         coverage = renderer.coverage(view, positions, faces)
     light = shading.camera_light(view)

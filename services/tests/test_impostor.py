@@ -1,18 +1,21 @@
-"""Impostor maps: pyrender's visibility buffer (crowdbake.render.impostor) and the exact per-texel maps
-computed from it (crowdbake.bake.reference.impostor_maps)."""
+"""The test oracles of the impostor maps: pyrender's visibility buffer (crowdbake.render.reference.triangle_ids),
+the exact coverage resolved from it (crowdbake.bake.reference.coverage) and the exact per-texel maps
+computed from that (crowdbake.bake.reference.impostor_maps); and the cameras they share with the bake."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from crowdbake.bake import impostor_views
+from crowdbake.bake.reference import coverage as exact
 from crowdbake.bake.reference import impostor_maps as maps
 from crowdbake.bake import map_codecs, short_rows
 from crowdbake.formats.texel_codecs import region_alpha
 
 pyrender = pytest.importorskip("pyrender")
 from crowdbake.render import offscreen  # noqa: E402
-from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
+from crowdbake.render.reference import triangle_ids  # noqa: E402
+from crowdbake.render.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
 from shapes import uv_sphere  # noqa: E402
 
 # Detail map against pyrender's own textured rendering of the same mesh (GL's bilinear filter and
@@ -36,7 +39,7 @@ def sphere_texture(size: int = 64) -> np.ndarray:
 
 def render_maps(positions, normals, uvs, faces, texture, azimuth, elevation, size=64, center=(0.0, 0.0, 0.0), radius=1.0):
     view = impostor_views.ortho_view(center, radius, azimuth, elevation, size)
-    with VisibilityRenderer(size) as renderer:
+    with TriangleIdRenderer(size) as renderer:
         renderer.set_mesh(positions, faces)
         coverage = renderer.coverage(view, positions, faces)
     return view, maps.view_maps(view, coverage, positions, normals, uvs, faces, np.zeros(len(faces), int), [texture])
@@ -45,7 +48,7 @@ def render_maps(positions, normals, uvs, faces, texture, azimuth, elevation, siz
 def test_camera_is_the_spec_camera_and_matches_offscreen():
     for azimuth, elevation in ((0, 0), (90, 0), (200, 35), (30, -60), (0, 90)):
         view = impostor_views.ortho_view((0.1, 0.9, -0.2), 0.8, azimuth, elevation, 32)
-        np.testing.assert_allclose(view.camera_pose(), offscreen.view_pose((0.1, 0.9, -0.2), 0.8, azimuth, elevation), atol=1e-12)
+        np.testing.assert_allclose(triangle_ids.camera_pose(view), offscreen.view_pose((0.1, 0.9, -0.2), 0.8, azimuth, elevation), atol=1e-12)
     front = impostor_views.ortho_view((0, 0, 0), 1.0, 0.0, 0.0, 64)
     # From the front (+Z) the character's left (+X) is on the image's right, its head (+Y) at the top.
     xy, depth = impostor_views.project(front, np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 0]]))
@@ -76,10 +79,10 @@ def test_one_offscreen_compiles_each_shader_program_once():
 
 
 def test_triangle_ids_round_trip():
-    colours = impostor_views.triangle_id_colours(70_000)
+    colours = triangle_ids.triangle_id_colours(70_000)
     image = colours.reshape(1, -1, 3)
-    np.testing.assert_array_equal(impostor_views.decode_triangle_ids(image)[0], np.arange(70_000))
-    assert impostor_views.decode_triangle_ids(np.zeros((1, 1, 3), np.uint8))[0, 0] == -1
+    np.testing.assert_array_equal(triangle_ids.decode_triangle_ids(image)[0], np.arange(70_000))
+    assert triangle_ids.decode_triangle_ids(np.zeros((1, 1, 3), np.uint8))[0, 0] == -1
 
 
 def test_uv_map_decodes_to_the_texel_on_a_facing_quad():
@@ -95,10 +98,10 @@ def test_uv_map_decodes_to_the_texel_on_a_facing_quad():
     normals = np.tile([0.0, 0.0, 1.0], (4, 1))
     texture = sphere_texture(1024)
     view = impostor_views.ortho_view((0, 0, 0), 1.0, 0.0, 0.0, 64)
-    with VisibilityRenderer(64) as renderer:
+    with TriangleIdRenderer(64) as renderer:
         renderer.set_mesh(positions, faces)
         image = renderer.render(view)
-        coverage = impostor_views.resolve_coverage(view, image.ids, positions, faces, image.depth)
+        coverage = exact.resolve_coverage(view, image.ids, positions, faces, image.depth)
     result = maps.view_maps(view, coverage, positions, normals, uvs, faces, np.zeros(2, int), [texture])
     uv, material, covered = map_codecs.decode_uv_map(result.uv)
     expected = np.zeros((64, 64), bool)
@@ -143,8 +146,8 @@ def test_detail_map_matches_pyrenders_textured_render():
     )
     scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 0.0], ambient_light=[0.0, 0.0, 0.0])
     scene.add(pyrender.Mesh([primitive]))
-    near, far = view.clip_range
-    scene.add(pyrender.OrthographicCamera(xmag=1.0, ymag=1.0, znear=near, zfar=far), pose=view.camera_pose())
+    near, far = triangle_ids.clip_range(view)
+    scene.add(pyrender.OrthographicCamera(xmag=1.0, ymag=1.0, znear=near, zfar=far), pose=triangle_ids.camera_pose(view))
     renderer = pyrender.OffscreenRenderer(96, 96)
     try:
         colour, _ = renderer.render(scene, flags=pyrender.RenderFlags.FLAT)
@@ -180,20 +183,20 @@ def test_multisample_blends_on_the_silhouette_are_repaired():
     Corrupting the silhouette's ids that way must leave the same coverage after the repair."""
     positions, normals, uvs, faces = uv_sphere()
     view = impostor_views.ortho_view((0, 0, 0), 1.0, 10.0, 5.0, 64)
-    with VisibilityRenderer(64) as renderer:
+    with TriangleIdRenderer(64) as renderer:
         renderer.set_mesh(positions, faces)
         image = renderer.render(view)
-    clean = impostor_views.resolve_coverage(view, image.ids, positions, faces, image.depth)
+    clean = exact.resolve_coverage(view, image.ids, positions, faces, image.depth)
     inside = image.ids >= 0
     border = inside & ~(np.roll(inside, 1, 0) & np.roll(inside, -1, 0) & np.roll(inside, 1, 1) & np.roll(inside, -1, 1))
     blended = image.ids.copy()
     blended[border] = (image.ids[border] + 1) // 2 + 7  # an averaged colour decodes to an unrelated id
-    repaired = impostor_views.resolve_coverage(view, blended, positions, faces, image.depth)
+    repaired = exact.resolve_coverage(view, blended, positions, faces, image.depth)
     assert repaired.repaired >= border.sum() * 0.9
     np.testing.assert_array_equal(repaired.mask, clean.mask)
     # Where a centre sits on an edge either triangle is right; the surface point must be the same.
     texel_metres = 2.0 * view.radius / view.size
-    moved = np.linalg.norm(impostor_views.interpolate(positions, faces, repaired) - impostor_views.interpolate(positions, faces, clean), axis=-1)
+    moved = np.linalg.norm(exact.interpolate(positions, faces, repaired) - exact.interpolate(positions, faces, clean), axis=-1)
     assert moved.max() <= 0.1 * texel_metres
 
 
@@ -222,7 +225,7 @@ def test_texture_sampling_conventions():
     np.testing.assert_allclose(samples[3, :3], [127.5, 127.5, 127.5])  # bilinear RGB
     assert samples[3, 3] in (17, 34, 51, 68)  # nearest alpha: a region code, never a blend
     np.testing.assert_allclose(samples[4], samples[0])  # REPEAT
-    np.testing.assert_allclose(impostor_views.wrap_uv(np.array([1.0, -0.25, 1.5])), [1.0, 0.75, 0.5])
+    np.testing.assert_allclose(exact.wrap_uv(np.array([1.0, -0.25, 1.5])), [1.0, 0.75, 0.5])
 
 
 def test_all_views_at_once_equal_view_by_view():
@@ -232,7 +235,7 @@ def test_all_views_at_once_equal_view_by_view():
     positions, normals, uvs, faces = uv_sphere()
     material = np.zeros(len(faces), int)
     views = [impostor_views.ortho_view((0, 0, 0), 1.0, azimuth, elevation, 32) for azimuth, elevation in ((0, 0), (70, 20), (200, -40))]
-    with VisibilityRenderer(32) as renderer, offscreen.timed_renders() as gl:
+    with TriangleIdRenderer(32) as renderer, offscreen.timed_renders() as gl:
         renderer.set_mesh(positions, faces)
         images = [renderer.render(view) for view in views]
     assert gl.renders == len(views) and gl.seconds > 0, "every render goes through the timing hook"
@@ -241,11 +244,11 @@ def test_all_views_at_once_equal_view_by_view():
     ids[1][ids[1] >= 0] += 5  # wrong ids in view 1: every covered texel there needs repairing
     ids[2] = -1  # nothing drawn in view 2
     depth[2] = 0.0
-    together = impostor_views.resolve_coverage_views(views, ids, positions, faces, depth)
+    together = exact.resolve_coverage_views(views, ids, positions, faces, depth)
     assert together[1].repaired > 0 and not together[2].mask.any()
     together_maps = maps.view_maps_views(views, together, positions, normals, uvs, faces, material, [sphere_texture()])
     for k, view in enumerate(views):
-        alone = impostor_views.resolve_coverage(view, ids[k], positions, faces, depth[k])
+        alone = exact.resolve_coverage(view, ids[k], positions, faces, depth[k])
         np.testing.assert_array_equal(together[k].triangle, alone.triangle)
         np.testing.assert_array_equal(together[k].barycentric, alone.barycentric)
         assert together[k].repaired == alone.repaired

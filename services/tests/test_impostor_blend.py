@@ -1,4 +1,5 @@
-"""The bake's copy of crowdview's impostor blending (crowdbake.bake.reference.impostor_blend).
+"""The bake's copy of crowdview's impostor blending: which views and frames (crowdbake.bake.view_blend)
+and the blended picture (crowdbake.bake.reference.impostor_blend).
 
 The weights are checked against runtime/tests/data/view_blend_vectors.json, which crowdview's
 view_blend ctest reads too, so both sides follow one set of answers worked out from the README's rules.
@@ -12,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from crowdbake.bake import view_blend
 from crowdbake.bake.reference import impostor_blend
 from crowdbake.bake.reference.impostor_blend import DecodedTile
 
@@ -26,11 +28,11 @@ def vectors() -> dict:
 def test_view_weights_match_the_shared_vectors(vectors):
     tolerance = vectors["tolerance"]
     for case in vectors["views"]:
-        azimuth, elevation = impostor_blend.view_angles_deg(np.array(case["to_camera"]), case["heading"])
+        azimuth, elevation = view_blend.view_angles_deg(np.array(case["to_camera"]), case["heading"])
         expected_azimuth, expected_elevation = case["angles_deg"]
         assert abs((azimuth - expected_azimuth + 180) % 360 - 180) < tolerance, case["why"]
         assert elevation == pytest.approx(expected_elevation, abs=tolerance), case["why"]
-        weights = impostor_blend.blend_view_weights(azimuth, elevation, vectors["azimuths_deg"], vectors["elevations_deg"])
+        weights = view_blend.blend_view_weights(azimuth, elevation, vectors["azimuths_deg"], vectors["elevations_deg"])
         assert sum(weights.weights) == pytest.approx(1.0)
         used = {(t, round(w, 6)) for t, w in zip(weights.tiles, weights.weights) if w > tolerance}
         expected = {(t, round(w, 6)) for t, w in zip(case["tiles"], case["weights"]) if w > tolerance}
@@ -39,11 +41,11 @@ def test_view_weights_match_the_shared_vectors(vectors):
 
 def test_frame_weights_match_the_shared_vectors(vectors):
     for case in vectors["frames"]:
-        got = impostor_blend.blend_frame_weights(case["frame"], case["frame_indices"], case["frame_count"])
+        got = view_blend.blend_frame_weights(case["frame"], case["frame_indices"], case["frame_count"])
         assert list(got.layers) == case["layers"], case["why"]
         assert got.weight == pytest.approx(case["weight"], abs=vectors["tolerance"]), case["why"]
     for case in vectors["cycle_frames"]:
-        frame = impostor_blend.cycle_frame(case["seconds"], case["phase"], case["frames_per_second"], case["frame_count"])
+        frame = view_blend.cycle_frame(case["seconds"], case["phase"], case["frames_per_second"], case["frame_count"])
         assert frame == case["frame"], case["why"]
 
 
@@ -108,6 +110,6 @@ def test_trilinear_lookup_averages_at_coarse_levels():
 
 
 def test_samples_for_merges_repeated_pairs():
-    view = impostor_blend.ViewWeights((3, 3, 3, 3), (1.0, 0.0, 0.0, 0.0))
-    frames = impostor_blend.FrameWeights((0, 1), 0.25)
+    view = view_blend.ViewWeights((3, 3, 3, 3), (1.0, 0.0, 0.0, 0.0))
+    frames = view_blend.FrameWeights((0, 1), 0.25)
     assert sorted(impostor_blend.samples_for(view, frames)) == [(0.25, 3, 1), (0.75, 3, 0)]

@@ -7,6 +7,7 @@ import json
 import numpy as np
 from crowdbake.bake import atlas, compression, impostor_views
 from crowdbake.formats.binary import decode_texture_array
+from crowdbake.stages.impostors import MIN_COVERAGE, extend_to_partial_texels
 
 
 def test_partly_covered_texels_take_their_nearest_covered_texel_and_join_the_mask():
@@ -14,11 +15,11 @@ def test_partly_covered_texels_take_their_nearest_covered_texel_and_join_the_mas
     mask[0, 2:6, 2:6] = True
     coverage = mask.astype(np.float64)
     coverage[0, 1, 3] = 0.5  # a sliver above the square
-    coverage[0, 6, 6] = 0.5 * impostor_views.MIN_COVERAGE  # too little to store: stays outside
+    coverage[0, 6, 6] = 0.5 * MIN_COVERAGE  # too little to store: stays outside
     values = np.zeros((1, 8, 8, 2), dtype=np.uint16)
     values[0, 2, 3] = (7, 9)  # the covered texel under the sliver
     before = values.copy()
-    extended = impostor_views.extend_to_partial_texels(mask, coverage, [values])
+    extended = extend_to_partial_texels(mask, coverage, [values])
     assert extended[0, 1, 3] and not extended[0, 6, 6]
     assert (extended & ~mask).sum() == 1
     assert tuple(values[0, 1, 3]) == (7, 9)
@@ -30,14 +31,14 @@ def test_partly_covered_texels_take_their_nearest_covered_texel_and_join_the_mas
 def test_a_full_mask_or_no_partial_texel_changes_nothing():
     mask = np.ones((1, 4, 4), dtype=bool)
     values = np.arange(16, dtype=np.float64).reshape(1, 4, 4, 1)
-    assert impostor_views.extend_to_partial_texels(mask, np.ones((1, 4, 4)), [values]) is mask
+    assert extend_to_partial_texels(mask, np.ones((1, 4, 4)), [values]) is mask
     assert np.array_equal(values.ravel(), np.arange(16))
 
 
 def test_the_surface_maps_alpha_is_the_share_of_each_texel_the_mesh_covers(small_bake):
     """The bake's alpha against pyrender's triangle-id render of the same view at 3 x 3 samples a texel
     (an independent rasteriser): equal within BC2's 4-bit step on every texel, and the silhouette soft."""
-    from crowdbake.render.impostor import VisibilityRenderer
+    from crowdbake.render.reference.triangle_ids import TriangleIdRenderer
     from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, load_plan, load_poses, load_scene
 
     bundle, work = small_bake
@@ -54,7 +55,7 @@ def test_the_surface_maps_alpha_is_the_share_of_each_texel_the_mesh_covers(small
     size = tile * FIDELITY_SUPERSAMPLE
     a, e = 1, 1
     view = impostor_views.ortho_view(plan.center, plan.radius, layout.azimuths_deg[a], layout.elevations_deg[e], size)
-    with VisibilityRenderer(size) as renderer:
+    with TriangleIdRenderer(size) as renderer:
         renderer.set_mesh(scene.positions, scene.faces)
         ids = renderer.render(view).ids
     expected = (ids >= 0).reshape(tile, FIDELITY_SUPERSAMPLE, tile, FIDELITY_SUPERSAMPLE).mean(axis=(1, 3))

@@ -19,12 +19,12 @@ from crowdbake.formats.bundle import verify_bundle
 from sample_fixtures import small_bake_params
 
 pytest.importorskip("pyrender")
-from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
+from crowdbake.render.impostor import BakeRenderer  # noqa: E402
 from crowdbake.stages.impostors import load_poses  # noqa: E402
 from crowdbake.stages.runner import run_bake  # noqa: E402
 from crowdbake.stages.runtime_fidelity import halfway_frame, picture_at, runtime_atlas, runtime_textures  # noqa: E402
 from crowdbake.stages.validate import BakeInputs  # noqa: E402
-from crowdbake.bake.reference import impostor_blend  # noqa: E402
+from crowdbake.bake import view_blend  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 CROWDVIEW = REPO_ROOT / "build" / "runtime" / "crowdview"
@@ -68,12 +68,12 @@ def test_crowdviews_shader_draws_the_same_pictures_from_cropped_maps(bakes):
     for crop, (_, poses, maps, textures) in bakes.items():
         layout = poses.atlas_layout()
         layer = list(poses.frame_indices).index(poses.fidelity_frame)
-        baked = impostor_blend.FrameWeights((layer, layer), 0.0)
+        baked = view_blend.FrameWeights((layer, layer), 0.0)
         _, between = halfway_frame(poses)
         cameras = [(a, e, baked) for a in layout.azimuths_deg for e in layout.elevations_deg]
         cameras += [(22.5, 0.0, baked), (157.5, 30.0, between), (292.5, 15.0, between), (0.0, 30.0, between)]
         atlas = runtime_atlas(poses, layout, maps["uv"], maps["normal"], maps.get("surface"), textures)
-        with VisibilityRenderer(layout.tile_size) as renderer:
+        with BakeRenderer(layout.tile_size) as renderer:
             pictures[crop] = renderer.runtime_impostors(atlas, [picture_at(layout, a, e, f) for a, e, f in cameras])
     drawn = (pictures[True] > 0).any(axis=-1)
     assert drawn.mean() > 0.1, "the pictures show the character"

@@ -1,6 +1,7 @@
 """The impostor maps drawn by a shader (crowdbake.render.map_shader) against the exact float64 maps of
-crowdbake.bake.reference.impostor_maps, which resolve a triangle-id render in numpy: the same texels covered, the
-same values up to rounding, on a closed and an open shape with two materials, under OSMesa."""
+crowdbake.bake.reference.impostor_maps, resolved from a triangle-id render (crowdbake.render.reference):
+the same texels covered, the same values up to rounding, on a closed and an open shape with two
+materials, under OSMesa."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,10 +11,12 @@ from crowdbake.bake import impostor_views, shading
 from crowdbake.bake.reference import impostor_maps as maps
 from crowdbake.bake.reference import mesh_reference
 from crowdbake.bake import map_codecs, surface_maps
+from crowdbake.stages.impostors import fill_background
 
 pytest.importorskip("pyrender")
 from crowdbake.render import offscreen  # noqa: E402
-from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
+from crowdbake.render.impostor import BakeRenderer  # noqa: E402
+from crowdbake.render.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
 from shapes import uv_sphere  # noqa: E402
 from test_impostor import sphere_texture  # noqa: E402
 
@@ -34,11 +37,11 @@ def scene():
 
 def exact_maps(views, positions, normals, uvs, faces, material, textures, next_positions):
     """The numpy maps of the views (and their coverage) from pyrender's triangle ids."""
-    with VisibilityRenderer(SIZE) as renderer:
+    with TriangleIdRenderer(SIZE) as renderer:
         renderer.set_mesh(positions, faces)
         coverages = [renderer.coverage(view, positions, faces) for view in views]
     result = maps.view_maps_views(views, coverages, positions, normals, uvs, faces, material, textures)
-    surfaces = np.stack([surface_maps.encode_surface(*surface_maps.surface_fields(view, coverage, positions, next_positions, faces), 1.0)
+    surfaces = np.stack([surface_maps.encode_surface(*maps.surface_fields(view, coverage, positions, next_positions, faces), 1.0)
                          for view, coverage in zip(views, coverages)])
     return result, coverages, surfaces
 
@@ -46,7 +49,7 @@ def exact_maps(views, positions, normals, uvs, faces, material, textures, next_p
 def test_shader_maps_are_the_exact_maps_up_to_rounding():
     positions, normals, uvs, faces, material, textures, next_positions = scene()
     views = [impostor_views.ortho_view((0.0, 0.0, 0.0), 1.0, azimuth, elevation, SIZE) for azimuth, elevation in ANGLES]
-    with VisibilityRenderer(SIZE) as renderer, offscreen.timed_renders() as gl:
+    with BakeRenderer(SIZE) as renderer, offscreen.timed_renders() as gl:
         drawn = renderer.shader_maps(views, positions, normals, uvs, next_positions, faces, material, textures)
     assert gl.renders == 1 and gl.seconds > 0, "the shader's pass counts as a render"
     exact, coverages, surfaces = exact_maps(views, positions, normals, uvs, faces, material, textures, next_positions)
@@ -55,7 +58,7 @@ def test_shader_maps_are_the_exact_maps_up_to_rounding():
     assert (drawn.mask != mask).mean() < 1e-3
     assert drawn.mask.sum() > 0.1 * drawn.mask.size
     both = drawn.mask & mask
-    impostor_views.fill_background(drawn.mask, [drawn.normal, drawn.detail], unflattened=[drawn.surface])
+    fill_background(drawn.mask, [drawn.normal, drawn.detail], unflattened=[drawn.surface])
     drawn.surface[..., 3] = 255
 
     uv_exact = np.stack([m.uv for m in exact])
@@ -89,7 +92,7 @@ def test_views_of_other_sizes_and_many_rows_share_one_renderer():
     views lie up to 7,000 texels from the framebuffer's origin)."""
     positions, normals, uvs, faces, material, textures, next_positions = scene()
     many = [impostor_views.ortho_view((0.0, 0.0, 0.0), 1.0, 360.0 * k / 9, 10.0, 1024) for k in range(9)]
-    with VisibilityRenderer(16) as renderer:
+    with BakeRenderer(16) as renderer:
         together = renderer.shader_maps(many, positions, normals, uvs, next_positions, faces, material, textures)
         alone = renderer.shader_maps(many[5:6], positions, normals, uvs, next_positions, faces, material, textures)
         small = renderer.shader_maps([impostor_views.ortho_view((0.0, 0.0, 0.0), 1.0, 40.0, 10.0, 16)], positions, normals, uvs,
@@ -105,7 +108,7 @@ def test_views_of_other_sizes_and_many_rows_share_one_renderer():
 def test_a_view_that_misses_the_mesh_is_empty():
     positions, normals, uvs, faces, material, textures, next_positions = scene()
     away = impostor_views.ortho_view((5.0, 0.0, 0.0), 0.5, 0.0, 0.0, SIZE)
-    with VisibilityRenderer(SIZE) as renderer:
+    with BakeRenderer(SIZE) as renderer:
         drawn = renderer.shader_maps([away], positions, normals, uvs, next_positions, faces, material, textures)
     assert not drawn.mask.any()
     for kind in ("normal", "uv", "detail", "surface"):
@@ -128,10 +131,10 @@ def test_shader_references_are_the_exact_mesh_references(monkeypatch):
     angles = [(360.0 * k / 7, elevation) for k in range(7) for elevation in (-30.0, 0.0, 40.0)]
     views = [impostor_views.ortho_view((0.0, 0.0, 0.0), 1.0, azimuth, elevation, SIZE * supersample) for azimuth, elevation in angles]
     monkeypatch.setattr(map_shader, "MAX_PASS_TEXELS", 8 * (SIZE * supersample) ** 2)
-    with VisibilityRenderer(SIZE) as renderer:
+    with BakeRenderer(SIZE) as renderer:
         drawn = renderer.shader_references(views, positions, normals, uvs, faces, material, textures, outfit, supersample)
     assert drawn.shape == (len(views), SIZE, SIZE, 3) and drawn.dtype == np.float32
-    with VisibilityRenderer(SIZE * supersample) as renderer:
+    with TriangleIdRenderer(SIZE * supersample) as renderer:
         renderer.set_mesh(positions, faces)
         exact = np.stack([mesh_reference.mesh_reference(view, renderer.coverage(view, positions, faces), supersample, positions, normals, uvs,
                                                   faces, material, textures, outfit, shading.camera_light(view)) for view in views])

@@ -1,6 +1,6 @@
 """crowdview's impostor shader drawn in the bake's context (crowdbake.render.runtime_shader), the pictures
-fidelity.json's `runtime` section scores, against the numpy copy of that shader (crowdbake.bake.
-impostor_blend, impostor_warp) on a small bake's own bundle, under OSMesa."""
+fidelity.json's `runtime` section scores, against the numpy copy of that shader
+(crowdbake.bake.reference.runtime_picture) on a small bake's own bundle, under OSMesa."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from crowdbake.bake import fidelity, map_codecs
+from crowdbake.bake import view_blend
 from crowdbake.bake.reference import impostor_blend
+from crowdbake.bake.reference.runtime_picture import AtlasTiles, numpy_picture
 from crowdbake.formats.binary import TextureArray
 from crowdbake.formats.bundle import verify_bundle
 from crowdbake.render import runtime_shader
@@ -17,11 +19,9 @@ from crowdbake.render.runtime_shader import RuntimePicture, samples_needed, shad
 
 pytest.importorskip("pyrender")
 from crowdbake.render import offscreen  # noqa: E402
-from crowdbake.render.impostor import VisibilityRenderer  # noqa: E402
+from crowdbake.render.impostor import BakeRenderer  # noqa: E402
 from crowdbake.stages.impostors import load_poses  # noqa: E402
-from crowdbake.stages.runtime_fidelity import (  # noqa: E402
-    AtlasTiles, halfway_frame, numpy_picture, picture_at, runtime_atlas, runtime_textures,
-)
+from crowdbake.stages.runtime_fidelity import halfway_frame, picture_at, runtime_atlas, runtime_textures  # noqa: E402
 
 @pytest.fixture(scope="module")
 def bundle(small_bake):
@@ -36,7 +36,7 @@ def pictures_of(poses) -> list[RuntimePicture]:
     """Cameras at baked views and frames, halfway between azimuths, between rings and between frames."""
     layout = poses.atlas_layout()
     layer = list(poses.frame_indices).index(poses.fidelity_frame)
-    baked = impostor_blend.FrameWeights((layer, layer), 0.0)
+    baked = view_blend.FrameWeights((layer, layer), 0.0)
     _, between = halfway_frame(poses)
     cameras = [(a, e, baked) for a in layout.azimuths_deg for e in layout.elevations_deg]
     cameras += [(22.5, 0.0, baked), (157.5, 30.0, baked), (225.0, 15.0, baked), (292.5, 15.0, between), (0.0, 30.0, between)]
@@ -44,7 +44,7 @@ def pictures_of(poses) -> list[RuntimePicture]:
 
 
 def draw(atlas, pictures):
-    with VisibilityRenderer(atlas.tile_size) as renderer, offscreen.timed_renders() as gl:
+    with BakeRenderer(atlas.tile_size) as renderer, offscreen.timed_renders() as gl:
         drawn = renderer.runtime_impostors(atlas, pictures)
     assert gl.renders == 1 and gl.seconds > 0, "the pictures are one render"
     return drawn

@@ -8,11 +8,11 @@ from crowdbake.bake.skinning import (
     joint_matrices,
     joint_world_matrices,
     pose_character,
-    quaternion_matrices,
     sample_channel,
     skin,
     slerp,
 )
+from crowdbake.geometry import quaternion_matrices
 from crowdbake.formats.gltf import AnimationChannel, Character, load_character
 
 

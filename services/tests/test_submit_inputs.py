@@ -12,6 +12,7 @@ import pytest
 from crowdbake.client.http import Server
 from crowdbake.client.submit import bake_body, build_parser, check_locally, run, upload
 from crowdbake.formats.mdd import write_mdd
+from crowdbake.ingest.input_modes import BakeInputSet
 from service_fixtures import make_api, obj_bytes, obj_sequence_zip, pc2_bytes, png_bytes, tiny_character_glb, tiny_cloth
 
 
@@ -99,7 +100,7 @@ def test_mdd_zip_and_jpeg_uploads_are_taken_by_the_server(inputs, tmp_path):
     character = upload(server, "/v1/assets/characters", {"file": checked.character}, "character", say=lambda line: None)
     cloth = upload(server, "/v1/assets/cloth", checked.cloth_files, "cloth", say=lambda line: None)
     textures = {name: upload(server, "/v1/assets/textures", {"file": path}, name, say=lambda line: None)["id"] for name, path in checked.textures.items()}
-    response = server.request("POST", "/v1/bakes", "starting the bake", json=bake_body(args, checked, character["id"], cloth["id"], textures))
+    response = server.request("POST", "/v1/bakes", "starting the bake", json=bake_body(args, checked, BakeInputSet(character["id"], cloth["id"], textures=textures)))
     assert response.status_code == 202, response.text
 
 

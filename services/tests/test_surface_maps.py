@@ -1,5 +1,6 @@
-"""The impostor surface map (crowdbake.bake.surface_maps) and the reprojection of a stored sample
-(crowdbake.bake.reference.impostor_warp.warp_tile, motion_fraction), on geometry whose answer is known by construction."""
+"""The impostor surface map (crowdbake.bake.surface_maps; its exact fields, crowdbake.bake.reference.impostor_maps.
+surface_fields) and the reprojection of a stored sample (crowdbake.bake.reference.impostor_warp.warp_tile,
+motion_fraction), on geometry whose answer is known by construction."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +8,10 @@ import pytest
 
 from crowdbake.bake import impostor_views, surface_maps
 from crowdbake.bake.reference import impostor_warp
-from crowdbake.bake.reference.impostor_blend import DecodedTile, FrameWeights
+from crowdbake.bake.reference.coverage import Coverage
+from crowdbake.bake.reference.impostor_blend import DecodedTile
+from crowdbake.bake.reference.impostor_maps import surface_fields
+from crowdbake.bake.view_blend import FrameWeights
 from crowdbake.formats.ranges import Clip, Ranges, Transition
 
 SIZE = 16
@@ -35,14 +39,14 @@ def square_coverage(view: impostor_views.OrthoView, depth: float, rows: slice, c
                 if u >= -1e-9 and v >= -1e-9 and u + v <= 1 + 1e-9:
                     triangle[r, c], barycentric[r, c] = t, (1 - u - v, u, v)
                     break
-    return positions, faces, impostor_views.Coverage(triangle, barycentric, 0)
+    return positions, faces, Coverage(triangle, barycentric, 0)
 
 
 def test_depth_and_motion_of_a_moving_square_and_the_background_takes_the_nearest_inside_texel():
     view = impostor_views.ortho_view(CENTER, RADIUS, 30.0, 20.0, SIZE)
     positions, faces, coverage = square_coverage(view, 0.25, slice(4, 10), slice(6, 12))
     shift = 0.1 * view.right - 0.05 * view.up + 0.3 * view.back  # the part along back is not stored
-    depth, motion = surface_maps.surface_fields(view, coverage, positions, positions + shift, faces)
+    depth, motion = surface_fields(view, coverage, positions, positions + shift, faces)
     assert coverage.mask.sum() == 36
     np.testing.assert_allclose(depth, 0.25, atol=1e-9)  # inside, and dilated into the background
     np.testing.assert_allclose(motion[..., 0], 0.1, atol=1e-9)

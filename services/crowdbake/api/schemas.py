@@ -7,6 +7,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
+from crowdbake.ingest.input_modes import BakeInputSet
 from crowdbake.params import CREATED_RULE, NAME_PATTERN, PARAMS, SPECS, VERSION_PATTERN, cross_field_problem, pydantic_fields
 
 # List offsets go to SQL as 64-bit integers; a larger one would raise OverflowError in the driver (a 500).
@@ -242,6 +243,11 @@ class BakeCreate(BaseModel):
         if value and not any(name.startswith("diffuse_") for name in value):
             raise ValueError("textures need at least one diffuse_<variation>.png")
         return value
+
+    def input_set(self) -> BakeInputSet[str]:
+        """The inputs' asset ids, as every boundary describes a bake's inputs (crowdbake.ingest.input_modes)."""
+        return BakeInputSet(character=self.character, cloth=self.cloth, cycle=self.cycle, timeline=self.timeline,
+                            textures=self.textures, clip_cloth=[(entry.clip, entry.cloth) for entry in self.clip_cloth])
 
 
 class StagePublic(BaseModel):

@@ -108,13 +108,16 @@ def find_clip_loop(
     render_views: RenderViews | None = None,
     body: np.ndarray | None = None,
     body_faces: np.ndarray | None = None,
+    body_normals: np.ndarray | None = None,
+    progress: Progress | None = None,
 ) -> ClipLoop:
     """The best closed loop of `clip` over its pure stretches.
 
     cloth: (F, V, 3) float cache (F = timeline.total_frames); cloth_faces: (T, 3) int; body: (F, Vb, 3)
-    posed at the timeline's clip frames (only the clip's pure frames are read) or None. Stretch ratios use
-    the cache's first frame as the rest shape, as for one clip. Raises ValueError naming the clip when
-    none of its stretches holds two periods plus the search's window.
+    posed at the timeline's clip frames (only the clip's pure frames are read) or None; body_normals:
+    (F, Vb, 3) or None (find_cycle derives them from body_faces). Stretch ratios use the cache's first
+    frame as the rest shape. progress: each stretch's find_cycle progress. Raises ValueError naming the
+    clip when none of its stretches holds two periods plus the search's window.
     """
     period = timeline.period(clip)
     rest = np.asarray(cloth[0], dtype=np.float64)
@@ -124,8 +127,11 @@ def find_clip_loop(
         rows = slice(first, last + 1)
         try:
             result = find_cycle(
-                cloth[rows], cloth_faces, None if body is None else body[rows], body_faces, period, params,
-                render_views, rest_positions=rest,
+                cloth[rows], cloth_faces, None if body is None else body[rows], body_faces, period, params, render_views,
+                body_normals=None if body_normals is None else body_normals[rows], progress=progress,
+                # A stretch from frame 0 holds the rest shape itself: find_cycle takes it in the frame it searches
+                # in (the root's, when the body travels), as it does for a cache of one clip.
+                rest_positions=None if first == 0 else rest,
             )
         except ValueError as error:
             reasons.append(f"frames {first}..{last}: {error}")
@@ -146,17 +152,12 @@ def find_clip_loops(
     render_views: RenderViews | None = None,
     body: np.ndarray | None = None,
     body_faces: np.ndarray | None = None,
+    body_normals: np.ndarray | None = None,
     progress: Progress | None = None,
 ) -> list[ClipLoop]:
     """find_clip_loop for every clip of the timeline, in order of first appearance."""
     cloth = np.asarray(cloth)
     if cloth.ndim != 3 or cloth.shape[0] != timeline.total_frames:
         raise ValueError(f"the timeline covers {timeline.total_frames} frames, the cloth cache has shape {cloth.shape}")
-    report = progress or (lambda stage, done, total: None)
-    clips = timeline.clips()
-    loops = []
-    for done, clip in enumerate(clips):
-        report("clip loops", done, len(clips))
-        loops.append(find_clip_loop(cloth, cloth_faces, timeline, clip, params, render_views, body, body_faces))
-    report("clip loops", len(clips), len(clips))
-    return loops
+    return [find_clip_loop(cloth, cloth_faces, timeline, clip, params, render_views, body, body_faces, body_normals, progress)
+            for clip in timeline.clips()]

@@ -30,6 +30,9 @@ from crowdbake.bake.shading import apply_outfit, lambert, texels_at
 MEASURE_MARGIN_PX = 4
 # SSIM's window is 7 pixels; smaller boxes are grown to this.
 MIN_MEASURE_SIZE = 7
+# impostor_uv.frag.glsl: texture-coordinate gradients are clamped to this many tile texels' worth of
+# tile UV, so neighbours across the silhouette or a UV seam do not pick a far too coarse mip level.
+GRADIENT_LIMIT_TEXELS = 4.0
 
 
 def impostor_image(
@@ -184,9 +187,7 @@ def uv_precision(uv_map: np.ndarray, texture_size: int, tile_size: int | None = 
         result[name] = {"max_texels": float(error.max()), "mean_texels": float(error.mean()), "bound": False}
     if tile_size:
         # What precision the lookup needs: at 1:1 an impostor texel is a pixel, and the runtime samples the
-        # diffuse texture at the mip level its neighbours' coordinates span (crowdbake.bake.reference.impostor_blend.lookup_lod).
-        from crowdbake.bake.reference.impostor_blend import lookup_lod
-
+        # diffuse texture at the mip level its neighbours' coordinates span (lookup_lod).
         footprint = 2.0 ** np.clip(lookup_lod(np.where(covered[..., None], uv, 0.0), (texture_size, texture_size), tile_size), 0, None)[covered]
         result["lookup_footprint_texels"] = {"median": float(np.median(footprint)), "p10": float(np.percentile(footprint, 10))}
         if "uvblock" in variants:
@@ -194,3 +195,30 @@ def uv_precision(uv_map: np.ndarray, texture_size: int, tile_size: int | None = 
             result["uvblock_error_footprints"] = {"mean": float(relative.mean()), "p99": float(np.percentile(relative, 99)),
                                                  "over_one": float((relative > 1).mean())}
     return result
+
+
+def quad_gradients(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """dFdx, dFdy of a (S, S, 2) per-pixel value as a GPU takes them: within each 2×2 quad, the difference
+    of the pair of pixels in that row (column); S even."""
+    even_x = uv[:, 1::2] - uv[:, 0::2]
+    dx = np.repeat(even_x, 2, axis=1)
+    even_y = uv[1::2] - uv[0::2]
+    dy = np.repeat(even_y, 2, axis=0)
+    return dx, dy
+
+
+def lookup_lod(uv: np.ndarray, texture_size: tuple[int, int], tile_size: int) -> np.ndarray:
+    """(S, S) level of detail of crowdview's diffuse lookup (impostor_uv.frag.glsl's textureGrad, its
+    gradients clamped to GRADIENT_LIMIT_TEXELS) at every texel of a (S, S, 2) uv tile at 1:1."""
+    dx, dy = quad_gradients(uv)
+    limit = GRADIENT_LIMIT_TEXELS / tile_size + 1e-6
+
+    height, width = texture_size
+
+    def texels_per_pixel(g: np.ndarray) -> np.ndarray:
+        """|clamp(g) · (width, height)|: the gradient shortened to `limit`, in texels."""
+        shorten = np.minimum(1.0, limit / np.maximum(np.hypot(g[..., 0], g[..., 1]), 1e-9))
+        return np.hypot(g[..., 0] * (shorten * width), g[..., 1] * (shorten * height))
+
+    rho = np.maximum(texels_per_pixel(dx), texels_per_pixel(dy))
+    return np.log2(np.maximum(rho, 1e-12))

@@ -53,7 +53,7 @@ from crowdbake.bake.loop_quality import (
     mean_edge_strain,
     seam_figures,
 )
-from crowdbake.bake.mesh import as_point_frames, edge_lengths, unique_edges, vertex_normals
+from crowdbake.bake.mesh import as_point_frames, edge_lengths, unique_edges
 from crowdbake.bake.penetration import (
     MAX_DEPTH_FRACTION,
     PENETRATION_TOLERANCE_FRACTION,
@@ -68,6 +68,7 @@ from crowdbake.bake.penetration import (
     raised_cosine,
     smooth_push_out,
 )
+from crowdbake.geometry import vertex_normals
 
 logger = logging.getLogger(__name__)
 

@@ -58,7 +58,7 @@ class PenetrationSettings:
 class BodyFrames:
     """The body over the frames of a cycle, with one k-d tree per frame built on first use.
 
-    positions: (F, Vb, 3) body vertices; normals: (F, Vb, 3) unit outward normals (see crowdbake.bake.mesh.vertex_normals).
+    positions: (F, Vb, 3) body vertices; normals: (F, Vb, 3) unit outward normals (see crowdbake.geometry.vertex_normals).
     """
 
     def __init__(self, positions: np.ndarray, normals: np.ndarray):

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from crowdbake.bake.lod import Simplified
-from crowdbake.bake.mesh import vertex_normals
+from crowdbake.geometry import vertex_normals
 
 # A vertex that belongs to no (non-degenerate) triangle has no normal of its own; the pose cache needs a
 # unit vector anyway (SPEC.md), so it gets +Y. It is never drawn, so the choice cannot show.
@@ -55,7 +55,7 @@ class PartPoses:
 def pose_normals(positions: np.ndarray, faces: np.ndarray, weld: np.ndarray | None = None) -> np.ndarray:
     """Unit vertex normals for a pose cache, (F, V, 3) float32, of (F, V, 3) positions and (T, 3) faces.
 
-    crowdbake.bake.mesh.vertex_normals (area-weighted; weld: (V,) int, the vertex each vertex is welded to,
+    crowdbake.geometry.vertex_normals (area-weighted; weld: (V,) int, the vertex each vertex is welded to,
     e.g. an OBJ's source_index, so a UV seam does not show as a lighting crease), with FALLBACK_NORMAL for
     the vertices of no triangle: the pose cache needs unit vectors.
     """

@@ -2,8 +2,8 @@
 
 A character here is anything shaped like `SkinnedCharacter` (crowdbake.formats.gltf.Character is
 one): joint_parents, joint_parent_transforms, inverse_bind_matrices, rest TRS, channels, and the
-bind-pose mesh arrays. The shape is a Protocol so bake/ imports nothing from formats/ (formats/gltf
-imports this module's quaternion maths, not the other way round).
+bind-pose mesh arrays. The shape is a Protocol so bake/ imports nothing from formats/ (both take their
+quaternion maths from crowdbake.geometry).
 
 Conventions: matrices act on column vectors (p' = M @ p); quaternions are (x, y, z, w); times in
 seconds. Times outside an animation's keyframes clamp to the first or last key (glTF's rule), so a
@@ -14,6 +14,8 @@ from __future__ import annotations
 from typing import Protocol, Sequence
 
 import numpy as np
+
+from crowdbake.geometry import quaternion_matrices
 
 
 class KeyframeChannel(Protocol):
@@ -54,21 +56,6 @@ class SkinnedCharacter(Protocol):
 SLERP_LINEAR_THRESHOLD = 1e-4
 # Work on at most this many (frame, vertex) pairs at once: bounds the (F, V, 4, 3, 4) gather.
 SKIN_CHUNK_ELEMENTS = 1 << 19
-
-
-def quaternion_matrices(q: np.ndarray) -> np.ndarray:
-    """(..., 4) quaternions (x, y, z, w), normalised here -> (..., 3, 3) rotation matrices (float64)."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
-        ],
-        axis=-2,
-    )
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:

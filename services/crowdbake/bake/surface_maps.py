@@ -59,25 +59,6 @@ def motion_sides(frame: int, previous: int, following: int) -> tuple[int | None,
     return (None if previous == frame else previous), (None if following == frame else following)
 
 
-def surface_fields(view: impostor_views.OrthoView, coverage: impostor_views.Coverage, positions: np.ndarray,
-                   next_positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(depth (S, S) metres along view.back from view.center, motion (S, S, 2) metres along view.right and
-    view.up) of one view's coverage, dilated into the background.
-
-    positions: (V, 3) model-space vertices at this baked frame; next_positions: (V, 3) where they are after
-    the motion (motion_positions); faces: (T, 3). The motion is that of the surface point the texel shows
-    (same triangle, same barycentrics)."""
-    mask = coverage.mask
-    points = impostor_views.interpolate(positions, faces, coverage)
-    moved = impostor_views.interpolate(next_positions, faces, coverage) - points
-    depth = np.where(mask, (points - view.center) @ view.back, 0.0)
-    motion = np.where(mask[..., None], np.stack([moved @ view.right, moved @ view.up], axis=-1), 0.0)
-    nearest = impostor_views.nearest_inside(mask)
-    if nearest is not None:
-        depth, motion = depth[nearest], motion[nearest]
-    return depth, motion
-
-
 def _codes(values: np.ndarray, limit: float) -> np.ndarray:
     return np.rint((np.clip(values, -limit, limit) + limit) / (2.0 * limit) * 255.0).astype(np.uint8)
 

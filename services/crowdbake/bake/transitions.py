@@ -342,7 +342,7 @@ def find_transition(
 
     cloth: (F, V, 3) the whole cache; cloth_faces: (T, 3) for edge restoration and the stretch ratio (None
     skips both); rest_positions: (V, 3), default the cache's first frame; body: (F, Vb, 3) the body posed
-    at each cache frame (crowdbake.stages.clip_loops.pose_clips_body), or None: the switch phases are
+    at each cache frame (crowdbake.stages.cycle_inputs.pose_clips_body), or None: the switch phases are
     then judged by the cloth alone; slow_switch_ratio: switch_is_slow's ratio (None: no phase is preferred).
     The joins' half-widths are the loops' own crossfade defaults
     (loop_closing.default_crossfade_frames). Each join takes the first of its candidates (switches at

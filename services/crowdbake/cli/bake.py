@@ -8,6 +8,7 @@ from contextlib import ExitStack
 from pathlib import Path
 
 from crowdbake.cli.common import CommandError, StageLines, bars_enabled, progress
+from crowdbake.ingest.input_modes import INPUT_OPTIONS, InputConflict, InputMode, command_line_inputs
 from crowdbake.params import add_cli_options, option_for, params_from_args
 from crowdbake.render.gl_device import describe as describe_gl
 
@@ -211,31 +212,32 @@ def run(args: argparse.Namespace) -> int:
         params = BakeParams.from_dict(params_from_args(args))
     except InputError as error:
         raise CommandError(_option_message(error)) from None
+    try:
+        mode = command_line_inputs(args).mode(params.cycle_frames)
+    except InputConflict as conflict:
+        raise CommandError(conflict.command_line()) from None
     with ExitStack() as stack:
         try:
-            cloth = _clip_cloth_inputs(args, params, stack)
+            cloth = _joined_clip_cloth(args, params, stack) if mode is InputMode.CLIP_CLOTH else _cloth_as_given(args)
         except InputError as error:
             raise CommandError(_option_message(error)) from None
         return _bake(args, params, cloth)
 
 
-def _clip_cloth_inputs(args: argparse.Namespace, params, stack: ExitStack) -> tuple[Path | None, Path | None, Path | None]:
-    """(cloth, cloth mesh, timeline) for the bake: as given, or with --clip-cloth the caches joined into
-    one cache and its timeline (crowdbake.ingest.clip_caches), written under --work or a temporary folder."""
+def _cloth_as_given(args: argparse.Namespace) -> tuple[Path | None, Path | None, Path | None]:
+    """(cloth, cloth mesh, timeline) as the command line gave them."""
+    return (Path(args.cloth) if args.cloth else None, Path(args.cloth_mesh) if args.cloth_mesh else None,
+            Path(args.timeline) if args.timeline else None)
+
+
+def _joined_clip_cloth(args: argparse.Namespace, params, stack: ExitStack) -> tuple[Path, Path, Path]:
+    """(cloth, cloth mesh, timeline) of the --clip-cloth caches joined into one cache and its timeline
+    (crowdbake.ingest.clip_caches), written under --work or a temporary folder."""
     import tempfile
 
-    from crowdbake.errors import InputError
     from crowdbake.ingest.clip_caches import parse_clip_cloth, write_joined_inputs
 
-    mesh = Path(args.cloth_mesh) if args.cloth_mesh else None
-    if not args.clip_cloth:
-        return Path(args.cloth) if args.cloth else None, mesh, Path(args.timeline) if args.timeline else None
-    for given, option in ((args.timeline, "--timeline"), (args.cloth, "--cloth"), (args.cycle, "--cycle")):
-        if given:
-            raise InputError(f"gives every clip its own cache (separate simulations): leave out {option}", "clip_cloth")
-    if params.cycle_frames is not None:
-        raise InputError("each clip's period is its animation's: drop --cycle-frames", "clip_cloth")
-    entries = parse_clip_cloth(args.clip_cloth, mesh)
+    entries = parse_clip_cloth(args.clip_cloth, Path(args.cloth_mesh) if args.cloth_mesh else None)
     folder = Path(args.work) / "clip_cloth" if args.work else Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="crowdbake-clips-")))
     return write_joined_inputs(entries, Path(args.character), params.fps, folder)
 
@@ -294,15 +296,10 @@ def _bake(args: argparse.Namespace, params, cloth: tuple[Path | None, Path | Non
     return 0
 
 
-# Inputs and identity (the parameters' flags come from crowdbake.params).
+# The inputs' options (crowdbake.ingest.input_modes) and the bundle's identity; the parameters' flags come from crowdbake.params.
 _OPTIONS = {
-    "cloth": "--cloth",
+    **INPUT_OPTIONS,
     "cloth_mesh": "--cloth-mesh",
-    "character": "CHAR.glb",
-    "textures": "--textures",
-    "cycle": "--cycle",
-    "timeline": "--timeline",
-    "clip_cloth": "--clip-cloth",
     "name": "--name",
     "version": "--version",
     "created": "--created",

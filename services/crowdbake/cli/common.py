@@ -24,8 +24,8 @@ def bars_enabled() -> bool:
 
 
 @contextmanager
-def progress(total: int, description: str) -> Iterator[tqdm]:
-    """A progress bar on stderr; silent unless bars_enabled()."""
+def progress(total: int | None, description: str) -> Iterator[tqdm]:
+    """A progress bar on stderr (total None: a count without one); silent unless bars_enabled()."""
     with tqdm(total=total, desc=description, file=sys.stderr, disable=not bars_enabled(), leave=False) as bar:
         yield bar
 

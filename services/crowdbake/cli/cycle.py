@@ -64,7 +64,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from crowdbake.bake.cycle import CycleParams
     from crowdbake.errors import InputError
-    from crowdbake.stages.cycle import run_cycle_job
+    from crowdbake.stages.cycle_job import run_cycle_job
 
     if args.body is not None and args.body_mesh is None:
         raise CommandError("--body needs --body-mesh")
@@ -98,7 +98,10 @@ def run(args: argparse.Namespace) -> int:
     stages = ["load", "pass 1", "pass 2", "closing", "report"]
     if args.no_edge_pass:
         stages.remove("pass 2")
-    with ExitStack() as stack, progress(len(stages), "cycle") as bar:
+    # Several clips search pass 1, pass 2 and closing once per clip (per stretch of it): their count is the
+    # timeline's, read by the job, so the bar counts the finished steps without a total.
+    several = args.timeline is not None or bool(args.clip_cloth)
+    with ExitStack() as stack, progress(None if several else len(stages), "cycle") as bar:
         def on_progress(stage: str, done: int, total: int) -> None:
             bar.set_description(f"cycle: {stage}")
             if done == total:

@@ -14,11 +14,12 @@ assets (GET /v1/assets/{id}), and compares their sha256 and parameters with the 
 Any difference, or a publisher this key cannot read, is the 409 the server would give, told now."""
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 from typing import Any
 
 from crowdbake.client.http import ClientError, Exit, Server
+from crowdbake.files import sha256_file
+from crowdbake.ingest.input_modes import BakeInputSet
 
 GLB_MAGIC = b"glTF"  # the first 4 bytes of every glTF binary (glTF 2.0 spec, "GLB File Format Specification")
 
@@ -32,14 +33,6 @@ def check_glb_magic(path: Path) -> str | None:
     if head == GLB_MAGIC:
         return None
     return f"{path}: not a glTF binary (a .glb starts with the bytes 'glTF'; this file starts with {head!r})"
-
-
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for chunk in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def _asset_digests(asset: dict[str, Any]) -> set[str]:
@@ -66,19 +59,16 @@ def published_difference(server: Server, name: str, version: str, local: dict[st
         return f"bake {bake_id} published it, from inputs this key cannot reuse"
     record = bake.json()
     inputs = record.get("inputs", {})
-    published = {"character": inputs.get("character"), "cloth": inputs.get("cloth"), "cycle": inputs.get("cycle"), "timeline": inputs.get("timeline"),
-                 **{f"textures.{texture}": asset_id for texture, asset_id in (inputs.get("textures") or {}).items()},
-                 **{f"clip_cloth.{k}": asset_id for k, (_, asset_id) in enumerate(inputs.get("clip_cloth") or [])}}
-    roles = {role for role, asset_id in published.items() if asset_id} | set(local)
-    for role in sorted(roles):
-        if role not in local or not published.get(role):
+    published = BakeInputSet.from_record(inputs).roles()
+    for role in sorted(set(published) | set(local)):
+        if role not in local or role not in published:
             return f"{role} is {'not ' if role not in local else ''}among its inputs"
         asset = server.request("GET", f"/v1/assets/{published[role]}", f"reading asset {published[role]}", accept=frozenset({403, 404}))
         if asset.status_code != 200:
             return f"its {role} is an asset this key cannot read"
         known = _asset_digests(asset.json())
         for path in local[role]:
-            if sha256_of(path) not in known:
+            if sha256_file(path) not in known:
                 return f"{path.name} differs from its {role}"
     defaults = _server_defaults(server)
     for parameter, value in sorted(record.get("params", {}).items()):
@@ -100,7 +90,7 @@ def check_name_and_version(server: Server, name: str, version: str, local: dict[
                            created: str | None, publish: bool = True) -> None:
     """Raise the server's 409 (Exit.REJECTED) when name/version is already published (or being baked)
     from other inputs, before anything is uploaded. `local`: input role -> its local files."""
-    body = {"name": name, "version": version, "inputs": {role: [sha256_of(path) for path in paths] for role, paths in local.items()},
+    body = {"name": name, "version": version, "inputs": {role: [sha256_file(path) for path in paths] for role, paths in local.items()},
             "params": params, "publish": publish, **({"created": created} if created else {})}
     response = server.request("POST", "/v1/bakes/check", f"checking whether {name}/{version} is free", json=body,
                               accept=frozenset({404, 405}))

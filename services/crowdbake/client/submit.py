@@ -21,6 +21,7 @@ from crowdbake.client.http import ClientError, Exit, Server, check_service_root,
 from crowdbake.client.preflight import check_glb_magic, check_name_and_version
 from crowdbake.client.progress import FINAL_STATES, Reporter
 from crowdbake.errors import InputError
+from crowdbake.ingest.input_modes import BakeInputSet, InputConflict, InputMode, command_line_inputs
 from crowdbake.params import add_cli_options, option_for, params_from_args
 
 DESCRIPTION = """\
@@ -157,6 +158,12 @@ class Inputs:
     timeline: Path | None = None   # a clip timeline (POST /v1/assets/timelines), or none
     clip_cloth: list[tuple[str, dict[str, Path]]] = field(default_factory=list)  # (clip, its cloth_form) per --clip-cloth
 
+    def forms(self) -> BakeInputSet[dict[str, Path]]:
+        """Each input's upload (multipart field -> file), by role."""
+        return BakeInputSet(character={"file": self.character}, cloth=self.cloth_files or None, cycle=self.cycle_files or None,
+                            timeline={"timeline": self.timeline} if self.timeline is not None else None,
+                            textures={name: {"file": path} for name, path in self.textures.items()}, clip_cloth=self.clip_cloth)
+
 
 def usage(message: str) -> ClientError:
     return ClientError(message, Exit.USAGE, local_problem(message))
@@ -222,9 +229,14 @@ def check_locally(args: argparse.Namespace) -> Inputs:
     for option in ("poll", "timeout", "retry_for"):
         if getattr(args, option) <= 0:
             raise usage(f"--{option.replace('_', '-')} must be positive, got {getattr(args, option)}")
+    params = bake_params(args)
+    try:
+        mode = command_line_inputs(args).mode(params.get("cycle_frames"))
+    except InputConflict as conflict:
+        raise usage(conflict.command_line()) from None
     character = Path(args.character)
-    clip_cloth = clip_cloth_forms(args)
-    if args.cloth_mesh and not args.cloth and not clip_cloth:
+    clip_cloth = clip_cloth_forms(args) if mode is InputMode.CLIP_CLOTH else []
+    if args.cloth_mesh and mode is InputMode.BODY_ONLY:
         raise usage("--cloth-mesh goes with --cloth (a .pc2 or .mdd cache); without --cloth the body alone is baked")
     cloth = cloth_form(Path(args.cloth), Path(args.cloth_mesh) if args.cloth_mesh else None) if args.cloth else {}
     for path in (character, *cloth.values()):
@@ -237,23 +249,16 @@ def check_locally(args: argparse.Namespace) -> Inputs:
     if not_glb:  # the input itself is wrong, as the server would say: exit 3, told before uploading
         raise ClientError(not_glb, Exit.REJECTED, local_problem(not_glb, "Rejected input"))
     cloth_data = {"cycle_frames": str(args.cycle_frames)} if args.cycle_frames and cloth else {}
-    timeline = Path(args.timeline) if getattr(args, "timeline", None) else None
+    timeline = Path(args.timeline) if args.timeline else None
     if timeline is not None and not timeline.is_file():
         raise usage(f"--timeline {timeline}: no such file")
-    if timeline is not None and args.cycle:
-        raise usage("--cycle chooses one loop; --timeline asks for a loop per clip: give one of them")
-    return Inputs(character, cloth, cloth_data, texture_files(args.textures), bake_params(args), cycle_files(args.cycle), timeline, clip_cloth)
+    return Inputs(character, cloth, cloth_data, texture_files(args.textures), params, cycle_files(args.cycle), timeline, clip_cloth)
 
 
 def clip_cloth_forms(args: argparse.Namespace) -> list[tuple[str, dict[str, Path]]]:
     """(clip, multipart field -> file) per --clip-cloth NAME=CACHE[,MESH] (crowdbake.ingest.clip_caches)."""
     from crowdbake.ingest.clip_caches import parse_clip_cloth
 
-    if not getattr(args, "clip_cloth", None):
-        return []
-    for given, option in ((args.cloth, "--cloth"), (args.timeline, "--timeline"), (args.cycle, "--cycle")):
-        if given:
-            raise usage(f"--clip-cloth gives every clip its own cache (separate simulations): leave out {option}")
     try:
         entries = parse_clip_cloth(args.clip_cloth, Path(args.cloth_mesh) if args.cloth_mesh else None)
     except InputError as error:
@@ -274,12 +279,9 @@ def clip_cloth_forms(args: argparse.Namespace) -> list[tuple[str, dict[str, Path
 # --------------------------------------------------------------------------------- the server's part
 
 
-def bake_body(args: argparse.Namespace, inputs: Inputs, character: str, cloth: str | None, textures: dict[str, str], cycle: str | None = None,
-              timeline: str | None = None, clip_cloth: list[str] | None = None) -> dict[str, Any]:
-    """The POST /v1/bakes body; clip_cloth: the cloth asset of each of inputs.clip_cloth, in order."""
-    return {"name": args.name, "version": args.bundle_version, "character": character, "cloth": cloth, "textures": textures,
-            **({"cycle": cycle} if cycle is not None else {}), **({"timeline": timeline} if timeline is not None else {}),
-            **({"clip_cloth": [{"clip": clip, "cloth": asset} for (clip, _), asset in zip(inputs.clip_cloth, clip_cloth)]} if clip_cloth else {}),
+def bake_body(args: argparse.Namespace, inputs: Inputs, assets: BakeInputSet[str]) -> dict[str, Any]:
+    """The POST /v1/bakes body of `assets` (the asset id of each of inputs.forms())."""
+    return {"name": args.name, "version": args.bundle_version, **assets.request_fields(),
             "params": inputs.params, "publish": not args.no_publish, "public": args.public,
             **({"created": args.created} if args.created else {})}
 
@@ -295,10 +297,7 @@ def preflight(server: Server, args: argparse.Namespace, inputs: Inputs) -> None:
     The request names assets that do not exist, so the server (POST /v1/bakes) validates everything
     else first and then refuses it for want of the assets, starting nothing. Any other refusal is the
     one the real request would get after the uploads."""
-    placeholders = {name: PREFLIGHT_ASSET for name in inputs.textures}
-    body = bake_body(args, inputs, PREFLIGHT_ASSET, PREFLIGHT_ASSET if inputs.cloth_files else None, placeholders,
-                     PREFLIGHT_ASSET if inputs.cycle_files else None, PREFLIGHT_ASSET if inputs.timeline is not None else None,
-                     [PREFLIGHT_ASSET] * len(inputs.clip_cloth))
+    body = bake_body(args, inputs, inputs.forms().map(lambda role, form: PREFLIGHT_ASSET))
     response = server.request("POST", "/v1/bakes", "checking the bake request", json=body, accept=frozenset({422}))
     if response.status_code == 422:
         problem = response.json()
@@ -311,11 +310,7 @@ def preflight(server: Server, args: argparse.Namespace, inputs: Inputs) -> None:
 
 def local_inputs(inputs: Inputs) -> dict[str, list[Path]]:
     """Input role (as the bake record names it) -> its local files, for the published-version check."""
-    return {"character": [inputs.character], **({"cloth": list(inputs.cloth_files.values())} if inputs.cloth_files else {}),
-            **({"cycle": list(inputs.cycle_files.values())} if inputs.cycle_files else {}),
-            **({"timeline": [inputs.timeline]} if inputs.timeline is not None else {}),
-            **{f"clip_cloth.{k}": list(files.values()) for k, (_, files) in enumerate(inputs.clip_cloth)},
-            **{f"textures.{name}": [path] for name, path in inputs.textures.items()}}
+    return {role: list(form.values()) for role, form in inputs.forms().roles().items()}
 
 
 def upload(server: Server, endpoint: str, files: dict[str, Path], what: str, say, data: dict[str, str] | None = None) -> dict[str, Any]:
@@ -385,11 +380,11 @@ def submit(args: argparse.Namespace, outcome: Outcome, say, out) -> None:
                 cloth = upload(server, "/v1/assets/cloth", inputs.cloth_files, f"cloth {cloth_name}", say, inputs.cloth_data)["id"]
             textures = {name: upload(server, "/v1/assets/textures", {"file": path}, f"texture {name}", say)["id"] for name, path in inputs.textures.items()}
             cycle = upload(server, "/v1/assets/cycles", inputs.cycle_files, f"cycle {inputs.cycle_files['cycle'].name}", say)["id"] if inputs.cycle_files else None
-
             timeline = (upload(server, "/v1/assets/timelines", {"timeline": inputs.timeline}, f"timeline {inputs.timeline.name}", say)["id"]
                         if inputs.timeline is not None else None)
-            clip_cloth = [upload(server, "/v1/assets/cloth", files, f"cloth of {clip}", say)["id"] for clip, files in inputs.clip_cloth]
-            body = bake_body(args, inputs, character["id"], cloth, textures, cycle, timeline, clip_cloth)
+            clip_cloth = [(clip, upload(server, "/v1/assets/cloth", files, f"cloth of {clip}", say)["id"]) for clip, files in inputs.clip_cloth]
+            assets = BakeInputSet(character=character["id"], cloth=cloth, cycle=cycle, timeline=timeline, textures=textures, clip_cloth=clip_cloth)
+            body = bake_body(args, inputs, assets)
             response = server.request("POST", "/v1/bakes", "starting the bake", json=body)
             bake = response.json()
             outcome.bake_id, outcome.state, outcome.progress = bake["id"], bake["state"], bake["progress"]

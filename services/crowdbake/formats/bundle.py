@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from crowdbake import __version__
+from crowdbake.files import fsync_path
 from crowdbake.formats.binary import (
     PoseCache,
     TextureArray,
@@ -116,14 +117,6 @@ def manifest_bytes(manifest: dict[str, Any]) -> bytes:
     return (json.dumps(manifest, indent=2, sort_keys=True) + "\n").encode()
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def write_bundle(out_dir: Path, manifest: dict[str, Any], files: list[BundleFile]) -> Path:
     """Write a bundle folder atomically: a temp folder beside `out_dir`, fsync, one rename.
 
@@ -153,9 +146,9 @@ def write_bundle(out_dir: Path, manifest: dict[str, Any], files: list[BundleFile
             handle.flush()
             os.fsync(handle.fileno())
         for folder in sorted({p.parent for p in staging.rglob("*")}, key=lambda p: len(p.parts), reverse=True):
-            _fsync_dir(folder)
+            fsync_path(folder)
         os.rename(staging, out_dir)
-        _fsync_dir(out_dir.parent)
+        fsync_path(out_dir.parent)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

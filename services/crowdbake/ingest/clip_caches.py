@@ -3,7 +3,7 @@ rest and playing that clip from its frame 0. `crowdbake bake --clip-cloth NAME=C
 and a REST bake's `clip_cloth` ({clip: cloth asset}) come here.
 
 The caches are joined, in the order given, into the one cache and timeline the several-clip bake reads
-(crowdbake.stages.clip_loops): a segment per cache, no blends, each segment marked `new_simulation` so no
+(crowdbake.stages.cycle_job): a segment per cache, no blends, each segment marked `new_simulation` so no
 transition is searched across the join (no simulation carried the cloth from one clip into the next). The
 bundle (format 2) then holds every clip's loop and no transitions.
 

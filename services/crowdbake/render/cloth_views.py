@@ -19,7 +19,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from crowdbake.bake.mesh import vertex_normals
+from crowdbake.geometry import vertex_normals
 from crowdbake.render.offscreen import (
     Offscreen,
     bounding_sphere,

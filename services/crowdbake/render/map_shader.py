@@ -17,12 +17,12 @@ SPEC.md's encodings ("Impostor maps"), into four integer targets:
 
 All four are 0 where no triangle covers the texel. The views are orthographic, so the interpolation is
 affine (no perspective division): a texel's values are those of the point of the triangle at its centre,
-computed in float32 and rounded to the nearest code, where crowdbake.bake.reference.impostor_maps.view_maps computes
-them in float64 from a triangle-id render (it stays the reference: tests compare the two). The framebuffer
-is not multisampled, so no texel mixes two triangles on the silhouette. The background fill is
-crowdbake.bake.impostor_views.fill_background, in numpy.
+computed in float32 and rounded to the nearest code (the test oracle crowdbake.bake.reference.impostor_maps
+computes them in float64 from a triangle-id render). The framebuffer is not multisampled, so no texel
+mixes two triangles on the silhouette.
 
-Used through crowdbake.render.impostor.VisibilityRenderer.shader_maps, which owns the GL context.
+Used through crowdbake.render.impostor.BakeRenderer, which owns the GL context; the impostor task
+(crowdbake.stages.impostors.render_task) then fills the maps' backgrounds, in numpy.
 """
 from __future__ import annotations
 

@@ -19,12 +19,12 @@ The maps go up as crowdview uploads them (renderer.cpp upload_texture_array): uv
 blocks, uv32 as R32UI words, rgba16 as RGBA16, BC blocks decoded to RGBA8 on the CPU (crowdview's path
 where a driver lacks S3TC; crowdbake.bake.compression.decode); diffuse textures as the bundle's decoded
 texels under glGenerateMipmap's chain, trilinear and REPEAT. The instance data crowdview's CPU computes
-(view_blend.h: four tiles and their weights, two layers and the frame weight) are the numpy copies'
-(crowdbake.bake.reference.impostor_blend), set as constant vertex attributes, one draw a picture into its own
-viewport of a float framebuffer that is read back once.
+(view_blend.h: four tiles and their weights, two layers and the frame weight) are crowdbake.bake.view_blend's,
+set as constant vertex attributes, one draw a picture into its own viewport of a float framebuffer that is
+read back once.
 
-crowdbake.bake.reference.impostor_blend and impostor_warp draw the same picture in float64 numpy; they stay as the
-reference this is tested against (services/tests/test_runtime_shader.py).
+crowdbake.bake.reference.runtime_picture draws the same picture in float64 numpy: the reference this is
+tested against (services/tests/test_runtime_shader.py).
 """
 from __future__ import annotations
 

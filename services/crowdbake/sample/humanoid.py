@@ -29,8 +29,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from crowdbake.bake.mesh import vertex_normals
 from crowdbake.formats.gltf import Character
+from crowdbake.geometry import vertex_normals
 
 # Shared texture layout in glTF UV convention (u right, v down), as (u0, v0, u1, v1).
 # The body uses the top three quarters, the simulated garment the bottom quarter.

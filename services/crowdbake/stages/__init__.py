@@ -5,7 +5,7 @@ stage reads the typed record the stage before it wrote (crowdbake.stages.records
 progress goes to a callback, never into the records. crowdbake.stages.runner runs them all in one
 process (`crowdbake bake`); crowdbake.jobs.tasks wraps each one in a Celery task.
 
-This package's __init__ stays free of heavy imports: the API and the database layer read STAGES.
+The stage names themselves are crowdbake.stage_names', which the database layer reads too.
 """
 
-STAGES = ("validate", "loops", "cycle", "poses", "impostors", "pack", "publish")
+from crowdbake.stage_names import STAGES  # noqa: F401 (the stages' own name for them)

@@ -7,7 +7,7 @@
       candidates.png  every candidate's pass-1 and pass-2 scores
     edges/          the winner's pictures and edge images, one PNG per view and frame
 
-crowdbake.stages.cycle writes cycle.json and the looped cache and calls these. Plots with matplotlib
+crowdbake.stages.cycle_job writes cycle.json and the looped cache and calls these. Plots with matplotlib
 (Agg), edge images with OpenCV.
 """
 from __future__ import annotations
@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 
 from crowdbake.bake.cycle import CycleResult
-from crowdbake.stages.clip_loops import clips_report_html
 
 
 def write_cycle_plots(result: CycleResult, out_dir: str | os.PathLike) -> None:
@@ -272,3 +271,56 @@ The push-out moved {closing.pushed_vertices} vertex-frames.</p>
 <h2>Parameters</h2>{params}
 </body></html>
 """
+
+
+def clips_report_html(document: dict) -> str:
+    """The report's section on every clip loop and transition, with their quality figures (empty for one clip)."""
+    if not document.get("clips"):
+        return ""
+
+    def figures(quality: dict | None) -> str:
+        if quality is None:
+            return "<td>–</td><td>–</td><td>–</td><td>–</td>"
+        cells = "".join(f"<td>{_shown(quality.get(name))}</td>" for name in ("stretch_ratio", "deviation_ratio", "seam_acceleration_ratio"))
+        verdict = "ok" if quality["within_bounds"] else "OVER: " + ", ".join(quality["exceeded"])
+        return cells + f"<td>{html.escape(verdict)}</td>"
+
+    head = "<th>stretch</th><th>deviation</th><th>seam acc.</th><th>bounds</th>"
+
+    def pose_frames(entry: dict) -> str:  # the bundle's pose frames [first, end) of a range (several clips only)
+        span = entry.get("pose_frames")
+        return "<td>–</td>" if span is None else f"<td>{span[0]}–{span[1] - 1}</td>"
+
+    loops = "".join(
+        f"<tr><td>{html.escape(c['clip'])}</td><td>{c['period']}</td><td>{c['start_frame']}–{c['end_frame']}</td>"
+        f"{pose_frames(c)}<td>{c['segment']}</td>{figures(c['closing'].get('quality'))}</tr>"
+        for c in document["clips"]
+    )
+    moves = "".join(
+        f"<tr><td>{html.escape(t['from_clip'])} → {html.escape(t['to_clip'])}</td><td>{t['leave_loop_frame']}</td>"
+        f"<td>{t['arrive_loop_frame']}</td><td>{t['frames']}</td><td>{t['source_frames'][0]}–{t['source_frames'][1]}</td>"
+        f"{pose_frames(t)}<td>leave</td>{figures(t['leave']['quality'])}</tr>"
+        f"<tr><td></td><td></td><td></td><td></td><td></td><td></td><td>arrive</td>{figures(t['arrive']['quality'])}</tr>"
+        for t in document["transitions"]
+    )
+    bounds = document["clips"][0]["closing"].get("quality") or {}
+    if "bundle_ranges" in document:
+        carried = (f"The bundle carries every loop and transition: {document['bundle_ranges']['pose_frames']} pose frames, "
+                   "each range's shown below (format v2).")
+    else:
+        carried = f"The bundle carries {html.escape(document.get('primary_clip', ''))}."
+    if not document["transitions"] and any(s.get("new_simulation") for s in document.get("timeline", {}).get("segments", [])):
+        carried += " The clips were simulated apart (one cache per clip): no transitions, as no simulation joined them."
+    limits = ", ".join(f"{name.replace('_', ' ')} ≤ {value:g}" for name, value in (bounds.get("bounds") or {}).items())
+    return (
+        f"<h2>Clips: a loop each</h2><p>{carried} Bounds: {html.escape(limits)}.</p>"
+        f"<table><thead><tr><th>clip</th><th>period</th><th>cache frames</th><th>pose frames</th><th>segment</th>{head}</tr></thead><tbody>{loops}</tbody></table>"
+        "<h2>Transitions taken from the simulation</h2><p>Playback leaves loop A before its frame <i>leave</i>, plays the "
+        "transition's frames, and goes on with loop B's frame <i>arrive</i>; each join is crossfaded like a loop's seam.</p>"
+        f"<table><thead><tr><th>change</th><th>leave</th><th>arrive</th><th>frames</th><th>cache frames</th><th>pose frames</th><th>join</th>{head}</tr></thead>"
+        f"<tbody>{moves}</tbody></table>"
+    )
+
+
+def _shown(value) -> str:
+    return "–" if value is None else f"{value:.3g}"

@@ -1,17 +1,23 @@
-"""Stage 4, impostors (paper sections 4, 5): normal, UV and detail maps per baked frame and view (and the
-surface map crowdview reprojects its blended samples with, crowdbake.bake.surface_maps), fanned
-out as independent tasks, one per (baked frame, elevation ring).
+"""Stage 4, impostors (paper sections 4, 5): normal, UV, detail and surface maps per baked frame and view,
+fanned out as independent tasks, one per (baked frame, elevation ring).
+
+One view from render to stored part reads in three files:
+
+1. here, stage_impostor_views: the task's scene at its baked frame and its cameras, then render_task;
+2. crowdbake.render.impostor.BakeRenderer (shader_maps, shader_references): the GL context that runs
+3. crowdbake.render.map_shader, whose shaders (crowdbake.render.map_shader_glsl) draw every view's maps,
+   already encoded, in one pass, and the mesh's share of each texel in another;
+then, back in render_task, the maps are resolved (extend_to_partial_texels, fill_background, the surface
+map's alpha) into the arrays stage_impostor_views writes as work/impostor/parts/<id>.npz, with its sidecar
+<id>.json (ImpostorPartRecord). The pack stage (crowdbake.stages.pack) lays the parts into atlases and
+compresses them.
 
 The impostor plan (stage_impostor_plan) runs on the cycle's output alone: the framing, the baked frames
 and, in work/impostor/scene.npz, the high LOD at those frames and the textures the tasks draw with,
 computed by the same functions as the poses stage (crowdbake.stages.poses.high_parts). So the tasks do
 not wait for the poses stage: both run side by side (two workers, or the CLI runner's two processes).
-
-Each task draws its views' maps in one pass of a shader (crowdbake.render.map_shader, through
-crowdbake.render.impostor's renderer), fills their backgrounds in one batch
-(crowdbake.bake.impostor_views.fill_background) and writes work/impostor/parts/<id>.npz and its sidecar
-<id>.json (ImpostorPartRecord). Fidelity-frame tasks also draw the mesh references the pack stage scores
-the impostor against, shaded per sample by the same shader's reference pass.
+Fidelity-frame tasks also draw the mesh references the pack stage scores the impostor against, shaded
+per sample by the map shader's reference pass.
 """
 from __future__ import annotations
 
@@ -51,6 +57,8 @@ MAP_MAKER = "map_shader-2-coverage"
 BETWEEN_AZIMUTHS = 16
 # What the surface maps' motion is (crowdbake.bake.surface_maps.motion_positions), in the parts' key.
 SURFACE_MOTION = "central-velocity"
+# Coverage below this share of a texel stores as alpha 0 (SPEC.md: 4-bit alpha rounds it away).
+MIN_COVERAGE = 1.0 / 30.0
 _TASK_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
@@ -217,106 +225,8 @@ def load_pose_scene(work: Path, poses: PosesRecord, frame: int) -> Scene:
     )
 
 
-def spread_gaps(count: int, limit: int = BETWEEN_AZIMUTHS) -> list[int]:
-    """The gaps scored of `count` azimuth gaps (gap i: from baked azimuth i to the next), at most `limit`
-    of them spread evenly round the ring: all when count <= limit, else every (count / limit)-th."""
-    if count <= limit:
-        return list(range(count))
-    return [int(i) for i in np.linspace(0, count, limit, endpoint=False).astype(int)]
-
-
-def midpoint_azimuths(azimuths: list[float]) -> list[float]:
-    """The azimuth halfway to the next baked one, per baked azimuth (wrapping at 360°)."""
-    if len(azimuths) == 1:
-        return [(azimuths[0] + 180.0) % 360.0]
-    following = azimuths[1:] + [azimuths[0] + 360.0]
-    return [((a + b) / 2.0) % 360.0 for a, b in zip(azimuths, following)]
-
-
-def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dict[str, float],
-                next_positions: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """A task's maps (and, for the fidelity frame, references): the arrays of its part.
-
-    next_positions: (V, 3) the scene's vertices moved by their velocity at this baked frame, for the
-    surface maps' motion (crowdbake.bake.surface_maps.motion_positions); None: no motion.
-
-    The maps of every view are drawn, encoded, in one pass of crowdbake.render.map_shader; the mesh's
-    share of each texel (the surface map's alpha) as the references are, FIDELITY_SUPERSAMPLE² samples
-    a texel; texels it covers only in part take their nearest covered texel's values
-    (impostor_views.extend_to_partial_texels); backgrounds are filled for the whole ring at once
-    (impostor_views.fill_background). With references,
-    the mesh is also drawn shaded at FIDELITY_SUPERSAMPLE x the tile from every baked view and halfway
-    to the next azimuth (_between_cameras), box-filtered on the GPU, in one pass. timings: adds "render" (the
-    maps' pass), "maps" (the background fill) and "references" seconds.
-    """
-    layout = plan.layout
-    tile = int(layout["tile_size"])
-    views = [(int(a), int(e)) for a, e in task.views]
-    angles = [(layout["azimuths_deg"][a], layout["elevations_deg"][e]) for a, e in views]
-    map_views = [impostor_views.ortho_view(plan.center, plan.radius, azimuth, elevation, tile) for azimuth, elevation in angles]
-    renderer = shared_renderer(tile)
-    clock = time.perf_counter()
-    maps = renderer.shader_maps(map_views, scene.positions, scene.normals, scene.uvs,
-                                scene.positions if next_positions is None else next_positions,
-                                scene.faces, scene.triangle_material, scene.diffuse)
-    timings["render"] += time.perf_counter() - clock
-    references = None
-    clock = time.perf_counter()
-    if task.references:
-        between = _between_cameras(plan, views)
-        # One pass for the baked views and the cameras between them: the mesh and textures go up once.
-        references = mesh_references(scene, plan, angles + [(azimuth, plan.layout["elevations_deg"][e])
-                                                           for (_, e), azimuth in zip(between["between_views"].tolist(), between["between_azimuths"])],
-                                     with_coverage=True)
-        coverage = references[:len(angles), ..., 3]
-        timings["references"] += time.perf_counter() - clock
-    else:
-        # The mesh's share of each texel, sampled as the references are: the surface map's alpha.
-        coverage = mesh_references(scene, plan, angles, with_coverage=True)[..., 3]
-        timings["render"] += time.perf_counter() - clock
-    clock = time.perf_counter()
-    mask = impostor_views.extend_to_partial_texels(maps.mask, coverage, [maps.normal, maps.uv, maps.detail, maps.surface])
-    # The surface map's background is filled as the others' but keeps its blocks as filled: its values
-    # beside the silhouette are read back by the runtime's reprojection.
-    impostor_views.fill_background(mask, [maps.normal, maps.detail], unflattened=[maps.surface])
-    maps.surface[..., 3] = np.where(mask, np.rint(np.clip(coverage, 0.0, 1.0) * 255.0), 0).astype(np.uint8)
-    timings["maps"] += time.perf_counter() - clock
-    arrays = {"views": np.asarray(views, dtype=np.int64).reshape(-1, 2), "normal": maps.normal, "uv": maps.uv, "detail": maps.detail,
-              "surface": maps.surface}
-    if references is not None:
-        arrays.update(reference=references[:len(angles), ..., :3], reference_between=references[len(angles):, ..., :3], **between)
-    return arrays
-
-
-def mesh_references(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]], with_coverage: bool = False) -> np.ndarray:
-    """The mesh from each (azimuth, elevation) in degrees, lit as the runtime lights the impostor, at
-    FIDELITY_SUPERSAMPLE² samples a texel (crowdbake.render.map_shader.draw_references, which
-    crowdbake.bake.reference.mesh_reference is the float64 reference of): (V, S, S, 3) float32."""
-    size = int(plan.layout["tile_size"]) * FIDELITY_SUPERSAMPLE
-    views = [impostor_views.ortho_view(plan.center, plan.radius, azimuth, elevation, size) for azimuth, elevation in angles]
-    if not views:
-        return np.zeros((0, size // FIDELITY_SUPERSAMPLE, size // FIDELITY_SUPERSAMPLE, 4 if with_coverage else 3), np.float32)
-    return shared_renderer(int(plan.layout["tile_size"])).shader_references(
-        views, scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material,
-        scene.diffuse_runtime or scene.diffuse,  # (without runtime textures only the coverage is wanted)
-        scene.outfit_row, FIDELITY_SUPERSAMPLE, with_coverage)
-
-
-def _between_cameras(plan: ImpostorPlan, views: list[tuple[int, int]]) -> dict[str, np.ndarray]:
-    """The cameras halfway to the next azimuth (no baked view shares their references), for the views whose
-    azimuth gap is scored (spread_gaps): "between_views" (B, 2) their (azimuth, elevation) indices and
-    "between_azimuths" (B,) degrees."""
-    midpoints = midpoint_azimuths(list(plan.layout["azimuths_deg"]))
-    scored = set(spread_gaps(len(midpoints)))
-    chosen = [(a, e) for a, e in views if a in scored]
-    return {
-        "between_views": np.asarray(chosen, dtype=np.int64).reshape(-1, 2),
-        "between_azimuths": np.asarray([midpoints[a] for a, _ in chosen], dtype=np.float64),
-    }
-
-
 def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
-    """Render one task's views (normal, UV and detail maps) into work/impostor/parts/<id>.npz.
+    """Render one task's views (normal, UV, detail and surface maps) into work/impostor/parts/<id>.npz.
 
     Returns the .npz path. Idempotent: a part written for the same plan and task is kept. Needs the
     impostor plan, not the poses stage.
@@ -346,6 +256,183 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
     gl = shared_renderer(int(plan.layout["tile_size"])).gl.to_json()
     write_json_atomic(stats_path, ImpostorPartRecord(key=key, views=len(task.views), seconds=timings, gl=gl).to_json())
     return path
+
+
+def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dict[str, float],
+                next_positions: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """A task's maps (and, for the fidelity frame, references): the arrays of its part.
+
+    next_positions: (V, 3) the scene's vertices moved by their velocity at this baked frame, for the
+    surface maps' motion (crowdbake.bake.surface_maps.motion_positions); None: no motion.
+
+    The maps of every view are drawn, encoded, in one pass of crowdbake.render.map_shader; the mesh's
+    share of each texel (the surface map's alpha) as the references are, FIDELITY_SUPERSAMPLE² samples
+    a texel; texels it covers only in part take their nearest covered texel's values
+    (extend_to_partial_texels); backgrounds are filled for the whole ring at once (fill_background).
+    With references, the mesh is also drawn shaded at FIDELITY_SUPERSAMPLE x the tile from every baked
+    view and halfway to the next azimuth (_between_cameras), box-filtered on the GPU, in one pass.
+    timings: adds "render" (the maps' pass), "maps" (the background fill) and "references" seconds.
+    """
+    layout = plan.layout
+    tile = int(layout["tile_size"])
+    views = [(int(a), int(e)) for a, e in task.views]
+    angles = [(layout["azimuths_deg"][a], layout["elevations_deg"][e]) for a, e in views]
+    map_views = [impostor_views.ortho_view(plan.center, plan.radius, azimuth, elevation, tile) for azimuth, elevation in angles]
+    renderer = shared_renderer(tile)
+    clock = time.perf_counter()
+    maps = renderer.shader_maps(map_views, scene.positions, scene.normals, scene.uvs,
+                                scene.positions if next_positions is None else next_positions,
+                                scene.faces, scene.triangle_material, scene.diffuse)
+    timings["render"] += time.perf_counter() - clock
+    references = None
+    clock = time.perf_counter()
+    if task.references:
+        between = _between_cameras(plan, views)
+        # One pass for the baked views and the cameras between them: the mesh and textures go up once.
+        references = mesh_references(scene, plan, angles + [(azimuth, plan.layout["elevations_deg"][e])
+                                                           for (_, e), azimuth in zip(between["between_views"].tolist(), between["between_azimuths"])],
+                                     with_coverage=True)
+        coverage = references[:len(angles), ..., 3]
+        timings["references"] += time.perf_counter() - clock
+    else:
+        # The mesh's share of each texel, sampled as the references are: the surface map's alpha.
+        coverage = mesh_references(scene, plan, angles, with_coverage=True)[..., 3]
+        timings["render"] += time.perf_counter() - clock
+    clock = time.perf_counter()
+    mask = extend_to_partial_texels(maps.mask, coverage, [maps.normal, maps.uv, maps.detail, maps.surface])
+    # The surface map's background is filled as the others' but keeps its blocks as filled: its values
+    # beside the silhouette are read back by the runtime's reprojection.
+    fill_background(mask, [maps.normal, maps.detail], unflattened=[maps.surface])
+    maps.surface[..., 3] = np.where(mask, np.rint(np.clip(coverage, 0.0, 1.0) * 255.0), 0).astype(np.uint8)
+    timings["maps"] += time.perf_counter() - clock
+    arrays = {"views": np.asarray(views, dtype=np.int64).reshape(-1, 2), "normal": maps.normal, "uv": maps.uv, "detail": maps.detail,
+              "surface": maps.surface}
+    if references is not None:
+        arrays.update(reference=references[:len(angles), ..., :3], reference_between=references[len(angles):, ..., :3], **between)
+    return arrays
+
+
+def mesh_references(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]], with_coverage: bool = False) -> np.ndarray:
+    """The mesh from each (azimuth, elevation) in degrees, lit as the runtime lights the impostor, at
+    FIDELITY_SUPERSAMPLE² samples a texel (crowdbake.render.map_shader.draw_references, which
+    crowdbake.bake.reference.mesh_reference is the float64 reference of): (V, S, S, 3) float32."""
+    size = int(plan.layout["tile_size"]) * FIDELITY_SUPERSAMPLE
+    views = [impostor_views.ortho_view(plan.center, plan.radius, azimuth, elevation, size) for azimuth, elevation in angles]
+    if not views:
+        return np.zeros((0, size // FIDELITY_SUPERSAMPLE, size // FIDELITY_SUPERSAMPLE, 4 if with_coverage else 3), np.float32)
+    return shared_renderer(int(plan.layout["tile_size"])).shader_references(
+        views, scene.positions, scene.normals, scene.uvs, scene.faces, scene.triangle_material,
+        scene.diffuse_runtime or scene.diffuse,  # (without runtime textures only the coverage is wanted)
+        scene.outfit_row, FIDELITY_SUPERSAMPLE, with_coverage)
+
+
+def extend_to_partial_texels(mask: np.ndarray, coverage: np.ndarray, maps: list[np.ndarray]) -> np.ndarray:
+    """Give the texels the mesh covers only in part (their centre outside `mask`) the values of their
+    view's nearest covered texel, in place, and return the extended mask.
+
+    mask: (V, S, S) bool, texel centres the mesh covers; coverage: (V, S, S) float 0..1, the share of each
+    texel the mesh covers (supersampled); maps: (V, S, S, C) images of those views. A soft silhouette is
+    drawn from these texels too (SPEC.md "Impostor maps", the surface map's alpha): they need a surface
+    point to colour, light and reproject, and the nearest covered one is the surface beside them."""
+    partial = (np.asarray(coverage) >= MIN_COVERAGE) & ~mask
+    if not partial.any():
+        return mask
+    nearest = nearest_inside_views(mask).reshape(-1)
+    chosen = partial.reshape(-1)
+    for image in maps:
+        flat = image.reshape(-1, image.shape[-1])
+        flat[chosen] = flat[nearest[chosen]]
+    return mask | partial
+
+
+def fill_background(mask: np.ndarray, maps: list[np.ndarray], unflattened: list[np.ndarray] = ()) -> np.ndarray:
+    """Give the texels outside `mask` the RGB of their view's nearest covered texel, in place.
+
+    mask: (V, S, S) bool; maps, unflattened: (V, S, S, C >= 3) images of those views (alpha left alone).
+    The 4 x 4 blocks of `maps` holding no covered texel are then made flat (flatten_empty_blocks); those
+    of `unflattened` keep the filled values. Returns the flat index (V·S·S,) of every texel's nearest
+    covered texel (nearest_inside_views).
+
+    Block compression fits each block's endpoints to all 16 texels: filling the background with the
+    silhouette's own values keeps it from spending precision on texels nobody sees, and a flat block
+    costs the encoder nothing. The exact maps of crowdbake.bake.reference.impostor_maps end here too."""
+    shape = mask.shape
+    nearest = nearest_inside_views(mask).reshape(-1)
+    for image in maps:
+        image[..., :3] = flatten_empty_blocks(image[..., :3].reshape(-1, 3)[nearest].reshape(shape + (3,)), mask)
+    for image in unflattened:
+        image[..., :3] = image[..., :3].reshape(-1, 3)[nearest].reshape(shape + (3,))
+    return nearest
+
+
+def nearest_inside_views(masks: np.ndarray) -> np.ndarray:
+    """(V, H, W) int64 flat index into a (V * H * W) stack of the nearest texel inside each view's mask
+    (nearest_inside per view, whose distance transform stays 2D); a view whose mask is empty or full
+    points at itself."""
+    count, height, width = masks.shape
+    index = np.arange(count * height * width, dtype=np.int64).reshape(count, height, width)
+    for k in range(count):
+        nearest = nearest_inside(masks[k])
+        if nearest is not None:
+            index[k] = k * height * width + nearest[0] * width + nearest[1]
+    return index
+
+
+def nearest_inside(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(rows, columns) (H, W) of the nearest texel inside `mask` for every texel; None if mask is empty or full."""
+    from scipy import ndimage  # a third of a second to import; only the background fill needs it
+
+    if not mask.any() or mask.all():
+        return None
+    _, (rows, columns) = ndimage.distance_transform_edt(~mask, return_indices=True)
+    return rows, columns
+
+
+def flatten_empty_blocks(image: np.ndarray, mask: np.ndarray, block: int = 4) -> np.ndarray:
+    """Copy of (..., H, W, C) `image` whose block x block tiles holding no texel of the (..., H, W) `mask`
+    are one flat colour (their top-left texel's). A flat block compresses exactly and needs no encoder
+    effort; only blocks on the silhouette need the dilated values. Leading axes are independent images
+    (views). Sizes that are not multiples of `block` are left unchanged."""
+    height, width = mask.shape[-2:]
+    out = image.copy()
+    if height % block or width % block:
+        return out
+    lead = mask.shape[:-2]
+    rows, columns = height // block, width // block
+    empty = ~mask.reshape(lead + (rows, block, columns, block)).any(axis=(-3, -1))  # (..., rows, columns)
+    tiles = out.reshape(lead + (rows, block, columns, block, -1))
+    corner = tiles[..., :1, :, :1, :]  # (..., rows, 1, columns, 1, C)
+    tiles[:] = np.where(empty[..., :, None, :, None, None], corner, tiles)
+    return out
+
+
+def _between_cameras(plan: ImpostorPlan, views: list[tuple[int, int]]) -> dict[str, np.ndarray]:
+    """The cameras halfway to the next azimuth (no baked view shares their references), for the views whose
+    azimuth gap is scored (spread_gaps): "between_views" (B, 2) their (azimuth, elevation) indices and
+    "between_azimuths" (B,) degrees."""
+    midpoints = midpoint_azimuths(list(plan.layout["azimuths_deg"]))
+    scored = set(spread_gaps(len(midpoints)))
+    chosen = [(a, e) for a, e in views if a in scored]
+    return {
+        "between_views": np.asarray(chosen, dtype=np.int64).reshape(-1, 2),
+        "between_azimuths": np.asarray([midpoints[a] for a, _ in chosen], dtype=np.float64),
+    }
+
+
+def spread_gaps(count: int, limit: int = BETWEEN_AZIMUTHS) -> list[int]:
+    """The gaps scored of `count` azimuth gaps (gap i: from baked azimuth i to the next), at most `limit`
+    of them spread evenly round the ring: all when count <= limit, else every (count / limit)-th."""
+    if count <= limit:
+        return list(range(count))
+    return [int(i) for i in np.linspace(0, count, limit, endpoint=False).astype(int)]
+
+
+def midpoint_azimuths(azimuths: list[float]) -> list[float]:
+    """The azimuth halfway to the next baked one, per baked azimuth (wrapping at 360°)."""
+    if len(azimuths) == 1:
+        return [(azimuths[0] + 180.0) % 360.0]
+    following = azimuths[1:] + [azimuths[0] + 360.0]
+    return [((a + b) / 2.0) % 360.0 for a, b in zip(azimuths, following)]
 
 
 def part_record(work: Path, task: ImpostorTask) -> ImpostorPartRecord | None:

@@ -8,9 +8,9 @@ cycle.json and the report as a search of every clip in one go would.
     load_clip_loops(work) -> [ClipLoop, ...]                       # in the timeline's order
 
 A bake of one clip (no timeline), of a given cycle.json or of the body alone has no items: its cycle
-stage does the whole search, as there is nothing to search side by side. Each item runs the one-clip
-search of crowdbake.bake.clips.find_clip_loop on exactly the arrays the all-clips search
-(crowdbake.stages.clip_loops.run_clips_job) gives it, so the joined outputs are the same bytes.
+stage does the whole search, as there is nothing to search side by side. Each item runs
+crowdbake.bake.clips.find_clip_loop on exactly the inputs the cycle job (crowdbake.stages.cycle_job)
+searches every clip of (crowdbake.stages.cycle_inputs), so the joined outputs are the same bytes.
 """
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ import numpy as np
 
 from crowdbake.bake.clips import ClipLoop
 from crowdbake.errors import InputError, StageOrderError
+from crowdbake.stages.cycle_job import file_stem
 from crowdbake.stages.result_files import from_tree, to_tree
 from crowdbake.stages.workdir import WorkDir, npz_bytes, read_json, stage_key, write_bytes_atomic, write_json_atomic
 
@@ -33,7 +34,6 @@ def loop_items(work: Path) -> list[dict]:
     with the clip's position so that two clips whose names differ only in case stay apart); none for a
     bake without a timeline."""
     from crowdbake.ingest.timeline import read_timeline
-    from crowdbake.stages.clip_loops import file_stem
     from crowdbake.stages.validate import load_job
 
     folder = WorkDir(work)
@@ -59,10 +59,8 @@ def stage_clip_loop(work: Path, item: dict) -> Path:
     Kept when the stored one has this item's key. InputError("cloth") when the clip holds no loop."""
     from crowdbake.bake.clips import find_clip_loop
     from crowdbake.bake.cycle import CycleParams
-    from crowdbake.ingest.timeline import read_timeline
     from crowdbake.render.cloth_views import ClothViewRenderer
-    from crowdbake.stages.clip_loops import check_timeline, pose_clips_body, primary_clip
-    from crowdbake.stages.cycle import load_cycle_inputs
+    from crowdbake.stages.cycle_inputs import load_cycle_inputs
     from crowdbake.stages.validate import load_job
 
     work = Path(work)
@@ -76,17 +74,13 @@ def stage_clip_loop(work: Path, item: dict) -> Path:
     cycle_params = CycleParams(max_candidates=params.candidates, views=params.cycle_views, close=params.close)
     character = inputs / names["character"]
     try:
-        timeline = read_timeline(inputs / names["timeline"])
-        animation = primary_clip(timeline, params.animation)
-        # As crowdbake.stages.cycle.run_cycle_job reads them for the whole search; the body is posed per clip below.
-        loaded = load_cycle_inputs(inputs / names["cloth"], inputs / names["cloth_mesh"], character, cycle_frames=timeline.period(animation),
-                                   fps=job.fps, animation=animation, pose_body=False)
-        check_timeline(loaded, timeline, Path(names["timeline"]), character)
-        positions, _normals, faces = pose_clips_body(character, timeline, only=item["clip"])
+        # As crowdbake.stages.cycle_job.run_cycle_job reads them for every clip, the body posed for this clip alone.
+        loaded = load_cycle_inputs(inputs / names["cloth"], inputs / names["cloth_mesh"], character, fps=job.fps,
+                                   animation=params.animation, timeline=inputs / names["timeline"], clip=item["clip"])
         render_views = ClothViewRenderer(loaded.cloth_faces, loaded.body_faces, cycle_params.views, cycle_params.image_size,
                                          cycle_params.elevation_deg)
-        loop = find_clip_loop(np.asarray(loaded.cloth), loaded.cloth_faces, timeline, item["clip"], cycle_params, render_views,
-                              positions, faces)
+        loop = find_clip_loop(np.asarray(loaded.cloth), loaded.cloth_faces, loaded.timeline, item["clip"], cycle_params, render_views,
+                              loaded.body, loaded.body_faces, loaded.body_normals)
     except ValueError as error:
         raise InputError(f"cycle search: {error}", "cloth") from None
     tree, arrays = to_tree(loop)

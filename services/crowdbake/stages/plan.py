@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
-from crowdbake.stages import STAGES
+from crowdbake.stage_names import FAN_OUT_STAGES, STAGES
 
 # Where the local runner runs a node: in the runner's own process (short, or it must: the validate
 # stage reads the caller's inputs), in a worker of the pool, or in a fresh process of its own (an item
@@ -113,7 +113,7 @@ def _json_key(path: Path) -> str | None:
 
 def _file_digest(relative: str) -> Callable[[Path, Any], str | None]:
     def key(work: Path, _item: Any) -> str | None:
-        from crowdbake.stages.workdir import sha256_file
+        from crowdbake.files import sha256_file
 
         path = Path(work) / relative
         return sha256_file(path) if path.is_file() else None
@@ -369,8 +369,9 @@ def runs_in_parallel(unit: str) -> bool:
 
 def plan_problems(plan: tuple[Node, ...] = BAKE_PLAN) -> list[str]:
     """What makes a plan unrunnable by both executors: a need or read that is not an earlier node (the
-    service runs units and their nodes in plan order), an item need on an unknown node, or a unit out of
-    STAGES or out of order. Empty for a good plan."""
+    service runs units and their nodes in plan order), an item need on an unknown node, a unit out of
+    STAGES or out of order, or fan-out units other than crowdbake.stage_names.FAN_OUT_STAGES (which the
+    database layer reads). Empty for a good plan."""
     problems, seen = [], set()
     position = {stage: k for k, stage in enumerate(STAGES)}
     for node in plan:
@@ -383,6 +384,9 @@ def plan_problems(plan: tuple[Node, ...] = BAKE_PLAN) -> list[str]:
     units = [position[node.unit] for node in plan if node.unit in position]
     if units != sorted(units):
         problems.append("the nodes' units are not in STAGES order")
+    alone = tuple(stage for stage in STAGES if [node.fans_out for node in plan if node.unit == stage] == [True])
+    if alone != FAN_OUT_STAGES:
+        problems.append(f"the units that are one fan-out node alone are {alone}, FAN_OUT_STAGES says {FAN_OUT_STAGES}")
     return problems
 
 

@@ -97,10 +97,10 @@ class CycleRecord(Record):
     # Where the cycle came from: "search" (the cloth's, paper section 3), "given" (a cycle.json), or
     # crowdbake.stages.body_only.ANIMATION_LOOP (no cloth: the animation's own loop).
     source: str = "search"
-    # Several clips (crowdbake.stages.clip_loops): the clip frame at start_frame, where the body's pose
+    # Several clips (crowdbake.stages.cycle_job): the clip frame at start_frame, where the body's pose
     # starts (the cache frame number is not the clip's time); None: frame f is at time f / fps.
     clip_phase: int | None = None
-    # A bundle of several clips (format v2; crowdbake.stages.clip_loops.bundle_ranges): pose_frames, the
+    # A bundle of several clips (format v2; crowdbake.stages.cycle_job.bundle_ranges): pose_frames, the
     # manifest's clips and transitions, clip_phases (per clip) and the pose-frame cloth's file under
     # work/cycle. None: one clip, the cycle above is the bundle's (v1).
     ranges: dict[str, Any] | None = None

@@ -3,9 +3,9 @@ the 1:1 switch distance: fidelity.json's `runtime` section, written by the pack 
 
 The pictures are drawn by crowdview's own impostor shader in the bake's GL context
 (crowdbake.render.runtime_shader), from the bundle's own bytes: the UV map in its pixel format, the normal
-and surface maps after block compression, the diffuse texture as decoded. numpy_picture draws the same
-picture with the numpy copy of that shader (crowdbake.bake.reference.impostor_blend, impostor_warp), the reference
-the shader is tested against. Three sets of cameras:
+and surface maps after block compression, the diffuse texture as decoded; which views and frames it blends
+is crowdbake.bake.view_blend's choice. (crowdbake.bake.reference.runtime_picture draws the same picture in
+numpy, the reference the shader is tested against.) Three sets of cameras:
 
 - `at_views`: every baked view of the fidelity frame, from the mesh references the impostor tasks rendered
   (the runtime draws one sample of weight 1 there);
@@ -24,45 +24,12 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.bake import compression, fidelity, impostor_views, map_codecs, shading, surface_maps
-from crowdbake.bake.reference import impostor_blend, impostor_warp
-from crowdbake.bake.atlas import AtlasLayout, view_tile
-from crowdbake.bake.reference.impostor_blend import DecodedTile
+from crowdbake.bake import fidelity, impostor_views, view_blend
+from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.formats.binary import TextureArray, decode_texture_array
-from crowdbake.formats.texel_codecs import unpack_uv32, unpack_uvblock
 from crowdbake.render.runtime_shader import RuntimeAtlas, RuntimePicture
 from crowdbake.stages.impostors import BETWEEN_AZIMUTHS, MAP_MAKER, spread_gaps
 from crowdbake.stages.records import ImpostorTask, PosesRecord
-
-
-def decode_atlas_layer(uv_map: TextureArray, normal_map: TextureArray, layer: int, layout: AtlasLayout) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(uv (H, W, 2), material (H, W), covered (H, W), normal (H, W, 3) model space) of one layer of the
-    bundle's UV and normal maps (parsed CBTX), decoded as crowdview samples them."""
-    if uv_map.pixel_format == "uvblock":
-        u, v, material, covered = unpack_uvblock(uv_map.layers[layer], uv_map.width, uv_map.height)
-        uv = np.stack([u, v], axis=-1)
-    elif uv_map.pixel_format == "uv32":
-        u, v, material, covered = unpack_uv32(uv_map.texels(layer))
-        uv = np.stack([u, v], axis=-1)
-    else:
-        uv, material, covered = map_codecs.decode_uv_map(uv_map.texels(layer))
-    # Outside the character the shader's decode gives coordinate 0, which its gradients then see.
-    uv = np.where(covered[..., None], uv, 0.0)
-    if normal_map.pixel_format == "bc5":
-        normals = compression.decode(normal_map.layers[layer], "bc5", normal_map.width, normal_map.height)
-        return uv, material, covered, map_codecs.view_xy_to_model_normals(normals, layout)
-    if normal_map.pixel_format in ("bc1", "bc2"):
-        normals = compression.decode(normal_map.layers[layer], normal_map.pixel_format, normal_map.width, normal_map.height)
-    else:
-        normals = normal_map.texels(layer)
-    return uv, material, covered, map_codecs.decode_normal_map(normals)
-
-
-def decode_surface_layer(surface_map: TextureArray, layer: int) -> np.ndarray:
-    """(H, W, 4) uint8 texels of one layer of the bundle's surface map, decoded as crowdview samples it."""
-    if surface_map.pixel_format in ("bc1", "bc2"):
-        return compression.decode(surface_map.layers[layer], surface_map.pixel_format, surface_map.width, surface_map.height)
-    return surface_map.texels(layer)
 
 
 def parsed_map(data: bytes | TextureArray | None, where: str) -> TextureArray | None:
@@ -77,60 +44,7 @@ def runtime_textures(work: Path) -> dict[str, np.ndarray]:
         return {name: data[name] for name in data.files if name == "outfits" or name.endswith("_decoded")}
 
 
-class AtlasTiles:
-    """Tiles of decoded atlas layers, decoded once per layer; the surface map's too when given (warp False:
-    its alpha only, crowdview's `full` blend).
-
-    uv_file, normal_file, surface_file: the bundle's CBTX files (bytes) or already parsed TextureArrays."""
-
-    def __init__(self, layout: AtlasLayout, uv_file: bytes | TextureArray, normal_file: bytes | TextureArray,
-                 surface_file: bytes | TextureArray | None = None, radius: float = 1.0, warp: bool = True):
-        self.layout, self.radius, self.warp = layout, radius, warp
-        self.uv_map, self.normal_map = parsed_map(uv_file, "uv map"), parsed_map(normal_file, "normal map")
-        self.surface_map = parsed_map(surface_file, "surface map")
-        self._layers: dict[int, tuple] = {}
-        self._surfaces: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-
-    def _view(self, plane: np.ndarray, tile: int, edge: bool = False) -> np.ndarray:
-        """The whole tile `tile` of a decoded layer (crowdbake.bake.atlas.view_tile): outside the crop not
-        covered, or with `edge` clamped to the crop as crowdview's surface reads are."""
-        columns = len(self.layout.azimuths_deg)
-        return view_tile(self.layout, plane, tile % columns, tile // columns, edge)
-
-    def surface(self, tile: int, layer: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """(depth (S, S), motion (S, S, 2)) metres of a tile (crowdbake.bake.surface_maps) and its coverage
-        (S, S) 0..1 (the alpha; 1 in a bc1 map); None without a surface map."""
-        if self.surface_map is None:
-            return None
-        if layer not in self._surfaces:
-            texels = decode_surface_layer(self.surface_map, layer)
-            self._surfaces[layer] = (*surface_maps.decode_surface(texels, self.radius), texels[..., 3] / 255.0)
-        return tuple(self._view(plane, tile, edge=True) for plane in self._surfaces[layer])
-
-    def tile(self, tile: int, layer: int) -> DecodedTile:
-        if layer not in self._layers:
-            self._layers[layer] = decode_atlas_layer(self.uv_map, self.normal_map, layer, self.layout)
-        return DecodedTile(*(self._view(plane, tile) for plane in self._layers[layer]))
-
-
-def sample_tile(tiles: AtlasTiles, tile: int, layer: int, target: impostor_views.OrthoView,
-                frames: impostor_blend.FrameWeights) -> DecodedTile:
-    """One (view, frame) sample as crowdview draws it for a camera at `target` and cycle position `frames`:
-    reprojected (crowdbake.bake.reference.impostor_warp.warp_tile) when the bundle has a surface map."""
-    decoded = tiles.tile(tile, layer)
-    surface = tiles.surface(tile, layer)
-    if surface is None:
-        return decoded
-    if not tiles.warp:  # unmoved: each texel weighs its own coverage
-        return replace(decoded, share=surface[-1])
-    columns = len(tiles.layout.azimuths_deg)
-    source = impostor_views.ortho_view(target.center, target.radius, tiles.layout.azimuths_deg[tile % columns],
-                                      tiles.layout.elevations_deg[tile // columns], target.size)
-    *fields, coverage = surface
-    return impostor_warp.warp_tile(decoded, source, tuple(fields), target, impostor_warp.motion_fraction(layer, frames), coverage=coverage)
-
-
-def halfway_frame(poses: PosesRecord) -> tuple[int, impostor_blend.FrameWeights]:
+def halfway_frame(poses: PosesRecord) -> tuple[int, view_blend.FrameWeights]:
     """The cycle frame halfway (rounded down) from the fidelity frame to the next baked frame, and its weights."""
     indices, cycle_frames = list(poses.frame_indices), poses.cycle_frames
     ranges = poses.bundle_ranges()
@@ -143,7 +57,7 @@ def halfway_frame(poses: PosesRecord) -> tuple[int, impostor_blend.FrameWeights]
     following = indices[(k + 1) % len(indices)]
     span = following - indices[k] if following > indices[k] else following + cycle_frames - indices[k]
     frame = (indices[k] + span // 2) % cycle_frames if len(indices) > 1 else indices[k]
-    return frame, impostor_blend.blend_frame_weights(frame, indices, cycle_frames)
+    return frame, view_blend.blend_frame_weights(frame, indices, cycle_frames)
 
 
 def between_cameras(layout: AtlasLayout, max_azimuths: int = BETWEEN_AZIMUTHS) -> list[tuple[float, float]]:
@@ -200,10 +114,10 @@ def between_references(work: Path, poses: PosesRecord, supersample: int) -> list
     return references
 
 
-def picture_at(layout: AtlasLayout, azimuth: float, elevation: float, frames: impostor_blend.FrameWeights) -> RuntimePicture:
+def picture_at(layout: AtlasLayout, azimuth: float, elevation: float, frames: view_blend.FrameWeights) -> RuntimePicture:
     """What crowdview hands its impostor shader for a camera at (azimuth, elevation) degrees and cycle
-    position `frames` (view_blend.h; crowdbake.bake.reference.impostor_blend.blend_view_weights)."""
-    weights = impostor_blend.blend_view_weights(azimuth, elevation, layout.azimuths_deg, layout.elevations_deg)
+    position `frames` (crowdbake.bake.view_blend.blend_view_weights, as crowdview's view_blend.cpp)."""
+    weights = view_blend.blend_view_weights(azimuth, elevation, layout.azimuths_deg, layout.elevations_deg)
     return RuntimePicture(float(azimuth), float(elevation), weights.tiles, weights.weights, frames.layers, frames.weight)
 
 
@@ -218,29 +132,13 @@ def runtime_atlas(poses: PosesRecord, layout: AtlasLayout, uv_map: TextureArray,
                         layout.crop_box)
 
 
-def numpy_picture(atlas: RuntimeAtlas, tiles: AtlasTiles, picture: RuntimePicture, chains: list[list[np.ndarray]] | None = None) -> np.ndarray:
-    """The picture crowdbake.render.runtime_shader draws, drawn by the numpy copy of crowdview's shader
-    (crowdbake.bake.reference.impostor_blend, impostor_warp) in float64: (S, S, 3), the reference the shader is
-    tested against. tiles: AtlasTiles of the same maps; chains: the diffuse textures' mip chains."""
-    # A material without region codes (bc1) is drawn with none, as crowdview's u_has_regions.
-    diffuse = [texture if regions else np.concatenate([texture[..., :3], np.zeros_like(texture[..., :1])], axis=-1)
-               for texture, regions in zip(atlas.diffuse, atlas.has_regions)]
-    chains = chains if chains is not None else [impostor_blend.mip_chain(texture) for texture in diffuse]
-    view = impostor_views.ortho_view(atlas.center, atlas.radius, picture.azimuth_deg, picture.elevation_deg, atlas.tile_size)
-    frames = impostor_blend.FrameWeights(picture.layers, picture.frame_weight)
-    weights = impostor_blend.ViewWeights(picture.tiles, picture.view_weights)
-    samples = [(w, sample_tile(tiles, tile, k, view, frames)) for w, tile, k in impostor_blend.samples_for(weights, frames)]
-    return impostor_blend.blend_image(samples, diffuse, atlas.outfit_row, shading.camera_light(view), atlas.tile_size, chains,
-                                      reprojected=tiles.surface_map is not None and tiles.warp)
-
-
 def scored_cameras(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
                    supersample: int) -> list[tuple[str, dict[str, float], np.ndarray, RuntimePicture]]:
     """(section, camera, mesh reference, picture) of every camera score_runtime scores (module docstring):
     section "at_views", "between_azimuths" or "between_views"; camera {"azimuth_deg", "elevation_deg"};
     the reference (S, S, 3) float32; what crowdview's shader is handed there."""
     layer = list(poses.frame_indices).index(poses.fidelity_frame)
-    baked_frame = impostor_blend.FrameWeights((layer, layer), 0.0)
+    baked_frame = view_blend.FrameWeights((layer, layer), 0.0)
     scored: list[tuple[str, dict[str, float], np.ndarray, RuntimePicture]] = []
     for task in tasks:
         if not task.references:

@@ -27,6 +27,7 @@ import logging
 
 from crowdbake import __version__
 from crowdbake.errors import InputError
+from crowdbake.files import sha256_file
 from crowdbake.formats.errors import FormatError
 from crowdbake.formats.gltf import load_character
 from crowdbake.formats.cloth_cache import ClothCache, write_pc2_obj
@@ -34,7 +35,7 @@ from crowdbake.ingest.cycle_document import check_cycle_document
 from crowdbake.ingest.garment import CACHE_SUFFIXES, body_at_rest, check_garment_fit, needs_mesh, place_cloth, read_cloth
 from crowdbake.params import CREATED_RULE, NAME_RULE, PART_RULE, VERSION_RULE, BakeParams, cache_fps, min_cloth_frames
 from crowdbake.stages.records import JobRecord
-from crowdbake.stages.workdir import StageOutcome, WorkDir, read_json, sha256_file, stage_key
+from crowdbake.stages.workdir import StageOutcome, WorkDir, read_json, stage_key
 
 logger = logging.getLogger(__name__)
 
@@ -46,7 +47,7 @@ class BakeInputs:
     (optional: else the glTF's texture, one variation, default outfits); cycle: an existing cycle.json (skips the
     search); created: the manifest's RFC 3339 UTC time (see the module docstring when None); timeline: a clip
     timeline (crowdbake.ingest.timeline) when the cache plays several clips: a loop per clip and the
-    transitions between them (crowdbake.stages.clip_loops), every one in the bundle (format v2) when there are several clips."""
+    transitions between them (crowdbake.stages.cycle_job), every one in the bundle (format v2) when there are several clips."""
 
     character: Path
     cloth: Path | None
@@ -246,7 +247,7 @@ def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeP
         return _parse_body_only(sources, params)
     cache = read_cloth(sources["cloth"], sources.get("cloth_mesh"))
     timeline = None
-    if "timeline" in sources:  # several clips: the timeline names them and the bundle's (crowdbake.stages.clip_loops)
+    if "timeline" in sources:  # several clips: the timeline names them and the bundle's (crowdbake.stages.cycle_job)
         timeline = _check_timeline(sources, cache, params)
         params = replace(params, animation=timeline[0], cycle_frames=timeline[1])
     # Not told which animation: the one the cloth repeats after (crowdbake.ingest.clip_choice).
@@ -303,7 +304,7 @@ def _check_timeline(sources: dict[str, Path], cache: ClothCache, params: BakePar
     InputError("timeline") naming the field by its JSON pointer, or ("animation") for a clip it does not play."""
     from crowdbake.ingest.clip_choice import character_clips
     from crowdbake.ingest.timeline import check_timeline_fits, read_timeline
-    from crowdbake.stages.clip_loops import primary_clip
+    from crowdbake.bake.timeline import primary_clip
 
     if params.cycle_frames is not None:
         raise InputError("the timeline gives each clip's period: drop cycle_frames", "cycle_frames")

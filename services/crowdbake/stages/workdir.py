@@ -32,14 +32,6 @@ Progress = Callable[[str, int, int], None]
 R = TypeVar("R")
 
 
-def sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for chunk in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
 def stage_key(*parts: Any) -> str:
     """A stable hash of JSON-able parts: the identity of a stage's inputs."""
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()

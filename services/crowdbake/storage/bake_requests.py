@@ -17,7 +17,7 @@ from sqlalchemy import delete, select, update
 from sqlalchemy.orm import Session
 
 from crowdbake import __version__
-from crowdbake.stages import STAGES
+from crowdbake.stage_names import STAGES
 from crowdbake.storage.models import Bake, BakePart, BakeStage, utcnow
 from crowdbake.storage.records import (
     LIVE_BAKE_STATES, append_log, lock_bake, new_id, queue_stage, release_reservations, stage_row,

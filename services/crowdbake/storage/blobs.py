@@ -23,6 +23,8 @@ from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import BinaryIO, Iterator
 
+from crowdbake.files import fsync_path
+
 _DIGEST = re.compile(r"^[0-9a-f]{64}$")
 STAGING_DIRNAME = ".incoming"
 STAGING_PREFIX = "upload-"
@@ -38,14 +40,6 @@ def check_digest(digest: str) -> str:
     if not isinstance(digest, str) or not _DIGEST.match(digest):
         raise ValueError(f"not a sha256 digest: {digest!r}")
     return digest
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 class IncomingBlob:
@@ -197,7 +191,7 @@ class LocalBlobStore(BlobStore):
         # os.replace is atomic on one file system; a concurrent commit of the same digest writes the same bytes.
         os.replace(blob.path, target)
         blob.mark_released()
-        _fsync_dir(target.parent)
+        fsync_path(target.parent)
         return True
 
     def exists(self, digest: str) -> bool:

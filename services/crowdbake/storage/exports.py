@@ -11,7 +11,6 @@ it. The REST API serves these files with the sha256 of index.json as their ETag.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import queue
 import shutil
@@ -21,6 +20,8 @@ import zipfile
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
+
+from crowdbake.files import sha256_file
 
 EXPORTS_FOLDER = "exports"
 FILES_FOLDER = "export"
@@ -34,6 +35,7 @@ MEDIA_TYPES = {
     ".json": "application/json", ".glb": "model/gltf-binary", ".ktx2": "image/ktx2", ".png": "image/png", ".jpg": "image/jpeg",
     ".gdshader": "text/plain; charset=utf-8", ".md": "text/markdown; charset=utf-8",
     ".glsl": "text/plain; charset=utf-8", ".hlsl": "text/plain; charset=utf-8", ".zip": "application/zip",
+    ".gd": "text/plain; charset=utf-8", ".cs": "text/plain; charset=utf-8", ".py": "text/plain; charset=utf-8",
 }
 
 
@@ -48,14 +50,6 @@ def export_home(bundles_dir: Path, name: str, version: str) -> Path:
 
 def media_type(path: str) -> str:
     return MEDIA_TYPES.get(Path(path).suffix, "application/octet-stream")
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as source:
-        while chunk := source.read(1 << 20):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def _zip_entry(prefix: str, path: str) -> zipfile.ZipInfo:
@@ -128,10 +122,10 @@ def build_export(bundle_folder: Path, staging: Path, ktx2_mode: str = "bc", prep
     paths = sorted(summary.files)
     index = {
         "format": INDEX_FORMAT,
-        "bundle": {"name": name, "version": version, "manifest_sha256": _sha256(Path(bundle_folder) / "manifest.json")},
+        "bundle": {"name": name, "version": version, "manifest_sha256": sha256_file(Path(bundle_folder) / "manifest.json")},
         "ktx2": ktx2_mode,
-        "files": {path: {"size": summary.files[path], "sha256": _sha256(staging / FILES_FOLDER / path), "media_type": media_type(path)} for path in paths},
-        "zip": {"size": (staging / ZIP_NAME).stat().st_size, "sha256": _sha256(staging / ZIP_NAME), "media_type": MEDIA_TYPES[".zip"]},
+        "files": {path: {"size": summary.files[path], "sha256": sha256_file(staging / FILES_FOLDER / path), "media_type": media_type(path)} for path in paths},
+        "zip": {"size": (staging / ZIP_NAME).stat().st_size, "sha256": sha256_file(staging / ZIP_NAME), "media_type": MEDIA_TYPES[".zip"]},
     }
     (staging / INDEX_NAME).write_text(json.dumps(index, indent=2) + "\n")
     return index
@@ -149,7 +143,7 @@ def check_export_home(bundle_folder: Path, bundles_dir: Path) -> bool:
         index = json.loads((home / INDEX_NAME).read_text())
     except FileNotFoundError:
         return False
-    refuse_other_export(str(home), manifest, index, _sha256(manifest_path))
+    refuse_other_export(str(home), manifest, index, sha256_file(manifest_path))
     return True
 
 

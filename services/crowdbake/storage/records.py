@@ -26,7 +26,7 @@ from typing import Any, Iterable
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.orm import Session
 
-from crowdbake.stages.plan import runs_in_parallel
+from crowdbake.stage_names import FAN_OUT_STAGES
 from crowdbake.storage.models import FINAL_BAKE_STATES, Bake, BakeLog, BakePart, BakeStage, utcnow
 
 LIVE_BAKE_STATES = ("queued", "running")
@@ -120,7 +120,7 @@ def finish_stage(session: Session, bake_id: str, stage: str, seconds: float, res
     row.state = "succeeded"
     row.finished_at = utcnow()
     row.owner = row.heartbeat_at = None
-    row.seconds = round((row.seconds or 0.0) + seconds, 3) if runs_in_parallel(stage) else round(seconds, 3)
+    row.seconds = round((row.seconds or 0.0) + seconds, 3) if stage in FAN_OUT_STAGES else round(seconds, 3)
     if row.total == 0:
         row.done = row.total = 1
     else:
@@ -352,7 +352,7 @@ def heartbeat(session: Session, bake_id: str, attempt: int, stage: str, part: st
 
 
 def record_fan_out(session: Session, bake_id: str, items: list[dict[str, Any]], stage: str = "impostors") -> list[str]:
-    """Register the parts of a fan-out stage (crowdbake.stages.plan.runs_in_parallel), one per item of its
+    """Register the parts of a fan-out stage (crowdbake.stage_names.FAN_OUT_STAGES), one per item of its
     node (a JSON object; its "id", else its position, names the part "<stage>/<id>"), which the next
     stage waits for. Returns the part ids in item order. Parts of other stages stay (their listings
     tell later stages what to fetch)."""

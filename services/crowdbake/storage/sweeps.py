@@ -9,13 +9,9 @@ from dataclasses import dataclass
 from sqlalchemy import or_, select
 from sqlalchemy.orm import Session
 
-from crowdbake.stages import STAGES
-from crowdbake.stages.plan import runs_in_parallel
+from crowdbake.stage_names import FAN_OUT_STAGES
 from crowdbake.storage import records
 from crowdbake.storage.models import Bake, BakePart, BakeStage, utcnow
-
-# Stages whose messages are their parts': their own rows are never sent.
-FAN_OUT_STAGES = tuple(stage for stage in STAGES if runs_in_parallel(stage))
 
 
 @dataclass(frozen=True)

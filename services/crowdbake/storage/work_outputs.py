@@ -18,7 +18,6 @@ is refused (ValueError), so a listing cannot make a worker write outside its wor
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -26,18 +25,11 @@ import tempfile
 from pathlib import Path, PurePosixPath
 from typing import Iterable
 
+from crowdbake.files import sha256_file
 from crowdbake.storage.blobs import BlobStore, check_digest
 
 LISTING_VERSION = 1
 CHUNK = 1 << 20
-
-
-def _sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        while chunk := handle.read(CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def check_relative(path: str) -> str:
@@ -114,7 +106,7 @@ def pull(blobs: BlobStore, work: Path, digest: str) -> int:
     fetched = 0
     for relative, entry in sorted(read_listing(blobs, digest).items()):
         target = work / relative
-        if target.is_file() and target.stat().st_size == entry["size"] and _sha256_file(target) == entry["sha256"]:
+        if target.is_file() and target.stat().st_size == entry["size"] and sha256_file(target) == entry["sha256"]:
             continue
         target.parent.mkdir(parents=True, exist_ok=True)
         handle, temporary = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)

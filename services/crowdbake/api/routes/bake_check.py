@@ -21,6 +21,7 @@ from sqlalchemy.orm import Session
 from crowdbake.api.deps import BakeKey, SessionDep
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import BakeCheck, problem_responses
+from crowdbake.ingest.input_modes import BakeInputSet
 from crowdbake.storage import bake_requests
 from crowdbake.storage.bundles import find_bundle
 from crowdbake.storage.models import Asset, Bake
@@ -35,21 +36,13 @@ def asset_digests(asset: Asset) -> set[str]:
     return {value for value in found if value}
 
 
-def _published_roles(bake: Bake) -> dict[str, str]:
-    """Input role -> asset id of a bake's inputs."""
-    inputs = bake.inputs or {}
-    return {**{role: inputs[role] for role in ("character", "cloth", "cycle", "timeline") if inputs.get(role)},
-            **{f"textures.{name}": asset_id for name, asset_id in (inputs.get("textures") or {}).items()},
-            **{f"clip_cloth.{k}": asset_id for k, (_, asset_id) in enumerate(inputs.get("clip_cloth") or [])}}
-
-
 def _canonical(value: Any) -> Any:
     return json.loads(json.dumps(value, sort_keys=True))  # tuples and lists, as the database holds them
 
 
 def difference(session: Session, bake: Bake, body: BakeCheck) -> str | None:
     """What differs between `bake`'s inputs and the check's (a role, a file, a parameter, the time), or None."""
-    published = _published_roles(bake)
+    published = BakeInputSet.from_record(bake.inputs or {}).roles()
     for role in sorted(set(published) | set(body.inputs)):
         if role not in published or role not in body.inputs:
             return f"its bake had no {role}" if role not in published else f"its bake had a {role}, this one has none"

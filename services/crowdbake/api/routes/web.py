@@ -55,7 +55,7 @@ PAGE_CSP = ("default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inl
 # A report opened on its own runs nothing and loads only its plots.
 REPORT_CSP = "default-src 'none'; img-src 'self'; style-src 'unsafe-inline'; sandbox"
 
-# What the cycle stage writes (crowdbake.stages.cycle.write_cycle_outputs): report.html, cycle.json,
+# What the cycle stage writes (crowdbake.stages.cycle_job.write_cycle_outputs): report.html, cycle.json,
 # PNG plots, and the edge images under edges/. Anything else in the work folder stays private.
 CYCLE_FILE = re.compile(r"^(report\.html|cycle\.json|(edges/)?[A-Za-z0-9][A-Za-z0-9_-]*\.png)$")
 CYCLE_TYPES = {".html": "text/html; charset=utf-8", ".png": "image/png", ".json": "application/json"}

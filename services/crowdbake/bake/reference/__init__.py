@@ -1,11 +1,17 @@
-"""Test oracles and numpy twins: what the bake's shaders and crowdview's shader are tested against.
+"""Test oracles and numpy twins: what the bake's shaders and crowdview's shader are tested against, never
+what a bake ships (no module outside a `reference` package imports one; services/tests/test_reference_isolation.py).
 
+- coverage: which triangle covers each texel centre of a triangle-id render
+  (crowdbake.render.reference.triangle_ids), resolved exactly in float64, and the per-texel interpolation
+  built on it;
 - impostor_maps: the impostor maps computed exactly per texel in float64 (the reference of
   crowdbake.render.map_shader);
 - mesh_reference: the mesh shaded per sample and box-filtered (the reference of the shader's fidelity
   references);
-- impostor_blend, impostor_warp: crowdview's impostor shader in numpy (view and frame blending, the
-  reprojection warp), used by the tests and by the fidelity scores' pictures where no GL context draws them.
+- impostor_blend, impostor_warp: crowdview's impostor shader in numpy (blending the views and frames
+  crowdbake.bake.view_blend chooses, the reprojection warp);
+- runtime_picture: a bundle's maps decoded and drawn by impostor_blend and impostor_warp (the reference of
+  crowdbake.render.runtime_shader).
 
 A real bake's maps come from crowdbake.render.map_shader and its pictures from crowdbake.render.runtime_shader.
 """

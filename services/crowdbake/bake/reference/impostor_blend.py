@@ -1,19 +1,17 @@
-"""The impostor as crowdview draws it, blended over views and frames, in numpy.
+"""The impostor as crowdview's shader draws it, blended over views and frames, in numpy: the reference
+crowdview's own shader, as the bake draws it (crowdbake.render.runtime_shader), is tested against.
 
-crowdview (runtime/README.md, "Impostor blending"; runtime/src/view_blend.cpp and
-shaders/impostor_uv.frag.glsl) goes beyond the paper's nearest view and nearest baked frame: it mixes
-the four baked views around the camera (bilinear over azimuth × elevation, azimuth wrapping, elevation
-clamped) and the two baked frames either side of the cycle frame (linear). Each (view, frame) sample
-reads its own UV-map texel at the same offset inside its tile, looks the diffuse texture up with that
-exact coordinate, and only colours, normals and coverage are blended, each sample weighted by the part
-of the pixel its silhouette covers; the pixel's opacity is a smooth step of the blended coverage (edge_alpha), drawn over black here, as crowdview blends it over the scene. This module repeats those rules so the bake can score what the
-runtime draws (crowdbake.stages.fidelity), and shares test vectors with crowdview
-(runtime/tests/data/view_blend_vectors.json, read by test_impostor_blend.py and the view_blend ctest).
+crowdview (runtime/README.md, "Impostor blending"; shaders/impostor_uv.frag.glsl) mixes the samples
+crowdbake.bake.view_blend chooses: each (view, frame) sample reads its own UV-map texel at the same offset
+inside its tile, looks the diffuse texture up with that exact coordinate, and only colours, normals and
+coverage are blended, each sample weighted by the part of the pixel its silhouette covers; the pixel's
+opacity is a smooth step of the blended coverage (edge_alpha), drawn over black here, as crowdview
+blends it over the scene.
 
 The diffuse lookup is the shader's `textureGrad` with trilinear filtering over a box-filtered mip chain
-(what glGenerateMipmap makes on common drivers), the gradients being the UV differences of neighbouring
-screen pixels within their 2×2 quad (1 pixel = 1 tile texel at the switch distance), clamped as the
-shader clamps them. Pure numpy; angles in degrees.
+(what glGenerateMipmap makes on common drivers), at the level crowdbake.bake.fidelity.lookup_lod takes
+from the UV differences of neighbouring screen pixels within their 2×2 quad (1 pixel = 1 tile texel at
+the switch distance). Pure numpy.
 """
 from __future__ import annotations
 
@@ -21,11 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crowdbake.bake import impostor_views, shading
+from crowdbake.bake import shading
+from crowdbake.bake.fidelity import lookup_lod
+from crowdbake.bake.reference.coverage import wrap_uv
+from crowdbake.bake.view_blend import FrameWeights, ViewWeights
 
-# impostor_uv.frag.glsl: texture-coordinate gradients are clamped to this many tile texels' worth of
-# tile UV, so neighbours across the silhouette or a UV seam do not pick a far too coarse mip level.
-GRADIENT_LIMIT_TEXELS = 4.0
 # runtime/src/config.h CV_EDGE_LOW: blended coverage at or under this is transparent, at or over one minus
 # it opaque (edge_alpha).
 EDGE_LOW = 0.1
@@ -46,99 +44,6 @@ def edge_alpha(coverage: np.ndarray, reprojected: bool = True) -> np.ndarray:
         return (coverage > 0.5).astype(np.float64)
     t = np.clip((coverage - EDGE_LOW) / (1.0 - 2.0 * EDGE_LOW), 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
-
-
-@dataclass(frozen=True)
-class ViewWeights:
-    """Four atlas tiles (azimuth + elevation · azimuth_count) and their weights (sum 1; unused: 0)."""
-
-    tiles: tuple[int, int, int, int]
-    weights: tuple[float, float, float, float]
-
-
-@dataclass(frozen=True)
-class FrameWeights:
-    """Two atlas layers (indices into frame_indices); layer 0 gets 1 - weight, layer 1 weight."""
-
-    layers: tuple[int, int]
-    weight: float
-
-
-def view_angles_deg(to_camera: np.ndarray, heading: float = 0.0) -> tuple[float, float]:
-    """(azimuth, elevation) in degrees of the (3,) direction from the bounds centre to the camera, in the
-    frame of a character turned by `heading` radians about +Y (view_blend.cpp view_angles_deg)."""
-    d = np.asarray(to_camera, dtype=np.float64).reshape(3)
-    c, s = np.cos(heading), np.sin(heading)
-    local = np.array([c * d[0] - s * d[2], d[1], s * d[0] + c * d[2]])
-    length = np.linalg.norm(local)
-    local = local / length if length > 0 else np.array([0.0, 0.0, 1.0])
-    return float(np.degrees(np.arctan2(local[0], local[2]))), float(np.degrees(np.arcsin(np.clip(local[1], -1.0, 1.0))))
-
-
-def _ccw_gap(start: float, end: float) -> float:
-    """Degrees from `start` to `end` going the positive way round, in [0, 360)."""
-    gap = float(np.fmod(end - start, 360.0))
-    if gap < 0:
-        gap += 360.0
-    return 0.0 if gap >= 360.0 else gap
-
-
-def blend_view_weights(azimuth_deg: float, elevation_deg: float, azimuths_deg, elevations_deg) -> ViewWeights:
-    """The four views crowdview blends for a camera at (azimuth, elevation), README rules 2 to 4.
-
-    azimuths_deg, elevations_deg: the bundle's baked angles (any order, not empty).
-    """
-    azimuths = [float(a) for a in azimuths_deg]
-    elevations = [float(e) for e in elevations_deg]
-    if not azimuths or not elevations:
-        raise ValueError("blend_view_weights: azimuths and elevations must not be empty")
-    columns = len(azimuths)
-    before = [_ccw_gap(a, azimuth_deg) for a in azimuths]
-    a0 = int(np.argmin(before))  # first minimum, as the C++ loop's strict '<'
-    after = [_ccw_gap(azimuth_deg, a) if index != a0 else np.inf for index, a in enumerate(azimuths)]
-    a1 = int(np.argmin(after)) if columns > 1 else a0
-    wa = 0.0
-    if columns > 1 and before[a0] + after[a1] > 0:
-        wa = before[a0] / (before[a0] + after[a1])
-    lowest, highest = min(elevations), max(elevations)
-    elevation = min(max(elevation_deg, lowest), highest)
-    e0, e1 = elevations.index(lowest), elevations.index(highest)
-    for index, value in enumerate(elevations):
-        if elevation >= value > elevations[e0]:
-            e0 = index
-        if elevation <= value < elevations[e1]:
-            e1 = index
-    span = elevations[e1] - elevations[e0]
-    we = (elevation - elevations[e0]) / span if span > 0 else 0.0
-    return ViewWeights(
-        (a0 + e0 * columns, a1 + e0 * columns, a0 + e1 * columns, a1 + e1 * columns),
-        ((1 - wa) * (1 - we), wa * (1 - we), (1 - wa) * we, wa * we),
-    )
-
-
-def blend_frame_weights(frame: int, frame_indices, frame_count: int) -> FrameWeights:
-    """The two baked frames crowdview blends at integer cycle frame `frame` (README rule 5).
-
-    frame_indices: ascending baked cycle frames, each < frame_count.
-    """
-    indices = [int(f) for f in frame_indices]
-    count = len(indices)
-    if count < 2 or frame_count <= 0:
-        return FrameWeights((0, 0), 0.0)
-    k = count - 1
-    for index, baked in enumerate(indices):
-        if baked <= frame:
-            k = index
-    following = (k + 1) % count
-    start, end = indices[k], indices[following]
-    span = end - start if following > k else end + frame_count - start
-    offset = frame - start if frame >= start else frame + frame_count - start
-    return FrameWeights((k, following), offset / span if span > 0 else 0.0)
-
-
-def cycle_frame(seconds: float, phase: float, frames_per_second: float, frame_count: int) -> int:
-    """The cycle frame the mesh shows at time `seconds` (plus a character's phase): floor((t + phase)·fps) mod frames."""
-    return int(np.floor((seconds + phase) * frames_per_second)) % int(frame_count)
 
 
 @dataclass(frozen=True)
@@ -199,7 +104,7 @@ def _bilinear(level: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 def sample_trilinear(chain: list[np.ndarray], uv: np.ndarray, lod: np.ndarray) -> np.ndarray:
     """(N, 3) RGB 0..255 of a mip chain at (N, 2) uv (REPEAT) and (N,) level of detail (clamped to the chain)."""
-    uv = impostor_views.wrap_uv(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
+    uv = wrap_uv(np.asarray(uv, dtype=np.float64).reshape(-1, 2))
     lod = np.clip(np.asarray(lod, dtype=np.float64).reshape(-1), 0.0, len(chain) - 1)
     low = np.floor(lod).astype(np.int64)
     fraction = (lod - low)[:, None]
@@ -211,32 +116,6 @@ def sample_trilinear(chain: list[np.ndarray], uv: np.ndarray, lod: np.ndarray) -
             colour = colour * (1 - fraction[chosen]) + _bilinear(chain[level + 1], uv[chosen]) * fraction[chosen]
         out[chosen] = colour
     return out
-
-
-def quad_gradients(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """dFdx, dFdy of a (S, S, 2) per-pixel value as a GPU takes them: within each 2×2 quad, the difference
-    of the pair of pixels in that row (column); S even."""
-    even_x = uv[:, 1::2] - uv[:, 0::2]
-    dx = np.repeat(even_x, 2, axis=1)
-    even_y = uv[1::2] - uv[0::2]
-    dy = np.repeat(even_y, 2, axis=0)
-    return dx, dy
-
-
-def lookup_lod(uv: np.ndarray, texture_size: tuple[int, int], tile_size: int) -> np.ndarray:
-    """(S, S) level of detail of the shader's textureGrad at every texel of a (S, S, 2) uv tile."""
-    dx, dy = quad_gradients(uv)
-    limit = GRADIENT_LIMIT_TEXELS / tile_size + 1e-6
-
-    height, width = texture_size
-
-    def texels_per_pixel(g: np.ndarray) -> np.ndarray:
-        """|clamp(g) · (width, height)|: the gradient shortened to `limit`, in texels."""
-        shorten = np.minimum(1.0, limit / np.maximum(np.hypot(g[..., 0], g[..., 1]), 1e-9))
-        return np.hypot(g[..., 0] * (shorten * width), g[..., 1] * (shorten * height))
-
-    rho = np.maximum(texels_per_pixel(dx), texels_per_pixel(dy))
-    return np.log2(np.maximum(rho, 1e-12))
 
 
 def albedo(tile: DecodedTile, diffuse: list[np.ndarray], chains: list[list[np.ndarray]], outfit_row: np.ndarray,
@@ -259,7 +138,7 @@ def albedo(tile: DecodedTile, diffuse: list[np.ndarray], chains: list[list[np.nd
         lod = lods[texture.shape[:2]][chosen]
         texels[chosen, :3] = sample_trilinear(chains[index], uv[chosen], lod)
         height, width = texture.shape[:2]
-        wrapped = impostor_views.wrap_uv(uv[chosen])
+        wrapped = wrap_uv(uv[chosen])
         x = np.clip((wrapped[:, 0] * width).astype(np.int64), 0, width - 1)
         y = np.clip((wrapped[:, 1] * height).astype(np.int64), 0, height - 1)
         texels[chosen, 3] = texture[y, x, 3]  # region codes: the texel's own, unfiltered

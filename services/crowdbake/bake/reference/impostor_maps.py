@@ -3,9 +3,10 @@
 
 Dobbyn et al. 2006, sections 4 and 5: per view a normal map (normals as RGB), a detail map (diffuse RGBA
 with the colour regions in alpha) and the paper's UV map (texture coordinates as colour). From a view's
-exact coverage (crowdbake.bake.impostor_views): texture coordinates interpolated with the barycentrics and
+exact coverage (crowdbake.bake.reference.coverage): texture coordinates interpolated with the barycentrics and
 stored in 16 bits; normals interpolated and normalised; the detail map samples the diffuse texture at the
-interpolated UV. Nothing passes through 8-bit colour before the maps' own encodings.
+interpolated UV. Nothing passes through 8-bit colour before the maps' own encodings. The surface map's
+depth and motion come from the same coverage (surface_fields).
 """
 from __future__ import annotations
 
@@ -13,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crowdbake.bake.impostor_views import (
-    Coverage, OrthoView, face_normals, fill_background, sample_texture, shading_normals_at, wrap_uv,
-)
+from crowdbake.bake.impostor_views import OrthoView, face_normals, sample_texture
+from crowdbake.bake.reference.coverage import Coverage, interpolate, shading_normals_at, wrap_uv
+from crowdbake.stages.impostors import fill_background, nearest_inside
 
 
 def shading_normals(view: OrthoView, normals: np.ndarray, positions: np.ndarray, faces: np.ndarray, coverage: Coverage) -> np.ndarray:
@@ -134,3 +135,23 @@ def view_maps_views(
     detail_map.reshape(-1, 4)[texel] = np.clip(np.rint(detail), 0, 255)
     fill_background(masks, [normal_map, detail_map])
     return [ViewMaps(normal_map[k], uv_map[k], detail_map[k], coverage) for k, coverage in enumerate(coverages)]
+
+
+def surface_fields(view: OrthoView, coverage: Coverage, positions: np.ndarray,
+                   next_positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(depth (S, S) metres along view.back from view.center, motion (S, S, 2) metres along view.right and
+    view.up) of one view's coverage, dilated into the background: the exact surface map before its
+    encoding (crowdbake.bake.surface_maps.encode_surface), the reference of the map shader's surface target.
+
+    positions: (V, 3) model-space vertices at this baked frame; next_positions: (V, 3) where they are after
+    the motion (crowdbake.bake.surface_maps.motion_positions); faces: (T, 3). The motion is that of the
+    surface point the texel shows (same triangle, same barycentrics)."""
+    mask = coverage.mask
+    points = interpolate(positions, faces, coverage)
+    moved = interpolate(next_positions, faces, coverage) - points
+    depth = np.where(mask, (points - view.center) @ view.back, 0.0)
+    motion = np.where(mask[..., None], np.stack([moved @ view.right, moved @ view.up], axis=-1), 0.0)
+    nearest = nearest_inside(mask)
+    if nearest is not None:
+        depth, motion = depth[nearest], motion[nearest]
+    return depth, motion

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.bake.impostor_views import Coverage, OrthoView, face_normals, shading_normals_at, wrap_uv
+from crowdbake.bake.impostor_views import OrthoView, face_normals
+from crowdbake.bake.reference.coverage import Coverage, shading_normals_at, wrap_uv
 from crowdbake.bake.shading import apply_outfit, lambert, texels_at
 
 # Samples per pixel side for the mesh reference (4 = 16 samples, the anti-aliasing of a good runtime).

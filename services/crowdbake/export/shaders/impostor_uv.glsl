@@ -18,6 +18,8 @@ uniform vec3 cb_light_dir;                // unit, towards the light, world spac
 
 const float CB_AMBIENT = 0.35;  // crowdview's ambient term (runtime/src/config.h)
 
+// crowdview's uv32 decode (runtime/src/shaders/impostor_uv_map.glsl); services/tests/test_export_shader_mirror.py
+// checks this copy and CB_AMBIENT against crowdview's sources.
 struct CbUvTexel { vec2 uv; int material; bool covered; };
 
 CbUvTexel cb_fetch_uv(ivec3 texel) {

@@ -15,7 +15,7 @@ cbuffer CbImpostor {
     int4 CbCrop;  // export.json impostor.crop: x, y, width, height of the stored part of every tile
 };
 
-static const float CB_AMBIENT = 0.35;
+static const float CB_AMBIENT = 0.35;  // crowdview's ambient term (runtime/src/config.h)
 
 // Returns false where the impostor does not cover the pixel (clip it). cellOrigin: the top-left texel
 // of the view's cell, (a * crop.width, e * crop.height).
@@ -24,6 +24,7 @@ bool CbImpostorColour(float2 tileUV, int2 cellOrigin, int layer, float heading, 
     colour = float3(0, 0, 0);
     if (any(t < int2(0, 0)) || any(t >= CbCrop.zw)) return false;
     int2 texel = cellOrigin + t;
+    // crowdview's uv32 decode, as impostor_uv.glsl (services/tests/test_export_shader_mirror.py checks both copies).
     uint word = CbUvMap.Load(int4(texel, layer, 0));
     if ((word >> 31) == 0) return false;
     float2 uv = float2(word & 0x3FFF, (word >> 14) & 0x3FFF) / 16383.0;

@@ -13,13 +13,13 @@ import logging
 import numpy as np
 import pygltflib
 
-from crowdbake.bake.mesh import vertex_normals
 from crowdbake.formats.gltf.accessors import COMPONENT_TYPES, accessor_values
 from crowdbake.formats.gltf.compression import DRACO, decode_draco_mesh
 from crowdbake.formats.gltf.document import _Document, extension
 from crowdbake.formats.gltf.materials import read_material
 from crowdbake.formats.gltf.model import Material, MorphTarget
 from crowdbake.formats.gltf.morphs import default_weights, mesh_targets, primitive_targets
+from crowdbake.geometry import vertex_normals
 
 logger = logging.getLogger(__name__)
 

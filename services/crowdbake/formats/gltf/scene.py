@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from crowdbake.bake.skinning import quaternion_matrices
 from crowdbake.formats.gltf.document import _Document
+from crowdbake.geometry import quaternion_matrices
 
 
 def matrix_to_quaternion(m: np.ndarray) -> np.ndarray:
