@@ -37,6 +37,7 @@ from crowdbake.formats.ranges import Clip, Ranges
 from crowdbake.formats.ranges import Transition as BundleTransition
 from crowdbake.stages.clips_report import clip_figures
 from crowdbake.stages.cycle_inputs import CycleInputs, check_one_motion, load_cycle_inputs
+from crowdbake.stages.clips_report import clips_report
 from crowdbake.stages.cycle_report import report_html, write_cycle_plots, write_edge_images
 from crowdbake.stages.workdir import Progress
 
@@ -153,7 +154,8 @@ def write_cycle_outputs(result: CycleResult, out_dir: str | os.PathLike, inputs:
     if sections is not None:  # a timeline's clips (write_clip_files): every loop and transition
         document.update(sections)
     paths["cycle_json"].write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
-    paths["report"].write_text(report_html(result, document), encoding="utf-8")
+    report = clips_report(document) if document.get("clips") else report_html(result, document)
+    paths["report"].write_text(report, encoding="utf-8")
     logger.info("cycle outputs written to %s", out)
     return paths
 

@@ -215,12 +215,8 @@ def _quality_html(quality: dict | None, method: str, heading: str = "h2") -> str
 
 
 def report_html(result: CycleResult, document: dict) -> str:
-    """report.html: the chosen cycle, the closing and its quality bounds, the plots and the candidates; for
-    a timeline's clips, every loop and transition (crowdbake.stages.clips_report)."""
-    if document.get("clips"):
-        from crowdbake.stages.clips_report import clips_report
-
-        return clips_report(document)
+    """report.html of one clip: the chosen cycle, the closing and its quality bounds, the plots and the
+    candidates (a timeline's clips: crowdbake.stages.clips_report)."""
     closing = result.closing
     candidates = _table(
         ["rank", "Fs", "Fe", "cycles", "vertex distance", "edge distance (px)", "chosen"],
