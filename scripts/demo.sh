@@ -44,10 +44,11 @@ echo "== 5/6 more archetypes =="
 "${crowdbake[@]}" bake "$out/sample-clips/character.glb" --cloth "$out/sample-clips/cloth.pc2" \
   --cloth-mesh "$out/sample-clips/cloth.obj" --textures "$out/sample-clips/textures" \
   --timeline "$out/sample-clips/timeline.json" --animation Walking --name sample-clips --version 1.0.0 --out "$out/bundles"
-# A clip mix names clips of the bundle: only a bundle that lists its clips (format 2) has them by name.
+# A clip mix names clips of the bundle: only a bundle that holds the timeline's clips has them by name (one
+# that fell back to the Walking loop holds one clip, named `cycle`).
 # Its characters switch clip every 0.5 to 1.5 s, so the 3 s drawn below hold switches to measure.
 clip_mix=""
-if grep -q '"clips"' "$out/bundles/sample-clips/1.0.0/manifest.json"; then
+if grep -q '"name": "Running"' "$out/bundles/sample-clips/1.0.0/manifest.json"; then
   clip_mix=', "clips": [{"clip": "Idle", "weight": 1}, {"clip": "Walking", "weight": 2}, {"clip": "Running", "weight": 1}],
      "switch_after_s": [0.5, 1.5]'
 fi

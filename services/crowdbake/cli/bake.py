@@ -41,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--cloth-mesh", metavar="CLOTH.obj", help="the garment's rest mesh (OBJ, cache point order); .pc2 and .mdd need it")
     parser.add_argument("--cycle", metavar="cycle.json", help="use this cycle (from `crowdbake cycle`) instead of searching")
     parser.add_argument("--timeline", metavar="timeline.json", help="the cloth cache plays several clips (docs/inputs.md, clip timeline): "
-                        "a loop per clip and the transitions between them; with several clips the bundle (format 2) carries them all")
+                        "a loop per clip and the transitions between them; the bundle (format 3) carries them all")
     parser.add_argument("--clip-cloth", metavar="NAME=CACHE[,MESH]", action="append", default=[],
                         help="one cloth cache per clip, repeated per clip (docs/inputs.md, one cache per clip): each a separate "
                         "simulation of the character's animation NAME from rest; MESH defaults to --cloth-mesh. A loop per clip, "

@@ -5,7 +5,7 @@ and a REST bake's `clip_cloth` ({clip: cloth asset}) come here.
 The caches are joined, in the order given, into the one cache and timeline the several-clip bake reads
 (crowdbake.stages.cycle_job): a segment per cache, no blends, each segment marked `new_simulation` so no
 transition is searched across the join (no simulation carried the cloth from one clip into the next). The
-bundle (format 2) then holds every clip's loop and no transitions.
+bundle (format 3) then holds every clip's loop and no transitions.
 
     parse_clip_cloth(values) -> [ClipCloth]                 the command line's NAME=CACHE[,MESH]
     join_clip_frames(caches, clips, periods, fps) -> (frames, timeline document)   numpy in/out, checked
