@@ -10,6 +10,7 @@ Plain data; no I/O.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from crowdbake.bake.clips import ClipLoop
@@ -32,8 +33,9 @@ class OutOfBounds:
         return f"{self.where}: {self.figure} {self.value:.3g} > {self.bound:g}"
 
     def to_dict(self) -> dict:
+        """JSON-ready; value None where the ratio is not finite (cloth that does not move, a seam that does)."""
         return {"where": self.where, "cache_frames": list(self.cache_frames), "figure": self.figure,
-                "value": float(self.value), "bound": float(self.bound)}
+                "value": float(self.value) if math.isfinite(self.value) else None, "bound": float(self.bound)}
 
 
 def quality_breaks(quality: LoopQuality | None, where: str, cache_frames: tuple[int, int]) -> list[OutOfBounds]:

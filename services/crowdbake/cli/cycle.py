@@ -115,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
                 cycle_frames=args.cycle_frames, fps=args.fps, params=params,
                 up=args.up, units=args.units, animation=args.animation,
                 progress=on_progress, edge_pass=not args.no_edge_pass, timeline=timeline,
+                accept_out_of_bounds=args.accept_out_of_bounds,
             )
         except InputError as error:
             raise CommandError(f"--clip-cloth: {error.message}" if error.field == "clip_cloth" else error.message) from None

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from pathlib import Path
 
@@ -82,7 +83,7 @@ def _check_given_bounds(document: dict, accept: bool) -> None:
     --accept-out-of-bounds` wrote it) and this bake does not accept them too."""
     try:
         breaks = [OutOfBounds(str(item["where"]), (int(item["cache_frames"][0]), int(item["cache_frames"][1])), str(item["figure"]),
-                              float(item["value"]), float(item["bound"]))
+                              math.inf if item["value"] is None else float(item["value"]), float(item["bound"]))
                   for item in document.get("out_of_bounds") or []]
     except (KeyError, TypeError, ValueError, IndexError):
         raise InputError("cycle.json: /out_of_bounds must list objects with where, cache_frames, figure, value and bound", "cycle") from None
