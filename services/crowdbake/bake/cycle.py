@@ -12,7 +12,7 @@
    measured before and after, and what closing pushed in is pushed back out, smoothly in time. The loop's
    quality against the simulation (stretch, deviation, seam acceleration ratios) is measured; the candidates
    are closed best first, at wider crossfades and then further down pass 1's list, until a closing keeps
-   loop_closing.QUALITY_BOUNDS. Where none does, the closing nearest them is returned, flagged in
+   loop_closing.QUALITY_BOUNDS. Where none does, the first closing tried is returned, flagged in
    cycle.json; whether a bake may keep it is the caller's decision (crowdbake.bake.bounds).
 
 The result serialises to the cycle.json dictionary with `CycleResult.to_dict()`.
@@ -28,7 +28,6 @@ from typing import Callable
 import numpy as np
 
 from crowdbake.bake import cycle_search, edge_metric, loop_closing
-from crowdbake.bake.loop_quality import bounds_excess
 
 logger = logging.getLogger(__name__)
 
@@ -146,8 +145,8 @@ class CycleResult:
     winner_edges: its edge comparison (edge images at Fs and Fe), None without pass 2.
     root_offsets: (F, 3) root positions removed before the search, None when the root stayed.
     timings: seconds per stage.
-    closing_attempts: every closing tried, in order, until one kept the quality bounds (the last tried is
-        not always the chosen: where none kept them, the one nearest them is).
+    closing_attempts: every closing tried, in order, until one kept the quality bounds (where none kept
+        them, the first tried is the one chosen).
     """
 
     start_frame: int
@@ -295,10 +294,6 @@ def _best_first(candidates: list[Candidate], indices: range) -> list[int]:
     """Indices of candidates in the order the search closes them: the smallest edge distance first when pass 2
     ran, pass 1's order (the list's) breaking ties and ordering them without pass 2."""
     return sorted(indices, key=lambda i: (candidates[i].edge_distance or 0.0, i))
-
-
-def _closing_excess(closing: loop_closing.ClosedLoop) -> float:
-    return 0.0 if closing.quality is None else bounds_excess(closing.quality)
 
 
 def _blend_widths(params: CycleParams, start: int, gap: int, frame_count: int) -> list[int | None]:
@@ -460,7 +455,7 @@ def find_cycle(
         (a stretch of a longer cache), so that logs and errors name the clip and cache frames.
     The candidates are closed best first, each at the default blend and then wider crossfades, then
     MORE_CANDIDATES_FACTOR times as many candidates, until a closing keeps loop_closing.QUALITY_BOUNDS;
-    where none does, the closing nearest the bounds is returned (its quality.exceeded says which it breaks).
+    where none does, the first closing tried is returned (its quality.exceeded says which bounds it breaks).
     Raises ValueError on bad shapes, NaN, too few frames, or when no candidate passes the threshold.
     """
     params.validate()
@@ -557,8 +552,8 @@ def find_cycle(
             candidates = candidates + extra
             found = _first_within_bounds(candidates, _best_first(candidates, range(first, len(candidates))), params, frame_count,
                                          close, where, attempts, closings)
-    # Nothing within the bounds: the closing nearest them (the caller decides whether a bake may keep it).
-    chosen, closing = found if found is not None else min(closings, key=lambda item: _closing_excess(item[1]))
+    # Nothing within the bounds: the search's own first choice (the caller decides whether a bake may keep it).
+    chosen, closing = found if found is not None else closings[0]
     timings["closing"] = time.perf_counter() - started
     report("closing", 1, 1)
     winner = candidates[chosen]

@@ -145,13 +145,6 @@ class LoopQuality:
                 "because the simulator is calmer there than the loop's typical frame, so the median is the fair reference.")
 
 
-def bounds_excess(quality: LoopQuality) -> float:
-    """How far a closing is from QUALITY_BOUNDS: its largest ratio over that ratio's bound (at most 1 within
-    them), so that where no closing keeps the bounds the nearest one can be kept."""
-    ratios = [getattr(quality, name) / bound for name, bound in QUALITY_BOUNDS.items() if getattr(quality, name) is not None]
-    return max(ratios, default=0.0)
-
-
 def mean_edge_strain(points: np.ndarray, edges: np.ndarray, rest_lengths: np.ndarray) -> float:
     """Mean over frames and edges of |L / L_rest - 1|: (N, V, 3) points, (E, 2) edges, (E,) rest lengths."""
     rest_lengths = np.asarray(rest_lengths, dtype=np.float64)

@@ -19,7 +19,7 @@ made. Playback goes loop A -> the transition -> loop B:
   stretch, deviation in join jumps, acceleration at the join) against the same QUALITY_BOUNDS. The
   first candidate (nearest the change first, for the shortest transition) whose join keeps the bounds is
   taken, trying wider crossfades and more candidates where none does at the loop's own width, else the
-  one nearest the bounds;
+  first;
 - candidates whose switch falls at a slow phase of the loop come first (switch_is_slow): at a switch a
   character steps from the loop to the transition (or back) as the loop itself steps at that phase, and
   a robot's walk steps up to twice its median round the loop, so a switch at a fast phase reads as a pop
@@ -38,7 +38,7 @@ from crowdbake.bake.timeline import Timeline
 from crowdbake.bake.cycle_search import DEFAULT_MAX_CANDIDATES, DEFAULT_VELOCITY_WEIGHT, binomial_weights, pick_candidates
 from crowdbake.bake.loop_closing import crossfade_blend, crossfade_weights, default_crossfade_frames
 from crowdbake.bake.cycle import CROSSFADE_WIDTH_FACTORS, MORE_CANDIDATES_FACTOR
-from crowdbake.bake.loop_quality import MIN_REFERENCE_STRAIN, QUALITY_BOUNDS, LoopQuality, _ratio, _rms, bounds_excess, mean_edge_strain
+from crowdbake.bake.loop_quality import MIN_REFERENCE_STRAIN, QUALITY_BOUNDS, LoopQuality, _ratio, _rms, mean_edge_strain
 from crowdbake.bake.mesh import edge_lengths, unique_edges
 
 
@@ -349,7 +349,7 @@ def find_transition(
     Each join takes the first of its candidates (switches at a slow phase first, nearest the change of clip
     first, see _candidates) that keeps QUALITY_BOUNDS, crossfaded over the loop's own half-width
     (loop_closing.default_crossfade_frames), then wider, then among more candidates (_join_options); where
-    none keeps them, the one nearest them (its quality.exceeded says which it breaks).
+    none keeps them, the first (its quality.exceeded says which bounds it breaks).
     """
     to_segment = from_segment + 1
     edges = None if cloth_faces is None else unique_edges(cloth_faces)
@@ -446,9 +446,8 @@ def _join_options(candidates_at, loop_frames: int, segment, max_candidates: int)
 
 def _first_keeping_bounds(options, judge) -> _JoinChoice:
     """The first candidate of `options` (_join_options) whose join `judge` (a _JoinChoice -> LoopQuality)
-    finds within QUALITY_BOUNDS, else the one nearest them (loop_quality.bounds_excess); each (width, cache
-    frame) is judged once."""
-    best = None
+    finds within QUALITY_BOUNDS, else the very first; each (width, cache frame) is judged once."""
+    first = None
     judged = set()
     for width, found in options:
         for index in range(len(found[0])):
@@ -457,12 +456,10 @@ def _first_keeping_bounds(options, judge) -> _JoinChoice:
             if key in judged:
                 continue
             judged.add(key)
-            quality = judge(choice)
-            if quality.within_bounds:
+            first = first or choice
+            if judge(choice).within_bounds:
                 return choice
-            if best is None or bounds_excess(quality) < best[0]:
-                best = (bounds_excess(quality), choice)
-    return best[1]
+    return first
 
 
 def find_transitions(cloth: np.ndarray, cloth_faces: np.ndarray | None, timeline: Timeline, loops: list[ClipLoop],
