@@ -57,3 +57,18 @@ def test_the_schema_refuses_an_accepted_entry_without_its_fields(field):
     assert not relevant(schema_errors([entry]))
     del entry[field]
     assert relevant(schema_errors([entry]))
+
+
+def test_a_given_cycle_out_of_bounds_needs_the_bake_to_accept_it_too():
+    """`crowdbake cycle --accept-out-of-bounds` wrote it: a bake of that cycle.json accepts it again, or fails."""
+    from crowdbake.errors import InputError, OutOfBoundsError
+    from crowdbake.stages.cycle import _check_given_bounds
+
+    entry = {"where": "the loop of clip 'cloth' (cache frames [57, 77))", "cache_frames": [57, 77], "figure": "deviation_ratio",
+             "value": 3.08, "bound": 1.5}
+    with pytest.raises(OutOfBoundsError, match=r"^the given cycle: the loop of clip 'cloth' \(cache frames \[57, 77\)\): deviation_ratio 3.08 > 1.5"):
+        _check_given_bounds({"out_of_bounds": [entry]}, accept=False)
+    _check_given_bounds({"out_of_bounds": [entry]}, accept=True)
+    _check_given_bounds({}, accept=False)  # a cycle.json from before the bounds were enforced
+    with pytest.raises(InputError, match="out_of_bounds"):
+        _check_given_bounds({"out_of_bounds": [{"where": "x"}]}, accept=False)

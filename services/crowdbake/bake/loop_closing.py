@@ -317,7 +317,8 @@ def _crossfade(
         # cache's end still closes); a half-width the caller chose is kept or refused.
         half = min(default_crossfade_frames(cycle_frames), start, frame_count - 1 - end)
         if half < default_crossfade_frames(cycle_frames):
-            logger.warning("crossfade shortened to %d frames either side of the seam: the cache ends there", half)
+            logger.warning("the crossfade of the cycle [%d, %d) is shortened to %d frames either side of the seam: the cache "
+                           "holds frames 0..%d", start, end, half, frame_count - 1)
     else:
         half = int(half_width)
     if not 1 <= half <= cycle_frames // 2:
