@@ -95,3 +95,26 @@ def test_an_upload_trickling_in_is_refused_and_leaves_no_staging_file(server):
     assert b"request-timeout" in answer and elapsed < 6
     assert saw_staging  # the upload had begun its staging file...
     assert not any(staging.iterdir())  # ...and the refusal removed it
+
+
+def test_a_json_body_trickling_in_is_a_408_too(server):
+    """FastAPI reads a JSON body before the route runs and turns any error of that read into a 400 "error
+    parsing the body", unless it is an HTTPException: the deadline's refusal is one, so it stays a 408."""
+    port, key, _ = server
+    request = (f"POST /v1/bakes/check HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {key}\r\n"
+               f"Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n{{").encode()
+    started = time.monotonic()
+    with socket.create_connection(("127.0.0.1", port)) as sock:
+        sock.sendall(request)
+        sock.settimeout(0.5)
+        answer = b""
+        while time.monotonic() - started < 15 and not answer:
+            try:
+                sock.sendall(b" ")  # one byte every half second: far below 1 KiB/s
+                answer = sock.recv(4096)
+            except socket.timeout:
+                pass
+            except (BrokenPipeError, ConnectionResetError):
+                break
+    assert answer.startswith(b"HTTP/1.1 408") and b"request-timeout" in answer, answer[:300]
+    assert time.monotonic() - started < 6

@@ -330,71 +330,89 @@ namespace {
 
 const char* kTextureMediaType = "application/vnd.crowdbake.texture";
 
-// SPEC.md's cross-checks, in the order the Python reader runs them, so both name the same file.
-Status cross_check(const Manifest& m, const std::map<std::string, PoseCache>& poses,
-                   const std::map<std::string, TextureArray>& textures, Bundle* bundle) {
-    static const char* fn = "load_bundle";
-    auto bad = [](const std::string& file, const std::string& detail) {
-        return make_error(ErrorCode::invalid_data, fn, file, detail);
-    };
+Status invalid(const std::string& file, const std::string& detail) {
+    return make_error(ErrorCode::invalid_data, "load_bundle", file, detail);
+}
+
+// The texture listed at `path`, or invalid_data naming it.
+Status find_texture(const std::map<std::string, TextureArray>& textures, const std::string& path, const TextureArray** out) {
+    auto it = textures.find(path);
+    if (it == textures.end()) return invalid(path, "referenced but not listed as a texture");
+    *out = &it->second;
+    return {};
+}
+
+// Each mesh's pose cache against the manifest's counts and materials; into bundle->meshes.
+Status check_meshes(const Manifest& m, const std::map<std::string, PoseCache>& poses, Bundle* bundle) {
     for (const MeshInfo& mesh : m.meshes) {
         auto it = poses.find(mesh.file);
-        if (it == poses.end()) return bad(mesh.file, "mesh file is not listed as a pose-cache");
+        if (it == poses.end()) return invalid(mesh.file, "mesh file is not listed as a pose-cache");
         const PoseCache& cache = it->second;
         if (cache.vertex_count != mesh.vertex_count)
-            return bad(mesh.file, std::to_string(cache.vertex_count) + " vertices, manifest says " + std::to_string(mesh.vertex_count));
+            return invalid(mesh.file, std::to_string(cache.vertex_count) + " vertices, manifest says " + std::to_string(mesh.vertex_count));
         if (cache.index_count / 3 != mesh.triangle_count)
-            return bad(mesh.file, std::to_string(cache.index_count / 3) + " triangles, manifest says " +
-                                      std::to_string(mesh.triangle_count));
+            return invalid(mesh.file, std::to_string(cache.index_count / 3) + " triangles, manifest says " +
+                                          std::to_string(mesh.triangle_count));
         if (cache.frame_count != m.pose_frames)
-            return bad(mesh.file, std::to_string(cache.frame_count) + " frames, the manifest has " + std::to_string(m.pose_frames) +
-                                      " pose frames");
+            return invalid(mesh.file, std::to_string(cache.frame_count) + " frames, the manifest has " + std::to_string(m.pose_frames) +
+                                          " pose frames");
         if (mesh.material >= m.materials.size())
-            return bad(mesh.file, "material " + std::to_string(mesh.material) + " does not exist");
+            return invalid(mesh.file, "material " + std::to_string(mesh.material) + " does not exist");
         bundle->meshes.push_back(cache);
     }
-    auto texture = [&](const std::string& path, const TextureArray** out) {
-        auto it = textures.find(path);
-        if (it == textures.end()) return bad(path, "referenced but not listed as a texture");
-        *out = &it->second;
-        return Status{};
-    };
+    return {};
+}
+
+// Each material's diffuse array (one layer per variation) and the outfit map; into the bundle.
+Status check_materials_and_outfits(const Manifest& m, const std::map<std::string, TextureArray>& textures, Bundle* bundle) {
     for (const MaterialInfo& material : m.materials) {
         const TextureArray* diffuse = nullptr;
-        if (Status s = texture(material.diffuse, &diffuse); !s) return s;
+        if (Status s = find_texture(textures, material.diffuse, &diffuse); !s) return s;
         if (diffuse->layer_count != material.variations)
-            return bad(material.diffuse, std::to_string(diffuse->layer_count) + " layers, manifest says " +
-                                             std::to_string(material.variations) + " variations");
+            return invalid(material.diffuse, std::to_string(diffuse->layer_count) + " layers, manifest says " +
+                                                 std::to_string(material.variations) + " variations");
         bundle->diffuse.push_back(*diffuse);
     }
     const TextureArray* outfits = nullptr;
-    if (Status s = texture(m.outfits_file, &outfits); !s) return s;
+    if (Status s = find_texture(textures, m.outfits_file, &outfits); !s) return s;
     if (outfits->width != 16 || outfits->height != m.outfit_count || outfits->format != PixelFormat::rgba8)
-        return bad(m.outfits_file, "outfit map must be rgba8 16x" + std::to_string(m.outfit_count));
+        return invalid(m.outfits_file, "outfit map must be rgba8 16x" + std::to_string(m.outfit_count));
     bundle->outfits = *outfits;
+    return {};
+}
 
-    const ImpostorInfo& imp = m.impostor;
-    for (size_t k = 0; k < imp.frame_indices.size(); ++k) {
-        if (imp.frame_indices[k] >= m.pose_frames) return bad("manifest.json", "frame_indices outside the pose frames");
-        if (k > 0 && imp.frame_indices[k] <= imp.frame_indices[k - 1]) return bad("manifest.json", "frame_indices must ascend");
+// The baked frames ascend within the pose frames, and every range can be drawn as an impostor: a
+// clip needs one baked frame, a transition (played once, not wrapped) its own first and last frame,
+// so its ends are exact.
+Status check_baked_frames(const Manifest& m) {
+    const std::vector<uint32_t>& baked_frames = m.impostor.frame_indices;
+    for (size_t k = 0; k < baked_frames.size(); ++k) {
+        if (baked_frames[k] >= m.pose_frames) return invalid("manifest.json", "frame_indices outside the pose frames");
+        if (k > 0 && baked_frames[k] <= baked_frames[k - 1]) return invalid("manifest.json", "frame_indices must ascend");
     }
-    // Impostors draw a character with the baked layers of the range it is in: a clip needs one, and a
-    // transition (played once, not wrapped) its own first and last frame, so its ends are exact.
-    auto baked = [&](uint32_t frame) { return std::binary_search(imp.frame_indices.begin(), imp.frame_indices.end(), frame); };
+    auto baked = [&](uint32_t frame) { return std::binary_search(baked_frames.begin(), baked_frames.end(), frame); };
     for (size_t i = 0; i < m.clips.size(); ++i) {
         const ClipInfo& c = m.clips[i];
-        const auto first = std::lower_bound(imp.frame_indices.begin(), imp.frame_indices.end(), c.first_frame);
-        if (first == imp.frame_indices.end() || *first >= uint64_t(c.first_frame) + c.frames)
-            return bad("manifest.json", "clip " + std::to_string(i) + " ('" + c.name + "') has no baked impostor frame");
+        const auto first = std::lower_bound(baked_frames.begin(), baked_frames.end(), c.first_frame);
+        if (first == baked_frames.end() || *first >= uint64_t(c.first_frame) + c.frames)
+            return invalid("manifest.json", "clip " + std::to_string(i) + " ('" + c.name + "') has no baked impostor frame");
     }
     for (size_t i = 0; i < m.transitions.size(); ++i) {
         const TransitionInfo& t = m.transitions[i];
         if (!baked(t.first_frame) || !baked(t.first_frame + t.frames - 1))
-            return bad("manifest.json", "transition " + std::to_string(i) + " lacks a baked impostor frame at its first (" +
-                                            std::to_string(t.first_frame) + ") or last (" + std::to_string(t.first_frame + t.frames - 1) + ") frame");
+            return invalid("manifest.json", "transition " + std::to_string(i) + " lacks a baked impostor frame at its first (" +
+                                                std::to_string(t.first_frame) + ") or last (" + std::to_string(t.first_frame + t.frames - 1) +
+                                                ") frame");
     }
+    return {};
+}
+
+// The crop within the tile, each impostor atlas the layout's size with one layer per baked frame,
+// and the UV and surface maps in formats that can hold them; into the bundle.
+Status check_impostor_maps(const Manifest& m, const std::map<std::string, TextureArray>& textures, Bundle* bundle) {
+    const ImpostorInfo& imp = m.impostor;
     if (uint64_t(imp.crop.x) + imp.crop.width > imp.tile_size || uint64_t(imp.crop.y) + imp.crop.height > imp.tile_size)
-        return bad("manifest.json", "impostor/crop reaches outside the " + std::to_string(imp.tile_size) + "-texel tile");
+        return invalid("manifest.json", "impostor/crop reaches outside the " + std::to_string(imp.tile_size) + "-texel tile");
     const uint64_t width = uint64_t(imp.crop.width) * imp.azimuths_deg.size();
     const uint64_t height = uint64_t(imp.crop.height) * imp.elevations_deg.size();
     // Sorted by kind, as the canonical manifest (sorted keys) lists them.
@@ -407,21 +425,30 @@ Status cross_check(const Manifest& m, const std::map<std::string, PoseCache>& po
     for (const auto& [kind, target] : maps) {
         if (target.first->empty()) continue;  // an optional map (detail, surface), absent
         const TextureArray* atlas = nullptr;
-        if (Status s = texture(*target.first, &atlas); !s) return s;
+        if (Status s = find_texture(textures, *target.first, &atlas); !s) return s;
         if (atlas->width != width || atlas->height != height || atlas->layer_count != imp.frame_indices.size())
-            return bad(*target.first, std::string(kind) + " atlas is " + std::to_string(atlas->width) + "x" +
-                                          std::to_string(atlas->height) + "x" + std::to_string(atlas->layer_count) +
-                                          ", layout needs " + std::to_string(width) + "x" + std::to_string(height) + "x" +
-                                          std::to_string(imp.frame_indices.size()));
+            return invalid(*target.first, std::string(kind) + " atlas is " + std::to_string(atlas->width) + "x" +
+                                              std::to_string(atlas->height) + "x" + std::to_string(atlas->layer_count) +
+                                              ", layout needs " + std::to_string(width) + "x" + std::to_string(height) + "x" +
+                                              std::to_string(imp.frame_indices.size()));
         *target.second = *atlas;
     }
     if (bundle->impostor_uv.format != PixelFormat::rgba16 && bundle->impostor_uv.format != PixelFormat::uv32 &&
         bundle->impostor_uv.format != PixelFormat::uvblock)
-        return bad(imp.uv_map, "the UV map must be rgba16, uv32 or uvblock (8 bits cannot address a 1024-texel texture)");
+        return invalid(imp.uv_map, "the UV map must be rgba16, uv32 or uvblock (8 bits cannot address a 1024-texel texture)");
     if (!imp.surface_map.empty() && bundle->impostor_surface.format != PixelFormat::bc1 &&
         bundle->impostor_surface.format != PixelFormat::bc2 && bundle->impostor_surface.format != PixelFormat::rgba8)
-        return bad(imp.surface_map, "the surface map must be bc1, bc2 or rgba8");
+        return invalid(imp.surface_map, "the surface map must be bc1, bc2 or rgba8");
     return {};
+}
+
+// SPEC.md's cross-checks, in the order the Python reader runs them, so both name the same file.
+Status cross_check(const Manifest& m, const std::map<std::string, PoseCache>& poses,
+                   const std::map<std::string, TextureArray>& textures, Bundle* bundle) {
+    if (Status s = check_meshes(m, poses, bundle); !s) return s;
+    if (Status s = check_materials_and_outfits(m, textures, bundle); !s) return s;
+    if (Status s = check_baked_frames(m); !s) return s;
+    return check_impostor_maps(m, textures, bundle);
 }
 
 }  // namespace

@@ -1,5 +1,5 @@
 // Command-line values for crowdview's main.cpp: numbers in a range and named choices, or a usage
-// error (main.cpp's usage_error: one line, exit 2).
+// error (cli_options.cpp's usage_error: one line, exit 2).
 #pragma once
 
 #include <cerrno>

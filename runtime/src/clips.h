@@ -97,10 +97,12 @@ ClipState initial_clip_state(const ClipSchedule& schedule, uint32_t index, uint3
 // time_s >= state->next_event_s; times must not go back (start again from initial_clip_state).
 void advance_clip_state(const ClipSchedule& schedule, uint32_t index, float rate, float time_s, ClipState* state);
 
-// floor(x) for |x| < 2^63 without a libm call (x86-64's baseline SSE2 has no rounding instruction).
-inline double fast_floor(double x) {
-    const double t = double(int64_t(x));
-    return t > x ? t - 1.0 : t;
+// floor(x) for |x| < 2^63, float or double, without a libm call (x86-64's baseline SSE2 has no
+// rounding instruction).
+template <typename Real>
+inline Real fast_floor(Real x) {
+    const Real t = Real(int64_t(x));
+    return t > x ? t - Real(1) : t;
 }
 
 // The loop frame floor((t * rate + phase) * fps) mod frames, as crowd.h cycle_frame, computed

@@ -23,20 +23,6 @@ namespace {
 constexpr float kPi = 3.14159265358979323846f;
 constexpr float kDegrees = 180.0f / kPi;
 
-// floor(x) for |x| < 2^31 without a libm call (x86-64's baseline SSE2 has no rounding instruction).
-inline float fast_floor(float x) {
-    const float t = float(int32_t(x));
-    return t > x ? t - 1.0f : t;
-}
-
-// sphere_in_frustum (crowd.h), inlined.
-// All six planes without an early exit: one well-predicted branch instead of six.
-inline bool sphere_visible(const Frustum& frustum, const glm::vec3& c, float radius) {
-    bool inside = true;
-    for (const glm::vec4& p : frustum.planes) inside &= p.x * c.x + p.y * c.y + p.z * c.z + p.w >= -radius;
-    return inside;
-}
-
 // atan(x) for |x| <= 1: an odd minimax polynomial, within 1e-5 rad (6e-4 degrees) of the true
 // value, far below the baked views' 10-30 degree spacing (Abramowitz and Stegun 4.4.49's form).
 inline float atan_unit(float x) {
@@ -255,7 +241,8 @@ struct FrameSetup {
     bool blend_views, blend_frames;
 };
 
-// sphere_visible and the depth along the view for characters [begin, end), over arrays: vectorised.
+// sphere_in_frustum (crowd.h) and the depth along the view for characters [begin, end), over arrays:
+// vectorised. All six planes without an early exit: no branch at all.
 VECTOR_CLONES void visibility(const FrameState& s, float radius, const FrameSetup& f, size_t begin, size_t end, int32_t* visible, float* depth) {
     const float* __restrict cx = s.center_x.data() + begin;
     const float* __restrict cy = s.center_y.data() + begin;
@@ -290,7 +277,7 @@ void cull_chunk(const Pass& p, const FrameSetup& f, size_t chunk) {
             const glm::vec3 feet = s.feet[i] = character_position(*p.crowd, characters[i], f.time_s);
             s.center_x[i] = feet.x + s.center_offset[i].x, s.center_y[i] = feet.y + model.center.y, s.center_z[i] = feet.z + s.center_offset[i].y;
         }
-    // sphere_visible and the depth along the view over arrays (vectorised), then the LOD.
+    // sphere_in_frustum and the depth along the view over arrays (vectorised), then the LOD.
     float depth[kChunk];
     int32_t visible[kChunk];
     visibility(s, model.radius, f, begin, end, visible, depth);

@@ -74,46 +74,35 @@ float crowds_half_extent(const std::vector<Crowd>& crowds) {
 
 namespace {
 
-std::vector<Crowd> place_characters(const CrowdFile& file, const std::vector<ArchetypeTraits>& traits, std::string* note) {
-    const size_t n = traits.size();
-    std::vector<Crowd> crowds(n);
-    const CrowdLayoutDesc& layout = file.layout;
-    const Layout motion = layout.kind == CrowdLayoutKind::paths ? Layout::paths : Layout::on_the_spot;
-    const float walk_speed = layout.walk_speed > 0 ? layout.walk_speed : 1.3f;
-    for (Crowd& c : crowds) c.layout = motion, c.walk_speed = walk_speed;
-    Rng rng(file.seed);
-
-    if (layout.kind == CrowdLayoutKind::positions) {
-        for (const PlacedCharacter& p : layout.positions) {
-            if (p.archetype >= n || traits[p.archetype].count == 0) continue;
-            crowds[p.archetype].characters.push_back(
-                random_character(rng, glm::vec3(p.x, 0, p.z), p.heading_rad, traits[p.archetype]));
-        }
-        const float half = crowds_half_extent(crowds);
-        for (Crowd& c : crowds) c.half_extent = half;
-        return crowds;
+// The description's own positions; every crowd's square holds them all.
+void place_at_positions(const CrowdLayoutDesc& layout, const std::vector<ArchetypeTraits>& traits, Rng& rng, std::vector<Crowd>* crowds) {
+    for (const PlacedCharacter& p : layout.positions) {
+        if (p.archetype >= traits.size() || traits[p.archetype].count == 0) continue;
+        (*crowds)[p.archetype].characters.push_back(random_character(rng, glm::vec3(p.x, 0, p.z), p.heading_rad, traits[p.archetype]));
     }
+    const float half = crowds_half_extent(*crowds);
+    for (Crowd& c : *crowds) c.half_extent = half;
+}
 
-    std::vector<size_t> present;
-    for (size_t k = 0; k < n; ++k)
-        if (traits[k].count > 0) present.push_back(k);
-    if (present.size() == 1 && layout.kind != CrowdLayoutKind::scatter) {
-        // One archetype: the grid --bundle has always drawn.
-        const ArchetypeTraits& t = traits[present[0]];
-        CrowdDesc desc;
-        desc.count = uint32_t(t.count);
-        desc.seed = file.seed;
-        desc.layout = motion;
-        desc.spacing = t.spacing;
-        desc.walk_speed = walk_speed;
-        crowds[present[0]] = make_crowd(desc, t.variations, t.outfits, t.cycle_seconds);
-        if (t.play_rate[0] != 1 || t.play_rate[1] != 1)
-            for (Character& c : crowds[present[0]].characters) c.rate = rng.uniform(t.play_rate[0], std::max(t.play_rate[0], t.play_rate[1]));
-        return crowds;
-    }
+// One archetype: the grid --bundle has always drawn.
+Crowd place_on_grid(const CrowdFile& file, const ArchetypeTraits& t, Layout motion, float walk_speed, Rng& rng) {
+    CrowdDesc desc;
+    desc.count = uint32_t(t.count);
+    desc.seed = file.seed;
+    desc.layout = motion;
+    desc.spacing = t.spacing;
+    desc.walk_speed = walk_speed;
+    Crowd crowd = make_crowd(desc, t.variations, t.outfits, t.cycle_seconds);
+    if (t.play_rate[0] != 1 || t.play_rate[1] != 1)
+        for (Character& c : crowd.characters) c.rate = rng.uniform(t.play_rate[0], std::max(t.play_rate[0], t.play_rate[1]));
+    return crowd;
+}
 
-    // Several archetypes: largest first, each character thrown at random until it fits.
-    std::stable_sort(present.begin(), present.end(), [&](size_t a, size_t b) { return traits[a].spacing > traits[b].spacing; });
+// Several archetypes (`present`, largest first), each character thrown at random until it fits:
+// within the description's area (scatter: what does not fit is left out, and said in `note`), or
+// a square as dense as make_crowd's grid that grows until it does.
+void place_by_darts(const CrowdLayoutDesc& layout, const std::vector<ArchetypeTraits>& traits, const std::vector<size_t>& present, Rng& rng,
+                    std::vector<Crowd>* crowds, std::string* note) {
     float largest = 0;
     double ground = 0;  // m^2: spacing^2 for each character, the density of make_crowd's grid
     for (size_t k : present) largest = std::max(largest, traits[k].spacing), ground += double(traits[k].count) * traits[k].spacing * traits[k].spacing;
@@ -127,7 +116,7 @@ std::vector<Crowd> place_characters(const CrowdFile& file, const std::vector<Arc
     uint64_t left_out = 0;
     for (size_t k : present) {
         const ArchetypeTraits& t = traits[k];
-        crowds[k].characters.reserve(t.count);
+        (*crowds)[k].characters.reserve(t.count);
         for (uint64_t i = 0; i < t.count; ++i) {
             bool placed = false;
             while (!placed) {
@@ -135,7 +124,7 @@ std::vector<Crowd> place_characters(const CrowdFile& file, const std::vector<Arc
                     const float x = rng.uniform(lo.x, hi.x), z = rng.uniform(lo.y, hi.y);
                     if (!hash.fits(x, z, t.spacing)) continue;
                     hash.add(x, z, t.spacing);
-                    crowds[k].characters.push_back(random_character(rng, glm::vec3(x, 0, z), rng.uniform(0.0f, 2.0f * glm::pi<float>()), t));
+                    (*crowds)[k].characters.push_back(random_character(rng, glm::vec3(x, 0, z), rng.uniform(0.0f, 2.0f * glm::pi<float>()), t));
                     placed = true;
                 }
                 if (placed) break;
@@ -149,10 +138,32 @@ std::vector<Crowd> place_characters(const CrowdFile& file, const std::vector<Arc
     }
     if (left_out && note)
         *note = "the scatter area holds " + std::to_string(std::accumulate(present.begin(), present.end(), uint64_t(0),
-                                                                          [&](uint64_t s, size_t k) { return s + crowds[k].characters.size(); })) +
+                                                                          [&](uint64_t s, size_t k) { return s + (*crowds)[k].characters.size(); })) +
                 " characters; " + std::to_string(left_out) + " did not fit and are left out";
-    const float half = scatter ? crowds_half_extent(crowds) : hi.x;
-    for (Crowd& c : crowds) c.half_extent = half;
+    const float half = scatter ? crowds_half_extent(*crowds) : hi.x;
+    for (Crowd& c : *crowds) c.half_extent = half;
+}
+
+std::vector<Crowd> place_characters(const CrowdFile& file, const std::vector<ArchetypeTraits>& traits, std::string* note) {
+    std::vector<Crowd> crowds(traits.size());
+    const CrowdLayoutDesc& layout = file.layout;
+    const Layout motion = layout.kind == CrowdLayoutKind::paths ? Layout::paths : Layout::on_the_spot;
+    const float walk_speed = layout.walk_speed > 0 ? layout.walk_speed : 1.3f;
+    for (Crowd& c : crowds) c.layout = motion, c.walk_speed = walk_speed;
+    Rng rng(file.seed);
+    if (layout.kind == CrowdLayoutKind::positions) {
+        place_at_positions(layout, traits, rng, &crowds);
+        return crowds;
+    }
+    std::vector<size_t> present;
+    for (size_t k = 0; k < traits.size(); ++k)
+        if (traits[k].count > 0) present.push_back(k);
+    if (present.size() == 1 && layout.kind != CrowdLayoutKind::scatter) {
+        crowds[present[0]] = place_on_grid(file, traits[present[0]], motion, walk_speed, rng);
+        return crowds;
+    }
+    std::stable_sort(present.begin(), present.end(), [&](size_t a, size_t b) { return traits[a].spacing > traits[b].spacing; });
+    place_by_darts(layout, traits, present, rng, &crowds, note);
     return crowds;
 }
 

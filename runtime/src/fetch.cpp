@@ -174,107 +174,134 @@ std::string seconds_text(double s) {
     return text;
 }
 
+// One listed file's download: where it comes from and goes, and by when.
+struct FileFetch {
+    const FileEntry* entry;
+    const FetchOptions* options;
+    std::string url, part, blob;  // part: the download so far; blob: the verified copy in the cache
+    double file_seconds = 0;      // the file's own deadline, in seconds from its start
+    Clock::time_point deadline, total_deadline;
+
+    void log(const std::string& line) const {
+        if (options->log) options->log(line);
+    }
+    Status error(ErrorCode code, const std::string& message) const { return make_error(code, "fetch_file", entry->path, message); }
+};
+
+// One GET of the file into `part`: appended to a part worth resuming, else from the start
+// (`started_fresh` then set). An error only where the part cannot be written.
+Status get_attempt(const FileFetch& f, bool* started_fresh, Transfer* result, std::string* error) {
+    int64_t have = file_size_or_minus_one(f.part);
+    if (have < 0 || uint64_t(have) >= f.entry->size) {  // nothing to resume, or a part that cannot be right
+        std::remove(f.part.c_str());
+        have = 0;
+    }
+    if (have == 0) *started_fresh = true;
+    if (have > 0) f.log("fetch: resuming " + f.entry->path + " at byte " + std::to_string(have));
+    FILE* file = std::fopen(f.part.c_str(), have > 0 ? "ab" : "wb");
+    if (!file) return f.error(ErrorCode::fetch_failed, "cannot write " + f.part);
+    Sink sink;
+    sink.file = file;
+    sink.limit = f.entry->size - uint64_t(have);  // never more than the manifest declares
+    Request request;
+    request.url = f.url;
+    request.resume_from = uint64_t(have);
+    request.deadline = f.deadline;
+    request.options = f.options;
+    *result = http_get(request, &sink, error);
+    std::fclose(file);
+    return {};
+}
+
+// What an attempt's transfer means for the download.
+enum class Next { verify, retry, stop };
+
+// `stop` with `status` set where the transfer ends the download; a part kept only where a later
+// attempt (or run) may resume it.
+Next after_transfer(const FileFetch& f, Transfer result, const std::string& error, bool last_attempt, Status* status) {
+    if (result != Transfer::failed && result != Transfer::ok) std::remove(f.part.c_str());
+    switch (result) {
+    case Transfer::ok: return Next::verify;
+    case Transfer::not_found: *status = f.error(ErrorCode::missing_file, "not found at " + f.url); return Next::stop;
+    case Transfer::unauthorized: *status = f.error(ErrorCode::unauthorized, f.url + ": " + error); return Next::stop;
+    case Transfer::range_refused:  // redo from the start
+        f.log("fetch: " + f.url + " cannot resume (" + error + "); downloading again");
+        return Next::retry;
+    case Transfer::too_many_redirects: *status = f.error(ErrorCode::fetch_failed, f.url + ": " + error); return Next::stop;
+    case Transfer::too_large:
+        *status = f.error(ErrorCode::size_mismatch, "the server sent more than the manifest's " + std::to_string(f.entry->size) + " bytes");
+        return Next::stop;
+    case Transfer::deadline:  // a limit broken: nothing of it is kept for a later run
+        *status = f.error(ErrorCode::fetch_failed, f.deadline < f.total_deadline
+                                                       ? "did not arrive within its deadline of " + seconds_text(f.file_seconds) + " s (" +
+                                                             std::to_string(f.entry->size) + " bytes at no less than " +
+                                                             seconds_text(f.options->min_rate_bytes_per_s) + " bytes/s)"
+                                                       : "the fetch's total deadline passed");
+        return Next::stop;
+    case Transfer::failed:  // keep the part: the next attempt (or run) resumes it
+        f.log("fetch: " + f.entry->path + " interrupted (" + error + ")");
+        if (!last_attempt) return Next::retry;
+        *status = f.error(ErrorCode::fetch_failed, "download failed: " + error);
+        return Next::stop;
+    }
+    return Next::stop;
+}
+
+// A complete download that does not verify (`bytes` as read back): never kept. A resumed download
+// may have joined two different versions of the file, so a bad resume is redone once from the start.
+Next after_bad_download(const FileFetch& f, const std::vector<uint8_t>& bytes, bool* started_fresh, Status* status) {
+    std::remove(f.part.c_str());
+    if (!*started_fresh) {
+        f.log("fetch: resumed download of " + f.entry->path + " does not verify; downloading again");
+        *started_fresh = true;
+        return Next::retry;
+    }
+    if (bytes.size() != f.entry->size)
+        *status = f.error(ErrorCode::size_mismatch,
+                          std::to_string(bytes.size()) + " bytes downloaded, manifest says " + std::to_string(f.entry->size));
+    else
+        *status = f.error(ErrorCode::sha256_mismatch, "downloaded bytes differ from the manifest's sha256");
+    return Next::stop;
+}
+
 // Brings one listed file into the cache (or finds it there) and returns its verified bytes.
 // Nothing is fetched after `total_deadline`.
 Status fetch_file(const BundleUrls& urls, const FileEntry& entry, const FetchOptions& options, const std::string& cache,
                   Clock::time_point total_deadline, std::vector<uint8_t>* bytes) {
-    static const char* fn = "fetch_file";
-    auto log = [&](const std::string& line) {
-        if (options.log) options.log(line);
-    };
-    const std::string blob = cache_blob_path(cache, entry.sha256);
+    FileFetch f;
+    f.entry = &entry, f.options = &options;
+    f.url = urls.file(entry.path);
+    f.part = cache + "/partial/" + entry.sha256 + ".part";
+    f.blob = cache_blob_path(cache, entry.sha256);
+    f.file_seconds = file_deadline_seconds(entry.size, options);
+    f.deadline = std::min(after_seconds(Clock::now(), f.file_seconds), total_deadline);
+    f.total_deadline = total_deadline;
     auto verified = [&](const std::string& path) {
-        return read_file_bytes(path, bytes) && bytes->size() == entry.size &&
-               sha256_hex(bytes->data(), bytes->size()) == entry.sha256;
+        return read_file_bytes(path, bytes) && bytes->size() == entry.size && sha256_hex(bytes->data(), bytes->size()) == entry.sha256;
     };
-    if (file_size_or_minus_one(blob) >= 0) {
-        if (verified(blob)) return {};
-        log("fetch: cached copy of " + entry.path + " is corrupt; fetching it again");
-        std::remove(blob.c_str());
+    if (file_size_or_minus_one(f.blob) >= 0) {
+        if (verified(f.blob)) return {};
+        f.log("fetch: cached copy of " + entry.path + " is corrupt; fetching it again");
+        std::remove(f.blob.c_str());
     }
     if (!make_dirs(cache + "/partial") || !make_dirs(cache + "/blobs/" + entry.sha256.substr(0, 2)))
-        return make_error(ErrorCode::fetch_failed, fn, entry.path, "cannot create the cache folders under " + cache);
-
-    const std::string part = cache + "/partial/" + entry.sha256 + ".part";
-    const std::string url = urls.file(entry.path);
-    const double file_seconds = file_deadline_seconds(entry.size, options);
-    const Clock::time_point deadline = std::min(after_seconds(Clock::now(), file_seconds), total_deadline);
+        return f.error(ErrorCode::fetch_failed, "cannot create the cache folders under " + cache);
     bool started_fresh = false;
     for (int attempt = 0; attempt < options.attempts + 1; ++attempt) {
-        int64_t have = file_size_or_minus_one(part);
-        if (have < 0 || uint64_t(have) >= entry.size) {  // nothing to resume, or a part that cannot be right
-            std::remove(part.c_str());
-            have = 0;
-        }
-        if (have == 0) started_fresh = true;
-        if (have > 0) log("fetch: resuming " + entry.path + " at byte " + std::to_string(have));
-        FILE* file = std::fopen(part.c_str(), have > 0 ? "ab" : "wb");
-        if (!file) return make_error(ErrorCode::fetch_failed, fn, entry.path, "cannot write " + part);
-        Sink sink;
-        sink.file = file;
-        sink.limit = entry.size - uint64_t(have);  // never more than the manifest declares
-        Request request;
-        request.url = url;
-        request.resume_from = uint64_t(have);
-        request.deadline = deadline;
-        request.options = &options;
+        Transfer result = Transfer::failed;
         std::string error;
-        const Transfer result = http_get(request, &sink, &error);
-        std::fclose(file);
-        switch (result) {
-        case Transfer::ok:
-            break;
-        case Transfer::not_found:
-            std::remove(part.c_str());
-            return make_error(ErrorCode::missing_file, fn, entry.path, "not found at " + url);
-        case Transfer::unauthorized:
-            std::remove(part.c_str());
-            return make_error(ErrorCode::unauthorized, fn, entry.path, url + ": " + error);
-        case Transfer::range_refused:  // redo from the start
-            log("fetch: " + url + " cannot resume (" + error + "); downloading again");
-            std::remove(part.c_str());
-            continue;
-        case Transfer::too_many_redirects:
-            std::remove(part.c_str());
-            return make_error(ErrorCode::fetch_failed, fn, entry.path, url + ": " + error);
-        case Transfer::too_large:
-            std::remove(part.c_str());
-            return make_error(ErrorCode::size_mismatch, fn, entry.path,
-                              "the server sent more than the manifest's " + std::to_string(entry.size) + " bytes");
-        case Transfer::deadline:  // a limit broken: nothing of it is kept for a later run
-            std::remove(part.c_str());
-            return make_error(ErrorCode::fetch_failed, fn, entry.path,
-                              deadline < total_deadline
-                                  ? "did not arrive within its deadline of " + seconds_text(file_seconds) + " s (" +
-                                        std::to_string(entry.size) + " bytes at no less than " +
-                                        seconds_text(options.min_rate_bytes_per_s) + " bytes/s)"
-                                  : "the fetch's total deadline passed");
-        case Transfer::failed:  // keep the part: the next attempt (or run) resumes it
-            log("fetch: " + entry.path + " interrupted (" + error + ")");
-            if (attempt == options.attempts)
-                return make_error(ErrorCode::fetch_failed, fn, entry.path, "download failed: " + error);
-            continue;
-        }
-        if (verified(part)) {
-            if (std::rename(part.c_str(), blob.c_str()) != 0)
-                return make_error(ErrorCode::fetch_failed, fn, entry.path, "cannot move the download into " + blob);
+        if (Status written = get_attempt(f, &started_fresh, &result, &error); !written) return written;
+        Status status;
+        Next next = after_transfer(f, result, error, attempt == options.attempts, &status);
+        if (next == Next::verify && verified(f.part)) {
+            if (std::rename(f.part.c_str(), f.blob.c_str()) != 0)
+                return f.error(ErrorCode::fetch_failed, "cannot move the download into " + f.blob);
             return {};
         }
-        // Complete but wrong: never keep it. A resumed download may have joined two different
-        // versions of the file, so a bad resume is redone once from the start.
-        std::remove(part.c_str());
-        const bool short_file = bytes->size() != entry.size;
-        if (!started_fresh) {
-            log("fetch: resumed download of " + entry.path + " does not verify; downloading again");
-            started_fresh = true;
-            continue;
-        }
-        if (short_file)
-            return make_error(ErrorCode::size_mismatch, fn, entry.path,
-                              std::to_string(bytes->size()) + " bytes downloaded, manifest says " + std::to_string(entry.size));
-        return make_error(ErrorCode::sha256_mismatch, fn, entry.path, "downloaded bytes differ from the manifest's sha256");
+        if (next == Next::verify) next = after_bad_download(f, *bytes, &started_fresh, &status);
+        if (next == Next::stop) return status;
     }
-    return make_error(ErrorCode::fetch_failed, fn, entry.path, "gave up after " + std::to_string(options.attempts) + " attempts");
+    return f.error(ErrorCode::fetch_failed, "gave up after " + std::to_string(options.attempts) + " attempts");
 }
 
 }  // namespace

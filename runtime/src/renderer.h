@@ -3,6 +3,10 @@
 // for impostors.
 // Needs a current context (gl_context.h). Draws into its own framebuffer, so headless and
 // windowed runs render the same pixels.
+// Its files, by job: renderer.cpp (the framebuffer, adding archetypes, reading frames back),
+// renderer_draw.cpp (a frame's draws), archetype_gpu.* (one archetype's GPU resources),
+// crowd_programs.* (the mesh and impostor programs), texture_upload.* (bundle textures into GL),
+// gl_programs.* (labels, shader files, GL errors).
 #pragma once
 
 #include <cstdint>
@@ -44,9 +48,11 @@ struct ArchetypeMemory {
     uint64_t total() const { return meshes + textures + impostors; }
 };
 
+struct RendererState;  // renderer_state.h
+
 // Draws a crowd of one or more archetypes (bundles) into one framebuffer. Each archetype owns
-// its uploads and impostor programs (a per-archetype resource struct inside); the framebuffer
-// and the mesh program are shared.
+// its uploads and impostor programs (archetype_gpu.h); the framebuffer and the mesh program are
+// shared.
 class Renderer {
 public:
     ~Renderer();
@@ -54,13 +60,15 @@ public:
     Renderer& operator=(const Renderer&) = delete;
 
     // The framebuffer and shared programs, no archetype yet; nullptr and a one-line `error`
-    // (starting "Renderer::create:") when a shader does not build or GL is too old.
+    // (starting "Renderer::create:") when a shader does not build, GL is too old or the
+    // framebuffer cannot be made.
     static std::unique_ptr<Renderer> create(const RendererDesc& desc, std::string* error);
-    // create() and add_archetype(bundle): a one-archetype renderer.
+    // create() and add_archetype(bundle): a one-archetype renderer; nullptr and the error of
+    // whichever of the two refused.
     static std::unique_ptr<Renderer> create(const Bundle& bundle, const RendererDesc& desc, std::string* error);
     // Uploads a bundle as the next archetype (index archetype_count() - 1). False and a one-line
-    // `error` (starting "Renderer::create:") when the bundle needs more than this renderer
-    // supports; the renderer and its other archetypes stay usable.
+    // `error` (starting "Renderer::add_archetype:") when the bundle needs more than this renderer
+    // supports (archetype_gpu.h, upload_archetype); the renderer and its other archetypes stay usable.
     bool add_archetype(const Bundle& bundle, std::string* error);
 
     // One frame into the offscreen framebuffer: frames[a] are archetype a's instances (at most
@@ -95,15 +103,9 @@ public:
 
 private:
     Renderer() = default;
-    struct Part;
-    struct Archetype;
-    struct Impl;
     DrawStats draw_all(const FrameInstances* frames, size_t frame_count, const Camera& camera, ImpostorKind impostors,
                        const glm::vec3& light_dir);
-    DrawStats draw_archetype(Archetype& archetype, const FrameInstances& frame, const glm::mat4& view_projection,
-                             const Camera& camera, ImpostorKind impostors, const glm::vec3& light);
-    static ImpostorBlend archetype_blend(const Archetype& archetype, ImpostorBlend blend);
-    std::unique_ptr<Impl> impl_;
+    std::unique_ptr<RendererState> state_;
     int width_ = 0, height_ = 0;
     RendererDesc desc_;
     bool compressed_ = false;

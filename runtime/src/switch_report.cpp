@@ -143,31 +143,99 @@ double SwitchMeter::clip_reference(const CharacterModel& model, const FrameState
     return median_of(motions);
 }
 
+struct SwitchMeter::Switch {
+    Lod lod = Lod::high;
+    uint32_t range_before = 0, range_after = 0;  // clips 0..C-1, then transitions
+    uint32_t frame_before = 0, frame_after = 0;  // frames within those ranges
+    uint32_t pose_before = 0, pose_after = 0;    // the pose frames shown
+    uint32_t steps = 0;                          // pose frames stepped along the character's way
+    const TransitionRange* transition = nullptr;  // the transition entered, left or passed
+    glm::mat4 to_screen{1};                       // view-projection times the character's placement
+};
+
+namespace {
+
+// The pose frames a character stepped from frame `local0` of range r0 to frame `local1` of range
+// r1, and the transition it entered, left or passed (`transition`: the one its clip state names);
+// 0 steps where the change is none of those.
+uint32_t switch_steps(const ClipSchedule& schedule, uint32_t r0, uint32_t r1, uint32_t local0, uint32_t local1, uint32_t transition,
+                      const TransitionRange** tr) {
+    const uint32_t C = schedule.clip_count;
+    if (r0 < C && r1 >= C) {  // entered a transition
+        *tr = &schedule.transitions[r1 - C];
+        return loop_steps(local0, (*tr)->leave_frame, schedule.ranges[r0].frames) + 1 + local1;
+    }
+    if (r0 >= C && r1 < C) {  // left one
+        *tr = &schedule.transitions[r0 - C];
+        return ((*tr)->frames - 1 - local0) + 1 + loop_steps((*tr)->arrive_frame, local1, schedule.ranges[r1].frames);
+    }
+    if (r0 < C && r1 < C && transition < schedule.transitions.size() && schedule.transitions[transition].from_clip == r0 &&
+        schedule.transitions[transition].to_clip == r1) {
+        *tr = &schedule.transitions[transition];  // a whole transition between two frames
+        return loop_steps(local0, (*tr)->leave_frame, schedule.ranges[r0].frames) + 1 + (*tr)->frames +
+               loop_steps((*tr)->arrive_frame, local1, schedule.ranges[r1].frames);
+    }
+    return 0;
+}
+
+}  // namespace
+
+void SwitchMeter::pick_characters(const Crowd& crowd, const CharacterModel& model, const FrameState& state, const Frustum& frustum,
+                                  size_t n, float time_s) {
+    picked_ = true;
+    range_names_ = range_names(model, state.schedule);
+    for (int lod = 0; lod < 3; ++lod) {
+        std::vector<uint32_t> candidates;
+        for (uint32_t i = 0; i < n; ++i)
+            if (int(state.lod[i]) == lod && on_screen(frustum, model, crowd.characters[i], feet_at(crowd, crowd.characters[i], time_s)))
+                candidates.push_back(i);
+        const size_t take = std::min<size_t>(kMeterCharacters, candidates.size());
+        sampled_[lod] = uint32_t(take);
+        for (size_t k = 0; k < take; ++k) {
+            Tracked t;
+            t.character = candidates[k * candidates.size() / take];
+            tracked_.push_back(t);
+        }
+    }
+}
+
+void SwitchMeter::measure_switch(const Switch& s, const CharacterModel& model, const FrameState& state, bool blend_frames, int width,
+                                 int height) {
+    const int l = int(s.lod), mesh_lod = s.lod == Lod::low ? 1 : 0;
+    const ClipSchedule& schedule = state.schedule;
+    auto pose_picture = [&](uint32_t pose_frame, std::vector<glm::vec2>* pixels) {
+        const ShownPose p = shown_pose(model, state, s.lod, pose_frame, blend_frames);
+        picture(mesh_lod, {p.a, p.b, p.weight}, s.to_screen, width, height, pixels);
+    };
+    std::vector<glm::vec2> before, after;
+    pose_picture(s.pose_before, &before);
+    pose_picture(s.pose_after, &after);
+    double reference = 0;
+    for (uint32_t side : {s.transition->from_clip, s.transition->to_clip})
+        reference = std::max(reference, clip_reference(model, state, side, s.steps, s.lod, blend_frames, s.to_screen, width, height));
+    // What the clip beside the switch would have moved over the same steps had the character
+    // not switched: on from its frame before the switch, or up to its frame after it.
+    const bool entering = s.range_after >= schedule.clip_count;
+    const ClipSchedule::Range& range = schedule.ranges[entering ? s.range_before : s.range_after];
+    const uint32_t from = entering ? s.frame_before : (s.frame_after + range.frames - s.steps % range.frames) % range.frames;
+    std::vector<glm::vec2> still, moved;
+    pose_picture(range.first_frame + from, &still);
+    pose_picture(range.first_frame + (from + s.steps) % range.frames, &moved);
+    if (reference > 0)
+        events_[l].push_back({rms_motion(before, after), reference, rms_motion(still, moved), s.range_before, s.range_after,
+                              s.frame_before, s.frame_after});
+    else
+        ++unmeasured_[l];
+}
+
 void SwitchMeter::observe(const Crowd& crowd, const CharacterModel& model, const FrameState& state, const Camera& camera, int width,
                           int height, float time_s, bool blend_frames) {
     const float aspect = float(width) / float(std::max(height, 1));
     const glm::mat4 view_projection = camera.projection(aspect) * camera.view();
     const Frustum frustum = frustum_from(view_projection);
     const size_t n = std::min({crowd.characters.size(), state.lod.size(), state.clip.size()});
-    if (!picked_) {  // up to kMeterCharacters on screen per representation, spread over the crowd
-        picked_ = true;
-        range_names_ = range_names(model, state.schedule);
-        for (int lod = 0; lod < 3; ++lod) {
-            std::vector<uint32_t> candidates;
-            for (uint32_t i = 0; i < n; ++i)
-                if (int(state.lod[i]) == lod && on_screen(frustum, model, crowd.characters[i], feet_at(crowd, crowd.characters[i], time_s)))
-                    candidates.push_back(i);
-            const size_t take = std::min<size_t>(kMeterCharacters, candidates.size());
-            sampled_[lod] = uint32_t(take);
-            for (size_t k = 0; k < take; ++k) {
-                Tracked t;
-                t.character = candidates[k * candidates.size() / take];
-                tracked_.push_back(t);
-            }
-        }
-    }
+    if (!picked_) pick_characters(crowd, model, state, frustum, n, time_s);
     const ClipSchedule& schedule = state.schedule;
-    std::vector<glm::vec2> before, after;
     for (Tracked& t : tracked_) {
         if (t.character >= n) continue;
         const Character& c = crowd.characters[t.character];
@@ -177,51 +245,16 @@ void SwitchMeter::observe(const Crowd& crowd, const CharacterModel& model, const
         const ClipState& clip = state.clip[t.character];
         const uint32_t pose_frame = shown_pose_frame(schedule, clip, c.rate, time_s);
         if (t.seen && t.visible && visible && t.lod == lod && t.clip.range != clip.range && uint8_t(lod) <= 2) {
-            // The pose frames stepped along the character's way, and the clip(s) beside the switch.
-            const uint32_t C = schedule.clip_count, r0 = t.clip.range, r1 = clip.range;
-            const uint32_t local0 = t.pose_frame - schedule.ranges[r0].first_frame, local1 = pose_frame - schedule.ranges[r1].first_frame;
-            uint32_t steps = 0;
-            const TransitionRange* tr = nullptr;  // the transition entered, left or passed
-            if (r0 < C && r1 >= C) {  // entered a transition
-                tr = &schedule.transitions[r1 - C];
-                steps = loop_steps(local0, tr->leave_frame, schedule.ranges[r0].frames) + 1 + local1;
-            } else if (r0 >= C && r1 < C) {  // left one
-                tr = &schedule.transitions[r0 - C];
-                steps = (tr->frames - 1 - local0) + 1 + loop_steps(tr->arrive_frame, local1, schedule.ranges[r1].frames);
-            } else if (r0 < C && r1 < C && clip.transition < schedule.transitions.size() &&
-                       schedule.transitions[clip.transition].from_clip == r0 && schedule.transitions[clip.transition].to_clip == r1) {
-                tr = &schedule.transitions[clip.transition];  // a whole transition between two frames
-                steps = loop_steps(local0, tr->leave_frame, schedule.ranges[r0].frames) + 1 + tr->frames +
-                        loop_steps(tr->arrive_frame, local1, schedule.ranges[r1].frames);
-            }
-            const int l = int(lod);
-            if (steps == 0 || !tr) {
-                ++unmeasured_[l];
-            } else {
-                const glm::mat4 place = glm::rotate(glm::translate(glm::mat4(1), feet), c.heading, glm::vec3(0, 1, 0));
-                const glm::mat4 to_screen = view_projection * place;
-                const int mesh_lod = lod == Lod::low ? 1 : 0;
-                const ShownPose p0 = shown_pose(model, state, lod, t.pose_frame, blend_frames);
-                const ShownPose p1 = shown_pose(model, state, lod, pose_frame, blend_frames);
-                picture(mesh_lod, {p0.a, p0.b, p0.weight}, to_screen, width, height, &before);
-                picture(mesh_lod, {p1.a, p1.b, p1.weight}, to_screen, width, height, &after);
-                double reference = 0;
-                for (uint32_t side : {tr->from_clip, tr->to_clip})
-                    reference = std::max(reference, clip_reference(model, state, side, steps, lod, blend_frames, to_screen, width, height));
-                // What the clip beside the switch would have moved over the same steps had the character
-                // not switched: on from its frame before the switch, or up to its frame after it.
-                const bool entering = r1 >= C;
-                const uint32_t side = entering ? r0 : r1;
-                const ClipSchedule::Range& range = schedule.ranges[side];
-                const uint32_t from = entering ? local0 : (local1 + range.frames - steps % range.frames) % range.frames;
-                const ShownPose c0 = shown_pose(model, state, lod, range.first_frame + from, blend_frames);
-                const ShownPose c1 = shown_pose(model, state, lod, range.first_frame + (from + steps) % range.frames, blend_frames);
-                std::vector<glm::vec2> still, moved;
-                picture(mesh_lod, {c0.a, c0.b, c0.weight}, to_screen, width, height, &still);
-                picture(mesh_lod, {c1.a, c1.b, c1.weight}, to_screen, width, height, &moved);
-                if (reference > 0) events_[l].push_back({rms_motion(before, after), reference, rms_motion(still, moved), r0, r1, local0, local1});
-                else ++unmeasured_[l];
-            }
+            Switch s;
+            s.lod = lod;
+            s.range_before = t.clip.range, s.range_after = clip.range;
+            s.frame_before = t.pose_frame - schedule.ranges[s.range_before].first_frame;
+            s.frame_after = pose_frame - schedule.ranges[s.range_after].first_frame;
+            s.pose_before = t.pose_frame, s.pose_after = pose_frame;
+            s.steps = switch_steps(schedule, s.range_before, s.range_after, s.frame_before, s.frame_after, clip.transition, &s.transition);
+            s.to_screen = view_projection * glm::rotate(glm::translate(glm::mat4(1), feet), c.heading, glm::vec3(0, 1, 0));
+            if (s.steps == 0 || !s.transition) ++unmeasured_[int(lod)];
+            else measure_switch(s, model, state, blend_frames, width, height);
         }
         t.seen = true, t.visible = visible, t.lod = lod, t.clip = clip, t.pose_frame = pose_frame;
     }

@@ -98,6 +98,13 @@ private:
     // left out); 0 when every step is still.
     double clip_reference(const CharacterModel& model, const FrameState& state, uint32_t clip, uint32_t steps, Lod lod,
                           bool blend_frames, const glm::mat4& to_screen, int width, int height) const;
+    // Up to kMeterCharacters on screen per representation, spread over the crowd: tracked_ and sampled_.
+    void pick_characters(const Crowd& crowd, const CharacterModel& model, const FrameState& state, const Frustum& frustum, size_t n,
+                         float time_s);
+    // A change of range a tracked character made between two observed frames (defined in switch_report.cpp).
+    struct Switch;
+    // The switch's jump on screen against its clips' own motion: an event of its LOD, or one more unmeasured.
+    void measure_switch(const Switch& s, const CharacterModel& model, const FrameState& state, bool blend_frames, int width, int height);
 
     std::vector<PoseCache> meshes_;
     std::vector<uint32_t> parts_[2];       // mesh indices by LOD (0 high, 1 low; low falls back to high)

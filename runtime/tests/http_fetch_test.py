@@ -215,7 +215,7 @@ def check_latest(run, check, crowdview, served: Path, base: str, work: Path) -> 
 
 def check_crowd(run, check, crowdview, base: str, work: Path) -> None:
     # 11. A crowd of three archetypes: one published bundle by name (latest), the same bundle by URL,
-    # one missing. The two share the cache (each file fetched once); the missing one stops alone.
+    # one missing. The two share the cache (each file fetched once); with --allow-missing the missing one stops alone.
     crowd = {"crowd_format_version": 1, "seed": 3, "archetypes": [
         {"name": "published", "published": {"server": base, "name": "synthetic-walker"}, "count": 3},
         {"name": "by-url", "url": f"{base}/{BUNDLE}", "count": 2},
@@ -223,7 +223,7 @@ def check_crowd(run, check, crowdview, base: str, work: Path) -> None:
     (work / "crowd.json").write_text(json.dumps(crowd))
     Handler.log.clear()
     report = work / "crowd-report.json"
-    result = run(crowdview, "--crowd", str(work / "crowd.json"), "--cache", str(work / "cache-crowd"), "--headless",
+    result = run(crowdview, "--crowd", str(work / "crowd.json"), "--allow-missing", "--cache", str(work / "cache-crowd"), "--headless",
                  "--frames", "1", "--width", "64", "--height", "48", "--impostor-blend", "off", "--report", str(report))
     check("archetype 'gone': bundle refused: " in result.stderr and "not_found" in result.stderr, "crowd: the missing archetype is named", result)
     files = [p for p, _ in Handler.log if "/files/" in p]

@@ -86,8 +86,9 @@ int main(int argc, char** argv) {
     std::ofstream(crowd_file) << crowd.dump(2);
 
     const std::string report_file = work + "/report.json", png = work + "/crowd.png";
-    const Run r = run(argv[1], "--crowd '" + crowd_file + "' --headless --frames 2 --width " + std::to_string(kWidth) + " --height " +
-                                   std::to_string(kHeight) + " --impostor-blend off --report '" + report_file + "' --screenshot '" + png + "'");
+    const std::string size = " --width " + std::to_string(kWidth) + " --height " + std::to_string(kHeight);
+    const Run r = run(argv[1], "--crowd '" + crowd_file + "' --allow-missing --headless --frames 2" + size +
+                                   " --impostor-blend off --report '" + report_file + "' --screenshot '" + png + "'");
     if (r.status == 3) {
         std::fprintf(stderr, "SKIP: %s", r.err.c_str());
         fs::remove_all(work);
@@ -107,6 +108,7 @@ int main(int argc, char** argv) {
             // Each archetype at each of its LODs, none culled.
             for (const char* lod : {"high", "low", "impostor"}) CHECK_MSG(a["lod_counts"][lod] == 1, a.dump());
             CHECK_MSG(a["lod_counts"]["culled"] == 0, a.dump());
+            CHECK_MSG(a["impostor_blend"] == "off", a.dump());  // the blend that ran, as --impostor-blend asked
             for (const char* part : {"meshes", "textures", "impostors"}) CHECK_MSG(a["gpu_memory_bytes"][part].get<uint64_t>() > 0, a.dump());
             CHECK(a["gpu_memory_bytes"]["total"].get<uint64_t>() == a["gpu_memory_bytes"]["meshes"].get<uint64_t>() +
                                                                     a["gpu_memory_bytes"]["textures"].get<uint64_t>() +
@@ -129,9 +131,22 @@ int main(int argc, char** argv) {
     std::vector<uint8_t> rgba;
     CHECK(crowdview::read_png(png, &w, &h, &rgba) && w == kWidth && h == kHeight);
 
-    // A description whose every bundle is refused stops with one line and exit 1.
+    // Without --allow-missing the missing archetype stops the crowd: exit 1, before any picture.
+    const std::string strict_png = work + "/strict.png";
+    const Run strict = run(argv[1], "--crowd '" + crowd_file + "' --headless --impostor-blend off" + size + " --screenshot '" + strict_png + "'");
+    CHECK_MSG(strict.status == 1 && strict.err.find("archetype 'missing': bundle refused: ") != std::string::npos &&
+                  strict.err.find("1 of 5 archetypes of ") != std::string::npos && !fs::exists(strict_png),
+              strict.err);
+    // --allow-missing goes with --crowd only.
+    Run lone = run(argv[1], "--bundle '" + work + "/child' --allow-missing --headless");
+    CHECK_MSG(lone.status == 2 && lone.err.find("--allow-missing goes with --crowd") != std::string::npos, lone.err);
+    // A clip mix naming a clip the bundle lacks is the description's error: exit 1, like any bad description.
+    std::ofstream(work + "/clip.json") << R"({"crowd_format_version": 1, "archetypes": [{"name": "c", "bundle": "child", "count": 1, "clips": [{"clip": "run"}]}]})";
+    Run clip = run(argv[1], "--crowd '" + work + "/clip.json' --headless");
+    CHECK_MSG(clip.status == 1 && clip.err.find("archetype 'c': clip 'run' is not in the bundle") != std::string::npos, clip.err);
+    // A description whose every bundle is refused stops with one line and exit 1, --allow-missing or not.
     std::ofstream(work + "/none.json") << R"({"crowd_format_version": 1, "archetypes": [{"name": "x", "bundle": "nowhere", "count": 3}]})";
-    Run none = run(argv[1], "--crowd '" + work + "/none.json' --headless");
+    Run none = run(argv[1], "--crowd '" + work + "/none.json' --headless --allow-missing");
     CHECK_MSG(none.status == 1 && none.err.find("no archetype of") != std::string::npos, none.err);
     // A bad description: the file, the pointer, the problem; exit 1.
     std::ofstream(work + "/bad.json") << R"({"crowd_format_version": 1, "archetypes": [{"name": "x", "bundle": "a", "count": 0}]})";

@@ -1,6 +1,6 @@
 """Headless Chromium driven through the DevTools protocol (websockets; no browser download), for
 tests that click through the web page: evaluate script, wait for a condition, set a file input's
-files, allow downloads into a folder, take a screenshot.
+files, drop files from disk on an element, allow downloads into a folder, take a screenshot.
 
     with Browser(profile_dir) as browser:
         page = browser.open("http://127.0.0.1:8000/ui")
@@ -79,6 +79,15 @@ class Page(Session):
         if not node:
             raise DevToolsError(f"no element {selector}")
         self.call("DOM.setFileInputFiles", nodeId=node, files=[str(path) for path in paths])
+
+    def drop_files(self, selector: str, paths: list[Path]) -> None:
+        """Drag files from disk onto the middle of an element and drop them, as from a desktop (real File
+        objects with their bytes; the page's drop handler runs)."""
+        box = self.evaluate(f"(() => {{ const node = document.querySelector({json.dumps(selector)}); node.scrollIntoView({{block: 'center'}}); "
+                            "const r = node.getBoundingClientRect(); return {x: r.left + r.width / 2, y: r.top + r.height / 2}; })()")
+        data = {"items": [], "files": [str(path) for path in paths], "dragOperationsMask": 1}  # 1: copy
+        for kind in ("dragEnter", "dragOver", "drop"):
+            self.call("Input.dispatchDragEvent", type=kind, x=box["x"], y=box["y"], data=data)
 
     def screenshot(self, path: Path, selector: str | None = None, width: int = 1280, height: int = 1500) -> None:
         """A PNG of the page's top (width x height), or of the element `selector` (at most `height` tall)."""

@@ -128,6 +128,12 @@ def test_every_field_a_stage_reads_is_checked_at_upload(api, document, pointer):
     assert api.snapshot() == before
 
 
+def test_a_key_given_twice_is_a_422(api):
+    """json keeps the last of two equal keys, so one file would give two readers two cycles."""
+    response = upload_cycle(api, b'{"start_frame": 2, "cycle_frames": 6, "start_frame": 0}')
+    assert response.status_code == 422 and "'start_frame' appears twice" in response.text, response.text
+
+
 def test_a_5000_digit_number_is_a_422_not_a_500(api):
     """Regression: json refuses integers over 4,300 digits with a ValueError that is no JSONDecodeError;
     it escaped the upload's check as a 500."""

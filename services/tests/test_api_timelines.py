@@ -165,3 +165,82 @@ def test_cycle_frames_with_a_timeline_is_a_422(api, assets):
     timeline = upload_timeline(api, timeline_json(assets["clip"])).json()
     response = api.client.post("/v1/bakes", json=bake_body(assets, timeline=timeline["id"], params={"cycle_frames": 6}), headers=api.auth("ci"))
     assert response.status_code == 422 and response.json()["errors"][0]["field"] == "params.cycle_frames"
+
+
+def _with_rows(clip: str, changes: dict | None = None, row: int = 0) -> dict:
+    """The one-segment timeline with a row per frame, `changes` made to the fields of row `row`."""
+    document = json.loads(timeline_json(clip))
+    document["frames"] = [{"frame": f, "clip": clip, "clip_frame": f % 6, "weight": 1.0} for f in range(CLOTH_FRAMES)]
+    document["frames"][row].update(changes or {})
+    return document
+
+
+def _segments(clips: list[str], total: int = CLOTH_FRAMES) -> dict:
+    """Back-to-back segments of `clips` over `total` frames (no blends), each clip 6 frames long."""
+    step = total // len(clips)
+    segments = [{"clip": clip, "first_frame": k * step, "last_frame": total - 1 if k == len(clips) - 1 else (k + 1) * step - 1,
+                 "clip_frames": 6} for k, clip in enumerate(clips)]
+    for segment in segments:
+        segment.update(pure_first_frame=segment["first_frame"], pure_last_frame=segment["last_frame"])
+    return {"fps": 24, "total_frames": total, "segments": segments}
+
+
+# Each case: a timeline.json a client may send, and the JSON pointer of the field the 422 names. The first
+# three were 500s (TypeError: unhashable type) before every field was typed at the boundary.
+HOSTILE_TIMELINES = {
+    "a row's clip is a list": (lambda clip: _with_rows(clip, {"clip": [clip]}), "/frames/0/clip"),
+    "a row's clip is an object": (lambda clip: _with_rows(clip, {"clip": {clip: 1}}), "/frames/0/clip"),
+    "a row's blend_from is a list": (lambda clip: _with_rows(clip, {"weight": 0.5, "blend_from": [clip], "blend_from_frame": 0}, row=3), "/frames/3/blend_from"),
+    "a segment's clip is a list": (lambda clip: json.loads(timeline_json([clip])), "/segments/0/clip"),
+    "a clip name with a path": (lambda clip: json.loads(timeline_json("../../etc/passwd")), "/segments/0/clip"),
+    "a clip name with a backslash": (lambda clip: json.loads(timeline_json("..\\evil")), "/segments/0/clip"),
+    "a clip name with NUL": (lambda clip: json.loads(timeline_json("walk\x00.pc2")), "/segments/0/clip"),
+    "a clip name with a newline": (lambda clip: json.loads(timeline_json("walk\nrun")), "/segments/0/clip"),
+    "a clip name of 65 characters": (lambda clip: json.loads(timeline_json("w" * 65)), "/segments/0/clip"),
+    "two clips equal under case folding": (lambda clip: _segments(["Walking", "walking"]), "/segments/1/clip"),
+    "total_frames true": (lambda clip: {**json.loads(timeline_json(clip)), "total_frames": True}, "/total_frames"),
+    "clip_frames true": (lambda clip: json.loads(timeline_json(clip, clip_frames=True)), "/segments/0/clip_frames"),
+    "first_frame false": (lambda clip: json.loads(timeline_json(clip, first_frame=False)), "/segments/0/first_frame"),
+    "a row's frame true": (lambda clip: _with_rows(clip, {"frame": True}, row=1), "/frames/1/frame"),
+    "a row's weight true": (lambda clip: _with_rows(clip, {"weight": True}), "/frames/0/weight"),
+    "clip_frames 10^9": (lambda clip: json.loads(timeline_json(clip, clip_frames=10**9)), "/segments/0/clip_frames"),
+    "total_frames 2^26 with no rows": (lambda clip: json.loads(timeline_json(clip, total=1 << 26)), "/total_frames"),
+    "total_frames 2^31 - 1 with no rows": (lambda clip: json.loads(timeline_json(clip, total=(1 << 31) - 1)), "/total_frames"),
+    "total_frames past the segments": (lambda clip: {**json.loads(timeline_json(clip)), "total_frames": 50_000}, "/segments/0/last_frame"),
+    "fewer rows than total_frames": (lambda clip: {**_with_rows(clip), "frames": _with_rows(clip)["frames"][:-1]}, "/frames"),
+    "a gap between segments": (lambda clip: _segments(["Idle", "Walk"]) | {"segments": [
+        {**_segments(["Idle", "Walk"])["segments"][0], "last_frame": 3, "pure_last_frame": 3}, _segments(["Idle", "Walk"])["segments"][1]]},
+        "/segments/1/first_frame"),
+    "a segment blending past its neighbour": (lambda clip: {"fps": 24, "total_frames": 12, "segments": [
+        {"clip": "A", "first_frame": 0, "last_frame": 11, "pure_first_frame": 0, "pure_last_frame": 1, "clip_frames": 6},
+        {"clip": "B", "first_frame": 2, "last_frame": 11, "pure_first_frame": 2, "pure_last_frame": 3, "clip_frames": 6},
+        {"clip": "C", "first_frame": 4, "last_frame": 11, "pure_first_frame": 4, "pure_last_frame": 11, "clip_frames": 6}]},
+        "/segments/2/first_frame"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE_TIMELINES))
+def test_a_hostile_timeline_is_a_422_naming_its_pointer(api, assets, case):
+    document, pointer = HOSTILE_TIMELINES[case]
+    before = api.snapshot()
+    response = upload_timeline(api, json.dumps(document(assets["clip"])).encode())
+    assert response.status_code == 422 and response.headers["content-type"] == PROBLEM, response.text
+    error = response.json()["errors"][0]
+    assert (error["field"], error["where"]) == ("timeline", pointer), error
+    assert api.snapshot() == before
+
+
+def test_a_key_given_twice_in_one_object_is_a_422(api, assets):
+    """Python's json keeps the last of two equal keys: the file would mean one thing here and another to
+    a reader that keeps the first."""
+    document = timeline_json(assets["clip"]).replace(b'"fps": 24', b'"fps": 24, "fps": 30')
+    response = upload_timeline(api, document)
+    assert response.status_code == 422 and "'fps' appears twice" in response.json()["errors"][0]["message"], response.text
+
+
+def test_a_timeline_over_the_byte_limit_is_a_422_before_it_is_parsed(api, assets, monkeypatch):
+    import crowdbake.ingest.timeline as timeline_module
+
+    monkeypatch.setattr(timeline_module, "MAX_TIMELINE_BYTES", 100)
+    response = upload_timeline(api, timeline_json(assets["clip"]) + b" " * 100)
+    assert response.status_code == 422 and "a timeline has at most 100" in response.json()["errors"][0]["message"], response.text

@@ -325,6 +325,36 @@ def test_the_sweeper_deletes_work_folders_of_published_and_cancelled_bakes_and_k
     assert (api.settings.work_dir / keys["queued"]).is_dir()
 
 
+def test_the_sweeper_removes_publish_folders_a_killed_publish_left_and_keeps_live_ones(api, assets):
+    """A publish killed while copying (SIGKILL) leaves `<bundles>/<name>/.<version>.<random>` behind, and
+    nothing else ever removes it. The sweeper removes such a folder once it has been quiet for the
+    heartbeat timeout and no queued or running bake publishes that version."""
+    import os
+    import time
+
+    services = api.client.app.state.services
+    bake_id = new_bake(api, assets, version="1.0.0")  # queued: its publish may be under way
+    with session_scope(api.sessions) as session:
+        name = session.get(Bake, bake_id).name
+    root = api.settings.bundles_dir / name
+    old = time.time() - api.settings.heartbeat_timeout - 60
+    folders = {"left": root / ".2.0.0.k1ll3d_x", "live bake": root / ".1.0.0.runn1ng_", "fresh": root / ".3.0.0.just_n0w",
+               "published": root / "4.0.0", "not a staging name": root / ".cache"}
+    for label, folder in folders.items():
+        (folder / "poses").mkdir(parents=True)
+        (folder / "poses" / "body.cbpc").write_bytes(b"partial")
+        if label != "fresh":
+            os.utime(folder, (old, old))
+
+    report = sweep_at(api, utcnow())
+    assert report.removed_partial == [f"{name}/.2.0.0.k1ll3d_x"]
+    assert not folders["left"].exists()
+    assert all(folder.is_dir() for label, folder in folders.items() if label != "left")
+    with session_scope(api.sessions) as session:
+        bake_requests.cancel_bake(session, bake_id)
+    assert sweep_at(api, utcnow()).removed_partial == [f"{name}/.1.0.0.runn1ng_"]  # its bake ended
+
+
 # ------------------------------------------------------------------------------------ parameters
 
 

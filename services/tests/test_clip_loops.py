@@ -213,11 +213,23 @@ class TestCycleCommand:
     def test_a_timeline_that_does_not_fit_the_cache_is_one_line(self, clip_files, tmp_path, capsys):
         document = timeline_document()
         document["total_frames"] = 200
+        document["segments"][-1].update(last_frame=199, pure_last_frame=199)
         (tmp_path / "long.json").write_text(json.dumps(document))
         assert main(cycle_args(clip_files, tmp_path / "out", tmp_path / "long.json")) == 2
         lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
         assert lines == ["crowdbake cycle: error: long.json: /total_frames is 200, but the cloth cache has 172 frames"]
         assert not (tmp_path / "out" / "cycle.json").exists()
+
+    @pytest.mark.parametrize("field, value, pointer", [("clip", ["Walk"], "/frames/5/clip"), ("clip", {"Walk": 1}, "/frames/5/clip"),
+                                                       ("blend_from", ["Walk"], "/frames/5/blend_from")])
+    def test_a_row_of_the_wrong_type_is_one_line(self, clip_files, tmp_path, capsys, field, value, pointer):
+        """A list or object where a clip name belongs was a TypeError (unhashable) and a traceback."""
+        document = timeline_document(with_rows=True)
+        document["frames"][5].update({field: value, "weight": 0.5, "blend_from_frame": 0} if field == "blend_from" else {field: value})
+        (tmp_path / "typed.json").write_text(json.dumps(document))
+        assert main(cycle_args(clip_files, tmp_path / "out", tmp_path / "typed.json")) == 2
+        lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert len(lines) == 1 and lines[0].startswith(f"crowdbake cycle: error: typed.json: {pointer} must be a clip of the segments"), lines
 
 
 def test_robot_clips_loops_and_transitions_keep_the_bounds(shared_asset):
@@ -260,6 +272,7 @@ def test_bake_refuses_a_timeline_that_does_not_fit_in_one_line(shared_asset, tmp
     assert "'Running'" in lines[0]
     document["segments"][2]["clip"] = "Running"
     document["total_frames"] = 800
+    document["segments"][-1].update(last_frame=799, pure_last_frame=799)
     (tmp_path / "short.json").write_text(json.dumps(document))
     assert main([*base, "--timeline", str(tmp_path / "short.json")]) == 2
     assert "--timeline: short.json: /total_frames is 800, but the cloth cache has 717 frames" in capsys.readouterr().err

@@ -411,6 +411,9 @@ def test_sample_export_validates_and_round_trips(sample_bundle, sample_export):
     # The engine setups ship inside the export (docs/export.md "Using it in an engine").
     assert {"shaders/crowdbake_vat.gdshader", "shaders/unity_vat_custom_function.hlsl", "shaders/unreal_vat_custom_node.hlsl"} <= set(sidecar["shaders"])
     assert all((sample_export / path).is_file() for path in sidecar["shaders"])
+    # So do the engines' import scripts, beside export.json's folder (tests/test_engine_import.py).
+    assert sidecar["engines"] == ["engines/CrowdbakeUnityImport.cs", "engines/crowdbake_godot_import.gd", "engines/crowdbake_unreal_import.py"]
+    assert all((sample_export / path).is_file() for path in sidecar["engines"])
     check_export(sample_bundle, sample_export)
 
 

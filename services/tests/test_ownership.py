@@ -123,6 +123,26 @@ def test_private_bundles_are_their_publishers(api, tmp_path):
     assert api.client.get(f"{base}/manifest.json", headers=api.auth("bob")).status_code == 404
 
 
+def test_a_private_bundle_answers_as_a_missing_one(api, tmp_path):
+    """Without a key, or with another workspace's, a private version is told apart from a missing one by
+    nothing: the same status, type and detail (names aside). Anonymous callers once got 401 "not public"
+    for a private version and 404 for a missing one, which told anyone the version exists."""
+    name, version = _alices_bundle(api, tmp_path)
+    urls = ["{n}/{v}/manifest.json", "{n}/{v}", "{n}/latest/manifest.json", "{n}", "{n}/{v}/files/cycle/cycle.json", "{n}/{v}/export.zip"]
+
+    def answer(url: str, who: str | None, bundle: tuple[str, str]) -> tuple:
+        response = api.client.get("/v1/bundles/" + url.format(n=bundle[0], v=bundle[1]), headers=api.auth(who) if who else {})
+        problem = response.json()
+        return response.status_code, problem["type"], problem["detail"].replace(bundle[0], "NAME").replace(bundle[1], "VERSION")
+
+    for who in (None, "bob"):
+        for url in urls:
+            private = answer(url, who, (name, version))
+            assert private[0] == 404 and private == answer(url, who, ("nobody", "9.9.9")), (who, url, private)
+            if "{v}" in url:
+                assert private == answer(url, who, (name, "9.9.9")), (who, url)
+
+
 def test_shared_workspace_lets_every_key_see_everything(tmp_path):
     api = make_api(tmp_path, shared_workspace=True)
     texture = api.client.post("/v1/assets/textures", files={"file": ("d.png", png_bytes())}, headers=api.auth("upload")).json()

@@ -89,7 +89,7 @@ def test_preview_views_and_errors(api):
     assert out_of_range.status_code == 422 and out_of_range.json()["errors"][0]["field"] == "frame"
     assert api.client.get(f"{base}/uv?azimuth=2", headers=read).status_code == 422
     assert api.client.get(f"{base}/albedo", headers=read).status_code == 422
-    assert api.client.get(f"{base}/uv").status_code == 401  # private bundle, no key
+    assert api.client.get(f"{base}/uv").status_code == 404  # private bundle, no key: as if missing
     assert api.client.get(f"/v1/bundles/{name}/9.9.9/preview/uv", headers=read).status_code == 404
     first = api.client.get(f"{base}/uv", headers=read)
     assert "immutable" in first.headers["cache-control"]

@@ -23,6 +23,7 @@ from crowdbake import __version__
 from crowdbake.api import problems
 from crowdbake.api.deps import AppServices
 from crowdbake.api.problems import PROBLEM_TYPES, Problem, problem_type_uri
+from crowdbake.api.request_bodies import BodyGate
 from crowdbake.api.slow_clients import MinimumBodyRate
 from crowdbake.api.schemas import Problem as ProblemDocument
 from crowdbake.api.routes import assets, bake_check, bakes, bundles, exports, health, metrics, params, web
@@ -130,6 +131,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for router in web.routers:  # the web page, the cycle report and atlas previews it shows
         app.include_router(router)
     app.include_router(exports.preview_router)  # the three.js crowd preview the page links to
+    # Each body gets its route's limit, and is read only once its key verifies (crowdbake.api.request_bodies).
+    app.add_middleware(BodyGate, sessions=app.state.services.sessions, upload_prefix=assets.router.prefix, max_upload_bytes=settings.max_upload_bytes)
     app.state.metrics = HttpMetrics(app.state.services.sessions)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     # Outermost: every read of a request body has a deadline (crowdbake.api.slow_clients).

@@ -38,7 +38,8 @@ PROBLEM_TYPES: dict[str, tuple[int, str, str]] = {
                         "or took longer than CROWDBAKE_BODY_MAX_SECONDS; nothing of it was kept."),
     "conflict": (409, "Conflict", "The request contradicts the resource's state (e.g. a published version with other bytes)."),
     "invalid-state": (409, "Not possible in the bake's state", "E.g. cancelling a finished bake, retrying one that succeeded."),
-    "payload-too-large": (413, "Request body too large", "The body exceeds CROWDBAKE_MAX_UPLOAD_BYTES; refused before it is read."),
+    "payload-too-large": (413, "Request body too large", "The body exceeds its operation's limit (CROWDBAKE_MAX_UPLOAD_BYTES for an upload, "
+                          "1 MiB for a JSON body): refused before it is read when Content-Length says so, else when the limit is passed."),
     "unsupported-format": (415, "Unsupported file format", "The field does not take this kind of file."),
     "range-not-satisfiable": (416, "Range not satisfiable", "The requested byte range lies outside the file."),
     "invalid-file": (422, "Invalid file", "A file breaks its format or cannot be baked (truncated, NaN, counts disagree, too few frames)."),

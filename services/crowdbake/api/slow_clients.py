@@ -11,7 +11,8 @@ long as the client likes. Two guards:
   and the deploy manifests do).
 * `MinimumBodyRate`, an ASGI middleware around the app: each read of the request body waits at most
   until the body would fall below CROWDBAKE_BODY_MIN_BYTES_PER_S (after CROWDBAKE_BODY_GRACE_S), or
-  past CROWDBAKE_BODY_MAX_SECONDS in all. Then the read raises a 408 problem; the upload's reader
+  past CROWDBAKE_BODY_MAX_SECONDS in all. Then the read raises a 408 (an HTTPException, which FastAPI
+  passes on from its read of a JSON body, where any other error becomes a 400); the upload's reader
   discards its staging files on the way out (crowdbake.api.uploads.read_multipart), and the response
   closes the connection.
 """
@@ -21,9 +22,8 @@ import asyncio
 import logging
 import time
 
+from starlette.exceptions import HTTPException
 from uvicorn.protocols.http.h11_impl import H11Protocol
-
-from crowdbake.api.problems import Problem
 
 logger = logging.getLogger(__name__)
 
@@ -58,8 +58,8 @@ class MinimumBodyRate:
             except asyncio.TimeoutError:
                 elapsed = time.monotonic() - started
                 logger.warning("%s %s: request body too slow (%d bytes in %.1f s); closing", scope["method"], scope["path"], state["received"], elapsed)
-                raise Problem(
-                    "request-timeout",
+                raise HTTPException(
+                    408,
                     f"the request body arrived too slowly: {state['received']} bytes in {elapsed:.0f} s "
                     f"(at least {self.min_bytes_per_s:.0f} bytes/s after {self.grace_s:.0f} s, all of it within {self.max_s:.0f} s)",
                     headers={"Connection": "close"},

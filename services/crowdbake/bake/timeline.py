@@ -7,7 +7,9 @@ Plain data (numpy only), light enough for the API to import.
 """
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -63,14 +65,23 @@ class Timeline:
         """The clip the timeline plays at cache frame `frame` (the newest during a blend)."""
         if self.blends is not None:
             return self.blends.clip[frame]
-        return [s.clip for s in self.segments if s.first_frame <= frame][-1]
+        return self.segments[bisect.bisect_right(self.segments, frame, key=lambda s: s.first_frame) - 1].clip
+
+    @cached_property
+    def periods(self) -> dict[str, int]:
+        """{clip: its period in cache frames}, clips in order of first appearance (made once: a timeline
+        may have thousands of segments, and callers ask per clip)."""
+        periods: dict[str, int] = {}
+        for s in self.segments:
+            periods.setdefault(s.clip, s.clip_frames)
+        return periods
 
     def clips(self) -> list[str]:
         """Clip names in order of first appearance."""
-        return list(dict.fromkeys(s.clip for s in self.segments))
+        return list(self.periods)
 
     def period(self, clip: str) -> int:
-        return next(s.clip_frames for s in self.segments if s.clip == clip)
+        return self.periods[clip]
 
     def changes(self) -> list[tuple[int, int]]:
         """(segment index A, segment index B = A + 1) for every change of clip the simulation made: not

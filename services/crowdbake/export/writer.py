@@ -6,7 +6,8 @@
     OUT/vat/<part>_lod<k>.<position|normal>.<png|ktx2>   vertex-animation textures (16-bit)
     OUT/textures/<material>_diffuse.ktx2, outfits.ktx2   diffuse variations (array), outfit colours
     OUT/impostor/<normal|uv|detail|surface>.ktx2         impostor atlases, one layer per baked frame
-    OUT/shaders/*.glsl, *.hlsl                           reference shaders for engines
+    OUT/shaders/*.glsl, *.hlsl, *.gdshader               reference shaders for engines
+    OUT/engines/*.gd, *.cs, *.py                         Godot, Unity and Unreal scripts that set an engine up from export.json
 
 The heavy lifting is in pure modules (vat, glb, ktx2, textures); this one reads the bundle, calls them
 and writes the files.
@@ -309,11 +310,16 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
     return lods
 
 
-def _copy_shaders(out: _Out) -> list[str]:
+# Files shipped with the package and copied into every export, by folder: the reference shaders and the
+# engines' import scripts, which read export.json beside them (docs/export.md "Importing into an engine").
+SHIPPED_FILES = {"shaders": (".glsl", ".hlsl", ".gdshader"), "engines": (".gd", ".cs", ".py")}
+
+
+def _copy_shipped(out: _Out, folder: str) -> list[str]:
     written = []
-    for entry in sorted(resources.files("crowdbake.export").joinpath("shaders").iterdir(), key=lambda e: e.name):
-        if entry.name.endswith((".glsl", ".hlsl", ".gdshader")):
-            written.append(out.write(f"shaders/{entry.name}", entry.read_bytes()))
+    for entry in sorted(resources.files("crowdbake.export").joinpath(folder).iterdir(), key=lambda e: e.name):
+        if entry.name.endswith(SHIPPED_FILES[folder]):
+            written.append(out.write(f"{folder}/{entry.name}", entry.read_bytes()))
     return written
 
 
@@ -348,7 +354,8 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
         variants = look_variants([m["variations"] for m in manifest["materials"]], manifest["outfits"]["count"])
         plans = animation_plans(bundle.ranges)
         lods = _export_lods(bundle, out, diffuse_arrays, variants, outfit_rows, vat_png, cloth_bones, plans)
-        shaders = _copy_shaders(out)
+        shaders = _copy_shipped(out, "shaders")
+        engines = _copy_shipped(out, "engines")
         sidecar = {
             "format": EXPORT_FORMAT,
             "format_version": EXPORT_FORMAT_VERSION,
@@ -366,6 +373,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
                         "used": region_codes_used(diffuse_arrays)},
             "impostor": impostor,
             "shaders": shaders,
+            "engines": engines,
             "space": "right-handed, +Y up, metres; the character stands at the origin facing +Z",
         }
         out.write("export.json", (json.dumps(sidecar, indent=2) + "\n").encode())

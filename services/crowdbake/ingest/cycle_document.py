@@ -9,12 +9,12 @@
 """
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
 
 from crowdbake.errors import InputError
+from crowdbake.ingest.json_documents import loads_strict
 from crowdbake.params import CLOSE_METHODS, MIN_CYCLE_FRAMES, fps_problem
 
 # sniff_format (crowdbake.ingest.uploads) calls any JSON object "gltf": for cycle.json that means "a JSON
@@ -105,9 +105,10 @@ def cycle_range_problem(start_frame: int, cycle_frames: int, frame_count: int, n
 
 
 def read_cycle_document(path: Path, name: str | None = None) -> Any:
-    """The parsed JSON of a cycle file; InputError("cycle") when it does not parse."""
+    """The parsed JSON of a cycle file; InputError("cycle") when it does not parse or names a key twice
+    in one object."""
     try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
+        return loads_strict(Path(path).read_text(encoding="utf-8"))
     # ValueError covers json's refusal of an integer over 4,300 digits, which is not a JSONDecodeError.
     except (OSError, ValueError, RecursionError) as error:
         raise InputError(f"{name or Path(path).name} is not JSON: {error}", "cycle") from None

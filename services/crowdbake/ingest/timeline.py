@@ -15,10 +15,13 @@ before (one cache per clip, crowdbake.ingest.clip_caches): no transition is take
 
 - timeline_fields: the document alone (TimelineFieldError naming the JSON pointer);
 - check_timeline_fits: against the cache (frame count, rate) and the character's clips.
+
+Every field is typed and bounded at this boundary, and every count is checked before anything is made
+per claimed item: a file of a few bytes may not claim a billion frames, and the work of reading one is
+linear in its size (a segment blends only with its neighbours, so segments cover each frame at most twice).
 """
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -27,10 +30,19 @@ import numpy as np
 
 from crowdbake.bake.timeline import FrameBlends, Segment, Timeline
 from crowdbake.errors import InputError
-from crowdbake.params import MIN_CYCLE_FRAMES, fps_problem
+from crowdbake.ingest.json_documents import loads_strict
+from crowdbake.params import MAX_CYCLE_FRAMES, MIN_CYCLE_FRAMES, fps_problem
 
-# Frame numbers: a PC2 counts its samples in a signed 32-bit field (as crowdbake.ingest.cycle_document).
-MAX_FRAME_NUMBER = (1 << 31) - 1
+# The most frames a timeline may describe: the longest cloth cache a bake reads as an OBJ sequence
+# (crowdbake.formats.cloth_cache.MAX_SEQUENCE_FRAMES), about 70 minutes at 24 fps; the sample's is 717.
+# It bounds every per-frame array made from a timeline.
+MAX_TIMELINE_FRAMES = 100_000
+# A timeline with a row per frame takes about 130 bytes a frame (../shared/assets/robot_clips: 94 kB for
+# 717 frames), so 16 MiB holds MAX_TIMELINE_FRAMES rows with room to spare; parsed, it stays within a
+# few hundred megabytes of Python objects.
+MAX_TIMELINE_BYTES = 16 << 20
+# Clip names become file names of the bundle (clips/<name>.pc2): short, printable, no path separator.
+MAX_CLIP_NAME = 64
 # A timeline's rate and the cache's agree when within this relative difference (24 vs 23.976 does not).
 FPS_TOLERANCE = 1e-4
 _SEGMENT_FRAMES = ("first_frame", "last_frame", "pure_first_frame", "pure_last_frame")
@@ -53,10 +65,28 @@ def _shown(value: Any) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def _integer(container: dict, key: str, pointer: str, name: str, low: int = 0, high: int = MAX_FRAME_NUMBER) -> int:
+def _integer(container: dict, key: str, pointer: str, name: str, low: int = 0, high: int = MAX_TIMELINE_FRAMES) -> int:
     value = container.get(key)
     if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
         raise _refuse(name, pointer, f"must be an integer in {low}..{high}, got {_shown(value)}")
+    return value
+
+
+def clip_name_problem(value: Any) -> str | None:
+    """Why `value` cannot name a clip (it becomes a file name), or None."""
+    if not isinstance(value, str) or not value:
+        return f"must be a clip name, got {_shown(value)}"
+    if len(value) > MAX_CLIP_NAME:
+        return f"must be a clip name of at most {MAX_CLIP_NAME} characters, got {len(value)}"
+    if not value.isprintable() or "/" in value or "\\" in value:
+        return f"must be a clip name without control characters or path separators, got {_shown(value)}"
+    return None
+
+
+def _clip(container: dict, key: str, pointer: str, name: str) -> str:
+    value = container.get(key)
+    if (problem := clip_name_problem(value)) is not None:
+        raise _refuse(name, pointer, problem)
     return value
 
 
@@ -64,16 +94,15 @@ def _segment(entry: Any, k: int, total: int, name: str) -> Segment:
     pointer = f"/segments/{k}"
     if not isinstance(entry, dict):
         raise _refuse(name, pointer, "must be a JSON object")
-    clip = entry.get("clip")
-    if not isinstance(clip, str) or not clip:
-        raise _refuse(name, f"{pointer}/clip", f"must be a clip name, got {_shown(clip)}")
+    clip = _clip(entry, "clip", f"{pointer}/clip", name)
     first, last, pure_first, pure_last = (_integer(entry, key, f"{pointer}/{key}", name, 0, total - 1) for key in _SEGMENT_FRAMES)
     if not first <= pure_first <= pure_last <= last:
         raise _refuse(name, f"{pointer}/pure_first_frame",
                       f"needs first_frame <= pure_first_frame <= pure_last_frame <= last_frame, got {first}, {pure_first}, {pure_last}, {last}")
     period = entry.get("clip_frames")
-    if not isinstance(period, int) or isinstance(period, bool) or period < MIN_CYCLE_FRAMES:
-        raise _refuse(name, f"{pointer}/clip_frames", f"must be an integer of at least {MIN_CYCLE_FRAMES} (the clip's frames), got {_shown(period)}")
+    if not isinstance(period, int) or isinstance(period, bool) or not MIN_CYCLE_FRAMES <= period <= MAX_CYCLE_FRAMES:
+        raise _refuse(name, f"{pointer}/clip_frames",
+                      f"must be an integer of at least {MIN_CYCLE_FRAMES} (the clip's frames) and at most {MAX_CYCLE_FRAMES}, got {_shown(period)}")
     restart = entry.get("new_simulation", False)
     if not isinstance(restart, bool):
         raise _refuse(name, f"{pointer}/new_simulation", f"must be true or false, got {_shown(restart)}")
@@ -95,11 +124,19 @@ def _blends_from_rows(rows: list, periods: dict[str, int], name: str) -> FrameBl
             if value < 1.0:
                 raise _refuse(name, f"/frames/{f}/blend_from", f"must name the clip fading out: the weight is {value:g}")
             continue
-        if row["blend_from"] not in periods:
-            raise _refuse(name, f"/frames/{f}/blend_from", f"must be a clip of the segments ({', '.join(periods)}), got {_shown(row['blend_from'])}")
-        blend_from[f] = row["blend_from"]
-        blend_from_frame[f] = _integer(row, "blend_from_frame", f"/frames/{f}/blend_from_frame", name, 0, periods[row["blend_from"]] - 1)
+        fading = _clip_of(row, "blend_from", f"/frames/{f}/blend_from", periods, name)
+        blend_from[f] = fading
+        blend_from_frame[f] = _integer(row, "blend_from_frame", f"/frames/{f}/blend_from_frame", name, 0, periods[fading] - 1)
     return FrameBlends(tuple(row["clip"] for row in rows), weight, tuple(blend_from), blend_from_frame)
+
+
+def _clip_of(row: dict, key: str, pointer: str, periods: dict[str, int], name: str) -> str:
+    """The clip a row names under `key`, which must be one of the segments' clips."""
+    clip = row.get(key)
+    if not isinstance(clip, str) or clip not in periods:
+        shown = ", ".join(list(periods)[:8]) + (", ..." if len(periods) > 8 else "")
+        raise _refuse(name, pointer, f"must be a clip of the segments ({shown}), got {_shown(clip)}")
+    return clip
 
 
 def _clip_frames_from_rows(rows: Any, segments: list[Segment], total: int, name: str) -> np.ndarray:
@@ -111,11 +148,9 @@ def _clip_frames_from_rows(rows: Any, segments: list[Segment], total: int, name:
     for f, row in enumerate(rows):
         if not isinstance(row, dict):
             raise _refuse(name, f"/frames/{f}", "must be a JSON object")
-        if row.get("frame", f) != f:
-            raise _refuse(name, f"/frames/{f}/frame", f"must be {f} (rows in frame order), got {_shown(row.get('frame'))}")
-        clip = row.get("clip")
-        if clip not in periods:
-            raise _refuse(name, f"/frames/{f}/clip", f"must be a clip of the segments ({', '.join(periods)}), got {_shown(clip)}")
+        if "frame" in row and (type(row["frame"]) is not int or row["frame"] != f):  # bool is no frame number
+            raise _refuse(name, f"/frames/{f}/frame", f"must be {f} (rows in frame order), got {_shown(row['frame'])}")
+        clip = _clip_of(row, "clip", f"/frames/{f}/clip", periods, name)
         clip_frame[f] = _integer(row, "clip_frame", f"/frames/{f}/clip_frame", name, 0, periods[clip] - 1)
     # A pure frame shows its segment's clip alone: the row's clip, or the clip it fades from at weight 0
     # (the first frame of a blend, where the next strip starts at weight 0).
@@ -131,12 +166,56 @@ def _clip_frames_from_rows(rows: Any, segments: list[Segment], total: int, name:
     return clip_frame
 
 
+def _check_segment_order(segments: list[Segment], total: int, name: str) -> dict[str, int]:
+    """The segments as a sequence over the cache, checked; returns {clip: period}. They must start at frame
+    0, follow each other without a gap to the cache's last frame, keep their pure frames apart and blend only
+    with their neighbours (so no frame lies in more than two segments); a clip keeps one period, and two
+    clips' names differ under case folding (each becomes a file name)."""
+    periods: dict[str, int] = {}
+    folded: dict[str, str] = {}
+    for k, s in enumerate(segments):
+        if k and s.first_frame <= segments[k - 1].first_frame:
+            raise _refuse(name, f"/segments/{k}/first_frame", f"must come after segment {k - 1}'s ({segments[k - 1].first_frame}): segments in playing order")
+        if k and s.first_frame > segments[k - 1].last_frame + 1:
+            raise _refuse(name, f"/segments/{k}/first_frame", f"{s.first_frame} leaves frames after segment {k - 1}'s last ({segments[k - 1].last_frame}) "
+                                                              "that no clip plays")
+        if k >= 2 and s.first_frame <= segments[k - 2].last_frame:
+            raise _refuse(name, f"/segments/{k}/first_frame", f"{s.first_frame} lies within segment {k - 2} (to {segments[k - 2].last_frame}): "
+                                                              "a segment blends only with its neighbours")
+        if k and s.pure_first_frame <= segments[k - 1].pure_last_frame:
+            raise _refuse(name, f"/segments/{k}/pure_first_frame",
+                          f"{s.pure_first_frame} overlaps segment {k - 1}'s pure frames (to {segments[k - 1].pure_last_frame}): only blends may overlap")
+        if folded.setdefault(s.clip.casefold(), s.clip) != s.clip:
+            raise _refuse(name, f"/segments/{k}/clip", f"{s.clip!r} differs from the clip {folded[s.clip.casefold()]!r} only in case: "
+                                                       "both would be one file of the bundle")
+        if periods.setdefault(s.clip, s.clip_frames) != s.clip_frames:
+            raise _refuse(name, f"/segments/{k}/clip_frames", f"{s.clip!r} has {periods[s.clip]} frames in an earlier segment, here {s.clip_frames}")
+    if segments[0].first_frame != 0:
+        raise _refuse(name, "/segments/0/first_frame", f"must be 0: the segments cover the cache from its first frame, got {segments[0].first_frame}")
+    if segments[-1].last_frame != total - 1:
+        last = len(segments) - 1
+        raise _refuse(name, f"/segments/{last}/last_frame", f"must be {total - 1}: the segments cover the cache's total_frames ({total}), "
+                                                            f"got {segments[last].last_frame}")
+    return periods
+
+
+def _clip_frames_from_segments(segments: list[Segment], total: int) -> np.ndarray:
+    """(total,) int64 clip frame per cache frame when the timeline has no rows: (f - first_frame) mod
+    clip_frames of the newest segment playing. Segments cover each frame at most twice, so this is
+    O(total_frames)."""
+    clip_frame = np.zeros(total, dtype=np.int64)
+    for s in segments:
+        np.remainder(np.arange(s.last_frame - s.first_frame + 1), s.clip_frames, out=clip_frame[s.first_frame:s.last_frame + 1])
+    return clip_frame
+
+
 def timeline_fields(document: Any, name: str = "timeline.json") -> Timeline:
     """The timeline a bake reads, checked alone. TimelineFieldError (InputError("timeline")) naming the
     field by its JSON pointer when: the document is no object; fps is outside crowdbake.params' range;
-    total_frames is no integer >= 2; segments is no non-empty list; a segment lacks a clip name, has a
-    frame outside the cache or out of order within it, or a clip shorter than 2 frames; segments are out
-    of order or their pure frames overlap; one clip has two periods; a per-frame row disagrees."""
+    total_frames is no integer in 2..MAX_TIMELINE_FRAMES; segments is no non-empty list; a segment lacks
+    a clip name (clip_name_problem), has a frame outside the cache or out of order within it, or a clip
+    period outside MIN_CYCLE_FRAMES..MAX_CYCLE_FRAMES; the segments do not cover the cache in order
+    (_check_segment_order); a per-frame row disagrees or is of the wrong type."""
     if not isinstance(document, dict):
         raise TimelineFieldError(f"{name} must hold a JSON object", "")
     fps = document.get("fps")
@@ -147,32 +226,25 @@ def timeline_fields(document: Any, name: str = "timeline.json") -> Timeline:
     if not isinstance(entries, list) or not entries:
         raise _refuse(name, "/segments", "must be a non-empty list of segments")
     segments = [_segment(entry, k, total, name) for k, entry in enumerate(entries)]
-    periods: dict[str, int] = {}
-    for k, s in enumerate(segments):
-        if k and s.first_frame <= segments[k - 1].first_frame:
-            raise _refuse(name, f"/segments/{k}/first_frame", f"must come after segment {k - 1}'s ({segments[k - 1].first_frame}): segments in playing order")
-        if k and s.pure_first_frame <= segments[k - 1].pure_last_frame:
-            raise _refuse(name, f"/segments/{k}/pure_first_frame",
-                          f"{s.pure_first_frame} overlaps segment {k - 1}'s pure frames (to {segments[k - 1].pure_last_frame}): only blends may overlap")
-        if periods.setdefault(s.clip, s.clip_frames) != s.clip_frames:
-            raise _refuse(name, f"/segments/{k}/clip_frames", f"{s.clip!r} has {periods[s.clip]} frames in an earlier segment, here {s.clip_frames}")
+    periods = _check_segment_order(segments, total, name)
     blends = None
     if document.get("frames") is not None:
         clip_frame = _clip_frames_from_rows(document["frames"], segments, total, name)
         blends = _blends_from_rows(document["frames"], periods, name)
     else:
-        clip_frame = np.zeros(total, dtype=np.int64)
-        for s in segments:
-            span = np.arange(s.first_frame, s.last_frame + 1)
-            clip_frame[span] = (span - s.first_frame) % s.clip_frames
+        clip_frame = _clip_frames_from_segments(segments, total)
     return Timeline(float(fps), total, tuple(segments), clip_frame, blends)
 
 
 def read_timeline(path: Path, name: str | None = None) -> Timeline:
-    """timeline_fields of a file; InputError("timeline") when it does not parse."""
+    """timeline_fields of a file; InputError("timeline") when it is over MAX_TIMELINE_BYTES or does not
+    parse (duplicate keys included)."""
     shown = name or Path(path).name
     try:
-        document = json.loads(Path(path).read_text(encoding="utf-8"))
+        size = Path(path).stat().st_size
+        if size > MAX_TIMELINE_BYTES:
+            raise InputError(f"{shown} is {size} bytes; a timeline has at most {MAX_TIMELINE_BYTES}", "timeline")
+        document = loads_strict(Path(path).read_text(encoding="utf-8"))
     except (OSError, ValueError, RecursionError) as error:
         raise InputError(f"{shown} is not JSON: {error}", "timeline") from None
     return timeline_fields(document, shown)
@@ -211,8 +283,7 @@ def check_timeline_upload(path: Path, filename: str) -> dict[str, Any]:
     except InputError as error:
         where = getattr(error, "pointer", None)
         raise UploadRejected(INVALID_FILE, "the timeline cannot be used", [FieldError("timeline", error.message, filename, where or None)]) from None
-    return {"fps": timeline.fps, "total_frames": timeline.total_frames, "clips": {clip: timeline.period(clip) for clip in timeline.clips()},
-            "segments": len(timeline.segments)}
+    return {"fps": timeline.fps, "total_frames": timeline.total_frames, "clips": dict(timeline.periods), "segments": len(timeline.segments)}
 
 
 def check_timeline_request(timeline_info: dict[str, Any], character_info: dict[str, Any], cloth_info: dict[str, Any],

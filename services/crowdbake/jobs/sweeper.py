@@ -1,6 +1,6 @@
 """The sweeper: no bake is left queued or running forever.
 
-One pass (`sweep_once`) does four things, each safe to run in several processes at once:
+One pass (`sweep_once`) does five things, each safe to run in several processes at once:
 
 1. **Lost workers.** A running stage (or fan-out part) whose heartbeat is older than
    CROWDBAKE_HEARTBEAT_TIMEOUT lost its worker (the machine died, the process group was killed, the
@@ -24,6 +24,10 @@ One pass (`sweep_once`) does four things, each safe to run in several processes 
    worker deletes it right away; this catches the rest), cancelled bakes once their workers had time
    to stop, failed and unpublished bakes CROWDBAKE_WORK_KEEP_SECONDS after they ended, and folders no
    bake names.
+5. **Partial publishes.** A publish cut short (the worker killed while copying a bundle) leaves its
+   hidden staging folder beside the bundle's versions (crowdbake.storage.bundle_store.staging_folders).
+   It is removed once no queued or running bake publishes that name and version and the folder has
+   not changed for the heartbeat timeout (a live publish's worker keeps its bake running).
 
 `Sweeper` runs passes every CROWDBAKE_SWEEP_INTERVAL seconds in a daemon thread of the API process
 (crowdbake.api.app starts it), so `crowdbake serve` and every API replica have one.
@@ -48,6 +52,7 @@ from crowdbake.jobs.celery_app import send_stage
 from crowdbake.settings import Settings
 from crowdbake.stages import plan
 from crowdbake.storage import records, sweeps
+from crowdbake.storage.bundle_store import staging_folders
 from crowdbake.storage.db import session_scope
 from crowdbake.storage.models import Bake, utcnow
 
@@ -73,6 +78,7 @@ class SweepReport:
     sent: list[str] = field(default_factory=list)
     unsent: list[str] = field(default_factory=list)
     removed_work: list[str] = field(default_factory=list)
+    removed_partial: list[str] = field(default_factory=list)
 
 
 def send_delivery(celery: Celery, settings: Settings, delivery: sweeps.Delivery) -> None:
@@ -185,6 +191,26 @@ def clean_work_folders(sessions: sessionmaker[Session], settings: Settings, now:
             report.removed_work.append(folder.name)
 
 
+def clean_partial_publishes(sessions: sessionmaker[Session], settings: Settings, report: SweepReport) -> None:
+    """Remove staging folders of publishes that no live bake owns (module docstring, 5.)."""
+    if settings.store != "local":  # an object store stages under keys no reader lists (crowdbake.storage.s3_bundles)
+        return
+    for folder, name, version in staging_folders(Path(settings.bundles_dir)):
+        try:
+            quiet_s = time.time() - folder.stat().st_mtime
+        except OSError:  # its publish just finished or gave up
+            continue
+        if quiet_s <= settings.heartbeat_timeout:
+            continue
+        with session_scope(sessions) as session:
+            live = session.scalars(select(Bake.id).where(Bake.name == name, Bake.version == version,
+                                                         Bake.state.in_(records.LIVE_BAKE_STATES)).limit(1)).first()
+        if live is None:
+            shutil.rmtree(folder, ignore_errors=True)
+            logger.warning("sweeper: removed %s, left by a publish of %s/%s that did not finish", folder.name, name, version)
+            report.removed_partial.append(f"{name}/{folder.name}")
+
+
 def sweep_once(sessions: sessionmaker[Session], celery: Celery, settings: Settings, now: dt.datetime | None = None) -> SweepReport:
     """One pass of the sweeper (module docstring). `now` is for tests that age records."""
     now = now or utcnow()
@@ -193,6 +219,7 @@ def sweep_once(sessions: sessionmaker[Session], celery: Celery, settings: Settin
     requeued += take_back_silent(sessions, settings, now, report)
     dispatch_unsent(sessions, celery, settings, now - dt.timedelta(seconds=settings.dispatch_after), report, also=requeued)
     clean_work_folders(sessions, settings, now, report)
+    clean_partial_publishes(sessions, settings, report)
     return report
 
 
@@ -220,9 +247,9 @@ class Sweeper:
             except Exception:  # a busy or unreachable database: the next pass tries again
                 logger.exception("sweeper pass failed")
                 continue
-            if report.requeued or report.resent or report.failed or report.sent or report.removed_work:
-                logger.info("sweeper: re-queued %s, sent again %s, failed %s, sent %s, removed %d work folder(s)",
-                            report.requeued, report.resent, report.failed, report.sent, len(report.removed_work))
+            if report.requeued or report.resent or report.failed or report.sent or report.removed_work or report.removed_partial:
+                logger.info("sweeper: re-queued %s, sent again %s, failed %s, sent %s, removed %d work folder(s) and %d partial publish(es)",
+                            report.requeued, report.resent, report.failed, report.sent, len(report.removed_work), len(report.removed_partial))
 
 
 class Dispatcher:

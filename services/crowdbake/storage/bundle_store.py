@@ -4,7 +4,8 @@ Publishing is one template for every backend (`BundleStore.publish`): verify the
 or accept an existing version, write every file where no reader looks yet, then make the version
 visible in one atomic step (a folder rename here, a conditional put of the manifest in S3). A process
 that dies between two files leaves no visible version, and a published version is never overwritten:
-the same bytes again are a no-op, other bytes raise BundleConflict.
+the same bytes again are a no-op, other bytes raise BundleConflict. A local publish killed midway leaves
+its hidden staging folder (`staging_folders` finds them; the sweeper removes those no live bake owns).
 
 Readers ask for the manifest (`manifest`), a file or a byte range of it (`open_file`), a local path
 (`materialize`, through a cache when the store is remote), or a presigned URL (`presigned_url`, None
@@ -19,7 +20,7 @@ import shutil
 import tempfile
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, Iterator
 
 from crowdbake.files import fsync_path
 from crowdbake.formats.bundle import check_path, verify_bundle
@@ -29,6 +30,8 @@ MANIFEST = "manifest.json"
 # The API's name and version rules (crowdbake.api.schemas); both become path segments and object keys.
 _NAME = re.compile(r"^[a-z0-9][a-z0-9._-]{0,63}$")
 _VERSION = re.compile(r"^[0-9A-Za-z][0-9A-Za-z.+_-]{0,63}$")
+# A local publish stages in `<root>/<name>/.<version>.<8 random characters of tempfile.mkdtemp>`.
+_STAGING = re.compile(r"^\.(?P<version>.+)\.[a-z0-9_]{8}$")
 
 
 def check_name_version(name: str, version: str) -> None:
@@ -174,6 +177,21 @@ def open_range(path: Path, byte_range: tuple[int, int] | None) -> BinaryIO:
     return io.BufferedReader(_Slice(handle, max(0, end - start)))
 
 
+def staging_folders(root: Path) -> Iterator[tuple[Path, str, str]]:
+    """(folder, name, version) of every staging folder of a publish under a local store's `root`: the
+    publish is under way, or was cut short (SIGKILL, a lost machine) and left it."""
+    root = Path(root)
+    if not root.is_dir():
+        return
+    for name_folder in sorted(root.iterdir()):
+        if not name_folder.is_dir() or not _NAME.match(name_folder.name):
+            continue
+        for folder in sorted(name_folder.iterdir()):
+            match = _STAGING.match(folder.name)
+            if match and _VERSION.match(match["version"]) and folder.is_dir() and not folder.is_symlink():
+                yield folder, name_folder.name, match["version"]
+
+
 class LocalBundleStore(BundleStore):
     """Bundles as folders `<root>/<name>/<version>/`: staged in a hidden folder beside, then renamed."""
 
@@ -189,7 +207,7 @@ class LocalBundleStore(BundleStore):
         target = self.folder(name, version)
         target.parent.mkdir(parents=True, exist_ok=True)
         # A dot name is never a version (check_name_version), so readers never see the staging folder.
-        return Path(tempfile.mkdtemp(prefix=f".{version}.", dir=target.parent)), target
+        return Path(tempfile.mkdtemp(prefix=f".{version}.", dir=target.parent)), target  # see _STAGING
 
     def _stage_file(self, staging: tuple[Path, Path], entry: dict[str, Any], source: Path) -> None:
         destination = staging[0] / entry["path"]

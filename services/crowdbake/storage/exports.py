@@ -35,6 +35,7 @@ MEDIA_TYPES = {
     ".json": "application/json", ".glb": "model/gltf-binary", ".ktx2": "image/ktx2", ".png": "image/png", ".jpg": "image/jpeg",
     ".gdshader": "text/plain; charset=utf-8", ".md": "text/markdown; charset=utf-8",
     ".glsl": "text/plain; charset=utf-8", ".hlsl": "text/plain; charset=utf-8", ".zip": "application/zip",
+    ".gd": "text/plain; charset=utf-8", ".cs": "text/plain; charset=utf-8", ".py": "text/plain; charset=utf-8",
 }
 
 

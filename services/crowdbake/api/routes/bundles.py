@@ -9,7 +9,9 @@
 version never changes, so its responses carry a strong ETag (the sha256 the manifest lists; for the
 manifest, its own sha256) and `Cache-Control: immutable`. Range requests (RFC 9110) are answered with
 206, and If-None-Match with 304. A bundle is readable by anyone once marked public; a private one by a
-key with the read scope that published it (or an admin key, or any key in a shared workspace).
+key with the read scope that published it (or an admin key, or any key in a shared workspace). To every
+other caller, with a key or without, a private bundle answers exactly as a missing one (404): its name
+and versions are not revealed by the status.
 """
 from __future__ import annotations
 
@@ -69,25 +71,23 @@ def _readable_bundles(principal: Principal, columns=(Bundle,)):
 
 
 def _bundle_or_problem(session, principal: Principal, name: str, version: str) -> Bundle:
-    """The bundle, if it exists and the caller may read it (anonymous callers of a private bundle get
-    401 so they know a key would help; keys that may not read it get 404, revealing nothing).
-    `latest` is the newest version the caller may read."""
+    """The bundle, if it exists and the caller may read it; 404 otherwise, the same answer for a private
+    bundle as for a missing one. `latest` is the newest version the caller may read."""
     if version == LATEST:
         bundle = session.scalars(
             _readable_bundles(principal).where(Bundle.name == name).order_by(Bundle.published_at.desc(), Bundle.id.desc())
         ).first()
         if bundle is not None:
             return bundle
-        bundle = find_bundle(session, name, LATEST)
-    else:
-        bundle = find_bundle(session, name, version)
-    if bundle is None:
-        raise Problem("not-found", f"no bundle {name}/{version}")
-    if not _readable(session, principal, bundle):
-        if principal.key_id is None:
-            raise Problem("unauthorized", f"{name}/{version} is not public; send a key with the read scope", headers={"WWW-Authenticate": "Bearer"})
-        raise Problem("not-found", f"no bundle {name}/{version}")
+        raise _not_found(name, version)
+    bundle = find_bundle(session, name, version)
+    if bundle is None or not _readable(session, principal, bundle):
+        raise _not_found(name, version)
     return bundle
+
+
+def _not_found(name: str, version: str) -> Problem:
+    return Problem("not-found", f"no bundle {name}/{version} that this caller may read")
 
 
 def _latest_redirect(request: Request, bundle: Bundle) -> Response:
@@ -151,10 +151,8 @@ def list_bundle_names(principal: PrincipalDep, session: SessionDep) -> BundleNam
 def list_versions(name: NameParam, principal: PrincipalDep, services: ServicesDep, session: SessionDep) -> BundleVersionsPublic:
     query = _readable_bundles(principal).where(Bundle.name == name).order_by(Bundle.published_at.desc(), Bundle.id.desc())
     bundles = session.scalars(query).all()
-    if not bundles:
-        if principal.key_id is None and find_bundle(session, name, LATEST) is not None:
-            raise Problem("unauthorized", f"bundle {name} is not public; send a key with the read scope", headers={"WWW-Authenticate": "Bearer"})
-        raise Problem("not-found", f"no bundle named {name!r}")
+    if not bundles:  # none, or only private ones of another workspace: the same answer
+        raise Problem("not-found", f"no bundle named {name!r} that this caller may read")
     return BundleVersionsPublic(name=name, latest=bundles[0].version, versions=[_public(bundle, services.exports) for bundle in bundles])
 
 

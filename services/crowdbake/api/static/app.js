@@ -1,6 +1,7 @@
-// crowdbake's page: uploads a character, its cloth and textures and starts a bake; follows bakes (cancel,
-// retry, publish, download), shows their cycle reports, lists bundles and shows impostor atlases at full
-// size with a zoom. Vanilla JS against the JSON API; nothing is built or fetched from elsewhere.
+// crowdbake's page: uploads a character, its cloth (one cache, a cache of several clips with its timeline,
+// or a cache per clip) and textures and starts a bake; follows bakes (cancel, retry, publish, download),
+// shows their cycle reports, lists bundles and shows impostor atlases at full size with a zoom. Vanilla
+// JS against the JSON API; nothing is built or fetched from elsewhere.
 //
 // The key the user types is kept in sessionStorage (it lasts as long as the tab) and sent as a bearer
 // token. A link may carry it and a selection in its fragment (#key=cbk_...&bake=bk_...&bundle=name/version):
@@ -12,7 +13,7 @@ const KEY_STORAGE = "crowdbake.key";
 const JOBS_POLL_MS = 2000;       // bake progress is written at most every 0.5 s; 2 s is plenty for eyes
 const BUNDLES_POLL_MS = 15000;   // bundles change only when a bake publishes
 const FINAL_STATES = new Set(["succeeded", "failed", "cancelled"]);
-const PREFLIGHT_ASSET = "preflight-no-such-asset";  // an asset id that never exists (see startBake)
+const PREFLIGHT_ASSET = "preflight-no-such-asset";  // an asset id that never exists (see preflight)
 const ARCHIVE_URL_LIFETIME_MS = 60000;  // the downloaded zip's object URL is revoked after this
 const STAGE_SHORT = { validate: "val", loops: "lps", cycle: "cyc", poses: "pos", impostors: "imp", pack: "pak", publish: "pub" };
 
@@ -21,7 +22,9 @@ localStorage.removeItem(KEY_STORAGE);
 
 const state = {
   key: sessionStorage.getItem(KEY_STORAGE) || "",
-  files: { character: null, cloth: null, clothMesh: null, textures: new Map() },  // chosen for the next bake
+  files: { character: null, cloth: null, clothMesh: null, timeline: null, textures: new Map() },  // chosen for the next bake
+  clips: [],           // the per-clip rows ({clip, cache, mesh}), in the order the clips join
+  notice: "",          // the note on files not used, shown until the user acts
   detail: null,        // the bake record shown in detail
   bakeId: null,        // the bake shown in detail
   reportFor: null,     // the bake whose cycle report is loaded (or loading)
@@ -117,46 +120,215 @@ function problemText(error) {
 
 // ------------------------------------------------------------------------------- upload and bake
 
-// Which input a dropped or chosen file is, by its name. The cloth forms are those POST /v1/assets/cloth
-// takes: a .pc2 or .mdd cache with its .obj rest mesh, an Alembic .abc or a .zip of OBJ frames alone.
+// Which input a dropped or chosen file is. The cloth forms are those POST /v1/assets/cloth takes: a .pc2
+// or .mdd cache with its .obj rest mesh, an Alembic .abc or a .zip of OBJ frames alone. A .json is a
+// timeline when its content reads as one (timelineProblem), whatever its name.
 const CLOTH_SUFFIXES = [".pc2", ".mdd", ".abc", ".zip"];
 const TEXTURE_SUFFIXES = [".png", ".jpg", ".jpeg"];
+// A timeline holds about 130 bytes a cache frame (robot_clips: 94 KB for 717 frames); a JSON larger than
+// this is not read into the tab to look for segments.
+const TIMELINE_READ_LIMIT = 64 * 1024 * 1024;
+const GLB_MAGIC = 0x46546c67;  // "glTF": the first word of a .glb (glTF 2.0, "GLB File Format Specification")
+const FILE_INPUTS = { character: "file-character", cloth: "file-cloth", clothMesh: "file-cloth-mesh", timeline: "file-timeline", textures: "file-textures" };
+const INPUT_LABELS = { character: "character", cloth: "cloth", clothMesh: "cloth mesh", timeline: "timeline", textures: "textures" };
+// The modes of crowdbake.ingest.input_modes the page bakes (a body alone and a chosen cycle are crowdbake submit's).
+const MODE_LABELS = { cloth: "one cloth cache, its cycle searched", timeline: "a timeline: one cloth cache playing several clips",
+                      clip_cloth: "one cloth cache per clip" };
+const NOTICE_PENDING = "some files were not used (see the note above): dismiss it to bake without them";
 const hasSuffix = (file, suffixes) => suffixes.some((suffix) => file.name.toLowerCase().endsWith(suffix));
 const clothNeedsMesh = (cloth) => hasSuffix(cloth, [".pc2", ".mdd"]);
 
-function classify(file) {
-  const name = file.name.toLowerCase();
-  if (name.endsWith(".glb") || name.endsWith(".gltf")) return "character";
-  if (hasSuffix(file, CLOTH_SUFFIXES)) return "cloth";
-  if (name.endsWith(".obj")) return "clothMesh";
-  if (hasSuffix(file, TEXTURE_SUFFIXES)) return "textures";
-  return null;
+// Why a .json is not a timeline, or null when it reads as one: an object listing its `segments`
+// (crowdbake.ingest.timeline). The server checks the rest when it is uploaded.
+async function timelineProblem(file) {
+  if (file.size > TIMELINE_READ_LIMIT) return `over ${bytes(TIMELINE_READ_LIMIT)}, too large to read as a timeline`;
+  let parsed;
+  try {
+    parsed = JSON.parse(await file.text());
+  } catch (_) {
+    return "not JSON";
+  }
+  const segments = parsed && parsed.segments;
+  return Array.isArray(segments) && segments.length ? null : "a JSON without segments, so not a timeline";
 }
 
-// The multipart fields of the cloth upload for the chosen cache (and mesh).
+// {kind} of a file (a key of FILE_INPUTS), or {why} it is not an input of a bake.
+async function classify(file) {
+  if (hasSuffix(file, [".glb", ".gltf"])) return { kind: "character" };
+  if (hasSuffix(file, CLOTH_SUFFIXES)) return { kind: "cloth" };
+  if (hasSuffix(file, [".obj"])) return { kind: "clothMesh" };
+  if (hasSuffix(file, TEXTURE_SUFFIXES)) return { kind: "textures" };
+  if (hasSuffix(file, [".json"])) {
+    const why = await timelineProblem(file);
+    return why ? { why } : { kind: "timeline" };
+  }
+  return { why: "not an input of a bake" };
+}
+
+// The multipart fields of the cloth upload for a cache (and mesh).
 function clothUploadFields(cloth, clothMesh) {
   if (hasSuffix(cloth, [".zip"])) return { sequence: cloth };
   return clothNeedsMesh(cloth) ? { cache: cloth, mesh: clothMesh } : { cache: cloth };
 }
 
-function chooseFiles(files) {
+// The animation names of a character, offered as the clip rows' names: the JSON chunk of a .glb, the
+// document of a .gltf. Anything unreadable offers none; the server says what is wrong when it is uploaded.
+async function animationNames(file) {
+  let json = "";
+  if (hasSuffix(file, [".gltf"])) {
+    json = await file.text();
+  } else {
+    const header = new DataView(await file.slice(0, 20).arrayBuffer());  // magic, version, length; JSON chunk length, type
+    if (header.byteLength === 20 && header.getUint32(0, true) === GLB_MAGIC) json = await file.slice(20, 20 + header.getUint32(12, true)).text();
+  }
+  try {
+    return (JSON.parse(json).animations || []).map((animation) => animation.name).filter(Boolean);
+  } catch (_) {
+    return [];
+  }
+}
+
+async function offerClipNames(character) {
+  const names = character ? await animationNames(character) : [];
+  $("character-clips").replaceChildren(...names.map((name) => el("option", { value: name })));
+}
+
+// A note on files the page did not use stays until the user acts on it: chooses files again or dismisses
+// it. A bake's progress has its own line (#bake-form-status), so no later status hides the note.
+function showNotice(text) {
+  state.notice = text;
+  $("input-notice-text").textContent = text;
+  $("input-notice").hidden = !text;
+}
+
+// The line under the form: a bake's progress, or (refused) why it did not start, which stays until the user acts.
+function showBakeStatus(text, refused = false) {
+  $("bake-form-status").textContent = text;
+  $("bake-form-status").classList.toggle("error", refused);
+}
+
+// The inputs changed: a refusal of the earlier ones no longer applies.
+function inputsChanged() {
+  showBakeStatus("");
+  renderChosen();
+}
+
+async function chooseFiles(files) {
+  if (!files.length) return;  // a file dialog closed without a choice changes nothing
   const ignored = [];
   for (const file of files) {
-    const kind = classify(file);
+    const { kind, why } = await classify(file);
     if (kind === "textures") state.files.textures.set(file.name, file);
     else if (kind) state.files[kind] = file;
+    else ignored.push(`${file.name} (${why})`);
+    if (kind === "character") await offerClipNames(file);
+  }
+  showNotice(ignored.length ? `Not used: ${ignored.join("; ")}.` : "");
+  inputsChanged();
+}
+
+function forgetInput(kind) {
+  if (kind === "textures") state.files.textures.clear();
+  else state.files[kind] = null;
+  $(FILE_INPUTS[kind]).value = "";
+  if (kind === "character") offerClipNames(null);
+  inputsChanged();
+}
+
+// One row per clip of the per-clip mode (REST clip_cloth, `crowdbake submit --clip-cloth NAME=CACHE[,MESH]`):
+// the clip's name, its cache and, for a .pc2 or .mdd, its mesh (default: the cloth mesh above, as --cloth-mesh).
+function addClipRow() {
+  const row = { clip: "", cache: null, mesh: null };
+  const node = el("div", { class: "clip-row" },
+    el("label", {}, "clip ", el("input", { class: "clip-name", list: "character-clips", placeholder: "Walking", spellcheck: "false",
+                                          oninput: (event) => { row.clip = event.target.value.trim(); inputsChanged(); } })),
+    el("label", {}, "cache ", el("input", { class: "clip-cache", type: "file", accept: CLOTH_SUFFIXES.join(","),
+                                           onchange: (event) => chooseClipFiles(row, [...event.target.files]) })),
+    el("label", {}, "mesh ", el("input", { class: "clip-mesh", type: "file", accept: ".obj", onchange: (event) => chooseClipFiles(row, [...event.target.files]) })),
+    el("button", { type: "button", onclick: () => removeClipRow(row, node) }, "Remove"));
+  acceptDrops(node, (files) => chooseClipFiles(row, files));
+  state.clips.push(row);
+  $("clip-rows").append(node);
+  inputsChanged();
+}
+
+function removeClipRow(row, node) {
+  state.clips = state.clips.filter((other) => other !== row);
+  node.remove();
+  inputsChanged();
+}
+
+function chooseClipFiles(row, files) {
+  if (!files.length) return;
+  const ignored = [];
+  for (const file of files) {
+    if (hasSuffix(file, CLOTH_SUFFIXES)) row.cache = file;
+    else if (hasSuffix(file, [".obj"])) row.mesh = file;
     else ignored.push(file.name);
   }
-  renderChosen();
-  $("bake-form-status").textContent = ignored.length ? `Not an input of a bake (ignored): ${ignored.join(", ")}` : "";
+  showNotice(ignored.length ? `Not used (a clip takes a cloth cache and its .obj mesh): ${ignored.join(", ")}.` : "");
+  inputsChanged();
+}
+
+const filledClipRows = () => state.clips.filter((row) => row.clip || row.cache || row.mesh);
+
+// The bake's mode, named as crowdbake.ingest.input_modes names it: a filled clip row makes it one cache per clip.
+function inputMode() {
+  if (filledClipRows().length) return "clip_cloth";
+  return state.files.timeline ? "timeline" : "cloth";
+}
+
+// What keeps the chosen inputs from making a bake of `mode` with `params`, each a phrase; none when they make
+// one. The conflicts are crowdbake.ingest.input_modes', told here before anything is uploaded.
+function inputProblems(mode, params) {
+  const { character, cloth, clothMesh, timeline } = state.files;
+  const problems = character ? [] : ["choose a character (.glb)"];
+  if (mode === "clip_cloth") {
+    if (cloth) problems.push(`one cache per clip stands alone: remove the cloth ${cloth.name}, or the clips`);
+    if (timeline) problems.push(`each clip's cache is a simulation of its own: remove the timeline ${timeline.name}, or the clips`);
+    problems.push(...filledClipRows().flatMap((row, k) => clipRowProblems(row, k, clothMesh)));
+  } else if (!cloth) {
+    problems.push(`choose a cloth cache (.pc2, .mdd, .abc) or a zip of OBJ frames${mode === "timeline" ? " for the timeline" : ""}`);
+  } else if (clothNeedsMesh(cloth) && !clothMesh) {
+    problems.push("choose the cloth's mesh (.obj)");
+  }
+  if (mode !== "cloth" && params.cycle_frames !== undefined) {
+    problems.push(`leave cycle frames empty: ${mode === "timeline" ? "the timeline gives each clip's period" : "each clip's period is its animation's"}`);
+  }
+  return problems;
+}
+
+function clipRowProblems(row, k, sharedMesh) {
+  if (!row.clip) return [`name the clip of row ${k + 1} (one of the character's animations)`];
+  if (!row.cache) return [`choose the cloth cache of ${row.clip}`];
+  if (clothNeedsMesh(row.cache) && !(row.mesh || sharedMesh)) return [`choose the mesh (.obj) of ${row.clip}, or one cloth mesh above for every clip`];
+  return [];
+}
+
+function chosenItem(kind, text) {
+  const remove = el("button", { type: "button", title: `do not use the ${INPUT_LABELS[kind]}`, onclick: () => forgetInput(kind) }, "remove");
+  return el("li", { dataset: { input: kind } }, `${INPUT_LABELS[kind]}: `, ...(text ? [text, remove] : [el("span", { class: "muted" }, "none")]));
+}
+
+const fileText = (file) => file && `${file.name} (${bytes(file.size)})`;
+
+function clipText(row, sharedMesh) {
+  const mesh = row.mesh || (row.cache && clothNeedsMesh(row.cache) ? sharedMesh : null);
+  const files = [row.cache, mesh].filter(Boolean).map((file) => file.name);
+  return `${row.clip || "(no name)"}: ${files.length ? files.join(" + ") : "no cache"}`;
 }
 
 function renderChosen() {
-  const { character, cloth, clothMesh, textures } = state.files;
-  const item = (label, file) => el("li", { dataset: { input: label } }, `${label}: `, file ? `${file.name} (${bytes(file.size)})` : el("span", { class: "muted" }, "none"));
-  const items = [item("character", character), item("cloth", cloth)];
-  if (!cloth || clothNeedsMesh(cloth)) items.push(item("cloth mesh", clothMesh));
-  items.push(el("li", { dataset: { input: "textures" } }, `textures: `, textures.size ? [...textures.keys()].sort().join(", ") : el("span", { class: "muted" }, "none")));
+  const mode = inputMode();
+  const { character, cloth, clothMesh, timeline, textures } = state.files;
+  const clips = filledClipRows();
+  const items = [el("li", { dataset: { input: "mode" } }, `bake: ${MODE_LABELS[mode]}`), chosenItem("character", fileText(character))];
+  if (mode !== "clip_cloth" || cloth) items.push(chosenItem("cloth", fileText(cloth)));
+  if (!cloth || clothNeedsMesh(cloth) || clothMesh) items.push(chosenItem("clothMesh", fileText(clothMesh)));
+  if (mode !== "clip_cloth" || timeline) items.push(chosenItem("timeline", fileText(timeline)));
+  if (clips.length) items.push(el("li", { dataset: { input: "clips" } }, `clips: ${clips.map((row) => clipText(row, clothMesh)).join("; ")}`));
+  items.push(chosenItem("textures", [...textures.keys()].sort().join(", ")));
+  $("chosen-files").dataset.mode = mode;
   $("chosen-files").replaceChildren(...items);
 }
 
@@ -216,58 +388,82 @@ function bakeParams() {
 async function upload(endpoint, fields, what) {
   const form = new FormData();
   for (const [field, value] of Object.entries(fields)) form.append(field, value);
-  $("bake-form-status").textContent = `Uploading ${what}…`;
+  showBakeStatus(`Uploading ${what}…`);
   return api(endpoint, "json", { method: "POST", body: form });
+}
+
+// The bake request's inputs for `mode` (the fields of POST /v1/bakes), each asset from `convert(endpoint,
+// fields, what)`: an upload's id, or the preflight's placeholder. One description of what a mode uploads.
+async function requestAssets(mode, params, convert) {
+  const { character, cloth, clothMesh, timeline, textures } = state.files;
+  const assets = { character: await convert("/v1/assets/characters", { file: character }, character.name), textures: {} };
+  if (mode === "clip_cloth") {
+    assets.clip_cloth = [];
+    for (const row of filledClipRows()) {
+      const id = await convert("/v1/assets/cloth", clothUploadFields(row.cache, row.mesh || clothMesh), `${row.clip}: ${row.cache.name}`);
+      assets.clip_cloth.push({ clip: row.clip, cloth: id });
+    }
+  } else {
+    const period = params.cycle_frames ? { cycle_frames: String(params.cycle_frames) } : {};
+    assets.cloth = await convert("/v1/assets/cloth", { ...clothUploadFields(cloth, clothMesh), ...period }, cloth.name);
+  }
+  if (mode === "timeline") assets.timeline = await convert("/v1/assets/timelines", { timeline }, timeline.name);
+  for (const [name, file] of [...textures.entries()].sort()) assets.textures[name] = await convert("/v1/assets/textures", { file }, name);
+  return assets;
+}
+
+function bakeRequest(assets, params) {
+  return { name: $("bake-name").value.trim(), version: $("bake-version").value.trim(), ...assets, params,
+           publish: $("bake-publish").checked, public: $("bake-public").checked };
+}
+
+// A refusal for want of an asset (crowdbake.api.bake_inputs.find_assets), as crowdbake submit's is_missing_asset.
+function isMissingAsset(item) {
+  const field = String(item.field);
+  return (["character", "cloth", "timeline"].includes(field) || field.startsWith("textures.") || /^clip_cloth\.\d+\.cloth$/.test(field))
+    && String(item.message).startsWith("no ");
+}
+
+// Before uploading, the server checks the key, the name, version and parameters: a bake request naming
+// assets that do not exist starts nothing and is refused only for them (as crowdbake submit does).
+async function preflight(mode, params) {
+  try {
+    await api("/v1/bakes", "json", { method: "POST", body: bakeRequest(await requestAssets(mode, params, async () => PREFLIGHT_ASSET), params) });
+  } catch (error) {
+    const errors = (error.problem && error.problem.errors) || [];
+    if (!(error.status === 422 && errors.length && errors.every(isMissingAsset))) throw error;
+  }
 }
 
 async function startBake(event) {
   event.preventDefault();
-  const { character, cloth, clothMesh, textures } = state.files;
-  const missing = [!character && "a character (.glb)", !cloth && "a cloth cache (.pc2, .mdd, .abc) or a zip of OBJ frames",
-                   cloth && clothNeedsMesh(cloth) && !clothMesh && "the cloth's mesh (.obj)"].filter(Boolean);
-  if (missing.length) {
-    $("bake-form-status").textContent = `Choose ${missing.join(" and ")}.`;
+  const params = bakeParams();
+  const mode = inputMode();
+  const problems = [...(state.notice ? [NOTICE_PENDING] : []), ...inputProblems(mode, params)];
+  if (problems.length) {
+    showBakeStatus(`Not baking: ${problems.join("; ")}.`, true);
     return;
   }
   const button = $("start-bake");
   button.disabled = true;
-  const params = bakeParams();
-  const bakeBody = (character, cloth, textureIds) => ({
-    name: $("bake-name").value.trim(), version: $("bake-version").value.trim(), character, cloth, textures: textureIds, params,
-    publish: $("bake-publish").checked, public: $("bake-public").checked });
   try {
-    // Before uploading, the server checks the key, the name, version and parameters: a bake request
-    // naming assets that do not exist starts nothing and is refused only for them (as crowdbake submit does).
-    $("bake-form-status").textContent = "Checking the bake request…";
-    const placeholders = Object.fromEntries([...textures.keys()].map((name) => [name, PREFLIGHT_ASSET]));
-    try {
-      await api("/v1/bakes", "json", { method: "POST", body: bakeBody(PREFLIGHT_ASSET, PREFLIGHT_ASSET, placeholders) });
-    } catch (error) {
-      const onlyAssets = error.status === 422 && error.problem && (error.problem.errors || []).length > 0 && error.problem.errors.every(
-        (item) => (["character", "cloth"].includes(item.field) || String(item.field).startsWith("textures.")) && String(item.message).startsWith("no "));
-      if (!onlyAssets) throw error;
-    }
-    const characterAsset = await upload("/v1/assets/characters", { file: character }, character.name);
-    const clothFields = clothUploadFields(cloth, clothMesh);
-    if (params.cycle_frames) clothFields.cycle_frames = String(params.cycle_frames);
-    const clothAsset = await upload("/v1/assets/cloth", clothFields, cloth.name);
-    const textureIds = {};
-    for (const [name, file] of [...textures.entries()].sort()) textureIds[name] = (await upload("/v1/assets/textures", { file }, name)).id;
-    $("bake-form-status").textContent = "Starting the bake…";
-    const bake = await api("/v1/bakes", "json", { method: "POST", body: bakeBody(characterAsset.id, clothAsset.id, textureIds) });
-    $("bake-form-status").textContent = `Bake ${bake.id} ${bake.state}.`;
+    showBakeStatus("Checking the bake request…");
+    await preflight(mode, params);
+    const assets = await requestAssets(mode, params, async (endpoint, fields, what) => (await upload(endpoint, fields, what)).id);
+    showBakeStatus("Starting the bake…");
+    const bake = await api("/v1/bakes", "json", { method: "POST", body: bakeRequest(assets, params) });
+    showBakeStatus(`Bake ${bake.id} ${bake.state}.`);
     $("bake-form-status").dataset.bake = bake.id;
     selectBake(bake.id);
     await refreshJobs();
   } catch (error) {
-    $("bake-form-status").textContent = error.status === 401 || error.status === 403 ? explain(error, "upload and bake") : problemText(error);
+    showBakeStatus(error.status === 401 || error.status === 403 ? explain(error, "upload and bake") : problemText(error), true);
   } finally {
     button.disabled = false;
   }
 }
 
-function setUpDropZone() {
-  const zone = $("drop-zone");
+function acceptDrops(zone, onFiles) {
   for (const name of ["dragenter", "dragover"]) {
     zone.addEventListener(name, (event) => { event.preventDefault(); zone.classList.add("dragging"); });
   }
@@ -275,11 +471,15 @@ function setUpDropZone() {
   zone.addEventListener("drop", (event) => {
     event.preventDefault();
     zone.classList.remove("dragging");
-    chooseFiles(event.dataTransfer.files);
+    onFiles([...event.dataTransfer.files]);  // copied at once: a drop's data is gone when its event ends
   });
-  for (const id of ["file-character", "file-cloth", "file-cloth-mesh", "file-textures"]) {
-    $(id).addEventListener("change", (event) => chooseFiles(event.target.files));
-  }
+}
+
+function setUpInputs() {
+  acceptDrops($("drop-zone"), chooseFiles);
+  for (const id of Object.values(FILE_INPUTS)) $(id).addEventListener("change", (event) => chooseFiles([...event.target.files]));
+  $("add-clip").addEventListener("click", () => addClipRow());
+  $("dismiss-notice").addEventListener("click", () => { showNotice(""); inputsChanged(); });
   renderChosen();
 }
 
@@ -601,7 +801,7 @@ function start() {
   $("forget-key").addEventListener("click", () => useKey(""));
   for (const id of ["atlas-map", "atlas-frame", "atlas-azimuth", "atlas-elevation"]) $(id).addEventListener("change", loadAtlas);
   $("atlas-zoom").addEventListener("change", applyZoom);
-  setUpDropZone();
+  setUpInputs();
   loadParamFields();
   $("bake-form").addEventListener("submit", startBake);
   $("action-cancel").addEventListener("click", () => bakeAction("cancel"));

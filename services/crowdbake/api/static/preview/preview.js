@@ -189,7 +189,8 @@ async function main() {
   showStatus('false', `Loading ${sidecarUrl.href} …`);
   const response = await fetch(sidecarUrl, { headers: authHeaders });
   if (!response.ok) {
-    const hint = response.status === 401 || response.status === 403 ? ' (a private bundle: open the preview from the jobs page, which holds the key)' : '';
+    // A private bundle answers 404 to a caller without its key, as a missing one does.
+    const hint = [401, 403, 404].includes(response.status) ? ' (missing, or a private bundle: open the preview from the jobs page, which holds the key)' : '';
     throw new Error(`${sidecarUrl.href}: HTTP ${response.status}${hint}`);
   }
   const sidecar = await response.json().catch(() => { throw new Error(`${sidecarUrl.href} is not JSON`); });

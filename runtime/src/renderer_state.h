@@ -1,0 +1,41 @@
+// What a Renderer holds (renderer.h), shared by the files that make it
+// (renderer.cpp) and draw with it (renderer_draw.cpp): the framebuffer and mesh program every
+// archetype shares, and each archetype's GPU resources (archetype_gpu.h), in upload order.
+// Destroying it frees every GL object, archetypes first, so it needs the context that made it.
+#pragma once
+
+#include <epoxy/gl.h>
+
+#include <memory>
+#include <vector>
+
+#include "archetype_gpu.h"
+#include "crowd_programs.h"
+#include "instance_upload.h"
+#include "renderer.h"
+
+namespace crowdview {
+
+struct RendererState {
+    GLuint framebuffer = 0, color = 0, depth = 0;
+    GLuint mesh_program = 0;
+    MeshUniforms mesh_uniforms;
+    GLuint empty_array = 0;  // bound to unused material units so every sampler is complete
+    std::vector<ImpostorSamples> nearest_samples;  // for frames built without samples
+    MappedInstanceStorage storage;                 // every archetype's instance buffers, by index
+    std::vector<std::unique_ptr<ArchetypeGpu>> archetypes;
+
+    RendererState() = default;
+    RendererState(const RendererState&) = delete;
+    RendererState& operator=(const RendererState&) = delete;
+    ~RendererState() {
+        archetypes.clear();
+        glDeleteTextures(1, &empty_array);
+        glDeleteProgram(mesh_program);
+        glDeleteFramebuffers(1, &framebuffer);
+        GLuint renderbuffers[] = {color, depth};
+        glDeleteRenderbuffers(2, renderbuffers);
+    }
+};
+
+}  // namespace crowdview
