@@ -510,10 +510,10 @@ def find_cycle(
     candidates = [
         Candidate(c.start_frame, c.start_frame + c.gap, c.cycle_count, c.vertex_distance) for c in vertex_candidates
     ]
-    scored = _EdgePass(cloth, body, render_views, params, report) if render_views is not None else None
-    if scored is not None:
+    edge_pass = _EdgePass(cloth, body, render_views, params, report) if render_views is not None else None
+    if edge_pass is not None:
         started = time.perf_counter()
-        candidates = scored.score(candidates)
+        candidates = edge_pass.score(candidates)
         timings["pass2"] = time.perf_counter() - started
 
     report("closing", 0, 1)
@@ -534,7 +534,7 @@ def find_cycle(
     found = _first_within_bounds(candidates, _best_first(candidates, range(len(candidates))), params, frame_count, close, where,
                                  attempts, closings)
     if found is None and params.max_candidates * MORE_CANDIDATES_FACTOR > len(candidates):
-        # None of the K best keeps the bounds: look further down pass 1's list, scored as the first K were.
+        # None of the K best keeps the bounds: look further down pass 1's list, edge_pass as the first K were.
         more, _ = cycle_search.search_vertex_candidates(
             cloth, cycle_frames, window=params.window, velocity_weight=params.velocity_weight, settle_frames=settle,
             max_candidates=params.max_candidates * MORE_CANDIDATES_FACTOR, threshold=params.threshold,
@@ -546,8 +546,8 @@ def find_cycle(
         if extra:
             logger.info("%s: no closing of the %d best candidate loops keeps the quality bounds; trying %d more",
                         _clip_name(clip), len(candidates), len(extra))
-            if scored is not None:
-                extra = scored.score(extra)
+            if edge_pass is not None:
+                extra = edge_pass.score(extra)
             first = len(candidates)
             candidates = candidates + extra
             found = _first_within_bounds(candidates, _best_first(candidates, range(first, len(candidates))), params, frame_count,
@@ -566,8 +566,8 @@ def find_cycle(
         logger.info("%s: crossfade shortened to %d frames either side of the seam: the searched frames end at cache frame %d",
                        where(winner), closing.blend_frames, frame_offset + frame_count - 1)
     winner_images = winner_edges = None
-    if scored is not None:
-        winner_images, winner_edges = scored.pictures(winner)
+    if edge_pass is not None:
+        winner_images, winner_edges = edge_pass.pictures(winner)
     return CycleResult(
         start_frame=winner.start_frame,
         end_frame=winner.end_frame,

@@ -341,7 +341,8 @@ def _crossfade(
 
 
 def crossfade_blend(leaving: np.ndarray, arriving: np.ndarray, weight: np.ndarray, edges: np.ndarray | None) -> np.ndarray:
-    """(1 - s) A + s B frame by frame, then edge lengths restored to the blend of A's and B's: (N, V, 3) float64.
+    """(1 - s) A + s B frame by frame, then edge lengths restored to the blend of A's and B's, each frame's
+    restoration started from the frame before's (_restore_in_time): (N, V, 3) float64.
 
     leaving: A, (N, V, 3) float64, the trajectory faded out; arriving: B, the same shape, faded in;
     weight: s, (N,) in [0, 1]; edges: (E, 2) cloth edges, or None to skip the restoration. Vertices
