@@ -5,11 +5,13 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdarg>
 #include <cstdio>
 #include <ctime>
 #include <fstream>
-#include <map>
 #include <thread>
+
+#include "benchmark_search.h"
 
 namespace crowdview {
 
@@ -46,17 +48,26 @@ const char* impostor_blend_name(ImpostorBlend blend) {
 
 namespace {
 
-struct Sample {
-    uint32_t n = 0;
-    double fps = 0;         // from the fastest timed frame: what the machine does undisturbed
-    double fps_median = 0;  // from the median frame: includes whatever else the machine ran
-    double cpu_ms = 0;      // median CPU time of this process per frame, all threads (llvmpipe
-                            // renders on the CPU): the cost, whatever else the machine ran
-    uint32_t by_lod[3] = {0, 0, 0};
-    bool cut_short = false;  // the deadline ended it before its usual frame count (fewer timed frames)
-};
-
 using Clock = std::chrono::steady_clock;
+
+// After the last probe: the report is written, the GL context and the bundle freed. Kept back
+// from --max-seconds so that the process ends inside it.
+constexpr double kExitReserveSeconds = 0.3;
+
+Clock::duration seconds(double s) { return std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s)); }
+double seconds_since(Clock::time_point t) { return std::chrono::duration<double>(Clock::now() - t).count(); }
+double rounded(double value, double scale) { return std::round(value * scale) / scale; }
+
+// One progress line through desc.log (none where it is empty).
+__attribute__((format(printf, 2, 3))) void log_line(const BenchmarkDesc& desc, const char* format, ...) {
+    if (!desc.log) return;
+    char line[512];
+    va_list args;
+    va_start(args, format);
+    std::vsnprintf(line, sizeof line, format, args);
+    va_end(args);
+    desc.log(line);
+}
 
 // How a mode draws: build_frame's LOD choice and the impostor maps.
 struct ModeDraw {
@@ -97,99 +108,63 @@ double process_cpu_seconds() {
     return double(t.tv_sec) + 1e-9 * double(t.tv_nsec);
 }
 
-// Frame rate of a crowd of n in view, drawn as `draw`, after a warm-up. Past `deadline` it stops
-// after its first timed frame (one warm-up, one timed: the least that says anything), so a
-// crowd that draws slowly on a software rasteriser cannot run the benchmark past --max-seconds.
-Sample measure(Renderer& renderer, const Bundle& bundle, uint64_t seed, uint32_t n, const ModeDraw& draw, Clock::time_point deadline) {
+// n characters in view from half the switch distance on: no character is over twice its 1:1
+// size on screen, so the impostor-only runs are not a test of magnified fill.
+Crowd benchmark_crowd(const Renderer& renderer, const Bundle& bundle, uint64_t seed, uint32_t n, const Camera& cam, const LodRule& rule) {
     const CharacterModel& model = renderer.model();
     CrowdDesc desc;
     desc.count = n;
     desc.seed = seed;
     desc.spacing = crowd_spacing(model.radius);
+    return make_crowd_in_view(desc, cam, renderer.aspect(), model.center.y, model.radius, 0.5f * rule.impostor_distance,
+                              max_variations(bundle), bundle.manifest.outfit_count, float(model.frame_count) / model.frames_per_second);
+}
+
+// Frame rate of a crowd of n in view, drawn as `draw`: two warm-up frames (shader variants,
+// buffer growth), then up to fifteen timed ones; three after half a second of rendering are
+// enough for a slow crowd. The fastest frame counts: on a machine shared with other work the
+// median measures the other work too (both are reported). Where the next frame, as long as the
+// longest so far, would end past `deadline`, it stops after its first timed frame (one warm-up,
+// one timed: the least that says anything).
+Sample measure(Renderer& renderer, const Bundle& bundle, uint64_t seed, uint32_t n, const ModeDraw& draw, Clock::time_point deadline) {
+    const auto entered = Clock::now();
     const Camera cam = benchmark_camera();
-    const LodRule rule = lod_rule_for(model, cam, float(renderer.height()));
-    // From half the switch distance on: no character is over twice its 1:1 size on screen,
-    // so the impostor-only runs are not a test of magnified fill.
-    const float near_m = 0.5f * rule.impostor_distance;
-    const Crowd crowd = make_crowd_in_view(desc, cam, renderer.aspect(), model.center.y, model.radius, near_m,
-                                           max_variations(bundle), bundle.manifest.outfit_count,
-                                           float(model.frame_count) / model.frames_per_second);
+    const LodRule rule = lod_rule_for(renderer.model(), cam, float(renderer.height()));
+    const Crowd crowd = benchmark_crowd(renderer, bundle, seed, n, cam, rule);
     const glm::vec3 light = scene_light_dir();
     FrameState state;
     FrameInstances frame;
-    std::vector<double> seconds, cpu_seconds;
+    std::vector<double> frame_s, cpu_s;
     bool cut_short = false;
-    // Two warm-up frames (shader variants, buffer growth), then fifteen timed ones. The
-    // search uses the fastest: on a machine shared with other work the median measures
-    // the other work too (both are reported).
-    const auto first = std::chrono::steady_clock::now();
+    double longest = 0;
+    const auto first = Clock::now();
     for (int i = 0; i < 17; ++i) {
-        const auto start = std::chrono::steady_clock::now();
+        const auto start = Clock::now();
         const double cpu_start = process_cpu_seconds();
-        build_frame(crowd, model, cam, renderer.aspect(), draw.lod, rule, float(i) * kFixedTimeStep, &state, &frame, draw.blend);
+        build_frame(crowd, renderer.model(), cam, renderer.aspect(), draw.lod, rule, float(i) * kFixedTimeStep, &state, &frame, draw.blend);
         renderer.draw(frame, cam, draw.kind, light);
         renderer.finish();
-        const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-        if (i >= 2) seconds.push_back(s), cpu_seconds.push_back(process_cpu_seconds() - cpu_start);
-        if (Clock::now() > deadline && (i >= 2 || i == 1)) {
-            if (i == 1) seconds.push_back(s), cpu_seconds.push_back(process_cpu_seconds() - cpu_start);  // timed, not warm-up
-            cut_short = seconds.size() < 3;
+        const double s = seconds_since(start);
+        longest = std::max(longest, s);
+        const bool out_of_time = i >= 1 && Clock::now() + seconds(longest) > deadline;
+        if (i >= 2 || out_of_time) frame_s.push_back(s), cpu_s.push_back(process_cpu_seconds() - cpu_start);  // frame 1 timed, not warm-up
+        if (out_of_time) {
+            cut_short = frame_s.size() < 3;
             break;
         }
-        // Slow crowds need fewer frames to show it: three timed frames after half a second
-        // of rendering bound each measurement.
-        if (seconds.size() >= 3 && std::chrono::steady_clock::now() - first > std::chrono::milliseconds(500)) break;
+        if (frame_s.size() >= 3 && Clock::now() - first > std::chrono::milliseconds(500)) break;
     }
-    std::sort(seconds.begin(), seconds.end());
-    std::sort(cpu_seconds.begin(), cpu_seconds.end());
+    std::sort(frame_s.begin(), frame_s.end());
+    std::sort(cpu_s.begin(), cpu_s.end());
     Sample sample;
     sample.n = uint32_t(crowd.characters.size());
-    sample.fps = 1.0 / std::max(seconds.front(), 1e-6);
-    sample.fps_median = 1.0 / std::max(seconds[seconds.size() / 2], 1e-6);
-    sample.cpu_ms = 1000.0 * cpu_seconds[cpu_seconds.size() / 2];
+    sample.fps = 1.0 / std::max(frame_s.front(), 1e-6);
+    sample.fps_median = 1.0 / std::max(frame_s[frame_s.size() / 2], 1e-6);
+    sample.cpu_ms = 1000.0 * cpu_s[cpu_s.size() / 2];
     sample.cut_short = cut_short;
+    sample.seconds = seconds_since(entered);
     for (int l = 0; l < 3; ++l) sample.by_lod[l] = frame.shown[l];
     return sample;
-}
-
-// Largest n whose fps holds `target`, from the samples so far plus new ones: doubling, then
-// bisection to 5 %, inside the deadline. Returns the largest passing sample (0 if none).
-uint32_t search(const std::function<Sample(uint32_t)>& measure, std::map<uint32_t, Sample>* samples, double target,
-                const std::chrono::steady_clock::time_point& deadline, bool* converged) {
-    constexpr uint32_t kMaxCount = 1u << 20;  // a million characters bounds the doubling
-    auto fps = [&](uint32_t n) {
-        auto it = samples->find(n);
-        if (it == samples->end()) it = samples->emplace(n, measure(n)).first;
-        return it->second.fps;
-    };
-    auto in_time = [&] { return std::chrono::steady_clock::now() < deadline; };
-    uint32_t lo = 0, hi = 0;  // lo passes (0: nothing yet), hi fails (0: none found yet)
-    for (const auto& [n, s] : *samples) {
-        if (s.fps >= target) lo = std::max(lo, n);
-        else if (hi == 0 || n < hi) hi = n;
-    }
-    if (hi != 0 && lo > hi) lo = 0;  // noisy samples: trust the failing one
-    if (hi == 0) {
-        // The first size is measured even past the deadline, so every mode reports something.
-        for (uint32_t n = std::max(lo * 2, 8u); n <= kMaxCount && (n == std::max(lo * 2, 8u) || in_time()); n *= 2) {
-            if (fps(n) >= target) lo = n;
-            else {
-                hi = n;
-                break;
-            }
-        }
-    }
-    if (hi == 0) {
-        *converged = false;
-        return lo;
-    }
-    while (hi - lo > std::max(1u, lo / 20) && in_time()) {
-        const uint32_t mid = lo + (hi - lo) / 2;
-        if (fps(mid) >= target) lo = mid;
-        else hi = mid;
-    }
-    *converged = hi - lo <= std::max(1u, lo / 20);
-    return lo;
 }
 
 // Other work on the machine shows up in the timings; the load average says how much.
@@ -200,63 +175,80 @@ double load_average_1min() {
     return one_minute;
 }
 
-// UV impostors with blending off and on (desc.blend, or full when that is off) at one crowd
-// size: uv_impostor's 30 fps answer, else 256. Three alternating rounds, the best of each, so
-// both see the same background load.
-template <typename Log>
+// The crowd size of the blend-cost phase: uv_impostor's 30 fps answer; without one (uv_impostor
+// not run), the largest 30 fps answer of the modes that ran, at most 256 (a software rasteriser
+// blends 256 impostors in seconds a frame: that phase once ran 485 s of a 10 s budget), at least 8.
+uint32_t blend_cost_count(const nlohmann::json& results) {
+    if (results.contains("uv_impostor") && results["uv_impostor"].value("n_at_30fps", 0u) > 0)
+        return results["uv_impostor"]["n_at_30fps"].get<uint32_t>();
+    uint32_t n = 0;
+    for (const auto& [name, entry] : results.items()) n = std::max(n, entry.value("n_at_30fps", 0u));
+    return std::clamp(n, 8u, 256u);
+}
+
+// UV impostors with blending off and on (desc.blend, or full when that is off) at one crowd size
+// (blend_cost_count, fewer where the time left cannot measure that many). Three alternating rounds,
+// the best of each, so both see the same background load. A round starts where it is predicted to
+// end before `end`: as long as the last one, or for the first, a measurement per blend as
+// `on_cost` predicts (uv_impostor's, drawn with desc.blend; nothing measured: no prediction).
 nlohmann::json blend_cost(Renderer& renderer, const Bundle& bundle, const BenchmarkDesc& desc, const nlohmann::json& results,
-                          Clock::time_point deadline, const Log& log) {
+                          Clock::time_point end, const MeasureCost& on_cost) {
     const ImpostorBlend on = renderer.effective_blend(desc.blend == ImpostorBlend::off ? ImpostorBlend::full : desc.blend);
     // With reprojection, the plain blend is measured too: what the surface map costs on its own.
     const bool warped = on == ImpostorBlend::warp;
-    // The crowd size: uv_impostor's 30 fps answer; without one (uv_impostor not run), the largest
-    // 30 fps answer of the modes that ran, at most 256 (a software rasteriser blends 256 impostors in
-    // seconds a frame: that phase once ran 485 s of a 10 s budget), at least 8.
-    uint32_t n = 0;
-    if (results.contains("uv_impostor") && results["uv_impostor"].value("n_at_30fps", 0u) > 0)
-        n = results["uv_impostor"]["n_at_30fps"].get<uint32_t>();
-    else {
-        for (const auto& [name, entry] : results.items()) n = std::max(n, entry.value("n_at_30fps", 0u));
-        n = std::clamp(n, 8u, 256u);
-    }
+    const int blends = warped ? 3 : 2;
+    uint32_t n = blend_cost_count(results);
+    const double left_s = std::chrono::duration<double>(end - Clock::now()).count();
+    if (on_cost.seconds > 0 && blends * on_cost.predict(n) >= left_s)  // MeasureCost: in proportion above on_cost.n
+        n = std::max(1u, std::min(n, uint32_t(left_s / (blends * on_cost.seconds) * on_cost.n)));
+    double round_s = blends * on_cost.predict(n);
     Sample best_off, best_on, best_full;
     int rounds = 0;
-    for (int round = 0; round < 3 && (round == 0 || Clock::now() < deadline); ++round) {
-        const Sample off = measure(renderer, bundle, desc.seed, n, {LodMode::impostor, ImpostorKind::uv, ImpostorBlend::off}, deadline);
-        const Sample blended = measure(renderer, bundle, desc.seed, n, {LodMode::impostor, ImpostorKind::uv, on}, deadline);
+    for (auto round_start = Clock::now(); rounds < 3 && round_start + seconds(round_s) < end; ++rounds, round_start = Clock::now()) {
+        const Sample off = measure(renderer, bundle, desc.seed, n, {LodMode::impostor, ImpostorKind::uv, ImpostorBlend::off}, end);
+        const Sample blended = measure(renderer, bundle, desc.seed, n, {LodMode::impostor, ImpostorKind::uv, on}, end);
         if (off.fps > best_off.fps) best_off = off;
         if (blended.fps > best_on.fps) best_on = blended;
         if (warped) {
-            const Sample full = measure(renderer, bundle, desc.seed, n, {LodMode::impostor, ImpostorKind::uv, ImpostorBlend::full}, deadline);
+            const Sample full = measure(renderer, bundle, desc.seed, n, {LodMode::impostor, ImpostorKind::uv, ImpostorBlend::full}, end);
             if (full.fps > best_full.fps) best_full = full;
         }
-        ++rounds;
+        round_s = seconds_since(round_start);
     }
     const bool cut_short = rounds < 3 || best_off.cut_short || best_on.cut_short;
-    log("benchmark: uv_impostor N=%u blending off %.1f fps (CPU %.1f ms/frame), %s %.1f fps (CPU %.1f ms/frame)%s", best_off.n,
-        best_off.fps, best_off.cpu_ms, impostor_blend_name(on), best_on.fps, best_on.cpu_ms,
-        cut_short ? " (cut short by --max-seconds)" : "");
-    nlohmann::json cost = {{"mode", "uv_impostor"},
-                           {"rounds", rounds},
-                           {"cut_short", cut_short},
-                           {"n", best_off.n},
-                           {"blend", impostor_blend_name(on)},
-                           {"fps_off", std::round(best_off.fps * 10) / 10},
-                           {"fps_blended", std::round(best_on.fps * 10) / 10},
-                           {"cpu_ms_per_frame_off", std::round(best_off.cpu_ms * 100) / 100},
-                           {"cpu_ms_per_frame_blended", std::round(best_on.cpu_ms * 100) / 100},
-                           {"fps_ratio_blended_to_off", std::round(best_on.fps / std::max(best_off.fps, 1e-9) * 100) / 100}};
+    nlohmann::json cost = {{"mode", "uv_impostor"}, {"rounds", rounds}, {"cut_short", cut_short}, {"n", n}, {"blend", impostor_blend_name(on)}};
+    if (rounds == 0) {
+        log_line(desc, "benchmark: uv_impostor blending cost not measured: no time left (--max-seconds)");
+        return cost;
+    }
+    log_line(desc, "benchmark: uv_impostor N=%u blending off %.1f fps (CPU %.1f ms/frame), %s %.1f fps (CPU %.1f ms/frame)%s", n,
+             best_off.fps, best_off.cpu_ms, impostor_blend_name(on), best_on.fps, best_on.cpu_ms, cut_short ? " (cut short by --max-seconds)" : "");
+    cost["fps_off"] = rounded(best_off.fps, 10);
+    cost["fps_blended"] = rounded(best_on.fps, 10);
+    cost["cpu_ms_per_frame_off"] = rounded(best_off.cpu_ms, 100);
+    cost["cpu_ms_per_frame_blended"] = rounded(best_on.cpu_ms, 100);
+    cost["fps_ratio_blended_to_off"] = rounded(best_on.fps / std::max(best_off.fps, 1e-9), 100);
     if (warped) {
-        log("benchmark: uv_impostor N=%u full blending without reprojection %.1f fps (CPU %.1f ms/frame)", best_full.n, best_full.fps,
-            best_full.cpu_ms);
-        cost["fps_full_unwarped"] = std::round(best_full.fps * 10) / 10;
-        cost["fps_ratio_warped_to_full"] = std::round(best_on.fps / std::max(best_full.fps, 1e-9) * 100) / 100;
+        log_line(desc, "benchmark: uv_impostor N=%u full blending without reprojection %.1f fps (CPU %.1f ms/frame)", n, best_full.fps,
+                 best_full.cpu_ms);
+        cost["fps_full_unwarped"] = rounded(best_full.fps, 10);
+        cost["fps_ratio_warped_to_full"] = rounded(best_on.fps / std::max(best_full.fps, 1e-9), 100);
     }
     return cost;
 }
 
-// What the report says before any figure: the machine, the bundle, the budget and the method.
-nlohmann::json report_header(const Renderer& renderer, const Bundle& bundle, const BenchmarkDesc& desc) {
+// On a software rasteriser fragments are shaded on the CPU, where an impostor's dependent,
+// filtered lookups cost about as much as a mesh's triangles or more: the paper's ranking (a GPU's
+// impostors far cheaper than its meshes) turns over there, and figures measured on it say so.
+std::string software_rasteriser_note(const nlohmann::json& gl) {
+    if (!gl.is_object() || !gl.value("software_rasteriser", false)) return "";
+    return "GL_RENDERER " + gl.value("renderer", std::string("?")) +
+           " is a software rasteriser: it shades fragments on the CPU, where impostors cost as much as meshes or more, "
+           "which inverts the paper's ranking (impostors far cheaper than meshes on a GPU); compare ratios with the paper on a GPU";
+}
+
+// What the run is: the machine, the bundle, the blend, the method (results come later).
+nlohmann::json report_header(const Renderer& renderer, const Bundle& bundle, const BenchmarkDesc& desc, double setup_s) {
     nlohmann::json report;
     report["device"] = desc.device;
     report["gl"] = desc.gl;
@@ -267,6 +259,10 @@ nlohmann::json report_header(const Renderer& renderer, const Bundle& bundle, con
     report["load_average_1min_start"] = load_average_1min();
     report["cpu_threads"] = std::thread::hardware_concurrency();
     report["max_seconds"] = desc.max_seconds;
+    report["setup_seconds"] = rounded(setup_s, 100);
+    report["impostor_blend"] = impostor_blend_name(renderer.effective_blend(desc.blend));
+    const std::string note = software_rasteriser_note(desc.gl);
+    if (!note.empty()) report["software_rasteriser_note"] = note;
     report["compressed_textures"] = renderer.compressed_textures();
     report["triangles_per_character"] = {{"high", renderer.triangles_per_character(Lod::high)},
                                          {"low", renderer.triangles_per_character(Lod::low)},
@@ -276,111 +272,94 @@ nlohmann::json report_header(const Renderer& renderer, const Bundle& bundle, con
     report["method"] = "per N: characters walking on the spot in staggered rows 1.6 m apart filling the view "
                        "nearest first from half the impostor switch distance (camera 6 m up, 17 degrees down, fov 45), "
                        "all on screen; hybrid = --lod auto (high, low, UV impostor by distance); 2 warm-up frames, "
-                       "then 15 frames, each timed from build_frame (cull, LOD, views) to glFinish; fps from the "
-                       "fastest frame (fps_median from the median one); N doubles from 8, then bisects to 5 %";
+                       "then up to 15 frames, each timed from build_frame (cull, LOD, views) to glFinish; a run's fps from "
+                       "its fastest frame (fps_median from the median one); a size below or within 25 % above the target "
+                       "is run up to 3 times and the median run decides (fps_min, fps_max: the spread); "
+                       "N doubles from 8, then bisects to 5 %";
     return report;
 }
 
-// One mode's largest crowds at 30 and 60 fps, searched until `deadline`, every sample logged:
-// the report's results entry, "cut_short" where the search did not converge in time.
-template <typename Log>
-nlohmann::json measure_mode(Renderer& renderer, const Bundle& bundle, const BenchmarkDesc& desc, const char* name, const ModeDraw& draw,
-                            Clock::time_point deadline, const Log& log) {
-    std::map<uint32_t, Sample> samples;
-    bool sample_cut = false;
-    auto measure_n = [&](uint32_t n) {
-        const Sample s = measure(renderer, bundle, desc.seed, n, draw, deadline);
-        sample_cut |= s.cut_short;
-        log("benchmark: %-15s N=%-7u %7.1f fps (median frame %6.1f fps, CPU %7.1f ms/frame)  high %u, low %u, impostor %u%s", name, n,
-            s.fps, s.fps_median, s.cpu_ms, s.by_lod[0], s.by_lod[1], s.by_lod[2], s.cut_short ? " (cut short)" : "");
-        return s;
-    };
+// One mode's searches for 30 and 60 fps, inside `deadline` (its first probe: inside `end`).
+// last_cost: what its last measurement took.
+nlohmann::json run_mode(Renderer& renderer, const Bundle& bundle, const BenchmarkDesc& desc, BenchmarkMode mode, Clock::time_point deadline,
+                        Clock::time_point end, MeasureCost* last_cost) {
+    const char* name = benchmark_mode_name(mode);
+    ModeDraw draw = mode_draw(mode);
+    draw.blend = desc.blend;
+    ProbeSearch search(
+        [&](uint32_t n) {
+            const Sample s = measure(renderer, bundle, desc.seed, n, draw, deadline);
+            log_line(desc, "benchmark: %-15s N=%-7u %7.1f fps (median frame %6.1f fps, CPU %7.1f ms/frame)  high %u, low %u, impostor %u%s", name,
+                     n, s.fps, s.fps_median, s.cpu_ms, s.by_lod[0], s.by_lod[1], s.by_lod[2], s.cut_short ? " (cut short)" : "");
+            return s;
+        },
+        deadline, end);
     bool converged30 = false, converged60 = false;
-    const uint32_t n30 = search(measure_n, &samples, 30.0, deadline, &converged30);
-    const uint32_t n60 = search(measure_n, &samples, 60.0, deadline, &converged60);
-    nlohmann::json entry;
-    entry["n_at_30fps"] = n30;
-    entry["n_at_60fps"] = n60;
-    entry["converged_30"] = converged30;
-    entry["converged_60"] = converged60;
-    if (samples.count(n30)) {
-        const Sample& s = samples[n30];
+    const uint32_t n30 = search.largest_holding(30.0, &converged30);
+    const uint32_t n60 = search.largest_holding(60.0, &converged60);
+    nlohmann::json entry = {{"n_at_30fps", n30}, {"n_at_60fps", n60}, {"converged_30", converged30}, {"converged_60", converged60}};
+    if (search.probes().count(n30)) {
+        const Sample& s = search.probes().at(n30).runs.front();  // every run of a size draws the same crowd
         entry["lod_split_at_30fps"] = {{"high", s.by_lod[0]}, {"low", s.by_lod[1]}, {"impostor", s.by_lod[2]}};
     }
-    nlohmann::json list = nlohmann::json::array();
-    for (const auto& [n, s] : samples)
-        list.push_back({{"n", n},
-                        {"fps", std::round(s.fps * 10) / 10},
-                        {"fps_median", std::round(s.fps_median * 10) / 10},
-                        {"cpu_ms_per_frame", std::round(s.cpu_ms * 100) / 100}});
-    entry["samples"] = list;
-    entry["cut_short"] = !(converged30 && converged60) || sample_cut;
+    entry["samples"] = search.probes_json();
+    entry["cut_short"] = !(converged30 && converged60) || search.cut_short();
+    *last_cost = search.last_cost();
     return entry;
 }
 
-// Each mode's crowd at 30 fps against high_mesh's; null without a high_mesh answer.
+// Each representation's n_at_30fps over the high mesh's.
 nlohmann::json ratios_to_high_mesh(const nlohmann::json& results) {
     const double high = results.contains("high_mesh") ? results["high_mesh"].value("n_at_30fps", 0u) : 0.0;
-    if (high <= 0) return nullptr;
-    nlohmann::json ratios;
+    nlohmann::json ratios = nlohmann::json::object();
+    if (high <= 0) return ratios;
     for (const auto& [name, entry] : results.items())
-        if (entry.contains("n_at_30fps")) ratios[name] = std::round(entry["n_at_30fps"].get<double>() / high * 100) / 100;
+        if (entry.contains("n_at_30fps")) ratios[name] = rounded(entry["n_at_30fps"].get<double>() / high, 100);
     return ratios;
 }
-
-double seconds_since(Clock::time_point start) { return std::chrono::duration<double>(Clock::now() - start).count(); }
 
 }  // namespace
 
 nlohmann::json run_benchmark(Renderer& renderer, const Bundle& bundle, const BenchmarkDesc& desc) {
-    auto log = [&](const char* format, auto... args) {
-        if (!desc.log) return;
-        char line[512];
-        std::snprintf(line, sizeof line, format, args...);
-        desc.log(line);
-    };
     const auto start = Clock::now();
-    nlohmann::json report = report_header(renderer, bundle, desc);
-    nlohmann::json results = nlohmann::json::object();
-    nlohmann::json phases = nlohmann::json::array();  // every phase: name, seconds, cut_short
-    // --max-seconds bounds the whole run: the modes and the blend-cost phase each get an even share,
-    // and none runs past the run's end (measure() stops at its deadline after one timed frame).
-    const auto end = start + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(desc.max_seconds));
-    const double share = desc.max_seconds / double(desc.modes.size() + 1);
+    const auto started = desc.started == Clock::time_point() ? start : desc.started;
+    // --max-seconds bounds the whole run from `started`: what is left is shared evenly by the phases
+    // still to run (the modes, then the blend cost), each share recomputed as a phase starts.
+    const auto end = started + seconds(desc.max_seconds - kExitReserveSeconds);
+    nlohmann::json report = report_header(renderer, bundle, desc, std::chrono::duration<double>(start - started).count());
+    if (report.contains("software_rasteriser_note")) log_line(desc, "benchmark: %s", report["software_rasteriser_note"].get<std::string>().c_str());
+    nlohmann::json results = nlohmann::json::object(), phases = nlohmann::json::array();
+    MeasureCost uv_cost;  // uv_impostor's last measurement, to predict the blend-cost phase
+    auto finish_phase = [&](const char* name, Clock::time_point phase_start, bool cut_short) {
+        phases.push_back({{"name", name}, {"seconds", rounded(seconds_since(phase_start), 100)}, {"cut_short", cut_short}});
+        report["results"] = results;
+        report["phases"] = phases;
+        report["seconds"] = seconds_since(start);
+        if (desc.checkpoint) desc.checkpoint(report);  // the report so far, should the run be stopped from outside
+    };
     for (size_t m = 0; m < desc.modes.size(); ++m) {
         const char* name = benchmark_mode_name(desc.modes[m]);
-        ModeDraw draw = mode_draw(desc.modes[m]);
-        draw.blend = desc.blend;
-        if (draw.lod == LodMode::low && !renderer.model().has_low) {
-            log("benchmark: %s skipped: the bundle has no lod 1 mesh", name);
+        if (mode_draw(desc.modes[m]).lod == LodMode::low && !renderer.model().has_low) {
+            log_line(desc, "benchmark: %s skipped: the bundle has no lod 1 mesh", name);
             results[name] = {{"skipped", "no lod 1 mesh"}};
             continue;
         }
         const auto phase_start = Clock::now();
-        const auto deadline = std::min(end, start + std::chrono::duration_cast<Clock::duration>(
-                                                        std::chrono::duration<double>(share * double(m + 1))));
-        const nlohmann::json entry = results[name] = measure_mode(renderer, bundle, desc, name, draw, deadline, log);
-        const double phase_s = seconds_since(phase_start);
-        const bool cut_short = entry["cut_short"];
-        phases.push_back({{"name", name}, {"seconds", std::round(phase_s * 100) / 100}, {"cut_short", cut_short}});
-        log("benchmark: %-15s %u at 30 fps, %u at 60 fps, %.1f s%s", name, entry["n_at_30fps"].get<uint32_t>(),
-            entry["n_at_60fps"].get<uint32_t>(), phase_s, cut_short ? " (cut short by --max-seconds: lower bounds)" : "");
-        // The report so far, so a run stopped from outside still leaves one.
-        report["results"] = results;
-        report["phases"] = phases;
-        report["seconds"] = seconds_since(start);
-        if (desc.checkpoint) desc.checkpoint(report);
+        const auto deadline = phase_start + (end - phase_start) / int64_t(desc.modes.size() - m + 1);
+        MeasureCost cost;
+        results[name] = run_mode(renderer, bundle, desc, desc.modes[m], deadline, end, &cost);
+        if (desc.modes[m] == BenchmarkMode::uv_impostor) uv_cost = cost;
+        const bool cut_short = results[name]["cut_short"];
+        log_line(desc, "benchmark: %-15s %u at 30 fps, %u at 60 fps, %.1f s%s", name, results[name]["n_at_30fps"].get<uint32_t>(),
+                 results[name]["n_at_60fps"].get<uint32_t>(), seconds_since(phase_start), cut_short ? " (cut short by --max-seconds: lower bounds)" : "");
+        finish_phase(name, phase_start, cut_short);
     }
-    report["impostor_blend"] = impostor_blend_name(renderer.effective_blend(desc.blend));
     const auto blend_start = Clock::now();
-    report["impostor_blend_cost"] = blend_cost(renderer, bundle, desc, results, end, log);
-    const double blend_s = seconds_since(blend_start);
-    phases.push_back({{"name", "impostor_blend_cost"}, {"seconds", std::round(blend_s * 100) / 100},
-                      {"cut_short", report["impostor_blend_cost"]["cut_short"]}});
-    log("benchmark: impostor_blend_cost %.1f s", blend_s);
-    report["results"] = results;
-    report["phases"] = phases;
-    if (nlohmann::json ratios = ratios_to_high_mesh(results); !ratios.is_null()) report["ratio_to_high_mesh_at_30fps"] = ratios;
+    report["impostor_blend_cost"] = blend_cost(renderer, bundle, desc, results, end, uv_cost);
+    log_line(desc, "benchmark: impostor_blend_cost %.1f s", seconds_since(blend_start));
+    finish_phase("impostor_blend_cost", blend_start, report["impostor_blend_cost"]["cut_short"]);
+    const nlohmann::json ratios = ratios_to_high_mesh(results);
+    if (!ratios.empty()) report["ratio_to_high_mesh_at_30fps"] = ratios;
     report["load_average_1min_end"] = load_average_1min();
     report["seconds"] = seconds_since(start);
     return report;

@@ -3,6 +3,7 @@
 // uploaded bundle; writes a JSON report.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <functional>
 #include <string>
@@ -29,7 +30,10 @@ const char* impostor_blend_name(ImpostorBlend blend);
 
 struct BenchmarkDesc {
     uint64_t seed = 1;
-    double max_seconds = 300;  // the whole run: split evenly between the modes and the blend-cost phase
+    double max_seconds = 300;  // the whole run from `started`: shared evenly by the modes and the blend-cost phase
+    // When max_seconds began counting (crowdview: the process's start, so that loading the bundle
+    // and making the context count too); zero: when run_benchmark starts.
+    std::chrono::steady_clock::time_point started{};
     std::vector<BenchmarkMode> modes{std::begin(kAllBenchmarkModes), std::end(kAllBenchmarkModes)};
     // How impostors blend views and frames in uv_impostor, detail_impostor and hybrid. The
     // report also times UV impostors with blending off and on at one crowd size.

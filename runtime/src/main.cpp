@@ -47,6 +47,9 @@ using namespace crowdview;
 
 namespace {
 
+// Set before main runs: --max-seconds counts from here, loading and context creation included.
+const std::chrono::steady_clock::time_point kProcessStart = std::chrono::steady_clock::now();
+
 FetchOptions fetch_options(const Options& o) {
     FetchOptions fetch;
     fetch.cache_dir = o.cache_dir;
@@ -85,6 +88,7 @@ int run_benchmark_mode(const GlContext& context, Renderer& renderer, const Bundl
     BenchmarkDesc desc;
     desc.seed = o.seed;
     desc.max_seconds = o.max_seconds;
+    desc.started = kProcessStart;
     desc.modes = o.modes;
     if (bundle.manifest.impostor.detail_map.empty()) {
         const auto detail = std::find(desc.modes.begin(), desc.modes.end(), BenchmarkMode::detail_impostor);
@@ -256,9 +260,10 @@ std::string switch_jump_line(const std::string& name, const nlohmann::json& jump
 }
 
 // --report of a headless view: view_report's counts and memory, the median frame time, and per
-// archetype its characters per clip and the switches' jumps. False after one line when it cannot be written.
+// archetype its characters per clip, the impostor blend it drew with (`blend` where it can: warp
+// needs a surface map) and the switches' jumps. False after one line when it cannot be written.
 bool write_view_report(const GlContext& context, const Renderer& renderer, const CrowdScene& scene, const ViewRun& run,
-                       std::vector<SwitchMeter>& meters, const std::string& path) {
+                       std::vector<SwitchMeter>& meters, ImpostorBlend blend, const std::string& path) {
     const double build_ms = run.drawn ? 1e3 * run.build_seconds / run.drawn : 0;
     nlohmann::json report = view_report(context.describe(), renderer, scene, run.counts, run.rules, run.drawn, build_ms, run.stats);
     report["gl"] = gl_report(context.info());
@@ -269,6 +274,7 @@ bool write_view_report(const GlContext& context, const Renderer& renderer, const
     for (size_t a = 0; a < renderer.archetype_count(); ++a) {
         report["archetypes"][a]["clips"] =
             clip_counts(run.crowds[a], renderer.model(a), run.state[a], run.camera, renderer.aspect(), run.time_s);
+        report["archetypes"][a]["impostor_blend"] = impostor_blend_name(renderer.effective_blend(blend, a));
         if (a < meters.size()) {
             report["archetypes"][a]["switch_jumps"] = meters[a].report();
             log_line(switch_jump_line(scene.names[a], report["archetypes"][a]["switch_jumps"]));
@@ -322,7 +328,7 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
         }
     }
     log_totals(context, scene, run);
-    if (!o.report.empty() && !write_view_report(context, renderer, scene, run, meters, o.report)) return kExitRefused;
+    if (!o.report.empty() && !write_view_report(context, renderer, scene, run, meters, o.blend, o.report)) return kExitRefused;
     if (!o.screenshot.empty() && !write_screenshot(renderer, o.screenshot)) return kExitRefused;
     return 0;
 }

@@ -101,21 +101,28 @@ void test_headless(const std::string& bundle, const std::string& work) {
     for (const char* mode : {"high_mesh", "low_mesh", "uv_impostor", "detail_impostor", "hybrid"}) {
         CHECK_MSG(j["results"].contains(mode) && j["results"][mode].contains("n_at_30fps"), mode);
         CHECK_MSG(!j["results"][mode]["samples"].empty(), mode);
+        // Each size's figure is the median of its runs, with their spread.
+        for (const auto& sample : j["results"][mode]["samples"])
+            CHECK_MSG(sample["runs"].get<int>() >= 1 && sample["fps_min"] <= sample["fps"] && sample["fps"] <= sample["fps_max"], sample.dump());
     }
     CHECK(j["triangles_per_character"]["high"].get<int>() > j["triangles_per_character"]["low"].get<int>());
     CHECK(j["seconds"].get<double>() < 30);
     CHECK_MSG(j["gl"]["renderer"].is_string() && j["gl"]["context"].is_string(), j["gl"].dump());  // what ran the figures
-    // The cost of blending: UV impostors timed with it off and on at one crowd size.
+    // Which blend ran, and on a software rasteriser that its ranking is not the paper's.
     CHECK(j["impostor_blend"] == "full");
+    CHECK_MSG(j.contains("software_rasteriser_note") == j["gl"]["software_rasteriser"].get<bool>(), j.dump().substr(0, 400));
+    // The cost of blending: UV impostors timed with it off and on at one crowd size.
     CHECK_MSG(j["impostor_blend_cost"]["fps_off"].get<double>() > 0 && j["impostor_blend_cost"]["fps_blended"].get<double>() > 0,
               j["impostor_blend_cost"].dump());
     r = crowdview("--bundle '" + bundle + "' --headless --frames 2 --count 12 --width 160 --height 120 --lod impostor --impostor-blend off");
     CHECK_MSG(r.status == 0, describe(r));
 }
 
-// --max-seconds bounds every phase, the blend-cost one included: `--modes low_mesh --max-seconds 10`
-// once ran 485 s (the blend cost, hidden, at 256 characters) and a 30 s run never wrote its report.
-// Every printed figure carries its unit ("median frame 50.7" had none).
+// --max-seconds bounds the whole process, every phase and the setup before them included: `--modes
+// low_mesh --max-seconds 10` once ran 485 s (the blend cost, hidden, at 256 characters), a 30 s run
+// never wrote its report, and `--max-seconds 10` on the quickstart's bundle ran 15.8 s (setup
+// uncounted, a probe started at any phase's deadline). Every printed figure carries its unit
+// ("median frame 50.7" had none).
 void test_benchmark_budget(const std::string& bundle, const std::string& work) {
     const std::string report = work + "/budget.json";
     const double max_seconds = 3;
@@ -128,7 +135,7 @@ void test_benchmark_budget(const std::string& bundle, const std::string& work) {
         return;
     }
     CHECK_MSG(r.status == 0, describe(r));
-    CHECK_MSG(wall <= max_seconds + 10, "ran " + std::to_string(wall) + " s for --max-seconds 3");
+    CHECK_MSG(wall <= max_seconds + 1, "ran " + std::to_string(wall) + " s for --max-seconds 3");
     const nlohmann::json j = nlohmann::json::parse(synthetic::read_text(report), nullptr, false);
     CHECK_MSG(!j.is_discarded() && j.contains("phases"), "the report is written, with its phases");
     if (j.is_discarded()) return;
@@ -138,7 +145,7 @@ void test_benchmark_budget(const std::string& bundle, const std::string& work) {
         CHECK(phase.contains("cut_short") && phase["seconds"].get<double>() >= 0);
     }
     CHECK_MSG((names == std::vector<std::string>{"low_mesh", "impostor_blend_cost"}), j["phases"].dump());
-    CHECK(j["seconds"].get<double>() <= max_seconds + 5);
+    CHECK_MSG(j["setup_seconds"].get<double>() + j["seconds"].get<double>() <= max_seconds, j.dump().substr(0, 400));
     // Units: every "fps" or "ms" figure is followed by its unit; "median frame N" without one was the bug.
     CHECK_MSG(r.err.find("median frame ") != std::string::npos && r.err.find(" fps, CPU ") != std::string::npos, r.err);
     for (size_t at = r.err.find("median frame "); at != std::string::npos; at = r.err.find("median frame ", at + 1)) {

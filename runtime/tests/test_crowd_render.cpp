@@ -156,6 +156,7 @@ int main(int argc, char** argv) {
             // Each archetype at each of its LODs, none culled.
             for (const char* lod : {"high", "low", "impostor"}) CHECK_MSG(a["lod_counts"][lod] == 1, a.dump());
             CHECK_MSG(a["lod_counts"]["culled"] == 0, a.dump());
+            CHECK_MSG(a["impostor_blend"] == "off", a.dump());  // the blend that ran, as --impostor-blend asked
             for (const char* part : {"meshes", "textures", "impostors"}) CHECK_MSG(a["gpu_memory_bytes"][part].get<uint64_t>() > 0, a.dump());
             CHECK(a["gpu_memory_bytes"]["total"].get<uint64_t>() == a["gpu_memory_bytes"]["meshes"].get<uint64_t>() +
                                                                     a["gpu_memory_bytes"]["textures"].get<uint64_t>() +

@@ -275,7 +275,7 @@ PARAMS: tuple[ParamSpec, ...] = (
 SPECS = {spec.name: spec for spec in PARAMS}
 # Parameters of the cycle search that `crowdbake cycle` shares with `crowdbake bake` (its own flag names).
 CYCLE_SHARED = {"cycle_frames": "--cycle-frames", "close": "--close", "fps": "--fps", "up": "--up", "units": "--units",
-                "animation": "--animation", "candidates": "--candidates", "cycle_views": "--views"}
+                "animation": "--animation", "candidates": "--candidates", "cycle_views": "--views", "fit": "--no-fit"}
 
 
 def impostor_texels(values: dict[str, Any]) -> int | None:

@@ -10,6 +10,7 @@ from repo_paths import REPO_ROOT, SHARED_ASSETS, VECTORS  # noqa: F401  (tests i
 from sample_fixtures import small_bake, small_sample  # noqa: F401  (a session fixture shared with tests/)
 from clips_fixtures import clips_bake, clips_sample  # noqa: F401  (the clips sample and its bake, shared by the sample's and the service's tests)
 from robot_fixtures import robot_bake  # noqa: F401  (the robot's v2 bundle, shared by the bake's and the export's tests)
+from egl_fixtures import egl_or_skip  # noqa: F401  (skips where no EGL context can be made)
 
 
 def pytest_configure(config) -> None:

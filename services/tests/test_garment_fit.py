@@ -97,3 +97,19 @@ def test_a_misfit_on_a_character_of_several_clips_names_the_timeline_first():
     with pytest.raises(InputError) as single:
         _fit(SHARED_ASSETS / "RiggedFigure.glb", cache)
     assert "timeline" not in single.value.message
+
+
+@needs_assets
+def test_crowdbake_cycle_refuses_the_misfit_in_one_line_unless_told_not_to_check(tmp_path, capsys):
+    """`crowdbake cycle` searched CesiumMan's skirt on RiggedFigure without a word, while `crowdbake bake`
+    refused it: the cycle command checks the fit too, with the same --no-fit."""
+    from crowdbake.cli import main
+
+    args = ["cycle", str(SKIRT / "long_skirt.pc2"), "--mesh", str(SKIRT / "long_skirt.obj"), "--character", str(SHARED_ASSETS / "RiggedFigure.glb"),
+            "--no-edge-pass", "--out", str(tmp_path / "out")]
+    assert main(args) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("crowdbake cycle: error: the garment does not fit the character") and "--no-fit" in lines[0]
+    assert not (tmp_path / "out" / "cycle.json").exists()
+    assert main([*args, "--no-fit"]) == 0
+    assert (tmp_path / "out" / "cycle.json").is_file()

@@ -24,3 +24,22 @@ def test_a_stage_of_one_finished_item_starts_and_ends_at_once():
     StageLines("export", stream)("publish", 1, 1)
     assert stream.getvalue().splitlines()[0] == "export: publish started (1 item)"
     assert stream.getvalue().splitlines()[1].startswith("export: publish done in ")
+
+
+def test_a_cancelled_outcome_takes_its_late_result_quietly(caplog):
+    """Regression: when a bake failed while pool items still ran, the runner cancelled their outcomes and
+    each late result raised InvalidStateError in the pool's done-callback (a logged traceback before the
+    bake's one-line error)."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from crowdbake.stages.worker_pool import submit_in_background
+
+    started, release = threading.Event(), threading.Event()
+    with caplog.at_level("ERROR", logger="concurrent.futures"), ThreadPoolExecutor(1) as pool:
+        late = submit_in_background(pool, lambda: (started.set(), release.wait(10)))
+        assert started.wait(10)  # running in the pool: its result comes after the cancel
+        assert late.cancel()
+        release.set()
+    assert late.cancelled()
+    assert not [record for record in caplog.records if "exception calling callback" in record.getMessage()], caplog.text

@@ -3,12 +3,14 @@ a bundle that verify_bundle accepts, byte-identical rebakes, idempotent stages, 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from crowdbake.cli.bake import format_summary
 from crowdbake.errors import InputError, StageOrderError, VersionConflict
 from crowdbake.formats.texel_codecs import unpack_uvblock
 from crowdbake.formats.bundle import verify_bundle
@@ -110,6 +112,12 @@ def test_bake_writes_a_bundle_that_verifies(sample, baked):
     assert fidelity["nearest_view"]["ssim_mean"] < fidelity["impostor"]["ssim_mean"]
     memory = json.loads((summary.bundle / "texture_memory.json").read_text())
     assert memory["paper"]["detail_mapped_mib"][0] == memory["paper"]["uv_mapped_mib"][0] == 16
+    # The GL context that drew the maps, in both reports and the summary: this process's platform, every task.
+    assert fidelity["gl_renderers"] == memory["gl_renderers"] == summary.gl_renderers
+    assert [gl["impostor_tasks"] for gl in summary.gl_renderers] == [4]
+    assert summary.gl_renderers[0]["platform"] == os.environ["PYOPENGL_PLATFORM"] and summary.gl_renderers[0]["renderer"]
+    assert {k: v for k, v in summary.gl_renderers[0].items() if k != "impostor_tasks"} == fidelity["runtime"]["gl_renderer"]
+    assert f"gl       4 impostor tasks drawn on {summary.gl_renderers[0]['renderer']}, OpenGL " in format_summary(summary)
     assert set(summary.timings_s) == set(STAGES)
     assert summary.impostor["views"] == 16 and summary.impostor["tasks"] == 4
 

@@ -10,6 +10,7 @@ from pathlib import Path
 from crowdbake.cli.common import CommandError, StageLines, bars_enabled, progress
 from crowdbake.ingest.input_modes import INPUT_OPTIONS, InputConflict, InputMode, command_line_inputs
 from crowdbake.params import add_cli_options, option_for, params_from_args
+from crowdbake.render.gl_device import describe as describe_gl
 
 DESCRIPTION = """\
 Bake a skinned character (glTF) and its simulated garment (a PC2 or MDD cache with its OBJ rest mesh, an
@@ -17,10 +18,12 @@ Alembic .abc, or a .zip of OBJ frames) into a bundle:
 the cloth cycle (searched, or given with --cycle), poses of the body and the garment for every cycle frame
 at two LODs (meshoptimizer), UV-mapped impostors (normal, UV and surface maps, detail maps with
 --detail-map, for --frames frames x --azimuths x elevations views, as many as fit --impostor-budget,
-cropped to the character, rendered with pyrender under OSMesa, or EGL with PYOPENGL_PLATFORM=egl),
+cropped to the character, rendered with pyrender under OSMesa, or EGL with PYOPENGL_PLATFORM=egl on the
+device EGL_DEVICE_ID names, else the first that is not Mesa's software one),
 block compression, the impostor's fidelity against the mesh and the texture memory of figure 4.
 
-Writes OUT/NAME/VERSION (shared_formats bundle v1), verifies it, and prints sizes, timings and fidelity.
+Writes OUT/NAME/VERSION (shared_formats bundle v1), verifies it, and prints sizes, timings, fidelity and the
+GL renderer that drew the impostors.
 A published NAME/VERSION never changes: baking it again with other results is an error.
 The garment must sit on the character at its first frame: a Z-up or centimetre cache is refused, naming
 --up or --units, and converted when they are given."""
@@ -107,6 +110,8 @@ def format_summary(summary) -> str:
             f"({impostor['views'] / render if render > 0 else float('inf'):.0f} views/s), maps {impostor['maps_seconds']:.2f} s, "
             f"fidelity references {impostor['reference_seconds']:.2f} s"
         )
+    for gl in summary.gl_renderers:
+        lines.append(f"gl       {gl['impostor_tasks']} impostor tasks drawn on {describe_gl(gl)}")
     for mesh in summary.meshes:
         extra = ""
         if mesh["lod"] == 1:

@@ -20,9 +20,13 @@ velocity), with penetration into the body measured before and after.
 The cloth cache is a PC2 or MDD with its OBJ rest mesh (--mesh), or an Alembic .abc or a .zip of OBJ frames
 alone. Its first frame must sit on the body: a Z-up or centimetre cache is refused, naming --up or --units,
 and converted when they are given. The cache's frame rate is --fps, else its own (MDD, Alembic), else
-24 / (the PC2 sample interval).
+24 / (the PC2 sample interval). Without --timeline the cloth must move one way all along the cache: one
+whose cloth changes speed from one cycle to the next, as across several clips, is refused, naming the
+frames, until its --timeline is given; with --character the garment must also follow the character over
+the cache, as `crowdbake bake` checks (--no-fit skips that check).
 
-Writes OUT/cycle.json, OUT/looped.pc2 (exactly one loop) and OUT/report.html with its plots."""
+Writes OUT/cycle.json, OUT/looped.pc2 (exactly one loop) and OUT/report.html with its plots (with
+--timeline, a section per clip's loop and per transition)."""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -115,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
                 cycle_frames=args.cycle_frames, fps=args.fps, params=params,
                 up=args.up, units=args.units, animation=args.animation,
                 progress=on_progress, edge_pass=not args.no_edge_pass, timeline=timeline,
+                check_fit=args.fit and args.character is not None and timeline is None,
             )
         except InputError as error:
             raise CommandError(f"--clip-cloth: {error.message}" if error.field == "clip_cloth" else error.message) from None

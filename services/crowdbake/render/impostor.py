@@ -63,6 +63,13 @@ class BakeRenderer:
         self._offscreen.close()
         self._open = False
 
+    @property
+    def gl(self) -> offscreen.GlContextInfo:
+        """What this renderer's context is (crowdbake.render.gl_device), for the reports."""
+        if self._offscreen.gl is None:
+            raise RuntimeError("VisibilityRenderer.gl read outside its `with` block")
+        return self._offscreen.gl
+
     def _shader(self, size: int, shader_pass) -> MapShader:
         """This context's MapShader of `shader_pass` for views of `size`² (the context must be current)."""
         key = (int(size), shader_pass.name)

@@ -8,7 +8,9 @@ poses are camera-to-world (4, 4) float64 matrices. Azimuth 0 puts the camera on 
 degrees is the +X side. Elevation is positive above the target.
 
 The GL platform is chosen by PYOPENGL_PLATFORM, read when OpenGL is first imported: we default it to
-"osmesa" (software, runs on any worker) and leave any value the caller set alone, so "egl" selects a GPU.
+"osmesa" (software, runs on any worker) and leave any value the caller set alone, so "egl" selects a GPU
+(the device: crowdbake.render.gl_device). Each Offscreen knows its context's GL strings (`gl`), which the
+bake's reports record.
 pyrender (with trimesh and most of scipy behind it: seconds of start-up) is imported by the functions that
 draw, not by this module, so that processes that never render (the API, pack-only workers, `--help`)
 do not pay for it.
@@ -24,6 +26,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Iterator, Sequence
 
 import numpy as np
+
+from crowdbake.render import gl_device
+from crowdbake.render.gl_device import GlContextInfo
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
@@ -302,16 +307,20 @@ class Offscreen:
         self.width = int(width)
         self.height = int(height)
         self._renderer: pyrender.OffscreenRenderer | None = None
+        self.gl: GlContextInfo | None = None  # what the context is, once entered
 
     def __enter__(self) -> "Offscreen":
         import pyrender
 
         started = time.perf_counter()
+        device, device_count = gl_device.egl_device_for_pyrender() if os.environ["PYOPENGL_PLATFORM"] == "egl" else (None, 0)
         self._renderer = pyrender.OffscreenRenderer(self.width, self.height)
         self._renderer._renderer._program_cache = one_context_program_cache()  # no public hook: see that function
         single_sample_framebuffer(self._renderer)
+        self._renderer._platform.make_current()
+        self.gl = gl_device.current_context(device, device_count)
         _add_time(setup_seconds=time.perf_counter() - started)
-        logger.debug("offscreen renderer %dx%d on %s", self.width, self.height, os.environ["PYOPENGL_PLATFORM"])
+        logger.debug("offscreen renderer %dx%d: %s", self.width, self.height, gl_device.describe(self.gl.to_json()))
         return self
 
     def __exit__(self, *exc_info) -> None:

@@ -21,7 +21,6 @@ from crowdbake.formats.pc2 import read_pc2, write_pc2
 from crowdbake.params import BASE_FPS
 from crowdbake.stages.body_only import animation_loop_cycle
 from crowdbake.stages.cycle_job import run_cycle_job
-from crowdbake.stages.cycle_report import write_cycle_plots
 from crowdbake.stages.loops import load_clip_loops
 from crowdbake.stages.records import CycleRecord, JobRecord
 from crowdbake.stages.validate import load_job
@@ -40,6 +39,7 @@ def bundle_cycle_document(document: dict) -> dict:
     cleaned.pop("bundle_ranges", None)  # several clips: the manifest's clips and transitions say it
     for entry in [*cleaned.get("clips", []), *cleaned.get("transitions", [])]:  # several clips: work files, not the bundle's
         entry.pop("file", None)
+        entry.pop("figures", None)
         entry.pop("timings_s", None)
     return cleaned
 
@@ -86,7 +86,7 @@ def _searched_cycle(job: JobRecord, work: Path, out: Path, progress: Progress | 
         report(progress, f"cycle:{stage}", done, total)
 
     try:
-        result = run_cycle_job(
+        run_cycle_job(
             inputs / names["cloth"],
             inputs / names["cloth_mesh"],
             out,
@@ -97,15 +97,13 @@ def _searched_cycle(job: JobRecord, work: Path, out: Path, progress: Progress | 
             params=cycle_params,
             animation=params.animation,
             progress=forward,
-            plots=plots is None,
+            plots=True if plots is None else plots,
             timeline=inputs / names["timeline"] if "timeline" in names else None,
             # Every clip's loop, searched side by side by the loops stage: only the transitions are left.
             loops=load_clip_loops(work) if "timeline" in names else None,
         )
     except ValueError as error:
         raise InputError(f"cycle search: {error}", "cloth") from None
-    if plots is not None:
-        plots.append(lambda: write_cycle_plots(result, out))
     return read_json(out / "cycle.json")
 
 

@@ -105,6 +105,7 @@ def load_cycle_inputs(
     animation: int | str | None = None,
     timeline: str | os.PathLike | None = None,
     clip: str | None = None,
+    check_fit: bool = False,
 ) -> CycleInputs:
     """Read and cross-check the cycle search's input files. Raises ValueError with a one-line reason.
 
@@ -114,10 +115,12 @@ def load_cycle_inputs(
     (crowdbake.ingest.garment.place_cloth) and converted to Y-up metres when up/units say so.
     timeline: a clip timeline file (crowdbake.ingest.timeline): its primary clip (`animation` or its first)
     gives the cycle length, it is checked against the cache and the character, and a character's body is
-    posed per clip (pose_clips_body; only `clip`'s frames when given)."""
+    posed per clip (pose_clips_body; only `clip`'s frames when given).
+    check_fit: refuse (InputError "cloth") a garment that does not follow the character over the cache
+    (crowdbake.ingest.garment.check_garment_fit, as the bake's validation does); a character and no timeline only."""
     from crowdbake.formats.obj import read_obj
     from crowdbake.formats.pc2 import read_pc2
-    from crowdbake.ingest.garment import place_cloth, read_cloth
+    from crowdbake.ingest.garment import check_garment_fit, place_cloth, read_cloth
     from crowdbake.params import cache_fps
 
     plays = None
@@ -159,6 +162,9 @@ def load_cycle_inputs(
 
         cache = place_cloth(cache, body_at_rest(loaded_character), up, units)
         if plays is None:
+            # The fit poses one clip over every frame: a timeline's cache is checked by its clips instead.
+            if check_fit:
+                check_garment_fit(loaded_character, cache, frame_rate)
             body, body_normals = _pose_body(loaded_character, frame_rate, frame_count)
         body_faces = np.asarray(loaded_character.faces, dtype=np.int64)
         sources["character"] = str(character)
@@ -246,3 +252,20 @@ def pose_clips_body(character_path, timeline: Timeline, only: str | None = None)
                 phase = timeline.clip_frame[rows] % period
                 positions[rows] = posed[phase]
     return positions, faces
+
+
+def check_one_motion(cloth: np.ndarray, cycle_frames: int, settle_frames: int | None, name: str) -> None:
+    """Refuse (ValueError, one line) a cache searched as one clip whose cloth changes its motion along it
+    (crowdbake.bake.motion_changes): it seems to play several clips, and a loop cut blind may come from
+    another clip than the body plays. cloth: (F, V, 3); settle_frames: the search's (None: one cycle),
+    before which nothing is compared; name: the cache's file name for the message."""
+    from crowdbake.bake.motion_changes import CHANGE_FACTOR, motion_changes
+
+    changes = motion_changes(cloth, cycle_frames, cycle_frames if settle_frames is None else settle_frames)
+    if not changes:
+        return
+    listed = ", ".join(f"{change.factor:.1f}x at frame {change.frame}" for change in changes)
+    raise ValueError(
+        f"{name}: the cloth's motion changes along the cache, as if it played several clips: its speed over a "
+        f"{cycle_frames}-frame cycle changes by more than {CHANGE_FACTOR:g}x from the cycle before ({listed}); give the "
+        "clips' timeline (--timeline) to loop each clip on its own frames")

@@ -35,7 +35,9 @@ from crowdbake.bake.transitions import SLOW_SWITCH_RATIO, Join, Transition, find
 from crowdbake.formats.pc2 import write_pc2
 from crowdbake.formats.ranges import Clip, Ranges
 from crowdbake.formats.ranges import Transition as BundleTransition
-from crowdbake.stages.cycle_inputs import CycleInputs, load_cycle_inputs
+from crowdbake.stages.clips_report import clip_figures
+from crowdbake.stages.cycle_inputs import CycleInputs, check_one_motion, load_cycle_inputs
+from crowdbake.stages.clips_report import clips_report
 from crowdbake.stages.cycle_report import report_html, write_cycle_plots, write_edge_images
 from crowdbake.stages.workdir import Progress
 
@@ -57,23 +59,30 @@ def run_cycle_job(
     animation: int | str | None = None,
     progress: Progress | None = None,
     edge_pass: bool = True,
-    plots: bool = True,
+    plots: bool | list = True,
     timeline: str | os.PathLike | None = None,
     loops: list[ClipLoop] | None = None,
+    check_fit: bool = False,
 ) -> CycleResult:
     """The whole `crowdbake cycle` job: files in, cycle.json + looped.pc2 + report.html out; returns the
     primary clip's result in cache frames.
 
     edge_pass: run pass 2 (rendering under OSMesa/EGL); False picks the best pass-1 candidate.
-    plots: draw the report's plots now; False leaves them to write_cycle_plots(result, out_dir).
+    plots: True draws the report's plots now; a list receives the drawing as callables to run later (the
+        bake runner draws them beside the next stages); False draws none.
     timeline: a clip timeline file (crowdbake.ingest.timeline), or None for a cache of one clip.
     loops: every clip's loop searched already (crowdbake.stages.loops, in the timeline's order): only the
         transitions are searched here.
+    check_fit: refuse a garment that does not follow the character (crowdbake.ingest.garment.check_garment_fit;
+        a character and no timeline only).
     Raises ValueError on bad input (with a one-line reason).
     """
     report = progress or (lambda stage, done, total: None)
     report("load", 0, 1)
-    inputs = load_cycle_inputs(cloth_pc2, cloth_obj, character, body_pc2, body_obj, cycle_frames, fps, up, units, animation, timeline)
+    inputs = load_cycle_inputs(cloth_pc2, cloth_obj, character, body_pc2, body_obj, cycle_frames, fps, up, units, animation, timeline,
+                               check_fit=check_fit)
+    if timeline is None:  # one clip over every frame: the cache must be one motion
+        check_one_motion(inputs.cloth, inputs.cycle_frames, params.settle_frames, Path(cloth_pc2).name)
     report("load", 1, 1)
     plays = inputs.timeline
     if loops is None:
@@ -93,7 +102,16 @@ def run_cycle_job(
     report("report", 0, 1)
     # Without a timeline there is nothing beyond the one loop to describe.
     sections = None if timeline is None else write_clip_files(out_dir, plays, primary, loops, transitions, inputs.sample_rate)
-    write_cycle_outputs(result, out_dir, inputs, plots=plots, sections=sections)
+    draw = [lambda: write_cycle_plots(result, out_dir)]
+    if sections is not None:  # every loop's and join's pictures, named in the sections before cycle.json is written
+        figures = clip_figures(sections, loops, transitions, inputs.cloth)
+        draw.append(lambda: figures.draw(out_dir))
+    write_cycle_outputs(result, out_dir, inputs, plots=False, sections=sections)
+    if isinstance(plots, list):
+        plots.extend(draw)
+    elif plots:
+        for drawing in draw:
+            drawing()
     report("report", 1, 1)
     return result
 
@@ -136,7 +154,8 @@ def write_cycle_outputs(result: CycleResult, out_dir: str | os.PathLike, inputs:
     if sections is not None:  # a timeline's clips (write_clip_files): every loop and transition
         document.update(sections)
     paths["cycle_json"].write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
-    paths["report"].write_text(report_html(result, document), encoding="utf-8")
+    report = clips_report(document) if document.get("clips") else report_html(result, document)
+    paths["report"].write_text(report, encoding="utf-8")
     logger.info("cycle outputs written to %s", out)
     return paths
 

@@ -8,7 +8,8 @@
     edges/          the winner's pictures and edge images, one PNG per view and frame
 
 crowdbake.stages.cycle_job writes cycle.json and the looped cache and calls these. Plots with matplotlib
-(Agg), edge images with OpenCV.
+(Agg), edge images with OpenCV. The report of a timeline's clips, a section per loop and per transition,
+is crowdbake.stages.clips_report.
 """
 from __future__ import annotations
 
@@ -21,14 +22,17 @@ import numpy as np
 from crowdbake.bake.cycle import CycleResult
 
 
-def write_cycle_plots(result: CycleResult, out_dir: str | os.PathLike) -> None:
-    """The report's plots: pass1.png, seam.png, candidates.png and, after pass 2, edges.png."""
+def write_cycle_plots(result: CycleResult, out_dir: str | os.PathLike, prefix: str = "",
+                      searched: tuple[int, int] | None = None) -> None:
+    """The report's plots: pass1.png, seam.png, candidates.png and, after pass 2, edges.png, each name
+    after `prefix` (a several-clip report draws every loop's beside report.html). searched: the cache frames
+    [first, end) the search ran over (a clip's stretch), which pass 1's plot spans; None: the whole cache."""
     out = Path(out_dir)
-    _plot_pass1(result, out / "pass1.png")
-    _plot_seam(result, out / "seam.png")
-    _plot_candidates(result, out / "candidates.png")
+    _plot_pass1(result, out / f"{prefix}pass1.png", searched or (0, result.frame_count))
+    _plot_seam(result, out / f"{prefix}seam.png")
+    _plot_candidates(result, out / f"{prefix}candidates.png")
     if result.winner_images is not None and result.winner_edges is not None:
-        _plot_edges(result, out / "edges.png")
+        _plot_edges(result, out / f"{prefix}edges.png")
 
 
 # --- plots -------------------------------------------------------------------------------------------
@@ -42,12 +46,12 @@ def _pyplot():
     return plt
 
 
-def _plot_pass1(result: CycleResult, path: Path) -> None:
+def _plot_pass1(result: CycleResult, path: Path, searched: tuple[int, int]) -> None:
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(9, 3.6), dpi=100)
     for curve in result.curves:
         ax.plot(curve.start_frames, curve.distances, lw=1.2, label=f"gap {curve.gap} frames ({curve.cycle_count} cycle{'s' if curve.cycle_count > 1 else ''})")
-    ax.axvspan(0, result.settle_frames, color="0.9", label="settle-in")
+    ax.axvspan(searched[0], result.settle_frames, color="0.9", label="settle-in")
     for rank, candidate in enumerate(result.candidates):
         chosen = rank == result.chosen
         ax.plot(candidate.start_frame, candidate.vertex_distance, "o" if not chosen else "*",
@@ -58,7 +62,7 @@ def _plot_pass1(result: CycleResult, path: Path) -> None:
     ax.set_xlabel("start frame Fs")
     ax.set_ylabel("vertex distance D (cache units)")
     ax.set_title("Pass 1: windowed position + velocity distance to Fs + gap (candidates numbered, winner starred)")
-    ax.set_xlim(0, result.frame_count)
+    ax.set_xlim(*searched)
     ax.legend(fontsize=8, loc="upper right")
     fig.tight_layout()
     fig.savefig(path)
@@ -189,8 +193,9 @@ _QUALITY_ROWS = (
 )
 
 
-def _quality_html(quality: dict | None, method: str) -> str:
-    """The loop-quality section: a table of the bounded ratios, and a loud banner when a bound is broken."""
+def _quality_html(quality: dict | None, method: str, heading: str = "h2") -> str:
+    """The loop-quality section under a `heading` element: a table of the bounded ratios, and a loud
+    banner when a bound is broken."""
     if quality is None:
         return ""
     rows = [
@@ -206,11 +211,12 @@ def _quality_html(quality: dict | None, method: str) -> str:
         )
     else:
         banner = f'<p class="ok">The {html.escape(method)} closing keeps within every quality bound.</p>'
-    return f"<h2>Loop quality against the simulation</h2>{banner}{table}<p>{html.escape(quality.get('seam_acceleration_note', ''))}</p>"
+    return f"<{heading}>Loop quality against the simulation</{heading}>{banner}{table}<p>{html.escape(quality.get('seam_acceleration_note', ''))}</p>"
 
 
 def report_html(result: CycleResult, document: dict) -> str:
-    """report.html: the chosen cycle, the closing and its quality bounds, the plots and the candidates."""
+    """report.html of one clip: the chosen cycle, the closing and its quality bounds, the plots and the
+    candidates (a timeline's clips: crowdbake.stages.clips_report)."""
     closing = result.closing
     candidates = _table(
         ["rank", "Fs", "Fe", "cycles", "vertex distance", "edge distance (px)", "chosen"],
@@ -261,7 +267,6 @@ It was chosen by {document['selected_by'].replace('_', ' ')} among {len(result.c
 <b>{html.escape(closing.method)}</b>{f' over {closing.blend_frames} frames' if closing.blend_frames else ''}.
 The push-out moved {closing.pushed_vertices} vertex-frames.</p>
 {root}
-{clips_report_html(document)}
 <h2>Candidates</h2>{candidates}
 {quality}
 <h2>Seam</h2>

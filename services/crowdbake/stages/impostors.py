@@ -21,6 +21,7 @@ per sample by the map shader's reference pass.
 """
 from __future__ import annotations
 
+import json
 import re
 import time
 from dataclasses import dataclass
@@ -252,7 +253,8 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
     timings = {"render": 0.0, "maps": 0.0, "references": 0.0}
     arrays = render_task(scene, plan, task, timings, next_positions)
     write_bytes_atomic(path, npz_bytes(arrays))
-    write_json_atomic(stats_path, ImpostorPartRecord(key=key, views=len(task.views), seconds=timings).to_json())
+    gl = shared_renderer(int(plan.layout["tile_size"])).gl.to_json()
+    write_json_atomic(stats_path, ImpostorPartRecord(key=key, views=len(task.views), seconds=timings, gl=gl).to_json())
     return path
 
 
@@ -437,6 +439,18 @@ def part_record(work: Path, task: ImpostorTask) -> ImpostorPartRecord | None:
     """The sidecar of a written part, or None."""
     stats_path = part_path(work, task).with_suffix(".json")
     return ImpostorPartRecord.from_json(read_json(stats_path)) if stats_path.is_file() else None
+
+
+def gl_renderers(work: Path) -> list[dict]:
+    """Each GL context that drew the written impostor parts (their sidecars' `gl`), in task order, with
+    `impostor_tasks`: how many parts it drew. One entry, unless workers of several kinds shared the bake."""
+    counts: dict[str, int] = {}  # by the context's JSON text: dicts keep their first-seen order
+    for task in impostor_tasks(work):
+        stats = part_record(work, task)
+        if stats is not None and stats.gl is not None:
+            text = json.dumps(stats.gl, sort_keys=True)
+            counts[text] = counts.get(text, 0) + 1
+    return [{**json.loads(text), "impostor_tasks": count} for text, count in counts.items()]
 
 
 def impostor_statistics(work: Path) -> ImpostorStatistics:

@@ -21,7 +21,7 @@ from crowdbake.formats.binary import TextureArray, encode_texture_array, layer_s
 from crowdbake.formats.bundle import CLIPS_FORMAT_VERSION, FORMAT_VERSION, BundleFile, build_manifest, verify_bundle, write_bundle
 from crowdbake.stages.cycle import bundle_cycle_document
 from crowdbake.stages.fidelity import score_fidelity
-from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_plan, load_poses, next_baked_frame, part_path, part_record
+from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, gl_renderers, impostor_tasks, load_plan, load_poses, next_baked_frame, part_path, part_record
 from crowdbake.stages.poses import DIFFUSE_ERRORS
 from crowdbake.stages.runtime_fidelity import RUNTIME_PICTURES, score_runtime
 from crowdbake.stages.records import CycleRecord, ImpostorPlan, ImpostorTask, MaterialInfo, PackRecord, PosesRecord
@@ -385,9 +385,12 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
     # runner ran stage_pack_scores in a worker).
     fidelity_doc = read_json(stage_pack_scores(work))["fidelity"]
     fidelity_doc["compression"] = compression_report
+    # What drew the maps and references: the same scores from llvmpipe and from a GPU may differ.
+    renderers = gl_renderers(work)
+    fidelity_doc["gl_renderers"] = renderers
     files.append(BundleFile("fidelity.json", json_bytes(fidelity_doc), "fidelity"))
     report(progress, "pack", len(poses.frame_indices) + 1, steps)
-    memory_doc = _texture_memory(poses, layout, formats)
+    memory_doc = {**_texture_memory(poses, layout, formats), "gl_renderers": renderers}
     files.append(BundleFile("texture_memory.json", json_bytes(memory_doc), "texture-memory"))
     cycle_document = bundle_cycle_document(read_json(folder.root / "cycle" / "cycle.json"))
     files.append(BundleFile("cycle.json", json_bytes(cycle_document), "cycle"))
@@ -424,6 +427,7 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
             "break_even_variations": memory_doc["break_even_variations"],
             "impostor": memory_doc["impostor"],
         },
+        gl_renderers=renderers,
     )
     seconds = time.perf_counter() - started
     folder.save("pack", key, record, seconds)

@@ -247,6 +247,9 @@ class ImpostorPartRecord(Record):
     key: str
     views: int
     seconds: dict[str, float] = field(default_factory=dict)  # render, maps, references
+    # The GL context that drew the part (crowdbake.render.gl_device.GlContextInfo.to_json); None in a
+    # sidecar written before it was recorded.
+    gl: dict[str, Any] | None = None
 
 
 @dataclass
@@ -269,3 +272,5 @@ class PackRecord(Record):
     uv_precision: dict[str, Any]
     compression: dict[str, Any]
     texture_memory: dict[str, Any]
+    # Each GL context that drew impostor parts, with how many (crowdbake.stages.impostors.gl_renderers).
+    gl_renderers: list[dict[str, Any]] = field(default_factory=list)

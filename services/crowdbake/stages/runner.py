@@ -165,6 +165,8 @@ class BakeSummary:
     fidelity: dict[str, Any]
     compression: dict[str, Any]
     texture_memory: dict[str, Any]
+    # The GL contexts that drew the impostor maps (PackRecord.gl_renderers).
+    gl_renderers: list[dict[str, Any]] = field(default_factory=list)
     # Set when a texture variation is a JPEG (no alpha, so no colour-region codes): what that means.
     texture_note: str | None = None
     # Set when the bake picked the animation itself (JobRecord.animation_choice): which and why.
@@ -268,6 +270,7 @@ def run_bake(inputs, out_root: Path, work: Path | None = None, progress: Progres
         fidelity=dict(pack.fidelity, uv_precision=pack.uv_precision),
         compression=pack.compression,
         texture_memory=pack.texture_memory,
+        gl_renderers=pack.gl_renderers,
         texture_note=(job.textures or {}).get("note"),
         animation_choice=job.animation_choice,
         timings=timings,

@@ -164,14 +164,15 @@ def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: li
     """fidelity.json's `runtime` section (module docstring): SSIM and PSNR of crowdview's blended impostor,
     each sample reprojected with the surface map when the bundle has one (crowdview's default; warp False:
     its `full` blend, unmoved samples weighed by the surface map's alpha), drawn by crowdview's own shader
-    in this process's GL context (crowdbake.render.runtime_shader)."""
+    in this process's GL context (crowdbake.render.runtime_shader), whose GL strings go in `gl_renderer`."""
     from crowdbake.render.impostor import shared_renderer
 
     atlas = replace(runtime_atlas(poses, layout, parsed_map(uv_file, "uv map"), parsed_map(normal_file, "normal map"),
                                   parsed_map(surface_file, "surface map"), texture_arrays), warp=warp)
     scored = scored_cameras(work, poses, layout, tasks, parts, supersample)
     frame, frame_weights = halfway_frame(poses)
-    pictures = shared_renderer(layout.tile_size).runtime_impostors(atlas, [picture for *_, picture in scored])
+    renderer = shared_renderer(layout.tile_size)
+    pictures = renderer.runtime_impostors(atlas, [picture for *_, picture in scored])
     sections: dict[str, list[dict[str, Any]]] = {"at_views": [], "between_views": [], "between_azimuths": []}
     for (section, camera, reference, _), picture in zip(scored, pictures):
         sections[section].append({**camera, **fidelity.compare(reference, picture.astype(np.float64))})
@@ -185,6 +186,7 @@ def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: li
         "between_frame_weight": frame_weights.weight,
         "diffuse_lookup": "crowdview's: trilinear over glGenerateMipmap's chain, level from the UV map's quad gradients",
         "reprojection": "surface map (depth and motion), runtime/src/shaders/impostor_warp.glsl" if surface_file is not None else "none",
+        "gl_renderer": renderer.gl.to_json(),
         "at_views": fidelity.summarize(sections["at_views"]),
         "between_views": fidelity.summarize(sections["between_views"]),
         "between_azimuths": fidelity.summarize(sections["between_azimuths"]),

@@ -16,7 +16,7 @@ import multiprocessing
 import os
 import resource
 import threading
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future, InvalidStateError, ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -127,17 +127,23 @@ def submit_in_background(pool: ProcessPoolExecutor, *call: Any) -> Future:
     outcome: Future = Future()
 
     def settle(done: Future) -> None:
-        error = done.exception()
-        if error is not None:
-            outcome.set_exception(error)
-        else:
-            outcome.set_result(done.result())
+        # The runner cancels what it still waits for when a bake fails: nobody reads this outcome then.
+        try:
+            if done.cancelled():
+                outcome.cancel()
+            elif done.exception() is not None:
+                outcome.set_exception(done.exception())
+            else:
+                outcome.set_result(done.result())
+        except InvalidStateError:
+            pass
 
     def submit() -> None:
         try:
             pool.submit(*call).add_done_callback(settle)
         except BaseException as error:  # noqa: BLE001 - the pool shut down first: handed to whoever waits
-            outcome.set_exception(error)
+            if not outcome.cancelled():
+                outcome.set_exception(error)
 
     threading.Thread(target=submit, name="submit", daemon=True).start()
     return outcome
