@@ -356,6 +356,9 @@ Status check_meshes(const Manifest& m, const std::map<std::string, PoseCache>& p
         if (cache.frame_count != m.pose_frames)
             return invalid(mesh.file, std::to_string(cache.frame_count) + " frames, the manifest has " + std::to_string(m.pose_frames) +
                                           " pose frames");
+        if (cache.frames_per_second != float(m.frames_per_second))
+            return invalid(mesh.file, "frames_per_second " + std::to_string(cache.frames_per_second) + ", the manifest says " +
+                                          std::to_string(m.frames_per_second));
         if (mesh.material >= m.materials.size())
             return invalid(mesh.file, "material " + std::to_string(mesh.material) + " does not exist");
         bundle->meshes.push_back(cache);
