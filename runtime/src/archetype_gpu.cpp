@@ -143,15 +143,9 @@ bool upload_mesh_parts(const Bundle& bundle, ArchetypeGpu* g, std::string* error
     return true;
 }
 
-// The impostors' VAO: instance attributes from the impostor LOD's buffer, blend samples from their own.
-void create_impostor_vao(ArchetypeGpu* g) {
-    glGenVertexArrays(1, &g->impostor_vao);
-    glBindVertexArray(g->impostor_vao);
-    label(GL_VERTEX_ARRAY, g->impostor_vao, "impostors");
-    bind_instance_attributes(g->instance_buffers[int(Lod::impostor)]);
-    glGenBuffers(1, &g->impostor_sample_buffer);
-    glBindBuffer(GL_ARRAY_BUFFER, g->impostor_sample_buffer);
-    label(GL_BUFFER, g->impostor_sample_buffer, "instances:impostor-samples");
+// Binds the impostors' blend samples (struct ImpostorSamples) of `buffer` to the bound VAO.
+void bind_impostor_sample_attributes(GLuint buffer) {
+    glBindBuffer(GL_ARRAY_BUFFER, buffer);
     const GLsizei stride = sizeof(ImpostorSamples);
     glEnableVertexAttribArray(CV_ATTR_IMPOSTOR_TILES);
     glVertexAttribIPointer(CV_ATTR_IMPOSTOR_TILES, 4, GL_UNSIGNED_SHORT, stride, (void*)offsetof(ImpostorSamples, tiles));
@@ -163,6 +157,18 @@ void create_impostor_vao(ArchetypeGpu* g) {
     glVertexAttribPointer(CV_ATTR_IMPOSTOR_FRAME_WEIGHT, 1, GL_FLOAT, GL_FALSE, stride, (void*)offsetof(ImpostorSamples, frame_weight));
     for (GLuint a : {CV_ATTR_IMPOSTOR_TILES, CV_ATTR_IMPOSTOR_VIEW_WEIGHTS, CV_ATTR_IMPOSTOR_LAYERS, CV_ATTR_IMPOSTOR_FRAME_WEIGHT})
         glVertexAttribDivisor(a, 1);
+}
+
+// The impostors' VAO: instance attributes from the impostor LOD's buffer, blend samples from their own.
+void create_impostor_vao(ArchetypeGpu* g) {
+    glGenVertexArrays(1, &g->impostor_vao);
+    glBindVertexArray(g->impostor_vao);
+    label(GL_VERTEX_ARRAY, g->impostor_vao, "impostors");
+    bind_instance_attributes(g->instance_buffers[int(Lod::impostor)]);
+    glGenBuffers(1, &g->impostor_sample_buffer);
+    glBindBuffer(GL_ARRAY_BUFFER, g->impostor_sample_buffer);
+    label(GL_BUFFER, g->impostor_sample_buffer, "instances:impostor-samples");
+    bind_impostor_sample_attributes(g->impostor_sample_buffer);
     glBindVertexArray(0);
 }
 
@@ -226,6 +232,17 @@ InstanceBuffers ArchetypeGpu::instance_targets() const {
     std::copy(instance_buffers, instance_buffers + 3, buffers.by_lod);
     buffers.impostor_samples = impostor_sample_buffer;
     return buffers;
+}
+
+void point_instance_attributes(const ArchetypeGpu& g, const InstanceBuffers& buffers) {
+    for (const MeshPart& p : g.parts) {
+        glBindVertexArray(p.vao);
+        bind_instance_attributes(buffers.by_lod[int(p.lod)]);
+    }
+    glBindVertexArray(g.impostor_vao);
+    bind_instance_attributes(buffers.by_lod[int(Lod::impostor)]);
+    bind_impostor_sample_attributes(buffers.impostor_samples);
+    glBindVertexArray(0);
 }
 
 ImpostorBlend ArchetypeGpu::drawn_blend(ImpostorBlend blend) const {

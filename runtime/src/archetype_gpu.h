@@ -69,4 +69,8 @@ struct ArchetypeGpu {
 // that does not build, or a GL error while uploading.
 std::unique_ptr<ArchetypeGpu> upload_archetype(const Bundle& bundle, const RendererDesc& desc, std::string* error);
 
+// Points every VAO of `g` at the instances in `buffers`: several renderer archetypes drawn from one
+// bundle share its uploads, each with its own instance buffers (Renderer::add_archetype_like).
+void point_instance_attributes(const ArchetypeGpu& g, const InstanceBuffers& buffers);
+
 }  // namespace crowdview

@@ -2,32 +2,92 @@
 #include "archetypes.h"
 
 #include <algorithm>
+#include <filesystem>
+#include <map>
 
 namespace crowdview {
+
+namespace {
+
+// Where an archetype's bundle comes from, so that two spellings of one place compare equal: a
+// folder's canonical path, a URL's bundle folder (fetch.h bundle_urls).
+std::string source_key(const ArchetypeSource& source) {
+    if (source.is_url()) return "url " + bundle_urls(source.url).base;
+    std::error_code error;
+    const std::filesystem::path canonical = std::filesystem::weakly_canonical(source.folder, error);
+    return "folder " + (error ? source.folder : canonical.string());
+}
+
+// Two loads of one bundle (a `latest` URL and its version's, say): the same name, version and files.
+bool same_bundle(const Manifest& a, const Manifest& b) {
+    if (a.name != b.name || a.version != b.version || a.files.size() != b.files.size()) return false;
+    for (size_t i = 0; i < a.files.size(); ++i)
+        if (a.files[i].path != b.files[i].path || a.files[i].sha256 != b.files[i].sha256) return false;
+    return true;
+}
+
+// One source's bundle, or its refusal (`error`); a bundle already among `loaded` is that one.
+struct SourceLoad {
+    std::shared_ptr<Bundle> bundle;
+    std::string error;
+};
+
+SourceLoad load_source(const ArchetypeSource& source, const FetchOptions& fetch, FetchDeadline* deadline,
+                       const std::vector<LoadedArchetype>& loaded) {
+    auto bundle = std::make_shared<Bundle>();
+    const Status status = source.is_url() ? fetch_bundle(source.url, fetch, bundle.get(), deadline)
+                                          : load_bundle_dir(source.folder, bundle.get());
+    if (!status) return {nullptr, status.message};
+    for (const LoadedArchetype& a : loaded)
+        if (same_bundle(a.bundle->manifest, bundle->manifest)) return {a.bundle, ""};
+    return {bundle, ""};
+}
+
+// "bundle NAME VERSION: loaded once for 64 archetypes ('a', 'b', 'c' and 61 more)", per bundle
+// that several archetypes share.
+void log_shared_bundles(const std::vector<LoadedArchetype>& loaded, const std::function<void(const std::string&)>& log) {
+    for (size_t i = 0; log && i < loaded.size(); ++i) {
+        const Bundle* bundle = loaded[i].bundle.get();
+        const auto same = [&](const LoadedArchetype& a) { return a.bundle.get() == bundle; };
+        if (std::any_of(loaded.begin(), loaded.begin() + i, same)) continue;  // logged with its first archetype
+        const size_t sharing = size_t(std::count_if(loaded.begin() + i, loaded.end(), same));
+        if (sharing < 2) continue;
+        std::string names;
+        size_t named = 0;
+        for (size_t k = i; k < loaded.size() && named < 3; ++k)
+            if (same(loaded[k])) names += std::string(named++ ? ", '" : "'") + loaded[k].name + "'";
+        if (sharing > named) names += " and " + std::to_string(sharing - named) + " more";
+        log("bundle " + bundle->manifest.name + " " + bundle->manifest.version + ": loaded once for " + std::to_string(sharing) +
+            " archetypes (" + names + ")");
+    }
+}
+
+}  // namespace
 
 std::vector<LoadedArchetype> load_archetypes(const CrowdFile& crowd, const FetchOptions& fetch,
                                              const std::function<void(const std::string&)>& log,
                                              std::vector<RefusedArchetype>* refused) {
     std::vector<LoadedArchetype> loaded;
     const std::vector<uint64_t> counts = archetype_counts(crowd);
+    FetchDeadline deadline;                    // one for every URL archetype's fetch
+    std::map<std::string, SourceLoad> sources;  // by source_key: each folder or URL loaded once
     for (size_t k = 0; k < crowd.archetypes.size(); ++k) {
         const ArchetypeDesc& desc = crowd.archetypes[k];
         if (counts[k] == 0) {  // a share too small to round to one character, or no positions
             if (log) log("archetype '" + desc.name + "': no characters, not loaded");
             continue;
         }
-        LoadedArchetype a;
-        a.desc_index = k;
-        a.name = desc.name;
-        const Status status = desc.source.is_url() ? fetch_bundle(desc.source.url, fetch, &a.bundle)
-                                                   : load_bundle_dir(desc.source.folder, &a.bundle);
-        if (!status) {
-            refused->push_back({desc.name, status.message});
-            if (log) log("archetype '" + desc.name + "': bundle refused: " + status.message);
+        const std::string key = source_key(desc.source);
+        auto source = sources.find(key);
+        if (source == sources.end()) source = sources.emplace(key, load_source(desc.source, fetch, &deadline, loaded)).first;
+        if (!source->second.bundle) {
+            refused->push_back({desc.name, source->second.error});
+            if (log) log("archetype '" + desc.name + "': bundle refused: " + source->second.error);
             continue;
         }
-        loaded.push_back(std::move(a));
+        loaded.push_back({k, desc.name, source->second.bundle});
     }
+    log_shared_bundles(loaded, log);
     return loaded;
 }
 
@@ -83,6 +143,7 @@ nlohmann::json view_report(const std::string& device, const Renderer& renderer, 
                            const std::vector<ArchetypeCounts>& counts, const std::vector<LodRule>& rules, int frames,
                            double build_ms, const DrawStats& stats) {
     nlohmann::json archetypes = nlohmann::json::array();
+    uint64_t gpu_memory_total = 0;
     const char* lods[] = {"high", "low", "impostor"};
     for (size_t a = 0; a < renderer.archetype_count(); ++a) {
         const CharacterModel& m = renderer.model(a);
@@ -102,6 +163,9 @@ nlohmann::json view_report(const std::string& device, const Renderer& renderer, 
                               {"gpu_memory_bytes", {{"meshes", mem.meshes()}, {"bodies", mem.bodies}, {"garments", mem.garments},
                                                     {"textures", mem.textures}, {"impostors", mem.impostors},
                                                     {"total", mem.total()}}}});
+        gpu_memory_total += mem.total();
+        // Drawn with another archetype's uploads (the same bundle): its own memory above is zero.
+        if (const size_t owner = renderer.uploaded_by(a); owner != a) archetypes.back()["shares_uploads_of"] = scene.names[owner];
     }
     nlohmann::json refused = nlohmann::json::array();
     for (const RefusedArchetype& r : scene.refused) refused.push_back({{"name", r.name}, {"error", r.error}});
@@ -110,6 +174,7 @@ nlohmann::json view_report(const std::string& device, const Renderer& renderer, 
             {"height", renderer.height()},
             {"frames", frames},
             {"archetypes", archetypes},
+            {"gpu_memory_bytes_total", gpu_memory_total},
             {"refused", refused},
             {"draw_calls", stats.draw_calls},
             {"triangles", stats.triangles},
@@ -120,20 +185,27 @@ nlohmann::json view_report(const std::string& device, const Renderer& renderer, 
 bool upload_archetypes(Renderer* renderer, const std::vector<LoadedArchetype>& loaded, CrowdScene* scene,
                        const std::function<void(const std::string&)>& log, std::string* error) {
     const std::vector<uint64_t> counts = archetype_counts(scene->file);
+    std::map<const Bundle*, size_t> uploaded;       // a bundle's uploads: the renderer archetype that made them
+    std::map<const Bundle*, std::string> refusals;  // a bundle the renderer refused, asked once
     for (const LoadedArchetype& a : loaded) {
-        std::string refusal;
-        if (!renderer->add_archetype(a.bundle, &refusal)) {
+        const Bundle* bundle = a.bundle.get();
+        if (const auto same = uploaded.find(bundle); same != uploaded.end()) {
+            renderer->add_archetype_like(same->second);
+        } else if (!refusals.count(bundle) && renderer->add_archetype(*bundle, &refusals[bundle])) {
+            refusals.erase(bundle);
+            uploaded[bundle] = renderer->archetype_count() - 1;
+        } else {
             if (!log) {
-                *error = refusal;
+                *error = refusals[bundle];
                 return false;
             }
-            log("archetype '" + a.name + "': " + refusal);
-            scene->refused.push_back({a.name, refusal});
+            log("archetype '" + a.name + "': " + refusals[bundle]);
+            scene->refused.push_back({a.name, refusals[bundle]});
             continue;
         }
         scene->desc_index.push_back(a.desc_index);
         scene->names.push_back(a.name);
-        scene->traits.push_back(archetype_traits(scene->file.archetypes[a.desc_index], counts[a.desc_index], a.bundle,
+        scene->traits.push_back(archetype_traits(scene->file.archetypes[a.desc_index], counts[a.desc_index], *bundle,
                                                  renderer->model(renderer->archetype_count() - 1), scene->switch_after_s));
     }
     return true;

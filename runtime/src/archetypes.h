@@ -1,9 +1,12 @@
 // The archetypes of a crowd description, loaded: each bundle read from its folder or fetched
 // through the one download cache (fetch.h), verified, and later uploaded as one of the
-// renderer's archetypes. A bundle that is refused stops its archetype, not the crowd.
+// renderer's archetypes. A bundle that is refused stops its archetype, not the crowd. A bundle
+// several archetypes name (the same folder or URL, or the same name, version and files) is loaded
+// and uploaded once for all of them; each keeps its own count, clips and play rate.
 #pragma once
 
 #include <functional>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -21,7 +24,7 @@ namespace crowdview {
 struct LoadedArchetype {
     size_t desc_index = 0;  // into CrowdFile::archetypes
     std::string name;
-    Bundle bundle;          // released (cleared) once uploaded
+    std::shared_ptr<Bundle> bundle;  // one per bundle, shared by the archetypes naming it; released once uploaded
 };
 
 struct RefusedArchetype {
@@ -30,7 +33,9 @@ struct RefusedArchetype {
 
 // Loads every archetype of `crowd` in order; refusals go to `refused` and are logged as
 // "archetype '<name>': bundle refused: <message>". `fetch` serves every URL archetype, so the
-// cache (content-addressed) is shared: a file two bundles hold is downloaded once.
+// cache (content-addressed) is shared: a file two bundles hold is downloaded once. The URL
+// archetypes' fetches share one total deadline (fetch.h FetchDeadline). Each folder or URL is
+// loaded once; archetypes naming one bundle share it (logged once per shared bundle).
 std::vector<LoadedArchetype> load_archetypes(const CrowdFile& crowd, const FetchOptions& fetch,
                                              const std::function<void(const std::string&)>& log,
                                              std::vector<RefusedArchetype>* refused);
@@ -73,7 +78,7 @@ nlohmann::json view_report(const std::string& device, const Renderer& renderer, 
                            double build_ms, const DrawStats& stats);
 
 // Uploads each loaded archetype as the renderer's next one and fills scene's per-archetype
-// lists (desc_index, names, traits). A bundle the renderer refuses is logged and left out;
+// lists (desc_index, names, traits); archetypes sharing a bundle share its uploads. A bundle the renderer refuses is logged and left out;
 // without `log` (a lone --bundle) the first refusal is returned as false and `error` instead.
 bool upload_archetypes(Renderer* renderer, const std::vector<LoadedArchetype>& loaded, CrowdScene* scene,
                        const std::function<void(const std::string&)>& log, std::string* error);

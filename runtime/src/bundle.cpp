@@ -336,13 +336,16 @@ Status check_meshes(const Manifest& m, const std::map<std::string, PoseCache>& p
         if (cache.frame_count != m.pose_frames)
             return invalid(mesh.file, std::to_string(cache.frame_count) + " frames, the manifest has " + std::to_string(m.pose_frames) +
                                           " pose frames");
-        if (mesh.material >= m.materials.size())
-            return invalid(mesh.file, "material " + std::to_string(mesh.material) + " does not exist");
         // SPEC.md "Version 3": a format_version 3 bundle holds quantized caches, older ones float caches.
         const uint32_t cache_version = m.format_version >= 3 ? kQuantizedPoseCacheVersion : 1;
         if (cache.version != cache_version)
             return invalid(mesh.file, "pose cache version " + std::to_string(cache.version) + ", a format_version " +
                                           std::to_string(m.format_version) + " bundle holds version " + std::to_string(cache_version));
+        if (cache.frames_per_second != float(m.frames_per_second))
+            return invalid(mesh.file, "frames_per_second " + std::to_string(cache.frames_per_second) + ", the manifest says " +
+                                          std::to_string(m.frames_per_second));
+        if (mesh.material >= m.materials.size())
+            return invalid(mesh.file, "material " + std::to_string(mesh.material) + " does not exist");
         bundle->meshes.push_back(cache);
     }
     return {};

@@ -22,7 +22,9 @@ const char* kUsage =
     "  --key KEY             API key sent as a bearer token (default: $CROWDVIEW_API_KEY)\n"
     "  --cache-budget-mib N  refuse bundles listing more than N MiB (default 4096)\n"
     "  --min-rate B          each file must arrive at B bytes/s or faster (default 65536)\n"
-    "  --timeout S           give up a whole fetch after S seconds (default: 60 + size / min rate)\n"
+    "  --timeout S           give up a whole fetch after S seconds (default: 60 + size / min rate);\n"
+    "                        a --crowd's fetches share one such deadline\n"
+    "  --manifest-timeout S  each manifest must arrive within S seconds (default 60)\n"
     "  --count N             characters (default 100)\n"
     "  --seed S              crowd seed (default 1)\n"
     "  --layout spot|paths   walk on the spot (default, the paper's test) or along paths\n"
@@ -124,6 +126,7 @@ bool parse_plain_flag(const std::string& a, Value value, Options& o) {
     else if (a == "--cache-budget-mib") o.cache_budget_mib = parse_number<uint64_t>(a, value(), 1, 1ull << 30);
     else if (a == "--min-rate") o.min_rate = parse_number<double>(a, value(), 1, 1e12);
     else if (a == "--timeout") o.timeout_s = parse_number<double>(a, value(), 0.1, 1e7);
+    else if (a == "--manifest-timeout") o.manifest_timeout_s = parse_number<double>(a, value(), 0.1, 1e7);
     else if (a == "--files-prefix") o.files_prefix = value();
     else if (a == "--shaders") o.shader_dir = value();
     else if (a == "--count") o.count = parse_number<uint32_t>(a, value(), 1, 10000000), o.crowd_flags = true;

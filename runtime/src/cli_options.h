@@ -38,7 +38,7 @@ struct Options {
     std::string cache_dir, files_prefix = "files/", shader_dir;
     std::string api_key;       // --key, else $CROWDVIEW_API_KEY; never printed
     uint64_t cache_budget_mib = 4096;
-    double min_rate = 0, timeout_s = 0;  // 0: FetchOptions' defaults
+    double min_rate = 0, timeout_s = 0, manifest_timeout_s = 0;  // 0: FetchOptions' defaults
     uint32_t count = 100;
     uint64_t seed = 1;
     Layout layout = Layout::on_the_spot;

@@ -43,7 +43,7 @@ ClipSchedule make_clip_schedule(const std::vector<ClipRange>& clips, const std::
     ClipSchedule s;
     s.frames_per_second = frames_per_second > 0 ? frames_per_second : 24;
     s.seed = seed;
-    s.switch_after_s[0] = std::max(plan.switch_after_s[0], 0.0f);
+    s.switch_after_s[0] = std::max(plan.switch_after_s[0], kMinDwellS);
     s.switch_after_s[1] = std::max(plan.switch_after_s[1], s.switch_after_s[0]);
     if (clips.empty()) {
         s.ranges.push_back({0, std::max(pose_frames, 1u), 0});

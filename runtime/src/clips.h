@@ -39,6 +39,12 @@ std::string transition_name(const std::vector<ClipRange>& clips, const Transitio
 // to read as a motion, short enough that a 10 s shot shows switches.
 constexpr float kDefaultSwitchAfterS[2] = {4, 10};
 
+// The shortest dwell a schedule plays (a shorter switch_after_s is raised to it): a character then
+// switches at most about ten times a second whatever the description asks, so the schedule's
+// events per frame stay a handful even for 1-frame clips at the highest frame rate a bundle may
+// have (SPEC.md "Crowd description").
+constexpr float kMinDwellS = 0.1f;
+
 // How an archetype's characters use the clips: the mix and the dwell range.
 struct ClipPlan {
     std::vector<float> weights;  // per clip of the bundle, >= 0; empty: every clip weighs 1
@@ -85,7 +91,7 @@ struct ClipSchedule {
 
 // The schedule for ranges `clips` and `transitions` (no clips: one clip over all `pose_frames`),
 // played at `frames_per_second`. plan.weights empty: every clip weighs 1; otherwise clips past its
-// end weigh 0. Transitions naming a clip that does not exist are left out.
+// end weigh 0. The dwell range is plan.switch_after_s, each end at least kMinDwellS. Transitions naming a clip that does not exist are left out.
 ClipSchedule make_clip_schedule(const std::vector<ClipRange>& clips, const std::vector<TransitionRange>& transitions,
                                 uint32_t pose_frames, double frames_per_second, const ClipPlan& plan, uint64_t seed);
 

@@ -174,6 +174,18 @@ std::string seconds_text(double s) {
     return text;
 }
 
+// "the total fetch deadline ... passed", saying where it comes from.
+std::string total_deadline_passed(const FetchOptions& options) {
+    const std::string rule = options.total_timeout_s > 0 ? "--timeout " + seconds_text(options.total_timeout_s) + " s"
+                                                         : seconds_text(options.total_grace_s) + " s + the bytes at the minimum rate";
+    return "the total fetch deadline passed (" + rule + "; a crowd's fetches share it)";
+}
+
+// When the fetches sharing `deadline` must be done, with the bytes known so far.
+Clock::time_point total_deadline(const FetchDeadline& deadline, const FetchOptions& options) {
+    return after_seconds(deadline.start, total_deadline_seconds(deadline.bytes, options));
+}
+
 // One listed file's download: where it comes from and goes, and by when.
 struct FileFetch {
     const FileEntry* entry;
@@ -236,7 +248,7 @@ Next after_transfer(const FileFetch& f, Transfer result, const std::string& erro
                                                        ? "did not arrive within its deadline of " + seconds_text(f.file_seconds) + " s (" +
                                                              std::to_string(f.entry->size) + " bytes at no less than " +
                                                              seconds_text(f.options->min_rate_bytes_per_s) + " bytes/s)"
-                                                       : "the fetch's total deadline passed");
+                                                       : total_deadline_passed(*f.options));
         return Next::stop;
     case Transfer::failed:  // keep the part: the next attempt (or run) resumes it
         f.log("fetch: " + f.entry->path + " interrupted (" + error + ")");
@@ -304,6 +316,40 @@ Status fetch_file(const BundleUrls& urls, const FileEntry& entry, const FetchOpt
     return f.error(ErrorCode::fetch_failed, "gave up after " + std::to_string(options.attempts) + " attempts");
 }
 
+// The manifest's bytes into `manifest`, by the earlier of its own deadline and `total_deadline`.
+// Manifests are small; 16 MiB bounds what a broken server can make us hold.
+Status fetch_manifest(const BundleUrls& urls, const FetchOptions& options, Clock::time_point total_deadline,
+                      std::vector<uint8_t>* manifest) {
+    static const char* fn = "fetch_bundle";
+    constexpr uint64_t kManifestLimit = 16u << 20;
+    Sink sink;
+    sink.memory = manifest;
+    sink.limit = kManifestLimit;
+    Request request;
+    request.url = urls.manifest();
+    request.options = &options;
+    const Clock::time_point own_deadline = after_seconds(Clock::now(), options.manifest_timeout_s);
+    request.deadline = std::min(own_deadline, total_deadline);
+    std::string error;
+    switch (http_get(request, &sink, &error)) {
+    case Transfer::ok: return {};
+    case Transfer::not_found:
+        return make_error(ErrorCode::not_found, fn, "manifest.json", "no bundle at " + urls.manifest());
+    case Transfer::unauthorized:
+        return make_error(ErrorCode::unauthorized, fn, "manifest.json", urls.manifest() + ": " + error);
+    case Transfer::too_large:
+        return make_error(ErrorCode::manifest_invalid, fn, "manifest.json", "larger than 16 MiB at " + urls.manifest());
+    case Transfer::deadline:
+        return make_error(ErrorCode::fetch_failed, fn, "manifest.json",
+                          urls.manifest() + ": " +
+                              (own_deadline < total_deadline ? "did not arrive within the manifest's deadline of " +
+                                                                   seconds_text(options.manifest_timeout_s) + " s"
+                                                             : total_deadline_passed(options)));
+    default:
+        return make_error(ErrorCode::fetch_failed, fn, "manifest.json", urls.manifest() + ": " + error);
+    }
+}
+
 }  // namespace
 
 double file_deadline_seconds(uint64_t size, const FetchOptions& options) {
@@ -326,45 +372,21 @@ bool resolve_latest(const BundleUrls& urls, const std::string& name, const std::
     return true;
 }
 
-Status fetch_bundle(const std::string& url, const FetchOptions& options, Bundle* out) {
+Status fetch_bundle(const std::string& url, const FetchOptions& options, Bundle* out, FetchDeadline* shared) {
     static const char* fn = "fetch_bundle";
     BundleUrls urls = bundle_urls(url, options.files_prefix);
     const std::string cache = options.cache_dir.empty() ? default_cache_dir() : options.cache_dir;
-    const Clock::time_point start = Clock::now();
-
-    // Manifests are small; 16 MiB bounds what a broken server can make us hold, and its
-    // deadline is that of a 16 MiB file (or the total one, when set).
-    constexpr uint64_t kManifestLimit = 16u << 20;
+    FetchDeadline own;
+    FetchDeadline& deadline = shared ? *shared : own;
+    if (!deadline.started) deadline.started = true, deadline.start = Clock::now();
     std::vector<uint8_t> manifest;
-    Sink sink;
-    sink.memory = &manifest;
-    sink.limit = kManifestLimit;
-    Request request;
-    request.url = urls.manifest();
-    request.options = &options;
-    request.deadline = after_seconds(start, options.total_timeout_s > 0 ? options.total_timeout_s
-                                                                         : file_deadline_seconds(kManifestLimit, options));
-    std::string error;
-    switch (http_get(request, &sink, &error)) {
-    case Transfer::ok: break;
-    case Transfer::not_found:
-        return make_error(ErrorCode::not_found, fn, "manifest.json", "no bundle at " + urls.manifest());
-    case Transfer::unauthorized:
-        return make_error(ErrorCode::unauthorized, fn, "manifest.json", urls.manifest() + ": " + error);
-    case Transfer::too_large:
-        return make_error(ErrorCode::manifest_invalid, fn, "manifest.json", "larger than 16 MiB at " + urls.manifest());
-    case Transfer::deadline:
-        return make_error(ErrorCode::fetch_failed, fn, "manifest.json", urls.manifest() + ": did not arrive in time");
-    default:
-        return make_error(ErrorCode::fetch_failed, fn, "manifest.json", urls.manifest() + ": " + error);
-    }
+    if (Status status = fetch_manifest(urls, options, total_deadline(deadline, options), &manifest); !status) return status;
     if (options.log) options.log("fetch: " + urls.manifest() + " (cache " + cache + ")");
     const std::string text(manifest.begin(), manifest.end());
 
     // Limits and the concrete version, from the manifest, before any file is fetched. A
     // manifest that does not parse is left for load_bundle to name.
     Manifest parsed;
-    Clock::time_point total_deadline = after_seconds(start, total_deadline_seconds(0, options));
     if (parse_manifest(text, &parsed).ok()) {
         uint64_t total = 0;
         for (const FileEntry& f : parsed.files) total += std::min<uint64_t>(f.size, UINT64_MAX - total);
@@ -372,7 +394,7 @@ Status fetch_bundle(const std::string& url, const FetchOptions& options, Bundle*
             return make_error(ErrorCode::over_budget, fn, "manifest.json",
                               "the bundle lists " + std::to_string(total) + " bytes, the cache budget is " +
                                   std::to_string(options.cache_budget_bytes));
-        total_deadline = after_seconds(start, total_deadline_seconds(total, options));
+        deadline.bytes += total;  // at most the budget per bundle: no overflow
         BundleUrls concrete;
         if (resolve_latest(urls, parsed.name, parsed.version, &concrete)) {
             if (options.log) options.log("fetch: latest is " + parsed.version + "; files from " + concrete.base);
@@ -382,8 +404,9 @@ Status fetch_bundle(const std::string& url, const FetchOptions& options, Bundle*
                               "the URL asks for the latest version of another bundle than '" + parsed.name + "'");
         }
     }
+    const Clock::time_point files_deadline = total_deadline(deadline, options);
     const FileSource source = [&](const FileEntry& entry, std::vector<uint8_t>* bytes) {
-        return fetch_file(urls, entry, options, cache, total_deadline, bytes);
+        return fetch_file(urls, entry, options, cache, files_deadline, bytes);
     };
     return load_bundle(text, source, out);
 }

@@ -8,11 +8,13 @@
 //
 // A server cannot make a fetch hold without end or fill the disk: the manifest's sizes must
 // fit the cache budget before anything is downloaded, no file is written past its declared
-// size, each file must arrive within a deadline derived from its size and a minimum rate,
-// and the whole fetch within a total deadline. A partial file that failed verification or
+// size, the manifest must arrive within its own deadline (its size is not known before it
+// does), each file within a deadline derived from its size and a minimum rate, and the whole
+// fetch within a total deadline, which the fetches of a crowd's bundles share (FetchDeadline). A partial file that failed verification or
 // broke a limit is deleted; only an interrupted one is kept, to be resumed.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <functional>
 #include <string>
@@ -52,10 +54,23 @@ struct FetchOptions {
     // attempts together (64 KiB/s: a slow mobile link; the grace covers connection set-up).
     double min_rate_bytes_per_s = 64 * 1024;
     double file_grace_s = 10;
+    // The manifest must arrive within this many seconds of its request (and the total deadline):
+    // a manifest is kilobytes, so a minute is a link that barely moves.
+    double manifest_timeout_s = 60;
     // The whole fetch, manifest included; 0 means total_grace_s + total bytes / min rate.
     double total_timeout_s = 0;
     double total_grace_s = 60;
     std::function<void(const std::string&)> log;  // progress lines; may be empty
+};
+
+// The total deadline of one fetch, or of several that share it one after another (a crowd's
+// bundles): it counts from the first fetch's start, and without total_timeout_s it is total_grace_s
+// plus every manifest's bytes so far at the minimum rate, so a crowd's fetches together take no
+// longer than one fetch of all their bytes, however many of its servers trickle.
+struct FetchDeadline {
+    bool started = false;
+    std::chrono::steady_clock::time_point start;
+    uint64_t bytes = 0;  // the listed files of every manifest fetched so far
 };
 
 // Seconds a file of `size` bytes may take, all attempts together (see FetchOptions).
@@ -76,6 +91,7 @@ std::string cache_blob_path(const std::string& cache_dir, const std::string& sha
 // version published meanwhile cannot mix in. Errors name the bundle file; transport failures
 // and missed deadlines are fetch_failed, no manifest at the URL not_found, a refused key
 // unauthorized, a bundle bigger than the budget over_budget, an absent file missing_file.
-Status fetch_bundle(const std::string& url, const FetchOptions& options, Bundle* out);
+// `shared`: a deadline this fetch shares with others (see FetchDeadline); nullptr: its own.
+Status fetch_bundle(const std::string& url, const FetchOptions& options, Bundle* out, FetchDeadline* shared = nullptr);
 
 }  // namespace crowdview

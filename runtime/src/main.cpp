@@ -4,7 +4,8 @@
 //             [--layout spot|paths] [--headless --frames N --screenshot out.png] [--benchmark --report out.json]
 //             [--gl-device auto|software|N] [--require-gpu]
 //             [--width W --height H] [--lod auto|high|low|impostor|detail] [--impostor-blend off|views|frames|full|warp]
-//             [--key KEY] [--cache-budget-mib N] [--min-rate B] [--timeout S] [--clips NAME=W,...] [--switch-after LO,HI]
+//             [--key KEY] [--cache-budget-mib N] [--min-rate B] [--timeout S] [--manifest-timeout S]
+//             [--clips NAME=W,...] [--switch-after LO,HI]
 //   crowdview --verify DIR|URL
 //
 // The run, in order: the command line (cli_options.h), the bundles (archetypes.h), the GL context
@@ -20,6 +21,7 @@
 #include <cstdio>
 #include <fstream>
 #include <functional>
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -56,6 +58,7 @@ FetchOptions fetch_options(const Options& o) {
     fetch.cache_budget_bytes = o.cache_budget_mib << 20;
     if (o.min_rate > 0) fetch.min_rate_bytes_per_s = o.min_rate;
     fetch.total_timeout_s = o.timeout_s;
+    if (o.manifest_timeout_s > 0) fetch.manifest_timeout_s = o.manifest_timeout_s;
     fetch.log = [](const std::string& line) { std::fprintf(stderr, "%s\n", line.c_str()); };
     return fetch;
 }
@@ -363,13 +366,13 @@ int check_bundles_against_options(const Options& o, const CrowdFile& file, const
     const bool one_bundle = o.crowd_file.empty();
     for (const LoadedArchetype& a : loaded) {
         std::vector<float> weights;
-        const std::string error = resolve_clip_mix(file.archetypes[a.desc_index].clips, a.bundle.manifest.clips, &weights);
+        const std::string error = resolve_clip_mix(file.archetypes[a.desc_index].clips, a.bundle->manifest.clips, &weights);
         if (!error.empty()) return log_line((one_bundle ? "--clips: " : "archetype '" + a.name + "': ") + error), one_bundle ? kExitUsage : kExitRefused;
     }
     const bool wants_detail = o.lod == LodChoice::detail || (o.lod == LodChoice::automatic && o.impostors == ImpostorKind::detail);
     for (const LoadedArchetype& a : loaded)
-        if (wants_detail && !o.benchmark && a.bundle.manifest.impostor.detail_map.empty())
-            return log_line(a.bundle.manifest.name + " " + a.bundle.manifest.version + " has no detail maps (bake it with --detail-map); "
+        if (wants_detail && !o.benchmark && a.bundle->manifest.impostor.detail_map.empty())
+            return log_line(a.bundle->manifest.name + " " + a.bundle->manifest.version + " has no detail maps (bake it with --detail-map); "
                             "--lod detail and --impostors detail need them, --lod impostor draws the UV-mapped impostor"), kExitUsage;
     return 0;
 }
@@ -442,14 +445,19 @@ int make_renderer(const Options& o, const std::vector<LoadedArchetype>& loaded, 
 }
 
 // The switch measure reads the pose caches on the CPU: one meter per renderer archetype, only for
-// --report, each taking its archetype's pose caches out of `loaded`.
+// --report, each bundle's pose caches taken out of `loaded` once and shared by its archetypes' meters.
 std::vector<SwitchMeter> switch_meters(const Options& o, const Renderer& renderer, const CrowdScene& scene,
                                        std::vector<LoadedArchetype>* loaded) {
     std::vector<SwitchMeter> meters;
     if (o.report.empty()) return meters;
+    std::map<const Bundle*, std::shared_ptr<const std::vector<PoseCache>>> poses;
     for (size_t a = 0; a < renderer.archetype_count(); ++a)
-        for (LoadedArchetype& l : *loaded)
-            if (l.desc_index == scene.desc_index[a]) meters.emplace_back(std::move(l.bundle.meshes), l.bundle.manifest.meshes);
+        for (LoadedArchetype& l : *loaded) {
+            if (l.desc_index != scene.desc_index[a]) continue;
+            auto& shared = poses[l.bundle.get()];
+            if (!shared) shared = std::make_shared<const std::vector<PoseCache>>(std::move(l.bundle->meshes));
+            meters.emplace_back(shared, l.bundle->manifest.meshes);
+        }
     return meters;
 }
 
@@ -471,8 +479,8 @@ int main(int argc, char** argv) {
     if (const int status = make_renderer(o, loaded, &scene, &renderer)) return status;
 
     // 3. Run.
-    if (o.benchmark) return run_benchmark_mode(*context, *renderer, loaded[0].bundle, o);
+    if (o.benchmark) return run_benchmark_mode(*context, *renderer, *loaded[0].bundle, o);
     std::vector<SwitchMeter> meters = switch_meters(o, *renderer, scene, &loaded);
-    for (LoadedArchetype& a : loaded) a.bundle = Bundle();  // on the GPU now
+    for (LoadedArchetype& a : loaded) a.bundle.reset();  // on the GPU now
     return run_view(*context, *renderer, scene, o, meters);
 }

@@ -292,6 +292,10 @@ void parse_cycle_v1(const json& doc, SchemaCheck& check, Manifest* m) {
     m->clips.push_back(clip);
 }
 
+// The frame rates a bundle may play at (SPEC.md "manifest.json"): every duration the runtime derives
+// (clip lengths, switch times) divides by it, so 1e300 would make every clip last no time at all.
+constexpr double kMinFramesPerSecond = 1, kMaxFramesPerSecond = 1000;
+
 // The required top-level keys, then format, format_version, name, version, created, producer and
 // frames_per_second.
 void parse_identity(const json& doc, SchemaCheck& check, Manifest* m) {
@@ -306,7 +310,8 @@ void parse_identity(const json& doc, SchemaCheck& check, Manifest* m) {
     m->version = check.string(doc, "", "version", "^[0-9A-Za-z][0-9A-Za-z.+_-]{0,63}$");
     m->created = check.string(doc, "", "created", "^[0-9]{4}-[0-9]{2}-[0-9]{2}T[0-9]{2}:[0-9]{2}:[0-9]{2}(\\.[0-9]+)?Z$");
     m->producer = check.string(doc, "", "producer", nullptr, 1, 200);
-    m->frames_per_second = check.number(doc, "", "frames_per_second", 0, true);
+    if (const json* fps = check.member(doc, top, "frames_per_second"))
+        m->frames_per_second = check.number_value(*fps, "/frames_per_second", kMinFramesPerSecond, false, kMaxFramesPerSecond);
 }
 
 MaterialInfo parse_material(const json& item, const std::string& where, SchemaCheck& check) {

@@ -108,15 +108,37 @@ bool Renderer::add_archetype(const Bundle& bundle, std::string* error) {
         return false;
     }
     state_->storage.buffers.push_back(archetype->instance_targets());
+    state_->uploaded_by.push_back(state_->archetypes.size());
     state_->archetypes.push_back(std::move(archetype));
     return true;
+}
+
+void Renderer::add_archetype_like(size_t existing) {
+    const size_t owner = state_->uploaded_by.at(existing);
+    InstanceBuffers buffers;
+    GLuint names[4];
+    glGenBuffers(4, names);
+    const char* labels[] = {"instances:high", "instances:low", "instances:impostor", "instances:impostor-samples"};
+    for (int i = 0; i < 4; ++i) {
+        glBindBuffer(GL_ARRAY_BUFFER, names[i]);  // a name becomes a buffer when first bound
+        label(GL_BUFFER, names[i], labels[i] + std::string(":archetype ") + std::to_string(state_->archetypes.size()));
+    }
+    std::copy(names, names + 3, buffers.by_lod);
+    buffers.impostor_samples = names[3];
+    state_->like_instances.push_back(buffers);
+    state_->storage.buffers.push_back(buffers);
+    state_->uploaded_by.push_back(owner);
+    state_->archetypes.push_back(state_->archetypes[owner]);
 }
 
 Renderer::~Renderer() = default;
 
 size_t Renderer::archetype_count() const { return state_->archetypes.size(); }
 const CharacterModel& Renderer::model(size_t archetype) const { return state_->archetypes.at(archetype)->model; }
-ArchetypeMemory Renderer::memory(size_t archetype) const { return state_->archetypes.at(archetype)->memory; }
+ArchetypeMemory Renderer::memory(size_t archetype) const {
+    return uploaded_by(archetype) == archetype ? state_->archetypes[archetype]->memory : ArchetypeMemory();
+}
+size_t Renderer::uploaded_by(size_t archetype) const { return state_->uploaded_by.at(archetype); }
 
 uint32_t Renderer::triangles_per_character(Lod lod, size_t archetype) const {
     if (lod == Lod::impostor) return 2;

@@ -52,9 +52,9 @@ struct ArchetypeMemory {
 
 struct RendererState;  // renderer_state.h
 
-// Draws a crowd of one or more archetypes (bundles) into one framebuffer. Each archetype owns
-// its uploads and impostor programs (archetype_gpu.h); the framebuffer and the mesh program are
-// shared.
+// Draws a crowd of one or more archetypes (bundles) into one framebuffer. Each bundle's uploads and
+// impostor programs (archetype_gpu.h) are made once, for the archetypes drawn from it; each archetype
+// has its own instance buffers; the framebuffer and the mesh program are shared.
 class Renderer {
 public:
     ~Renderer();
@@ -72,6 +72,9 @@ public:
     // `error` (starting "Renderer::add_archetype:") when the bundle needs more than this renderer
     // supports (archetype_gpu.h, upload_archetype); the renderer and its other archetypes stay usable.
     bool add_archetype(const Bundle& bundle, std::string* error);
+    // Adds an archetype drawn with archetype `existing`'s uploads (one bundle named by several
+    // archetypes of a crowd): only its instance buffers are new, and memory() counts nothing for it.
+    void add_archetype_like(size_t existing);
 
     // One frame into the offscreen framebuffer: frames[a] are archetype a's instances (at most
     // archetype_count() entries). `light_dir` points towards the light.
@@ -96,7 +99,10 @@ public:
     float aspect() const { return float(width_) / float(height_); }
     size_t archetype_count() const;
     const CharacterModel& model(size_t archetype = 0) const;
+    // What the archetype's own uploads take; zero for one added by add_archetype_like.
     ArchetypeMemory memory(size_t archetype) const;
+    // The archetype whose uploads `archetype` draws with: itself, or the one add_archetype_like named.
+    size_t uploaded_by(size_t archetype) const;
     bool compressed_textures() const { return compressed_; }  // S3TC used, not the CPU decode
     // The blend a frame built for `blend` is drawn with: warp is full where the bundle has no
     // surface map (or more views than CV_MAX_AZIMUTHS x CV_MAX_ELEVATIONS).

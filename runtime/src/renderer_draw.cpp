@@ -20,8 +20,8 @@ void add(DrawStats* total, const DrawStats& more) {
 
 // This frame's instances into the archetype's buffers, one per LOD, and the impostors' blend
 // samples; a frame built in the instance storage is there already.
-void upload_frame(RendererState& shared, const ArchetypeGpu& g, const FrameInstances& frame) {
-    if (!frame.in_storage) upload_instances(frame, g.instance_targets(), &shared.nearest_samples);
+void upload_frame(RendererState& shared, const InstanceBuffers& buffers, const FrameInstances& frame) {
+    if (!frame.in_storage) upload_instances(frame, buffers, &shared.nearest_samples);
 }
 
 // One instanced draw per part per mesh LOD shown.
@@ -135,7 +135,10 @@ DrawStats Renderer::draw_all(const FrameInstances* frames, size_t frame_count, c
     // Each archetype in turn: its instances, then its meshes and its impostors.
     for (size_t a = 0; a < frame_count && a < shared.archetypes.size(); ++a) {
         const ArchetypeGpu& g = *shared.archetypes[a];
-        upload_frame(shared, g, frames[a]);
+        const InstanceBuffers& buffers = shared.storage.buffers[a];
+        // Uploads several archetypes share: their VAOs read this archetype's instances now.
+        if (shared.archetypes[a].use_count() > 1) point_instance_attributes(g, buffers);
+        upload_frame(shared, buffers, frames[a]);
         glActiveTexture(GL_TEXTURE0 + CV_UNIT_OUTFITS);
         glBindTexture(GL_TEXTURE_2D, g.outfits);
         add(&stats, draw_meshes(shared, g, frames[a], view_projection, light));

@@ -23,12 +23,20 @@ struct RendererState {
     GLuint empty_array = 0;  // bound to unused material units so every sampler is complete
     std::vector<ImpostorSamples> nearest_samples;  // for frames built without samples
     MappedInstanceStorage storage;                 // every archetype's instance buffers, by index
-    std::vector<std::unique_ptr<ArchetypeGpu>> archetypes;
+    // By renderer archetype: its uploads, shared by the archetypes drawn from one bundle
+    // (Renderer::add_archetype_like), and the archetype that made them (itself, or the first).
+    std::vector<std::shared_ptr<ArchetypeGpu>> archetypes;
+    std::vector<size_t> uploaded_by;
+    std::vector<InstanceBuffers> like_instances;  // the instance buffers made for sharing archetypes
 
     RendererState() = default;
     RendererState(const RendererState&) = delete;
     RendererState& operator=(const RendererState&) = delete;
     ~RendererState() {
+        for (const InstanceBuffers& b : like_instances) {
+            GLuint buffers[] = {b.by_lod[0], b.by_lod[1], b.by_lod[2], b.impostor_samples};
+            glDeleteBuffers(4, buffers);
+        }
         archetypes.clear();
         glDeleteTextures(1, &empty_array);
         glDeleteProgram(mesh_program);

@@ -78,17 +78,18 @@ nlohmann::json clip_counts(const Crowd& crowd, const CharacterModel& model, cons
     return {{"counts", by_range}, {"characters", crowd.characters.size()}, {"characters_switched", switched}, {"switches", switches}};
 }
 
-SwitchMeter::SwitchMeter(std::vector<PoseCache> meshes, const std::vector<MeshInfo>& infos) : meshes_(std::move(meshes)) {
-    for (uint32_t m = 0; m < infos.size() && m < meshes_.size(); ++m)
+SwitchMeter::SwitchMeter(std::shared_ptr<const std::vector<PoseCache>> meshes, const std::vector<MeshInfo>& infos)
+    : meshes_(std::move(meshes)) {
+    for (uint32_t m = 0; m < infos.size() && m < meshes_->size(); ++m)
         if (infos[m].lod <= 1) parts_[infos[m].lod].push_back(m);
     if (parts_[1].empty()) parts_[1] = parts_[0];
     for (int lod = 0; lod < 2; ++lod) {
         uint64_t total = 0;
-        for (uint32_t m : parts_[lod]) total += meshes_[m].vertex_count;
+        for (uint32_t m : parts_[lod]) total += (*meshes_)[m].vertex_count;
         const uint64_t stride = std::max<uint64_t>(1, (total + kMeterVertices - 1) / kMeterVertices);
         uint64_t index = 0;  // over the parts' vertices in order
         for (uint32_t m : parts_[lod])
-            for (uint32_t v = 0; v < meshes_[m].vertex_count; ++v, ++index)
+            for (uint32_t v = 0; v < (*meshes_)[m].vertex_count; ++v, ++index)
                 if (index % stride == 0) vertices_[lod].insert(vertices_[lod].end(), {m, v});
     }
 }
@@ -119,7 +120,7 @@ void SwitchMeter::picture(int mesh_lod, const Shown& shown, const glm::mat4& to_
     const std::vector<uint32_t>& list = vertices_[mesh_lod];
     pixels->resize(list.size() / 2);
     for (size_t k = 0; k + 1 < list.size(); k += 2) {
-        const PoseCache& cache = meshes_[list[k]];
+        const PoseCache& cache = (*meshes_)[list[k]];
         const uint32_t a = std::min(shown.a, cache.frame_count - 1), b = std::min(shown.b, cache.frame_count - 1);
         float pa[3], pb[3];
         decode_pose_position(cache, a, list[k + 1], pa);

@@ -29,6 +29,7 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -52,8 +53,9 @@ nlohmann::json clip_counts(const Crowd& crowd, const CharacterModel& model, cons
 
 class SwitchMeter {
 public:
-    // `meshes` and `infos`: the archetype's pose caches (Bundle::meshes, Manifest::meshes).
-    SwitchMeter(std::vector<PoseCache> meshes, const std::vector<MeshInfo>& infos);
+    // `meshes` and `infos`: the archetype's pose caches (Bundle::meshes, Manifest::meshes); the
+    // meters of archetypes drawn from one bundle share its pose caches.
+    SwitchMeter(std::shared_ptr<const std::vector<PoseCache>> meshes, const std::vector<MeshInfo>& infos);
 
     // After build_frame of this archetype's frame at `time_s` (`blend_frames`: impostors blend two
     // baked frames). The first call picks the sample.
@@ -106,7 +108,7 @@ private:
     // The switch's jump on screen against its clips' own motion: an event of its LOD, or one more unmeasured.
     void measure_switch(const Switch& s, const CharacterModel& model, const FrameState& state, bool blend_frames, int width, int height);
 
-    std::vector<PoseCache> meshes_;
+    std::shared_ptr<const std::vector<PoseCache>> meshes_;
     std::vector<uint32_t> parts_[2];       // mesh indices by LOD (0 high, 1 low; low falls back to high)
     std::vector<uint32_t> vertices_[2];    // per LOD: (part, vertex) pairs flattened, evenly spaced
     std::vector<Tracked> tracked_;

@@ -2,7 +2,8 @@
 servers without Range support are downloaded again, tampered and missing files are refused, a
 dripping server meets the deadline, a manifest claiming a huge file meets the cache budget, a
 private bundle needs the bearer key (never printed), `latest` is resolved to one version, a
-redirect loop ends after a few requests, and a crowd description's archetypes (a published bundle by
+redirect loop ends after a few requests, a trickled manifest (alone or three in a crowd) ends by its
+deadline, and a crowd description's archetypes (a published bundle by
 name and `latest`, a URL, a missing one) share one cache and a refused one stops alone.
 
     python3 http_fetch_test.py CROWDVIEW MAKE_SYNTHETIC_BUNDLE
@@ -61,6 +62,9 @@ class Handler(http.server.BaseHTTPRequestHandler):
         drip = path.startswith(self.drip_prefix)
         if drip:
             path = path[len(self.drip_prefix):]
+        trickle = path.startswith("trickle/")  # trickle/<any>/<rest>: <rest>, manifest included, at DRIP_BYTES_PER_S
+        if trickle:
+            path = path.split("/", 2)[2]
         latest_manifest = f"{BUNDLE_DIR}/latest/manifest.json"
         is_latest_manifest = path == latest_manifest
         path = path.replace(f"{BUNDLE_DIR}/latest/", f"{BUNDLE_DIR}/{Handler.latest}/")
@@ -85,7 +89,7 @@ class Handler(http.server.BaseHTTPRequestHandler):
         self.end_headers()
         if is_latest_manifest and Handler.on_latest_manifest:
             Handler.on_latest_manifest()
-        if drip and not path.endswith("manifest.json"):
+        if trickle or (drip and not path.endswith("manifest.json")):
             try:
                 for i in range(0, len(body), DRIP_BYTES_PER_S):
                     self.wfile.write(body[i:i + DRIP_BYTES_PER_S])
@@ -148,6 +152,37 @@ def check_limits(run, check, crowdview, served: Path, base: str, work: Path) -> 
     check(result.returncode == 1 and result.stdout.strip() == "size_mismatch impostor/uv.cbtx", "huge file admitted: size_mismatch", result)
     check(not list((work / "cache-huge2" / "partial").glob("*")), "huge file admitted: partial file deleted")
     shutil.rmtree(huge)
+
+
+def check_manifest_deadlines(run, check, crowdview, base: str, work: Path) -> None:
+    # 12. A manifest trickled at 2 bytes/s: it kept a fetch waiting 183 s without --timeout, a crowd of
+    #     three such URLs over 600 s. Each ends by its deadline with one line naming it: --timeout for
+    #     the whole fetch, --manifest-timeout (default 60 s) for the manifest alone, and one --timeout
+    #     for all of a crowd's fetches together (they share one deadline, fetched one after another).
+    def timed(*args: str) -> tuple[subprocess.CompletedProcess, float]:
+        started = time.monotonic()
+        result = run(crowdview, *args, "--cache", str(work / "cache-trickle"), "--headless")
+        return result, time.monotonic() - started
+
+    def one_refusal_line(result, what: str, words: str) -> None:
+        lines = result.stderr.strip().splitlines()
+        check(result.returncode == 1 and len(lines) == 1 and "bundle refused" in lines[0] and words in lines[0], what, result)
+
+    result, elapsed = timed("--url", f"{base}/trickle/0/{BUNDLE}", "--timeout", "3")
+    one_refusal_line(result, "trickled manifest, --timeout 3: one line", "total fetch deadline passed (--timeout 3 s")
+    check(elapsed < 6, f"trickled manifest, --timeout 3: gave up after {elapsed:.1f} s")
+    result, elapsed = timed("--url", f"{base}/trickle/0/{BUNDLE}", "--manifest-timeout", "2")
+    one_refusal_line(result, "trickled manifest, no --timeout: one line", "the manifest's deadline of 2 s")
+    check(elapsed < 5, f"trickled manifest, no --timeout: gave up after {elapsed:.1f} s")
+    crowd = {"crowd_format_version": 1, "archetypes": [
+        {"name": f"trickle-{k}", "url": f"{base}/trickle/{k}/{BUNDLE}", "count": 1} for k in range(3)]}
+    (work / "trickle-crowd.json").write_text(json.dumps(crowd))
+    result, elapsed = timed("--crowd", str(work / "trickle-crowd.json"), "--timeout", "4")
+    lines = result.stderr.strip().splitlines()
+    check(result.returncode == 1 and all(sum(f"'trickle-{k}'" in line for line in lines) == 1 for k in range(3)),
+          "trickled crowd: one line per archetype", result)
+    check(all("deadline" in line for line in lines if "bundle refused" in line), "trickled crowd: the deadline is named", result)
+    check(elapsed < 7, f"trickled crowd of 3, --timeout 4: gave up after {elapsed:.1f} s (one deadline, not one each)")
 
 
 def check_redirects(run, check, crowdview, base: str, work: Path) -> None:
@@ -309,6 +344,7 @@ def main() -> int:
         check_key(run, check, crowdview, base, work)
         check_latest(run, check, crowdview, served, base, work)
         check_redirects(run, check, crowdview, base, work)
+        check_manifest_deadlines(run, check, crowdview, base, work)
         check_crowd(run, check, crowdview, base, work)
         server.shutdown()
     finally:

@@ -196,6 +196,24 @@ void test_build_frame_plays_clips() {
 
 }  // namespace
 
+// Regression: switch_after_s [0, 0] on 1-frame clips and transitions at 1000 fps (the most a
+// bundle may have) made every character switch many times a frame; 20,000 characters drew 30
+// frames in 559 s. The dwell is at least kMinDwellS, so 10 s hold at most 10 / 0.1 switches.
+void test_a_zero_dwell_is_raised_to_the_minimum() {
+    ClipPlan plan;
+    plan.switch_after_s[0] = plan.switch_after_s[1] = 0;
+    const std::vector<ClipRange> clips = {{"a", 0, 1}, {"b", 1, 1}};
+    const std::vector<TransitionRange> transitions = {{0, 1, 0, 0, 2, 1}, {1, 0, 0, 0, 3, 1}};
+    const ClipSchedule s = make_clip_schedule(clips, transitions, 4, 1000, plan, 3);
+    CHECK(s.switch_after_s[0] == kMinDwellS && s.switch_after_s[1] == kMinDwellS);
+    ClipState state = initial_clip_state(s, 0, 0, 0);
+    for (int frame = 0; frame <= 240; ++frame) {
+        const float t = float(frame) / 24;
+        if (t >= state.next_event_s) advance_clip_state(s, 0, 4.0f, t, &state);
+    }
+    CHECK_MSG(state.switches >= 50 && state.switches <= 10 / kMinDwellS, std::to_string(state.switches) + " switches in 10 s");
+}
+
 int main() {
     test_switches_go_through_transitions_at_their_frames();
     test_schedule_is_a_function_of_time();
@@ -203,5 +221,6 @@ int main() {
     test_one_clip_shows_the_cycle_frame();
     test_impostor_tables_per_range();
     test_build_frame_plays_clips();
+    test_a_zero_dwell_is_raised_to_the_minimum();
     return check::exit_code();
 }

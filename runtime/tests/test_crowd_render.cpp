@@ -1,7 +1,8 @@
 // `crowdview --crowd FILE` headless: four synthetic archetypes of different sizes and impostor
 // tiles, each placed at a high-mesh, a low-mesh and an impostor distance of its own, are all
 // drawn at each of their LODs; the report gives counts per archetype and LOD and GPU memory per
-// archetype; a fifth archetype whose bundle is missing stops alone, with a message.
+// archetype; a fifth archetype whose bundle is missing stops alone, with a message; 64 archetypes
+// naming one bundle share one load and one upload.
 //   test_crowd_render CROWDVIEW
 // Exits 77 (skipped) where crowdview finds no OpenGL context.
 #include <sys/wait.h>
@@ -36,6 +37,53 @@ struct Archetype {
 // 320 x 240 keeps llvmpipe quick; the LOD distances below are for this height.
 constexpr int kWidth = 320, kHeight = 240;
 constexpr float kEyeHeight = 1.2f;
+
+// A crowd naming one bundle from many archetypes. Regression: 64 archetypes naming one bundle loaded
+// and uploaded it 64 times (4.3 GB for a real bundle). It is loaded and uploaded once, each archetype
+// keeping its own count, and draws the very pixels of two separately uploaded copies.
+void check_shared_bundle(const std::string& crowdview, const std::string& work, const std::string& size) {
+    nlohmann::json many = nlohmann::json::array();
+    for (int k = 0; k < 64; ++k)  // the folder spelled three ways: one bundle all the same
+        many.push_back({{"name", "p" + std::to_string(k)}, {"bundle", k % 3 == 0 ? "person" : k % 3 == 1 ? "./person" : "person/"},
+                        {"count", 1 + k % 2}});
+    std::ofstream(work + "/many.json") << nlohmann::json({{"crowd_format_version", 1}, {"archetypes", many}}).dump();
+    const std::string report_file = work + "/many-report.json";
+    const Run r = run(crowdview, "--crowd '" + work + "/many.json' --headless --impostor-blend off" + size + " --report '" + report_file + "'");
+    CHECK_MSG(r.status == 0 && r.err.find("loaded once for 64 archetypes ('p0', 'p1', 'p2' and 61 more)") != std::string::npos, r.err);
+    const nlohmann::json report = nlohmann::json::parse(synthetic::read_text(report_file), nullptr, false);
+    CHECK(!report.is_discarded() && report["archetypes"].size() == 64);
+    if (report.is_discarded() || report["archetypes"].size() != 64) return;
+    const uint64_t one = report["archetypes"][0]["gpu_memory_bytes"]["total"].get<uint64_t>();
+    CHECK_MSG(one > 0 && report["gpu_memory_bytes_total"].get<uint64_t>() == one, report["gpu_memory_bytes_total"].dump());
+    for (size_t k = 1; k < 64; ++k) {
+        const nlohmann::json& a = report["archetypes"][k];
+        CHECK_MSG(a["gpu_memory_bytes"]["total"] == 0 && a["shares_uploads_of"] == "p0" && a["characters"] == 1 + k % 2, a.dump());
+    }
+    // Two archetypes drawing one upload through their own instance buffers, against two uploads
+    // (a copy under another version, so not the same bundle): the same picture.
+    const std::string copy = work + "/person-copy";
+    fs::copy(work + "/person", copy, fs::copy_options::recursive);
+    nlohmann::json manifest = nlohmann::json::parse(synthetic::read_text(copy + "/manifest.json"));
+    manifest["version"] = "9.9.9";
+    std::ofstream(copy + "/manifest.json") << manifest.dump();
+    std::string pngs[2];
+    for (int twice = 0; twice < 2; ++twice) {
+        const nlohmann::json pair = {
+            {"crowd_format_version", 1},
+            {"archetypes", {{{"name", "a"}, {"bundle", "person"}, {"share", 1}}, {{"name", "b"}, {"bundle", twice ? "person-copy" : "person"}, {"share", 1}}}},
+            {"layout", {{"kind", "positions"}, {"positions", {{{"archetype", "a"}, {"at", {-0.6, -3}}}, {{"archetype", "b"}, {"at", {0.6, -3}}},
+                                                              {{"archetype", "a"}, {"at", {-4, -60}}}, {{"archetype", "b"}, {"at", {4, -60}}}}}}},
+            {"camera", {{"kind", "look_at"}, {"eye", {0, kEyeHeight, 0}}, {"target", {0, kEyeHeight, -10}}}}};
+        std::ofstream(work + "/pair.json") << pair.dump();
+        pngs[twice] = work + "/pair" + std::to_string(twice) + ".png";
+        const Run p = run(crowdview, "--crowd '" + work + "/pair.json' --headless --impostor-blend off" + size + " --screenshot '" + pngs[twice] + "'");
+        CHECK_MSG(p.status == 0 && (p.err.find("loaded once for 2 archetypes") != std::string::npos) == !twice, p.err);
+    }
+    int w = 0, h = 0;
+    std::vector<uint8_t> shared, separate;
+    CHECK(crowdview::read_png(pngs[0], &w, &h, &shared) && crowdview::read_png(pngs[1], &w, &h, &separate));
+    CHECK_MSG(!shared.empty() && shared == separate, "one upload drawn twice differs from two uploads");
+}
 
 }  // namespace
 
@@ -130,6 +178,8 @@ int main(int argc, char** argv) {
     int w = 0, h = 0;
     std::vector<uint8_t> rgba;
     CHECK(crowdview::read_png(png, &w, &h, &rgba) && w == kWidth && h == kHeight);
+
+    check_shared_bundle(argv[1], work, size);
 
     // Without --allow-missing the missing archetype stops the crowd: exit 1, before any picture.
     const std::string strict_png = work + "/strict.png";

@@ -1,4 +1,5 @@
-// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-crop, v1-surface, v1-hostile, v2 and v3), which
+// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-crop, v1-surface, v1-hostile, v2, v2-hostile-fps
+// and v3), which
 // the Python tests read too: the good bundle decodes to expected.json's values (v1-uv32, v1-uvblock: its UV map's
 // texels too; v1-surface: its bc2 surface map's texels, alpha included), every bad bundle fails with its
 // expect.json code and file, and every strict prefix of every binary file of the good bundle is `truncated`.
@@ -406,5 +407,16 @@ int main() {
     const fs::path hostile = fs::path(CROWDVIEW_VECTORS_DIR) / "v1-hostile";
     CHECK_MSG(fs::is_directory(hostile / "bad"), "no hostile vectors at " + hostile.string());
     if (fs::is_directory(hostile / "bad")) test_bad(hostile / "bad", 4);
+    // Frame rates (generate_vectors_v2_hostile_fps.py): 1000 everywhere reads; 1e300, 0.5 and 1000.5
+    // are refused, and so is a manifest whose rate differs from its pose caches'.
+    const fs::path fps = fs::path(CROWDVIEW_VECTORS_DIR) / "v2-hostile-fps";
+    CHECK_MSG(fs::is_directory(fps / "bad"), "no frame-rate vectors at " + fps.string());
+    if (fs::is_directory(fps / "bad")) {
+        Bundle bundle;
+        const Status s = load_bundle_dir((fps / "good" / "bundle").string(), &bundle);
+        const json expected = json::parse(synthetic::read_text((fps / "good" / "expected.json").string()));
+        CHECK_MSG(s.ok() && bundle.manifest.frames_per_second == expected["frames_per_second"].get<double>(), s.message);
+        test_bad(fps / "bad", 4);
+    }
     return check::exit_code();
 }

@@ -21,3 +21,8 @@ class ExportConflict(VersionConflict):
 
 class StageOrderError(RuntimeError):
     """A stage ran before the stage it depends on produced its outputs in this work directory."""
+
+
+class OutOfBoundsError(InputError):
+    """A loop or transition of the bake breaks a quality bound (crowdbake.bake.bounds) and the bake did not
+    accept it (the accept_out_of_bounds parameter): the message names the clip, cache frames, figure and bound."""

@@ -232,6 +232,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("animation", "name_or_index", None, "the character's walk: a glTF animation name or index",
               ("--animation",), "NAME|INDEX", optional=True,
               derived="the only animation, else the one the cloth cache repeats after (crowdbake.ingest.clip_choice)"),
+    ParamSpec("accept_out_of_bounds", "bool", False, "publish loops and transitions that break their quality bounds "
+              "(stretch, deviation, seam acceleration: docs/cycle.md) instead of failing the bake; the manifest lists what was accepted",
+              ("--accept-out-of-bounds",), off_help="publish loops and transitions that break their quality bounds instead of "
+              "failing; the manifest lists what was accepted"),
     ParamSpec("candidates", "int", 5, "cycle candidates kept by pass 1 and compared by the pass-2 edge metric (paper section 3)",
               ("--candidates",), "K", minimum=1, maximum=MAX_CANDIDATES),
     ParamSpec("cycle_views", "int", 5, "views of the pass-2 edge metric (paper: 5)",
@@ -275,7 +279,8 @@ PARAMS: tuple[ParamSpec, ...] = (
 SPECS = {spec.name: spec for spec in PARAMS}
 # Parameters of the cycle search that `crowdbake cycle` shares with `crowdbake bake` (its own flag names).
 CYCLE_SHARED = {"cycle_frames": "--cycle-frames", "close": "--close", "fps": "--fps", "up": "--up", "units": "--units",
-                "animation": "--animation", "candidates": "--candidates", "cycle_views": "--views", "fit": "--no-fit"}
+                "animation": "--animation", "candidates": "--candidates", "cycle_views": "--views", "fit": "--no-fit",
+                "accept_out_of_bounds": "--accept-out-of-bounds"}
 
 
 def impostor_texels(values: dict[str, Any]) -> int | None:
@@ -318,6 +323,7 @@ class BakeParams:
     units: str | None = None
     fit: bool = True
     animation: int | str | None = None
+    accept_out_of_bounds: bool = False
     candidates: int = 5
     cycle_views: int = 5
     impostor_frames: int = 24

@@ -1,5 +1,5 @@
-"""The Python reader against shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-hostile, v1-crop and v1-surface,
-which the C++ tests read too."""
+"""The Python reader against shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-hostile, v1-crop, v1-surface and
+v2-hostile-fps, which the C++ tests read too."""
 from __future__ import annotations
 
 import importlib.util
@@ -47,6 +47,8 @@ V1_SURFACE = VECTORS / "v1-surface"
 BAD_CASES_SURFACE = sorted(p.name for p in (V1_SURFACE / "bad").iterdir())
 V1_HOSTILE = VECTORS / "v1-hostile"
 BAD_CASES_HOSTILE = sorted(p.name for p in (V1_HOSTILE / "bad").iterdir())
+V2_HOSTILE_FPS = VECTORS / "v2-hostile-fps"
+BAD_CASES_HOSTILE_FPS = sorted(p.name for p in (V2_HOSTILE_FPS / "bad").iterdir())
 
 
 def test_good_vector_decodes_to_the_expected_values():
@@ -469,3 +471,33 @@ def test_writer_still_produces_the_committed_surface_vectors(tmp_path):
     assert [p.relative_to(V1_SURFACE) for p in committed_files] == [p.relative_to(tmp_path / "v1-surface") for p in written_files]
     for committed in committed_files:
         assert (tmp_path / "v1-surface" / committed.relative_to(V1_SURFACE)).read_bytes() == committed.read_bytes(), committed
+
+
+def test_the_largest_frame_rate_allowed_verifies():
+    expected = json.loads((V2_HOSTILE_FPS / "good" / "expected.json").read_text())
+    bundle = verify_bundle(V2_HOSTILE_FPS / "good" / "bundle")
+    assert bundle.manifest["frames_per_second"] == expected["frames_per_second"] == 1000
+    assert all(cache.frames_per_second == 1000 for cache in bundle.pose_caches.values())
+
+
+@pytest.mark.parametrize("case", BAD_CASES_HOSTILE_FPS)
+def test_hostile_frame_rate_is_refused_like_crowdview_refuses_it(case):
+    """Regression (read by crowdview's test_vectors too): a manifest frames_per_second of 1e300 over pose
+    caches at 24 verified in both readers, and every clip then lasted no time at all (a crowd of 20,000
+    drew 30 frames in 559 s). The rate must lie in [1, 1000] and match every pose cache's."""
+    expect = json.loads((V2_HOSTILE_FPS / "bad" / case / "expect.json").read_text())
+    with pytest.raises(FormatError) as raised:
+        verify_bundle(V2_HOSTILE_FPS / "bad" / case / "bundle")
+    assert (raised.value.code, raised.value.file) == (expect["error"], expect["file"])
+    if expect["error"] == "manifest_invalid":
+        assert "frames_per_second" in str(raised.value)
+
+
+def test_generator_still_produces_the_committed_frame_rate_vectors(tmp_path):
+    spec = importlib.util.spec_from_file_location("gen_fps", REPO_ROOT / "shared_formats" / "generate_vectors_v2_hostile_fps.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main(tmp_path)
+    written = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file())
+    assert written == sorted(p.relative_to(V2_HOSTILE_FPS) for p in V2_HOSTILE_FPS.rglob("*") if p.is_file())
+    assert all((tmp_path / p).read_bytes() == (V2_HOSTILE_FPS / p).read_bytes() for p in written)

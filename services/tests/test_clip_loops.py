@@ -108,6 +108,37 @@ class TestClipLoops:
             find_clip_loop(cloth, faces, clipped, "Run")
 
 
+class TestMessagesNameCacheFrames:
+    """Users look for the cache frames of a loop or transition, not its frames counted from a stretch's start."""
+
+    def test_an_out_of_bounds_loop_is_named_by_clip_and_cache_frames(self, baked):
+        from crowdbake.bake.bounds import bounds_message, out_of_bounds
+
+        _, _, timeline, loops, transitions = baked
+        run = loops[1]
+        broken = replace(run.result.closing.quality, seam_acceleration_ratio=4.17, exceeded=("seam_acceleration_ratio",))
+        loop = replace(run, result=replace(run.result, closing=replace(run.result.closing, quality=broken)))
+        assert loop.offset > 0  # the loop's own frames count from its stretch: the message must not
+        message = bounds_message(out_of_bounds([loop], transitions))
+        assert "\n" not in message
+        assert message.startswith(f"the loop of clip 'Run' (cache frames [{loop.start_frame}, {loop.end_frame})): "
+                                  "seam_acceleration_ratio 4.17 > 1.5")
+
+    def test_the_search_logs_its_loops_in_cache_frames(self, caplog):
+        cloth, faces = multi_clip_cache()
+        timeline = timeline_fields(timeline_document(with_rows=True))
+        with caplog.at_level("DEBUG", logger="crowdbake.bake.cycle"):
+            loop = find_clip_loop(cloth, faces, timeline, "Run")
+        run = timeline.segments[1]
+        assert loop.offset == run.pure_first_frame > 0
+        lines = [record.getMessage() for record in caplog.records]
+        assert f"clip 'Run', loop at cache frames [{loop.start_frame}, {loop.end_frame}): seam position jump" in " ".join(lines)
+        for text in lines:
+            if "cache frames [" in text:
+                first = int(text.split("cache frames [")[1].split(",")[0])
+                assert run.pure_first_frame <= first <= run.pure_last_frame, text
+
+
 class TestTransitions:
     def test_one_per_change_of_clip_within_the_bounds(self, baked):
         _, _, _, _, transitions = baked

@@ -176,7 +176,7 @@ def test_the_robot_exports_every_clip_and_transition(robot_bake, tmp_path):
 
 def preview_status(export: Path, tmp_path: Path) -> dict:
     """The three.js preview page's status on `export` (16 characters, time 0), served from a local HTTP server."""
-    from test_export_preview import page_status
+    from test_export_preview import page_status, preview_browser
 
     if not (PREVIEW_DIR / "node_modules" / "three").is_dir():
         pytest.skip(f"npm packages missing: run `npm ci` in {PREVIEW_DIR} (scripts/setup.sh does)")
@@ -193,7 +193,8 @@ def preview_status(export: Path, tmp_path: Path) -> dict:
     threading.Thread(target=httpd.serve_forever, daemon=True).start()
     try:
         url = f"http://127.0.0.1:{httpd.server_address[1]}/preview/index.html?export=../export/&time=0&count=16"
-        return page_status(url, tmp_path / "profile")
+        with preview_browser(tmp_path / "profile") as browser:
+            return page_status(browser, url)
     finally:
         httpd.shutdown()
 

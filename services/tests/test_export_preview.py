@@ -67,12 +67,16 @@ SETTLED = "document.getElementById('status').dataset.ready !== 'false' && docume
 TWO_FRAMES = "new Promise(done => requestAnimationFrame(() => requestAnimationFrame(() => done(true))))"
 
 
-@pytest.fixture(scope="module")
-def chromium(tmp_path_factory):
+def preview_browser(profile: Path) -> Browser:
+    """Headless Chromium with WebGL2 on the CPU (SwiftShader), a WINDOW-sized view; skips without Chromium."""
     if CHROMIUM is None:
         pytest.skip("chromium is not installed (scripts/apt-packages.txt lists it)")
-    arguments = ("--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--hide-scrollbars")  # WebGL2 on the CPU
-    with Browser(tmp_path_factory.mktemp("profile"), window=WINDOW, arguments=arguments) as browser:
+    return Browser(profile, window=WINDOW, arguments=("--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--hide-scrollbars"))
+
+
+@pytest.fixture(scope="module")
+def chromium(tmp_path_factory):
+    with preview_browser(tmp_path_factory.mktemp("profile")) as browser:
         yield browser
 
 

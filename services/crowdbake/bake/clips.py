@@ -67,6 +67,7 @@ class ClipLoop:
             start_frame=result.start_frame + shift,
             end_frame=result.end_frame + shift,
             candidates=[replace(c, start_frame=c.start_frame + shift, end_frame=c.end_frame + shift) for c in result.candidates],
+            closing_attempts=[replace(a, start_frame=a.start_frame + shift, end_frame=a.end_frame + shift) for a in result.closing_attempts],
             curves=[replace(curve, start_frames=curve.start_frames + shift) for curve in result.curves],
             settle_frames=result.settle_frames + shift,
             frame_count=cache_frames,
@@ -131,10 +132,10 @@ def find_clip_loop(
                 body_normals=None if body_normals is None else body_normals[rows], progress=progress,
                 # A stretch from frame 0 holds the rest shape itself: find_cycle takes it in the frame it searches
                 # in (the root's, when the body travels), as it does for a cache of one clip.
-                rest_positions=None if first == 0 else rest,
+                rest_positions=None if first == 0 else rest, clip=clip, frame_offset=first,
             )
         except ValueError as error:
-            reasons.append(f"frames {first}..{last}: {error}")
+            reasons.append(f"cache frames {first}..{last}: {error}")
             continue
         found.append((segment, first, result))
     if not found:

@@ -10,8 +10,10 @@
 3. Closing (crowdbake.bake.loop_closing): none, the paper's linear blend, a Hermite correction, or (the
    default) a crossfade confined to the seam that restores edge lengths; penetration into the body is
    measured before and after, and what closing pushed in is pushed back out, smoothly in time. The loop's
-   quality against the simulation (stretch, deviation, seam acceleration ratios) is measured and a closing
-   that breaks loop_closing.QUALITY_BOUNDS is logged as a warning and flagged in cycle.json.
+   quality against the simulation (stretch, deviation, seam acceleration ratios) is measured; the candidates
+   are closed best first, at wider crossfades and then further down pass 1's list, until a closing keeps
+   loop_closing.QUALITY_BOUNDS. Where none does, the first closing tried is returned, flagged in
+   cycle.json; whether a bake may keep it is the caller's decision (crowdbake.bake.bounds).
 
 The result serialises to the cycle.json dictionary with `CycleResult.to_dict()`.
 """
@@ -41,6 +43,15 @@ RenderViews = Callable[[np.ndarray, "np.ndarray | None"], np.ndarray]
 Progress = Callable[[str, int, int], None]
 
 SCHEMA_VERSION = 1
+
+# When no closing of the K best candidates keeps loop_closing.QUALITY_BOUNDS, the search looks this many
+# times as far down pass 1's list (the next local minima, scored by pass 2 like the first K).
+MORE_CANDIDATES_FACTOR = 3
+# Crossfade half-widths tried, as multiples of the default (l / 6), where the default breaks a bound: a
+# wider blend spreads the seam's correction over more frames (the blend's own acceleration falls with the
+# square of its width) but moves frames further from the seam pass 1 judged. The widest stays within l / 2
+# and within the frames searched either side of the cycle.
+CROSSFADE_WIDTH_FACTORS = (1.0, 1.5, 2.0)
 
 
 @dataclass(frozen=True)
@@ -110,6 +121,17 @@ class Candidate:
     edge_distance_per_view: tuple[float, ...] | None = None
 
 
+@dataclass(frozen=True)
+class ClosingAttempt:
+    """One closing the search tried: the candidate [start_frame, end_frame), its blend width (the closing's
+    blend_frames) and the quality bounds it broke (empty: kept them all)."""
+
+    start_frame: int
+    end_frame: int
+    blend_frames: int | None
+    exceeded: tuple[str, ...]
+
+
 @dataclass
 class CycleResult:
     """What the search found. `to_dict()` is the cycle.json content; arrays stay here for the report.
@@ -123,6 +145,8 @@ class CycleResult:
     winner_edges: its edge comparison (edge images at Fs and Fe), None without pass 2.
     root_offsets: (F, 3) root positions removed before the search, None when the root stayed.
     timings: seconds per stage.
+    closing_attempts: every closing tried, in order, until one kept the quality bounds (where none kept
+        them, the first tried is the one chosen).
     """
 
     start_frame: int
@@ -143,6 +167,7 @@ class CycleResult:
     winner_edges: edge_metric.EdgeComparison | None = None
     root_offsets: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    closing_attempts: list[ClosingAttempt] = field(default_factory=list)
 
     @property
     def looped(self) -> np.ndarray:
@@ -182,6 +207,10 @@ class CycleResult:
                     "edge_distance_per_view": None if c.edge_distance_per_view is None else _floats(c.edge_distance_per_view),
                 }
                 for c in self.candidates
+            ],
+            "closing_attempts": [
+                {"start_frame": a.start_frame, "end_frame": a.end_frame, "blend_frames": a.blend_frames, "exceeded": list(a.exceeded)}
+                for a in self.closing_attempts
             ],
             "closing": {
                 "method": closing.method,
@@ -252,6 +281,94 @@ def _seam_dict(seam: loop_closing.SeamFigures) -> dict:
     return {name: _float(value) for name, value in asdict(seam).items()}
 
 
+def _clip_name(clip: str | None) -> str:
+    return f"clip {clip!r}" if clip is not None else "the cache"
+
+
+def _loop_name(clip: str | None, frame_offset: int, start: int, end: int) -> str:
+    """A candidate loop for messages: its clip and its frames counted in the whole cache."""
+    return f"{_clip_name(clip)}, loop at cache frames [{start + frame_offset}, {end + frame_offset})"
+
+
+def _best_first(candidates: list[Candidate], indices: range) -> list[int]:
+    """Indices of candidates in the order the search closes them: the smallest edge distance first when pass 2
+    ran, pass 1's order (the list's) breaking ties and ordering them without pass 2."""
+    return sorted(indices, key=lambda i: (candidates[i].edge_distance or 0.0, i))
+
+
+def _blend_widths(params: CycleParams, start: int, gap: int, frame_count: int) -> list[int | None]:
+    """The blend widths to close the cycle [start, start + gap) with, in the order tried: the caller's
+    (params.blend_frames, or None: the method's default) for every method but a crossfade of default width,
+    which tries CROSSFADE_WIDTH_FACTORS times l / 6 within what the frames either side of the cycle allow."""
+    if params.close != "crossfade" or params.blend_frames is not None:
+        return [params.blend_frames]
+    room = min(start, frame_count - 1 - (start + gap), gap // 2)
+    default = loop_closing.default_crossfade_frames(gap)
+    widths: list[int | None] = []
+    for factor in CROSSFADE_WIDTH_FACTORS:
+        width = max(1, min(int(round(default * factor)), room))
+        if width not in widths:
+            widths.append(width)
+    return widths
+
+
+def _first_within_bounds(candidates, indices, params, frame_count, close, where, attempts, closings):
+    """Close candidates[i] for i in `indices` (best first) at each of its blend widths, narrowest first for
+    every candidate before a wider one, until a closing keeps the quality bounds: (i, ClosedLoop), or None.
+    Every closing tried goes to `attempts` (ClosingAttempt) and `closings` ((i, ClosedLoop)); a rejected
+    one is logged at debug level (only the loop kept is the bake's business)."""
+    widths = {i: _blend_widths(params, candidates[i].start_frame, candidates[i].end_frame - candidates[i].start_frame, frame_count)
+              for i in indices}
+    for rank in range(max(len(w) for w in widths.values())):
+        for i in indices:
+            if rank >= len(widths[i]):
+                continue
+            candidate = candidates[i]
+            closing = close(candidate, widths[i][rank])
+            exceeded = () if closing.quality is None else closing.quality.exceeded
+            attempts.append(ClosingAttempt(candidate.start_frame, candidate.end_frame, closing.blend_frames, exceeded))
+            closings.append((i, closing))
+            if not exceeded:
+                return i, closing
+            logger.debug("%s: candidate rejected, its '%s' closing (blend %s frames) breaks %s",
+                         where(candidate), params.close, closing.blend_frames, _bounds_text(closing.quality))
+    return None
+
+
+class _EdgePass:
+    """Pass 2 for lists of candidates: each scored by the edge distance between its Fs and Fe pictures,
+    the pictures kept for the winner's report."""
+
+    def __init__(self, cloth, body, render_views: RenderViews, params: CycleParams, report: Progress):
+        self.cloth, self.body, self.render_views, self.params, self.report = cloth, body, render_views, params, report
+        self.images: dict[int, np.ndarray] = {}
+        self.comparisons: dict[tuple[int, int], edge_metric.EdgeComparison] = {}
+
+    def score(self, candidates: list[Candidate]) -> list[Candidate]:
+        """The candidates with their edge distances, in their order."""
+        frames = sorted(({c.start_frame for c in candidates} | {c.end_frame for c in candidates}) - set(self.images))
+        self.report("pass 2", 0, len(candidates))
+        if frames:
+            images = np.asarray(self.render_views(self.cloth[frames], None if self.body is None else self.body[frames]))
+            if images.ndim != 4 or images.shape[0] != len(frames) or images.dtype != np.uint8:
+                raise ValueError(f"render_views returned {images.shape} {images.dtype}, expected ({len(frames)}, views, H, W) uint8")
+            self.images.update(zip(frames, images))
+        scored = []
+        for i, c in enumerate(candidates):
+            comparison = edge_metric.compare_views(self.images[c.start_frame], self.images[c.end_frame], self.params.canny_low,
+                                                   self.params.canny_high, self.params.truncation_px)
+            self.comparisons[(c.start_frame, c.end_frame)] = comparison
+            scored.append(Candidate(c.start_frame, c.end_frame, c.cycle_count, c.vertex_distance, comparison.total,
+                                    tuple(float(v) for v in comparison.per_view)))
+            self.report("pass 2", i + 1, len(candidates))
+        return scored
+
+    def pictures(self, winner: Candidate) -> tuple[np.ndarray, edge_metric.EdgeComparison]:
+        """(2, views, H, W) uint8 pictures at the winner's Fs and Fe, and its edge comparison."""
+        return (np.stack([self.images[winner.start_frame], self.images[winner.end_frame]]),
+                self.comparisons[(winner.start_frame, winner.end_frame)])
+
+
 def estimate_root_offsets(body: np.ndarray) -> np.ndarray:
     """(F, 3) float64 root position per frame from the body: its horizontal (x, z) vertex centroid, y = 0.
 
@@ -320,6 +437,8 @@ def find_cycle(
     body_normals: np.ndarray | None = None,
     progress: Progress | None = None,
     rest_positions: np.ndarray | None = None,
+    clip: str | None = None,
+    frame_offset: int = 0,
 ) -> CycleResult:
     """Search a long cloth cache for its best cycle and close it.
 
@@ -332,6 +451,11 @@ def find_cycle(
     body_normals: (F, Vb, 3) unit outward normals; computed from body_faces when None.
     rest_positions: (V, 3) rest shape for the stretch ratio, default the cache's first frame (a part of a
         longer cache passes the whole cache's first frame).
+    clip, frame_offset: for messages only, the clip searched and the cache frame of `cloth`'s first frame
+        (a stretch of a longer cache), so that logs and errors name the clip and cache frames.
+    The candidates are closed best first, each at the default blend and then wider crossfades, then
+    MORE_CANDIDATES_FACTOR times as many candidates, until a closing keeps loop_closing.QUALITY_BOUNDS;
+    where none does, the first closing tried is returned (its quality.exceeded says which bounds it breaks).
     Raises ValueError on bad shapes, NaN, too few frames, or when no candidate passes the threshold.
     """
     params.validate()
@@ -346,7 +470,7 @@ def find_cycle(
         offsets = estimate_root_offsets(body)
         if params.root_motion == "remove" or has_root_motion(offsets, cycle_frames, loop_closing.body_size(body)):
             root_offsets = offsets
-            logger.info("the character travels: searching in the root's frame")
+            logger.info("%s: the character travels: searching in the root's frame", _clip_name(clip))
     if root_offsets is not None:
         # The whole search, closing and output happen in the root's frame (a walk on the spot).
         cloth = (cloth - root_offsets[:, None, :]).astype(np.float32)
@@ -358,7 +482,8 @@ def find_cycle(
         latest = frame_count - cycle_frames - half - 2  # the last start frame whose window fits (see cycle_search)
         settle = min(cycle_frames, max(latest, 0))
         if settle < cycle_frames:
-            logger.warning("cache of %d frames: settle-in shortened to %d frames", frame_count, settle)
+            logger.warning("%s, cache frames [%d, %d): settle-in shortened to %d frames", _clip_name(clip), frame_offset,
+                           frame_offset + frame_count, settle)
 
     report("pass 1", 0, 1)
     started = time.perf_counter()
@@ -380,62 +505,69 @@ def find_cycle(
         lowest = int(np.nanargmin(best.distances))
         raise ValueError(
             f"no candidate cycle under the threshold {params.threshold}: the lowest vertex distance is "
-            f"{best.distances[lowest]:.6g} at frame {int(best.start_frames[lowest])}"
+            f"{best.distances[lowest]:.6g} at cache frame {int(best.start_frames[lowest]) + frame_offset}"
         )
     candidates = [
         Candidate(c.start_frame, c.start_frame + c.gap, c.cycle_count, c.vertex_distance) for c in vertex_candidates
     ]
-
-    winner_images = None
-    winner_edges = None
-    chosen = 0
-    if render_views is not None:
+    edge_pass = _EdgePass(cloth, body, render_views, params, report) if render_views is not None else None
+    if edge_pass is not None:
         started = time.perf_counter()
-        frames = sorted({c.start_frame for c in candidates} | {c.end_frame for c in candidates})
-        row = {frame: i for i, frame in enumerate(frames)}
-        report("pass 2", 0, len(candidates))
-        images = render_views(cloth[frames], None if body is None else body[frames])
-        images = np.asarray(images)
-        if images.ndim != 4 or images.shape[0] != len(frames) or images.dtype != np.uint8:
-            raise ValueError(f"render_views returned {images.shape} {images.dtype}, expected ({len(frames)}, views, H, W) uint8")
-        comparisons = []
-        for i, c in enumerate(candidates):
-            comparison = edge_metric.compare_views(
-                images[row[c.start_frame]], images[row[c.end_frame]], params.canny_low, params.canny_high, params.truncation_px
-            )
-            comparisons.append(comparison)
-            candidates[i] = Candidate(
-                c.start_frame, c.end_frame, c.cycle_count, c.vertex_distance,
-                comparison.total, tuple(float(v) for v in comparison.per_view),
-            )
-            report("pass 2", i + 1, len(candidates))
-        # Smallest edge distance wins; the pass-1 order (the list's order) breaks ties.
-        chosen = min(range(len(candidates)), key=lambda i: (candidates[i].edge_distance, i))
-        winner = candidates[chosen]
-        winner_images = np.stack([images[row[winner.start_frame]], images[row[winner.end_frame]]])
-        winner_edges = comparisons[chosen]
+        candidates = edge_pass.score(candidates)
         timings["pass2"] = time.perf_counter() - started
 
-    winner = candidates[chosen]
-    gap = winner.end_frame - winner.start_frame
     report("closing", 0, 1)
     started = time.perf_counter()
-    closing = loop_closing.close_cycle(
-        cloth, winner.start_frame, gap, params.close, body=body, body_normals=body_normals, body_faces=body_faces,
-        blend_frames=params.blend_frames, push_out_mode=params.push_out, cloth_faces=cloth_faces,
-        rest_positions=rest_positions,
-    )
+
+    def close(candidate: Candidate, width: int | None) -> loop_closing.ClosedLoop:
+        return loop_closing.close_cycle(
+            cloth, candidate.start_frame, candidate.end_frame - candidate.start_frame, params.close, body=body,
+            body_normals=body_normals, body_faces=body_faces, blend_frames=width, push_out_mode=params.push_out,
+            cloth_faces=cloth_faces, rest_positions=rest_positions,
+        )
+
+    def where(candidate: Candidate) -> str:
+        return _loop_name(clip, frame_offset, candidate.start_frame, candidate.end_frame)
+
+    attempts: list[ClosingAttempt] = []
+    closings: list[tuple[int, loop_closing.ClosedLoop]] = []
+    found = _first_within_bounds(candidates, _best_first(candidates, range(len(candidates))), params, frame_count, close, where,
+                                 attempts, closings)
+    if found is None and params.max_candidates * MORE_CANDIDATES_FACTOR > len(candidates):
+        # None of the K best keeps the bounds: look further down pass 1's list, edge_pass as the first K were.
+        more, _ = cycle_search.search_vertex_candidates(
+            cloth, cycle_frames, window=params.window, velocity_weight=params.velocity_weight, settle_frames=settle,
+            max_candidates=params.max_candidates * MORE_CANDIDATES_FACTOR, threshold=params.threshold,
+            min_separation=params.min_separation, max_cycle_count=params.max_cycle_count,
+        )
+        known = {(c.start_frame, c.end_frame) for c in candidates}
+        extra = [Candidate(c.start_frame, c.start_frame + c.gap, c.cycle_count, c.vertex_distance)
+                 for c in more if (c.start_frame, c.start_frame + c.gap) not in known]
+        if extra:
+            logger.info("%s: no closing of the %d best candidate loops keeps the quality bounds; trying %d more",
+                        _clip_name(clip), len(candidates), len(extra))
+            if edge_pass is not None:
+                extra = edge_pass.score(extra)
+            first = len(candidates)
+            candidates = candidates + extra
+            found = _first_within_bounds(candidates, _best_first(candidates, range(first, len(candidates))), params, frame_count,
+                                         close, where, attempts, closings)
+    # Nothing within the bounds: the search's own first choice (the caller decides whether a bake may keep it).
+    chosen, closing = found if found is not None else closings[0]
     timings["closing"] = time.perf_counter() - started
     report("closing", 1, 1)
+    winner = candidates[chosen]
+    gap = winner.end_frame - winner.start_frame
     logger.info(
-        "cycle [%d, %d): seam position jump %.3f -> %.3f",
-        winner.start_frame, winner.end_frame, closing.seam_before.position_jump_ratio, closing.seam_after.position_jump_ratio,
+        "%s: seam position jump %.3f -> %.3f", where(winner),
+        closing.seam_before.position_jump_ratio, closing.seam_after.position_jump_ratio,
     )
-    if closing.quality is not None and closing.quality.exceeded:
-        logger.warning(
-            "the '%s' closing of [%d, %d) breaks its quality bounds: %s",
-            params.close, winner.start_frame, winner.end_frame, _bounds_text(closing.quality),
-        )
+    if params.close == "crossfade" and params.blend_frames is None and closing.blend_frames < loop_closing.default_crossfade_frames(gap):
+        logger.info("%s: crossfade shortened to %d frames either side of the seam: the searched frames end at cache frame %d",
+                       where(winner), closing.blend_frames, frame_offset + frame_count - 1)
+    winner_images = winner_edges = None
+    if edge_pass is not None:
+        winner_images, winner_edges = edge_pass.pictures(winner)
     return CycleResult(
         start_frame=winner.start_frame,
         end_frame=winner.end_frame,
@@ -455,4 +587,5 @@ def find_cycle(
         winner_edges=winner_edges,
         root_offsets=root_offsets,
         timings=timings,
+        closing_attempts=attempts,
     )

@@ -18,6 +18,10 @@ STILL_STEP = 1e-12
 # The stretch ratio's denominator is at least this mean strain (0.1 %): a cloth solver never holds its
 # edges tighter than that, and a rigid synthetic cache (strain 0) would make any change read as infinite.
 MIN_REFERENCE_STRAIN = 1e-3
+# The deviation ratio's denominator (the seam's jump) is at least this fraction of the cloth's median
+# frame-to-frame step: a seam the simulation closed itself (jump 0) leaves a closing nothing to move but
+# float rounding, which over a zero jump would read as an infinite deviation.
+MIN_JUMP_STEP_FRACTION = 1e-2
 
 
 def _rms(delta: np.ndarray) -> np.ndarray:
@@ -90,7 +94,7 @@ class LoopQuality:
         frames Fs .. Fe-1 (at least MIN_REFERENCE_STRAIN; L_rest: the rest lengths given, by default the
         cache's first frame). None without edges.
     deviation_ratio: the largest per-frame RMS distance between a looped frame and the simulator's same frame,
-        over the raw seam jump RMS |x(Fe) - x(Fs)|.
+        over the raw seam jump RMS |x(Fe) - x(Fs)| (at least MIN_JUMP_STEP_FRACTION of the median frame step).
     seam_acceleration_ratio: RMS acceleration (second difference) at the two frames either side of the
         loop's wrap, over the larger of the loop's median acceleration and the simulator's own acceleration
         at those frames (a seam cut where the legs kick the cloth hardest is not a kink).
@@ -185,7 +189,7 @@ def loop_quality(
         stretch = _ratio(mean_edge_strain(looped, edges, rest_lengths), max(raw_strain, MIN_REFERENCE_STRAIN))
     ratios = {
         "stretch_ratio": stretch,
-        "deviation_ratio": _ratio(deviation, seam_jump),
+        "deviation_ratio": _ratio(deviation, max(seam_jump, MIN_JUMP_STEP_FRACTION * float(np.median(_rms(np.diff(raw_loop, axis=0)))))),
         "seam_acceleration_ratio": _ratio(seam_acceleration, max(median_acceleration, simulated_seam)),
     }
     exceeded = tuple(name for name, bound in QUALITY_BOUNDS.items() if ratios[name] is not None and not ratios[name] <= bound)

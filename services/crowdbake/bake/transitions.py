@@ -18,7 +18,8 @@ made. Playback goes loop A -> the transition -> loop B:
 - each join is measured with the loop's quality figures (crowdbake.bake.loop_quality.LoopQuality:
   stretch, deviation in join jumps, acceleration at the join) against the same QUALITY_BOUNDS. The
   first candidate (nearest the change first, for the shortest transition) whose join keeps the bounds is
-  taken, else the first;
+  taken, trying wider crossfades and more candidates where none does at the loop's own width, else the
+  first;
 - candidates whose switch falls at a slow phase of the loop come first (switch_is_slow): at a switch a
   character steps from the loop to the transition (or back) as the loop itself steps at that phase, and
   a robot's walk steps up to twice its median round the loop, so a switch at a fast phase reads as a pop
@@ -36,6 +37,7 @@ from crowdbake.bake.clips import ClipLoop
 from crowdbake.bake.timeline import Timeline
 from crowdbake.bake.cycle_search import DEFAULT_MAX_CANDIDATES, DEFAULT_VELOCITY_WEIGHT, binomial_weights, pick_candidates
 from crowdbake.bake.loop_closing import crossfade_blend, crossfade_weights, default_crossfade_frames
+from crowdbake.bake.cycle import CROSSFADE_WIDTH_FACTORS, MORE_CANDIDATES_FACTOR
 from crowdbake.bake.loop_quality import MIN_REFERENCE_STRAIN, QUALITY_BOUNDS, LoopQuality, _ratio, _rms, mean_edge_strain
 from crowdbake.bake.mesh import edge_lengths, unique_edges
 
@@ -344,29 +346,32 @@ def find_transition(
     skips both); rest_positions: (V, 3), default the cache's first frame; body: (F, Vb, 3) the body posed
     at each cache frame (crowdbake.stages.cycle_inputs.pose_clips_body), or None: the switch phases are
     then judged by the cloth alone; slow_switch_ratio: switch_is_slow's ratio (None: no phase is preferred).
-    The joins' half-widths are the loops' own crossfade defaults
-    (loop_closing.default_crossfade_frames). Each join takes the first of its candidates (switches at
-    a slow phase first, nearest the change of clip first, see _candidates) that keeps QUALITY_BOUNDS, else the first.
+    Each join takes the first of its candidates (switches at a slow phase first, nearest the change of clip
+    first, see _candidates) that keeps QUALITY_BOUNDS, crossfaded over the loop's own half-width
+    (loop_closing.default_crossfade_frames), then wider, then among more candidates (_join_options); where
+    none keeps them, the first (its quality.exceeded says which bounds it breaks).
     """
     to_segment = from_segment + 1
     edges = None if cloth_faces is None else unique_edges(cloth_faces)
     rest_lengths = None if edges is None else edge_lengths(np.asarray(cloth[0] if rest_positions is None else rest_positions, np.float64), edges)
-    h_a, h_b = default_crossfade_frames(len(loop_a.looped)), default_crossfade_frames(len(loop_b.looped))
     la, lb = len(loop_a.looped), len(loop_b.looped)
     steps_a = loop_steps(loop_a.looped, None if body is None else body_loop(body, loop_a))
     steps_b = loop_steps(loop_b.looped, None if body is None else body_loop(body, loop_b))
     reference = reference_step(steps_a, steps_b)
+    slow = slow_switch_ratio is not None
+
     # Leaving, loop frame i - h_a - 1 (the manifest's leave_frame) steps to the transition's first frame,
     # about loop frame i - h_a; arriving, its last frame, about loop frame j + h_b - 1, steps to j + h_b.
-    slow = slow_switch_ratio is not None
-    leaving = _candidates(loop_a, cloth, timeline, from_segment, h_a, max_candidates, velocity_weight, latest_first=True,
-                          slow_at=(lambda i: switch_is_slow(steps_a, i - h_a - 1, reference, slow_switch_ratio)) if slow else None)
-    arriving = _candidates(loop_b, cloth, timeline, to_segment, h_b, max_candidates, velocity_weight, latest_first=False,
-                           slow_at=(lambda j: switch_is_slow(steps_b, j + h_b - 1, reference, slow_switch_ratio)) if slow else None)
+    def leaving(count: int, h: int):
+        return _candidates(loop_a, cloth, timeline, from_segment, h, count, velocity_weight, latest_first=True,
+                           slow_at=(lambda i: switch_is_slow(steps_a, i - h - 1, reference, slow_switch_ratio)) if slow else None)
 
-    def build(pick_a: int, pick_b: int):
-        a, i = int(leaving[0][pick_a]), int(leaving[1][pick_a])
-        b, j = int(arriving[0][pick_b]), int(arriving[1][pick_b])
+    def arriving(count: int, h: int):
+        return _candidates(loop_b, cloth, timeline, to_segment, h, count, velocity_weight, latest_first=False,
+                           slow_at=(lambda j: switch_is_slow(steps_b, j + h - 1, reference, slow_switch_ratio)) if slow else None)
+
+    def build(leave: _JoinChoice, arrive: _JoinChoice):
+        (h_a, a, i), (h_b, b, j) = leave.join(), arrive.join()
         frames = transition_frames(loop_a.looped, i, a, loop_b.looped, j, b, cloth, h_a, h_b, edges)
         leave_frame, arrive_frame = (i - h_a) % la, (j + h_b) % lb
         played = _played(loop_a.looped, leave_frame, frames, loop_b.looped, arrive_frame)
@@ -378,31 +383,83 @@ def find_transition(
                                       np.asarray(loop_b.looped[(j + span) % lb], np.float64), edges, rest_lengths, lb)
         return frames, leave_frame, arrive_frame, quality_leave, quality_arrive
 
-    # Each join's figures depend on the other only through the played median: choose them one after the other.
-    pick_a = pick_b = 0
-    for candidate in range(len(leaving[0])):
-        if build(candidate, 0)[3].within_bounds:
-            pick_a = candidate
-            break
-    for candidate in range(len(arriving[0])):
-        if build(pick_a, candidate)[4].within_bounds:
-            pick_b = candidate
-            break
-    frames, leave_frame, arrive_frame, quality_leave, quality_arrive = build(pick_a, pick_b)
-
-    def listed(found):
-        return tuple((int(f), int(k), float(d)) for f, k, d in zip(*found))
-
-    a, b = int(leaving[0][pick_a]), int(arriving[0][pick_b])
+    options_a = _join_options(leaving, la, timeline.segments[from_segment], max_candidates)
+    options_b = _join_options(arriving, lb, timeline.segments[to_segment], max_candidates)
+    # Each join's figures depend on the other only through the played median: choose them one after the
+    # other, the leaving join against the first arriving candidate.
+    first_b = _JoinChoice(*next(_join_options(arriving, lb, timeline.segments[to_segment], max_candidates)), 0)
+    leave = _first_keeping_bounds(options_a, lambda choice: build(choice, first_b)[3])
+    arrive = _first_keeping_bounds(options_b, lambda choice: build(leave, choice)[4])
+    frames, leave_frame, arrive_frame, quality_leave, quality_arrive = build(leave, arrive)
+    (h_a, a, i), (h_b, b, j) = leave.join(), arrive.join()
     return Transition(
         from_clip=loop_a.clip, to_clip=loop_b.clip, from_segment=from_segment, to_segment=to_segment,
         leave_loop_frame=int(leave_frame), arrive_loop_frame=int(arrive_frame), frames=frames.astype(np.float32),
         source_frames=(a - h_a, b + h_b),
-        leave=Join(a, int(leaving[1][pick_a]), float(leaving[2][pick_a]), h_a, quality_leave, listed(leaving),
-                   switch_step_ratio(steps_a, int(leaving[1][pick_a]) - h_a - 1, reference)),
-        arrive=Join(b, int(arriving[1][pick_b]), float(arriving[2][pick_b]), h_b, quality_arrive, listed(arriving),
-                    switch_step_ratio(steps_b, int(arriving[1][pick_b]) + h_b - 1, reference)),
+        leave=Join(a, i, leave.distance(), h_a, quality_leave, leave.listed(), switch_step_ratio(steps_a, i - h_a - 1, reference)),
+        arrive=Join(b, j, arrive.distance(), h_b, quality_arrive, arrive.listed(), switch_step_ratio(steps_b, j + h_b - 1, reference)),
     )
+
+
+@dataclass(frozen=True)
+class _JoinChoice:
+    """Candidate `index` of the candidates (cache frames, loop frames, distances; _candidates) found for a
+    join crossfaded over `half_width` frames either side."""
+
+    half_width: int
+    found: tuple[np.ndarray, np.ndarray, np.ndarray]
+    index: int
+
+    def join(self) -> tuple[int, int, int]:
+        """(h, cache frame, loop frame)."""
+        return self.half_width, int(self.found[0][self.index]), int(self.found[1][self.index])
+
+    def distance(self) -> float:
+        return float(self.found[2][self.index])
+
+    def listed(self) -> tuple[tuple[int, int, float], ...]:
+        """Every candidate weighed at this width: (cache frame, loop frame, distance), in the order tried."""
+        return tuple((int(f), int(k), float(d)) for f, k, d in zip(*self.found))
+
+
+def _join_widths(loop_frames: int, segment) -> list[int]:
+    """A join's crossfade half-widths in the order tried: the loop's own (loop_closing.default_crossfade_frames),
+    then CROSSFADE_WIDTH_FACTORS times it, each at most half the loop and leaving a candidate frame in the
+    segment's pure frames (the loop's own is kept even then: _candidates says why it does not fit)."""
+    default = default_crossfade_frames(loop_frames)
+    widths = [default]
+    for factor in CROSSFADE_WIDTH_FACTORS[1:]:
+        width = min(int(round(default * factor)), loop_frames // 2)
+        if width not in widths and segment.pure_last_frame - segment.pure_first_frame > 2 * width + 1:
+            widths.append(width)
+    return widths
+
+
+def _join_options(candidates_at, loop_frames: int, segment, max_candidates: int):
+    """(half-width, candidates) in the order a join tries them: the loop's own crossfade, then wider ones
+    (_join_widths), then MORE_CANDIDATES_FACTOR times as many candidates at each width, as a loop's seam
+    tries them (crowdbake.bake.cycle). candidates_at(count, h) -> _candidates' (frames, loop frames, distances)."""
+    for count in (max_candidates, MORE_CANDIDATES_FACTOR * max_candidates):
+        for width in _join_widths(loop_frames, segment):
+            yield width, candidates_at(count, width)
+
+
+def _first_keeping_bounds(options, judge) -> _JoinChoice:
+    """The first candidate of `options` (_join_options) whose join `judge` (a _JoinChoice -> LoopQuality)
+    finds within QUALITY_BOUNDS, else the very first; each (width, cache frame) is judged once."""
+    first = None
+    judged = set()
+    for width, found in options:
+        for index in range(len(found[0])):
+            choice = _JoinChoice(width, found, index)
+            key = choice.join()[:2]
+            if key in judged:
+                continue
+            judged.add(key)
+            first = first or choice
+            if judge(choice).within_bounds:
+                return choice
+    return first
 
 
 def find_transitions(cloth: np.ndarray, cloth_faces: np.ndarray | None, timeline: Timeline, loops: list[ClipLoop],

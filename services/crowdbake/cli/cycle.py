@@ -120,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
                 up=args.up, units=args.units, animation=args.animation,
                 progress=on_progress, edge_pass=not args.no_edge_pass, timeline=timeline,
                 check_fit=args.fit and args.character is not None and timeline is None,
+                accept_out_of_bounds=args.accept_out_of_bounds,
             )
         except InputError as error:
             raise CommandError(f"--clip-cloth: {error.message}" if error.field == "clip_cloth" else error.message) from None

@@ -19,6 +19,8 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from crowdbake import __version__
 from crowdbake.files import fsync_path
 from crowdbake.formats.binary import (
@@ -269,6 +271,8 @@ def _cross_check(bundle: Bundle) -> None:
         _require(cache.frame_count == frames, f"{cache.frame_count} frames, the bundle has {frames} pose frames", path)
         _require(cache.version == cache_version, f"pose cache version {cache.version}, a format_version "
                  f"{manifest['format_version']} bundle holds version {cache_version}", path)
+        _require(cache.frames_per_second == float(np.float32(manifest["frames_per_second"])),
+                 f"frames_per_second {cache.frames_per_second}, the manifest says {manifest['frames_per_second']}", path)
         _require(mesh["material"] < len(manifest["materials"]), f"material {mesh['material']} does not exist", path)
     for material in manifest["materials"]:
         diffuse = texture(material["diffuse"])

@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from pathlib import Path
 
 from crowdbake.bake.cycle import CycleParams
 from crowdbake.bake.loop_closing import close_cycle
-from crowdbake.errors import InputError
+from crowdbake.bake.bounds import OutOfBounds, bounds_message
+from crowdbake.errors import InputError, OutOfBoundsError
 from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2, write_pc2
 from crowdbake.params import BASE_FPS
@@ -76,6 +78,19 @@ def _given_cycle(job: JobRecord, inputs: Path, cycle_json: Path, looped: Path, p
     return document
 
 
+def _check_given_bounds(document: dict, accept: bool) -> None:
+    """OutOfBoundsError when a given cycle.json lists figures out of bounds (`crowdbake cycle
+    --accept-out-of-bounds` wrote it) and this bake does not accept them too."""
+    try:
+        breaks = [OutOfBounds(str(item["where"]), (int(item["cache_frames"][0]), int(item["cache_frames"][1])), str(item["figure"]),
+                              math.inf if item["value"] is None else float(item["value"]), float(item["bound"]))
+                  for item in document.get("out_of_bounds") or []]
+    except (KeyError, TypeError, ValueError, IndexError):
+        raise InputError("cycle.json: /out_of_bounds must list objects with where, cache_frames, figure, value and bound", "cycle") from None
+    if breaks and not accept:
+        raise OutOfBoundsError(f"the given cycle: {bounds_message(breaks)}")
+
+
 def _searched_cycle(job: JobRecord, work: Path, out: Path, progress: Progress | None, plots: list | None = None) -> dict:
     inputs = WorkDir(work).inputs
     params = job.bake_params
@@ -101,7 +116,10 @@ def _searched_cycle(job: JobRecord, work: Path, out: Path, progress: Progress | 
             timeline=inputs / names["timeline"] if "timeline" in names else None,
             # Every clip's loop, searched side by side by the loops stage: only the transitions are left.
             loops=load_clip_loops(work) if "timeline" in names else None,
+            accept_out_of_bounds=params.accept_out_of_bounds,
         )
+    except OutOfBoundsError:
+        raise
     except ValueError as error:
         raise InputError(f"cycle search: {error}", "cloth") from None
     return read_json(out / "cycle.json")
@@ -131,6 +149,7 @@ def stage_cycle(work: Path, progress: Progress | None = None, plots: list | None
         report(progress, "cycle", 1, 1)
     elif "cycle" in job.inputs:
         document = _given_cycle(job, folder.inputs, cycle_json, looped, progress)
+        _check_given_bounds(document, job.bake_params.accept_out_of_bounds)
     else:
         document = _searched_cycle(job, folder.root, out, progress, plots)
 

@@ -13,6 +13,8 @@ bundle carries, in cache frame numbers; with a timeline, plus
   transitions   every simulated change of clip: from/to clip and segment, the loop frames where it
                 leaves and arrives, its frames, the cache frames it spans, and each join's candidates and
                 quality figures.
+and, with a timeline or without, out_of_bounds (every figure of a loop or join over its bound,
+crowdbake.bake.bounds) and accept_out_of_bounds (whether the bake keeps them; else the job fails).
 Files: looped.pc2 (the primary loop), report.html and its plots (crowdbake.stages.cycle_report); with a
 timeline, clips/<clip>.pc2 (every loop), transitions/<k>_<from>_<to>.pc2 and, for several clips,
 pose_frames.pc2 (every loop and transition end to end: the bundle's pose cache, format v2).
@@ -27,11 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
+from crowdbake.bake.bounds import bounds_message, join_where, out_of_bounds
 from crowdbake.bake.clips import ClipLoop, find_clip_loops
 from crowdbake.bake.cycle import CycleParams, CycleResult, _float, _quality_dict
 from crowdbake.bake.pose_ranges import first_frames
 from crowdbake.bake.timeline import Timeline
 from crowdbake.bake.transitions import SLOW_SWITCH_RATIO, Join, Transition, find_transitions, transition_jump_ratios
+from crowdbake.errors import OutOfBoundsError
 from crowdbake.formats.pc2 import write_pc2
 from crowdbake.formats.ranges import Clip, Ranges
 from crowdbake.formats.ranges import Transition as BundleTransition
@@ -63,6 +67,7 @@ def run_cycle_job(
     timeline: str | os.PathLike | None = None,
     loops: list[ClipLoop] | None = None,
     check_fit: bool = False,
+    accept_out_of_bounds: bool = False,
 ) -> CycleResult:
     """The whole `crowdbake cycle` job: files in, cycle.json + looped.pc2 + report.html out; returns the
     primary clip's result in cache frames.
@@ -75,6 +80,8 @@ def run_cycle_job(
         transitions are searched here.
     check_fit: refuse a garment that does not follow the character (crowdbake.ingest.garment.check_garment_fit;
         a character and no timeline only).
+    accept_out_of_bounds: keep loops and transitions that break a quality bound (crowdbake.bake.bounds);
+        without it the job writes its outputs, then raises OutOfBoundsError naming the first.
     Raises ValueError on bad input (with a one-line reason).
     """
     report = progress or (lambda stage, done, total: None)
@@ -100,10 +107,12 @@ def run_cycle_job(
     primary = next(loop for loop in loops if loop.clip == inputs.clip)
     result = primary.cache_result(plays.total_frames)
     report("report", 0, 1)
+    breaks = out_of_bounds(loops, transitions)
+    bounds = {"out_of_bounds": [item.to_dict() for item in breaks], "accept_out_of_bounds": accept_out_of_bounds}
     # Without a timeline there is nothing beyond the one loop to describe.
-    sections = None if timeline is None else write_clip_files(out_dir, plays, primary, loops, transitions, inputs.sample_rate)
+    sections = bounds if timeline is None else {**write_clip_files(out_dir, plays, primary, loops, transitions, inputs.sample_rate), **bounds}
     draw = [lambda: write_cycle_plots(result, out_dir)]
-    if sections is not None:  # every loop's and join's pictures, named in the sections before cycle.json is written
+    if timeline is not None:  # every loop's and join's pictures, named in the sections before cycle.json is written
         figures = clip_figures(sections, loops, transitions, inputs.cloth)
         draw.append(lambda: figures.draw(out_dir))
     write_cycle_outputs(result, out_dir, inputs, plots=False, sections=sections)
@@ -113,6 +122,10 @@ def run_cycle_job(
         for drawing in draw:
             drawing()
     report("report", 1, 1)
+    if breaks and not accept_out_of_bounds:  # the outputs stay, for the report to show what broke
+        raise OutOfBoundsError(bounds_message(breaks))
+    for item in breaks:
+        logger.warning("accepted out of bounds: %s", item.text())
     return result
 
 
@@ -173,20 +186,16 @@ def write_clip_files(out_dir: str | os.PathLike, timeline: Timeline, primary: Cl
         name = f"clips/{file_stem(loop.clip)}.pc2"
         write_pc2(out / name, loop.looped, start_frame=0.0, sample_rate=sample_rate)
         clip_entries.append({**loop.to_dict(timeline.total_frames), "file": name})
-        quality = loop.result.closing.quality
-        if quality is not None and quality.exceeded:
-            logger.warning("the loop of clip %r breaks its quality bounds: %s", loop.clip, ", ".join(quality.exceeded))
     transition_entries = []
     for k, transition in enumerate(transitions):
         name = f"transitions/{k}_{file_stem(transition.from_clip)}_{file_stem(transition.to_clip)}.pc2"
         write_pc2(out / name, transition.frames, start_frame=0.0, sample_rate=sample_rate)
         transition_entries.append(transition_dict(transition, name))
-        if not transition.within_bounds:
-            logger.warning("the transition %s -> %s breaks its quality bounds", transition.from_clip, transition.to_clip)
-        for end, join in (("leaves", transition.leave), ("arrives", transition.arrive)):
+        for leaving, join in ((True, transition.leave), (False, transition.arrive)):
             if join.switch_step_ratio > SLOW_SWITCH_RATIO:  # no slow candidate kept the bounds: a switch may read as a jump
-                logger.warning("the transition %s -> %s %s at a fast phase: %.2f x the clips' median step (slow: at most %.2f)",
-                               transition.from_clip, transition.to_clip, end, join.switch_step_ratio, SLOW_SWITCH_RATIO)
+                logger.warning("%s switches at a fast phase: %.2f x the clips' median step (slow: at most %.2f)",
+                               join_where(transition.from_clip, transition.to_clip, leaving, join), join.switch_step_ratio,
+                               SLOW_SWITCH_RATIO)
     sections = {"primary_clip": primary.clip, "clip_phase": primary.clip_phase, "timeline": timeline_dict(timeline),
                 "clips": clip_entries, "transitions": transition_entries}
     travelling = [loop.clip for loop in loops if loop.result.root_offsets is not None]

@@ -408,6 +408,8 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
         "meshes": meshes,
         "impostor": {**layout.to_manifest(), "frame_indices": poses.frame_indices, "bounds": poses.bounds, "maps": maps},
     }
+    if params.accept_out_of_bounds:  # what the bake was told to publish beyond its quality bounds, for the next reader
+        sections["accepted_out_of_bounds"] = cycle_document.get("out_of_bounds") or []
     manifest = build_manifest(job.name, job.version, sections, files, created=job.created, format_version=FORMAT_VERSION)
     if bundle_dir.exists():
         shutil.rmtree(bundle_dir)
