@@ -17,7 +17,7 @@ SPEC.md's encodings ("Impostor maps"), into four integer targets:
 
 All four are 0 where no triangle covers the texel. The views are orthographic, so the interpolation is
 affine (no perspective division): a texel's values are those of the point of the triangle at its centre,
-computed in float32 and rounded to the nearest code (the test oracle crowdbake.bake.reference.impostor_maps
+computed in float32 and rounded to the nearest code (the test oracle crowdbake.reference.impostor_maps
 computes them in float64 from a triangle-id render). The framebuffer is not multisampled, so no texel
 mixes two triangles on the silhouette.
 
@@ -371,7 +371,7 @@ def draw_maps(shader: MapShader, views: list[OrthoView], positions: np.ndarray, 
 def draw_references(shader: MapShader, views: list[OrthoView], positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray,
                     faces: np.ndarray, triangle_material: np.ndarray, diffuse: list[np.ndarray], outfit_row: np.ndarray,
                     supersample: int, with_coverage: bool = False) -> np.ndarray:
-    """The fidelity stage's mesh references (crowdbake.bake.reference.mesh_reference) of views of size
+    """The fidelity stage's mesh references (crowdbake.reference.mesh_reference) of views of size
     S · supersample: each sample shaded by the REFERENCE pass, box-filtered down to (V, S, S, 3) float32
     in 0..1, black background; with_coverage: (V, S, S, 4), alpha the share of the texel's samples the
     mesh covers. diffuse: per material, the texture as the runtime holds it; outfit_row:

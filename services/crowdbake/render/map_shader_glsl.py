@@ -47,7 +47,7 @@ uniform vec3 back;
 uniform sampler2D diffuse;
 
 // The unit normal, flipped towards the camera where it sees the triangle's back: the side the camera
-// sees decides, by the face normal (crowdbake.bake.reference.coverage.shading_normals_at).
+// sees decides, by the face normal (crowdbake.reference.coverage.shading_normals_at).
 vec3 shading_normal() {
     float facing = dot(v_face_normal, back) < 0.0 ? -1.0 : 1.0;
     vec3 n = v_normal * facing;
@@ -107,7 +107,7 @@ void main() {
 }
 """
 
-# The fidelity stage's mesh reference per sample (crowdbake.bake.reference.mesh_reference): the diffuse
+# The fidelity stage's mesh reference per sample (crowdbake.reference.mesh_reference): the diffuse
 # colour tinted by its region's outfit colour, lit by Lambert with an ambient term from a light fixed to
 # the camera; covered samples get alpha 1.
 REFERENCE_FRAGMENT_SHADER = FRAGMENT_COMMON + """

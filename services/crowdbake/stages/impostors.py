@@ -315,7 +315,7 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
 def mesh_references(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]], with_coverage: bool = False) -> np.ndarray:
     """The mesh from each (azimuth, elevation) in degrees, lit as the runtime lights the impostor, at
     FIDELITY_SUPERSAMPLE² samples a texel (crowdbake.render.map_shader.draw_references, which
-    crowdbake.bake.reference.mesh_reference is the float64 reference of): (V, S, S, 3) float32."""
+    crowdbake.reference.mesh_reference is the float64 reference of): (V, S, S, 3) float32."""
     size = int(plan.layout["tile_size"]) * FIDELITY_SUPERSAMPLE
     views = [impostor_views.ortho_view(plan.center, plan.radius, azimuth, elevation, size) for azimuth, elevation in angles]
     if not views:
@@ -355,7 +355,7 @@ def fill_background(mask: np.ndarray, maps: list[np.ndarray], unflattened: list[
 
     Block compression fits each block's endpoints to all 16 texels: filling the background with the
     silhouette's own values keeps it from spending precision on texels nobody sees, and a flat block
-    costs the encoder nothing. The exact maps of crowdbake.bake.reference.impostor_maps end here too."""
+    costs the encoder nothing. The exact maps of crowdbake.reference.impostor_maps end here too."""
     shape = mask.shape
     nearest = nearest_inside_views(mask).reshape(-1)
     for image in maps:
