@@ -5,7 +5,7 @@ One view from render to stored part reads in three files:
 
 1. here, stage_impostor_views: the task's scene at its baked frame and its cameras, then render_task;
 2. crowdbake.render.impostor.BakeRenderer (shader_maps, shader_references): the GL context that runs
-3. crowdbake.render.map_shader, whose shaders (crowdbake.render.map_shader_glsl) draw every view's maps,
+3. crowdbake.render.map_shader, whose shaders (GLSL in the same file) draw every view's maps,
    already encoded, in one pass, and the mesh's share of each texel in another;
 then, back in render_task, the maps are resolved (extend_to_partial_texels, fill_background, the surface
 map's alpha) into the arrays stage_impostor_views writes as work/impostor/parts/<id>.npz, with its sidecar
