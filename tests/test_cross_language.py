@@ -233,12 +233,12 @@ def test_crowdview_decodes_bc5_normal_maps_on_the_cpu_as_the_gpu_does(python_bun
 def test_crowdview_draws_the_reprojected_silhouette_the_bake_scores(views16_bundle, tmp_path):
     """One character at the impostor switch distance, halfway between baked azimuths, rings and frames
     (`crowdview --switch-view`): the impostor's silhouette on the GPU is the one crowdbake's numpy copy of
-    the shader draws for the same camera and frame (crowdbake.bake.reference.runtime_picture.sample_tile, the
+    the shader draws for the same camera and frame (crowdbake.reference.runtime_picture.sample_tile, the
     twin of the shader whose pictures fidelity.json's `runtime` scores), and plainly not the unreprojected
     blend's."""
     from crowdbake.bake import impostor_views, view_blend
-    from crowdbake.bake.reference import impostor_blend
-    from crowdbake.bake.reference.runtime_picture import AtlasTiles, sample_tile
+    from crowdbake.reference import impostor_blend
+    from crowdbake.reference.runtime_picture import AtlasTiles, sample_tile
     from crowdbake.stages.impostors import load_poses
     from crowdbake.stages.runtime_fidelity import halfway_frame
 

@@ -15,10 +15,10 @@ cameras against the mesh rendered there (crowdbake.stages.runtime_fidelity.rende
 - `d_all`: halfway in all three (fidelity.json runtime.between_views' cameras and frame).
 
 `--azimuths` of the baked azimuths (or of the gaps between them) are used, spread evenly, at every ring
-or ring gap. Methods: `blend` is crowdview's blend (crowdbake.bake.reference.impostor_blend, decoded from the bundle's
+or ring gap. Methods: `blend` is crowdview's blend (crowdbake.reference.impostor_blend, decoded from the bundle's
 files, as runtime_fidelity scores it); `nearest` draws the one (view, frame) sample of highest blend weight,
 ties going to the lower azimuth, ring and frame (the paper's nearest view and frame). Candidates reproject
-every sample before the same blend (crowdbake.bake.reference.impostor_warp), from per-texel depth and motion taken
+every sample before the same blend (crowdbake.reference.impostor_warp), from per-texel depth and motion taken
 from the mesh at each baked view (SurfaceFields; what a bake could store beside the maps): `warp` (depth),
 `warp_motion` (and 3D motion to both neighbouring baked frames), `warp_velocity` (one motion field a layer,
 reversed for the way back), `warp_velocity_bc1` (depth and in-tile motion through one BC1 layer),
@@ -40,10 +40,10 @@ import numpy as np
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 from crowdbake.bake import fidelity, impostor_views, shading, view_blend  # noqa: E402
-from crowdbake.bake.reference import impostor_blend, impostor_warp  # noqa: E402
-from crowdbake.bake.reference.coverage import Coverage, interpolate  # noqa: E402
-from crowdbake.bake.reference.runtime_picture import AtlasTiles  # noqa: E402
-from crowdbake.render.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
+from crowdbake.reference import impostor_blend, impostor_warp  # noqa: E402
+from crowdbake.reference.coverage import Coverage, interpolate  # noqa: E402
+from crowdbake.reference.runtime_picture import AtlasTiles  # noqa: E402
+from crowdbake.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_poses, nearest_inside, part_path  # noqa: E402
 from crowdbake.stages.runtime_fidelity import halfway_frame, render_mesh_references  # noqa: E402
 
@@ -140,7 +140,7 @@ _ID_RENDERERS: dict[int, TriangleIdRenderer] = {}
 
 
 def id_coverage(view: impostor_views.OrthoView, positions: np.ndarray, faces: np.ndarray) -> Coverage:
-    """Exact coverage of `view` from the test oracle's triangle-id render (crowdbake.render.reference), one
+    """Exact coverage of `view` from the test oracle's triangle-id render (crowdbake.reference), one
     renderer a view size kept open for the run: a GL context costs more than a render."""
     if view.size not in _ID_RENDERERS:
         _ID_RENDERERS[view.size] = TriangleIdRenderer(view.size).__enter__()
@@ -256,7 +256,7 @@ def warped_image(bench: Bench, azimuth: float, elevation: float, frame: int, mot
                  max_miss: float | None = None, backward: str = "stored", planar: bool = False, bits: int | None = None,
                  iterations: int = impostor_warp.DEFAULT_ITERATIONS, bc1: bool = False) -> np.ndarray:
     """crowdview's blend of the same samples, each reprojected to the camera (and, with `motion`, to the
-    cycle frame) first (crowdbake.bake.reference.impostor_warp)."""
+    cycle frame) first (crowdbake.reference.impostor_warp)."""
     surface = surface_fields(bench)
     target = impostor_views.ortho_view(bench.poses.center, bench.poses.radius, azimuth, elevation, bench.size)
     frames = bench.frame_weights(frame)

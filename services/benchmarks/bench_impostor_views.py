@@ -12,7 +12,7 @@ Each WORK is the work folder of one dense bake of the sample at one tile size, f
 
 A coarser bake's views and frames are a subset of the dense bake's (the same orthographic cameras and
 poses), so every coarser setting is scored from the dense atlases, as crowdview would blend that subset
-(crowdbake.bake.reference.impostor_blend): no bake per setting. Per setting, `--cameras` cameras halfway between
+(crowdbake.reference.impostor_blend): no bake per setting. Per setting, `--cameras` cameras halfway between
 the setting's neighbouring azimuths, elevations and baked frames (around the fidelity frame), against
 the mesh rendered there (crowdbake.stages.runtime_fidelity). At the baked views the picture does not
 depend on the subset, so `at_views` is the dense bake's own (fidelity.json runtime.at_views).
@@ -31,10 +31,10 @@ import numpy as np
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 from crowdbake.bake import fidelity, impostor_views, shading, view_blend  # noqa: E402
-from crowdbake.bake.reference import impostor_blend  # noqa: E402
+from crowdbake.reference import impostor_blend  # noqa: E402
 from crowdbake.formats.binary import layer_size  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, load_poses  # noqa: E402
-from crowdbake.bake.reference.runtime_picture import AtlasTiles  # noqa: E402
+from crowdbake.reference.runtime_picture import AtlasTiles  # noqa: E402
 from crowdbake.stages.runtime_fidelity import render_mesh_references  # noqa: E402
 
 MIB = 1024 * 1024

@@ -7,7 +7,7 @@ and drawn by the map shader.
 WORK is a bake's work folder (`crowdbake bake ... --work WORK`). One frame's scene is loaded and every
 view of the layout (default 16 x 3 of 128²) rendered once; then the map resolution is timed apart from
 the renderer: the test oracle's resolve_coverage + view_maps called per view, and resolve_coverage_views +
-view_maps_views over each elevation ring at once (crowdbake.bake.reference); the visibility renders
+view_maps_views over each elevation ring at once (crowdbake.reference); the visibility renders
 themselves; the map shader (what the impostor stage does: crowdbake.render.map_shader over each ring, then
 fill_background), with how far its maps are from the numpy ones; and the fidelity references of the first
 ring (3 x 3 samples a texel): the shader's reference pass against id renders, exact coverage and
@@ -29,11 +29,11 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, fill_background, load_plan, load_scene  # noqa: E402
 from crowdbake.bake import impostor_views, shading  # noqa: E402
-from crowdbake.bake.reference import coverage as exact_coverage  # noqa: E402
-from crowdbake.bake.reference import impostor_maps  # noqa: E402
-from crowdbake.bake.reference import mesh_reference  # noqa: E402
+from crowdbake.reference import coverage as exact_coverage  # noqa: E402
+from crowdbake.reference import impostor_maps  # noqa: E402
+from crowdbake.reference import mesh_reference  # noqa: E402
 from crowdbake.render.impostor import BakeRenderer  # noqa: E402
-from crowdbake.render.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
+from crowdbake.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
 
 
 def best_cpu(function, repeat: int) -> float:

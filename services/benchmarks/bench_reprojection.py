@@ -1,6 +1,6 @@
 """What reprojection buys: fidelity.json's `runtime` scores of one bake, drawn as crowdview draws with
 `--impostor-blend full` (samples unmoved, weighed by the surface map's coverage) and with `warp` (the
-default: every sample reprojected by the bundle's surface map, crowdbake.bake.reference.impostor_warp).
+default: every sample reprojected by the bundle's surface map, crowdbake.reference.impostor_warp).
 
     PYTHONPATH=services python services/benchmarks/bench_reprojection.py --work WORK [--out out/bench/reprojection.json]
 

@@ -1,6 +1,6 @@
 """The pictures fidelity.json's `runtime` section scores, drawn by crowdview's own shader in the bake's GL
 context (crowdbake.render.runtime_shader, what the pack stage does) and by its numpy copy
-(crowdbake.bake.reference.runtime_picture): seconds, and how far apart the pictures and their scores are.
+(crowdbake.reference.runtime_picture): seconds, and how far apart the pictures and their scores are.
 
     PYTHONPATH=services python services/benchmarks/bench_runtime_pictures.py --work WORK [--repeat 3]
         [--out out/bench/runtime_pictures.json]
@@ -24,12 +24,12 @@ import numpy as np
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 from crowdbake.bake import fidelity  # noqa: E402
-from crowdbake.bake.reference import impostor_blend  # noqa: E402
+from crowdbake.reference import impostor_blend  # noqa: E402
 from crowdbake.formats.bundle import verify_bundle  # noqa: E402
 from crowdbake.render.impostor import BakeRenderer  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, impostor_tasks, load_poses  # noqa: E402
 from crowdbake.stages.pack import Parts  # noqa: E402
-from crowdbake.bake.reference.runtime_picture import AtlasTiles, numpy_picture  # noqa: E402
+from crowdbake.reference.runtime_picture import AtlasTiles, numpy_picture  # noqa: E402
 from crowdbake.stages.runtime_fidelity import runtime_atlas, runtime_textures, scored_cameras  # noqa: E402
 
 

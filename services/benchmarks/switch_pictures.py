@@ -6,9 +6,9 @@ view and halfway between baked views and frames (docs/bake.md, "What the runtime
 
 WORK is a bake's work folder (`crowdbake bake ... --work WORK`, its pack stage run). Row 1: a baked view of
 the fidelity frame. Row 2: halfway to the next azimuth, halfway between the lowest two elevation rings and
-halfway to the next baked frame. Columns: the mesh (crowdbake.bake.reference.mesh_reference, 3x3 samples a
+halfway to the next baked frame. Columns: the mesh (crowdbake.reference.mesh_reference, 3x3 samples a
 pixel), crowdview's default impostor (`--impostor-blend warp`: every sample reprojected by the surface map,
-crowdbake.bake.reference.impostor_warp), the plain blend (`full`, crowdbake.bake.reference.impostor_blend), the paper's nearest
+crowdbake.reference.impostor_warp), the plain blend (`full`, crowdbake.reference.impostor_blend), the paper's nearest
 view and frame, all decoded from the bundle's files, and 4x the absolute difference of the default from the mesh.
 Each picture is one tile, scaled up by --scale with nearest-neighbour so pixels stay visible.
 """
@@ -24,9 +24,9 @@ import numpy as np
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 from crowdbake.bake import fidelity, impostor_views, shading, view_blend  # noqa: E402
-from crowdbake.bake.reference import impostor_blend  # noqa: E402
+from crowdbake.reference import impostor_blend  # noqa: E402
 from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, load_poses  # noqa: E402
-from crowdbake.bake.reference.runtime_picture import AtlasTiles, sample_tile  # noqa: E402
+from crowdbake.reference.runtime_picture import AtlasTiles, sample_tile  # noqa: E402
 from crowdbake.stages.runtime_fidelity import halfway_frame, render_mesh_references  # noqa: E402
 
 

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from crowdbake.bake import compression, fidelity, shading
-from crowdbake.bake.reference import mesh_reference
+from crowdbake.reference import mesh_reference
 from crowdbake.bake import impostor_views
-from crowdbake.bake.reference import impostor_maps as maps
+from crowdbake.reference import impostor_maps as maps
 from crowdbake.formats.texel_codecs import region_alpha
 
 pytest.importorskip("pyrender")
-from crowdbake.render.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
+from crowdbake.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
 from shapes import uv_sphere  # noqa: E402
 
 # Thresholds for a textured sphere at 64² (measured: SSIM 0.979 / PSNR 33.5 dB with exact normals,

@@ -1,21 +1,21 @@
-"""The test oracles of the impostor maps: pyrender's visibility buffer (crowdbake.render.reference.triangle_ids),
-the exact coverage resolved from it (crowdbake.bake.reference.coverage) and the exact per-texel maps
-computed from that (crowdbake.bake.reference.impostor_maps); and the cameras they share with the bake."""
+"""The test oracles of the impostor maps: pyrender's visibility buffer (crowdbake.reference.triangle_ids),
+the exact coverage resolved from it (crowdbake.reference.coverage) and the exact per-texel maps
+computed from that (crowdbake.reference.impostor_maps); and the cameras they share with the bake."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from crowdbake.bake import impostor_views
-from crowdbake.bake.reference import coverage as exact
-from crowdbake.bake.reference import impostor_maps as maps
+from crowdbake.reference import coverage as exact
+from crowdbake.reference import impostor_maps as maps
 from crowdbake.bake import map_codecs, short_rows
 from crowdbake.formats.texel_codecs import region_alpha
 
 pyrender = pytest.importorskip("pyrender")
 from crowdbake.render import offscreen  # noqa: E402
-from crowdbake.render.reference import triangle_ids  # noqa: E402
-from crowdbake.render.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
+from crowdbake.reference import triangle_ids  # noqa: E402
+from crowdbake.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
 from shapes import uv_sphere  # noqa: E402
 
 # Detail map against pyrender's own textured rendering of the same mesh (GL's bilinear filter and

@@ -1,5 +1,5 @@
 """The bake's copy of crowdview's impostor blending: which views and frames (crowdbake.bake.view_blend)
-and the blended picture (crowdbake.bake.reference.impostor_blend).
+and the blended picture (crowdbake.reference.impostor_blend).
 
 The weights are checked against runtime/tests/data/view_blend_vectors.json, which crowdview's
 view_blend ctest reads too, so both sides follow one set of answers worked out from the README's rules.
@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from crowdbake.bake import view_blend
-from crowdbake.bake.reference import impostor_blend
-from crowdbake.bake.reference.impostor_blend import DecodedTile
+from crowdbake.reference import impostor_blend
+from crowdbake.reference.impostor_blend import DecodedTile
 
 VECTORS = Path(__file__).resolve().parents[2] / "runtime" / "tests" / "data" / "view_blend_vectors.json"
 

@@ -38,7 +38,7 @@ def test_a_full_mask_or_no_partial_texel_changes_nothing():
 def test_the_surface_maps_alpha_is_the_share_of_each_texel_the_mesh_covers(small_bake):
     """The bake's alpha against pyrender's triangle-id render of the same view at 3 x 3 samples a texel
     (an independent rasteriser): equal within BC2's 4-bit step on every texel, and the silhouette soft."""
-    from crowdbake.render.reference.triangle_ids import TriangleIdRenderer
+    from crowdbake.reference.triangle_ids import TriangleIdRenderer
     from crowdbake.stages.impostors import FIDELITY_SUPERSAMPLE, load_plan, load_poses, load_scene
 
     bundle, work = small_bake

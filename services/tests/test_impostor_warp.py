@@ -1,12 +1,12 @@
-"""Reprojection of impostor tiles to the camera and the cycle frame (crowdbake.bake.reference.impostor_warp), on
+"""Reprojection of impostor tiles to the camera and the cycle frame (crowdbake.reference.impostor_warp), on
 surfaces whose answer is known by construction: a flat tilted plane seen from two angles, a uniform motion."""
 from __future__ import annotations
 
 import numpy as np
 
 from crowdbake.bake import impostor_views
-from crowdbake.bake.reference import impostor_warp
-from crowdbake.bake.reference.impostor_blend import DecodedTile
+from crowdbake.reference import impostor_warp
+from crowdbake.reference.impostor_blend import DecodedTile
 
 SIZE = 32
 CENTER = np.array([0.0, 1.0, 0.0])

@@ -1,5 +1,5 @@
 """The impostor maps drawn by a shader (crowdbake.render.map_shader) against the exact float64 maps of
-crowdbake.bake.reference.impostor_maps, resolved from a triangle-id render (crowdbake.render.reference):
+crowdbake.reference.impostor_maps, resolved from a triangle-id render (crowdbake.reference):
 the same texels covered, the same values up to rounding, on a closed and an open shape with two
 materials, under OSMesa."""
 from __future__ import annotations
@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from crowdbake.bake import impostor_views, shading
-from crowdbake.bake.reference import impostor_maps as maps
-from crowdbake.bake.reference import mesh_reference
+from crowdbake.reference import impostor_maps as maps
+from crowdbake.reference import mesh_reference
 from crowdbake.bake import map_codecs, surface_maps
 from crowdbake.stages.impostors import fill_background
 
 pytest.importorskip("pyrender")
 from crowdbake.render import offscreen  # noqa: E402
 from crowdbake.render.impostor import BakeRenderer  # noqa: E402
-from crowdbake.render.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
+from crowdbake.reference.triangle_ids import TriangleIdRenderer  # noqa: E402
 from shapes import uv_sphere  # noqa: E402
 from test_impostor import sphere_texture  # noqa: E402
 
@@ -117,7 +117,7 @@ def test_a_view_that_misses_the_mesh_is_empty():
 
 def test_shader_references_are_the_exact_mesh_references(monkeypatch):
     """The fidelity references (shaded per sample, outfit colours by region, box-filtered on the GPU)
-    against crowdbake.bake.reference.mesh_reference in float64 from exact coverage: the same picture to
+    against crowdbake.reference.mesh_reference in float64 from exact coverage: the same picture to
     float32 rounding but for texels where the two disagree on an edge, and more views than one pass
     draws (MAX_PASS_TEXELS, lowered here to 8 views), so that the batches land in order."""
     from crowdbake.bake import fidelity

@@ -1,6 +1,6 @@
 """crowdview's impostor shader drawn in the bake's context (crowdbake.render.runtime_shader), the pictures
 fidelity.json's `runtime` section scores, against the numpy copy of that shader
-(crowdbake.bake.reference.runtime_picture) on a small bake's own bundle, under OSMesa."""
+(crowdbake.reference.runtime_picture) on a small bake's own bundle, under OSMesa."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -10,8 +10,8 @@ import pytest
 
 from crowdbake.bake import fidelity, map_codecs
 from crowdbake.bake import view_blend
-from crowdbake.bake.reference import impostor_blend
-from crowdbake.bake.reference.runtime_picture import AtlasTiles, numpy_picture
+from crowdbake.reference import impostor_blend
+from crowdbake.reference.runtime_picture import AtlasTiles, numpy_picture
 from crowdbake.formats.binary import TextureArray
 from crowdbake.formats.bundle import verify_bundle
 from crowdbake.render import runtime_shader

@@ -1,5 +1,5 @@
-"""The impostor surface map (crowdbake.bake.surface_maps; its exact fields, crowdbake.bake.reference.impostor_maps.
-surface_fields) and the reprojection of a stored sample (crowdbake.bake.reference.impostor_warp.warp_tile,
+"""The impostor surface map (crowdbake.bake.surface_maps; its exact fields, crowdbake.reference.impostor_maps.
+surface_fields) and the reprojection of a stored sample (crowdbake.reference.impostor_warp.warp_tile,
 motion_fraction), on geometry whose answer is known by construction."""
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from crowdbake.bake import impostor_views, surface_maps
-from crowdbake.bake.reference import impostor_warp
-from crowdbake.bake.reference.coverage import Coverage
-from crowdbake.bake.reference.impostor_blend import DecodedTile
-from crowdbake.bake.reference.impostor_maps import surface_fields
+from crowdbake.reference import impostor_warp
+from crowdbake.reference.coverage import Coverage
+from crowdbake.reference.impostor_blend import DecodedTile
+from crowdbake.reference.impostor_maps import surface_fields
 from crowdbake.bake.view_blend import FrameWeights
 from crowdbake.formats.ranges import Clip, Ranges, Transition
 

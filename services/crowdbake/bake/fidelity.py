@@ -4,7 +4,7 @@ The paper switches from mesh to impostor where one impostor texel covers one scr
 are perceptually equivalent to the mesh (Dobbyn et al. 2006, section 6, after Hamill et al. 2005). At
 that distance an orthographic view of the mesh at the tile's resolution *is* the screen image, so:
 
-- the **mesh reference** (crowdbake.bake.reference.mesh_reference; the bake draws it with a shader) is the
+- the **mesh reference** (crowdbake.reference.mesh_reference; the bake draws it with a shader) is the
   mesh shaded per sample at `supersample`² samples per pixel (exact
   visibility, interpolated normals, the diffuse texture sampled at the interpolated UV) and box-filtered
   down to the tile: an anti-aliased rendering of the mesh;

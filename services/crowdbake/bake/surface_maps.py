@@ -1,7 +1,7 @@
 """The impostor surface map (SPEC.md "Impostor maps", role impostor-surface): per texel of a (view, frame)
 tile, how far the surface it shows lies along the view axis, and how fast that surface point moves in the
 tile's plane at that baked frame. crowdview reprojects every blended sample with it
-(crowdbake.bake.reference.impostor_warp, shaders/impostor_warp.glsl), so a camera between baked views, or a cycle
+(crowdbake.reference.impostor_warp, shaders/impostor_warp.glsl), so a camera between baked views, or a cycle
 frame between baked frames, sees the character where the mesh would be instead of a cross-fade of two
 misplaced pictures.
 

@@ -8,7 +8,7 @@
 
 The context is pyrender's (crowdbake.render.offscreen.Offscreen: OSMesa by default, EGL selectable); the
 map shader's framebuffer is never multisampled. The exact float64 maps the shader is tested against are
-drawn from triangle-id renders by a test oracle, crowdbake.render.reference.triangle_ids.
+drawn from triangle-id renders by a test oracle, crowdbake.reference.triangle_ids.
 """
 from __future__ import annotations
 

@@ -23,7 +23,7 @@ texels under glGenerateMipmap's chain, trilinear and REPEAT. The instance data c
 set as constant vertex attributes, one draw a picture into its own viewport of a float framebuffer that is
 read back once.
 
-crowdbake.bake.reference.runtime_picture draws the same picture in float64 numpy: the reference this is
+crowdbake.reference.runtime_picture draws the same picture in float64 numpy: the reference this is
 tested against (services/tests/test_runtime_shader.py).
 """
 from __future__ import annotations

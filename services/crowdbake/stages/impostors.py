@@ -5,7 +5,7 @@ One view from render to stored part reads in three files:
 
 1. here, stage_impostor_views: the task's scene at its baked frame and its cameras, then render_task;
 2. crowdbake.render.impostor.BakeRenderer (shader_maps, shader_references): the GL context that runs
-3. crowdbake.render.map_shader, whose shaders (crowdbake.render.map_shader_glsl) draw every view's maps,
+3. crowdbake.render.map_shader, whose shaders (GLSL in the same file) draw every view's maps,
    already encoded, in one pass, and the mesh's share of each texel in another;
 then, back in render_task, the maps are resolved (extend_to_partial_texels, fill_background, the surface
 map's alpha) into the arrays stage_impostor_views writes as work/impostor/parts/<id>.npz, with its sidecar
@@ -318,7 +318,7 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
 def mesh_references(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]], with_coverage: bool = False) -> np.ndarray:
     """The mesh from each (azimuth, elevation) in degrees, lit as the runtime lights the impostor, at
     FIDELITY_SUPERSAMPLE² samples a texel (crowdbake.render.map_shader.draw_references, which
-    crowdbake.bake.reference.mesh_reference is the float64 reference of): (V, S, S, 3) float32."""
+    crowdbake.reference.mesh_reference is the float64 reference of): (V, S, S, 3) float32."""
     size = int(plan.layout["tile_size"]) * FIDELITY_SUPERSAMPLE
     views = [impostor_views.ortho_view(plan.center, plan.radius, azimuth, elevation, size) for azimuth, elevation in angles]
     if not views:
@@ -358,7 +358,7 @@ def fill_background(mask: np.ndarray, maps: list[np.ndarray], unflattened: list[
 
     Block compression fits each block's endpoints to all 16 texels: filling the background with the
     silhouette's own values keeps it from spending precision on texels nobody sees, and a flat block
-    costs the encoder nothing. The exact maps of crowdbake.bake.reference.impostor_maps end here too."""
+    costs the encoder nothing. The exact maps of crowdbake.reference.impostor_maps end here too."""
     shape = mask.shape
     nearest = nearest_inside_views(mask).reshape(-1)
     for image in maps:

@@ -4,7 +4,7 @@ the 1:1 switch distance: fidelity.json's `runtime` section, written by the pack 
 The pictures are drawn by crowdview's own impostor shader in the bake's GL context
 (crowdbake.render.runtime_shader), from the bundle's own bytes: the UV map in its pixel format, the normal
 and surface maps after block compression, the diffuse texture as decoded; which views and frames it blends
-is crowdbake.bake.view_blend's choice. (crowdbake.bake.reference.runtime_picture draws the same picture in
+is crowdbake.bake.view_blend's choice. (crowdbake.reference.runtime_picture draws the same picture in
 numpy, the reference the shader is tested against.) Three sets of cameras:
 
 - `at_views`: every baked view of the fidelity frame, from the mesh references the impostor tasks rendered

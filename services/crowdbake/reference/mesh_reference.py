@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from crowdbake.bake.impostor_views import OrthoView, face_normals
-from crowdbake.bake.reference.coverage import Coverage, shading_normals_at, wrap_uv
+from crowdbake.reference.coverage import Coverage, shading_normals_at, wrap_uv
 from crowdbake.bake.shading import apply_outfit, lambert, texels_at
 
 # Samples per pixel side for the mesh reference (4 = 16 samples, the anti-aliasing of a good runtime).
@@ -34,7 +34,7 @@ def mesh_reference(
     same picture with a shader (crowdbake.render.map_shader.draw_references); this is its float64 reference.
 
     view, coverage: at S·supersample texels (view.size = S · supersample); the other arrays as in
-    crowdbake.bake.reference.impostor_maps.view_maps; diffuse: per material, the texture to use (h, w, 4) uint8.
+    crowdbake.reference.impostor_maps.view_maps; diffuse: per material, the texture to use (h, w, 4) uint8.
     """
     if view.size % supersample:
         raise ValueError(f"mesh_reference: view size {view.size} is not a multiple of {supersample}")

@@ -1,5 +1,5 @@
 """Parallax- and motion-corrected impostor samples: each baked (view, frame) tile reprojected to the camera's
-direction and the cycle frame before crowdview's blend (crowdbake.bake.reference.impostor_blend) mixes them.
+direction and the cycle frame before crowdview's blend (crowdbake.reference.impostor_blend) mixes them.
 
 A baked tile holds, per texel, the surface point its orthographic view saw. With that point's depth along
 the view axis (and, optionally, its motion to a neighbouring baked frame), the texel's surface point is known
@@ -18,7 +18,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from crowdbake.bake.reference.impostor_blend import DecodedTile, FrameWeights
+from crowdbake.reference.impostor_blend import DecodedTile, FrameWeights
 from crowdbake.bake.impostor_views import OrthoView
 
 # Fixed-point steps: at halfway between 32 azimuths (5.6°) or 20° rings (10°) each step shrinks the miss by

@@ -1,5 +1,5 @@
 """Triangle-id renders through pyrender: the visibility buffer the exact float64 maps are resolved from
-(crowdbake.bake.reference.coverage, impostor_maps, mesh_reference), the oracle crowdbake.render.map_shader
+(crowdbake.reference.coverage, impostor_maps, mesh_reference), the oracle crowdbake.render.map_shader
 is tested against.
 
 Every triangle is drawn in one flat colour that encodes its index + 1 in 24 bits (unwelded vertices, so no
@@ -8,7 +8,7 @@ orthographic camera of crowdbake.bake.impostor_views.OrthoView, with its depth.
 
 Under OSMesa pyrender draws straight into the context's buffer (no multisampling). Under EGL it draws
 into a 4x multisampled framebuffer and resolves it, which can mix two ids on a silhouette; the inside and
-depth tests of crowdbake.bake.reference.coverage.resolve_coverage catch those texels and repair them from
+depth tests of crowdbake.reference.coverage.resolve_coverage catch those texels and repair them from
 their neighbours.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 
 from crowdbake.render import offscreen  # (also chooses the GL platform before pyrender loads)
 from crowdbake.bake.impostor_views import CAMERA_DISTANCE_RADII, OrthoView
-from crowdbake.bake.reference.coverage import Coverage, resolve_coverage
+from crowdbake.reference.coverage import Coverage, resolve_coverage
 
 if TYPE_CHECKING:
     import pyrender  # imported where drawn (see crowdbake.render.offscreen), after the platform choice

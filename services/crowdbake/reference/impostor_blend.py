@@ -21,7 +21,7 @@ import numpy as np
 
 from crowdbake.bake import shading
 from crowdbake.bake.fidelity import lookup_lod
-from crowdbake.bake.reference.coverage import wrap_uv
+from crowdbake.reference.coverage import wrap_uv
 from crowdbake.bake.view_blend import FrameWeights, ViewWeights
 
 # runtime/src/config.h CV_EDGE_LOW: blended coverage at or under this is transparent, at or over one minus

@@ -1,6 +1,6 @@
 """Which triangle covers each texel centre of a view, resolved exactly in float64 from a triangle-id render
-(crowdbake.render.reference.triangle_ids), and the per-texel interpolation the exact maps and references
-build on (crowdbake.bake.reference.impostor_maps, mesh_reference): a test oracle, not what a bake ships.
+(crowdbake.reference.triangle_ids), and the per-texel interpolation the exact maps and references
+build on (crowdbake.reference.impostor_maps, mesh_reference): a test oracle, not what a bake ships.
 
 Dobbyn et al. 2006, sections 4 and 5: per viewpoint of a ring, the impostor's maps. The id render says
 only *which triangle* covers each texel centre; the coverage is then resolved here:
@@ -64,7 +64,7 @@ def resolve_coverage(
 ) -> Coverage:
     """Exact per-texel coverage from a rendered id image.
 
-    ids: (H, W) int64 triangle ids (crowdbake.render.reference.triangle_ids, -1 = background; H = W =
+    ids: (H, W) int64 triangle ids (crowdbake.reference.triangle_ids, -1 = background; H = W =
     view.size); positions: (V, 3) model space; faces: (T, 3) int; depth: optional (H, W) float eye-space
     depth in metres (0 = nothing drawn) to reject an id whose triangle lies elsewhere along the ray. One
     view of resolve_coverage_views.

@@ -3,7 +3,7 @@
 
 Dobbyn et al. 2006, sections 4 and 5: per view a normal map (normals as RGB), a detail map (diffuse RGBA
 with the colour regions in alpha) and the paper's UV map (texture coordinates as colour). From a view's
-exact coverage (crowdbake.bake.reference.coverage): texture coordinates interpolated with the barycentrics and
+exact coverage (crowdbake.reference.coverage): texture coordinates interpolated with the barycentrics and
 stored in 16 bits; normals interpolated and normalised; the detail map samples the diffuse texture at the
 interpolated UV. Nothing passes through 8-bit colour before the maps' own encodings. The surface map's
 depth and motion come from the same coverage (surface_fields).
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from crowdbake.bake.impostor_views import OrthoView, face_normals, sample_texture
-from crowdbake.bake.reference.coverage import Coverage, interpolate, shading_normals_at, wrap_uv
+from crowdbake.reference.coverage import Coverage, interpolate, shading_normals_at, wrap_uv
 from crowdbake.stages.impostors import fill_background, nearest_inside
 
 

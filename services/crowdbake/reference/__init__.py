@@ -1,8 +1,9 @@
 """Test oracles and numpy twins: what the bake's shaders and crowdview's shader are tested against, never
-what a bake ships (no module outside a `reference` package imports one; services/tests/test_reference_isolation.py).
+what a bake ships (no module outside this package imports it; services/tests/test_reference_isolation.py).
+It sits above the modules it mirrors (bake, render, stages) and imports them; none imports it.
 
-- coverage: which triangle covers each texel centre of a triangle-id render
-  (crowdbake.render.reference.triangle_ids), resolved exactly in float64, and the per-texel interpolation
+- triangle_ids: pyrender's visibility buffer, which triangle covers each texel centre (drawn with GL);
+- coverage: those triangle-id renders resolved exactly in float64, and the per-texel interpolation
   built on it;
 - impostor_maps: the impostor maps computed exactly per texel in float64 (the reference of
   crowdbake.render.map_shader);

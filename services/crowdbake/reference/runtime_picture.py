@@ -2,9 +2,9 @@
 from the bundle's own maps: the reference that shader is tested against, not what a bake ships.
 
 A bundle's UV, normal and surface maps are decoded as crowdview samples them (AtlasTiles), each
-(view, frame) sample is reprojected by the surface map (sample_tile, crowdbake.bake.reference.impostor_warp)
+(view, frame) sample is reprojected by the surface map (sample_tile, crowdbake.reference.impostor_warp)
 and the samples crowdbake.bake.view_blend chooses are blended (numpy_picture,
-crowdbake.bake.reference.impostor_blend).
+crowdbake.reference.impostor_blend).
 """
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ import numpy as np
 
 from crowdbake.bake import compression, impostor_views, map_codecs, shading, surface_maps
 from crowdbake.bake.atlas import AtlasLayout, view_tile
-from crowdbake.bake.reference import impostor_blend, impostor_warp
-from crowdbake.bake.reference.impostor_blend import DecodedTile
+from crowdbake.reference import impostor_blend, impostor_warp
+from crowdbake.reference.impostor_blend import DecodedTile
 from crowdbake.bake.view_blend import FrameWeights, ViewWeights
 from crowdbake.formats.binary import TextureArray
 from crowdbake.formats.texel_codecs import unpack_uv32, unpack_uvblock
@@ -92,7 +92,7 @@ class AtlasTiles:
 def sample_tile(tiles: AtlasTiles, tile: int, layer: int, target: impostor_views.OrthoView,
                 frames: FrameWeights) -> DecodedTile:
     """One (view, frame) sample as crowdview draws it for a camera at `target` and cycle position `frames`:
-    reprojected (crowdbake.bake.reference.impostor_warp.warp_tile) when the bundle has a surface map."""
+    reprojected (crowdbake.reference.impostor_warp.warp_tile) when the bundle has a surface map."""
     decoded = tiles.tile(tile, layer)
     surface = tiles.surface(tile, layer)
     if surface is None:
@@ -108,7 +108,7 @@ def sample_tile(tiles: AtlasTiles, tile: int, layer: int, target: impostor_views
 
 def numpy_picture(atlas: RuntimeAtlas, tiles: AtlasTiles, picture: RuntimePicture, chains: list[list[np.ndarray]] | None = None) -> np.ndarray:
     """The picture crowdbake.render.runtime_shader draws, drawn by the numpy copy of crowdview's shader
-    (crowdbake.bake.reference.impostor_blend, impostor_warp) in float64: (S, S, 3), the reference the shader is
+    (crowdbake.reference.impostor_blend, impostor_warp) in float64: (S, S, 3), the reference the shader is
     tested against. tiles: AtlasTiles of the same maps; chains: the diffuse textures' mip chains."""
     # A material without region codes (bc1) is drawn with none, as crowdview's u_has_regions.
     diffuse = [texture if regions else np.concatenate([texture[..., :3], np.zeros_like(texture[..., :1])], axis=-1)
