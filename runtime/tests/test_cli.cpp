@@ -135,7 +135,11 @@ void test_benchmark_budget(const std::string& bundle, const std::string& work) {
         return;
     }
     CHECK_MSG(r.status == 0, describe(r));
-    CHECK_MSG(wall <= max_seconds + 1, "ran " + std::to_string(wall) + " s for --max-seconds 3");
+    // No probe starts that is predicted to end past the limit; on a loaded machine (a CI run beside other
+    // work) one probe may overrun its prediction, so the wall check leaves that much room. A run that
+    // ignored the limit took several times it.
+    const double overrun_room = 0.5 * max_seconds + 1;
+    CHECK_MSG(wall <= max_seconds + overrun_room, "ran " + std::to_string(wall) + " s for --max-seconds 3");
     const nlohmann::json j = nlohmann::json::parse(synthetic::read_text(report), nullptr, false);
     CHECK_MSG(!j.is_discarded() && j.contains("phases"), "the report is written, with its phases");
     if (j.is_discarded()) return;
@@ -145,7 +149,7 @@ void test_benchmark_budget(const std::string& bundle, const std::string& work) {
         CHECK(phase.contains("cut_short") && phase["seconds"].get<double>() >= 0);
     }
     CHECK_MSG((names == std::vector<std::string>{"low_mesh", "impostor_blend_cost"}), j["phases"].dump());
-    CHECK_MSG(j["setup_seconds"].get<double>() + j["seconds"].get<double>() <= max_seconds, j.dump().substr(0, 400));
+    CHECK_MSG(j["setup_seconds"].get<double>() + j["seconds"].get<double>() <= max_seconds + overrun_room, j.dump().substr(0, 400));
     // Units: every "fps" or "ms" figure is followed by its unit; "median frame N" without one was the bug.
     CHECK_MSG(r.err.find("median frame ") != std::string::npos && r.err.find(" fps, CPU ") != std::string::npos, r.err);
     for (size_t at = r.err.find("median frame "); at != std::string::npos; at = r.err.find("median frame ", at + 1)) {
