@@ -197,12 +197,12 @@ class BakeCreate(BaseModel):
     timeline: str | None = Field(
         None, description="Id of a timeline asset (POST /v1/assets/timelines): the cloth plays several clips, as "
                           "`crowdbake bake --timeline`; cycle.json gains a loop per clip and a transition per change of clip, "
-                          "and the bundle (format 2 when the timeline plays several clips) carries every loop and transition.")
+                          "and the bundle carries every loop and transition.")
     clip_cloth: list[ClipClothIn] = Field(
         default_factory=list, max_length=64,
         description="One cloth cache per clip, as `crowdbake bake --clip-cloth` (docs/inputs.md): each a separate simulation of "
                     "one clip, instead of `cloth` and `timeline`. A loop per clip and no transitions (no simulation joined the "
-                    "clips); the bundle (format 2 with several clips) carries every loop.")
+                    "clips); the bundle carries every loop.")
     params: BakeParamsIn = Field(default_factory=BakeParamsIn)
     # `created` stands beside name and version, not among BakeParams: like them it is what the manifest
     # says about the bundle, not how it is baked (no stage but pack reads it, and it is passed to
