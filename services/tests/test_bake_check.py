@@ -22,6 +22,8 @@ CLIENT_ONLY = Path(__file__).resolve().parent / "client_only.py"
 NAME, VERSION = "walker", "1.0.0"
 PARAMS = {"impostor_frames": 2, "azimuths": 4, "tile_size": 32}
 TAKEN = f"{NAME}/{VERSION} is already published from other inputs; bundles never change, choose a new version"
+# Another workspace's version, published (public or private) or being baked: one answer, naming nothing of it.
+TAKEN_ELSEWHERE = f"{NAME}/{VERSION} is taken by another workspace; bundles never change, choose a new version"
 
 
 @pytest.fixture(scope="module")
@@ -55,9 +57,28 @@ def test_another_workspaces_version_is_taken_and_nothing_more_is_said(published)
     api, character = published
     refused = _check(api, "ci", character)  # the very same inputs: still not this key's bake to reuse
     assert refused.status_code == 409 and refused.headers["content-type"].startswith("application/problem+json")
-    assert refused.json()["detail"] == TAKEN
-    assert _check(api, "ci", character, params={"azimuths": 8}).json()["detail"] == TAKEN  # no parameter named
+    assert refused.json()["detail"] == TAKEN_ELSEWHERE
+    assert _check(api, "ci", character, params={"azimuths": 8}).json()["detail"] == TAKEN_ELSEWHERE  # no parameter named
     assert _check(api, "ci", character, version="2.0.0").status_code == 204
+
+
+def test_a_version_another_workspace_is_baking_gets_the_same_answer_as_a_private_one(published):
+    """Regression: another workspace's private version answered "already published" and its queued one
+    "already being baked", telling which state a version it cannot see is in. Both now answer alike, and
+    POST /v1/bakes names no other workspace's bake id."""
+    api, character = published
+    asset = api.client.post("/v1/assets/characters", files={"file": ("walker.glb", character.read_bytes())}, headers=api.auth()).json()
+    queued = api.client.post("/v1/bakes", json={"name": NAME, "version": "3.0.0", "character": asset["id"], "params": PARAMS}, headers=api.auth())
+    assert queued.status_code == 202, queued.text
+    private, baking = _check(api, "ci", character), _check(api, "ci", character, version="3.0.0")
+    assert private.status_code == baking.status_code == 409
+    assert baking.json()["detail"] == TAKEN_ELSEWHERE.replace(VERSION, "3.0.0") and private.json()["detail"] == TAKEN_ELSEWHERE
+    own = api.client.post("/v1/assets/characters", files={"file": ("walker.glb", character.read_bytes())}, headers=api.auth("ci"))
+    assert own.status_code in (200, 201), own.text
+    refused = api.client.post("/v1/bakes", json={"name": NAME, "version": "3.0.0", "character": own.json()["id"], "params": PARAMS},
+                              headers=api.auth("ci"))
+    assert refused.status_code == 409 and refused.json()["detail"] == baking.json()["detail"], refused.text
+    assert queued.json()["id"] not in refused.text
 
 
 def test_the_owners_check_passes_its_own_inputs_and_names_what_differs(published, tmp_path):
@@ -83,10 +104,11 @@ def test_a_malformed_check_is_a_problem_naming_the_field(published):
 
 def test_the_client_refuses_before_uploading_in_another_workspace(published, tmp_path):
     api, character = published
+    uploaded_before = api.client.get("/v1/assets", headers=api.auth("ci")).json()["count"]
     api.client.headers["Authorization"] = f"Bearer {api.keys['ci']}"
     with pytest.raises(ClientError) as refused:
         check_name_and_version(Server(api.client, retry_for=1), NAME, VERSION, {"character": [character]}, PARAMS, None)
-    assert refused.value.exit_code == Exit.REJECTED and TAKEN in str(refused.value)
+    assert refused.value.exit_code == Exit.REJECTED and TAKEN_ELSEWHERE in str(refused.value)
 
     # The whole command against a real server: refused after the parameter check, before any upload.
     port = free_port()
@@ -100,6 +122,6 @@ def test_the_client_refuses_before_uploading_in_another_workspace(published, tmp
     finally:
         process.stop()
     assert result.returncode == Exit.REJECTED, result.stderr
-    assert TAKEN in result.stderr.strip().splitlines()[-1] and "uploading" not in result.stderr, result.stderr
+    assert TAKEN_ELSEWHERE in result.stderr.strip().splitlines()[-1] and "uploading" not in result.stderr, result.stderr
     api.client.headers["Authorization"] = f"Bearer {api.keys['ci']}"
-    assert api.client.get("/v1/assets").json()["count"] == 0
+    assert api.client.get("/v1/assets").json()["count"] == uploaded_before

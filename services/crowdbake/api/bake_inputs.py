@@ -167,3 +167,10 @@ def _check_texture_formats(textures: dict[str, Asset]) -> None:
             errors.append({"field": f"textures.{name}", "message": f"the asset is a {stored.upper()} image; name it with its extension"})
     if errors:
         raise Problem("validation-error", "a texture's name does not match its format", errors)
+
+
+def taken_elsewhere(name: str, version: str) -> Problem:
+    """The one 409 for a name/version another workspace holds, published (public or private) or being baked:
+    names and versions are one namespace, so that it is taken is told, and nothing more."""
+    return Problem("conflict", f"{name}/{version} is taken by another workspace; bundles never change, choose a new version")
+

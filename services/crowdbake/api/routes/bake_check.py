@@ -6,9 +6,11 @@ file, the parameters and the manifest time. The answer is the one POST /v1/bakes
 
 - 204: the version is not published, or this key's own bake published it from these very inputs (a
   submit then reuses that bake);
-- 409 (problem+json): it is published from other inputs. When another workspace published it, the
-  answer is only that: its bake, inputs and parameters are neither compared nor revealed (a submit from
-  this key could not reuse that bake whatever its inputs, since reuse needs the key that owns it).
+- 409 (problem+json): it is published from other inputs. When another workspace holds it, published
+  (public or private) or being baked, the answer is one and the same (taken_elsewhere): which of those it
+  is, its bake, inputs and parameters are neither compared nor revealed (a submit from this key could not
+  reuse that bake whatever its inputs, since reuse needs the key that owns it). Names and versions are one
+  namespace, so that the version is taken is the one thing POST /v1/bakes would tell as well.
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from typing import Any
 from fastapi import APIRouter, Response
 from sqlalchemy.orm import Session
 
+from crowdbake.api.bake_inputs import taken_elsewhere
 from crowdbake.api.deps import BakeKey, SessionDep
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import BakeCheck, problem_responses
@@ -70,13 +73,15 @@ def check_bake(body: BakeCheck, key: BakeKey, session: SessionDep) -> Response:
     published = find_bundle(session, body.name, body.version)
     if published is not None:
         bake = session.get(Bake, published.bake_id) if published.bake_id else None
-        if bake is None or not key.owns(bake.created_by):
-            raise taken(body.name, body.version)  # nothing of another workspace's bake is compared or told
+        if bake is None:
+            raise taken(body.name, body.version)  # published without a bake: nobody's to reuse
+        if not key.owns(bake.created_by):
+            raise taken_elsewhere(body.name, body.version)
         why = difference(session, bake, body)
         if why is not None:
             raise taken(body.name, body.version, why)
         return Response(status_code=204)
     holder = bake_requests.slot_holder(session, body.name, body.version) if body.publish else None
     if holder is not None and not key.owns(holder.created_by):
-        raise Problem("conflict", f"{body.name}/{body.version} is already being baked from other inputs; bundles never change, choose a new version")
+        raise taken_elsewhere(body.name, body.version)
     return Response(status_code=204)

@@ -24,7 +24,7 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from crowdbake.api.bake_inputs import check_inputs, check_params, find_assets, input_digests
+from crowdbake.api.bake_inputs import check_inputs, check_params, find_assets, input_digests, taken_elsewhere
 from crowdbake.api.deps import BakeKey, Principal, PublishKey, ServicesDep, SessionDep
 from crowdbake.api.problems import Problem
 from crowdbake.api.schemas import MAX_LIST_OFFSET, BakeCreate, BakePublic, BakesPublic, LogLine, StagePublic, problem_responses
@@ -91,9 +91,12 @@ def _dispatch(dispatcher: Dispatcher, session: Session, bake: Bake) -> None:
     session.commit()
 
 
-def _held_elsewhere(session: Session, name: str, version: str, key_digest: str) -> Problem:
-    """The 409 for a submit whose version (or identical inputs) another live bake holds."""
+def _held_elsewhere(session: Session, name: str, version: str, key_digest: str, key) -> Problem:
+    """The 409 for a submit whose version (or identical inputs) another live bake holds. Another
+    workspace's bake is not named: its id would tell that workspace's state."""
     holder = bake_requests.slot_holder(session, name, version)
+    if holder is not None and not key.owns(holder.created_by):
+        return taken_elsewhere(name, version)
     if holder is not None and holder.input_key != key_digest:
         return Problem("conflict", f"bake {holder.id} is already baking {name}/{version} from other inputs; "
                        "bundles never change, choose a new version")
@@ -120,7 +123,7 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
     if holder is not None:
         if holder.input_key == key_digest and key.owns(holder.created_by):
             return _existing(dispatcher, session, response, holder)  # committed since the lookup above
-        raise _held_elsewhere(session, body.name, body.version, key_digest)
+        raise _held_elsewhere(session, body.name, body.version, key_digest, key)
 
     bake = bake_requests.create_bake(
         session, name=body.name, version=body.version, params=params,
@@ -135,7 +138,7 @@ def create_bake(body: BakeCreate, response: Response, key: BakeKey, dispatcher: 
         existing = bake_requests.live_bake(session, key_digest)
         if existing is not None and key.owns(existing.created_by):
             return _existing(dispatcher, session, response, existing)
-        raise _held_elsewhere(session, body.name, body.version, key_digest) from None
+        raise _held_elsewhere(session, body.name, body.version, key_digest, key) from None
     _dispatch(dispatcher, session, bake)
     response.headers["Location"] = f"/v1/bakes/{bake.id}"
     return bake_public(session, bake)
