@@ -42,7 +42,7 @@ const char* kUsage =
     "  --gl-device D         headless: auto (default, as above) | software (Mesa's software EGL device) | N (EGL device N)\n"
     "  --require-gpu         exit 3 where the context renders on a software rasteriser (llvmpipe, softpipe, swrast)\n"
     "  --frames N            frames to draw, then exit (headless default 1)\n"
-    "  --progress-every S    headless: print \"frame k of N\" every S seconds of wall time (default 2)\n"
+    "  --progress-every S    headless: print \"frame k of N\" as frames finish: the first, the last, every S s between (default 2)\n"
     "  --screenshot PNG      write the last frame\n"
     "  --benchmark           largest crowd at 30 and 60 fps per representation (headless)\n"
     "  --report JSON         benchmark figures; headless: counts per archetype and LOD, GPU memory per archetype\n"

@@ -53,7 +53,7 @@ struct Options {
     ImpostorKind impostors = ImpostorKind::uv;  // what LodChoice::automatic draws far away
     ImpostorBlend blend = ImpostorBlend::warp;
     bool blend_chosen = false;      // --impostor-blend given: no note about its cost
-    double progress_every_s = 2;    // headless: a "frame k of N" line at most this often
+    double progress_every_s = 2;    // headless: a "frame k of N" line at most this often, first and last frame aside
     double max_seconds = 300;
     std::vector<BenchmarkMode> modes{std::begin(kAllBenchmarkModes), std::end(kAllBenchmarkModes)};
     bool cpu_decode = false;

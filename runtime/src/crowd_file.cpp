@@ -124,7 +124,8 @@ bool parse_archetype(Checker& c, const json& v, const std::string& p, const std:
         if (!is_bundle_version(version)) return c.fail(pp + "/version", "is not a version or latest ([0-9A-Za-z][0-9A-Za-z.+_-]{0,63})");
         a->source.url = published_bundle_url(server, name, version);
     }
-    if (v.contains("count") == v.contains("share")) return c.fail(p, "needs exactly one of \"count\" and \"share\"");
+    // Neither is checked with the counts (parse_crowd_description): a positions layout takes neither.
+    if (v.contains("count") && v.contains("share")) return c.fail(p, "gives both: needs exactly one of \"count\" and \"share\"");
     if (v.contains("count") && !c.integer(v["count"], p + "/count", 1, kMaxCrowdCount, &a->count)) return false;
     if (v.contains("share") && !c.number(v["share"], p + "/share", 0, 1e9, true, &a->share)) return false;
     if (v.contains("clips")) {
@@ -244,6 +245,22 @@ bool parse_camera(Checker& c, const json& v, CrowdCameraDesc* out) {
     return true;
 }
 
+// With a positions layout each archetype's count is its number of entries: "count" may be left
+// out, and where given must say the same; a "share" has nothing to split and is accepted as the
+// format's first files wrote one.
+bool check_positions_counts(Checker& c, const CrowdFile& crowd) {
+    std::vector<uint64_t> placed(crowd.archetypes.size(), 0);
+    for (const PlacedCharacter& p : crowd.layout.positions) ++placed[p.archetype];
+    for (size_t k = 0; k < crowd.archetypes.size(); ++k) {
+        const ArchetypeDesc& a = crowd.archetypes[k];
+        if (a.count > 0 && a.count != placed[k])
+            return c.fail("/archetypes/" + std::to_string(k) + "/count",
+                          "is " + std::to_string(a.count) + " but /layout/positions places " + std::to_string(placed[k]) + " of \"" +
+                              printable(a.name) + "\": with a positions layout an archetype's count is its number of entries; leave \"count\" out");
+    }
+    return true;
+}
+
 }  // namespace
 
 std::string published_bundle_url(const std::string& server, const std::string& name, const std::string& version) {
@@ -290,23 +307,22 @@ std::string parse_crowd_description(const std::string& text, const std::string& 
     if (doc.contains("layout") && !parse_layout(c, doc["layout"], out->archetypes, &out->layout)) return finish(false);
     if (doc.contains("camera") && !parse_camera(c, doc["camera"], &out->camera)) return finish(false);
 
-    // Counts: an explicit layout counts its entries; otherwise counts and shares against "count".
-    const bool explicit_positions = out->layout.kind == CrowdLayoutKind::positions;
+    if (out->layout.kind == CrowdLayoutKind::positions) return finish(check_positions_counts(c, *out));
+    // Otherwise counts and shares against "count".
     uint64_t fixed = 0;
     bool any_share = false;
     for (size_t k = 0; k < out->archetypes.size(); ++k) {
         const ArchetypeDesc& a = out->archetypes[k];
-        if (explicit_positions && a.count > 0)
-            return finish(c.fail("/archetypes/" + std::to_string(k) + "/count", "a positions layout counts its entries: give a share or leave the count out"));
+        if (a.count == 0 && a.share <= 0)
+            return finish(c.fail("/archetypes/" + std::to_string(k), "needs one of \"count\" and \"share\" (a positions layout, which counts "
+                                                                      "each archetype's entries, takes neither)"));
         fixed += a.count;
         any_share = any_share || a.share > 0;
     }
-    if (!explicit_positions) {
-        if (any_share && out->count == 0) return finish(c.fail("", "an archetype gives a share: the crowd needs \"count\""));
-        if (out->count > 0 && fixed > out->count)
-            return finish(c.fail("/count", "is " + std::to_string(out->count) + " but the archetypes' counts add up to " + std::to_string(fixed)));
-        if (fixed > kMaxCrowdCount) return finish(c.fail("/archetypes", "counts add up to more than " + std::to_string(kMaxCrowdCount)));
-    }
+    if (any_share && out->count == 0) return finish(c.fail("", "an archetype gives a share: the crowd needs \"count\""));
+    if (out->count > 0 && fixed > out->count)
+        return finish(c.fail("/count", "is " + std::to_string(out->count) + " but the archetypes' counts add up to " + std::to_string(fixed)));
+    if (fixed > kMaxCrowdCount) return finish(c.fail("/archetypes", "counts add up to more than " + std::to_string(kMaxCrowdCount)));
     return "";
 }
 

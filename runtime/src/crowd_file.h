@@ -37,7 +37,7 @@ struct ArchetypeDesc {
     std::string name;  // unique in the crowd; the report's key
     ArchetypeSource source;
     uint64_t count = 0;  // characters, when given as a count
-    double share = 0;    // or a share of CrowdFile::count (> 0); exactly one of the two
+    double share = 0;    // or a share of CrowdFile::count (> 0); exactly one of the two, but a positions layout counts entries
     // Which clips of the bundle the characters play, by weight (empty: all alike); a name the
     // bundle lacks is refused once the bundle is loaded.
     std::vector<ClipWeight> clips;

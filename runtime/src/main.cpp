@@ -291,6 +291,20 @@ bool write_screenshot(const Renderer& renderer, const std::string& path) {
     return true;
 }
 
+// Headless runs can take minutes on a software rasteriser: say they are alive. Waits for frame `i`
+// to finish first, since the driver queues commands and a line after the queueing alone would
+// count frames not yet drawn. A line after the first frame, the last, and at most every
+// `every_s` seconds between.
+void log_progress(const Renderer& renderer, double every_s, int i, int frames, std::chrono::steady_clock::time_point start,
+                  std::chrono::steady_clock::time_point* last_line) {
+    renderer.finish();
+    const auto now = std::chrono::steady_clock::now();
+    const bool due = std::chrono::duration<double>(now - *last_line).count() >= every_s;
+    if (i != 0 && i + 1 != frames && !due) return;
+    *last_line = now;
+    std::fprintf(stderr, "crowdview: frame %d of %d, %.1f s elapsed\n", i + 1, frames, std::chrono::duration<double>(now - start).count());
+}
+
 // `meters`: one per archetype with --report (the switch measure, switch_report.h), else empty.
 int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, const Options& o, std::vector<SwitchMeter>& meters) {
     ViewRun run;
@@ -319,12 +333,8 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
         if (windowed) {
             fps_smoothed = fps_smoothed == 0 ? 1.0 / std::max(dt, 1e-4f) : 0.9 * fps_smoothed + 0.1 / std::max(dt, 1e-4f);
             present_frame(context, renderer, scene, run, fps_smoothed);
-        } else if (std::chrono::duration<double>(std::chrono::steady_clock::now() - last_progress).count() >= o.progress_every_s) {
-            // Headless runs can take minutes on a software rasteriser: say they are alive.
-            renderer.finish();
-            last_progress = std::chrono::steady_clock::now();
-            std::fprintf(stderr, "crowdview: frame %d of %d, %.1f s elapsed\n", i + 1, frames,
-                         std::chrono::duration<double>(last_progress - start).count());
+        } else {
+            log_progress(renderer, o.progress_every_s, i, frames, start, &last_progress);
         }
     }
     log_totals(context, scene, run);

@@ -192,6 +192,25 @@ void test_messages(const std::string& bundle) {
     CHECK(!crowdview::is_software_renderer("NVIDIA H100 80GB HBM3/PCIe/SSE2"));
 }
 
+// A 200-character, 30-frame headless run printed its summary, then nothing for 82 s: the progress
+// check ran as frames were queued, not drawn, and waited S seconds for its first line. Each line
+// now follows a finished frame; the first and the last frame always get one, whatever S.
+void test_progress_lines(const std::string& bundle) {
+    const std::string common = "--bundle '" + bundle + "' --headless --frames 4 --count 12 --width 160 --height 120 --impostor-blend off";
+    const Run r = crowdview(common + " --progress-every 1000");
+    if (r.status == 3) {
+        ++g_skipped;
+        std::fprintf(stderr, "SKIP progress lines: %s", r.err.c_str());
+        return;
+    }
+    CHECK_MSG(r.status == 0, describe(r));
+    CHECK_MSG(r.err.find("crowdview: frame 1 of 4, ") != std::string::npos, "first frame: " + r.err);
+    CHECK_MSG(r.err.find("crowdview: frame 4 of 4, ") != std::string::npos, "last frame: " + r.err);
+    // Frames 2 and 3 finish well within 1000 s of frame 1: no line between.
+    CHECK_MSG(r.err.find("crowdview: frame 2 of 4") == std::string::npos && r.err.find("crowdview: frame 3 of 4") == std::string::npos,
+              r.err);
+}
+
 // --gl-device software: Mesa's software EGL device (EGL_MESA_device_software) runs the device
 // platform's code path, the one a GPU server's driver takes, on a machine with no GPU. The log line
 // and --report name the device, vendor and renderer; --require-gpu refuses llvmpipe with one line;
@@ -256,6 +275,7 @@ int main(int argc, char** argv) {
     test_verify(work + "/bundle", argv[2], work);
     test_headless(work + "/bundle", work);
     test_messages(work + "/bundle");
+    test_progress_lines(work + "/bundle");
     test_gl_device(work + "/bundle", work);
     test_benchmark_budget(work + "/bundle", work);
     fs::remove_all(work);

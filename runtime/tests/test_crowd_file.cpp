@@ -76,6 +76,13 @@ void test_valid() {
                 &f).empty());
     CHECK(archetype_counts(f) == (std::vector<uint64_t>{1, 2}));
     CHECK(f.layout.positions[0].archetype == 1 && std::fabs(f.layout.positions[0].heading_rad - 1.5707964f) < 1e-5f);
+    // A positions layout asked for a dummy share per archetype, and the error on a count said to leave
+    // it out, which failed in turn: the entries count, so neither is needed and a count that agrees passes.
+    CHECK(parse(R"({"crowd_format_version": 1, "archetypes": [{"name": "a", "bundle": "a"}, {"name": "b", "bundle": "b", "count": 2}],
+                    "layout": {"kind": "positions", "positions": [{"archetype": "b", "at": [1, 2]}, {"archetype": "b", "at": [3, 4]},
+                                                                  {"archetype": "a", "at": [0, 0]}]}})",
+                &f).empty());
+    CHECK(archetype_counts(f) == (std::vector<uint64_t>{1, 2}));
     // Scatter.
     CHECK(parse(R"({"crowd_format_version": 1, "archetypes": [{"name": "a", "bundle": "a", "count": 2}],
                     "layout": {"kind": "scatter", "area": {"min": [-5, -5], "max": [5, 10]}}})", &f).empty());
@@ -141,8 +148,10 @@ void test_errors() {
          "/layout/positions/0/archetype", "names no archetype"},
         {R"({"crowd_format_version": 1, "archetypes": [{"name": "a", "bundle": "a", "share": 1}], "layout": {"kind": "positions", "positions": [{"archetype": "a", "at": [0, "x"]}]}})",
          "/layout/positions/0/at/1", "number"},
-        {R"({"crowd_format_version": 1, )" + one + R"(, "layout": {"kind": "positions", "positions": [{"archetype": "a", "at": [0, 0]}]}})",
-         "/archetypes/0/count", "positions layout counts"},
+        {R"({"crowd_format_version": 1, "archetypes": [{"name": "a", "bundle": "a", "count": 2}], "layout": {"kind": "positions", "positions": [{"archetype": "a", "at": [0, 0]}]}})",
+         "/archetypes/0/count", "is 2 but /layout/positions places 1 of \"a\": with a positions layout an archetype's count is its number of entries; leave \"count\" out"},
+        {R"({"crowd_format_version": 1, "archetypes": [{"name": "a", "bundle": "a"}], "layout": {"kind": "scatter", "area": {"min": [0, 0], "max": [1, 1]}}})",
+         "/archetypes/0", "a positions layout, which counts each archetype's entries, takes neither"},
         {R"({"crowd_format_version": 1, )" + one + R"(, "camera": {"kind": "drone"}})", "/camera/kind", "overview, street or look_at"},
         {R"({"crowd_format_version": 1, )" + one + R"(, "camera": {"kind": "look_at", "eye": [0, 1, 2]}})", "/camera", "eye\" and \"target"},
         {R"({"crowd_format_version": 1, )" + one + R"(, "camera": {"kind": "look_at", "eye": [0, 1, 2], "target": [0, 1, 2]}})", "/camera/target",

@@ -102,6 +102,25 @@ def test_a_malformed_check_is_a_problem_naming_the_field(published):
     assert response.status_code == 422 and "inputs" in response.text
 
 
+def test_an_unknown_key_is_named_by_its_json_pointer(published):
+    """An unknown input role was refused (422) as "inputs" alone, leaving the client to guess which key.
+    Each error's `where` is now the JSON pointer of the key or value at fault, and the detail lists them."""
+    api, character = published
+    digest = hashlib.sha256(character.read_bytes()).hexdigest()
+    cases = {"/inputs/clothes": {"inputs": {"character": [digest], "clothes": [digest]}},
+             "/inputs/cloth": {"inputs": {"character": [digest], "cloth": ["not-a-digest"]}},
+             "/inputs/textures~1a": {"inputs": {"character": [digest], "textures/a": [digest]}},  # RFC 6901 escapes "/"
+             "/params/azimuth": {"params": dict(PARAMS, azimuth=4)},
+             "/colour": {"colour": "red"}}
+    for pointer, changes in cases.items():
+        response = _check(api, "all", character, **changes)
+        assert response.status_code == 422 and response.headers["content-type"].startswith("application/problem+json"), response.text
+        problem = response.json()
+        assert [error["where"] for error in problem["errors"]] == [pointer] and pointer in problem["detail"], (pointer, problem)
+    unknown_role = _check(api, "all", character, **cases["/inputs/clothes"]).json()["errors"][0]
+    assert "'clothes' is not an input role" in unknown_role["message"], unknown_role
+
+
 def test_the_client_refuses_before_uploading_in_another_workspace(published, tmp_path):
     api, character = published
     uploaded_before = api.client.get("/v1/assets", headers=api.auth("ci")).json()["count"]

@@ -58,6 +58,39 @@ def test_an_error_budget_picks_the_fewest_bones():
         decompose_cloth(positions, triangles, bones=37)
 
 
+def test_each_tried_bone_count_is_reported_as_it_is_made():
+    """`--cloth-bones auto` was silent for minutes while it tried count after count: on_try sees each one.
+    A sheet whose two halves move apart needs two bones, so one bone is tried and found over budget first."""
+    positions, triangles, _, _ = rigid_sheet()
+    split = positions.copy()
+    split[:, 18:, 1] += np.linspace(0.0, 0.2, positions.shape[0])[:, None]  # the far half rises, the near one turns
+    tried = []
+    chosen = choose_bone_count(split, triangles, budget_mm=1.0, counts=(1, 2), iterations=3, on_try=tried.append)
+    assert [b.bone_count for b in tried] == [1, 2] and tried[0].rms_m * 1000 > 1.0
+    assert tried[-1] is chosen
+
+
+def test_cli_prints_each_garments_bones_as_they_are_fitted(small_bake, tmp_path, capsys):
+    """`crowdbake export --cloth-bones auto` printed nothing until the end (92 s on the sample): each garment
+    now gets a stderr line per count tried and one for the count chosen, with the RMS error export.json keeps."""
+    out = tmp_path / "auto"
+    arguments = ["export", str(small_bake[0]), "--out", str(out), "--cloth-bones", "auto", "--cloth-bones-budget", "1000",
+                 "--cloth-bones-iterations", "1"]
+    assert cli_main(arguments) == 0
+    err = capsys.readouterr().err.splitlines()
+    sidecar = json.loads((out / "export.json").read_text())
+    garments = [(lod["lod"], part) for lod in sidecar["lods"] for part in lod["parts"] if part["kind"] == "garment"]
+    assert garments
+    for lod, part in garments:
+        label = f"crowdbake export: {part['part']} lod {lod}: "
+        tried = [line for line in err if line.startswith(f"{label}tried ")]
+        chosen = [line for line in err if line.startswith(f"{label}4 bones, ")]
+        assert len(tried) == 1 and tried[0].endswith(" mm RMS (budget 1000 mm)") and len(chosen) == 1, err
+        assert tried[0].startswith(f"{label}tried 4 bones, "), tried
+        rms_mm = float(chosen[0].removeprefix(f"{label}4 bones, ").split(" mm RMS")[0])
+        assert rms_mm == pytest.approx(part["bones"]["rms_mm"], abs=0.006)
+
+
 def test_top_influences_keep_the_four_largest_and_sum_to_one():
     weights = np.array([[0.5, 0.0], [0.2, 0.0], [0.1, 1.0], [0.1, 0.0], [0.1, 0.0]])  # (B = 5, V = 2)
     joints, kept = top_influences(weights)

@@ -94,8 +94,28 @@ def from_upload_rejected(rejected: UploadRejected) -> Problem:
 
 
 def _field_name(location: tuple[Any, ...]) -> str:
-    parts = [str(part) for part in location if part not in ("body",)]
+    parts = [str(part) for part in location if part not in ("body", DICT_KEY_MARK)]
     return ".".join(parts) or "body"
+
+
+# Pydantic ends the location of an error in a dict's key with this (the key itself comes before it).
+DICT_KEY_MARK = "[key]"
+
+
+def json_pointer(location: tuple[Any, ...]) -> str:
+    """RFC 6901 pointer into the JSON body of a validation error's location ("body", "inputs", "bogus",
+    "[key]") -> "/inputs/bogus": what a client follows to the key or value at fault."""
+    parts = [str(part) for part in location[1:] if part != DICT_KEY_MARK]
+    return "".join("/" + part.replace("~", "~0").replace("/", "~1") for part in parts)
+
+
+def _where(item: dict[str, Any]) -> str:
+    """errors[].where of a pydantic error: the JSON pointer of the key or value at fault in a body; else
+    the part of the request ("query", "path", or "body" for a body that is not JSON or is missing)."""
+    location = tuple(item.get("loc", ())) or ("body",)
+    # An unreadable body's location holds the character offset, not a key.
+    pointer = json_pointer(location) if location[0] == "body" and item.get("type") != "json_invalid" else ""
+    return pointer or str(location[0])
 
 
 # nginx's status for a request whose client left before the answer; never seen by that client.
@@ -116,11 +136,12 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, error: RequestValidationError) -> JSONResponse:
         errors = [
-            FieldError(_field_name(tuple(item.get("loc", ()))), item.get("msg", "invalid"), where=item.get("loc", ("body",))[0]).to_dict()
+            FieldError(_field_name(tuple(item.get("loc", ()))), item.get("msg", "invalid"), where=_where(item)).to_dict()
             for item in error.errors()
         ]
         count = len(errors)
-        return problem_response(request, Problem("validation-error", f"{count} parameter{'s' if count != 1 else ''} failed validation", errors))
+        places = ", ".join(dict.fromkeys(entry["where"] for entry in errors))
+        return problem_response(request, Problem("validation-error", f"{count} parameter{'s' if count != 1 else ''} failed validation ({places})", errors))
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, error: StarletteHTTPException) -> JSONResponse:

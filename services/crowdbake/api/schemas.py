@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import datetime as dt
 import re
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
 from crowdbake.ingest.input_modes import BakeInputSet
 from crowdbake.params import CREATED_RULE, NAME_PATTERN, PARAMS, SPECS, VERSION_PATTERN, cross_field_problem, pydantic_fields
@@ -142,6 +142,23 @@ MAX_CHECK_ROLES = 64  # a character, cloth, cycle and textures: far fewer than t
 MAX_FILES_PER_ROLE = 4  # a cloth cache and its mesh, a cycle and its looped cache
 
 
+def _input_role(role: str) -> str:
+    if not INPUT_ROLE_PATTERN.match(role):
+        raise ValueError(f"{role!r} is not an input role (character, cloth, cycle, timeline, textures.FILE, clip_cloth.K)")
+    return role
+
+
+def _role_digests(digests: list[str]) -> list[str]:
+    if not 1 <= len(digests) <= MAX_FILES_PER_ROLE or not all(SHA256_PATTERN.match(d) for d in digests):
+        raise ValueError(f"an input role must list 1 to {MAX_FILES_PER_ROLE} sha256 digests in lowercase hex")
+    return digests
+
+
+# Checked per key and per value, so that a 422 points at the very role (errors[].where: /inputs/ROLE).
+InputRole = Annotated[str, AfterValidator(_input_role)]
+RoleDigests = Annotated[list[str], AfterValidator(_role_digests)]
+
+
 class BakeCheck(BaseModel):
     """Before any upload: may a bake of these inputs publish <name>/<version>? 204 when it may (the
     version is free, or this key's own bake of the same inputs published it: the submit reuses that
@@ -151,7 +168,7 @@ class BakeCheck(BaseModel):
 
     name: str = Field(pattern=NAME_PATTERN, examples=["sample-walker"])
     version: str = Field(pattern=VERSION_PATTERN, examples=["1.0.0"])
-    inputs: dict[str, list[str]] = Field(
+    inputs: dict[InputRole, RoleDigests] = Field(
         description="Input role (character, cloth, cycle, timeline, textures.FILE, clip_cloth.K: the K-th entry's cloth) -> the sha256 (hex) of each local file of it.",
         examples=[{"character": ["9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08"]}])
     params: BakeParamsIn = Field(default_factory=BakeParamsIn)
@@ -160,14 +177,9 @@ class BakeCheck(BaseModel):
 
     @field_validator("inputs")
     @classmethod
-    def _roles_and_digests(cls, value: dict[str, list[str]]) -> dict[str, list[str]]:
+    def _character_and_role_count(cls, value: dict[str, list[str]]) -> dict[str, list[str]]:
         if "character" not in value or len(value) > MAX_CHECK_ROLES:
             raise ValueError(f"inputs must name the character and at most {MAX_CHECK_ROLES} roles")
-        for role, digests in value.items():
-            if not INPUT_ROLE_PATTERN.match(role):
-                raise ValueError(f"{role!r} is not an input role (character, cloth, cycle, timeline, textures.FILE, clip_cloth.K)")
-            if not 1 <= len(digests) <= MAX_FILES_PER_ROLE or not all(SHA256_PATTERN.match(d) for d in digests):
-                raise ValueError(f"inputs[{role!r}] must list 1 to {MAX_FILES_PER_ROLE} sha256 digests in lowercase hex")
         return value
 
 

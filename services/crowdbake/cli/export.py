@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from crowdbake.cli.common import CommandError
@@ -74,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
             import py_dem_bones  # noqa: F401
         except ImportError:
             raise CommandError("--cloth-bones needs py-dem-bones (pip install py-dem-bones; services/requirements.txt pins it)") from None
-        cloth_bones = ClothBonesRequest(count, args.cloth_bones_budget, args.cloth_bones_iterations)
+        cloth_bones = ClothBonesRequest(count, args.cloth_bones_budget, args.cloth_bones_iterations, report=print_bones_line)
     try:
         summary = export_bundle(args.bundle_dir, args.out, args.ktx2, vat_png=args.vat_png, cloth_bones=cloth_bones)
     except FormatError as error:
@@ -90,3 +91,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"file     {path}: {size:,} bytes")
         print(f"exported {len(summary.files)} files to {summary.out_dir}")
     return 0
+
+
+def print_bones_line(line: str) -> None:
+    """A garment's bone count and error, as the fit ends: a garment's fit can take minutes."""
+    print(f"crowdbake export: {line}", file=sys.stderr, flush=True)

@@ -65,7 +65,9 @@ def _play(bpy, scene, ob, frames: list[float]) -> np.ndarray:
 
 
 def main(glb: Path, out: Path) -> None:
-    import bpy
+    from crowdbake.export.bpy_import import import_bpy
+
+    bpy = import_bpy()
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     bpy.ops.import_scene.gltf(filepath=str(glb))

@@ -12,6 +12,7 @@ skirt 128 bones still a centimetre (docs/export.md "Cloth as bones").
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -108,15 +109,18 @@ def decompose_cloth(positions: np.ndarray, triangles: np.ndarray, bones: int, it
 
 
 def choose_bone_count(positions: np.ndarray, triangles: np.ndarray, budget_mm: float, counts: tuple[int, ...] = AUTO_BONE_COUNTS,
-                      iterations: int = DEFAULT_ITERATIONS) -> ClothBones:
+                      iterations: int = DEFAULT_ITERATIONS, on_try: Callable[[ClothBones], None] | None = None) -> ClothBones:
     """The decomposition with the fewest bones of `counts` whose RMS error is within `budget_mm`; the last
-    (most bones) tried when none is. Counts above the vertex count are skipped."""
+    (most bones) tried when none is. Counts above the vertex count are skipped. on_try, where given, sees
+    each decomposition as it is made: one can take a minute on a real garment."""
     if budget_mm <= 0:
         raise ValueError(f"the error budget must be positive millimetres, got {budget_mm}")
     usable = [c for c in counts if c <= np.asarray(positions).shape[1]] or [1]
     result = None
     for count in usable:
         result = decompose_cloth(positions, triangles, count, iterations)
+        if on_try is not None:
+            on_try(result)
         if result.rms_m * 1000 <= budget_mm:
             break
     return result

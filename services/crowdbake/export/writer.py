@@ -68,14 +68,30 @@ class ClothBonesRequest:
     count: int | None = None
     budget_mm: float = 5.0
     iterations: int = DEFAULT_ITERATIONS
+    # One line per decomposition (a garment's chosen count and, in auto mode, each count tried): a garment
+    # can take minutes, so the CLI prints them as they come. None: logged at INFO.
+    report: Callable[[str], None] | None = None
 
-    def decompose(self, positions: np.ndarray, triangles: np.ndarray) -> ClothBones:
+    def decompose(self, positions: np.ndarray, triangles: np.ndarray, label: str) -> ClothBones:
+        """The garment `label` (named in the report lines) decomposed as asked."""
         if self.count is not None:
-            return decompose_cloth(positions, triangles, min(self.count, positions.shape[1]), self.iterations)
-        bones = choose_bone_count(positions, triangles, self.budget_mm, iterations=self.iterations)
-        if bones.rms_m * 1000 > self.budget_mm:  # written all the same: the most bones tried, said in export.json
-            logger.warning("--cloth-bones auto: %d bones leave %.1f mm RMS, over the %.1f mm budget", bones.bone_count, bones.rms_m * 1000, self.budget_mm)
+            bones = decompose_cloth(positions, triangles, min(self.count, positions.shape[1]), self.iterations)
+        else:
+            def tried(candidate: ClothBones) -> None:
+                self._say(f"{label}: tried {candidate.bone_count} bones, {candidate.rms_m * 1000:.2f} mm RMS "
+                          f"(budget {self.budget_mm:g} mm)")
+
+            bones = choose_bone_count(positions, triangles, self.budget_mm, iterations=self.iterations, on_try=tried)
+            if bones.rms_m * 1000 > self.budget_mm:  # written all the same: the most bones tried, said in export.json
+                logger.warning("--cloth-bones auto: %d bones leave %.1f mm RMS, over the %.1f mm budget", bones.bone_count, bones.rms_m * 1000, self.budget_mm)
+        self._say(f"{label}: {bones.bone_count} bones, {bones.rms_m * 1000:.2f} mm RMS, {bones.max_m * 1000:.1f} mm max")
         return bones
+
+    def _say(self, line: str) -> None:
+        if self.report is not None:
+            self.report(line)
+        else:
+            logger.info("%s", line)
 
 
 def bones_entry(bones: ClothBones, request: ClothBonesRequest, vertex_count: int, key_count: int) -> dict[str, Any]:
@@ -290,7 +306,8 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
                 "texel_of_vertex": "(i % width, frame * rows_per_frame + i // width) for pose frame `frame` (export.json animations[].vat: the frames of each clip and transition); TEXCOORD_1 is frame 0's texel centre",
             }
             extras = {"part": mesh["part"], "kind": mesh["kind"], "lod": lod, "material": mesh["material"], "vat": vat}
-            bones = cloth_bones.decompose(cache.positions, cache.indices) if cloth_bones is not None and mesh["kind"] == "garment" else None
+            bones = (cloth_bones.decompose(cache.positions, cache.indices, f"{mesh['part']} lod {lod}")
+                     if cloth_bones is not None and mesh["kind"] == "garment" else None)
             parts.append(
                 GlbPart(mesh["part"], mesh["kind"], mesh["material"], cache.positions, cache.normals, cache.uvs, vat_texcoords(layout), cache.indices, extras,
                         bones)
@@ -302,7 +319,6 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
                                  "meaning": "the part's glTF node: position in metres = translation + scale * mesh position"}
             else:
                 entry["bones"] = bones_entry(bones, cloth_bones, cache.vertex_count, sum(plan.key_count for plan in plans))
-                logger.info("%s lod %d: %d bones, %.2f mm RMS, %.1f mm max", mesh["part"], lod, bones.bone_count, bones.rms_m * 1000, bones.max_m * 1000)
             part_entries.append(entry)
         root_extras = {"crowdbake": {"export": "export.json", "lod": lod, "frames_per_second": fps, "frame_count": bundle.ranges.pose_frames}}
         path = out.write(f"character_lod{lod}.glb", build_glb(parts, glb_materials, variants, fps, root_extras, plans))
