@@ -19,9 +19,11 @@ STILL_STEP = 1e-12
 # edges tighter than that, and a rigid synthetic cache (strain 0) would make any change read as infinite.
 MIN_REFERENCE_STRAIN = 1e-3
 # The deviation ratio's denominator (the seam's jump) is at least this fraction of the cloth's median
-# frame-to-frame step: a seam the simulation closed itself (jump 0) leaves a closing nothing to move but
-# float rounding, which over a zero jump would read as an infinite deviation.
-MIN_JUMP_STEP_FRACTION = 1e-2
+# frame-to-frame step. A seam the simulation nearly closed itself (jump near 0) would make any crossfade,
+# which blends two stretches of cloth that differ away from the seam, read as an unbounded deviation and
+# reject the best seam there is; a closing that moves no frame farther than 1.5 of the cloth's own median
+# step strays less than playing the simulation a frame or two off, which nobody sees.
+MIN_JUMP_STEP_FRACTION = 1.0
 
 
 def _rms(delta: np.ndarray) -> np.ndarray:
@@ -94,7 +96,7 @@ class LoopQuality:
         frames Fs .. Fe-1 (at least MIN_REFERENCE_STRAIN; L_rest: the rest lengths given, by default the
         cache's first frame). None without edges.
     deviation_ratio: the largest per-frame RMS distance between a looped frame and the simulator's same frame,
-        over the raw seam jump RMS |x(Fe) - x(Fs)| (at least MIN_JUMP_STEP_FRACTION of the median frame step).
+        over the raw seam jump RMS |x(Fe) - x(Fs)| (at least MIN_JUMP_STEP_FRACTION of the median frame step: one step).
     seam_acceleration_ratio: RMS acceleration (second difference) at the two frames either side of the
         loop's wrap, over the larger of the loop's median acceleration and the simulator's own acceleration
         at those frames (a seam cut where the legs kick the cloth hardest is not a kink).
