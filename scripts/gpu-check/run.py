@@ -93,9 +93,11 @@ def nvidia_smi() -> str | None:
 
 def unpack_bundles(packed: Path, root: Path) -> Path:
     """Unpacks every bundle tarball of `packed` (NAME.tar.xz holding NAME/) into root/bundles; returns root."""
+    # tarfile's "data" filter (Python 3.12, and some 3.11 releases) refuses links and paths that leave the folder.
+    safety = {"filter": "data"} if hasattr(tarfile, "data_filter") else {}
     for archive in sorted(packed.glob("*.tar.xz")):
         with tarfile.open(archive) as tar:
-            tar.extractall(root / "bundles", filter="data")
+            tar.extractall(root / "bundles", **safety)
     return root
 
 
