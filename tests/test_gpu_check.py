@@ -42,7 +42,9 @@ def test_packed_bundles_unpack_where_the_crowd_names_them(tmp_path):
     (bundle / "meshes" / "body_lod0.cbpc").write_bytes(bytes(range(256)) * 64)
     folder = tmp_path / "folder"
     (folder / "bundles").mkdir(parents=True)
-    prepare.packed(bundle, "robot", folder / "bundles" / "robot.tar.xz")
+    linked = tmp_path / "linked"  # a folder of bundles may link to bakes kept elsewhere
+    linked.symlink_to(bundle)
+    prepare.packed(linked, "robot", folder / "bundles" / "robot.tar.xz")
     (folder / "crowd.json").write_text(json.dumps({"count": 240, "camera": {"kind": "street"}, "archetypes": [{"name": "robot", "bundle": "bundles/robot"}]}))
 
     unpacked = run.unpack_bundles(folder / "bundles", tmp_path / "scratch")

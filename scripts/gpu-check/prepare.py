@@ -114,7 +114,7 @@ def packed(bundle: Path, name: str, archive: Path) -> Path:
     """`bundle`'s files as NAME/ in an xz tarball at `archive`: pose caches and block-compressed maps
     shrink to about a third, which is what lets the robot's clips travel."""
     with tarfile.open(archive, "w:xz", preset=6) as tar:
-        tar.add(bundle, arcname=name)
+        tar.add(bundle.resolve(), arcname=name)  # a linked bundle folder is packed, not the link
     return archive
 
 
