@@ -3,14 +3,15 @@
 shares kept) that crowdview draws at 30 and at 60 fps, LOD by distance, headless.
 
     scripts/bench_mixed_crowd.py CROWD.json [--crowdview build/runtime/crowdview] [--out figure3.json]
-        [--width 1280 --height 720] [--frames 8] [--max-seconds 600]
+        [--width 1280 --height 720] [--frames 8] [--max-seconds 600] [--lod auto|high|low|impostor] [--gl-device D]
 
 Each run writes the description with `count` replaced, runs `crowdview --crowd ... --headless
 --report`, and reads the median whole-frame time (cull to glFinish, after two warm-up frames). A
 crowd size whose median misses the frame budget, or meets it by less than CONFIRM_MARGIN, is run
 again, up to PROBE_RUNS times, and the median of the runs' medians decides: one slow frame (other
 work on the machine) must not end a search. N doubles from 8 until a target fails, then bisects to
-10 %. No run starts that would end (as long as the last, in proportion to N above it) past
+10 %. --lod draws every character as one representation (figure 3 per representation), auto by
+distance. No run starts that would end (as long as the last, in proportion to N above it) past
 --max-seconds. Prints one line per run and the result, and writes every size's runs (the median and
 its spread), the counts per archetype and LOD, the GPU memory per archetype, the impostor blend each
 archetype drew with and the GL renderer as JSON. Needs a description whose archetypes all give a share.
@@ -128,7 +129,8 @@ def crowdview_runner(crowdview: str, crowd: Path, description: dict, folder: Pat
         path.write_text(json.dumps(dict(description, count=count)))
         report = folder / f"report-{count}.json"
         command = [crowdview, "--crowd", str(path), "--headless", "--frames", str(args.frames), "--width", str(args.width),
-                   "--height", str(args.height), "--report", str(report)] + (["--impostor-blend", args.blend] if args.blend else [])
+                   "--height", str(args.height), "--report", str(report), "--lod", args.lod, "--gl-device", args.gl_device]
+        command += ["--impostor-blend", args.blend] if args.blend else []
         try:
             done = subprocess.run(command, capture_output=True, text=True)
         finally:
@@ -146,7 +148,7 @@ def summary(search: MixedCrowdSearch, results: dict, args: argparse.Namespace) -
     # Memory and blend per archetype from the probe that loaded the most of them (a small N rounds some shares to none).
     widest = max((p.reports[-1] for p in probes), key=lambda r: len(r["archetypes"]), default={"archetypes": []})
     gl = widest.get("gl") or {}
-    out = {"crowd": str(args.crowd), "width": args.width, "height": args.height, "frames": args.frames,
+    out = {"crowd": str(args.crowd), "lod": args.lod, "width": args.width, "height": args.height, "frames": args.frames,
            "impostor_blend": {a["name"]: a.get("impostor_blend") for a in widest["archetypes"]}, "gl": gl,
            "seconds": round(time.monotonic() - search.started, 1), "probe_runs": PROBE_RUNS, "results": results,
            "gpu_memory_bytes": {a["name"]: a["gpu_memory_bytes"] for a in widest["archetypes"]},
@@ -166,6 +168,8 @@ def main() -> int:
     parser.add_argument("--frames", type=int, default=8)
     parser.add_argument("--blend", choices=["off", "views", "frames", "full", "warp"], default=None)
     parser.add_argument("--max-seconds", type=float, default=600)
+    parser.add_argument("--lod", choices=["auto", "high", "low", "impostor"], default="auto")
+    parser.add_argument("--gl-device", default="auto", help="crowdview's --gl-device: auto, software or N")
     args = parser.parse_args()
     description = json.loads(args.crowd.read_text())
     if any("share" not in a for a in description.get("archetypes", [])):

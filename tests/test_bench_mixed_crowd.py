@@ -76,3 +76,17 @@ def test_the_json_names_the_blend_the_renderer_and_each_sizes_spread(tmp_path, m
     assert "inverts the paper's ranking" in document["software_rasteriser_note"]
     by_count = {p["count"]: p for p in document["probes"]}
     assert by_count[32]["frame_ms_median"] == 32.0 and by_count[32]["frame_ms_min"] == 32.0 and by_count[32]["frame_ms_max"] == 40.0
+
+
+def test_each_run_asks_crowdview_for_the_chosen_representation_and_device(tmp_path):
+    """--lod and --gl-device reach every crowdview run: figure 3 per representation on the chosen device."""
+    fake = tmp_path / "crowdview"
+    fake.write_text("#!/bin/sh\nprintf '%s\\n' \"$@\" > \"$(dirname \"$0\")/args.txt\"\n"
+                    "while [ \"$1\" != --report ]; do shift; done\necho '{\"frame_ms_median\": 1}' > \"$2\"\n")
+    fake.chmod(0o755)
+    crowd = tmp_path / "crowd.json"
+    args = bench.argparse.Namespace(frames=8, width=1920, height=1080, lod="impostor", gl_device="software", blend=None)
+    run = bench.crowdview_runner(str(fake), crowd, {"count": 1}, tmp_path, args)
+    assert run(64) == {"frame_ms_median": 1}
+    given = (tmp_path / "args.txt").read_text().split()
+    assert given[given.index("--lod") + 1] == "impostor" and given[given.index("--gl-device") + 1] == "software"

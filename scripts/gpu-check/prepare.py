@@ -1,25 +1,33 @@
 #!/usr/bin/env python3
 """Packs the GPU check into one folder that a bare CUDA machine with no network runs alone
 (scripts/gpu-check/run.py): crowdview and crowdview_frame_bench as built here, the shared
-libraries they load that such an image lacks, glvnd's GL loaders as Debian packages, the shaders
-and a bundle.
+libraries they load that such an image lacks, glvnd's GL loaders as Debian packages, the shaders,
+scripts/bench_mixed_crowd.py, four real bundles and a mixed crowd of them (crowd.json).
 
-    scripts/gpu-check/prepare.py [--build build/runtime] [--out build/gpu-check] [--bundle DIR]
+    scripts/gpu-check/prepare.py [--build build/runtime] [--out build/gpu-check] [--bundles-from DIR]
+        [--work build/gpu-check-work] [--crowdbake PATH]
 
---bundle: a baked bundle folder (scripts/demo.sh bakes out/demo/bundles/sample-walker/1.0.0); by
-default the synthetic test bundle (make_synthetic_bundle), which runs every step but is no
-character worth measuring. The libraries are read off `ldd`, less glibc and the C++ runtime, which
-a CUDA image has in newer versions. The folder is refused over 60 MiB: a device run carries 64 MiB,
-the working tree included. Prints one line per part and the folder's size.
+The bundles are scripts/demo.sh's archetypes: the sample in its loose and its tight garment (heavy
+build), CesiumMan in the long skirt and the robot with its clips (../shared/assets, or
+$CROWDBAKE_SHARED_ASSETS). --bundles-from takes them from a folder of baked bundles (NAME/VERSION,
+as demo.sh's out/demo/bundles); else each is baked under --work with smaller impostors and textures
+than the demo's, so that all four travel, and kept there: a second prepare with the same recipe bakes
+nothing. bundles.json says where each came from, how it was baked and its size. The libraries are
+read off `ldd`, less glibc and the C++ runtime, which a CUDA image has in newer versions. The folder
+is refused over 60 MiB: a device run carries 64 MiB, the working tree included. Prints one line per
+part and the folder's size.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import shutil
 import subprocess
 import sys
+import tarfile
+from dataclasses import dataclass, field
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -29,6 +37,124 @@ GL_LOADER_PACKAGES = ("libegl1", "libglvnd0", "libopengl0", "libgl1", "libglx0",
 # The C library and the C++ runtime: every CUDA image has them, newer than this build's.
 IMAGE_LIBRARIES = re.compile(r"^(linux-vdso|ld-linux|libc|libm|libdl|libpthread|librt|libresolv|libutil|libstdc\+\+|libgcc_s)[.-]")
 MAX_BYTES = 60 << 20
+ASSETS = Path(os.environ.get("CROWDBAKE_SHARED_ASSETS", ROOT.parent / "shared/assets"))
+VERSION = "1.0.0"
+# The demo bakes 88-texel tiles, 16 MiB of impostor maps a clip and the sample's textures at
+# crowdbake's default size: its four bundles are about 160 MiB. These keep three elevations (azimuths
+# fall to 12 before frames do) and bring the four to about 64 MiB, 20 packed.
+TRAVEL_BAKE = ("--tile", "64", "--impostor-budget", "4", "--no-export")
+TRAVEL_SAMPLE = ("--texture-size", "512")
+
+
+@dataclass(frozen=True)
+class Archetype:
+    """One archetype of the mixed crowd: how its bundle is baked (crowdbake's arguments, run in its
+    work folder) and what the crowd description says of it beside its name and bundle."""
+
+    name: str  # the archetype's and its bundle's name
+    demo_name: str  # its bundle's name in scripts/demo.sh, looked for in --bundles-from
+    recipe: tuple[tuple[str, ...], ...]
+    crowd: dict = field(default_factory=dict, hash=False)
+
+
+def sample_recipe(name: str, *sample_args: str) -> tuple[tuple[str, ...], ...]:
+    """`crowdbake sample` then its bake (the bake searches the cloth cycle itself)."""
+    return (("sample", "sample", *sample_args, *TRAVEL_SAMPLE),
+            ("bake", "sample/character.glb", "--cloth", "sample/cloth.pc2", "--cloth-mesh", "sample/cloth.obj",
+             "--textures", "sample/textures", "--name", name, "--version", VERSION, *TRAVEL_BAKE, "--out", "bundles"))
+
+
+def archetypes(assets: Path) -> list[Archetype]:
+    """scripts/demo.sh's mixed crowd, less the sample playing three clips (the robot plays clips)."""
+    walking = {"play_rate": [0.9, 1.1]}
+    skirt, robot = assets / "long_skirt", assets / "robot_clips"
+    return [
+        Archetype("sample-loose", "sample-walker", sample_recipe("sample-loose", "--garment", "loose"), dict(share=3, **walking)),
+        Archetype("sample-tight", "sample-tight",
+                  sample_recipe("sample-tight", "--garment", "tight", "--build", "heavy", "--seed", "1"), dict(share=3, **walking)),
+        Archetype("cesiumman", "cesiumman",
+                  (("bake", str(assets / "CesiumMan.glb"), "--cloth", str(skirt / "long_skirt.pc2"), "--cloth-mesh",
+                    str(skirt / "long_skirt.obj"), "--name", "cesiumman", "--version", VERSION, *TRAVEL_BAKE, "--out", "bundles"),),
+                  dict(share=2)),
+        # Each of its three clips has impostor maps of its own: half the others' budget a clip. Its dense
+        # body's pose caches make it the largest bundle all the same (about 39 MiB, 10 packed).
+        Archetype("robot", "robot",
+                  (("bake", str(robot / "robot.glb"), "--cloth", str(robot / "garment.pc2"), "--cloth-mesh", str(robot / "garment.obj"),
+                    "--timeline", str(robot / "timeline.json"), "--name", "robot", "--version", VERSION, "--tile", "64",
+                    "--impostor-budget", "2", "--no-export", "--out", "bundles"),),
+                  dict(share=1, clips=[{"clip": "Walking", "weight": 2}, {"clip": "Running", "weight": 1}], switch_after_s=[0.5, 1.5])),
+    ]
+
+
+def baked_bundle(archetype: Archetype, work: Path, crowdbake: str) -> Path:
+    """The archetype's bundle baked under work/NAME by its recipe; reused where recipe.json there is
+    this recipe and the bake finished. Raises SystemExit naming the step that failed."""
+    folder = work / archetype.name
+    bundle = folder / "bundles" / archetype.name / VERSION
+    recipe_file = folder / "recipe.json"
+    recipe = [list(step) for step in archetype.recipe]
+    if (bundle / "manifest.json").is_file() and recipe_file.is_file() and json.loads(recipe_file.read_text()) == recipe:
+        print(f"prepare: {archetype.name}: baked before, in {bundle}")
+        return bundle
+    if folder.exists():
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+    env = dict(os.environ, PYOPENGL_PLATFORM=os.environ.get("PYOPENGL_PLATFORM", "osmesa"))
+    for step in recipe:
+        print(f"prepare: {archetype.name}: crowdbake {' '.join(step)}", flush=True)
+        done = subprocess.run([crowdbake, *step], cwd=folder, env=env, capture_output=True, text=True)
+        (folder / f"{step[0]}.log").write_text(done.stdout + done.stderr)
+        if done.returncode != 0:
+            raise SystemExit(f"prepare: {archetype.name}: crowdbake {step[0]} failed (exit {done.returncode}); see {folder / step[0]}.log")
+    recipe_file.write_text(json.dumps(recipe, indent=1) + "\n")  # written last: it marks a finished bake
+    return bundle
+
+
+def packed(bundle: Path, name: str, archive: Path) -> Path:
+    """`bundle`'s files as NAME/ in an xz tarball at `archive`: pose caches and block-compressed maps
+    shrink to about a third, which is what lets the robot's clips travel."""
+    with tarfile.open(archive, "w:xz", preset=6) as tar:
+        tar.add(bundle.resolve(), arcname=name)  # a linked bundle folder is packed, not the link
+    return archive
+
+
+def packed_bake(archetype: Archetype, bundle: Path, work: Path) -> Path:
+    """The baked bundle's tarball, kept beside its bake and made again only after a new bake."""
+    archive = work / archetype.name / "bundle.tar.xz"
+    if archive.is_file() and archive.stat().st_mtime >= (work / archetype.name / "recipe.json").stat().st_mtime:
+        return archive
+    return packed(bundle, archetype.name, archive)
+
+
+def found_bundle(archetype: Archetype, bundles: Path) -> Path:
+    """The newest version of the archetype's bundle in a NAME/VERSION folder, by its name or the demo's."""
+    for name in (archetype.name, archetype.demo_name):
+        versions = sorted(p.parent for p in (bundles / name).glob("*/manifest.json"))
+        if versions:
+            return versions[-1]
+    raise SystemExit(f"prepare: {bundles} has no {archetype.name} (or {archetype.demo_name}) bundle as NAME/VERSION/manifest.json")
+
+
+def crowd_entry(archetype: Archetype, manifest: dict) -> dict:
+    """The archetype's line of crowd.json; a clip mix only where the bundle holds those clips by name
+    (a bake that fell back to one loop holds one clip, `cycle`)."""
+    entry = {"name": archetype.name, "bundle": f"bundles/{archetype.name}", **archetype.crowd}
+    clips = {c.get("name") for c in manifest.get("clips", [])}
+    if not all(c["clip"] in clips for c in entry.get("clips", [])):
+        del entry["clips"]
+        entry.pop("switch_after_s", None)
+    return entry
+
+
+def bundle_record(archetype: Archetype, bundle: Path, archive: Path, source: str, manifest: dict) -> dict:
+    """bundles.json's line for one bundle: where it came from, its recipe and what it holds."""
+    impostor = manifest.get("impostor", {})
+    return {"bundle": f"bundles/{archetype.name}.tar.xz", "name": manifest["name"], "version": manifest["version"],
+            "format_version": manifest.get("format_version"), "source": source,
+            "crowdbake": [["crowdbake", *step] for step in archetype.recipe] if source == "baked here" else None,
+            "bytes": folder_bytes(bundle), "packed_bytes": archive.stat().st_size, "clips": [c.get("name") for c in manifest.get("clips", [])],
+            "impostor_views": {"azimuths": len(impostor.get("azimuths_deg", [])), "elevations": len(impostor.get("elevations_deg", [])),
+                               "frames": len(impostor.get("frame_indices", [])), "tile_crop": impostor.get("crop")}}
 
 
 def shared_libraries(program: Path) -> dict[str, Path]:
@@ -53,18 +179,25 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--build", type=Path, default=ROOT / "build/runtime", help="crowdview's build folder")
     parser.add_argument("--out", type=Path, default=ROOT / "build/gpu-check", help="the folder to write (replaced)")
-    parser.add_argument("--bundle", type=Path, help="a bundle folder to render and benchmark (default: a synthetic one)")
+    parser.add_argument("--bundles-from", type=Path, help="a folder of baked bundles, NAME/VERSION (default: bake them under --work)")
+    parser.add_argument("--work", type=Path, default=ROOT / "build/gpu-check-work", help="where bakes are made and kept")
+    parser.add_argument("--crowdbake", default=str(ROOT / ".venv/bin/crowdbake"), help="the crowdbake command")
     args = parser.parse_args()
     programs = [args.build / name for name in PROGRAMS]
     for p in programs:
         if not p.is_file():
             raise SystemExit(f"prepare: {p} is missing; build crowdview first (scripts/setup.sh)")
-    if args.bundle and not (args.bundle / "manifest.json").is_file():
-        raise SystemExit(f"prepare: {args.bundle} has no manifest.json")
+    crowd = archetypes(ASSETS)
+    if args.bundles_from:
+        sources = {a.name: (found_bundle(a, args.bundles_from), str(args.bundles_from)) for a in crowd}
+    else:
+        if not ASSETS.is_dir():
+            raise SystemExit(f"prepare: no shared assets in {ASSETS} (CesiumMan, long_skirt, robot_clips); set CROWDBAKE_SHARED_ASSETS")
+        sources = {a.name: (baked_bundle(a, args.work, args.crowdbake), "baked here") for a in crowd}
 
     if args.out.exists():
         shutil.rmtree(args.out)
-    for sub in ("bin", "lib", "debs"):
+    for sub in ("bin", "lib", "debs", "bundles"):
         (args.out / sub).mkdir(parents=True)
     for p in programs:
         shutil.copy2(p, args.out / "bin" / p.name)
@@ -87,18 +220,31 @@ def main() -> int:
     # The shaders include "../config.h": they keep their place beside it.
     shutil.copytree(ROOT / "runtime/src/shaders", args.out / "src/shaders")
     shutil.copy2(ROOT / "runtime/src/config.h", args.out / "src/config.h")
-    bundle = args.out / "bundle"
-    if args.bundle:
-        shutil.copytree(args.bundle, bundle)
-    else:
-        subprocess.run([str(args.build / "tests/make_synthetic_bundle"), str(bundle)], check=True, capture_output=True)
-    name = json.loads((bundle / "manifest.json").read_text())["name"]
-    print(f"prepare: bundle {name}")
+    shutil.copy2(ROOT / "scripts/bench_mixed_crowd.py", args.out / "bench_mixed_crowd.py")
+    records, entries = {}, []
+    for archetype in crowd:
+        bundle, source = sources[archetype.name]
+        archive = args.out / "bundles" / f"{archetype.name}.tar.xz"
+        if args.bundles_from:
+            packed(bundle, archetype.name, archive)
+        else:
+            shutil.copy2(packed_bake(archetype, bundle, args.work), archive)
+        manifest = json.loads((bundle / "manifest.json").read_text())
+        record = records[archetype.name] = bundle_record(archetype, bundle, archive, source, manifest)
+        entries.append(crowd_entry(archetype, manifest))
+        print(f"prepare: bundle {archetype.name} ({record['bytes'] / 2**20:.1f} MiB, packed {record['packed_bytes'] / 2**20:.1f}; {source})")
+    description = {"crowd_format_version": 1, "seed": 1, "count": 240, "archetypes": entries,
+                   "layout": {"kind": "spot"}, "camera": {"kind": "street"}}
+    (args.out / "crowd.json").write_text(json.dumps(description, indent=2) + "\n")
+    (args.out / "bundles.json").write_text(json.dumps(
+        {"baked_smaller_than_the_demo": " ".join(("crowdbake bake", *TRAVEL_BAKE, "(the robot: --impostor-budget 2),",
+                                                   "crowdbake sample", *TRAVEL_SAMPLE)),
+         "bundles": records}, indent=2) + "\n")
 
     commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     os_release = dict(re.findall(r'^(\w+)="?([^"\n]*)"?$', Path("/etc/os-release").read_text(), re.M))
     (args.out / "prepared.json").write_text(json.dumps({"commit": commit, "built_on": os_release.get("PRETTY_NAME", "?"),
-                                                        "libraries": carried, "gl_loader_debs": debs, "bundle": name}, indent=2) + "\n")
+                                                        "libraries": carried, "gl_loader_debs": debs, "bundles": list(records)}, indent=2) + "\n")
     size = folder_bytes(args.out)
     if size > MAX_BYTES:
         raise SystemExit(f"prepare: {args.out} is {size / 2**20:.1f} MiB, over the {MAX_BYTES >> 20} MiB a device run can carry")

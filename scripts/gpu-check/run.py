@@ -1,24 +1,29 @@
 #!/usr/bin/env python3
 """The GPU check, on a machine with a GPU and no network, from the folder that
-scripts/gpu-check/prepare.py packed and nothing else: crowdview makes its headless context on the
-GPU (--require-gpu), renders a crowd, runs its benchmark, and crowdview_frame_bench times a frame's
-CPU side; the figures and pictures go to $OUT.
+scripts/gpu-check/prepare.py packed and nothing else, at 1920x1080: crowdview makes its headless
+context on the GPU (--require-gpu); figure 3 per representation (high, low, UV impostor, hybrid) for
+the sample (crowdview --benchmark) and for the mixed crowd (bench_mixed_crowd.py --lod, LOD by
+distance for hybrid); 100,000 characters of the mixed crowd: the whole frame to glFinish (crowdview
+--crowd --headless --report, with GPU memory per archetype) and the frame's CPU build and upload
+(crowdview_frame_bench, which draws nothing); two pictures of the mixed crowd.
 
     OUT=DIR scripts/gpu-check/run.py [FOLDER]        (FOLDER: default build/gpu-check)
 
-glvnd's loaders (the folder's Debian packages) are unpacked into a scratch folder, and
+glvnd's loaders (the folder's Debian packages) and the bundles are unpacked into a scratch folder, and
 LD_LIBRARY_PATH names them, the folder's libraries and the driver's /usr/local/nvidia/lib64.
 Where the image has no EGL vendor file of its own, the driver's
 /usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json is named in
-__EGL_VENDOR_LIBRARY_FILENAMES. Environment:
+__EGL_VENDOR_LIBRARY_FILENAMES. Environment (the defaults take about 6 minutes on a GPU):
   GPU_CHECK_GL_DEVICE          crowdview's --gl-device (default auto). "software" rehearses the
                                check on Mesa's software EGL device, and drops --require-gpu
-  GPU_CHECK_COUNT              characters in the rendered crowd (default 20000)
-  GPU_CHECK_BENCHMARK_SECONDS  the benchmark's --max-seconds (default 120)
-Writes gpu-check.json (context, driver, the libraries' origins, each step's command, exit status
-and seconds), log.txt (every step's output), view.json and view.png (overview), street.png,
-benchmark.json and frame_bench.json. Prints one line per step. Exits 0 when every step succeeded,
-else 1; where no GPU context is made it stops after that step.
+  GPU_CHECK_COUNT              characters in the pictures (default 20000)
+  GPU_CHECK_LARGE_COUNT        characters of the frame figure (default 100000)
+  GPU_CHECK_BENCHMARK_SECONDS  the sample's benchmark, its --max-seconds (default 90)
+  GPU_CHECK_MIXED_SECONDS      the mixed crowd's search, each representation's (default 60)
+Writes gpu-check.json (context, driver, the libraries' origins, each step's command, exit status and
+seconds, the figures, and every step's report), log.txt (every step's output), view.png (overview)
+and street.png. Prints one line per step. Exits 0 when every step succeeded, else 1; where no GPU
+context is made it stops after that step.
 """
 from __future__ import annotations
 
@@ -28,6 +33,7 @@ import re
 import shutil
 import subprocess
 import sys
+import tarfile
 import tempfile
 import time
 from pathlib import Path
@@ -36,7 +42,10 @@ NVIDIA_LIBRARIES = Path("/usr/local/nvidia/lib64")
 NVIDIA_EGL_VENDOR = Path("/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json")
 # Where glvnd's libEGL looks for vendor files when no variable names them.
 SYSTEM_EGL_VENDOR_DIRS = (Path("/etc/glvnd/egl_vendor.d"), Path("/usr/share/glvnd/egl_vendor.d"))
-STEP_TIMEOUT_S = 240  # any one step; the benchmark keeps to its --max-seconds well inside it
+STEP_TIMEOUT_S = 240  # any one step; the benchmarks keep to their --max-seconds well inside it
+WIDTH, HEIGHT = "1920", "1080"
+# Figure 3's representations as crowdview --benchmark names them, and bench_mixed_crowd.py's --lod for each.
+FIGURE3_LODS = {"high_mesh": "high", "low_mesh": "low", "uv_impostor": "impostor", "hybrid": "auto"}
 
 
 def unpack_gl_loaders(debs: Path, root: Path) -> Path:
@@ -82,6 +91,49 @@ def nvidia_smi() -> str | None:
     return (done.stdout or done.stderr).strip()
 
 
+def unpack_bundles(packed: Path, root: Path) -> Path:
+    """Unpacks every bundle tarball of `packed` (NAME.tar.xz holding NAME/) into root/bundles; returns root."""
+    # tarfile's "data" filter (Python 3.12, and some 3.11 releases) refuses links and paths that leave the folder.
+    safety = {"filter": "data"} if hasattr(tarfile, "data_filter") else {}
+    for archive in sorted(packed.glob("*.tar.xz")):
+        with tarfile.open(archive) as tar:
+            tar.extractall(root / "bundles", **safety)
+    return root
+
+
+def crowd_of(folder: Path, bundles_root: Path, count: int, camera: str, path: Path) -> Path:
+    """Writes the folder's crowd.json with `count` characters and `camera` to `path`, its bundles
+    (bundles/NAME) named by absolute path below `bundles_root`; returns `path`."""
+    description = json.loads((folder / "crowd.json").read_text())
+    for archetype in description["archetypes"]:
+        archetype["bundle"] = str(bundles_root / archetype["bundle"])
+    path.write_text(json.dumps(dict(description, count=count, camera={"kind": camera})))
+    return path
+
+
+def read_json(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def figures(benchmark: dict | None, mixed: dict[str, dict | None], large: dict | None, frame_bench: dict | None) -> dict:
+    """The headline numbers of the steps' reports: N at 30 and 60 fps per representation, the large
+    crowd's frame and GPU memory per archetype, the frame bench's CPU milliseconds."""
+    def n_at(result: dict | None) -> dict | None:
+        return None if result is None else {k: result.get(k) for k in ("n_at_30fps", "n_at_60fps", "converged_30", "converged_60")}
+
+    sample = (benchmark or {}).get("results", {})
+    return {
+        "figure3_sample": {mode: n_at(sample.get(mode)) for mode in FIGURE3_LODS},
+        "figure3_mixed": {mode: n_at((report or {}).get("results")) for mode, report in mixed.items()},
+        "large_crowd": None if large is None else {
+            "characters": {a["name"]: a.get("characters") for a in large.get("archetypes", [])},
+            "frame_ms_median": large.get("frame_ms_median"), "draw_calls": large.get("draw_calls"), "triangles": large.get("triangles"),
+            "gpu_memory_bytes": {a["name"]: a.get("gpu_memory_bytes") for a in large.get("archetypes", [])},
+            "gpu_memory_bytes_total": large.get("gpu_memory_bytes_total")},
+        "frame_bench_cpu": None if frame_bench is None else frame_bench.get("results"),
+    }
+
+
 class Steps:
     """Runs the check's commands one after another, logging each and recording how it went."""
 
@@ -112,8 +164,10 @@ def main() -> int:
     if not (folder / "prepared.json").is_file():
         raise SystemExit(f"gpu-check: {folder} is not a folder scripts/gpu-check/prepare.py wrote")
     device = os.environ.get("GPU_CHECK_GL_DEVICE", "auto")
-    count = os.environ.get("GPU_CHECK_COUNT", "20000")
-    benchmark_seconds = os.environ.get("GPU_CHECK_BENCHMARK_SECONDS", "120")
+    count = int(os.environ.get("GPU_CHECK_COUNT", "20000"))
+    large_count = int(os.environ.get("GPU_CHECK_LARGE_COUNT", "100000"))
+    benchmark_seconds = os.environ.get("GPU_CHECK_BENCHMARK_SECONDS", "90")
+    mixed_seconds = os.environ.get("GPU_CHECK_MIXED_SECONDS", "60")
     scratch = Path(tempfile.mkdtemp(prefix="gpu-check-"))
 
     env = dict(os.environ)
@@ -124,30 +178,50 @@ def main() -> int:
     vendor = egl_vendor_choice(env)
     print(f"gpu-check: EGL vendor files: {vendor}", flush=True)
 
-    crowdview, frame_bench, bundle = str(folder / "bin/crowdview"), str(folder / "bin/crowdview_frame_bench"), str(folder / "bundle")
+    crowdview, frame_bench = str(folder / "bin/crowdview"), str(folder / "bin/crowdview_frame_bench")
+    unpacked = unpack_bundles(folder / "bundles", scratch)
+    sample = str(unpacked / "bundles/sample-loose")
     # A rehearsal on Mesa's software device draws on llvmpipe by intent; anything else must reach the GPU.
     context = ["--gl-device", device] + ([] if device == "software" else ["--require-gpu"])
+    size = ["--width", WIDTH, "--height", HEIGHT]
     steps = Steps(env, out / "log.txt")
-    context_report = scratch / "context.json"
-    ok = steps.run("context", [crowdview, "--bundle", bundle, "--headless", "--frames", "1", "--count", "1", "--width", "64",
-                               "--height", "64", "--report", str(context_report), *context])
+    reports = scratch / "reports"
+    reports.mkdir()
+    ok = steps.run("context", [crowdview, "--bundle", sample, "--headless", "--frames", "1", "--width", "64",
+                               "--height", "64", "--report", str(reports / "context.json"), *context])
+    mixed_lods = {}
     if ok:
-        view = [crowdview, "--bundle", bundle, "--headless", "--count", count, "--width", "1920", "--height", "1080", *context]
-        steps.run("view", view + ["--frames", "60", "--report", str(out / "view.json"), "--screenshot", str(out / "view.png")])
-        steps.run("street", view + ["--frames", "30", "--camera", "street", "--screenshot", str(out / "street.png")])
-        steps.run("benchmark", [crowdview, "--bundle", bundle, "--benchmark", "--max-seconds", benchmark_seconds, "--report",
-                                str(out / "benchmark.json"), *context])
-        steps.run("frame_bench", [frame_bench, "--count", "100000", "--frames", "60", "--report", str(out / "frame_bench.json"), *context])
+        for camera, frames in (("overview", "60"), ("street", "30")):
+            steps.run(camera, [crowdview, "--crowd", str(crowd_of(folder, unpacked, count, camera, scratch / f"{camera}.json")), "--headless",
+                               "--frames", frames, *size, "--screenshot", str(out / ("view.png" if camera == "overview" else "street.png")), *context])
+        steps.run("large_crowd", [crowdview, "--crowd", str(crowd_of(folder, unpacked, large_count, "overview", scratch / "large.json")),
+                                  "--headless", "--frames", "30", *size, "--report", str(reports / "large_crowd.json"), *context])
+        steps.run("frame_bench", [frame_bench, "--count", str(large_count), "--archetypes", "4", "--frames", "60",
+                                  "--report", str(reports / "frame_bench.json"), *context])
+        steps.run("figure3_sample", [crowdview, "--bundle", sample, "--benchmark", "--modes", ",".join(FIGURE3_LODS), *size,
+                                     "--max-seconds", benchmark_seconds, "--report", str(reports / "figure3_sample.json"), *context])
+        # The whole crowd on screen, as crowdview --benchmark draws it.
+        mixed_crowd = crowd_of(folder, unpacked, 240, "overview", scratch / "mixed.json")
+        for mode, lod in FIGURE3_LODS.items():
+            mixed_lods[mode] = reports / f"figure3_mixed_{mode}.json"
+            steps.run(f"figure3_mixed_{mode}", [sys.executable, str(folder / "bench_mixed_crowd.py"), str(mixed_crowd),
+                                                "--crowdview", crowdview, "--lod", lod, "--gl-device", device, "--width", WIDTH,
+                                                "--height", HEIGHT, "--max-seconds", mixed_seconds, "--out", str(mixed_lods[mode])])
 
+    step_reports = {p.stem: read_json(p) for p in sorted(reports.glob("*.json"))}
     summary = {
         "ok": ok and all(s["exit"] == 0 for s in steps.done),
-        "gl": json.loads(context_report.read_text())["gl"] if context_report.is_file() else None,
+        "gl": (step_reports.get("context") or {}).get("gl"),
         "gpu": nvidia_smi(),
         "egl_vendor_files": vendor,
         "gl_device": device,
         "prepared": json.loads((folder / "prepared.json").read_text()),
         "libraries": library_origins(folder / "bin/crowdview", env, [folder, scratch]),
         "steps": steps.done,
+        "figures": figures(step_reports.get("figure3_sample"), {m: step_reports.get(p.stem) for m, p in mixed_lods.items()},
+                           step_reports.get("large_crowd"), step_reports.get("frame_bench")),
+        "bundles": read_json(folder / "bundles.json"),
+        "reports": step_reports,
     }
     (out / "gpu-check.json").write_text(json.dumps(summary, indent=2) + "\n")
     shutil.rmtree(scratch)
