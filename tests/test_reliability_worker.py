@@ -214,7 +214,7 @@ def test_a_lost_worker_is_recovered_by_the_sweeper_exactly_once_with_identical_b
     worker = service.workers[0]
     with service.client() as client:
         ids = upload_sample(client, sample)
-        bake_id = client.post("/v1/bakes", json=bake_body(ids, "lost-walker", "1.0.0", dict(SLOW_IMPOSTOR_PARAMS, close="hermite"))).json()["id"]
+        bake_id = client.post("/v1/bakes", json=bake_body(ids, "lost-walker", "1.0.0", dict(SLOW_IMPOSTOR_PARAMS, close="hermite", accept_out_of_bounds=True))).json()["id"]
         deadline = time.monotonic() + BAKE_TIMEOUT_S
         while True:
             bake = client.get(f"/v1/bakes/{bake_id}").json()
