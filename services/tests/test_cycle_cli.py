@@ -52,10 +52,8 @@ def cylinder_body(frames: int, rings: int = 12, segments: int = 24) -> tuple[np.
     return np.repeat(points[None].astype(np.float32), frames, axis=0), grid_faces(rings, segments)
 
 
-@pytest.fixture(scope="module")
-def synthetic_inputs(tmp_path_factory) -> dict[str, Path]:
-    folder = tmp_path_factory.mktemp("cycle_inputs")
-    cloth, faces = skirt_with_seam()
+def write_inputs(folder: Path, cloth: np.ndarray, faces: np.ndarray) -> dict[str, Path]:
+    """The cloth cache and its mesh, and a cylinder body as long, as crowdbake cycle reads them."""
     body, body_faces = cylinder_body(len(cloth))
     paths = {name: folder / name for name in ("cloth.pc2", "cloth.obj", "body.pc2", "body.obj")}
     write_pc2(paths["cloth.pc2"], cloth)
@@ -63,6 +61,11 @@ def synthetic_inputs(tmp_path_factory) -> dict[str, Path]:
     write_pc2(paths["body.pc2"], body)
     write_obj(paths["body.obj"], body[0], body_faces)
     return paths
+
+
+@pytest.fixture(scope="module")
+def synthetic_inputs(tmp_path_factory) -> dict[str, Path]:
+    return write_inputs(tmp_path_factory.mktemp("cycle_inputs"), *skirt_with_seam())
 
 
 def cycle_args(inputs: dict[str, Path], out: Path, *extra: str) -> list[str]:
@@ -192,13 +195,7 @@ class TestBadInput:
     def test_a_loop_out_of_its_bounds_fails_in_one_line_naming_clip_frames_and_figure(self, tmp_path, capsys):
         """A loop whose closing breaks a quality bound used to be written with a warning, and published. A
         skirt whose flutter never repeats, left unclosed (--close none), kinks at every wrap."""
-        cloth, faces = skirt_with_seam(seam=False)
-        body, body_faces = cylinder_body(len(cloth))
-        inputs = {name: tmp_path / name for name in ("cloth.pc2", "cloth.obj", "body.pc2", "body.obj")}
-        write_pc2(inputs["cloth.pc2"], cloth)
-        write_obj(inputs["cloth.obj"], cloth[0], faces)
-        write_pc2(inputs["body.pc2"], body)
-        write_obj(inputs["body.obj"], body[0], body_faces)
+        inputs = write_inputs(tmp_path, *skirt_with_seam(seam=False))
         assert main(cycle_args(inputs, tmp_path / "out", "--close", "none", "--no-edge-pass")) == 2
         line = one_line_error(capsys)
         assert "the loop of clip 'cloth' (cache frames [" in line and "seam_acceleration_ratio " in line
