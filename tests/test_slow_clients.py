@@ -63,37 +63,43 @@ def test_connections_with_incomplete_headers_are_closed(server):
         assert sock.recv(64).startswith(b"HTTP/1.1 200")
 
 
-def test_an_upload_trickling_in_is_refused_and_leaves_no_staging_file(server):
-    port, key, settings = server
-    staging = settings.blob_dir / ".incoming"
-    head = b'--x\r\nContent-Disposition: form-data; name="file"; filename="c.glb"\r\n\r\n'
-    request = (f"POST /v1/assets/characters HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {key}\r\n"
-               f"Content-Type: multipart/form-data; boundary=x\r\nContent-Length: 100000\r\n\r\n").encode() + head
+def trickle(port: int, request: bytes, byte: bytes, while_waiting=lambda: None) -> tuple[bytes, float]:
+    """Send `request`, then one `byte` every half second (far below 1 KiB/s) until the server answers or
+    15 s pass; (the answer, seconds taken). `while_waiting` runs after each byte."""
     started = time.monotonic()
-    saw_staging = False
     with socket.create_connection(("127.0.0.1", port)) as sock:
         sock.sendall(request)
         sock.settimeout(0.5)
         answer = b""
         while time.monotonic() - started < 15 and not answer:
             try:
-                sock.sendall(b"g")  # one byte every half second: far below 1 KiB/s
+                sock.sendall(byte)
             except (BrokenPipeError, ConnectionResetError):
                 break
             try:
                 answer = sock.recv(4096)
             except socket.timeout:
                 pass
-            saw_staging = saw_staging or (staging.exists() and any(staging.iterdir()))
+            while_waiting()
         sock.settimeout(2)
         try:
             answer += sock.recv(4096)
         except (socket.timeout, ConnectionResetError):
             pass
-    elapsed = time.monotonic() - started
+    return answer, time.monotonic() - started
+
+
+def test_an_upload_trickling_in_is_refused_and_leaves_no_staging_file(server):
+    port, key, settings = server
+    staging = settings.blob_dir / ".incoming"
+    head = b'--x\r\nContent-Disposition: form-data; name="file"; filename="c.glb"\r\n\r\n'
+    request = (f"POST /v1/assets/characters HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {key}\r\n"
+               f"Content-Type: multipart/form-data; boundary=x\r\nContent-Length: 100000\r\n\r\n").encode() + head
+    seen = []
+    answer, elapsed = trickle(port, request, b"g", lambda: seen.append(staging.exists() and any(staging.iterdir())))
     assert answer.startswith(b"HTTP/1.1 408"), answer[:200]
     assert b"request-timeout" in answer and elapsed < 6
-    assert saw_staging  # the upload had begun its staging file...
+    assert any(seen)  # the upload had begun its staging file...
     assert not any(staging.iterdir())  # ...and the refusal removed it
 
 
@@ -103,18 +109,6 @@ def test_a_json_body_trickling_in_is_a_408_too(server):
     port, key, _ = server
     request = (f"POST /v1/bakes/check HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {key}\r\n"
                f"Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n{{").encode()
-    started = time.monotonic()
-    with socket.create_connection(("127.0.0.1", port)) as sock:
-        sock.sendall(request)
-        sock.settimeout(0.5)
-        answer = b""
-        while time.monotonic() - started < 15 and not answer:
-            try:
-                sock.sendall(b" ")  # one byte every half second: far below 1 KiB/s
-                answer = sock.recv(4096)
-            except socket.timeout:
-                pass
-            except (BrokenPipeError, ConnectionResetError):
-                break
+    answer, elapsed = trickle(port, request, b" ")
     assert answer.startswith(b"HTTP/1.1 408") and b"request-timeout" in answer, answer[:300]
-    assert time.monotonic() - started < 6
+    assert elapsed < 6

@@ -8,10 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from crowdbake.formats.binary import decode_pose_cache, decode_texture_array
 from crowdbake.formats.bundle import verify_bundle
-from crowdbake.formats.errors import FormatError
-from repo_paths import REPO_ROOT, VECTORS, vector_expectation
+from vector_checks import assert_every_prefix_truncated, assert_refused_as_expected
+from repo_paths import REPO_ROOT, VECTORS
 
 V3 = VECTORS / "v3"
 GOOD = V3 / "good" / "bundle"
@@ -50,21 +49,11 @@ def test_v3_codes_are_the_bytes_the_file_stores():
 
 @pytest.mark.parametrize("case", BAD_CASES)
 def test_bad_v3_vector_is_refused_with_its_code_and_file(case):
-    expect = vector_expectation(V3 / "bad" / case)
-    with pytest.raises(FormatError) as raised:
-        verify_bundle(V3 / "bad" / case / "bundle")
-    assert (raised.value.code, raised.value.file) == (expect["error"], expect["file"]), raised.value
+    assert_refused_as_expected(V3 / "bad" / case)
 
 
 def test_every_strict_prefix_of_a_v3_binary_is_truncated():
-    for path in sorted(GOOD.rglob("*.cb*")):
-        data = path.read_bytes()
-        decode = decode_pose_cache if path.suffix == ".cbpc" else decode_texture_array
-        decode(data, path.name)
-        for length in range(len(data)):
-            with pytest.raises(FormatError) as raised:
-                decode(data[:length], path.name)
-            assert raised.value.code == "truncated", (path.name, length, raised.value)
+    assert_every_prefix_truncated(GOOD)
 
 
 @pytest.mark.parametrize("older", ["v1", "v2"])
