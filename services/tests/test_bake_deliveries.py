@@ -387,7 +387,7 @@ def test_a_message_held_by_a_lost_worker_before_it_started_is_requeued(api, asse
     lost = new_bake(api, assets)
     with session_scope(api.sessions) as session:
         assert records.mark_received(session, lost, 0, "validate", None, "lost-host:77:task-a")
-        assert records.beat_received(session, "lost-host:77:") == 1
+        assert records.beat_received(session, ["lost-host:77:task-a"]) == 1
     later = utcnow() + dt.timedelta(seconds=api.settings.heartbeat_timeout + 1)
     report = sweep_once(services.sessions, services.celery, api.settings, now=later)
     assert report.requeued == [f"{lost}:validate"] and report.sent == [f"{lost}:validate"]
@@ -491,6 +491,39 @@ def test_a_stage_let_go_of_for_a_celery_retry_waits_for_the_retry_countdown(api,
     with session_scope(api.sessions) as session:
         assert records.stage_row(session, bake_id, "validate").state == "queued"
     assert claim(api, bake_id, "validate", "host-b:1:task-b").won
+
+
+def test_only_messages_the_worker_still_holds_keep_their_marks_beating(api, assets):
+    """Regression (seen when Redis restarted): a worker received a message, lost its broker connection
+    before a pool process started it, and Celery dropped the request (the broker redelivers it). The
+    worker's heartbeat refreshed every mark with its host:pid prefix, the dropped one too, so the
+    sweeper never re-queued the unit and the bake waited for ever. Only held requests beat now."""
+    from celery.worker import state
+
+    from crowdbake.jobs.deliveries import held_owners
+
+    held, dropped = new_bake(api, assets), new_bake(api, assets, version="3.0.0")
+    with session_scope(api.sessions) as session:
+        assert records.mark_received(session, held, 0, "validate", None, "host-a:5:task-held")
+        assert records.mark_received(session, dropped, 0, "validate", None, "host-a:5:task-dropped")
+
+    class Request:  # what Celery keeps per reserved message: its task id is all the beat reads
+        def __init__(self, id):
+            self.id = id
+
+    reserved = Request("task-held")
+    state.reserved_requests.add(reserved)
+    try:
+        owners = held_owners(lambda task_id: f"host-a:5:{task_id}")
+    finally:
+        state.reserved_requests.discard(reserved)
+    assert owners == ["host-a:5:task-held"]
+    time.sleep(0.05)  # the beat's time is later than the marks'
+    with session_scope(api.sessions) as session:
+        assert records.beat_received(session, owners) == 1
+        assert records.beat_received(session, []) == 0
+        rows = {bake_id: records.stage_row(session, bake_id, "validate").heartbeat_at for bake_id in (held, dropped)}
+    assert records.to_utc(rows[held]) > records.to_utc(rows[dropped])
 
 
 def test_a_fork_waits_for_a_guarded_transaction_of_another_thread(tmp_path):

@@ -379,16 +379,34 @@ def _start_received_beat() -> None:
     global _received_beat
     if _received_beat is not None and _received_beat.is_alive():
         return
-    prefix = f"{records.this_host()}:{os.getpid()}:"
 
     def beat() -> None:
         while True:
             time.sleep(services().settings.heartbeat_interval)
             try:
+                owners = held_owners(records.delivery_owner)
                 with fork_guarded_scope(services().sessions) as session:  # this thread's beat vs the pool's forks
-                    records.beat_received(session, prefix)
+                    records.beat_received(session, owners)
             except Exception as error:
                 logger.warning("heartbeat of received messages failed: %s", error)
 
     _received_beat = threading.Thread(target=beat, name="received-heartbeat", daemon=True)
     _received_beat.start()
+
+
+def held_owners(owner_of: Callable[[str], str]) -> list[str]:
+    """The receipt marks (`owner_of(task id)`) of the messages this worker's main process holds now:
+    received and waiting for a pool process, or just handed to one. Celery forgets the waiting ones
+    when its broker connection drops (the broker redelivers them), so their marks stop beating and
+    the sweeper re-queues their units (records.beat_received)."""
+    from celery.worker import state
+
+    for _ in range(5):  # the consumer thread may change the sets while this thread reads them
+        try:
+            held = list(state.reserved_requests) + list(state.active_requests)
+            break
+        except RuntimeError:
+            time.sleep(0.01)
+    else:
+        return []
+    return sorted({owner_of(request.id) for request in held if getattr(request, "id", None)})

@@ -254,12 +254,18 @@ def mark_received(session: Session, bake_id: str, attempt: int, stage: str, part
     return session.execute(query.values(owner=owner, heartbeat_at=utcnow())).rowcount == 1
 
 
-def beat_received(session: Session, owner_prefix: str) -> int:
-    """Refresh the marks of every unit a worker's main process received and no pool process has
-    claimed yet (their owner starts with "host:pid:"). Returns how many."""
+def beat_received(session: Session, owners: Iterable[str]) -> int:
+    """Refresh the marks of the units a worker's main process received, still holds, and no pool
+    process has claimed yet (`owners`: their "host:pid:task id" marks). Only what the worker still
+    holds: a worker that loses its broker connection drops the messages it had not started (Celery
+    clears its reserved requests; the broker hands them out again), and a mark kept beating for such
+    a message would hide it from the sweeper for ever. Returns how many."""
+    owners = sorted(set(owners))
+    if not owners:
+        return 0
     now, count = utcnow(), 0
     for table in (BakeStage, BakePart):
-        count += session.execute(update(table).where(table.owner.startswith(owner_prefix, autoescape=True)).values(heartbeat_at=now)).rowcount
+        count += session.execute(update(table).where(table.owner.in_(owners)).values(heartbeat_at=now)).rowcount
     return count
 
 
