@@ -595,9 +595,11 @@ def test_blender_imports_the_export_and_plays_the_loop(sample_bundle, sample_exp
     sidecar = json.loads((sample_export / "export.json").read_text())
     for lod in sidecar["lods"]:
         out = tmp_path / f"lod{lod['lod']}.npz"
-        run = subprocess.run([sys.executable, "-m", "crowdbake.export.blender_round_trip", str(sample_export / lod["glb"]), str(out)],
+        run = subprocess.run([sys.executable, "-m", "crowdbake.export.blender_round_trip", str(sample_export / lod["glb"]), str(out),
+                              "--bundle", str(sample_bundle)],
                              capture_output=True, text=True, timeout=300, cwd=REPO_ROOT, env={**os.environ, "PYTHONPATH": str(REPO_ROOT / "services")})
         assert run.returncode == 0 and out.is_file(), run.stderr[-2000:]
+        assert f"Blender plays every animation of LOD {lod['lod']} within 1 mm of the bundle" in run.stdout, run.stdout
         seen = np.load(out)
         info = json.loads(str(seen["info"]))
         assert info["actions"] == ["cycle"]

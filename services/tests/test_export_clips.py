@@ -234,7 +234,7 @@ def test_cloth_bones_play_every_clip_and_transition(tmp_path):
         assert error.max() * 1000 <= part["bones"]["max_mm"] + 0.05, plan.name
 
 
-def test_blender_sees_every_clip_and_transition(vector_export, tmp_path):
+def test_blender_sees_every_clip_and_transition(vector_export, tmp_path, capsys):
     """Blender's glTF importer makes an action of each animation; playing each one gives the bundle's poses
     at that animation's keys (the poses the manifest's ranges name), within 1 mm."""
     if importlib.util.find_spec("bpy") is None:
@@ -242,9 +242,13 @@ def test_blender_sees_every_clip_and_transition(vector_export, tmp_path):
     bundle = verify_bundle(VECTOR_BUNDLE)
     plans = {plan.name: plan for plan in animation_plans(bundle.ranges)}
     out = tmp_path / "seen.npz"
-    run = subprocess.run([sys.executable, "-m", "crowdbake.export.blender_round_trip", str(vector_export / "character_lod0.glb"), str(out)],
+    glb = vector_export / "character_lod0.glb"
+    run = subprocess.run([sys.executable, "-m", "crowdbake.export.blender_round_trip", str(glb), str(out), "--bundle", str(VECTOR_BUNDLE)],
                          capture_output=True, text=True, timeout=300, cwd=REPO_ROOT, env={**os.environ, "PYTHONPATH": str(REPO_ROOT / "services")})
     assert run.returncode == 0 and out.is_file(), run.stderr[-2000:]
+    # The round trip compares with the bundle itself and says so, one line per animation.
+    assert run.stdout.strip().splitlines()[-1].startswith("Blender plays every animation of LOD 0 within 1 mm of the bundle"), run.stdout
+    assert all(any(line.startswith(f"{name}: ") for line in run.stdout.splitlines()) for name in plans), run.stdout
     seen = np.load(out)
     info = json.loads(str(seen["info"]))
     assert sorted(info["actions"]) == sorted(plans)
@@ -253,3 +257,15 @@ def test_blender_sees_every_clip_and_transition(vector_export, tmp_path):
         for mesh in (m for m in bundle.manifest["meshes"] if m["lod"] == 0):
             expected = bundle.pose_caches[mesh["file"]].positions[plans[name].keys]
             assert float(np.abs(seen[f"action_{k}_mesh_{mesh['part']}"] - expected).max()) < 1e-3, (name, mesh["part"])
+    # An animation played 2 mm off is named, and the comparison fails.
+    arrays = {key: seen[key] for key in seen.files}
+    moved = info["actions"][-1]
+    for key in [key for key in arrays if key.startswith(f"action_{len(info['actions']) - 1}_mesh_")]:
+        arrays[key] = arrays[key] + np.float32(0.002)
+    np.savez(tmp_path / "moved.npz", **arrays)
+    from crowdbake.export.blender_round_trip import compare_with_bundle
+
+    capsys.readouterr()
+    assert compare_with_bundle(glb, tmp_path / "moved.npz", VECTOR_BUNDLE, 1.0) == 1
+    off = capsys.readouterr()
+    assert moved in off.err and "farther than 1 mm" in off.err, off.err

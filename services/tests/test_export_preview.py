@@ -23,7 +23,7 @@ from websockets.exceptions import ConnectionClosed
 
 from repo_paths import REPO_ROOT
 from crowdbake.export import ktx2
-from browser import CHROMIUM, Browser
+from crowdbake.export.devtools import CHROMIUM, Browser
 from test_export import PREVIEW_DIR, sample_bundle, sample_export, sample_export_rgba8  # noqa: F401 (module fixtures)
 
 # slow: a real server and worker (or browser) for tens of seconds; scripts/test.sh runs it with CROWDBAKE_SLOW_TESTS=1, as CI does
@@ -184,6 +184,27 @@ def test_bc_and_rgba8_exports_draw_the_same_picture(server, chromium):
     differing = (np.abs(bc - rgba8).sum(axis=-1) > 3).mean()
     (SCREENSHOTS / "compare_bc_rgba8.json").write_text(json.dumps({"differing_pixel_fraction": float(differing), "max_difference": int(np.abs(bc - rgba8).max())}) + "\n")
     assert differing < 0.001, differing
+
+
+def test_the_docs_picture_command_waits_for_the_page_on_a_cold_first_run(server, chromium, sample_export, tmp_path):  # noqa: F811
+    """docs/export.md's picture command starts its own Chromium with a fresh profile (a cold first run)
+    and its own server, waits for the page's ready state, and draws what the page draws for a user."""
+    import sys
+
+    out = tmp_path / "crowd.png"
+    run = subprocess.run([sys.executable, "-m", "crowdbake.export.preview_shot", str(sample_export), str(out), "--count", "100", "--time", "0"],
+                         capture_output=True, text=True, timeout=900, cwd=REPO_ROOT, env={**os.environ, "PYTHONPATH": str(REPO_ROOT / "services")})
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "preview: Loading" in run.stderr  # the status lines it waited through
+    assert json.loads(run.stdout)["picture"] == str(out)
+    shot = np.asarray(Image.open(out).convert("RGB")).astype(np.int32)
+    reference = screenshot(chromium, f"{server}&time=0&count=100", tmp_path / "reference.png")
+    assert shot.shape == reference.shape
+    assert (np.abs(shot - reference).sum(axis=-1) > 3).mean() < 0.001
+    # Not an export: one line, exit 2, nothing drawn.
+    refused = subprocess.run([sys.executable, "-m", "crowdbake.export.preview_shot", str(tmp_path), str(tmp_path / "none.png")],
+                             capture_output=True, text=True, timeout=60, cwd=REPO_ROOT, env={**os.environ, "PYTHONPATH": str(REPO_ROOT / "services")})
+    assert refused.returncode == 2 and "no export.json" in refused.stderr and not (tmp_path / "none.png").exists()
 
 
 # The preview draws impostors as the paper does, nearest view and frame: crowdview with blending off.

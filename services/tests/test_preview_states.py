@@ -14,7 +14,7 @@ from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 
-from browser import CHROMIUM, Browser
+from crowdbake.export.devtools import CHROMIUM, Browser
 from repo_paths import REPO_ROOT
 
 PREVIEW_DIR = REPO_ROOT / "services" / "crowdbake" / "api" / "static" / "preview"

@@ -54,7 +54,7 @@ def clip_samples(tmp_path_factory) -> dict[str, Path]:
 
 @pytest.fixture
 def page(service, tmp_path):
-    from browser import CHROMIUM, Browser
+    from crowdbake.export.devtools import CHROMIUM, Browser
 
     if CHROMIUM is None:
         pytest.skip("chromium is not installed (scripts/apt-packages.txt lists it)")

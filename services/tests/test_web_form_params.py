@@ -40,7 +40,7 @@ def test_the_served_table_is_the_parameter_table(server_url):
 
 
 def test_every_parameter_is_in_the_form_with_the_tables_default_and_choices(server_url, tmp_path):
-    from browser import CHROMIUM, Browser
+    from crowdbake.export.devtools import CHROMIUM, Browser
 
     if CHROMIUM is None:
         pytest.skip("chromium is not installed (scripts/apt-packages.txt lists it)")

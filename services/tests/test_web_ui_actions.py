@@ -33,7 +33,7 @@ def service(tmp_path_factory, small_sample):
 
 @pytest.fixture
 def browser(tmp_path):
-    from browser import CHROMIUM, Browser
+    from crowdbake.export.devtools import CHROMIUM, Browser
 
     if CHROMIUM is None:
         pytest.skip("chromium is not installed (scripts/apt-packages.txt lists it)")

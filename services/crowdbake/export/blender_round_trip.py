@@ -14,12 +14,18 @@ global state). Writes OUT.npz:
   material names, the KHR_materials_variants variant names and per mesh the variants its materials are
   mapped for.
 
-crowdbake.export.writer's tests compare these with the bundle's pose caches.
+With `--bundle DIR` (the bundle the export was made from), it then compares what Blender played with
+the bundle's own pose caches: every animation (clip or transition) at its keys, every mesh of the GLB's
+LOD (from the `export.json` beside the GLB, else LOD 0). It prints one line per animation with the
+largest distance per mesh, then a verdict, and exits 1 when a distance passes the bound: `--tolerance-mm`
+(default 1), plus a part's stated `max_mm` where the export approximates it with bones.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -111,7 +117,83 @@ def main(glb: Path, out: Path) -> None:
     np.savez(out, info=np.array(json.dumps(info)), **arrays)
 
 
+@dataclass(frozen=True)
+class AnimationDistance:
+    """The largest distance (mm) between what Blender played and the bundle, per mesh, in one animation."""
+
+    animation: str
+    max_mm: dict[str, float]
+
+
+def played_against_bundle(seen: dict[str, np.ndarray], info: dict, meshes: list[tuple[str, np.ndarray]], plans: list) -> list[AnimationDistance]:
+    """Compare Blender's playback with the bundle's frames.
+
+    seen: main()'s arrays (`mesh_<part>` (F, V, 3), `action_<k>_mesh_<part>` (K, V, 3), metres); info: its
+    JSON; meshes: (part, the bundle's (F, V, 3) positions) of the GLB's LOD; plans: the bundle's
+    crowdbake.export.animations.AnimationPlan list. A one-clip export's shape keys peak at every frame, so
+    its animation is compared frame by frame (`mesh_<part>`); otherwise each action at its keys. An
+    animation Blender does not list, or a shape that disagrees, is an infinite distance: a failure."""
+    actions = list(info.get("actions", []))
+    distances = []
+    for plan in plans:
+        per_mesh = {}
+        for part, positions in meshes:
+            expected = positions[plan.keys]
+            played = seen.get(f"action_{actions.index(plan.name)}_mesh_{part}") if plan.name in actions else None
+            if (played is None or played.shape != expected.shape) and len(plans) == 1:
+                played, expected = seen.get(f"mesh_{part}"), positions
+            if played is None or played.shape != expected.shape:
+                per_mesh[part] = float("inf")
+            else:
+                per_mesh[part] = float(np.linalg.norm(played.astype(np.float64) - expected, axis=-1).max() * 1000.0)
+        distances.append(AnimationDistance(plan.name, per_mesh))
+    return distances
+
+
+def compare_with_bundle(glb: Path, out: Path, bundle_dir: Path, tolerance_mm: float) -> int:
+    """Read main()'s OUT.npz and the bundle; print the comparison; 0 when every distance is within its
+    bound, else 1."""
+    from crowdbake.export.animations import animation_plans
+    from crowdbake.formats.bundle import verify_bundle
+
+    bundle = verify_bundle(bundle_dir)
+    sidecar_path = glb.parent / "export.json"
+    lod, bones_mm = 0, {}
+    if sidecar_path.is_file():
+        sidecar = json.loads(sidecar_path.read_text())
+        entry = next((entry for entry in sidecar.get("lods", []) if entry.get("glb") == glb.name), None)
+        if entry is not None:
+            lod = int(entry["lod"])
+            bones_mm = {part["part"]: float(part["bones"]["max_mm"]) for part in entry.get("parts", []) if "bones" in part}
+    meshes = [(mesh["part"], bundle.pose_caches[mesh["file"]].positions) for mesh in bundle.manifest["meshes"] if mesh["lod"] == lod]
+    with np.load(out) as archive:
+        seen = {key: archive[key] for key in archive.files}
+    info = json.loads(str(seen.pop("info")))
+    failed = []
+    for distance in played_against_bundle(seen, info, meshes, animation_plans(bundle.ranges)):
+        parts = ", ".join(f"{part} {mm:.2f} mm" for part, mm in distance.max_mm.items())
+        print(f"{distance.animation}: {parts}")
+        failed += [f"{distance.animation} / {part}" for part, mm in distance.max_mm.items() if not mm <= tolerance_mm + bones_mm.get(part, 0.0)]
+    bound = f"{tolerance_mm:g} mm" + (" (plus the stated bone error of " + ", ".join(bones_mm) + ")" if bones_mm else "")
+    if failed:
+        print(f"Blender's playback is farther than {bound} from the bundle in: {'; '.join(failed)}", file=sys.stderr)
+        return 1
+    print(f"Blender plays every animation of LOD {lod} within {bound} of the bundle {bundle_dir}")
+    return 0
+
+
+def parse_arguments(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m crowdbake.export.blender_round_trip",
+                                     description="Play an export's .glb in Blender; with --bundle, compare it with the bundle.")
+    parser.add_argument("glb", type=Path, help="a .glb of an export")
+    parser.add_argument("out", type=Path, help="the .npz to write (vertices at each key of each animation)")
+    parser.add_argument("--bundle", type=Path, help="the bundle the export was made from: compare with its pose caches")
+    parser.add_argument("--tolerance-mm", type=float, default=1.0, help="largest distance allowed (default 1)")
+    return parser.parse_args(argv)
+
+
 if __name__ == "__main__":
-    if len(sys.argv) != 3:
-        raise SystemExit("usage: python -m crowdbake.export.blender_round_trip GLB OUT.npz")
-    main(Path(sys.argv[1]), Path(sys.argv[2]))
+    arguments = parse_arguments(sys.argv[1:])
+    main(arguments.glb, arguments.out)
+    if arguments.bundle is not None:
+        raise SystemExit(compare_with_bundle(arguments.glb, arguments.out, arguments.bundle, arguments.tolerance_mm))

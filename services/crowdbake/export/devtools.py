@@ -1,6 +1,7 @@
-"""Headless Chromium driven through the DevTools protocol (websockets; no browser download), for
-tests that click through the web page: evaluate script, wait for a condition, set a file input's
-files, drop files from disk on an element, allow downloads into a folder, take a screenshot.
+"""Headless Chromium driven through the DevTools protocol (websockets; no browser download): evaluate
+script, wait for a condition, set a file input's files, drop files from disk on an element, allow
+downloads into a folder, take a screenshot. crowdbake.export.preview_shot takes the preview page's
+pictures with it; the web page's tests click through the page with it.
 
     with Browser(profile_dir) as browser:
         page = browser.open("http://127.0.0.1:8000/ui")
