@@ -36,6 +36,7 @@ from hypothesis import strategies as st
 
 from corpus import make_glb, split_glb
 from crowdbake.formats.binary import decode_pose_cache, decode_texture_array, encode_pose_cache, encode_texture_array
+from crowdbake.formats.skinned_cache import decode_skinned_pose_cache, encode_skinned_pose_cache
 from crowdbake.formats.gltf import load_character
 from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2
@@ -226,6 +227,17 @@ TEXTURE_FIELDS = [(4, "<I"), (8, "<I"), (12, "<I"), (16, "<I"), (20, "<I"), (24,
 @given(data=mutated(POSE_SEED, POSE_FIELDS) | st.binary(max_size=128).map(lambda tail: b"CBPC" + tail))
 def test_decode_pose_cache_refuses_cleanly(data):
     contained(lambda path: decode_pose_cache(path.read_bytes()), data, "pose.cbpc")
+
+
+SKINNED_SEED = encode_skinned_pose_cache(_FACES, np.zeros((len(_POINTS[0]), 2)), _POINTS[0], np.tile([0.0, 0.0, 1.0], (len(_POINTS[0]), 1)),
+                                         np.zeros((len(_POINTS[0]), 4), int), np.tile([1.0, 0.0, 0.0, 0.0], (len(_POINTS[0]), 1)),
+                                         np.tile(np.eye(4)[:3], (2, 1, 1, 1)), 24.0)
+
+
+@FUZZ
+@given(data=mutated(SKINNED_SEED, POSE_FIELDS) | st.binary(max_size=128).map(lambda tail: b"CBSK" + tail))
+def test_decode_skinned_pose_cache_refuses_cleanly(data):
+    contained(lambda path: decode_skinned_pose_cache(path.read_bytes()), data, "pose.cbsk")
 
 
 @FUZZ

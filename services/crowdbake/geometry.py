@@ -66,13 +66,18 @@ SKIN_CHUNK_ELEMENTS = 1 << 19
 
 
 def skin(
-    positions: np.ndarray, normals: np.ndarray, joints: np.ndarray, weights: np.ndarray, matrices: np.ndarray
+    positions: np.ndarray, normals: np.ndarray, joints: np.ndarray, weights: np.ndarray, matrices: np.ndarray,
+    inverse_transpose_normals: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Linear blend skinning.
 
     positions, normals (V, 3); joints (V, 4) int; weights (V, 4) summing to 1; matrices (F, J, 4, 4)
-    or (F, J, 3, 4) skinning matrices (crowdbake.bake.skinning.joint_matrices; a skinned pose cache's rows) -> positions (F, V, 3), unit normals (F, V, 3), float32.
-    Normals blend the joints' inverse-transpose 3x3 blocks so non-uniform scale keeps them perpendicular.
+    or (F, J, 3, 4) skinning matrices (crowdbake.bake.skinning.joint_matrices; a skinned pose cache's
+    rows) -> positions (F, V, 3), unit normals (F, V, 3), float32.
+    Normals blend the joints' inverse-transpose 3x3 blocks so non-uniform scale keeps them perpendicular
+    (glTF's rule); with inverse_transpose_normals False they blend the 3x3 blocks themselves, as a skinned
+    pose cache does (SPEC.md: the same for rotations and uniform scale, and linear in the matrices, so a
+    blend of two poses' matrices turns normals as blending the two poses' normals does).
     """
     positions = np.asarray(positions, dtype=np.float32)
     normals = np.asarray(normals, dtype=np.float32)
@@ -90,7 +95,8 @@ def skin(
         raise ValueError(f"joint indices must lie in 0..{matrices.shape[1] - 1}")
     frame_count = matrices.shape[0]
     linear = matrices[:, :, :3, :3]
-    normal_matrices = np.linalg.inv(linear.astype(np.float64)).transpose(0, 1, 3, 2).astype(np.float32)
+    normal_matrices = (np.linalg.inv(linear.astype(np.float64)).transpose(0, 1, 3, 2).astype(np.float32)
+                       if inverse_transpose_normals else np.ascontiguousarray(linear))
     out_positions = np.empty((frame_count, vertex_count, 3), dtype=np.float32)
     out_normals = np.empty((frame_count, vertex_count, 3), dtype=np.float32)
     chunk = max(1, SKIN_CHUNK_ELEMENTS // max(vertex_count, 1))

@@ -45,7 +45,7 @@ def test_one_cache_per_clip_bakes_a_loop_each_and_no_transitions(caches, tmp_pat
     assert bake(caches, tmp_path, *clip_args(caches, "Walking", "Running")) == 0
     assert "no transitions (no simulation joined the clips)" in capsys.readouterr().out
     bundle = verify_bundle(tmp_path / "bundles" / "clips" / "1")
-    assert bundle.manifest["format_version"] == 3
+    assert bundle.manifest["format_version"] == 4  # the skinned body
     assert [(c.name, c.frames) for c in bundle.ranges.clips] == [("Walking", 24), ("Running", 17)]
     assert tuple(bundle.ranges.transitions) == () and bundle.manifest["transitions"] == []
     cycle = json.loads((tmp_path / "work" / "cycle" / "cycle.json").read_text())

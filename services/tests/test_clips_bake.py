@@ -19,7 +19,9 @@ def rms(delta: np.ndarray) -> float:
 def test_the_bundle_holds_every_clip_and_transition(robot_bake):
     bundle = verify_bundle(robot_bake[0])
     ranges = bundle.ranges
-    assert bundle.manifest["format_version"] == 3 and "cycle" not in bundle.manifest
+    # The robot's body is a skinned glTF: stored as skinning (format 4), its frames blended at the transitions' joins.
+    assert bundle.manifest["format_version"] == 4 and "cycle" not in bundle.manifest
+    assert sorted(path for path in bundle.pose_caches if path.endswith(".cbsk")) == ["meshes/body_lod0.cbsk", "meshes/body_lod1.cbsk"]
     assert [(c.name, c.frames) for c in ranges.clips] == [("Idle", 80), ("Walking", 23), ("Running", 23)]
     assert [(t.from_clip, t.to_clip) for t in ranges.transitions] == [(0, 1), (1, 2), (2, 1)]
     assert all(cache.frame_count == ranges.pose_frames for cache in bundle.pose_caches.values())

@@ -73,10 +73,14 @@ def test_bake_writes_a_bundle_that_verifies(sample, baked):
     assert summary.bundle == root / "bundles" / "sample" / "1.0"
     bundle = verify_bundle(summary.bundle)
     manifest = bundle.manifest
-    # Format 3: the one cycle is the one clip, named as a reader names a v1 bundle's; pose caches quantized.
-    assert manifest["format_version"] == 3 and [clip.name for clip in bundle.ranges.clips] == ["cycle"]
+    # Format 4: the one cycle is the one clip, named as a reader names a v1 bundle's; the skinned glTF's
+    # body stored as skinning (CBSK), the cloth quantized.
+    assert manifest["format_version"] == 4 and [clip.name for clip in bundle.ranges.clips] == ["cycle"]
     assert bundle.ranges.pose_frames == CYCLE_FRAMES and manifest["frames_per_second"] == 24.0
-    assert {cache.version for cache in bundle.pose_caches.values()} == {2}
+    assert {path: type(cache).__name__ for path, cache in bundle.pose_caches.items()} == {
+        "meshes/body_lod0.cbsk": "SkinnedPoseCache", "meshes/body_lod1.cbsk": "SkinnedPoseCache",
+        "meshes/cloth_lod0.cbpc": "PoseCache", "meshes/cloth_lod1.cbpc": "PoseCache"}
+    assert {cache.version for path, cache in bundle.pose_caches.items() if path.endswith(".cbpc")} == {2}
     assert manifest["impostor"]["frame_indices"] == [0, 12]
     assert manifest["impostor"]["azimuths_deg"] == [0.0, 90.0, 180.0, 270.0]
     assert {(m["part"], m["lod"]) for m in manifest["meshes"]} == {("body", 0), ("body", 1), ("cloth", 0), ("cloth", 1)}
@@ -90,9 +94,9 @@ def test_bake_writes_a_bundle_that_verifies(sample, baked):
     # within half a 16-bit step of its own frame bounds (pose_codec): together, a step of the wider LOD's.
     from scipy.spatial import cKDTree
 
-    for part in ("body", "cloth"):
-        high = bundle.pose_caches[f"meshes/{part}_lod0.cbpc"].positions[5]
-        low_positions = bundle.pose_caches[f"meshes/{part}_lod1.cbpc"].positions[5]
+    for part, suffix in (("body", "cbsk"), ("cloth", "cbpc")):
+        high = bundle.pose_caches[f"meshes/{part}_lod0.{suffix}"].positions[5]
+        low_positions = bundle.pose_caches[f"meshes/{part}_lod1.{suffix}"].positions[5]
         step = (high.max(axis=0) - high.min(axis=0)).max() / 65535
         distances, _ = cKDTree(high).query(low_positions, p=np.inf)
         assert distances.max() <= step + 1e-6

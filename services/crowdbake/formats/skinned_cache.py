@@ -9,6 +9,7 @@ fidelity scores, the references) reads a skinned body as it reads any other.
 """
 from __future__ import annotations
 
+import functools
 import struct
 from dataclasses import dataclass
 
@@ -21,10 +22,15 @@ from crowdbake.geometry import skin
 SKINNED_POSE_CACHE_MAGIC = b"CBSK"
 SKINNED_POSE_CACHE_VERSION = 1
 MAX_JOINTS = 1024
+# frame_count x vertex_count at most: a reader skins every frame to check the bounds, and the frames are
+# not stored, so a small file could otherwise ask for hours of work (a 32,768-vertex body, 2,048 frames).
+MAX_VERTEX_FRAMES = 1 << 26
 # Weights are unorm16 codes whose four per vertex sum to exactly this (a partition of unity, stored exactly).
 WEIGHT_CODE_SUM = 65535
 # A weighted joint's 3 x 3 block must be invertible for the normal's inverse transpose.
 MIN_ABS_DETERMINANT = 1e-6
+# The reader checks the bounds skinning this many (frame, vertex) pairs at a time (about 8 MB of work arrays).
+BOUNDS_CHUNK_PAIRS = 1 << 15
 # vertex_count, index_count, frame_count, joint_count, fps, bounds_min, bounds_max, reserved
 _FIELDS = struct.Struct("<IIIIf3f3fI")
 HEADER_SIZE = _COMMON.size + _FIELDS.size
@@ -34,9 +40,9 @@ assert HEADER_SIZE == 64
 @dataclass(frozen=True)
 class SkinnedPoseCache:
     """A CBSK file, read. indices (T, 3) uint32; uvs (V, 2); rest_positions, rest_normals (V, 3) float32;
-    joints (V, 4) uint16; weight_codes (V, 4) uint16; matrices (F, J, 3, 4) float32; positions, normals
-    (F, V, 3) float32: the frames skinned (SPEC.md's maths), so it reads like a crowdbake.formats.binary
-    PoseCache."""
+    joints (V, 4) uint16; weight_codes (V, 4) uint16; matrices (F, J, 3, 4) float32. `positions`,
+    `normals`: (F, V, 3) float32, the frames skinned (SPEC.md's maths) when first asked for, so it reads
+    like a crowdbake.formats.binary PoseCache without holding frames nobody reads."""
 
     indices: np.ndarray
     uvs: np.ndarray
@@ -45,11 +51,21 @@ class SkinnedPoseCache:
     joints: np.ndarray
     weight_codes: np.ndarray
     matrices: np.ndarray
-    positions: np.ndarray
-    normals: np.ndarray
     frames_per_second: float
     version: int = SKINNED_POSE_CACHE_VERSION
     magic: bytes = SKINNED_POSE_CACHE_MAGIC
+
+    @functools.cached_property
+    def _frames(self) -> tuple[np.ndarray, np.ndarray]:
+        return skin_frames(self.rest_positions, self.rest_normals, self.joints, self.weight_codes, self.matrices)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self._frames[0]
+
+    @property
+    def normals(self) -> np.ndarray:
+        return self._frames[1]
 
     @property
     def vertex_count(self) -> int:
@@ -92,8 +108,10 @@ def weight_codes(weights: np.ndarray) -> np.ndarray:
 def skin_frames(rest_positions: np.ndarray, rest_normals: np.ndarray, joints: np.ndarray, codes: np.ndarray,
                 matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The frames a CBSK stores: (F, V, 3) float32 positions and unit normals of the rest mesh skinned by
-    (F, J, 3, 4) matrices with weights codes / 65535 (crowdbake.geometry.skin)."""
-    return skin(rest_positions, rest_normals, joints, codes.astype(np.float32) / np.float32(WEIGHT_CODE_SUM), matrices)
+    (F, J, 3, 4) matrices with weights codes / 65535 (crowdbake.geometry.skin), normals turned by the
+    matrices' 3 x 3 blocks (SPEC.md)."""
+    return skin(rest_positions, rest_normals, joints, codes.astype(np.float32) / np.float32(WEIGHT_CODE_SUM), matrices,
+                inverse_transpose_normals=False)
 
 
 def encode_skinned_pose_cache(indices: np.ndarray, uvs: np.ndarray, rest_positions: np.ndarray, rest_normals: np.ndarray,
@@ -136,6 +154,9 @@ def _check_fields(fields: tuple, where: str) -> None:
                           "all must be positive and index_count a multiple of 3", where)
     if not 1 <= joint_count <= MAX_JOINTS:
         raise FormatError("invalid_header", f"joint_count {joint_count} must be 1 to {MAX_JOINTS}", where)
+    if vertex_count * frame_count > MAX_VERTEX_FRAMES:
+        raise FormatError("invalid_header", f"{frame_count} frames of {vertex_count} vertices: more than the {MAX_VERTEX_FRAMES} "
+                          "a skinned pose cache holds", where)
     if fields[11] != 0:
         raise FormatError("invalid_header", "reserved must be 0", where)
     if not (np.isfinite(fps) and fps > 0):
@@ -193,13 +214,62 @@ def decode_skinned_pose_cache(data: bytes, where: str = "skinned pose cache") ->
         if not np.isfinite(array).all():
             raise FormatError("invalid_data", f"{name} contain NaN or infinity", where)
     _check_skinning(joints, codes, rest_normals, matrices, where)
-    positions, normals = skin_frames(rest_positions, rest_normals, joints, codes, matrices)
-    flat = positions.reshape(-1, 3)
-    if (flat.min(axis=0) < np.array(fields[5:8]) - BOUNDS_TOLERANCE).any() or (flat.max(axis=0) > np.array(fields[8:11]) + BOUNDS_TOLERANCE).any():
+    low, high = skinned_bounds(rest_positions, joints, codes, matrices)
+    if (low < np.array(fields[5:8]) - BOUNDS_TOLERANCE).any() or (high > np.array(fields[8:11]) + BOUNDS_TOLERANCE).any():
         raise FormatError("invalid_data", "skinned positions lie outside the header's bounds", where)
-    return SkinnedPoseCache(indices, uvs, rest_positions, rest_normals, joints, codes, matrices, positions, normals, float(fps))
+    return SkinnedPoseCache(indices, uvs, rest_positions, rest_normals, joints, codes, matrices, float(fps))
+
+
+def skinned_bounds(rest_positions: np.ndarray, joints: np.ndarray, codes: np.ndarray, matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) minimum and maximum of every skinned position of every frame, skinned BOUNDS_CHUNK_PAIRS
+    (frame, vertex) pairs at a time: a reader's memory stays bounded however many frames a file says
+    it skins (its frames are not stored, so they could be far larger than the file)."""
+    weights = codes.astype(np.float32) / np.float32(WEIGHT_CODE_SUM)
+    rest = np.asarray(rest_positions, dtype=np.float32)
+    low, high = np.full(3, np.inf, np.float32), np.full(3, -np.inf, np.float32)
+    step = max(1, BOUNDS_CHUNK_PAIRS // max(len(rest), 1))
+    vertex_step = min(len(rest), BOUNDS_CHUNK_PAIRS)
+    for start in range(0, matrices.shape[0], step):
+        for first in range(0, len(rest), vertex_step):
+            rows = slice(first, first + vertex_step)
+            blended = np.einsum("vk,fvkij->fvij", weights[rows], matrices[start:start + step][:, joints[rows]])
+            positions = np.einsum("fvij,vj->fvi", blended[..., :3], rest[rows]) + blended[..., 3]
+            low, high = np.minimum(low, positions.min(axis=(0, 1))), np.maximum(high, positions.max(axis=(0, 1)))
+    return low, high
 
 
 def is_skinned_pose_cache(data: bytes) -> bool:
     """Whether `data` starts with the CBSK magic (a reader picks its decoder by the file's magic)."""
     return data[:4] == SKINNED_POSE_CACHE_MAGIC
+
+
+def read_skinned_frame(path, frame: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One frame of a CBSK file, as crowdbake.formats.binary.read_pose_frame gives a CBPC's: (indices (T, 3)
+    uint32, uvs (V, 2), positions (V, 3), normals (V, 3) float32). Checks the header and sizes, then skins
+    that frame alone (the whole file's values are checked by decode_skinned_pose_cache when a bundle is
+    verified). IndexError for a frame outside."""
+    from pathlib import Path
+
+    path = Path(path)
+    data = path.read_bytes()
+    _check_common(data, SKINNED_POSE_CACHE_MAGIC, SKINNED_POSE_CACHE_VERSION, HEADER_SIZE, path.name)
+    fields = _FIELDS.unpack_from(data, _COMMON.size)
+    _check_fields(fields, path.name)
+    vertex_count, index_count, frame_count, joint_count = fields[:4]
+    if file_size(index_count, vertex_count, frame_count, joint_count) != len(data):
+        raise FormatError("size_mismatch", "counts disagree with the file's size", path.name)
+    if not 0 <= frame < frame_count:
+        raise IndexError(f"{path.name}: frame {frame} outside its {frame_count} frames")
+    offset = HEADER_SIZE
+    indices = np.frombuffer(data, "<u4", index_count, offset).reshape(-1, 3)
+    offset += 4 * index_count
+    uvs = np.frombuffer(data, "<f4", 2 * vertex_count, offset).reshape(-1, 2)
+    offset += 8 * vertex_count
+    rest = np.frombuffer(data, "<f4", 6 * vertex_count, offset).reshape(2, -1, 3)
+    offset += 24 * vertex_count
+    joints = np.frombuffer(data, "<u2", 4 * vertex_count, offset).reshape(-1, 4)
+    codes = np.frombuffer(data, "<u2", 4 * vertex_count, offset + 8 * vertex_count).reshape(-1, 4)
+    offset += 16 * vertex_count + 48 * joint_count * frame
+    matrices = np.frombuffer(data, "<f4", 12 * joint_count, offset).reshape(1, joint_count, 3, 4)
+    positions, normals = skin_frames(rest[0], rest[1], joints, codes, matrices)
+    return indices.copy(), uvs.copy(), positions[0], normals[0]

@@ -32,6 +32,7 @@ import numpy as np
 from crowdbake.bake import compression, impostor_views, pose_ranges, surface_maps
 from crowdbake.formats import pose_codec
 from crowdbake.formats.binary import QUANTIZED_POSE_CACHE_VERSION, read_pose_frame
+from crowdbake.formats.skinned_cache import read_skinned_frame
 from crowdbake.formats.gltf import load_character
 from crowdbake.render.impostor import shared_renderer
 from crowdbake.stages.poses import diffuse_format, high_parts, impostor_framing, materials_of, part_materials
@@ -210,7 +211,8 @@ def load_pose_scene(work: Path, poses: PosesRecord, frame: int) -> Scene:
     for part in poses.parts:
         if part.lod != 0:
             continue
-        indices, part_uvs, part_positions, part_normals = read_pose_frame(work / "poses" / part.file, frame)
+        read = read_skinned_frame if part.file.endswith(".cbsk") else read_pose_frame
+        indices, part_uvs, part_positions, part_normals = read(work / "poses" / part.file, frame)
         positions.append(part_positions)
         normals.append(part_normals)
         uvs.append(part_uvs)

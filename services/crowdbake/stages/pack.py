@@ -18,7 +18,7 @@ from crowdbake.bake.impostor_budget import DETAIL_FORMATS, map_formats
 from crowdbake.errors import StageOrderError
 from crowdbake.export import textures as export_textures
 from crowdbake.formats.binary import TextureArray, encode_texture_array, layer_size
-from crowdbake.formats.bundle import FORMAT_VERSION, BundleFile, build_manifest, verify_bundle, write_bundle
+from crowdbake.formats.bundle import FORMAT_VERSION, SKINNED_FORMAT_VERSION, BundleFile, build_manifest, verify_bundle, write_bundle
 from crowdbake.formats.ranges import read_ranges
 from crowdbake.stages.cycle import bundle_cycle_document
 from crowdbake.stages.fidelity import score_fidelity
@@ -410,7 +410,10 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
     }
     if params.accept_out_of_bounds:  # what the bake was told to publish beyond its quality bounds, for the next reader
         sections["accepted_out_of_bounds"] = cycle_document.get("out_of_bounds") or []
-    manifest = build_manifest(job.name, job.version, sections, files, created=job.created, format_version=FORMAT_VERSION)
+    # Format 4 only where a body is skinned (SPEC.md "Version 4"): a reader of format 3 reads the rest.
+    skinned = any(part.file.endswith(".cbsk") for part in poses.parts)
+    manifest = build_manifest(job.name, job.version, sections, files, created=job.created,
+                              format_version=SKINNED_FORMAT_VERSION if skinned else FORMAT_VERSION)
     if bundle_dir.exists():
         shutil.rmtree(bundle_dir)
     write_bundle(bundle_dir, manifest, files)

@@ -1,7 +1,8 @@
 """Stage 3, poses (paper section 4): the body (linear blend skinning) and the cloth per cycle frame, at a
 high and a low LOD, plus the materials' textures and the impostors' framing.
 
-Reads the JobRecord and CycleRecord; writes work/poses/<part>_lod<k>.cbpc, textures.npz (materials,
+Reads the JobRecord and CycleRecord; writes work/poses/<part>_lod<k>.cbpc (a body posed by a skinned glTF:
+<part>_lod<k>.cbsk, crowdbake.stages.body_skin), textures.npz (materials,
 their encoded and decoded diffuse layers, the outfit map) and the PosesRecord. The textures need the job
 alone, not the cycle (stage_textures): the bake runner encodes them in a worker while the cycle is searched.
 """
@@ -24,12 +25,15 @@ from crowdbake.bake.texture_memory import MIB
 from crowdbake.bake.cycle import estimate_root_offsets
 from crowdbake.bake.skinning import pose_character
 from crowdbake.errors import StageOrderError
+from crowdbake.bake.body_skin import BodySkin
 from crowdbake.formats.binary import QUANTIZED_POSE_CACHE_VERSION, encode_quantized_pose_cache
+from crowdbake.formats.skinned_cache import SKINNED_POSE_CACHE_MAGIC
 from crowdbake.formats.gltf import load_character
 from crowdbake.formats.images import read_texture_variation
 from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2
 from crowdbake.formats.ranges import Ranges
+from crowdbake.stages.body_skin import body_skin, skinned_cache_bytes
 from crowdbake.stages.records import CycleRecord, JobRecord, MaterialInfo, PosePart, PosesRecord, TexturesRecord
 from crowdbake.stages.validate import load_job, texture_files
 from crowdbake.stages.workdir import (
@@ -247,9 +251,9 @@ def ranges_framing(params, ranges: Ranges, high: dict) -> tuple[dict, AtlasLayou
     return {"center": [float(c) for c in centre], "radius": float(radius)}, layout, frame_indices, document
 
 
-def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float, out: Path) -> list[PosePart]:
+def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float, out: Path, skin: BodySkin | None = None) -> list[PosePart]:
     """The low LOD (the paper's ratio unless told otherwise; garments keep their borders) and both LODs'
-    pose caches."""
+    pose caches: the body's as skinning (CBSK) where `skin` reproduces its frames, else quantized frames."""
     counts = [part.triangle_count for part in high.values()]
     if params.lod_triangles is not None:
         targets = lod.target_for_parts(counts, params.lod_triangles)
@@ -261,8 +265,13 @@ def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float
         simplified = lod.simplify(part.positions[0], part.faces, target, uvs=part.uvs, lock_border=kinds[name] == "garment")
         low = poses.low_lod(part, simplified)
         for level, version in ((0, part), (1, low)):
-            path = out / f"{name}_lod{level}.cbpc"
-            write_bytes_atomic(path, encode_quantized_pose_cache(version.faces, version.uvs, version.positions, version.normals, fps))
+            skinned = None
+            if skin is not None and kinds[name] == "body":
+                skinned = skinned_cache_bytes(version, skin if level == 0 else skin.subset(simplified.kept), fps, f"{name} LOD {level}")
+            path = out / f"{name}_lod{level}.{'cbsk' if skinned is not None else 'cbpc'}"
+            (out / f"{name}_lod{level}.{'cbpc' if skinned is not None else 'cbsk'}").unlink(missing_ok=True)  # a rerun's other kind
+            write_bytes_atomic(path, skinned if skinned is not None else
+                               encode_quantized_pose_cache(version.faces, version.uvs, version.positions, version.normals, fps))
             parts.append(PosePart(part=name, kind=kinds[name], lod=level, file=path.name, material=part_material[name],
                                   vertex_count=version.vertex_count, triangle_count=version.triangle_count))
         parts[-1].target_triangles = int(target)
@@ -328,7 +337,8 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     started = time.perf_counter()
     folder = WorkDir(work)
     job = load_job(work)
-    key = stage_key("poses", folder.key_of("cycle"), QUANTIZED_POSE_CACHE_VERSION)  # a cache of another version is stale
+    # A cache of another version is stale, and so is one from before skinned bodies.
+    key = stage_key("poses", folder.key_of("cycle"), QUANTIZED_POSE_CACHE_VERSION, SKINNED_POSE_CACHE_MAGIC.decode())
     out = folder.root / "poses"
     cached = folder.cached("poses", key, PosesRecord, [out / TEXTURES_FILE, out / DIFFUSE_ERRORS])
     if cached is not None:
@@ -343,7 +353,7 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     high, kinds, part_material = high_parts(job, cycle, folder, character)
     part_material = part_materials(part_material, textures.materials)
     report(progress, "poses", 2, steps)
-    parts = _write_lods(high, kinds, part_material, params, cycle.fps, out)
+    parts = _write_lods(high, kinds, part_material, params, cycle.fps, out, body_skin(job, cycle, folder.inputs, character))
     report(progress, "poses", 5, steps)
 
     bounds, layout, frame_indices, budget = impostor_framing(params, cycle, high)

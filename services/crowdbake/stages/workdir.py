@@ -5,7 +5,7 @@ Layout (see docs/bake.md):
     validate/record.json     the checked job: inputs (copied into inputs/), their sha256, parameters, created
     inputs/                  character.glb|gltf, cloth.pc2, cloth.obj, textures/, cycle.json (+ looped.pc2)
     cycle/                   cycle.json, looped.pc2, report.html (crowdbake.stages.cycle_report), record.json
-    poses/                   <part>_lod<k>.cbpc, textures.npz, record.json
+    poses/                   <part>_lod<k>.cbpc (or .cbsk: a skinned body), textures.npz, record.json
     textures/record.json     the poses stage's textures (in poses/), made from the job alone
     impostor/parts/<id>.npz  one impostor task's views (+ <id>.json: its key and statistics)
     pack/record.json         what the pack stage measured; bundle/ the packed bundle, not yet published

@@ -1,0 +1,93 @@
+"""A body stored as skinning (CBSK, crowdbake.bake.body_skin and crowdbake.stages.body_skin): the matrices
+follow the vertex frames the bake would have stored, on the sample (one clip, root motion kept) and on
+the robot of robot_clips (real Blender data: three clips and transitions whose joins blend two clips),
+at both LODs; and where skinning cannot say what the vertex frames say, the body keeps vertex frames."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from crowdbake.bake.body_skin import SKIN_NORMAL_TOLERANCE_DEG, SKIN_POSITION_TOLERANCE_M, cycle_times, frames_disagreement, without_root_offsets
+from crowdbake.bake.skinning import joint_matrices, pose_at_times
+from crowdbake.formats.bundle import verify_bundle
+from crowdbake.formats.gltf import load_character
+from crowdbake.formats.skinned_cache import SkinnedPoseCache, skin_frames, weight_codes
+from crowdbake.stages.body_skin import why_not_skinned
+from crowdbake.stages.records import CycleRecord
+from crowdbake.stages.validate import load_job
+from crowdbake.stages.workdir import WorkDir
+
+
+def vertex_frames_of_the_body(work):
+    """What the poses stage would store as the body's vertex frames (high LOD), from the bake's work folder."""
+    from crowdbake.stages.poses import high_parts
+
+    folder = WorkDir(work)
+    job = load_job(work)
+    character = load_character(folder.inputs / job.inputs["character"], animation=job.bake_params.animation)
+    high, _kinds, _materials = high_parts(job, folder.load("cycle", CycleRecord), folder, character)
+    return high["body"]
+
+
+def assert_skinned_like_the_vertex_frames(bundle_dir, work):
+    bundle = verify_bundle(bundle_dir)
+    assert bundle.manifest["format_version"] == 4
+    high = bundle.pose_caches["meshes/body_lod0.cbsk"]
+    low = bundle.pose_caches["meshes/body_lod1.cbsk"]
+    assert isinstance(high, SkinnedPoseCache) and isinstance(low, SkinnedPoseCache)
+    body = vertex_frames_of_the_body(work)
+    distance, angle = frames_disagreement(high.positions, high.normals, body.positions, body.normals)
+    assert distance <= SKIN_POSITION_TOLERANCE_M and angle <= SKIN_NORMAL_TOLERANCE_DEG, (distance, angle)
+    # The low LOD's vertices are high-LOD vertices with their influences: each skins to its high twin.
+    kept = [int(np.flatnonzero((high.rest_positions == p).all(axis=1) & (high.rest_normals == n).all(axis=1))[0])
+            for p, n in zip(low.rest_positions, low.rest_normals)]
+    assert np.abs(low.positions - high.positions[:, kept]).max() <= 1e-6
+    # The whole point: a few KiB a frame where vertex frames store every vertex (10 bytes each, quantized).
+    frame_bytes = 48 * high.joint_count
+    assert frame_bytes < 10 * high.vertex_count / 4, (frame_bytes, high.vertex_count)
+    return distance, angle
+
+
+def test_the_sample_body_skins_to_its_vertex_frames(baked_sample):
+    assert_skinned_like_the_vertex_frames(*baked_sample)
+
+
+def test_the_robots_body_skins_to_its_vertex_frames_across_clips_and_blended_joins(robot_bake):
+    assert_skinned_like_the_vertex_frames(*robot_bake)
+
+
+def test_cycle_times_are_the_times_the_body_is_posed_at(small_sample):
+    """pose_body_cycle's frames are the character posed at cycle_times, to the bit: a looped walk whose
+    cycle wraps past the animation's end, and one that starts mid-loop."""
+    from crowdbake.stages.poses import pose_body_cycle
+
+    character = load_character(small_sample / "character.glb")
+    for start, frames in ((0, 24), (17, 30)):
+        positions, normals = pose_body_cycle(character, 24.0, start, frames)
+        again, again_normals = pose_at_times(character, cycle_times(float(character.animation_duration), 24.0, start, frames))
+        assert np.array_equal(positions, again) and np.array_equal(normals, again_normals)
+
+
+def test_root_offsets_move_every_skinned_vertex(small_sample):
+    character = load_character(small_sample / "character.glb")
+    matrices = joint_matrices(character, np.arange(3) / 24.0)[:, :, :3]
+    offsets = np.float32([[0.0, 0.0, 0.5], [0.1, 0.0, 1.0], [0.2, 0.05, 1.5]])
+    codes = weight_codes(character.weights)
+    before, _ = skin_frames(character.positions, character.normals, character.joints, codes, matrices)
+    after, _ = skin_frames(character.positions, character.normals, character.joints, codes, without_root_offsets(matrices, offsets))
+    assert np.abs((before - after) - offsets[:, None, :]).max() < 1e-5
+
+
+def test_a_body_skinning_cannot_express_keeps_vertex_frames():
+    skinned = SimpleNamespace(morph_targets=[], joint_count=40)
+    assert why_not_skinned(SimpleNamespace(bake_params=SimpleNamespace(skin_bodies=True)), skinned) is None
+    assert "vertex frames" in why_not_skinned(SimpleNamespace(bake_params=SimpleNamespace(skin_bodies=False)), skinned)
+    huge = SimpleNamespace(morph_targets=[], joint_count=2000)
+    assert "2000 joints" in why_not_skinned(SimpleNamespace(bake_params=SimpleNamespace(skin_bodies=True)), huge)
+
+
+@pytest.fixture(scope="module")
+def baked_sample(small_bake):
+    return small_bake
