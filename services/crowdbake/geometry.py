@@ -59,3 +59,48 @@ def quaternion_matrices(q: np.ndarray) -> np.ndarray:
         ],
         axis=-2,
     )
+
+
+# Work on at most this many (frame, vertex) pairs at once: bounds the (F, V, 4, 3, 4) gather.
+SKIN_CHUNK_ELEMENTS = 1 << 19
+
+
+def skin(
+    positions: np.ndarray, normals: np.ndarray, joints: np.ndarray, weights: np.ndarray, matrices: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Linear blend skinning.
+
+    positions, normals (V, 3); joints (V, 4) int; weights (V, 4) summing to 1; matrices (F, J, 4, 4)
+    or (F, J, 3, 4) skinning matrices (crowdbake.bake.skinning.joint_matrices; a skinned pose cache's rows) -> positions (F, V, 3), unit normals (F, V, 3), float32.
+    Normals blend the joints' inverse-transpose 3x3 blocks so non-uniform scale keeps them perpendicular.
+    """
+    positions = np.asarray(positions, dtype=np.float32)
+    normals = np.asarray(normals, dtype=np.float32)
+    joints = np.asarray(joints, dtype=np.int64)
+    weights = np.asarray(weights, dtype=np.float32)
+    matrices = np.asarray(matrices, dtype=np.float32)
+    vertex_count = len(positions)
+    if positions.shape != (vertex_count, 3) or normals.shape != (vertex_count, 3):
+        raise ValueError(f"positions and normals must be (V, 3), got {positions.shape} and {normals.shape}")
+    if joints.shape != (vertex_count, 4) or weights.shape != (vertex_count, 4):
+        raise ValueError(f"joints and weights must be ({vertex_count}, 4), got {joints.shape} and {weights.shape}")
+    if matrices.ndim != 4 or matrices.shape[2:] not in ((4, 4), (3, 4)):
+        raise ValueError(f"matrices must be (F, J, 4, 4) or (F, J, 3, 4), got {matrices.shape}")
+    if joints.size and (joints.min() < 0 or joints.max() >= matrices.shape[1]):
+        raise ValueError(f"joint indices must lie in 0..{matrices.shape[1] - 1}")
+    frame_count = matrices.shape[0]
+    linear = matrices[:, :, :3, :3]
+    normal_matrices = np.linalg.inv(linear.astype(np.float64)).transpose(0, 1, 3, 2).astype(np.float32)
+    out_positions = np.empty((frame_count, vertex_count, 3), dtype=np.float32)
+    out_normals = np.empty((frame_count, vertex_count, 3), dtype=np.float32)
+    chunk = max(1, SKIN_CHUNK_ELEMENTS // max(vertex_count, 1))
+    for start in range(0, frame_count, chunk):
+        stop = min(frame_count, start + chunk)
+        # (f, V, 4, 3, 4): the four influencing joints' top rows, blended by weight.
+        blended = np.einsum("vk,fvkij->fvij", weights, matrices[start:stop][:, joints, :3, :])
+        out_positions[start:stop] = np.einsum("fvij,vj->fvi", blended[..., :3], positions) + blended[..., 3]
+        blended_normal = np.einsum("vk,fvkij->fvij", weights, normal_matrices[start:stop][:, joints])
+        skinned = np.einsum("fvij,vj->fvi", blended_normal, normals)
+        length = np.linalg.norm(skinned, axis=-1, keepdims=True)
+        out_normals[start:stop] = np.divide(skinned, length, out=np.zeros_like(skinned), where=length > 0)
+    return out_positions, out_normals

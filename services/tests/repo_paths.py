@@ -15,8 +15,11 @@ VECTORS = REPO_ROOT / "shared_formats" / "vectors"
 # reader of v2 reads it as a v2 manifest holding v1's `cycle` and no clips, which is manifest_invalid.
 # vectors/v2/bad/future_format_version says 3: a reader of v3 reads it as a v3 bundle holding version-1
 # pose caches, invalid_data at the first (SPEC.md "Version 3").
+# vectors/v3/bad/future_format_version says 4: v3's good bundle read as v4, which holds such a bundle
+# (SPEC.md "Version 4"), so a reader of v4 reads it whole ({"error": None}).
 SUPERSEDED_EXPECTATIONS = {"v1/bad/future_format_version": {"error": "manifest_invalid", "file": "manifest.json"},
-                           "v2/bad/future_format_version": {"error": "invalid_data", "file": "poses/body_lod0.cbpc"}}
+                           "v2/bad/future_format_version": {"error": "invalid_data", "file": "poses/body_lod0.cbpc"},
+                           "v3/bad/future_format_version": {"error": None, "file": None}}
 
 
 def vector_expectation(case: Path) -> dict:

@@ -32,13 +32,17 @@ from crowdbake.formats.binary import (
     decode_texture_array,
 )
 from crowdbake.formats.errors import FormatError, printable
+from crowdbake.formats.skinned_cache import SkinnedPoseCache, decode_skinned_pose_cache, is_skinned_pose_cache
 from crowdbake.formats.ranges import Ranges, check_impostor_frames, read_ranges
 
 FORMAT_NAME = "crowdbake-bundle"
 # What the bake writes: clips and transitions (a bundle of one clip holds one, named `cycle`) and
 # quantized pose caches (SPEC.md "Version 3").
 FORMAT_VERSION = 3
-READ_FORMAT_VERSIONS = (1, 2, 3)
+# A bundle whose body is a skinned pose cache (CBSK, SPEC.md "Version 4"); the bake writes it only then.
+SKINNED_FORMAT_VERSION = 4
+SKINNED_POSE_CACHE_MEDIA_TYPE = "application/vnd.crowdbake.skinned-pose-cache"
+READ_FORMAT_VERSIONS = (1, 2, 3, 4)
 SCHEMA_PATH = Path(__file__).resolve().parents[3] / "shared_formats" / "manifest.schema.json"
 _PATH_RULE = re.compile(r"^[A-Za-z0-9._-]+(/[A-Za-z0-9._-]+)*$")
 MAX_PATH_LENGTH = 200
@@ -86,7 +90,8 @@ class BundleFile:
     media_type: str = ""
 
     def entry(self) -> dict[str, Any]:
-        media_type = self.media_type or MEDIA_TYPES.get(self.role)
+        skinned = self.role == "pose-cache" and is_skinned_pose_cache(self.data)
+        media_type = self.media_type or (SKINNED_POSE_CACHE_MEDIA_TYPE if skinned else MEDIA_TYPES.get(self.role))
         if not media_type:
             raise ValueError(f"role {self.role!r} needs an explicit media_type")
         return {"path": self.path, "size": len(self.data), "sha256": sha256_hex(self.data), "media_type": media_type, "role": self.role}
@@ -198,7 +203,7 @@ class Bundle:
     root: Path
     manifest: dict[str, Any]
     ranges: Ranges
-    pose_caches: dict[str, PoseCache] = field(default_factory=dict)
+    pose_caches: dict[str, PoseCache | SkinnedPoseCache] = field(default_factory=dict)
     textures: dict[str, TextureArray] = field(default_factory=dict)
 
 
@@ -235,7 +240,8 @@ def verify_bundle(root: Path) -> Bundle:
     bundle = Bundle(root, manifest, ranges)
     for path, entry in entries.items():
         if entry["role"] == "pose-cache":
-            bundle.pose_caches[path] = decode_pose_cache(contents[path], path)
+            decode = decode_skinned_pose_cache if is_skinned_pose_cache(contents[path]) else decode_pose_cache
+            bundle.pose_caches[path] = decode(contents[path], path)
         elif entry["media_type"] == MEDIA_TYPES["diffuse"]:
             bundle.textures[path] = decode_texture_array(contents[path], path)
     _cross_check(bundle)
@@ -269,8 +275,13 @@ def _cross_check(bundle: Bundle) -> None:
         _require(cache.vertex_count == mesh["vertex_count"], f"{cache.vertex_count} vertices, manifest says {mesh['vertex_count']}", path)
         _require(cache.triangle_count == mesh["triangle_count"], f"{cache.triangle_count} triangles, manifest says {mesh['triangle_count']}", path)
         _require(cache.frame_count == frames, f"{cache.frame_count} frames, the bundle has {frames} pose frames", path)
-        _require(cache.version == cache_version, f"pose cache version {cache.version}, a format_version "
-                 f"{manifest['format_version']} bundle holds version {cache_version}", path)
+        if isinstance(cache, SkinnedPoseCache):
+            _require(manifest["format_version"] >= SKINNED_FORMAT_VERSION, f"a skinned pose cache (CBSK) in a format_version "
+                     f"{manifest['format_version']} bundle: only format_version {SKINNED_FORMAT_VERSION} holds them", path)
+            _require(mesh["kind"] == "body", f"a skinned pose cache (CBSK) as a {mesh['kind']}: only a body is skinned", path)
+        else:
+            _require(cache.version == cache_version, f"pose cache version {cache.version}, a format_version "
+                     f"{manifest['format_version']} bundle holds version {cache_version}", path)
         _require(cache.frames_per_second == float(np.float32(manifest["frames_per_second"])),
                  f"frames_per_second {cache.frames_per_second}, the manifest says {manifest['frames_per_second']}", path)
         _require(mesh["material"] < len(manifest["materials"]), f"material {mesh['material']} does not exist", path)
