@@ -93,6 +93,30 @@ uint64_t upload_pose_streams(const PoseCache& pose, const std::string& name, Mes
                                  &p->pose_textures[kPoseFrameBounds]);
 }
 
+// A skinned cache as stored, skinned by mesh.vert.glsl (CV_SKINNED): the rest positions and normals (R32F,
+// three texels a vertex: GL 3.3 buffer textures have no RGB32F), the joints and weight codes (RGBA16UI, one
+// texel a vertex) and the matrices (RGBA32F, a texel a row, three a joint a frame). Returns the bytes uploaded.
+uint64_t upload_skin_streams(const PoseSkin& skin, const std::string& name, MeshPart* p) {
+    struct Stream {
+        const void* data;
+        size_t bytes;
+        GLenum format;
+        const char* what;
+    };
+    const Stream streams[kPoseStreams] = {
+        {skin.rest_positions.data(), skin.rest_positions.size() * 4, GL_R32F, ":rest-positions"},
+        {skin.rest_normals.data(), skin.rest_normals.size() * 4, GL_R32F, ":rest-normals"},
+        {skin.matrices.data(), skin.matrices.size() * 4, GL_RGBA32F, ":matrices"},
+        {skin.joints.data(), skin.joints.size() * 2, GL_RGBA16UI, ":joints"},
+        {skin.weight_codes.data(), skin.weight_codes.size() * 2, GL_RGBA16UI, ":weights"},
+    };
+    uint64_t bytes = 0;
+    for (int k = 0; k < kPoseStreams; ++k)
+        bytes += upload_buffer_texture(streams[k].data, streams[k].bytes, streams[k].format, name + streams[k].what, &p->pose_buffers[k],
+                                       &p->pose_textures[k]);
+    return bytes;
+}
+
 // The part's VAO (UVs, indices, the instance attributes of its LOD's buffer) and pose textures.
 // Adds its bytes to `bytes`.
 MeshPart upload_mesh_part(const MeshInfo& info, const PoseCache& pose, const GLuint instance_buffers[3], uint64_t* bytes) {
@@ -102,6 +126,7 @@ MeshPart upload_mesh_part(const MeshInfo& info, const PoseCache& pose, const GLu
     p.material = info.material;
     p.lod = info.lod == 0 ? Lod::high : Lod::low;
     p.garment = info.kind == "garment";
+    p.joint_count = pose.skin.joint_count;
     const std::string name = info.part + ":lod" + std::to_string(info.lod);
     glGenVertexArrays(1, &p.vao);
     glBindVertexArray(p.vao);
@@ -118,8 +143,16 @@ MeshPart upload_mesh_part(const MeshInfo& info, const PoseCache& pose, const GLu
     label(GL_BUFFER, p.index_buffer, name + ":indices");
     bind_instance_attributes(instance_buffers[int(p.lod)]);
     glBindVertexArray(0);
-    *bytes += uint64_t(pose.uvs.size() + pose.indices.size()) * 4 + upload_pose_streams(pose, name, &p);
+    *bytes += uint64_t(pose.uvs.size() + pose.indices.size()) * 4 +
+              (pose.skinned() ? upload_skin_streams(pose.skin, name, &p) : upload_pose_streams(pose, name, &p));
     return p;
+}
+
+// Texels of the pose cache's largest buffer texture: a quantized cache's position codes, a skinned one's
+// rest positions or matrices.
+uint64_t largest_pose_stream_texels(const PoseCache& pose) {
+    if (!pose.skinned()) return uint64_t(pose.frame_count) * pose.vertex_count * 3;
+    return std::max(uint64_t(pose.vertex_count) * 3, uint64_t(pose.frame_count) * pose.skin.joint_count * 3);
 }
 
 // The parts of mesh LODs 0 and 1, counted in the body or garment share of g->memory; false and `error`
@@ -132,7 +165,7 @@ bool upload_mesh_parts(const Bundle& bundle, ArchetypeGpu* g, std::string* error
         const MeshInfo& info = m.meshes[i];
         if (info.lod > 1) continue;  // the runtime draws two mesh levels, as the paper's figure 3
         const PoseCache& pose = bundle.meshes[i];
-        const uint64_t texels = uint64_t(pose.frame_count) * pose.vertex_count * 3;  // the positions', the largest
+        const uint64_t texels = largest_pose_stream_texels(pose);
         if (texels > uint64_t(max_texels)) {
             *error = info.file + " needs " + std::to_string(texels) + " buffer texels, the driver allows " + std::to_string(max_texels);
             return false;

@@ -1,5 +1,6 @@
 // One archetype's GPU resources: its mesh parts (static UVs and indices, every pose frame's
-// positions and normals in a buffer texture), one instance buffer per LOD refilled every frame,
+// positions and normals in buffer textures, or a skinned body's rest mesh, influences and matrices),
+// one instance buffer per LOD refilled every frame,
 // the impostors' blend-sample buffer, its textures and its impostor programs.
 // upload_archetype() makes them all from a bundle or none: on a refusal whatever it made is freed.
 // Destroying an ArchetypeGpu frees its GL objects, so it needs the context that made it.
@@ -20,15 +21,20 @@
 
 namespace crowdview {
 
-// What a part's pose buffer textures hold, as stored in a version-2 pose cache (pose_codec.h).
-enum PoseStream { kPosePositions = 0, kPoseNormals = 1, kPoseFrameBounds = 2, kPoseStreams = 3 };
+// What a part's pose buffer textures hold: a quantized cache's codes and frame bounds as a version-2 CBPC
+// stores them (pose_codec.h), or a skinned cache's rest mesh, influences and matrices as a CBSK stores them
+// (skinned_pose.h). Stream k is bound to the same texture unit either way (renderer_draw.cpp).
+enum PoseStream { kPosePositions = 0, kPoseNormals = 1, kPoseFrameBounds = 2 };
+enum SkinStream { kSkinRestPositions = 0, kSkinRestNormals = 1, kSkinMatrices = 2, kSkinJoints = 3, kSkinWeights = 4 };
+constexpr int kPoseStreams = 5;  // the most a part holds (a skinned one); a quantized part's last two are 0
 
 // One mesh part at one mesh LOD: drawn instanced from the instance buffer of its LOD.
 struct MeshPart {
     GLuint vao = 0, uv_buffer = 0, index_buffer = 0;
-    // The pose cache's codes and frame bounds as stored (pose_codec.h), each a buffer and its buffer texture.
-    GLuint pose_buffers[kPoseStreams] = {}, pose_textures[kPoseStreams] = {};  // by PoseStream
+    // The pose cache as stored, each stream a buffer and its buffer texture.
+    GLuint pose_buffers[kPoseStreams] = {}, pose_textures[kPoseStreams] = {};  // by PoseStream, or SkinStream where skinned
     uint32_t index_count = 0, vertex_count = 0, material = 0;
+    uint32_t joint_count = 0;  // > 0: skinned, drawn with the skinned mesh program
     Lod lod = Lod::high;
     bool garment = false;  // open cloth: drawn without back-face culling
 };

@@ -118,6 +118,8 @@ unsigned __int128 layer_bytes_wide(uint32_t format, uint32_t width, uint32_t hei
     }
 }
 
+}  // namespace
+
 // The common header, in SPEC.md's order: length, magic, version, header_size, file_size.
 Status check_common_header(const uint8_t* data, size_t size, const std::string& file, const char* function,
                            const char* magic, uint32_t header_size, uint32_t max_version) {
@@ -149,8 +151,6 @@ Status check_common_header(const uint8_t* data, size_t size, const std::string& 
                           "file_size " + std::to_string(file_size) + " is smaller than the header");
     return {};
 }
-
-}  // namespace
 
 size_t texture_layer_size(PixelFormat format, uint32_t width, uint32_t height) {
     return size_t(layer_bytes_wide(uint32_t(format), width, height));
@@ -238,6 +238,12 @@ Status parse_pose_cache(const uint8_t* data, size_t size, const std::string& fil
     return {};
 }
 
+Status parse_mesh_pose_file(const uint8_t* data, size_t size, const std::string& file, PoseCache* out) {
+    // A prefix shorter than the magic goes to the CBPC parser, which calls it truncated as the CBSK one would.
+    if (size >= 4 && std::memcmp(data, "CBSK", 4) == 0) return parse_skinned_pose_cache(data, size, file, out);
+    return parse_pose_cache(data, size, file, out);
+}
+
 Status parse_texture_array(const uint8_t* data, size_t size, const std::string& file, TextureArray* out) {
     static const char* fn = "parse_texture_array";
     if (Status s = check_common_header(data, size, file, fn, "CBTX", kTextureHeaderSize, 1); !s) return s;
@@ -322,6 +328,23 @@ Status find_texture(const std::map<std::string, TextureArray>& textures, const s
     return {};
 }
 
+// SPEC.md "Version 3" and "Version 4": a CBSK only as a body of a format_version 4 bundle; every CBPC of
+// a format_version 3 or 4 bundle quantized, of an older one float.
+Status check_pose_cache_kind(const Manifest& m, const MeshInfo& mesh, const PoseCache& cache) {
+    const std::string bundle_version = "a format_version " + std::to_string(m.format_version) + " bundle";
+    if (cache.skinned()) {
+        if (m.format_version < kSkinnedFormatVersion)
+            return invalid(mesh.file, "a skinned pose cache (CBSK) in " + bundle_version + ", which holds CBPC only");
+        if (mesh.kind != "body") return invalid(mesh.file, "a skinned pose cache (CBSK) as a " + mesh.kind + "; only bodies are skinned");
+        return {};
+    }
+    const uint32_t cache_version = m.format_version >= 3 ? kQuantizedPoseCacheVersion : 1;
+    if (cache.version != cache_version)
+        return invalid(mesh.file, "pose cache version " + std::to_string(cache.version) + ", " + bundle_version + " holds version " +
+                                      std::to_string(cache_version));
+    return {};
+}
+
 // Each mesh's pose cache against the manifest's counts and materials; into bundle->meshes.
 Status check_meshes(const Manifest& m, const std::map<std::string, PoseCache>& poses, Bundle* bundle) {
     for (const MeshInfo& mesh : m.meshes) {
@@ -336,11 +359,7 @@ Status check_meshes(const Manifest& m, const std::map<std::string, PoseCache>& p
         if (cache.frame_count != m.pose_frames)
             return invalid(mesh.file, std::to_string(cache.frame_count) + " frames, the manifest has " + std::to_string(m.pose_frames) +
                                           " pose frames");
-        // SPEC.md "Version 3": a format_version 3 bundle holds quantized caches, older ones float caches.
-        const uint32_t cache_version = m.format_version >= 3 ? kQuantizedPoseCacheVersion : 1;
-        if (cache.version != cache_version)
-            return invalid(mesh.file, "pose cache version " + std::to_string(cache.version) + ", a format_version " +
-                                          std::to_string(m.format_version) + " bundle holds version " + std::to_string(cache_version));
+        if (Status s = check_pose_cache_kind(m, mesh, cache); !s) return s;
         if (cache.frames_per_second != float(m.frames_per_second))
             return invalid(mesh.file, "frames_per_second " + std::to_string(cache.frames_per_second) + ", the manifest says " +
                                           std::to_string(m.frames_per_second));
@@ -473,7 +492,7 @@ Status load_bundle(const std::string& manifest_text, const FileSource& source, B
     for (const FileEntry& entry : manifest.files) {
         const std::vector<uint8_t>& bytes = contents[entry.path];
         if (entry.role == "pose-cache") {
-            if (Status s = parse_pose_cache(bytes.data(), bytes.size(), entry.path, &poses[entry.path]); !s) return s;
+            if (Status s = parse_mesh_pose_file(bytes.data(), bytes.size(), entry.path, &poses[entry.path]); !s) return s;
         } else if (entry.media_type == kTextureMediaType) {
             if (Status s = parse_texture_array(bytes.data(), bytes.size(), entry.path, &textures[entry.path]); !s) return s;
         }

@@ -1,4 +1,4 @@
-// Bundle reader: shared_formats/SPEC.md (format versions 1, 2 and 3), without any GL.
+// Bundle reader: shared_formats/SPEC.md (format versions 1 to 4), without any GL.
 //
 // Every function returns a Status; none throws or aborts on bad input. A failing Status
 // carries one of the spec's error codes, the bundle path of the file concerned, and a
@@ -106,11 +106,30 @@ constexpr uint32_t kTextureHeaderSize = 32;
 constexpr float kNormalLengthTolerance = 1e-3f;
 constexpr float kBoundsTolerance = 1e-4f;
 
-// One mesh part at one LOD over every pose frame of the bundle (CBPC). Frames are held as version 2
-// stores them, the layout mesh.vert.glsl reads; a version-1 file's float frames are quantized on parse
-// (pose_codec.h decodes one vertex).
+// CBSK (SPEC.md "Skinned pose cache", format version 4): version 1, the same 64-byte header as CBPC with
+// joint_count where CBPC has flags. joint_count is 1 to 1024.
+constexpr uint32_t kSkinnedPoseCacheVersion = 1;
+constexpr uint32_t kMaxJoints = 1024;
+// SPEC.md: every 3x3 block a weighted influence uses is invertible, |det| >= 1e-6.
+constexpr double kMinJointDeterminant = 1e-6;
+
+// A skinned body's frames as a CBSK stores them: the rest mesh, four joint influences a vertex and
+// every joint's 3x4 skinning matrix per frame (skinned_pose.h skins one vertex). Empty in a CBPC.
+struct PoseSkin {
+    uint32_t joint_count = 0;            // 0: the cache is not skinned
+    std::vector<float> rest_positions;   // vertex_count * 3, the bind pose (metres)
+    std::vector<float> rest_normals;     // vertex_count * 3, unit length
+    std::vector<uint16_t> joints;        // vertex_count * 4, each < joint_count
+    std::vector<uint16_t> weight_codes;  // vertex_count * 4, weight = code / 65535, summing to 65535 a vertex
+    std::vector<float> matrices;         // frame_count * joint_count * 12: the top three rows, row-major, frame-major
+};
+
+// One mesh part at one LOD over every pose frame of the bundle (CBPC or CBSK). A CBPC's frames are held
+// as version 2 stores them, the layout mesh.vert.glsl reads; a version-1 file's float frames are
+// quantized on parse. A CBSK keeps its rest mesh, influences and matrices in `skin` and no frame codes.
+// pose_codec.h decodes one vertex of either.
 struct PoseCache {
-    uint32_t version = 0;  // of the file it was parsed from
+    uint32_t version = 0;  // of the file it was parsed from (a CBSK's: kSkinnedPoseCacheVersion)
     uint32_t vertex_count = 0;
     uint32_t index_count = 0;
     uint32_t frame_count = 0;
@@ -122,6 +141,9 @@ struct PoseCache {
     std::vector<float> frame_bounds;        // frame_count * 6: each frame's position minimum xyz, then maximum xyz
     std::vector<uint16_t> normal_codes;    // frame_count * vertex_count * 2, frame-major, octahedral
     std::vector<uint16_t> position_codes;  // frame_count * vertex_count * 3, frame-major, within the frame's bounds
+    PoseSkin skin;                         // a CBSK's; frame_bounds and the codes are then empty
+
+    bool skinned() const { return skin.joint_count > 0; }
 };
 
 // A stack of equally sized layers (CBTX); `data` holds layer 0, layer 1, ... as stored.
@@ -136,6 +158,12 @@ struct TextureArray {
     const uint8_t* layer(uint32_t k) const { return data.data() + k * layer_size(); }
 };
 
+// SPEC.md's common header, in its order: at least 16 bytes (truncated), `magic` (bad_magic), a version
+// from 1 to `max_version` (unsupported_version), `header_size` (invalid_header), the actual size
+// against file_size (truncated, size_mismatch). Messages start with `function`.
+Status check_common_header(const uint8_t* data, size_t size, const std::string& file, const char* function, const char* magic,
+                           uint32_t header_size, uint32_t max_version);
+
 // Bytes of one width x height layer in `format`; 0 for an unknown format or a BC size that
 // is not a multiple of 4.
 size_t texture_layer_size(PixelFormat format, uint32_t width, uint32_t height);
@@ -143,6 +171,11 @@ size_t texture_layer_size(PixelFormat format, uint32_t width, uint32_t height);
 // Parse a CBPC file of `size` bytes. `file` names it in errors. Checks run in the spec's
 // order, so every strict prefix of a valid file is `truncated`. `out` is written only on success.
 Status parse_pose_cache(const uint8_t* data, size_t size, const std::string& file, PoseCache* out);
+// Same for a CBSK file (SPEC.md "Skinned pose cache"): `out` comes back skinned(). Its payload checks
+// skin every vertex of every frame on the CPU, to check the header's bounds.
+Status parse_skinned_pose_cache(const uint8_t* data, size_t size, const std::string& file, PoseCache* out);
+// A mesh file: a CBSK where its first four bytes say `CBSK`, else a CBPC (whose parse names a wrong magic).
+Status parse_mesh_pose_file(const uint8_t* data, size_t size, const std::string& file, PoseCache* out);
 // Same for a CBTX file.
 Status parse_texture_array(const uint8_t* data, size_t size, const std::string& file, TextureArray* out);
 
@@ -230,7 +263,9 @@ struct Manifest {
 };
 
 // The newest manifest format_version read; every older one is read too (1 as one clip).
-constexpr uint32_t kFormatVersion = 3;
+constexpr uint32_t kFormatVersion = 4;
+// The first format_version whose body meshes may be skinned pose caches (SPEC.md "Version 4").
+constexpr uint32_t kSkinnedFormatVersion = 4;
 
 // Largest file size a manifest may declare: 2^53 - 1, the largest integer a double (and so every
 // JSON reader, JavaScript's included) holds exactly; manifest.schema.json has the same maximum.

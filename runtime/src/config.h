@@ -33,6 +33,13 @@
 #define CV_UNIT_IMPOSTOR_SURFACE 9
 #define CV_UNIT_POSE_NORMALS 10       // usamplerBuffer RG16UI: per frame per vertex, one octahedral normal code
 #define CV_UNIT_POSE_FRAME_BOUNDS 11  // samplerBuffer RGBA32F: per frame, its positions' minimum, then maximum
+// A skinned pose cache (SPEC.md "Skinned pose cache"; mesh.vert.glsl with CV_SKINNED 1) reads its rest
+// mesh and matrices on the quantized streams' units, its influences on two more.
+#define CV_UNIT_SKIN_REST_POSITIONS CV_UNIT_POSES           // samplerBuffer R32F: per vertex, x, y, z
+#define CV_UNIT_SKIN_REST_NORMALS CV_UNIT_POSE_NORMALS      // samplerBuffer R32F: per vertex, x, y, z
+#define CV_UNIT_SKIN_MATRICES CV_UNIT_POSE_FRAME_BOUNDS     // samplerBuffer RGBA32F: per frame per joint, three rows
+#define CV_UNIT_SKIN_JOINTS 12                              // usamplerBuffer RGBA16UI: per vertex, four joints
+#define CV_UNIT_SKIN_WEIGHTS 13                             // usamplerBuffer RGBA16UI: per vertex, four weight codes
 
 // Impostor reprojection (shaders/impostor_warp.glsl). The surface map's codes span +-range * radius
 // metres (SPEC.md "Impostor maps"; crowdbake.bake.surface_maps DEPTH_RANGE, MOTION_RANGE); the

@@ -19,6 +19,7 @@ MeshUniforms mesh_uniforms(GLuint program) {
     u.vertex_count = uniform(program, "u_vertex_count");
     u.variations = uniform(program, "u_variations");
     u.has_regions = uniform(program, "u_has_regions");
+    u.joint_count = uniform(program, "u_joint_count");
     return u;
 }
 
@@ -80,14 +81,21 @@ void set_impostor_constants(GLuint program, const ImpostorInfo& impostor) {
 
 }  // namespace
 
-GLuint build_mesh_program(const std::string& shader_dir, MeshUniforms* uniforms, std::string* error) {
-    const GLuint program = build_program(shader_dir, "mesh", "mesh", error);
+GLuint build_mesh_program(const std::string& shader_dir, bool skinned, MeshUniforms* uniforms, std::string* error) {
+    const GLuint program = build_program(shader_dir, "mesh", "mesh", error, std::string("#define CV_SKINNED ") + flag(skinned) + "\n");
     if (!program) return 0;
+    if (skinned) label(GL_PROGRAM, program, "mesh:skinned");
     *uniforms = mesh_uniforms(program);
     glUseProgram(program);
+    // Each program has the samplers of its variant; glUniform ignores the other's (location -1).
     glUniform1i(uniform(program, "u_poses"), CV_UNIT_POSES);
     glUniform1i(uniform(program, "u_pose_normals"), CV_UNIT_POSE_NORMALS);
     glUniform1i(uniform(program, "u_pose_frame_bounds"), CV_UNIT_POSE_FRAME_BOUNDS);
+    glUniform1i(uniform(program, "u_rest_positions"), CV_UNIT_SKIN_REST_POSITIONS);
+    glUniform1i(uniform(program, "u_rest_normals"), CV_UNIT_SKIN_REST_NORMALS);
+    glUniform1i(uniform(program, "u_joint_matrices"), CV_UNIT_SKIN_MATRICES);
+    glUniform1i(uniform(program, "u_joints"), CV_UNIT_SKIN_JOINTS);
+    glUniform1i(uniform(program, "u_weights"), CV_UNIT_SKIN_WEIGHTS);
     glUniform1i(uniform(program, "u_outfits"), CV_UNIT_OUTFITS);
     glUniform1i(uniform(program, "u_diffuse"), CV_UNIT_DIFFUSE0);
     return program;

@@ -25,6 +25,7 @@ constexpr int kImpostorKinds = 2;  // ImpostorKind::uv, ImpostorKind::detail
 // uniform, which glUniform* ignores).
 struct MeshUniforms {
     GLint view_projection = -1, light_dir = -1, vertex_count = -1, variations = -1, has_regions = -1;
+    GLint joint_count = -1;  // the skinned program's
 };
 
 struct ImpostorUniforms {
@@ -33,9 +34,10 @@ struct ImpostorUniforms {
     GLint variations[CV_MAX_MATERIALS], has_regions[CV_MAX_MATERIALS];
 };
 
-// The mesh program (mesh.vert.glsl, mesh.frag.glsl) with its sampler units set; 0 and `error`
-// when it does not build.
-GLuint build_mesh_program(const std::string& shader_dir, MeshUniforms* uniforms, std::string* error);
+// The mesh program (mesh.vert.glsl, mesh.frag.glsl) with its sampler units set: `skinned` builds the
+// variant that skins a CBSK's rest mesh (CV_SKINNED 1), else the one that decodes quantized frames.
+// 0 and `error` when it does not build.
+GLuint build_mesh_program(const std::string& shader_dir, bool skinned, MeshUniforms* uniforms, std::string* error);
 
 // "" where the impostor programs can draw `bundle`, else one line saying why not: a bc5 normal map
 // is in each tile's view, and the shaders rebuild the views from uniform arrays of at most

@@ -1,4 +1,4 @@
-// Manifest reader: manifest.schema.json written out as checks (format versions 1 and 2), and the
+// Manifest reader: manifest.schema.json written out as checks (format versions 1 to 4), and the
 // rules across fields a schema cannot say (ranges tiling the pose frames, clip names unique).
 #include "bundle.h"
 

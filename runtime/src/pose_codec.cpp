@@ -1,5 +1,6 @@
 // Quantized pose frames: see pose_codec.h.
 #include "pose_codec.h"
+#include "skinned_pose.h"
 
 #include <algorithm>
 #include <cmath>
@@ -100,6 +101,7 @@ void decode_octahedral(const uint16_t code[2], float normal[3]) {
 }
 
 void decode_pose_position(const PoseCache& cache, uint32_t frame, uint32_t vertex, float position[3]) {
+    if (cache.skinned()) return skin_position(cache, frame, vertex, position);
     const float* bounds = &cache.frame_bounds[size_t(frame) * 6];
     const uint16_t* code = &cache.position_codes[(size_t(frame) * cache.vertex_count + vertex) * 3];
     for (int axis = 0; axis < 3; ++axis)
@@ -107,6 +109,7 @@ void decode_pose_position(const PoseCache& cache, uint32_t frame, uint32_t verte
 }
 
 void decode_pose_normal(const PoseCache& cache, uint32_t frame, uint32_t vertex, float normal[3]) {
+    if (cache.skinned()) return skin_normal(cache, frame, vertex, normal);
     decode_octahedral(&cache.normal_codes[(size_t(frame) * cache.vertex_count + vertex) * 2], normal);
 }
 

@@ -20,7 +20,9 @@ void encode_octahedral(const float normal[3], uint16_t code[2]);
 // The unit normal of an octahedral code.
 void decode_octahedral(const uint16_t code[2], float normal[3]);
 
-// Position and normal of `vertex` at `frame` (both in range), decoded in float32 as the shader does.
+// Position and normal of `vertex` at `frame` (both in range), decoded in float32 as the shader does; a
+// skinned cache's (CBSK) skinned from its rest mesh (skinned_pose.h). Every CPU path that reads poses
+// goes through these two, so it reads quantized and skinned caches alike.
 void decode_pose_position(const PoseCache& cache, uint32_t frame, uint32_t vertex, float position[3]);
 void decode_pose_normal(const PoseCache& cache, uint32_t frame, uint32_t vertex, float normal[3]);
 

@@ -77,8 +77,10 @@ std::unique_ptr<Renderer> Renderer::create(const RendererDesc& desc, std::string
     r->desc_ = desc;
     r->compressed_ = !desc.force_cpu_texture_decode && epoxy_has_gl_extension("GL_EXT_texture_compression_s3tc");
     std::string program_error;
-    state.mesh_program = build_mesh_program(desc.shader_dir, &state.mesh_uniforms, &program_error);
-    if (!state.mesh_program) {
+    state.mesh_program = build_mesh_program(desc.shader_dir, false, &state.mesh_uniforms, &program_error);
+    if (state.mesh_program)
+        state.skinned_mesh_program = build_mesh_program(desc.shader_dir, true, &state.skinned_mesh_uniforms, &program_error);
+    if (!state.mesh_program || !state.skinned_mesh_program) {
         *error = fn + program_error;
         return nullptr;
     }

@@ -2,6 +2,8 @@
 // LOD, then one of its impostors (see renderer.h, Renderer::draw).
 #include <glm/gtc/type_ptr.hpp>
 
+#include <utility>
+
 #include "config.h"
 #include "renderer.h"
 #include "renderer_state.h"
@@ -24,21 +26,34 @@ void upload_frame(RendererState& shared, const InstanceBuffers& buffers, const F
     if (!frame.in_storage) upload_instances(frame, buffers, &shared.nearest_samples);
 }
 
-// One instanced draw per part per mesh LOD shown.
+// The camera and light of this frame into both mesh programs (quantized and skinned); leaves neither in use.
+void set_mesh_view(const RendererState& shared, const glm::mat4& view_projection, const glm::vec3& light) {
+    const std::pair<GLuint, const MeshUniforms*> programs[] = {{shared.mesh_program, &shared.mesh_uniforms},
+                                                               {shared.skinned_mesh_program, &shared.skinned_mesh_uniforms}};
+    for (const auto& [program, mu] : programs) {
+        glUseProgram(program);
+        glUniformMatrix4fv(mu->view_projection, 1, GL_FALSE, glm::value_ptr(view_projection));
+        glUniform3fv(mu->light_dir, 1, glm::value_ptr(light));
+    }
+}
+
+// One instanced draw per part per mesh LOD shown, each with the program of its pose cache's kind.
 DrawStats draw_meshes(const RendererState& shared, const ArchetypeGpu& g, const FrameInstances& frame,
                       const glm::mat4& view_projection, const glm::vec3& light) {
     DrawStats stats;
-    const MeshUniforms& mu = shared.mesh_uniforms;
-    glUseProgram(shared.mesh_program);
-    glUniformMatrix4fv(mu.view_projection, 1, GL_FALSE, glm::value_ptr(view_projection));
-    glUniform3fv(mu.light_dir, 1, glm::value_ptr(light));
+    set_mesh_view(shared, view_projection, light);
     for (const MeshPart& p : g.parts) {
         const GLsizei count = GLsizei(frame.shown[int(p.lod)]);
         if (count == 0) continue;
+        const bool skinned = p.joint_count > 0;
+        const MeshUniforms& mu = skinned ? shared.skinned_mesh_uniforms : shared.mesh_uniforms;
+        glUseProgram(skinned ? shared.skinned_mesh_program : shared.mesh_program);
         // Bodies are closed: skip their back faces. Garments are open cloth, seen from inside too.
         if (p.garment) glDisable(GL_CULL_FACE);
         else glEnable(GL_CULL_FACE);
-        const GLenum pose_units[kPoseStreams] = {CV_UNIT_POSES, CV_UNIT_POSE_NORMALS, CV_UNIT_POSE_FRAME_BOUNDS};
+        // By stream (PoseStream or SkinStream): config.h gives both kinds' streams these units.
+        const GLenum pose_units[kPoseStreams] = {CV_UNIT_POSES, CV_UNIT_POSE_NORMALS, CV_UNIT_POSE_FRAME_BOUNDS, CV_UNIT_SKIN_JOINTS,
+                                                 CV_UNIT_SKIN_WEIGHTS};
         for (int k = 0; k < kPoseStreams; ++k) {
             glActiveTexture(GL_TEXTURE0 + pose_units[k]);
             glBindTexture(GL_TEXTURE_BUFFER, p.pose_textures[k]);
@@ -46,6 +61,7 @@ DrawStats draw_meshes(const RendererState& shared, const ArchetypeGpu& g, const 
         glActiveTexture(GL_TEXTURE0 + CV_UNIT_DIFFUSE0);
         glBindTexture(GL_TEXTURE_2D_ARRAY, g.diffuse[p.material]);
         glUniform1i(mu.vertex_count, GLint(p.vertex_count));
+        glUniform1i(mu.joint_count, GLint(p.joint_count));
         glUniform1i(mu.variations, g.variations[p.material]);
         glUniform1i(mu.has_regions, g.has_regions[p.material] ? 1 : 0);
         glBindVertexArray(p.vao);

@@ -18,8 +18,10 @@ namespace crowdview {
 
 struct RendererState {
     GLuint framebuffer = 0, color = 0, depth = 0;
-    GLuint mesh_program = 0;
+    GLuint mesh_program = 0;  // quantized pose caches (CBPC)
     MeshUniforms mesh_uniforms;
+    GLuint skinned_mesh_program = 0;  // skinned ones (CBSK)
+    MeshUniforms skinned_mesh_uniforms;
     GLuint empty_array = 0;  // bound to unused material units so every sampler is complete
     std::vector<ImpostorSamples> nearest_samples;  // for frames built without samples
     MappedInstanceStorage storage;                 // every archetype's instance buffers, by index
@@ -40,6 +42,7 @@ struct RendererState {
         archetypes.clear();
         glDeleteTextures(1, &empty_array);
         glDeleteProgram(mesh_program);
+        glDeleteProgram(skinned_mesh_program);
         glDeleteFramebuffers(1, &framebuffer);
         GLuint renderbuffers[] = {color, depth};
         glDeleteRenderbuffers(2, renderbuffers);

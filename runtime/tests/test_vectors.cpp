@@ -1,5 +1,5 @@
-// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-crop, v1-surface, v1-hostile, v2, v2-hostile-fps
-// and v3), which
+// The shared vectors (shared_formats/vectors/v1, v1-uv32, v1-uvblock, v1-crop, v1-surface, v1-hostile, v2, v2-hostile-fps,
+// v3 and v4), which
 // the Python tests read too: the good bundle decodes to expected.json's values (v1-uv32, v1-uvblock: its UV map's
 // texels too; v1-surface: its bc2 surface map's texels, alpha included), every bad bundle fails with its
 // expect.json code and file, and every strict prefix of every binary file of the good bundle is `truncated`.
@@ -206,9 +206,12 @@ void test_surface_texels(const fs::path& good) {
 // manifest_invalid. v2's claims 3: a reader of v3 reads it as a v3 bundle holding version-1 pose
 // caches, invalid_data at the first (SPEC.md "Version 3"). v3/bad/future_format_version is the
 // future case now.
+// v3's claims 4: a reader of v4 reads it as the v3 bundle it is, which a v4 bundle may be (every mesh a
+// quantized CBPC), so it loads ("ok", no file). v4/bad/future_format_version is the future case now.
 const std::map<std::string, json> kSuperseded = {
     {"v1/future_format_version", {{"error", "manifest_invalid"}, {"file", "manifest.json"}}},
     {"v2/future_format_version", {{"error", "invalid_data"}, {"file", "poses/body_lod0.cbpc"}}},
+    {"v3/future_format_version", {{"error", "ok"}, {"file", ""}}},
 };
 
 void test_bad(const fs::path& bad_root, int min_cases) {
@@ -303,19 +306,82 @@ void test_good_v3(const fs::path& good) {
     }
 }
 
+// Every strict prefix of every binary file (CBPC, CBSK, CBTX) under `bundle_dir` is `truncated`, read as the
+// bundle reader reads it (a pose file by its magic, parse_mesh_pose_file).
+// A nested JSON array (matrices [frame][joint][12], positions [frame][vertex][3], ...) as its leaves in order.
+json flattened(const json& nested) {
+    if (!nested.is_array()) return json::array({nested});
+    json flat = json::array();
+    for (const json& item : nested)
+        for (const json& leaf : flattened(item)) flat.push_back(leaf);
+    return flat;
+}
+
+// The largest difference between expected.json's `values` ([frame][vertex][3]) and what decode(frame, vertex) gives.
+template <typename Decode>
+double worst_difference(const json& values, const PoseCache& cache, Decode decode) {
+    const json flat = flattened(values);
+    if (flat.size() != size_t(cache.frame_count) * cache.vertex_count * 3) return INFINITY;
+    double worst = 0;
+    for (uint32_t f = 0; f < cache.frame_count; ++f)
+        for (uint32_t v = 0; v < cache.vertex_count; ++v) {
+            float got[3];
+            decode(cache, f, v, got);
+            for (int axis = 0; axis < 3; ++axis)
+                worst = std::max(worst, std::fabs(got[axis] - flat[(size_t(f) * cache.vertex_count + v) * 3 + axis].get<double>()));
+        }
+    return worst;
+}
+
+// v4 (generate_vectors_v4.py): v3's bundle with its bodies skinned. Each CBSK's stored arrays come back exactly,
+// and the CPU's skinning (decode_pose_position, decode_pose_normal) gives expected.json's frames: positions
+// within 1e-5 m, normals within 1e-4. The garment stays a quantized CBPC.
+void test_good_v4(const fs::path& good) {
+    Bundle bundle;
+    const Status s = load_bundle_dir((good / "bundle").string(), &bundle);
+    CHECK_MSG(s.ok(), s.message);
+    if (!s.ok()) return;
+    const json expected = json::parse(synthetic::read_text((good / "expected.json").string()));
+    CHECK(bundle.manifest.format_version == 4 && bundle.manifest.format_version == expected["format_version"].get<uint32_t>());
+    int skinned = 0;
+    for (size_t i = 0; i < bundle.manifest.meshes.size(); ++i) {
+        const std::string& path = bundle.manifest.meshes[i].file;
+        const PoseCache& cache = bundle.meshes[i];
+        CHECK_MSG(cache.skinned() == expected["skinned"].contains(path), path + ": skinned where expected.json lists it");
+        if (!cache.skinned()) CHECK_MSG(cache.version == kQuantizedPoseCacheVersion && bundle.manifest.meshes[i].kind == "garment", path);
+        if (!cache.skinned() || !expected["skinned"].contains(path)) continue;
+        ++skinned;
+        const json& want = expected["skinned"][path];
+        CHECK_MSG(cache.vertex_count == want["vertex_count"].get<uint32_t>() && cache.index_count == want["index_count"].get<uint32_t>() &&
+                      cache.frame_count == want["frame_count"].get<uint32_t>() && cache.skin.joint_count == want["joint_count"].get<uint32_t>() &&
+                      cache.frames_per_second == want["frames_per_second"].get<float>(),
+                  path + ": counts");
+        check_array(want["bounds_min"], std::vector<float>(cache.bounds_min, cache.bounds_min + 3), path + " bounds_min");
+        check_array(want["bounds_max"], std::vector<float>(cache.bounds_max, cache.bounds_max + 3), path + " bounds_max");
+        check_array(flattened(want["joints"]), cache.skin.joints, path + " joints");
+        check_array(flattened(want["weight_codes"]), cache.skin.weight_codes, path + " weight_codes");
+        check_array(flattened(want["matrices"]), cache.skin.matrices, path + " matrices");
+        const double position = worst_difference(want["positions"], cache, decode_pose_position);
+        const double normal = worst_difference(want["normals"], cache, decode_pose_normal);
+        CHECK_MSG(position <= 1e-5 && normal <= 1e-4,
+                  path + ": skinned differs by " + std::to_string(position) + " m, normals by " + std::to_string(normal));
+    }
+    CHECK_MSG(skinned == int(expected["skinned"].size()) && skinned >= 2, "skinned meshes: " + std::to_string(skinned));
+}
+
 void test_prefixes(const fs::path& bundle_dir) {
     int files = 0;
     for (const auto& entry : fs::recursive_directory_iterator(bundle_dir)) {
         const std::string ext = entry.path().extension().string();
-        if (ext != ".cbpc" && ext != ".cbtx") continue;
+        if (ext != ".cbpc" && ext != ".cbsk" && ext != ".cbtx") continue;
         std::vector<uint8_t> bytes;
         CHECK(read_file_bytes(entry.path().string(), &bytes));
         ++files;
         for (size_t n = 0; n < bytes.size(); ++n) {
             Status s;
-            if (ext == ".cbpc") {
+            if (ext != ".cbtx") {
                 PoseCache cache;
-                s = parse_pose_cache(bytes.data(), n, entry.path().filename().string(), &cache);
+                s = parse_mesh_pose_file(bytes.data(), n, entry.path().filename().string(), &cache);
             } else {
                 TextureArray texture;
                 s = parse_texture_array(bytes.data(), n, entry.path().filename().string(), &texture);
@@ -401,6 +467,14 @@ int main() {
         test_good_v3(v3 / "good");
         test_bad(v3 / "bad", 10);
         test_prefixes(v3 / "good" / "bundle");
+    }
+    // Format v4: skinned bodies (CBSK); bad joints, weights, matrices, bounds, headers, placements and versions.
+    const fs::path v4 = fs::path(CROWDVIEW_VECTORS_DIR) / "v4";
+    CHECK_MSG(fs::is_directory(v4 / "good"), "no v4 vectors at " + v4.string());
+    if (fs::is_directory(v4 / "good")) {
+        test_good_v4(v4 / "good");
+        test_bad(v4 / "bad", 12);
+        test_prefixes(v4 / "good" / "bundle");
     }
     // Manifests a hostile server could send (generate_vectors_v1_hostile.py): sizes past 2^53 - 1,
     // paths holding control characters.

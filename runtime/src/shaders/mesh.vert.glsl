@@ -3,15 +3,13 @@
 // A keyframed pose (paper section 4), as a version-2 pose cache stores it (SPEC.md "Pose cache
 // version 2"; pose_codec.h): per frame and vertex, three 16-bit position codes within the frame's
 // bounds and a 2 x 16-bit octahedral normal, indexed by frame and gl_VertexID.
+// With CV_SKINNED 1 (crowd_programs.cpp defines it, 0 or 1), a skinned pose cache instead (SPEC.md
+// "Skinned pose cache"; skinned_pose.h): the rest mesh skinned by four joints a vertex at the frame.
 
 layout(location = CV_ATTR_UV) in vec2 a_uv;
 layout(location = CV_ATTR_INSTANCE_POSE) in vec4 i_pose;  // feet position, heading (struct Instance)
 layout(location = CV_ATTR_INSTANCE_IDS) in uvec4 i_ids;   // frame, variation, outfit, tile
 
-uniform usamplerBuffer u_poses;             // R16UI position codes
-uniform usamplerBuffer u_pose_normals;      // RG16UI octahedral normal codes
-uniform samplerBuffer u_pose_frame_bounds;  // per frame: minimum, then maximum
-uniform int u_vertex_count;
 uniform mat4 u_view_projection;
 
 out vec2 v_uv;
@@ -19,7 +17,46 @@ out vec3 v_normal;
 flat out uint v_variation;
 flat out uint v_outfit;
 
-const float kCodeMax = 65535.0;  // 16-bit codes (pose_codec.h kPoseCodeMax)
+const float kCodeMax = 65535.0;  // 16-bit codes (pose_codec.h kPoseCodeMax; the weights' unorm16 too)
+
+#if CV_SKINNED
+uniform samplerBuffer u_rest_positions;  // R32F: per vertex x, y, z (bind pose)
+uniform samplerBuffer u_rest_normals;    // R32F: per vertex x, y, z
+uniform samplerBuffer u_joint_matrices;  // RGBA32F: per frame per joint, the three rows of its 3x4 matrix
+uniform usamplerBuffer u_joints;         // RGBA16UI: per vertex, four joint indices
+uniform usamplerBuffer u_weights;        // RGBA16UI: per vertex, four weight codes (weight = code / 65535)
+uniform int u_joint_count;
+
+vec3 fetch_vec3(samplerBuffer buffer, int vertex) {
+    return vec3(texelFetch(buffer, 3 * vertex).x, texelFetch(buffer, 3 * vertex + 1).x, texelFetch(buffer, 3 * vertex + 2).x);
+}
+
+// Linear blend skinning (SPEC.md): p = sum w_k A_k (rest, 1), n = normalize(sum w_k L_k^-T rest_n). L's
+// inverse transpose is its cofactor matrix (columns a1 x a2, a2 x a0, a0 x a1 of L's columns a0, a1, a2)
+// over its determinant. Influences of weight 0 are skipped: their matrices may be singular.
+void pose_vertex(int frame, out vec3 position, out vec3 normal) {
+    vec4 rest = vec4(fetch_vec3(u_rest_positions, gl_VertexID), 1.0);
+    vec3 rest_normal = fetch_vec3(u_rest_normals, gl_VertexID);
+    uvec4 joints = texelFetch(u_joints, gl_VertexID);
+    vec4 weights = vec4(texelFetch(u_weights, gl_VertexID)) / kCodeMax;
+    position = vec3(0.0);
+    normal = vec3(0.0);
+    for (int k = 0; k < 4; ++k) {
+        if (weights[k] == 0.0) continue;
+        int row = 3 * (frame * u_joint_count + int(joints[k]));
+        vec4 r0 = texelFetch(u_joint_matrices, row), r1 = texelFetch(u_joint_matrices, row + 1), r2 = texelFetch(u_joint_matrices, row + 2);
+        position += weights[k] * vec3(dot(r0, rest), dot(r1, rest), dot(r2, rest));
+        vec3 a0 = vec3(r0.x, r1.x, r2.x), a1 = vec3(r0.y, r1.y, r2.y), a2 = vec3(r0.z, r1.z, r2.z);
+        mat3 cofactor = mat3(cross(a1, a2), cross(a2, a0), cross(a0, a1));
+        normal += (weights[k] / dot(a0, cross(a1, a2))) * (cofactor * rest_normal);
+    }
+    normal = normalize(normal);
+}
+#else
+uniform usamplerBuffer u_poses;             // R16UI position codes
+uniform usamplerBuffer u_pose_normals;      // RG16UI octahedral normal codes
+uniform samplerBuffer u_pose_frame_bounds;  // per frame: minimum, then maximum
+uniform int u_vertex_count;
 
 vec2 sign_not_zero(vec2 v) { return vec2(v.x >= 0.0 ? 1.0 : -1.0, v.y >= 0.0 ? 1.0 : -1.0); }
 
@@ -31,14 +68,20 @@ vec3 decode_octahedral(uvec2 code) {
     return normalize(vec3(e, z));
 }
 
-void main() {
-    int frame = int(i_ids.x);
+void pose_vertex(int frame, out vec3 position, out vec3 normal) {
     int vertex = frame * u_vertex_count + gl_VertexID;
     vec3 lo = texelFetch(u_pose_frame_bounds, 2 * frame).xyz;
     vec3 hi = texelFetch(u_pose_frame_bounds, 2 * frame + 1).xyz;
     uvec3 code = uvec3(texelFetch(u_poses, 3 * vertex).x, texelFetch(u_poses, 3 * vertex + 1).x, texelFetch(u_poses, 3 * vertex + 2).x);
-    vec3 position = lo + vec3(code) * ((hi - lo) / kCodeMax);
-    vec3 normal = decode_octahedral(texelFetch(u_pose_normals, vertex).xy);
+    position = lo + vec3(code) * ((hi - lo) / kCodeMax);
+    normal = decode_octahedral(texelFetch(u_pose_normals, vertex).xy);
+}
+#endif
+
+void main() {
+    int frame = int(i_ids.x);
+    vec3 position, normal;
+    pose_vertex(frame, position, normal);
     // Heading h about +Y: +Z turns to (sin h, 0, cos h). Columns are the images of x, y, z.
     float c = cos(i_pose.w), s = sin(i_pose.w);
     mat3 heading = mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c);
