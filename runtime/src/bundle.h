@@ -110,6 +110,8 @@ constexpr float kBoundsTolerance = 1e-4f;
 // joint_count where CBPC has flags. joint_count is 1 to 1024.
 constexpr uint32_t kSkinnedPoseCacheVersion = 1;
 constexpr uint32_t kMaxJoints = 1024;
+// frame_count x vertex_count of a CBSK at most (SPEC.md): a reader skins every frame to check its bounds.
+constexpr uint64_t kMaxSkinnedVertexFrames = uint64_t(1) << 26;
 // SPEC.md: every 3x3 block a weighted influence uses is invertible, |det| >= 1e-6.
 constexpr double kMinJointDeterminant = 1e-6;
 

@@ -49,6 +49,12 @@ Status read_skinned_header(const uint8_t* data, const std::string& file, PoseCac
     if (cache->skin.joint_count < 1 || cache->skin.joint_count > kMaxJoints)
         return make_error(ErrorCode::invalid_header, kParse, file,
                           "joint_count " + std::to_string(cache->skin.joint_count) + " is outside 1 to " + std::to_string(kMaxJoints));
+    // A reader skins every frame to check the bounds, and the frames are not stored: without a cap a
+    // small file could ask for hours of work (SPEC.md: frame_count x vertex_count at most 2^26).
+    if (uint64_t(cache->vertex_count) * cache->frame_count > kMaxSkinnedVertexFrames)
+        return make_error(ErrorCode::invalid_header, kParse, file,
+                          std::to_string(cache->frame_count) + " frames of " + std::to_string(cache->vertex_count) +
+                              " vertices: more than the 2^26 a skinned pose cache holds");
     if (reserved != 0) return make_error(ErrorCode::invalid_header, kParse, file, "reserved must be 0");
     if (!(std::isfinite(cache->frames_per_second) && cache->frames_per_second > 0))
         return make_error(ErrorCode::invalid_header, kParse, file,
@@ -184,22 +190,9 @@ void skin_normal(const PoseCache& cache, uint32_t frame, uint32_t vertex, float 
     double sum[3] = {0, 0, 0};
     for (int k = 0; k < count; ++k) {
         const float* m = joint_matrix(skin, frame, joints[k]);
-        // Columns a0, a1, a2 of L; its cofactor matrix has columns a1 x a2, a2 x a0, a0 x a1 and equals
-        // det(L) L^-T, as mesh.vert.glsl computes it.
-        double a[3][3];
-        for (int col = 0; col < 3; ++col)
-            for (int row = 0; row < 3; ++row) a[col][row] = m[row * 4 + col];
-        double cofactor[3][3];
-        for (int col = 0; col < 3; ++col) {
-            const double* u = a[(col + 1) % 3];
-            const double* w = a[(col + 2) % 3];
-            cofactor[col][0] = u[1] * w[2] - u[2] * w[1];
-            cofactor[col][1] = u[2] * w[0] - u[0] * w[2];
-            cofactor[col][2] = u[0] * w[1] - u[1] * w[0];
-        }
-        const double scale = weights[k] / joint_determinant(m);
+        // The 3x3 block L itself (SPEC.md "Skinning"), as mesh.vert.glsl turns the normal.
         for (int row = 0; row < 3; ++row)
-            sum[row] += scale * (cofactor[0][row] * rest[0] + cofactor[1][row] * rest[1] + cofactor[2][row] * rest[2]);
+            sum[row] += weights[k] * (double(m[row * 4]) * rest[0] + double(m[row * 4 + 1]) * rest[1] + double(m[row * 4 + 2]) * rest[2]);
     }
     const double length = std::sqrt(sum[0] * sum[0] + sum[1] * sum[1] + sum[2] * sum[2]);
     for (int axis = 0; axis < 3; ++axis) normal[axis] = length > 0 ? float(sum[axis] / length) : 0.0f;

@@ -112,8 +112,12 @@ void test_headless(const std::string& bundle, const std::string& work) {
     CHECK(j["impostor_blend"] == "full");
     CHECK_MSG(j.contains("software_rasteriser_note") == j["gl"]["software_rasteriser"].get<bool>(), j.dump().substr(0, 400));
     // The cost of blending: UV impostors timed with it off and on at one crowd size.
-    CHECK_MSG(j["impostor_blend_cost"]["fps_off"].get<double>() > 0 && j["impostor_blend_cost"]["fps_blended"].get<double>() > 0,
-              j["impostor_blend_cost"].dump());
+    // On a loaded machine the time limit may leave no round for it: then the report says so, with no figure.
+    const nlohmann::json& cost = j["impostor_blend_cost"];
+    if (cost.value("rounds", 0) > 0)
+        CHECK_MSG(cost.value("fps_off", 0.0) > 0 && cost.value("fps_blended", 0.0) > 0, cost.dump());
+    else
+        CHECK_MSG(cost.value("cut_short", false) && !cost.contains("fps_off"), cost.dump());
     r = crowdview("--bundle '" + bundle + "' --headless --frames 2 --count 12 --width 160 --height 120 --lod impostor --impostor-blend off");
     CHECK_MSG(r.status == 0, describe(r));
 }

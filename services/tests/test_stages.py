@@ -160,7 +160,7 @@ def test_baking_twice_gives_identical_bytes(sample, baked, tmp_path):
 def test_impostor_plan_draws_the_poses_stage_geometry(baked):
     """The impostor tasks draw the plan's scene, made without the poses stage: at every baked frame it is
     the pose caches' high LOD to the bit, with the same framing and textures."""
-    from crowdbake.formats.binary import read_pose_frame
+    from crowdbake.formats.skinned_cache import read_any_pose_frame
     from crowdbake.stages.impostors import load_poses
 
     work = baked[0] / "work"
@@ -169,7 +169,7 @@ def test_impostor_plan_draws_the_poses_stage_geometry(baked):
     high = [part for part in poses.parts if part.lod == 0]
     for frame in plan.frame_indices:
         scene = load_scene(work, plan, frame)
-        cached = [read_pose_frame(work / "poses" / part.file, frame) for part in high]
+        cached = [read_any_pose_frame(work / "poses" / part.file, frame) for part in high]
         assert np.array_equal(scene.positions, np.concatenate([c[2] for c in cached]))
         assert np.array_equal(scene.normals, np.concatenate([c[3] for c in cached]))
         assert np.array_equal(scene.uvs, np.concatenate([c[1] for c in cached]))

@@ -31,9 +31,9 @@ vec3 fetch_vec3(samplerBuffer buffer, int vertex) {
     return vec3(texelFetch(buffer, 3 * vertex).x, texelFetch(buffer, 3 * vertex + 1).x, texelFetch(buffer, 3 * vertex + 2).x);
 }
 
-// Linear blend skinning (SPEC.md): p = sum w_k A_k (rest, 1), n = normalize(sum w_k L_k^-T rest_n). L's
-// inverse transpose is its cofactor matrix (columns a1 x a2, a2 x a0, a0 x a1 of L's columns a0, a1, a2)
-// over its determinant. Influences of weight 0 are skipped: their matrices may be singular.
+// Linear blend skinning (SPEC.md): p = sum w_k A_k (rest, 1), n = normalize(sum w_k L_k rest_n), L_k the
+// 3x3 block of A_k (the normal turned as the position is: linear in the matrices, so a join that blends
+// two poses' matrices turns normals as blending their normals does). Influences of weight 0 are skipped.
 void pose_vertex(int frame, out vec3 position, out vec3 normal) {
     vec4 rest = vec4(fetch_vec3(u_rest_positions, gl_VertexID), 1.0);
     vec3 rest_normal = fetch_vec3(u_rest_normals, gl_VertexID);
@@ -46,9 +46,7 @@ void pose_vertex(int frame, out vec3 position, out vec3 normal) {
         int row = 3 * (frame * u_joint_count + int(joints[k]));
         vec4 r0 = texelFetch(u_joint_matrices, row), r1 = texelFetch(u_joint_matrices, row + 1), r2 = texelFetch(u_joint_matrices, row + 2);
         position += weights[k] * vec3(dot(r0, rest), dot(r1, rest), dot(r2, rest));
-        vec3 a0 = vec3(r0.x, r1.x, r2.x), a1 = vec3(r0.y, r1.y, r2.y), a2 = vec3(r0.z, r1.z, r2.z);
-        mat3 cofactor = mat3(cross(a1, a2), cross(a2, a0), cross(a0, a1));
-        normal += (weights[k] / dot(a0, cross(a1, a2))) * (cofactor * rest_normal);
+        normal += weights[k] * vec3(dot(r0.xyz, rest_normal), dot(r1.xyz, rest_normal), dot(r2.xyz, rest_normal));
     }
     normal = normalize(normal);
 }

@@ -14,8 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from crowdbake.bake.poses import FALLBACK_NORMAL
-
 # The skinned frames must match the vertex frames they replace this closely, or the body keeps vertex
 # frames: 0.1 mm is a fifth of the quantized cloth's error bound (SPEC.md, 0.5 mm); 1 degree of normal
 # is below what the lit meshes show.
@@ -62,12 +60,12 @@ def without_root_offsets(matrices: np.ndarray, offsets: np.ndarray) -> np.ndarra
 
 
 def frames_disagreement(skinned_positions: np.ndarray, skinned_normals: np.ndarray, positions: np.ndarray,
-                        normals: np.ndarray) -> tuple[float, float]:
+                        normals: np.ndarray, no_normal: np.ndarray | None = None) -> tuple[float, float]:
     """Largest distance (metres) and angle (degrees) between skinned frames and the vertex frames they
-    replace, all (F, V, 3) float32 (normals unit). Normals the vertex frames hold as FALLBACK_NORMAL are
-    left out of the angle: those frames had no normal there (a join blending two poses whose normals
-    nearly cancel), so any direction is as good."""
+    replace, all (F, V, 3) float32 (normals unit). no_normal: (F, V) bool, where the vertex frames had no
+    normal of their own (crowdbake.bake.poses.FALLBACK_NORMAL: a join blending two poses whose normals
+    nearly cancel), left out of the angle since any direction is as good there."""
     distance = float(np.linalg.norm(skinned_positions.astype(np.float64) - positions, axis=-1).max())
     cosine = np.clip(np.einsum("fvi,fvi->fv", skinned_normals.astype(np.float64), normals.astype(np.float64)), -1.0, 1.0)
-    had_normal = ~(normals == FALLBACK_NORMAL.astype(normals.dtype)).all(axis=-1)
+    had_normal = np.ones(cosine.shape, bool) if no_normal is None else ~np.asarray(no_normal, bool)
     return distance, float(np.degrees(np.arccos(cosine[had_normal].min()))) if had_normal.any() else 0.0

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from crowdbake.bake.body_skin import BodySkin
 from crowdbake.bake.lod import Simplified
 from crowdbake.geometry import vertex_normals
 
@@ -24,13 +25,16 @@ class PartPoses:
     """One mesh part at one LOD over the cycle: what a CBPC file holds.
 
     faces: (T, 3) uint32, counter-clockwise; uvs: (V, 2) float32 (glTF convention, v down);
-    positions, normals: (F, V, 3) float32, metres and unit vectors.
+    positions, normals: (F, V, 3) float32, metres and unit vectors; skin: see below.
     """
 
     faces: np.ndarray
     uvs: np.ndarray
     positions: np.ndarray
     normals: np.ndarray
+    # A body whose frames are these matrices skinning its rest mesh (positions, normals are those frames):
+    # stored as a skinned pose cache (crowdbake.bake.body_skin). None: stored as vertex frames.
+    skin: BodySkin | None = None
 
     def __post_init__(self) -> None:
         frames, vertices, _ = self.positions.shape
@@ -96,6 +100,7 @@ def low_lod(high: PartPoses, simplified: Simplified) -> PartPoses:
         uvs=np.ascontiguousarray(high.uvs[kept]),
         positions=np.ascontiguousarray(high.positions[:, kept]),
         normals=np.ascontiguousarray(high.normals[:, kept]),
+        skin=None if high.skin is None else high.skin.subset(kept),
     )
 
 

@@ -273,3 +273,13 @@ def read_skinned_frame(path, frame: int) -> tuple[np.ndarray, np.ndarray, np.nda
     matrices = np.frombuffer(data, "<f4", 12 * joint_count, offset).reshape(1, joint_count, 3, 4)
     positions, normals = skin_frames(rest[0], rest[1], joints, codes, matrices)
     return indices.copy(), uvs.copy(), positions[0], normals[0]
+
+
+def read_any_pose_frame(path, frame: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One frame of a pose cache of either kind, by its magic: CBSK (read_skinned_frame) or CBPC
+    (crowdbake.formats.binary.read_pose_frame)."""
+    from crowdbake.formats.binary import read_pose_frame
+
+    with open(path, "rb") as handle:
+        skinned = is_skinned_pose_cache(handle.read(4))
+    return read_skinned_frame(path, frame) if skinned else read_pose_frame(path, frame)

@@ -5,6 +5,7 @@ written as CBSK where skinning reproduces those frames (SPEC.md "Skinned pose ca
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,7 @@ from crowdbake.bake.body_skin import (
     SKIN_NORMAL_TOLERANCE_DEG, SKIN_POSITION_TOLERANCE_M, BodySkin, cycle_times, frames_disagreement, without_root_offsets,
 )
 from crowdbake.bake.cycle import estimate_root_offsets
-from crowdbake.bake.poses import PartPoses
+from crowdbake.bake.poses import FALLBACK_NORMAL, PartPoses
 from crowdbake.bake.skinning import apply_morph_targets, joint_matrices, morph_weights
 from crowdbake.formats.gltf import load_character
 from crowdbake.formats.skinned_cache import MAX_JOINTS, encode_skinned_pose_cache, skin_frames, weight_codes
@@ -94,16 +95,29 @@ def body_skin(job: JobRecord, cycle: CycleRecord, inputs: Path, character) -> Bo
     return BodySkin(rest[0], rest[1], np.asarray(character.joints, np.int64), np.asarray(character.weights, np.float32), matrices)
 
 
-def skinned_cache_bytes(part: PartPoses, skin: BodySkin, fps: float, where: str) -> bytes | None:
-    """The CBSK of `part` when skinning `skin` (weights as stored) reproduces its vertex frames within
-    SKIN_POSITION_TOLERANCE_M and SKIN_NORMAL_TOLERANCE_DEG; None (logged) otherwise."""
-    if skin.matrices.shape[0] != part.frame_count or len(skin.rest_positions) != part.vertex_count:
-        logger.warning("%s keeps vertex frames: %d skinned frames of %d vertices for %d of %d", where, skin.matrices.shape[0],
-                       len(skin.rest_positions), part.frame_count, part.vertex_count)
-        return None
+def skinned_body(job: JobRecord, cycle: CycleRecord, inputs: Path, character, body: PartPoses) -> PartPoses:
+    """`body` (its vertex frames, high LOD) as skinning where that reproduces them within
+    SKIN_POSITION_TOLERANCE_M and SKIN_NORMAL_TOLERANCE_DEG: its frames replaced by the skinned ones (so
+    the impostors draw what the runtime draws, to the bit) and its `skin` set; else `body` (logged)."""
+    skin = body_skin(job, cycle, inputs, character)
+    if skin is None:
+        return body
+    if skin.matrices.shape[0] != body.frame_count or len(skin.rest_positions) != body.vertex_count:
+        logger.warning("the body keeps vertex frames: %d skinned frames of %d vertices for %d of %d", skin.matrices.shape[0],
+                       len(skin.rest_positions), body.frame_count, body.vertex_count)
+        return body
     positions, normals = skin_frames(skin.rest_positions, skin.rest_normals, skin.joints, weight_codes(skin.weights), skin.matrices)
-    distance, angle = frames_disagreement(positions, normals, part.positions, part.normals)
+    no_normal = (body.normals == FALLBACK_NORMAL.astype(np.float32)).all(axis=-1)
+    distance, angle = frames_disagreement(positions, normals, body.positions, body.normals, no_normal)
     if distance > SKIN_POSITION_TOLERANCE_M or angle > SKIN_NORMAL_TOLERANCE_DEG:
-        logger.warning("%s keeps vertex frames: skinning differs from them by up to %.3f mm and %.2f degrees", where, distance * 1e3, angle)
-        return None
+        logger.warning("the body keeps vertex frames: skinning differs from them by up to %.3f mm and %.2f degrees", distance * 1e3, angle)
+        return body
+    logger.info("the body is stored as skinning: %d joints, within %.4f mm and %.3f degrees of its vertex frames", skin.matrices.shape[1],
+                distance * 1e3, angle)
+    return replace(body, positions=positions, normals=normals, skin=skin)
+
+
+def skinned_cache_bytes(part: PartPoses, fps: float) -> bytes:
+    """The CBSK of a part whose `skin` is set (skinned_body)."""
+    skin = part.skin
     return encode_skinned_pose_cache(part.faces, part.uvs, skin.rest_positions, skin.rest_normals, skin.joints, skin.weights, skin.matrices, fps)

@@ -31,8 +31,8 @@ import numpy as np
 
 from crowdbake.bake import compression, impostor_views, pose_ranges, surface_maps
 from crowdbake.formats import pose_codec
-from crowdbake.formats.binary import QUANTIZED_POSE_CACHE_VERSION, read_pose_frame
-from crowdbake.formats.skinned_cache import read_skinned_frame
+from crowdbake.formats.binary import QUANTIZED_POSE_CACHE_VERSION
+from crowdbake.formats.skinned_cache import SKINNED_POSE_CACHE_MAGIC, read_any_pose_frame
 from crowdbake.formats.gltf import load_character
 from crowdbake.render.impostor import shared_renderer
 from crowdbake.stages.poses import diffuse_format, high_parts, impostor_framing, materials_of, part_materials
@@ -75,7 +75,8 @@ def load_plan(work: Path) -> ImpostorPlan:
 def scene_arrays(high: dict, part_material: dict[str, int], frame_indices: list[int]) -> dict[str, np.ndarray]:
     """The high LOD of every part concatenated (as load_scene reads it): faces (T, 3) int64, uvs (V, 2)
     float32, triangle_material (T,) int64, and per baked frame f positions_f, normals_f (V, 3) float32, as
-    the pose caches store them (quantized: the impostors show what the meshes show)."""
+    the pose caches store them (quantized, or a skinned body's skinned frames: the impostors show what the
+    meshes show)."""
     faces, uvs, materials, offset = [], [], [], 0
     for name, part in high.items():
         faces.append(np.asarray(part.faces, dtype=np.int64) + offset)
@@ -84,7 +85,9 @@ def scene_arrays(high: dict, part_material: dict[str, int], frame_indices: list[
         offset += len(part.uvs)
     arrays = {"faces": np.concatenate(faces), "uvs": np.concatenate(uvs), "triangle_material": np.concatenate(materials)}
     for frame in frame_indices:
-        stored = [pose_codec.stored_frames(part.positions[frame:frame + 1], part.normals[frame:frame + 1]) for part in high.values()]
+        # A skinned body's frames are stored as matrices, skinned exactly so by the caches' readers.
+        stored = [(part.positions[frame:frame + 1], part.normals[frame:frame + 1]) if part.skin is not None else
+                  pose_codec.stored_frames(part.positions[frame:frame + 1], part.normals[frame:frame + 1]) for part in high.values()]
         arrays[f"positions_{frame}"] = np.concatenate([positions[0] for positions, _ in stored])
         arrays[f"normals_{frame}"] = np.concatenate([normals[0] for _, normals in stored])
     return arrays
@@ -97,7 +100,8 @@ def stage_impostor_plan(work: Path, progress: Progress | None = None) -> StageOu
     and texture compression: what the impostor tasks need, so they can start beside the poses stage."""
     started = time.perf_counter()
     folder = WorkDir(work)
-    key = stage_key("impostor-plan", folder.key_of("cycle"), QUANTIZED_POSE_CACHE_VERSION)  # its scene is the caches' geometry
+    # Its scene is the caches' geometry: stale when their kind changes.
+    key = stage_key("impostor-plan", folder.key_of("cycle"), QUANTIZED_POSE_CACHE_VERSION, SKINNED_POSE_CACHE_MAGIC.decode())
     scene_path = folder.root / "impostor" / SCENE_FILE
     cached = folder.cached("impostor", key, ImpostorPlan, [scene_path])
     if cached is not None:
@@ -211,8 +215,7 @@ def load_pose_scene(work: Path, poses: PosesRecord, frame: int) -> Scene:
     for part in poses.parts:
         if part.lod != 0:
             continue
-        read = read_skinned_frame if part.file.endswith(".cbsk") else read_pose_frame
-        indices, part_uvs, part_positions, part_normals = read(work / "poses" / part.file, frame)
+        indices, part_uvs, part_positions, part_normals = read_any_pose_frame(work / "poses" / part.file, frame)
         positions.append(part_positions)
         normals.append(part_normals)
         uvs.append(part_uvs)

@@ -25,7 +25,6 @@ from crowdbake.bake.texture_memory import MIB
 from crowdbake.bake.cycle import estimate_root_offsets
 from crowdbake.bake.skinning import pose_character
 from crowdbake.errors import StageOrderError
-from crowdbake.bake.body_skin import BodySkin
 from crowdbake.formats.binary import QUANTIZED_POSE_CACHE_VERSION, encode_quantized_pose_cache
 from crowdbake.formats.skinned_cache import SKINNED_POSE_CACHE_MAGIC
 from crowdbake.formats.gltf import load_character
@@ -33,7 +32,7 @@ from crowdbake.formats.images import read_texture_variation
 from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2
 from crowdbake.formats.ranges import Ranges
-from crowdbake.stages.body_skin import body_skin, skinned_cache_bytes
+from crowdbake.stages.body_skin import skinned_body, skinned_cache_bytes
 from crowdbake.stages.records import CycleRecord, JobRecord, MaterialInfo, PosePart, PosesRecord, TexturesRecord
 from crowdbake.stages.validate import load_job, texture_files
 from crowdbake.stages.workdir import (
@@ -125,11 +124,12 @@ def diffuse_format(layers: np.ndarray, compress: bool) -> str:
     return "bc2" if compress and height % 4 == 0 and width % 4 == 0 else "rgba8"
 
 
-def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> tuple[dict, dict, dict]:
+def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character, skin_body: bool = True) -> tuple[dict, dict, dict]:
     """The high LOD of the body and the garment over the cycle: (parts, kinds, materials per part).
 
-    The impostor plan (crowdbake.stages.impostors.stage_impostor_plan) draws the same arrays, so both
-    stages run side by side from the cycle's output and agree to the bit."""
+    The body as skinning where it can be (crowdbake.stages.body_skin.skinned_body; skin_body False: its
+    vertex frames, always). The impostor plan (crowdbake.stages.impostors.stage_impostor_plan) draws the
+    same arrays, so both stages run side by side from the cycle's output and agree to the bit."""
     inputs, names = work.inputs, job.inputs
     fps, start, frames = cycle.fps, cycle.start_frame, cycle.pose_frames
     looped_file = "looped.pc2" if cycle.ranges is None else cycle.ranges["file"]
@@ -150,6 +150,8 @@ def high_parts(job: JobRecord, cycle: CycleRecord, work: WorkDir, character) -> 
         positions=np.asarray(body_positions, dtype=np.float32),
         normals=poses.unit_normals(body_normals),
     )
+    if skin_body:
+        body = skinned_body(job, cycle, inputs, character, body)
     if "cloth" not in names:  # crowdbake.stages.body_only: the body is the whole character
         return {"body": body}, {"body": "body"}, {"body": 0}
     mesh = read_obj(inputs / names["cloth_mesh"])
@@ -251,9 +253,9 @@ def ranges_framing(params, ranges: Ranges, high: dict) -> tuple[dict, AtlasLayou
     return {"center": [float(c) for c in centre], "radius": float(radius)}, layout, frame_indices, document
 
 
-def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float, out: Path, skin: BodySkin | None = None) -> list[PosePart]:
+def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float, out: Path) -> list[PosePart]:
     """The low LOD (the paper's ratio unless told otherwise; garments keep their borders) and both LODs'
-    pose caches: the body's as skinning (CBSK) where `skin` reproduces its frames, else quantized frames."""
+    pose caches: a part with a skin (a skinned body, crowdbake.stages.body_skin) as CBSK, else quantized."""
     counts = [part.triangle_count for part in high.values()]
     if params.lod_triangles is not None:
         targets = lod.target_for_parts(counts, params.lod_triangles)
@@ -265,9 +267,7 @@ def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float
         simplified = lod.simplify(part.positions[0], part.faces, target, uvs=part.uvs, lock_border=kinds[name] == "garment")
         low = poses.low_lod(part, simplified)
         for level, version in ((0, part), (1, low)):
-            skinned = None
-            if skin is not None and kinds[name] == "body":
-                skinned = skinned_cache_bytes(version, skin if level == 0 else skin.subset(simplified.kept), fps, f"{name} LOD {level}")
+            skinned = None if version.skin is None else skinned_cache_bytes(version, fps)
             path = out / f"{name}_lod{level}.{'cbsk' if skinned is not None else 'cbpc'}"
             (out / f"{name}_lod{level}.{'cbpc' if skinned is not None else 'cbsk'}").unlink(missing_ok=True)  # a rerun's other kind
             write_bytes_atomic(path, skinned if skinned is not None else
@@ -353,7 +353,7 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     high, kinds, part_material = high_parts(job, cycle, folder, character)
     part_material = part_materials(part_material, textures.materials)
     report(progress, "poses", 2, steps)
-    parts = _write_lods(high, kinds, part_material, params, cycle.fps, out, body_skin(job, cycle, folder.inputs, character))
+    parts = _write_lods(high, kinds, part_material, params, cycle.fps, out)
     report(progress, "poses", 5, steps)
 
     bounds, layout, frame_indices, budget = impostor_framing(params, cycle, high)
