@@ -66,7 +66,7 @@ def test_the_robots_body_skins_to_its_vertex_frames_across_clips_and_blended_joi
 def test_cycle_times_are_the_times_the_body_is_posed_at(small_sample):
     """pose_body_cycle's frames are the character posed at cycle_times, to the bit: a looped walk whose
     cycle wraps past the animation's end, and one that starts mid-loop."""
-    from crowdbake.stages.poses import pose_body_cycle
+    from crowdbake.bake.body_skin import pose_body_cycle
 
     character = load_character(small_sample / "character.glb")
     for start, frames in ((0, 24), (17, 30)):

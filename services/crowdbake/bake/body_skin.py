@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from crowdbake.bake.skinning import pose_character
+
 # The skinned frames must match the vertex frames they replace this closely, or the body keeps vertex
 # frames: 0.1 mm is a fifth of the quantized cloth's error bound (SPEC.md, 0.5 mm); 1 degree of normal
 # is below what the lit meshes show.
@@ -38,9 +40,29 @@ class BodySkin:
         return BodySkin(self.rest_positions[kept], self.rest_normals[kept], self.joints[kept], self.weights[kept], self.matrices)
 
 
+def pose_body_cycle(character, fps: float, start: int, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Body positions and normals (frames, V, 3) at cache frames start .. start+frames-1, animation looped.
+
+    Cloth sample k is at animation time (k / fps) modulo the animation's duration (the walk repeats while
+    the cloth is simulated).
+    """
+    duration = float(character.animation_duration)
+    if duration <= 0:
+        positions, normals = pose_character(character, fps, 1)
+        return np.repeat(positions, frames, axis=0), np.repeat(normals, frames, axis=0)
+    loop = duration * fps
+    whole = int(round(loop))
+    if whole >= 1 and abs(loop - whole) < 1e-3:
+        positions, normals = pose_character(character, fps, whole)
+        index = (start + np.arange(frames)) % whole
+        return positions[index], normals[index]
+    posed = [pose_character(character, fps, 1, start_time=((start + k) / fps) % duration) for k in range(frames)]
+    return np.concatenate([p for p, _ in posed]), np.concatenate([n for _, n in posed])
+
+
 def cycle_times(duration_s: float, fps: float, start: int, frames: int) -> np.ndarray:
     """(frames,) float64 animation times (seconds) of cache frames start .. start+frames-1 as
-    crowdbake.stages.poses.pose_body_cycle poses them: the animation looped (a whole number of frames
+    pose_body_cycle poses them: the animation looped (a whole number of frames
     long: frame i at i / fps), or at time 0 when the animation has no length."""
     if duration_s <= 0:
         return np.zeros(frames)

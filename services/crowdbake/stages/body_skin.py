@@ -12,7 +12,8 @@ import numpy as np
 
 from crowdbake.bake import pose_ranges
 from crowdbake.bake.body_skin import (
-    SKIN_NORMAL_TOLERANCE_DEG, SKIN_POSITION_TOLERANCE_M, BodySkin, cycle_times, frames_disagreement, without_root_offsets,
+    SKIN_NORMAL_TOLERANCE_DEG, SKIN_POSITION_TOLERANCE_M, BodySkin, cycle_times, frames_disagreement, pose_body_cycle,
+    without_root_offsets,
 )
 from crowdbake.bake.cycle import estimate_root_offsets
 from crowdbake.bake.poses import FALLBACK_NORMAL, PartPoses
@@ -83,8 +84,6 @@ def body_skin(job: JobRecord, cycle: CycleRecord, inputs: Path, character) -> Bo
         times = cycle_times(float(character.animation_duration), cycle.fps, start, cycle.pose_frames)
         matrices, morphs = _rows(character, times), [morph_weights(character, times)]
         if cycle.root_motion_removed:
-            from crowdbake.stages.poses import pose_body_cycle
-
             everything, _ = pose_body_cycle(character, cycle.fps, 0, job.cache_frames)
             offsets = estimate_root_offsets(everything)[cycle.start_frame : cycle.start_frame + cycle.pose_frames]
             matrices = without_root_offsets(matrices, offsets)

@@ -23,6 +23,7 @@ from crowdbake.bake.impostor_budget import (
 )
 from crowdbake.bake.texture_memory import MIB
 from crowdbake.bake.cycle import estimate_root_offsets
+from crowdbake.bake.body_skin import pose_body_cycle
 from crowdbake.bake.skinning import pose_character
 from crowdbake.errors import StageOrderError
 from crowdbake.formats.binary import QUANTIZED_POSE_CACHE_VERSION, encode_quantized_pose_cache
@@ -44,26 +45,6 @@ logger = logging.getLogger(__name__)
 # Default outfits when the inputs bring no outfits.png: a fixed seed keeps the bake deterministic.
 DEFAULT_OUTFIT_COUNT = 8
 _DEFAULT_OUTFIT_SEED = 2006
-
-
-def pose_body_cycle(character, fps: float, start: int, frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """Body positions and normals (frames, V, 3) at cache frames start .. start+frames-1, animation looped.
-
-    Cloth sample k is at animation time (k / fps) modulo the animation's duration (the walk repeats while
-    the cloth is simulated).
-    """
-    duration = float(character.animation_duration)
-    if duration <= 0:
-        positions, normals = pose_character(character, fps, 1)
-        return np.repeat(positions, frames, axis=0), np.repeat(normals, frames, axis=0)
-    loop = duration * fps
-    whole = int(round(loop))
-    if whole >= 1 and abs(loop - whole) < 1e-3:
-        positions, normals = pose_character(character, fps, whole)
-        index = (start + np.arange(frames)) % whole
-        return positions[index], normals[index]
-    posed = [pose_character(character, fps, 1, start_time=((start + k) / fps) % duration) for k in range(frames)]
-    return np.concatenate([p for p, _ in posed]), np.concatenate([n for _, n in posed])
 
 
 def default_outfits(count: int = DEFAULT_OUTFIT_COUNT) -> np.ndarray:
