@@ -2,7 +2,7 @@
 
 Two real mechanisms make writes fail (docs/reliability.md says which ran):
 
-* `tmpfs`: the bundles folder is a small tmpfs (`mount -t tmpfs -o size=2m`), smaller than the bundle,
+* `tmpfs`: the bundles folder is a small tmpfs (`mount -t tmpfs -o size=768k`), smaller than the bundle,
   so the publish stage's writes fail with ENOSPC part way through the bundle. Needs root with
   CAP_SYS_ADMIN; skipped with the reason otherwise. ENOSPC is transient, so the stage is retried
   CROWDBAKE_TASK_MAX_RETRIES times before the bake fails. Afterwards the tmpfs is remounted larger.
@@ -38,7 +38,7 @@ from reliability_fixtures import FAST_PARAMS, RedisServer, bake_body, files_unde
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 BAKE_TIMEOUT_S = 240
-TMPFS_SIZE = "2m"           # the sample's bundle with FAST_PARAMS is about 6 MB
+TMPFS_SIZE = "768k"         # the sample's bundle with FAST_PARAMS is about 1.5 MB (its body skinned)
 FSIZE_LIMIT = 1 << 20       # the sample's pose caches are 0.4 to 3 MB each
 MAX_RETRIES = 2
 

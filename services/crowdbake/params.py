@@ -273,10 +273,11 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("uv_format", "str", "uvblock", "impostor UV map format: uvblock (1.5 bytes a texel, block-coded 12-bit coordinates), "
               "uv32 (4 bytes, 14-bit coordinates) or rgba16 (8 bytes)",
               ("--uv-format",), choices=UV_FORMATS),
-    ParamSpec("skin_bodies", "bool", True, "store a body posed by a skinned glTF as its rest mesh, joint weights and joint matrices per "
-              "frame, skinned by the runtime (SPEC.md 'Skinned pose cache', bundle format 4: 48 bytes a joint a frame instead of every "
-              "vertex); false: vertex frames, as a garment's",
-              ("--no-skin-bodies",), off_help="store the body as vertex frames (as a garment's), not as joint matrices skinned by the runtime"),
+    ParamSpec("skinning", "bool", True, "store a body posed by a skinned glTF as skinning: its rest mesh, joint weights and joint "
+              "matrices per frame, skinned by the runtime (SPEC.md 'Skinned pose cache', bundle format 4: 48 bytes a joint a frame "
+              "instead of every vertex); false: vertex frames, as a garment's",
+              ("--no-skinning",), off_help="do not keep the body's skinning (joint matrices the runtime skins): store its vertex "
+              "frames, as a garment's"),
     ParamSpec("export", "bool", True, "publish an engine export beside the bundle (glTF, KTX2, VATs: docs/export.md); false: the bundle only",
               ("--no-export",), off_help="do not publish an engine export (glTF, KTX2, VATs: docs/export.md) beside the bundle: the bundle only"),
 )
@@ -342,7 +343,7 @@ class BakeParams:
     lod_triangles: int | None = None
     compress: bool = True
     uv_format: str = "uvblock"
-    skin_bodies: bool = True
+    skinning: bool = True
     export: bool = True
 
     def validate(self) -> None:

@@ -87,10 +87,10 @@ def test_root_offsets_move_every_skinned_vertex(small_sample):
 
 def test_a_body_skinning_cannot_express_keeps_vertex_frames():
     skinned = SimpleNamespace(morph_targets=[], joint_count=40)
-    assert why_not_skinned(SimpleNamespace(bake_params=SimpleNamespace(skin_bodies=True)), skinned) is None
-    assert "vertex frames" in why_not_skinned(SimpleNamespace(bake_params=SimpleNamespace(skin_bodies=False)), skinned)
+    assert why_not_skinned(SimpleNamespace(bake_params=SimpleNamespace(skinning=True)), skinned) is None
+    assert "vertex frames" in why_not_skinned(SimpleNamespace(bake_params=SimpleNamespace(skinning=False)), skinned)
     huge = SimpleNamespace(morph_targets=[], joint_count=2000)
-    assert "2000 joints" in why_not_skinned(SimpleNamespace(bake_params=SimpleNamespace(skin_bodies=True)), huge)
+    assert "2000 joints" in why_not_skinned(SimpleNamespace(bake_params=SimpleNamespace(skinning=True)), huge)
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +105,7 @@ CROWDVIEW = REPO_ROOT / "build" / "runtime" / "crowdview"
 
 def as_vertex_frames(bundle_dir, out_dir):
     """The bundle with each skinned body (CBSK) stored as the quantized vertex frames it skins to (CBPC
-    version 2, format 3): what the bake writes with --no-skin-bodies (test_the_*_body_skins_to_its_vertex_
+    version 2, format 3): what the bake writes with --no-skinning (test_the_*_body_skins_to_its_vertex_
     frames holds those frames to these), so crowdview draws the same poses both ways."""
     from crowdbake.formats.binary import encode_quantized_pose_cache
     from crowdbake.formats.bundle import FORMAT_VERSION, BundleFile, build_manifest, write_bundle

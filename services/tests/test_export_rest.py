@@ -216,7 +216,7 @@ def test_jobs_page_links_the_preview_and_the_preview_draws_the_crowd(local_api, 
     draws the crowd, its BC textures uploaded as S3TC blocks."""
     if not (PREVIEW_DIR / "node_modules" / "three").is_dir():
         pytest.skip(f"npm packages missing: run `npm ci` in {PREVIEW_DIR} (scripts/setup.sh does)")
-    browser_module = pytest.importorskip("browser")
+    from crowdbake.export import devtools as browser_module
     if browser_module.CHROMIUM is None:
         pytest.skip("chromium is not installed (scripts/apt-packages.txt lists it)")
     import uvicorn

@@ -27,8 +27,8 @@ logger = logging.getLogger(__name__)
 
 def why_not_skinned(job: JobRecord, character) -> str | None:
     """Why this job's body cannot be stored as skinning (None: it can)."""
-    if not job.bake_params.skin_bodies:
-        return "the bake was asked for vertex frames (skin_bodies false)"
+    if not job.bake_params.skinning:
+        return "the bake was asked for vertex frames (skinning false)"
     if not 1 <= character.joint_count <= MAX_JOINTS:
         return f"{character.joint_count} joints (a skinned pose cache holds 1 to {MAX_JOINTS})"
     return None
