@@ -43,7 +43,10 @@ def test_one_cache_per_clip_bakes_a_loop_each_and_no_transitions(caches, tmp_pat
     from crowdbake.formats.bundle import verify_bundle
 
     assert bake(caches, tmp_path, *clip_args(caches, "Walking", "Running")) == 0
-    assert "no transitions (no simulation joined the clips)" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "no transitions (no simulation joined the clips)" in out
+    # Each clip's impostor scored as crowdview draws it, one line each (fidelity.json runtime.ranges).
+    assert all(f"runtime  clip {name}: SSIM at baked views " in out for name in ("Walking", "Running")), out[-1500:]
     bundle = verify_bundle(tmp_path / "bundles" / "clips" / "1")
     assert bundle.manifest["format_version"] == 4  # the skinned body
     assert [(c.name, c.frames) for c in bundle.ranges.clips] == [("Walking", 24), ("Running", 17)]

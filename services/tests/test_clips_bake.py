@@ -130,3 +130,21 @@ def test_a_travelling_clip_cannot_join_a_bundle_of_several_and_one_clip_lays_out
     document["segments"] = [dict(document["segments"][0], last_frame=len(cloth) - 1)]
     one_clip = sections_of(timeline_fields(document), tmp_path / "one_clip")
     assert [entry["clip"] for entry in one_clip["clips"]] == ["Walk"] and "bundle_ranges" not in one_clip
+
+
+def test_fidelity_scores_every_clip_and_transition_as_crowdview_draws_it(robot_bake):
+    """fidelity.json's runtime.ranges: each clip and transition at a baked frame of its own and halfway to the
+    next, drawn by crowdview's shader against the mesh (not only the first clip's first frame)."""
+    bundle = verify_bundle(robot_bake[0])
+    ranges = bundle.ranges
+    runtime = json.loads((robot_bake[0] / "fidelity.json").read_text())["runtime"]
+    names = [clip.name for clip in ranges.clips] + [f"{ranges.clips[t.from_clip].name} -> {ranges.clips[t.to_clip].name}" for t in ranges.transitions]
+    assert [entry["name"] for entry in runtime["ranges"]] == names
+    frames = set(bundle.manifest["impostor"]["frame_indices"])
+    for entry, item in zip(runtime["ranges"], ranges.all()):
+        assert entry["frame"] in frames and item.first_frame <= entry["between_frame"] < item.first_frame + item.frames, entry
+        for section in ("at_views", "between_views"):
+            score = entry[section]
+            assert score["views"] >= 4 and 0.3 < score["ssim_worst"] <= score["ssim_mean"] <= 1.0, (entry["name"], section, score)
+        # At a baked view and frame the picture is the baked one: closer to the mesh than between them.
+        assert entry["at_views"]["ssim_mean"] >= entry["between_views"]["ssim_mean"] - 0.02, entry

@@ -140,3 +140,12 @@ def test_a_join_that_continues_its_loop_has_no_jump():
     shifted = played[4:7] + np.array([0.0, 2.0, 0.0])  # the other loop 2 frame-steps aside
     position, velocity = join_jump_ratios(played, 5, shifted)
     assert position == pytest.approx(2.0) and velocity == pytest.approx(0.0)
+
+
+def test_each_range_is_scored_at_a_baked_frame_and_halfway_to_the_next():
+    scored = pose_ranges.scored_frames(RANGES, pose_ranges.baked_frames(RANGES, [4, 2]))
+    assert [(r["name"], r["frame"], r["next"], r["between_frame"], r["between_weight"]) for r in scored] == [
+        ("idle", 0, 5, 2, 0.4), ("walk", 20, 25, 22, 0.4), ("idle -> walk", 40, 50, 45, 0.5), ("walk -> idle", 61, 61, 61, 0.0)]
+    # One baked frame: a clip is scored halfway round its loop, where its one picture is farthest from the pose.
+    once = pose_ranges.scored_frames(RANGES, pose_ranges.baked_frames(RANGES, [2, 1]))
+    assert [(r["name"], r["frame"], r["next"], r["between_frame"]) for r in once][1] == ("walk", 20, 20, 25)

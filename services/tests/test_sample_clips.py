@@ -128,7 +128,10 @@ def test_the_loops_and_transitions_keep_the_bounds_in_the_bake(clips_bake):
     changes = [(a, b) for (a, _), (b, _) in zip(DEFAULT_SEQUENCE, DEFAULT_SEQUENCE[1:])]
     assert [(t["from_clip"], t["to_clip"]) for t in cycle["transitions"]] == changes
     assert all(t["within_bounds"] for t in cycle["transitions"]), [(t["from_clip"], t["to_clip"]) for t in cycle["transitions"]]
-    assert (bundle / "manifest.json").is_file()
+    # Its body is stored as skinning across every loop and blended join (format 4: crowdbake.stages.body_skin).
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    assert manifest["format_version"] == 4
+    assert sorted(mesh["file"] for mesh in manifest["meshes"] if mesh["kind"] == "body") == ["meshes/body_lod0.cbsk", "meshes/body_lod1.cbsk"]
 
 
 @pytest.mark.parametrize("given, words", [

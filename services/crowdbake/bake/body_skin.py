@@ -17,10 +17,12 @@ import numpy as np
 from crowdbake.bake.skinning import pose_character
 
 # The skinned frames must match the vertex frames they replace this closely, or the body keeps vertex
-# frames: 0.1 mm is a fifth of the quantized cloth's error bound (SPEC.md, 0.5 mm); 1 degree of normal
-# is below what the lit meshes show.
+# frames: 0.1 mm is a fifth of the quantized cloth's error bound (SPEC.md, 0.5 mm). Normals agree within
+# 0.05 degrees outside a transition's blend; inside it both paths approximate a blend of two poses (the
+# vertex frames mix each pose's unit normal, the matrices each joint's turn) and differ by up to 2.3
+# degrees on the demo's clips sample, for a few frames: 3 degrees changes Lambert shading by under 5 %.
 SKIN_POSITION_TOLERANCE_M = 1e-4
-SKIN_NORMAL_TOLERANCE_DEG = 1.0
+SKIN_NORMAL_TOLERANCE_DEG = 3.0
 
 
 @dataclass(frozen=True)

@@ -167,3 +167,30 @@ def body_at_cache_frames(posed: dict[str, tuple[np.ndarray, np.ndarray]], timeli
             positions[row] = weight * positions[row] + (1.0 - weight) * old_positions[j]
             normals[row] = weight * normals[row] + (1.0 - weight) * old_normals[j]
     return positions.astype(np.float32), normals.astype(np.float32)
+
+
+# A range's score uses at most this many azimuths a ring (spread evenly): a few seconds per range.
+RANGE_SCORE_AZIMUTHS = 8
+
+
+def scored_frames(ranges: Ranges, frame_indices: list[int]) -> list[dict]:
+    """Where each clip and transition is scored (fidelity.json's `runtime.ranges`): its baked frame (a clip's
+    first, a transition's middle one), the baked frame that follows it in the range (next_baked_frame),
+    and the pose frame halfway between them with the blend weight crowdview gives the second there.
+
+    Returns per range {"kind", "name", "frame", "next", "between_frame", "between_weight"}. A clip of one
+    baked frame is scored halfway round its loop (both layers that frame's); a transition of one, at it."""
+    out = []
+    for entry, item in zip(frames_per_range(ranges, frame_indices), ranges.all()):
+        baked = entry["baked_frames"]
+        frame = baked[0] if isinstance(item, Clip) else baked[(len(baked) - 1) // 2]
+        following = next_baked_frame(ranges, frame, frame_indices)
+        if isinstance(item, Clip):  # a loop: the span wraps round the clip (one baked frame: the whole clip)
+            span = (following - frame) % item.frames or item.frames
+        else:  # a transition's last baked frame leads to itself: playback leaves the transition there
+            span = following - frame
+        step = span // 2
+        between = item.first_frame + (frame - item.first_frame + step) % item.frames
+        out.append({"kind": entry["kind"], "name": entry["name"], "frame": frame, "next": following,
+                    "between_frame": between, "between_weight": step / span if span else 0.0})
+    return out

@@ -129,6 +129,10 @@ def format_summary(summary) -> str:
         if key in fidelity.get("runtime", {}):
             f = fidelity["runtime"][key]
             lines.append(f"runtime  blended impostor {label}: SSIM mean {f['ssim_mean']:.3f} worst {f['ssim_worst']:.3f} over {f['views']} views")
+    for entry in fidelity.get("runtime", {}).get("ranges", []):  # several clips: each clip and transition
+        at, between = entry["at_views"], entry["between_views"]
+        lines.append(f"runtime  {entry['kind']} {entry['name']}: SSIM at baked views {at['ssim_mean']:.3f} (worst {at['ssim_worst']:.3f}), "
+                     f"between views and frames {between['ssim_mean']:.3f} (worst {between['ssim_worst']:.3f})")
     precision = fidelity.get("uv_precision", {})
     if "rgba8" in precision:
         lines.append(

@@ -235,8 +235,14 @@ SCORES_FILE = "scores.json"
 
 
 def score_frames(record: PosesRecord | ImpostorPlan) -> list[int]:
-    """The baked frames the scores read: the fidelity frame and the next one (runtime between_views is halfway to it)."""
-    return sorted({record.fidelity_frame, next_baked_frame(record, record.fidelity_frame)})
+    """The baked frames the scores read: the fidelity frame and the next one (runtime between_views is halfway
+    to it), and with several clips each clip's and transition's scored frame and its next (runtime.ranges)."""
+    frames = {record.fidelity_frame, next_baked_frame(record, record.fidelity_frame)}
+    ranges = record.bundle_ranges()
+    if ranges is not None:
+        for entry in pose_ranges.scored_frames(ranges, list(record.frame_indices)):
+            frames |= {entry["frame"], entry["next"]}
+    return sorted(frames)
 
 
 def stage_pack_scores(work: Path) -> Path:
@@ -422,7 +428,8 @@ def stage_pack(work: Path, progress: Progress | None = None) -> StageOutcome[Pac
     record = PackRecord(
         files={f.path: len(f.data) for f in sorted(files, key=lambda f: f.path)},
         fidelity={**{k: fidelity_doc[k] for k in ("impostor", "nearest_view", "impostor_uncompressed_normals")},
-                  "runtime": {k: fidelity_doc["runtime"][k] for k in ("at_views", "between_views", "between_azimuths")}},
+                  "runtime": {k: fidelity_doc["runtime"][k] for k in ("at_views", "between_views", "between_azimuths", "ranges")
+                              if k in fidelity_doc["runtime"]}},
         uv_precision=fidelity_doc["uv_precision"],
         compression=compression_report,
         texture_memory={

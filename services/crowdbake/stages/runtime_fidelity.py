@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from crowdbake.bake import fidelity, impostor_views, view_blend
+from crowdbake.bake import fidelity, impostor_views, pose_ranges, view_blend
 from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.formats.binary import TextureArray, decode_texture_array
 from crowdbake.render.runtime_shader import RuntimeAtlas, RuntimePicture
@@ -91,7 +91,7 @@ def render_mesh_references(work: Path, poses: PosesRecord, frame: int, cameras: 
 
 REFERENCES_FILE = "runtime_references.npz"
 # What draws the scored pictures, in the pack stage's scores key: scores of another maker are redrawn.
-RUNTIME_PICTURES = "runtime_shader-1"
+RUNTIME_PICTURES = "runtime_shader-2"  # 2: every clip and transition scored (runtime.ranges)
 
 
 def between_references(work: Path, poses: PosesRecord, supersample: int) -> list[np.ndarray]:
@@ -158,6 +158,40 @@ def scored_cameras(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: l
     return scored
 
 
+def range_cameras(layout: AtlasLayout) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
+    """A range's cameras: (azimuth, elevation) at baked views (RANGE_SCORE_AZIMUTHS azimuths spread round each
+    baked ring) and halfway between views (between_cameras, as many gaps)."""
+    azimuths = [layout.azimuths_deg[i] for i in spread_gaps(len(layout.azimuths_deg), pose_ranges.RANGE_SCORE_AZIMUTHS)]
+    return [(a, e) for e in layout.elevations_deg for a in azimuths], between_cameras(layout, pose_ranges.RANGE_SCORE_AZIMUTHS)
+
+
+def score_ranges(work: Path, poses: PosesRecord, layout: AtlasLayout, atlas: RuntimeAtlas, supersample: int) -> list[dict[str, Any]]:
+    """fidelity.json's `runtime.ranges`: every clip and transition of a several-clip bundle scored as the
+    runtime draws it (pose_ranges.scored_frames): at baked views of its baked frame, and halfway between
+    views and frames. Mesh references drawn here; [] for a bundle of one clip (the sections above score it)."""
+    from crowdbake.render.impostor import shared_renderer
+
+    ranges = poses.bundle_ranges()
+    if ranges is None:
+        return []
+    at_cameras, between = range_cameras(layout)
+    indices = list(poses.frame_indices)
+    renderer = shared_renderer(layout.tile_size)
+    scored = []
+    for entry in pose_ranges.scored_frames(ranges, indices):
+        layer, following = indices.index(entry["frame"]), indices.index(entry["next"])
+        references = render_mesh_references(work, poses, entry["frame"], at_cameras, supersample)
+        references += render_mesh_references(work, poses, entry["between_frame"], between, supersample)
+        still = view_blend.FrameWeights((layer, layer), 0.0)
+        moving = view_blend.FrameWeights((layer, following), entry["between_weight"])
+        pictures = renderer.runtime_impostors(atlas, [picture_at(layout, a, e, still) for a, e in at_cameras] +
+                                              [picture_at(layout, a, e, moving) for a, e in between])
+        scores = [fidelity.compare(reference, picture.astype(np.float64)) for reference, picture in zip(references, pictures)]
+        scored.append({**{key: entry[key] for key in ("kind", "name", "frame", "between_frame", "between_weight")},
+                       "at_views": fidelity.summarize(scores[:len(at_cameras)]), "between_views": fidelity.summarize(scores[len(at_cameras):])})
+    return scored
+
+
 def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: list[ImpostorTask], parts: dict[str, dict[str, np.ndarray]],
                   uv_file: bytes | TextureArray, normal_file: bytes | TextureArray, texture_arrays: dict[str, np.ndarray],
                   supersample: int, surface_file: bytes | TextureArray | None = None, warp: bool = True) -> dict[str, Any]:
@@ -192,4 +226,5 @@ def score_runtime(work: Path, poses: PosesRecord, layout: AtlasLayout, tasks: li
         "between_azimuths": fidelity.summarize(sections["between_azimuths"]),
         "per_view": sections["at_views"],
         "per_between_view": sections["between_views"],
+        "ranges": score_ranges(work, poses, layout, atlas, supersample),
     }
