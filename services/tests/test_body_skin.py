@@ -157,3 +157,24 @@ def test_crowdview_draws_the_skinned_sample_as_its_vertex_frames(small_bake, tmp
 
 def test_crowdview_draws_the_skinned_robot_as_its_vertex_frames(robot_bake, tmp_path):
     assert_same_pictures(robot_bake[0], as_vertex_frames(robot_bake[0], tmp_path / "frames"), tmp_path)
+
+
+def test_a_skin_a_reader_would_refuse_is_not_published(small_bake):
+    """A joint scaled to nothing (a rig hiding a prop) makes a singular matrix, which the skinned pose cache
+    refuses: the bake asks the reader's rules first (reader_refusal) and keeps vertex frames then."""
+    from dataclasses import replace
+
+    from crowdbake.bake.body_skin import BodySkin
+    from crowdbake.stages.body_skin import reader_refusal, skinned_body
+
+    work = small_bake[1]
+    folder, job = WorkDir(work), load_job(work)
+    character = load_character(folder.inputs / job.inputs["character"], animation=job.bake_params.animation)
+    skinned = skinned_body(job, folder.load("cycle", CycleRecord), folder.inputs, character, vertex_frames_of_the_body(work))
+    assert skinned.skin is not None and reader_refusal(skinned, 24.0) is None
+    matrices = skinned.skin.matrices.copy()
+    weighted = int(np.bincount(skinned.skin.joints[skinned.skin.weights > 0].ravel()).argmax())
+    matrices[:, weighted, :, :3] *= 1e-3  # |det| 1e-9
+    collapsed = replace(skinned, skin=BodySkin(skinned.skin.rest_positions, skinned.skin.rest_normals, skinned.skin.joints,
+                                               skinned.skin.weights, matrices))
+    assert "singular" in reader_refusal(collapsed, 24.0)

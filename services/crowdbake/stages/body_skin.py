@@ -19,7 +19,8 @@ from crowdbake.bake.cycle import estimate_root_offsets
 from crowdbake.bake.poses import FALLBACK_NORMAL, PartPoses
 from crowdbake.bake.skinning import apply_morph_targets, joint_matrices, morph_weights
 from crowdbake.formats.gltf import load_character
-from crowdbake.formats.skinned_cache import MAX_JOINTS, encode_skinned_pose_cache, skin_frames, weight_codes
+from crowdbake.formats.errors import FormatError
+from crowdbake.formats.skinned_cache import MAX_JOINTS, decode_skinned_pose_cache, encode_skinned_pose_cache, skin_frames, weight_codes
 from crowdbake.stages.records import CycleRecord, JobRecord
 
 logger = logging.getLogger(__name__)
@@ -111,9 +112,24 @@ def skinned_body(job: JobRecord, cycle: CycleRecord, inputs: Path, character, bo
     if distance > SKIN_POSITION_TOLERANCE_M or angle > SKIN_NORMAL_TOLERANCE_DEG:
         logger.warning("the body keeps vertex frames: skinning differs from them by up to %.3f mm and %.2f degrees", distance * 1e3, angle)
         return body
+    skinned = replace(body, positions=positions, normals=normals, skin=skin)
+    refusal = reader_refusal(skinned, cycle.fps)
+    if refusal is not None:
+        logger.warning("the body keeps vertex frames: its skinning breaks a rule of the skinned pose cache: %s", refusal)
+        return body
     logger.info("the body is stored as skinning: %d joints, within %.4f mm and %.3f degrees of its vertex frames", skin.matrices.shape[1],
                 distance * 1e3, angle)
-    return replace(body, positions=positions, normals=normals, skin=skin)
+    return skinned
+
+
+def reader_refusal(part: PartPoses, fps: float) -> str | None:
+    """Why a reader would refuse `part`'s CBSK (every rule SPEC.md gives: a joint scaled to nothing to hide
+    a prop makes a singular matrix), or None: the bake never publishes a bundle no reader opens."""
+    try:
+        decode_skinned_pose_cache(skinned_cache_bytes(part, fps), "body")
+    except (FormatError, ValueError) as error:
+        return str(error)
+    return None
 
 
 def skinned_cache_bytes(part: PartPoses, fps: float) -> bytes:
