@@ -89,7 +89,8 @@ def frames_disagreement(skinned_positions: np.ndarray, skinned_normals: np.ndarr
     replace, all (F, V, 3) float32 (normals unit). no_normal: (F, V) bool, where the vertex frames had no
     normal of their own (crowdbake.bake.poses.FALLBACK_NORMAL: a join blending two poses whose normals
     nearly cancel), left out of the angle since any direction is as good there."""
-    distance = float(np.linalg.norm(skinned_positions.astype(np.float64) - positions, axis=-1).max())
-    cosine = np.clip(np.einsum("fvi,fvi->fv", skinned_normals.astype(np.float64), normals.astype(np.float64)), -1.0, 1.0)
+    # float32 (the frames' own precision): float64 copies of a body's frames cost a hundred MB on the robot.
+    distance = float(np.linalg.norm(np.subtract(skinned_positions, positions, dtype=np.float32), axis=-1).max())
+    cosine = np.clip(np.einsum("fvi,fvi->fv", skinned_normals, normals, dtype=np.float32), -1.0, 1.0)
     had_normal = np.ones(cosine.shape, bool) if no_normal is None else ~np.asarray(no_normal, bool)
     return distance, float(np.degrees(np.arccos(cosine[had_normal].min()))) if had_normal.any() else 0.0

@@ -118,7 +118,7 @@ def encode_skinned_pose_cache(indices: np.ndarray, uvs: np.ndarray, rest_positio
                               joints: np.ndarray, weights: np.ndarray, matrices: np.ndarray, frames_per_second: float) -> bytes:
     """Serialise a CBSK. indices (T, 3) or (3T,); uvs (V, 2); rest_positions, rest_normals (V, 3); joints
     (V, 4) int; weights (V, 4) float (coded by weight_codes); matrices (F, J, 3, 4) or (F, J, 4, 4) (the
-    top three rows are stored). The header's bounds are the skinned frames' (skin_frames)."""
+    top three rows are stored). The header's bounds are the skinned frames' (skinned_bounds)."""
     indices = np.ascontiguousarray(indices, dtype="<u4").reshape(-1)
     uvs = np.ascontiguousarray(uvs, dtype="<f4")
     rest_positions = np.ascontiguousarray(rest_positions, dtype="<f4")
@@ -136,12 +136,10 @@ def encode_skinned_pose_cache(indices: np.ndarray, uvs: np.ndarray, rest_positio
     if not (frames_per_second > 0 and np.isfinite(matrices).all()):
         raise ValueError("frames_per_second must be positive and the matrices finite")
     codes = weight_codes(weights)
-    positions, _ = skin_frames(rest_positions, rest_normals, joints, codes, matrices)
-    flat = positions.reshape(-1, 3)
+    low, high = skinned_bounds(rest_positions, joints, codes, matrices)  # chunked: no frames held
     header = _COMMON.pack(SKINNED_POSE_CACHE_MAGIC, SKINNED_POSE_CACHE_VERSION, HEADER_SIZE,
                           file_size(indices.size, vertex_count, frame_count, joint_count))
-    header += _FIELDS.pack(vertex_count, indices.size, frame_count, joint_count, float(frames_per_second),
-                           *flat.min(axis=0), *flat.max(axis=0), 0)
+    header += _FIELDS.pack(vertex_count, indices.size, frame_count, joint_count, float(frames_per_second), *low, *high, 0)
     return b"".join([header, indices.tobytes(), uvs.tobytes(), rest_positions.tobytes(), rest_normals.tobytes(),
                      np.ascontiguousarray(joints, dtype="<u2").tobytes(), codes.astype("<u2").tobytes(), matrices.tobytes()])
 
