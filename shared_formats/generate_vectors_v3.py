@@ -127,16 +127,22 @@ def bad_cases(manifest: dict, files: list[BundleFile]):
     yield ("future_format_version", manifest_bytes(future), files, "unsupported_format_version", "manifest.json")
 
 
-def generate(out_dir: Path) -> None:
+def write_vectors(out_dir: Path, good, expected, cases) -> None:
+    """A vectors folder: good/ (bundle and expected.json) and bad/<case>/ (bundle and expect.json), from a
+    generator's good_files(), expected_values(manifest, files) and bad_cases(manifest, files)."""
     if out_dir.exists():
         raise SystemExit(f"{out_dir} exists: vectors are never edited; a new format version gets a new folder")
-    manifest, files = good_files()
+    manifest, files = good()
     v2._write_raw(out_dir / "good" / "bundle", manifest_bytes(manifest), files)
-    (out_dir / "good" / "expected.json").write_text(json.dumps(expected_values(manifest, files), indent=1) + "\n")
-    for name, manifest_data, case_files, code, file in bad_cases(manifest, files):
+    (out_dir / "good" / "expected.json").write_text(json.dumps(expected(manifest, files), indent=1) + "\n")
+    for name, manifest_data, case_files, code, file in cases(manifest, files):
         case = out_dir / "bad" / name
         v2._write_raw(case / "bundle", manifest_data, case_files)
         (case / "expect.json").write_text(json.dumps({"error": code, "file": file}) + "\n")
+
+
+def generate(out_dir: Path) -> None:
+    write_vectors(out_dir, good_files, expected_values, bad_cases)
 
 
 if __name__ == "__main__":

@@ -105,12 +105,6 @@ def expected_values(manifest: dict, files: list[BundleFile]) -> dict:
     return {"name": manifest["name"], "version": manifest["version"], "format_version": FORMAT_VERSION, "skinned": skinned}
 
 
-def _patched(data: bytes, offset: int, fmt: str, *values) -> bytes:
-    out = bytearray(data)
-    struct.pack_into(fmt, out, offset, *values)
-    return bytes(out)
-
-
 def bad_cases(manifest: dict, files: list[BundleFile]):
     """(name, manifest bytes, files, expected code, file named by the error)."""
     body = "poses/body_lod0.cbsk"
@@ -124,15 +118,15 @@ def bad_cases(manifest: dict, files: list[BundleFile]):
         return (name, *v3._with_file(manifest, files, body, new_data), code, body)
 
     yield broken("truncated_skinned_cache", data[:-4], "truncated")
-    yield broken("future_skinned_cache_version", _patched(data, 4, "<I", 2), "unsupported_version")
-    yield broken("joint_count_zero", _patched(data, 28, "<I", 0), "invalid_header")
-    yield broken("skinned_counts_disagree", _patched(data, 16, "<I", vertex_count + 1), "size_mismatch")
-    yield broken("joint_out_of_range", _patched(data, joints_at + 8 * 2 + 2, "<H", joint_count), "invalid_data")
-    yield broken("weights_do_not_sum", _patched(data, weights_at + 8 * 1, "<H", 40000), "invalid_data")
-    yield broken("matrix_nan", _patched(data, matrices_at + 4 * (12 * (joint_count + 1) + 5), "<f", float("nan")), "invalid_data")
+    yield broken("future_skinned_cache_version", v3._patched(data, 4, "<I", 2), "unsupported_version")
+    yield broken("joint_count_zero", v3._patched(data, 28, "<I", 0), "invalid_header")
+    yield broken("skinned_counts_disagree", v3._patched(data, 16, "<I", vertex_count + 1), "size_mismatch")
+    yield broken("joint_out_of_range", v3._patched(data, joints_at + 8 * 2 + 2, "<H", joint_count), "invalid_data")
+    yield broken("weights_do_not_sum", v3._patched(data, weights_at + 8 * 1, "<H", 40000), "invalid_data")
+    yield broken("matrix_nan", v3._patched(data, matrices_at + 4 * (12 * (joint_count + 1) + 5), "<f", float("nan")), "invalid_data")
     # Joint 1 (weighted by vertices 1 to 3) collapsed at frame 2: its 3 x 3 block all zeros.
-    yield broken("matrix_singular", _patched(data, matrices_at + 4 * 12 * (2 * joint_count + 1), "<3f4x3f4x3f", *([0.0] * 9)), "invalid_data")
-    yield broken("bounds_miss_a_position", _patched(data, 48, "<f", struct.unpack_from("<f", data, 48)[0] - 0.05), "invalid_data")
+    yield broken("matrix_singular", v3._patched(data, matrices_at + 4 * 12 * (2 * joint_count + 1), "<3f4x3f4x3f", *([0.0] * 9)), "invalid_data")
+    yield broken("bounds_miss_a_position", v3._patched(data, 48, "<f", struct.unpack_from("<f", data, 48)[0] - 0.05), "invalid_data")
     garment = json.loads(manifest_bytes(manifest))
     garment["meshes"] = [dict(mesh, kind="garment") if mesh["file"] == body else mesh for mesh in garment["meshes"]]
     yield ("skinned_garment", manifest_bytes(garment), files, "invalid_data", body)
@@ -145,15 +139,7 @@ def bad_cases(manifest: dict, files: list[BundleFile]):
 
 
 def generate(out_dir: Path) -> None:
-    if out_dir.exists():
-        raise SystemExit(f"{out_dir} exists: vectors are never edited; a new format version gets a new folder")
-    manifest, files = good_files()
-    v2._write_raw(out_dir / "good" / "bundle", manifest_bytes(manifest), files)
-    (out_dir / "good" / "expected.json").write_text(json.dumps(expected_values(manifest, files), indent=1) + "\n")
-    for name, manifest_data, case_files, code, file in bad_cases(manifest, files):
-        case = out_dir / "bad" / name
-        v2._write_raw(case / "bundle", manifest_data, case_files)
-        (case / "expect.json").write_text(json.dumps({"error": code, "file": file}) + "\n")
+    v3.write_vectors(out_dir, good_files, expected_values, bad_cases)
 
 
 if __name__ == "__main__":

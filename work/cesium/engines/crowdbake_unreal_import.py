@@ -1,0 +1,178 @@
+"""crowdbake export -> Unreal Engine 5 assets that play the cloth from vertex-animation textures (VATs).
+
+Export with --vat-png. Once per project, make the material PARENT_MATERIAL: a material function's Custom
+node with the code of shaders/unreal_vat_custom_node.hlsl, its inputs fed by parameters named as the
+*_PARAMETER constants below, Frame = Time * FramesPerSecond. Then run this file in the editor (Tools >
+Execute Python Script, or `py crowdbake_unreal_import.py [EXPORT_DIR] [ANIMATION]` in the Output Log's
+Python console). It imports every LOD's .glb and the VAT PNGs under /Game/Crowdbake/<name>/<version>/,
+gives the PNGs the settings below, and makes one material instance per part with every parameter set
+from export.json. Assign each instance to its part's mesh; the .glb's own materials show its looks.
+
+EXPORT_DIR defaults to the folder above this file's, where the export puts it.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+import unreal
+
+PARENT_MATERIAL = "/Game/Crowdbake/M_CrowdbakeVat"
+DESTINATION_ROOT = "/Game/Crowdbake"
+
+POSITION_MAP_PARAMETER = "PositionMap"
+NORMAL_MAP_PARAMETER = "NormalMap"
+BOUNDS_MIN_PARAMETER = "BoundsMin"
+BOUNDS_MAX_PARAMETER = "BoundsMax"
+ROWS_PER_FRAME_PARAMETER = "RowsPerFrame"
+FRAMES_PER_SECOND_PARAMETER = "FramesPerSecond"
+RANGE_PARAMETER = "Range"  # first_frame, frames, loop, before_frame: the Custom node's Range input
+RANGE_AFTER_PARAMETER = "RangeAfter"
+NODE_TRANSLATION_PARAMETER = "NodeTranslation"
+NODE_SCALE_PARAMETER = "NodeScale"
+
+# The compression of the 16-bit position VAT. None of Unreal's TextureCompressionSettings (the Python API's
+# list, UE 5.0 to 5.7) keeps 16-bit unsigned RGBA: TC_HDR stores RGBA16F ("HDR" is RGBA16F in Unreal's
+# ETextureImportFloatingPointFormat), whose 11-bit significand rounds q / 65535 to steps of 1/2048 between
+# 0.5 and 1 (0.9 mm on a 1.8 m character); TC_VectorDisplacementmap stores 8 bits a channel; TC_Grayscale,
+# TC_Displacementmap and TC_HalfFloat keep one channel. TC_HDR_F32 (UE 5.1 on) stores 32-bit floats, whose
+# 24-bit significand holds every q / 65535 exactly: the one setting that keeps the PNG's precision, at
+# 16 bytes a texel.
+POSITION_COMPRESSION = "TC_HDR_F32"
+# 8-bit normals: TC_VectorDisplacementmap is uncompressed B8G8R8A8, the PNG's own bits.
+NORMAL_COMPRESSION = "TC_VECTOR_DISPLACEMENTMAP"
+
+
+def read_sidecar(export_dir: str) -> dict:
+    path = os.path.join(export_dir, "export.json")
+    with open(path, encoding="utf-8") as handle:
+        sidecar = json.load(handle)
+    if sidecar.get("format") != "crowdbake-export":
+        raise ValueError(f"{path} is not a crowdbake export.json")
+    return sidecar
+
+
+def pick_animation(animations: list[dict], name: str | None) -> dict:
+    """The animations[] entry named `name`, or the first (a clip) when None."""
+    for animation in animations:
+        if name is None or animation["name"] == name:
+            return animation
+    raise ValueError(f"export.json has no animation named {name!r}")
+
+
+def compression(name: str):
+    setting = getattr(unreal.TextureCompressionSettings, name, None)
+    if setting is None:  # TC_HDR_F32 came with UE 5.1; an older TC_HDR would round the positions
+        raise RuntimeError(f"this Unreal has no TextureCompressionSettings.{name}: crowdbake's VATs need UE 5.1 or later")
+    return setting
+
+
+def import_files(files: list[str], destination: str) -> list[list[str]]:
+    """Import each file into the `destination` folder: per file, the paths of the assets made."""
+    tasks = []
+    for filename in files:
+        task = unreal.AssetImportTask()
+        task.set_editor_property("filename", filename)
+        task.set_editor_property("destination_path", destination)
+        task.set_editor_property("automated", True)
+        task.set_editor_property("replace_existing", True)
+        task.set_editor_property("save", True)
+        tasks.append(task)
+    unreal.AssetToolsHelpers.get_asset_tools().import_asset_tasks(tasks)
+    imported = [list(task.get_editor_property("imported_object_paths")) for task in tasks]
+    for filename, paths in zip(files, imported):
+        if not paths:
+            raise RuntimeError(f"Unreal imported nothing from {filename}")
+    return imported
+
+
+def configure_vat(texture, compression_name: str) -> None:
+    """A VAT as data: its own bits (compression_name), linear, point sampled, no mips, always resident
+    (the shader reads single texels, which streaming would replace by a smaller mip)."""
+    texture.set_editor_property("compression_settings", compression(compression_name))
+    texture.set_editor_property("srgb", False)
+    texture.set_editor_property("filter", unreal.TextureFilter.TF_NEAREST)
+    texture.set_editor_property("mip_gen_settings", unreal.TextureMipGenSettings.TMGS_NO_MIPMAPS)
+    texture.set_editor_property("never_stream", True)
+    unreal.EditorAssetLibrary.save_loaded_asset(texture)
+
+
+def import_vats(export_dir: str, vat: dict, destination: str) -> tuple[object, object]:
+    """(position texture, normal texture) of a part's `vat` block, imported and configured."""
+    if "png" not in vat["position"] or "png" not in vat["normal"]:
+        raise ValueError("the export has no VAT PNGs (Unreal does not import KTX2): export it with --vat-png")
+    files = [os.path.join(export_dir, vat[kind]["png"]) for kind in ("position", "normal")]
+    (position_path, *_), (normal_path, *_) = import_files(files, destination)
+    position, normal = unreal.load_asset(position_path), unreal.load_asset(normal_path)
+    configure_vat(position, POSITION_COMPRESSION)
+    configure_vat(normal, NORMAL_COMPRESSION)
+    return position, normal
+
+
+def vector(values: list[float], w: float = 0.0):
+    return unreal.LinearColor(float(values[0]), float(values[1]), float(values[2]), w)
+
+
+def material_parameters(part: dict, played: dict) -> tuple[dict[str, float], dict[str, object]]:
+    """(scalar parameters, vector parameters) of a part's material: its VAT layout (lods[].parts[].vat),
+    its quantized mesh's node (lods[].parts[].node) and the range of pose frames played (animations[].vat).
+    Values stay in glTF's axes and metres: the Custom node turns its result into Unreal's."""
+    vat, node = part["vat"], part["node"]
+    scalars = {
+        ROWS_PER_FRAME_PARAMETER: float(vat["rows_per_frame"]),
+        FRAMES_PER_SECOND_PARAMETER: float(vat["frames_per_second"]),
+        RANGE_AFTER_PARAMETER: float(played["after_frame"]),
+        NODE_SCALE_PARAMETER: float(node["scale"]),
+    }
+    vectors = {
+        BOUNDS_MIN_PARAMETER: vector(vat["bounds_min"]),
+        BOUNDS_MAX_PARAMETER: vector(vat["bounds_max"]),
+        RANGE_PARAMETER: unreal.LinearColor(float(played["first_frame"]), float(played["frames"]), float(played["loop"]), float(played["before_frame"])),
+        NODE_TRANSLATION_PARAMETER: vector(node["translation"]),
+    }
+    return scalars, vectors
+
+
+def make_material_instance(name: str, destination: str, parent, part: dict, played: dict, textures: tuple[object, object]):
+    path = f"{destination}/{name}"
+    if unreal.EditorAssetLibrary.does_asset_exist(path):  # a second run updates the instance in place
+        instance = unreal.load_asset(path)
+    else:
+        asset_tools = unreal.AssetToolsHelpers.get_asset_tools()
+        instance = asset_tools.create_asset(name, destination, unreal.MaterialInstanceConstant, unreal.MaterialInstanceConstantFactoryNew())
+    library = unreal.MaterialEditingLibrary
+    library.set_material_instance_parent(instance, parent)
+    scalars, vectors = material_parameters(part, played)
+    for parameter, value in scalars.items():
+        library.set_material_instance_scalar_parameter_value(instance, parameter, value)
+    for parameter, value in vectors.items():
+        library.set_material_instance_vector_parameter_value(instance, parameter, value)
+    for parameter, texture in zip((POSITION_MAP_PARAMETER, NORMAL_MAP_PARAMETER), textures):
+        library.set_material_instance_texture_parameter_value(instance, parameter, texture)
+    unreal.EditorAssetLibrary.save_loaded_asset(instance)
+    return instance
+
+
+def main(export_dir: str, animation_name: str | None = None) -> None:
+    sidecar = read_sidecar(export_dir)
+    played = pick_animation(sidecar["animations"], animation_name)["vat"]
+    parent = unreal.load_asset(PARENT_MATERIAL)
+    if parent is None:
+        raise RuntimeError(f"no material at {PARENT_MATERIAL}: make it first (this file's docstring)")
+    bundle = sidecar["bundle"]
+    destination = f"{DESTINATION_ROOT}/{bundle['name']}/{bundle['version']}".replace(".", "_")
+    for lod in sidecar["lods"]:
+        import_files([os.path.join(export_dir, lod["glb"])], f"{destination}/lod{lod['lod']}")
+        for part in lod["parts"]:
+            if "node" not in part:  # exported with --cloth-bones: a skinned mesh that plays its own bones
+                continue
+            name = f"{part['part']}_lod{lod['lod']}"
+            textures = import_vats(export_dir, part["vat"], f"{destination}/vat")
+            make_material_instance(f"MI_{name}", f"{destination}/materials", parent, part, played, textures)
+            unreal.log(f"crowdbake: MI_{name} plays {part['part']} (LOD {lod['lod']})")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1] if len(sys.argv) > 1 else os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+         sys.argv[2] if len(sys.argv) > 2 else None)
