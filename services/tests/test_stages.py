@@ -18,8 +18,9 @@ from crowdbake.params import BakeParams
 from crowdbake.stages import STAGES
 from crowdbake.stages.cycle import stage_cycle
 from crowdbake.stages.impostors import (
-    SCENE_FILE, impostor_tasks, load_plan, load_scene, part_path, spread_gaps, stage_impostor_plan, stage_impostor_views,
+    SCENE_FILE, impostor_tasks, load_plan, load_scene, part_path, spread_gaps, stage_impostor_views,
 )
+from crowdbake.stages.impostor_plan import stage_impostor_plan
 from crowdbake.stages.pack import stage_pack
 from crowdbake.stages.poses import TEXTURES_FILE, stage_poses, stage_textures
 from crowdbake.stages.publish import stage_publish
@@ -219,6 +220,7 @@ def test_the_textures_need_the_job_alone(sample, baked, tmp_path):
     written, stamp = path.read_bytes(), path.stat().st_mtime_ns
     assert stage_textures(work) == record and path.stat().st_mtime_ns == stamp
     stage_cycle(work)
+    stage_impostor_plan(work)
     poses = stage_poses(work).record
     assert path.stat().st_mtime_ns == stamp and path.read_bytes() == written
     assert poses.materials == record.materials and poses.outfit_count == record.outfit_count == 8

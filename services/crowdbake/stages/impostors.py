@@ -93,44 +93,6 @@ def scene_arrays(high: dict, part_material: dict[str, int], frame_indices: list[
     return arrays
 
 
-def stage_impostor_plan(work: Path, progress: Progress | None = None) -> StageOutcome[ImpostorPlan]:
-    """The impostors' framing, baked frames and scene (work/impostor/scene.npz) from the cycle's output.
-
-    The same figures as the poses stage's (impostor_framing over the same high_parts), without its LODs
-    and texture compression: what the impostor tasks need, so they can start beside the poses stage."""
-    started = time.perf_counter()
-    folder = WorkDir(work)
-    # Its scene is the caches' geometry: stale when their kind changes.
-    key = stage_key("impostor-plan", folder.key_of("cycle"), QUANTIZED_POSE_CACHE_VERSION, SKINNED_POSE_CACHE_MAGIC.decode())
-    scene_path = folder.root / "impostor" / SCENE_FILE
-    cached = folder.cached("impostor", key, ImpostorPlan, [scene_path])
-    if cached is not None:
-        return StageOutcome(cached, True, 0.0)
-    job = load_job(work)
-    params = job.bake_params
-    cycle = folder.load("cycle", CycleRecord)
-    character = load_character(folder.inputs / job.inputs["character"], animation=params.animation)
-    materials, outfits = materials_of(job, folder.inputs, character, first_layer_only=True)
-    high, _, part_material = high_parts(job, cycle, folder, character)
-    bounds, layout, frame_indices, _ = impostor_framing(params, cycle, high)
-    arrays = scene_arrays(high, part_materials(part_material, materials), frame_indices)
-    for index, material in enumerate(materials):
-        layers = material["layers"]
-        pixel_format = diffuse_format(layers, params.compress)
-        height, width = layers.shape[1:3]
-        arrays[f"diffuse_{index}"] = layers[0]
-        # What a runtime samples: variation 0 through the bundle's block compression (as the poses stage encodes it).
-        arrays[f"runtime_{index}"] = compression.decode(compression.encode(layers[0], pixel_format), pixel_format, width, height)
-    arrays["outfit_row"] = outfits[0]
-    write_bytes_atomic(scene_path, npz_bytes(arrays))
-    record = ImpostorPlan(bounds=bounds, layout=layout.to_manifest(), frame_indices=frame_indices,
-                          fidelity_frame=frame_indices[0], material_count=len(materials), ranges=cycle.ranges)
-    seconds = time.perf_counter() - started
-    folder.save("impostor", key, record, seconds)
-    report(progress, "impostor-plan", 1, 1)
-    return StageOutcome(record, False, seconds)
-
-
 def previous_baked_frame(record: ImpostorPlan | PosesRecord, frame: int) -> int:
     """The baked frame before `frame`, as next_baked_frame the other way (crowdbake.bake.surface_maps)."""
     ranges = record.bundle_ranges()

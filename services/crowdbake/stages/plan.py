@@ -1,9 +1,8 @@
 """The bake as one plan: its nodes (stage functions), what each needs and writes, and its fan-outs.
 
-    validate ─┬─ textures ───────────────────────────────┐
-              └─ clip_loop × clips ─ cycle ─┬─ impostor_plan ┼─ impostor_views × tasks ─ pack_frame × frames ─┐
-                                            └─ poses ────────┴─ references ─────────────── scores ─────────────┴─ pack ─┬─ publish ─┬─ commit_export
-                                                                                                                        └─ export ──┘
+    validate ─┬─ textures ────────────────────────────────────┐
+              └─ clip_loop × clips ─ cycle ─ impostor_plan ─┬─ poses ─ references ──────────────── scores ─┬─ pack ─┬─ publish ─┬─ commit_export
+                                                            └─ impostor_views × tasks ─ pack_frame × frames ─┘        └─ export ──┘
 
 Two executors run this plan and neither writes an order of its own:
 - crowdbake.stages.runner (`crowdbake bake`, one machine) starts every node as soon as what it needs is
@@ -199,7 +198,7 @@ def _cycle(call: Call) -> dict:
 
 
 def _impostor_plan(call: Call) -> dict:
-    from crowdbake.stages.impostors import stage_impostor_plan
+    from crowdbake.stages.impostor_plan import stage_impostor_plan
 
     return stage_impostor_plan(call.work, call.progress).to_json()
 
@@ -308,9 +307,9 @@ BAKE_PLAN: tuple[Node, ...] = (
          item_writes=_loop_writes),
     Node("cycle", "cycle", _cycle, _stamp_key("cycle"), needs=("validate", "clip_loop"), writes=("cycle",), placement=HERE),
     Node("textures", "poses", _textures, _stamp_key("textures"), needs=("validate",), writes=("textures", "poses")),
-    Node("impostor_plan", "poses", _impostor_plan, _stamp_key("impostor"), needs=("cycle",), writes=IMPOSTOR_PLAN_FILES,
-         placement=HERE),
-    Node("poses", "poses", _poses, _stamp_key("poses"), needs=("cycle", "textures"), writes=("poses",)),
+    # Several clips: the plan draws probes (crowdbake.stages.impostor_probe) in a worker's GL context.
+    Node("impostor_plan", "poses", _impostor_plan, _stamp_key("impostor"), needs=("cycle",), writes=IMPOSTOR_PLAN_FILES),
+    Node("poses", "poses", _poses, _stamp_key("poses"), needs=("cycle", "textures", "impostor_plan"), writes=("poses",)),
     Node("impostor_views", "impostors", _impostor_views, _part_key, needs=("impostor_plan",), items=_impostor_items,
          item_key=lambda task: str(task["id"]), order=task_order,
          item_writes=lambda task: (f"impostor/parts/{task['id']}.npz", f"impostor/parts/{task['id']}.json")),
@@ -334,6 +333,7 @@ NODES: dict[str, Node] = {node.name: node for node in BAKE_PLAN}
 # process that runs nodes may import ahead (crowdbake.stages.worker_pool preloads them in its fork server).
 STAGE_MODULES = (
     "crowdbake.stages.validate", "crowdbake.stages.loops", "crowdbake.stages.cycle", "crowdbake.stages.poses", "crowdbake.stages.impostors",
+    "crowdbake.stages.impostor_plan",
     "crowdbake.stages.runtime_fidelity", "crowdbake.stages.pack", "crowdbake.stages.publish", "crowdbake.storage.exports",
 )
 

@@ -34,7 +34,7 @@ from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2
 from crowdbake.formats.ranges import Ranges
 from crowdbake.stages.body_skin import skinned_body, skinned_cache_bytes
-from crowdbake.stages.records import CycleRecord, JobRecord, MaterialInfo, PosePart, PosesRecord, TexturesRecord
+from crowdbake.stages.records import CycleRecord, ImpostorPlan, JobRecord, MaterialInfo, PosePart, PosesRecord, TexturesRecord
 from crowdbake.stages.validate import load_job, texture_files
 from crowdbake.stages.workdir import (
     Progress, StageOutcome, WorkDir, npz_bytes, report, stage_key, write_bytes_atomic, write_json_atomic,
@@ -319,7 +319,7 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     folder = WorkDir(work)
     job = load_job(work)
     # A cache of another version is stale, and so is one from before skinned bodies.
-    key = stage_key("poses", folder.key_of("cycle"), QUANTIZED_POSE_CACHE_VERSION, SKINNED_POSE_CACHE_MAGIC.decode())
+    key = stage_key("poses", folder.key_of("cycle"), folder.key_of("impostor"), QUANTIZED_POSE_CACHE_VERSION, SKINNED_POSE_CACHE_MAGIC.decode())
     out = folder.root / "poses"
     cached = folder.cached("poses", key, PosesRecord, [out / TEXTURES_FILE, out / DIFFUSE_ERRORS])
     if cached is not None:
@@ -337,7 +337,9 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     parts = _write_lods(high, kinds, part_material, params, cycle.fps, out)
     report(progress, "poses", 5, steps)
 
-    bounds, layout, frame_indices, budget = impostor_framing(params, cycle, high)
+    # The impostor plan chose the framing (several clips: by measuring); the caches and maps agree on it.
+    plan = folder.load("impostor", ImpostorPlan)
+    bounds, layout, frame_indices, budget = plan.bounds, AtlasLayout.from_manifest(plan.layout), plan.frame_indices, plan.budget
     record = PosesRecord(
         frames_per_second=cycle.fps,
         cycle_frames=cycle.pose_frames,

@@ -211,6 +211,7 @@ class ImpostorPlan(Record):
     fidelity_frame: int
     material_count: int
     ranges: dict[str, Any] | None = None  # as PosesRecord.ranges
+    budget: dict[str, Any] | None = None  # as PosesRecord.budget: how the frames were chosen
 
     def bundle_ranges(self) -> Ranges | None:
         return None if self.ranges is None else ranges_of(self.ranges)
