@@ -12,10 +12,9 @@ map's alpha) into the arrays stage_impostor_views writes as work/impostor/parts/
 <id>.json (ImpostorPartRecord). The pack stage (crowdbake.stages.pack) lays the parts into atlases and
 compresses them.
 
-The impostor plan (stage_impostor_plan) runs on the cycle's output alone: the framing, the baked frames
-and, in work/impostor/scene.npz, the high LOD at those frames and the textures the tasks draw with,
-computed by the same functions as the poses stage (crowdbake.stages.poses.high_parts). So the tasks do
-not wait for the poses stage: both run side by side (two workers, or the CLI runner's two processes).
+The impostor plan (crowdbake.stages.impostor_plan) runs on the cycle's output alone: the framing, the
+baked frames and, in work/impostor/scene.npz, the high LOD at those frames and the textures the tasks
+draw with (scene_arrays). The poses stage takes its framing from the plan and runs beside the tasks.
 Fidelity-frame tasks also draw the mesh references the pack stage scores the impostor against, shaded
 per sample by the map shader's reference pass.
 """
@@ -29,17 +28,13 @@ from pathlib import Path
 
 import numpy as np
 
-from crowdbake.bake import compression, impostor_views, pose_ranges, surface_maps
+from crowdbake.bake import impostor_views, pose_ranges, surface_maps
 from crowdbake.formats import pose_codec
-from crowdbake.formats.binary import QUANTIZED_POSE_CACHE_VERSION
-from crowdbake.formats.skinned_cache import SKINNED_POSE_CACHE_MAGIC, read_any_pose_frame
-from crowdbake.formats.gltf import load_character
+from crowdbake.formats.skinned_cache import read_any_pose_frame
 from crowdbake.render.impostor import shared_renderer
-from crowdbake.stages.poses import diffuse_format, high_parts, impostor_framing, materials_of, part_materials
-from crowdbake.stages.records import CycleRecord, ImpostorPartRecord, ImpostorPlan, ImpostorStatistics, ImpostorTask, PosesRecord
-from crowdbake.stages.validate import load_job
+from crowdbake.stages.records import ImpostorPartRecord, ImpostorPlan, ImpostorStatistics, ImpostorTask, PosesRecord
 from crowdbake.stages.workdir import (
-    Progress, StageOutcome, WorkDir, npz_bytes, read_json, report, stage_key, write_bytes_atomic, write_json_atomic,
+    WorkDir, npz_bytes, read_json, stage_key, write_bytes_atomic, write_json_atomic,
 )
 
 # Samples per texel side of the fidelity stage's mesh reference (crowdbake.bake.fidelity): 3² = 9. 4²
