@@ -489,7 +489,23 @@ def add_cli_options(parser, names: Iterable[str] | None = None, *, server_defaul
             kwargs["metavar"] = spec.metavar
             # A list stays text here and is parsed by params_from_args, so a bad one is a one-line error.
             kwargs["type"] = {"int": int, "float": float, "floats": str}[spec.kind]
+            if spec.optional and spec.default is not None:
+                # A parameter on by default that null turns off (REST): `none` on the command line.
+                kwargs["type"] = optional_number(kwargs["type"])
+                kwargs["metavar"] = f"{spec.metavar or 'N'}|none"
         target.add_argument(*option_flags, **kwargs)
+
+
+NONE_GIVEN = "none"
+
+
+def optional_number(parse):
+    """An argparse type: `none` (any case) stays NONE_GIVEN, which params_from_args turns into null;
+    anything else is `parse`d."""
+    def parsed(text: str):
+        return NONE_GIVEN if text.strip().lower() == NONE_GIVEN else parse(text)
+    parsed.__name__ = getattr(parse, "__name__", "number")
+    return parsed
 
 
 def name_or_index(text: str) -> int | str:
@@ -517,6 +533,9 @@ def params_from_args(args: argparse.Namespace, names: Iterable[str] | None = Non
     for spec in (SPECS[name] for name in names) if names is not None else PARAMS:
         value = getattr(args, spec.name, None)
         if value is None and given_only:
+            continue
+        if value == NONE_GIVEN:
+            values[spec.name] = None
             continue
         if spec.kind == "floats" and isinstance(value, str):
             value = parse_floats(value, spec.name)

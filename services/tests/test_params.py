@@ -161,3 +161,13 @@ def test_animation_is_a_name_or_an_index_everywhere():
         with pytest.raises(InputError) as caught:
             BakeParams.from_dict({"animation": bad})
         assert caught.value.field == "animation"
+
+
+def test_none_on_the_command_line_turns_off_a_budget_on_by_default():
+    values = parse("--impostor-archetype-budget", "none", "--frame-motion", "None", "--impostor-budget", "12")
+    assert values["impostor_archetype_mib"] is None and values["impostor_motion_texels"] is None
+    assert values["impostor_budget_mib"] == 12.0
+    assert BakeParams.from_dict(values).impostor_archetype_mib is None
+    assert parse()["impostor_archetype_mib"] == 32.0
+    with pytest.raises(SystemExit):
+        parse("--impostor-archetype-budget", "lots")

@@ -31,7 +31,7 @@ from crowdbake.stages.workdir import Progress, StageOutcome, WorkDir, npz_bytes,
 logger = logging.getLogger(__name__)
 MIB = 1024 * 1024
 # What chooses a several-clip bake's frames: part of the plan's key, so plans of another rule are redone.
-ALLOCATION = f"measured-2-{PROBE_AZIMUTHS}x{PROBE_GAPS}-{impostor_allocation.TOLERANCE}-{len(impostor_allocation.LADDER)}"
+ALLOCATION = f"measured-3-{PROBE_AZIMUTHS}x{PROBE_GAPS}-{impostor_allocation.TOLERANCE}-{len(impostor_allocation.LADDER)}"
 
 
 class SceneFrames:
@@ -77,7 +77,6 @@ def measured_framing(params, cycle: CycleRecord, high: dict, record: ImpostorPla
     if params.crop:
         layout = replace(layout, crop=crop_for(extents, frame_indices, record.radius, params.tile_size))
     account = impostor_allocation.allocation_document(ranges, scores, allocation, params.impostor_archetype_mib, frame_bytes)
-    account["probe_seconds"] = round(prober.seconds, 2)
     logger.info("impostor frames by measuring: %s (%.1f MiB of %.1f, probes %.1f s)",
                 ", ".join(f"{r['name']} {r['baked_frames']}" for r in account["ranges"]), account["mib"],
                 params.impostor_archetype_mib, prober.seconds)

@@ -123,4 +123,17 @@ class Prober:
     def table(self, most: int) -> list[dict[int, float]]:
         """Per range (ranges.all() order) {count: score} over its ladder (impostor_allocation.ladder, at most
         `most` frames)."""
-        return [{n: self.score(index, n) for n in counts} for index, counts in enumerate(impostor_allocation.ladders(self.ranges, most))]
+        return [self.range_table(index, counts) for index, counts in enumerate(impostor_allocation.ladders(self.ranges, most))]
+
+    def range_table(self, index: int, counts: list[int]) -> dict[int, float]:
+        """{count: score} of one range: its ladder's top, then counts from the bottom up to the first within
+        impostor_allocation.TOLERANCE of the best so far. The allocation never bakes more than that count
+        (it is step 1's choice), so the counts above it are not probed."""
+        table = {counts[-1]: self.score(index, counts[-1])}
+        best = float("-inf")
+        for count in counts[:-1]:
+            table[count] = self.score(index, count)
+            best = max(best, table[count])
+            if best >= max(table.values()) - impostor_allocation.TOLERANCE:
+                break
+        return table
