@@ -174,6 +174,15 @@ def test_the_walk_the_cloth_followed_beats_the_same_walk_half_a_step_on(small_sa
     assert "repeats best" in reason and "does not follow)" in reason
     assert f"follow {evidence[1].follow:.2f}" in reason and "% inside" in reason
 
+    # `crowdbake cycle` chooses alike: the body it searches against is the walk's.
+    from crowdbake.bake.skinning import pose_character
+    from crowdbake.formats.gltf import load_character
+    from crowdbake.stages.cycle_inputs import load_cycle_inputs
+
+    inputs = load_cycle_inputs(small_sample / "cloth.pc2", small_sample / "cloth.obj", character=character)
+    walk, _ = pose_character(load_character(character, animation="walk"), FPS, 24)
+    assert inputs.cycle_frames == 24 and np.allclose(inputs.body[:24], walk, atol=1e-5)
+
 
 def test_a_body_the_cloth_sits_inside_loses(small_sample, tmp_path):
     """The walk with the body grown by a third, first in the file: the cloth moves with it (the same
