@@ -236,3 +236,19 @@ def test_long_skirt_picks_cesium_mans_walk_over_it_half_a_cycle_on(shared_asset,
     cloth = read_cloth(shared_asset("long_skirt/long_skirt.pc2"), shared_asset("long_skirt/long_skirt.obj")).frames
     choice = choose_clip(character_clips(character), cloth, FPS, lambda indices: character_clip_evidence(character, indices, cloth, FPS))
     assert choice.name == "Walk" and "does not follow)" in choice.reason
+
+
+def test_a_tie_on_the_gap_goes_to_the_clip_the_cloth_follows_best():
+    """Two 24-frame clips the cloth repeats after alike and neither ruled out (follows 0.40 and 0.50, less
+    than FOLLOW_MARGIN apart): the better followed wins, and the reason says why; evidence alike leaves a
+    tie, named as before."""
+    from crowdbake.ingest.clip_choice import Clip
+
+    t = np.arange(72)[:, None]
+    cloth = np.random.default_rng(2).normal(size=(1, 30, 3)) + np.stack([np.sin(2 * np.pi * t / 24) * np.linspace(0, 0.3, 30)] * 3, axis=2)
+    clips = [Clip("run", 1.0), Clip("walk", 1.0)]
+    choice = choose_clip(clips, cloth, FPS, lambda indices: {0: ClipEvidence(0.01, 0.40, 16), 1: ClipEvidence(0.01, 0.50, 16)})
+    assert choice.name == "walk" and "'run' repeats alike" in choice.reason and "follows 'walk' best" in choice.reason
+    assert "rejected" not in choice.reason and "tie with it" not in choice.reason
+    alike = choose_clip(clips, cloth, FPS, lambda indices: {k: ClipEvidence(0.01, 0.5, 16) for k in indices})
+    assert alike.name == "run" and "'walk' tie with it" in alike.reason
