@@ -197,22 +197,24 @@ def test_a_body_the_cloth_sits_inside_loses(small_sample, tmp_path):
     assert choice.name == "walk" and "rejected: inside the body" in choice.reason
 
 
-@pytest.mark.parametrize("clip, first, last", [("Walking", 337, 492), ("Running", 515, 624)])
-def test_robot_cape_frames_of_one_clip_pick_that_clip(shared_asset, clip, first, last):
-    """robot_clips' cape over the blend-free frames of one clip (from a frame where the clip starts over):
-    Walking and Running are both 23 frames and loop, so the gap ties them; the cloth follows the one that
-    drove it, and the other 10 clips that fit are ruled out too."""
+@pytest.mark.parametrize("clip, first, last, gap_alone, rival", [
+    ("Walking", 337, 492, "Wave", "Running"), ("Running", 515, 624, "Running", "Walking"), ("Idle", 0, 314, "Dance", "Dance")])
+def test_robot_cape_frames_of_one_clip_pick_that_clip(shared_asset, clip, first, last, gap_alone, rival):
+    """robot_clips' cape over the blend-free frames of one clip (from a frame where the clip starts over).
+    The gap alone takes Wave (44 frames) for the Walking frames, and Dance, first in the file and as long
+    as Idle (80 frames), for the Idle ones; Walking and Running (23 frames, both loop) tie. The cloth
+    follows the clip that drove it, and `rival` (of the same length, or the gap's pick) is ruled out."""
+    import re
+
     from crowdbake.ingest.garment import read_cloth
 
     glb = shared_asset("robot_clips/robot.glb")
     cloth = read_cloth(shared_asset("robot_clips/garment.pc2"), shared_asset("robot_clips/garment.obj")).frames[first:last + 1]
     clips = character_clips(glb)
-    names = [c.name for c in clips]
-    assert repeat_gap(cloth, 23) == repeat_gap(cloth, clips[names.index("Running")].frames(FPS))
+    assert choose_clip(clips, cloth, FPS).name == gap_alone
     choice = choose_clip(clips, cloth, FPS, lambda indices: character_clip_evidence(glb, indices, cloth, FPS))
     assert choice.name == clip and "tie with it" not in choice.reason
-    other = "Running" if clip == "Walking" else "Walking"
-    assert f"'{other}' 23 frames" in choice.reason and "does not follow)" in choice.reason
+    assert re.search(rf"'{rival}' \d+ frames [^()]*\([^)]*does not follow\)", choice.reason), choice.reason
 
 
 def test_robot_cape_across_several_clips_follows_none_and_the_gap_decides(shared_asset):
