@@ -152,10 +152,13 @@ def load_cycle_inputs(
         from crowdbake.formats.gltf import load_character
 
         if animation is None:  # not told: the clip the cloth repeats after (crowdbake.ingest.clip_choice)
-            from crowdbake.ingest.clip_choice import character_clips, choose_clip
+            from crowdbake.ingest.clip_choice import character_clip_evidence, character_clips, choose_clip
 
             clips = character_clips(character)
-            animation = choose_clip(clips, cache.frames, frame_rate).index if len(clips) > 1 and cycle_frames is None else 0
+            animation = 0
+            if len(clips) > 1 and cycle_frames is None:
+                animation = choose_clip(clips, cache.frames, frame_rate, lambda indices: character_clip_evidence(
+                    character, indices, cache.frames, frame_rate, up, units)).index
         loaded_character = load_character(character, animation=animation)
         # The garment must sit on the character before a minute of search is spent on it.
         from crowdbake.ingest.garment import body_at_rest

@@ -253,7 +253,7 @@ def _parse_and_check(inputs: BakeInputs, sources: dict[str, Path], params: BakeP
     # Not told which animation: the one the cloth repeats after (crowdbake.ingest.clip_choice).
     choice = None
     if params.animation is None and params.cycle_frames is None:
-        choice = _choose_animation(sources["character"], cache, cache_fps(params.fps, cache.fps, cache.frame_step))
+        choice = _choose_animation(sources["character"], cache, cache_fps(params.fps, cache.fps, cache.frame_step), params.up, params.units)
     animation = choice.index if choice is not None else (params.animation if params.animation is not None else 0)
     try:
         character = load_character(sources["character"], animation=animation)
@@ -337,15 +337,18 @@ def _parse_body_only(sources: dict[str, Path], params: BakeParams) -> _Parsed:
     return _Parsed(counts, None, fps, False, params.animation if params.animation is not None else 0, choice)
 
 
-def _choose_animation(path: Path, cache: ClothCache, fps: float):
-    """choose_clip on the character's clips; a broken file is left to load_character to name."""
-    from crowdbake.ingest.clip_choice import character_clips, choose_clip
+def _choose_animation(path: Path, cache: ClothCache, fps: float, up: str | None, units: str | None):
+    """choose_clip on the character's clips, with the cloth's physical evidence; a broken file is left to
+    load_character to name."""
+    from crowdbake.ingest.clip_choice import character_clip_evidence, character_clips, choose_clip
 
     try:
         clips = character_clips(path)
     except (ValueError, FormatError, OSError, KeyError, TypeError, AttributeError):
         return None
-    return choose_clip(clips, cache.frames, fps) if len(clips) > 1 else None
+    if len(clips) < 2:
+        return None
+    return choose_clip(clips, cache.frames, fps, lambda indices: character_clip_evidence(path, indices, cache.frames, fps, up, units))
 
 
 def _copy_inputs(work: WorkDir, inputs: BakeInputs, sources: dict[str, Path], gltf_files: list[str],
