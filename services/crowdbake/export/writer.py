@@ -34,11 +34,13 @@ from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.export import ktx2
 from crowdbake.export.animations import AnimationPlan, animation_plans, sidecar_animations
 from crowdbake.bake.shading import apply_outfit
+from crowdbake.export.body_skin import GltfSkin, gltf_skin, play, why_not_a_skin
 from crowdbake.export.cloth_bones import DEFAULT_ITERATIONS, ClothBones, choose_bone_count, decompose_cloth
 from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb, node_transform
 from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, over_half_covered, region_codes_used, rgba8_layers, uv_map_layers
 from crowdbake.export.vat import encode_vat, vat_texcoords
 from crowdbake.formats.bundle import Bundle, verify_bundle
+from crowdbake.formats.skinned_cache import SkinnedPoseCache
 
 logger = logging.getLogger(__name__)
 
@@ -101,6 +103,18 @@ def bones_entry(bones: ClothBones, request: ClothBonesRequest, vertex_count: int
     return {"count": bones.bone_count, "asked": request.count if request.count is not None else "auto",
             **({"budget_mm": request.budget_mm} if request.count is None else {}), "iterations": bones.iterations,
             "rms_mm": round(bones.rms_m * 1000, 3), "max_mm": round(bones.max_m * 1000, 3), "bytes": skin_bytes}
+
+
+def skin_entry(skin: GltfSkin, cache: SkinnedPoseCache) -> dict[str, Any]:
+    """export.json's `skin` block of a body played as a glTF skin: its joints, the pose frames that carry a
+    corrective target, its largest distance from the bundle's frames and its bytes in the .glb."""
+    played = play(skin, np.arange(cache.frame_count))
+    max_mm = float(np.linalg.norm(played - cache.positions, axis=-1).max() * 1000)
+    vertex_count, keyed = cache.vertex_count, skin.animated.size * (12 + 16 + 12)
+    return {"joints": skin.joint_count, "animated_joints": int(skin.animated.size), "corrective_frames": skin.corrected.tolist(),
+            "max_mm": round(max_mm, 4), "bytes_per_key": keyed, "bytes": vertex_count * (24 + 16) + skin.corrected.size * vertex_count * 16,
+            "meaning": "the rest mesh skinned by joint nodes keyed per animation (translation, rotation, scale); "
+                       "a corrective frame (a blend of two poses) adds its morph target"}
 
 
 @dataclass(frozen=True)
@@ -308,12 +322,22 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
             extras = {"part": mesh["part"], "kind": mesh["kind"], "lod": lod, "material": mesh["material"], "vat": vat}
             bones = (cloth_bones.decompose(cache.positions, cache.indices, f"{mesh['part']} lod {lod}")
                      if cloth_bones is not None and mesh["kind"] == "garment" else None)
+            # A skinned pose cache stays a skin, unless a joint has no rotation to animate (then morph targets).
+            refused = why_not_a_skin(cache) if isinstance(cache, SkinnedPoseCache) else None
+            skin = gltf_skin(cache) if isinstance(cache, SkinnedPoseCache) and refused is None else None
+            if refused is not None:
+                logger.warning("%s lod %d keeps morph targets: %s", mesh["part"], lod, refused)
             parts.append(
                 GlbPart(mesh["part"], mesh["kind"], mesh["material"], cache.positions, cache.normals, cache.uvs, vat_texcoords(layout), cache.indices, extras,
-                        bones)
+                        bones, skin)
             )
             entry = {k: extras[k] for k in ("part", "kind", "material")} | {"vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat}
-            if bones is None:
+            entry["playback"] = "skin" if skin is not None else "bones" if bones is not None else "morph"
+            if refused is not None:
+                entry["skin_refused"] = refused
+            if skin is not None:  # no `node`: like bones, a skinned mesh plays its own joints
+                entry["skin"] = skin_entry(skin, cache)
+            elif bones is None:
                 translation, scale = node_transform(cache.positions)
                 entry["node"] = {"translation": translation.tolist(), "scale": scale,
                                  "meaning": "the part's glTF node: position in metres = translation + scale * mesh position"}
