@@ -105,14 +105,18 @@ def bones_entry(bones: ClothBones, request: ClothBonesRequest, vertex_count: int
             "rms_mm": round(bones.rms_m * 1000, 3), "max_mm": round(bones.max_m * 1000, 3), "bytes": skin_bytes}
 
 
-def skin_entry(skin: GltfSkin, cache: SkinnedPoseCache) -> dict[str, Any]:
+def skin_entry(skin: GltfSkin, cache: SkinnedPoseCache, key_count: int) -> dict[str, Any]:
     """export.json's `skin` block of a body played as a glTF skin: its joints, the pose frames that carry a
-    corrective target, its largest distance from the bundle's frames and its bytes in the .glb."""
+    corrective target, its largest distance from the bundle's frames (metres -> mm) and its bytes in the .glb
+    (rest mesh, influences, inverse binds, corrective targets, and per key of every animation each weighted
+    joint's TRS and the corrective weights)."""
     played = play(skin, np.arange(cache.frame_count))
     max_mm = float(np.linalg.norm(played - cache.positions, axis=-1).max() * 1000)
-    vertex_count, keyed = cache.vertex_count, skin.animated.size * (12 + 16 + 12)
+    vertex_count, corrective = cache.vertex_count, int(skin.corrected.size)
+    mesh_bytes = vertex_count * (12 + 12 + 8 + 8) + skin.joint_count * 64 + corrective * vertex_count * (12 + 4)
+    key_bytes = key_count * (skin.animated.size * (12 + 16 + 12) + 4 * corrective)
     return {"joints": skin.joint_count, "animated_joints": int(skin.animated.size), "corrective_frames": skin.corrected.tolist(),
-            "max_mm": round(max_mm, 4), "bytes_per_key": keyed, "bytes": vertex_count * (24 + 16) + skin.corrected.size * vertex_count * 16,
+            "max_mm": round(max_mm, 4), "bytes": int(mesh_bytes + key_bytes),
             "meaning": "the rest mesh skinned by joint nodes keyed per animation (translation, rotation, scale); "
                        "a corrective frame (a blend of two poses) adds its morph target"}
 
@@ -336,7 +340,7 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
             if refused is not None:
                 entry["skin_refused"] = refused
             if skin is not None:  # no `node`: like bones, a skinned mesh plays its own joints
-                entry["skin"] = skin_entry(skin, cache)
+                entry["skin"] = skin_entry(skin, cache, sum(plan.key_count for plan in plans))
             elif bones is None:
                 translation, scale = node_transform(cache.positions)
                 entry["node"] = {"translation": translation.tolist(), "scale": scale,
