@@ -439,7 +439,8 @@ def check_skinned_part(gltf: pygltflib.GLTF2, blob: bytes, part: dict, cache, pl
     .glb (mesh, skin, keys) a fraction of what its morph targets took."""
     mesh_index = next(k for k, mesh in enumerate(gltf.meshes) if mesh.name == part["part"])
     primitive = gltf.meshes[mesh_index].primitives[0]
-    assert part["playback"] == "skin" and "node" not in part and "bones" not in part
+    assert part["playback"] == "skin" and "bones" not in part
+    assert (part["node"]["translation"], part["node"]["scale"]) == ([0.0, 0.0, 0.0], 1.0)  # the VATs' space is the skin's
     weights = gltf.accessors[primitive.attributes.WEIGHTS_0]
     assert weights.normalized and weights.componentType == pygltflib.UNSIGNED_SHORT
     corrective = part["skin"]["corrective_frames"]

@@ -339,8 +339,12 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
             entry["playback"] = "skin" if skin is not None else "bones" if bones is not None else "morph"
             if refused is not None:
                 entry["skin_refused"] = refused
-            if skin is not None:  # no `node`: like bones, a skinned mesh plays its own joints
+            if skin is not None:
                 entry["skin"] = skin_entry(skin, cache, sum(plan.key_count for plan in plans))
+                # The engine setups draw every part with a `node` by its VATs (metres in the character's space),
+                # as they did this body's morph targets; glTF places a skinned mesh by its joints alone.
+                entry["node"] = {"translation": [0.0, 0.0, 0.0], "scale": 1.0,
+                                 "meaning": "a skinned mesh: its joints place it, in metres; VAT positions need no transform"}
             elif bones is None:
                 translation, scale = node_transform(cache.positions)
                 entry["node"] = {"translation": translation.tolist(), "scale": scale,
