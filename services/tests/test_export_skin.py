@@ -94,3 +94,16 @@ def test_a_skinned_glb_validates_and_plays_every_clip_and_transition(tmp_path):
     out.write_bytes(data)
     (report,) = node_tool("validate-gltf.mjs", out)
     assert report["errors"] == 0 and report["warnings"] == 0, report["messages"][:5]
+
+
+def test_a_skin_no_smaller_than_its_morph_targets_keeps_them():
+    """The export's rule (writer.body_skin): 8 vertices cost 12 bytes a frame as morph targets, 40 once as a
+    skin, but 2 joints keyed at 30 keys cost 2,400 more: the strip keeps its morph targets, and says why."""
+    from crowdbake.export.writer import body_skin
+
+    cache = two_bone_strip(np.stack([np.stack([pose(5.0 * k, "z", [0, 0, 0]), pose(0.0, "x", [0, 0.5, 0])]) for k in range(3)]))
+    skin, refused = body_skin(cache, key_count=30)
+    assert skin is None and "bytes" in refused
+    many_frames = two_bone_strip(np.stack([np.stack([pose(5.0 * k, "z", [0, 0, 0]), pose(0.0, "x", [0, 0.5, 0])]) for k in range(60)]))
+    skin, refused = body_skin(many_frames, key_count=2)  # 528 + 2 * 80 bytes against 12 * 8 * 61 = 5,856
+    assert skin is not None and refused is None

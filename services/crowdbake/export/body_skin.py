@@ -146,6 +146,21 @@ def gltf_skin(cache: SkinnedPoseCache) -> GltfSkin:
                     cache.weight_codes.astype(np.uint16), translations, rotations, scales, animated, corrected, position_deltas, normal_delta)
 
 
+def skin_bytes(skin: GltfSkin, key_count: int) -> int:
+    """Bytes of a skin in the .glb: the rest mesh (float positions and normals, 4 joints and 4 unorm16 weights a
+    vertex), the inverse binds, each corrective target (float position, int8 normal a vertex), and per key of
+    all animations (key_count) each weighted joint's translation, rotation and scale and the corrective weights."""
+    vertex_count, corrective = skin.rest_positions.shape[0], int(skin.corrected.size)
+    mesh = vertex_count * (12 + 12 + 8 + 8) + skin.joint_count * 64 + corrective * vertex_count * (12 + 4)
+    return int(mesh + key_count * (skin.animated.size * (12 + 16 + 12) + 4 * corrective))
+
+
+def morph_bytes(vertex_count: int, frame_count: int) -> int:
+    """Bytes of a part's quantized base and morph targets in the .glb (int16 position and int8 normal, 12 bytes a
+    vertex, for the base and each pose frame): what a skin must beat."""
+    return 12 * vertex_count * (frame_count + 1)
+
+
 def play(skin: GltfSkin, frames: np.ndarray) -> np.ndarray:
     """(K,) pose frames -> (K, V, 3) float64 positions a glTF player gives at keys showing them: the rest
     mesh plus the frame's corrective target (if any), skinned by the joints' TRS (for tests and reports)."""

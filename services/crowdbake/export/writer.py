@@ -34,7 +34,7 @@ from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.export import ktx2
 from crowdbake.export.animations import AnimationPlan, animation_plans, sidecar_animations
 from crowdbake.bake.shading import apply_outfit
-from crowdbake.export.body_skin import GltfSkin, gltf_skin, play, why_not_a_skin
+from crowdbake.export.body_skin import GltfSkin, gltf_skin, morph_bytes, play, skin_bytes, why_not_a_skin
 from crowdbake.export.cloth_bones import DEFAULT_ITERATIONS, ClothBones, choose_bone_count, decompose_cloth
 from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb, node_transform
 from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, over_half_covered, region_codes_used, rgba8_layers, uv_map_layers
@@ -108,17 +108,26 @@ def bones_entry(bones: ClothBones, request: ClothBonesRequest, vertex_count: int
 def skin_entry(skin: GltfSkin, cache: SkinnedPoseCache, key_count: int) -> dict[str, Any]:
     """export.json's `skin` block of a body played as a glTF skin: its joints, the pose frames that carry a
     corrective target, its largest distance from the bundle's frames (metres -> mm) and its bytes in the .glb
-    (rest mesh, influences, inverse binds, corrective targets, and per key of every animation each weighted
-    joint's TRS and the corrective weights)."""
+    (body_skin.skin_bytes)."""
     played = play(skin, np.arange(cache.frame_count))
     max_mm = float(np.linalg.norm(played - cache.positions, axis=-1).max() * 1000)
-    vertex_count, corrective = cache.vertex_count, int(skin.corrected.size)
-    mesh_bytes = vertex_count * (12 + 12 + 8 + 8) + skin.joint_count * 64 + corrective * vertex_count * (12 + 4)
-    key_bytes = key_count * (skin.animated.size * (12 + 16 + 12) + 4 * corrective)
     return {"joints": skin.joint_count, "animated_joints": int(skin.animated.size), "corrective_frames": skin.corrected.tolist(),
-            "max_mm": round(max_mm, 4), "bytes": int(mesh_bytes + key_bytes),
+            "max_mm": round(max_mm, 4), "bytes": skin_bytes(skin, key_count),
             "meaning": "the rest mesh skinned by joint nodes keyed per animation (translation, rotation, scale); "
                        "a corrective frame (a blend of two poses) adds its morph target"}
+
+
+def body_skin(cache: SkinnedPoseCache, key_count: int) -> tuple[GltfSkin | None, str | None]:
+    """(the glTF skin of a skinned pose cache, None) or (None, why it keeps morph targets): a joint with no
+    rotation to animate, or a skin no smaller than the morph targets (a small LOD of many joints and keys)."""
+    refused = why_not_a_skin(cache)
+    if refused is not None:
+        return None, refused
+    skin = gltf_skin(cache)
+    size, morph = skin_bytes(skin, key_count), morph_bytes(cache.vertex_count, cache.frame_count)
+    if size >= morph:
+        return None, f"its skin would take {size} bytes, its morph targets {morph}"
+    return skin, None
 
 
 @dataclass(frozen=True)
@@ -326,9 +335,8 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
             extras = {"part": mesh["part"], "kind": mesh["kind"], "lod": lod, "material": mesh["material"], "vat": vat}
             bones = (cloth_bones.decompose(cache.positions, cache.indices, f"{mesh['part']} lod {lod}")
                      if cloth_bones is not None and mesh["kind"] == "garment" else None)
-            # A skinned pose cache stays a skin, unless a joint has no rotation to animate (then morph targets).
-            refused = why_not_a_skin(cache) if isinstance(cache, SkinnedPoseCache) else None
-            skin = gltf_skin(cache) if isinstance(cache, SkinnedPoseCache) and refused is None else None
+            # A skinned pose cache stays a skin where it can (body_skin), else morph targets like the rest.
+            skin, refused = body_skin(cache, sum(plan.key_count for plan in plans)) if isinstance(cache, SkinnedPoseCache) else (None, None)
             if refused is not None:
                 logger.warning("%s lod %d keeps morph targets: %s", mesh["part"], lod, refused)
             parts.append(
