@@ -25,7 +25,9 @@ from crowdbake.bake import compression
 from crowdbake.export import ktx2
 from crowdbake.export.textures import layer_digest, model_space_normal_bc1, model_space_normals, rgba8_layers
 from crowdbake.export.vat import VertexAnimation, decode_vat, encode_vat, vat_layout, vat_texcoords
+from crowdbake.export.animations import animation_plans
 from crowdbake.formats.bundle import verify_bundle
+from crowdbake.formats.skinned_cache import SkinnedPoseCache
 
 PREVIEW_DIR = REPO_ROOT / "services" / "crowdbake" / "api" / "static" / "preview"
 NODE = shutil.which("node")
@@ -288,17 +290,13 @@ def check_export(bundle_dir: Path, out: Path) -> None:
             mesh_index = next(k for k, mesh in enumerate(gltf.meshes) if mesh.name == part["part"])
             node = next(n for n in gltf.nodes if n.mesh == mesh_index)
             primitive = meshes[part["part"]].primitives[0]
-            base = read_accessor(gltf, blob, primitive.attributes.POSITION)
-            frame = cache.frame_count // 2  # target k is frame k (from the loop's mean pose)
-            delta = read_accessor(gltf, blob, primitive.targets[frame]["POSITION"])  # pygltflib loads targets as dicts
-            assert part["node"]["translation"] == node.translation and part["node"]["scale"] == node.scale[0]
-            played = np.array(node.translation) + node.scale[0] * (base + delta)
-            assert np.abs(played - cache.positions[frame]).max() < MORPH_TOLERANCE_M
-            normal = read_accessor(gltf, blob, primitive.attributes.NORMAL) + read_accessor(gltf, blob, primitive.targets[frame]["NORMAL"])
-            normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-            turned = np.degrees(np.arccos(np.clip((normal * cache.normals[frame]).sum(-1), -1, 1)))
-            # Normals turned past 90 degrees from the mean (cloth folding over) can only be approached (glb.normal_deltas).
-            assert np.percentile(turned, 90) < MORPH_NORMAL_DEGREES and np.isfinite(turned).all(), np.percentile(turned, 90)
+            # A body stored as skinning (a CBSK) is a glTF skin; everything else morph targets.
+            assert part["playback"] == ("skin" if isinstance(cache, SkinnedPoseCache) else "morph"), part["part"]
+            if part["playback"] == "skin":
+                assert node.skin is not None and node.translation is None and node.scale is None
+                check_skinned_part(gltf, blob, part, cache, animation_plans(bundle.ranges))
+            else:
+                check_morph_frame(gltf, blob, part, node, primitive, cache)
             np.testing.assert_array_equal(read_accessor(gltf, blob, primitive.attributes.TEXCOORD_0), cache.uvs)
             vat = part["vat"]
             assert meshes[part["part"]].extras["crowdbake"]["vat"] == vat
@@ -386,13 +384,101 @@ def check_export(bundle_dir: Path, out: Path) -> None:
     assert set(sidecar["regions"]["used"]) <= set(range(16))
 
 
+def check_morph_frame(gltf: pygltflib.GLTF2, blob: bytes, part: dict, node, primitive, cache) -> None:
+    """A part played by morph targets: the middle frame's target, dequantized by the node, gives that frame."""
+    base = read_accessor(gltf, blob, primitive.attributes.POSITION)
+    frame = cache.frame_count // 2  # target k is frame k (from the loop's mean pose)
+    delta = read_accessor(gltf, blob, primitive.targets[frame]["POSITION"])  # pygltflib loads targets as dicts
+    assert part["node"]["translation"] == node.translation and part["node"]["scale"] == node.scale[0]
+    played = np.array(node.translation) + node.scale[0] * (base + delta)
+    assert np.abs(played - cache.positions[frame]).max() < MORPH_TOLERANCE_M
+    normal = read_accessor(gltf, blob, primitive.attributes.NORMAL) + read_accessor(gltf, blob, primitive.targets[frame]["NORMAL"])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    turned = np.degrees(np.arccos(np.clip((normal * cache.normals[frame]).sum(-1), -1, 1)))
+    # Normals turned past 90 degrees from the mean (cloth folding over) can only be approached (glb.normal_deltas).
+    assert np.percentile(turned, 90) < MORPH_NORMAL_DEGREES and np.isfinite(turned).all(), np.percentile(turned, 90)
+
+
+def skin_played(gltf: pygltflib.GLTF2, blob: bytes, mesh_index: int, animation: pygltflib.Animation, keys, normals: bool = False):
+    """(K, V, 3) positions a glTF player gives for skinned mesh `mesh_index` at `keys` (key indices) of
+    `animation`: the rest mesh plus its morph targets at their keyed weights, skinned by the joints' keyed
+    translation, rotation and scale (a joint no channel keys keeps its node's) times its inverse bind.
+    normals: also the (K, V, 3) unit normals, turned by the blended 3 x 3 blocks (three.js's skinning)."""
+    from scipy.spatial.transform import Rotation
+
+    node_index = next(k for k, node in enumerate(gltf.nodes) if node.mesh == mesh_index)
+    skin = gltf.skins[gltf.nodes[node_index].skin]
+    primitive = gltf.meshes[mesh_index].primitives[0]
+    rest = read_accessor(gltf, blob, primitive.attributes.POSITION).astype(np.float64)
+    influences = read_accessor(gltf, blob, primitive.attributes.JOINTS_0).astype(np.int64)
+    weights = read_accessor(gltf, blob, primitive.attributes.WEIGHTS_0).astype(np.float64)
+    targets = np.array([read_accessor(gltf, blob, target["POSITION"]) for target in primitive.targets or []]).reshape(-1, len(rest), 3)
+    rest_normals = read_accessor(gltf, blob, primitive.attributes.NORMAL).astype(np.float64)
+    normal_targets = np.array([read_accessor(gltf, blob, target["NORMAL"]) for target in primitive.targets or []]).reshape(-1, len(rest), 3)
+    inverse_binds = read_accessor(gltf, blob, skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)  # column-major
+    tracks = {(c.target.node, c.target.path): read_accessor(gltf, blob, animation.samplers[c.sampler].output) for c in animation.channels}
+
+    def keyed(joint: int, path: str, default: list[float], key: int) -> np.ndarray:
+        return np.asarray(tracks[(joint, path)][key] if (joint, path) in tracks else getattr(gltf.nodes[joint], path) or default, np.float64)
+
+    played, turned = [], []
+    for key in keys:
+        morphed, morphed_normals = rest.copy(), rest_normals.copy()
+        if (node_index, "weights") in tracks:
+            target_weights = tracks[(node_index, "weights")].reshape(-1, len(targets))[key]
+            morphed += np.einsum("c,cvi->vi", target_weights, targets)
+            morphed_normals += np.einsum("c,cvi->vi", target_weights, normal_targets)
+        matrices = np.tile(np.eye(4), (len(skin.joints), 1, 1))
+        for row, joint in enumerate(skin.joints):
+            matrices[row, :3, :3] = Rotation.from_quat(keyed(joint, "rotation", [0, 0, 0, 1], key)).as_matrix() * keyed(joint, "scale", [1, 1, 1], key)
+            matrices[row, :3, 3] = keyed(joint, "translation", [0, 0, 0], key)
+        skinning = matrices @ inverse_binds  # the joints hang from the character's root, at identity
+        blended = np.einsum("vk,vkij->vij", weights, skinning[influences])
+        played.append(np.einsum("vij,vj->vi", blended[:, :3, :3], morphed) + blended[:, :3, 3])
+        normal = np.einsum("vij,vj->vi", blended[:, :3, :3], morphed_normals)
+        turned.append(normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12))
+    return (np.asarray(played), np.asarray(turned)) if normals else np.asarray(played)
+
+
+def check_skinned_part(gltf: pygltflib.GLTF2, blob: bytes, part: dict, cache, plans) -> None:
+    """A body exported as a glTF skin: JOINTS_0 and unorm16 WEIGHTS_0, morph targets only on its corrective
+    frames, every animation playing the bundle's frames at its keys within a millimetre, and its bytes in the
+    .glb (mesh, skin, keys) a fraction of what its morph targets took."""
+    mesh_index = next(k for k, mesh in enumerate(gltf.meshes) if mesh.name == part["part"])
+    primitive = gltf.meshes[mesh_index].primitives[0]
+    assert part["playback"] == "skin" and "bones" not in part
+    assert (part["node"]["translation"], part["node"]["scale"]) == ([0.0, 0.0, 0.0], 1.0)  # the VATs' space is the skin's
+    weights = gltf.accessors[primitive.attributes.WEIGHTS_0]
+    assert weights.normalized and weights.componentType == pygltflib.UNSIGNED_SHORT
+    corrective = part["skin"]["corrective_frames"]
+    assert len(primitive.targets or []) == len(corrective) and len(corrective) < cache.frame_count / 4
+    assert gltf.meshes[mesh_index].extras.get("targetNames", []) == [f"frame_{frame}" for frame in corrective]
+    for plan, animation in zip(plans, gltf.animations, strict=True):
+        played, normals = skin_played(gltf, blob, mesh_index, animation, range(plan.key_count), normals=True)
+        assert np.linalg.norm(played - cache.positions[plan.keys], axis=-1).max() < MORPH_TOLERANCE_M, (plan.name, part["part"])
+        turned = np.degrees(np.arccos(np.clip((normals * cache.normals[plan.keys]).sum(-1), -1, 1)))
+        assert turned.max() < MORPH_NORMAL_DEGREES, (plan.name, part["part"], turned.max())  # float rest normals, int8 corrections
+    node_index = next(k for k, node in enumerate(gltf.nodes) if node.mesh == mesh_index)
+    skin = gltf.skins[gltf.nodes[node_index].skin]
+    accessors = {primitive.attributes.POSITION, primitive.attributes.NORMAL, primitive.attributes.JOINTS_0, primitive.attributes.WEIGHTS_0,
+                 skin.inverseBindMatrices}
+    accessors |= {index for target in primitive.targets or [] for index in target.values()}
+    accessors |= {a.samplers[c.sampler].output for a in gltf.animations for c in a.channels if c.target.node in {*skin.joints, node_index}}
+    skin_bytes = sum(gltf.bufferViews[gltf.accessors[index].bufferView].byteLength for index in accessors)
+    # export.json's count (40 bytes a vertex, 16 a vertex a corrective frame, 40 a weighted joint a key), under
+    # the morph targets' 12 bytes a vertex a pose frame (the export's rule), and a quarter of them on a body of
+    # over 2,000 vertices, where the rest mesh outweighs the joints' keys.
+    assert skin_bytes == part["skin"]["bytes"], (part["part"], skin_bytes, part["skin"]["bytes"])
+    assert skin_bytes < cache.frame_count * cache.vertex_count * 12 / (4 if cache.vertex_count > 2000 else 1), (part["part"], skin_bytes)
+
+
 def read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int) -> np.ndarray:
     """An accessor's values; normalized integers as the floats they stand for (glTF's rule: max(c / max, -1))."""
     accessor = gltf.accessors[index]
     view = gltf.bufferViews[accessor.bufferView]
     dtype = np.dtype({pygltflib.FLOAT: "<f4", pygltflib.UNSIGNED_SHORT: "<u2", pygltflib.UNSIGNED_INT: "<u4", pygltflib.SHORT: "<i2",
                       pygltflib.BYTE: "i1"}[accessor.componentType])
-    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}[accessor.type]
+    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}[accessor.type]
     stride = view.byteStride or dtype.itemsize * width
     start = view.byteOffset + (accessor.byteOffset or 0)
     rows = np.frombuffer(blob, np.uint8, stride * (accessor.count - 1) + dtype.itemsize * width, start)
@@ -507,7 +593,8 @@ def test_morph_animation_keys_each_frame_once(sample_export):
     # Frame k weighs target k alone; the cycle's end is frame 0 again; a still viewer shows frame 0.
     np.testing.assert_array_equal(weights[:-1], np.eye(frames, dtype=np.float32))
     np.testing.assert_array_equal(weights[-1], weights[0])
-    assert all(mesh.weights == [1.0] + [0.0] * (frames - 1) for mesh in gltf.meshes)
+    morphed = [mesh for mesh in gltf.meshes if len(mesh.primitives[0].targets or []) == frames]
+    assert morphed and all(mesh.weights == [1.0] + [0.0] * (frames - 1) for mesh in morphed)
 
 
 def test_cli_refuses_a_non_empty_folder_and_a_broken_bundle(sample_bundle, sample_export, tmp_path, capsys):

@@ -23,7 +23,7 @@ import pygltflib
 import pytest
 
 from repo_paths import REPO_ROOT, VECTORS
-from test_export import MORPH_TOLERANCE_M, PREVIEW_DIR, node_tool, read_accessor
+from test_export import MORPH_TOLERANCE_M, PREVIEW_DIR, check_skinned_part, node_tool, read_accessor, skin_played
 from test_export_bones import read_accessor_vec4
 from crowdbake.export.animations import animation_plans, vat_range_uniforms, vat_shader_twin
 from crowdbake.export.cloth_bones import skin
@@ -129,6 +129,9 @@ def check_clip_export(bundle_dir: Path, out: Path) -> list[str]:
         gltf = pygltflib.GLTF2.load(out / lod["glb"])
         blob = gltf.binary_blob()
         assert [a.name for a in gltf.animations] == [a["name"] for a in animations]
+        for part in (p for p in lod["parts"] if p["playback"] == "skin"):  # every key of every animation, and its bytes
+            cache = bundle.pose_caches[next(m["file"] for m in bundle.manifest["meshes"] if m["lod"] == lod["lod"] and m["part"] == part["part"])]
+            check_skinned_part(gltf, blob, part, cache, animation_plans(ranges))
         for entry, animation in zip(animations, gltf.animations):
             assert animation.extras["crowdbake"]["playback"] == entry["playback"]
             sampler = animation.samplers[0]
@@ -147,6 +150,10 @@ def check_clip_export(bundle_dir: Path, out: Path) -> list[str]:
                 mesh_index = next(k for k, mesh in enumerate(gltf.meshes) if mesh.name == part["part"])
                 node = next(n for n in gltf.nodes if n.mesh == mesh_index)
                 primitive = gltf.meshes[mesh_index].primitives[0]
+                if part["playback"] == "skin":  # a skinned body: its joints' keys (and corrective targets) play it
+                    played = skin_played(gltf, blob, mesh_index, animation, (0, entry["keys"] - 1))
+                    assert np.abs(played - cache.positions[shown[[0, -1]]]).max() < MORPH_TOLERANCE_M, (entry["name"], part["part"])
+                    continue
                 base = read_accessor(gltf, blob, primitive.attributes.POSITION)
                 for key in (0, entry["keys"] - 1):
                     delta = read_accessor(gltf, blob, primitive.targets[shown[key]]["POSITION"])
@@ -163,11 +170,12 @@ def test_the_vector_bundle_exports_every_clip_and_transition(vector_export):
 
 def test_the_robot_exports_every_clip_and_transition(robot_bake, tmp_path):
     """Issue 31's "done when": the robot's export passes the glTF-Validator with every clip and transition as
-    an animation. The three.js preview draws it playing its first clip, Idle (its VAT range, its impostor
+    an animation. Its body (a skinned pose cache) is a glTF skin, a quarter of its morph targets' bytes. The three.js preview draws it playing its first clip, Idle (its VAT range, its impostor
     layers)."""
     out = tmp_path / "robot"
     export_bundle(robot_bake[0], out)
     assert check_clip_export(robot_bake[0], out) == ROBOT_NAMES
+    assert [part["playback"] for part in json.loads((out / "export.json").read_text())["lods"][0]["parts"]] == ["skin", "morph"]
     status = preview_status(out, tmp_path)
     assert status["ready"] is True, status
     assert status["clip"] == json.loads((out / "export.json").read_text())["animations"][0]["vat"]

@@ -43,6 +43,15 @@ def _key_frames(mesh) -> dict[int, float]:
     return peaks
 
 
+def _loop_keys(bpy) -> list[float]:
+    """The first action's key frames less its last (a loop's last key is its first pose again): frame k of a
+    one-clip export when no mesh has a frame_k shape key for every frame (bodies and garments all skinned)."""
+    if not bpy.data.actions:
+        return []
+    keys = sorted({point.co[0] for curve in _fcurves(bpy.data.actions[0]) for point in curve.keyframe_points})
+    return keys[:-1]
+
+
 def _fcurves(action):
     """Every F-curve of an action (Blender 5 keeps them in layers, strips and channel bags)."""
     if hasattr(action, "fcurves") and len(action.fcurves):
@@ -82,12 +91,15 @@ def main(glb: Path, out: Path) -> None:
     if not meshes:
         raise SystemExit(f"{glb}: Blender imported no mesh")
     # Each frame_k key peaks at frame k; an export whose base is frame 0 (no frame_0 key) shows frame 0 one
-    # frame step before frame_1 peaks, every weight 0.
-    keyed = next((ob.data for ob in meshes if ob.data.shape_keys and ob.data.shape_keys.animation_data), None)
+    # frame step before frame_1 peaks, every weight 0. A skinned body keys only its corrective frames, so
+    # the mesh with the most frame_k keys says; with none keying every frame, the first action's keys do.
+    keyed = max((ob.data for ob in meshes if ob.data.shape_keys and ob.data.shape_keys.animation_data),
+                key=lambda mesh: len(mesh.shape_keys.key_blocks), default=None)
     peaks = _key_frames(keyed) if keyed is not None else {}
     if peaks and 0 not in peaks and 1 in peaks and 2 in peaks:
         peaks[0] = peaks[1] - (peaks[2] - peaks[1])
-    frames = [peaks[k] for k in sorted(peaks)] or [float(scene.frame_start)]
+    loop = _loop_keys(bpy)
+    frames = ([peaks[k] for k in sorted(peaks)] if len(peaks) >= len(loop) else loop) or [float(scene.frame_start)]
     arrays = {f"mesh_{ob.name}": _play(bpy, scene, ob, frames) for ob in meshes}
     # Every action in turn on every animated data-block (shape keys, armatures): the importer makes one
     # action per glTF animation, its slots named for the data-blocks, so assigning it finds their slots.

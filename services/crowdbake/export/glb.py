@@ -14,6 +14,10 @@ frame of the bundle (all its clips and transitions) plays three ways:
   viewer plays the cloth; the mesh's default weights show frame 0;
 - bones, for a garment given GlbPart.bones (crowdbake.export.cloth_bones): a skinned mesh (float
   positions, JOINTS_0, WEIGHTS_0) whose joints the same animations key at the same times;
+- a skin, for a body given GlbPart.skin (a skinned pose cache, crowdbake.export.body_skin): its rest mesh
+  (float), the bundle's four influences a vertex (unorm16 weights), one joint node per joint whose
+  translation, rotation and scale the animations key at the same times, and a corrective morph target
+  for each pose frame that a blend of two poses left sheared;
 - vertex-animation textures, named in the mesh's `extras.crowdbake.vat` (docs/export.md), for
   engines that would rather not hold F morph targets.
 
@@ -34,6 +38,7 @@ import pygltflib as g
 
 from crowdbake import __version__
 from crowdbake.export.animations import AnimationPlan, animation_plans, gltf_extras
+from crowdbake.export.body_skin import GltfSkin, hemisphere_continuous
 from crowdbake.export.cloth_bones import ClothBones
 from crowdbake.formats.ranges import Clip, Ranges
 
@@ -61,6 +66,7 @@ class GlbPart:
     indices: np.ndarray
     extras: dict[str, Any] = field(default_factory=dict)
     bones: ClothBones | None = None  # a garment played by bones (crowdbake.export.cloth_bones) instead of morph targets
+    skin: GltfSkin | None = None  # a body played as a glTF skin (crowdbake.export.body_skin) instead of morph targets
 
 
 @dataclass(frozen=True)
@@ -95,11 +101,12 @@ class _Blob:
         self.data += payload
         return len(self.gltf.bufferViews) - 1
 
-    def accessor(self, array: np.ndarray, kind: str, target: int | None = g.ARRAY_BUFFER, bounds: bool = False) -> int:
-        """An accessor over `array` ((N,) or (N, k) float32/uint16/uint32); min/max where glTF asks for them."""
+    def accessor(self, array: np.ndarray, kind: str, target: int | None = g.ARRAY_BUFFER, bounds: bool = False, normalized: bool = False) -> int:
+        """An accessor over `array` ((N,) or (N, k) float32/uint16/uint32); min/max where glTF asks for them;
+        normalized: unsigned integers read as c / max (unorm16 weights)."""
         component = {np.dtype(np.float32): g.FLOAT, np.dtype(np.uint16): g.UNSIGNED_SHORT, np.dtype(np.uint32): g.UNSIGNED_INT}[array.dtype]
         view = self.view(np.ascontiguousarray(array).astype(array.dtype.newbyteorder("<")).tobytes(), target)
-        accessor = g.Accessor(bufferView=view, componentType=component, count=int(array.shape[0]), type=kind)
+        accessor = g.Accessor(bufferView=view, componentType=component, count=int(array.shape[0]), type=kind, normalized=normalized or None)
         if bounds:
             flat = array.reshape(array.shape[0], -1)
             accessor.min = [float(v) for v in flat.min(axis=0)]
@@ -286,11 +293,14 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
     scene_nodes = [0]
     targets_per_mesh = frame_count
     morph_nodes, bone_tracks = [], []  # nodes whose weights the animations key; (joint node, rotations, translations)
+    skin_tracks: list[tuple[int | None, list[int], GltfSkin]] = []  # (node of its corrective targets, joint nodes, skin)
     for part in parts:
         indices = np.asarray(part.indices).reshape(-1)
         index_type = np.uint16 if part.positions.shape[1] <= 65535 else np.uint32
         mappings = [{"material": material_index[(part.material, part.kind == "garment", v)], "variants": [v]} for v in range(len(variants))]
-        if part.bones is None:
+        if part.skin is not None:
+            attributes, targets = _skin_attributes(blob, part.skin)
+        elif part.bones is None:
             quantized = quantize_part(part.positions, part.normals)
             attributes = g.Attributes(POSITION=blob.packed(quantized.positions[0], bounds=True), NORMAL=blob.packed(quantized.normals[0]))
             targets = [
@@ -316,10 +326,14 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
             targets=targets or None,
             extensions={VARIANTS_EXTENSION: {"mappings": mappings}},
         )
-        extras = {"crowdbake": part.extras} | ({"targetNames": [f"frame_{frame}" for frame in range(frame_count)]} if targets else {})
+        target_frames = part.skin.corrected.tolist() if part.skin is not None else list(range(frame_count))
+        extras = {"crowdbake": part.extras} | ({"targetNames": [f"frame_{frame}" for frame in target_frames]} if targets else {})
         # Default weights show frame 0, for a viewer that does not play the animation.
-        gltf.meshes.append(g.Mesh(name=part.name, primitives=[primitive], weights=[1.0] + [0.0] * (targets_per_mesh - 1) if targets else None,
+        gltf.meshes.append(g.Mesh(name=part.name, primitives=[primitive], weights=[float(frame == 0) for frame in target_frames] if targets else None,
                                   extras=extras))
+        if part.skin is not None:
+            skin_tracks.append(_add_skin(gltf, root, scene_nodes, part.name, part.skin, len(gltf.meshes) - 1, blob, bool(targets)))
+            continue
         if part.bones is None:
             # The quantization's dequantization (KHR_mesh_quantization): node scale and translation.
             gltf.nodes.append(g.Node(name=part.name, mesh=len(gltf.meshes) - 1, translation=quantized.offset.tolist(), scale=[quantized.scale] * 3))
@@ -340,10 +354,10 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
         gltf.nodes.append(g.Node(name=part.name, mesh=len(gltf.meshes) - 1, skin=len(gltf.skins) - 1))
         scene_nodes.append(len(gltf.nodes) - 1)
 
-    if morph_nodes or bone_tracks:
+    if morph_nodes or bone_tracks or skin_tracks:
         times_of: dict[int, int] = {}  # key count -> the time accessor, shared by animations of one length
         for plan in animations:
-            _add_animation(gltf, blob, plan, frame_count, frames_per_second, morph_nodes, bone_tracks, times_of)
+            _add_animation(gltf, blob, plan, frame_count, frames_per_second, morph_nodes, bone_tracks, times_of, skin_tracks)
 
     gltf.scenes.append(g.Scene(name="crowdbake", nodes=scene_nodes))
     gltf.scene = 0
@@ -358,12 +372,53 @@ def whole_loop(frame_count: int) -> AnimationPlan:
     return animation_plans(Ranges(frame_count, (Clip("cycle", 0, frame_count, 0, frame_count, "none", 0.0, 0.0),), ()))[0]
 
 
+def _skin_attributes(blob: _Blob, skin: GltfSkin) -> tuple[g.Attributes, list[g.Attributes]]:
+    """A skinned body's attributes (rest mesh in float, JOINTS_0, unorm16 WEIGHTS_0) and its corrective
+    targets (float position deltas, int8 normal deltas), one per skin.corrected frame."""
+    # A joint a vertex does not weigh is 0, as glTF asks of unused influences.
+    joints = np.where(skin.weight_codes > 0, skin.joints, 0).astype(np.uint16)
+    attributes = g.Attributes(
+        POSITION=blob.accessor(np.asarray(skin.rest_positions, dtype=np.float32), g.VEC3, bounds=True),
+        NORMAL=blob.accessor(_unit(skin.rest_normals), g.VEC3),
+        JOINTS_0=blob.accessor(joints, g.VEC4),
+        WEIGHTS_0=blob.accessor(np.asarray(skin.weight_codes, dtype=np.uint16), g.VEC4, normalized=True),
+    )
+    targets = []
+    for row in range(skin.corrected.size):
+        normals = np.zeros((skin.normal_deltas.shape[1], 4), np.int8)
+        normals[:, :3] = np.clip(np.rint(skin.normal_deltas[row] * _INT8_MAX), -_INT8_MAX, _INT8_MAX)
+        targets.append(g.Attributes(POSITION=blob.accessor(np.asarray(skin.position_deltas[row], dtype=np.float32), g.VEC3, bounds=True),
+                                    NORMAL=blob.packed(normals)))
+    return attributes, targets
+
+
+def _add_skin(gltf: g.GLTF2, root: g.Node, scene_nodes: list[int], name: str, skin: GltfSkin, mesh: int, blob: _Blob,
+              corrective: bool) -> tuple[int | None, list[int], GltfSkin]:
+    """The joint nodes (children of the character, at pose frame 0), the glTF skin (identity inverse binds:
+    a joint's TRS is its skinning matrix) and the skinned mesh's node (a scene root: glTF ignores a skinned
+    mesh node's own transform). Returns what _add_animation keys: (the mesh node when it has corrective
+    targets, the joint nodes, the skin)."""
+    joints = []
+    for joint in range(skin.joint_count):
+        gltf.nodes.append(g.Node(name=f"{name}_joint_{joint}", translation=skin.translations[0, joint].tolist(),
+                                 rotation=skin.rotations[0, joint].tolist(), scale=skin.scales[0, joint].tolist()))
+        joints.append(len(gltf.nodes) - 1)
+        root.children.append(joints[-1])
+    inverse_binds = np.tile(np.eye(4, dtype=np.float32).reshape(1, 16), (skin.joint_count, 1))
+    gltf.skins.append(g.Skin(name=f"{name}_skin", joints=joints, skeleton=0, inverseBindMatrices=blob.accessor(inverse_binds, g.MAT4, target=None)))
+    gltf.nodes.append(g.Node(name=name, mesh=mesh, skin=len(gltf.skins) - 1))
+    scene_nodes.append(len(gltf.nodes) - 1)
+    return (len(gltf.nodes) - 1 if corrective else None), joints, skin
+
+
 def _add_animation(gltf: g.GLTF2, blob: _Blob, plan: AnimationPlan, target_count: int, frames_per_second: float, morph_nodes: list[int],
-                   bone_tracks: list[tuple[int, np.ndarray, np.ndarray]], times_of: dict[int, int]) -> None:
+                   bone_tracks: list[tuple[int, np.ndarray, np.ndarray]], times_of: dict[int, int],
+                   skin_tracks: list[tuple[int | None, list[int], GltfSkin]] = ()) -> None:
     """One glTF animation playing `plan`: key j at t = j / fps shows pose frame plan.keys[j], LINEAR between.
     Morph nodes: every morph target's weight (glTF keys them all together), target keys[j] alone at key j,
     so each animation plays its own range of the targets every animation shares. Bones: each joint's
-    rotation and translation at those frames."""
+    rotation and translation at those frames. Skins: each weighted joint's translation, rotation and scale
+    at those frames, and the corrective target of a key's frame (if it has one) weighing 1."""
     if plan.key_count not in times_of:
         times = (np.arange(plan.key_count) / frames_per_second).astype(np.float32)
         times_of[plan.key_count] = blob.accessor(times, g.SCALAR, target=None, bounds=True)
@@ -381,4 +436,17 @@ def _add_animation(gltf: g.GLTF2, blob: _Blob, plan: AnimationPlan, target_count
             keyed = np.asarray(values[plan.keys], dtype=np.float32)
             animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(keyed, kind, target=None), interpolation="LINEAR"))
             animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1, target=g.AnimationChannelTarget(node=node, path=path)))
+    for mesh_node, joints, skin in skin_tracks:
+        if mesh_node is not None:
+            weights = (skin.corrected[None, :] == plan.keys[:, None]).astype(np.float32)  # (K, C) one-hot or all 0
+            animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(weights.reshape(-1), g.SCALAR, target=None),
+                                                         interpolation="LINEAR"))
+            animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1, target=g.AnimationChannelTarget(node=mesh_node, path="weights")))
+        rotations = hemisphere_continuous(skin.rotations[plan.keys])
+        for joint in skin.animated:
+            for path, values, kind in (("translation", skin.translations, g.VEC3), ("rotation", rotations, g.VEC4), ("scale", skin.scales, g.VEC3)):
+                keyed = np.asarray(values[:, joint] if path == "rotation" else values[plan.keys, joint], dtype=np.float32)
+                animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(keyed, kind, target=None), interpolation="LINEAR"))
+                animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1,
+                                                             target=g.AnimationChannelTarget(node=joints[joint], path=path)))
     gltf.animations.append(animation)

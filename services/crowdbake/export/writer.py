@@ -34,11 +34,13 @@ from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.export import ktx2
 from crowdbake.export.animations import AnimationPlan, animation_plans, sidecar_animations
 from crowdbake.bake.shading import apply_outfit
+from crowdbake.export.body_skin import GltfSkin, gltf_skin, morph_bytes, play, skin_bytes, why_not_a_skin
 from crowdbake.export.cloth_bones import DEFAULT_ITERATIONS, ClothBones, choose_bone_count, decompose_cloth
 from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb, node_transform
 from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, over_half_covered, region_codes_used, rgba8_layers, uv_map_layers
 from crowdbake.export.vat import encode_vat, vat_texcoords
 from crowdbake.formats.bundle import Bundle, verify_bundle
+from crowdbake.formats.skinned_cache import SkinnedPoseCache
 
 logger = logging.getLogger(__name__)
 
@@ -101,6 +103,31 @@ def bones_entry(bones: ClothBones, request: ClothBonesRequest, vertex_count: int
     return {"count": bones.bone_count, "asked": request.count if request.count is not None else "auto",
             **({"budget_mm": request.budget_mm} if request.count is None else {}), "iterations": bones.iterations,
             "rms_mm": round(bones.rms_m * 1000, 3), "max_mm": round(bones.max_m * 1000, 3), "bytes": skin_bytes}
+
+
+def skin_entry(skin: GltfSkin, cache: SkinnedPoseCache, key_count: int) -> dict[str, Any]:
+    """export.json's `skin` block of a body played as a glTF skin: its joints, the pose frames that carry a
+    corrective target, its largest distance from the bundle's frames (metres -> mm) and its bytes in the .glb
+    (body_skin.skin_bytes)."""
+    played = play(skin, np.arange(cache.frame_count))
+    max_mm = float(np.linalg.norm(played - cache.positions, axis=-1).max() * 1000)
+    return {"joints": skin.joint_count, "animated_joints": int(skin.animated.size), "corrective_frames": skin.corrected.tolist(),
+            "max_mm": round(max_mm, 4), "bytes": skin_bytes(skin, key_count),
+            "meaning": "the rest mesh skinned by joint nodes keyed per animation (translation, rotation, scale); "
+                       "a corrective frame (a blend of two poses) adds its morph target"}
+
+
+def body_skin(cache: SkinnedPoseCache, key_count: int) -> tuple[GltfSkin | None, str | None]:
+    """(the glTF skin of a skinned pose cache, None) or (None, why it keeps morph targets): a joint with no
+    rotation to animate, or a skin no smaller than the morph targets (a small LOD of many joints and keys)."""
+    refused = why_not_a_skin(cache)
+    if refused is not None:
+        return None, refused
+    skin = gltf_skin(cache)
+    size, morph = skin_bytes(skin, key_count), morph_bytes(cache.vertex_count, cache.frame_count)
+    if size >= morph:
+        return None, f"its skin would take {size} bytes, its morph targets {morph}"
+    return skin, None
 
 
 @dataclass(frozen=True)
@@ -308,12 +335,25 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
             extras = {"part": mesh["part"], "kind": mesh["kind"], "lod": lod, "material": mesh["material"], "vat": vat}
             bones = (cloth_bones.decompose(cache.positions, cache.indices, f"{mesh['part']} lod {lod}")
                      if cloth_bones is not None and mesh["kind"] == "garment" else None)
+            # A skinned pose cache stays a skin where it can (body_skin), else morph targets like the rest.
+            skin, refused = body_skin(cache, sum(plan.key_count for plan in plans)) if isinstance(cache, SkinnedPoseCache) else (None, None)
+            if refused is not None:
+                logger.warning("%s lod %d keeps morph targets: %s", mesh["part"], lod, refused)
             parts.append(
                 GlbPart(mesh["part"], mesh["kind"], mesh["material"], cache.positions, cache.normals, cache.uvs, vat_texcoords(layout), cache.indices, extras,
-                        bones)
+                        bones, skin)
             )
             entry = {k: extras[k] for k in ("part", "kind", "material")} | {"vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat}
-            if bones is None:
+            entry["playback"] = "skin" if skin is not None else "bones" if bones is not None else "morph"
+            if refused is not None:
+                entry["skin_refused"] = refused
+            if skin is not None:
+                entry["skin"] = skin_entry(skin, cache, sum(plan.key_count for plan in plans))
+                # The engine setups draw every part with a `node` by its VATs (metres in the character's space),
+                # as they did this body's morph targets; glTF places a skinned mesh by its joints alone.
+                entry["node"] = {"translation": [0.0, 0.0, 0.0], "scale": 1.0,
+                                 "meaning": "a skinned mesh: its joints place it, in metres; VAT positions need no transform"}
+            elif bones is None:
                 translation, scale = node_transform(cache.positions)
                 entry["node"] = {"translation": translation.tolist(), "scale": scale,
                                  "meaning": "the part's glTF node: position in metres = translation + scale * mesh position"}
