@@ -109,7 +109,7 @@ def test_a_normal_turned_past_reach_is_approached():
     """A normalized int8 delta keeps base + delta within one unit of the base in each component: from (0, 0, 1)
     a normal turned 143 degrees to (0.8, 0, -0.6) is out of reach. The delta aims at it scaled, so the sum
     lands on (1, 0, 0), 37 degrees short, the closest reachable, and never on zero."""
-    from crowdbake.export.glb import normal_deltas
+    from crowdbake.export.morph_normals import normal_deltas
 
     base = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     frames = np.array([[[0.8, 0.0, -0.6], [0.6, 0.0, 0.8]]])
@@ -395,7 +395,7 @@ def check_morph_frame(gltf: pygltflib.GLTF2, blob: bytes, part: dict, node, prim
     normal = read_accessor(gltf, blob, primitive.attributes.NORMAL) + read_accessor(gltf, blob, primitive.targets[frame]["NORMAL"])
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     turned = np.degrees(np.arccos(np.clip((normal * cache.normals[frame]).sum(-1), -1, 1)))
-    # Normals turned past 90 degrees from the mean (cloth folding over) can only be approached (glb.normal_deltas).
+    # Normals turned past 90 degrees from the mean (cloth folding over) can only be approached (morph_normals.normal_deltas).
     assert np.percentile(turned, 90) < MORPH_NORMAL_DEGREES and np.isfinite(turned).all(), np.percentile(turned, 90)
 
 

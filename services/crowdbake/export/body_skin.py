@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from crowdbake.export.morph_normals import normal_deltas
 from crowdbake.formats.skinned_cache import WEIGHT_CODE_SUM, SkinnedPoseCache
 
 # A matrix whose TRS gives it back within this (relative to its largest scale) is played by its joint alone.
@@ -32,7 +33,7 @@ class GltfSkin:
     joints, weight_codes (V, 4) uint16 (codes / 65535 sum to 1); per pose frame and joint translations
     (F, J, 3), rotations (F, J, 4) unit xyzw with w >= 0, scales (F, J, 3); animated (A,) the joints some
     vertex weighs; corrected (C,) the pose frames that need a corrective target, position_deltas (C, V, 3)
-    float32 metres of the rest mesh and normal_deltas (C, V, 3) in [-1, 1] (glb.normal_deltas)."""
+    float32 metres of the rest mesh and normal_deltas (C, V, 3) in [-1, 1] (morph_normals.normal_deltas)."""
 
     rest_positions: np.ndarray
     rest_normals: np.ndarray
@@ -117,8 +118,6 @@ def gltf_skin(cache: SkinnedPoseCache) -> GltfSkin:
     """The glTF skin of a CBSK (why_not_a_skin must be None): each joint's TRS per pose frame, joints no vertex
     weighs held at identity, and a corrective target for each frame some weighted joint's TRS misses by more
     than TRS_TOLERANCE."""
-    from crowdbake.export.glb import normal_deltas
-
     frame_count, joint_count = cache.matrices.shape[:2]
     animated = np.unique(cache.joints[cache.weight_codes > 0]).astype(np.int64)
     translations = np.zeros((frame_count, joint_count, 3))
