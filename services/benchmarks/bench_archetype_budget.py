@@ -89,6 +89,7 @@ def main() -> None:
         for row in result["curve"]:
             frames = ", ".join(f"{name} {n}" for name, n in row["frames"].items())
             print(f"{label:<16}{row['budget_mib']:>8g}{row['mib']:>8.1f}{row['worst']:>8.3f}{row['mean']:>8.3f}  {frames}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=1))
     if args.plot:
         plot(results, args.plot)

@@ -103,6 +103,7 @@ def main() -> int:
         memory = measure(crowdview, bundle)
         results.append({"label": label, "bundle": str(bundle), "crowdview": crowdview, "gpu_memory_bytes": memory, **pose_cache_files(bundle)})
         print(row(label, memory))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"results": results}, indent=2) + "\n")
     return 0
 

@@ -256,9 +256,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("impostor_budget_mib", "float", 16.0, "memory for one clip's impostor maps in MiB (the paper's 15): fewer azimuths (to 12), "
               "then fewer frames, until they fit (docs/bake.md 'Memory')",
               ("--impostor-budget",), "MIB", optional=True, above_zero=True, maximum=4096.0),
-    ParamSpec("impostor_archetype_mib", "float", 32.0, "memory for the impostor maps of every clip and transition of a character of "
-              "several clips together, in MiB, split among them by measuring each one's impostor between baked frames "
-              "(docs/bake.md 'Several clips'); null: impostor_budget_mib per clip",
+    ParamSpec("impostor_archetype_mib", "float", 32.0, "MiB of impostor maps for all clips and transitions of a character of several "
+              "clips, split among them by measuring (docs/bake.md 'Several clips'); null: impostor_budget_mib per clip",
               ("--impostor-archetype-budget",), "MIB", optional=True, above_zero=True, maximum=4096.0,
               derived="none: impostor_budget_mib for each clip, transitions at their clips' spacing"),
     ParamSpec("crop", "bool", True, "store each impostor view cropped to the box the character covers over every view and frame "
