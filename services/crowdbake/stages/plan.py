@@ -1,8 +1,9 @@
 """The bake as one plan: its nodes (stage functions), what each needs and writes, and its fan-outs.
 
-    validate ─┬─ textures ────────────────────────────────────┐
-              └─ clip_loop × clips ─ cycle ─ impostor_plan ─┬─ poses ─ references ──────────────── scores ─┬─ pack ─┬─ publish ─┬─ commit_export
-                                                            └─ impostor_views × tasks ─ pack_frame × frames ─┘        └─ export ──┘
+    validate ─┬─ textures ─────────────────────────┐
+              └─ clip_loop × clips ─ cycle ─┬─ pose_caches ─┴─┬─ poses ─ references ─────────── scores ─┬─ pack ─┬─ publish ─┬─ commit_export
+                                            └─ impostor_plan ─┤                                         │        └─ export ──┘
+                                                              └─ impostor_views × tasks ─ pack_frame × frames ─┘
 
 Two executors run this plan and neither writes an order of its own:
 - crowdbake.stages.runner (`crowdbake bake`, one machine) starts every node as soon as what it needs is
@@ -203,6 +204,12 @@ def _impostor_plan(call: Call) -> dict:
     return stage_impostor_plan(call.work, call.progress).to_json()
 
 
+def _pose_caches(call: Call) -> dict:
+    from crowdbake.stages.poses import stage_pose_caches
+
+    return stage_pose_caches(call.work, call.progress).to_json()
+
+
 def _poses(call: Call) -> dict:
     from crowdbake.stages.poses import stage_poses
 
@@ -307,9 +314,11 @@ BAKE_PLAN: tuple[Node, ...] = (
          item_writes=_loop_writes),
     Node("cycle", "cycle", _cycle, _stamp_key("cycle"), needs=("validate", "clip_loop"), writes=("cycle",), placement=HERE),
     Node("textures", "poses", _textures, _stamp_key("textures"), needs=("validate",), writes=("textures", "poses")),
-    # Several clips: the plan draws probes (crowdbake.stages.impostor_probe) in a worker's GL context.
+    # Several clips: the plan draws probes (crowdbake.stages.impostor_probe) in a worker's GL context,
+    # beside the pose caches; the poses record joins the two.
     Node("impostor_plan", "poses", _impostor_plan, _stamp_key("impostor"), needs=("cycle",), writes=IMPOSTOR_PLAN_FILES),
-    Node("poses", "poses", _poses, _stamp_key("poses"), needs=("cycle", "textures", "impostor_plan"), writes=("poses",)),
+    Node("pose_caches", "poses", _pose_caches, _stamp_key("pose-caches"), needs=("cycle", "textures"), writes=("poses", "pose-caches")),
+    Node("poses", "poses", _poses, _stamp_key("poses"), needs=("pose_caches", "impostor_plan"), writes=("poses",), placement=HERE),
     Node("impostor_views", "impostors", _impostor_views, _part_key, needs=("impostor_plan",), items=_impostor_items,
          item_key=lambda task: str(task["id"]), order=task_order,
          item_writes=lambda task: (f"impostor/parts/{task['id']}.npz", f"impostor/parts/{task['id']}.json")),

@@ -34,7 +34,7 @@ from crowdbake.formats.obj import read_obj
 from crowdbake.formats.pc2 import read_pc2
 from crowdbake.formats.ranges import Ranges
 from crowdbake.stages.body_skin import skinned_body, skinned_cache_bytes
-from crowdbake.stages.records import CycleRecord, ImpostorPlan, JobRecord, MaterialInfo, PosePart, PosesRecord, TexturesRecord
+from crowdbake.stages.records import CycleRecord, ImpostorPlan, JobRecord, MaterialInfo, PoseCachesRecord, PosePart, PosesRecord, TexturesRecord
 from crowdbake.stages.validate import load_job, texture_files
 from crowdbake.stages.workdir import (
     Progress, StageOutcome, WorkDir, npz_bytes, report, stage_key, write_bytes_atomic, write_json_atomic,
@@ -313,15 +313,19 @@ def stage_textures(work: Path) -> TexturesRecord:
     return record
 
 
-def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[PosesRecord]:
-    """Bake the poses: body and cloth per cycle frame, high and low LOD; textures; impostor framing."""
+POSE_CACHES = "pose-caches"  # the pose caches' stage folder (stamp and record; the caches are in work/poses)
+
+
+def stage_pose_caches(work: Path, progress: Progress | None = None) -> StageOutcome[PoseCachesRecord]:
+    """Bake the pose caches: body and cloth per cycle frame, high and low LOD, into work/poses; textures.
+    Needs the cycle, not the impostor plan, so it runs beside the plan's probes."""
     started = time.perf_counter()
     folder = WorkDir(work)
     job = load_job(work)
     # A cache of another version is stale, and so is one from before skinned bodies.
-    key = stage_key("poses", folder.key_of("cycle"), folder.key_of("impostor"), QUANTIZED_POSE_CACHE_VERSION, SKINNED_POSE_CACHE_MAGIC.decode())
+    key = stage_key("pose-caches", folder.key_of("cycle"), QUANTIZED_POSE_CACHE_VERSION, SKINNED_POSE_CACHE_MAGIC.decode())
     out = folder.root / "poses"
-    cached = folder.cached("poses", key, PosesRecord, [out / TEXTURES_FILE, out / DIFFUSE_ERRORS])
+    cached = folder.cached(POSE_CACHES, key, PoseCachesRecord, [out / TEXTURES_FILE, out / DIFFUSE_ERRORS])
     if cached is not None:
         return StageOutcome(cached, True, 0.0)
     params = job.bake_params
@@ -335,25 +339,40 @@ def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[Po
     part_material = part_materials(part_material, textures.materials)
     report(progress, "poses", 2, steps)
     parts = _write_lods(high, kinds, part_material, params, cycle.fps, out)
+    record = PoseCachesRecord(frames_per_second=cycle.fps, cycle_frames=cycle.pose_frames, parts=parts, materials=textures.materials,
+                              outfit_count=textures.outfit_count, ranges=cycle.ranges)
     report(progress, "poses", 5, steps)
+    seconds = time.perf_counter() - started
+    folder.save(POSE_CACHES, key, record, seconds)
+    return StageOutcome(record, False, seconds)
 
-    # The impostor plan chose the framing (several clips: by measuring); the caches and maps agree on it.
+
+def stage_poses(work: Path, progress: Progress | None = None) -> StageOutcome[PosesRecord]:
+    """The poses record: the pose caches (stage_pose_caches) with the impostor framing the impostor plan
+    chose (several clips: by measuring), so the caches, the impostor tasks and the pack agree."""
+    started = time.perf_counter()
+    folder = WorkDir(work)
+    stage_pose_caches(work, progress)  # done already where the plan ran it (a node of its own): read back
+    key = stage_key("poses", folder.key_of(POSE_CACHES), folder.key_of("impostor"))
+    cached = folder.cached("poses", key, PosesRecord, [])
+    if cached is not None:
+        return StageOutcome(cached, True, 0.0)
+    caches = folder.load(POSE_CACHES, PoseCachesRecord)
     plan = folder.load("impostor", ImpostorPlan)
-    bounds, layout, frame_indices, budget = plan.bounds, AtlasLayout.from_manifest(plan.layout), plan.frame_indices, plan.budget
     record = PosesRecord(
-        frames_per_second=cycle.fps,
-        cycle_frames=cycle.pose_frames,
-        parts=parts,
-        materials=textures.materials,
-        outfit_count=textures.outfit_count,
-        bounds=bounds,
-        layout=layout.to_manifest(),
-        frame_indices=frame_indices,
-        fidelity_frame=frame_indices[0],
-        budget=budget,
-        ranges=cycle.ranges,
+        frames_per_second=caches.frames_per_second,
+        cycle_frames=caches.cycle_frames,
+        parts=caches.parts,
+        materials=caches.materials,
+        outfit_count=caches.outfit_count,
+        bounds=plan.bounds,
+        layout=plan.layout,
+        frame_indices=plan.frame_indices,
+        fidelity_frame=plan.fidelity_frame,
+        budget=plan.budget,
+        ranges=caches.ranges,
     )
-    report(progress, "poses", steps, steps)
+    report(progress, "poses", 6, 6)
     seconds = time.perf_counter() - started
     folder.save("poses", key, record, seconds)
     return StageOutcome(record, False, seconds)

@@ -154,6 +154,19 @@ class TexturesRecord(Record):
 
 
 @dataclass
+class PoseCachesRecord(Record):
+    """pose caches → poses: the parts and materials the pose caches stage wrote, before the impostor framing."""
+
+    frames_per_second: float
+    cycle_frames: int
+    parts: list[PosePart]
+    materials: list[MaterialInfo]
+    outfit_count: int
+    ranges: dict[str, Any] | None = None
+    _nested: ClassVar[dict[str, type]] = {"parts": PosePart, "materials": MaterialInfo}
+
+
+@dataclass
 class PosesRecord(Record):
     """poses → impostors, pack: the parts, materials, the impostor framing (layout, bounds) and frames."""
 
