@@ -35,6 +35,10 @@ class PartPoses:
     # A body whose frames are these matrices skinning its rest mesh (positions, normals are those frames):
     # stored as a skinned pose cache (crowdbake.bake.body_skin). None: stored as vertex frames.
     skin: BodySkin | None = None
+    # (V, 3) the pose the low LOD is simplified on, where it is not positions[0]: a skinned body keeps its
+    # vertex frames' first pose, so the simplifier (sensitive to the last float bit) makes the same low mesh
+    # whether the body is stored skinned or as vertex frames.
+    simplify_pose: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         frames, vertices, _ = self.positions.shape

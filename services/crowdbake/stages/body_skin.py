@@ -112,7 +112,7 @@ def skinned_body(job: JobRecord, cycle: CycleRecord, inputs: Path, character, bo
     if distance > SKIN_POSITION_TOLERANCE_M or angle > SKIN_NORMAL_TOLERANCE_DEG:
         logger.warning("the body keeps vertex frames: skinning differs from them by up to %.3f mm and %.2f degrees", distance * 1e3, angle)
         return body
-    skinned = replace(body, positions=positions, normals=normals, skin=skin)
+    skinned = replace(body, positions=positions, normals=normals, skin=skin, simplify_pose=body.positions[0])
     refusal = reader_refusal(skinned, cycle.fps)
     if refusal is not None:
         logger.warning("the body keeps vertex frames: its skinning breaks a rule of the skinned pose cache: %s", refusal)

@@ -245,7 +245,8 @@ def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float
         targets = [max(1, int(round(count * ratio))) for count in counts]
     parts: list[PosePart] = []
     for (name, part), target in zip(high.items(), targets):
-        simplified = lod.simplify(part.positions[0], part.faces, target, uvs=part.uvs, lock_border=kinds[name] == "garment")
+        pose = part.positions[0] if part.simplify_pose is None else part.simplify_pose
+        simplified = lod.simplify(pose, part.faces, target, uvs=part.uvs, lock_border=kinds[name] == "garment")
         low = poses.low_lod(part, simplified)
         for level, version in ((0, part), (1, low)):
             skinned = None if version.skin is None else skinned_cache_bytes(version, fps)
