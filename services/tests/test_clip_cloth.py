@@ -47,6 +47,8 @@ def test_one_cache_per_clip_bakes_a_loop_each_and_no_transitions(caches, tmp_pat
     assert "no transitions (no simulation joined the clips)" in out
     # Each clip's impostor scored as crowdview draws it, one line each (fidelity.json runtime.ranges).
     assert all(f"runtime  clip {name}: SSIM at baked views " in out for name in ("Walking", "Running")), out[-1500:]
+    # One impostor budget for both clips, its split said once (not the per-clip rule's lines).
+    assert "MiB archetype budget, split by measuring: Walking " in out and "budget chose" not in out, out[-1500:]
     bundle = verify_bundle(tmp_path / "bundles" / "clips" / "1")
     assert bundle.manifest["format_version"] == 4  # the skinned body
     assert [(c.name, c.frames) for c in bundle.ranges.clips] == [("Walking", 24), ("Running", 17)]

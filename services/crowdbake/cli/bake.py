@@ -159,7 +159,12 @@ def format_summary(summary) -> str:
             lines.append(f"{entry['kind']:<8} {entry['name']}: pose frames {entry['pose_frames'][0]}-{entry['pose_frames'][1] - 1}, "
                          f"{len(entry['baked_frames'])} baked ({entry['stored_mib']:.2f} MiB)")
         budget = held.get("budget")
-        for clip, chosen in (budget or {}).get("per_clip", {}).items():
+        allocation = (budget or {}).get("allocation")
+        if allocation is not None:  # several clips under one budget: the per-clip rule set the views only
+            lines.append(f"memory   the {allocation['budget_mib']:g} MiB archetype budget, split by measuring: "
+                         + ", ".join(f"{r['name']} {r['baked_frames']} frames (SSIM {r['score']:.3f})" for r in allocation["ranges"])
+                         + ("" if allocation["fits"] else "; still over it at the floors"))
+        for clip, chosen in ({} if allocation is not None else (budget or {}).get("per_clip", {})).items():
             if chosen["chosen"] != chosen["asked"]:
                 lines.append(f"memory   the {chosen['budget_mib']:g} MiB budget chose {chosen['chosen']['azimuths']} azimuths and "
                              f"{chosen['chosen']['frames']} frames for {clip} (asked {chosen['asked']['azimuths']} and {chosen['asked']['frames']})"
