@@ -37,6 +37,7 @@ MIB = 1024 * 1024
 # or a dict: the bake's defaults (BakeParams()) with these changes; tuples bake their counts (no frames from motion).
 CONFIGS = {
     "default": {},
+    "rule": {"impostor_choice": "rule"},  # tile as asked; azimuths, then frames, cut until the budget holds
     "m9": {"impostor_motion_texels": 9.0},
     "m10": {"impostor_motion_texels": 10.0},
     "b10": {"impostor_budget_mib": 10.0},  # the defaults at other budgets: the trade-off curve
@@ -115,7 +116,7 @@ def bake_once(case: str, config: str, scratch: Path) -> dict | None:
     else:
         azimuths, elevations, frames, tile, *budget = CONFIGS[config]
         params = replace(BakeParams(), azimuths=azimuths, elevations_deg=elevations, impostor_frames=frames, tile_size=tile, export=False,
-                         impostor_motion_texels=None, impostor_budget_mib=budget[0] if budget else None, **changes)
+                         impostor_motion_texels=None, impostor_budget_mib=budget[0] if budget else None, impostor_choice="rule", **changes)
     folder = Path(tempfile.mkdtemp(prefix=f"{case}-{config}-", dir=scratch))
     started = time.perf_counter()
     summary = run_bake(BakeInputs(character, cloth, mesh, textures, None, case.replace("_", "-"), "1", params), folder / "bundles", folder / "work")
@@ -126,7 +127,7 @@ def bake_once(case: str, config: str, scratch: Path) -> dict | None:
     stored = sum(memory[kind] for kind in manifest["impostor"]["maps"] if kind in memory)
     return {
         "case": case, "config": config, "azimuths": len(manifest["impostor"]["azimuths_deg"]),
-        "elevations_deg": list(params.elevations_deg), "frames": len(manifest["impostor"]["frame_indices"]), "tile": params.tile_size, "budget_mib": params.impostor_budget_mib,
+        "elevations_deg": list(params.elevations_deg), "frames": len(manifest["impostor"]["frame_indices"]), "tile": manifest["impostor"]["tile_size"], "budget_mib": params.impostor_budget_mib,
         "crop": manifest["impostor"].get("crop"), "cycle_frames": manifest["clips"][0]["frames"],
         "impostor_mib": stored / MIB, "maps_mib": {kind: memory[kind] / MIB for kind in manifest["impostor"]["maps"]},
         "at_views": {k: runtime["at_views"][k] for k in ("ssim_mean", "ssim_worst")},

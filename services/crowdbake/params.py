@@ -26,6 +26,7 @@ from crowdbake.errors import InputError
 # tear; linear is the paper's blend; hermite also matches velocity but spreads the correction over the loop.
 CLOSE_METHODS = ("crossfade", "none", "linear", "hermite")
 DEFAULT_CLOSE = "crossfade"
+IMPOSTOR_CHOICES = ("measured", "rule")  # how a bake chooses its impostor's tile, azimuths and frames; the first is the default
 UV_FORMATS = ("uvblock", "uv32", "rgba16")  # impostor UV map pixel formats a bake can write (SPEC.md); the first is the default
 # The cloth cache's frame as exported (crowdbake.bake.placement.UP_AXES / UNITS, kept equal by test_params):
 # None leaves it to placement's detection, which refuses a cache that fits only another frame.
@@ -260,6 +261,11 @@ PARAMS: tuple[ParamSpec, ...] = (
               "clips, split among them by measuring (docs/bake.md 'Several clips'); null: impostor_budget_mib per clip",
               ("--impostor-archetype-budget",), "MIB", optional=True, above_zero=True, maximum=4096.0,
               derived="none: impostor_budget_mib for each clip, transitions at their clips' spacing"),
+    ParamSpec("impostor_choice", "str", "measured", "how the impostor's tile, azimuths and frames are chosen within the budget: "
+              "measured (crowdview's impostor probed against the mesh at tiles from 1 to 1.5 x tile_size, azimuths from 12 to "
+              "azimuths, frames up to impostor_frames: docs/bake.md 'Memory') or rule (tile_size as asked; azimuths, then frames, "
+              "cut until the budget holds)",
+              ("--impostor-choice",), choices=IMPOSTOR_CHOICES),
     ParamSpec("crop", "bool", True, "store each impostor view cropped to the box the character covers over every view and frame "
               "(SPEC.md: about half the maps' memory, the same pictures)",
               ("--no-crop",), off_help="do not crop the impostor tiles: store them whole (square)"),
@@ -342,6 +348,7 @@ class BakeParams:
     tile_size: int = 88
     impostor_budget_mib: float | None = 16.0
     impostor_archetype_mib: float | None = 32.0
+    impostor_choice: str = "measured"
     crop: bool = True
     detail_map: bool = False
     lod_ratio: float | None = None

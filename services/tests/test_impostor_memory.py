@@ -106,16 +106,16 @@ def test_detail_maps_are_stored_only_when_asked_and_figure_4_still_counts_them(b
     assert held["crop"] == cropped["impostor"]["crop"] and held["views"] == 16 and held["frames"] == 2
     # Far under the default budget: the counts asked for.
     assert held["budget"]["budget_mib"] == 16.0 and held["budget"]["fits"]
-    assert held["budget"]["chosen"] == held["budget"]["asked"] == {"azimuths": 8, "frames": 2}
+    assert held["budget"]["chosen"] == held["budget"]["asked"] == {"tile": 64, "azimuths": 8, "frames": 2}
 
 
-def test_a_budget_fits_the_maps_by_fewer_azimuths(small_sample, bakes, tmp_path):
-    """32 azimuths asked for, room for 20 (the crop is the same whatever the azimuths): azimuths fall, by 4,
-    until the maps fit."""
+def test_the_rule_fits_the_maps_by_fewer_azimuths(small_sample, bakes, tmp_path):
+    """--impostor-choice rule: 32 azimuths asked for, room for 20 (the crop is the same whatever the
+    azimuths): azimuths fall, by 4, until the maps fit."""
     whole = json.loads((bakes[True][0] / "texture_memory.json").read_text())["impostor"]
     # One ring of the two: room for 20 azimuths at the small bake's crop and frames.
     budget = whole["stored_mib"] / 2 * 20 / 8 + 1e-9
-    params = replace(PARAMS, azimuths=32, elevations_deg=(0.0,), impostor_budget_mib=budget)
+    params = replace(PARAMS, azimuths=32, elevations_deg=(0.0,), impostor_budget_mib=budget, impostor_choice="rule")
     summary = run_bake(BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
                                   cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures", cycle=None,
                                   name="sample", version="1.0", params=params), tmp_path / "bundles", work=tmp_path / "work")
@@ -128,6 +128,34 @@ def test_a_budget_fits_the_maps_by_fewer_azimuths(small_sample, bakes, tmp_path)
     # The frames the motion asks for come first (2 asked, under the floor: kept), and the summary says so.
     assert held["budget"]["motion"] == {"max_texels": PARAMS.impostor_motion_texels, "frames": 2}
     assert "budget chose 20 azimuths and 2 frames (asked 32 and 2; the motion needs 2 frames)" in format_summary(summary)
+
+
+def test_the_measured_choice_keeps_the_budget_and_says_what_it_chose(small_sample, bakes, tmp_path):
+    """The default choice, under the budget that leaves the rule 20 of 32 azimuths: what it keeps fits, is
+    the best measured pair within the tolerance (texture_memory.json's account), and the bundle is what it
+    says."""
+    whole = json.loads((bakes[True][0] / "texture_memory.json").read_text())["impostor"]
+    budget = whole["stored_mib"] / 2 * 20 / 8 + 1e-9
+    params = replace(PARAMS, azimuths=32, elevations_deg=(0.0,), impostor_budget_mib=budget)
+    summary = run_bake(BakeInputs(character=small_sample / "character.glb", cloth=small_sample / "cloth.pc2",
+                                  cloth_mesh=small_sample / "cloth.obj", textures=small_sample / "textures", cycle=None,
+                                  name="sample", version="1.0", params=params), tmp_path / "bundles", work=tmp_path / "work")
+    held = json.loads((summary.bundle / "texture_memory.json").read_text())["impostor"]
+    budget_doc = held["budget"]
+    assert held["stored_mib"] <= budget and budget_doc["fits"] and budget_doc["rule"] == "measured"
+    layout = budget_doc["layout"]
+    # Every tile tried is at least the one asked, every azimuth count from 12 to 32.
+    assert sorted(int(t) for t in layout["probed"]["at_views"]) == [64, 72, 80, 96]
+    assert sorted(int(a) for a in layout["probed"]["between_azimuths"]) == [12, 16, 20, 24, 28, 32]
+    measured = layout["measured"]
+    best = max(entry["margin"] for entry in measured)
+    chosen = layout["chosen"]
+    assert chosen in measured and chosen["margin"] >= best - 0.01
+    assert all(entry["mib"] >= chosen["mib"] for entry in measured if entry["margin"] >= best - 0.01)
+    manifest = json.loads((summary.bundle / "manifest.json").read_text())["impostor"]
+    assert (manifest["tile_size"], len(manifest["azimuths_deg"])) == (chosen["tile"], chosen["azimuths"])
+    assert len(manifest["frame_indices"]) == chosen["frames"] == budget_doc["chosen"]["frames"]
+    assert f"chosen by measuring: {chosen['tile']}² tiles, {chosen['azimuths']} azimuths" in format_summary(summary)
 
 
 def test_crowdview_says_a_bundle_has_no_detail_maps(bakes, tmp_path):

@@ -160,7 +160,15 @@ def format_summary(summary) -> str:
                          f"{len(entry['baked_frames'])} baked ({entry['stored_mib']:.2f} MiB)")
         budget = held.get("budget")
         allocation = (budget or {}).get("allocation")
-        if allocation is not None:  # several clips under one budget: the per-clip rule set the views only
+        chosen_layout = (budget or {}).get("layout", {}).get("chosen")
+        if chosen_layout is not None:  # tile, azimuths and frames by measuring
+            budget_text = "no budget" if budget["budget_mib"] is None else f"the {budget['budget_mib']:g} MiB budget"
+            lines.append(f"memory   {budget_text}, chosen by measuring: {chosen_layout['tile']}² tiles, {chosen_layout['azimuths']} azimuths"
+                         + ("" if "ranges" in budget else f", {budget['chosen']['frames']} frames")
+                         + f" (asked {budget['asked']['tile']}², {budget['asked']['azimuths']}, at most {budget['asked']['frames']}); predicted SSIM "
+                         f"{chosen_layout['at_views']:.3f} at baked views, {chosen_layout['between_worst']:.3f} between views and frames"
+                         + ("" if budget["fits"] else "; still over it at the floors"))
+        if allocation is not None and "ranges" in budget:  # several clips under one budget
             lines.append(f"memory   the {allocation['budget_mib']:g} MiB archetype budget, split by measuring: "
                          + ", ".join(f"{r['name']} {r['baked_frames']} frames (SSIM {r['score']:.3f})" for r in allocation["ranges"])
                          + ("" if allocation["fits"] else "; still over it at the floors"))
@@ -169,7 +177,7 @@ def format_summary(summary) -> str:
                 lines.append(f"memory   the {chosen['budget_mib']:g} MiB budget chose {chosen['chosen']['azimuths']} azimuths and "
                              f"{chosen['chosen']['frames']} frames for {clip} (asked {chosen['asked']['azimuths']} and {chosen['asked']['frames']})"
                              + ("" if chosen["fits"] else "; still over it at the floors"))
-        if budget and "per_clip" not in budget and budget["chosen"] != budget["asked"]:
+        if budget and "per_clip" not in budget and chosen_layout is None and budget["chosen"] != budget["asked"]:
             motion = budget.get("motion", {})
             lines.append(f"memory   the {budget['budget_mib']:g} MiB budget chose {budget['chosen']['azimuths']} azimuths and "
                          f"{budget['chosen']['frames']} frames (asked {budget['asked']['azimuths']} and {budget['asked']['frames']}"

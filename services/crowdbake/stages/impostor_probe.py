@@ -44,6 +44,37 @@ def probe_layout(layout: AtlasLayout) -> AtlasLayout:
     return AtlasLayout(layout.tile_size, azimuths, (ring,), layout.crop)
 
 
+def at_views_probe(layout: AtlasLayout) -> tuple[AtlasLayout, list[tuple[float, float]]]:
+    """The probe layout (probe_layout) and its own views as cameras: where the impostor is sharpest."""
+    probe = probe_layout(layout)
+    return probe, [(azimuth, probe.elevations_deg[0]) for azimuth in probe.azimuths_deg]
+
+
+def azimuth_gap_probe(tile: int, count: int, elevation: float, crop) -> tuple[AtlasLayout, list[tuple[float, float]]]:
+    """A layout of `count` azimuths (as AtlasLayout.rings) at one ring, holding only the two azimuths either
+    side of PROBE_AZIMUTHS gaps spread round it, and the cameras halfway across those gaps."""
+    azimuths = [360.0 * a / count for a in range(count)]
+    if count < 2:
+        return AtlasLayout(tile, tuple(azimuths), (elevation,), crop), [((azimuths[0] + 180.0) % 360.0, elevation)]
+    gaps = spread_gaps(count, PROBE_AZIMUTHS)
+    held = sorted({azimuths[g] for g in gaps} | {azimuths[(g + 1) % count] for g in gaps})
+    cameras = [(((azimuths[g] + (azimuths[g + 1] if g + 1 < count else 360.0)) / 2.0) % 360.0, elevation) for g in gaps]
+    return AtlasLayout(tile, tuple(held), (elevation,), crop), cameras
+
+
+def elevation_gap_probe(layout: AtlasLayout) -> tuple[AtlasLayout, list[tuple[float, float]]] | None:
+    """The probe layout's azimuths at the two rings either side of the middle ring's lower gap, and the
+    cameras halfway between them; None for one ring."""
+    rings = sorted(layout.elevations_deg)
+    if len(rings) < 2:
+        return None
+    upper = max(1, len(rings) // 2)
+    pair = (rings[upper - 1], rings[upper])
+    azimuths = probe_layout(layout).azimuths_deg
+    return (AtlasLayout(layout.tile_size, azimuths, pair, layout.crop),
+            [(azimuth, (pair[0] + pair[1]) / 2.0) for azimuth in azimuths])
+
+
 def motion_neighbours(item, frames: list[int], frame: int) -> tuple[int | None, int | None]:
     """The baked frames (previous, following) the surface map's motion at `frame` is taken between, when
     the range bakes `frames` (as crowdbake.stages.impostors.previous_baked_frame / next_baked_frame: a
@@ -54,6 +85,18 @@ def motion_neighbours(item, frames: list[int], frame: int) -> tuple[int | None, 
     else:
         previous, following = frames[max(k - 1, 0)], frames[min(k + 1, len(frames) - 1)]
     return surface_maps.motion_sides(frame, previous, following)
+
+
+def draw(atlas: RuntimeAtlas, pictures: list) -> np.ndarray:
+    """crowdview's shader drawing `pictures` of `atlas`: (P, S, S, 3)."""
+    from crowdbake.render.impostor import shared_renderer
+
+    return shared_renderer(atlas.tile_size).runtime_impostors(atlas, pictures)
+
+
+def mean_ssim(references: list[np.ndarray], drawn: np.ndarray) -> float:
+    """Mean SSIM (crowdbake.bake.fidelity) of each drawn picture against its reference."""
+    return float(np.mean([fidelity.compare(reference, picture.astype(np.float64))["ssim"] for reference, picture in zip(references, drawn)]))
 
 
 class Prober:
@@ -69,7 +112,6 @@ class Prober:
         self.plan = replace(plan, layout=self.layout.to_manifest())
         self.scene_at = scene_at
         self.formats = {kind: formats[kind] for kind in ("normal", "uv", "surface")}
-        self.views = [[a, 0] for a in range(len(self.layout.azimuths_deg))]
         self.seconds = 0.0
         self._references: dict[int, np.ndarray] = {}
 
@@ -80,16 +122,51 @@ class Prober:
             self._references[frame] = mesh_references(self.scene_at(frame), self.plan, angles)
         return self._references[frame]
 
-    def layer(self, item, frames: list[int], frame: int) -> dict[str, bytes]:
-        """One baked frame's probe maps, encoded as the bundle stores them: {kind: layer bytes}."""
+    def layer(self, item, frames: list[int], frame: int, layout: AtlasLayout | None = None) -> dict[str, bytes]:
+        """One baked frame's probe maps of `layout` (None: the probe layout), encoded as the bundle stores
+        them: {kind: layer bytes}."""
+        layout = self.layout if layout is None else layout
         scene = self.scene_at(frame)
         sides = motion_neighbours(item, frames, frame)
         previous, following = (None if side is None else self.scene_at(side).positions for side in sides)
         next_positions = surface_maps.motion_positions(scene.positions, previous, following)
-        task = ImpostorTask(id=f"probe-{frame}", frame=frame, elevation=0, views=self.views, references=False)
-        part = render_task(scene, self.plan, task, {"render": 0.0, "maps": 0.0, "references": 0.0}, next_positions)
-        layers, *_ = encode_frame(self.layout, [part], self.formats, False)
+        task = ImpostorTask(id=f"probe-{frame}", frame=frame, elevation=0, views=[list(view) for view in layout.views], references=False)
+        part = render_task(scene, replace(self.plan, layout=layout.to_manifest()), task, {"render": 0.0, "maps": 0.0, "references": 0.0},
+                           next_positions)
+        layers, *_ = encode_frame(layout, [part], self.formats, False)
         return layers
+
+    def between_score(self, index: int, frames: list[int], tile: int, azimuth_count: int, elevations: tuple[float, ...], crop) -> float:
+        """Mean SSIM of crowdview's impostor of range `index` baked at `frames` with `azimuth_count` azimuths
+        a ring at `elevations` and `tile`² tiles (crop: in tile texels), where it blends most: halfway
+        between two baked azimuths, two rings and two baked frames, as fidelity.json's between_views. At
+        most PROBE_GAPS frame gaps spread along the range, each seen across one azimuth gap of those
+        spread round the ring, between the middle ring and the one below; each probe atlas holds only the
+        four views its camera blends."""
+        started = time.perf_counter()
+        item = self.ranges.all()[index]
+        gaps = impostor_allocation.gaps_to_score(item, frames, PROBE_GAPS)
+        azimuths = [360.0 * a / azimuth_count for a in range(azimuth_count)]
+        rings = sorted(elevations)
+        upper = max(1, len(rings) // 2) if len(rings) > 1 else 0
+        pair = (rings[upper - 1], rings[upper]) if len(rings) > 1 else (rings[0],)
+        elevation = sum(pair) / len(pair)
+        azimuth_gaps = spread_gaps(azimuth_count, len(gaps))
+        scores = []
+        for k, gap in enumerate(gaps):
+            g = azimuth_gaps[k % len(azimuth_gaps)]
+            held = sorted({azimuths[g], azimuths[(g + 1) % azimuth_count]})
+            following = azimuths[g + 1] if g + 1 < azimuth_count else 360.0 + azimuths[0]
+            camera = (((azimuths[g] + following) / 2.0) % 360.0 if azimuth_count > 1 else (azimuths[0] + 180.0) % 360.0, elevation)
+            layout = AtlasLayout(tile, tuple(held), pair, crop)
+            needed = sorted({gap.first, gap.second})
+            layers = [self.layer(item, frames, f, layout) for f in needed]
+            blend = view_blend.FrameWeights((needed.index(gap.first), needed.index(gap.second)), gap.weight)
+            drawn = draw(self.atlas(layout, layers, self.scene_at(frames[0])), [picture_at(layout, *camera, blend)])
+            plan = replace(self.plan, layout=layout.to_manifest())
+            scores.append(mean_ssim(list(mesh_references(self.scene_at(gap.between), plan, [camera])), drawn))
+        self.seconds += time.perf_counter() - started
+        return float(np.mean(scores))
 
     def score(self, index: int, count: int) -> float:
         """Mean SSIM of crowdview's impostor between baked frames of range `index` (ranges.all() order) baked
@@ -100,25 +177,42 @@ class Prober:
         gaps = impostor_allocation.gaps_to_score(item, frames, PROBE_GAPS)
         needed = sorted({f for gap in gaps for f in (gap.first, gap.second)})
         layers = [self.layer(item, frames, f) for f in needed]
-        maps = {kind: decode_texture_array(encode_texture_array(self.layout.width, self.layout.height, fmt, [layer[kind] for layer in layers]),
-                                           f"probe {kind} map")
-                for kind, fmt in self.formats.items()}
-        scene = self.scene_at(frames[0])
-        atlas = RuntimeAtlas(self.layout.tile_size, tuple(self.layout.azimuths_deg), tuple(self.layout.elevations_deg),
-                             np.asarray(self.plan.center, dtype=np.float64), float(self.plan.radius), maps["uv"], maps["normal"],
-                             maps["surface"], list(scene.diffuse_runtime), self.has_regions, scene.outfit_row,
-                             self.layout.crop_box)
+        atlas = self.atlas(self.layout, layers, self.scene_at(frames[0]))
         pictures, references = [], []
         for gap in gaps:
             blend = view_blend.FrameWeights((needed.index(gap.first), needed.index(gap.second)), gap.weight)
             pictures.extend(picture_at(self.layout, azimuth, self.layout.elevations_deg[0], blend) for azimuth in self.layout.azimuths_deg)
             references.extend(self.references(gap.between))
-        from crowdbake.render.impostor import shared_renderer
-
-        drawn = shared_renderer(self.layout.tile_size).runtime_impostors(atlas, pictures)
-        scores = [fidelity.compare(reference, picture.astype(np.float64))["ssim"] for reference, picture in zip(references, drawn)]
+        score = mean_ssim(references, draw(atlas, pictures))
         self.seconds += time.perf_counter() - started
-        return float(np.mean(scores))
+        return score
+
+    def atlas(self, layout: AtlasLayout, layers: list[dict[str, bytes]], scene: Scene) -> RuntimeAtlas:
+        """The probe's baked layers ({kind: layer bytes} per baked frame) as crowdview samples them."""
+        maps = {kind: decode_texture_array(encode_texture_array(layout.width, layout.height, fmt, [layer[kind] for layer in layers]),
+                                           f"probe {kind} map")
+                for kind, fmt in self.formats.items()}
+        return RuntimeAtlas(layout.tile_size, tuple(layout.azimuths_deg), tuple(layout.elevations_deg),
+                            np.asarray(self.plan.center, dtype=np.float64), float(self.plan.radius), maps["uv"], maps["normal"],
+                            maps["surface"], list(scene.diffuse_runtime), self.has_regions, scene.outfit_row, layout.crop_box)
+
+    def views_score(self, layout: AtlasLayout, frame: int, cameras: list[tuple[float, float]]) -> float:
+        """Mean SSIM of crowdview's impostor of `layout` (its tile, azimuths, rings and crop) baked at pose
+        frame `frame` alone, from each (azimuth, elevation) camera in degrees, against the mesh there: what
+        the tile and the views cost, with no frame blend. Every view of the layout is drawn, so a probe
+        layout holds only the views its cameras blend (the runtime's blend finds neighbours among any
+        azimuths: crowdbake.bake.view_blend)."""
+        started = time.perf_counter()
+        plan = replace(self.plan, layout=layout.to_manifest())
+        scene = self.scene_at(frame)
+        task = ImpostorTask(id=f"probe-views-{frame}", frame=frame, elevation=0, views=[list(view) for view in layout.views], references=False)
+        part = render_task(scene, plan, task, {"render": 0.0, "maps": 0.0, "references": 0.0})
+        layers, *_ = encode_frame(layout, [part], self.formats, False)
+        still = view_blend.FrameWeights((0, 0), 0.0)
+        pictures = [picture_at(layout, azimuth, elevation, still) for azimuth, elevation in cameras]
+        score = mean_ssim(list(mesh_references(scene, plan, cameras)), draw(self.atlas(layout, [layers], scene), pictures))
+        self.seconds += time.perf_counter() - started
+        return score
 
     def table(self, most: int) -> list[dict[int, float]]:
         """Per range (ranges.all() order) {count: score} over its ladder (impostor_allocation.ladder, at most

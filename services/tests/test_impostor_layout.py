@@ -1,0 +1,93 @@
+"""The impostor's tile and azimuth count chosen with its frames by measuring (crowdbake.bake.impostor_layout)."""
+from __future__ import annotations
+
+import pytest
+
+from crowdbake.bake import impostor_layout as layout
+from crowdbake.formats.ranges import Clip, Ranges
+
+ONE_CLIP = Ranges(24, (Clip("cycle", 0, 24, 0, 24, "", 0.0, 0.0),), ())
+FRAMES = [2, 3, 4, 6, 8, 12, 24]
+
+
+def frame_table(rate: float, best: float = 0.96) -> dict[int, float]:
+    """A clip whose impostor between baked frames improves by `rate` a frame up to `best`."""
+    return {n: min(best, 0.5 + rate * n) for n in FRAMES}
+
+
+def bytes_by(tile: int, azimuths: int) -> float:
+    """One baked frame's maps: 3 rings of square tiles at 3.5 bytes a texel."""
+    return azimuths * 3 * tile * tile * 3.5
+
+
+def test_the_tile_ladder_never_goes_below_the_tile_asked():
+    assert layout.tile_ladder(88, 1024) == [88, 100, 112, 132]
+    assert layout.tile_ladder(88, 104) == [88, 100]
+    assert layout.tile_ladder(88, 64) == [88]
+
+
+def test_the_azimuth_ladder_falls_in_steps_to_the_floor():
+    assert layout.azimuth_ladder(32) == [12, 16, 20, 24, 28, 32]
+    assert layout.azimuth_ladder(14) == [12, 14]
+    assert layout.azimuth_ladder(8) == [8]
+
+
+def choose(at_views, azimuth_scores, table, budget_mib, elevation_loss=0.0):
+    candidates = layout.options(ONE_CLIP, [table], at_views, azimuth_scores, elevation_loss, 88, bytes_by,
+                                None if budget_mib is None else budget_mib * 1024 * 1024)
+    return layout.choose_layout(candidates), candidates
+
+
+def test_a_blurry_character_gets_a_larger_tile_when_the_budget_allows():
+    at_views = {88: 0.937, 100: 0.948, 112: 0.956, 132: 0.958}
+    chosen, _ = choose(at_views, {12: 0.93, 32: 0.935}, frame_table(0.05), 64.0)
+    # 112 is the first tile over the 0.95 target; 132 gains less than the tolerance for more bytes.
+    assert chosen.tile == 112
+    assert chosen.at_views == pytest.approx(0.956)
+
+
+def test_a_sharp_character_keeps_the_tile_asked_and_saves_bytes_within_the_tolerance():
+    at_views = {88: 0.978, 100: 0.979, 112: 0.98, 132: 0.981}
+    scores = {12: 0.94, 16: 0.95, 20: 0.963, 24: 0.966, 28: 0.97, 32: 0.971}
+    chosen, candidates = choose(at_views, scores, frame_table(0.05), 16.0)
+    assert chosen.tile == 88
+    best = max(option.margin for option in candidates)
+    assert chosen.margin >= best - 0.01
+    # Nothing cheaper is within the tolerance.
+    assert all(option.bytes >= chosen.bytes for option in candidates if option.margin >= best - 0.01)
+
+
+def test_a_tight_budget_spends_on_what_the_probes_say_is_worth_more():
+    at_views = {88: 0.96}
+    # Views matter little, frames much: fewer azimuths, more frames.
+    views_cheap, _ = choose(at_views, {12: 0.955, 16: 0.957, 24: 0.958, 32: 0.96}, frame_table(0.02), 6.0)
+    # Views matter much, frames little: more azimuths, fewer frames.
+    views_dear, _ = choose(at_views, {12: 0.85, 16: 0.9, 24: 0.95, 32: 0.96}, frame_table(0.2), 6.0)
+    assert views_cheap.azimuths < views_dear.azimuths
+    assert views_cheap.allocation.counts[0] > views_dear.allocation.counts[0]
+
+
+def test_the_losses_add_to_the_frames_score():
+    chosen, candidates = choose({88: 0.97, 100: 0.98}, {12: 0.9, 32: 0.95}, {24: 0.93}, None, elevation_loss=0.01)
+    option = next(o for o in candidates if (o.tile, o.azimuths) == (100, 12))
+    # 0.93 at 88 and 32 azimuths' views... + (0.98 - 0.97) for the tile - (0.97 - 0.90) for 12 azimuths - 0.01 between rings.
+    assert option.between[0] == pytest.approx(0.93 + 0.01 - 0.07 - 0.01)
+    assert option.margin == pytest.approx(min(0.98 - 0.95, option.between[0] - 0.90))
+
+
+def test_a_pair_over_the_budget_at_its_floors_never_wins():
+    # At 4 MiB, 132² tiles at 32 azimuths are over the budget even at 2 frames; 88² at 12 azimuths fit.
+    chosen, candidates = choose({88: 0.95, 132: 0.99}, {12: 0.9, 32: 0.94}, frame_table(0.05), 4.0)
+    over = [option for option in candidates if not option.allocation.fits]
+    assert (132, 32) in {(option.tile, option.azimuths) for option in over}
+    assert chosen.allocation.fits
+    assert all(option.margin < -0.5 for option in over)
+
+
+def test_noisy_probes_are_made_rising():
+    assert layout.rising({88: 0.95, 100: 0.94, 112: 0.96}) == {88: 0.95, 100: 0.95, 112: 0.96}
+
+
+def test_the_asked_tile_must_have_been_probed():
+    with pytest.raises(ValueError, match="asked tile"):
+        layout.options(ONE_CLIP, [frame_table(0.05)], {100: 0.9}, {32: 0.9}, 0.0, 88, bytes_by, None)
