@@ -68,3 +68,11 @@ def test_a_budget_below_every_floor_keeps_the_floors_and_says_it_does_not_fit():
     tables = [scores_by(0.2, [2, 4]), scores_by(0.03, [2, 4]), scores_by(0.1, [2, 4])]
     chosen = allocation.allocate(RANGES, tables, 1000.0, 3000.0)
     assert chosen.counts == [2, 2, 2] and not chosen.fits
+
+
+def test_probes_skip_every_other_count_and_the_skipped_are_interpolated():
+    ladder = [2, 3, 4, 5, 6, 8, 10, 12, 15, 18, 21, 24]
+    assert allocation.probed_counts(ladder) == [2, 4, 6, 10, 15, 21, 24]
+    assert allocation.probed_counts([2, 3]) == [2, 3]
+    filled = allocation.interpolated({2: 0.5, 4: 0.7, 6: 0.8}, ladder)
+    assert filled == {2: 0.5, 3: pytest.approx(0.6), 4: 0.7, 5: pytest.approx(0.75), 6: 0.8}

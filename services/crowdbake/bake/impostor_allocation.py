@@ -67,6 +67,29 @@ def frames_at(ranges: Ranges, index: int, count: int) -> list[int]:
     return pose_ranges.transition_frames(item, 1.0, max(2, count))
 
 
+def probed_counts(counts: list[int]) -> list[int]:
+    """The counts of a ladder a probe draws, ascending: every other one from the bottom, and the top. The
+    scores change smoothly with the count, so the skipped ones are interpolated (`interpolated`) at half
+    the probes' cost."""
+    return sorted(set(counts[::2]) | {counts[-1]})
+
+
+def interpolated(table: dict[int, float], counts: list[int]) -> dict[int, float]:
+    """{count: score} of `table` (probed counts) with every count of `counts` that lies between two probed
+    ones added, linearly interpolated between them; counts outside the probed span are left out."""
+    probed = sorted(table)
+    out = dict(table)
+    for count in counts:
+        if count in out:
+            continue
+        below = [n for n in probed if n < count]
+        above = [n for n in probed if n > count]
+        if below and above:
+            low, high = below[-1], above[0]
+            out[count] = table[low] + (table[high] - table[low]) * (count - low) / (high - low)
+    return {n: out[n] for n in sorted(out)}
+
+
 @dataclass(frozen=True)
 class Gap:
     """Where a probe scores: the blend between baked frames `first` and `second` of a range at pose frame

@@ -37,7 +37,7 @@ MIB = 1024 * 1024
 # One clip: how many of the best predicted (tile, azimuths) pairs are measured end to end.
 SHORTLIST = 3
 # What chooses a several-clip bake's frames: part of the plan's key, so plans of another rule are redone.
-ALLOCATION = (f"measured-4-{PROBE_AZIMUTHS}x{PROBE_GAPS}-{impostor_allocation.TOLERANCE}-{len(impostor_allocation.LADDER)}"
+ALLOCATION = (f"measured-5-{PROBE_AZIMUTHS}x{PROBE_GAPS}-{impostor_allocation.TOLERANCE}-{len(impostor_allocation.LADDER)}"
               f"-{impostor_layout.TILE_STEPS}-{impostor_layout.AT_VIEWS_TARGET}-{impostor_layout.BETWEEN_TARGET}")
 
 
@@ -105,17 +105,21 @@ def measured_framing(params, cycle: CycleRecord, high: dict, record: ImpostorPla
     asked_tile = params.tile_size
     asked = replace(AtlasLayout.rings(asked_tile, params.azimuths, elevations), crop=widest(asked_tile))
     prober = Prober(ranges, replace(record, layout=asked.to_manifest()), scene_at, formats, has_regions)
-    frame_tables = prober.table(params.impostor_frames)
+    probed_tables = prober.table(params.impostor_frames)
+    frame_tables = [impostor_allocation.interpolated(table, counts)
+                    for table, counts in zip(probed_tables, impostor_allocation.ladders(ranges, params.impostor_frames))]
     probe_frame = ranges.clips[0].first_frame
     at_views = {}
     for tile in impostor_layout.tile_ladder(asked_tile, largest_tile(params, len(elevations))):
         probe, cameras = at_views_probe(replace(asked, tile_size=tile, crop=widest(tile)))
         at_views[tile] = prober.views_score(probe, probe_frame, cameras)
     ring = asked.elevations_deg[len(elevations) // 2]
-    azimuth_scores = {}
-    for count in impostor_layout.azimuth_ladder(params.azimuths):
+    probed_azimuths = {}
+    azimuth_ladder = impostor_layout.azimuth_ladder(params.azimuths)
+    for count in impostor_allocation.probed_counts(azimuth_ladder):
         probe, cameras = azimuth_gap_probe(asked_tile, count, ring, asked.crop)
-        azimuth_scores[count] = prober.views_score(probe, probe_frame, cameras)
+        probed_azimuths[count] = prober.views_score(probe, probe_frame, cameras)
+    azimuth_scores = impostor_allocation.interpolated(probed_azimuths, azimuth_ladder)
     elevation = elevation_gap_probe(asked)
     elevation_loss = 0.0 if elevation is None else at_views[asked_tile] - prober.views_score(elevation[0], probe_frame, elevation[1])
     candidates = impostor_layout.options(ranges, frame_tables, at_views, azimuth_scores, elevation_loss, asked_tile, frame_bytes, budget_bytes)
@@ -144,7 +148,7 @@ def measured_framing(params, cycle: CycleRecord, high: dict, record: ImpostorPla
     if params.crop:
         layout = replace(layout, crop=crop_for(extents, frame_indices, record.radius, chosen.tile))
     frame_mib = frame_bytes(chosen.tile, chosen.azimuths)
-    account = impostor_allocation.allocation_document(ranges, frame_tables, allocation, budget_mib, frame_mib)
+    account = impostor_allocation.allocation_document(ranges, probed_tables, allocation, budget_mib, frame_mib)
     logger.info("impostor by measuring: tile %d, %d azimuths, frames %s (%.1f MiB of %s, probes %.1f s)", chosen.tile, chosen.azimuths,
                 ", ".join(f"{r['name']} {r['baked_frames']}" for r in account["ranges"]), account["mib"],
                 "no budget" if budget_mib is None else f"{budget_mib:g}", prober.seconds)
@@ -154,7 +158,7 @@ def measured_framing(params, cycle: CycleRecord, high: dict, record: ImpostorPla
         "chosen": {"tile": chosen.tile, "azimuths": chosen.azimuths, "frames": allocation.counts if several else allocation.counts[0]},
         "fits": allocation.fits,
         "rule": "measured",
-        "layout": impostor_layout.layout_document(candidates, chosen, at_views, azimuth_scores, elevation_loss, checked),
+        "layout": impostor_layout.layout_document(candidates, chosen, at_views, probed_azimuths, elevation_loss, checked),
         "allocation": account,
     }
     if several:

@@ -220,12 +220,13 @@ class Prober:
         return [self.range_table(index, counts) for index, counts in enumerate(impostor_allocation.ladders(self.ranges, most))]
 
     def range_table(self, index: int, counts: list[int]) -> dict[int, float]:
-        """{count: score} of one range: its ladder's top, then counts from the bottom up to the first within
-        impostor_allocation.TOLERANCE of the best so far. The allocation never bakes more than that count
-        (it is step 1's choice), so the counts above it are not probed."""
+        """{count: score} of one range, as probed: its ladder's top, then every other count from the bottom
+        up to the first within impostor_allocation.TOLERANCE of the best so far. The allocation never bakes
+        more than that count (it is step 1's choice), so the counts above it are not probed; the counts
+        skipped between are interpolated (impostor_allocation.interpolated)."""
         table = {counts[-1]: self.score(index, counts[-1])}
         best = float("-inf")
-        for count in counts[:-1]:
+        for count in impostor_allocation.probed_counts(counts)[:-1]:
             table[count] = self.score(index, count)
             best = max(best, table[count])
             if best >= max(table.values()) - impostor_allocation.TOLERANCE:
