@@ -262,9 +262,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--impostor-archetype-budget",), "MIB", optional=True, above_zero=True, maximum=4096.0,
               derived="none: impostor_budget_mib for each clip, transitions at their clips' spacing"),
     ParamSpec("impostor_choice", "str", "measured", "how the impostor's tile, azimuths and frames are chosen within the budget: "
-              "measured (crowdview's impostor probed against the mesh at tiles from 1 to 1.5 x tile_size, azimuths from 12 to "
-              "azimuths, frames up to impostor_frames: docs/bake.md 'Memory') or rule (tile_size as asked; azimuths, then frames, "
-              "cut until the budget holds)",
+              "measured (probed with crowdview's shader: docs/bake.md 'Memory') or rule (tile as asked; azimuths, then frames, cut to fit)",
               ("--impostor-choice",), choices=IMPOSTOR_CHOICES),
     ParamSpec("crop", "bool", True, "store each impostor view cropped to the box the character covers over every view and frame "
               "(SPEC.md: about half the maps' memory, the same pictures)",

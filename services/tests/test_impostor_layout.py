@@ -91,3 +91,33 @@ def test_noisy_probes_are_made_rising():
 def test_the_asked_tile_must_have_been_probed():
     with pytest.raises(ValueError, match="asked tile"):
         layout.options(ONE_CLIP, [frame_table(0.05)], {100: 0.9}, {32: 0.9}, 0.0, 88, bytes_by, None)
+
+
+@pytest.mark.parametrize("count", [12, 20, 32])
+def test_an_azimuth_probe_holds_the_two_views_its_camera_blends_at_a_half_each(count):
+    """A probe atlas holds only some of a ring's azimuths; crowdview's blend must still take, for each
+    camera, the two baked azimuths either side of it in the full ring, half and half."""
+    from crowdbake.bake import view_blend
+    from crowdbake.stages.impostor_probe import azimuth_gap_probe
+
+    probe, cameras = azimuth_gap_probe(88, count, 20.0, None)
+    step = 360.0 / count
+    assert len(cameras) == 4 and len(probe.azimuths_deg) <= 8
+    for azimuth, elevation in cameras:
+        weights = view_blend.blend_view_weights(azimuth, elevation, probe.azimuths_deg, probe.elevations_deg)
+        used = sorted(probe.azimuths_deg[tile % len(probe.azimuths_deg)] for tile, w in zip(weights.tiles, weights.weights) if w > 0)
+        assert used == sorted({(azimuth - step / 2) % 360.0, (azimuth + step / 2) % 360.0})
+        assert max(weights.weights) == pytest.approx(0.5)
+
+
+def test_a_ring_probe_sits_halfway_between_two_rings():
+    from crowdbake.bake.atlas import AtlasLayout
+    from crowdbake.bake import view_blend
+    from crowdbake.stages.impostor_probe import elevation_gap_probe
+
+    probe, cameras = elevation_gap_probe(AtlasLayout.rings(88, 32, (0.0, 20.0, 40.0)))
+    assert probe.elevations_deg == (0.0, 20.0) and {e for _, e in cameras} == {10.0}
+    for azimuth, elevation in cameras:
+        weights = view_blend.blend_view_weights(azimuth, elevation, probe.azimuths_deg, probe.elevations_deg)
+        assert sorted(w for w in weights.weights if w > 0) == pytest.approx([0.5, 0.5])
+    assert elevation_gap_probe(AtlasLayout.rings(88, 32, (0.0,))) is None
