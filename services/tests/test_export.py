@@ -24,7 +24,7 @@ from crowdbake.cli import main as cli_main
 from crowdbake.bake import compression
 from crowdbake.export import ktx2
 from crowdbake.export.textures import layer_digest, model_space_normal_bc1, model_space_normals, rgba8_layers
-from crowdbake.export.vat import VertexAnimation, decode_vat, encode_vat, vat_layout, vat_texcoords
+from crowdbake.export.vat import VertexAnimation, decode_vat, vat_layout
 from crowdbake.export.animations import animation_plans
 from crowdbake.formats.bundle import verify_bundle
 from crowdbake.formats.skinned_cache import SkinnedPoseCache
@@ -37,6 +37,11 @@ NODE_TIMEOUT_S = 300
 MORPH_TOLERANCE_M = 1e-3
 # 8-bit normals and deltas, summed along the frames' tree aiming at length 63 (glb.quantize_part): 0.8 degrees.
 MORPH_NORMAL_DEGREES = 1.0
+# VATs: 16-bit positions, half a step of the bounds (0.03 mm on a 2 m character), or a skin's rest pose and
+# joint matrices rounded to 16 bits each (the export states what it measures, and it must be small);
+# octahedral 8-bit normals (vat.OCTAHEDRAL_MAX_ERROR_DEG), turned by a skin's matrices.
+VAT_TOLERANCE_M = 2e-4
+VAT_NORMAL_DEGREES = 1.2
 
 
 def node_tool(script: str, *files: Path) -> list[dict]:
@@ -51,34 +56,6 @@ def node_tool(script: str, *files: Path) -> list[dict]:
 
 
 # ----------------------------------------------------------------------------- pure parts, synthetic
-
-
-def test_vat_layout_wraps_wide_meshes_into_rows_per_frame():
-    layout = vat_layout(vertex_count=5000, frame_count=3, max_width=2048)
-    assert (layout.width, layout.rows_per_frame, layout.height) == (2048, 3, 9)
-    coords = vat_texcoords(layout)
-    # Vertex 2048 starts the second row of frame 0; its texel centre is (0.5, 1.5) texels.
-    np.testing.assert_allclose(coords[2048] * [layout.width, layout.height], [0.5, 1.5])
-    with pytest.raises(ValueError):
-        vat_layout(0, 3)
-
-
-def test_vat_decodes_within_half_a_step_of_the_bounds():
-    rng = np.random.default_rng(7)
-    positions = rng.uniform([-0.4, 0.0, -0.3], [0.4, 1.8, 0.3], size=(5, 300, 3))
-    normals = rng.normal(size=(5, 300, 3))
-    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    animation = encode_vat(positions, normals, max_width=128)
-    assert animation.positions.shape == (5 * 3, 128, 4) and animation.positions.dtype == np.uint16 and animation.normals.dtype == np.uint8
-    decoded_positions, decoded_normals = decode_vat(animation)
-    error = np.abs(decoded_positions - positions).max(axis=(0, 1))
-    assert (error <= animation.max_position_error + 1e-12).all()
-    assert error.max() > 0.25 * animation.max_position_error.max()  # quantisation really happened
-    # 8-bit components: the normal's direction is kept to half a degree.
-    angles = np.degrees(np.arccos(np.clip((decoded_normals * normals).sum(-1), -1, 1)))
-    assert angles.max() < 0.5 and angles.max() > 0.01
-    # Unused texels at the end of each frame's last row stay 0.
-    assert (animation.positions[2, 300 - 256 :] == 0).all()
 
 
 def test_quantized_part_dequantizes_within_its_grid():
@@ -141,14 +118,6 @@ def test_a_normal_turned_past_reach_is_approached():
     np.testing.assert_allclose(deltas[0, 1], frames[0, 1] - base[1])  # within reach: the plain difference
     turned = base[0] + deltas[0, 0]
     assert abs(np.degrees(np.arccos(turned @ frames[0, 0] / np.linalg.norm(turned))) - 36.87) < 0.5
-
-
-def test_vat_flat_axis_decodes_exactly():
-    positions = np.zeros((2, 4, 3))
-    positions[1, :, 0] = 1.0  # y and z never move
-    normals = np.tile([0.0, 1.0, 0.0], (2, 4, 1))
-    decoded, _ = decode_vat(encode_vat(positions, normals))
-    np.testing.assert_array_equal(decoded, positions)
 
 
 @pytest.mark.parametrize(
@@ -288,6 +257,41 @@ def sample_export_rgba8(sample_bundle, tmp_path_factory) -> Path:
     return out
 
 
+def read_vat_texture(out: Path, files: dict) -> np.ndarray:
+    """A VAT's (H, W, 4) uint16 texels from its KTX2, and the same from its PNG where there is one (--vat-png)."""
+    image = ktx2.decode_ktx2((out / files["ktx2"]).read_bytes())
+    assert image.vk_format == ktx2.VK_FORMAT_R16G16B16A16_UNORM and image.layer_count == 0
+    texels = image.texels[0]
+    if "png" in files:
+        np.testing.assert_array_equal(cv2.cvtColor(cv2.imread(str(out / files["png"]), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA), texels)
+    return texels
+
+
+def vat_played(out: Path, vat: dict, texcoords: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(positions, normals), each (F, V, 3): what a part's VAT gives each mesh vertex, the vertex found by its
+    TEXCOORD_1 (`texcoords`, (V, 2)) as a shader finds it, decoded as export.json's `vat` block says."""
+    from crowdbake.export.vat import SKIN_BLOCKS, JOINT_ROWS, JointTexture, SkinTexture, play_skin
+
+    skinned = vat["kind"] == "skin"
+    layout = vat_layout(vat["vertex_count"], SKIN_BLOCKS if skinned else vat["frame_count"], vat["width"])
+    assert (layout.height, layout.rows_per_frame) == (vat["height"], vat["rows_per_frame"])
+    texels = read_vat_texture(out, vat["texture"])
+    assert texels.shape == (layout.height, layout.width, 4)
+    column, row = np.floor(texcoords * [layout.width, layout.height]).astype(int).T
+    assert (row < layout.rows_per_frame).all()  # every vertex addresses block 0
+    vertices = row * layout.width + column
+    bounds = np.array(vat["bounds_min"]), np.array(vat["bounds_max"])
+    if not skinned:
+        positions, normals = decode_vat(VertexAnimation(layout, texels, *bounds))
+        return positions[:, vertices], normals[:, vertices]
+    block = vat["joints"]
+    joint_layout = vat_layout(block["joint_count"] * JOINT_ROWS, vat["frame_count"], block["width"])
+    assert (joint_layout.height, joint_layout.rows_per_frame) == (block["height"], block["rows_per_frame"])
+    joints = JointTexture(joint_layout, read_vat_texture(out, block), block["joint_count"], np.array(block["min"]), np.array(block["max"]))
+    positions, normals = play_skin(SkinTexture(layout, texels, *bounds), joints)
+    return positions[:, vertices], normals[:, vertices]
+
+
 def check_export(bundle_dir: Path, out: Path) -> None:
     """Everything this module promises about an export of `bundle_dir` at `out`."""
     bundle = verify_bundle(bundle_dir)
@@ -323,19 +327,16 @@ def check_export(bundle_dir: Path, out: Path) -> None:
             np.testing.assert_array_equal(read_accessor(gltf, blob, primitive.attributes.TEXCOORD_0), cache.uvs)
             vat = part["vat"]
             assert meshes[part["part"]].extras["crowdbake"]["vat"] == vat
-            layout = vat_layout(vat["vertex_count"], vat["frame_count"], vat["width"])
-            np.testing.assert_array_equal(read_accessor(gltf, blob, primitive.attributes.TEXCOORD_1), vat_texcoords(layout))
-            from_ktx2 = [ktx2.decode_ktx2((out / vat[k]["ktx2"]).read_bytes()).texels[0] for k in ("position", "normal")]
-            assert [image.dtype for image in from_ktx2] == [np.uint16, np.uint8]
-            if "png" in vat["position"]:  # --vat-png: the same texels
-                from_png = [cv2.cvtColor(cv2.imread(str(out / vat[k]["png"]), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA) for k in ("position", "normal")]
-                for image_png, image_ktx2 in zip(from_png, from_ktx2):
-                    np.testing.assert_array_equal(image_png, image_ktx2)
-            animation = VertexAnimation(layout, from_ktx2[0], from_ktx2[1], np.array(vat["bounds_min"]), np.array(vat["bounds_max"]))
-            positions, normals = decode_vat(animation)
+            assert vat["kind"] == ("skin" if isinstance(cache, SkinnedPoseCache) else "frames") and vat["frame_count"] == cache.frame_count
+            positions, normals = vat_played(out, vat, read_accessor(gltf, blob, primitive.attributes.TEXCOORD_1))
             error = np.abs(positions - cache.positions).max(axis=(0, 1))
             assert (error <= np.array(vat["max_position_error_m"]) + 1e-7).all(), error
-            assert np.degrees(np.arccos(np.clip((normals * cache.normals).sum(-1), -1, 1))).max() < 0.5
+            assert (error <= VAT_TOLERANCE_M).all(), error
+            turned = np.degrees(np.arccos(np.clip((normals * cache.normals).sum(-1), -1, 1)))
+            assert turned.max() < VAT_NORMAL_DEGREES, turned.max()
+            if lod["lod"] > 0 and "texels_of_lod" in vat:  # this LOD reads a finer LOD's files
+                finer = next(p for entry in sidecar["lods"] if entry["lod"] == vat["texels_of_lod"] for p in entry["parts"] if p["part"] == part["part"])
+                assert vat["texture"] == finer["vat"]["texture"] and vat["width"] == finer["vat"]["width"]
 
     # 3. KTX2: ktx-parse reads every file, its writer gives back the same bytes, and the texels are
     # the bundle's: error 0. In "bc" mode a BC1/BC2 bundle layer is in the file block for block and
@@ -527,7 +528,7 @@ def read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int) -> np.ndarray:
 
 def test_sample_export_validates_and_round_trips(sample_bundle, sample_export):
     sidecar = json.loads((sample_export / "export.json").read_text())
-    assert sidecar["ktx2"] == "bc" and sidecar["format_version"] == 4
+    assert sidecar["ktx2"] == "bc" and sidecar["format_version"] == 5
     assert sidecar["impostor"]["maps"]["normal"]["vk_format"] == "BC1_RGB_UNORM_BLOCK"  # the bundle's bc5, in model space
     assert sidecar["impostor"]["maps"]["detail"]["vk_format"] == "BC2_SRGB_BLOCK"
     assert sidecar["impostor"]["maps"]["uv"]["vk_format"] == "R32_UINT"  # words stay exact, never block-compressed

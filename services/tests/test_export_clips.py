@@ -169,7 +169,7 @@ def check_clip_export(bundle_dir: Path, out: Path) -> list[str]:
 def test_the_vector_bundle_exports_every_clip_and_transition(vector_export):
     assert check_clip_export(VECTOR_BUNDLE, vector_export) == ["a", "b", "a -> b", "b -> a"]
     sidecar = json.loads((vector_export / "export.json").read_text())
-    assert sidecar["format_version"] == 4 and sidecar["frame_count"] == verify_bundle(VECTOR_BUNDLE).ranges.pose_frames
+    assert sidecar["format_version"] == 5 and sidecar["frame_count"] == verify_bundle(VECTOR_BUNDLE).ranges.pose_frames
 
 
 def test_the_robot_exports_every_clip_and_transition(robot_bake, tmp_path):
