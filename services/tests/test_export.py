@@ -105,6 +105,25 @@ def test_morph_tree_links_near_frames_within_an_int16():
         path_weights(np.array([1, 0]), [0])  # a cycle, no base
 
 
+def test_only_blocks_with_a_covered_texel_keep_their_normals():
+    """The model-space normal map keeps a BC1 block only where the exported UV map covers one of its texels
+    (textures.blocks_covering); a reader draws nothing elsewhere. Coverage reads from uv32's bit 31 or
+    rgba16's alpha."""
+    from crowdbake.export.textures import BC1_BLOCK_BYTES, blocks_covering, covered_texels
+
+    words = np.zeros((1, 8, 12), np.uint32)
+    words[0, 5, 9] = (1 << 31) | 77  # one texel of block (row 1, column 2)
+    words[0, 0, 0] = 77  # a word without its covered bit: background
+    covered = covered_texels(words)
+    assert covered.sum() == 1 and covered[0, 5, 9]
+    rgba16 = np.zeros((1, 8, 12, 4), np.uint16)
+    rgba16[0, 5, 9, 3] = 65535
+    np.testing.assert_array_equal(covered_texels(rgba16), covered)
+    blocks = bytes(range(1, 6 * BC1_BLOCK_BYTES + 1))
+    kept = np.frombuffer(blocks_covering(blocks, covered[0], BC1_BLOCK_BYTES), np.uint8).reshape(2, 3, BC1_BLOCK_BYTES)
+    assert kept[1, 2].tobytes() == blocks[5 * BC1_BLOCK_BYTES:] and not np.delete(kept.reshape(6, -1), 5, axis=0).any()
+
+
 def test_a_normal_turned_past_reach_is_approached():
     """A normalized int8 delta keeps base + delta within one unit of the base in each component: from (0, 0, 1)
     a normal turned 143 degrees to (0.8, 0, -0.6) is out of reach. The delta aims at it scaled, so the sum
@@ -351,16 +370,6 @@ def check_export(bundle_dir: Path, out: Path) -> None:
     for kind in ("normal", "detail", "surface"):
         if kind in manifest["impostor"]["maps"]:
             sources[sidecar["impostor"]["maps"][kind]["ktx2"]] = bundle.textures[manifest["impostor"]["maps"][kind]]
-    for path, texture in sources.items():
-        # A bc5 normal map (two in-view components) is exported in model space: BC1 blocks of those codes in
-        # "bc" mode (decoded here as an engine would), the codes themselves in "rgba8" mode.
-        if texture.pixel_format == "bc5":
-            codes = model_space_normals(texture, manifest["impostor"])
-            if sidecar["ktx2"] == "bc":
-                codes = np.stack([compression.decode(compression.encode_bc1(layer), "bc1", texture.width, texture.height) for layer in codes])
-            expected[path] = codes
-        else:
-            expected[path] = rgba8_layers(texture)
     uv = bundle.textures[manifest["impostor"]["maps"]["uv"]]
     if uv.pixel_format == "uvblock":  # exported as the uv32 words of its decoded texels
         from crowdbake.bake.map_codecs import uvblock_to_uv32
@@ -374,6 +383,23 @@ def check_export(bundle_dir: Path, out: Path) -> None:
         assert ((alpha > 0) & (alpha < 255)).any()  # the bake's silhouette is soft
         words = np.where(alpha / 255.0 > 0.5, words, 0)
     expected[sidecar["impostor"]["maps"]["uv"]["ktx2"]] = words
+    covered = (words >> 31).astype(bool)
+    for path, texture in sources.items():
+        # A bc5 normal map (two in-view components) is exported in model space: BC1 blocks of those codes in
+        # "bc" mode (decoded here as an engine would), the codes themselves in "rgba8" mode; 0 where the UV map
+        # covers no texel (of the 4x4 block, in "bc" mode), as nothing reads a normal there.
+        if texture.pixel_format == "bc5":
+            codes = model_space_normals(texture, manifest["impostor"])
+            if sidecar["ktx2"] == "bc":
+                codes = np.stack([compression.decode(compression.encode_bc1(layer), "bc1", texture.width, texture.height) for layer in codes])
+                live = covered.reshape(len(codes), texture.height // 4, 4, texture.width // 4, 4).any(axis=(2, 4))
+                kept, nothing = np.repeat(np.repeat(live, 4, axis=1), 4, axis=2), [0, 0, 0, 255]  # a zero BC1 block: opaque black
+            else:
+                kept, nothing = covered, [0, 0, 0, 0]
+            assert covered.any() and not kept.all()
+            expected[path] = np.where(kept[..., None], codes, np.array(nothing, np.uint8))
+        else:
+            expected[path] = rgba8_layers(texture)
     ktx_files = sorted(out.rglob("*.ktx2"))
     reports = {Path(r["path"]).relative_to(out).as_posix(): r for r in node_tool("read-ktx2.mjs", *ktx_files)}
     assert len(reports) == len(ktx_files)

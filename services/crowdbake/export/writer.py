@@ -37,7 +37,8 @@ from crowdbake.bake.shading import apply_outfit
 from crowdbake.export.body_skin import GltfSkin, gltf_skin, morph_bytes, play, skin_bytes, why_not_a_skin
 from crowdbake.export.cloth_bones import DEFAULT_ITERATIONS, ClothBones, choose_bone_count, decompose_cloth
 from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb, node_transform
-from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, over_half_covered, region_codes_used, rgba8_layers, uv_map_layers
+from crowdbake.export.textures import (KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, covered_texels, model_space_normal_ktx2, over_half_covered,
+                                        region_codes_used, rgba8_layers, uv_map_layers)
 from crowdbake.export import vat
 from crowdbake.formats.bundle import Bundle, verify_bundle
 from crowdbake.formats.skinned_cache import SkinnedPoseCache
@@ -214,18 +215,20 @@ def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
                       "(range bounds.radius), g, b = velocity over one baked step along the view's right and up axes "
                       "(range bounds.radius / 2); dilated past the silhouette; a = the share of the texel the character covers "
                       "(an anti-aliased silhouette; 1 in bc1 bundles)"))
+    uv_format, uv = uv_map_layers(bundle.textures[impostor["maps"]["uv"]], prepared)
+    surface = bundle.textures.get(impostor["maps"].get("surface", ""))
+    if surface is not None and surface.pixel_format in ("bc2", "rgba8"):  # its alpha: each texel's coverage
+        uv = over_half_covered(uv, rgba8_layers(surface, prepared)[..., 3])
     for kind, colour, encoding in kinds:
         texture = bundle.textures[impostor["maps"][kind]]
-        if texture.pixel_format == "bc5":  # two components in each tile's view: handed to engines in model space
-            vk_format, data = model_space_normal_ktx2(texture, impostor, mode, prepared)
+        if texture.pixel_format == "bc5":  # two components in each tile's view: handed to engines in model space, where covered
+            vk_format, data = model_space_normal_ktx2(texture, impostor, mode, prepared, covered_texels(uv))
+            encoding += "; 0 where the UV map covers no texel (of the block, in BC1)"
         else:
             vk_format, data = colour_ktx2(texture, colour, mode)
         path = out.write(f"impostor/{kind}.ktx2", data)
         maps[kind] = _texture_entry(path, vk_format, len(texture.layers), texture.width, texture.height, encoding)
-    vk_format, uv = uv_map_layers(bundle.textures[impostor["maps"]["uv"]], prepared)
-    surface = bundle.textures.get(impostor["maps"].get("surface", ""))
-    if surface is not None and surface.pixel_format in ("bc2", "rgba8"):  # its alpha: each texel's coverage
-        uv = over_half_covered(uv, rgba8_layers(surface, prepared)[..., 3])
+    vk_format = uv_format
     path = out.write("impostor/uv.ktx2", ktx2.encode_ktx2(vk_format, uv))
     encoding = (
         "uv32: u = (w & 0x3FFF) / 16383, v = ((w >> 14) & 0x3FFF) / 16383, material = (w >> 28) & 7, covered = w >> 31"
