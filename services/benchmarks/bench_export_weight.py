@@ -26,7 +26,7 @@ import zlib
 from collections import defaultdict
 from pathlib import Path
 
-from crowdbake.storage.exports import FILES_FOLDER, ZIP_LEVEL, ZIP_NAME, build_export
+from crowdbake.storage.exports import FILES_FOLDER, ZIP_NAME, build_export, zip_level
 
 
 def part_of(path: str) -> str:
@@ -42,7 +42,7 @@ def part_of(path: str) -> str:
     return folder if folder in ("looks", "textures") else "other"
 
 
-def glb_parts(data: bytes, level: int = ZIP_LEVEL) -> dict[str, dict[str, int]]:
+def glb_parts(data: bytes, level: int = zip_level(".glb")) -> dict[str, dict[str, int]]:
     """{owner: {"bytes", "deflated"}} of a .glb's buffer views: each mesh's (by name: its attributes, indices and
     morph targets), `animations`, `skins`, `images` and `json`; deflated: the owner's views deflated alone."""
     json_length = struct.unpack_from("<I", data, 12)[0]
