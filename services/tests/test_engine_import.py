@@ -10,8 +10,8 @@ No engine runs here, so each script is checked as far as its language's tools go
 * Unity: the C# compiles with Mono's mcs against stubs of the UnityEngine / UnityEditor members it uses
   (tests/engine_stubs/UnityStubs.cs), and sets a property for every input of the Custom Function;
 * Unreal: the Python runs against a fake `unreal` module that records every call: the glb and the VAT PNGs
-  are imported, the 16-bit position PNG gets TC_HDR_F32, and each material instance gets every parameter
-  with export.json's value.
+  are imported (a file LODs share once), every 16-bit VAT gets TC_HDR_F32, and each material instance gets
+  every parameter with export.json's value.
 """
 from __future__ import annotations
 
@@ -46,6 +46,9 @@ NOT_SHADER_INPUTS = {
     "frame_count": "the texture's rows over rows_per_frame; animations[].vat says which frames play",
     "vertex_count": "the mesh's",
     "texcoord": "always 1: each shader reads its engine's second UV set",
+    "texels_of_lod": "which LOD's files these are: the files and layout the block names are the ones read",
+    "joint_count": "the joint texture's own rows, which the shaders index by the joints the skin texture names",
+    "texel_of_row": "words for a reader",
 }
 # How each script reads a key of export.json: GDScript and Python index a parsed dictionary, the C# reads
 # the field of the class JsonUtility fills.
@@ -67,11 +70,12 @@ def sidecar(vat_png_export) -> dict:
 
 
 def shader_input_keys(sidecar: dict) -> set[str]:
-    """The keys of export.json a VAT material is set from, over every part and animation."""
+    """The keys of export.json a VAT material is set from, over every part (a skin's `joints` block too) and
+    animation."""
     keys = set()
     for lod in sidecar["lods"]:
         for part in lod["parts"]:
-            keys |= set(part["vat"]) | set(part.get("node", {}))
+            keys |= set(part["vat"]) | set(part.get("node", {})) | (set(part["vat"]["joints"]) - {"ktx2", "png"} if "joints" in part["vat"] else set())
     for animation in sidecar["animations"]:
         keys |= set(animation["vat"])
     return keys - set(NOT_SHADER_INPUTS)
@@ -87,7 +91,7 @@ def test_the_export_ships_every_engine_script(sidecar, vat_png_export):
 def test_each_script_reads_every_shader_input_of_export_json(sidecar, vat_png_export, script):
     keys = shader_input_keys(sidecar)
     # The sample's export has the inputs the shaders take today; a new key shows up here and must be read.
-    assert {"position", "normal", "bounds_min", "bounds_max", "rows_per_frame", "frames_per_second", "translation", "scale",
+    assert {"kind", "texture", "joints", "bounds_min", "bounds_max", "rows_per_frame", "min", "max", "frames_per_second", "translation", "scale",
             "first_frame", "frames", "loop", "before_frame", "after_frame"} <= keys
     source = (vat_png_export / script).read_text()
     unread = sorted(key for key in keys if not re.search(KEY_READ[script].format(key=key), source))
@@ -275,15 +279,16 @@ def test_unreal_script_imports_16_bit_positions_at_full_precision(vat_png_export
     run_unreal_script(vat_png_export, unreal, monkeypatch)
     imported = {Path(task["filename"]).relative_to(vat_png_export).as_posix(): task for task in unreal.imported}
     parts = [(lod, part) for lod in sidecar["lods"] for part in lod["parts"]]
-    assert {lod["glb"] for lod in sidecar["lods"]} | {part["vat"][k]["png"] for _, part in parts for k in ("position", "normal")} == set(imported)
+    vats = {part["vat"][k]["png"] for _, part in parts for k in ("texture", "joints") if k in part["vat"]}
+    assert any("joints" in part["vat"] for _, part in parts)  # a skinned body's joint matrices, and vertex frames
+    assert {lod["glb"] for lod in sidecar["lods"]} | vats == set(imported)
+    assert len(unreal.imported) == len(imported), "a file LODs share is imported once"
     assert all(task["automated"] and task["replace_existing"] for task in unreal.imported)
-    for _, part in parts:
-        for kind, compression in (("position", "TC_HDR_F32"), ("normal", "TC_VECTOR_DISPLACEMENTMAP")):
-            task = imported[part["vat"][kind]["png"]]
-            texture = unreal.assets[task["imported_object_paths"][0]]
-            assert texture.properties == {"compression_settings": compression, "srgb": False, "filter": "TF_NEAREST",
-                                          "mip_gen_settings": "TMGS_NO_MIPMAPS", "never_stream": True}, (kind, texture.properties)
-            assert texture.saved
+    for png in vats:
+        texture = unreal.assets[imported[png]["imported_object_paths"][0]]
+        assert texture.properties == {"compression_settings": "TC_HDR_F32", "srgb": False, "filter": "TF_NEAREST",
+                                      "mip_gen_settings": "TMGS_NO_MIPMAPS", "never_stream": True}, (png, texture.properties)
+        assert texture.saved
 
 
 def test_unreal_material_instances_carry_every_value_of_export_json(vat_png_export, sidecar, monkeypatch):
@@ -300,17 +305,25 @@ def test_unreal_material_instances_carry_every_value_of_export_json(vat_png_expo
         instance = instances[f"MI_{part['part']}_lod{lod}"]
         vat, node = part["vat"], part["node"]
         assert instance.parent is unreal.assets["/Game/Crowdbake/M_CrowdbakeVat"] and instance.saved
-        # VatUV is the mesh's TexCoord[1], Frame is Time * FramesPerSecond, LocalPosition the Local Position node.
-        assert set(instance.parameters) == node_inputs - {"VatUV", "Frame", "LocalPosition"} | {"FramesPerSecond"}
+        # VatUV is the mesh's TexCoord[1], Frame is Time * FramesPerSecond, LocalPosition the Local Position node;
+        # vertex frames need no joint matrices.
+        skinned = vat["kind"] == "skin"
+        joint_inputs = {"JointMap", "JointRowsPerFrame", "JointMin", "JointMax"}
+        assert set(instance.parameters) == node_inputs - {"VatUV", "Frame", "LocalPosition"} - (set() if skinned else joint_inputs) | {"FramesPerSecond"}
         values = instance.parameters
+        assert values["Skinned"] == (1.0 if skinned else 0.0)
+        if skinned:
+            joints = vat["joints"]
+            assert values["JointRowsPerFrame"] == joints["rows_per_frame"]
+            assert values["JointMin"] == pytest.approx(joints["min"]) and values["JointMax"] == pytest.approx(joints["max"])
+            assert values["JointMap"].path.endswith(Path(joints["png"]).stem.replace(".", "_"))
         assert values["BoundsMin"][:3] == pytest.approx(vat["bounds_min"]) and values["BoundsMax"][:3] == pytest.approx(vat["bounds_max"])
         assert values["RowsPerFrame"] == vat["rows_per_frame"] and values["FramesPerSecond"] == vat["frames_per_second"]
         assert values["NodeTranslation"][:3] == pytest.approx(node["translation"]) and values["NodeScale"] == pytest.approx(node["scale"])
         assert values["Range"] == (played["first_frame"], played["frames"], played["loop"], played["before_frame"])
         assert values["RangeAfter"] == played["after_frame"]
-        assert values["PositionMap"].path.endswith(Path(vat["position"]["png"]).stem.replace(".", "_"))
-        assert values["PositionMap"].properties["compression_settings"] == "TC_HDR_F32"
-        assert values["NormalMap"].properties["compression_settings"] == "TC_VECTOR_DISPLACEMENTMAP"
+        assert values["VatMap"].path.endswith(Path(vat["texture"]["png"]).stem.replace(".", "_"))
+        assert values["VatMap"].properties["compression_settings"] == "TC_HDR_F32"
 
 
 def test_a_second_unreal_run_updates_the_same_assets(vat_png_export, monkeypatch):

@@ -23,10 +23,11 @@ import pygltflib
 import pytest
 
 from repo_paths import REPO_ROOT, VECTORS
-from test_export import MORPH_TOLERANCE_M, PREVIEW_DIR, check_skinned_part, node_tool, read_accessor, skin_played
+from test_export import MORPH_TOLERANCE_M, PREVIEW_DIR, check_skinned_part, morph_played, node_tool, read_accessor, skin_played
 from test_export_bones import read_accessor_vec4
 from crowdbake.export.animations import animation_plans, vat_range_uniforms, vat_shader_twin
 from crowdbake.export.cloth_bones import skin
+from crowdbake.export.glb import path_weights
 from crowdbake.export.writer import export_bundle
 from crowdbake.formats.bundle import verify_bundle
 from crowdbake.formats.ranges import Ranges, Transition
@@ -138,8 +139,12 @@ def check_clip_export(bundle_dir: Path, out: Path) -> list[str]:
             times = read_accessor(gltf, blob, sampler.input)
             np.testing.assert_allclose(times, np.arange(entry["keys"]) / fps, rtol=1e-6)
             weights = read_accessor(gltf, blob, sampler.output).reshape(entry["keys"], ranges.pose_frames)
-            assert (weights.sum(axis=1) == 1).all() and (weights.max(axis=1) == 1).all()
-            shown = weights.argmax(axis=1)
+            # Key j weighs 1 the targets on its pose frame's path (glb.QuantizedPart): the frame shown is the one
+            # whose path those are.
+            morphed = next(m for m in gltf.meshes if len(m.primitives[0].targets or []) == ranges.pose_frames)
+            paths = path_weights(np.array(morphed.extras["crowdbake"]["morph_parents"]), np.arange(ranges.pose_frames))
+            assert set(np.unique(weights)) <= {0.0, 1.0}
+            shown = np.array([int(np.flatnonzero((paths == row).all(axis=1))[0]) for row in weights])
             vat = entry["vat"]
             if entry["playback"] == "loop":
                 assert shown.tolist() == [*range(vat["first_frame"], vat["first_frame"] + vat["frames"]), vat["first_frame"]]
@@ -154,10 +159,9 @@ def check_clip_export(bundle_dir: Path, out: Path) -> list[str]:
                     played = skin_played(gltf, blob, mesh_index, animation, (0, entry["keys"] - 1))
                     assert np.abs(played - cache.positions[shown[[0, -1]]]).max() < MORPH_TOLERANCE_M, (entry["name"], part["part"])
                     continue
-                base = read_accessor(gltf, blob, primitive.attributes.POSITION)
+                parents = np.array(gltf.meshes[mesh_index].extras["crowdbake"]["morph_parents"])
                 for key in (0, entry["keys"] - 1):
-                    delta = read_accessor(gltf, blob, primitive.targets[shown[key]]["POSITION"])
-                    played = np.array(node.translation) + node.scale[0] * (base + delta)
+                    played, _ = morph_played(gltf, blob, node, primitive, path_weights(parents, [shown[key]])[0])
                     assert np.abs(played - cache.positions[shown[key]]).max() < MORPH_TOLERANCE_M, (entry["name"], part["part"], key)
     return [a["name"] for a in animations]
 
@@ -165,7 +169,7 @@ def check_clip_export(bundle_dir: Path, out: Path) -> list[str]:
 def test_the_vector_bundle_exports_every_clip_and_transition(vector_export):
     assert check_clip_export(VECTOR_BUNDLE, vector_export) == ["a", "b", "a -> b", "b -> a"]
     sidecar = json.loads((vector_export / "export.json").read_text())
-    assert sidecar["format_version"] == 4 and sidecar["frame_count"] == verify_bundle(VECTOR_BUNDLE).ranges.pose_frames
+    assert sidecar["format_version"] == 5 and sidecar["frame_count"] == verify_bundle(VECTOR_BUNDLE).ranges.pose_frames
 
 
 def test_the_robot_exports_every_clip_and_transition(robot_bake, tmp_path):

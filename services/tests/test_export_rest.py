@@ -17,6 +17,7 @@ import shutil
 import threading
 import time
 import zipfile
+import zlib
 from pathlib import Path
 
 import pytest
@@ -108,7 +109,7 @@ def test_export_builds_are_reproducible_and_a_failed_one_reports_its_own_error(t
     """Two builds of one bundle are the same bytes, export.zip and index.json included, and a bundle that
     does not verify fails with its FormatError."""
     from crowdbake.formats.bundle import FormatError
-    from crowdbake.storage.exports import build_export
+    from crowdbake.storage.exports import build_export, zip_level
 
     builds = []
     for name in ("a", "b"):
@@ -116,6 +117,14 @@ def test_export_builds_are_reproducible_and_a_failed_one_reports_its_own_error(t
         build_export(GOOD_BUNDLE, tmp_path / name)
         builds.append({p.relative_to(tmp_path / name).as_posix(): p.read_bytes() for p in sorted((tmp_path / name).rglob("*")) if p.is_file()})
     assert builds[0] == builds[1] and "export.zip" in builds[0]
+    # Each entry deflated at its level: the .glb files and text at 6, the already compressed KTX2 files at 1.
+    with zipfile.ZipFile(tmp_path / "a" / "export.zip") as archive:
+        for info in archive.infolist():
+            path = info.filename.split("/", 1)[1]
+            deflate = zlib.compressobj(zip_level(path), zlib.DEFLATED, -15)
+            data = builds[0][f"export/{path}"]
+            assert info.compress_size == len(deflate.compress(data) + deflate.flush()), path
+    assert zip_level("character_lod0.glb") == zip_level("export.json") == 6 and zip_level("vat/body.joints.ktx2") == 1
     broken = tmp_path / "broken"
     shutil.copytree(GOOD_BUNDLE, broken)
     victim = next(p for p in sorted(broken.rglob("*")) if p.is_file() and p.name != "manifest.json")

@@ -21,13 +21,14 @@ GLSL = {
 # Engine setups (docs/export.md): Unity's Custom Function file (its plain-HLSL core; the UnityTexture2D
 # wrapper needs Unity's includes) and Unreal's Custom node code, wrapped in the function Unreal makes of it.
 ENGINE_HLSL = {
-    "unity_vat_custom_function.hlsl": "{source}\nTexture2D<float4> P; Texture2D<float4> N;\nfloat4 main(float2 uv : TEXCOORD1) : SV_Position "
-    "{{ float3 p, n, q, m; CrowdbakeVatSample(uv, 1.5, P, N, float3(0, 0, 0), float3(1, 1, 1), 1, float4(24, 24, 1, 0), 24, p, n); "
-    "CrowdbakeToObject(p, n, float3(0, 1, 0), 0.9, q, m); return float4(q + m, 1); }}",
-    "unreal_vat_custom_node.hlsl": "Texture2D<float4> PositionMap; Texture2D<float4> NormalMap;\n"
-    "float3 CustomExpression0(float2 VatUV, float Frame, float3 BoundsMin, float3 BoundsMax, float RowsPerFrame, float4 Range, float RangeAfter, "
-    "float3 NodeTranslation, float NodeScale, float3 LocalPosition, inout float3 Normal) {{\n{source}\n}}\nfloat4 main(float2 uv : TEXCOORD1) : SV_Position "
-    "{{ float3 n = 0; float3 o = CustomExpression0(uv, 1.5, 0, 1, 1, float4(24, 24, 1, 0), 24, 0, 1, 0, n); return float4(o + n, 1); }}",
+    "unity_vat_custom_function.hlsl": "{source}\nTexture2D<float4> V; Texture2D<float4> J;\nfloat4 main(float2 uv : TEXCOORD1) : SV_Position "
+    "{{ float3 p, n, q, m; CrowdbakeVatSample(uv, 1.5, V, J, float3(0, 0, 0), float3(1, 1, 1), 1, 1, 2, float4(-1, -1, -1, -2), float4(1, 1, 1, 2), "
+    "float4(24, 24, 1, 0), 24, p, n); CrowdbakeToObject(p, n, float3(0, 1, 0), 0.9, q, m); return float4(q + m, 1); }}",
+    "unreal_vat_custom_node.hlsl": "Texture2D<float4> VatMap; Texture2D<float4> JointMap;\n"
+    "float3 CustomExpression0(float2 VatUV, float Frame, float3 BoundsMin, float3 BoundsMax, float RowsPerFrame, float Skinned, float JointRowsPerFrame, "
+    "float4 JointMin, float4 JointMax, float4 Range, float RangeAfter, float3 NodeTranslation, float NodeScale, float3 LocalPosition, inout float3 Normal) "
+    "{{\n{source}\n}}\nfloat4 main(float2 uv : TEXCOORD1) : SV_Position "
+    "{{ float3 n = 0; float3 o = CustomExpression0(uv, 1.5, 0, 1, 1, 1, 2, -1, 1, float4(24, 24, 1, 0), 24, 0, 1, 0, n); return float4(o + n, 1); }}",
 }
 GODOT = SHADERS / "crowdbake_vat.gdshader"
 
@@ -51,13 +52,15 @@ def needs_glslang():
         pytest.skip("glslangValidator is not installed (apt-get install glslang-tools; scripts/setup.sh does)")
 
 
+@pytest.mark.parametrize("defines", ["", "#define CB_VAT_INTEGER\n"])
 @pytest.mark.parametrize("version", ["330 core", "300 es"])
 @pytest.mark.parametrize("name", sorted(GLSL))
-def test_glsl_compiles(tmp_path, name, version):
+def test_glsl_compiles(tmp_path, name, version, defines):
+    """Each file in both GLSL versions; vat.glsl also with its VATs bound as RGBA16UI (CB_VAT_INTEGER, WebGL2's way)."""
     stage, call = GLSL[name]
     precision = "precision highp float;\nprecision highp int;\nprecision highp sampler2DArray;\n" if version.endswith("es") else ""
     out = "out vec4 o_colour;\n" if stage == "frag" else ""
-    source = f"#version {version}\n{precision}{out}{(SHADERS / name).read_text()}\nvoid main() {{ {call} }}\n"
+    source = f"#version {version}\n{defines}{precision}{out}{(SHADERS / name).read_text()}\nvoid main() {{ {call} }}\n"
     result = compile_shader(tmp_path, name.replace(".", "_"), stage, source)
     assert result.returncode == 0, result.stdout + result.stderr
 
@@ -92,9 +95,10 @@ def test_godot_shader_reads_what_the_export_writes():
     source = GODOT.read_text()
     assert "shader_type spatial;" in source and "void vertex()" in source
     uniforms = set(re.findall(r"^uniform \w+ (\w+)", source, re.M))
-    assert {"vat_position", "vat_normal", "bounds_min", "bounds_max", "rows_per_frame", "frames_per_second", "range_first", "range_frames",
-            "range_loop", "range_before", "range_after", "node_translation", "node_scale"} <= uniforms
-    for key in ("vat.bounds_min", "vat.bounds_max", "vat.rows_per_frame", "vat.frames_per_second", "parts[].node.translation",
+    assert {"vat_texture", "vat_joints", "bounds_min", "bounds_max", "rows_per_frame", "skinned", "joint_rows_per_frame", "joint_min", "joint_max",
+            "frames_per_second", "range_first", "range_frames", "range_loop", "range_before", "range_after", "node_translation", "node_scale"} <= uniforms
+    for key in ("vat.texture", "vat.joints", "vat.bounds_min", "vat.bounds_max", "vat.rows_per_frame", "vat.kind", "vat.joints.rows_per_frame",
+                "vat.joints.min", "vat.joints.max", "vat.frames_per_second", "parts[].node.translation",
                 "animations[].vat.first_frame", "animations[].vat.frames", "animations[].vat.loop", "animations[].vat.before_frame",
                 "animations[].vat.after_frame"):
         assert key in source, key

@@ -34,6 +34,9 @@ def site(tmp_path_factory):
         pytest.skip(f"npm packages missing: run `npm ci` in {PREVIEW_DIR} (scripts/setup.sh does)")
     root = tmp_path_factory.mktemp("www")
     (root / "preview").symlink_to(PREVIEW_DIR, target_is_directory=True)
+    (root / "version_4").mkdir()  # an export written before VATs became one file a part
+    (root / "version_4" / "export.json").write_text(json.dumps(
+        {"format_version": 4, "frame_count": 24, "frames_per_second": 24, "lods": [{"lod": 0}], "impostor": {}, "bundle": {"name": "old"}}))
     (root / "no_animation").mkdir()
     (root / "no_animation" / "export.json").write_text(json.dumps(
         {"frame_count": 0, "frames_per_second": 30, "lods": [], "impostor": None, "bundle": {"name": "still"}}))
@@ -95,3 +98,11 @@ def test_no_export_parameter_says_how_to_give_one(site, browser):
     status = status_once(browser, site, until="empty")
     assert status["inside"], status
     assert "?export=" in status["text"], status
+
+
+def test_an_export_older_than_the_page_reads_is_refused_in_words(site, browser):
+    """An export.json of format version 4 names its VATs as position and normal files; the page says to
+    export again rather than fail on a missing file."""
+    status = status_once(browser, f"{site}?export=../version_4/", until="error")
+    assert status["inside"], status
+    assert "format version 4" in status["text"] and "export the bundle again" in status["text"], status

@@ -32,14 +32,23 @@ import numpy as np
 
 
 def _key_frames(mesh) -> dict[int, float]:
-    """Blender frame at which shape key frame_k peaks, for every frame_k key (the one-hot keys of `cycle`)."""
+    """Blender frame at which the action shows pose frame k, for every frame_k shape key. A key shows frame k
+    with shape key frame_k and those of its path to the base at 1 (crowdbake.export.glb.QuantizedPart), so
+    of the keys where frame_k is 1, the one with the fewest keys at 1 shows frame k itself (an older
+    export's one-hot keys: the one where frame_k peaks)."""
     action = mesh.shape_keys.animation_data.action
     curves = {c.data_path: c for c in _fcurves(action)}
-    peaks = {}
+    full: dict[float, set[int]] = {}  # key time -> the frame_k keys at 1 there
     for block in mesh.shape_keys.key_blocks[1:]:
         curve = curves.get(f'key_blocks["{block.name}"].value')
         if block.name.startswith("frame_") and curve is not None:
-            peaks[int(block.name[len("frame_"):])] = max(curve.keyframe_points, key=lambda p: p.co[1]).co[0]
+            for point in curve.keyframe_points:
+                if point.co[1] > 0.5:
+                    full.setdefault(float(point.co[0]), set()).add(int(block.name[len("frame_"):]))
+    peaks: dict[int, float] = {}
+    for time, frames in sorted(full.items(), key=lambda item: (len(item[1]), item[0])):
+        for frame in frames:
+            peaks.setdefault(frame, time)
     return peaks
 
 

@@ -6,12 +6,11 @@ translation dequantize, int8 normals; quantize_part), the texture coordinates (T
 convention is glTF's) and each vertex's VAT texel (TEXCOORD_1, see crowdbake.export.vat). Every pose
 frame of the bundle (all its clips and transitions) plays three ways:
 
-- morph targets: the base is the mean pose and target k holds frame k minus it (positions and
-  normals, quantized alike; a normal turned past about 90 degrees from the mean only approached:
-  normal_deltas) for k = 0..F-1; one glTF animation per clip and per transition
-  (crowdbake.export.animations: a v1 bundle's one `cycle`) keys the weights one-hot, key j at
-  t = j / fps weighing the target of the pose frame it shows, with LINEAR interpolation, so any glTF
-  viewer plays the cloth; the mesh's default weights show frame 0;
+- morph targets: the base is the mean pose and target k holds frame k minus its parent frame in a tree
+  of the frames (positions and normals, quantized alike; QuantizedPart), for k = 0..F-1; one glTF
+  animation per clip and per transition (crowdbake.export.animations: a v1 bundle's one `cycle`) keys
+  the weights, key j at t = j / fps weighing 1 the targets on the path of the pose frame it shows, with
+  LINEAR interpolation, so any glTF viewer plays the cloth; the mesh's default weights show frame 0;
 - bones, for a garment given GlbPart.bones (crowdbake.export.cloth_bones): a skinned mesh (float
   positions, JOINTS_0, WEIGHTS_0) whose joints the same animations key at the same times;
 - a skin, for a body given GlbPart.skin (a skinned pose cache, crowdbake.export.body_skin): its rest mesh
@@ -39,7 +38,6 @@ import pygltflib as g
 from crowdbake import __version__
 from crowdbake.export.animations import AnimationPlan, animation_plans, gltf_extras
 from crowdbake.export.body_skin import GltfSkin, hemisphere_continuous
-from crowdbake.export.morph_normals import normal_deltas
 from crowdbake.export.cloth_bones import ClothBones
 from crowdbake.formats.ranges import Clip, Ranges
 
@@ -136,31 +134,144 @@ class _Blob:
 @dataclass(frozen=True)
 class QuantizedPart:
     """One part's frames as KHR_mesh_quantization stores them: int16 positions and position deltas (on the
-    POSITION_GRID), int8 normals and normal deltas, each (…, V, 4) with a zero pad component. The base is
-    the loop's mean pose and target k holds frame k (k = 0..F-1). Dequantized position of frame k:
-    offset + scale · (positions[0] + position_deltas[k]) / 32767 (the node's translation and scale)."""
+    POSITION_GRID), int8 normals and normal deltas, each (…, V, 4) with a zero pad component.
+
+    The base is the loop's mean pose (with the normals of the frame nearest it). Target k holds pose frame k minus its parent: pose frame parents[k],
+    or the base where parents[k] is -1. The parents form a tree over the frames (morph_tree), so frame k is
+    the base plus every target on its path (path_weights): a player keys those weights 1 and the rest 0,
+    and between two keys blends the two frames exactly, as glTF's weighted sum is linear. Neighbouring
+    frames differ by little, so the deltas are small numbers that deflate to about two thirds of what
+    differences from the mean pose take. Dequantized position of frame k:
+    offset + scale · (positions[0] + Σ_path position_deltas) / 32767 (the node's translation and scale)."""
 
     positions: np.ndarray  # (1, V, 4) int16: the mean pose
-    position_deltas: np.ndarray  # (F, V, 4) int16: frame k minus the mean pose
-    normals: np.ndarray  # (1, V, 4) int8: the mean normals, normalised (frame 0's where they cancel out)
-    normal_deltas: np.ndarray  # (F, V, 4) int8: normal_deltas(), frame k's normal (scaled) minus the base's
+    position_deltas: np.ndarray  # (F, V, 4) int16: frame k minus frame parents[k] (the base for -1)
+    normals: np.ndarray  # (1, V, 4) int8: the normals of the base's first child frame (morph_tree)
+    normal_deltas: np.ndarray  # (F, V, 4) int8: what takes the parent's summed normal to frame k's
+    parents: np.ndarray  # (F,) int64: each target's parent pose frame, -1 for the base
     offset: np.ndarray  # (3,) float64 metres
     scale: float  # metres per unit of the normalized int16
 
     @property
     def max_position_error_m(self) -> float:
         """The largest error of a dequantized position per axis, metres: half a grid step for the base and
-        for the delta, rounded apart."""
+        for the frame's summed deltas (whose sum is the frame's own difference from the base, rounded once)."""
         return self.scale * POSITION_GRID / _INT16_MAX
+
+    def path_weights(self, frames: np.ndarray) -> np.ndarray:
+        """(K,) pose frames -> (K, F) float32 morph weights showing each: 1 on the targets of its path."""
+        return path_weights(self.parents, frames)
+
+    def played(self) -> tuple[np.ndarray, np.ndarray]:
+        """(positions (F, V, 3) metres, normals (F, V, 3) unit): every frame as a glTF player shows it at full
+        weights (for tests and reports)."""
+        weights = self.path_weights(np.arange(self.parents.size)).astype(np.float64)
+        summed = self.positions[0, :, :3].astype(np.float64) + np.einsum("kf,fvi->kvi", weights, self.position_deltas[..., :3].astype(np.float64))
+        normals = self.normals[0, :, :3].astype(np.float64) + np.einsum("kf,fvi->kvi", weights, self.normal_deltas[..., :3].astype(np.float64))
+        normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
+        return self.offset + self.scale * summed / _INT16_MAX, normals
+
+
+def path_weights(parents: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """parents (F,) of a morph tree (morph_tree), (K,) pose frames -> (K, F) float32: 1 where a target lies on
+    the frame's path to the base (the frame's own target, its parent's, ...), else 0."""
+    parents = np.asarray(parents, dtype=np.int64)
+    on_path = np.zeros((parents.size, parents.size), dtype=np.float32)
+    for frame in _root_first(parents):
+        if parents[frame] >= 0:
+            on_path[frame] = on_path[parents[frame]]
+        on_path[frame, frame] = 1.0
+    return on_path[np.asarray(frames, dtype=np.int64)]
+
+
+def _root_first(parents: np.ndarray) -> list[int]:
+    """The frames of a morph tree, every parent before its children."""
+    children: dict[int, list[int]] = {}
+    for frame, parent in enumerate(parents.tolist()):
+        children.setdefault(parent, []).append(frame)
+    order, stack = [], list(reversed(children.get(-1, [])))
+    while stack:
+        frame = stack.pop()
+        order.append(frame)
+        stack.extend(reversed(children.get(frame, [])))
+    if len(order) != parents.size:
+        raise ValueError("the morph parents do not form a tree rooted at the base (-1)")
+    return order
+
+
+def morph_tree(codes: np.ndarray, limit: int) -> np.ndarray:
+    """codes (F, N) int: each frame's quantized difference from the base -> parents (F,) int64 of a tree whose
+    one child of the base (-1) is the frame nearest it, the others linked by a minimum spanning tree by
+    squared distance between codes, using only edges whose every component fits within ±limit (a frame no
+    such edge reaches links to the base, which every code is within ±limit of).
+
+    A spanning tree of least total distance makes the targets (the differences along its edges) as small
+    as the frames allow: consecutive frames of a clip link up, and the first frame of a range links to
+    whichever earlier or later pose it is nearest (Prim's algorithm, O(F²)). One child of the base lets the
+    base carry that frame's normals, so no normal has to turn from a mean direction."""
+    codes = np.asarray(codes, dtype=np.float64)
+    frame_count = codes.shape[0]
+    squares = (codes ** 2).sum(axis=1)
+    distances = squares[:, None] + squares[None, :] - 2.0 * codes @ codes.T  # (F, F) squared distances
+    np.fill_diagonal(distances, np.inf)
+    banned = np.zeros((frame_count, frame_count), dtype=bool)
+    first = int(np.argmin(squares))
+    while True:
+        cost = np.where(banned, np.inf, distances)
+        parents = np.full(frame_count, -1, dtype=np.int64)
+        best = np.full(frame_count, np.inf)
+        best[first] = 0.0
+        linked = np.zeros(frame_count, dtype=bool)
+        for _ in range(frame_count):
+            frame = int(np.argmin(np.where(linked, np.inf, best)))
+            if not np.isfinite(best[frame]):
+                parents[frame] = -1  # out of every linked frame's reach: from the base
+            linked[frame] = True
+            closer = ~linked & (cost[frame] < best)
+            best[closer] = cost[frame][closer]
+            parents[closer] = frame
+        child = np.flatnonzero(parents >= 0)
+        too_far = np.abs(codes[child] - codes[parents[child]]).max(axis=1) > limit
+        if not too_far.any():
+            return parents
+        banned[child[too_far], parents[child[too_far]]] = True
+        banned[parents[child[too_far]], child[too_far]] = True
+
+
+# Lengths (in int8 units) of the summed normal a morph step aims at, the first winning ties. The player
+# normalises the sum, so any length shows the direction; at 63 a normal that flips within one step of the tree
+# (a fold passing) is still within an int8 delta's reach (-2 · 63 >= -127), for a rounding of at most 0.8
+# degrees (0.45 at 127). The shorter ones serve a step from the base's full-length (unit) normal.
+_NORMAL_AIMS = (63.0, 32.0, 16.0)
+
+
+def normal_step(start: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """start (V, 3) int summed normal codes, normals (V, 3) unit -> (V, 3) int deltas within ±127: of
+    clip(round(length · n) - start) for the lengths of _NORMAL_AIMS, per vertex the one whose sum points
+    closest to n."""
+    best, best_cosine = None, None
+    for length in _NORMAL_AIMS:
+        delta = np.clip(np.rint(length * normals) - start, -_INT8_MAX, _INT8_MAX).astype(np.int64)
+        summed = (start + delta).astype(np.float64)
+        norms = np.linalg.norm(summed, axis=-1)
+        cosine = np.where(norms > 0, (summed * normals).sum(-1) / np.maximum(norms, 1e-12), -1.0)
+        if best is None:
+            best, best_cosine = delta, cosine
+            continue
+        better = cosine > best_cosine + 1e-9
+        best = np.where(better[:, None], delta, best)
+        best_cosine = np.maximum(best_cosine, cosine)
+    return best
 
 
 def quantize_part(positions: np.ndarray, normals: np.ndarray) -> QuantizedPart:
     """positions, normals: (F, V, 3) float, metres and unit vectors -> QuantizedPart.
 
-    The base is the mean pose rather than frame 0: a normalized int8 delta holds a normal turned at most
-    about 90 degrees from the base's (normal_deltas), and cloth turns less far from its mean direction
-    (on the sample's skirt no normal turns past 90 degrees from its mean, 1.3 % from frame 0; on the long
-    skirt 9 % against 23 %). One scale for the base and the deltas (node_transform).
+    Positions: each frame's difference from the mean pose, on the grid (node_transform's scale holds every
+    one), and the targets the differences of those codes along morph_tree's edges, exact in integers.
+    Normals: a target holds what takes its parent's summed int8 code to frame k's unit normal × 127, within an
+    int8 (normal_step: a normal that flips in one step is aimed at shorter), and the frame's children start
+    from the sum it reached, so an error never accumulates.
     """
     positions = np.asarray(positions, dtype=np.float64)
     normals = np.asarray(normals, dtype=np.float64)
@@ -168,40 +279,53 @@ def quantize_part(positions: np.ndarray, normals: np.ndarray) -> QuantizedPart:
         raise ValueError(f"positions and normals must be (F, V, 3) alike with V > 0, got {positions.shape} and {normals.shape}")
     base = positions.mean(axis=0)
     offset, scale = node_transform(positions)
-    deltas = positions - base
     unit = _unit(normals).astype(np.float64)
-    mean = unit.mean(axis=0)
-    lengths = np.linalg.norm(mean, axis=1, keepdims=True)
-    base_normals = np.where(lengths > _MIN_MEAN_NORMAL, mean / np.maximum(lengths, _MIN_MEAN_NORMAL), unit[0])
 
-    def pad(values: np.ndarray, limit: int, dtype, grid: int = 1) -> np.ndarray:
+    def on_grid(values: np.ndarray) -> np.ndarray:  # values within ±1 (node_transform's scale) -> int16 codes on the grid
+        return np.clip(np.rint(values * _INT16_MAX / POSITION_GRID) * POSITION_GRID, -_INT16_MAX, _INT16_MAX).astype(np.int64)
+
+    codes = on_grid((positions - base) / scale)  # (F, V, 3): each frame's difference from the base
+    parents = morph_tree(codes.reshape(codes.shape[0], -1), _INT16_MAX)
+    parent_codes = np.where((parents >= 0)[:, None, None], codes[np.maximum(parents, 0)], 0)
+    # The base's normals are those of the frame the tree starts from (its child nearest the mean pose).
+    base_normal_codes = np.rint(unit[int(np.flatnonzero(parents < 0)[0])] * _INT8_MAX).astype(np.int64)
+    summed = np.zeros(unit.shape, np.int64)  # each frame's base normal code plus its path's deltas
+    normal_steps = np.zeros_like(summed)
+    for frame in _root_first(parents):
+        start = summed[parents[frame]] if parents[frame] >= 0 else base_normal_codes
+        normal_steps[frame] = normal_step(start, unit[frame])
+        summed[frame] = start + normal_steps[frame]
+
+    def pad(values: np.ndarray, dtype) -> np.ndarray:
         out = np.zeros(values.shape[:-1] + (4,), dtype)
-        out[..., :3] = np.clip(np.rint(values * limit / grid) * grid, -limit, limit)
+        out[..., :3] = values
         return out
 
     return QuantizedPart(
-        positions=pad((base - offset)[None] / scale, _INT16_MAX, np.int16, POSITION_GRID),
-        position_deltas=pad(deltas / scale, _INT16_MAX, np.int16, POSITION_GRID),
-        normals=pad(base_normals[None], _INT8_MAX, np.int8),
-        normal_deltas=pad(normal_deltas(base_normals, unit), _INT8_MAX, np.int8),
+        positions=pad(on_grid((base - offset) / scale)[None], np.int16),
+        position_deltas=pad(codes - parent_codes, np.int16),
+        normals=pad(base_normal_codes[None], np.int8),
+        normal_deltas=pad(normal_steps, np.int8),
+        parents=parents,
         offset=offset,
         scale=scale,
     )
 
 
-# A vertex whose normals cancel out over the loop (turning evenly round) has no mean direction: frame 0's.
-_MIN_MEAN_NORMAL = 1e-3
-
-
+# What a morph part's `morph_parents` (its mesh's extras.crowdbake) mean.
+_MORPH_MEANING = ("target k holds pose frame k minus pose frame morph_parents[k] (-1: minus the base, the mean pose); "
+                  "pose frame k is the base plus every target on its path to the base, each weighing 1")
 def node_transform(positions: np.ndarray) -> tuple[np.ndarray, float]:
     """(F, V, 3) metres -> the part node's (translation (3,), uniform scale) that dequantizes its mesh: the
     centre of the mean pose's box, and the larger of that pose's half extent round it and the largest
-    delta of a frame from it."""
+    delta of a frame from it, stretched by 32767 / 32764 so the largest value rounds onto the grid
+    (POSITION_GRID) inside the int16."""
     positions = np.asarray(positions, dtype=np.float64)
     base = positions.mean(axis=0)
     offset = (base.min(axis=0) + base.max(axis=0)) / 2
     deltas = positions - base
-    return offset, float(max(np.abs(base - offset).max(), np.abs(deltas).max() if deltas.size else 0.0, 1e-9))
+    extent = max(np.abs(base - offset).max(), np.abs(deltas).max() if deltas.size else 0.0, 1e-9)
+    return offset, float(extent * _INT16_MAX / (_INT16_MAX - _INT16_MAX % POSITION_GRID))
 
 
 def _unit(vectors: np.ndarray) -> np.ndarray:
@@ -264,7 +388,7 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
     gltf.nodes.append(root)
     scene_nodes = [0]
     targets_per_mesh = frame_count
-    morph_nodes, bone_tracks = [], []  # nodes whose weights the animations key; (joint node, rotations, translations)
+    morph_nodes, bone_tracks = [], []  # (node, its targets' parents) whose weights the animations key; (joint node, rotations, translations)
     skin_tracks: list[tuple[int | None, list[int], GltfSkin]] = []  # (node of its corrective targets, joint nodes, skin)
     for part in parts:
         indices = np.asarray(part.indices).reshape(-1)
@@ -300,9 +424,13 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
         )
         target_frames = part.skin.corrected.tolist() if part.skin is not None else list(range(frame_count))
         extras = {"crowdbake": part.extras} | ({"targetNames": [f"frame_{frame}" for frame in target_frames]} if targets else {})
+        if part.skin is None and part.bones is None:
+            extras["crowdbake"] = part.extras | {"morph_parents": quantized.parents.tolist(), "morph_targets": _MORPH_MEANING}
+            default_weights = quantized.path_weights(np.array([0]))[0].tolist()
+        else:
+            default_weights = [float(frame == 0) for frame in target_frames]
         # Default weights show frame 0, for a viewer that does not play the animation.
-        gltf.meshes.append(g.Mesh(name=part.name, primitives=[primitive], weights=[float(frame == 0) for frame in target_frames] if targets else None,
-                                  extras=extras))
+        gltf.meshes.append(g.Mesh(name=part.name, primitives=[primitive], weights=default_weights if targets else None, extras=extras))
         if part.skin is not None:
             skin_tracks.append(_add_skin(gltf, root, scene_nodes, part.name, part.skin, len(gltf.meshes) - 1, blob, bool(targets)))
             continue
@@ -311,7 +439,7 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
             gltf.nodes.append(g.Node(name=part.name, mesh=len(gltf.meshes) - 1, translation=quantized.offset.tolist(), scale=[quantized.scale] * 3))
             root.children.append(len(gltf.nodes) - 1)
             if targets:
-                morph_nodes.append(len(gltf.nodes) - 1)
+                morph_nodes.append((len(gltf.nodes) - 1, quantized.parents))
             continue
         # The bones are children of the character, so they move with it; the skinned mesh's node is a scene
         # root, as glTF ignores a skinned mesh node's own transform. Bind pose: identity (frame 0).
@@ -329,7 +457,7 @@ def build_glb(parts: list[GlbPart], materials: list[GlbMaterial], variants: list
     if morph_nodes or bone_tracks or skin_tracks:
         times_of: dict[int, int] = {}  # key count -> the time accessor, shared by animations of one length
         for plan in animations:
-            _add_animation(gltf, blob, plan, frame_count, frames_per_second, morph_nodes, bone_tracks, times_of, skin_tracks)
+            _add_animation(gltf, blob, plan, frames_per_second, morph_nodes, bone_tracks, times_of, skin_tracks)
 
     gltf.scenes.append(g.Scene(name="crowdbake", nodes=scene_nodes))
     gltf.scene = 0
@@ -383,12 +511,13 @@ def _add_skin(gltf: g.GLTF2, root: g.Node, scene_nodes: list[int], name: str, sk
     return (len(gltf.nodes) - 1 if corrective else None), joints, skin
 
 
-def _add_animation(gltf: g.GLTF2, blob: _Blob, plan: AnimationPlan, target_count: int, frames_per_second: float, morph_nodes: list[int],
+def _add_animation(gltf: g.GLTF2, blob: _Blob, plan: AnimationPlan, frames_per_second: float, morph_nodes: list[tuple[int, np.ndarray]],
                    bone_tracks: list[tuple[int, np.ndarray, np.ndarray]], times_of: dict[int, int],
                    skin_tracks: list[tuple[int | None, list[int], GltfSkin]] = ()) -> None:
     """One glTF animation playing `plan`: key j at t = j / fps shows pose frame plan.keys[j], LINEAR between.
-    Morph nodes: every morph target's weight (glTF keys them all together), target keys[j] alone at key j,
-    so each animation plays its own range of the targets every animation shares. Bones: each joint's
+    Morph nodes: every morph target's weight (glTF keys them all together), at key j those on the path of
+    pose frame keys[j] (QuantizedPart.path_weights), so each animation plays its own frames of the targets
+    every animation shares. Bones: each joint's
     rotation and translation at those frames. Skins: each weighted joint's translation, rotation and scale
     at those frames, and the corrective target of a key's frame (if it has one) weighing 1."""
     if plan.key_count not in times_of:
@@ -396,13 +525,11 @@ def _add_animation(gltf: g.GLTF2, blob: _Blob, plan: AnimationPlan, target_count
         times_of[plan.key_count] = blob.accessor(times, g.SCALAR, target=None, bounds=True)
     time_accessor = times_of[plan.key_count]
     animation = g.Animation(name=plan.name, samplers=[], channels=[], extras={"crowdbake": gltf_extras(plan)})
-    if morph_nodes:
-        weights = np.zeros((plan.key_count, target_count), dtype=np.float32)
-        weights[np.arange(plan.key_count), plan.keys] = 1.0
+    for node, parents in morph_nodes:
+        weights = path_weights(parents, plan.keys)  # (K, F): key j weighs the targets on its frame's path
         animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(weights.reshape(-1), g.SCALAR, target=None),
                                                      interpolation="LINEAR"))
-        for node in morph_nodes:
-            animation.channels.append(g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=node, path="weights")))
+        animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1, target=g.AnimationChannelTarget(node=node, path="weights")))
     for node, rotations, translations in bone_tracks:
         for path, values, kind in (("rotation", rotations, g.VEC4), ("translation", translations, g.VEC3)):
             keyed = np.asarray(values[plan.keys], dtype=np.float32)

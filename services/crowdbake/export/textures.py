@@ -117,23 +117,53 @@ def model_space_normals(texture: TextureArray, impostor: dict) -> np.ndarray:
     return np.stack([model_space_codes(compression.decode(layer, "bc5", texture.width, texture.height), layout) for layer in texture.layers])
 
 
-def model_space_normal_ktx2(texture: TextureArray, impostor: dict, mode: str, prepared: PreparedLayers = NOTHING_PREPARED) -> tuple[int, bytes]:
+def model_space_normal_ktx2(texture: TextureArray, impostor: dict, mode: str, prepared: PreparedLayers = NOTHING_PREPARED,
+                            covered: np.ndarray | None = None) -> tuple[int, bytes]:
     """(vkFormat, KTX2 bytes) of a bc5 impostor normal map turned into model space, the encoding every other
     normal map of the export has: BC1 blocks in "bc" mode (the paper's DXT1, 0.5 byte a texel; a second
     lossy step, but the file an engine can sample as it samples the rest), RGBA8 texels in "rgba8" mode.
-    prepared: layers already converted (PreparedLayers.model_normal_bc1), used in "bc" mode."""
+    prepared: layers already converted (PreparedLayers.model_normal_bc1), used in "bc" mode.
+    covered: (L, H, W) bool, the texels the exported UV map covers (covered_texels): the only ones a reader
+    takes a normal from (it draws nothing elsewhere), so the rest are written as 0, a texel in "rgba8" mode and
+    a block with no covered texel in "bc" mode, which compresses them to almost nothing."""
     if mode not in KTX2_MODES:
         raise ValueError(f"model_space_normal_ktx2: mode must be one of {KTX2_MODES}, got {mode!r}")
+    if covered is not None and np.shape(covered) != (len(texture.layers), texture.height, texture.width):
+        raise ValueError(f"model_space_normal_ktx2: covered must be (L, H, W) = {(len(texture.layers), texture.height, texture.width)}, "
+                         f"got {np.shape(covered)}")
     if mode == "rgba8":
         layers = model_space_normals(texture, impostor)
+        if covered is not None:
+            layers = np.where(np.asarray(covered)[..., None], layers, 0).astype(np.uint8)
         return ktx2.VK_FORMAT_R8G8B8A8_UNORM, ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_UNORM, layers)
     layout = _layout(impostor)
     blocks = []
-    for layer in texture.layers:
+    for k, layer in enumerate(texture.layers):
         done = prepared.model_normal_bc1.get(layer_digest(layer)) if prepared.model_normal_bc1 else None
-        blocks.append(done if done is not None else model_space_normal_bc1(compression.decode(layer, "bc5", texture.width, texture.height), layout))
+        block = done if done is not None else model_space_normal_bc1(compression.decode(layer, "bc5", texture.width, texture.height), layout)
+        blocks.append(block if covered is None else blocks_covering(block, covered[k], BC1_BLOCK_BYTES))
     vk_format = ktx2.VK_FORMAT_BC1_RGB_UNORM_BLOCK
     return vk_format, ktx2.encode_ktx2_blocks(vk_format, texture.width, texture.height, blocks)
+
+
+BC1_BLOCK_BYTES = 8
+
+
+def covered_texels(uv: np.ndarray) -> np.ndarray:
+    """(L, H, W) bool: the texels an exported UV map covers (uv_map_layers' uv32 words (L, H, W), bit 31, or
+    rgba16 (L, H, W, 4), A over one half), after over_half_covered where the bundle has a surface map."""
+    uv = np.asarray(uv)
+    return (uv >> 31).astype(bool) if uv.ndim == 3 else uv[..., 3] > 32767
+
+
+def blocks_covering(blocks: bytes, covered: np.ndarray, block_bytes: int) -> bytes:
+    """One layer's 4x4 blocks (row-major, `block_bytes` each) with every block that holds no `covered` texel
+    ((H, W) bool) set to 0: an all-zero BC1 block is black in either of BC1's modes."""
+    height, width = np.shape(covered)
+    live = np.asarray(covered).reshape(height // 4, 4, width // 4, 4).any(axis=(1, 3))
+    out = np.frombuffer(blocks, dtype=np.uint8).reshape(height // 4, width // 4, block_bytes).copy()
+    out[~live] = 0
+    return out.tobytes()
 
 
 def uv_map_layers(texture: TextureArray, prepared: PreparedLayers = NOTHING_PREPARED) -> tuple[int, np.ndarray]:

@@ -3,7 +3,7 @@
     OUT/export.json                     the sidecar: every file below and how to read it
     OUT/character_lod<k>.glb            glTF 2.0 per LOD: parts, materials, an animation per clip and transition, VAT extras
     OUT/looks/<material>_look_<k>.<png|jpg>             the glTF variants' base colours, shared by the LODs
-    OUT/vat/<part>_lod<k>.<position|normal>.<png|ktx2>   vertex-animation textures (16-bit)
+    OUT/vat/<part>_lod<k>.<frames|skin>.<ktx2|png>, vat/<part>.joints.<ktx2|png>   vertex-animation textures (16-bit)
     OUT/textures/<material>_diffuse.ktx2, outfits.ktx2   diffuse variations (array), outfit colours
     OUT/impostor/<normal|uv|detail|surface>.ktx2         impostor atlases, one layer per baked frame
     OUT/shaders/*.glsl, *.hlsl, *.gdshader               reference shaders for engines
@@ -37,17 +37,20 @@ from crowdbake.bake.shading import apply_outfit
 from crowdbake.export.body_skin import GltfSkin, gltf_skin, morph_bytes, play, skin_bytes, why_not_a_skin
 from crowdbake.export.cloth_bones import DEFAULT_ITERATIONS, ClothBones, choose_bone_count, decompose_cloth
 from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb, node_transform
-from crowdbake.export.textures import KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, model_space_normal_ktx2, over_half_covered, region_codes_used, rgba8_layers, uv_map_layers
-from crowdbake.export.vat import encode_vat, vat_texcoords
+from crowdbake.export.textures import (KTX2_MODES, NOTHING_PREPARED, PreparedLayers, colour_ktx2, covered_texels, model_space_normal_ktx2, over_half_covered,
+                                        region_codes_used, rgba8_layers, uv_map_layers)
+from crowdbake.export import vat
 from crowdbake.formats.bundle import Bundle, verify_bundle
 from crowdbake.formats.skinned_cache import SkinnedPoseCache
 
 logger = logging.getLogger(__name__)
 
 EXPORT_FORMAT = "crowdbake-export"
+# 5: one VAT file a part (positions with octahedral normals in A), skinned bodies as a skin texture and joint matrices,
+# a coarser LOD reading a finer LOD's texels where its vertices are that LOD's;
 # 4: one glTF animation per clip and per transition, listed in `animations`; 3: KTX2 levels zstd-supercompressed, 8-bit VAT normals, VAT PNGs only when asked, quantized glTF meshes,
 # the looks in looks/; 2: colour and normal maps keep the bundle's BC1/BC2 blocks; 1 decoded them to RGBA8.
-EXPORT_FORMAT_VERSION = 4
+EXPORT_FORMAT_VERSION = 5
 # crowdview's defaults (runtime/src/main.cpp, crowd.h LodRule), so the sidecar's switch distance is
 # the one crowdview uses for a window of this height.
 REFERENCE_VIEWPORT_HEIGHT_PX = 720
@@ -212,18 +215,20 @@ def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
                       "(range bounds.radius), g, b = velocity over one baked step along the view's right and up axes "
                       "(range bounds.radius / 2); dilated past the silhouette; a = the share of the texel the character covers "
                       "(an anti-aliased silhouette; 1 in bc1 bundles)"))
+    uv_format, uv = uv_map_layers(bundle.textures[impostor["maps"]["uv"]], prepared)
+    surface = bundle.textures.get(impostor["maps"].get("surface", ""))
+    if surface is not None and surface.pixel_format in ("bc2", "rgba8"):  # its alpha: each texel's coverage
+        uv = over_half_covered(uv, rgba8_layers(surface, prepared)[..., 3])
     for kind, colour, encoding in kinds:
         texture = bundle.textures[impostor["maps"][kind]]
-        if texture.pixel_format == "bc5":  # two components in each tile's view: handed to engines in model space
-            vk_format, data = model_space_normal_ktx2(texture, impostor, mode, prepared)
+        if texture.pixel_format == "bc5":  # two components in each tile's view: handed to engines in model space, where covered
+            vk_format, data = model_space_normal_ktx2(texture, impostor, mode, prepared, covered_texels(uv))
+            encoding += "; 0 where the UV map covers no texel (of the block, in BC1)"
         else:
             vk_format, data = colour_ktx2(texture, colour, mode)
         path = out.write(f"impostor/{kind}.ktx2", data)
         maps[kind] = _texture_entry(path, vk_format, len(texture.layers), texture.width, texture.height, encoding)
-    vk_format, uv = uv_map_layers(bundle.textures[impostor["maps"]["uv"]], prepared)
-    surface = bundle.textures.get(impostor["maps"].get("surface", ""))
-    if surface is not None and surface.pixel_format in ("bc2", "rgba8"):  # its alpha: each texel's coverage
-        uv = over_half_covered(uv, rgba8_layers(surface, prepared)[..., 3])
+    vk_format = uv_format
     path = out.write("impostor/uv.ktx2", ktx2.encode_ktx2(vk_format, uv))
     encoding = (
         "uv32: u = (w & 0x3FFF) / 16383, v = ((w >> 14) & 0x3FFF) / 16383, material = (w >> 28) & 7, covered = w >> 31"
@@ -290,6 +295,102 @@ def look_image(rgb: np.ndarray) -> tuple[str, bytes]:
     return ("image/png", png) if len(png) <= len(jpeg) else ("image/jpeg", jpeg)
 
 
+_FRAMES_ENCODING = ("R16G16B16A16 unorm, a texel per vertex per pose frame: position = bounds_min + rgb * (bounds_max - bounds_min); "
+                    "a = octahedral normal word w = a * 65535: e = (w % 256, w // 256) / 255 * 2 - 1, n = (e, 1 - |e.x| - |e.y|), "
+                    "where n.z < 0 n.xy = (1 - |e.yx|) * sign(e), normalise")
+_SKIN_ENCODING = ("R16G16B16A16 unorm, three texels per vertex: block 0 the rest position (rgb, as a frame's) and rest normal (a, octahedral), "
+                  "block 1 four joints (q * 65535), block 2 four weights (q, summing to 1); joints: per pose frame and joint the three rows "
+                  "of its 3 x 4 matrix, channel c = joints.min[c] + q * (joints.max[c] - joints.min[c]); position = sum_k w_k M_jk (rest, 1), "
+                  "normal = normalize(sum_k w_k L_jk rest_normal), L the 3 x 3 block")
+
+
+class _VatWriter:
+    """Each part's VAT files, once: a coarser LOD whose vertices are the finer LOD's (vat.shared_vertices)
+    reads that LOD's texels; a skinned body's joint matrices serve every LOD that weighs the same joints."""
+
+    def __init__(self, out: _Out, fps: float, vat_png: bool):
+        self.out, self.fps, self.vat_png = out, fps, vat_png
+        # part -> (its finest LOD, that LOD's cache, vat block and textures: a VertexAnimation, or the skin and joint textures)
+        self.finest: dict[str, tuple[int, Any, dict[str, Any], Any]] = {}
+        self.joints: dict[str, tuple[np.ndarray, np.ndarray, vat.JointTexture, dict[str, Any]]] = {}  # part -> (matrices, used, texture, block)
+
+    def _write(self, path: str, texels: np.ndarray) -> dict[str, str]:
+        files = {"ktx2": self.out.write(f"{path}.ktx2", ktx2.encode_ktx2(ktx2.VK_FORMAT_R16G16B16A16_UNORM, texels[None], array=False))}
+        if self.vat_png:  # the same texels for importers that take PNG but not KTX2 (Unity, Unreal)
+            files["png"] = self.out.write(f"{path}.png", png_rgba(texels))
+        return files
+
+    def _layout(self, layout: vat.VatLayout, frame_count: int) -> dict[str, Any]:
+        return {"width": layout.width, "height": layout.height, "rows_per_frame": layout.rows_per_frame, "frame_count": frame_count,
+                "vertex_count": layout.vertex_count, "frames_per_second": self.fps, "texcoord": 1}
+
+    def export(self, part: str, lod: int, cache) -> tuple[dict[str, Any], np.ndarray]:
+        """(export.json's `vat` block, the mesh's TEXCOORD_1 (V, 2)) of one part at one LOD, writing its files."""
+        skinned = isinstance(cache, SkinnedPoseCache)
+        finer = self.finest.get(part)
+        if finer is not None and finer[2]["kind"] == ("skin" if skinned else "frames"):
+            shared = self._shared(part, lod, cache, finer)
+            if shared is not None:
+                return shared
+        block, uvs, texture = self._skin(part, lod, cache) if skinned else self._frames(part, lod, cache)
+        self.finest.setdefault(part, (lod, cache, block, texture))
+        return block, uvs
+
+    def _frames(self, part: str, lod: int, cache) -> tuple[dict[str, Any], np.ndarray, vat.VertexAnimation]:
+        animation = vat.encode_vat(cache.positions, cache.normals)
+        block = {"kind": "frames", "texture": self._write(f"vat/{_stem(part)}_lod{lod}.frames", animation.texels), "encoding": _FRAMES_ENCODING,
+                 "bounds_min": animation.bounds_min.tolist(), "bounds_max": animation.bounds_max.tolist(),
+                 "max_position_error_m": animation.max_position_error.tolist(), **self._layout(animation.layout, cache.frame_count),
+                 "texel_of_vertex": "(i % width, frame * rows_per_frame + i // width) for pose frame `frame` (export.json animations[].vat: "
+                                    "the frames of each clip and transition); TEXCOORD_1 is frame 0's texel centre"}
+        return block, vat.vat_texcoords(animation.layout), animation
+
+    def _skin(self, part: str, lod: int, cache: SkinnedPoseCache) -> tuple[dict[str, Any], np.ndarray, tuple[vat.SkinTexture, vat.JointTexture]]:
+        skin = vat.encode_skin(cache.rest_positions, cache.rest_normals, cache.joints, cache.weight_codes)
+        used = np.zeros(cache.joint_count, dtype=bool)
+        used[np.unique(cache.joints[cache.weight_codes > 0])] = True
+        known = self.joints.get(part)
+        if known is not None and np.array_equal(known[0], cache.matrices) and not (used & ~known[1]).any():
+            joints, joints_block = known[2], known[3]
+        else:
+            joints = vat.encode_joints(cache.matrices, used)
+            name = f"vat/{_stem(part)}.joints" if known is None else f"vat/{_stem(part)}_lod{lod}.joints"
+            joints_block = {**self._write(name, joints.texels), "joint_count": joints.joint_count, "width": joints.layout.width,
+                            "height": joints.layout.height, "rows_per_frame": joints.layout.rows_per_frame,
+                            "min": joints.minimum.tolist(), "max": joints.maximum.tolist(),
+                            "texel_of_row": "row r of joint j at pose frame f: i = 3 * j + r, texel (i % width, f * rows_per_frame + i // width)"}
+            self.joints.setdefault(part, (cache.matrices, used, joints, joints_block))
+        played, _ = vat.play_skin(skin, joints)
+        block = {"kind": "skin", "texture": self._write(f"vat/{_stem(part)}_lod{lod}.skin", skin.texels), "joints": joints_block,
+                 "encoding": _SKIN_ENCODING, "bounds_min": skin.bounds_min.tolist(), "bounds_max": skin.bounds_max.tolist(),
+                 "max_position_error_m": np.abs(played - cache.positions).max(axis=(0, 1)).tolist(),
+                 **self._layout(skin.layout, cache.frame_count),
+                 "texel_of_vertex": "(i % width, block * rows_per_frame + i // width), block 0 rest pose, 1 joints, 2 weights; "
+                                    "TEXCOORD_1 is block 0's texel centre"}
+        return block, vat.vat_texcoords(skin.layout), (skin, joints)
+
+    def _shared(self, part: str, lod: int, cache, finer) -> tuple[dict[str, Any], np.ndarray] | None:
+        """This LOD reading the finer LOD's texels, when its vertices are that LOD's; None when they are not."""
+        finer_lod, finer_cache, finer_block, texture = finer
+        if finer_block["kind"] == "skin":
+            if not np.array_equal(finer_cache.matrices, cache.matrices):
+                return None
+            vertices = vat.shared_skin_vertices(finer_cache.rest_positions, finer_cache.rest_normals, finer_cache.joints, finer_cache.weight_codes,
+                                                cache.rest_positions, cache.rest_normals, cache.joints, cache.weight_codes)
+            if vertices is None:
+                return None
+            played = vat.play_skin(*texture)[0][:, vertices]
+            layout = texture[0].layout
+        else:
+            vertices = vat.shared_vertices(finer_cache.positions, finer_cache.normals, cache.positions, cache.normals)
+            if vertices is None:
+                return None
+            played = vat.decode_vat(texture)[0][:, vertices]
+            layout = texture.layout
+        block = {**finer_block, "texels_of_lod": finer_lod, "max_position_error_m": np.abs(played - cache.positions).max(axis=(0, 1)).tolist()}
+        return block, vat.vat_texcoords(layout, vertices)
+
+
 def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], variants: list[GlbVariant], outfit_rows: np.ndarray,
                  vat_png: bool, cloth_bones: ClothBonesRequest | None, plans: list[AnimationPlan]) -> list[dict]:
     manifest = bundle.manifest
@@ -304,35 +405,13 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
             looks.append((mime_type, out.write(f"{LOOKS_FOLDER}/{_stem(material['name'])}_{variant.name}.{suffix}", data)))
         glb_materials.append(GlbMaterial(material["name"], looks))
     lods = []
+    vats = _VatWriter(out, fps, vat_png)
     for lod in sorted({mesh["lod"] for mesh in manifest["meshes"]}):
         parts, part_entries = [], []
         for mesh in (m for m in manifest["meshes"] if m["lod"] == lod):
             cache = bundle.pose_caches[mesh["file"]]
-            animation = encode_vat(cache.positions, cache.normals)
-            stem = f"vat/{_stem(mesh['part'])}_lod{lod}"
-            files = {}
-            for kind, image, vk_format in (("position", animation.positions, ktx2.VK_FORMAT_R16G16B16A16_UNORM),
-                                           ("normal", animation.normals, ktx2.VK_FORMAT_R8G8B8A8_UNORM)):
-                files[kind] = {"ktx2": out.write(f"{stem}.{kind}.ktx2", ktx2.encode_ktx2(vk_format, image[None], array=False))}
-                if vat_png:  # the same texels for importers that take PNG but not KTX2 (Unity, Unreal)
-                    files[kind]["png"] = out.write(f"{stem}.{kind}.png", png_rgba(image))
-            layout = animation.layout
-            vat = {
-                **files,
-                "encoding": "position unorm16, normal unorm8: position = bounds_min + rgb * (bounds_max - bounds_min); normal = normalize(rgb * 2 - 1)",
-                "bounds_min": animation.bounds_min.tolist(),
-                "bounds_max": animation.bounds_max.tolist(),
-                "max_position_error_m": animation.max_position_error.tolist(),
-                "width": layout.width,
-                "height": layout.height,
-                "rows_per_frame": layout.rows_per_frame,
-                "frame_count": layout.frame_count,
-                "vertex_count": layout.vertex_count,
-                "frames_per_second": fps,
-                "texcoord": 1,
-                "texel_of_vertex": "(i % width, frame * rows_per_frame + i // width) for pose frame `frame` (export.json animations[].vat: the frames of each clip and transition); TEXCOORD_1 is frame 0's texel centre",
-            }
-            extras = {"part": mesh["part"], "kind": mesh["kind"], "lod": lod, "material": mesh["material"], "vat": vat}
+            vat_block, vat_uvs = vats.export(mesh["part"], lod, cache)
+            extras = {"part": mesh["part"], "kind": mesh["kind"], "lod": lod, "material": mesh["material"], "vat": vat_block}
             bones = (cloth_bones.decompose(cache.positions, cache.indices, f"{mesh['part']} lod {lod}")
                      if cloth_bones is not None and mesh["kind"] == "garment" else None)
             # A skinned pose cache stays a skin where it can (body_skin), else morph targets like the rest.
@@ -340,10 +419,10 @@ def _export_lods(bundle: Bundle, out: _Out, diffuse_arrays: list[np.ndarray], va
             if refused is not None:
                 logger.warning("%s lod %d keeps morph targets: %s", mesh["part"], lod, refused)
             parts.append(
-                GlbPart(mesh["part"], mesh["kind"], mesh["material"], cache.positions, cache.normals, cache.uvs, vat_texcoords(layout), cache.indices, extras,
+                GlbPart(mesh["part"], mesh["kind"], mesh["material"], cache.positions, cache.normals, cache.uvs, vat_uvs, cache.indices, extras,
                         bones, skin)
             )
-            entry = {k: extras[k] for k in ("part", "kind", "material")} | {"vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat}
+            entry = {k: extras[k] for k in ("part", "kind", "material")} | {"vertex_count": cache.vertex_count, "triangle_count": cache.triangle_count, "vat": vat_block}
             entry["playback"] = "skin" if skin is not None else "bones" if bones is not None else "morph"
             if refused is not None:
                 entry["skin_refused"] = refused

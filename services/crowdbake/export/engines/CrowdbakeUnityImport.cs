@@ -7,7 +7,7 @@
 // Set Up Export... and pick export.json. For every LOD it writes, into crowdbake/ beside export.json, one
 // material per part with every property set from export.json and character_lod<k>.prefab with them on its
 // parts, and sets each VAT PNG's import settings: linear, uncompressed, point filtered, no mipmaps, 16-bit
-// positions. The compile guard keeps the file out of player builds (and out of a Godot .NET project).
+// channels. The compile guard keeps the file out of player builds (and out of a Godot .NET project).
 #if UNITY_EDITOR
 using System;
 using System.IO;
@@ -26,21 +26,27 @@ namespace Crowdbake
         // would rescale it and mix up vertices. 16384 is the largest size Unity imports.
         const int MaxVatSize = 16384;
 
-        const string PositionMap = "_PositionMap", NormalMap = "_NormalMap", BaseMap = "_BaseMap";
+        const string VatMap = "_VatMap", JointMap = "_JointMap", BaseMap = "_BaseMap";
         const string BoundsMin = "_BoundsMin", BoundsMax = "_BoundsMax", RowsPerFrame = "_RowsPerFrame", FramesPerSecond = "_FramesPerSecond";
+        // A skinned body (vat.kind "skin"): 1, and its joint matrices' layout and ranges (vat.joints).
+        const string Skinned = "_Skinned", JointRowsPerFrame = "_JointRowsPerFrame", JointMin = "_JointMin", JointMax = "_JointMax";
         // first_frame, frames, loop, before_frame: the Custom Function's Range input.
         const string Range = "_Range", RangeAfter = "_RangeAfter";
         const string NodeTranslation = "_NodeTranslation", NodeScale = "_NodeScale";
         static readonly string[] Properties =
-            { PositionMap, NormalMap, BaseMap, BoundsMin, BoundsMax, RowsPerFrame, FramesPerSecond, Range, RangeAfter, NodeTranslation, NodeScale };
+        {
+            VatMap, JointMap, BaseMap, BoundsMin, BoundsMax, RowsPerFrame, FramesPerSecond, Skinned, JointRowsPerFrame, JointMin, JointMax, Range,
+            RangeAfter, NodeTranslation, NodeScale,
+        };
 
         // export.json, as much of it as the setup reads. JsonUtility fills the fields by their JSON names, which
         // the compiler cannot see (warning 0649: never assigned).
 #pragma warning disable 0649
         [Serializable] class VatFile { public string png; }
+        [Serializable] class Joints { public string png; public int rows_per_frame; public int height; public float[] min; public float[] max; }
         [Serializable] class Vat
         {
-            public VatFile position; public VatFile normal; public float[] bounds_min; public float[] bounds_max;
+            public string kind; public VatFile texture; public Joints joints; public float[] bounds_min; public float[] bounds_max;
             public int rows_per_frame; public float frames_per_second; public int height;
         }
         [Serializable] class QuantizedNode { public float[] translation; public float scale; }
@@ -115,16 +121,24 @@ namespace Crowdbake
         static Material VatMaterial(Shader shader, string root, Part part, FrameRange played, Material look)
         {
             Vat vat = part.vat;
-            if (vat.position.png == null || vat.normal.png == null)
+            bool skinned = vat.kind == "skin";
+            if (vat.texture == null || vat.texture.png == null || (skinned && (vat.joints == null || vat.joints.png == null)))
                 throw new InvalidDataException("the export has no VAT PNGs: export it with --vat-png");
-            if (vat.height > MaxVatSize)
-                throw new InvalidDataException(part.part + "'s VAT is " + vat.height + " texels tall, over Unity's " + MaxVatSize);
+            if (vat.height > MaxVatSize || (skinned && vat.joints.height > MaxVatSize))
+                throw new InvalidDataException(part.part + "'s VAT is taller than Unity's " + MaxVatSize + " texels");
             var material = new Material(shader);
             foreach (string property in Properties)
                 if (!material.HasProperty(property))
                     throw new InvalidOperationException(ShaderName + " has no property " + property);
-            material.SetTexture(PositionMap, ImportVat(root + "/" + vat.position.png, TextureImporterFormat.RGBA64));
-            material.SetTexture(NormalMap, ImportVat(root + "/" + vat.normal.png, TextureImporterFormat.RGBA32));
+            material.SetTexture(VatMap, ImportVat(root + "/" + vat.texture.png));
+            material.SetFloat(Skinned, skinned ? 1f : 0f);
+            if (skinned)
+            {
+                material.SetTexture(JointMap, ImportVat(root + "/" + vat.joints.png));
+                material.SetFloat(JointRowsPerFrame, vat.joints.rows_per_frame);
+                material.SetVector(JointMin, Vector4Of(vat.joints.min));
+                material.SetVector(JointMax, Vector4Of(vat.joints.max));
+            }
             if (look != null)
                 material.SetTexture(BaseMap, look.mainTexture);
             material.SetVector(BoundsMin, Vector3Of(vat.bounds_min));
@@ -138,10 +152,10 @@ namespace Crowdbake
             return material;
         }
 
-        // A VAT PNG imported as data: linear, uncompressed, point sampled, no mipmaps, never rescaled, at
-        // `format` (RGBA64 keeps the positions' 16 bits; RGBA32 the normals' 8). The Default platform only
-        // takes Automatic formats, so the format is set as the Standalone override.
-        static Texture2D ImportVat(string path, TextureImporterFormat format)
+        // A VAT PNG imported as data: linear, uncompressed, point sampled, no mipmaps, never rescaled, RGBA64
+        // (every VAT holds 16 bits a channel). The Default platform only takes Automatic formats, so the format
+        // is set as the Standalone override. LODs that read the same file import it once, the same settings.
+        static Texture2D ImportVat(string path)
         {
             var importer = AssetImporter.GetAtPath(path) as TextureImporter;
             if (importer == null)
@@ -156,11 +170,18 @@ namespace Crowdbake
             importer.maxTextureSize = MaxVatSize;
             importer.SetPlatformTextureSettings(new TextureImporterPlatformSettings
             {
-                name = "Standalone", overridden = true, format = format, maxTextureSize = MaxVatSize,
+                name = "Standalone", overridden = true, format = TextureImporterFormat.RGBA64, maxTextureSize = MaxVatSize,
                 textureCompression = TextureImporterCompression.Uncompressed,
             });
             importer.SaveAndReimport();
             return AssetDatabase.LoadAssetAtPath<Texture2D>(path);
+        }
+
+        static Vector4 Vector4Of(float[] values)
+        {
+            if (values == null || values.Length != 4)
+                throw new InvalidDataException("export.json: expected 4 numbers");
+            return new Vector4(values[0], values[1], values[2], values[3]);
         }
 
         static Vector4 Vector3Of(float[] values)

@@ -10,8 +10,8 @@ extends EditorScript
 ## "crowdbake_animations", for game code that switches clip (set the range_* uniforms from one's `vat`).
 ##
 ## The VATs are read from their KTX2 files, not PNGs: Godot's PNG importer keeps 8 bits a channel
-## (positions would step by millimetres), so the 16-bit positions go into an RGBAF image, which holds
-## every 16-bit value exactly.
+## (positions would step by millimetres), so the 16-bit texels go into RGBAF images, which hold every
+## 16-bit value exactly.
 
 ## The animation the materials play: export.json animations[].name; "" plays the first (a clip).
 const ANIMATION := ""
@@ -25,8 +25,10 @@ const KTX2_HEIGHT := 24
 const KTX2_SUPERCOMPRESSION := 44
 const KTX2_LEVEL0 := 80  # byteOffset, byteLength, uncompressedByteLength, 8 bytes each
 const KTX2_ZSTD := 2
-const VK_FORMAT_R8G8B8A8_UNORM := 37
 const VK_FORMAT_R16G16B16A16_UNORM := 91
+
+# The VAT textures saved so far, by their .res path: LODs that read one file share one texture.
+var saved_vats := {}
 
 
 func _run() -> void:
@@ -82,8 +84,9 @@ func build_lod(root: String, out: String, lod: Dictionary, animations: Array, an
 		var stem := "%s_lod%d" % [part["part"], int(lod["lod"])]
 		var material := vat_material(shader, part, animation)
 		var vat: Dictionary = part["vat"]
-		material.set_shader_parameter("vat_position", save_vat(root.path_join(vat["position"]["ktx2"]), out.path_join(stem + ".position.res")))
-		material.set_shader_parameter("vat_normal", save_vat(root.path_join(vat["normal"]["ktx2"]), out.path_join(stem + ".normal.res")))
+		material.set_shader_parameter("vat_texture", save_vat(root, out, vat["texture"]["ktx2"]))
+		if vat["kind"] == "skin":  # a skinned body: its joints' matrices per pose frame
+			material.set_shader_parameter("vat_joints", save_vat(root, out, vat["joints"]["ktx2"]))
 		var look := mesh.get_active_material(0) as BaseMaterial3D  # the glTF's own material: look_0's base colour
 		if look != null:
 			material.set_shader_parameter("albedo_texture", look.albedo_texture)
@@ -106,6 +109,12 @@ func vat_material(shader: Shader, part: Dictionary, animation: Dictionary) -> Sh
 	material.set_shader_parameter("bounds_min", vector3(vat["bounds_min"]))
 	material.set_shader_parameter("bounds_max", vector3(vat["bounds_max"]))
 	material.set_shader_parameter("rows_per_frame", int(vat["rows_per_frame"]))
+	material.set_shader_parameter("skinned", 1 if vat["kind"] == "skin" else 0)
+	if vat["kind"] == "skin":
+		var joints: Dictionary = vat["joints"]
+		material.set_shader_parameter("joint_rows_per_frame", int(joints["rows_per_frame"]))
+		material.set_shader_parameter("joint_min", vector4(joints["min"]))
+		material.set_shader_parameter("joint_max", vector4(joints["max"]))
 	material.set_shader_parameter("frames_per_second", float(vat["frames_per_second"]))
 	material.set_shader_parameter("range_first", int(played["first_frame"]))
 	material.set_shader_parameter("range_frames", int(played["frames"]))
@@ -121,18 +130,27 @@ func vector3(values: Array) -> Vector3:
 	return Vector3(values[0], values[1], values[2])
 
 
-## A VAT's KTX2 as a texture saved at `target` (.res), or null (after an error) when it does not read.
-func save_vat(source: String, target: String) -> ImageTexture:
-	var image := read_vat_ktx2(source)
+func vector4(values: Array) -> Vector4:
+	return Vector4(values[0], values[1], values[2], values[3])
+
+
+## The VAT at `path` (export.json's, relative to the export) as a texture saved in `out` under its own name
+## (.res), once: LODs that read the same file share it. null (after an error) when it does not read.
+func save_vat(root: String, out: String, path: String) -> ImageTexture:
+	var target := out.path_join(path.get_file().get_basename() + ".res")
+	if saved_vats.has(target):
+		return saved_vats[target]
+	var image := read_vat_ktx2(root.path_join(path))
 	if image == null:
 		return null
 	var texture := ImageTexture.create_from_image(image)
 	ResourceSaver.save(texture, target, ResourceSaver.FLAG_CHANGE_PATH)
+	saved_vats[target] = texture
 	return texture
 
 
-## The one level of a crowdbake VAT KTX2 (zstd-supercompressed RGBA16 or RGBA8 unorm) as an Image:
-## RGBAF for 16-bit texels (a 32-bit float holds each q / 65535 exactly), RGBA8 for 8-bit ones.
+## The one level of a crowdbake VAT KTX2 (zstd-supercompressed RGBA16 unorm) as an RGBAF Image: a 32-bit
+## float holds each q / 65535 exactly (the shader reads the octahedral normal word and joint indices from them).
 func read_vat_ktx2(path: String) -> Image:
 	var data := FileAccess.get_file_as_bytes(path)
 	if data.size() < KTX2_LEVEL0 + 24:
@@ -155,13 +173,10 @@ func read_vat_ktx2(path: String) -> Image:
 	if level.size() != texel_bytes:
 		push_error("crowdbake: %s holds %d bytes of texels, its header says %d" % [path, level.size(), texel_bytes])
 		return null
-	match data.decode_u32(KTX2_VK_FORMAT):
-		VK_FORMAT_R8G8B8A8_UNORM:
-			return Image.create_from_data(width, height, false, Image.FORMAT_RGBA8, level)
-		VK_FORMAT_R16G16B16A16_UNORM:
-			return Image.create_from_data(width, height, false, Image.FORMAT_RGBAF, unorm16_as_float32(level))
-	push_error("crowdbake: %s is not an RGBA8 or RGBA16 unorm VAT" % path)
-	return null
+	if data.decode_u32(KTX2_VK_FORMAT) != VK_FORMAT_R16G16B16A16_UNORM:
+		push_error("crowdbake: %s is not an RGBA16 unorm VAT" % path)
+		return null
+	return Image.create_from_data(width, height, false, Image.FORMAT_RGBAF, unorm16_as_float32(level))
 
 
 ## Little-endian 16-bit unsigned normalised words -> the bytes of the same values as 32-bit floats.

@@ -21,27 +21,29 @@ import unreal
 PARENT_MATERIAL = "/Game/Crowdbake/M_CrowdbakeVat"
 DESTINATION_ROOT = "/Game/Crowdbake"
 
-POSITION_MAP_PARAMETER = "PositionMap"
-NORMAL_MAP_PARAMETER = "NormalMap"
+VAT_MAP_PARAMETER = "VatMap"
+JOINT_MAP_PARAMETER = "JointMap"
 BOUNDS_MIN_PARAMETER = "BoundsMin"
 BOUNDS_MAX_PARAMETER = "BoundsMax"
 ROWS_PER_FRAME_PARAMETER = "RowsPerFrame"
+SKINNED_PARAMETER = "Skinned"  # 1 for a skinned body (vat.kind "skin"), whose joint matrices the Joint* parameters describe
+JOINT_ROWS_PER_FRAME_PARAMETER = "JointRowsPerFrame"
+JOINT_MIN_PARAMETER = "JointMin"
+JOINT_MAX_PARAMETER = "JointMax"
 FRAMES_PER_SECOND_PARAMETER = "FramesPerSecond"
 RANGE_PARAMETER = "Range"  # first_frame, frames, loop, before_frame: the Custom node's Range input
 RANGE_AFTER_PARAMETER = "RangeAfter"
 NODE_TRANSLATION_PARAMETER = "NodeTranslation"
 NODE_SCALE_PARAMETER = "NodeScale"
 
-# The compression of the 16-bit position VAT. None of Unreal's TextureCompressionSettings (the Python API's
+# The compression of the 16-bit VATs. None of Unreal's TextureCompressionSettings (the Python API's
 # list, UE 5.0 to 5.7) keeps 16-bit unsigned RGBA: TC_HDR stores RGBA16F ("HDR" is RGBA16F in Unreal's
 # ETextureImportFloatingPointFormat), whose 11-bit significand rounds q / 65535 to steps of 1/2048 between
 # 0.5 and 1 (0.9 mm on a 1.8 m character); TC_VectorDisplacementmap stores 8 bits a channel; TC_Grayscale,
 # TC_Displacementmap and TC_HalfFloat keep one channel. TC_HDR_F32 (UE 5.1 on) stores 32-bit floats, whose
 # 24-bit significand holds every q / 65535 exactly: the one setting that keeps the PNG's precision, at
-# 16 bytes a texel.
-POSITION_COMPRESSION = "TC_HDR_F32"
-# 8-bit normals: TC_VectorDisplacementmap is uncompressed B8G8R8A8, the PNG's own bits.
-NORMAL_COMPRESSION = "TC_VECTOR_DISPLACEMENTMAP"
+# 16 bytes a texel. The octahedral normal words and joint indices need every bit too.
+VAT_COMPRESSION = "TC_HDR_F32"
 
 
 def read_sidecar(export_dir: str) -> dict:
@@ -98,16 +100,17 @@ def configure_vat(texture, compression_name: str) -> None:
     unreal.EditorAssetLibrary.save_loaded_asset(texture)
 
 
-def import_vats(export_dir: str, vat: dict, destination: str) -> tuple[object, object]:
-    """(position texture, normal texture) of a part's `vat` block, imported and configured."""
-    if "png" not in vat["position"] or "png" not in vat["normal"]:
+def import_vats(export_dir: str, vat: dict, destination: str, done: dict[str, object]) -> dict[str, object]:
+    """The textures of a part's `vat` block by material parameter (its VAT; a skin's joint matrices too),
+    imported and configured; `done` (PNG path -> texture) keeps those imported already, as LODs share files."""
+    files = {VAT_MAP_PARAMETER: vat["texture"]} | ({JOINT_MAP_PARAMETER: vat["joints"]} if vat["kind"] == "skin" else {})
+    if any("png" not in file for file in files.values()):
         raise ValueError("the export has no VAT PNGs (Unreal does not import KTX2): export it with --vat-png")
-    files = [os.path.join(export_dir, vat[kind]["png"]) for kind in ("position", "normal")]
-    (position_path, *_), (normal_path, *_) = import_files(files, destination)
-    position, normal = unreal.load_asset(position_path), unreal.load_asset(normal_path)
-    configure_vat(position, POSITION_COMPRESSION)
-    configure_vat(normal, NORMAL_COMPRESSION)
-    return position, normal
+    new = sorted({file["png"] for file in files.values()} - set(done))
+    for png, (path, *_) in zip(new, import_files([os.path.join(export_dir, png) for png in new], destination) if new else []):
+        done[png] = unreal.load_asset(path)
+        configure_vat(done[png], VAT_COMPRESSION)
+    return {parameter: done[file["png"]] for parameter, file in files.items()}
 
 
 def vector(values: list[float], w: float = 0.0):
@@ -121,6 +124,7 @@ def material_parameters(part: dict, played: dict) -> tuple[dict[str, float], dic
     vat, node = part["vat"], part["node"]
     scalars = {
         ROWS_PER_FRAME_PARAMETER: float(vat["rows_per_frame"]),
+        SKINNED_PARAMETER: 1.0 if vat["kind"] == "skin" else 0.0,
         FRAMES_PER_SECOND_PARAMETER: float(vat["frames_per_second"]),
         RANGE_AFTER_PARAMETER: float(played["after_frame"]),
         NODE_SCALE_PARAMETER: float(node["scale"]),
@@ -131,10 +135,15 @@ def material_parameters(part: dict, played: dict) -> tuple[dict[str, float], dic
         RANGE_PARAMETER: unreal.LinearColor(float(played["first_frame"]), float(played["frames"]), float(played["loop"]), float(played["before_frame"])),
         NODE_TRANSLATION_PARAMETER: vector(node["translation"]),
     }
+    if vat["kind"] == "skin":
+        joints = vat["joints"]
+        scalars[JOINT_ROWS_PER_FRAME_PARAMETER] = float(joints["rows_per_frame"])
+        vectors[JOINT_MIN_PARAMETER] = unreal.LinearColor(*(float(v) for v in joints["min"]))
+        vectors[JOINT_MAX_PARAMETER] = unreal.LinearColor(*(float(v) for v in joints["max"]))
     return scalars, vectors
 
 
-def make_material_instance(name: str, destination: str, parent, part: dict, played: dict, textures: tuple[object, object]):
+def make_material_instance(name: str, destination: str, parent, part: dict, played: dict, textures: dict[str, object]):
     path = f"{destination}/{name}"
     if unreal.EditorAssetLibrary.does_asset_exist(path):  # a second run updates the instance in place
         instance = unreal.load_asset(path)
@@ -148,7 +157,7 @@ def make_material_instance(name: str, destination: str, parent, part: dict, play
         library.set_material_instance_scalar_parameter_value(instance, parameter, value)
     for parameter, value in vectors.items():
         library.set_material_instance_vector_parameter_value(instance, parameter, value)
-    for parameter, texture in zip((POSITION_MAP_PARAMETER, NORMAL_MAP_PARAMETER), textures):
+    for parameter, texture in textures.items():
         library.set_material_instance_texture_parameter_value(instance, parameter, texture)
     unreal.EditorAssetLibrary.save_loaded_asset(instance)
     return instance
@@ -162,13 +171,14 @@ def main(export_dir: str, animation_name: str | None = None) -> None:
         raise RuntimeError(f"no material at {PARENT_MATERIAL}: make it first (this file's docstring)")
     bundle = sidecar["bundle"]
     destination = f"{DESTINATION_ROOT}/{bundle['name']}/{bundle['version']}".replace(".", "_")
+    vats: dict[str, object] = {}
     for lod in sidecar["lods"]:
         import_files([os.path.join(export_dir, lod["glb"])], f"{destination}/lod{lod['lod']}")
         for part in lod["parts"]:
             if "node" not in part:  # exported with --cloth-bones: a skinned mesh that plays its own bones
                 continue
             name = f"{part['part']}_lod{lod['lod']}"
-            textures = import_vats(export_dir, part["vat"], f"{destination}/vat")
+            textures = import_vats(export_dir, part["vat"], f"{destination}/vat", vats)
             make_material_instance(f"MI_{name}", f"{destination}/materials", parent, part, played, textures)
             unreal.log(f"crowdbake: MI_{name} plays {part['part']} (LOD {lod['lod']})")
 

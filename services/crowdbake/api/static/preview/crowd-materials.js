@@ -136,15 +136,19 @@ precision highp int;
 precision highp usampler2D;
 uniform mat4 projectionMatrix;
 uniform mat4 viewMatrix;
-uniform highp usampler2D uVatPosition;
-uniform highp sampler2D uVatNormal;  // 8-bit unsigned normalised: sampled as 0..1
+uniform highp usampler2D uVat;     // vat.texture (RGBA16UI): frames, or a skin's rest pose, joints and weights
+uniform highp usampler2D uJoints;  // vat.joints (RGBA16UI): a skin's joint matrices per pose frame
 uniform vec3 uBoundsMin;
 uniform vec3 uBoundsMax;
 uniform int uRowsPerFrame;
+uniform bool uSkinned;             // vat.kind == "skin"
+uniform int uJointRowsPerFrame;
+uniform vec4 uJointMin;
+uniform vec4 uJointMax;
 uniform int uFirstFrame;  // the clip played: its pose frames (export.json animations[].vat)
 uniform int uFrameCount;
 in vec2 uv;
-in vec2 vatUv;  // glTF TEXCOORD_1: the vertex's VAT texel at frame 0
+in vec2 vatUv;  // glTF TEXCOORD_1: the vertex's VAT texel in block 0
 in vec4 iPose;
 in vec4 iIds;
 out vec2 vUv;
@@ -155,16 +159,54 @@ mat3 headingMatrix(float h) {
   return mat3(c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c);
 }
 vec4 vat(usampler2D map, ivec2 texel) { return vec4(texelFetch(map, texel, 0)) / 65535.0; }
+// The octahedral normal word of a texel's alpha (shaders/vat.glsl cb_vat_octahedral).
+vec3 octahedral(uint word) {
+  vec2 e = vec2(float(word & 255u), float(word >> 8u)) * (2.0 / 255.0) - 1.0;
+  vec3 n = vec3(e, 1.0 - abs(e.x) - abs(e.y));
+  if (n.z < 0.0) n.xy = (1.0 - abs(e.yx)) * vec2(e.x >= 0.0 ? 1.0 : -1.0, e.y >= 0.0 ? 1.0 : -1.0);
+  return normalize(n);
+}
+vec4 jointRow(int frame, int joint, int row) {
+  int width = textureSize(uJoints, 0).x;
+  int i = 3 * joint + row;
+  return uJointMin + vat(uJoints, ivec2(i % width, frame * uJointRowsPerFrame + i / width)) * (uJointMax - uJointMin);
+}
+// Linear blend skinning at one pose frame, as crowdview skins (runtime/src/shaders/mesh.vert.glsl).
+void skin(vec4 rest, vec3 restNormal, uvec4 joints, vec4 weights, int frame, out vec3 position, out vec3 normal) {
+  position = vec3(0.0);
+  normal = vec3(0.0);
+  for (int k = 0; k < 4; ++k) {
+    int j = int(joints[k]);
+    vec4 r0 = jointRow(frame, j, 0), r1 = jointRow(frame, j, 1), r2 = jointRow(frame, j, 2);
+    position += weights[k] * vec3(dot(r0, rest), dot(r1, rest), dot(r2, rest));
+    normal += weights[k] * vec3(dot(r0.xyz, restNormal), dot(r1.xyz, restNormal), dot(r2.xyz, restNormal));
+  }
+  normal = normalize(normal);
+}
 void main() {
-  ivec2 texel = ivec2(vatUv * vec2(textureSize(uVatPosition, 0)));
+  ivec2 texel = ivec2(vatUv * vec2(textureSize(uVat, 0)));
   float frame = mod(iIds.x, float(uFrameCount));
   int f0 = int(floor(frame));
   int f1 = (f0 + 1) % uFrameCount;
   float t = frame - float(f0);
-  ivec2 c0 = texel + ivec2(0, (uFirstFrame + f0) * uRowsPerFrame), c1 = texel + ivec2(0, (uFirstFrame + f1) * uRowsPerFrame);
-  vec3 q = mix(vat(uVatPosition, c0).rgb, vat(uVatPosition, c1).rgb, t);
-  vec3 position = uBoundsMin + q * (uBoundsMax - uBoundsMin);
-  vec3 normal = normalize(mix(texelFetch(uVatNormal, c0, 0).rgb, texelFetch(uVatNormal, c1, 0).rgb, t) * 2.0 - 1.0);
+  vec3 extent = uBoundsMax - uBoundsMin;
+  vec3 position, normal;
+  if (uSkinned) {
+    uvec4 rest = texelFetch(uVat, texel, 0);
+    uvec4 joints = texelFetch(uVat, texel + ivec2(0, uRowsPerFrame), 0);
+    vec4 weights = vat(uVat, texel + ivec2(0, 2 * uRowsPerFrame));
+    vec4 restPosition = vec4(uBoundsMin + vec3(rest.rgb) / 65535.0 * extent, 1.0);
+    vec3 restNormal = octahedral(rest.a), p0, n0, p1, n1;
+    skin(restPosition, restNormal, joints, weights, uFirstFrame + f0, p0, n0);
+    skin(restPosition, restNormal, joints, weights, uFirstFrame + f1, p1, n1);
+    position = mix(p0, p1, t);
+    normal = normalize(mix(n0, n1, t));
+  } else {
+    uvec4 a = texelFetch(uVat, texel + ivec2(0, (uFirstFrame + f0) * uRowsPerFrame), 0);
+    uvec4 b = texelFetch(uVat, texel + ivec2(0, (uFirstFrame + f1) * uRowsPerFrame), 0);
+    position = uBoundsMin + mix(vec3(a.rgb), vec3(b.rgb), t) / 65535.0 * extent;
+    normal = normalize(mix(octahedral(a.a), octahedral(b.a), t));
+  }
   mat3 heading = headingMatrix(iPose.w);
   gl_Position = projectionMatrix * viewMatrix * vec4(heading * position + iPose.xyz, 1.0);
   vUv = uv;
@@ -196,20 +238,26 @@ void main() {
 }
 `;
 
-// vat: one part's export.json `vat` block; textures: {position, normal, diffuse, outfits} (loadKtx2Texture);
+// vat: one part's export.json `vat` block; textures: {vat, joints (a skin's), diffuse, outfits} (loadKtx2Texture);
 // clip: the looping clip to play, {first_frame, frames} (animations[].vat), every frame when not given.
 export function createVatMaterial({ vat, textures, variations, lightDir, doubleSided, clip }) {
+  const skinned = vat.kind === 'skin';
+  if (skinned && !textures.joints) throw new Error('a skinned part needs its joint matrices (vat.joints)');
   return new THREE.RawShaderMaterial({
     glslVersion: THREE.GLSL3,
     vertexShader: VAT_VERTEX,
     fragmentShader: VAT_FRAGMENT,
     side: doubleSided ? THREE.DoubleSide : THREE.FrontSide,
     uniforms: {
-      uVatPosition: { value: textures.position },
-      uVatNormal: { value: textures.normal },
+      uVat: { value: textures.vat },
+      uJoints: { value: skinned ? textures.joints : textures.vat },  // a frames part never reads it
       uBoundsMin: { value: new THREE.Vector3(...vat.bounds_min) },
       uBoundsMax: { value: new THREE.Vector3(...vat.bounds_max) },
       uRowsPerFrame: { value: vat.rows_per_frame },
+      uSkinned: { value: skinned },
+      uJointRowsPerFrame: { value: skinned ? vat.joints.rows_per_frame : 1 },
+      uJointMin: { value: new THREE.Vector4(...(skinned ? vat.joints.min : [0, 0, 0, 0])) },
+      uJointMax: { value: new THREE.Vector4(...(skinned ? vat.joints.max : [1, 1, 1, 1])) },
       uFirstFrame: { value: clip ? clip.first_frame : 0 },
       uFrameCount: { value: clip ? clip.frames : vat.frame_count },
       uDiffuse: { value: textures.diffuse },

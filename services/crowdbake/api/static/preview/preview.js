@@ -31,6 +31,9 @@ function showStatus(state, text) {
 }
 
 // Refuses, in words, an export the page cannot animate: no frames, no meshes or no impostor.
+// export.json's format (crowdbake/export/writer.py EXPORT_FORMAT_VERSION) whose VAT blocks this page reads.
+const MIN_FORMAT_VERSION = 5;
+
 function checkExport(sidecar) {
   const frames = sidecar.frame_count, fps = sidecar.frames_per_second;
   if (!(Number.isInteger(frames) && frames >= 1) || !(fps > 0)) {
@@ -38,6 +41,10 @@ function checkExport(sidecar) {
   }
   if (!Array.isArray(sidecar.lods) || sidecar.lods.length === 0 || !sidecar.impostor) {
     throw new Error('the export lists no meshes (lods) or no impostor: re-export the bake');
+  }
+  if (!(sidecar.format_version >= MIN_FORMAT_VERSION)) {
+    throw new Error(`the export is format version ${sidecar.format_version}; this page reads version ${MIN_FORMAT_VERSION} and later ` +
+      '(one VAT file a part, skinned bodies by their joints): export the bundle again with this crowdbake');
   }
 }
 
@@ -204,6 +211,12 @@ async function main() {
 
   const renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
   const load = (path, options = {}) => loadKtx2Texture(url(path), { headers: authHeaders, renderer, ...options });
+  // A VAT file LODs share (export.json `texels_of_lod`) is fetched and uploaded once.
+  const vatTextures = new Map();
+  const loadOnce = (path) => {
+    if (!vatTextures.has(path)) vatTextures.set(path, load(path));
+    return vatTextures.get(path);
+  };
 
   // Textures shared by every LOD: diffuse arrays per material, outfits, impostor maps.
   const diffuse = await Promise.all(sidecar.materials.map((m) => load(m.diffuse.ktx2, { filter: THREE.LinearFilter })));
@@ -226,10 +239,10 @@ async function main() {
       if (!mesh) throw new Error(`${lod.glb}: no mesh named ${part.part}`);
       const geometry = mesh.geometry;
       geometry.setAttribute('vatUv', geometry.getAttribute('uv1'));  // glTF TEXCOORD_1
-      const [position, normal] = await Promise.all([load(part.vat.position.ktx2), load(part.vat.normal.ktx2)]);
+      const [vat, joints] = await Promise.all([loadOnce(part.vat.texture.ktx2), part.vat.joints ? loadOnce(part.vat.joints.ktx2) : null]);
       const material = createVatMaterial({
         vat: part.vat,
-        textures: { position, normal, diffuse: diffuse[part.material], outfits },
+        textures: { vat, joints, diffuse: diffuse[part.material], outfits },
         variations: variations[part.material],
         lightDir: LIGHT_DIR,
         doubleSided: part.kind === 'garment',
