@@ -34,17 +34,19 @@ def budget_curve(bundle: Path, budgets: list[float]) -> dict:
     if account is None:
         raise SystemExit(f"bench_archetype_budget: {bundle} was not baked with an archetype budget (no impostor.budget.allocation)")
     ranges = read_ranges(manifest)
-    scores = [{int(n): float(s) for n, s in entry["probed"].items()} for entry in account["ranges"]]
+    # As the bake: the probed counts, and those between interpolated (impostor_allocation.interpolated).
+    ladders = impostor_allocation.ladders(ranges, memory["impostor"]["budget"]["asked"]["frames"])
+    scores = [impostor_allocation.interpolated({int(n): float(s) for n, s in entry["probed"].items()}, ladder)
+              for entry, ladder in zip(account["ranges"], ladders)]
     frame_bytes = account["frame_mib"] * MIB
-    rows = []
-    for budget in budgets:
+
+    def row(budget: float) -> dict:
         chosen = impostor_allocation.allocate(ranges, scores, frame_bytes, budget * MIB)
-        rows.append({"budget_mib": budget, "mib": chosen.bytes / MIB, "fits": chosen.fits, "worst": min(chosen.scores),
-                     "mean": sum(chosen.scores) / len(chosen.scores),
-                     "frames": {entry["name"]: len(frames) for entry, frames in zip(account["ranges"], chosen.frames)}})
-    baked = {"budget_mib": account["budget_mib"], "mib": account["mib"], "worst": min(e["score"] for e in account["ranges"]),
-             "mean": sum(e["score"] for e in account["ranges"]) / len(account["ranges"])}
-    return {"bundle": str(bundle), "baked": baked, "curve": rows}
+        return {"budget_mib": budget, "mib": chosen.bytes / MIB, "fits": chosen.fits, "worst": min(chosen.scores),
+                "mean": sum(chosen.scores) / len(chosen.scores),
+                "frames": {entry["name"]: len(frames) for entry, frames in zip(account["ranges"], chosen.frames)}}
+
+    return {"bundle": str(bundle), "baked": row(account["budget_mib"]), "curve": [row(budget) for budget in budgets]}
 
 
 def plot(results: dict[str, dict], path: Path) -> None:

@@ -121,3 +121,18 @@ def test_a_ring_probe_sits_halfway_between_two_rings():
         weights = view_blend.blend_view_weights(azimuth, elevation, probe.azimuths_deg, probe.elevations_deg)
         assert sorted(w for w in weights.weights if w > 0) == pytest.approx([0.5, 0.5])
     assert elevation_gap_probe(AtlasLayout.rings(88, 32, (0.0,))) is None
+
+
+@pytest.mark.parametrize("cycle_frames", [7, 24, 47])
+def test_one_clip_as_a_range_bakes_the_frames_the_rule_would(cycle_frames):
+    """The measured choice treats one clip as a bundle of one looping range: at any count its baked frames
+    are the ones a one-clip bake spreads over its cycle (poses.impostor_frame_indices)."""
+    from types import SimpleNamespace
+
+    from crowdbake.bake import impostor_allocation
+    from crowdbake.bake.poses import impostor_frame_indices
+    from crowdbake.stages.impostor_plan import one_clip_ranges
+
+    ranges = one_clip_ranges(SimpleNamespace(cycle_frames=cycle_frames))
+    for count in impostor_allocation.ladder(ranges.clips[0], 24):
+        assert impostor_allocation.frames_at(ranges, 0, count) == impostor_frame_indices(cycle_frames, count)
