@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from crowdbake.formats.pose_codec import decode_octahedral, encode_octahedral
 from crowdbake.formats.skinned_cache import WEIGHT_CODE_SUM
 
 # WebGL2 guarantees 2048-texel textures (MAX_TEXTURE_SIZE >= 2048); every desktop GPU does 8192+.
@@ -99,30 +100,16 @@ def _unplace(image: np.ndarray, layout: VatLayout) -> np.ndarray:
     return per_frame[:, : layout.vertex_count]
 
 
-def _sign_not_zero(values: np.ndarray) -> np.ndarray:
-    return np.where(values >= 0, 1.0, -1.0)
-
-
 def octahedral_words(normals: np.ndarray) -> np.ndarray:
     """(..., 3) unit normals -> (...) uint16 octahedral words: u + 256 v, 8 bits each (module docstring)."""
-    normals = np.asarray(normals, dtype=np.float64)
-    if normals.shape[-1] != 3:
-        raise ValueError(f"normals must be (..., 3), got {normals.shape}")
-    projected = normals / np.maximum(np.abs(normals).sum(axis=-1, keepdims=True), 1e-30)
-    x, y, z = projected[..., 0], projected[..., 1], projected[..., 2]
-    folded = np.stack([np.where(z < 0, (1 - np.abs(y)) * _sign_not_zero(x), x), np.where(z < 0, (1 - np.abs(x)) * _sign_not_zero(y), y)], -1)
-    codes = np.clip(np.rint((folded + 1) * 0.5 * OCTAHEDRAL_CODE_MAX), 0, OCTAHEDRAL_CODE_MAX).astype(np.uint16)
+    codes = encode_octahedral(normals, OCTAHEDRAL_CODE_MAX)
     return (codes[..., 0] | (codes[..., 1] << 8)).astype(np.uint16)
 
 
 def decode_octahedral_words(words: np.ndarray) -> np.ndarray:
     """(...) uint16 octahedral words -> (..., 3) float64 unit normals (the shaders decode alike)."""
     words = np.asarray(words).astype(np.int64)
-    e = np.stack([words & 0xFF, words >> 8], axis=-1) / OCTAHEDRAL_CODE_MAX * 2.0 - 1.0
-    x, y = e[..., 0], e[..., 1]
-    z = 1 - np.abs(x) - np.abs(y)
-    vectors = np.stack([np.where(z < 0, (1 - np.abs(y)) * _sign_not_zero(x), x), np.where(z < 0, (1 - np.abs(x)) * _sign_not_zero(y), y), z], -1)
-    return vectors / np.linalg.norm(vectors, axis=-1, keepdims=True)
+    return decode_octahedral(np.stack([words & 0xFF, words >> 8], axis=-1), OCTAHEDRAL_CODE_MAX).astype(np.float64)
 
 
 def _position_codes(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -84,8 +84,9 @@ def _sign_not_zero(values: np.ndarray) -> np.ndarray:
     return np.where(values >= 0, 1.0, -1.0)
 
 
-def encode_octahedral(normals: np.ndarray) -> np.ndarray:
-    """(..., 3) unit normals → (..., 2) uint16 octahedral codes."""
+def encode_octahedral(normals: np.ndarray, code_max: int = QUANT_MAX) -> np.ndarray:
+    """(..., 3) unit normals → (..., 2) uint16 octahedral codes in [0, code_max] (the pose caches' 16 bits
+    by default; the export's VAT packs two 8-bit codes in one word)."""
     normals = np.asarray(normals, dtype=np.float64)
     if normals.shape[-1] != 3:
         raise ValueError(f"normals must be (..., 3), got {normals.shape}")
@@ -94,12 +95,13 @@ def encode_octahedral(normals: np.ndarray) -> np.ndarray:
     folded_x = np.where(z < 0, (1 - np.abs(y)) * _sign_not_zero(x), x)
     folded_y = np.where(z < 0, (1 - np.abs(x)) * _sign_not_zero(y), y)
     octahedral = np.stack([folded_x, folded_y], axis=-1)
-    return np.clip(np.rint((octahedral + 1) * 0.5 * QUANT_MAX), 0, QUANT_MAX).astype(np.uint16)
+    return np.clip(np.rint((octahedral + 1) * 0.5 * code_max), 0, code_max).astype(np.uint16)
 
 
-def decode_octahedral(codes: np.ndarray) -> np.ndarray:
-    """(..., 2) uint16 octahedral codes → (..., 3) float32 unit normals (mesh.vert.glsl decodes alike)."""
-    octahedral = np.asarray(codes).astype(np.float32) * np.float32(2.0 / QUANT_MAX) - np.float32(1.0)
+def decode_octahedral(codes: np.ndarray, code_max: int = QUANT_MAX) -> np.ndarray:
+    """(..., 2) uint16 octahedral codes in [0, code_max] → (..., 3) float32 unit normals (mesh.vert.glsl
+    decodes alike)."""
+    octahedral = np.asarray(codes).astype(np.float32) * np.float32(2.0 / code_max) - np.float32(1.0)
     x, y = octahedral[..., 0], octahedral[..., 1]
     z = 1 - np.abs(x) - np.abs(y)
     unfolded_x = np.where(z < 0, (1 - np.abs(y)) * _sign_not_zero(x), x)
