@@ -27,7 +27,7 @@ from crowdbake.formats.ranges import Clip, Ranges
 from crowdbake.params import MAX_IMPOSTOR_TEXELS, MAX_TILE_SIZE
 from crowdbake.stages.impostor_probe import PROBE_AZIMUTHS, PROBE_GAPS, Prober, at_views_probe, azimuth_gap_probe, elevation_gap_probe
 from crowdbake.stages.impostors import SCENE_FILE, Scene, scene_arrays
-from crowdbake.stages.poses import diffuse_format, high_parts, impostor_framing, materials_of, part_materials
+from crowdbake.stages.poses import diffuse_format, framing_bounds, high_parts, impostor_framing, materials_of, part_materials
 from crowdbake.stages.records import CycleRecord, ImpostorPlan
 from crowdbake.stages.validate import load_job
 from crowdbake.stages.workdir import Progress, StageOutcome, WorkDir, npz_bytes, report, stage_key, write_bytes_atomic
@@ -78,8 +78,8 @@ def largest_tile(params, rings: int) -> int:
     return max(4, min(MAX_TILE_SIZE, most - most % 4))
 
 
-def measured_framing(params, cycle: CycleRecord, high: dict, record: ImpostorPlan, scene_at, has_regions: list[bool],
-                     budget: dict) -> tuple[AtlasLayout, list[int], dict]:
+def measured_framing(params, cycle: CycleRecord, high: dict, record: ImpostorPlan, scene_at,
+                     has_regions: list[bool]) -> tuple[AtlasLayout, list[int], dict]:
     """The layout, baked frames and budget account chosen by measuring (module docstring): the tile and
     azimuth count (crowdbake.bake.impostor_layout) and every range's frames (impostor_allocation) within
     the budget: params.impostor_archetype_mib for several clips, params.impostor_budget_mib for one."""
@@ -186,7 +186,14 @@ def stage_impostor_plan(work: Path, progress: Progress | None = None) -> StageOu
     materials, outfits = materials_of(job, folder.inputs, character, first_layer_only=True)
     high, _, part_material = high_parts(job, cycle, folder, character)
     part_material = part_materials(part_material, materials)
-    bounds, layout, frame_indices, budget = impostor_framing(params, cycle, high)
+    measured = params.impostor_choice == "measured" and (cycle.ranges is None or params.impostor_archetype_mib is not None)
+    if measured and cycle.ranges is not None:
+        # The per-clip rule's framing is no candidate for several clips: only its bounds are needed (the
+        # asked layout and a first frame stand until measured_framing replaces them).
+        bounds, budget = framing_bounds(high), None
+        layout, frame_indices = AtlasLayout.rings(params.tile_size, params.azimuths, tuple(params.elevations_deg)), [0]
+    else:
+        bounds, layout, frame_indices, budget = impostor_framing(params, cycle, high)
     textures: dict[str, np.ndarray] = {}
     has_regions = []
     for index, material in enumerate(materials):
@@ -200,10 +207,10 @@ def stage_impostor_plan(work: Path, progress: Progress | None = None) -> StageOu
     textures["outfit_row"] = outfits[0]
     record = ImpostorPlan(bounds=bounds, layout=layout.to_manifest(), frame_indices=frame_indices,
                           fidelity_frame=frame_indices[0], material_count=len(materials), ranges=cycle.ranges, budget=budget)
-    if params.impostor_choice == "measured" and (cycle.ranges is None or params.impostor_archetype_mib is not None):
+    if measured:
         report(progress, "impostor-plan", 0, 1)
         scene_at = SceneFrames(high, part_material, textures, len(materials))
-        layout, frame_indices, budget = measured_framing(params, cycle, high, record, scene_at, has_regions, budget)
+        layout, frame_indices, budget = measured_framing(params, cycle, high, record, scene_at, has_regions)
         record = replace(record, layout=layout.to_manifest(), frame_indices=frame_indices, fidelity_frame=frame_indices[0], budget=budget)
     arrays = {**scene_arrays(high, part_material, frame_indices), **textures}
     write_bytes_atomic(scene_path, npz_bytes(arrays))

@@ -185,6 +185,13 @@ def part_materials(part_material: dict, materials: list) -> dict:
     return dict.fromkeys(part_material, 0) if len(materials) == 1 else part_material
 
 
+def framing_bounds(high: dict) -> dict:
+    """{"center": [x, y, z], "radius": r} of the sphere framing every part in every frame (metres): what
+    every impostor view frames."""
+    centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
+    return {"center": [float(c) for c in centre], "radius": float(radius)}
+
+
 def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, AtlasLayout, list[int], dict]:
     """The impostors' framing: bounds {"center", "radius"} over every frame and part, the atlas layout
     (its crop, and the azimuth and frame counts within params.impostor_budget_mib: crowdbake.bake.
@@ -192,7 +199,8 @@ def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, Atla
     Shared by the poses stage and the impostor plan. Several clips: ranges_framing."""
     if cycle.ranges is not None:
         return ranges_framing(params, cycle.bundle_ranges(), high)
-    centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
+    bounds = framing_bounds(high)
+    centre, radius = np.asarray(bounds["center"]), bounds["radius"]
     elevations = tuple(params.elevations_deg)
     positions = np.concatenate([np.asarray(part.positions) for part in high.values()], axis=1)
     extents = frame_extents(positions, centre, elevations)
@@ -204,7 +212,7 @@ def impostor_framing(params, cycle: CycleRecord, high: dict) -> tuple[dict, Atla
     if params.crop:
         layout = replace(layout, crop=choice.crop)
     frame_indices = poses.impostor_frame_indices(cycle.cycle_frames, choice.frames)
-    return {"center": [float(c) for c in centre], "radius": float(radius)}, layout, frame_indices, budget_document(choice, params)
+    return bounds, layout, frame_indices, budget_document(choice, params)
 
 
 def ranges_framing(params, ranges: Ranges, high: dict) -> tuple[dict, AtlasLayout, list[int], dict]:
@@ -213,7 +221,8 @@ def ranges_framing(params, ranges: Ranges, high: dict) -> tuple[dict, AtlasLayou
     the crop over every baked frame (one layout for all, so a clip's layers may be a little larger than
     the crop of its own frames the budget measured: texture_memory.json's `impostor.ranges` has the
     bytes as stored). The budget's account lists each clip's choice."""
-    centre, radius = poses.common_bounds(*(part.positions for part in high.values()))
+    bounds = framing_bounds(high)
+    centre, radius = np.asarray(bounds["center"]), bounds["radius"]
     elevations = tuple(params.elevations_deg)
     positions = np.concatenate([np.asarray(part.positions) for part in high.values()], axis=1)
     extents = frame_extents(positions, centre, elevations)
@@ -231,7 +240,7 @@ def ranges_framing(params, ranges: Ranges, high: dict) -> tuple[dict, AtlasLayou
                 "ranges": pose_ranges.frames_per_range(ranges, frame_indices)}
     document["chosen"] = {"azimuths": choices[0].azimuths, "frames": [choice.frames for choice in choices]}
     document["fits"] = all(choice.fits for choice in choices)
-    return {"center": [float(c) for c in centre], "radius": float(radius)}, layout, frame_indices, document
+    return bounds, layout, frame_indices, document
 
 
 def _write_lods(high: dict, kinds: dict, part_material: dict, params, fps: float, out: Path) -> list[PosePart]:
