@@ -6,6 +6,12 @@ scripts/bench_mixed_crowd.py, four real bundles and a mixed crowd of them (crowd
 
     scripts/gpu-check/prepare.py [--build build/runtime] [--out build/gpu-check] [--bundles-from DIR]
         [--work build/gpu-check-work] [--crowdbake PATH]
+    scripts/gpu-check/prepare.py --maps [--out build/gpu-check-maps] [--python 3.12]
+
+--maps packs the check's second mode instead (run.py tells them apart by prepared.json): the sample's
+impostor plan and scene from a bake with its work folder kept, the maps OSMesa draws of them here
+(scripts/gpu-check/maps.py draw), glvnd's loaders, and the Python packages the bake's GL passes import,
+as wheels for --python (the GPU image's) at this environment's versions: about 40 MiB.
 
 The bundles are scripts/demo.sh's archetypes: the sample in its loose and its tight garment (heavy
 build), CesiumMan in the long skirt and the robot with its clips (../shared/assets, or
@@ -37,6 +43,9 @@ GL_LOADER_PACKAGES = ("libegl1", "libglvnd0", "libopengl0", "libgl1", "libglx0",
 # The C library and the C++ runtime: every CUDA image has them, newer than this build's.
 IMAGE_LIBRARIES = re.compile(r"^(linux-vdso|ld-linux|libc|libm|libdl|libpthread|librt|libresolv|libutil|libstdc\+\+|libgcc_s)[.-]")
 MAX_BYTES = 60 << 20
+# What the bake's impostor maps import (crowdbake.stages.impostors under pyrender's EGL platform): carried as
+# wheels at the versions installed here. trimesh works without scipy, which would not fit.
+MAPS_PACKAGES = ("numpy", "PyOpenGL", "pyrender", "trimesh", "networkx", "pillow", "pyglet", "freetype-py", "imageio", "six")
 ASSETS = Path(os.environ.get("CROWDBAKE_SHARED_ASSETS", ROOT.parent / "shared/assets"))
 VERSION = "1.0.0"
 # The demo bakes 88-texel tiles, 16 MiB of impostor maps a clip and the sample's textures at
@@ -170,6 +179,80 @@ def shared_libraries(program: Path) -> dict[str, Path]:
     return libraries
 
 
+def gl_loader_debs(folder: Path) -> list[str]:
+    """glvnd's loader packages downloaded into `folder` (apt-get download); their file names."""
+    folder.mkdir(parents=True, exist_ok=True)
+    subprocess.run(["apt-get", "download", *GL_LOADER_PACKAGES], cwd=folder, check=True, capture_output=True, text=True)
+    debs = sorted(p.name for p in folder.glob("*.deb"))
+    if len(debs) != len(GL_LOADER_PACKAGES):
+        raise SystemExit(f"prepare: apt-get download gave {debs} for {list(GL_LOADER_PACKAGES)}")
+    print(f"prepare: GL loaders {', '.join(debs)}")
+    return debs
+
+
+def maps_archetype() -> Archetype:
+    """The sample in its loose garment as the mixed crowd's, baked with its work folder kept."""
+    steps = sample_recipe("maps-sample", "--garment", "loose")
+    return Archetype("maps-sample", "sample-walker", (steps[0], (*steps[1], "--work", "work")))
+
+
+def python_wheels(python: str, folder: Path, environment_python: str) -> list[str]:
+    """MAPS_PACKAGES as wheels for CPython `python` on x86-64 Linux, at environment_python's versions."""
+    versions = json.loads(subprocess.run(
+        [environment_python, "-c", "import importlib.metadata as m, json, sys; print(json.dumps([m.version(p) for p in sys.argv[1:]]))",
+         *MAPS_PACKAGES], check=True, capture_output=True, text=True).stdout)
+    abi = "cp" + python.replace(".", "")
+    platforms = [arg for tag in ("manylinux_2_28_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64", "any") for arg in ("--platform", tag)]
+    done = subprocess.run([environment_python, "-m", "pip", "download", "--quiet", "--no-deps", "--only-binary=:all:", "--python-version",
+                           python, "--implementation", "cp", "--abi", abi, *platforms, "--dest", str(folder),
+                           *(f"{p}=={v}" for p, v in zip(MAPS_PACKAGES, versions))], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"prepare: pip download of the maps' wheels for Python {python} failed: {done.stderr.strip().splitlines()[-1:]}")
+    wheels = sorted(p.name for p in folder.glob("*.whl"))
+    print(f"prepare: {len(wheels)} wheels for Python {python}: {', '.join(wheels)}")
+    return wheels
+
+
+def prepare_maps(args: argparse.Namespace) -> int:
+    """The --maps folder (module docstring)."""
+    if args.out.exists():
+        shutil.rmtree(args.out)
+    args.out.mkdir(parents=True)
+    archetype = maps_archetype()
+    bundle = baked_bundle(archetype, args.work, args.crowdbake)
+    work = args.work / archetype.name / "work"
+    with tarfile.open(args.out / "work.tar.xz", "w:xz", preset=6) as tar:
+        for name in ("stage.json", "record.json", "scene.npz"):  # the plan and its scene: what draw_task reads
+            tar.add(work / "impostor" / name, arcname=f"work/impostor/{name}")
+    environment_python = str(Path(args.crowdbake).with_name("python"))
+    drawn = subprocess.run([environment_python, str(ROOT / "scripts/gpu-check/maps.py"), "draw", str(work), str(args.out / "maps.npz")],
+                           env=dict(os.environ, PYOPENGL_PLATFORM="osmesa", PYTHONPATH=str(ROOT / "services")), capture_output=True, text=True)
+    if drawn.returncode != 0:
+        raise SystemExit(f"prepare: drawing the maps under OSMesa failed: {(drawn.stderr.strip().splitlines() or ['?'])[-1]}")
+    print(f"prepare: {drawn.stdout.strip()}")
+    debs = gl_loader_debs(args.out / "debs")
+    wheels = python_wheels(args.python, args.out / "wheels", environment_python)
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    (args.out / "prepared.json").write_text(json.dumps({
+        "mode": "maps", "commit": git_commit(), "python": args.python, "wheels": wheels, "gl_loader_debs": debs,
+        "bake": [["crowdbake", *step] for step in archetype.recipe], "bundle": {"name": manifest["name"], "version": manifest["version"]},
+    }, indent=2) + "\n")
+    return finished(args.out)
+
+
+def git_commit() -> str:
+    return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+
+
+def finished(folder: Path) -> int:
+    """Refuses a folder over MAX_BYTES; else prints its size."""
+    size = folder_bytes(folder)
+    if size > MAX_BYTES:
+        raise SystemExit(f"prepare: {folder} is {size / 2**20:.1f} MiB, over the {MAX_BYTES >> 20} MiB a device run can carry")
+    print(f"prepare: wrote {folder} ({size / 2**20:.1f} MiB)")
+    return 0
+
+
 def folder_bytes(folder: Path) -> int:
     return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
 
@@ -177,11 +260,16 @@ def folder_bytes(folder: Path) -> int:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--build", type=Path, default=ROOT / "build/runtime", help="crowdview's build folder")
-    parser.add_argument("--out", type=Path, default=ROOT / "build/gpu-check", help="the folder to write (replaced)")
+    parser.add_argument("--out", type=Path, help="the folder to write (replaced; default build/gpu-check, --maps build/gpu-check-maps)")
     parser.add_argument("--bundles-from", type=Path, help="a folder of baked bundles, NAME/VERSION (default: bake them under --work)")
     parser.add_argument("--work", type=Path, default=ROOT / "build/gpu-check-work", help="where bakes are made and kept")
     parser.add_argument("--crowdbake", default=str(ROOT / ".venv/bin/crowdbake"), help="the crowdbake command")
+    parser.add_argument("--maps", action="store_true", help="pack the second mode: the bake's maps on the GPU against OSMesa's")
+    parser.add_argument("--python", default="3.12", help="--maps: the GPU image's Python, for its wheels (default 3.12)")
     args = parser.parse_args()
+    args.out = args.out or ROOT / ("build/gpu-check-maps" if args.maps else "build/gpu-check")
+    if args.maps:
+        return prepare_maps(args)
     programs = [args.build / name for name in PROGRAMS]
     for p in programs:
         if not p.is_file():
@@ -210,11 +298,7 @@ def main() -> int:
             carried[soname] = str(path)
     print(f"prepare: {len(carried)} shared libraries")
 
-    subprocess.run(["apt-get", "download", *GL_LOADER_PACKAGES], cwd=args.out / "debs", check=True, capture_output=True, text=True)
-    debs = sorted(p.name for p in (args.out / "debs").glob("*.deb"))
-    if len(debs) != len(GL_LOADER_PACKAGES):
-        raise SystemExit(f"prepare: apt-get download gave {debs} for {list(GL_LOADER_PACKAGES)}")
-    print(f"prepare: GL loaders {', '.join(debs)}")
+    debs = gl_loader_debs(args.out / "debs")
 
     # The shaders include "../config.h": they keep their place beside it.
     shutil.copytree(ROOT / "runtime/src/shaders", args.out / "src/shaders")
@@ -240,15 +324,11 @@ def main() -> int:
                                                    "crowdbake sample", *TRAVEL_SAMPLE)),
          "bundles": records}, indent=2) + "\n")
 
-    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    commit = git_commit()
     os_release = dict(re.findall(r'^(\w+)="?([^"\n]*)"?$', Path("/etc/os-release").read_text(), re.M))
-    (args.out / "prepared.json").write_text(json.dumps({"commit": commit, "built_on": os_release.get("PRETTY_NAME", "?"),
+    (args.out / "prepared.json").write_text(json.dumps({"mode": "crowdview", "commit": commit, "built_on": os_release.get("PRETTY_NAME", "?"),
                                                         "libraries": carried, "gl_loader_debs": debs, "bundles": list(records)}, indent=2) + "\n")
-    size = folder_bytes(args.out)
-    if size > MAX_BYTES:
-        raise SystemExit(f"prepare: {args.out} is {size / 2**20:.1f} MiB, over the {MAX_BYTES >> 20} MiB a device run can carry")
-    print(f"prepare: wrote {args.out} ({size / 2**20:.1f} MiB)")
-    return 0
+    return finished(args.out)
 
 
 if __name__ == "__main__":

@@ -9,6 +9,11 @@ distance for hybrid); 100,000 characters of the mixed crowd: the whole frame to 
 
     OUT=DIR scripts/gpu-check/run.py [FOLDER]        (FOLDER: default build/gpu-check)
 
+A folder packed by `prepare.py --maps` (build/gpu-check-maps) runs the second mode instead: the GL
+passes of the sample's impostor bake drawn on the GPU by the bake's own code under the folder's Python
+wheels (scripts/gpu-check/maps.py compare, this checkout's crowdbake) and compared with what OSMesa drew
+of the same plan (gpu-check-maps.json, log.txt; about a minute).
+
 glvnd's loaders (the folder's Debian packages) and the bundles are unpacked into a scratch folder, and
 LD_LIBRARY_PATH names them, the folder's libraries and the driver's /usr/local/nvidia/lib64.
 Where the image has no EGL vendor file of its own, the driver's
@@ -36,8 +41,10 @@ import sys
 import tarfile
 import tempfile
 import time
+import zipfile
 from pathlib import Path
 
+SERVICES = Path(__file__).resolve().parents[2] / "services"  # this checkout's crowdbake, for the maps mode
 NVIDIA_LIBRARIES = Path("/usr/local/nvidia/lib64")
 NVIDIA_EGL_VENDOR = Path("/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json")
 # Where glvnd's libEGL looks for vendor files when no variable names them.
@@ -156,6 +163,50 @@ class Steps:
         return status == 0
 
 
+def gl_environment(folder: Path, scratch: Path) -> tuple[dict[str, str], str]:
+    """This process's environment with the folder's GL loaders (unpacked under scratch), its libraries and
+    the driver's on LD_LIBRARY_PATH and the EGL vendor files chosen (egl_vendor_choice); and that choice."""
+    env = dict(os.environ)
+    loaders = unpack_gl_loaders(folder / "debs", scratch / "root")
+    library_path = [loaders, folder / "lib"] + ([NVIDIA_LIBRARIES] if NVIDIA_LIBRARIES.is_dir() else [])
+    env["LD_LIBRARY_PATH"] = ":".join([str(p) for p in library_path] + ([env["LD_LIBRARY_PATH"]] if env.get("LD_LIBRARY_PATH") else []))
+    vendor = egl_vendor_choice(env)
+    print(f"gpu-check: EGL vendor files: {vendor}", flush=True)
+    return env, vendor
+
+
+def unpack_wheels(wheels: Path, site: Path) -> Path:
+    """Every wheel of `wheels` unzipped into `site`, which then imports them as pip would have installed them."""
+    for wheel in sorted(wheels.glob("*.whl")):
+        with zipfile.ZipFile(wheel) as archive:
+            archive.extractall(site)
+    return site
+
+
+def run_maps(folder: Path, out: Path, device: str, prepared: dict) -> int:
+    """The second mode (module docstring): one step, scripts/gpu-check/maps.py, and its report."""
+    running = f"{sys.version_info.major}.{sys.version_info.minor}"
+    if prepared.get("python") != running:
+        raise SystemExit(f"gpu-check: {folder} carries wheels for Python {prepared.get('python')}, this is {running} "
+                         f"(prepare.py --maps --python {running})")
+    scratch = Path(tempfile.mkdtemp(prefix="gpu-check-maps-"))
+    env, vendor = gl_environment(folder, scratch)
+    with tarfile.open(folder / "work.tar.xz") as tar:
+        tar.extractall(scratch, **({"filter": "data"} if hasattr(tarfile, "data_filter") else {}))
+    site = unpack_wheels(folder / "wheels", scratch / "site")
+    env.update(PYOPENGL_PLATFORM="egl", PYTHONPATH=f"{site}:{SERVICES}", PYTHONNOUSERSITE="1")
+    steps = Steps(env, out / "log.txt")
+    report = scratch / "maps.json"
+    steps.run("maps", [sys.executable, "-s", str(Path(__file__).with_name("maps.py")), "compare", str(scratch / "work"),
+                       str(folder / "maps.npz"), str(report), "--gl-device", device])
+    summary = {"ok": all(s["exit"] == 0 for s in steps.done), "mode": "maps", "gpu": nvidia_smi(), "egl_vendor_files": vendor,
+               "gl_device": device, "prepared": prepared, "steps": steps.done, "maps": read_json(report)}
+    (out / "gpu-check-maps.json").write_text(json.dumps(summary, indent=2) + "\n")
+    shutil.rmtree(scratch)
+    print(f"gpu-check: {'ok' if summary['ok'] else 'FAILED'}: maps; results in {out}", flush=True)
+    return 0 if summary["ok"] else 1
+
+
 def main() -> int:
     folder = Path(sys.argv[1] if len(sys.argv) > 1 else "build/gpu-check").resolve()
     out = Path(os.environ.get("OUT", "")).resolve() if os.environ.get("OUT") else None
@@ -164,19 +215,17 @@ def main() -> int:
     if not (folder / "prepared.json").is_file():
         raise SystemExit(f"gpu-check: {folder} is not a folder scripts/gpu-check/prepare.py wrote")
     device = os.environ.get("GPU_CHECK_GL_DEVICE", "auto")
+    prepared = json.loads((folder / "prepared.json").read_text())
+    if prepared.get("mode") == "maps":
+        return run_maps(folder, out, device, prepared)
     count = int(os.environ.get("GPU_CHECK_COUNT", "20000"))
     large_count = int(os.environ.get("GPU_CHECK_LARGE_COUNT", "100000"))
     benchmark_seconds = os.environ.get("GPU_CHECK_BENCHMARK_SECONDS", "90")
     mixed_seconds = os.environ.get("GPU_CHECK_MIXED_SECONDS", "60")
     scratch = Path(tempfile.mkdtemp(prefix="gpu-check-"))
 
-    env = dict(os.environ)
-    loaders = unpack_gl_loaders(folder / "debs", scratch / "root")
-    library_path = [loaders, folder / "lib"] + ([NVIDIA_LIBRARIES] if NVIDIA_LIBRARIES.is_dir() else [])
-    env["LD_LIBRARY_PATH"] = ":".join([str(p) for p in library_path] + ([env["LD_LIBRARY_PATH"]] if env.get("LD_LIBRARY_PATH") else []))
+    env, vendor = gl_environment(folder, scratch)
     env["CROWDVIEW_SHADERS"] = str(folder / "src/shaders")
-    vendor = egl_vendor_choice(env)
-    print(f"gpu-check: EGL vendor files: {vendor}", flush=True)
 
     crowdview, frame_bench = str(folder / "bin/crowdview"), str(folder / "bin/crowdview_frame_bench")
     unpacked = unpack_bundles(folder / "bundles", scratch)
@@ -215,7 +264,7 @@ def main() -> int:
         "gpu": nvidia_smi(),
         "egl_vendor_files": vendor,
         "gl_device": device,
-        "prepared": json.loads((folder / "prepared.json").read_text()),
+        "prepared": prepared,
         "libraries": library_origins(folder / "bin/crowdview", env, [folder, scratch]),
         "steps": steps.done,
         "figures": figures(step_reports.get("figure3_sample"), {m: step_reports.get(p.stem) for m, p in mixed_lods.items()},

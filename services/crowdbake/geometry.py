@@ -7,7 +7,6 @@ indices into the vertices; quaternions are (x, y, z, w) and matrices act on colu
 from __future__ import annotations
 
 import numpy as np
-from scipy import sparse
 
 
 def vertex_normals(positions: np.ndarray, faces: np.ndarray, weld: np.ndarray | None = None) -> np.ndarray:
@@ -36,6 +35,10 @@ def vertex_normals(positions: np.ndarray, faces: np.ndarray, weld: np.ndarray | 
     a, b, c = flat[:, faces[:, 0]], flat[:, faces[:, 1]], flat[:, faces[:, 2]]
     face_normals = np.cross(b - a, c - a)  # length = 2 * area: the area weighting comes for free
     # Vertex-by-face incidence: one sparse product sums every frame's face normals onto the (welded) vertices.
+    # scipy is imported here, not above: the impostor maps import this module and run without scipy on a
+    # bare GPU machine (scripts/gpu-check/maps.py), where only what they call is carried.
+    from scipy import sparse
+
     rows = weld[faces].reshape(-1)
     cols = np.repeat(np.arange(len(faces)), 3)
     incidence = sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(slots, len(faces)))

@@ -73,7 +73,7 @@ scene.add(offscreen.orthographic_camera(1.5), pose=offscreen.view_pose([0, 0, 0]
 with offscreen.Offscreen(32, 32) as renderer:
     colour, _ = renderer.render(scene, flags=pyrender.RenderFlags.FLAT)
     gl = renderer.gl.to_json()
-listed = [d.index for d in gl_device._query_egl_devices()]
+listed = [d.index for d in gl_device.query_egl_devices()]
 print(json.dumps({"gl": gl, "red_pixels": int((colour[..., 0] > 200).sum()), "EGL_DEVICE_ID": os.environ.get("EGL_DEVICE_ID"),
                   "listed": listed}))
 """

@@ -118,7 +118,7 @@ def current_context(device: EglDevice | None = None, device_count: int = 0) -> G
                          device_count)
 
 
-def _query_egl_devices() -> list[EglDevice]:
+def query_egl_devices() -> list[EglDevice]:
     """Every EGL device, named as crowdview names them; [] where EGL cannot list devices."""
     import OpenGL.EGL as egl
     from pyrender.platforms import egl as pyrender_egl
@@ -161,7 +161,7 @@ def egl_device_for_pyrender() -> tuple[EglDevice | None, int]:
     global _CHOICE
     with _CHOICE_LOCK:
         if _CHOICE is None:
-            devices = _query_egl_devices()
+            devices = query_egl_devices()
             requested = os.environ.get(DEVICE_VARIABLE)
             index = choose_egl_device(devices, requested)
             if index is not None and requested is None:

@@ -3,11 +3,12 @@ fanned out as independent tasks, one per (baked frame, elevation ring).
 
 One view from render to stored part reads in three files:
 
-1. here, stage_impostor_views: the task's scene at its baked frame and its cameras, then render_task;
+1. here, stage_impostor_views: the task's scene at its baked frame (task_scene), then render_task, whose
+   draw_task makes the cameras and runs the GL passes;
 2. crowdbake.render.impostor.BakeRenderer (shader_maps, shader_references): the GL context that runs
 3. crowdbake.render.map_shader, whose shaders (GLSL in the same file) draw every view's maps,
    already encoded, in one pass, and the mesh's share of each texel in another;
-then, back in render_task, the maps are resolved (extend_to_partial_texels, fill_background, the surface
+then, back here, finish_task resolves the maps (extend_to_partial_texels, fill_background, the surface
 map's alpha) into the arrays stage_impostor_views writes as work/impostor/parts/<id>.npz, with its sidecar
 <id>.json (ImpostorPartRecord). The pack stage (crowdbake.stages.pack) lays the parts into atlases and
 compresses them.
@@ -32,6 +33,7 @@ from crowdbake.bake import impostor_views, pose_ranges, surface_maps
 from crowdbake.formats import pose_codec
 from crowdbake.formats.skinned_cache import read_any_pose_frame
 from crowdbake.render.impostor import shared_renderer
+from crowdbake.render.map_shader import ShaderMaps
 from crowdbake.stages.records import ImpostorPartRecord, ImpostorPlan, ImpostorStatistics, ImpostorTask, PosesRecord
 from crowdbake.stages.workdir import (
     WorkDir, npz_bytes, read_json, stage_key, write_bytes_atomic, write_json_atomic,
@@ -210,11 +212,7 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
     plan = load_plan(work)
     if task.frame not in plan.frame_indices:
         raise ValueError(f"impostor task frame {task.frame} is not one of the baked frames {plan.frame_indices}")
-    scene = load_scene(work, plan, task.frame, runtime_textures=task.references)
-    with np.load(work / "impostor" / SCENE_FILE) as data:
-        sides = surface_maps.motion_sides(task.frame, previous_baked_frame(plan, task.frame), next_baked_frame(plan, task.frame))
-        previous, following = (None if side is None else data[f"positions_{side}"].astype(np.float64) for side in sides)
-        next_positions = surface_maps.motion_positions(data[f"positions_{task.frame}"], previous, following)
+    scene, next_positions = task_scene(work, plan, task)
     timings = {"render": 0.0, "maps": 0.0, "references": 0.0}
     arrays = render_task(scene, plan, task, timings, next_positions)
     write_bytes_atomic(path, npz_bytes(arrays))
@@ -223,20 +221,49 @@ def stage_impostor_views(work: Path, task: ImpostorTask | dict) -> Path:
     return path
 
 
+def task_scene(work: Path, plan: ImpostorPlan, task: ImpostorTask) -> tuple[Scene, np.ndarray]:
+    """What render_task draws for `task`: the scene at its frame and its vertices moved by their velocity
+    there (crowdbake.bake.surface_maps.motion_positions), from work/impostor alone."""
+    scene = load_scene(work, plan, task.frame, runtime_textures=task.references)
+    with np.load(Path(work) / "impostor" / SCENE_FILE) as data:
+        sides = surface_maps.motion_sides(task.frame, previous_baked_frame(plan, task.frame), next_baked_frame(plan, task.frame))
+        previous, following = (None if side is None else data[f"positions_{side}"].astype(np.float64) for side in sides)
+        return scene, surface_maps.motion_positions(data[f"positions_{task.frame}"], previous, following)
+
+
 def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dict[str, float],
                 next_positions: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """A task's maps (and, for the fidelity frame, references): the arrays of its part.
+    """A task's maps (and, for the fidelity frame, references): the arrays of its part. draw_task's GL
+    passes, then finish_task's texels on the CPU; next_positions and timings as draw_task."""
+    return finish_task(draw_task(scene, plan, task, timings, next_positions), timings)
+
+
+@dataclass
+class DrawnTask:
+    """What a task's GL passes drew (draw_task), before finish_task: views (V, 2) (azimuth, elevation)
+    indices; maps as the shader wrote them; coverage (V, S, S) float32 0..1, the mesh's share of each
+    texel; references (V + B, S, S, 4) float32 for the fidelity frame (the baked views, then the B
+    cameras between them; alpha the coverage), else None; between: those cameras (_between_cameras)."""
+
+    views: list[tuple[int, int]]
+    maps: ShaderMaps
+    coverage: np.ndarray
+    references: np.ndarray | None
+    between: dict[str, np.ndarray] | None
+
+
+def draw_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dict[str, float],
+              next_positions: np.ndarray | None = None) -> DrawnTask:
+    """A task's GL passes in the shared renderer.
 
     next_positions: (V, 3) the scene's vertices moved by their velocity at this baked frame, for the
     surface maps' motion (crowdbake.bake.surface_maps.motion_positions); None: no motion.
 
     The maps of every view are drawn, encoded, in one pass of crowdbake.render.map_shader; the mesh's
     share of each texel (the surface map's alpha) as the references are, FIDELITY_SUPERSAMPLE² samples
-    a texel; texels it covers only in part take their nearest covered texel's values
-    (extend_to_partial_texels); backgrounds are filled for the whole ring at once (fill_background).
-    With references, the mesh is also drawn shaded at FIDELITY_SUPERSAMPLE x the tile from every baked
-    view and halfway to the next azimuth (_between_cameras), box-filtered on the GPU, in one pass.
-    timings: adds "render" (the maps' pass), "maps" (the background fill) and "references" seconds.
+    a texel. With references, the mesh is also drawn shaded at FIDELITY_SUPERSAMPLE x the tile from
+    every baked view and halfway to the next azimuth (_between_cameras), box-filtered on the GPU, in one
+    pass. timings: adds "render" (the maps' pass) and "references" seconds.
     """
     layout = plan.layout
     tile = int(layout["tile_size"])
@@ -249,7 +276,7 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
                                 scene.positions if next_positions is None else next_positions,
                                 scene.faces, scene.triangle_material, scene.diffuse)
     timings["render"] += time.perf_counter() - clock
-    references = None
+    references, between = None, None
     clock = time.perf_counter()
     if task.references:
         between = _between_cameras(plan, views)
@@ -263,6 +290,15 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
         # The mesh's share of each texel, sampled as the references are: the surface map's alpha.
         coverage = mesh_references(scene, plan, angles, with_coverage=True)[..., 3]
         timings["render"] += time.perf_counter() - clock
+    return DrawnTask(views, maps, coverage, references, between)
+
+
+def finish_task(drawn: DrawnTask, timings: dict[str, float]) -> dict[str, np.ndarray]:
+    """The part's arrays from what draw_task drew (its maps are changed in place): texels the mesh
+    covers only in part take their nearest covered texel's values (extend_to_partial_texels),
+    backgrounds are filled for the whole ring at once (fill_background), the surface map's alpha is the
+    coverage. timings: adds "maps" seconds."""
+    maps, coverage = drawn.maps, drawn.coverage
     clock = time.perf_counter()
     mask = extend_to_partial_texels(maps.mask, coverage, [maps.normal, maps.uv, maps.detail, maps.surface])
     # The surface map's background is filled as the others' but keeps its blocks as filled: its values
@@ -270,10 +306,11 @@ def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: d
     fill_background(mask, [maps.normal, maps.detail], unflattened=[maps.surface])
     maps.surface[..., 3] = np.where(mask, np.rint(np.clip(coverage, 0.0, 1.0) * 255.0), 0).astype(np.uint8)
     timings["maps"] += time.perf_counter() - clock
-    arrays = {"views": np.asarray(views, dtype=np.int64).reshape(-1, 2), "normal": maps.normal, "uv": maps.uv, "detail": maps.detail,
-              "surface": maps.surface}
-    if references is not None:
-        arrays.update(reference=references[:len(angles), ..., :3], reference_between=references[len(angles):, ..., :3], **between)
+    arrays = {"views": np.asarray(drawn.views, dtype=np.int64).reshape(-1, 2), "normal": maps.normal, "uv": maps.uv,
+              "detail": maps.detail, "surface": maps.surface}
+    if drawn.references is not None:
+        count = len(drawn.views)
+        arrays.update(reference=drawn.references[:count, ..., :3], reference_between=drawn.references[count:, ..., :3], **drawn.between)
     return arrays
 
 
