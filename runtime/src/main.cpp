@@ -135,6 +135,7 @@ struct ViewRun {
     unsigned build_threads = 1;
     std::vector<ArchetypeCounts> counts;
     std::vector<double> frame_ms;  // whole frames, build to glFinish: headless with --report
+    std::vector<double> gpu_ms;    // the same frames' draws on the GPU (Renderer::time_draws)
     double build_seconds = 0;
     float time_s = 0;
     int drawn = 0;
@@ -215,6 +216,7 @@ void draw_frame(Renderer& renderer, const Options& o, const DrawChoice& choice, 
     if (timed) {
         renderer.finish();
         run->frame_ms.push_back(1e3 * std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count());
+        run->gpu_ms.push_back(renderer.last_draw_gpu_ms());
     }
 }
 
@@ -259,6 +261,13 @@ std::string switch_jump_line(const std::string& name, const nlohmann::json& jump
     return line;
 }
 
+// The median of per-frame times less the first two frames (where there are more); 0 for none.
+double warm_median(const std::vector<double>& per_frame) {
+    std::vector<double> timed(per_frame.begin() + (per_frame.size() > 2 ? 2 : 0), per_frame.end());
+    std::sort(timed.begin(), timed.end());
+    return timed.empty() ? 0.0 : timed[timed.size() / 2];
+}
+
 // --report of a headless view: view_report's counts and memory, the median frame time, and per
 // archetype its characters per clip, the impostor blend it drew with (`blend` where it can: warp
 // needs a surface map) and the switches' jumps. False after one line when it cannot be written.
@@ -267,10 +276,10 @@ bool write_view_report(const GlContext& context, const Renderer& renderer, const
     const double build_ms = run.drawn ? 1e3 * run.build_seconds / run.drawn : 0;
     nlohmann::json report = view_report(context.describe(), renderer, scene, run.counts, run.rules, run.drawn, build_ms, run.stats);
     report["gl"] = gl_report(context.info());
-    // Whole frames, cull to glFinish; the first two warm up (uploads, shader compilation on first use).
-    std::vector<double> timed(run.frame_ms.begin() + std::min<size_t>(2, run.frame_ms.size() > 2 ? 2 : 0), run.frame_ms.end());
-    std::sort(timed.begin(), timed.end());
-    report["frame_ms_median"] = timed.empty() ? 0.0 : timed[timed.size() / 2];
+    // Whole frames, cull to glFinish, and their draws on the GPU; the first two warm up (uploads, shader
+    // compilation on first use).
+    report["frame_ms_median"] = warm_median(run.frame_ms);
+    report["gpu_draw_ms_median"] = warm_median(run.gpu_ms);
     for (size_t a = 0; a < renderer.archetype_count(); ++a) {
         report["archetypes"][a]["clips"] =
             clip_counts(run.crowds[a], renderer.model(a), run.state[a], run.camera, renderer.aspect(), run.time_s);
@@ -314,6 +323,8 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
     FlyControls controls;
     const bool windowed = context.visible();
     const int frames = o.frames > 0 ? o.frames : (windowed ? -1 : 1);
+    const bool timed = !o.report.empty() && !windowed;
+    renderer.time_draws(timed);
     const auto start = std::chrono::steady_clock::now();
     auto last = start, last_progress = start;
     double fps_smoothed = 0;
@@ -329,7 +340,7 @@ int run_view(GlContext& context, Renderer& renderer, const CrowdScene& scene, co
             controls.update(context.window(), &run.camera, dt);
             if (!read_keys(context.window(), &choice)) break;
         }
-        draw_frame(renderer, o, choice, meters, !o.report.empty() && !windowed, &run);
+        draw_frame(renderer, o, choice, meters, timed, &run);
         if (windowed) {
             fps_smoothed = fps_smoothed == 0 ? 1.0 / std::max(dt, 1e-4f) : 0.9 * fps_smoothed + 0.1 / std::max(dt, 1e-4f);
             present_frame(context, renderer, scene, run, fps_smoothed);

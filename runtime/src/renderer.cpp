@@ -175,6 +175,18 @@ std::vector<uint8_t> Renderer::read_rgba() const {
 
 void Renderer::finish() const { glFinish(); }
 
+void Renderer::time_draws(bool on) {
+    if (on && !state_->draw_time_query) glGenQueries(1, &state_->draw_time_query);
+    state_->draws_timed = on;
+}
+
+double Renderer::last_draw_gpu_ms() const {
+    if (!state_->draw_time_query || !state_->draws_timed) return -1.0;
+    GLuint64 nanoseconds = 0;
+    glGetQueryObjectui64v(state_->draw_time_query, GL_QUERY_RESULT, &nanoseconds);
+    return 1e-6 * double(nanoseconds);
+}
+
 bool write_png(const std::string& path, int width, int height, const std::vector<uint8_t>& rgba) {
     if (rgba.size() != size_t(width) * height * 4) return false;
     return stbi_write_png(path.c_str(), width, height, 4, rgba.data(), width * 4) != 0;

@@ -93,6 +93,11 @@ public:
     std::vector<uint8_t> read_rgba() const;
     // Waits until the GPU (or llvmpipe) has finished every command: frame timing.
     void finish() const;
+    // With `on`, each draw() is timed on the GPU by a GL_TIME_ELAPSED query (core since GL 3.3):
+    // the time the GPU spent on the frame's commands, apart from the CPU's build and its wait.
+    void time_draws(bool on);
+    // The last timed draw's GPU milliseconds (waits for its result); -1 where no draw was timed.
+    double last_draw_gpu_ms() const;
 
     int width() const { return width_; }
     int height() const { return height_; }

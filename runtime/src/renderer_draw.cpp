@@ -140,6 +140,7 @@ DrawStats Renderer::draw_all(const FrameInstances* frames, size_t frame_count, c
                              const glm::vec3& light_dir) {
     RendererState& shared = *state_;
     DrawStats stats;
+    if (shared.draws_timed) glBeginQuery(GL_TIME_ELAPSED, shared.draw_time_query);
     glBindFramebuffer(GL_FRAMEBUFFER, shared.framebuffer);
     glViewport(0, 0, width_, height_);
     glClearColor(kSky[0], kSky[1], kSky[2], kSky[3]);
@@ -161,6 +162,7 @@ DrawStats Renderer::draw_all(const FrameInstances* frames, size_t frame_count, c
         add(&stats, draw_impostors(shared, g, frames[a], view_projection, camera, impostors, light));
     }
     glBindVertexArray(0);
+    if (shared.draws_timed) glEndQuery(GL_TIME_ELAPSED);
     return stats;
 }
 

@@ -23,6 +23,8 @@ struct RendererState {
     GLuint skinned_mesh_program = 0;  // skinned ones (CBSK)
     MeshUniforms skinned_mesh_uniforms;
     GLuint empty_array = 0;  // bound to unused material units so every sampler is complete
+    GLuint draw_time_query = 0;  // GL_TIME_ELAPSED around draw_all, made on the first timed draw
+    bool draws_timed = false;
     std::vector<ImpostorSamples> nearest_samples;  // for frames built without samples
     MappedInstanceStorage storage;                 // every archetype's instance buffers, by index
     // By renderer archetype: its uploads, shared by the archetypes drawn from one bundle
@@ -41,6 +43,7 @@ struct RendererState {
         }
         archetypes.clear();
         glDeleteTextures(1, &empty_array);
+        if (draw_time_query) glDeleteQueries(1, &draw_time_query);
         glDeleteProgram(mesh_program);
         glDeleteProgram(skinned_mesh_program);
         glDeleteFramebuffers(1, &framebuffer);

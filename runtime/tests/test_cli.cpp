@@ -241,6 +241,8 @@ void test_gl_device(const std::string& bundle, const std::string& work) {
     const nlohmann::json j = nlohmann::json::parse(synthetic::read_text(report), nullptr, false);
     CHECK_MSG(!j.is_discarded() && j.contains("gl"), "the report has its gl section");
     if (j.is_discarded() || !j.contains("gl")) return;
+    // The frame's draws timed on the device by a GL_TIME_ELAPSED query: a time, not the -1 of an untimed draw.
+    CHECK_MSG(j.contains("gpu_draw_ms_median") && j["gpu_draw_ms_median"].get<double>() > 0.0, j.dump());
     const nlohmann::json& gl = j["gl"];
     CHECK_MSG(gl["context"] == "EGL device" && gl["device"].is_object(), gl.dump());
     CHECK_MSG(gl["device"]["name"] == "Mesa software" &&

@@ -134,7 +134,8 @@ def figures(benchmark: dict | None, mixed: dict[str, dict | None], large: dict |
         "figure3_mixed": {mode: n_at((report or {}).get("results")) for mode, report in mixed.items()},
         "large_crowd": None if large is None else {
             "characters": {a["name"]: a.get("characters") for a in large.get("archetypes", [])},
-            "frame_ms_median": large.get("frame_ms_median"), "draw_calls": large.get("draw_calls"), "triangles": large.get("triangles"),
+            "frame_ms_median": large.get("frame_ms_median"), "gpu_draw_ms_median": large.get("gpu_draw_ms_median"),
+            "cpu_build_ms_per_frame": large.get("cpu_build_ms_per_frame"), "draw_calls": large.get("draw_calls"), "triangles": large.get("triangles"),
             "gpu_memory_bytes": {a["name"]: a.get("gpu_memory_bytes") for a in large.get("archetypes", [])},
             "gpu_memory_bytes_total": large.get("gpu_memory_bytes_total")},
         "frame_bench_cpu": None if frame_bench is None else frame_bench.get("results"),
