@@ -48,8 +48,8 @@ _INT8_MAX = 127
 # Positions and their morph deltas lie on a 13-bit grid inside the int16s (every 8th value): a step of
 # scale / 4095, and three low bits that are always zero deflate away in the zip. Every frame is rounded
 # once onto the grid (its targets are differences of rounded frames), so it lies within half a step:
-# 0.09 mm on the robot's 3 m cape, 0.05 mm on the sample's skirt (the 14-bit grid rounded base and delta
-# apart, a whole step of the finer grid: the same bound for a third fewer bits in the zip).
+# 0.18 mm on the robot's cape, 0.05 mm on the sample's skirt (the 14-bit grid rounded base and delta
+# apart: a whole step of the finer grid, the same bound in 0.3 MB more of the robot's zip).
 POSITION_GRID = 8
 
 
