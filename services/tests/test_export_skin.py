@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from test_export import MORPH_TOLERANCE_M, node_tool, skin_played
 from crowdbake.export.animations import animation_plans
-from crowdbake.export.body_skin import decompose, gltf_skin, play, trs_matrices, why_not_a_skin
+from crowdbake.export.body_skin import CORRECTIVE_BOUND_M, corrective_step, decompose, gltf_skin, play, trs_matrices, why_not_a_skin
 from crowdbake.export.glb import GlbMaterial, GlbPart, GlbVariant, build_glb
 from crowdbake.formats.ranges import Clip, Ranges, Transition
 from crowdbake.formats.skinned_cache import SkinnedPoseCache, weight_codes
@@ -50,15 +50,23 @@ def test_trs_takes_a_rotation_and_scale_apart_exactly_and_measures_shear():
 def test_a_blended_frame_gets_a_corrective_target_and_every_frame_plays_exactly():
     """Frames 0 and 1 are rigid poses (joint 1 at scale 100, as the robot's), frame 2 their matrices' mean (a
     crossfade): it alone carries a corrective target, and the rest plus that target skinned by the joints'
-    TRS gives every frame of the cache."""
+    TRS gives every frame of the cache, the target's deltas on a power-of-two grid (float32 with zero low bits)
+    within CORRECTIVE_BOUND_M once skinned, at scale 100 too."""
     rigid = [np.stack([pose(0.0, "z", [0, 0, 0]), pose(10.0, "x", [0, 0.5, 0], 100.0)]),
              np.stack([pose(30.0, "y", [0.2, 0, 0]), pose(-70.0, "y", [0, 0.6, 0.1], 100.0)])]
     cache = two_bone_strip(np.stack([*rigid, (rigid[0] + rigid[1]) / 2]))
     assert why_not_a_skin(cache) is None
     skin = gltf_skin(cache)
     assert skin.corrected.tolist() == [2] and skin.animated.tolist() == [0, 1]
-    np.testing.assert_allclose(play(skin, np.arange(3)), cache.positions, atol=1e-5)
+    played = play(skin, np.arange(3))
+    np.testing.assert_allclose(played[:2], cache.positions[:2], atol=1e-5)
+    error = np.linalg.norm(played[2] - cache.positions[2], axis=-1).max()
+    assert error <= CORRECTIVE_BOUND_M and error > CORRECTIVE_BOUND_M / 100  # rounded, within the bound
+    deltas = skin.position_deltas[0].astype(np.float64)
+    grid = max(e for e in range(-40, 0) if not np.any(deltas / 2.0 ** e % 1))  # the coarsest power of two every delta is a multiple of
+    assert 2.0 ** grid >= corrective_step(100.0 * np.sqrt(3))  # joint 1's block at scale 100 (Frobenius norm 173)
     assert np.abs(skin.position_deltas[0]).max() > 1e-3  # the blend really needed it
+    assert corrective_step(100.0, 1e-4) <= 2e-4 / (np.sqrt(3) * 100) < 2 * corrective_step(100.0, 1e-4)
 
 
 def test_a_joint_that_mirrors_space_keeps_morph_targets():

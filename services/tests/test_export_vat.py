@@ -9,7 +9,9 @@ from scipy.spatial.transform import Rotation
 
 from crowdbake.export.vat import (
     OCTAHEDRAL_MAX_ERROR_DEG,
+    POSITION_BOUND_M,
     SKIN_BLOCKS,
+    UNORM16_MAX,
     decode_joints,
     decode_octahedral_words,
     decode_skin,
@@ -19,6 +21,7 @@ from crowdbake.export.vat import (
     encode_vat,
     octahedral_words,
     play_skin,
+    position_steps,
     shared_skin_vertices,
     shared_vertices,
     vat_layout,
@@ -62,6 +65,30 @@ def test_octahedral_words_keep_every_direction_within_the_stated_angle():
     assert words.dtype == np.uint16
     error = angles_deg(decode_octahedral_words(words), normals)
     assert error.max() <= OCTAHEDRAL_MAX_ERROR_DEG and error.max() > OCTAHEDRAL_MAX_ERROR_DEG / 2
+
+
+def test_vat_positions_lie_on_a_power_of_two_grid_within_the_distance_bound():
+    """Each axis's codes are multiples of a power of two (position_steps), the coarsest whose half step keeps
+    a decoded position within POSITION_BOUND_M of its own as a distance (a 2 m cape: 8 codes, 0.125 mm per
+    axis); the bound is reached in practice, and bound 0 keeps the plain 16 bits."""
+    rng = np.random.default_rng(11)
+    positions = rng.uniform([-1.0, 0.0, -0.7], [1.0, 2.2, 0.8], size=(6, 400, 3))
+    normals = rng.normal(size=(6, 400, 3))
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    animation = encode_vat(positions, normals)
+    extent = animation.bounds_max - animation.bounds_min
+    assert animation.steps.tolist() == position_steps(extent).tolist() == [8, 8, 8]
+    codes = animation.texels.reshape(6, -1, 4)[:, :400, :3].astype(np.int64)
+    assert not ((codes % animation.steps) * (codes != UNORM16_MAX)).any()
+    distance = np.linalg.norm(decode_vat(animation)[0] - positions, axis=-1)
+    assert distance.max() <= POSITION_BOUND_M and distance.max() > POSITION_BOUND_M / 2
+    assert (np.abs(decode_vat(animation)[0] - positions).max(axis=(0, 1)) <= animation.max_position_error + 1e-12).all()
+    assert (animation.max_position_error * np.sqrt(3) <= POSITION_BOUND_M).all()
+    # Each step is the coarsest: twice it would break the per-axis share of the bound.
+    assert (2 * animation.steps * extent / (2 * UNORM16_MAX) > POSITION_BOUND_M / np.sqrt(3)).all()
+    plain = encode_vat(positions, normals, bound_m=0)
+    assert plain.steps.tolist() == [1, 1, 1] and (np.abs(decode_vat(plain)[0] - positions) <= plain.max_position_error + 1e-12).all()
+    assert position_steps(np.array([0.0, 30.0, 0.01])).tolist() == [1, 1, 1024] and position_steps(np.full(3, 1e-6)).tolist() == [2 ** 15] * 3
 
 
 def test_vat_frames_decode_within_half_a_step_and_the_octahedral_bound():

@@ -9,7 +9,10 @@ Two kinds, both R16G16B16A16_UNORM:
 
 - `frames` (encode_vat): block f is pose frame f. RGB: the position, `q = round((p - bounds_min) /
   (bounds_max - bounds_min) * 65535)` per axis, decoded `p = bounds_min + q / 65535 * (bounds_max -
-  bounds_min)` (error <= extent / 131070 per axis); A: the normal as an octahedral word (below).
+  bounds_min)`; A: the normal as an octahedral word (below). Each axis's codes lie on a grid of s = 2^k
+  codes (position_steps: the coarsest whose half step, s * extent / 131070, is within
+  POSITION_BOUND_M / sqrt(3), so a position is within POSITION_BOUND_M of its frame's as a distance; s = 8
+  on a 2 m axis, 0.125 mm), so the low bits repeat and zstd finds them. Readers decode as before.
 - `skin` (encode_skin), for a body the bundle stores as skinning (a CBSK): three blocks per vertex,
   SKIN_BLOCKS: 0 the rest position (RGB, as above, over the rest mesh's bounds) and rest normal (A);
   1 the four joint indices (each channel the index itself, read as q * 65535); 2 the four weights (unorm16
@@ -34,7 +37,7 @@ texel's centre, so an engine that reorders or splits vertices on import keeps th
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -48,6 +51,9 @@ OCTAHEDRAL_CODE_MAX = 255  # 8 bits per octahedral coordinate, two in the 16-bit
 # The largest angle between a unit normal and its decoded octahedral word: measured over a dense sphere by
 # services/tests/test_export_vat.py.
 OCTAHEDRAL_MAX_ERROR_DEG = 0.95
+# The largest distance of a `frames` VAT position from the pose frame's own (position_steps): a quarter of a
+# millimetre, half the bundle's own cloth rounding bound (SPEC.md, CBPC) and far under a pixel.
+POSITION_BOUND_M = 2.5e-4
 # A skin texture's blocks per vertex: rest position and normal, joints, weights.
 SKIN_BLOCKS = 3
 SKIN_REST, SKIN_JOINTS, SKIN_WEIGHTS = range(SKIN_BLOCKS)
@@ -112,13 +118,26 @@ def decode_octahedral_words(words: np.ndarray) -> np.ndarray:
     return decode_octahedral(np.stack([words & 0xFF, words >> 8], axis=-1), OCTAHEDRAL_CODE_MAX).astype(np.float64)
 
 
-def _position_codes(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(..., V, 3) metres -> (codes (..., V, 3) float64 in 0..65535, bounds_min (3,), bounds_max (3,))."""
+def _position_codes(positions: np.ndarray, bound_m: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(..., V, 3) metres -> (codes (..., V, 3) float64 in 0..65535, bounds_min (3,), bounds_max (3,), steps (3,)):
+    each axis's codes rounded once onto position_steps' grid for bound_m (0: every code, steps 1)."""
     low = positions.reshape(-1, 3).min(axis=0)
     high = positions.reshape(-1, 3).max(axis=0)
     extent = high - low
     scale = np.divide(UNORM16_MAX, extent, out=np.zeros(3), where=extent > 0)
-    return np.rint((positions - low) * scale), low, high
+    steps = position_steps(extent, bound_m) if bound_m > 0 else np.ones(3, dtype=np.int64)
+    # A code past the last multiple of its step (near 65535) stays the top code: still within half a step.
+    return np.minimum(np.rint((positions - low) * scale / steps) * steps, UNORM16_MAX), low, high, steps
+
+
+def position_steps(extent: np.ndarray, bound_m: float = POSITION_BOUND_M) -> np.ndarray:
+    """(3,) axis extents (metres) -> (3,) int64 grid steps in 16-bit codes, each a power of two: the largest
+    whose half step (s · extent / 131070) is within bound_m / sqrt(3), or 1."""
+    per_axis = bound_m / np.sqrt(3.0)
+    half_code = np.asarray(extent, dtype=np.float64) / (2 * UNORM16_MAX)
+    ratio = np.divide(per_axis, half_code, out=np.full(3, 1.0), where=half_code > 0)
+    exponent = np.clip(np.floor(np.log2(np.maximum(ratio, 1.0))), 0, 15)
+    return (2 ** exponent).astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -130,23 +149,25 @@ class VertexAnimation:
     texels: np.ndarray
     bounds_min: np.ndarray  # (3,) float64
     bounds_max: np.ndarray
+    steps: np.ndarray = field(default_factory=lambda: np.ones(3, dtype=np.int64))  # (3,) codes per grid step (position_steps)
 
     @property
     def max_position_error(self) -> np.ndarray:
-        """(3,) metres: the largest decode error per axis, half a quantisation step."""
-        return (self.bounds_max - self.bounds_min) / (2 * UNORM16_MAX)
+        """(3,) metres: the largest decode error per axis, half a grid step."""
+        return (self.bounds_max - self.bounds_min) * self.steps / (2 * UNORM16_MAX)
 
 
-def encode_vat(positions: np.ndarray, normals: np.ndarray, max_width: int = MAX_WIDTH) -> VertexAnimation:
-    """positions, normals: (F, V, 3) float, metres and unit vectors -> VertexAnimation (module docstring)."""
+def encode_vat(positions: np.ndarray, normals: np.ndarray, max_width: int = MAX_WIDTH, bound_m: float = POSITION_BOUND_M) -> VertexAnimation:
+    """positions, normals: (F, V, 3) float, metres and unit vectors -> VertexAnimation (module docstring), the
+    positions on position_steps' grid for bound_m (0: the plain 16 bits)."""
     positions = np.asarray(positions, dtype=np.float64)
     normals = np.asarray(normals, dtype=np.float64)
     if positions.ndim != 3 or positions.shape[2] != 3 or normals.shape != positions.shape:
         raise ValueError(f"positions and normals must be (F, V, 3) alike, got {positions.shape} and {normals.shape}")
     layout = vat_layout(positions.shape[1], positions.shape[0], max_width)
-    codes, low, high = _position_codes(positions)
+    codes, low, high, steps = _position_codes(positions, bound_m)
     texels = np.concatenate([codes, octahedral_words(normals)[..., None]], axis=2).astype(np.uint16)
-    return VertexAnimation(layout, _place(texels, layout), low, high)
+    return VertexAnimation(layout, _place(texels, layout), low, high, steps)
 
 
 def decode_vat(animation: VertexAnimation) -> tuple[np.ndarray, np.ndarray]:
@@ -181,7 +202,7 @@ def encode_skin(rest_positions: np.ndarray, rest_normals: np.ndarray, joints: np
     if joints.min(initial=0) < 0 or joints.max(initial=0) > UNORM16_MAX or (weight_codes.sum(axis=1) != WEIGHT_CODE_SUM).any():
         raise ValueError(f"joints must be 0..{UNORM16_MAX} and each vertex's weight codes sum to {WEIGHT_CODE_SUM}")
     layout = vat_layout(vertex_count, SKIN_BLOCKS, max_width)
-    codes, low, high = _position_codes(rest_positions)
+    codes, low, high, _ = _position_codes(rest_positions)
     rest = np.concatenate([codes, octahedral_words(rest_normals)[:, None]], axis=1)
     blocks = np.stack([rest, np.where(weight_codes > 0, joints, 0), weight_codes]).astype(np.uint16)
     return SkinTexture(layout, _place(blocks, layout), low, high)
