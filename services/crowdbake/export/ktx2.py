@@ -5,7 +5,7 @@ libktx, and Debian 12 packages neither libktx nor `toktx`), so this module write
 itself, following the Khronos KTX 2.0 specification:
 
 - one mip level, one face, `pixelDepth` 0;
-- Zstandard supercompression (`supercompressionScheme` 2) of the level with ZSTD_PARAMETERS, or none (0) when
+- Zstandard supercompression (`supercompressionScheme` 2) of the level at ZSTD_LEVEL, or none (0) when
   asked (`zstd_level=None`): the level's byteLength is then the compressed size and
   uncompressedByteLength the texels' (libktx, three.js's KTX2Loader with its ZSTDDecoder and Godot read
   it; ktx-parse hands over the compressed level);
@@ -41,21 +41,9 @@ _LEVEL = struct.Struct("<3Q")  # byteOffset, byteLength, uncompressedByteLength
 HEADER_BYTES = _HEADER.size + _INDEX.size  # 80
 SUPERCOMPRESSION_NONE = 0
 SUPERCOMPRESSION_ZSTD = 2
-# zstd settings of the export's textures: an int is a zstd level, ZstdCompressionParameters its own search.
-# ZSTD_LEVEL (12) was the export's setting before ZSTD_PARAMETERS: level 19's optimal parser (btopt, matches
-# from 3 bytes, 256-byte target length, 8 MiB window) with a shorter search. On the robot's impostor maps
-# 4.59 MB at level 12 in 0.7 s, 4.04 MB in 6.3 s, 3.98 MB at level 19 in 12 s; the sample's 3.41 / 3.11 / 3.06 MB
-# in 0.5 / 3.3 / 7.1 s (services/benchmarks/bench_export_weight.py measures the export).
+# zstd level of the export's textures. On the sample's 21 MB of KTX2: 1.5 s for 6.7 MB at 12, 4.8 s for
+# 6.4 MB at 17, 17 s for 6.1 MB at 19 (services/benchmarks/bench_export_weight.py measures the export).
 ZSTD_LEVEL = 12
-ZSTD_PARAMETERS = zstandard.ZstdCompressionParameters(window_log=23, chain_log=23, hash_log=22, search_log=5, min_match=3,
-                                                      target_length=256, strategy=zstandard.STRATEGY_BTOPT)
-
-
-def zstd_compressor(setting: int | zstandard.ZstdCompressionParameters) -> zstandard.ZstdCompressor:
-    """A compressor for a zstd level (int) or a set of parameters."""
-    if isinstance(setting, zstandard.ZstdCompressionParameters):
-        return zstandard.ZstdCompressor(compression_params=setting)
-    return zstandard.ZstdCompressor(level=setting)
 
 # Vulkan format numbers (VkFormat) of the layouts this exporter writes.
 VK_FORMAT_R8G8B8A8_UNORM = 37
@@ -185,10 +173,9 @@ def _key_values(writer: str) -> bytes:
     return out
 
 
-def encode_ktx2(vk_format: int, layers: np.ndarray, array: bool = True, writer: str | None = None,
-                zstd_level: int | zstandard.ZstdCompressionParameters | None = ZSTD_PARAMETERS) -> bytes:
-    """A KTX2 file holding `layers`: (L, H, W, C) array of the format's texel type, zstd-supercompressed with
-    `zstd_level` (a level or parameters; None: not supercompressed).
+def encode_ktx2(vk_format: int, layers: np.ndarray, array: bool = True, writer: str | None = None, zstd_level: int | None = ZSTD_LEVEL) -> bytes:
+    """A KTX2 file holding `layers`: (L, H, W, C) array of the format's texel type, zstd-supercompressed at
+    `zstd_level` (None: not supercompressed).
 
     C is the format's channel count (4, or 1 for R32_UINT, where (L, H, W) is also accepted);
     dtype uint8, uint16 or uint32 to match. `array` False writes L == 1 as a plain 2D texture
@@ -214,7 +201,7 @@ def encode_ktx2(vk_format: int, layers: np.ndarray, array: bool = True, writer: 
 
 
 def encode_ktx2_blocks(vk_format: int, width: int, height: int, layers: list[bytes], array: bool = True, writer: str | None = None,
-                       zstd_level: int | zstandard.ZstdCompressionParameters | None = ZSTD_PARAMETERS) -> bytes:
+                       zstd_level: int | None = ZSTD_LEVEL) -> bytes:
     """A KTX2 file holding block-compressed `layers` (one bytes object a layer) copied as they are, the level
     zstd-supercompressed at `zstd_level` (None: not supercompressed).
 
@@ -238,14 +225,14 @@ def encode_ktx2_blocks(vk_format: int, width: int, height: int, layers: list[byt
 
 
 def _container(vk_format: int, type_size: int, width: int, height: int, layer_count: int, dfd: bytes, level: bytes | memoryview,
-               alignment: int, writer: str | None, zstd_level: int | zstandard.ZstdCompressionParameters | None) -> bytes:
+               alignment: int, writer: str | None, zstd_level: int | None) -> bytes:
     """Header, level index, DFD, key/values and the one level, which starts on a multiple of `alignment`
     (the spec's mip level alignment: lcm(texel block size, 4); 1 for a supercompressed level)."""
     kvd = _key_values(writer or f"crowdbake {__version__}")
     uncompressed_length = len(level)
     scheme = SUPERCOMPRESSION_NONE
     if zstd_level is not None:
-        level = zstd_compressor(zstd_level).compress(level)
+        level = zstandard.ZstdCompressor(level=zstd_level).compress(level)
         scheme, alignment = SUPERCOMPRESSION_ZSTD, 1
     dfd_offset = HEADER_BYTES + _LEVEL.size
     kvd_offset = dfd_offset + len(dfd)

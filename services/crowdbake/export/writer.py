@@ -20,7 +20,6 @@ import logging
 import math
 import shutil
 import tempfile
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -172,26 +171,6 @@ class _Out:
         if self.on_write is not None:
             self.on_write(path, data)
         return path
-
-
-class _Held(_Out):
-    """An _Out for work on another thread: writes its files at once but hands them to `on_write` only on
-    release(), in the order written, so the export's zip stays the same bytes whichever thread finishes first."""
-
-    def __init__(self, out: _Out):
-        super().__init__(out.root)
-        self.target, self.held = out, []
-
-    def write(self, path: str, data: bytes) -> str:
-        self.held.append((path, data))
-        return super().write(path, data)
-
-    def release(self) -> None:
-        for path, data in self.held:
-            self.target.files[path] = len(data)
-            if self.target.on_write is not None:
-                self.target.on_write(path, data)
-        self.held = []
 
 
 def _stem(name: str) -> str:
@@ -505,17 +484,11 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
         out = _Out(staging, on_write)
         manifest = bundle.manifest
         materials, outfits, diffuse_arrays = _export_textures(bundle, out, ktx2_mode, prepared)
-        # The impostor maps (zstd's slowest work, which lets go of the interpreter lock) on a thread of their own,
-        # beside the meshes and VATs; their files join the zip after the LODs'.
-        impostor_out = _Held(out)
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="export-impostor") as pool:
-            impostor_job = pool.submit(_export_impostor, bundle, impostor_out, ktx2_mode, prepared)
-            outfit_rows = rgba8_layers(bundle.textures[manifest["outfits"]["file"]])[0]
-            variants = look_variants([m["variations"] for m in manifest["materials"]], manifest["outfits"]["count"])
-            plans = animation_plans(bundle.ranges)
-            lods = _export_lods(bundle, out, diffuse_arrays, variants, outfit_rows, vat_png, cloth_bones, plans)
-            impostor = impostor_job.result()
-        impostor_out.release()
+        impostor = _export_impostor(bundle, out, ktx2_mode, prepared)
+        outfit_rows = rgba8_layers(bundle.textures[manifest["outfits"]["file"]])[0]
+        variants = look_variants([m["variations"] for m in manifest["materials"]], manifest["outfits"]["count"])
+        plans = animation_plans(bundle.ranges)
+        lods = _export_lods(bundle, out, diffuse_arrays, variants, outfit_rows, vat_png, cloth_bones, plans)
         shaders = _copy_shipped(out, "shaders")
         engines = _copy_shipped(out, "engines")
         sidecar = {
