@@ -312,7 +312,7 @@ def vat_played(out: Path, vat: dict, texcoords: np.ndarray) -> tuple[np.ndarray,
     return positions[:, vertices], normals[:, vertices]
 
 
-def check_export(bundle_dir: Path, out: Path) -> None:
+def check_export(bundle_dir: Path, out: Path, surface_map: bool = False) -> None:
     """Everything this module promises about an export of `bundle_dir` at `out`."""
     bundle = verify_bundle(bundle_dir)
     sidecar = json.loads((out / "export.json").read_text())
@@ -367,9 +367,10 @@ def check_export(bundle_dir: Path, out: Path) -> None:
         source = next(m for m in manifest["materials"] if m["name"] == material["name"])
         sources[material["diffuse"]["ktx2"]] = bundle.textures[source["diffuse"]]
     sources[sidecar["outfits"]["ktx2"]] = bundle.textures[manifest["outfits"]["file"]]
-    assert ("surface" in sidecar["impostor"]["maps"]) == ("surface" in manifest["impostor"]["maps"])
+    # The surface map only where asked for (`--surface-map`): no shipped reader draws with it.
+    assert ("surface" in sidecar["impostor"]["maps"]) == (surface_map and "surface" in manifest["impostor"]["maps"])
     for kind in ("normal", "detail", "surface"):
-        if kind in manifest["impostor"]["maps"]:
+        if kind in sidecar["impostor"]["maps"]:
             sources[sidecar["impostor"]["maps"][kind]["ktx2"]] = bundle.textures[manifest["impostor"]["maps"][kind]]
     uv = bundle.textures[manifest["impostor"]["maps"]["uv"]]
     if uv.pixel_format == "uvblock":  # exported as the uv32 words of its decoded texels
@@ -581,6 +582,15 @@ def test_rgba8_export_decodes_the_blocks_and_is_larger(sample_bundle, sample_exp
         level_bc = int.from_bytes((sample_export / path).read_bytes()[96:104], "little")
         level_rgba8 = int.from_bytes((sample_export_rgba8 / path).read_bytes()[96:104], "little")
         assert level_rgba8 == ratio * level_bc, path
+
+
+def test_the_surface_map_is_exported_only_when_asked(sample_bundle, sample_export, tmp_path):
+    assert "surface" in json.loads((sample_bundle / "manifest.json").read_text())["impostor"]["maps"]
+    assert not (sample_export / "impostor" / "surface.ktx2").exists()
+    out = tmp_path / "with_surface"
+    assert cli_main(["export", str(sample_bundle), "--out", str(out), "--surface-map"]) == 0
+    check_export(sample_bundle, out, surface_map=True)
+    assert (out / "impostor" / "surface.ktx2").is_file()
 
 
 def test_bake_publishes_the_export_beside_the_bundle(sample_bundle, sample_export):

@@ -52,6 +52,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--cloth-bones-budget", type=float, default=5.0, metavar="MM",
                         help="RMS error in millimetres that --cloth-bones auto aims for (default 5)")
     parser.add_argument("--cloth-bones-iterations", type=int, default=30, metavar="K", help=f"Dem Bones iterations (default 30, at most {MAX_CLOTH_BONE_ITERATIONS})")
+    parser.add_argument("--surface-map", action="store_true",
+                        help="also write the impostor surface map (per texel depth and motion, for reprojecting between views "
+                        "and frames as crowdview's warp blend does; the shipped shaders do not read it)")
     parser.add_argument("--json", action="store_true", help="print the written files and sizes as JSON")
     parser.set_defaults(func=run)
 
@@ -77,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
             raise CommandError("--cloth-bones needs py-dem-bones (pip install py-dem-bones; services/requirements.txt pins it)") from None
         cloth_bones = ClothBonesRequest(count, args.cloth_bones_budget, args.cloth_bones_iterations, report=print_bones_line)
     try:
-        summary = export_bundle(args.bundle_dir, args.out, args.ktx2, vat_png=args.vat_png, cloth_bones=cloth_bones)
+        summary = export_bundle(args.bundle_dir, args.out, args.ktx2, vat_png=args.vat_png, cloth_bones=cloth_bones,
+                                surface_map=args.surface_map)
     except FormatError as error:
         raise CommandError(f"the bundle does not verify: {error}") from None
     except FileExistsError as error:

@@ -204,13 +204,15 @@ def _export_textures(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLay
     return materials, outfits, diffuse_arrays
 
 
-def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLayers) -> dict[str, Any]:
+def _export_impostor(bundle: Bundle, out: _Out, mode: str, prepared: PreparedLayers, surface_map: bool) -> dict[str, Any]:
     impostor = dict(bundle.manifest["impostor"])
     maps = {}
     kinds = [("normal", False, "model-space unit normal n as rgb = (n + 1) / 2")]
     if "detail" in impostor["maps"]:  # stored only when the bake was asked for it (--detail-map)
         kinds.append(("detail", True, "diffuse variation 0 unlit, alpha = 17 * region code"))
-    if "surface" in impostor["maps"]:  # SPEC.md "Impostor maps": for reprojecting samples between views and frames
+    # SPEC.md "Impostor maps": for reprojecting samples between views and frames, as crowdview's warp blend
+    # does; no shipped shader or engine script does, so it is written only when asked (a fifth of a zip).
+    if surface_map and "surface" in impostor["maps"]:
         kinds.append(("surface", False, "per texel, metres = (c / 255 * 2 - 1) * range: r = depth along the view's back axis "
                       "(range bounds.radius), g, b = velocity over one baked step along the view's right and up axes "
                       "(range bounds.radius / 2); dilated past the silhouette; a = the share of the texel the character covers "
@@ -460,7 +462,7 @@ def _copy_shipped(out: _Out, folder: str) -> list[str]:
 
 def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0], prepared: PreparedLayers = NOTHING_PREPARED,
                   on_write: Callable[[str, bytes], None] | None = None, vat_png: bool = False,
-                  cloth_bones: ClothBonesRequest | None = None) -> ExportSummary:
+                  cloth_bones: ClothBonesRequest | None = None, surface_map: bool = False) -> ExportSummary:
     """Verify the bundle at `bundle_dir` and write its export into `out_dir` (new or empty).
 
     ktx2_mode: "bc" keeps the bundle's BC1/BC2 blocks in the KTX2 files, "rgba8" decodes them.
@@ -468,6 +470,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
     on_write: called with (path under out_dir, bytes) as each file is written, always in the same order.
     vat_png: also write each VAT as a PNG (16-bit positions, 8-bit normals) beside its KTX2.
     cloth_bones: play each garment by bones instead of morph targets (ClothBonesRequest; needs py-dem-bones).
+    surface_map: also write the impostor surface map (depth and motion per texel, for reprojection).
     Raises FormatError for a bundle that does not verify, FileExistsError for a non-empty `out_dir`
     (also when another writer renamed its export into place first), ValueError for an unknown mode.
     """
@@ -484,7 +487,7 @@ def export_bundle(bundle_dir: Path, out_dir: Path, ktx2_mode: str = KTX2_MODES[0
         out = _Out(staging, on_write)
         manifest = bundle.manifest
         materials, outfits, diffuse_arrays = _export_textures(bundle, out, ktx2_mode, prepared)
-        impostor = _export_impostor(bundle, out, ktx2_mode, prepared)
+        impostor = _export_impostor(bundle, out, ktx2_mode, prepared, surface_map)
         outfit_rows = rgba8_layers(bundle.textures[manifest["outfits"]["file"]])[0]
         variants = look_variants([m["variations"] for m in manifest["materials"]], manifest["outfits"]["count"])
         plans = animation_plans(bundle.ranges)
