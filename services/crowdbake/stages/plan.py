@@ -1,9 +1,9 @@
 """The bake as one plan: its nodes (stage functions), what each needs and writes, and its fan-outs.
 
-    validate ─┬─ textures ─────────────────────────┐
-              └─ clip_loop × clips ─ cycle ─┬─ pose_caches ─┴─┬─ poses ─ references ─────────── scores ─┬─ pack ─┬─ publish ─┬─ commit_export
-                                            └─ impostor_plan ─┤                                         │        └─ export ──┘
-                                                              └─ impostor_views × tasks ─ pack_frame × frames ─┘
+    validate ─┬─ textures ──────────────────────────────────┐
+              └─ clip_loop × clips ─ cycle ─┬─ pose_caches ─┴────────────────────────────────────────────┬─ poses ─ references ─────────── scores ─┬─ pack ─┬─ publish ─┬─ commit_export
+                                            └─ impostor_scene ─ impostor_probe × probes ─ impostor_plan ─┤                                         │        └─ export ──┘
+                                                                                                         └─ impostor_views × tasks ─ pack_frame × frames ─┘
 
 Two executors run this plan and neither writes an order of its own:
 - crowdbake.stages.runner (`crowdbake bake`, one machine) starts every node as soon as what it needs is
@@ -198,6 +198,30 @@ def _cycle(call: Call) -> dict:
     return stage_cycle(call.work, call.progress, plots=call.plots).to_json()
 
 
+def _impostor_scene(call: Call) -> dict:
+    from crowdbake.stages.impostor_plan import stage_impostor_scene
+
+    return stage_impostor_scene(call.work, call.progress).to_json()
+
+
+def _impostor_probe(call: Call) -> str:
+    from crowdbake.stages.impostor_plan import stage_impostor_probe
+
+    return str(stage_impostor_probe(call.work, call.item)["key"])
+
+
+def _probe_items(work: Path) -> list[dict]:
+    from crowdbake.stages.impostor_plan import probe_items
+
+    return probe_items(work)
+
+
+def _probe_key(work: Path, item: dict) -> str | None:
+    from crowdbake.stages.impostor_plan import probe_path
+
+    return _json_key(probe_path(work, item))
+
+
 def _impostor_plan(call: Call) -> dict:
     from crowdbake.stages.impostor_plan import stage_impostor_plan
 
@@ -314,9 +338,15 @@ BAKE_PLAN: tuple[Node, ...] = (
          item_writes=_loop_writes),
     Node("cycle", "cycle", _cycle, _stamp_key("cycle"), needs=("validate", "clip_loop"), writes=("cycle",), placement=HERE),
     Node("textures", "poses", _textures, _stamp_key("textures"), needs=("validate",), writes=("textures", "poses")),
-    # Several clips: the plan draws probes (crowdbake.stages.impostor_probe) in a worker's GL context,
-    # beside the pose caches; the poses record joins the two.
-    Node("impostor_plan", "poses", _impostor_plan, _stamp_key("impostor"), needs=("cycle",), writes=IMPOSTOR_PLAN_FILES),
+    # The impostor plan in three, beside the pose caches (the poses record joins them): its scene (every
+    # pose frame's high LOD), its probes drawn side by side in the workers' GL contexts (the layout's and
+    # one per clip and transition; none by the rule), the choice. The first two write only what the plan
+    # reads in the same unit.
+    Node("impostor_scene", "poses", _impostor_scene, _stamp_key("impostor-probes"), needs=("cycle",)),
+    Node("impostor_probe", "poses", _impostor_probe, _probe_key, needs=("impostor_scene",), items=_probe_items,
+         item_key=lambda item: str(item["id"]), urgent=True),
+    Node("impostor_plan", "poses", _impostor_plan, _stamp_key("impostor"), needs=("impostor_probe",), reads=("impostor_scene",),
+         writes=IMPOSTOR_PLAN_FILES),
     Node("pose_caches", "poses", _pose_caches, _stamp_key("pose-caches"), needs=("cycle", "textures"), writes=("poses", "pose-caches")),
     Node("poses", "poses", _poses, _stamp_key("poses"), needs=("pose_caches", "impostor_plan"), writes=("poses",), placement=HERE),
     Node("impostor_views", "impostors", _impostor_views, _part_key, needs=("impostor_plan",), items=_impostor_items,
