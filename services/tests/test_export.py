@@ -8,6 +8,7 @@ node) and our own reader, and the glTF's morph targets and VATs against the bund
 from __future__ import annotations
 
 import hashlib
+import io
 import os
 import json
 import shutil
@@ -712,13 +713,44 @@ def test_cesiumman_export_validates_and_round_trips(tmp_path_factory):
     check_export(bundle, root / "export")
 
 
+def test_a_look_is_the_smallest_image_within_the_jpegs_error():
+    """look_image: painted colours with blended edges (more than 256 colours) take a 256-colour PNG, smaller
+    than the lossless one and the JPEG and no further from the look; a photographic texture takes the JPEG."""
+    from PIL import Image
+
+    from crowdbake.export.writer import jpeg_rgb, look_image, rms_levels
+
+    rng = np.random.default_rng(7)
+    # Rings of 8 flat colours, their edges blended: several hundred colours, as a painted look's.
+    y, x = np.mgrid[0:256, 0:256]
+    rings = rng.integers(0, 256, (8, 3)).astype(np.uint8)[(np.hypot(x - 100.0, y - 150.0) // 12).astype(int) % 8]
+    painted = cv2.GaussianBlur(rings, (5, 5), 0)
+    assert len(np.unique(painted.reshape(-1, 3), axis=0)) > 256
+    photo = cv2.GaussianBlur(rng.integers(0, 256, (256, 256, 3)).astype(np.uint8), (3, 3), 0)
+
+    def lossless_png(rgb):
+        buffer = io.BytesIO()
+        Image.fromarray(rgb).save(buffer, format="PNG")
+        return buffer.getvalue()
+
+    for rgb, want_type in ((painted, "image/png"), (photo, "image/jpeg")):
+        media_type, data = look_image(rgb)
+        seen = np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+        jpeg = jpeg_rgb(rgb)
+        assert media_type == want_type
+        assert rms_levels(seen, rgb) <= rms_levels(np.asarray(Image.open(io.BytesIO(jpeg)).convert("RGB")), rgb)
+        assert len(data) <= min(len(jpeg), len(lossless_png(rgb)))
+    media_type, data = look_image(painted)
+    assert Image.open(io.BytesIO(data)).mode == "P" and len(data) < len(lossless_png(painted)) / 1.5
+
+
 def test_looks_are_gltf_variants_with_the_outfit_colours_baked_in(sample_bundle, sample_export):
     """KHR_materials_variants: one variant per diffuse variation, each primitive mapped to a material per
     variant whose base colour is that variation in that outfit (what crowdview draws unlit), variant 0
     also the default; export.json lists them."""
     from PIL import Image
 
-    from crowdbake.export.writer import outfit_look
+    from crowdbake.export.writer import jpeg_rgb, outfit_look, rms_levels
 
     bundle = verify_bundle(sample_bundle)
     manifest = bundle.manifest
@@ -742,11 +774,13 @@ def test_looks_are_gltf_variants_with_the_outfit_colours_baked_in(sample_bundle,
                 (k,) = mapping["variants"]
                 texture = gltf.textures[gltf.materials[mapping["material"]].pbrMetallicRoughness.baseColorTexture.index]
                 image = gltf.images[texture.source]
-                # One file per look in looks/, shared by the LODs: PNG (lossless) or JPEG, whichever is smaller.
+                # One file per look in looks/, shared by the LODs: a PNG (lossless or 256 colours) or a JPEG,
+                # never further from the look than the JPEG at LOOK_JPEG_QUALITY.
                 assert image.uri.startswith("looks/") and image.uri.endswith((".png", ".jpg")) and image.bufferView is None
-                look = np.asarray(Image.open(sample_export / image.uri).convert("RGB"), dtype=np.float64)
-                want = outfit_look(diffuse[k], outfit_rows[k % len(outfit_rows)]).astype(np.float64)
-                assert np.abs(look - want).mean() < (0.0 if image.uri.endswith(".png") else 4.0) + 1e-9, (k, np.abs(look - want).mean())
+                look = np.asarray(Image.open(sample_export / image.uri).convert("RGB"))
+                want = outfit_look(diffuse[k], outfit_rows[k % len(outfit_rows)])
+                jpeg = np.asarray(Image.open(io.BytesIO(jpeg_rgb(want))).convert("RGB"))
+                assert rms_levels(look, want) <= rms_levels(jpeg, want) + 1e-9, (k, rms_levels(look, want), rms_levels(jpeg, want))
     # The looks differ: another variation and another outfit.
     assert not np.array_equal(outfit_look(diffuse[0], outfit_rows[0]), outfit_look(diffuse[1], outfit_rows[1 % len(outfit_rows)]))
 

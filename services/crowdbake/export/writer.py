@@ -58,7 +58,7 @@ REFERENCE_FOV_Y_DEG = 45.0
 LOW_MESH_FRACTION = 0.5
 LOD_HYSTERESIS = 0.05
 # glTF variants (KHR_materials_variants): at most this many looks, each a base-colour image per material,
-# PNG or JPEG whichever is smaller (0.1-0.2 MB for a 1024² look), in looks/ beside the .glb files.
+# a PNG (lossless or 256 colours) or a JPEG (look_image; 0.05-0.15 MB for a 1024² look), in looks/ beside the .glb files.
 MAX_VARIANTS = 16
 LOOKS_FOLDER = "looks"
 LOOK_JPEG_QUALITY = 90
@@ -289,12 +289,31 @@ def jpeg_rgb(rgb: np.ndarray) -> bytes:
 
 
 def look_image(rgb: np.ndarray) -> tuple[str, bytes]:
-    """(media type, bytes) of a look: lossless PNG where it is smaller than the JPEG (flat, painted colours
-    such as the sample's), else the JPEG (photographic textures)."""
+    """(media type, bytes) of a look (H, W, 3) uint8: the smallest of a lossless PNG, a 256-colour PNG and
+    the JPEG at LOOK_JPEG_QUALITY whose error (RMS over every texel and channel, in 8-bit levels) is no
+    larger than the JPEG's. Flat, painted colours (the sample's: a few hundred colours, most of them edge
+    blends) take the palette at a third of the lossless bytes within a level or two; photographic textures
+    take the JPEG."""
+    jpeg = jpeg_rgb(rgb)
+    budget = rms_levels(np.asarray(Image.open(io.BytesIO(jpeg)).convert("RGB")), rgb)
+    candidates = [("image/png", png_bytes(Image.fromarray(np.ascontiguousarray(rgb)))), ("image/jpeg", jpeg)]
+    # Maximum coverage, not median cut or octree: its palette keeps every texel within a few levels of its
+    # colour (median cut leaves a stray edge texel tens of levels off; octree shifts whole flat regions).
+    palette = Image.fromarray(np.ascontiguousarray(rgb)).quantize(256, method=Image.Quantize.MAXCOVERAGE, dither=Image.Dither.NONE)
+    if rms_levels(np.asarray(palette.convert("RGB")), rgb) <= budget:
+        candidates.append(("image/png", png_bytes(palette)))
+    return min(candidates, key=lambda candidate: len(candidate[1]))
+
+
+def png_bytes(image: Image.Image) -> bytes:
     buffer = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(rgb)).save(buffer, format="PNG", compress_level=LOOK_PNG_LEVEL)
-    png, jpeg = buffer.getvalue(), jpeg_rgb(rgb)
-    return ("image/png", png) if len(png) <= len(jpeg) else ("image/jpeg", jpeg)
+    image.save(buffer, format="PNG", compress_level=LOOK_PNG_LEVEL)
+    return buffer.getvalue()
+
+
+def rms_levels(seen: np.ndarray, want: np.ndarray) -> float:
+    """Root mean square difference of two (H, W, 3) uint8 images, in 8-bit levels."""
+    return float(np.sqrt(np.mean((seen.astype(np.float64) - want.astype(np.float64)) ** 2)))
 
 
 _FRAMES_ENCODING = ("R16G16B16A16 unorm, a texel per vertex per pose frame: position = bounds_min + rgb * (bounds_max - bounds_min); "
