@@ -532,7 +532,7 @@ def check_skinned_part(gltf: pygltflib.GLTF2, blob: bytes, part: dict, cache, pl
     accessors |= {index for target in primitive.targets or [] for index in target.values()}
     accessors |= {a.samplers[c.sampler].output for a in gltf.animations for c in a.channels if c.target.node in {*skin.joints, node_index}}
     skin_bytes = sum(gltf.bufferViews[gltf.accessors[index].bufferView].byteLength for index in accessors)
-    # export.json's count (40 bytes a vertex, 16 a vertex a corrective frame, 40 a weighted joint a key), under
+    # export.json's count (40 bytes a vertex, 16 a vertex a corrective frame, 32 a weighted joint a key), under
     # the morph targets' 12 bytes a vertex a pose frame (the export's rule), and a quarter of them on a body of
     # over 2,000 vertices, where the rest mesh outweighs the joints' keys.
     assert skin_bytes == part["skin"]["bytes"], (part["part"], skin_bytes, part["skin"]["bytes"])
@@ -544,7 +544,7 @@ def read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int) -> np.ndarray:
     accessor = gltf.accessors[index]
     view = gltf.bufferViews[accessor.bufferView]
     dtype = np.dtype({pygltflib.FLOAT: "<f4", pygltflib.UNSIGNED_SHORT: "<u2", pygltflib.UNSIGNED_INT: "<u4", pygltflib.SHORT: "<i2",
-                      pygltflib.BYTE: "i1"}[accessor.componentType])
+                      pygltflib.BYTE: "i1", pygltflib.UNSIGNED_BYTE: "u1"}[accessor.componentType])
     width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}[accessor.type]
     stride = view.byteStride or dtype.itemsize * width
     start = view.byteOffset + (accessor.byteOffset or 0)

@@ -131,11 +131,15 @@ def played_by_bones(gltf: pygltflib.GLTF2, blob: bytes, mesh_name: str) -> np.nd
 
 
 def read_accessor_vec4(gltf: pygltflib.GLTF2, blob: bytes, index: int) -> np.ndarray:
+    """A VEC3/VEC4 accessor's rows; normalized integers as the floats they stand for (max(c / max, -1))."""
     accessor = gltf.accessors[index]
     view = gltf.bufferViews[accessor.bufferView]
-    dtype = {pygltflib.FLOAT: "<f4", pygltflib.UNSIGNED_SHORT: "<u2"}[accessor.componentType]
+    dtype = np.dtype({pygltflib.FLOAT: "<f4", pygltflib.UNSIGNED_SHORT: "<u2", pygltflib.SHORT: "<i2"}[accessor.componentType])
     width = {"VEC3": 3, "VEC4": 4}[accessor.type]
-    return np.frombuffer(blob, dtype, accessor.count * width, view.byteOffset + (accessor.byteOffset or 0)).reshape(accessor.count, width)
+    rows = np.frombuffer(blob, dtype, accessor.count * width, view.byteOffset + (accessor.byteOffset or 0)).reshape(accessor.count, width)
+    if accessor.normalized and accessor.componentType == pygltflib.SHORT:  # snorm16 rotations
+        return np.maximum(rows / 32767.0, -1.0)
+    return rows
 
 
 def test_bones_export_validates_reports_its_error_and_plays_in_blender(small_bake, tmp_path):

@@ -165,10 +165,11 @@ def corrective_step(largest_block: float, bound_m: float = CORRECTIVE_BOUND_M) -
 def skin_bytes(skin: GltfSkin, key_count: int) -> int:
     """Bytes of a skin in the .glb: the rest mesh (float positions and normals, 4 joints and 4 unorm16 weights a
     vertex), the inverse binds, each corrective target (float position, int8 normal a vertex), and per key of
-    all animations (key_count) each weighted joint's translation, rotation and scale and the corrective weights."""
+    all animations (key_count) each weighted joint's translation (float), rotation (snorm16) and scale (float)
+    and the corrective weights (unorm8)."""
     vertex_count, corrective = skin.rest_positions.shape[0], int(skin.corrected.size)
     mesh = vertex_count * (12 + 12 + 8 + 8) + skin.joint_count * 64 + corrective * vertex_count * (12 + 4)
-    return int(mesh + key_count * (skin.animated.size * (12 + 16 + 12) + 4 * corrective))
+    return int(mesh + key_count * (skin.animated.size * (12 + 8 + 12) + corrective))
 
 
 def morph_bytes(vertex_count: int, frame_count: int) -> int:

@@ -103,9 +103,11 @@ class _Blob:
         return len(self.gltf.bufferViews) - 1
 
     def accessor(self, array: np.ndarray, kind: str, target: int | None = g.ARRAY_BUFFER, bounds: bool = False, normalized: bool = False) -> int:
-        """An accessor over `array` ((N,) or (N, k) float32/uint16/uint32); min/max where glTF asks for them;
-        normalized: unsigned integers read as c / max (unorm16 weights)."""
-        component = {np.dtype(np.float32): g.FLOAT, np.dtype(np.uint16): g.UNSIGNED_SHORT, np.dtype(np.uint32): g.UNSIGNED_INT}[array.dtype]
+        """An accessor over `array` ((N,) or (N, k) float32/uint8/int16/uint16/uint32); min/max where glTF asks
+        for them; normalized: integers read as c / max (unorm16 weights, unorm8 keyed morph weights, snorm16
+        keyed rotations)."""
+        component = {np.dtype(np.float32): g.FLOAT, np.dtype(np.uint8): g.UNSIGNED_BYTE, np.dtype(np.int16): g.SHORT,
+                     np.dtype(np.uint16): g.UNSIGNED_SHORT, np.dtype(np.uint32): g.UNSIGNED_INT}[array.dtype]
         view = self.view(np.ascontiguousarray(array).astype(array.dtype.newbyteorder("<")).tobytes(), target)
         accessor = g.Accessor(bufferView=view, componentType=component, count=int(array.shape[0]), type=kind, normalized=normalized or None)
         if bounds:
@@ -532,25 +534,37 @@ def _add_animation(gltf: g.GLTF2, blob: _Blob, plan: AnimationPlan, frames_per_s
     animation = g.Animation(name=plan.name, samplers=[], channels=[], extras={"crowdbake": gltf_extras(plan)})
     for node, parents in morph_nodes:
         weights = path_weights(parents, plan.keys)  # (K, F): key j weighs the targets on its frame's path
-        animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(weights.reshape(-1), g.SCALAR, target=None),
-                                                     interpolation="LINEAR"))
+        animation.samplers.append(g.AnimationSampler(input=time_accessor, output=_keyed_weights(blob, weights), interpolation="LINEAR"))
         animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1, target=g.AnimationChannelTarget(node=node, path="weights")))
+    def track(node: int, path: str, keyed: np.ndarray) -> None:
+        """A joint's channel; rotations as normalized int16 (glTF lets a rotation sampler's output be snorm16),
+        each component within 1 / 65534 of the float, at half its bytes."""
+        if path == "rotation":
+            output = blob.accessor(np.rint(np.clip(keyed, -1.0, 1.0) * _INT16_MAX).astype(np.int16), g.VEC4, target=None, normalized=True)
+        else:
+            output = blob.accessor(np.asarray(keyed, dtype=np.float32), g.VEC3, target=None)
+        animation.samplers.append(g.AnimationSampler(input=time_accessor, output=output, interpolation="LINEAR"))
+        animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1, target=g.AnimationChannelTarget(node=node, path=path)))
+
     for node, rotations, translations in bone_tracks:
-        for path, values, kind in (("rotation", rotations, g.VEC4), ("translation", translations, g.VEC3)):
-            keyed = np.asarray(values[plan.keys], dtype=np.float32)
-            animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(keyed, kind, target=None), interpolation="LINEAR"))
-            animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1, target=g.AnimationChannelTarget(node=node, path=path)))
+        track(node, "rotation", hemisphere_continuous(rotations[plan.keys]))
+        track(node, "translation", translations[plan.keys])
     for mesh_node, joints, skin in skin_tracks:
         if mesh_node is not None:
-            weights = (skin.corrected[None, :] == plan.keys[:, None]).astype(np.float32)  # (K, C) one-hot or all 0
-            animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(weights.reshape(-1), g.SCALAR, target=None),
-                                                         interpolation="LINEAR"))
+            weights = skin.corrected[None, :] == plan.keys[:, None]  # (K, C) one-hot or all 0
+            animation.samplers.append(g.AnimationSampler(input=time_accessor, output=_keyed_weights(blob, weights), interpolation="LINEAR"))
             animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1, target=g.AnimationChannelTarget(node=mesh_node, path="weights")))
         rotations = hemisphere_continuous(skin.rotations[plan.keys])
         for joint in skin.animated:
-            for path, values, kind in (("translation", skin.translations, g.VEC3), ("rotation", rotations, g.VEC4), ("scale", skin.scales, g.VEC3)):
-                keyed = np.asarray(values[:, joint] if path == "rotation" else values[plan.keys, joint], dtype=np.float32)
-                animation.samplers.append(g.AnimationSampler(input=time_accessor, output=blob.accessor(keyed, kind, target=None), interpolation="LINEAR"))
-                animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1,
-                                                             target=g.AnimationChannelTarget(node=joints[joint], path=path)))
+            track(joints[joint], "translation", skin.translations[plan.keys, joint])
+            track(joints[joint], "rotation", rotations[:, joint])
+            track(joints[joint], "scale", skin.scales[plan.keys, joint])
     gltf.animations.append(animation)
+
+
+def _keyed_weights(blob: _Blob, weights: np.ndarray) -> int:
+    """The output accessor of a weights channel whose (K, F) keys are each 0 or 1: unsigned bytes, normalized
+    (glTF lets a weights sampler's output be unorm8), the same values at a quarter of the float32 bytes."""
+    if not np.isin(weights, (0, 1)).all():
+        raise ValueError("keyed morph weights must each be 0 or 1")
+    return blob.accessor(np.asarray(weights, dtype=np.uint8).reshape(-1) * np.uint8(255), g.SCALAR, target=None, normalized=True)

@@ -102,7 +102,7 @@ class ClothBonesRequest:
 def bones_entry(bones: ClothBones, request: ClothBonesRequest, vertex_count: int, key_count: int) -> dict[str, Any]:
     """export.json's `bones` block of a garment: the count, its error against the pose frames and its bytes in
     the .glb (JOINTS_0 and WEIGHTS_0, and per bone and key of every animation a rotation and a translation)."""
-    skin_bytes = vertex_count * (8 + 16) + bones.bone_count * key_count * (16 + 12)
+    skin_bytes = vertex_count * (8 + 16) + bones.bone_count * key_count * (8 + 12)  # snorm16 rotation, float translation
     return {"count": bones.bone_count, "asked": request.count if request.count is not None else "auto",
             **({"budget_mm": request.budget_mm} if request.count is None else {}), "iterations": bones.iterations,
             "rms_mm": round(bones.rms_m * 1000, 3), "max_mm": round(bones.max_m * 1000, 3), "bytes": skin_bytes}
