@@ -167,6 +167,24 @@ def test_ktx2_round_trips_texels_bit_for_bit(vk_format, dtype, channels, zstd_le
         assert level_length < uncompressed
 
 
+def test_a_level_over_8_mib_is_compressed_with_a_window_over_all_of_it():
+    """An impostor UV map's layers repeat a layer apart (several MiB): a level over LARGE_LEVEL_FROM_BYTES
+    gets a window over the whole level (within every decoder's default 2^27), so a repeat 9 MiB back is
+    found that level 12's own 8 MiB window misses, and the KTX2 reads back with default decoder limits."""
+    import zstandard
+
+    half = np.random.default_rng(3).integers(0, 1 << 32, size=9 << 18, dtype=np.uint32)  # 9 MiB of words
+    layers = np.concatenate([half, half]).reshape(1, -1, 1024, 1)  # one layer of 1024-word rows, its halves equal
+    data = ktx2.encode_ktx2(ktx2.VK_FORMAT_R32_UINT, layers)
+    level_offset, level_length, uncompressed = np.frombuffer(data[80:104], "<u8")
+    assert uncompressed == 18 << 20 > ktx2.LARGE_LEVEL_FROM_BYTES
+    assert level_length < 0.55 * uncompressed  # the second half found 9 MiB back
+    assert len(zstandard.ZstdCompressor(level=ktx2.ZSTD_LEVEL).compress(layers.tobytes())) > 0.95 * uncompressed  # level 12 alone cannot
+    window = zstandard.get_frame_parameters(data[level_offset:level_offset + level_length]).window_size
+    assert uncompressed <= window <= 1 << ktx2.LONGEST_WINDOW_LOG
+    np.testing.assert_array_equal(ktx2.decode_ktx2(data).texels.reshape(-1), layers.reshape(-1))
+
+
 def test_ktx2_reader_refuses_a_broken_zstd_level():
     data = bytearray(ktx2.encode_ktx2(ktx2.VK_FORMAT_R8G8B8A8_UNORM, np.zeros((1, 8, 8, 4), np.uint8)))
     data[-4:] = b"\xff\xff\xff\xff"
@@ -677,6 +695,11 @@ def test_morph_animation_keys_each_frame_once(sample_export):
     assert (np.diag(weights[:-1]) == 1).all()
     np.testing.assert_array_equal(weights[-1], weights[0])
     assert all(mesh.weights == path_weights(np.array(mesh.extras["crowdbake"]["morph_parents"]), [0])[0].tolist() for mesh in morphed)
+    # Keyed weights (each 0 or 1) are unorm8 and joint rotations snorm16, as glTF allows animation outputs.
+    outputs = {channel.target.path: gltf.accessors[animation.samplers[channel.sampler].output]
+               for animation in gltf.animations for channel in animation.channels}
+    assert outputs["weights"].componentType == pygltflib.UNSIGNED_BYTE and outputs["weights"].normalized
+    assert outputs["rotation"].componentType == pygltflib.SHORT and outputs["rotation"].normalized
 
 
 def test_cli_refuses_a_non_empty_folder_and_a_broken_bundle(sample_bundle, sample_export, tmp_path, capsys):

@@ -536,6 +536,7 @@ def _add_animation(gltf: g.GLTF2, blob: _Blob, plan: AnimationPlan, frames_per_s
         weights = path_weights(parents, plan.keys)  # (K, F): key j weighs the targets on its frame's path
         animation.samplers.append(g.AnimationSampler(input=time_accessor, output=_keyed_weights(blob, weights), interpolation="LINEAR"))
         animation.channels.append(g.AnimationChannel(sampler=len(animation.samplers) - 1, target=g.AnimationChannelTarget(node=node, path="weights")))
+
     def track(node: int, path: str, keyed: np.ndarray) -> None:
         """A joint's channel; rotations as normalized int16 (glTF lets a rotation sampler's output be snorm16),
         each component within 1 / 65534 of the float, at half its bytes."""
