@@ -3,9 +3,9 @@
 Plain data at the bottom of the house, so the database layer reads it without importing the stages.
 """
 
-STAGES = ("validate", "loops", "cycle", "poses", "impostors", "pack", "publish")
+STAGES = ("validate", "loops", "cycle", "probes", "poses", "impostors", "pack", "publish")
 
 # The stages that are one fan-out node alone: the service runs their items as parallel tasks, their
 # own rows are never sent, and their seconds add up over the parts. crowdbake.stages.plan.plan_problems
 # checks this against the plan.
-FAN_OUT_STAGES = ("loops", "impostors")
+FAN_OUT_STAGES = ("loops", "probes", "impostors")

@@ -38,9 +38,9 @@ def test_create_returns_202_with_location_and_enqueues_validate(api, assets):
     bake = response.json()
     assert response.headers["location"] == f"/v1/bakes/{bake['id']}"
     assert bake["state"] == "queued" and bake["attempt"] == 0 and bake["progress"] == 0.0
-    assert [stage["stage"] for stage in bake["stages"]] == ["validate", "loops", "cycle", "poses", "impostors", "pack", "publish"]
+    assert [stage["stage"] for stage in bake["stages"]] == ["validate", "loops", "cycle", "probes", "poses", "impostors", "pack", "publish"]
     # The first stage is due (its message sent), the others wait for it.
-    assert [stage["state"] for stage in bake["stages"]] == ["queued"] + ["pending"] * 6
+    assert [stage["state"] for stage in bake["stages"]] == ["queued"] + ["pending"] * 7
     # Parameters are validated, completed with defaults and recorded with the job.
     assert bake["params"]["tile_size"] == 32 and bake["params"]["close"] == "crossfade" and bake["params"]["elevations_deg"] == [0.0, 20.0, 40.0]
     assert bake["inputs"]["textures"] == {"diffuse_0.png": assets["texture"]}

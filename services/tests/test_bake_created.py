@@ -64,7 +64,7 @@ def test_a_rest_bake_with_created_gives_the_manifest_time_the_cli_gives(small_sa
     cli_manifest = json.loads((out / "walker" / "1.0.0" / "manifest.json").read_bytes())
     # stderr is no terminal here (as in a CI job): each stage still says when it starts and ends.
     log = capsys.readouterr().err
-    for stage in ("validate", "cycle", "poses", "impostors", "pack", "publish"):
+    for stage in ("validate", "cycle", "probes", "poses", "impostors", "pack", "publish"):
         assert f"bake: {stage} started" in log and f"bake: {stage} done in" in log, log[-2000:]
 
     assert rest_manifest["created"] == cli_manifest["created"] == CREATED

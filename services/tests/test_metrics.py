@@ -29,8 +29,8 @@ from crowdbake.metrics import (
 from service_fixtures import SERVICES_DIR, make_api, obj_bytes, pc2_bytes, png_bytes, tiny_character_glb, tiny_cloth
 
 # The stages a bake of one clip runs (its loops stage, a fan-out over a timeline's clips, is skipped).
-STAGES = ("validate", "cycle", "poses", "impostors", "pack", "publish")
-# Seconds are stored rounded to the millisecond (records.finish_stage); sums of six of them differ by less.
+STAGES = ("validate", "cycle", "probes", "poses", "impostors", "pack", "publish")
+# Seconds are stored rounded to the millisecond (records.finish_stage); sums of seven of them differ by less.
 SECONDS_TOLERANCE = 0.01
 # Multipart framing around an uploaded file: boundaries and part headers, well under a kilobyte.
 MULTIPART_OVERHEAD_MAX = 1024

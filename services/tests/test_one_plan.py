@@ -22,7 +22,7 @@ def test_the_plan_is_runnable_by_both_executors():
     assert plan.plan_problems() == []
     assert [node.unit for node in plan.BAKE_PLAN] == sorted((node.unit for node in plan.BAKE_PLAN), key=STAGES.index)
     assert {node.unit for node in plan.BAKE_PLAN} == set(STAGES)
-    assert [unit for unit in STAGES if plan.runs_in_parallel(unit)] == ["loops", "impostors"]
+    assert [unit for unit in STAGES if plan.runs_in_parallel(unit)] == ["loops", "probes", "impostors"]
 
 
 def test_a_plan_with_a_need_on_a_later_node_is_refused():

@@ -125,7 +125,9 @@ def test_upload_bake_publish_download_verify(service, sample, tmp_path):
         assert bake["state"] == "succeeded" and bake["progress"] == 1.0
         # One clip: the per-clip loops stage has nothing to do (the cycle stage searches the one loop).
         assert [(stage["stage"], stage["state"]) for stage in bake["stages"]] == [
-            ("validate", "succeeded"), ("loops", "skipped"), *((name, "succeeded") for name in ("cycle", "poses", "impostors", "pack", "publish"))]
+            ("validate", "succeeded"), ("loops", "skipped"), *((name, "succeeded") for name in ("cycle", "probes", "poses", "impostors", "pack", "publish"))]
+        probes = next(stage for stage in bake["stages"] if stage["stage"] == "probes")
+        assert probes["done"] == probes["total"] == 2  # the layout's probe and the clip's, fanned out
         impostors = next(stage for stage in bake["stages"] if stage["stage"] == "impostors")
         assert impostors["done"] == impostors["total"] == 2 * 2  # frames x elevation rings, fanned out
         assert bake["bundle_url"] == "/v1/bundles/sample-walker/1.0.0/manifest.json"

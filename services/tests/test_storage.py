@@ -95,7 +95,7 @@ def test_migrations_match_the_models(tmp_path):
     assert not is_migrated(engine)
     migrate(engine)
     migrate(engine)  # idempotent
-    assert is_migrated(engine) and head_revision() == "0004"
+    assert is_migrated(engine) and head_revision() == "0005"
     with engine.connect() as connection:
         differences = compare_metadata(MigrationContext.configure(connection), Base.metadata)
     assert differences == [], "the models changed without a migration"
@@ -130,6 +130,39 @@ def test_bakes_made_before_the_loops_stage_get_its_row(tmp_path):
             bake = session.get(Bake, bake_id)
             assert [(row.stage, row.position) for row in bake.stages] == list(zip(STAGES, range(len(STAGES))))
             assert records.stage_row(session, bake_id, "loops").state == loops_state
+
+
+def test_bakes_made_before_the_probes_stage_get_its_row(tmp_path):
+    """Migration 0005: a bake whose rows predate the probes stage gets one after cycle, pending where its
+    poses stage has not run (the bake then fans its probes out when it gets there), skipped where it has
+    (its poses stage draws the probes itself)."""
+    from alembic import command
+    from sqlalchemy import text
+
+    from crowdbake.storage.db import _alembic_config
+
+    engine = make_engine(database_url(tmp_path))
+    old_stages = ("validate", "loops", "cycle", "poses", "impostors", "pack", "publish")
+    with engine.begin() as connection:
+        config = _alembic_config(engine.url.render_as_string(hide_password=False))
+        config.attributes["connection"] = connection
+        command.upgrade(config, "0004")
+        for bake_id, poses_state in (("bk_queued", "pending"), ("bk_posing", "running"), ("bk_done", "succeeded")):
+            connection.execute(text("INSERT INTO bakes (id, name, version, state, input_key, params, inputs, publish, public, attempt, "
+                                    "created_at, updated_at) VALUES (:id, 'walker', :id, 'queued', :id, '{}', '{}', true, false, 0, "
+                                    "CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"), {"id": bake_id})
+            for position, stage in enumerate(old_stages):
+                connection.execute(text("INSERT INTO bake_stages (bake_id, stage, position, state, done, total, retries) "
+                                        "VALUES (:id, :stage, :position, :state, 0, 0, 0)"),
+                                   {"id": bake_id, "stage": stage, "position": position, "state": poses_state if stage == "poses" else "pending"})
+    migrate(engine)
+    with session_scope(make_sessionmaker(engine)) as session:
+        for bake_id, probes_state in (("bk_queued", "pending"), ("bk_posing", "skipped"), ("bk_done", "skipped")):
+            bake = session.get(Bake, bake_id)
+            assert [(row.stage, row.position) for row in bake.stages] == list(zip(STAGES, range(len(STAGES))))
+            assert records.stage_row(session, bake_id, "probes").state == probes_state
+            assert records.stage_row(session, bake_id, "poses").state == ("pending" if bake_id == "bk_queued" else
+                                                                          "running" if bake_id == "bk_posing" else "succeeded")
 
 
 # ------------------------------------------------------------------------------------------- keys

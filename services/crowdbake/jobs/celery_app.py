@@ -33,11 +33,13 @@ from crowdbake.settings import Settings, get_settings
 logger = logging.getLogger(__name__)
 
 # Task names, one per stage; a fan-out stage's under its node's name (crowdbake.stages.plan.fan_out_of):
-# the loops stage runs a "clip_loop" task per clip, the impostors stage many "impostor_views" tasks.
+# the loops stage runs a "clip_loop" task per clip, the probes stage an "impostor_probe" task per probe,
+# the impostors stage many "impostor_views" tasks.
 TASK_NAMES = {
     "validate": "crowdbake.stage.validate",
     "clip_loop": "crowdbake.stage.clip_loop",
     "cycle": "crowdbake.stage.cycle",
+    "impostor_probe": "crowdbake.stage.impostor_probe",
     "poses": "crowdbake.stage.poses",
     "impostor_views": "crowdbake.stage.impostor_views",
     "pack": "crowdbake.stage.pack",

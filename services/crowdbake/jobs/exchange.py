@@ -16,12 +16,14 @@ from crowdbake.storage.models import BakePart, BakeStage
 logger = logging.getLogger(__name__)
 
 
-def push_outputs(ctx, roots: tuple[str, ...], keep: bool = False) -> str | None:
-    """Store what the stage wrote under `roots` of its work folder; the listing's digest, or None when
-    work does not travel between machines and `keep` is false. `keep`: store it anyway, because the files
-    are read after the work folder is deleted (the cycle report the jobs page shows)."""
-    if not (ctx.services.exchanges_work or keep):
-        return None
+def push_outputs(ctx, roots: tuple[str, ...], kept: tuple[str, ...] = ()) -> str | None:
+    """Store what the stage wrote under `roots` of its work folder; the listing's digest. Where work does
+    not travel between machines, only the roots in `kept` (files read after the work folder is deleted:
+    the cycle report the jobs page shows), or None when there are none."""
+    if not ctx.services.exchanges_work:
+        roots = tuple(root for root in roots if root in kept)
+        if not roots:
+            return None
     return work_outputs.push(ctx.services.blobs, ctx.work, roots)
 
 

@@ -3,7 +3,8 @@
 A task takes the bake's id and attempt (and, for a fan-out part, its part id), runs the nodes of its
 unit in plan order on the bake's work folder, records the outcome and queues the next unit:
 
-    validate -> clip_loop x clips (in parallel) -> cycle -> poses -> impostor_views x N (in parallel) -> pack -> publish
+    validate -> clip_loop x clips (in parallel) -> cycle -> impostor_probe x probes (in parallel) -> poses
+             -> impostor_views x N (in parallel) -> pack -> publish
 
 A unit that is one fan-out node alone (a timeline's clip loops, the impostor views) runs as one task
 per item, its parts registered by the unit before it; the last part to finish queues the next unit (a
@@ -87,7 +88,7 @@ def run_unit(ctx: StageContext, unit: str) -> dict[str, Any]:
             trace.add(node, ctx.work, item)
     own = results.get(unit)
     writes = plan.unit_writes(unit)
-    outputs = push_outputs(ctx, writes, keep=unit == "cycle") if writes else None
+    outputs = push_outputs(ctx, writes, kept=("cycle",)) if writes else None
     return dict(own if isinstance(own, dict) else {}, nodes=trace.entries, outputs=outputs)
 
 
@@ -204,5 +205,6 @@ def _part_task(unit: str):
     return task
 
 
-# One task per clip of a timeline; one per impostor task (a frame's views of some elevations).
-clip_loop, impostor_views = _part_task("loops"), _part_task("impostors")
+# One task per clip of a timeline; one per impostor probe (the layout's, each clip's and transition's); one
+# per impostor task (a frame's views of some elevations).
+clip_loop, impostor_probe, impostor_views = _part_task("loops"), _part_task("probes"), _part_task("impostors")

@@ -328,6 +328,7 @@ def _commit_export(call: Call) -> Any:
     return call.destination.commit_export(call.work)
 
 
+IMPOSTOR_SCENE_FILES = ("impostor-probes/record.json", "impostor-probes/stage.json", "impostor-probes/scene.npz")
 IMPOSTOR_PLAN_FILES = ("impostor/record.json", "impostor/stage.json", "impostor/scene.npz")
 
 BAKE_PLAN: tuple[Node, ...] = (
@@ -337,14 +338,13 @@ BAKE_PLAN: tuple[Node, ...] = (
     Node("clip_loop", "loops", _clip_loop, _loop_key, needs=("validate",), items=_loop_items, item_key=lambda item: str(item["id"]),
          item_writes=_loop_writes),
     Node("cycle", "cycle", _cycle, _stamp_key("cycle"), needs=("validate", "clip_loop"), writes=("cycle",), placement=HERE),
-    Node("textures", "poses", _textures, _stamp_key("textures"), needs=("validate",), writes=("textures", "poses")),
     # The impostor plan in three, beside the pose caches (the poses record joins them): its scene (every
-    # pose frame's high LOD), its probes drawn side by side in the workers' GL contexts (the layout's and
-    # one per clip and transition; none by the rule), the choice. The first two write only what the plan
-    # reads in the same unit.
-    Node("impostor_scene", "poses", _impostor_scene, _stamp_key("impostor-probes"), needs=("cycle",)),
-    Node("impostor_probe", "poses", _impostor_probe, _probe_key, needs=("impostor_scene",), items=_probe_items,
-         item_key=lambda item: str(item["id"]), urgent=True),
+    # pose frame's high LOD), its probes drawn side by side (the layout's and one per clip and transition;
+    # none by the rule: the probes stage is then skipped), the choice.
+    Node("impostor_scene", "cycle", _impostor_scene, _stamp_key("impostor-probes"), needs=("cycle",), writes=IMPOSTOR_SCENE_FILES),
+    Node("impostor_probe", "probes", _impostor_probe, _probe_key, needs=("impostor_scene",), reads=("validate",), items=_probe_items,
+         item_key=lambda item: str(item["id"]), item_writes=lambda item: (f"impostor-probes/{item['id']}.json",), urgent=True),
+    Node("textures", "poses", _textures, _stamp_key("textures"), needs=("validate",), writes=("textures", "poses")),
     Node("impostor_plan", "poses", _impostor_plan, _stamp_key("impostor"), needs=("impostor_probe",), reads=("impostor_scene",),
          writes=IMPOSTOR_PLAN_FILES),
     Node("pose_caches", "poses", _pose_caches, _stamp_key("pose-caches"), needs=("cycle", "textures"), writes=("poses", "pose-caches")),

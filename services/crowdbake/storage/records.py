@@ -34,7 +34,7 @@ LIVE_BAKE_STATES = ("queued", "running")
 # Share of a bake's time each stage takes, for one overall progress figure (measured on the sample
 # character: the cycle search and the impostor renders dominate; the loops stage searches a timeline's
 # clips, the cycle stage then joins them or, for one clip, searches it).
-STAGE_WEIGHTS = {"validate": 0.02, "loops": 0.14, "cycle": 0.14, "poses": 0.12, "impostors": 0.43, "pack": 0.12, "publish": 0.03}
+STAGE_WEIGHTS = {"validate": 0.02, "loops": 0.12, "cycle": 0.12, "probes": 0.06, "poses": 0.10, "impostors": 0.43, "pack": 0.12, "publish": 0.03}
 
 
 def new_id(prefix: str) -> str:

@@ -15,7 +15,7 @@ const BUNDLES_POLL_MS = 15000;   // bundles change only when a bake publishes
 const FINAL_STATES = new Set(["succeeded", "failed", "cancelled"]);
 const PREFLIGHT_ASSET = "preflight-no-such-asset";  // an asset id that never exists (see preflight)
 const ARCHIVE_URL_LIFETIME_MS = 60000;  // the downloaded zip's object URL is revoked after this
-const STAGE_SHORT = { validate: "val", loops: "lps", cycle: "cyc", poses: "pos", impostors: "imp", pack: "pak", publish: "pub" };
+const STAGE_SHORT = { validate: "val", loops: "lps", cycle: "cyc", probes: "prb", poses: "pos", impostors: "imp", pack: "pak", publish: "pub" };
 
 // Earlier versions of the page kept the key in localStorage, where it outlived the browser session.
 localStorage.removeItem(KEY_STORAGE);
