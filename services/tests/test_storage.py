@@ -102,29 +102,36 @@ def test_migrations_match_the_models(tmp_path):
     assert set(inspect(engine).get_table_names()) >= {table.name for table in Base.metadata.sorted_tables}
 
 
-def test_bakes_made_before_the_loops_stage_get_its_row(tmp_path):
-    """Migration 0004: a bake whose rows predate the loops stage gets one after validate, pending where its
-    cycle stage has not run (a queued bake, or one retried later, then goes on), skipped where it has."""
+def migrated_from(tmp_path, revision: str, stages: tuple[str, ...], bakes: dict[str, tuple[str, str]]):
+    """An engine whose database stood at `revision` holding `bakes` ({bake id: (stage, its state)}, every
+    other stage of `stages` pending), then migrated to the head."""
     from alembic import command
     from sqlalchemy import text
 
     from crowdbake.storage.db import _alembic_config
 
     engine = make_engine(database_url(tmp_path))
-    old_stages = ("validate", "cycle", "poses", "impostors", "pack", "publish")
     with engine.begin() as connection:
         config = _alembic_config(engine.url.render_as_string(hide_password=False))
         config.attributes["connection"] = connection
-        command.upgrade(config, "0003")
-        for bake_id, cycle_state in (("bk_queued", "pending"), ("bk_done", "succeeded")):
+        command.upgrade(config, revision)
+        for bake_id, (given, state) in bakes.items():
             connection.execute(text("INSERT INTO bakes (id, name, version, state, input_key, params, inputs, publish, public, attempt, "
                                     "created_at, updated_at) VALUES (:id, 'walker', :id, 'queued', :id, '{}', '{}', true, false, 0, "
                                     "CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"), {"id": bake_id})
-            for position, stage in enumerate(old_stages):
+            for position, stage in enumerate(stages):
                 connection.execute(text("INSERT INTO bake_stages (bake_id, stage, position, state, done, total, retries) "
                                         "VALUES (:id, :stage, :position, :state, 0, 0, 0)"),
-                                   {"id": bake_id, "stage": stage, "position": position, "state": cycle_state if stage == "cycle" else "pending"})
+                                   {"id": bake_id, "stage": stage, "position": position, "state": state if stage == given else "pending"})
     migrate(engine)
+    return engine
+
+
+def test_bakes_made_before_the_loops_stage_get_its_row(tmp_path):
+    """Migration 0004: a bake whose rows predate the loops stage gets one after validate, pending where its
+    cycle stage has not run (a queued bake, or one retried later, then goes on), skipped where it has."""
+    engine = migrated_from(tmp_path, "0003", ("validate", "cycle", "poses", "impostors", "pack", "publish"),
+                           {"bk_queued": ("cycle", "pending"), "bk_done": ("cycle", "succeeded")})
     with session_scope(make_sessionmaker(engine)) as session:
         for bake_id, loops_state in (("bk_queued", "pending"), ("bk_done", "skipped")):
             bake = session.get(Bake, bake_id)
@@ -136,33 +143,15 @@ def test_bakes_made_before_the_probes_stage_get_its_row(tmp_path):
     """Migration 0005: a bake whose rows predate the probes stage gets one after cycle, pending where its
     poses stage has not run (the bake then fans its probes out when it gets there), skipped where it has
     (its poses stage draws the probes itself)."""
-    from alembic import command
-    from sqlalchemy import text
-
-    from crowdbake.storage.db import _alembic_config
-
-    engine = make_engine(database_url(tmp_path))
-    old_stages = ("validate", "loops", "cycle", "poses", "impostors", "pack", "publish")
-    with engine.begin() as connection:
-        config = _alembic_config(engine.url.render_as_string(hide_password=False))
-        config.attributes["connection"] = connection
-        command.upgrade(config, "0004")
-        for bake_id, poses_state in (("bk_queued", "pending"), ("bk_posing", "running"), ("bk_done", "succeeded")):
-            connection.execute(text("INSERT INTO bakes (id, name, version, state, input_key, params, inputs, publish, public, attempt, "
-                                    "created_at, updated_at) VALUES (:id, 'walker', :id, 'queued', :id, '{}', '{}', true, false, 0, "
-                                    "CURRENT_TIMESTAMP, CURRENT_TIMESTAMP)"), {"id": bake_id})
-            for position, stage in enumerate(old_stages):
-                connection.execute(text("INSERT INTO bake_stages (bake_id, stage, position, state, done, total, retries) "
-                                        "VALUES (:id, :stage, :position, :state, 0, 0, 0)"),
-                                   {"id": bake_id, "stage": stage, "position": position, "state": poses_state if stage == "poses" else "pending"})
-    migrate(engine)
+    poses_states = {"bk_queued": "pending", "bk_posing": "running", "bk_done": "succeeded"}
+    engine = migrated_from(tmp_path, "0004", ("validate", "loops", "cycle", "poses", "impostors", "pack", "publish"),
+                           {bake_id: ("poses", state) for bake_id, state in poses_states.items()})
     with session_scope(make_sessionmaker(engine)) as session:
         for bake_id, probes_state in (("bk_queued", "pending"), ("bk_posing", "skipped"), ("bk_done", "skipped")):
             bake = session.get(Bake, bake_id)
             assert [(row.stage, row.position) for row in bake.stages] == list(zip(STAGES, range(len(STAGES))))
             assert records.stage_row(session, bake_id, "probes").state == probes_state
-            assert records.stage_row(session, bake_id, "poses").state == ("pending" if bake_id == "bk_queued" else
-                                                                          "running" if bake_id == "bk_posing" else "succeeded")
+            assert records.stage_row(session, bake_id, "poses").state == poses_states[bake_id]
 
 
 # ------------------------------------------------------------------------------------------- keys
