@@ -66,6 +66,8 @@ def test_a_rest_bake_with_created_gives_the_manifest_time_the_cli_gives(small_sa
     log = capsys.readouterr().err
     for stage in ("validate", "cycle", "probes", "poses", "impostors", "pack", "publish"):
         assert f"bake: {stage} started" in log and f"bake: {stage} done in" in log, log[-2000:]
+    # A stage is done when all its nodes are: the poses stage's choice waits for the probes.
+    assert log.index("bake: probes done in") < log.index("bake: poses done in"), log[-2000:]
 
     assert rest_manifest["created"] == cli_manifest["created"] == CREATED
     assert rest_manifest == cli_manifest

@@ -103,7 +103,9 @@ def _execute(work: Path, inputs, destination: LocalDestination, pool: ProcessPoo
         if it.key is None:
             results[it.node.name] = figures["result"]
         units_done[it.node.unit] += 1
-        total = sum(len(items) for name, items in schedule.listed.items() if NODES[name].unit == it.node.unit)
+        # A node not listed yet counts as one item, so a unit is not reported done while a later node of it waits
+        # (the poses stage's textures finish long before its pose caches start).
+        total = sum(len(schedule.listed[node.name]) if node.name in schedule.listed else 1 for node in BAKE_PLAN if node.unit == it.node.unit)
         report(progress, it.node.unit, units_done[it.node.unit], total)
 
     def collect(futures) -> None:
