@@ -210,6 +210,12 @@ def _impostor_probe(call: Call) -> str:
     return str(stage_impostor_probe(call.work, call.item)["key"])
 
 
+def _probe_writes(item: dict) -> tuple[str, ...]:
+    from crowdbake.stages.impostor_plan import probe_path
+
+    return (probe_path(Path(), item).as_posix(),)
+
+
 def _probe_items(work: Path) -> list[dict]:
     from crowdbake.stages.impostor_plan import probe_items
 
@@ -343,7 +349,7 @@ BAKE_PLAN: tuple[Node, ...] = (
     # none by the rule: the probes stage is then skipped), the choice.
     Node("impostor_scene", "cycle", _impostor_scene, _stamp_key("impostor-probes"), needs=("cycle",), writes=IMPOSTOR_SCENE_FILES),
     Node("impostor_probe", "probes", _impostor_probe, _probe_key, needs=("impostor_scene",), reads=("validate",), items=_probe_items,
-         item_key=lambda item: str(item["id"]), item_writes=lambda item: (f"impostor-probes/{item['id']}.json",), urgent=True),
+         item_key=lambda item: str(item["id"]), item_writes=_probe_writes, urgent=True),
     Node("textures", "poses", _textures, _stamp_key("textures"), needs=("validate",), writes=("textures", "poses")),
     Node("impostor_plan", "poses", _impostor_plan, _stamp_key("impostor"), needs=("impostor_probe",), reads=("impostor_scene",),
          writes=IMPOSTOR_PLAN_FILES),
