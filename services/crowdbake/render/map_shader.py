@@ -234,11 +234,14 @@ def corner_attributes(positions: np.ndarray, normals: np.ndarray, uvs: np.ndarra
     """(3T, 14) float32 vertex data of unwelded corners, triangle by triangle: position, normal, uv, next
     position and the triangle's face normal (the same at its three corners)."""
     corners = np.asarray(faces, dtype=np.int64).reshape(-1)
-    face_normal = impostor_views.face_normals(positions, faces)
-    return np.concatenate([
-        np.asarray(positions)[corners], np.asarray(normals)[corners], np.asarray(uvs)[corners],
-        np.asarray(next_positions)[corners], np.repeat(face_normal, 3, axis=0),
-    ], axis=1).astype(np.float32)
+    # Gathered straight into the float32 columns: every map and reference draw makes one (the probes ~100 a range).
+    vertices = np.empty((corners.size, 14), dtype=np.float32)
+    vertices[:, 0:3] = np.asarray(positions)[corners]
+    vertices[:, 3:6] = np.asarray(normals)[corners]
+    vertices[:, 6:8] = np.asarray(uvs)[corners]
+    vertices[:, 8:11] = np.asarray(next_positions)[corners]
+    vertices[:, 11:14].reshape(-1, 3, 3)[:] = impostor_views.face_normals(positions, faces)[:, None, :]
+    return vertices
 
 
 class MapShader:
@@ -256,6 +259,7 @@ class MapShader:
         self._targets: list[int] = []
         self._grid = (0, 0)  # (columns, rows) of views the framebuffer holds
         self._textures: list[int] = []
+        self._uploaded: list[np.ndarray] = []  # the diffuse arrays the textures hold (held, so their ids stay theirs)
         self._box: dict | None = None  # the box filter's program, framebuffer and target (_box_filter)
         self._max_texture_size = MAX_ROW_TEXELS  # the context's, once the program is made
 
@@ -389,6 +393,7 @@ class MapShader:
             GL.glDeleteProgram(self._box["program"])
         if self._textures:
             GL.glDeleteTextures(len(self._textures), self._textures)
+        self._textures, self._uploaded = [], []
         self._delete_framebuffer()
         if self._buffer is not None:
             GL.glDeleteBuffers(1, [self._buffer])
@@ -487,6 +492,8 @@ class MapShader:
     def _upload_textures(self, diffuse: list[np.ndarray]) -> None:
         from OpenGL import GL
 
+        if len(self._uploaded) == len(diffuse) and all(held is image for held, image in zip(self._uploaded, diffuse)):
+            return  # a bake draws one scene's textures again and again (every frame and view)
         if len(self._textures) != len(diffuse):
             if self._textures:
                 GL.glDeleteTextures(len(self._textures), self._textures)
@@ -503,6 +510,7 @@ class MapShader:
             GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
         GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 4)
         GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
+        self._uploaded = list(diffuse)
 
 
 def draw_maps(shader: MapShader, views: list[OrthoView], positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray,

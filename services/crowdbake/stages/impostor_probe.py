@@ -113,18 +113,25 @@ class Prober:
         self.scene_at = scene_at
         self.formats = {kind: formats[kind] for kind in ("normal", "uv", "surface")}
         self.seconds = 0.0
-        self._references: dict[int, np.ndarray] = {}
+        self._meshes: dict[int, np.ndarray] = {}
+
+    def mesh(self, frame: int) -> np.ndarray:
+        """The mesh at pose frame `frame` from every probe view, with its coverage: (A, S, S, 4). A frame is
+        drawn once for every count that bakes it or scores a gap at it: the colour is its reference, the
+        alpha its maps' coverage."""
+        if frame not in self._meshes:
+            angles = [(a, self.layout.elevations_deg[0]) for a in self.layout.azimuths_deg]
+            self._meshes[frame] = mesh_references(self.scene_at(frame), self.plan, angles, with_coverage=True)
+        return self._meshes[frame]
 
     def references(self, frame: int) -> np.ndarray:
-        """The mesh at pose frame `frame` from every probe view: (A, S, S, 3); a frame shared by probes is drawn once."""
-        if frame not in self._references:
-            angles = [(a, self.layout.elevations_deg[0]) for a in self.layout.azimuths_deg]
-            self._references[frame] = mesh_references(self.scene_at(frame), self.plan, angles)
-        return self._references[frame]
+        """The mesh at pose frame `frame` from every probe view: (A, S, S, 3)."""
+        return self.mesh(frame)[..., :3]
 
     def layer(self, item, frames: list[int], frame: int, layout: AtlasLayout | None = None) -> dict[str, bytes]:
         """One baked frame's probe maps of `layout` (None: the probe layout), encoded as the bundle stores
         them: {kind: layer bytes}."""
+        coverage = self.mesh(frame)[..., 3] if layout is None else None
         layout = self.layout if layout is None else layout
         scene = self.scene_at(frame)
         sides = motion_neighbours(item, frames, frame)
@@ -132,7 +139,7 @@ class Prober:
         next_positions = surface_maps.motion_positions(scene.positions, previous, following)
         task = ImpostorTask(id=f"probe-{frame}", frame=frame, elevation=0, views=[list(view) for view in layout.views], references=False)
         part = render_task(scene, replace(self.plan, layout=layout.to_manifest()), task, {"render": 0.0, "maps": 0.0, "references": 0.0},
-                           next_positions)
+                           next_positions, coverage)
         layers, *_ = encode_frame(layout, [part], self.formats, False)
         return layers
 

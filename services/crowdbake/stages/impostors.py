@@ -232,10 +232,10 @@ def task_scene(work: Path, plan: ImpostorPlan, task: ImpostorTask) -> tuple[Scen
 
 
 def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dict[str, float],
-                next_positions: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                next_positions: np.ndarray | None = None, coverage: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """A task's maps (and, for the fidelity frame, references): the arrays of its part. draw_task's GL
-    passes, then finish_task's texels on the CPU; next_positions and timings as draw_task."""
-    return finish_task(draw_task(scene, plan, task, timings, next_positions), timings)
+    passes, then finish_task's texels on the CPU; next_positions, coverage and timings as draw_task."""
+    return finish_task(draw_task(scene, plan, task, timings, next_positions, coverage), timings)
 
 
 @dataclass
@@ -253,11 +253,13 @@ class DrawnTask:
 
 
 def draw_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dict[str, float],
-              next_positions: np.ndarray | None = None) -> DrawnTask:
+              next_positions: np.ndarray | None = None, coverage: np.ndarray | None = None) -> DrawnTask:
     """A task's GL passes in the shared renderer.
 
     next_positions: (V, 3) the scene's vertices moved by their velocity at this baked frame, for the
     surface maps' motion (crowdbake.bake.surface_maps.motion_positions); None: no motion.
+    coverage: (V, S, S) the mesh's share of each texel of the task's views, where the caller drew it
+    already (mesh_references' alpha; the impostor probes draw a frame's mesh once for both); None: drawn here.
 
     The maps of every view are drawn, encoded, in one pass of crowdbake.render.map_shader; the mesh's
     share of each texel (the surface map's alpha) as the references are, FIDELITY_SUPERSAMPLE² samples
@@ -286,7 +288,7 @@ def draw_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dic
                                      with_coverage=True)
         coverage = references[:len(angles), ..., 3]
         timings["references"] += time.perf_counter() - clock
-    else:
+    elif coverage is None:
         # The mesh's share of each texel, sampled as the references are: the surface map's alpha.
         coverage = mesh_references(scene, plan, angles, with_coverage=True)[..., 3]
         timings["render"] += time.perf_counter() - clock
