@@ -1,14 +1,22 @@
 """Where a bake's time goes, stage by stage: wall, CPU, seconds inside the renderer, peak memory.
 
-    PYTHONPATH=services python services/benchmarks/bench_bake.py [--cases sample cesium]
-        [--sample DIR] [--out out/bench/bake.json]
+    PYTHONPATH=services python services/benchmarks/bench_bake.py [--cases sample cesium robot]
+        [--sample DIR] [--out out/bench/bake.json] [--against-rule RUNS]
 
 Bakes, each case in a fresh process (so that imports and peak memory are its own), with the bake's
 defaults (10 frames x 16 azimuths x 3 elevations of 128² texels):
 
 - sample: the procedural sample (`crowdbake sample`: a walking character in a loose skirt, 8 diffuse
   variations of 1024²), generated into out/bench/sample unless --sample names one;
-- cesium: CesiumMan with the shared long skirt (../shared/assets, skipped when absent).
+- cesium: CesiumMan with the shared long skirt (../shared/assets, skipped when absent);
+- robot: the shared robot_clips (Idle, Walking, Running and their transitions, with its timeline).
+
+--against-rule RUNS: each case baked RUNS times at the defaults and RUNS times as the impostor plan
+was before it measured (`--impostor-choice rule`, no archetype budget: a budget per clip), in turn
+(measured, rule, measured, rule ...), each in a fresh process after one warm-up bake of each; prints
+the wall and CPU seconds of every run and the median of the pairs' ratios (measured / rule), and adds
+them to the JSON as the case's "against_rule". Pairing in turn keeps the ratio when the machine's
+speed drifts.
 
 The bake runs through crowdbake.stages.runner.run_bake, as `crowdbake bake` does (--workers as its
 option: default two worker processes for the poses stage beside the impostor tasks where two cores are
@@ -43,6 +51,8 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+
+import numpy as np
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
@@ -132,12 +142,19 @@ def ensure_sample(folder: Path) -> Path:
     return folder
 
 
-def case_inputs(case: str, sample: Path, assets: Path):
-    """BakeInputs of a case, or None when its assets are missing."""
+# What --against-rule compares the defaults with: the impostor plan before it measured (BakeParams values).
+RULE = {"impostor_choice": "rule", "impostor_archetype_mib": None}
+
+
+def case_inputs(case: str, sample: Path, assets: Path, config: str = "defaults"):
+    """BakeInputs of a case, or None when its assets are missing; config "rule": with RULE's parameters."""
+    from dataclasses import replace
+
     from crowdbake.params import BakeParams
     from crowdbake.stages.validate import BakeInputs
 
-    params = BakeParams()
+    params = BakeParams() if config == "defaults" else replace(BakeParams(), **RULE)
+    timeline = None
     if case == "sample":
         folder = ensure_sample(sample)
         files = (folder / "character.glb", folder / "cloth.pc2", folder / "cloth.obj", folder / "textures")
@@ -146,18 +163,23 @@ def case_inputs(case: str, sample: Path, assets: Path):
         if not (assets / "CesiumMan.glb").is_file() or not (skirt / "long_skirt.pc2").is_file():
             return None
         files = (assets / "CesiumMan.glb", skirt / "long_skirt.pc2", skirt / "long_skirt.obj", None)
+    elif case == "robot":
+        robot = assets / "robot_clips"
+        if not all((robot / name).is_file() for name in ("robot.glb", "garment.pc2", "garment.obj", "timeline.json")):
+            return None
+        files, timeline = (robot / "robot.glb", robot / "garment.pc2", robot / "garment.obj", None), robot / "timeline.json"
     else:
         raise ValueError(f"unknown case {case!r}")
-    return BakeInputs(*files, None, "bench", "1", params, created="2006-09-04T12:00:00Z")
+    return BakeInputs(*files, None, "bench", "1", params, created="2006-09-04T12:00:00Z", timeline=timeline)
 
 
-def run_case(case: str, sample: Path, assets: Path, workers: int | None = None) -> dict | None:
+def run_case(case: str, sample: Path, assets: Path, workers: int | None = None, config: str = "defaults") -> dict | None:
     """Bake one case in this process and measure it (call in a fresh process)."""
     started = time.perf_counter()
     from crowdbake.stages import runner
 
     import_s = time.perf_counter() - started
-    inputs = case_inputs(case, sample, assets)
+    inputs = case_inputs(case, sample, assets, config)
     if inputs is None:
         return None
     with tempfile.TemporaryDirectory(prefix="crowdbake-bench-") as scratch:
@@ -174,6 +196,7 @@ def run_case(case: str, sample: Path, assets: Path, workers: int | None = None) 
     timings = summary.timings
     return {
         "case": case,
+        "config": config,
         "params": inputs.params.to_dict(),
         "import_runner_s": import_s,
         "stages": stages,
@@ -220,35 +243,64 @@ def print_case(report: dict) -> None:
         print(f"  compression {kind}: {figures['pixel_format']} mean |error| {figures['rgb_mean_abs']:.3f}, worst PSNR {figures['rgb_psnr_db_worst']:.2f} dB")
 
 
+def bake_in_process(case: str, sample: Path, args, config: str = "defaults") -> dict | None:
+    """run_case in a fresh process, with its process tree's CPU (process_tree)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    done = subprocess.run(
+        [sys.executable, __file__, "--one-case", case, "--config", config, "--sample", str(sample), "--assets", str(args.assets),
+         "--out", str(args.out)] + ([] if args.workers is None else ["--workers", str(args.workers)]),
+        stdout=subprocess.PIPE, text=True, check=True,
+    )
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    if report is not None:
+        report["process_tree"] = process_tree(before, resource.getrusage(resource.RUSAGE_CHILDREN))
+    return report
+
+
+def against_rule(case: str, sample: Path, args) -> dict:
+    """The case at the defaults and at RULE, args.against_rule runs each in turn after a warm-up of each
+    (module docstring): every run's wall and CPU seconds and the median ratios of the pairs."""
+    runs: dict[str, list[dict]] = {"defaults": [], "rule": []}
+    for k in range(args.against_rule + 1):
+        for config in ("defaults", "rule"):
+            report = bake_in_process(case, sample, args, config)
+            tree = report["process_tree"]
+            figures = {"wall_s": report["timings"]["wall_s"], "cpu_s": tree["user_s"] + tree["sys_s"]}
+            print(f"  {case} {config:8s} {'warm-up' if k == 0 else f'run {k}':7s} wall {figures['wall_s']:6.2f} s, CPU {figures['cpu_s']:6.2f} s", flush=True)
+            if k > 0:
+                runs[config].append(figures)
+    ratios = {key: float(np.median([a[key] / b[key] for a, b in zip(runs["defaults"], runs["rule"])])) for key in ("wall_s", "cpu_s")}
+    print(f"  {case}: measured / rule, median of {args.against_rule} pairs: wall {ratios['wall_s']:.3f}, CPU {ratios['cpu_s']:.3f}")
+    return {"rule": RULE, "runs": runs, "median_ratio": ratios}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--cases", nargs="+", default=["sample", "cesium"], choices=["sample", "cesium"])
+    parser.add_argument("--cases", nargs="+", default=["sample", "cesium"], choices=["sample", "cesium", "robot"])
     parser.add_argument("--sample", type=Path, help="a `crowdbake sample` folder (default: generate out/bench/sample)")
     parser.add_argument("--out", type=Path, default=Path("out/bench/bake.json"), help="JSON report (default out/bench/bake.json)")
     parser.add_argument("--assets", type=Path, default=ASSETS, help=f"the shared assets folder (default {ASSETS})")
     parser.add_argument("--workers", type=int, help="run_bake's worker processes (default: its own choice, 2 on two cores)")
+    parser.add_argument("--against-rule", type=int, metavar="RUNS", default=0,
+                        help="also bake each case RUNS times as the impostor plan's rule, in turn with the defaults (module docstring)")
     parser.add_argument("--one-case", help=argparse.SUPPRESS)  # internal: bake this case here, print its JSON
+    parser.add_argument("--config", default="defaults", choices=["defaults", "rule"], help=argparse.SUPPRESS)  # with --one-case
     args = parser.parse_args()
     sample = args.sample or args.out.parent / "sample"
 
     if args.one_case:
-        print(json.dumps(run_case(args.one_case, sample, args.assets, args.workers)))
+        print(json.dumps(run_case(args.one_case, sample, args.assets, args.workers, args.config)))
         return 0
     reports = []
     for case in args.cases:
-        before = resource.getrusage(resource.RUSAGE_CHILDREN)
-        done = subprocess.run(
-            [sys.executable, __file__, "--one-case", case, "--sample", str(sample), "--assets", str(args.assets), "--out", str(args.out)]
-            + ([] if args.workers is None else ["--workers", str(args.workers)]),
-            stdout=subprocess.PIPE, text=True, check=True,
-        )
-        report = json.loads(done.stdout.strip().splitlines()[-1])
+        report = bake_in_process(case, sample, args)
         if report is None:
             print(f"\n{case}: skipped (assets missing under {args.assets})")
             continue
-        report["process_tree"] = process_tree(before, resource.getrusage(resource.RUSAGE_CHILDREN))
         reports.append(report)
         print_case(report)
+        if args.against_rule > 0:
+            report["against_rule"] = against_rule(case, sample, args)
     document = {
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "gl_platform": os.environ.get("PYOPENGL_PLATFORM")},
         "cases": reports,
