@@ -21,6 +21,8 @@ from sample_fixtures import small_bake_params
 pytest.importorskip("pyrender")
 from crowdbake.render.impostor import BakeRenderer  # noqa: E402
 from crowdbake.stages.impostors import load_poses  # noqa: E402
+from crowdbake.stages import impostor_plan  # noqa: E402
+from crowdbake.stages.impostor_plan import probe_setting  # noqa: E402
 from crowdbake.stages.runner import run_bake  # noqa: E402
 from crowdbake.stages.runtime_fidelity import halfway_frame, picture_at, runtime_atlas, runtime_textures  # noqa: E402
 from crowdbake.stages.validate import BakeInputs  # noqa: E402
@@ -157,6 +159,19 @@ def test_the_measured_choice_keeps_the_budget_and_says_what_it_chose(small_sampl
     assert (manifest["tile_size"], len(manifest["azimuths_deg"])) == (chosen["tile"], chosen["azimuths"])
     assert len(manifest["frame_indices"]) == chosen["frames"] == budget_doc["chosen"]["frames"]
     assert f"chosen by measuring: {chosen['tile']}² tiles, {chosen['azimuths']} azimuths" in format_summary(summary)
+    # The shortlist was measured end to end as items of their own (the runner's workers draw them side by
+    # side), and the plan kept their scores: measuring inline gives the same choice.
+    checks = sorted(entry["item"] for entry in summary.nodes if entry["node"] == "impostor_check")
+    assert checks == [f"check-{k}" for k in range(len(measured))]
+    stored = [json.loads((tmp_path / "work" / "impostor-probes" / f"{check}.json").read_text()) for check in checks]
+    assert [round(document["ssim"], 4) for document in stored] == [entry["between_worst"] for entry in measured]
+    setting = probe_setting(tmp_path / "work")
+    try:
+        probed, tables = impostor_plan._probed(tmp_path / "work", impostor_plan.probe_items(tmp_path / "work"))
+        inline = impostor_plan.measured_framing(setting, probed, tables)
+    finally:
+        setting.scene_at.close()
+    assert inline[2]["layout"]["chosen"] == chosen and inline[2]["layout"]["measured"] == measured
 
 
 def test_crowdview_says_a_bundle_has_no_detail_maps(bakes, tmp_path):

@@ -176,40 +176,71 @@ def range_probes(setting: ProbeSetting, index: int) -> dict[int, float]:
     return setting.prober.range_table(index, counts)
 
 
-def measured_framing(setting: ProbeSetting, probed: dict[str, Any], probed_tables: list[dict[int, float]]) -> tuple[AtlasLayout, list[int], dict]:
-    """The layout, baked frames and budget account chosen by measuring (module docstring) from the probes
-    (layout_probes, range_probes per range): the tile and azimuth count (crowdbake.bake.impostor_layout)
-    and every range's frames (impostor_allocation) within the budget: params.impostor_archetype_mib for
-    several clips, params.impostor_budget_mib for one."""
-    params, ranges, elevations, record, prober = setting.params, setting.ranges, setting.elevations, setting.record, setting.prober
-    several = setting.several
-    budget_mib = params.impostor_archetype_mib if several else params.impostor_budget_mib
-    budget_bytes = None if budget_mib is None else budget_mib * MIB
-    asked_tile = params.tile_size
+def budget_of(setting: ProbeSetting) -> float | None:
+    """The impostor budget in MiB: params.impostor_archetype_mib for several clips, params.impostor_budget_mib
+    for one (None: no budget)."""
+    return setting.params.impostor_archetype_mib if setting.several else setting.params.impostor_budget_mib
+
+
+def layout_candidates(setting: ProbeSetting, probed: dict[str, Any], probed_tables: list[dict[int, float]]) -> list[impostor_layout.LayoutOption]:
+    """Every (tile, azimuths) pair with its frames within the budget and its predicted scores
+    (crowdbake.bake.impostor_layout.options), from the probes (layout_probes, range_probes per range)."""
+    params, ranges = setting.params, setting.ranges
+    budget_mib = budget_of(setting)
     frame_tables = [impostor_allocation.interpolated(table, counts)
                     for table, counts in zip(probed_tables, impostor_allocation.ladders(ranges, params.impostor_frames))]
+    azimuth_scores = impostor_allocation.interpolated(probed["azimuths"], impostor_layout.azimuth_ladder(params.azimuths))
+    return impostor_layout.options(ranges, frame_tables, probed["at_views"], azimuth_scores, probed["elevation_loss"], params.tile_size,
+                                   setting.frame_bytes, None if budget_mib is None else budget_mib * MIB)
+
+
+def one_clip_shortlist(setting: ProbeSetting, candidates: list[impostor_layout.LayoutOption],
+                       at_views: dict[int, float]) -> list[impostor_layout.LayoutOption]:
+    """One clip: the SHORTLIST best predicted pairs and the rule's own choice (the probe scene's framing),
+    which the plan measures end to end (the losses do not add exactly), so that the choice is never worse
+    than the rule's by the probes."""
+    record, asked_tile = setting.record, setting.params.tile_size
+    budget_mib = budget_of(setting)
+    rule_frames = list(record.frame_indices)
+    rule_azimuths = len(AtlasLayout.from_manifest(record.layout).azimuths_deg)
+    rule_bytes = int(round(len(rule_frames) * setting.frame_bytes(asked_tile, rule_azimuths)))
+    rule = impostor_layout.LayoutOption(asked_tile, rule_azimuths, impostor_allocation.Allocation(
+        [len(rule_frames)], [rule_frames], rule_bytes, budget_mib is None or rule_bytes <= budget_mib * MIB, [float("nan")]),
+        at_views[asked_tile], [float("nan")], float("nan"))
+    shortlist = impostor_layout.shortlist(candidates, SHORTLIST)
+    if all((o.tile, o.azimuths, o.allocation.frames) != (rule.tile, rule.azimuths, rule.allocation.frames) for o in shortlist):
+        shortlist.append(rule)
+    return shortlist
+
+
+def check_score(setting: ProbeSetting, option: impostor_layout.LayoutOption) -> float:
+    """The end-to-end score of a shortlisted one-clip option (Prober.between_score)."""
+    return setting.prober.between_score(0, option.allocation.frames[0], option.tile, option.azimuths, setting.elevations,
+                                        setting.widest(option.tile))
+
+
+def measured_framing(setting: ProbeSetting, probed: dict[str, Any], probed_tables: list[dict[int, float]],
+                     checks: list[float] | None = None) -> tuple[AtlasLayout, list[int], dict]:
+    """The layout, baked frames and budget account chosen by measuring (module docstring) from the probes
+    (layout_probes, range_probes per range): the tile and azimuth count (crowdbake.bake.impostor_layout)
+    and every range's frames (impostor_allocation) within the budget (budget_of). checks: for one clip,
+    the shortlist's end-to-end scores (one_clip_shortlist order) where they were measured already
+    (stage_impostor_check); None: measured here."""
+    params, ranges, elevations, record = setting.params, setting.ranges, setting.elevations, setting.record
+    several = setting.several
+    budget_mib = budget_of(setting)
+    asked_tile = params.tile_size
     at_views, probed_azimuths, elevation_loss = probed["at_views"], probed["azimuths"], probed["elevation_loss"]
-    azimuth_scores = impostor_allocation.interpolated(probed_azimuths, impostor_layout.azimuth_ladder(params.azimuths))
-    candidates = impostor_layout.options(ranges, frame_tables, at_views, azimuth_scores, elevation_loss, asked_tile, setting.frame_bytes,
-                                         budget_bytes)
+    candidates = layout_candidates(setting, probed, probed_tables)
     checked = None
     if several:
         chosen = impostor_layout.choose_layout(candidates)
     else:
-        # One clip: the best predicted pairs and the rule's own choice measured end to end (the losses do
-        # not add exactly), so the choice is never worse than the rule's by the probes.
-        rule_frames = list(record.frame_indices)
-        rule_azimuths = len(AtlasLayout.from_manifest(record.layout).azimuths_deg)
-        rule_bytes = int(round(len(rule_frames) * setting.frame_bytes(asked_tile, rule_azimuths)))
-        rule = impostor_layout.LayoutOption(asked_tile, rule_azimuths, impostor_allocation.Allocation(
-            [len(rule_frames)], [rule_frames], rule_bytes, budget_bytes is None or rule_bytes <= budget_bytes, [float("nan")]),
-            at_views[asked_tile], [float("nan")], float("nan"))
-        shortlist = impostor_layout.shortlist(candidates, SHORTLIST)
-        if all((o.tile, o.azimuths, o.allocation.frames) != (rule.tile, rule.azimuths, rule.allocation.frames) for o in shortlist):
-            shortlist.append(rule)
-        checked = [impostor_layout.measured(option, prober.between_score(0, option.allocation.frames[0], option.tile, option.azimuths,
-                                                                         elevations, setting.widest(option.tile)))
-                   for option in shortlist]
+        shortlist = one_clip_shortlist(setting, candidates, at_views)
+        scores = checks if checks is not None else [check_score(setting, option) for option in shortlist]
+        if len(scores) != len(shortlist):
+            raise ValueError(f"{len(scores)} end-to-end scores for a shortlist of {len(shortlist)}")
+        checked = [impostor_layout.measured(option, score) for option, score in zip(shortlist, scores)]
         chosen = impostor_layout.choose_layout(checked)
     allocation = chosen.allocation
     frame_indices = allocation.frame_indices()
@@ -297,7 +328,7 @@ def probe_items(work: Path) -> list[dict[str, Any]]:
 
 
 def probe_path(work: Path, item: dict[str, Any]) -> Path:
-    if not re.fullmatch(r"layout|range-\d+", str(item.get("id", ""))):
+    if not re.fullmatch(r"layout|range-\d+|check-\d+", str(item.get("id", ""))):
         raise ValueError(f"impostor probe id {item.get('id')!r} is not a probe's")
     return Path(work) / PROBES / f"{item['id']}.json"
 
@@ -325,6 +356,57 @@ def stage_impostor_probe(work: Path, item: dict[str, Any]) -> dict[str, Any]:
     return document
 
 
+def _probed(work: Path, items: list[dict[str, Any]]) -> tuple[dict[str, Any], list[dict[int, float]]]:
+    """The probes' scores (stage_impostor_probe of each item, read back where they were drawn already) as
+    measured_framing takes them: the layout's and one {count: SSIM} table per range."""
+    probes = {item["id"]: stage_impostor_probe(work, item) for item in items}
+    layout_scores = probes["layout"]
+    probed = {"at_views": _counted(layout_scores["at_views"]), "azimuths": _counted(layout_scores["azimuths"]),
+              "elevation_loss": float(layout_scores["elevation_loss"])}
+    return probed, [_counted(probes[item["id"]]["table"]) for item in items[1:]]
+
+
+def check_items(work: Path) -> list[dict[str, Any]]:
+    """One clip measured: the shortlisted options (one_clip_shortlist), each measured end to end as a unit
+    of work of its own (the local runner runs them side by side); none otherwise. Needs the probes done."""
+    items = probe_items(work)
+    if not items:
+        return []
+    setting = probe_setting(work)
+    try:
+        if setting.several:
+            return []
+        probed, tables = _probed(work, items)
+        shortlist = one_clip_shortlist(setting, layout_candidates(setting, probed, tables), probed["at_views"])
+    finally:
+        setting.scene_at.close()
+    return [{"id": f"check-{k}", "tile": option.tile, "azimuths": option.azimuths, "frames": list(option.allocation.frames[0])}
+            for k, option in enumerate(shortlist)]
+
+
+def stage_impostor_check(work: Path, item: dict[str, Any]) -> dict[str, Any]:
+    """One shortlisted option's end-to-end score (check_score) in work/impostor-probes/<id>.json, kept for the
+    same probe scene and option; returns {"key", "ssim", "seconds"}."""
+    started = time.perf_counter()
+    path = probe_path(work, item)
+    key = stage_key("impostor-check", WorkDir(work).key_of(PROBES), item["id"], item["tile"], item["azimuths"], *item["frames"])
+    try:
+        stored = read_json(path)
+        if stored.get("key") == key:
+            return stored
+    except (OSError, ValueError):
+        pass
+    setting = probe_setting(work)
+    try:
+        ssim = setting.prober.between_score(0, [int(f) for f in item["frames"]], int(item["tile"]), int(item["azimuths"]), setting.elevations,
+                                            setting.widest(int(item["tile"])))
+    finally:
+        setting.scene_at.close()
+    document = {"key": key, "ssim": float(ssim), "seconds": round(time.perf_counter() - started, 3)}
+    write_json_atomic(path, document)
+    return document
+
+
 def _counted(scores: dict[str, float]) -> dict[int, float]:
     """A probe file's {count or tile as text: SSIM} as {int: float}."""
     return {int(count): float(score) for count, score in scores.items()}
@@ -348,14 +430,11 @@ def stage_impostor_plan(work: Path, progress: Progress | None = None) -> StageOu
     frames = StoredFrames(folder.root / PROBES / SCENE_FILE)
     try:
         if items:
-            probes = {item["id"]: stage_impostor_probe(work, item) for item in items}
+            probed, tables = _probed(work, items)
+            checks = [float(stage_impostor_check(work, item)["ssim"]) for item in check_items(work)]
             setting = probe_setting(work)
             try:
-                layout_scores = probes["layout"]
-                probed = {"at_views": _counted(layout_scores["at_views"]), "azimuths": _counted(layout_scores["azimuths"]),
-                          "elevation_loss": float(layout_scores["elevation_loss"])}
-                tables = [_counted(probes[item["id"]]["table"]) for item in items[1:]]
-                layout, frame_indices, budget = measured_framing(setting, probed, tables)
+                layout, frame_indices, budget = measured_framing(setting, probed, tables, checks if checks else None)
             finally:
                 setting.scene_at.close()
             record = replace(record, layout=layout.to_manifest(), frame_indices=frame_indices, fidelity_frame=frame_indices[0], budget=budget)

@@ -1,9 +1,9 @@
 """The bake as one plan: its nodes (stage functions), what each needs and writes, and its fan-outs.
 
     validate ─┬─ textures ──────────────────────────────────┐
-              └─ clip_loop × clips ─ cycle ─┬─ pose_caches ─┴────────────────────────────────────────────┬─ poses ─ references ─────────── scores ─┬─ pack ─┬─ publish ─┬─ commit_export
-                                            └─ impostor_scene ─ impostor_probe × probes ─ impostor_plan ─┤                                         │        └─ export ──┘
-                                                                                                         └─ impostor_views × tasks ─ pack_frame × frames ─┘
+              └─ clip_loop × clips ─ cycle ─┬─ pose_caches ─┴───────────────────────────────────────────────────────────────────────┬─ poses ─ references ─────────── scores ─┬─ pack ─┬─ publish ─┬─ commit_export
+                                            └─ impostor_scene ─ impostor_probe × probes ─ impostor_check × options ─ impostor_plan ─┤                                         │        └─ export ──┘
+                                                                                                                                    └─ impostor_views × tasks ─ pack_frame × frames ─┘
 
 Two executors run this plan and neither writes an order of its own:
 - crowdbake.stages.runner (`crowdbake bake`, one machine) starts every node as soon as what it needs is
@@ -228,6 +228,18 @@ def _probe_key(work: Path, item: dict) -> str | None:
     return _json_key(probe_path(work, item))
 
 
+def _impostor_check(call: Call) -> float:
+    from crowdbake.stages.impostor_plan import stage_impostor_check
+
+    return float(stage_impostor_check(call.work, call.item)["ssim"])
+
+
+def _check_items(work: Path) -> list[dict]:
+    from crowdbake.stages.impostor_plan import check_items
+
+    return check_items(work)
+
+
 def _impostor_plan(call: Call) -> dict:
     from crowdbake.stages.impostor_plan import stage_impostor_plan
 
@@ -344,15 +356,18 @@ BAKE_PLAN: tuple[Node, ...] = (
     Node("clip_loop", "loops", _clip_loop, _loop_key, needs=("validate",), items=_loop_items, item_key=lambda item: str(item["id"]),
          item_writes=_loop_writes),
     Node("cycle", "cycle", _cycle, _stamp_key("cycle"), needs=("validate", "clip_loop"), writes=("cycle",), placement=HERE),
-    # The impostor plan in three, beside the pose caches (the poses record joins them): its scene (every
+    # The impostor plan in four, beside the pose caches (the poses record joins them): its scene (every
     # pose frame's high LOD), its probes drawn side by side (the layout's and one per clip and transition;
-    # none by the rule: the probes stage is then skipped), the choice.
+    # none by the rule: the probes stage is then skipped), one clip's end-to-end checks, the choice.
     Node("impostor_scene", "cycle", _impostor_scene, _stamp_key("impostor-probes"), needs=("cycle",), writes=IMPOSTOR_SCENE_FILES),
     Node("impostor_probe", "probes", _impostor_probe, _probe_key, needs=("impostor_scene",), reads=("validate",), items=_probe_items,
          item_key=lambda item: str(item["id"]), item_writes=_probe_writes, urgent=True),
     Node("textures", "poses", _textures, _stamp_key("textures"), needs=("validate",), writes=("textures", "poses")),
-    Node("impostor_plan", "poses", _impostor_plan, _stamp_key("impostor"), needs=("impostor_probe",), reads=("impostor_scene",),
-         writes=IMPOSTOR_PLAN_FILES),
+    # One clip: the options the probes shortlist, each measured end to end, side by side (none otherwise).
+    Node("impostor_check", "poses", _impostor_check, _probe_key, needs=("impostor_probe",), reads=("validate", "impostor_scene"),
+         items=_check_items, item_key=lambda item: str(item["id"]), item_writes=_probe_writes, urgent=True),
+    Node("impostor_plan", "poses", _impostor_plan, _stamp_key("impostor"), needs=("impostor_probe", "impostor_check"),
+         reads=("impostor_scene",), writes=IMPOSTOR_PLAN_FILES),
     Node("pose_caches", "poses", _pose_caches, _stamp_key("pose-caches"), needs=("cycle", "textures"), writes=("poses", "pose-caches")),
     Node("poses", "poses", _poses, _stamp_key("poses"), needs=("pose_caches", "impostor_plan"), writes=("poses",), placement=HERE),
     Node("impostor_views", "impostors", _impostor_views, _part_key, needs=("impostor_plan",), items=_impostor_items,
