@@ -11,6 +11,8 @@ coverage (rgba16, uv32 or uvblock), per bundle, each as a share of the stored te
 - covered: the texels the character covers;
 - cell_boxes: each cell's own bounding rectangle, on 4-texel blocks (what per-cell rectangles would store);
 - view_boxes: per view, the rectangle holding it in every baked frame (what per-view rectangles would store);
+- view_boxes_margin: the same, each grown by a block on every side (the margin the crop keeps, so that a
+  bilinear read at a cell's edge never reaches the next cell);
 - union_box: the one rectangle holding every view and frame, as the crop is meant to (without its margin).
 
 So cell_boxes and view_boxes are the memory a packed atlas would need for the same texels, before packing
@@ -29,26 +31,32 @@ import numpy as np
 BLOCK = 4  # block compression's 4 x 4 texels: a stored rectangle starts and ends on blocks
 
 
-def block_box_area(mask: np.ndarray) -> int:
-    """Texels of the smallest rectangle on BLOCK-texel boundaries holding every True of `mask` (H, W); 0 if none."""
+def block_box_area(mask: np.ndarray, margin: int = 0) -> int:
+    """Texels of the smallest rectangle on BLOCK-texel boundaries holding every True of `mask` (H, W), grown
+    by `margin` blocks on every side within the mask's bounds; 0 if none."""
     rows, columns = np.nonzero(mask)
     if rows.size == 0:
         return 0
-    top, left = rows.min() // BLOCK * BLOCK, columns.min() // BLOCK * BLOCK
-    bottom, right = -(-(rows.max() + 1) // BLOCK) * BLOCK, -(-(columns.max() + 1) // BLOCK) * BLOCK
+    grow = margin * BLOCK
+    top, left = max(0, rows.min() // BLOCK * BLOCK - grow), max(0, columns.min() // BLOCK * BLOCK - grow)
+    bottom = min(mask.shape[0], -(-(rows.max() + 1) // BLOCK) * BLOCK + grow)
+    right = min(mask.shape[1], -(-(columns.max() + 1) // BLOCK) * BLOCK + grow)
     return int((bottom - top) * (right - left))
 
 
 def occupancy(coverage: np.ndarray) -> dict[str, float]:
     """coverage (F, V, H, W) bool: per baked frame and view, the cell's covered texels. Returns the shares
-    of the F·V·H·W stored texels (module docstring): covered, cell_boxes, view_boxes, union_box."""
+    of the F·V·H·W stored texels (module docstring): covered, cell_boxes, view_boxes, union_box, and
+    view_boxes_margin: each view's rectangle grown by a block on every side, the margin of dilated
+    background the crop keeps (bilinear reads at a cell's edge must not reach the next cell)."""
     frames, views, height, width = coverage.shape
     stored = float(frames * views * height * width)
     cells = sum(block_box_area(coverage[f, v]) for f in range(frames) for v in range(views))
     per_view = sum(block_box_area(coverage[:, v].any(axis=0)) for v in range(views)) * frames
+    per_view_margin = sum(block_box_area(coverage[:, v].any(axis=0), 1) for v in range(views)) * frames
     union = block_box_area(coverage.any(axis=(0, 1))) * frames * views
     return {"covered": float(coverage.sum() / stored), "cell_boxes": cells / stored, "view_boxes": per_view / stored,
-            "union_box": union / stored}
+            "view_boxes_margin": per_view_margin / stored, "union_box": union / stored}
 
 
 def bundle_coverage(bundle: Path) -> tuple[np.ndarray, dict]:
@@ -86,7 +94,8 @@ def main() -> int:
         frames, views, height, width = coverage.shape
         results[label] = {"bundle": path, "frames": frames, "views": views, "cell": [width, height], "tile": impostor["tile_size"], **shares}
         print(f"{label}: {frames} frames x {views} views of {width}x{height} texels; covered {shares['covered']:.1%}, "
-              f"per-cell rectangles {shares['cell_boxes']:.1%}, per-view rectangles {shares['view_boxes']:.1%}, "
+              f"per-cell rectangles {shares['cell_boxes']:.1%}, per-view rectangles {shares['view_boxes']:.1%} "
+              f"({shares['view_boxes_margin']:.1%} with a block of margin), "
               f"one rectangle {shares['union_box']:.1%} of the stored texels")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
