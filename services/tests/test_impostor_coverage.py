@@ -67,3 +67,22 @@ def test_the_surface_maps_alpha_is_the_share_of_each_texel_the_mesh_covers(small
     soft = (stored > 0.0) & (stored < 1.0)
     assert soft.sum() > 0.5 * (expected > 0).sum() ** 0.5  # the silhouette's texels, not a hard edge
     assert stored.max() == 1.0 and stored.min() == 0.0
+
+
+def test_the_coverage_pass_is_the_references_alpha_to_the_bit(small_bake):
+    """The impostor tasks take each texel's share from a pass that draws the mesh's samples unshaded: the
+    same samples as the shaded references (one vertex shader), so the same alpha, bit for bit, from every
+    view of a ring and at a frame between baked ones."""
+    from crowdbake.stages.impostors import load_plan, load_poses, load_scene, mesh_coverage, mesh_references
+
+    _bundle, work = small_bake
+    plan, poses = load_plan(work), load_poses(work)
+    layout = poses.atlas_layout()
+    angles = [(azimuth, elevation) for elevation in layout.elevations_deg for azimuth in layout.azimuths_deg]
+    for frame in (poses.frame_indices[0], poses.frame_indices[-1]):
+        scene = load_scene(work, plan, frame, runtime_textures=True)
+        shaded = mesh_references(scene, plan, angles, with_coverage=True)
+        coverage = mesh_coverage(scene, plan, angles)
+        assert coverage.shape == shaded.shape[:3] and coverage.dtype == np.float32
+        assert np.array_equal(coverage, shaded[..., 3])
+        assert 0.0 < coverage.mean() < 1.0 and ((coverage > 0.0) & (coverage < 1.0)).any()

@@ -100,6 +100,16 @@ class BakeRenderer:
             return map_shader.draw_references(shader, views, positions, normals, uvs, faces, triangle_material, diffuse, outfit_row,
                                               supersample, with_coverage)
 
+    def shader_coverage(self, views: list[OrthoView], positions: np.ndarray, faces: np.ndarray, triangle_material: np.ndarray,
+                        material_count: int, supersample: int) -> np.ndarray:
+        """The mesh's share of each texel of `views` (size S · supersample), (V, S, S) float32: the alpha
+        shader_references(..., with_coverage=True) gives, without shading (map_shader.draw_coverage)."""
+        if not self._open:
+            raise RuntimeError("BakeRenderer.shader_coverage called outside its `with` block")
+        with self._offscreen.current():
+            shader = self._shader(views[0].size if views else self.size, map_shader.COVERAGE)
+            return map_shader.draw_coverage(shader, views, positions, faces, triangle_material, material_count, supersample)
+
     def runtime_impostors(self, atlas: RuntimeAtlas, pictures: list[RuntimePicture]) -> np.ndarray:
         """crowdview's impostor shader's pictures of `atlas` (crowdbake.render.runtime_shader), drawn in this
         renderer's context: (N, S, S, 3) float32."""

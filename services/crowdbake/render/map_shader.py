@@ -160,6 +160,17 @@ void main() {
 }
 """
 
+# The mesh's coverage alone: the reference pass's samples without their shading (the vertex shader, and so
+# the rasterised samples, are the same), so the box filter's alpha is the reference's to the bit for less
+# work a sample. What the impostor maps keep as each texel's share of the character.
+COVERAGE_FRAGMENT_SHADER = """#version 330 core
+layout(location = 0) out vec4 out_colour;
+
+void main() {
+    out_colour = vec4(0.0, 0.0, 0.0, 1.0);
+}
+"""
+
 
 # The reference's box filter on the GPU, so that only the filtered picture is read back (a ninth of the
 # samples): one fragment a filtered texel, the mean of its k x k samples. A triangle covering the viewport,
@@ -209,7 +220,8 @@ MAPS = _Pass("maps", MAPS_FRAGMENT_SHADER,
              ("material", "depth_limit", "motion_limit"))
 REFERENCE = _Pass("reference", REFERENCE_FRAGMENT_SHADER, (("GL_RGBA32F", "GL_RGBA", "GL_FLOAT", np.float32),),
                   ("light", "outfit", "ambient", "diffuse_weight"))
-_VIEW_UNIFORMS = ("center", "right", "up", "back", "radius", "diffuse")
+COVERAGE = _Pass("coverage", COVERAGE_FRAGMENT_SHADER, (("GL_RGBA32F", "GL_RGBA", "GL_FLOAT", np.float32),), ())
+_VIEW_UNIFORMS = ("center", "right", "up", "back", "radius", "diffuse")  # -1 where a pass does not use one: set in vain
 # Texels a reference pass draws at once (the rest waits for the next): 4 M RGBA32F texels are 64 MB.
 MAX_PASS_TEXELS = 1 << 22
 
@@ -551,6 +563,28 @@ def draw_references(shader: MapShader, views: list[OrthoView], positions: np.nda
                                 uniforms, box=supersample)
         images.append(colour if with_coverage else colour[..., :3])
     return np.concatenate(images)
+
+
+def draw_coverage(shader: MapShader, views: list[OrthoView], positions: np.ndarray, faces: np.ndarray, triangle_material: np.ndarray,
+                  material_count: int, supersample: int) -> np.ndarray:
+    """The share of each texel's supersample² samples the mesh covers, as draw_references' alpha, from views
+    of size S · supersample: (V, S, S) float32 in 0..1."""
+    if shader.shader_pass is not COVERAGE:
+        raise ValueError("draw_coverage needs a MapShader of the COVERAGE pass")
+    positions = np.asarray(positions)
+    blank = np.zeros((len(positions), 3), dtype=np.float32)
+    textures = [_BLANK_TEXTURE] * material_count  # bound in vain: the pass samples none
+    most = max(1, MAX_PASS_TEXELS // (shader.size * shader.size))
+    batch = -(-len(views) // -(-len(views) // most))  # as draw_references batches
+    images = []
+    for first in range(0, len(views), batch):
+        (colour,) = shader.draw(views[first:first + batch], positions, blank, blank[:, :2], positions, faces, triangle_material, textures,
+                                lambda material, view: {}, box=supersample)
+        images.append(colour[..., 3])
+    return np.concatenate(images)
+
+
+_BLANK_TEXTURE = np.zeros((1, 1, 4), dtype=np.uint8)
 
 
 def tiles_of(image: np.ndarray, size: int, columns: int, count: int) -> np.ndarray:

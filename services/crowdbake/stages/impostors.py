@@ -290,7 +290,7 @@ def draw_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dic
         timings["references"] += time.perf_counter() - clock
     elif coverage is None:
         # The mesh's share of each texel, sampled as the references are: the surface map's alpha.
-        coverage = mesh_references(scene, plan, angles, with_coverage=True)[..., 3]
+        coverage = mesh_coverage(scene, plan, angles)
         timings["render"] += time.perf_counter() - clock
     return DrawnTask(views, maps, coverage, references, between)
 
@@ -314,6 +314,17 @@ def finish_task(drawn: DrawnTask, timings: dict[str, float]) -> dict[str, np.nda
         count = len(drawn.views)
         arrays.update(reference=drawn.references[:count, ..., :3], reference_between=drawn.references[count:, ..., :3], **drawn.between)
     return arrays
+
+
+def mesh_coverage(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]]) -> np.ndarray:
+    """The mesh's share of each texel from each (azimuth, elevation) in degrees, sampled as mesh_references
+    samples it (its alpha with_coverage, to the bit, without the shading): (V, S, S) float32."""
+    size = int(plan.layout["tile_size"]) * FIDELITY_SUPERSAMPLE
+    views = [impostor_views.ortho_view(plan.center, plan.radius, azimuth, elevation, size) for azimuth, elevation in angles]
+    if not views:
+        return np.zeros((0, size // FIDELITY_SUPERSAMPLE, size // FIDELITY_SUPERSAMPLE), np.float32)
+    return shared_renderer(int(plan.layout["tile_size"])).shader_coverage(views, scene.positions, scene.faces, scene.triangle_material,
+                                                                          len(scene.diffuse_runtime or scene.diffuse), FIDELITY_SUPERSAMPLE)
 
 
 def mesh_references(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]], with_coverage: bool = False) -> np.ndarray:
