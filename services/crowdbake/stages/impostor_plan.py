@@ -8,9 +8,10 @@ probes in crowdbake.stages.impostor_probe): `impostor_budget_mib` for one clip, 
 for several. `impostor_choice` rule (or several clips without an archetype budget) keeps
 crowdbake.stages.poses.impostor_framing's rule.
 
-Three steps, three plan nodes: stage_impostor_scene (the high LOD at every pose frame, in
+Four steps, four plan nodes: stage_impostor_scene (the high LOD at every pose frame, in
 work/impostor-probes), stage_impostor_probe per probe item (the layout's tile, azimuth and ring probes;
-each range's frame ladder), which the local runner draws side by side, and stage_impostor_plan, the choice.
+each range's frame ladder), stage_impostor_check per option one clip shortlists (measured end to end),
+both of which the local runner draws side by side, and stage_impostor_plan, the choice.
 """
 from __future__ import annotations
 
@@ -213,10 +214,10 @@ def one_clip_shortlist(setting: ProbeSetting, candidates: list[impostor_layout.L
     return shortlist
 
 
-def check_score(setting: ProbeSetting, option: impostor_layout.LayoutOption) -> float:
-    """The end-to-end score of a shortlisted one-clip option (Prober.between_score)."""
-    return setting.prober.between_score(0, option.allocation.frames[0], option.tile, option.azimuths, setting.elevations,
-                                        setting.widest(option.tile))
+def check_score(setting: ProbeSetting, tile: int, azimuths: int, frames: list[int]) -> float:
+    """The end-to-end score of a one-clip option of `tile`² tiles, `azimuths` a ring and baked `frames`
+    (Prober.between_score, in the widest crop at that tile)."""
+    return setting.prober.between_score(0, list(frames), tile, azimuths, setting.elevations, setting.widest(tile))
 
 
 def measured_framing(setting: ProbeSetting, probed: dict[str, Any], probed_tables: list[dict[int, float]],
@@ -237,7 +238,7 @@ def measured_framing(setting: ProbeSetting, probed: dict[str, Any], probed_table
         chosen = impostor_layout.choose_layout(candidates)
     else:
         shortlist = one_clip_shortlist(setting, candidates, at_views)
-        scores = checks if checks is not None else [check_score(setting, option) for option in shortlist]
+        scores = checks if checks is not None else [check_score(setting, o.tile, o.azimuths, o.allocation.frames[0]) for o in shortlist]
         if len(scores) != len(shortlist):
             raise ValueError(f"{len(scores)} end-to-end scores for a shortlist of {len(shortlist)}")
         checked = [impostor_layout.measured(option, score) for option, score in zip(shortlist, scores)]
@@ -398,8 +399,7 @@ def stage_impostor_check(work: Path, item: dict[str, Any]) -> dict[str, Any]:
         pass
     setting = probe_setting(work)
     try:
-        ssim = setting.prober.between_score(0, [int(f) for f in item["frames"]], int(item["tile"]), int(item["azimuths"]), setting.elevations,
-                                            setting.widest(int(item["tile"])))
+        ssim = check_score(setting, int(item["tile"]), int(item["azimuths"]), [int(f) for f in item["frames"]])
     finally:
         setting.scene_at.close()
     document = {"key": key, "ssim": float(ssim), "seconds": round(time.perf_counter() - started, 3)}
