@@ -136,3 +136,31 @@ def test_one_clip_as_a_range_bakes_the_frames_the_rule_would(cycle_frames):
     ranges = one_clip_ranges(SimpleNamespace(cycle_frames=cycle_frames))
     for count in impostor_allocation.ladder(ranges.clips[0], 24):
         assert impostor_allocation.frames_at(ranges, 0, count) == impostor_frame_indices(cycle_frames, count)
+
+
+def test_a_probers_meshes_are_drawn_once_and_kept_within_their_bytes(monkeypatch):
+    """Prober.mesh draws a frame's probe views once for its reference and its maps' coverage, and keeps the
+    most recently used frames within MESH_CACHE_BYTES (a long range at a large tile would hold gigabytes)."""
+    import numpy as np
+
+    from crowdbake.bake.atlas import AtlasLayout
+    from crowdbake.stages import impostor_probe
+
+    drawn = []
+
+    def fake_references(scene, plan, angles, with_coverage=False):
+        drawn.append(scene)
+        return np.full((len(angles), 8, 8, 4 if with_coverage else 3), float(scene), dtype=np.float32)
+
+    monkeypatch.setattr(impostor_probe, "mesh_references", fake_references)
+    monkeypatch.setattr(impostor_probe, "MESH_CACHE_BYTES", 3 * 4 * 8 * 8 * 4 * 4)  # three frames of 4 views
+    prober = impostor_probe.Prober.__new__(impostor_probe.Prober)
+    prober.layout, prober.plan, prober.scene_at = AtlasLayout(8, (0.0, 90.0, 180.0, 270.0), (20.0,)), None, lambda frame: frame
+    prober._meshes = impostor_probe.OrderedDict()
+    assert prober.references(5).shape == (4, 8, 8, 3) and float(prober.mesh(5)[0, 0, 0, 3]) == 5.0
+    assert drawn == [5]  # the reference and the coverage come from one drawing
+    for frame in (6, 7, 5, 8):  # 5 used again: 6 is the least recently used when 8 comes
+        prober.mesh(frame)
+    assert drawn == [5, 6, 7, 8] and list(prober._meshes) == [7, 5, 8]
+    prober.mesh(6)
+    assert drawn == [5, 6, 7, 8, 6]

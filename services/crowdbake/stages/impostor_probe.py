@@ -15,6 +15,7 @@ Runs in the impostor plan, before any impostor task: the plan's frames are what 
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from dataclasses import replace
 from typing import Callable
 
@@ -34,6 +35,8 @@ from crowdbake.stages.runtime_fidelity import picture_at
 # probe's cost is about PROBE_AZIMUTHS x (2 PROBE_GAPS frames' maps + PROBE_GAPS references).
 PROBE_AZIMUTHS = 4
 PROBE_GAPS = 4
+# The probe views' meshes a Prober keeps for reuse (Prober.mesh): about 540 frames at 88², 16 at 512².
+MESH_CACHE_BYTES = 256 * 1024 * 1024
 
 
 def probe_layout(layout: AtlasLayout) -> AtlasLayout:
@@ -113,16 +116,21 @@ class Prober:
         self.scene_at = scene_at
         self.formats = {kind: formats[kind] for kind in ("normal", "uv", "surface")}
         self.seconds = 0.0
-        self._meshes: dict[int, np.ndarray] = {}
+        self._meshes: OrderedDict[int, np.ndarray] = OrderedDict()
 
     def mesh(self, frame: int) -> np.ndarray:
         """The mesh at pose frame `frame` from every probe view, with its coverage: (A, S, S, 4). A frame is
-        drawn once for every count that bakes it or scores a gap at it: the colour is its reference, the
-        alpha its maps' coverage."""
-        if frame not in self._meshes:
-            angles = [(a, self.layout.elevations_deg[0]) for a in self.layout.azimuths_deg]
-            self._meshes[frame] = mesh_references(self.scene_at(frame), self.plan, angles, with_coverage=True)
-        return self._meshes[frame]
+        drawn once for every count that bakes it or scores a gap at it (while MESH_CACHE_BYTES hold it):
+        the colour is its reference, the alpha its maps' coverage."""
+        if frame in self._meshes:
+            self._meshes.move_to_end(frame)
+            return self._meshes[frame]
+        angles = [(a, self.layout.elevations_deg[0]) for a in self.layout.azimuths_deg]
+        drawn = mesh_references(self.scene_at(frame), self.plan, angles, with_coverage=True)
+        self._meshes[frame] = drawn
+        while len(self._meshes) > 1 and sum(held.nbytes for held in self._meshes.values()) > MESH_CACHE_BYTES:
+            self._meshes.popitem(last=False)  # the least recently used: a long range at a large tile
+        return drawn
 
     def references(self, frame: int) -> np.ndarray:
         """The mesh at pose frame `frame` from every probe view: (A, S, S, 3)."""
