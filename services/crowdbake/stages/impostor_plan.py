@@ -21,7 +21,7 @@ import re
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -221,12 +221,12 @@ def check_score(setting: ProbeSetting, tile: int, azimuths: int, frames: list[in
 
 
 def measured_framing(setting: ProbeSetting, probed: dict[str, Any], probed_tables: list[dict[int, float]],
-                     checks: list[float] | None = None) -> tuple[AtlasLayout, list[int], dict]:
+                     between: Callable[[int, impostor_layout.LayoutOption], float] | None = None) -> tuple[AtlasLayout, list[int], dict]:
     """The layout, baked frames and budget account chosen by measuring (module docstring) from the probes
     (layout_probes, range_probes per range): the tile and azimuth count (crowdbake.bake.impostor_layout)
-    and every range's frames (impostor_allocation) within the budget (budget_of). checks: for one clip,
-    the shortlist's end-to-end scores (one_clip_shortlist order) where they were measured already
-    (stage_impostor_check); None: measured here."""
+    and every range's frames (impostor_allocation) within the budget (budget_of). between(k, option): for
+    one clip, the end-to-end score of the shortlist's k-th option (the plan reads stage_impostor_check's);
+    None: check_score here."""
     params, ranges, elevations, record = setting.params, setting.ranges, setting.elevations, setting.record
     several = setting.several
     budget_mib = budget_of(setting)
@@ -238,10 +238,10 @@ def measured_framing(setting: ProbeSetting, probed: dict[str, Any], probed_table
         chosen = impostor_layout.choose_layout(candidates)
     else:
         shortlist = one_clip_shortlist(setting, candidates, at_views)
-        scores = checks if checks is not None else [check_score(setting, o.tile, o.azimuths, o.allocation.frames[0]) for o in shortlist]
-        if len(scores) != len(shortlist):
-            raise ValueError(f"{len(scores)} end-to-end scores for a shortlist of {len(shortlist)}")
-        checked = [impostor_layout.measured(option, score) for option, score in zip(shortlist, scores)]
+        if between is None:
+            def between(_k: int, o: impostor_layout.LayoutOption) -> float:
+                return check_score(setting, o.tile, o.azimuths, o.allocation.frames[0])
+        checked = [impostor_layout.measured(option, between(k, option)) for k, option in enumerate(shortlist)]
         chosen = impostor_layout.choose_layout(checked)
     allocation = chosen.allocation
     frame_indices = allocation.frame_indices()
@@ -334,13 +334,11 @@ def probe_path(work: Path, item: dict[str, Any]) -> Path:
     return Path(work) / PROBES / f"{item['id']}.json"
 
 
-def stage_impostor_probe(work: Path, item: dict[str, Any]) -> dict[str, Any]:
-    """One probe item's scores (layout_probes, or range_probes of item["range"]) in
-    work/impostor-probes/<id>.json, kept for the same probe scene; returns them (JSON: counts and tiles as
-    text)."""
+def _kept_or_made(work: Path, item: dict[str, Any], key: str, make: Callable[[ProbeSetting], dict[str, Any]]) -> dict[str, Any]:
+    """work/impostor-probes/<id>.json of a probe or check item where it holds `key`; else make(setting) written
+    there with its key and seconds (JSON: counts and tiles as text). Returns the document."""
     started = time.perf_counter()
     path = probe_path(work, item)
-    key = stage_key("impostor-probe", WorkDir(work).key_of(PROBES), item["id"])
     try:
         stored = read_json(path)
         if stored.get("key") == key:
@@ -349,12 +347,21 @@ def stage_impostor_probe(work: Path, item: dict[str, Any]) -> dict[str, Any]:
         pass
     setting = probe_setting(work)
     try:
-        scores = layout_probes(setting) if item["id"] == "layout" else {"table": range_probes(setting, int(item["range"]))}
+        made = make(setting)
     finally:
         setting.scene_at.close()
-    document = json.loads(json.dumps({"key": key, **scores, "seconds": round(time.perf_counter() - started, 3)}))
+    document = json.loads(json.dumps({"key": key, **made, "seconds": round(time.perf_counter() - started, 3)}))
     write_json_atomic(path, document)
     return document
+
+
+def stage_impostor_probe(work: Path, item: dict[str, Any]) -> dict[str, Any]:
+    """One probe item's scores (layout_probes, or range_probes of item["range"]), kept for the same probe
+    scene (_kept_or_made)."""
+    def make(setting: ProbeSetting) -> dict[str, Any]:
+        return layout_probes(setting) if item["id"] == "layout" else {"table": range_probes(setting, int(item["range"]))}
+
+    return _kept_or_made(work, item, stage_key("impostor-probe", WorkDir(work).key_of(PROBES), item["id"]), make)
 
 
 def _probed(work: Path, items: list[dict[str, Any]]) -> tuple[dict[str, Any], list[dict[int, float]]]:
@@ -381,30 +388,22 @@ def check_items(work: Path) -> list[dict[str, Any]]:
         shortlist = one_clip_shortlist(setting, layout_candidates(setting, probed, tables), probed["at_views"])
     finally:
         setting.scene_at.close()
-    return [{"id": f"check-{k}", "tile": option.tile, "azimuths": option.azimuths, "frames": list(option.allocation.frames[0])}
-            for k, option in enumerate(shortlist)]
+    return [check_item(k, option) for k, option in enumerate(shortlist)]
+
+
+def check_item(k: int, option: impostor_layout.LayoutOption) -> dict[str, Any]:
+    """The k-th shortlisted option of one clip as a check item."""
+    return {"id": f"check-{k}", "tile": option.tile, "azimuths": option.azimuths, "frames": list(option.allocation.frames[0])}
 
 
 def stage_impostor_check(work: Path, item: dict[str, Any]) -> dict[str, Any]:
-    """One shortlisted option's end-to-end score (check_score) in work/impostor-probes/<id>.json, kept for the
-    same probe scene and option; returns {"key", "ssim", "seconds"}."""
-    started = time.perf_counter()
-    path = probe_path(work, item)
+    """One shortlisted option's end-to-end score (check_score), kept for the same probe scene and option
+    (_kept_or_made): {"key", "ssim", "seconds"}."""
+    def make(setting: ProbeSetting) -> dict[str, Any]:
+        return {"ssim": float(check_score(setting, int(item["tile"]), int(item["azimuths"]), [int(f) for f in item["frames"]]))}
+
     key = stage_key("impostor-check", WorkDir(work).key_of(PROBES), item["id"], item["tile"], item["azimuths"], *item["frames"])
-    try:
-        stored = read_json(path)
-        if stored.get("key") == key:
-            return stored
-    except (OSError, ValueError):
-        pass
-    setting = probe_setting(work)
-    try:
-        ssim = check_score(setting, int(item["tile"]), int(item["azimuths"]), [int(f) for f in item["frames"]])
-    finally:
-        setting.scene_at.close()
-    document = {"key": key, "ssim": float(ssim), "seconds": round(time.perf_counter() - started, 3)}
-    write_json_atomic(path, document)
-    return document
+    return _kept_or_made(work, item, key, make)
 
 
 def _counted(scores: dict[str, float]) -> dict[int, float]:
@@ -431,10 +430,11 @@ def stage_impostor_plan(work: Path, progress: Progress | None = None) -> StageOu
     try:
         if items:
             probed, tables = _probed(work, items)
-            checks = [float(stage_impostor_check(work, item)["ssim"]) for item in check_items(work)]
             setting = probe_setting(work)
             try:
-                layout, frame_indices, budget = measured_framing(setting, probed, tables, checks if checks else None)
+                # One clip's checks as their items left them (or measured now, where no runner ran them).
+                layout, frame_indices, budget = measured_framing(
+                    setting, probed, tables, lambda k, option: float(stage_impostor_check(work, check_item(k, option))["ssim"]))
             finally:
                 setting.scene_at.close()
             record = replace(record, layout=layout.to_manifest(), frame_indices=frame_indices, fidelity_frame=frame_indices[0], budget=budget)
