@@ -8,7 +8,10 @@ Each BUNDLE was baked with the archetype budget (`impostor_archetype_mib`), so i
 the probes' scores per clip and transition and frame count (crowdbake.stages.impostor_probe). For every
 budget, crowdbake.bake.impostor_allocation.allocate splits the frames as a bake at that budget would, and the
 table gives the MiB it stores and the probes' SSIM between baked frames: the worst range and the mean over
-ranges. No baking: the scores are the ones the bake measured. Prints a table, writes JSON and the plot.
+ranges. No baking: the scores are the ones the bake measured. Then the bundle as baked: its tile, azimuths
+and frames, and per range crowdview's shader halfway between views and frames against the mesh (the
+bundle's fidelity.json `runtime.ranges`), which also counts what the views lose. Prints tables, writes
+JSON and the plot.
 """
 from __future__ import annotations
 
@@ -49,6 +52,18 @@ def budget_curve(bundle: Path, budgets: list[float]) -> dict:
     return {"bundle": str(bundle), "baked": row(account["budget_mib"]), "curve": [row(budget) for budget in budgets]}
 
 
+def baked_fidelity(bundle: Path) -> dict:
+    """The bundle's chosen layout and, per range, crowdview's SSIM at baked views and halfway between views
+    and frames (mean over the cameras), with the worst range and the mean over ranges of the latter."""
+    memory = json.loads((bundle / "texture_memory.json").read_text())
+    ranges = json.loads((bundle / "fidelity.json").read_text())["runtime"].get("ranges") or []
+    between = {entry["name"]: round(entry["between_views"]["ssim_mean"], 4) for entry in ranges}
+    return {"chosen": memory["impostor"]["budget"]["chosen"],
+            "at_views": {entry["name"]: round(entry["at_views"]["ssim_mean"], 4) for entry in ranges},
+            "between": between, "worst": min(between.values(), default=None),
+            "mean": sum(between.values()) / len(between) if between else None}
+
+
 def plot(results: dict[str, dict], path: Path) -> None:
     import matplotlib
 
@@ -86,11 +101,22 @@ def main() -> None:
         if not path:
             raise SystemExit(f"bench_archetype_budget: {item!r} is not LABEL=BUNDLE")
         results[label] = budget_curve(Path(path), budgets)
+        results[label]["as_baked"] = baked_fidelity(Path(path))
     print(f"{'archetype':<16}{'budget':>8}{'MiB':>8}{'worst':>8}{'mean':>8}  frames per range")
     for label, result in results.items():
         for row in result["curve"]:
             frames = ", ".join(f"{name} {n}" for name, n in row["frames"].items())
             print(f"{label:<16}{row['budget_mib']:>8g}{row['mib']:>8.1f}{row['worst']:>8.3f}{row['mean']:>8.3f}  {frames}")
+    print("\nas baked: crowdview's shader halfway between views and frames, per range (fidelity.json)")
+    for label, result in results.items():
+        baked = result["as_baked"]
+        if baked["worst"] is None:
+            continue
+        chosen = baked["chosen"]
+        frames = chosen["frames"] if isinstance(chosen["frames"], int) else sum(chosen["frames"])
+        ranges = ", ".join(f"{name} {ssim:.3f}" for name, ssim in baked["between"].items())
+        print(f"{label:<16}{chosen['tile']}² x {chosen['azimuths']} azimuths x {frames} frames: worst {baked['worst']:.3f}, "
+              f"mean {baked['mean']:.3f} ({ranges})")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=1))
     if args.plot:

@@ -26,10 +26,19 @@ def test_the_tile_ladder_never_goes_below_the_tile_asked():
     assert layout.tile_ladder(88, 64) == [88]
 
 
-def test_the_azimuth_ladder_falls_in_steps_to_the_floor():
-    assert layout.azimuth_ladder(32) == [12, 16, 20, 24, 28, 32]
-    assert layout.azimuth_ladder(14) == [12, 14]
+def test_the_azimuth_ladder_falls_in_steps_to_the_floor_then_to_the_measured_floor():
+    assert layout.azimuth_ladder(32) == [8, 12, 16, 20, 24, 28, 32]
+    assert layout.azimuth_ladder(14) == [8, 12, 14]
     assert layout.azimuth_ladder(8) == [8]
+    assert layout.azimuth_ladder(6) == [6]
+
+
+def test_the_layout_probe_draws_the_rungs_from_the_rule_floor_up_as_before_and_the_measured_floor():
+    # From 12 up, every other rung and the top (what the probe drew when 12 was the floor), then 8 below.
+    assert layout.probed_azimuths(32) == [8, 12, 20, 28, 32]
+    assert layout.probed_azimuths(14) == [8, 12, 14]
+    assert layout.probed_azimuths(10) == [8, 10]
+    assert layout.probed_azimuths(8) == [8]
 
 
 def choose(at_views, azimuth_scores, table, budget_mib, elevation_loss=0.0):
@@ -65,6 +74,20 @@ def test_a_tight_budget_spends_on_what_the_probes_say_is_worth_more():
     views_dear, _ = choose(at_views, {12: 0.85, 16: 0.9, 24: 0.95, 32: 0.96}, frame_table(0.2), 6.0)
     assert views_cheap.azimuths < views_dear.azimuths
     assert views_cheap.allocation.counts[0] > views_dear.allocation.counts[0]
+
+
+def test_a_budget_too_tight_for_twelve_views_and_the_frames_a_fast_clip_needs_takes_eight():
+    """Several clips in one budget: where a fast clip loses more between frames than 8 views lose between
+    views, the choice goes below the rule's floor of 12 azimuths and spends the bytes on frames."""
+    at_views = {88: 0.96}
+    fast = {n: min(0.96, 0.3 + 0.04 * n) for n in FRAMES}
+    chosen, candidates = choose(at_views, {8: 0.88, 12: 0.9, 20: 0.93, 32: 0.95}, fast, 3.0)
+    assert chosen.azimuths == 8
+    twelve = max((o for o in candidates if o.azimuths == 12 and o.tile == 88), key=lambda o: o.margin)
+    assert chosen.allocation.counts[0] > twelve.allocation.counts[0] and chosen.margin > twelve.margin
+    # Where frames are cheap to do without, 8 views are never worth it.
+    slow, _ = choose(at_views, {8: 0.88, 12: 0.9, 20: 0.93, 32: 0.95}, frame_table(0.2), 3.0)
+    assert slow.azimuths > 8
 
 
 def test_the_losses_add_to_the_frames_score():

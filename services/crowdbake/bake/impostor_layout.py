@@ -43,6 +43,12 @@ BETWEEN_TARGET = 0.90
 # crowdview switches to the impostor where a character covers about a tile (1:1), so a smaller tile
 # would move the switch further away and draw more meshes, a cost no fidelity probe sees.
 TILE_STEPS = (1.0, 1.125, 1.25, 1.5)
+# The fewest azimuths the measured choice tries, below the rule's AZIMUTH_FLOOR: where a budget holds
+# several clips, frames can be worth more than views (the robot's three clips and three transitions at
+# 32 MiB: 8 azimuths and 78 frames score better in their worst range, and on the mean of them, than 12
+# and 52; docs/bake.md "Memory"). Below 8 (45 degrees a step) the reprojection between views turns
+# surfaces through more than a right angle's half and is not tried.
+MEASURED_AZIMUTH_FLOOR = 8
 
 
 def tile_ladder(asked: int, most: int) -> list[int]:
@@ -58,9 +64,19 @@ def tile_ladder(asked: int, most: int) -> list[int]:
 
 def azimuth_ladder(asked: int) -> list[int]:
     """Azimuth counts tried, ascending: the asked count and every AZIMUTH_STEP below it down to
-    AZIMUTH_FLOOR (or the asked count, when fewer)."""
+    AZIMUTH_FLOOR, then MEASURED_AZIMUTH_FLOOR (or only the asked count, when fewer)."""
     floor = min(AZIMUTH_FLOOR, asked)
-    return sorted({int(asked), *range(asked - AZIMUTH_STEP, floor - 1, -AZIMUTH_STEP)} | {floor})
+    ladder = {int(asked), *range(asked - AZIMUTH_STEP, floor - 1, -AZIMUTH_STEP)} | {floor}
+    return sorted(ladder | {min(MEASURED_AZIMUTH_FLOOR, asked)})
+
+
+def probed_azimuths(asked: int) -> list[int]:
+    """The counts of azimuth_ladder(asked) the layout probe draws: every other one from AZIMUTH_FLOOR up
+    and the top (impostor_allocation.probed_counts), and MEASURED_AZIMUTH_FLOOR below them, so that the
+    rungs from AZIMUTH_FLOOR up are probed and interpolated as when it was the floor."""
+    ladder = azimuth_ladder(asked)
+    upper = [count for count in ladder if count >= min(AZIMUTH_FLOOR, asked)]
+    return sorted(set(impostor_allocation.probed_counts(upper)) | {ladder[0]})
 
 
 def rising(table: dict[int, float]) -> dict[int, float]:

@@ -163,7 +163,7 @@ def layout_probes(setting: ProbeSetting) -> dict[str, Any]:
         at_views[tile] = prober.views_score(probe, probe_frame, cameras)
     ring = asked.elevations_deg[len(setting.elevations) // 2]
     azimuths = {}
-    for count in impostor_allocation.probed_counts(impostor_layout.azimuth_ladder(params.azimuths)):
+    for count in impostor_layout.probed_azimuths(params.azimuths):
         probe, cameras = azimuth_gap_probe(params.tile_size, count, ring, asked.crop)
         azimuths[count] = prober.views_score(probe, probe_frame, cameras)
     elevation = elevation_gap_probe(asked)
