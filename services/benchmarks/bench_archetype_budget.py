@@ -77,9 +77,13 @@ def plot(results: dict[str, dict], path: Path) -> None:
         axis.plot([r["mib"] for r in curve], [r["worst"] for r in curve], marker="v", linestyle="--", color=line.get_color(),
                   label=f"{label}: worst range")
         axis.scatter([result["baked"]["mib"]], [result["baked"]["mean"]], s=140, facecolors="none", edgecolors=line.get_color())
+        baked = result.get("as_baked") or {}
+        if baked.get("mean") is not None:  # what the views lose too: crowdview between views and frames
+            axis.scatter([result["baked"]["mib"]] * 2, [baked["mean"], baked["worst"]], marker="x", color=line.get_color(),
+                         label=f"{label} as baked, between views and frames: mean, worst")
     axis.axvline(32, color="grey", linewidth=0.8)
     axis.set_xlabel("impostor maps, MiB (every clip and transition)")
-    axis.set_ylabel("SSIM between baked frames (probes)")
+    axis.set_ylabel("SSIM against the mesh (lines: probes between baked frames)")
     axis.set_title("One impostor budget per archetype: memory against fidelity")
     axis.legend(fontsize=7)
     axis.grid(alpha=0.3)
