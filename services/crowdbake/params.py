@@ -254,8 +254,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               ("--elevations",), "DEG,...", minimum=-90.0, maximum=90.0, min_items=1, max_items=MAX_ELEVATIONS, distinct=True),
     ParamSpec("tile_size", "int", 88, "texels per impostor view side (a multiple of 4: BC1/BC2 blocks are 4x4 texels)",
               ("--tile", "--tile-size"), "PX", minimum=4, maximum=MAX_TILE_SIZE, multiple_of=4),
-    ParamSpec("impostor_budget_mib", "float", 16.0, "memory for one clip's impostor maps in MiB (the paper's 15): fewer azimuths (to 12), "
-              "then fewer frames, until they fit (docs/bake.md 'Memory')",
+    ParamSpec("impostor_budget_mib", "float", 16.0, "memory for one clip's impostor maps in MiB (the paper's 15), within which "
+              "impostor_choice picks the tile, azimuths and frames (docs/bake.md 'Memory')",
               ("--impostor-budget",), "MIB", optional=True, above_zero=True, maximum=4096.0),
     ParamSpec("impostor_archetype_mib", "float", 32.0, "MiB of impostor maps for all clips and transitions of a character of several "
               "clips, split among them by measuring (docs/bake.md 'Several clips'); null: impostor_budget_mib per clip",
