@@ -44,10 +44,10 @@ BETWEEN_TARGET = 0.90
 # would move the switch further away and draw more meshes, a cost no fidelity probe sees.
 TILE_STEPS = (1.0, 1.125, 1.25, 1.5)
 # The fewest azimuths the measured choice tries, below the rule's AZIMUTH_FLOOR: where a budget holds
-# several clips, frames can be worth more than views (the robot's three clips and three transitions at
-# 32 MiB: 8 azimuths and 78 frames score better in their worst range, and on the mean of them, than 12
-# and 52; docs/bake.md "Memory"). Below 8 (45 degrees a step) the reprojection between views turns
-# surfaces through more than a right angle's half and is not tried.
+# several clips, frames can be worth more than views (the robot's and the clips sample's three clips and
+# their transitions at 32 MiB score better in their worst range and on the mean at 8 azimuths than at 12:
+# services/benchmarks/LOG.md "Eight azimuths"). Below 8 (a 45 degree step) the two views a camera blends
+# see surfaces too different to reproject; not tried.
 MEASURED_AZIMUTH_FLOOR = 8
 
 
