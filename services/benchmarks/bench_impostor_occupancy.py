@@ -10,6 +10,7 @@ coverage (rgba16, uv32 or uvblock), per bundle, each as a share of the stored te
 
 - covered: the texels the character covers;
 - cell_boxes: each cell's own bounding rectangle, on 4-texel blocks (what per-cell rectangles would store);
+- cell_boxes_margin: the same, each grown by a block on every side (below);
 - view_boxes: per view, the rectangle holding it in every baked frame (what per-view rectangles would store);
 - view_boxes_margin: the same, each grown by a block on every side (the margin the crop keeps, so that a
   bilinear read at a cell's edge never reaches the next cell);
@@ -47,15 +48,18 @@ def block_box_area(mask: np.ndarray, margin: int = 0) -> int:
 def occupancy(coverage: np.ndarray) -> dict[str, float]:
     """coverage (F, V, H, W) bool: per baked frame and view, the cell's covered texels. Returns the shares
     of the F·V·H·W stored texels (module docstring): covered, cell_boxes, view_boxes, union_box, and
-    view_boxes_margin: each view's rectangle grown by a block on every side, the margin of dilated
-    background the crop keeps (bilinear reads at a cell's edge must not reach the next cell)."""
+    cell_boxes_margin and view_boxes_margin: each cell's or view's rectangle grown by a block on every side
+    within the cell, the margin of dilated background the crop keeps (bilinear reads at a cell's edge must
+    not reach the next cell)."""
     frames, views, height, width = coverage.shape
     stored = float(frames * views * height * width)
     cells = sum(block_box_area(coverage[f, v]) for f in range(frames) for v in range(views))
+    cells_margin = sum(block_box_area(coverage[f, v], 1) for f in range(frames) for v in range(views))
     per_view = sum(block_box_area(coverage[:, v].any(axis=0)) for v in range(views)) * frames
     per_view_margin = sum(block_box_area(coverage[:, v].any(axis=0), 1) for v in range(views)) * frames
     union = block_box_area(coverage.any(axis=(0, 1))) * frames * views
-    return {"covered": float(coverage.sum() / stored), "cell_boxes": cells / stored, "view_boxes": per_view / stored,
+    return {"covered": float(coverage.sum() / stored), "cell_boxes": cells / stored, "cell_boxes_margin": cells_margin / stored,
+            "view_boxes": per_view / stored,
             "view_boxes_margin": per_view_margin / stored, "union_box": union / stored}
 
 
@@ -94,7 +98,7 @@ def main() -> int:
         frames, views, height, width = coverage.shape
         results[label] = {"bundle": path, "frames": frames, "views": views, "cell": [width, height], "tile": impostor["tile_size"], **shares}
         print(f"{label}: {frames} frames x {views} views of {width}x{height} texels; covered {shares['covered']:.1%}, "
-              f"per-cell rectangles {shares['cell_boxes']:.1%}, per-view rectangles {shares['view_boxes']:.1%} "
+              f"per-cell rectangles {shares['cell_boxes']:.1%} ({shares['cell_boxes_margin']:.1%} with a block of margin), per-view rectangles {shares['view_boxes']:.1%} "
               f"({shares['view_boxes_margin']:.1%} with a block of margin), "
               f"one rectangle {shares['union_box']:.1%} of the stored texels")
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -27,6 +27,9 @@ def test_rectangles_are_counted_on_blocks_per_cell_per_view_and_for_all():
     assert shares["covered"] <= shares["cell_boxes"] <= shares["view_boxes"] <= shares["union_box"] <= 1.0
     # A block of margin, clipped to the cell: view 0's 12 x 12 grows to 16 x 16, view 1's 4 x 8 to 12 x 12.
     assert shares["view_boxes_margin"] == pytest.approx((16 * 16 + 12 * 12) * 2 / stored)
+    # Per cell, clipped at the cell's edge: block 0 grows to 0..8 (8 x 8), block 2 to 4..16 (12 x 12), the 4 x 8
+    # (rows 4..8, columns 0..8) to rows 0..12 and columns 0..12.
+    assert shares["cell_boxes_margin"] == pytest.approx((8 * 8 + 12 * 12 + 12 * 12) / stored)
 
 
 def test_a_baked_bundles_cells_are_read_as_the_atlas_lays_them_out(small_bake):
