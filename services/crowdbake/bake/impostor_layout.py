@@ -45,9 +45,9 @@ BETWEEN_TARGET = 0.90
 TILE_STEPS = (1.0, 1.125, 1.25, 1.5)
 # The fewest azimuths the measured choice tries, below the rule's AZIMUTH_FLOOR: where a budget holds
 # several clips, frames can be worth more than views (the robot's and the clips sample's three clips and
-# their transitions at 32 MiB score better in their worst range and on the mean at 8 azimuths than at 12:
-# services/benchmarks/LOG.md "Eight azimuths"). Below 8 (a 45 degree step) the two views a camera blends
-# see surfaces too different to reproject; not tried.
+# their transitions at 32 MiB score better in their worst range and on the mean at 8 azimuths than at 12).
+# Offered 6 as well, both still choose 8: 6 loses too much between views (services/benchmarks/LOG.md
+# "Eight azimuths").
 MEASURED_AZIMUTH_FLOOR = 8
 
 
@@ -72,8 +72,8 @@ def azimuth_ladder(asked: int) -> list[int]:
 
 def probed_azimuths(asked: int) -> list[int]:
     """The counts of azimuth_ladder(asked) the layout probe draws: every other one from AZIMUTH_FLOOR up
-    and the top (impostor_allocation.probed_counts), and MEASURED_AZIMUTH_FLOOR below them, so that the
-    rungs from AZIMUTH_FLOOR up are probed and interpolated as when it was the floor."""
+    and the top (impostor_allocation.probed_counts), and MEASURED_AZIMUTH_FLOOR below them: a choice of 12
+    or more azimuths rests on the same probes whether or not the ladder goes below AZIMUTH_FLOOR."""
     ladder = azimuth_ladder(asked)
     upper = [count for count in ladder if count >= min(AZIMUTH_FLOOR, asked)]
     return sorted(set(impostor_allocation.probed_counts(upper)) | {ladder[0]})
