@@ -76,9 +76,11 @@ def test_crops_off_blocks_or_outside_the_tile_are_refused():
             AtlasLayout(16, (0.0,), (0.0,), crop=crop)
 
 
-@pytest.mark.parametrize("box, expected", [
-    (((30.2, 3.0), (97.9, 120.5)), (24, 0, 80, 128)),   # margin 4, out to 4-texel blocks, clamped to the tile
-    (((60.0, 60.0), (61.0, 61.0)), (56, 56, 12, 12)),
+@pytest.mark.parametrize("box, margin, expected", [
+    (((30.2, 3.0), (97.9, 120.5)), 0, (28, 0, 72, 124)),  # out to 4-texel blocks, no margin
+    (((30.2, 3.0), (97.9, 120.5)), 4, (24, 0, 80, 128)),  # margin 4, clamped to the tile
+    (((60.0, 60.0), (61.0, 61.0)), 0, (60, 60, 4, 4)),
+    (((60.0, 60.0), (61.0, 61.0)), 4, (56, 56, 12, 12)),
 ])
-def test_silhouette_crop_holds_the_box_with_its_margin_on_blocks(box, expected):
-    assert silhouette_crop(np.array(box[0]), np.array(box[1]), 128) == expected
+def test_silhouette_crop_holds_the_box_and_its_margin_on_blocks(box, margin, expected):
+    assert silhouette_crop(np.array(box[0]), np.array(box[1]), 128, margin) == expected

@@ -123,13 +123,14 @@ def uncrop_tile(layout: AtlasLayout, cell: np.ndarray, edge: bool = False) -> np
     return np.pad(cell, pad, mode="edge") if edge else np.pad(cell, pad)
 
 
-def silhouette_crop(xy_min: np.ndarray, xy_max: np.ndarray, tile_size: int, margin: int = 4) -> tuple[int, int, int, int]:
+def silhouette_crop(xy_min: np.ndarray, xy_max: np.ndarray, tile_size: int, margin: int = 0) -> tuple[int, int, int, int]:
     """The crop (x, y, width, height) in tile texels holding the box [xy_min, xy_max] (texel-space x right,
     y down, as crowdbake.bake.impostor_views.project gives them, over every view and frame) with `margin`
     texels around it, on 4-texel blocks, inside the tile.
 
-    The margin keeps the dilated background beside the silhouette that bilinear reads of the surface map
-    and block compression rely on (SPEC.md "Impostor maps")."""
+    No margin by default: every reader clamps its reads to the cell (crowdview's bilinear reads to the
+    cell's outer texel centres, which repeat the dilated background as a margin would; nearest reads test
+    the crop), so texels of background beyond the box would only take memory from frames and views."""
     low = np.floor(np.asarray(xy_min, dtype=np.float64)) - margin
     high = np.ceil(np.asarray(xy_max, dtype=np.float64)) + margin
     x0, y0 = (int(max(0, (v // 4) * 4)) for v in low)
