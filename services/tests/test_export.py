@@ -24,7 +24,9 @@ from repo_paths import REPO_ROOT, SHARED_ASSETS
 from crowdbake.cli import main as cli_main
 from crowdbake.bake import compression
 from crowdbake.export import ktx2
-from crowdbake.export.textures import layer_digest, model_space_normal_bc1, model_space_normals, rgba8_layers
+from crowdbake.export.textures import (
+    IMPOSTOR_NORMAL_ZSTD_LEVEL, layer_digest, model_space_normal_bc1, model_space_normals, rgba8_layers,
+)
 from crowdbake.export.vat import VertexAnimation, decode_vat, vat_layout
 from crowdbake.export.animations import animation_plans
 from crowdbake.formats.bundle import verify_bundle
@@ -601,6 +603,16 @@ def test_rgba8_export_decodes_the_blocks_and_is_larger(sample_bundle, sample_exp
         level_bc = int.from_bytes((sample_export / path).read_bytes()[96:104], "little")
         level_rgba8 = int.from_bytes((sample_export_rgba8 / path).read_bytes()[96:104], "little")
         assert level_rgba8 == ratio * level_bc, path
+
+
+def test_the_impostor_normal_map_is_compressed_harder_than_the_other_textures(sample_export):
+    """Its BC1 blocks take zstd at IMPOSTOR_NORMAL_ZSTD_LEVEL (the robot's zip fits 10 MB by it): the stored
+    level is that level's frame of the blocks, and smaller than ktx2.ZSTD_LEVEL's."""
+    data = (sample_export / "impostor" / "normal.ktx2").read_bytes()
+    _, length, _ = ktx2._LEVEL.unpack_from(data, ktx2.HEADER_BYTES)  # the level as stored
+    blocks = ktx2.decode_ktx2(data).blocks.tobytes()
+    assert length == len(ktx2.zstd_compress(blocks, IMPOSTOR_NORMAL_ZSTD_LEVEL))
+    assert length < len(ktx2.zstd_compress(blocks, ktx2.ZSTD_LEVEL))
 
 
 def test_the_surface_map_is_exported_only_when_asked(sample_bundle, sample_export, tmp_path):
