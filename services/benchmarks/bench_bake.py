@@ -4,7 +4,8 @@
         [--sample DIR] [--out out/bench/bake.json] [--against-rule RUNS]
 
 Bakes, each case in a fresh process (so that imports and peak memory are its own), with the bake's
-defaults (10 frames x 16 azimuths x 3 elevations of 128² texels):
+defaults (tiles of 88², up to 32 azimuths x 3 elevations, frames and views chosen by measuring within
+the impostor budget):
 
 - sample: the procedural sample (`crowdbake sample`: a walking character in a loose skirt, 8 diffuse
   variations of 1024²), generated into out/bench/sample unless --sample names one;
