@@ -48,6 +48,12 @@
 #define CV_SURFACE_DEPTH_RANGE 1.0
 #define CV_SURFACE_MOTION_RANGE 0.5
 #define CV_WARP_ITERATIONS 4
+// Before those steps the pixel's ray is marched through the source view's depth from the camera's side,
+// one step for each tile texel its point crosses in the source tile (tile size times the sine of the
+// angle between the two views) and at most CV_MARCH_STEPS, then halved CV_MARCH_REFINE times
+// (crowdbake.reference.impostor_warp MARCH_STEPS, MARCH_REFINE).
+#define CV_MARCH_STEPS 48
+#define CV_MARCH_REFINE 4
 #define CV_MAX_AZIMUTHS 64
 #define CV_MAX_ELEVATIONS 9
 

@@ -56,13 +56,20 @@ void main() {
         float fraction = v_layers[0] == v_layers[1] ? 0.0 : (j == 0 ? v_frame_weight : v_frame_weight - 1.0);  // see impostor_uv
         for (int i = 0; i < CV_VIEW_SAMPLES; ++i) {
             float share, miss;
-            ivec3 texel = sample_texel(ivec2(v_tile_x[i], v_tile_y[i]), v_layers[j], pixel, target, fraction, share, miss);
+            vec2 point;
+            ivec2 origin = ivec2(v_tile_x[i], v_tile_y[i]);
+            ivec3 texel = sample_texel(origin, v_layers[j], pixel, target, fraction, share, miss, point);
             if (texel.x < 0 || !fetch_uv_map(texel).covered) continue;
             vec4 detail = texelFetch(u_detail_map, texel, 0);
             vec3 colour = detail.rgb;
             int region = int(detail.a * 255.0 / CV_REGION_SCALE + 0.5);
             if (region != 0) colour *= texelFetch(u_outfits, ivec2(region, int(v_outfit)), 0).rgb;
-            add_sample(blend, v_view_weights[i] * frame_weight * share, miss, colour, sample_normal(texel));
+#if CV_WARP
+            vec3 normal = filtered_normal(origin, point, v_layers[j]);  // as the UV impostor's (impostor_warp.glsl)
+#else
+            vec3 normal = sample_normal(texel);
+#endif
+            add_sample(blend, v_view_weights[i] * frame_weight * share, miss, colour, normal);
         }
     }
     float alpha = edge_alpha(blend.coverage);  // see impostor_uv.frag.glsl

@@ -70,6 +70,26 @@ vec3 albedo_at(UvTexel t, vec2 dx, vec2 dy) {
     return albedo;
 }
 
+#if CV_WARP
+// The colour read bilinearly round `point` (tile texels) in the sample's cell, over the taps the character
+// covers (a background tap has no texture coordinate); `nearest` where none is. Each tap looks the diffuse
+// up with its own coordinate at the sample's gradients.
+vec3 filtered_albedo(ivec2 origin, vec2 point, int layer, vec3 nearest, vec2 dx, vec2 dy) {
+    ivec2 texels[4];
+    vec4 w = bilinear_taps(point, texels);
+    vec3 albedo = vec3(0.0);
+    float sum = 0.0;
+    for (int k = 0; k < 4; ++k) {
+        UvTexel t = fetch_uv_map(ivec3(origin + texels[k], layer));
+        if (t.covered && w[k] > 0.0) {
+            albedo += w[k] * albedo_at(t, dx, dy);
+            sum += w[k];
+        }
+    }
+    return sum > 0.0 ? albedo / sum : nearest;
+}
+#endif
+
 void main() {
     vec2 pixel = v_tile_uv * float(u_tile_size);
     ViewBasis target = view_basis(v_to_camera);
@@ -85,13 +105,23 @@ void main() {
         float fraction = v_layers[0] == v_layers[1] ? 0.0 : (j == 0 ? v_frame_weight : v_frame_weight - 1.0);
         for (int i = 0; i < CV_VIEW_SAMPLES; ++i) {
             float share, miss;
-            ivec3 texel = sample_texel(ivec2(v_tile_x[i], v_tile_y[i]), v_layers[j], pixel, target, fraction, share, miss);
+            vec2 point;
+            ivec2 origin = ivec2(v_tile_x[i], v_tile_y[i]);
+            ivec3 texel = sample_texel(origin, v_layers[j], pixel, target, fraction, share, miss, point);
             UvTexel t = fetch_uv_map(max(texel, ivec3(0)));
             t.covered = t.covered && texel.x >= 0;
             vec2 dx = dFdx(t.uv), dy = dFdy(t.uv);
             dx *= min(1.0, limit / max(length(dx), 1e-9));
             dy *= min(1.0, limit / max(length(dy), 1e-9));
-            if (t.covered) add_sample(blend, v_view_weights[i] * frame_weight * share, miss, albedo_at(t, dx, dy), sample_normal(texel));
+            if (t.covered) {
+#if CV_WARP
+                vec3 albedo = filtered_albedo(origin, point, v_layers[j], albedo_at(t, dx, dy), dx, dy);
+                vec3 normal = filtered_normal(origin, point, v_layers[j]);
+#else
+                vec3 albedo = albedo_at(t, dx, dy), normal = sample_normal(texel);
+#endif
+                add_sample(blend, v_view_weights[i] * frame_weight * share, miss, albedo, normal);
+            }
         }
     }
     // Where the samples' silhouettes disagree the pixel is partly transparent (edge_alpha), blended

@@ -54,7 +54,9 @@ class DecodedTile:
     normal: (S, S, 3) float64 model-space unit normals (the decoded normal map); share: (S, S) float64
     0..1, the part of each pixel the sample's silhouette covers (the surface map's alpha, SPEC.md
     "Impostor maps"), or None: all of every covered pixel; miss: (S, S) target texels the reprojection
-    still missed by at its last step (impostor_warp.reproject), or None: not reprojected.
+    still missed by at its last step (impostor_warp.reproject), or None: not reprojected; taps: the four
+    texels round each reprojected point with their bilinear weights ((S, S) weight, tile) (impostor_warp.
+    bilinear_taps), whose normals and colours crowdview blends for the sample's, or None: the texel's own.
     """
 
     uv: np.ndarray
@@ -63,6 +65,7 @@ class DecodedTile:
     normal: np.ndarray
     share: np.ndarray | None = None
     miss: np.ndarray | None = None
+    taps: tuple | None = None
 
 
 def trust(miss: np.ndarray | None) -> np.ndarray | float:
@@ -119,8 +122,10 @@ def sample_trilinear(chain: list[np.ndarray], uv: np.ndarray, lod: np.ndarray) -
 
 
 def albedo(tile: DecodedTile, diffuse: list[np.ndarray], chains: list[list[np.ndarray]], outfit_row: np.ndarray,
-           tile_size: int) -> np.ndarray:
-    """(S, S, 3) outfit-coloured diffuse 0..1 of one tile's covered texels (0 elsewhere), as the shader's albedo_at."""
+           tile_size: int, lod_uv: np.ndarray | None = None) -> np.ndarray:
+    """(S, S, 3) outfit-coloured diffuse 0..1 of one tile's covered texels (0 elsewhere), as the shader's
+    albedo_at; lod_uv: the (S, S, 2) coordinates whose screen differences set the mip level (None: the
+    tile's own; a bilinear tap looks up at its sample's level, as filtered_albedo)."""
     out = np.zeros(tile.uv.shape[:2] + (3,))
     covered = tile.covered
     if not covered.any():
@@ -134,7 +139,7 @@ def albedo(tile: DecodedTile, diffuse: list[np.ndarray], chains: list[list[np.nd
         if not chosen.any():
             continue
         if texture.shape[:2] not in lods:
-            lods[texture.shape[:2]] = lookup_lod(tile.uv, texture.shape[:2], tile_size)[covered]
+            lods[texture.shape[:2]] = lookup_lod(tile.uv if lod_uv is None else lod_uv, texture.shape[:2], tile_size)[covered]
         lod = lods[texture.shape[:2]][chosen]
         texels[chosen, :3] = sample_trilinear(chains[index], uv[chosen], lod)
         height, width = texture.shape[:2]
@@ -144,6 +149,26 @@ def albedo(tile: DecodedTile, diffuse: list[np.ndarray], chains: list[list[np.nd
         texels[chosen, 3] = texture[y, x, 3]  # region codes: the texel's own, unfiltered
     out[covered] = shading.apply_outfit(texels, outfit_row)
     return out
+
+
+def sample_albedo_and_normal(tile: DecodedTile, diffuse: list[np.ndarray], chains: list[list[np.ndarray]],
+                              outfit_row: np.ndarray, tile_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """A sample's (S, S, 3) albedo and unnormalised normal where it is covered (0 elsewhere): its texel's
+    own, or with `taps` the bilinear blend of the four round its point (impostor_uv.frag.glsl
+    filtered_albedo: over the taps the character covers, the texel's own where none is; impostor_warp.glsl
+    filtered_normal: over all four, the normal map being filled into the background)."""
+    own = albedo(tile, diffuse, chains, outfit_row, tile_size)
+    if tile.taps is None:
+        return own, np.where(tile.covered[..., None], tile.normal, 0.0)
+    colour, weights, normal = np.zeros_like(own), np.zeros(own.shape[:2]), np.zeros_like(own)
+    for weight, tap in tile.taps:
+        counted = weight * (tap.covered & (weight > 0))
+        colour += counted[..., None] * albedo(tap, diffuse, chains, outfit_row, tile_size, lod_uv=tile.uv)
+        weights += counted
+        normal += weight[..., None] * tap.normal
+    colour = np.where((weights > 0)[..., None], colour / np.maximum(weights, 1e-300)[..., None], own)
+    covered = tile.covered[..., None]
+    return np.where(covered, colour, 0.0), np.where(covered, normal, 0.0)
 
 
 def blend_image(samples: list[tuple[float, DecodedTile]], diffuse: list[np.ndarray], outfit_row: np.ndarray,
@@ -168,8 +193,7 @@ def blend_image(samples: list[tuple[float, DecodedTile]], diffuse: list[np.ndarr
         sure = w * trust(tile.miss)
         coverage += w
         trusted += sure
-        sample_colour = albedo(tile, diffuse, chains, outfit_row, tile_size)
-        sample_normal = np.where(tile.covered[..., None], tile.normal, 0.0)
+        sample_colour, sample_normal = sample_albedo_and_normal(tile, diffuse, chains, outfit_row, tile_size)
         colour += w[..., None] * sample_colour
         normal += w[..., None] * sample_normal
         trusted_colour += sure[..., None] * sample_colour

@@ -9,8 +9,12 @@ runtime can only gather, so the reprojection is inverted per screen pixel by a f
 centre, read the tile's depth (and motion) there, move the surface point to the frame, project it to the
 camera, and shift the tile coordinate by the screen miss, mapped back into the tile's axes. Depth and
 motion are dilated into the background (the nearest inside texel's), so every step reads a value, and
-read bilinearly; the UV map, material, coverage and normal are then read at the final texel, nearest, as
-crowdview reads them. Pure numpy; positions in model-space metres, coordinates in texels.
+read bilinearly. The iteration converges to the surface nearest its start, which at a depth jump (an arm
+before the torso) need not be the one the camera sees; with the tile's coverage known, it starts where the
+pixel's ray, marched from the camera's side, first passes behind a covered texel's surface (first_hit). The
+UV map, material and coverage are then read at the final texel, nearest, as crowdview reads them, and the
+normal and colour also at the four texels round the point (`taps`: crowdview's filtered_normal and
+filtered_albedo). Pure numpy; positions in model-space metres, coordinates in texels.
 """
 from __future__ import annotations
 
@@ -24,6 +28,10 @@ from crowdbake.bake.impostor_views import OrthoView
 # Fixed-point steps: at halfway between 32 azimuths (5.6°) or 20° rings (10°) each step shrinks the miss by
 # about the camera angle's sine times the surface slope, so a few steps converge except at depth jumps.
 DEFAULT_ITERATIONS = 4
+# The march before them (runtime/src/config.h CV_MARCH_STEPS, CV_MARCH_REFINE): one step for each tile texel
+# the ray's points cross in the source tile, at most MARCH_STEPS, then MARCH_REFINE halvings.
+MARCH_STEPS = 48
+MARCH_REFINE = 4
 
 
 def _texel_scale(view: OrthoView) -> float:
@@ -82,23 +90,77 @@ def bilinear(field: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def reproject(source: OrthoView, depth: np.ndarray, target: OrthoView, motion: np.ndarray | None = None,
-              fraction: float = 0.0, iterations: int = DEFAULT_ITERATIONS) -> tuple[np.ndarray, np.ndarray]:
+              fraction: float = 0.0, iterations: int = DEFAULT_ITERATIONS, coverage: np.ndarray | None = None,
+              crop: tuple[int, int, int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Where each target pixel finds its surface point in the source tile.
 
     source, target: views of one size S; depth: (S, S) metres along source.back from the centre, dilated
     into the background; motion: optional (S, S, 3) metres each texel's surface point moves to the other
-    baked frame, dilated likewise, applied times `fraction`. Returns (S, S, 2) source texel coordinates and
-    (S, S) the remaining screen miss in target texels.
+    baked frame, dilated likewise, applied times `fraction`; coverage: optional (S, S) 0..1, the character's
+    share of each texel: with it the fixed-point steps start at the ray's first hit (first_hit), within
+    `crop` (x, y, width, height tile texels; None: the whole tile). Returns (S, S, 2) source texel
+    coordinates and (S, S) the remaining screen miss in target texels.
     """
     field = depth if motion is None or not fraction else np.concatenate(
         [depth[..., None], fraction * (motion @ np.stack([source.right, source.up, source.back]).T)], axis=-1)
-    return reproject_planes(source, field_planes(field), depth.shape[1], target, iterations)
+    march = None if coverage is None else (field_planes(np.stack([depth, coverage], axis=-1)), crop or (0, 0, depth.shape[1], depth.shape[0]))
+    return reproject_planes(source, field_planes(field), depth.shape[1], target, iterations, march)
+
+
+def tile_points(view: OrthoView, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tile texel coordinates (x, y), each (...), of model-space offsets (..., 3) from the bounds centre."""
+    scale = _texel_scale(view)
+    return (offsets @ view.right + view.radius) * scale, (view.radius - offsets @ view.up) * scale
+
+
+def first_hit(source: OrthoView, target: OrthoView, planes: np.ndarray, width: int, crop: tuple[int, int, int, int],
+              start: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Where each target pixel's ray first passes behind the surface of a covered source texel (as
+    impostor_warp.glsl first_hit): marched from the camera's side of the bounds (depth +radius along
+    target.back) to the far side, one step for each source texel the ray's points cross (the tile size
+    times the sine of the angle between the views; 1 to MARCH_STEPS), then MARCH_REFINE halvings; the last
+    point in front of the surface is returned, `start` (x, y) where the ray never passes behind one.
+    planes: the source's depth (metres along source.back) and coverage (0..1) as (2, S·S) planes."""
+    size, radius = target.size, target.radius
+    rows, columns = np.mgrid[0:size, 0:size]
+    scale = _texel_scale(target)
+    on_plane = (columns + 0.5)[..., None] / scale * target.right - radius * target.right \
+        + (radius - (rows + 0.5) / scale)[..., None] * target.up
+    low = np.array(crop[:2], dtype=np.float64)
+    high = low + np.array(crop[2:], dtype=np.float64)
+
+    def behind(depth: np.ndarray) -> np.ndarray:
+        points = on_plane + depth[..., None] * target.back
+        x, y = tile_points(source, points)
+        inside = (x >= low[0]) & (y >= low[1]) & (x < high[0]) & (y < high[1])
+        surface, share = bilinear_planes(planes, width, np.clip(x, low[0] + 0.5, high[0] - 0.5), np.clip(y, low[1] + 0.5, high[1] - 0.5))
+        return inside & (share > 0.5) & (points @ source.back <= surface)
+
+    reach = radius  # the surface map's depth codes span +-DEPTH_RANGE (1) times the radius
+    steps = int(np.clip(np.ceil(size * np.linalg.norm(np.cross(source.back, target.back))), 1, MARCH_STEPS))
+    found = np.zeros((size, size), dtype=bool)
+    front, back = np.full((size, size), reach), np.full((size, size), reach)
+    before = reach
+    for n in range(1, steps + 1):
+        depth = reach - 2.0 * reach * n / steps
+        hit = ~found & behind(np.full((size, size), depth))
+        front[hit], back[hit] = before, depth
+        found |= hit
+        before = depth
+    for _ in range(MARCH_REFINE):
+        middle = 0.5 * (front + back)
+        passed = behind(middle)
+        back, front = np.where(passed, middle, back), np.where(passed, front, middle)
+    x, y = tile_points(source, on_plane + front[..., None] * target.back)
+    return np.where(found, x, start[0]), np.where(found, y, start[1])
 
 
 def reproject_planes(source: OrthoView, planes: np.ndarray, width: int, target: OrthoView,
-                     iterations: int = DEFAULT_ITERATIONS) -> tuple[np.ndarray, np.ndarray]:
+                     iterations: int = DEFAULT_ITERATIONS,
+                     march: tuple[np.ndarray, tuple[int, int, int, int]] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """reproject with the source's fields as (C, S·S) planes (field_planes): depth, then optionally the
-    motion times the fraction along the source's right, up and (optionally) back. Returns the same.
+    motion times the fraction along the source's right, up and (optionally) back; march: the depth and
+    coverage planes and the crop for first_hit (None: start on the centre plane). Returns the same.
 
     The views' axes are constant, so the surface point is kept as its coordinates along the source's
     right, up and back, and the screen miss of a step is an affine function of the texel coordinate and
@@ -117,6 +179,8 @@ def reproject_planes(source: OrthoView, planes: np.ndarray, width: int, target: 
     start = plane_right[..., None] * target.right + plane_up[..., None] * target.up
     x = (start @ source.right + radius) * scale
     y = (radius - start @ source.up) * scale
+    if march is not None:
+        x, y = first_hit(source, target, march[0], width, march[1], (x, y))
     # A point at source texel (x, y) plus (right, up, back) metres lands at target texel
     #   (on_right · (x/s - r + right, r - y/s + up, back) + r) · s  across, and
     #   (r - on_up · (...)) · s  down; the miss is the pixel minus that.
@@ -160,13 +224,33 @@ def motion_fraction(layer: int, frames: FrameWeights) -> float:
     return frames.weight if layer == frames.layers[0] else -(1.0 - frames.weight)
 
 
+def bilinear_taps(tile: DecodedTile, xy: np.ndarray, crop: tuple[int, int, int, int]) -> tuple[tuple[np.ndarray, DecodedTile], ...]:
+    """The four texels round each (S, S, 2) texel coordinate (top left, top right, bottom left, bottom
+    right, clamped to `crop`), each gathered (gather) with its (S, S) bilinear weight: what crowdview's
+    filtered_normal and filtered_albedo read (impostor_warp.glsl bilinear_taps)."""
+    q = xy - 0.5
+    corner = np.floor(q)
+    fx, fy = q[..., 0] - corner[..., 0], q[..., 1] - corner[..., 1]
+    x0, y0, width, height = crop
+    taps = []
+    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        x = np.clip(corner[..., 0] + dx, x0, x0 + width - 1)
+        y = np.clip(corner[..., 1] + dy, y0, y0 + height - 1)
+        weight = (fx if dx else 1.0 - fx) * (fy if dy else 1.0 - fy)
+        taps.append((weight, gather(tile, np.stack([x + 0.5, y + 0.5], axis=-1))))
+    return tuple(taps)
+
+
 def warp_tile(tile: DecodedTile, source: OrthoView, surface: tuple[np.ndarray, np.ndarray], target: OrthoView,
-              fraction: float, iterations: int = DEFAULT_ITERATIONS, coverage: np.ndarray | None = None) -> DecodedTile:
+              fraction: float, iterations: int = DEFAULT_ITERATIONS, coverage: np.ndarray | None = None,
+              crop: tuple[int, int, int, int] | None = None) -> DecodedTile:
     """A (view, frame) sample as crowdview draws it with reprojection: `tile` gathered where each pixel of
-    the `target` view finds its surface point. surface: the tile's (depth (S, S), motion (S, S, 2)) metres,
-    decoded from the bundle's surface map (crowdbake.bake.surface_maps.decode_surface); coverage: its
-    (S, S) alpha, 0..1, read bilinearly at the same points as the sample's share. At the sample's own view
-    and frame the reprojection is the identity, and the tile is returned as it is."""
+    the `target` view finds its surface point, with the four texels round it (`taps`). surface: the tile's
+    (depth (S, S), motion (S, S, 2)) metres, decoded from the bundle's surface map
+    (crowdbake.bake.surface_maps.decode_surface); coverage: its (S, S) alpha, 0..1 (None: all 1, as a bc1
+    surface map reads), read bilinearly at the same points as the sample's share and marched through
+    (first_hit); crop: the stored part of the tile (x, y, width, height; None: all of it). At the sample's
+    own view and frame the reprojection is the identity, and the tile is returned as it is."""
     same_view = source.azimuth_deg == target.azimuth_deg and source.elevation_deg == target.elevation_deg
     if same_view and fraction == 0.0:
         return tile if coverage is None else replace(tile, share=np.asarray(coverage, np.float64))
@@ -175,6 +259,8 @@ def warp_tile(tile: DecodedTile, source: OrthoView, surface: tuple[np.ndarray, n
         planes = np.stack([depth.ravel(), fraction * motion[..., 0].ravel(), fraction * motion[..., 1].ravel()])
     else:
         planes = depth.reshape(1, -1)
-    xy, miss = reproject_planes(source, planes, depth.shape[1], target, iterations)
-    gathered = replace(gather(tile, xy), miss=miss)
+    crop = crop or (0, 0, depth.shape[1], depth.shape[0])
+    share = np.ones_like(depth) if coverage is None else np.asarray(coverage, np.float64)
+    xy, miss = reproject_planes(source, planes, depth.shape[1], target, iterations, (field_planes(np.stack([depth, share], axis=-1)), crop))
+    gathered = replace(gather(tile, xy), miss=miss, taps=bilinear_taps(tile, xy, crop))
     return gathered if coverage is None else replace(gathered, share=bilinear(coverage, xy))

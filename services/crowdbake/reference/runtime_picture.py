@@ -103,7 +103,8 @@ def sample_tile(tiles: AtlasTiles, tile: int, layer: int, target: impostor_views
     source = impostor_views.ortho_view(target.center, target.radius, tiles.layout.azimuths_deg[tile % columns],
                                       tiles.layout.elevations_deg[tile // columns], target.size)
     *fields, coverage = surface
-    return impostor_warp.warp_tile(decoded, source, tuple(fields), target, impostor_warp.motion_fraction(layer, frames), coverage=coverage)
+    return impostor_warp.warp_tile(decoded, source, tuple(fields), target, impostor_warp.motion_fraction(layer, frames), coverage=coverage,
+                                   crop=tiles.layout.crop_box)
 
 
 def numpy_picture(atlas: RuntimeAtlas, tiles: AtlasTiles, picture: RuntimePicture, chains: list[list[np.ndarray]] | None = None) -> np.ndarray:
