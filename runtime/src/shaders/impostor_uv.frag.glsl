@@ -76,10 +76,11 @@ vec3 albedo_at(UvTexel t, vec2 dx, vec2 dy) {
 // up with its own coordinate at the sample's gradients.
 vec3 filtered_albedo(ivec2 origin, vec2 point, int layer, vec3 nearest, vec2 dx, vec2 dy) {
     ivec2 texels[4];
-    vec4 w = bilinear_taps(point, texels);
+    int count;
+    vec4 w = bilinear_taps(point, texels, count);
     vec3 albedo = vec3(0.0);
     float sum = 0.0;
-    for (int k = 0; k < 4; ++k) {
+    for (int k = 0; k < count; ++k) {
         UvTexel t = fetch_uv_map(ivec3(origin + texels[k], layer));
         if (t.covered && w[k] > 0.0) {
             albedo += w[k] * albedo_at(t, dx, dy);

@@ -108,25 +108,26 @@ bool behind_surface(ViewBasis s, ViewBasis t, vec3 o, float depth, ivec2 origin,
 // its points cross (at most CV_MARCH_STEPS), then refined by halving; `start` where it never does (the ray
 // misses what that view saw).
 vec2 first_hit(ViewBasis s, ViewBasis t, vec3 o, ivec2 origin, int layer, float k, vec2 start) {
+    float crossed = float(u_tile_size) * length(cross(s.back, t.back));  // texels the ray's points span in s
+    // The sample's own view: every depth lands on the start (no steps). Loops, not branches, skip the work:
+    // a software rasteriser runs both sides of a branch for its whole group of fragments.
+    int steps = crossed < 0.01 ? 0 : clamp(int(ceil(crossed)), 1, CV_MARCH_STEPS);
     float reach = CV_SURFACE_DEPTH_RANGE * u_radius;
-    int steps = clamp(int(ceil(float(u_tile_size) * length(cross(s.back, t.back)))), 1, CV_MARCH_STEPS);
-    float before = reach;
+    float front = reach, back = reach;
+    bool found = false;
     vec2 xy;
-    for (int n = 1; n <= steps; ++n) {
+    for (int n = 1; n <= steps && !found; ++n) {
         float depth = reach - 2.0 * reach * float(n) / float(steps);
-        if (behind_surface(s, t, o, depth, origin, layer, k, xy)) {
-            float front = before, back = depth;
-            for (int h = 0; h < CV_MARCH_REFINE; ++h) {
-                float middle = 0.5 * (front + back);
-                if (behind_surface(s, t, o, middle, origin, layer, k, xy)) back = middle; else front = middle;
-            }
-            // The last point still in front starts the fixed-point steps: nearer the camera's surface than the
-            // first behind it (the robot halfway between 8 azimuths: SSIM 0.854 against 0.849; services/benchmarks/LOG.md).
-            return tile_point(s, o + front * t.back, k);
-        }
-        before = depth;
+        found = behind_surface(s, t, o, depth, origin, layer, k, xy);
+        if (found) back = depth; else front = depth;
     }
-    return start;
+    for (int h = 0; h < (found ? CV_MARCH_REFINE : 0); ++h) {
+        float middle = 0.5 * (front + back);
+        if (behind_surface(s, t, o, middle, origin, layer, k, xy)) back = middle; else front = middle;
+    }
+    // The last point still in front starts the fixed-point steps: nearer the camera's surface than the
+    // first behind it (the robot halfway between 8 azimuths: SSIM 0.854 against 0.849; services/benchmarks/LOG.md).
+    return found ? tile_point(s, o + front * t.back, k) : start;
 }
 
 // Where `pixel` (target tile texels, x right, y down) finds its surface point in the source tile;
@@ -135,9 +136,13 @@ vec2 reproject(ViewBasis s, ViewBasis t, vec2 pixel, ivec2 origin, int layer, fl
     float k = float(u_tile_size) / (2.0 * u_radius);  // texels a metre
     vec3 o = (pixel.x / k - u_radius) * t.right + (u_radius - pixel.y / k) * t.up;
     vec2 xy = first_hit(s, t, o, origin, layer, k, tile_point(s, o, k));
+    // At the sample's own view and frame every step would land on the pixel: it is read as it is.
+    bool own = fraction == 0.0 && float(u_tile_size) * length(cross(s.back, t.back)) < 0.01;
+    xy = own ? pixel : xy;
+    miss = 0.0;
     // A screen miss (right, down) as a move in the source tile's (right, down).
     mat2 step = mat2(dot(t.right, s.right), -dot(t.right, s.up), -dot(t.up, s.right), dot(t.up, s.up));
-    for (int n = 0; n <= CV_WARP_ITERATIONS; ++n) {
+    for (int n = 0; n <= (own ? -1 : CV_WARP_ITERATIONS); ++n) {
         vec3 f = surface_at(origin, xy, layer);
         vec3 p = (xy.x / k - u_radius + fraction * f.y) * s.right + (u_radius - xy.y / k + fraction * f.z) * s.up + f.x * s.back;
         vec2 seen = vec2((dot(p, t.right) + u_radius) * k, (u_radius - dot(p, t.up)) * k);
@@ -172,12 +177,14 @@ ivec3 sample_texel(ivec2 origin, int layer, vec2 pixel, ViewBasis target, float 
 }
 
 // The bilinear weights (x, y, z, w) of the four tile texels round tile texel coordinate `point` (top left,
-// top right, bottom left, bottom right; clamped to the crop).
-vec4 bilinear_taps(vec2 point, out ivec2 texels[4]) {
+// top right, bottom left, bottom right; clamped to the crop); `count`: the taps to read, 1 at a texel's
+// centre (its own, weight 1), else 4.
+vec4 bilinear_taps(vec2 point, out ivec2 texels[4], out int count) {
     vec2 q = point - 0.5;
     ivec2 corner = ivec2(floor(q));
     vec2 f = q - vec2(corner);
     for (int n = 0; n < 4; ++n) texels[n] = clamp(corner + ivec2(n % 2, n / 2), u_crop.xy, u_crop.xy + u_crop.zw - 1);
+    count = f == vec2(0.0) ? 1 : 4;
     return vec4((1.0 - f.x) * (1.0 - f.y), f.x * (1.0 - f.y), (1.0 - f.x) * f.y, f.x * f.y);
 }
 
@@ -185,8 +192,9 @@ vec4 bilinear_taps(vec2 point, out ivec2 texels[4]) {
 // into the background from the nearest covered texel, so every tap holds a normal of the character.
 vec3 filtered_normal(ivec2 origin, vec2 point, int layer) {
     ivec2 texels[4];
-    vec4 w = bilinear_taps(point, texels);
+    int count;
+    vec4 w = bilinear_taps(point, texels, count);
     vec3 n = vec3(0.0);
-    for (int k = 0; k < 4; ++k) n += w[k] * sample_normal(ivec3(origin + texels[k], layer));
+    for (int k = 0; k < count; ++k) n += w[k] * sample_normal(ivec3(origin + texels[k], layer));
     return n;
 }

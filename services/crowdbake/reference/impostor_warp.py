@@ -136,8 +136,11 @@ def first_hit(source: OrthoView, target: OrthoView, planes: np.ndarray, width: i
         surface, share = bilinear_planes(planes, width, np.clip(x, low[0] + 0.5, high[0] - 0.5), np.clip(y, low[1] + 0.5, high[1] - 0.5))
         return inside & (share > 0.5) & (points @ source.back <= surface)
 
+    crossed = size * float(np.linalg.norm(np.cross(source.back, target.back)))  # texels the ray's points span
+    if crossed < 0.01:  # the source's own view: every depth lands on the start
+        return start
     reach = radius  # the surface map's depth codes span +-DEPTH_RANGE (1) times the radius
-    steps = int(np.clip(np.ceil(size * np.linalg.norm(np.cross(source.back, target.back))), 1, MARCH_STEPS))
+    steps = int(np.clip(np.ceil(crossed), 1, MARCH_STEPS))
     found = np.zeros((size, size), dtype=bool)
     front, back = np.full((size, size), reach), np.full((size, size), reach)
     before = reach
