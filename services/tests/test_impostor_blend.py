@@ -84,6 +84,31 @@ def test_blend_averages_colours_and_fades_edges_where_the_samples_disagree():
     assert np.allclose(cut[:, 0], [red, 0, 0]) and np.allclose(cut[:, 7], 0) and np.allclose(cut[:, 3], image[:, 3])
 
 
+def test_a_reprojected_samples_colour_and_normal_blend_its_four_taps_colour_over_the_covered_ones():
+    """impostor_uv.frag.glsl filtered_albedo and impostor_warp.glsl filtered_normal: the colour is the
+    bilinear blend of the taps the character covers (an uncovered tap has no texture coordinate), the
+    normal that of all four (the normal map is filled into the background)."""
+    size = 4
+    texture = np.zeros((4, 4, 4), np.uint8)
+    texture[:, :2, :3] = (200, 0, 0)  # u < 0.5 red
+    texture[:, 2:, :3] = (0, 0, 200)  # u > 0.5 blue
+    everywhere, nowhere = np.ones((size, size), bool), np.zeros((size, size), bool)
+    red, blue = _tile(size, everywhere, 0.125), _tile(size, everywhere, 0.875, normal=(1.0, 0.0, 0.0))
+    weights = [np.full((size, size), w) for w in (0.5, 0.25, 0.25, 0.0)]
+    taps = ((weights[0], red), (weights[1], blue), (weights[2], _tile(size, nowhere, 0.875)), (weights[3], red))
+    sample = DecodedTile(red.uv, red.material, everywhere, red.normal, taps=taps)
+    outfit = np.zeros((16, 4), np.uint8)
+    colour, normal = impostor_blend.sample_albedo_and_normal(sample, [texture], [impostor_blend.mip_chain(texture)], outfit, size)
+    # Colour over the covered taps: 0.5 red and 0.25 blue, renormalised to 2:1.
+    np.testing.assert_allclose(colour[0, 0], [2 / 3 * 200 / 255, 0.0, 1 / 3 * 200 / 255], atol=1e-9)
+    # Normal over all four: 0.75 of +Z (red and the uncovered tap) and 0.25 of +X.
+    np.testing.assert_allclose(normal[0, 0], [0.25, 0.0, 0.75], atol=1e-12)
+    # Without taps (plain blending, or a sample at its own view and frame): the texel's own.
+    own_colour, own_normal = impostor_blend.sample_albedo_and_normal(red, [texture], [impostor_blend.mip_chain(texture)], outfit, size)
+    np.testing.assert_allclose(own_colour[0, 0], [200 / 255, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(own_normal[0, 0], [0.0, 0.0, 1.0])
+
+
 def test_edge_alpha_is_configs_smoothstep():
     """Opaque where every sample covers, transparent at or under the threshold, one half at a tie, rising
     in between; the threshold is crowdview's config.h CV_EDGE_LOW, which its shaders read."""

@@ -3,6 +3,7 @@ surfaces whose answer is known by construction: a flat tilted plane seen from tw
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from crowdbake.bake import impostor_views
 from crowdbake.reference import impostor_warp
@@ -69,3 +70,71 @@ def test_gather_reads_nearest_texels_and_leaves_the_outside_uncovered():
     assert gathered.covered.tolist() == [[True, False], [True, False]]
     np.testing.assert_array_equal(gathered.uv[0, 0], uv[2, 1])
     np.testing.assert_array_equal(gathered.uv[0, 1], [0.0, 0.0])  # outside the tile: no coordinate
+
+
+def strip_before_a_wall() -> tuple[np.ndarray, np.ndarray]:
+    """Depth (metres towards the camera of azimuth 0) of a wall at the centre plane with a strip 0.6 m before
+    it over columns 12-19, every texel covered."""
+    depth = np.zeros((SIZE, SIZE))
+    depth[:, 12:20] = 0.6
+    return depth, np.ones((SIZE, SIZE))
+
+
+def first_surface_depth(source, target, depth, coverage, samples: int = 4000) -> np.ndarray:
+    """(S, S) the source depth the first point behind the surface along each target pixel's ray holds,
+    found by a fine march (the reference the shader's coarse one is held to); nan where none is."""
+    scale = SIZE / (2 * RADIUS)
+    rows, columns = np.mgrid[0:SIZE, 0:SIZE]
+    plane = ((columns + 0.5) / scale - RADIUS)[..., None] * target.right + (RADIUS - (rows + 0.5) / scale)[..., None] * target.up
+    found = np.full((SIZE, SIZE), np.nan)
+    for d in np.linspace(RADIUS, -RADIUS, samples):
+        points = plane + d * target.back
+        x, y = impostor_warp.tile_points(source, points)
+        inside = (x >= 0) & (x < SIZE) & (y >= 0) & (y < SIZE)
+        surface = impostor_warp.bilinear(depth, np.stack([x, y], axis=-1))
+        share = impostor_warp.bilinear(coverage, np.stack([x, y], axis=-1))
+        hit = np.isnan(found) & inside & (share > 0.5) & (points @ source.back <= surface)
+        found[hit] = surface[hit]
+    return found
+
+
+def test_the_march_starts_the_steps_on_the_surface_the_camera_sees_first():
+    """At a depth jump the fixed-point steps converge to the surface nearest their start: from the centre
+    plane, the wall behind the strip for pixels that see the strip. Marched from the camera's side first,
+    they land on the strip wherever a fine march finds it first."""
+    source, target = view(0.0), view(25.0)
+    depth, coverage = strip_before_a_wall()
+    expected = first_surface_depth(source, target, depth, coverage)
+    sees_strip = np.isclose(expected, 0.6)
+    assert sees_strip.sum() > 40
+    marched, miss = impostor_warp.reproject(source, depth, target, coverage=coverage)
+    landed = impostor_warp.bilinear(depth, marched)
+    away_from_edges = sees_strip & (miss < 0.5)
+    assert away_from_edges.sum() >= 0.8 * sees_strip.sum()
+    np.testing.assert_allclose(landed[away_from_edges], 0.6, atol=0.02)
+    # From the centre plane (no coverage given: the steps alone) many of them end on the wall.
+    plain, _ = impostor_warp.reproject(source, depth, target)
+    assert (impostor_warp.bilinear(depth, plain)[sees_strip] < 0.3).sum() > 10
+
+
+def test_the_march_leaves_a_ray_that_meets_nothing_where_the_steps_start():
+    source, target = view(0.0), view(25.0)
+    depth = np.zeros((SIZE, SIZE))
+    nothing = np.zeros((SIZE, SIZE))
+    marched, _ = impostor_warp.reproject(source, depth, target, coverage=nothing)
+    plain, _ = impostor_warp.reproject(source, depth, target)
+    np.testing.assert_array_equal(marched, plain)
+
+
+def test_bilinear_taps_weigh_the_four_texels_round_a_point_within_the_crop():
+    covered = np.ones((4, 4), dtype=bool)
+    uv = np.arange(32, dtype=np.float64).reshape(4, 4, 2) / 32
+    tile = DecodedTile(uv, np.zeros((4, 4), dtype=np.int64), covered, np.tile([0.0, 0.0, 1.0], (4, 4, 1)))
+    xy = np.array([[[1.75, 1.5]]])  # a quarter of the way from texel (1, 1)'s centre to (2, 1)'s
+    (w00, t00), (w10, t10), (w01, t01), (w11, t11) = impostor_warp.bilinear_taps(tile, xy, (0, 0, 4, 4))
+    assert (w00[0, 0], w10[0, 0], w01[0, 0], w11[0, 0]) == pytest.approx((0.75, 0.25, 0.0, 0.0))
+    np.testing.assert_array_equal(t00.uv[0, 0], uv[1, 1])
+    np.testing.assert_array_equal(t10.uv[0, 0], uv[1, 2])
+    # Beyond the crop's last column the taps read its edge texel, as crowdview clamps to the cell.
+    taps = impostor_warp.bilinear_taps(tile, np.array([[[3.9, 1.5]]]), (0, 0, 3, 4))
+    np.testing.assert_array_equal(taps[1][1].uv[0, 0], uv[1, 2])

@@ -72,9 +72,10 @@ vec3 albedo_at(UvTexel t, vec2 dx, vec2 dy) {
 
 #if CV_WARP
 // The colour read bilinearly round `point` (tile texels) in the sample's cell, over the taps the character
-// covers (a background tap has no texture coordinate); `nearest` where none is. Each tap looks the diffuse
-// up with its own coordinate at the sample's gradients.
-vec3 filtered_albedo(ivec2 origin, vec2 point, int layer, vec3 nearest, vec2 dx, vec2 dy) {
+// covers (a background tap has no texture coordinate). A covered sample's own texel is one of them, of weight
+// a quarter or more, so the sum is never 0. Each tap looks the diffuse up with its own coordinate at the
+// sample's gradients.
+vec3 filtered_albedo(ivec2 origin, vec2 point, int layer, vec2 dx, vec2 dy) {
     ivec2 texels[4];
     int count;
     vec4 w = bilinear_taps(point, texels, count);
@@ -87,7 +88,7 @@ vec3 filtered_albedo(ivec2 origin, vec2 point, int layer, vec3 nearest, vec2 dx,
             sum += w[k];
         }
     }
-    return sum > 0.0 ? albedo / sum : nearest;
+    return albedo / max(sum, 1e-6);
 }
 #endif
 
@@ -116,7 +117,7 @@ void main() {
             dy *= min(1.0, limit / max(length(dy), 1e-9));
             if (t.covered) {
 #if CV_WARP
-                vec3 albedo = filtered_albedo(origin, point, v_layers[j], albedo_at(t, dx, dy), dx, dy);
+                vec3 albedo = filtered_albedo(origin, point, v_layers[j], dx, dy);
                 vec3 normal = filtered_normal(origin, point, v_layers[j]);
 #else
                 vec3 albedo = albedo_at(t, dx, dy), normal = sample_normal(texel);

@@ -155,18 +155,19 @@ def sample_albedo_and_normal(tile: DecodedTile, diffuse: list[np.ndarray], chain
                               outfit_row: np.ndarray, tile_size: int) -> tuple[np.ndarray, np.ndarray]:
     """A sample's (S, S, 3) albedo and unnormalised normal where it is covered (0 elsewhere): its texel's
     own, or with `taps` the bilinear blend of the four round its point (impostor_uv.frag.glsl
-    filtered_albedo: over the taps the character covers, the texel's own where none is; impostor_warp.glsl
+    filtered_albedo: over the taps the character covers, its own texel among them; impostor_warp.glsl
     filtered_normal: over all four, the normal map being filled into the background)."""
-    own = albedo(tile, diffuse, chains, outfit_row, tile_size)
     if tile.taps is None:
-        return own, np.where(tile.covered[..., None], tile.normal, 0.0)
-    colour, weights, normal = np.zeros_like(own), np.zeros(own.shape[:2]), np.zeros_like(own)
+        return albedo(tile, diffuse, chains, outfit_row, tile_size), np.where(tile.covered[..., None], tile.normal, 0.0)
+    shape = tile.uv.shape[:2] + (3,)
+    colour, weights, normal = np.zeros(shape), np.zeros(shape[:2]), np.zeros(shape)
     for weight, tap in tile.taps:
         counted = weight * (tap.covered & (weight > 0))
         colour += counted[..., None] * albedo(tap, diffuse, chains, outfit_row, tile_size, lod_uv=tile.uv)
         weights += counted
         normal += weight[..., None] * tap.normal
-    colour = np.where((weights > 0)[..., None], colour / np.maximum(weights, 1e-300)[..., None], own)
+    # A covered sample's own texel is one of the taps, of weight a quarter or more: where it is covered, weights > 0.
+    colour = colour / np.maximum(weights, 1e-6)[..., None]
     covered = tile.covered[..., None]
     return np.where(covered, colour, 0.0), np.where(covered, normal, 0.0)
 
