@@ -45,7 +45,8 @@ BAKE_TIMEOUT_S = 300
 # A sweeper that acts within seconds: heartbeats every 0.5 s, a task without one for 4 s is lost.
 QUICK_SWEEP = {"CROWDBAKE_HEARTBEAT_INTERVAL": "0.5", "CROWDBAKE_HEARTBEAT_TIMEOUT": "4", "CROWDBAKE_SWEEP_INTERVAL": "0.5"}
 NAME, VERSION = "multihost-walker", "1.0.0"
-# Enough impostor tasks (8 frames x 2 rings) that both hosts are still rendering when one is lost.
+# Enough impostor tasks (8 frames asked; the rule keeps 6 x 2 rings of 12 views within the budget) that both
+# hosts are still rendering when one is lost.
 MULTIHOST_PARAMS = {**SLOW_IMPOSTOR_PARAMS, "impostor_frames": 8, "impostor_motion_texels": None}
 # The Celery log line of a finished impostor task (crowdbake.jobs.celery_app.TASK_NAMES["impostor_views"]).
 IMPOSTOR_DONE = "crowdbake.stage.impostor_views["

@@ -18,6 +18,7 @@ import argparse
 import contextlib
 import functools
 import json
+import shutil
 import sys
 import tempfile
 import threading
@@ -84,13 +85,37 @@ def wait_until_settled(page, timeout_s: float, say=print) -> tuple[bool, str]:
         time.sleep(STATUS_POLL_S)
 
 
+@contextlib.contextmanager
+def chromium_profile(settle_s: float = 5.0):
+    """A fresh Chromium profile folder, removed afterwards; the removal retries for up to `settle_s` while
+    Chromium's helper processes finish writing into it, then leaves what is left (a temporary folder)."""
+    folder = tempfile.mkdtemp(prefix="crowdbake-chromium-")
+    try:
+        yield folder
+    finally:
+        deadline = time.monotonic() + settle_s
+        while True:
+            try:
+                shutil.rmtree(folder)
+                break
+            except FileNotFoundError:
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    shutil.rmtree(folder, ignore_errors=True)
+                    break
+                time.sleep(0.2)
+
+
 def take(export_dir: Path, out: Path, count: int, time_s: float | None, lod: str, seed: int, size: tuple[int, int], timeout_s: float,
          say=print) -> None:
     """Serve, open, wait, and write the picture to `out` (PNG). RuntimeError with one line when the page
     fails or does not settle in time."""
     from crowdbake.export.devtools import Browser
 
-    with serve_export(export_dir) as base, tempfile.TemporaryDirectory(prefix="crowdbake-chromium-") as profile:
+    # Chromium's helpers outlive its main process by a moment and still write into the profile: its removal
+    # retries (cleanup_profile) rather than failing a picture that was taken.
+    with serve_export(export_dir) as base, chromium_profile() as profile:
         with Browser(Path(profile), window=size, arguments=CHROMIUM_ARGUMENTS) as browser:
             page = browser.open(f"{base}/preview/index.html?{page_query(count, time_s, lod, seed, size)}")
             try:
