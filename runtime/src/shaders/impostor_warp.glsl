@@ -145,7 +145,7 @@ vec2 reproject(ViewBasis s, ViewBasis t, vec2 pixel, ivec2 origin, int layer, fl
     for (int n = 0; n <= (own ? -1 : CV_WARP_ITERATIONS); ++n) {
         vec3 f = surface_at(origin, xy, layer);
         vec3 p = (xy.x / k - u_radius + fraction * f.y) * s.right + (u_radius - xy.y / k + fraction * f.z) * s.up + f.x * s.back;
-        vec2 seen = vec2((dot(p, t.right) + u_radius) * k, (u_radius - dot(p, t.up)) * k);
+        vec2 seen = tile_point(t, p, k);
         xy += step * (pixel - seen);
         miss = length(pixel - seen);
     }

@@ -22,6 +22,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from crowdbake.bake import surface_maps
 from crowdbake.reference.impostor_blend import DecodedTile, FrameWeights
 from crowdbake.bake.impostor_views import OrthoView
 
@@ -113,19 +114,17 @@ def tile_points(view: OrthoView, offsets: np.ndarray) -> tuple[np.ndarray, np.nd
     return (offsets @ view.right + view.radius) * scale, (view.radius - offsets @ view.up) * scale
 
 
-def first_hit(source: OrthoView, target: OrthoView, planes: np.ndarray, width: int, crop: tuple[int, int, int, int],
-              start: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def first_hit(source: OrthoView, target: OrthoView, on_plane: np.ndarray, planes: np.ndarray, width: int,
+              crop: tuple[int, int, int, int], start: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Where each target pixel's ray first passes behind the surface of a covered source texel (as
     impostor_warp.glsl first_hit): marched from the camera's side of the bounds (depth +radius along
     target.back) to the far side, one step for each source texel the ray's points cross (the tile size
     times the sine of the angle between the views; 1 to MARCH_STEPS), then MARCH_REFINE halvings; the last
     point in front of the surface is returned, `start` (x, y) where the ray never passes behind one.
-    planes: the source's depth (metres along source.back) and coverage (0..1) as (2, S·S) planes."""
+    on_plane: (S, S, 3) each pixel's point on the plane through the bounds centre facing the target camera,
+    as an offset from the centre; planes: the source's depth (metres along source.back) and coverage (0..1)
+    as (2, S·S) planes."""
     size, radius = target.size, target.radius
-    rows, columns = np.mgrid[0:size, 0:size]
-    scale = _texel_scale(target)
-    on_plane = (columns + 0.5)[..., None] / scale * target.right - radius * target.right \
-        + (radius - (rows + 0.5) / scale)[..., None] * target.up
     low = np.array(crop[:2], dtype=np.float64)
     high = low + np.array(crop[2:], dtype=np.float64)
 
@@ -139,7 +138,7 @@ def first_hit(source: OrthoView, target: OrthoView, planes: np.ndarray, width: i
     crossed = size * float(np.linalg.norm(np.cross(source.back, target.back)))  # texels the ray's points span
     if crossed < 0.01:  # the source's own view: every depth lands on the start
         return start
-    reach = radius  # the surface map's depth codes span +-DEPTH_RANGE (1) times the radius
+    reach = surface_maps.DEPTH_RANGE * radius  # the span of the surface map's depth codes
     steps = int(np.clip(np.ceil(crossed), 1, MARCH_STEPS))
     found = np.zeros((size, size), dtype=bool)
     front, back = np.full((size, size), reach), np.full((size, size), reach)
@@ -183,7 +182,7 @@ def reproject_planes(source: OrthoView, planes: np.ndarray, width: int, target: 
     x = (start @ source.right + radius) * scale
     y = (radius - start @ source.up) * scale
     if march is not None:
-        x, y = first_hit(source, target, march[0], width, march[1], (x, y))
+        x, y = first_hit(source, target, start, march[0], width, march[1], (x, y))
     # A point at source texel (x, y) plus (right, up, back) metres lands at target texel
     #   (on_right · (x/s - r + right, r - y/s + up, back) + r) · s  across, and
     #   (r - on_up · (...)) · s  down; the miss is the pixel minus that.
