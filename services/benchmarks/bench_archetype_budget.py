@@ -2,7 +2,7 @@
 """Impostor memory against fidelity for characters of several clips: what each archetype budget buys.
 
     PYTHONPATH=services python services/benchmarks/bench_archetype_budget.py LABEL=BUNDLE ... \
-        [--budgets 8,12,16,24,32,40,48,64] [--plot docs/img/archetype_budget.png] [--out archetype_budget.json]
+        [--budgets 8,12,16,24,32,40,48,64] [--plot docs/img/archetype_budget.png] [--out out/bench/archetype_budget.json]
 
 Each BUNDLE was baked with the archetype budget (`impostor_archetype_mib`), so its texture_memory.json holds
 the probes' scores per clip and transition and frame count (crowdbake.stages.impostor_probe). For every
@@ -96,7 +96,7 @@ def main() -> None:
     parser.add_argument("bundles", nargs="+", metavar="LABEL=BUNDLE")
     parser.add_argument("--budgets", default="8,12,16,24,32,40,48,64")
     parser.add_argument("--plot", type=Path)
-    parser.add_argument("--out", type=Path, default=Path("archetype_budget.json"))
+    parser.add_argument("--out", type=Path, default=Path("out/bench/archetype_budget.json"))
     args = parser.parse_args()
     budgets = [float(b) for b in args.budgets.split(",")]
     results = {}

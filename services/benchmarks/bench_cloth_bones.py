@@ -6,7 +6,7 @@ docs/export.md "Cloth as bones".
 
     PYTHONPATH=services python services/benchmarks/bench_cloth_bones.py \\
         sample=out/demo/bundles/sample-walker/1.0.0 long_skirt=out/demo/bundles/cesiumman/1.0.0 \\
-        --bones 4 8 16 32 64 128 --out cloth_bones.json --plot docs/img/cloth_bones.png
+        --bones 4 8 16 32 64 128 --out out/bench/cloth_bones.json --plot docs/img/cloth_bones.png
 
 (The bundles are scripts/demo.sh's: the procedural sample, and CesiumMan in the shared long skirt.)
 """
@@ -67,9 +67,10 @@ def main() -> None:
     parser.add_argument("cases", nargs="+", metavar="NAME=BUNDLE")
     parser.add_argument("--bones", nargs="+", type=int, default=[4, 8, 16, 32, 64, 128])
     parser.add_argument("--iterations", type=int, default=DEFAULT_ITERATIONS)
-    parser.add_argument("--out", type=Path, default=Path("cloth_bones.json"))
+    parser.add_argument("--out", type=Path, default=Path("out/bench/cloth_bones.json"))
     parser.add_argument("--plot", type=Path)
     args = parser.parse_args()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     rows = []
     for case in args.cases:
         name, _, folder = case.partition("=")

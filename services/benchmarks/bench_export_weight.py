@@ -124,7 +124,7 @@ def print_weight(label: str, result: dict) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("bundles", nargs="+", help="[LABEL=]BUNDLE folder")
-    parser.add_argument("--out", type=Path, default=Path("export_weight.json"))
+    parser.add_argument("--out", type=Path, default=Path("out/bench/export_weight.json"))
     args = parser.parse_args()
     results = {}
     for spec in args.bundles:
@@ -134,6 +134,7 @@ def main() -> None:
         print_weight(label, results[label])
     print(f"{'zip bytes':24s}" + "".join(f" {label:>14s}" for label in results))
     print(f"{'':24s}" + "".join(f" {result['zip_bytes']:14,d}" for result in results.values()))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + "\n")
 
 

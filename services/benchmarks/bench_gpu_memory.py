@@ -4,7 +4,7 @@ uploads it: `crowdview --report`'s `gpu_memory_bytes`, beside each bundle's pose
 
     python services/benchmarks/bench_gpu_memory.py [--bake sample] [--bake robot] [--work DIR]
         [--bundle LABEL PATH] [--case LABEL PATH CROWDVIEW] [--crowdview build/runtime/crowdview]
-        [--out gpu_memory.json]
+        [--out out/bench/gpu_memory.json]
 
 --bake bakes with this checkout, as scripts/demo.sh does: `sample` generates the sample clothed character
 (loose garment) and bakes it; `robot` bakes ../shared/assets/robot_clips with its timeline (slow: every
@@ -90,7 +90,7 @@ def main() -> int:
     parser.add_argument("--bundle", nargs=2, action="append", default=[], metavar=("LABEL", "PATH"))
     parser.add_argument("--case", nargs=3, action="append", default=[], metavar=("LABEL", "PATH", "CROWDVIEW"))
     parser.add_argument("--crowdview", default=str(REPO_ROOT / "build" / "runtime" / "crowdview"))
-    parser.add_argument("--out", type=Path, default=Path("gpu_memory.json"))
+    parser.add_argument("--out", type=Path, default=Path("out/bench/gpu_memory.json"))
     args = parser.parse_args()
     cases = [(which, bake(which, args.work), args.crowdview) for which in args.bake]
     cases += [(label, Path(path), args.crowdview) for label, path in args.bundle]

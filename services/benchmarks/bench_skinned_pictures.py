@@ -3,7 +3,7 @@
 
     PYTHONPATH=services python services/benchmarks/bench_skinned_pictures.py \
         LABEL=SKINNED_BUNDLE:VERTEX_BUNDLE ... [--crowdview build/runtime/crowdview] [--count 60] [--frames 8]
-        [--out skinned_pictures.json]
+        [--out out/bench/skinned_pictures.json]
 
 Each pair is one character baked twice, with the defaults (the body skinned on the GPU, bundle format 4)
 and with `--no-skinning` (the body as vertex frames). crowdview draws the same crowd (seed, count, street
@@ -44,7 +44,7 @@ def main() -> None:
     parser.add_argument("--crowdview", default=str(REPO_ROOT / "build" / "runtime" / "crowdview"))
     parser.add_argument("--count", type=int, default=60)
     parser.add_argument("--frames", type=int, default=8)
-    parser.add_argument("--out", type=Path, default=Path("skinned_pictures.json"))
+    parser.add_argument("--out", type=Path, default=Path("out/bench/skinned_pictures.json"))
     args = parser.parse_args()
     results = []
     with tempfile.TemporaryDirectory() as scratch:
