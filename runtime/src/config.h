@@ -51,7 +51,8 @@
 // Before those steps the pixel's ray is marched through the source view's depth from the camera's side,
 // one step for each tile texel its point crosses in the source tile (tile size times the sine of the
 // angle between the two views) and at most CV_MARCH_STEPS, then halved CV_MARCH_REFINE times
-// (crowdbake.reference.impostor_warp MARCH_STEPS, MARCH_REFINE).
+// (crowdbake.reference.impostor_warp MARCH_STEPS, MARCH_REFINE); steps whose points fall outside the
+// source's crop are skipped (march_span: they cannot hit).
 #define CV_MARCH_STEPS 48
 #define CV_MARCH_REFINE 4
 #define CV_MAX_AZIMUTHS 64

@@ -1,6 +1,6 @@
 """Impostor fidelity against memory on real characters: which views, frames and tile sizes a clip needs.
 
-    PYTHONPATH=services python services/benchmarks/bench_impostor_budget.py [--cases sample cesium robot_walk]
+    PYTHONPATH=services python services/benchmarks/bench_impostor_budget.py [--cases sample cesium robot_walk robot_run]
         [--configs default f10t128 ...] [--out out/bench/impostor_budget.json] [--plot docs/img/impostor_budget.png]
 
 Bakes each case once per impostor setting of CONFIGS (crowdbake.stages.runner.run_bake, the bake's
@@ -15,7 +15,7 @@ name one) and reads what the bundle itself records:
 
 Cases: the procedural sample (generated into a scratch folder); CesiumMan in the shared long skirt;
 the robot of ../shared/assets/robot_clips in its first Walking segment (cache frames 320..492, where
-the timeline plays Walking alone), baked with its Walking clip. Cases whose assets are absent are
+the timeline plays Walking alone), baked with its Walking clip; `robot_run`, its Running segment (498..624). Cases whose assets are absent are
 skipped. Prints a table and writes JSON; with --plot draws SSIM between views and frames against MiB.
 """
 from __future__ import annotations
@@ -70,7 +70,8 @@ CONFIGS = {
     "t112a20f12": (20, (0.0, 20.0, 40.0), 12, 112),
     "t112a24f10": (24, (0.0, 20.0, 40.0), 10, 112),
 }
-ROBOT_WALK_FRAMES = (320, 493)  # robot_clips/timeline.json: the first Walking segment without blends
+# robot_clips/timeline.json: the first Walking segment and the Running segment, without blends.
+ROBOT_SEGMENTS = {"robot_walk": ("Walking", (320, 493)), "robot_run": ("Running", (498, 625))}
 
 
 def case_inputs(case: str, scratch: Path):
@@ -87,18 +88,17 @@ def case_inputs(case: str, scratch: Path):
         if not (ASSETS / "CesiumMan.glb").is_file() or not (skirt / "long_skirt.pc2").is_file():
             return None
         return ASSETS / "CesiumMan.glb", skirt / "long_skirt.pc2", skirt / "long_skirt.obj", None, {}
-    if case == "robot_walk":
+    if case in ROBOT_SEGMENTS:
         from crowdbake.formats.pc2 import read_pc2, write_pc2
 
         robot = ASSETS / "robot_clips"
         if not (robot / "robot.glb").is_file() or not (robot / "garment.pc2").is_file():
             return None
-        walk = scratch / "robot_walk.pc2"
-        if not walk.is_file():
-            cache = read_pc2(robot / "garment.pc2")
-            first, end = ROBOT_WALK_FRAMES
-            write_pc2(walk, cache.points[first:end])
-        return robot / "robot.glb", walk, robot / "garment.obj", None, {"animation": "Walking", "fps": 24.0}
+        clip, (first, end) = ROBOT_SEGMENTS[case]
+        segment = scratch / f"{case}.pc2"
+        if not segment.is_file():
+            write_pc2(segment, read_pc2(robot / "garment.pc2").points[first:end])
+        return robot / "robot.glb", segment, robot / "garment.obj", None, {"animation": clip, "fps": 24.0}
     raise ValueError(f"unknown case {case!r}")
 
 
@@ -174,7 +174,7 @@ def plot(rows: list[dict], path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cases", nargs="+", default=["sample", "cesium", "robot_walk"], choices=["sample", "cesium", "robot_walk"])
+    parser.add_argument("--cases", nargs="+", default=["sample", "cesium", "robot_walk"], choices=["sample", "cesium", *ROBOT_SEGMENTS])
     parser.add_argument("--configs", nargs="+", default=["default", "f10t128"], choices=list(CONFIGS))
     parser.add_argument("--out", type=Path, default=Path("out/bench/impostor_budget.json"))
     parser.add_argument("--plot", type=Path, default=None)

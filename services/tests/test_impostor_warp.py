@@ -126,6 +126,72 @@ def test_the_march_leaves_a_ray_that_meets_nothing_where_the_steps_start():
     np.testing.assert_array_equal(marched, plain)
 
 
+@pytest.mark.parametrize("azimuth, elevation", [(25.0, 0.0), (-40.0, 20.0), (10.0, 35.0), (0.0, 20.0)])
+def test_the_march_span_holds_exactly_the_depths_whose_points_fall_in_the_crop(azimuth, elevation):
+    source, target = view(0.0), view(azimuth, elevation)
+    crop = (8, 4, 12, 20)
+    rows, columns = np.mgrid[0:SIZE, 0:SIZE]
+    scale = SIZE / (2 * RADIUS)
+    plane = ((columns + 0.5) / scale - RADIUS)[..., None] * target.right + (RADIUS - (rows + 0.5) / scale)[..., None] * target.up
+    lowest, highest = impostor_warp.march_span(source, target, plane, crop, RADIUS)
+    assert (lowest <= highest).sum() > 50 and (lowest > highest).sum() > 50  # rays that cross the crop and rays that miss it
+    for d in np.linspace(-RADIUS, RADIUS, 201):
+        x, y = impostor_warp.tile_points(source, plane + d * target.back)
+        inside = (x >= crop[0]) & (x < crop[0] + crop[2]) & (y >= crop[1]) & (y < crop[1] + crop[3])
+        in_span = (lowest <= d) & (d <= highest)
+        # Equal but for points on the crop's edge (within rounding).
+        on_edge = np.isclose(d, lowest, atol=1e-9) | np.isclose(d, highest, atol=1e-9)
+        assert not (inside & ~in_span & ~on_edge).any()
+        assert not (in_span & ~inside & ~on_edge).any()
+
+
+def every_step_march(source, target, plane, depth, coverage, crop) -> tuple[np.ndarray, np.ndarray]:
+    """first_hit's march without skipping a step: each of its evenly spaced depths tried for every pixel,
+    then the same halvings; (x, y) of the last point in front, nan where no step passes behind."""
+    low, high = np.array(crop[:2], float), np.array(crop[:2], float) + np.array(crop[2:], float)
+
+    def behind(d):
+        points = plane + d[..., None] * target.back
+        x, y = impostor_warp.tile_points(source, points)
+        inside = (x >= low[0]) & (y >= low[1]) & (x < high[0]) & (y < high[1])
+        xy = np.stack([np.clip(x, low[0] + 0.5, high[0] - 0.5), np.clip(y, low[1] + 0.5, high[1] - 0.5)], axis=-1)
+        return inside & (impostor_warp.bilinear(coverage, xy) > 0.5) & (points @ source.back <= impostor_warp.bilinear(depth, xy))
+
+    steps = int(np.clip(np.ceil(SIZE * np.linalg.norm(np.cross(source.back, target.back))), 1, impostor_warp.MARCH_STEPS))
+    depths = RADIUS - 2 * RADIUS * np.arange(steps + 1) / steps
+    found = np.zeros((SIZE, SIZE), dtype=bool)
+    front, back = np.full((SIZE, SIZE), RADIUS), np.full((SIZE, SIZE), RADIUS)
+    for n in range(1, steps + 1):
+        hit = ~found & behind(np.full((SIZE, SIZE), depths[n]))
+        front[hit], back[hit] = depths[n - 1], depths[n]
+        found |= hit
+    for _ in range(impostor_warp.MARCH_REFINE):
+        middle = 0.5 * (front + back)
+        passed = behind(middle)
+        back, front = np.where(passed, middle, back), np.where(passed, front, middle)
+    x, y = impostor_warp.tile_points(source, plane + front[..., None] * target.back)
+    return np.where(found, x, np.nan), np.where(found, y, np.nan)
+
+
+@pytest.mark.parametrize("azimuth, elevation, crop", [(25.0, 0.0, (4, 0, 24, SIZE)), (-40.0, 20.0, (8, 4, 16, 24)), (15.0, 30.0, (6, 6, 20, 20))])
+def test_skipping_the_steps_outside_the_crop_changes_no_hit(azimuth, elevation, crop):
+    """The march only steps where the ray projects into the crop (march_span): every other step could not
+    pass behind a covered texel, so it finds what trying every step finds."""
+    source, target = view(0.0), view(azimuth, elevation)
+    depth, coverage = strip_before_a_wall()
+    scale = SIZE / (2 * RADIUS)
+    rows, columns = np.mgrid[0:SIZE, 0:SIZE]
+    plane = ((columns + 0.5) / scale - RADIUS)[..., None] * target.right + (RADIUS - (rows + 0.5) / scale)[..., None] * target.up
+    planes = impostor_warp.field_planes(np.stack([depth, coverage], axis=-1))
+    nowhere = (np.full((SIZE, SIZE), np.nan), np.full((SIZE, SIZE), np.nan))
+    marched = impostor_warp.first_hit(source, target, plane, planes, SIZE, crop, nowhere)
+    expected = every_step_march(source, target, plane, depth, coverage, crop)
+    hits = ~np.isnan(expected[0])
+    assert 100 < hits.sum() < SIZE * SIZE - 100  # rays that pass behind the surface and rays that miss the crop
+    np.testing.assert_allclose(marched[0], expected[0], atol=1e-9)
+    np.testing.assert_allclose(marched[1], expected[1], atol=1e-9)
+
+
 def test_bilinear_taps_weigh_the_four_texels_round_a_point_within_the_crop():
     covered = np.ones((4, 4), dtype=bool)
     uv = np.arange(32, dtype=np.float64).reshape(4, 4, 2) / 32

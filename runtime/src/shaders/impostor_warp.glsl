@@ -103,6 +103,22 @@ bool behind_surface(ViewBasis s, ViewBasis t, vec3 o, float depth, ivec2 origin,
     return c.a > 0.5 && dot(q, s.back) <= (c.r * 2.0 - 1.0) * CV_SURFACE_DEPTH_RANGE * u_radius;
 }
 
+// (lowest, highest): the depths along t.back, within +-reach, between which the ray through `o` projects
+// into the source view's crop (a slab per tile axis); lowest > highest where it never does.
+vec2 march_span(ViewBasis s, ViewBasis t, vec3 o, float k, float reach) {
+    vec2 p = tile_point(s, o, k);
+    vec2 v = k * vec2(dot(t.back, s.right), -dot(t.back, s.up));  // texels a metre of depth
+    vec2 lo = vec2(-reach), hi = vec2(reach);
+    for (int i = 0; i < 2; ++i) {
+        float a = (float(u_crop[i]) - p[i]) / v[i], b = (float(u_crop[i] + u_crop[i + 2]) - p[i]) / v[i];
+        bool still = abs(v[i]) < 1e-6;
+        bool inside = p[i] >= float(u_crop[i]) && p[i] < float(u_crop[i] + u_crop[i + 2]);
+        lo[i] = still ? (inside ? -reach : reach) : min(a, b);
+        hi[i] = still ? (inside ? reach : -reach) : max(a, b);
+    }
+    return vec2(max(-reach, max(lo.x, lo.y)), min(reach, min(hi.x, hi.y)));
+}
+
 // Where the ray of the pixel whose point on the centre plane is `o` first passes behind the source view's
 // surface: marched from the camera's side of the bounds to the far side, one step for each source texel
 // its points cross (at most CV_MARCH_STEPS), then refined by halving; `start` where it never does (the ray
@@ -113,11 +129,17 @@ vec2 first_hit(ViewBasis s, ViewBasis t, vec3 o, ivec2 origin, int layer, float 
     // a software rasteriser runs both sides of a branch for its whole group of fragments.
     int steps = crossed < 0.01 ? 0 : clamp(int(ceil(crossed)), 1, CV_MARCH_STEPS);
     float reach = CV_SURFACE_DEPTH_RANGE * u_radius;
-    float front = reach, back = reach;
+    float spacing = 2.0 * reach / float(max(steps, 1));
+    // Only steps whose points fall in the source's crop can pass behind its surface: the march keeps its
+    // steps where they were and skips the others (the first kept one's predecessor is in front).
+    vec2 span = march_span(s, t, o, k, reach);
+    int first = max(1, int(floor((reach - span.y) / spacing)));
+    int last = min(steps, int(ceil((reach - span.x) / spacing)));
+    float front = reach - float(first - 1) * spacing, back = reach;
     bool found = false;
     vec2 xy;
-    for (int n = 1; n <= steps && !found; ++n) {
-        float depth = reach - 2.0 * reach * float(n) / float(steps);
+    for (int n = first; n <= last && !found; ++n) {
+        float depth = reach - float(n) * spacing;
         found = behind_surface(s, t, o, depth, origin, layer, k, xy);
         if (found) back = depth; else front = depth;
     }

@@ -114,13 +114,35 @@ def tile_points(view: OrthoView, offsets: np.ndarray) -> tuple[np.ndarray, np.nd
     return (offsets @ view.right + view.radius) * scale, (view.radius - offsets @ view.up) * scale
 
 
+def march_span(source: OrthoView, target: OrthoView, on_plane: np.ndarray, crop: tuple[int, int, int, int],
+               reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """(lowest, highest), each (...): the depths along target.back, within +-reach metres, between which the
+    ray through each on_plane point (..., 3 offsets from the bounds centre) projects into the source's crop
+    (x, y, width, height tile texels; a slab per tile axis). lowest > highest where it never does. As
+    impostor_warp.glsl march_span: only steps in this span can pass behind the source's surface."""
+    scale = _texel_scale(source)
+    along = scale * np.array([target.back @ source.right, -(target.back @ source.up)])  # texels a metre of depth
+    at_plane = tile_points(source, on_plane)
+    lowest, highest = np.full(on_plane.shape[:-1], -reach), np.full(on_plane.shape[:-1], reach)
+    for axis in range(2):
+        start, end = crop[axis], crop[axis] + crop[axis + 2]
+        if abs(along[axis]) < 1e-6:  # the ray keeps this coordinate: all of it or none inside
+            inside = (at_plane[axis] >= start) & (at_plane[axis] < end)
+            lowest, highest = np.where(inside, lowest, reach), np.where(inside, highest, -reach)
+            continue
+        a, b = (start - at_plane[axis]) / along[axis], (end - at_plane[axis]) / along[axis]
+        lowest, highest = np.maximum(lowest, np.minimum(a, b)), np.minimum(highest, np.maximum(a, b))
+    return lowest, highest
+
+
 def first_hit(source: OrthoView, target: OrthoView, on_plane: np.ndarray, planes: np.ndarray, width: int,
               crop: tuple[int, int, int, int], start: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Where each target pixel's ray first passes behind the surface of a covered source texel (as
     impostor_warp.glsl first_hit): marched from the camera's side of the bounds (depth +radius along
     target.back) to the far side, one step for each source texel the ray's points cross (the tile size
     times the sine of the angle between the views; 1 to MARCH_STEPS), then MARCH_REFINE halvings; the last
-    point in front of the surface is returned, `start` (x, y) where the ray never passes behind one.
+    point in front of the surface is returned, `start` (x, y) where the ray never passes behind one. Steps
+    whose points project outside `crop` are skipped (march_span): they cannot pass behind a covered texel.
     on_plane: (S, S, 3) each pixel's point on the plane through the bounds centre facing the target camera,
     as an offset from the centre; planes: the source's depth (metres along source.back) and coverage (0..1)
     as (2, S·S) planes."""
@@ -140,15 +162,19 @@ def first_hit(source: OrthoView, target: OrthoView, on_plane: np.ndarray, planes
         return start
     reach = surface_maps.DEPTH_RANGE * radius  # the span of the surface map's depth codes
     steps = int(np.clip(np.ceil(crossed), 1, MARCH_STEPS))
+    spacing = 2.0 * reach / steps
+    # The steps keep their places; those outside the crop's span are skipped (march_span), the first kept
+    # step's predecessor standing as the last point in front.
+    lowest, highest = march_span(source, target, on_plane, crop, reach)
+    first = np.maximum(1, np.floor((reach - highest) / spacing).astype(np.int64))
+    last = np.minimum(steps, np.ceil((reach - lowest) / spacing).astype(np.int64))
     found = np.zeros((size, size), dtype=bool)
-    front, back = np.full((size, size), reach), np.full((size, size), reach)
-    before = reach
+    front, back = reach - (first - 1) * spacing, np.full((size, size), reach)
     for n in range(1, steps + 1):
-        depth = reach - 2.0 * reach * n / steps
-        hit = ~found & behind(np.full((size, size), depth))
-        front[hit], back[hit] = before, depth
+        depth = reach - n * spacing
+        hit = ~found & (first <= n) & (n <= last) & behind(np.full((size, size), depth))
+        front[hit], back[hit] = depth + spacing, depth
         found |= hit
-        before = depth
     for _ in range(MARCH_REFINE):
         middle = 0.5 * (front + back)
         passed = behind(middle)
