@@ -47,6 +47,26 @@ def choose(at_views, azimuth_scores, table, budget_mib, elevation_loss=0.0):
     return layout.choose_layout(candidates), candidates
 
 
+def test_the_shortlist_measures_the_best_prediction_then_what_the_choice_would_take_by_its_predictions():
+    """Margins a few ten-thousandths apart: the cheap options within the tolerance of the best are measured
+    (the choice keeps the fewest bytes near the best), not the larger tiles that predict a hair better."""
+    from crowdbake.bake import impostor_allocation
+
+    def option(tile, azimuths, mib, margin):
+        allocation = impostor_allocation.Allocation([15], [list(range(15))], int(mib * 1024 * 1024), True, [0.9])
+        return layout.LayoutOption(tile, azimuths, allocation, 0.98, [0.93], margin)
+
+    best, hair, cheap, cheapest, poor = (option(112, 16, 13.5, 0.0324), option(100, 16, 11.0, 0.0300), option(88, 16, 9.2, 0.0299),
+                                         option(88, 12, 6.9, 0.0241), option(88, 8, 4.6, -0.0036))
+    picked = layout.shortlist([hair, poor, cheap, best, cheapest], 3)
+    assert picked == [best, cheapest, cheap]
+    assert layout.choose_layout(picked) is cheapest  # as predicted; the plan measures them first
+    # Nothing near the best: the rest by margin.
+    far = option(88, 12, 6.9, 0.01)
+    assert layout.shortlist([far, poor, best], 3) == [best, far, poor]
+    assert layout.shortlist([], 3) == []
+
+
 def test_a_blurry_character_gets_a_larger_tile_when_the_budget_allows():
     at_views = {88: 0.937, 100: 0.948, 112: 0.956, 132: 0.958}
     chosen, _ = choose(at_views, {12: 0.93, 32: 0.935}, frame_table(0.05), 64.0)
@@ -175,13 +195,18 @@ def test_a_probers_meshes_are_drawn_once_and_kept_within_their_bytes(monkeypatch
         drawn.append(scene)
         return np.full((len(angles), 8, 8, 4 if with_coverage else 3), float(scene), dtype=np.float32)
 
+    def fake_footprints(scene, plan, angles):
+        return np.full((len(angles), 8, 8, 4), -float(scene), dtype=np.float32)
+
     monkeypatch.setattr(impostor_probe, "mesh_references", fake_references)
-    monkeypatch.setattr(impostor_probe, "MESH_CACHE_BYTES", 3 * 4 * 8 * 8 * 4 * 4)  # three frames of 4 views
+    monkeypatch.setattr(impostor_probe, "mesh_footprints", fake_footprints)
+    monkeypatch.setattr(impostor_probe, "MESH_CACHE_BYTES", 3 * 4 * 8 * 8 * 7 * 4)  # three frames of 4 views
     prober = impostor_probe.Prober.__new__(impostor_probe.Prober)
     prober.layout, prober.plan, prober.scene_at = AtlasLayout(8, (0.0, 90.0, 180.0, 270.0), (20.0,)), None, lambda frame: frame
     prober._meshes = impostor_probe.OrderedDict()
-    assert prober.references(5).shape == (4, 8, 8, 3) and float(prober.mesh(5)[0, 0, 0, 3]) == 5.0
-    assert drawn == [5]  # the reference and the coverage come from one drawing
+    assert prober.references(5).shape == (4, 8, 8, 3) and float(prober.references(5)[0, 0, 0, 0]) == 5.0
+    assert float(prober.mesh(5)[0, 0, 0, 6]) == -5.0  # the footprints beside the reference
+    assert drawn == [5]  # the reference and the footprints are drawn once
     for frame in (6, 7, 5, 8):  # 5 used again: 6 is the least recently used when 8 comes
         prober.mesh(frame)
     assert drawn == [5, 6, 7, 8] and list(prober._meshes) == [7, 5, 8]

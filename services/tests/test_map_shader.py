@@ -145,3 +145,21 @@ def test_shader_references_are_the_exact_mesh_references(monkeypatch):
     assert tinted.any(), "the outfit's green shows where region 3 is"
     for k in range(len(views)):
         assert fidelity.compare(exact[k], drawn[k])["ssim"] > 0.999
+
+
+def test_footprints_are_the_mean_shading_normal_and_the_share_of_each_texels_samples():
+    positions, normals, uvs, faces, material, textures, _ = scene()
+    supersample = 3
+    views = [impostor_views.ortho_view((0.0, 0.0, 0.0), 1.0, azimuth, elevation, SIZE * supersample) for azimuth, elevation in ANGLES]
+    with BakeRenderer(SIZE) as renderer:
+        drawn = renderer.shader_footprints(views, positions, normals, faces, material, len(textures), supersample)
+    assert drawn.shape == (len(views), SIZE, SIZE, 4) and drawn.dtype == np.float32
+    with TriangleIdRenderer(SIZE * supersample) as renderer:
+        renderer.set_mesh(positions, faces)
+        exact = np.stack([maps.footprints(view, renderer.coverage(view, positions, faces), supersample, normals, positions, faces)
+                          for view in views])
+    difference = np.abs(drawn - exact)
+    assert (difference <= 1e-4).mean() > 0.999, f"worst {difference.max()}"
+    partial = (exact[..., 3] > 0.0) & (exact[..., 3] < 1.0)
+    assert partial.sum() > 50 and (exact[..., 3] == 1.0).sum() > 500
+

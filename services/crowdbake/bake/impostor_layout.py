@@ -136,9 +136,20 @@ def options(ranges: Ranges, frame_tables: list[dict[int, float]], at_views: dict
     return out
 
 
-def shortlist(candidates: list[LayoutOption], count: int) -> list[LayoutOption]:
-    """The `count` candidates of the best predicted margins, best first."""
-    return sorted(candidates, key=lambda option: (-option.margin, option.bytes))[:count]
+def shortlist(candidates: list[LayoutOption], count: int, tolerance: float = impostor_allocation.TOLERANCE) -> list[LayoutOption]:
+    """The `count` candidates to measure end to end: the best predicted margin first (the mark the others
+    are held to), then those choose_layout would take in turn by their predictions (within `tolerance` of
+    the best margin, fewest bytes first), then the rest by margin. Predicted margins a few ten-thousandths
+    apart say nothing, so the cheap options near the best are measured rather than a larger tile that
+    predicts a hair better."""
+    by_margin = sorted(candidates, key=lambda option: (-option.margin, option.bytes))
+    if not by_margin:
+        return []
+    best = by_margin[0]
+    near = sorted((o for o in by_margin[1:] if o.margin >= best.margin - tolerance),
+                  key=lambda option: (option.bytes, -option.margin, -option.tile, -option.azimuths))
+    rest = [o for o in by_margin[1:] if o.margin < best.margin - tolerance]
+    return ([best] + near + rest)[:count]
 
 
 def measured(option: LayoutOption, between: float) -> LayoutOption:

@@ -35,6 +35,18 @@ def shading_normals(view: OrthoView, normals: np.ndarray, positions: np.ndarray,
     return out
 
 
+def footprints(view: OrthoView, coverage: Coverage, supersample: int, normals: np.ndarray, positions: np.ndarray,
+               faces: np.ndarray) -> np.ndarray:
+    """Each texel's footprint from a view supersample x the tile (its exact coverage `coverage`, of size
+    S · supersample): (S, S, 4) float64, RGB the mean over the texel's supersample² samples of the shading
+    normal (0 for a sample the mesh misses), alpha the share it covers. What crowdbake.render.map_shader's
+    footprint pass draws, and whose direction the bake's normal map keeps."""
+    normal = shading_normals(view, normals, positions, faces, coverage)
+    fields = np.concatenate([normal, coverage.mask[..., None].astype(np.float64)], axis=-1)
+    size = coverage.mask.shape[0] // supersample
+    return fields.reshape(size, supersample, size, supersample, 4).mean(axis=(1, 3))
+
+
 @dataclass(frozen=True)
 class ViewMaps:
     """The three maps of one view (size² texels each), SPEC.md's encodings.

@@ -100,15 +100,16 @@ class BakeRenderer:
             return map_shader.draw_references(shader, views, positions, normals, uvs, faces, triangle_material, diffuse, outfit_row,
                                               supersample, with_coverage)
 
-    def shader_coverage(self, views: list[OrthoView], positions: np.ndarray, faces: np.ndarray, triangle_material: np.ndarray,
-                        material_count: int, supersample: int) -> np.ndarray:
-        """The mesh's share of each texel of `views` (size S · supersample), (V, S, S) float32: the alpha
-        shader_references(..., with_coverage=True) gives, without shading (map_shader.draw_coverage)."""
+    def shader_footprints(self, views: list[OrthoView], positions: np.ndarray, normals: np.ndarray, faces: np.ndarray,
+                          triangle_material: np.ndarray, material_count: int, supersample: int) -> np.ndarray:
+        """Each texel's footprint in `views` (size S · supersample), (V, S, S, 4) float32: the mean shading
+        normal over its samples and, in alpha, the share of them the mesh covers (the alpha
+        shader_references(..., with_coverage=True) gives; map_shader.draw_footprints)."""
         if not self._open:
-            raise RuntimeError("BakeRenderer.shader_coverage called outside its `with` block")
+            raise RuntimeError("BakeRenderer.shader_footprints called outside its `with` block")
         with self._offscreen.current():
-            shader = self._shader(views[0].size if views else self.size, map_shader.COVERAGE)
-            return map_shader.draw_coverage(shader, views, positions, faces, triangle_material, material_count, supersample)
+            shader = self._shader(views[0].size if views else self.size, map_shader.FOOTPRINT)
+            return map_shader.draw_footprints(shader, views, positions, normals, faces, triangle_material, material_count, supersample)
 
     def runtime_impostors(self, atlas: RuntimeAtlas, pictures: list[RuntimePicture]) -> np.ndarray:
         """crowdview's impostor shader's pictures of `atlas` (crowdbake.render.runtime_shader), drawn in this

@@ -160,14 +160,16 @@ void main() {
 }
 """
 
-# The mesh's coverage alone: the reference pass's samples without their shading (the vertex shader, and so
+# Each texel's footprint: the reference pass's samples without their shading (the vertex shader, and so
 # the rasterised samples, are the same), so the box filter's alpha is the reference's to the bit for less
-# work a sample. What the impostor maps keep as each texel's share of the character.
-COVERAGE_FRAGMENT_SHADER = """#version 330 core
+# work a sample: what the impostor maps keep as each texel's share of the character. RGB is the sample's
+# shading normal, so the box filter's RGB is the normals' sum over the samples the mesh covers (over
+# supersample²): the normal map keeps its direction, as the reference's pixel averages the shading there.
+FOOTPRINT_FRAGMENT_SHADER = FRAGMENT_COMMON + """
 layout(location = 0) out vec4 out_colour;
 
 void main() {
-    out_colour = vec4(0.0, 0.0, 0.0, 1.0);
+    out_colour = vec4(shading_normal(), 1.0);
 }
 """
 
@@ -220,7 +222,7 @@ MAPS = _Pass("maps", MAPS_FRAGMENT_SHADER,
              ("material", "depth_limit", "motion_limit"))
 REFERENCE = _Pass("reference", REFERENCE_FRAGMENT_SHADER, (("GL_RGBA32F", "GL_RGBA", "GL_FLOAT", np.float32),),
                   ("light", "outfit", "ambient", "diffuse_weight"))
-COVERAGE = _Pass("coverage", COVERAGE_FRAGMENT_SHADER, (("GL_RGBA32F", "GL_RGBA", "GL_FLOAT", np.float32),), ())
+FOOTPRINT = _Pass("footprint", FOOTPRINT_FRAGMENT_SHADER, (("GL_RGBA32F", "GL_RGBA", "GL_FLOAT", np.float32),), ())
 _VIEW_UNIFORMS = ("center", "right", "up", "back", "radius", "diffuse")  # -1 where a pass does not use one: set in vain
 # Texels a reference pass draws at once (the rest waits for the next): 4 M RGBA32F texels are 64 MB.
 MAX_PASS_TEXELS = 1 << 22
@@ -565,22 +567,23 @@ def draw_references(shader: MapShader, views: list[OrthoView], positions: np.nda
     return np.concatenate(images)
 
 
-def draw_coverage(shader: MapShader, views: list[OrthoView], positions: np.ndarray, faces: np.ndarray, triangle_material: np.ndarray,
-                  material_count: int, supersample: int) -> np.ndarray:
-    """The share of each texel's supersample² samples the mesh covers, as draw_references' alpha, from views
-    of size S · supersample: (V, S, S) float32 in 0..1."""
-    if shader.shader_pass is not COVERAGE:
-        raise ValueError("draw_coverage needs a MapShader of the COVERAGE pass")
+def draw_footprints(shader: MapShader, views: list[OrthoView], positions: np.ndarray, normals: np.ndarray, faces: np.ndarray,
+                    triangle_material: np.ndarray, material_count: int, supersample: int) -> np.ndarray:
+    """Each texel's footprint from views of size S · supersample, (V, S, S, 4) float32: RGB the mean over the
+    texel's supersample² samples of the shading normal (0 where the mesh misses a sample), alpha the share of
+    them the mesh covers, as draw_references' alpha. normals: (P, 3) vertex normals, as for the maps."""
+    if shader.shader_pass is not FOOTPRINT:
+        raise ValueError("draw_footprints needs a MapShader of the FOOTPRINT pass")
     positions = np.asarray(positions)
-    blank = np.zeros((len(positions), 3), dtype=np.float32)
     textures = [_BLANK_TEXTURE] * material_count  # bound in vain: the pass samples none
+    no_uvs = np.zeros((len(positions), 2), dtype=np.float32)
     most = max(1, MAX_PASS_TEXELS // (shader.size * shader.size))
     batch = -(-len(views) // -(-len(views) // most))  # as draw_references batches
     images = []
     for first in range(0, len(views), batch):
-        (colour,) = shader.draw(views[first:first + batch], positions, blank, blank[:, :2], positions, faces, triangle_material, textures,
-                                lambda material, view: {}, box=supersample)
-        images.append(colour[..., 3])
+        (footprint,) = shader.draw(views[first:first + batch], positions, normals, no_uvs, positions, faces, triangle_material, textures,
+                                   lambda material, view: {}, box=supersample)
+        images.append(footprint)
     return np.concatenate(images)
 
 

@@ -26,7 +26,7 @@ from crowdbake.bake.atlas import AtlasLayout
 from crowdbake.formats.binary import decode_texture_array, encode_texture_array
 from crowdbake.formats.ranges import Clip, Ranges
 from crowdbake.render.runtime_shader import RuntimeAtlas
-from crowdbake.stages.impostors import Scene, mesh_references, render_task, spread_gaps
+from crowdbake.stages.impostors import Scene, mesh_footprints, mesh_references, render_task, spread_gaps
 from crowdbake.stages.pack import encode_frame
 from crowdbake.stages.records import ImpostorPlan, ImpostorTask
 from crowdbake.stages.runtime_fidelity import picture_at
@@ -119,14 +119,15 @@ class Prober:
         self._meshes: OrderedDict[int, np.ndarray] = OrderedDict()
 
     def mesh(self, frame: int) -> np.ndarray:
-        """The mesh at pose frame `frame` from every probe view, with its coverage: (A, S, S, 4). A frame is
-        drawn once for every count that bakes it or scores a gap at it (while MESH_CACHE_BYTES hold it):
-        the colour is its reference, the alpha its maps' coverage."""
+        """The mesh at pose frame `frame` from every probe view: (A, S, S, 7), its reference (RGB), then its
+        texels' footprints (mesh_footprints: mean normal, share). A frame is drawn once for every count that
+        bakes it or scores a gap at it (while MESH_CACHE_BYTES hold it)."""
         if frame in self._meshes:
             self._meshes.move_to_end(frame)
             return self._meshes[frame]
         angles = [(a, self.layout.elevations_deg[0]) for a in self.layout.azimuths_deg]
-        drawn = mesh_references(self.scene_at(frame), self.plan, angles, with_coverage=True)
+        scene = self.scene_at(frame)
+        drawn = np.concatenate([mesh_references(scene, self.plan, angles), mesh_footprints(scene, self.plan, angles)], axis=-1)
         self._meshes[frame] = drawn
         while len(self._meshes) > 1 and sum(held.nbytes for held in self._meshes.values()) > MESH_CACHE_BYTES:
             self._meshes.popitem(last=False)  # the least recently used: a long range at a large tile
@@ -139,7 +140,7 @@ class Prober:
     def layer(self, item, frames: list[int], frame: int, layout: AtlasLayout | None = None) -> dict[str, bytes]:
         """One baked frame's probe maps of `layout` (None: the probe layout), encoded as the bundle stores
         them: {kind: layer bytes}."""
-        coverage = self.mesh(frame)[..., 3] if layout is None else None
+        footprints = self.mesh(frame)[..., 3:] if layout is None else None
         layout = self.layout if layout is None else layout
         scene = self.scene_at(frame)
         sides = motion_neighbours(item, frames, frame)
@@ -147,7 +148,7 @@ class Prober:
         next_positions = surface_maps.motion_positions(scene.positions, previous, following)
         task = ImpostorTask(id=f"probe-{frame}", frame=frame, elevation=0, views=[list(view) for view in layout.views], references=False)
         part = render_task(scene, replace(self.plan, layout=layout.to_manifest()), task, {"render": 0.0, "maps": 0.0, "references": 0.0},
-                           next_positions, coverage)
+                           next_positions, footprints)
         layers, *_ = encode_frame(layout, [part], self.formats, False)
         return layers
 

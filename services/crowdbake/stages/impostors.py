@@ -47,8 +47,9 @@ SCENE_FILE = "scene.npz"
 # The maps a part holds; part of its key, so parts written before a map was added are rendered again.
 PART_MAPS = ("normal", "uv", "detail", "surface")
 # What draws the maps and the references, part of a part's key too: parts that numpy resolved from
-# triangle-id renders, or drawn before the surface map held coverage, are drawn again.
-MAP_MAKER = "map_shader-2-coverage"
+# triangle-id renders, drawn before the surface map held coverage or before the normal map held each
+# texel's footprint normal, are drawn again.
+MAP_MAKER = "map_shader-3-footprints"
 # Azimuth gaps the fidelity scores render the mesh in, halfway between two baked azimuths (each at every
 # elevation): each is a render at FIDELITY_SUPERSAMPLE x the tile and its shading, so a bake with more
 # azimuths scores this many gaps spread evenly round the ring (spread_gaps), 16 x 3 cameras of a 32-azimuth
@@ -232,38 +233,40 @@ def task_scene(work: Path, plan: ImpostorPlan, task: ImpostorTask) -> tuple[Scen
 
 
 def render_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dict[str, float],
-                next_positions: np.ndarray | None = None, coverage: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                next_positions: np.ndarray | None = None, footprints: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """A task's maps (and, for the fidelity frame, references): the arrays of its part. draw_task's GL
-    passes, then finish_task's texels on the CPU; next_positions, coverage and timings as draw_task."""
-    return finish_task(draw_task(scene, plan, task, timings, next_positions, coverage), timings)
+    passes, then finish_task's texels on the CPU; next_positions, footprints and timings as draw_task."""
+    return finish_task(draw_task(scene, plan, task, timings, next_positions, footprints), timings)
 
 
 @dataclass
 class DrawnTask:
     """What a task's GL passes drew (draw_task), before finish_task: views (V, 2) (azimuth, elevation)
-    indices; maps as the shader wrote them; coverage (V, S, S) float32 0..1, the mesh's share of each
-    texel; references (V + B, S, S, 4) float32 for the fidelity frame (the baked views, then the B
-    cameras between them; alpha the coverage), else None; between: those cameras (_between_cameras)."""
+    indices; maps as the shader wrote them; footprints (V, S, S, 4) float32 (mesh_footprints: the mean
+    shading normal over each texel's samples, the mesh's share of it in alpha); references (V + B, S, S, 3)
+    float32 for the fidelity frame (the baked views, then the B cameras between them), else None;
+    between: those cameras (_between_cameras)."""
 
     views: list[tuple[int, int]]
     maps: ShaderMaps
-    coverage: np.ndarray
+    footprints: np.ndarray
     references: np.ndarray | None
     between: dict[str, np.ndarray] | None
 
 
 def draw_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dict[str, float],
-              next_positions: np.ndarray | None = None, coverage: np.ndarray | None = None) -> DrawnTask:
+              next_positions: np.ndarray | None = None, footprints: np.ndarray | None = None) -> DrawnTask:
     """A task's GL passes in the shared renderer.
 
     next_positions: (V, 3) the scene's vertices moved by their velocity at this baked frame, for the
     surface maps' motion (crowdbake.bake.surface_maps.motion_positions); None: no motion.
-    coverage: (V, S, S) the mesh's share of each texel of the task's views, where the caller drew it
-    already (mesh_references' alpha; the impostor probes draw a frame's mesh once for both); None: drawn here.
+    footprints: (V, S, S, 4) the task's views' mesh_footprints, where the caller drew them already (the
+    impostor probes draw a frame's once for every count that bakes it); None: drawn here.
 
-    The maps of every view are drawn, encoded, in one pass of crowdbake.render.map_shader; the mesh's
-    share of each texel (the surface map's alpha) as the references are, FIDELITY_SUPERSAMPLE² samples
-    a texel. With references, the mesh is also drawn shaded at FIDELITY_SUPERSAMPLE x the tile from
+    The maps of every view are drawn, encoded, in one pass of crowdbake.render.map_shader at each texel's
+    centre; each texel's footprint (its mean shading normal and the mesh's share of it, the surface map's
+    alpha) as the references sample it, FIDELITY_SUPERSAMPLE² samples a texel. With references, the mesh
+    is also drawn shaded at FIDELITY_SUPERSAMPLE x the tile from
     every baked view and halfway to the next azimuth (_between_cameras), box-filtered on the GPU, in one
     pass. timings: adds "render" (the maps' pass) and "references" seconds.
     """
@@ -284,25 +287,25 @@ def draw_task(scene: Scene, plan: ImpostorPlan, task: ImpostorTask, timings: dic
         between = _between_cameras(plan, views)
         # One pass for the baked views and the cameras between them: the mesh and textures go up once.
         references = mesh_references(scene, plan, angles + [(azimuth, plan.layout["elevations_deg"][e])
-                                                           for (_, e), azimuth in zip(between["between_views"].tolist(), between["between_azimuths"])],
-                                     with_coverage=True)
-        coverage = references[:len(angles), ..., 3]
+                                                           for (_, e), azimuth in zip(between["between_views"].tolist(), between["between_azimuths"])])
         timings["references"] += time.perf_counter() - clock
-    elif coverage is None:
-        # The mesh's share of each texel, sampled as the references are: the surface map's alpha.
-        coverage = mesh_coverage(scene, plan, angles)
+    if footprints is None:
+        # Sampled as the references are: the share is the surface map's alpha, the normal the normal map's.
+        clock = time.perf_counter()
+        footprints = mesh_footprints(scene, plan, angles)
         timings["render"] += time.perf_counter() - clock
-    return DrawnTask(views, maps, coverage, references, between)
+    return DrawnTask(views, maps, footprints, references, between)
 
 
 def finish_task(drawn: DrawnTask, timings: dict[str, float]) -> dict[str, np.ndarray]:
     """The part's arrays from what draw_task drew (its maps are changed in place): texels the mesh
-    covers only in part take their nearest covered texel's values (extend_to_partial_texels),
-    backgrounds are filled for the whole ring at once (fill_background), the surface map's alpha is the
-    coverage. timings: adds "maps" seconds."""
-    maps, coverage = drawn.maps, drawn.coverage
+    covers only in part take their nearest covered texel's values (extend_to_partial_texels), every
+    covered texel the normal of its footprint (footprint_normals), backgrounds are filled for the whole
+    ring at once (fill_background), the surface map's alpha is the coverage. timings: adds "maps" seconds."""
+    maps, coverage = drawn.maps, drawn.footprints[..., 3]
     clock = time.perf_counter()
     mask = extend_to_partial_texels(maps.mask, coverage, [maps.normal, maps.uv, maps.detail, maps.surface])
+    maps.normal[..., :3] = footprint_normals(drawn.footprints[..., :3], maps.normal[..., :3], mask)
     # The surface map's background is filled as the others' but keeps its blocks as filled: its values
     # beside the silhouette are read back by the runtime's reprojection.
     fill_background(mask, [maps.normal, maps.detail], unflattened=[maps.surface])
@@ -312,19 +315,39 @@ def finish_task(drawn: DrawnTask, timings: dict[str, float]) -> dict[str, np.nda
               "detail": maps.detail, "surface": maps.surface}
     if drawn.references is not None:
         count = len(drawn.views)
-        arrays.update(reference=drawn.references[:count, ..., :3], reference_between=drawn.references[count:, ..., :3], **drawn.between)
+        arrays.update(reference=drawn.references[:count], reference_between=drawn.references[count:], **drawn.between)
     return arrays
 
 
-def mesh_coverage(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]]) -> np.ndarray:
-    """The mesh's share of each texel from each (azimuth, elevation) in degrees, sampled as mesh_references
-    samples it (its alpha with_coverage, to the bit, without the shading): (V, S, S) float32."""
+def mesh_footprints(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]]) -> np.ndarray:
+    """Each texel's footprint from each (azimuth, elevation) in degrees, sampled as mesh_references samples
+    it (FIDELITY_SUPERSAMPLE² samples a texel): (V, S, S, 4) float32, RGB the mean shading normal over the
+    samples (0 where the mesh misses one), alpha the share the mesh covers (mesh_references' alpha
+    with_coverage, to the bit)."""
     size = int(plan.layout["tile_size"]) * FIDELITY_SUPERSAMPLE
     views = [impostor_views.ortho_view(plan.center, plan.radius, azimuth, elevation, size) for azimuth, elevation in angles]
     if not views:
-        return np.zeros((0, size // FIDELITY_SUPERSAMPLE, size // FIDELITY_SUPERSAMPLE), np.float32)
-    return shared_renderer(int(plan.layout["tile_size"])).shader_coverage(views, scene.positions, scene.faces, scene.triangle_material,
-                                                                          len(scene.diffuse_runtime or scene.diffuse), FIDELITY_SUPERSAMPLE)
+        return np.zeros((0, size // FIDELITY_SUPERSAMPLE, size // FIDELITY_SUPERSAMPLE, 4), np.float32)
+    return shared_renderer(int(plan.layout["tile_size"])).shader_footprints(
+        views, scene.positions, scene.normals, scene.faces, scene.triangle_material, len(scene.diffuse_runtime or scene.diffuse),
+        FIDELITY_SUPERSAMPLE)
+
+
+def footprint_normals(sums: np.ndarray, codes: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The normal map's RGB codes with every texel of `mask` holding its footprint's normal: the direction
+    of `sums` (..., 3), the shading normals summed (or averaged) over the texel's samples, coded as the map
+    shader codes a normal (SPEC.md "Impostor maps": (n + 1) / 2, rounded to nearest). codes: (..., 3) uint8
+    the map shader's normal at each texel's centre, kept where the sum has no direction (the samples'
+    normals cancel) and outside `mask`.
+
+    A texel the mesh covers in part or across a crease is seen by a picture's pixel as the mean of what it
+    covers (the references' anti-aliasing); its centre's normal alone shades it as one of its faces."""
+    sums = np.asarray(sums, dtype=np.float64)
+    length = np.linalg.norm(sums, axis=-1, keepdims=True)
+    directed = mask[..., None] & (length > 1e-6)
+    unit = sums / np.maximum(length, 1e-12)
+    coded = np.floor(np.clip((unit + 1.0) * 127.5, 0.0, 255.0) + 0.5).astype(np.uint8)
+    return np.where(directed, coded, codes)
 
 
 def mesh_references(scene: Scene, plan: ImpostorPlan, angles: list[tuple[float, float]], with_coverage: bool = False) -> np.ndarray:
