@@ -433,8 +433,8 @@ std::unique_ptr<GlContext> open_context(const Options& o) {
     log_line(gl_context_line(context->info()) + " (" + (desc.window ? "window" : "headless") + ")");
     const bool draws_impostors = o.benchmark || !(o.lod == LodChoice::high || o.lod == LodChoice::low);
     if (is_software_renderer(gl_renderer) && !o.blend_chosen && draws_impostors)
-        log_line("note: " + gl_renderer + " is a software rasteriser, where the default --impostor-blend warp costs about 3.5x "
-                 "(the demo's mixed crowd, 3 frames: 5.4 s against 1.5 s); --impostor-blend off draws the nearest view and "
+        log_line("note: " + gl_renderer + " is a software rasteriser, where the default --impostor-blend warp costs about 4x "
+                 "(the demo's mixed crowd, 3 frames: 5.2 s against 1.3 s); --impostor-blend off draws the nearest view and "
                  "frame instead");
     return context;
 }
