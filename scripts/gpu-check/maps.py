@@ -7,8 +7,8 @@
 
 WORK holds a sample bake's impostor plan and scene as `crowdbake bake --work` leaves them
 (impostor/stage.json, record.json, scene.npz). `draw` runs every task's GL passes with the bake's own
-code (crowdbake.stages.impostors.draw_task: the maps, the mesh's share of each texel, the fidelity
-frame's shaded references) and keeps what they drew; `prepare.py --maps` runs it here under OSMesa.
+code (crowdbake.stages.impostors.draw_task: the maps, each texel's footprint (the mesh's share of it and
+its mean normal), the fidelity frame's shaded references) and keeps what they drew; `prepare.py --maps` runs it here under OSMesa.
 `compare` draws them again on an EGL device and compares each with the file's, channel by channel
 (map_differences): what finish_task later does to them runs on the CPU, the same on any renderer, and
 needs scipy, which the GPU machine does not carry. --gl-device: auto takes the first hardware device
@@ -78,7 +78,7 @@ class SoftwareRasteriser(Exception):
 
 
 def drawn_maps(work: Path, refuse_software: bool) -> tuple[dict[str, np.ndarray], dict, float]:
-    """Every task's GL passes: arrays "<task id>/<map>" (normal, uv, detail, surface, coverage and, for
+    """Every task's GL passes: arrays "<task id>/<map>" (normal, uv, detail, surface, coverage, footprint_normal and, for
     the fidelity frame, references), the context's GL strings and the passes' seconds. SoftwareRasteriser
     before any drawing where refuse_software and the context is one."""
     from crowdbake.render.impostor import shared_renderer
@@ -95,7 +95,9 @@ def drawn_maps(work: Path, refuse_software: bool) -> tuple[dict[str, np.ndarray]
         drawn = draw_task(scene, plan, task, {"render": 0.0, "references": 0.0}, next_positions)
         seconds += time.perf_counter() - clock
         maps = {"normal": drawn.maps.normal, "uv": drawn.maps.uv, "detail": drawn.maps.detail, "surface": drawn.maps.surface,
-                "coverage": drawn.coverage[..., None], "references": drawn.references}
+                # The footprints' mean normal (-1..1) as 0..1, as every float map compared here.
+                "coverage": drawn.footprints[..., 3:], "footprint_normal": (drawn.footprints[..., :3] + 1.0) / 2.0,
+                "references": drawn.references}
         arrays.update({f"{task.id}/{name}": array for name, array in maps.items() if array is not None})
     return arrays, renderer.gl.to_json(), seconds
 

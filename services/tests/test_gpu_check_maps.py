@@ -64,7 +64,7 @@ def test_maps_drawn_under_osmesa_and_again_on_mesas_egl_device_agree_and_a_chang
     assert compared.returncode == 0, compared.stderr
     report = json.loads(report_path.read_text())
     assert report["gl"]["platform"] == "egl" and report["reference_gl"]["platform"] == "osmesa"
-    assert set(report["maps"]) == {"normal", "uv", "detail", "surface", "coverage", "references"}
+    assert set(report["maps"]) == {"normal", "uv", "detail", "surface", "coverage", "footprint_normal", "references"}
     assert all(max(m["max_abs"]) == 0.0 for m in report["maps"].values()) and report["silhouette_iou_worst_task"] == 1.0
 
     with np.load(stored) as data:
