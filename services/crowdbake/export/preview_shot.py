@@ -114,7 +114,7 @@ def take(export_dir: Path, out: Path, count: int, time_s: float | None, lod: str
     from crowdbake.export.devtools import Browser
 
     # Chromium's helpers outlive its main process by a moment and still write into the profile: its removal
-    # retries (cleanup_profile) rather than failing a picture that was taken.
+    # retries (chromium_profile) rather than failing a picture that was taken.
     with serve_export(export_dir) as base, chromium_profile() as profile:
         with Browser(Path(profile), window=size, arguments=CHROMIUM_ARGUMENTS) as browser:
             page = browser.open(f"{base}/preview/index.html?{page_query(count, time_s, lod, seed, size)}")
