@@ -19,8 +19,13 @@ redis-server --port "$redis_port" --bind 127.0.0.1 --save "" --appendonly no --d
   --daemonize yes --pidfile "$redis_dir/redis.pid" --logfile "$redis_dir/redis.log"
 services_dir="$(mktemp -d)"
 cleanup() {
-  [ -f "$redis_dir/redis.pid" ] && kill "$(cat "$redis_dir/redis.pid")" 2>/dev/null || true
-  rm -rf "$redis_dir"
+  if [ -f "$redis_dir/redis.pid" ]; then
+    pid="$(cat "$redis_dir/redis.pid")"
+    kill "$pid" 2>/dev/null || true
+    # Redis still writes its log while it shuts down: removing its folder before it exits can fail.
+    for _ in $(seq 50); do kill -0 "$pid" 2>/dev/null || break; sleep 0.1; done
+  fi
+  rm -rf "$redis_dir" || true
   bash scripts/test-services.sh stop "$services_dir" || true
 }
 trap cleanup EXIT
